@@ -1,0 +1,588 @@
+"""Immutable PCS robot model, built from a plain dict or a YAML file.
+
+A robot is a chain of *segments* (physical members: length, cross-section,
+material, reference strain, free strain modes), each discretised into
+``sections`` pieces of constant strain (piecewise constant strain, PCS).
+Consecutive segments may be joined by a rigid offset transform (members at
+fixed angles). Actuators (tendons, fluidic chambers) belong to the model.
+
+The generalised coordinates ``q`` are the values of the *free* strain modes
+of every section, section by section, in the order
+[axial, shear_y, shear_z, torsion, bending_y, bending_z]; fixed modes stay
+at the reference strain ``f0``. So ``q0`` (the rest configuration) is the
+free part of ``f0``: a straight rod at rest has axial strain 1, not 0.
+
+Units: SI (m, kg, s, N, Pa, rad).
+"""
+
+from dataclasses import dataclass, field
+from typing import Optional
+
+import numpy as np
+
+from .lie import exp_so3, se3_from_rp
+
+STRAIN_NAMES = ("axial", "shear_y", "shear_z", "torsion", "bending_y", "bending_z")
+_MODE_GROUPS = {
+    "all": STRAIN_NAMES,
+    "bending": ("bending_y", "bending_z"),
+    "bending_torsion": ("torsion", "bending_y", "bending_z"),
+    "shear": ("shear_y", "shear_z"),
+}
+
+
+class ModelError(ValueError):
+    """A robot description is invalid; the message names the field and value."""
+
+
+# ----------------------------------------------------------------------------
+# Cross-section and material
+# ----------------------------------------------------------------------------
+
+@dataclass(frozen=True)
+class CrossSection:
+    """Geometric properties of a centroidal, principal-axis cross-section.
+
+    area A [m^2]; second moments I2 (about local y), I3 (about local z) [m^4];
+    torsion constant J [m^4]; shear areas A2 = shear_y * A, A3 = shear_z * A.
+    """
+    area: float
+    I2: float
+    I3: float
+    J: float
+    shear_y: float = 1.0
+    shear_z: float = 1.0
+
+    @staticmethod
+    def solid_circle(radius):
+        A = np.pi * radius**2
+        I = np.pi * radius**4 / 4
+        return CrossSection(A, I, I, 2 * I, 1.0, 1.0)
+
+    @staticmethod
+    def hollow_tube(outer_radius, inner_radius):
+        A = np.pi * (outer_radius**2 - inner_radius**2)
+        I = np.pi * (outer_radius**4 - inner_radius**4) / 4
+        return CrossSection(A, I, I, 2 * I, 1.0, 1.0)
+
+    @staticmethod
+    def rectangle(width, height):
+        """width along local y, height along local z. J from the series
+        approximation J = a b^3 (1/3 - 0.21 (b/a)(1 - b^4/(12 a^4))), a >= b."""
+        A = width * height
+        I2 = width * height**3 / 12     # about y: height is along z
+        I3 = height * width**3 / 12
+        a, b = max(width, height), min(width, height)
+        J = a * b**3 * (1 / 3 - 0.21 * (b / a) * (1 - b**4 / (12 * a**4)))
+        return CrossSection(A, I2, I3, J, 1.0, 1.0)
+
+
+@dataclass(frozen=True)
+class Material:
+    """Young's modulus E [Pa], shear modulus G [Pa], density [kg/m^3],
+    viscosity [Pa s] for Kelvin-Voigt strain-rate damping."""
+    E: float
+    G: float
+    density: float
+    viscosity: float = 0.0
+
+
+# ----------------------------------------------------------------------------
+# Sections, actuators, model
+# ----------------------------------------------------------------------------
+
+@dataclass(frozen=True, eq=False)
+class Section:
+    """One PCS piece: constant strain over ``length``.
+
+    K, D, M: 6x6 stiffness [N, N m^2], damping [N s, N m^2 s] and inertia
+    density [kg/m, kg m] matrices acting on [linear; angular] strains/twists.
+    ``f0`` reference strain; ``free`` boolean mask of free modes;
+    ``offset_after`` rigid transform from this section's end to the next
+    section's start (identity inside a segment).
+    """
+    length: float
+    K: np.ndarray
+    D: np.ndarray
+    M: np.ndarray
+    f0: np.ndarray
+    free: np.ndarray
+    segment: str
+    offset_after: np.ndarray
+
+
+@dataclass(frozen=True, eq=False)
+class Actuator:
+    """A tendon (input: tension [N], >= 0) or fluidic chamber (input: gauge
+    pressure [Pa]) routed from arc length ``start`` to ``end`` [m] at an offset
+    ``d(s)`` [m] from the centre line in the cross-section's (y, z) plane.
+
+    routing: "straight" (constant ``offset``), "converging" (offset varies
+    linearly from ``offset`` at start to ``offset_end`` at end) or "helical"
+    (radius ``radius``, angle ``phase + 2 pi turns_per_meter (s - start)``
+    from the y axis).
+    """
+    name: str
+    kind: str                  # "tendon" | "chamber"
+    start: float
+    end: float
+    routing: str
+    offset: np.ndarray
+    offset_end: np.ndarray
+    radius: float = 0.0
+    phase: float = 0.0
+    turns_per_meter: float = 0.0
+    area: float = 0.0          # chamber area [m^2]
+
+    def offset_at(self, s):
+        """Offset d(s) (..., 3) in the cross-section frame (x component 0) and
+        its arc-length derivative d'(s)."""
+        s = np.asarray(s, dtype=float)
+        d = np.zeros(s.shape + (3,))
+        dd = np.zeros(s.shape + (3,))
+        if self.routing == "straight":
+            d[..., 1:] = self.offset
+        elif self.routing == "converging":
+            frac = (s - self.start) / (self.end - self.start)
+            slope = (self.offset_end - self.offset) / (self.end - self.start)
+            d[..., 1:] = self.offset + frac[..., None] * (self.offset_end - self.offset)
+            dd[..., 1:] = slope
+        else:  # helical
+            k = 2 * np.pi * self.turns_per_meter
+            ang = self.phase + k * (s - self.start)
+            d[..., 1] = self.radius * np.cos(ang)
+            d[..., 2] = self.radius * np.sin(ang)
+            dd[..., 1] = -self.radius * k * np.sin(ang)
+            dd[..., 2] = self.radius * k * np.cos(ang)
+        return d, dd
+
+    @property
+    def force_per_unit_input(self):
+        """Tension equivalent per unit input: +1 for tendons, -area for chambers
+        (a pressurised chamber pushes where a tendon pulls)."""
+        return 1.0 if self.kind == "tendon" else -self.area
+
+
+@dataclass(frozen=True, eq=False)
+class RobotModel:
+    """Immutable PCS robot model. Build with :func:`model_from_dict` or
+    :func:`load_model`. Algorithms take ``(model, q, ...)`` and never modify it."""
+    name: str
+    sections: tuple
+    base_pose: np.ndarray               # 4x4, world <- base
+    gravity: np.ndarray                 # (3,) world frame [m/s^2]
+    actuators: tuple = ()
+    kinematic_map: str = "exponential"  # or "cayley"
+    quadrature_points: int = 4
+    # derived (filled in __post_init__)
+    n_sections: int = field(init=False)
+    lengths: np.ndarray = field(init=False)
+    s_starts: np.ndarray = field(init=False)
+    total_length: float = field(init=False)
+    free_mask: np.ndarray = field(init=False)     # (n, 6) bool
+    free_index: np.ndarray = field(init=False)    # indices into the flattened (n*6)
+    n_dof: int = field(init=False)
+    f0: np.ndarray = field(init=False)            # (n, 6)
+    q0: np.ndarray = field(init=False)
+    K_q: np.ndarray = field(init=False)           # (n_dof, n_dof) generalised stiffness
+    D_q: np.ndarray = field(init=False)           # generalised damping
+    offsets: np.ndarray = field(init=False)       # (n, 4, 4)
+    has_offsets: bool = field(init=False)
+
+    def __post_init__(self):
+        set_ = object.__setattr__
+        n = len(self.sections)
+        if n == 0:
+            raise ModelError("segments: a robot needs at least one section")
+        set_(self, "n_sections", n)
+        lengths = np.array([sec.length for sec in self.sections])
+        set_(self, "lengths", lengths)
+        set_(self, "s_starts", np.concatenate([[0.0], np.cumsum(lengths)[:-1]]))
+        set_(self, "total_length", float(lengths.sum()))
+        mask = np.array([sec.free for sec in self.sections], dtype=bool)
+        set_(self, "free_mask", mask)
+        set_(self, "free_index", np.flatnonzero(mask.ravel()))
+        set_(self, "n_dof", int(mask.sum()))
+        f0 = np.array([sec.f0 for sec in self.sections], dtype=float)
+        set_(self, "f0", f0)
+        set_(self, "q0", f0.ravel()[self.free_index].copy())
+        Kfull = _block_diag([sec.length * sec.K for sec in self.sections])
+        Dfull = _block_diag([sec.length * sec.D for sec in self.sections])
+        idx = self.free_index
+        set_(self, "K_q", Kfull[np.ix_(idx, idx)])
+        set_(self, "D_q", Dfull[np.ix_(idx, idx)])
+        offs = np.array([sec.offset_after for sec in self.sections])
+        set_(self, "offsets", offs)
+        set_(self, "has_offsets", bool(np.abs(offs - np.eye(4)).max() > 0))
+        for arr in (self.lengths, self.s_starts, self.free_mask, self.free_index, self.f0,
+                    self.q0, self.K_q, self.D_q, self.offsets, self.base_pose, self.gravity):
+            arr.setflags(write=False)
+
+    # --- conversions between q and per-section strains -------------------
+    def strains(self, q):
+        """Per-section strains (n_sections, 6) from q (free modes) and f0."""
+        q = self.check_q(q)
+        xi = np.empty(q.shape[:-1] + (6 * self.n_sections,), dtype=np.result_type(q, float))
+        xi[...] = self.f0.ravel()
+        xi[..., self.free_index] = q
+        return xi.reshape(q.shape[:-1] + (self.n_sections, 6))
+
+    def q_from_strains(self, strains):
+        """Free modes of per-section strains (n_sections, 6); the fixed modes
+        must equal f0 (else ModelError)."""
+        xi = np.asarray(strains, dtype=float)
+        if xi.shape != (self.n_sections, 6):
+            raise ModelError(f"strains: expected shape ({self.n_sections}, 6), got {xi.shape}")
+        fixed = ~self.free_mask
+        if np.any(np.abs(xi[fixed] - self.f0[fixed]) > 1e-12):
+            raise ModelError("strains: fixed (not free) modes must equal the reference strain f0")
+        return xi.ravel()[self.free_index].copy()
+
+    def check_q(self, q, name="q"):
+        q = np.asarray(q)
+        if q.dtype.kind not in "fc":
+            q = q.astype(float)
+        if q.shape[-1:] != (self.n_dof,):
+            raise ValueError(f"{name}: expected shape (..., {self.n_dof}) for this model "
+                             f"({self.n_sections} sections, {self.n_dof} free modes), got {q.shape}")
+        if np.iscomplexobj(q):
+            if not np.all(np.isfinite(q.real)):
+                raise ValueError(f"{name}: contains NaN or inf")
+        elif not np.all(np.isfinite(q)):
+            raise ValueError(f"{name}: contains NaN or inf")
+        return q
+
+    def locate(self, s):
+        """Section index and local abscissa x in [0, L_i] of arc lengths s [m].
+        A boundary belongs to the later section; s = total length to the last."""
+        s = np.asarray(s, dtype=float)
+        if np.any(s < -1e-12) or np.any(s > self.total_length + 1e-12):
+            raise ValueError(f"s: arc lengths must lie in [0, {self.total_length}] m, "
+                             f"got min {s.min()}, max {s.max()}")
+        idx = np.searchsorted(self.s_starts, s, side="right") - 1
+        idx = np.clip(idx, 0, self.n_sections - 1)
+        x = np.clip(s - self.s_starts[idx], 0.0, self.lengths[idx])
+        return idx, x
+
+    @property
+    def actuator_names(self):
+        return tuple(a.name for a in self.actuators)
+
+    @property
+    def mass(self):
+        return float(sum(sec.length * sec.M[0, 0] for sec in self.sections))
+
+
+def _block_diag(blocks):
+    n = sum(b.shape[0] for b in blocks)
+    out = np.zeros((n, n))
+    i = 0
+    for b in blocks:
+        k = b.shape[0]
+        out[i:i + k, i:i + k] = b
+        i += k
+    return out
+
+
+# ----------------------------------------------------------------------------
+# Building from dicts / YAML with validation
+# ----------------------------------------------------------------------------
+
+def _num(d, key, where, *, positive=False, nonneg=False, default=None):
+    if key not in d:
+        if default is not None:
+            return float(default)
+        raise ModelError(f"{where}.{key}: missing (required)")
+    v = d[key]
+    if isinstance(v, str):
+        # PyYAML (YAML 1.1) reads 71.7e9 without a sign or dot as a string
+        try:
+            v = float(v)
+        except ValueError:
+            raise ModelError(f"{where}.{key}: expected a number, got {v!r}") from None
+    if isinstance(v, bool) or not isinstance(v, (int, float)):
+        raise ModelError(f"{where}.{key}: expected a number, got {v!r}")
+    v = float(v)
+    if not np.isfinite(v):
+        raise ModelError(f"{where}.{key}: must be finite, got {v!r}")
+    if positive and v <= 0:
+        raise ModelError(f"{where}.{key}: must be > 0, got {v!r}")
+    if nonneg and v < 0:
+        raise ModelError(f"{where}.{key}: must be >= 0, got {v!r}")
+    return v
+
+
+def _vec(d, key, n, where, default=None):
+    if key not in d:
+        if default is not None:
+            return np.array(default, dtype=float)
+        raise ModelError(f"{where}.{key}: missing (required)")
+    v = d[key]
+    try:
+        arr = np.array(v, dtype=float)
+    except (TypeError, ValueError):
+        raise ModelError(f"{where}.{key}: expected {n} numbers, got {v!r}") from None
+    if arr.shape != (n,) or not np.all(np.isfinite(arr)):
+        raise ModelError(f"{where}.{key}: expected {n} finite numbers, got {v!r}")
+    return arr
+
+
+def _check_keys(d, allowed, where):
+    if not isinstance(d, dict):
+        raise ModelError(f"{where}: expected a mapping, got {d!r}")
+    unknown = set(d) - set(allowed)
+    if unknown:
+        raise ModelError(f"{where}: unknown field(s) {sorted(unknown)}; allowed: {sorted(allowed)}")
+
+
+def pose_from_dict(d, where):
+    """{position: [x,y,z], rpy: [roll,pitch,yaw]} (or quaternion [x,y,z,w]) -> 4x4."""
+    if d is None:
+        return np.eye(4)
+    _check_keys(d, {"position", "rpy", "quaternion"}, where)
+    p = _vec(d, "position", 3, where, default=[0, 0, 0])
+    if "quaternion" in d and "rpy" in d:
+        raise ModelError(f"{where}: give rpy or quaternion, not both")
+    if "quaternion" in d:
+        x, y, z, w = _vec(d, "quaternion", 4, where)
+        nq = np.sqrt(x * x + y * y + z * z + w * w)
+        if nq < 1e-9:
+            raise ModelError(f"{where}.quaternion: zero quaternion")
+        x, y, z, w = x / nq, y / nq, z / nq, w / nq
+        R = np.array([[1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)],
+                      [2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)],
+                      [2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)]])
+    else:
+        r, pch, y = _vec(d, "rpy", 3, where, default=[0, 0, 0])
+        R = exp_so3(np.array([0, 0, y])) @ exp_so3(np.array([0, pch, 0])) @ exp_so3(np.array([r, 0, 0]))
+    return se3_from_rp(R, p)
+
+
+def _cross_section(d, where):
+    _check_keys(d, {"shape", "radius", "outer_radius", "inner_radius", "width", "height",
+                    "area", "I2", "I3", "J", "shear_factor_y", "shear_factor_z"}, where)
+    shape = d.get("shape", "solid_circle")
+    if shape == "solid_circle":
+        cs = CrossSection.solid_circle(_num(d, "radius", where, positive=True))
+    elif shape == "hollow_tube":
+        ro = _num(d, "outer_radius", where, positive=True)
+        ri = _num(d, "inner_radius", where, nonneg=True)
+        if ri >= ro:
+            raise ModelError(f"{where}.inner_radius: must be < outer_radius ({ro}), got {ri}")
+        cs = CrossSection.hollow_tube(ro, ri)
+    elif shape == "rectangle":
+        cs = CrossSection.rectangle(_num(d, "width", where, positive=True),
+                                    _num(d, "height", where, positive=True))
+    elif shape == "explicit":
+        cs = CrossSection(_num(d, "area", where, positive=True), _num(d, "I2", where, positive=True),
+                          _num(d, "I3", where, positive=True), _num(d, "J", where, positive=True))
+    else:
+        raise ModelError(f"{where}.shape: expected one of solid_circle, hollow_tube, rectangle, "
+                         f"explicit, got {shape!r}")
+    ky = _num(d, "shear_factor_y", where, positive=True, default=cs.shear_y)
+    kz = _num(d, "shear_factor_z", where, positive=True, default=cs.shear_z)
+    J = _num(d, "J", where, positive=True, default=cs.J)   # explicit torsion constant wins
+    return CrossSection(cs.area, cs.I2, cs.I3, J, ky, kz)
+
+
+def _material(d, where):
+    _check_keys(d, {"youngs_modulus", "shear_modulus", "poisson_ratio", "density", "viscosity"},
+                where)
+    E = _num(d, "youngs_modulus", where, positive=True)
+    if "shear_modulus" in d and "poisson_ratio" in d:
+        raise ModelError(f"{where}: give shear_modulus or poisson_ratio, not both")
+    if "shear_modulus" in d:
+        G = _num(d, "shear_modulus", where, positive=True)
+    else:
+        nu = _num(d, "poisson_ratio", where, default=0.5)
+        if not -1.0 < nu <= 0.5:
+            raise ModelError(f"{where}.poisson_ratio: must be in (-1, 0.5], got {nu}")
+        G = E / (2 * (1 + nu))
+    return Material(E, G, _num(d, "density", where, positive=True),
+                    _num(d, "viscosity", where, nonneg=True, default=0.0))
+
+
+def _free_modes(v, where):
+    if v is None:
+        v = "all"
+    if isinstance(v, str):
+        if v not in _MODE_GROUPS:
+            raise ModelError(f"{where}: expected 'all', 'bending', 'bending_torsion', 'shear' or a "
+                             f"list of {list(STRAIN_NAMES)}, got {v!r}")
+        names = _MODE_GROUPS[v]
+    else:
+        names = list(v)
+        for nm in names:
+            if nm not in STRAIN_NAMES:
+                raise ModelError(f"{where}: unknown strain mode {nm!r}; expected names from "
+                                 f"{list(STRAIN_NAMES)}")
+        if not names:
+            raise ModelError(f"{where}: at least one free mode is needed")
+    return np.array([nm in names for nm in STRAIN_NAMES])
+
+
+def section_matrices(cs, mat):
+    """Stiffness K, damping D and inertia density M (6x6) of a cross-section.
+
+    K = diag(EA, G A2, G A3, G J, E I2, E I3); D = viscosity * diag(3A, A2, A3,
+    J, 3 I2, 3 I3) (Kelvin-Voigt with incompressible 3x factor on normal
+    strains); M = density * diag(A, A, A, I2 + I3, I2, I3) (polar inertia for
+    rotation about the axis).
+    """
+    A2, A3 = cs.shear_y * cs.area, cs.shear_z * cs.area
+    K = np.diag([mat.E * cs.area, mat.G * A2, mat.G * A3, mat.G * cs.J, mat.E * cs.I2, mat.E * cs.I3])
+    D = mat.viscosity * np.diag([3 * cs.area, A2, A3, cs.J, 3 * cs.I2, 3 * cs.I3])
+    M = mat.density * np.diag([cs.area, cs.area, cs.area, cs.I2 + cs.I3, cs.I2, cs.I3])
+    return K, D, M
+
+
+def _actuator(d, i, total_length):
+    where = f"actuators[{i}]"
+    _check_keys(d, {"name", "type", "start", "end", "routing", "offset", "offset_end", "radius",
+                    "phase", "turns_per_meter", "area"}, where)
+    name = d.get("name")
+    if not isinstance(name, str) or not name:
+        raise ModelError(f"{where}.name: expected a non-empty string, got {name!r}")
+    kind = d.get("type", "tendon")
+    if kind not in ("tendon", "chamber"):
+        raise ModelError(f"{where}.type: expected 'tendon' or 'chamber', got {kind!r}")
+    start = _num(d, "start", where, nonneg=True, default=0.0)
+    end = _num(d, "end", where, positive=True, default=total_length)
+    if not start < end <= total_length + 1e-12:
+        raise ModelError(f"{where}: need 0 <= start < end <= robot length {total_length} m, "
+                         f"got start={start}, end={end}")
+    routing = d.get("routing", "straight")
+    if routing not in ("straight", "converging", "helical"):
+        raise ModelError(f"{where}.routing: expected straight, converging or helical, got {routing!r}")
+    offset = offset_end = np.zeros(2)
+    radius = phase = turns = 0.0
+    if routing in ("straight", "converging"):
+        offset = _vec(d, "offset", 2, where)
+        offset_end = _vec(d, "offset_end", 2, where) if routing == "converging" else offset
+    else:
+        radius = _num(d, "radius", where, positive=True)
+        phase = _num(d, "phase", where, default=0.0)
+        turns = _num(d, "turns_per_meter", where, default=0.0)
+    area = 0.0
+    if kind == "chamber":
+        area = _num(d, "area", where, positive=True)
+    return Actuator(name, kind, start, min(end, total_length), routing, offset, offset_end,
+                    radius, phase, turns, area)
+
+
+def model_from_dict(d, n_sections_override=None):
+    """Build a :class:`RobotModel` from a plain dict (the YAML schema in
+    config/*.yaml). ``n_sections_override`` replaces every segment's section
+    count (for convergence studies). Raises ModelError naming the bad field."""
+    _check_keys(d, {"name", "base", "gravity", "kinematic_map", "quadrature_points",
+                    "segments", "actuators"}, "robot")
+    segs = d.get("segments")
+    if not isinstance(segs, list) or not segs:
+        raise ModelError("robot.segments: expected a non-empty list of segments")
+    sections = []
+    for k, sd in enumerate(segs):
+        where = f"segments[{k}]"
+        _check_keys(sd, {"name", "length", "sections", "cross_section", "material",
+                         "reference_strain", "free_modes", "offset_to_next"}, where)
+        length = _num(sd, "length", where, positive=True)
+        n = sd.get("sections", 1) if n_sections_override is None else n_sections_override
+        if isinstance(n, bool) or not isinstance(n, int) or n < 1:
+            raise ModelError(f"{where}.sections: expected an integer >= 1, got {n!r}")
+        if "cross_section" not in sd:
+            raise ModelError(f"{where}.cross_section: missing (required)")
+        if "material" not in sd:
+            raise ModelError(f"{where}.material: missing (required)")
+        cs = _cross_section(sd["cross_section"], where + ".cross_section")
+        mat = _material(sd["material"], where + ".material")
+        f0 = _vec(sd, "reference_strain", 6, where, default=[1, 0, 0, 0, 0, 0])
+        if f0[0] <= 0:
+            raise ModelError(f"{where}.reference_strain: axial strain must be > 0, got {f0[0]}")
+        free = _free_modes(sd.get("free_modes", "all"), where + ".free_modes")
+        off = pose_from_dict(sd.get("offset_to_next"), where + ".offset_to_next")
+        K, D, M = section_matrices(cs, mat)
+        name = str(sd.get("name", f"segment{k}"))
+        for j in range(n):
+            sections.append(Section(length / n, K, D, M, f0, free, name,
+                                    off if j == n - 1 else np.eye(4)))
+    total = sum(s.length for s in sections)
+    acts = d.get("actuators", []) or []
+    if not isinstance(acts, list):
+        raise ModelError("robot.actuators: expected a list")
+    actuators = tuple(_actuator(a, i, total) for i, a in enumerate(acts))
+    names = [a.name for a in actuators]
+    if len(set(names)) != len(names):
+        raise ModelError(f"robot.actuators: names must be unique, got {names}")
+    kmap = d.get("kinematic_map", "exponential")
+    if kmap not in ("exponential", "cayley"):
+        raise ModelError(f"robot.kinematic_map: expected 'exponential' or 'cayley', got {kmap!r}")
+    nq = d.get("quadrature_points", 4)
+    if isinstance(nq, bool) or not isinstance(nq, int) or not 1 <= nq <= 20:
+        raise ModelError(f"robot.quadrature_points: expected an integer in 1..20, got {nq!r}")
+    return RobotModel(
+        name=str(d.get("name", "robot")),
+        sections=tuple(sections),
+        base_pose=pose_from_dict(d.get("base"), "robot.base"),
+        gravity=_vec(d, "gravity", 3, "robot", default=[0, 0, -9.81]),
+        actuators=actuators,
+        kinematic_map=kmap,
+        quadrature_points=nq,
+    )
+
+
+def load_model(path, n_sections_override=None):
+    """Load a robot description from a YAML file (a top-level ``robot:`` key
+    is accepted too)."""
+    import yaml
+    try:
+        with open(path) as fh:
+            d = yaml.safe_load(fh)
+    except OSError as e:
+        raise ModelError(f"robot file {path}: {e.strerror}") from None
+    except yaml.YAMLError as e:
+        raise ModelError(f"robot file {path}: invalid YAML: {e}") from None
+    if isinstance(d, dict) and "robot" in d and "segments" not in d:
+        d = d["robot"]
+    if not isinstance(d, dict):
+        raise ModelError(f"robot file {path}: expected a mapping at top level")
+    return model_from_dict(d, n_sections_override)
+
+
+def with_sections(model_dict, n):
+    """Convenience for convergence studies: the same robot with n sections per segment."""
+    return model_from_dict(model_dict, n_sections_override=n)
+
+
+def straight_state(model):
+    """q at rest (the reference strains)."""
+    return model.q0.copy()
+
+
+@dataclass
+class State:
+    """Per-call mutable state, kept apart from the model: strains q (free
+    modes), strain rates qdot, time t [s]."""
+    q: np.ndarray
+    qdot: np.ndarray
+    t: float = 0.0
+
+    @staticmethod
+    def rest(model):
+        return State(model.q0.copy(), np.zeros(model.n_dof), 0.0)
+
+    def copy(self):
+        return State(self.q.copy(), self.qdot.copy(), self.t)
+
+
+def benchmark_cantilever_dict(n_sections=10, free_modes="all", length=0.5, radius=0.01):
+    """The common benchmark case of shared/DESIGN.md: L = 0.5 m, r = 0.01 m,
+    E = 1 MPa, Poisson 0.5, 1000 kg/m^3, along +x, gravity -z."""
+    return {
+        "name": "benchmark_cantilever",
+        "gravity": [0.0, 0.0, -9.81],
+        "segments": [{
+            "name": "rod", "length": length, "sections": n_sections,
+            "cross_section": {"shape": "solid_circle", "radius": radius},
+            "material": {"youngs_modulus": 1.0e6, "poisson_ratio": 0.5, "density": 1000.0},
+            "free_modes": free_modes,
+        }],
+    }
