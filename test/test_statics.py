@@ -1,0 +1,200 @@
+"""Statics: loads, actuation, Newton solver (issue 5)."""
+
+import numpy as np
+import pytest
+
+from soft_twin_core import kinematics as kin
+from soft_twin_core import loads as ld
+from soft_twin_core import statics as st
+from soft_twin_core.model import benchmark_cantilever_dict, model_from_dict
+
+NO_GRAVITY = dict(gravity=False)
+
+
+def rod(n=4, free="all", length=0.5, **seg):
+    d = benchmark_cantilever_dict(n, free, length=length)
+    d["segments"][0].update(seg)
+    return d
+
+
+# --- closed forms -------------------------------------------------------------
+
+@pytest.mark.parametrize("n", [1, 3, 8])
+def test_pure_tip_moment_closes_the_circle(n):
+    """Follower moment tau = 2 pi EI/L: constant curvature, tip back at the base."""
+    m = model_from_dict(rod(n))
+    EI, L = m.sections[0].K[4, 4], m.total_length
+    tau = 2 * np.pi * EI / L
+    loads = ld.Loads(point=(ld.tip_load(m, moment=(0, tau, 0), frame="body"),), **NO_GRAVITY)
+    r = st.solve_statics(m, loads=loads)
+    assert np.abs(r.strains[:, 4] - tau / EI).max() < 1e-9 * tau / EI
+    assert np.abs(r.strains[:, [0, 1, 2, 3, 5]] - [1, 0, 0, 0, 0]).max() < 1e-12
+    assert np.linalg.norm(r.tip_pose[:3, 3]) < 1e-9 * L
+    assert r.residual <= 1e-10
+
+
+@pytest.mark.parametrize("tau", [1.0, 2.0, 5.0])
+def test_constant_tip_moment_slides_shape(tau):
+    """Slides part C: EI_y = 1 N m^2, L = 1 m; u(a) = [sin(k a)/k, 0, -(1-cos(k a))/k]."""
+    d = {"segments": [{"length": 1.0, "sections": 3, "free_modes": "bending",
+                       "cross_section": {"shape": "explicit", "area": 1.0, "I2": 1.0, "I3": 1.0, "J": 2.0},
+                       "material": {"youngs_modulus": 1.0, "shear_modulus": 0.5, "density": 1.0}}]}
+    m = model_from_dict(d)
+    loads = ld.Loads(point=(ld.tip_load(m, moment=(0, tau, 0), frame="body"),), **NO_GRAVITY)
+    r = st.solve_statics(m, loads=loads)
+    a = np.linspace(0, 1, 9)
+    P = kin.poses(m, r.q, a)[:, :3, 3]
+    k = tau
+    ref = np.stack([np.sin(k * a) / k, 0 * a, -(1 - np.cos(k * a)) / k], -1)
+    assert np.abs(P - ref).max() < 1e-12
+
+
+def planar_tendon_arm(n=5, offset=0.008, end=None):
+    d = rod(n, "bending")
+    d["gravity"] = [0, 0, 0]
+    d["actuators"] = [{"name": "t1", "type": "tendon", "offset": [offset, 0.0],
+                       **({} if end is None else {"end": end})}]
+    return model_from_dict(d)
+
+
+@pytest.mark.parametrize("T", [0.05, 0.2, 0.5])
+def test_tendon_equals_point_moment_and_constant_curvature(T):
+    """Slides part C "Tendon-driven planar soft continuum arm": a tendon at
+    offset d terminating at the tip equals a tip follower moment T d, and
+    gives the constant curvature kappa = T d / EI (bending towards the tendon)."""
+    d = 0.008
+    m = planar_tendon_arm(5, d)
+    EI, L = m.sections[0].K[5, 5], m.total_length
+    r_tendon = st.solve_statics(m, {"t1": T})
+    moment = ld.Loads(point=(ld.tip_load(m, moment=(0, 0, T * d), frame="body"),), gravity=False)
+    r_moment = st.solve_statics(m, loads=moment)
+    assert np.abs(r_tendon.q - r_moment.q).max() < 1e-9 * T * d / EI
+    kappa = T * d / EI
+    assert np.abs(r_tendon.strains[:, 5] - kappa).max() < 1e-10 * kappa
+    p = r_tendon.tip_pose[:3, 3]
+    ref = [np.sin(kappa * L) / kappa, (1 - np.cos(kappa * L)) / kappa, 0.0]
+    assert np.abs(p - ref).max() < 1e-12
+    assert p[1] > 0  # towards the tendon side (+y)
+
+
+def test_tendon_terminating_mid_arm_bends_only_its_span():
+    m = planar_tendon_arm(4, 0.008, end=0.25)
+    r = st.solve_statics(m, {"t1": 0.3})
+    EI = m.sections[0].K[5, 5]
+    assert np.allclose(r.strains[:2, 5], 0.3 * 0.008 / EI, rtol=1e-10)
+    assert np.allclose(r.strains[2:, 5], 0.0, atol=1e-12)
+
+
+def test_tendon_force_is_minus_tension_times_length_gradient():
+    """tau = -T d(ell)/dq for every routing (exact, conservative), by central FD."""
+    d = rod(3, "all")
+    d["actuators"] = [
+        {"name": "s", "offset": [0.006, -0.002]},
+        {"name": "c", "routing": "converging", "offset": [0.008, 0.0], "offset_end": [0.002, 0.003],
+         "end": 0.4},
+        {"name": "h", "routing": "helical", "radius": 0.007, "phase": 0.3, "turns_per_meter": 1.5,
+         "start": 0.1},
+        {"name": "p", "type": "chamber", "area": 3e-5, "offset": [0.0, 0.005]},
+    ]
+    m = model_from_dict(d)
+    q = m.q0 + 0.3 * np.random.default_rng(3).normal(size=m.n_dof)
+    for i, a in enumerate(m.actuators):
+        u = np.zeros(4)
+        u[i] = 1.0
+        tau = ld.actuation_force(m, kin.chain(m, q), u)
+        h = 1e-6
+        grad = np.array([(ld.tendon_lengths(m, q + h * e)[i] - ld.tendon_lengths(m, q - h * e)[i]) / (2 * h)
+                         for e in np.eye(m.n_dof)])
+        assert np.abs(tau + a.force_per_unit_input * grad).max() < 1e-8, a.name
+
+
+def test_negative_tension_and_unknown_actuator_rejected():
+    m = planar_tendon_arm()
+    with pytest.raises(ValueError, match=r"tendon t1 tension must be >= 0 N, got -1.0"):
+        st.solve_statics(m, {"t1": -1.0})
+    with pytest.raises(ValueError, match=r"unknown actuator 't9'"):
+        st.solve_statics(m, {"t9": 1.0})
+    with pytest.raises(ValueError, match="not finite"):
+        st.solve_statics(m, {"t1": float("nan")})
+
+
+# --- tangent, balance, solver behaviour ------------------------------------
+
+def test_complex_step_tangent_matches_central_differences():
+    d = rod(3, "all")
+    d["actuators"] = [{"name": "h", "routing": "helical", "radius": 0.007, "turns_per_meter": 1.0}]
+    m = model_from_dict(d)
+    q = m.q0 + 0.2 * np.random.default_rng(0).normal(size=m.n_dof)
+    loads = ld.Loads(point=(ld.tip_load(m, force=(0.01, 0.02, -0.03), moment=(0.001, 0, 0.002)),
+                            ld.PointLoad(0.2, (0, 0.01, 0, 0, 0, 0.001), "body")),
+                     distributed=(ld.DistributedLoad((0.01, 0, 0, 0, 0.001, 0), "body", 0.1, 0.3),))
+    u = np.array([0.4])
+    K = st.tangent(m, q, u, loads)
+    h = 1e-6
+    Kfd = np.stack([(st.residual(m, q + h * e, u, loads) - st.residual(m, q - h * e, u, loads)) / (2 * h)
+                    for e in np.eye(m.n_dof)], 1)
+    assert np.abs(K - Kfd).max() < 1e-7 * np.abs(K).max()
+
+
+def test_base_reaction_balances_loads():
+    m = model_from_dict(rod(6, "all"))
+    f_tip, m_tip = np.array([0.02, -0.05, 0.01]), np.array([0.001, 0.002, -0.003])
+    loads = ld.Loads(point=(ld.tip_load(m, f_tip, m_tip),))
+    r = st.solve_statics(m, loads=loads)
+    # independent sums: total weight, tip force; moments from FK positions
+    s = np.linspace(0, m.total_length, 20001)
+    p = kin.poses(m, r.q, s)[:, :3, 3]
+    rhoA = m.sections[0].M[0, 0]
+    wgt = rhoA * m.gravity
+    mid = 0.5 * (p[1:] + p[:-1])
+    ds = np.diff(s)
+    m_grav = np.sum(np.cross(mid, wgt[None, :]) * ds[:, None], axis=0)
+    F = wgt * m.total_length + f_tip
+    M = m_grav + np.cross(r.tip_pose[:3, 3], f_tip) + m_tip
+    assert np.abs(r.base_wrench_world[:3] + F).max() < 1e-9 * np.abs(F).max()
+    assert np.abs(r.base_wrench_world[3:] + M).max() < 1e-8 * np.abs(M).max()
+
+
+def test_internal_wrench_at_base_equals_reaction_and_tip_equals_load():
+    m = model_from_dict(rod(6, "all"))
+    f_tip = np.array([0.0, 0.01, -0.02])
+    loads = ld.Loads(point=(ld.tip_load(m, f_tip),))
+    r = st.solve_statics(m, loads=loads)
+    Wi = st.internal_wrenches(m, r.q, [0.0, m.total_length], loads=loads)
+    R_tip = r.tip_pose[:3, :3]
+    assert np.allclose(Wi[1, :3], R_tip.T @ f_tip, atol=1e-15)
+    # at s = 0 the body frame is the base frame (world here): reaction = -internal
+    assert np.allclose(Wi[0], -r.base_wrench_world, atol=1e-12)
+
+
+def test_pcs_converges_under_gravity_benchmark():
+    """The common benchmark case: tip error falls ~ O(h^2) as sections are added."""
+    tips = {}
+    for n in (2, 4, 8, 16):
+        tips[n] = st.solve_statics(model_from_dict(benchmark_cantilever_dict(n))).tip_pose[:3, 3]
+    e = [np.linalg.norm(tips[n] - tips[16]) for n in (2, 4, 8)]
+    assert e[0] > e[1] > e[2]
+    assert e[1] / e[2] > 3.0
+    assert tips[16][2] < -0.4   # nearly vertical tip
+
+
+def test_warm_start_and_load_stepping():
+    m = model_from_dict(rod(6, "all"))
+    EI = m.sections[0].K[4, 4]
+    big = ld.Loads(point=(ld.tip_load(m, force=(0, 0, -12 * EI / m.total_length**2)),))
+    r = st.solve_statics(m, loads=big)
+    assert r.residual <= 1e-10 and r.tip_pose[2, 3] < -0.3
+    r2 = st.solve_statics(m, loads=big, q_init=r.q)
+    assert r2.iterations == 0
+    r3 = st.solve_statics(m, loads=big, q_init=r.q * 0.99 + 0.01 * m.q0)
+    assert r3.iterations <= 4
+
+
+def test_bad_inputs_named():
+    m = model_from_dict(rod(2))
+    with pytest.raises(ValueError, match=r"loads.point\[0\].wrench"):
+        st.solve_statics(m, loads=ld.Loads(point=(ld.PointLoad(0.5, (1, 2, 3)),)))
+    with pytest.raises(ValueError, match=r"loads.point\[0\].s: must lie in"):
+        st.solve_statics(m, loads=ld.Loads(point=(ld.PointLoad(2.0, (0,) * 6),)))
+    with pytest.raises(ValueError, match=r"q_init: expected shape"):
+        st.solve_statics(m, q_init=np.zeros(3))
