@@ -1,0 +1,35 @@
+# soft_twin: two commands for newcomers, `make demo` and `make test`.
+# Every target first runs the idempotent set-up (scripts/setup_env.sh): a
+# .venv with the pinned ROS 2 Jazzy wheels and the package built into it.
+# A run with nothing changed skips the installs and takes a few seconds.
+
+VENV        ?= .venv
+PY          := $(VENV)/bin/python
+ARGS        ?=
+PYTEST_ARGS ?=
+
+export SOFT_TWIN_VENV := $(abspath $(VENV))
+
+.PHONY: setup demo test run lock clean
+
+setup:
+	@bash scripts/setup_env.sh
+
+# The main job: the twin node driven by a demo client; prints a table, writes a PNG.
+demo: setup
+	$(PY) scripts/demo.py $(ARGS)
+
+# The whole suite. pytest exits 5 when it collected no test: that fails too.
+test: setup
+	$(PY) -m pytest $(PYTEST_ARGS)
+
+# The node alone, e.g. make run ARGS="--ros-args --params-file config/params.yaml -p mode:=dynamic"
+run: setup
+	$(VENV)/bin/soft_twin_node $(ARGS)
+
+# Re-resolve requirements/constraints.txt after editing requirements/{ros,dev}.txt.
+lock:
+	bash scripts/lock_requirements.sh
+
+clean:
+	rm -rf build $(VENV)

@@ -1,0 +1,170 @@
+#!/usr/bin/env bash
+# Idempotent set-up of the development environment (run by `make setup`, and
+# so by `make demo`, `make test`, `make run`):
+#
+#   1. .venv: a plain venv of python3.11 with the pinned ROS 2 Jazzy wheels
+#      (runtime + the build-time wheels for interfaces) and the pinned Python
+#      dependencies (requirements/*.txt, every version in constraints.txt);
+#   2. the soft_twin ROS package built by plain CMake in build/soft_twin and
+#      installed into the venv prefix: generated soft_twin.msg/soft_twin.srv,
+#      the hand-written soft_twin/ modules and soft_twin_core in
+#      .venv/lib/python3.11/site-packages, the interface libraries in
+#      .venv/lib, the commands soft_twin_node and soft-twin-sim in .venv/bin;
+#   3. on every run, a cheap re-install of the Python sources (cmake --install
+#      copies changed files only) so code edits reach the venv.
+#
+# Steps 1 and 2 are skipped when the hash of their inputs matches the stamp
+# they left: a run with nothing changed takes a few seconds. The venv needs
+# no environment variables: the ros-wheels-bootstrapper in it re-executes
+# Python with LD_LIBRARY_PATH set.
+#
+# Environment: PYTHON (interpreter to build the venv from, default python3 or
+# python3.11), SOFT_TWIN_VENV (default <repo>/.venv), SOFT_TWIN_BUILD (default
+# <repo>/build/soft_twin).
+set -euo pipefail
+
+ROOT=$(cd "$(dirname "${BASH_SOURCE[0]}")/.." && pwd)
+VENV=${SOFT_TWIN_VENV:-$ROOT/.venv}
+BUILD=${SOFT_TWIN_BUILD:-$ROOT/build/soft_twin}
+mkdir -p "$ROOT/build"
+LOG=$ROOT/build/setup.log
+REQ=$ROOT/requirements
+T0=$(date +%s)
+
+say() { echo "[setup] $*" >&2; }
+fail() {
+    say "FAILED: $*"
+    if [ -s "$LOG" ]; then say "last lines of $LOG:"; tail -n 40 "$LOG" >&2; fi
+    exit 1
+}
+# this machine's pip.conf adds file:// indexes that warn on every call: harmless
+quiet_pip() { grep -v -e '^WARNING: Location' -e '^WARNING: Skipping' -e '^$' || true; }
+
+# One set-up at a time per checkout (parallel `make` calls share .venv).
+exec 9>"$ROOT/build/.setup.lock"
+flock 9
+: >"$LOG"
+
+# ---- 0. build tools ---------------------------------------------------------
+missing=()
+for tool in cmake make gcc g++; do
+    command -v "$tool" >/dev/null 2>&1 || missing+=("$tool")
+done
+if [ ${#missing[@]} -gt 0 ]; then
+    say "missing build tools: ${missing[*]}"
+    command -v apt-get >/dev/null 2>&1 || fail "install ${missing[*]} (cmake, a C/C++ compiler, make)"
+    SUDO=""
+    [ "$(id -u)" -eq 0 ] || SUDO="sudo"
+    say "installing cmake make gcc g++ with apt-get"
+    $SUDO env DEBIAN_FRONTEND=noninteractive apt-get update -q >>"$LOG" 2>&1 || fail "apt-get update"
+    $SUDO env DEBIAN_FRONTEND=noninteractive apt-get install -y -q cmake make gcc g++ >>"$LOG" 2>&1 \
+        || fail "apt-get install cmake make gcc g++"
+fi
+
+# ---- 1. venv with pinned wheels ----------------------------------------------
+# The ROS 2 Jazzy wheels exist for CPython 3.11 only.
+pick_python() {
+    local c
+    for c in ${PYTHON:-} python3 python3.11; do
+        if command -v "$c" >/dev/null 2>&1 &&
+            "$c" -c 'import sys; sys.exit(sys.version_info[:2] != (3, 11))' 2>/dev/null; then
+            command -v "$c"
+            return 0
+        fi
+    done
+    return 1
+}
+
+hash_of() { cat "$@" | sha256sum | cut -c1-64; }
+
+DEPS_FILES=("$REQ/ros.txt" "$REQ/dev.txt" "$REQ/constraints.txt")
+DEPS_HASH=$( { hash_of "${DEPS_FILES[@]}"; uname -m; echo "deps-v1"; } | sha256sum | cut -c1-64)
+DEPS_STAMP=$VENV/.soft_twin-deps.sha256
+
+venv_ok() { [ -x "$VENV/bin/python" ] && "$VENV/bin/python" -c 'import sys' >/dev/null 2>&1; }
+
+if ! venv_ok || [ "$(cat "$DEPS_STAMP" 2>/dev/null)" != "$DEPS_HASH" ]; then
+    if ! venv_ok; then
+        PY=$(pick_python) || fail "need CPython 3.11 (the ROS 2 Jazzy wheels are cp311); set PYTHON=/path/to/python3.11"
+        say "creating $VENV with $PY ($("$PY" --version 2>&1))"
+        rm -rf "$VENV"
+        "$PY" -m venv "$VENV" >>"$LOG" 2>&1 || fail "python -m venv"
+    fi
+    say "installing pinned wheels (ROS 2 Jazzy + Python deps; first time: a few minutes)"
+    T=$(date +%s)
+    # PIP_CONSTRAINT (not -c) also pins the build backends of sdists (empy).
+    PIP_CONSTRAINT="$REQ/constraints.txt" PIP_DISABLE_PIP_VERSION_CHECK=1 \
+        "$VENV/bin/python" -m pip install -q -r "$REQ/ros.txt" -r "$REQ/dev.txt" \
+        > >(quiet_pip >>"$LOG") 2>&1 || fail "pip install"
+    say "  wheels installed in $(($(date +%s) - T)) s"
+
+    # The wheels' exported *__rosidl_generator_py targets carry the wheel
+    # builder's include folders (/opt/python/cp311-cp311/...): point them at
+    # this Python's and this numpy's headers, or the interfaces do not build.
+    "$VENV/bin/python" - "$VENV" >>"$LOG" 2>&1 <<'EOF' || fail "patching the ROS wheels' cmake exports"
+import re, sys, sysconfig
+from pathlib import Path
+import numpy
+venv = Path(sys.argv[1])
+np_inc = numpy.get_include()
+py_inc = sysconfig.get_paths()["include"]
+n = 0
+for f in (venv / "share").rglob("*.cmake"):
+    text = f.read_text()
+    if "/opt/python/" not in text:
+        continue
+    new = re.sub(r"/opt/python/cp3\d+-cp3\d+/lib/python3\.\d+/site-packages/numpy/(_core|core)/include", np_inc, text)
+    new = re.sub(r"/opt/python/cp3\d+-cp3\d+/include/python3\.\d+", py_inc, new)
+    if new != text:
+        f.write_text(new)
+        n += 1
+print(f"patched {n} cmake files")
+EOF
+    rm -rf "$BUILD"   # the venv changed under it: configure again
+    echo "$DEPS_HASH" >"$DEPS_STAMP"
+fi
+
+# ---- 2. build the ROS package (interfaces) into the venv prefix -------------
+BUILD_FILES=("$ROOT/CMakeLists.txt" "$ROOT/package.xml" "$ROOT/setup.py"
+    "$ROOT"/cmake/* "$ROOT"/msg/* "$ROOT"/srv/* "$ROOT/scripts/setup_env.sh")
+BUILD_HASH=$( { echo "$DEPS_HASH"; echo "$VENV"; hash_of "${BUILD_FILES[@]}"; printf '%s\n' "${BUILD_FILES[@]#"$ROOT"/}"; } \
+    | sha256sum | cut -c1-64)
+BUILD_STAMP=$BUILD/.soft_twin-build.sha256
+
+CMAKE_ENV=(env "PATH=$VENV/bin:$PATH" "CMAKE_PREFIX_PATH=$VENV")
+if [ "$(cat "$BUILD_STAMP" 2>/dev/null)" != "$BUILD_HASH" ]; then
+    say "building the soft_twin interfaces with cmake (build/soft_twin -> $VENV)"
+    T=$(date +%s)
+    # a cache from another checkout or venv cannot be reused
+    if [ -f "$BUILD/CMakeCache.txt" ] &&
+        ! grep -qx "CMAKE_INSTALL_PREFIX:PATH=$VENV" "$BUILD/CMakeCache.txt"; then
+        rm -rf "$BUILD"
+    fi
+    {
+        "${CMAKE_ENV[@]}" cmake -S "$ROOT" -B "$BUILD" \
+            -DCMAKE_INSTALL_PREFIX="$VENV" \
+            -DPython3_EXECUTABLE="$VENV/bin/python3" \
+            -DCMAKE_BUILD_TYPE=Release \
+            -DBUILD_TESTING=OFF &&
+            "${CMAKE_ENV[@]}" cmake --build "$BUILD" -j "$(nproc)"
+    } >>"$LOG" 2>&1 || fail "cmake build"
+    echo "$BUILD_HASH" >"$BUILD_STAMP"
+    say "  built in $(($(date +%s) - T)) s"
+fi
+
+# ---- 3. (re-)install: copies only what changed, then drops stale modules ----
+"${CMAKE_ENV[@]}" cmake --install "$BUILD" >>"$LOG" 2>&1 || fail "cmake --install"
+# A module deleted or renamed in the sources must not linger in the venv.
+python3 - "$BUILD/install_manifest.txt" "$VENV" >>"$LOG" 2>&1 <<'EOF' || fail "pruning stale modules"
+import sys
+from pathlib import Path
+manifest = set(Path(sys.argv[1]).read_text().split())
+site = next(Path(sys.argv[2]).glob("lib/python3*/site-packages"))
+for pkg in ("soft_twin", "soft_twin_core"):
+    for f in (site / pkg).rglob("*"):
+        if f.is_file() and "__pycache__" not in f.parts and str(f) not in manifest:
+            print("removing stale", f)
+            f.unlink()
+EOF
+
+say "ready: $VENV ($(($(date +%s) - T0)) s)"

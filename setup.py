@@ -1,0 +1,39 @@
+"""pip install . -> the ROS-free core only (soft_twin_core + soft-twin-sim).
+
+The ROS 2 package soft_twin (interfaces, node) is built by CMake from
+CMakeLists.txt/package.xml: `make setup` here, or colcon in a ROS 2 workspace
+(see README.md). This file lets the core be used without any ROS install.
+"""
+import re
+from pathlib import Path
+
+from setuptools import find_packages, setup
+
+HERE = Path(__file__).resolve().parent
+VERSION = re.search(
+    r'^__version__\s*=\s*["\']([^"\']+)["\']',
+    (HERE / "soft_twin_core" / "__init__.py").read_text(),
+    re.M,
+).group(1)
+
+setup(
+    name="soft_twin_core",
+    version=VERSION,
+    description="ROS-free Cosserat-rod (PCS) model of soft continuum robots",
+    long_description=(HERE / "README.md").read_text() if (HERE / "README.md").exists() else "",
+    long_description_content_type="text/markdown",
+    license="Apache-2.0",
+    python_requires=">=3.10",
+    packages=find_packages(include=["soft_twin_core", "soft_twin_core.*"]),
+    install_requires=[
+        "numpy>=1.24,<2.6",
+        "scipy>=1.10",
+        "PyYAML>=6.0",
+        "numba>=0.59",
+    ],
+    entry_points={
+        "console_scripts": [
+            "soft-twin-sim = soft_twin_core.cli:main",
+        ],
+    },
+)
