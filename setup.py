@@ -12,7 +12,7 @@ from setuptools import find_packages, setup
 HERE = Path(__file__).resolve().parent
 VERSION = re.search(
     r'^__version__\s*=\s*["\']([^"\']+)["\']',
-    (HERE / "soft_twin_core" / "__init__.py").read_text(),
+    (HERE / "soft_twin_core" / "__init__.py").read_text(encoding="utf-8"),
     re.M,
 ).group(1)
 
@@ -20,7 +20,7 @@ setup(
     name="soft_twin_core",
     version=VERSION,
     description="ROS-free Cosserat-rod (PCS) model of soft continuum robots",
-    long_description=(HERE / "README.md").read_text() if (HERE / "README.md").exists() else "",
+    long_description=(HERE / "README.md").read_text(encoding="utf-8") if (HERE / "README.md").exists() else "",
     long_description_content_type="text/markdown",
     license="Apache-2.0",
     python_requires=">=3.10",
