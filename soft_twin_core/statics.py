@@ -88,6 +88,16 @@ def _scale(model, q, u, loads):
     return max(np.abs(Q).max(initial=0), np.abs(tau).max(initial=0), np.abs(Kq).max(initial=0), 1e-300)
 
 
+def is_stable(model, q, u, loads):
+    """Static stability: every eigenvalue of the tangent dR/dq has a positive
+    real part (no divergence mode). Newton may converge to an unstable
+    equilibrium (e.g. an arm curled up against gravity); the solver rejects
+    those and follows the loaded path from the start point instead."""
+    Kt = tangent(model, q, u, loads)
+    ev = np.linalg.eigvals(Kt)
+    return bool(np.all(ev.real > -1e-9 * np.abs(ev).max()))
+
+
 def _newton(model, q, u, loads, tol, max_iterations):
     R = residual(model, q, u, loads)
     scale = _scale(model, q, u, loads)
@@ -119,12 +129,13 @@ def _newton(model, q, u, loads, tol, max_iterations):
 
 
 def solve_statics(model, actuation=None, loads=None, q_init=None, *, tol=1e-10,
-                  max_iterations=50, max_load_steps=64):
+                  max_iterations=50, max_load_steps=64, check_stability=True):
     """Static equilibrium under actuation (dict name -> tension N / pressure
     Pa, or a vector) and loads (:class:`Loads`, default: gravity only).
 
     q_init warm-starts Newton (default: the rest configuration). If a full
-    solve fails, the loads and actuation are applied in increasing fractions
+    solve fails or lands on an unstable equilibrium (``check_stability``),
+    the loads and actuation are applied in increasing fractions from q_init
     (continuation), bisecting a failed increment. Raises StaticsError with
     the reached load fraction if it cannot converge; never returns NaN.
     """
@@ -136,6 +147,8 @@ def solve_statics(model, actuation=None, loads=None, q_init=None, *, tol=1e-10,
     q1, R, it, ok = _newton(model, q, u, loads, tol, max_iterations)
     total_it += it
     steps = 1
+    if ok and check_stability and not is_stable(model, q1, u, loads):
+        ok = False
     if not ok:
         # continuation from the start point in the load factor lam
         lam, dlam, steps = 0.0, 0.25, 0
@@ -145,6 +158,8 @@ def solve_statics(model, actuation=None, loads=None, q_init=None, *, tol=1e-10,
             q_try, R, it, ok = _newton(model, q_c, target * u, loads.scaled(target), tol, max_iterations)
             total_it += it
             steps += 1
+            if ok and check_stability and not is_stable(model, q_try, target * u, loads.scaled(target)):
+                ok = False
             if ok:
                 lam, q_c = target, q_try
                 dlam = min(2 * dlam, 1.0)

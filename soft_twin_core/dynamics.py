@@ -1,0 +1,356 @@
+"""PCS equations of motion (slides part B "Dynamics"):
+
+    M(q) qddot + C(q, qdot) qdot + D qdot + K (q - q0) = Q(q, t) + tau(q, u(t))
+
+with, by Gauss quadrature over every section (same points everywhere, so the
+semi-discrete system is exactly Lagrangian and conserves energy):
+
+    M = int J^T Mc J ds
+    C = int J^T (Mc Jdot + (Mc ad(eta) - ad(eta)^T Mc) J) ds,  eta = J qdot
+
+(Mc: cross-section inertia density; the skew middle term makes Mdot - 2C
+skew-symmetric; ``C qdot = int J^T (Mc Jdot qdot - ad(eta)^T Mc eta) ds`` is
+the body-frame Newton-Euler bias). D and K are the generalised damping and
+stiffness ``sum_i L_i B_i^T (D_i, K_i) B_i``; Q the external loads (gravity
+included) and tau the actuation of :mod:`soft_twin_core.loads`.
+
+These functions are the readable reference implementation; the time
+integrators use the compiled kernels of :mod:`soft_twin_core._fast` where
+available (same formulas, tested against these).
+"""
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from . import kinematics as kin
+from . import lie
+from .loads import Loads, actuation_force, gauss_points, generalized_external_force, load_points
+from .statics import actuation_vector, base_reaction
+
+
+def _quadrature(model):
+    s, w, sec = gauss_points(model)
+    Mc = np.array([model.sections[i].M for i in sec])
+    return s, w, Mc
+
+
+def mass_matrix(model, q):
+    """Generalised mass matrix M(q) (n_dof, n_dof), symmetric positive definite."""
+    s, w, Mc = _quadrature(model)
+    J = kin.jacobian(model, q, s)
+    return np.einsum("p,pai,pab,pbj->ij", w, J, Mc, J)
+
+
+def coriolis_matrix(model, q, qdot):
+    """C(q, qdot) (n_dof, n_dof) with Mdot - 2C skew-symmetric."""
+    s, w, Mc = _quadrature(model)
+    _, J, Jdot, eta = kin.jacobian_and_derivative(model, q, qdot, s)
+    A = lie.ad(eta)
+    Mid = Mc @ A - np.swapaxes(A, -1, -2) @ Mc
+    return np.einsum("p,pai,paj->ij", w, J, Mc @ Jdot + Mid @ J)
+
+
+def bias_force(model, q, qdot):
+    """C(q, qdot) qdot = int J^T (Mc Jdot qdot - ad(eta)^T Mc eta) ds."""
+    s, w, Mc = _quadrature(model)
+    _, J, Jdot, eta = kin.jacobian_and_derivative(model, q, qdot, s)
+    acc = np.einsum("pij,j->pi", Jdot, qdot)
+    h = np.einsum("pab,pb->pa", Mc, acc) - np.einsum("pba,pb->pa", lie.ad(eta), np.einsum("pab,pb->pa", Mc, eta))
+    return np.einsum("p,pai,pa->i", w, J, h)
+
+
+def applied_force(model, q, qdot, u, loads):
+    """Everything but inertia: Q_ext + tau_act - K (q - q0) - D qdot."""
+    ch = kin.chain(model, q)
+    Q, _ = generalized_external_force(model, ch, loads)
+    tau = actuation_force(model, ch, u)
+    return Q + tau - model.K_q @ (q - model.q0) - model.D_q @ qdot
+
+
+def forward_dynamics(model, q, qdot, u=None, loads=None):
+    """qddot from M qddot = applied - C qdot."""
+    loads = Loads() if loads is None else loads
+    u = actuation_vector(model, u)
+    rhs = applied_force(model, q, qdot, u, loads) - bias_force(model, q, qdot)
+    return np.linalg.solve(mass_matrix(model, q), rhs)
+
+
+def energy(model, q, qdot, u=None, gravity=True):
+    """(kinetic, elastic, gravitational, actuator) energies [J].
+
+    Gravitational energy -int rho A g . p ds uses the same quadrature as the
+    dynamics; the actuator potential of constant inputs is sum c_a u_a ell_a
+    (tendon tension times path length)."""
+    from .loads import tendon_lengths
+    M = mass_matrix(model, q)
+    kinetic = 0.5 * qdot @ M @ qdot
+    dq = q - model.q0
+    elastic = 0.5 * dq @ model.K_q @ dq
+    grav = 0.0
+    if gravity:
+        s, w, Mc = _quadrature(model)
+        p = kin.poses(model, q, s)[:, :3, 3]
+        grav = -np.sum(w * Mc[:, 0, 0] * (p @ model.gravity))
+    act = 0.0
+    if u is not None and len(model.actuators):
+        u = actuation_vector(model, u)
+        c = np.array([a.force_per_unit_input for a in model.actuators])
+        act = float(np.sum(c * u * tendon_lengths(model, q)))
+    return float(kinetic), float(elastic), float(grav), act
+
+
+def base_reaction_dynamic(model, q, qdot, qddot, u=None, loads=None):
+    """Support reaction [f; m] (world axes, moment about the base origin):
+    total inertial wrench minus the total applied wrench."""
+    loads = Loads() if loads is None else loads
+    s, w, Mc = _quadrature(model)
+    g, J, Jdot, eta = kin.jacobian_and_derivative(model, q, qdot, s)
+    eta_dot = J @ qddot + Jdot @ qdot
+    Wb = w[:, None] * (np.einsum("pab,pb->pa", Mc, eta_dot)
+                       - np.einsum("pba,pb->pa", lie.ad(eta), np.einsum("pab,pb->pa", Mc, eta)))
+    F_inertia = np.einsum("pji,pj->i", lie.Ad_inv(g), Wb)
+    _, F_ext = generalized_external_force(model, kin.chain(model, q), loads)
+    return base_reaction(model, F_ext - F_inertia)
+
+
+def dynamics_terms(model, q, qdot, u, loads):
+    """(M, f) with f = Q_ext + tau - K (q - q0) - D qdot - C qdot, sharing one
+    kinematic pass (reference implementation of the integrators' kernel)."""
+    s, w, Mc = _quadrature(model)
+    g, J, Jdot, eta = kin.jacobian_and_derivative(model, q, qdot, s)
+    M = np.einsum("p,pai,pab,pbj->ij", w, J, Mc, J)
+    acc = np.einsum("pij,j->pi", Jdot, qdot)
+    h = np.einsum("pab,pb->pa", Mc, acc) - np.einsum("pba,pb->pa", lie.ad(eta),
+                                                      np.einsum("pab,pb->pa", Mc, eta))
+    bias = np.einsum("p,pai,pa->i", w, J, h)
+    return M, applied_force(model, q, qdot, u, loads) - bias
+
+
+# ----------------------------------------------------------------------------
+# Time integration
+# ----------------------------------------------------------------------------
+
+@dataclass
+class StepInfo:
+    """Newton iterations used by the last step (all sub-steps) and whether
+    it converged."""
+    iterations: int
+    converged: bool
+    update: float
+
+
+def _profile(value, name, model, kind):
+    """A constant or a callable of time t [s]; returns a function of t."""
+    if callable(value):
+        return value
+    if kind == "actuation":
+        u = actuation_vector(model, value)
+        return lambda t: u
+    loads = Loads() if value is None else value
+    return lambda t: loads
+
+
+class Simulator:
+    """Fixed-step implicit integrator (theta-method) for the node and scenarios.
+
+    One step of size dt [s] solves, for v1 (strain rates at t + dt),
+        M(qt) (v1 - v0) = dt f(qt, vt, t + theta dt),
+        vt = (1 - theta) v0 + theta v1,  qt = q0 + theta dt vt,  q1 = q0 + dt vt.
+    theta = 1/2 (default) is the implicit midpoint rule: second order,
+    A-stable, no numerical damping (the energy error of the undamped arm stays
+    O(dt^2) without drift). theta = 1 is implicit Euler: first order,
+    L-stable, damps the stiff modes that the midpoint rule lets ring (use it
+    for strongly damped arms or to reach equilibrium). Solved by a modified
+    Newton iteration with ``A = M - theta dt df/dv - (theta dt)^2 df/dq``. A is built from a
+    finite-difference Jacobian of f and reused across steps while the
+    iteration converges fast; it is refreshed when convergence slows, and a
+    step that still fails is split into sub-steps (the state is only updated
+    by converged steps).
+
+    actuation: dict/vector, or a callable t -> vector; loads: Loads or a
+    callable t -> Loads. The model is never modified; ``state`` holds q,
+    qdot and t.
+    """
+
+    def __init__(self, model, dt=1e-3, actuation=None, loads=None, state=None,
+                 max_iterations=8, tol=1e-10, max_substep_levels=4, theta=0.5):
+        from .model import State
+        if isinstance(dt, bool) or not isinstance(dt, (int, float)) or not np.isfinite(dt) or dt <= 0:
+            raise ValueError(f"dt: expected a positive time step in s, got {dt!r}")
+        if not 0.5 <= theta <= 1.0:
+            raise ValueError(f"theta: expected a value in [0.5, 1], got {theta!r}")
+        self.theta = float(theta)
+        self.model = model
+        self.dt = float(dt)
+        self.max_iterations = int(max_iterations)
+        self.tol = float(tol)
+        self.max_substep_levels = int(max_substep_levels)
+        self.state = State.rest(model) if state is None else state.copy()
+        self.set_actuation(actuation)
+        self.set_loads(loads)
+        self.last_qddot = np.zeros(model.n_dof)
+        self._terms = _select_kernel(model)
+        self._jac = None          # (M, df/dq, df/dv) at the last refresh
+        self._lu = {}             # factorised iteration matrices by step size
+        self.jacobian_refreshes = 0
+
+    def set_actuation(self, actuation):
+        """Constant inputs (dict or vector, validated) or a callable of t."""
+        self._u = _profile(actuation, "actuation", self.model, "actuation")
+
+    def set_loads(self, loads):
+        self._loads = _profile(loads, "loads", self.model, "loads")
+
+    def actuation_at(self, t):
+        return self._u(t)
+
+    def loads_at(self, t):
+        return self._loads(t)
+
+    def step(self, n=1):
+        """Advance n steps; returns the StepInfo of the last one. A step that
+        cannot converge even with sub-steps leaves the state at the last good
+        step and returns ``converged`` False."""
+        info = None
+        for _ in range(n):
+            info = self._step()
+            if not info.converged:
+                break
+        return info
+
+    # --- internals ---------------------------------------------------------
+    def _refresh(self, q, v, u, loads):
+        """Finite-difference Jacobians of f at (q, v) for the iteration matrix."""
+        m = self.model
+        M, f = self._terms(m, q, v, u, loads)
+        n = m.n_dof
+        fq, fv = np.empty((n, n)), np.empty((n, n))
+        for k in range(n):
+            e = np.zeros(n)
+            hq = 1e-7 * max(1.0, abs(q[k]))
+            e[k] = hq
+            fq[:, k] = (self._terms(m, q + e, v, u, loads)[1] - f) / hq
+            e[k] = 0.0
+            hv = 1e-7 * max(1.0, abs(v[k]))
+            e[k] = hv
+            fv[:, k] = (self._terms(m, q, v + e, u, loads)[1] - f) / hv
+        self._jac = (M, fq, fv)
+        self._lu = {}
+        self.jacobian_refreshes += 1
+
+    def _factor(self, h):
+        from scipy.linalg import lu_factor
+        lu = self._lu.get(h)
+        if lu is None:
+            M, fq, fv = self._jac
+            th = self.theta * h
+            lu = lu_factor(M - th * fv - th * th * fq)
+            self._lu[h] = lu
+        return lu
+
+    def _newton(self, q0, v0, t, h):
+        from scipy.linalg import lu_solve
+        m = self.model
+        th = self.theta
+        tm = t + th * h
+        u, loads = self._u(tm), self._loads(tm)
+        lu = self._factor(h)
+        v1 = v0 + h * (self.last_qddot if np.all(np.isfinite(self.last_qddot)) else 0.0)
+        prev, rate = None, 0.0
+        for it in range(1, self.max_iterations + 1):
+            vt = (1.0 - th) * v0 + th * v1
+            M, f = self._terms(m, q0 + th * h * vt, vt, u, loads)
+            dv = lu_solve(lu, -(M @ (v1 - v0) - h * f))
+            v1 = v1 + dv
+            upd = float(np.abs(dv).max())
+            if not np.isfinite(upd):
+                return None, it, np.inf
+            if prev is not None and prev > 0:
+                rate = max(rate, upd / prev)
+                if rate > 0.9:
+                    return None, it, rate
+            prev = upd
+            # relative to the rates, with a floor at round-off of the positions
+            floor = 1e-14 * max(1.0, np.abs(q0).max()) / h
+            if upd <= max(self.tol * max(np.abs(v1).max(), np.abs(v0).max()), floor):
+                return v1, it, rate
+        return None, self.max_iterations, rate
+
+    def _advance(self, q0, v0, t, h, level):
+        """Returns (q1, v1, iterations) or None, sub-stepping on failure."""
+        v1, it, rate = self._newton(q0, v0, t, h)
+        if v1 is None or rate > 0.3:
+            # refresh the iteration matrix here and retry once
+            tm = t + self.theta * h
+            self._refresh(q0, v0, self._u(tm), self._loads(tm))
+            if v1 is None:
+                v1, it2, rate = self._newton(q0, v0, t, h)
+                it += it2
+        if v1 is not None:
+            return q0 + h * ((1.0 - self.theta) * v0 + self.theta * v1), v1, it
+        if level >= self.max_substep_levels:
+            return None
+        half = self._advance(q0, v0, t, 0.5 * h, level + 1)
+        if half is None:
+            return None
+        q_m, v_m, it_a = half
+        rest = self._advance(q_m, v_m, t + 0.5 * h, 0.5 * h, level + 1)
+        if rest is None:
+            return None
+        return rest[0], rest[1], it_a + rest[2]
+
+    def _step(self):
+        st = self.state
+        h = self.dt
+        if self._jac is None:
+            u, loads = self._u(st.t), self._loads(st.t)
+            self._refresh(st.q, st.qdot, u, loads)
+        out = self._advance(st.q, st.qdot, st.t, h, 0)
+        if out is None:
+            return StepInfo(self.max_iterations, False, np.inf)
+        q1, v1, it = out
+        self.last_qddot = (v1 - st.qdot) / h
+        st.q, st.qdot, st.t = q1, v1, st.t + h
+        return StepInfo(it, True, 0.0)
+
+
+def _select_kernel(model):
+    try:
+        from . import _fast
+        if _fast.supports(model):
+            return _fast.dynamics_terms
+    except ImportError:  # numba missing: the numpy reference is used
+        pass
+    return dynamics_terms
+
+
+def simulate_ivp(model, t_span, state, actuation=None, loads=None, method="Radau",
+                 rtol=1e-8, atol=1e-10, t_eval=None):
+    """Adaptive offline integration with scipy.integrate.solve_ivp (Radau or
+    BDF for stiff arms). The Jacobian of the first-order system
+    [qdot; M^-1 f] is [[0, I], [M^-1 df/dq, M^-1 df/dqdot]] with df/dq ~ -K and
+    df/dqdot ~ -D refined by scipy's own finite differences when
+    ``jac=None``; here it is supplied by central finite differences of the
+    exact right-hand side (verified in the tests)."""
+    from scipy.integrate import solve_ivp
+    u_of_t = _profile(actuation, "actuation", model, "actuation")
+    loads_of_t = _profile(loads, "loads", model, "loads")
+    kernel = _select_kernel(model)
+    n = model.n_dof
+
+    def rhs(t, y):
+        M, f = kernel(model, y[:n], y[n:], u_of_t(t), loads_of_t(t))
+        return np.concatenate([y[n:], np.linalg.solve(M, f)])
+
+    def jac(t, y):
+        eps = 1e-7 * np.maximum(1.0, np.abs(y))
+        Jm = np.empty((2 * n, 2 * n))
+        for k in range(2 * n):
+            e = np.zeros(2 * n)
+            e[k] = eps[k]
+            Jm[:, k] = (rhs(t, y + e) - rhs(t, y - e)) / (2 * eps[k])
+        return Jm
+
+    y0 = np.concatenate([state.q, state.qdot])
+    return solve_ivp(rhs, t_span, y0, method=method, rtol=rtol, atol=atol, jac=jac, t_eval=t_eval)
