@@ -67,7 +67,9 @@ class StaticsResult:
     """Equilibrium: q; strains (n_sections, 6); tip_pose (4x4, world);
     base_wrench_world [f; m] (6,) exerted by the support on the robot, world
     axes, moment about the base origin; iterations; residual (relative,
-    ||R||_inf / force scale); residual_abs; converged; load_steps used."""
+    ||R||_inf / force scale); residual_abs; converged; load_steps used;
+    stable: False when only an unstable equilibrium (a tangent eigenvalue
+    with negative real part) was found."""
     q: np.ndarray
     strains: np.ndarray
     tip_pose: np.ndarray
@@ -77,6 +79,7 @@ class StaticsResult:
     residual_abs: float
     converged: bool
     load_steps: int
+    stable: bool = True
 
 
 def _scale(model, q, u, loads):
@@ -147,8 +150,9 @@ def solve_statics(model, actuation=None, loads=None, q_init=None, *, tol=1e-10,
     q1, R, it, ok = _newton(model, q, u, loads, tol, max_iterations)
     total_it += it
     steps = 1
+    fallback = None           # a converged but unstable equilibrium
     if ok and check_stability and not is_stable(model, q1, u, loads):
-        ok = False
+        ok, fallback = False, (q1, R)
     if not ok:
         # continuation from the start point in the load factor lam
         lam, dlam, steps = 0.0, 0.25, 0
@@ -166,6 +170,11 @@ def solve_statics(model, actuation=None, loads=None, q_init=None, *, tol=1e-10,
             else:
                 dlam *= 0.5
                 if dlam < 1.0 / max_load_steps / 64 or steps > 4 * max_load_steps:
+                    if fallback is not None:
+                        # no stable path: report the equilibrium Newton found, flagged
+                        res = _result(model, fallback[0], u, loads, total_it, fallback[1], steps)
+                        res.stable = False
+                        return res
                     raise StaticsError(f"statics did not converge: reached load fraction {lam:.4f}; "
                                        f"the load or actuation may exceed what the model can carry, "
                                        f"or the rod buckles (try a different q_init)")
