@@ -239,3 +239,32 @@ def internal_wrenches(model, q, s, actuation=None, loads=None):
         w = -a.force_per_unit_input * val * np.concatenate([t, np.cross(d, t)], axis=-1)
         out[inside] += w[inside]
     return out
+
+
+def actuation_for_shape(model, q, loads=None):
+    """Actuation that holds configuration q in equilibrium, where one exists.
+
+    The actuation force is linear in the inputs, ``tau(q, u) = B(q) u``, so
+    the inputs solve ``B(q) u = K (q - q0) - Q_ext(q)``: non-negative least
+    squares for tendons (tension >= 0), free sign for chamber pressures.
+    Returns (u, relative residual ||B u - rhs|| / force scale); a residual
+    above ~1e-6 means the actuators cannot hold that shape exactly."""
+    from scipy.optimize import lsq_linear
+    loads = Loads() if loads is None else loads
+    q = model.check_q(np.asarray(q, dtype=float))
+    ch = kin.chain(model, q)
+    Q, _ = generalized_external_force(model, ch, loads)
+    rhs = model.K_q @ (q - model.q0) - Q
+    n = len(model.actuators)
+    if n == 0:
+        return np.zeros(0), (0.0 if not np.any(rhs) else 1.0)
+    B = np.stack([actuation_force(model, ch, e) for e in np.eye(n)], axis=1)
+    lo = np.array([0.0 if a.kind == "tendon" else -np.inf for a in model.actuators])
+    # scale columns so tensions (N) and pressures (Pa) are comparable
+    col = np.maximum(np.linalg.norm(B, axis=0), 1e-300)
+    sol = lsq_linear(B / col, rhs, bounds=(lo * col, np.full(n, np.inf)), method="bvls", tol=1e-14)
+    u = sol.x / col
+    u[lo == 0.0] = np.maximum(u[lo == 0.0], 0.0)
+    scale = max(np.linalg.norm(rhs), np.linalg.norm(model.K_q @ (q - model.q0)), np.linalg.norm(Q))
+    res = np.linalg.norm(B @ u - rhs) / scale if scale > 0 else 0.0
+    return u, float(res)
