@@ -1,0 +1,122 @@
+"""soft-twin-sim scenario runner (issues 5 and 6)."""
+
+import json
+import os
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+
+from soft_twin_core import cli
+from soft_twin_core import statics as st
+from soft_twin_core.model import load_model
+from soft_twin_core.scenario import ScenarioError, load_scenario
+
+HERE = os.path.dirname(os.path.abspath(__file__))
+CONFIG = os.path.join(HERE, "..", "config")
+
+
+def run_cli(args, capsys):
+    code = cli.main(args)
+    out = capsys.readouterr()
+    return code, out.out, out.err
+
+
+def test_statics_json_fields_and_values(capsys):
+    path = os.path.join(CONFIG, "scenarios", "tendon_arm_statics.yaml")
+    code, out, err = run_cli(["statics", path], capsys)
+    assert code == 0, err
+    r = json.loads(out)
+    for key in ("tip_position", "tip_rotation", "backbone_positions", "base_wrench", "strains",
+                "iterations", "residual"):
+        assert key in r
+    m = load_model(os.path.join(CONFIG, "robots", "tendon_arm.yaml"))
+    from soft_twin_core import loads as ld
+    ref = st.solve_statics(m, {"tendon_y_pos": 2.0, "tendon_z_neg": 0.5},
+                           ld.Loads(point=(ld.tip_load(m, (0, 0, -0.05)),)))
+    assert np.allclose(r["tip_position"], ref.tip_pose[:3, 3], atol=1e-12)
+    assert np.allclose(np.array(r["tip_rotation"]).reshape(3, 3), ref.tip_pose[:3, :3], atol=1e-12)
+    assert np.array(r["backbone_positions"]).shape == (m.n_sections * 10 + 1, 3)
+    assert np.array(r["strains"]).shape == (m.n_sections, 6)
+    assert r["residual"] <= 1e-10
+    # base wrench balances weight and payload
+    assert r["base_wrench"][2] == pytest.approx(m.mass * 9.81 + 0.05, rel=1e-9)
+
+
+def test_sections_override_and_princeton_sweep(capsys):
+    path = os.path.join(CONFIG, "scenarios", "princeton_beam.yaml")
+    code, out, err = run_cli(["statics", path, "--sections", "4", "--sweep-angle", "0:90:45"], capsys)
+    assert code == 0, err
+    rs = json.loads(out)
+    assert [r["angle_deg"] for r in rs] == [0.0, 45.0, 90.0]
+    assert all(r["n_sections"] == 4 for r in rs)
+    # at 0 deg the load is along the stiff axis: small, linear-theory deflection
+    EI3 = 71.7e9 * 0.0032024 * 0.0123777**3 / 12
+    assert rs[0]["tip_position"][1] == pytest.approx(8.896 * 0.508**3 / (3 * EI3), rel=0.02)
+    assert rs[2]["tip_position"][2] > 0.1  # flexible direction: large deflection
+    assert abs(rs[2]["tip_position"][1]) < 1e-12
+
+
+@pytest.mark.parametrize("text,msg", [
+    ("robot: ../robots/tendon_arm.yaml\nactuation: {nope: 1}\n", "unknown actuator 'nope'"),
+    ("robot: ../robots/tendon_arm.yaml\nactuation: {tendon_y_pos: -1}\n", "tension must be >= 0"),
+    ("robot: ../robots/tendon_arm.yaml\nloads: [{s: 9.0}]\n", r"loads\[0\]\.s: must lie in"),
+    ("robot: ../robots/tendon_arm.yaml\nloads: [{s: tip, force: [1, 2]}]\n", r"loads\[0\]\.force"),
+    ("robot: ../robots/missing.yaml\n", "No such file"),
+    ("robots: x\n", r"unknown field\(s\) \['robots'\]"),
+    ("robot: ../robots/tendon_arm.yaml\nsections: 0\n", "sections: expected an integer >= 1"),
+])
+def test_bad_scenarios_name_the_field(tmp_path, capsys, text, msg):
+    d = tmp_path / "scenarios"
+    d.mkdir()
+    (tmp_path / "robots").mkdir()
+    import shutil
+    shutil.copy(os.path.join(CONFIG, "robots", "tendon_arm.yaml"), tmp_path / "robots")
+    f = d / "bad.yaml"
+    f.write_text(text)
+    out_file = tmp_path / "out.json"
+    code, out, err = run_cli(["statics", str(f), "-o", str(out_file)], capsys)
+    assert code == 2
+    import re
+    assert re.search(msg, err), err
+    assert not out_file.exists()
+
+
+def test_dynamics_csv_and_json(tmp_path, capsys):
+    path = os.path.join(CONFIG, "scenarios", "tendon_arm_dynamics.yaml")
+    code, out, err = run_cli(["dynamics", path, "--duration", "0.05", "--dt", "0.005",
+                              "--format", "csv"], capsys)
+    assert code == 0, err
+    lines = out.strip().splitlines()
+    assert lines[0].startswith("time_s,tip_x_m") and len(lines) == 12
+    f = tmp_path / "o.json"
+    code, out, err = run_cli(["dynamics", path, "--duration", "0.05", "--dt", "0.005",
+                              "--backbone-every", "5", "-o", str(f)], capsys)
+    assert code == 0, err
+    r = json.loads(f.read_text())
+    assert len(r["time"]) == 11 and len(r["backbone"]) == 2
+    assert np.array(r["base_wrench"]).shape == (11, 6)
+    assert r["time"][-1] == pytest.approx(0.05)
+
+
+def test_dynamics_profile_and_rigid_offsets(tmp_path):
+    sc = tmp_path / "elbow.yaml"
+    sc.write_text("robot: %s\nloads:\n  - {s: 0.1, force: [0, 0, -0.5], profile: [[0, 0], [0.02, 1]]}\n"
+                  % os.path.join(CONFIG, "robots", "elbow_arm.yaml"))
+    s = load_scenario(str(sc))
+    assert s.loads_at(0.01).point[0].wrench[2] == pytest.approx(-0.25)
+    from soft_twin_core.scenario import run_dynamics
+    out = run_dynamics(s, 0.03, 0.005)
+    assert len(out["time"]) == 7 and "error" not in out
+
+
+def test_console_script_progress_on_stderr(tmp_path):
+    """A run longer than a couple of seconds reports progress on stderr."""
+    path = os.path.join(CONFIG, "scenarios", "tendon_arm_dynamics.yaml")
+    env = dict(os.environ, PYTHONPATH=os.path.join(HERE, ".."))
+    p = subprocess.run([sys.executable, "-m", "soft_twin_core.cli", "dynamics", path, "--duration", "3",
+                        "--dt", "0.001", "--record-every", "100", "-o", str(tmp_path / "o.json")],
+                       capture_output=True, text=True, env=env, timeout=300)
+    assert p.returncode == 0, p.stderr
+    assert "% simulated" in p.stderr and "wall time" in p.stderr
