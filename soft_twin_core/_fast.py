@@ -71,31 +71,6 @@ def _ad_mat(x, A):
 
 
 @_jit
-def _exp_se3(x, g):
-    w0, w1, w2 = x[3], x[4], x[5]
-    t2 = w0 * w0 + w1 * w1 + w2 * w2
-    if t2 < _SMALL2:
-        a, b, c = _horner(P_A, t2), _horner(P_B, t2), _horner(P_C, t2)
-    else:
-        t = np.sqrt(t2)
-        s, co = np.sin(t), np.cos(t)
-        a, b, c = s / t, (1.0 - co) / t2, (t - s) / (t2 * t)
-    W = np.array([[0.0, -w2, w1], [w2, 0.0, -w0], [-w1, w0, 0.0]])
-    W2 = W @ W
-    g[:, :] = 0.0
-    for i in range(3):
-        for j in range(3):
-            e = 1.0 if i == j else 0.0
-            g[i, j] = e + a * W[i, j] + b * W2[i, j]
-        acc = 0.0
-        for j in range(3):
-            e = 1.0 if i == j else 0.0
-            acc += (e + b * W[i, j] + c * W2[i, j]) * x[j]
-        g[i, 3] = acc
-    g[3, 3] = 1.0
-
-
-@_jit
 def _betas(t2):
     if t2 < _SMALL2:
         return _horner(P_B1, t2), _horner(P_B2, t2), _horner(P_B3, t2), _horner(P_B4, t2)
@@ -120,71 +95,149 @@ def _dbetas(t2):
 
 
 @_jit
-def _T_se3(x, T):
+def _mm(A, B, out):
+    """out = A @ B for small dense matrices, no allocation."""
+    n, k = A.shape
+    m = B.shape[1]
+    for i in range(n):
+        for j in range(m):
+            acc = 0.0
+            for r in range(k):
+                acc += A[i, r] * B[r, j]
+            out[i, j] = acc
+
+
+@_jit
+def _mtm(A, B, out):
+    """out = A.T @ B."""
+    k, n = A.shape
+    m = B.shape[1]
+    for i in range(n):
+        for j in range(m):
+            acc = 0.0
+            for r in range(k):
+                acc += A[r, i] * B[r, j]
+            out[i, j] = acc
+
+
+@_jit
+def _mv(A, x, out):
+    for i in range(A.shape[0]):
+        acc = 0.0
+        for r in range(A.shape[1]):
+            acc += A[i, r] * x[r]
+        out[i] = acc
+
+
+@_jit
+def _mtv(A, x, out):
+    for i in range(A.shape[1]):
+        acc = 0.0
+        for r in range(A.shape[0]):
+            acc += A[r, i] * x[r]
+        out[i] = acc
+
+
+@_jit
+def _T_into(x, T, A, A2, A3, A4):
     b1, b2, b3, b4 = _betas(x[3] * x[3] + x[4] * x[4] + x[5] * x[5])
-    A = np.empty((6, 6))
     _ad_mat(x, A)
-    A2 = A @ A
-    A3 = A2 @ A
-    A4 = A2 @ A2
+    _mm(A, A, A2)
+    _mm(A2, A, A3)
+    _mm(A2, A2, A4)
     for i in range(6):
         for j in range(6):
             T[i, j] = (1.0 if i == j else 0.0) - b1 * A[i, j] + b2 * A2[i, j] - b3 * A3[i, j] + b4 * A4[i, j]
 
 
 @_jit
-def _T_dot_vec(x, xd, y, out):
-    """out = (d/dt T_se3(x))[xd] y, differentiating the quartic in ad(x)."""
+def _T_dot_into(x, xd, y, out, P, tmp, tmp2, acc):
+    """out = (d/dt T_se3(x))[xd] y (no allocation; P is 5x6 scratch)."""
     t2 = x[3] * x[3] + x[4] * x[4] + x[5] * x[5]
     wwd = x[3] * xd[3] + x[4] * xd[4] + x[5] * xd[5]
-    b = _betas(t2)
-    db = _dbetas(t2)
-    P = np.empty((5, 6))      # P[m] = ad(x)^m y
-    P[0, :] = y
+    b1, b2, b3, b4 = _betas(t2)
+    d1, d2, d3, d4 = _dbetas(t2)
+    for a in range(6):
+        P[0, a] = y[a]
     for m in range(1, 5):
         _ad_vec(x, P[m - 1], P[m])
-    # D[k] = d(ad^k) y = sum_j ad^j ad(xd) ad^(k-1-j) y
-    tmp = np.empty(6)
-    tmp2 = np.empty(6)
-    out[:] = 0.0
+    for a in range(6):
+        out[a] = 0.0
     for k in range(1, 5):
-        sign = -1.0 if k % 2 == 1 else 1.0
-        acc = np.zeros(6)
+        if k == 1:
+            bk, dk, sign = b1, d1, -1.0
+        elif k == 2:
+            bk, dk, sign = b2, d2, 1.0
+        elif k == 3:
+            bk, dk, sign = b3, d3, -1.0
+        else:
+            bk, dk, sign = b4, d4, 1.0
+        for a in range(6):
+            acc[a] = 0.0
         for j in range(k):
             _ad_vec(xd, P[k - 1 - j], tmp)
             for r in range(j):
                 _ad_vec(x, tmp, tmp2)
-                tmp[:] = tmp2
-            acc += tmp
-        out += sign * (db[k - 1] * wwd * P[k] + b[k - 1] * acc)
+                for a in range(6):
+                    tmp[a] = tmp2[a]
+            for a in range(6):
+                acc[a] += tmp[a]
+        for a in range(6):
+            out[a] += sign * (dk * wwd * P[k, a] + bk * acc[a])
 
 
 @_jit
-def _Ad(g, A):
-    A[:, :] = 0.0
-    p0, p1, p2 = g[0, 3], g[1, 3], g[2, 3]
-    P = np.array([[0.0, -p2, p1], [p2, 0.0, -p0], [-p1, p0, 0.0]])
-    R = g[:3, :3]
-    PR = P @ R
+def _exp_into(x, g):
+    w0, w1, w2 = x[3], x[4], x[5]
+    t2 = w0 * w0 + w1 * w1 + w2 * w2
+    if t2 < _SMALL2:
+        a, b, c = _horner(P_A, t2), _horner(P_B, t2), _horner(P_C, t2)
+    else:
+        t = np.sqrt(t2)
+        s, co = np.sin(t), np.cos(t)
+        a, b, c = s / t, (1.0 - co) / t2, (t - s) / (t2 * t)
+    # W^2 = w w^T - t2 I
+    W = ((0.0, -w2, w1), (w2, 0.0, -w0), (-w1, w0, 0.0))
+    ww = (w0, w1, w2)
     for i in range(3):
+        acc = 0.0
         for j in range(3):
-            A[i, j] = R[i, j]
-            A[i + 3, j + 3] = R[i, j]
-            A[i, j + 3] = PR[i, j]
+            W2 = ww[i] * ww[j] - (t2 if i == j else 0.0)
+            e = 1.0 if i == j else 0.0
+            g[i, j] = e + a * W[i][j] + b * W2
+            acc += (e + b * W[i][j] + c * W2) * x[j]
+        g[i, 3] = acc
+        g[3, i] = 0.0
+    g[3, 3] = 1.0
 
 
 @_jit
-def _Ad_inv(g, A):
-    A[:, :] = 0.0
+def _Ad_into(g, A, inverse):
+    """A = Ad(g) or Ad(g)^-1 (inverse=True)."""
     p0, p1, p2 = g[0, 3], g[1, 3], g[2, 3]
-    P = np.array([[0.0, -p2, p1], [p2, 0.0, -p0], [-p1, p0, 0.0]])
-    Rt = g[:3, :3].T.copy()
-    RtP = Rt @ P
+    for i in range(6):
+        for j in range(6):
+            A[i, j] = 0.0
     for i in range(3):
         for j in range(3):
-            A[i, j] = Rt[i, j]
-            A[i + 3, j + 3] = Rt[i, j]
-            A[i, j + 3] = -RtP[i, j]
+            r = g[j, i] if inverse else g[i, j]
+            A[i, j] = r
+            A[i + 3, j + 3] = r
+    if inverse:
+        # -R^T hat(p): column j of hat(p) is p x e_j
+        for i in range(3):
+            r0, r1, r2 = g[0, i], g[1, i], g[2, i]      # row i of R^T
+            # (R^T hat(p))[i, j] = sum_k R[k, i] hat(p)[k, j]
+            A[i, 3] = -(r1 * p2 - r2 * p1)
+            A[i, 4] = -(r2 * p0 - r0 * p2)
+            A[i, 5] = -(r0 * p1 - r1 * p0)
+    else:
+        # hat(p) R
+        for j in range(3):
+            c0, c1, c2 = g[0, j], g[1, j], g[2, j]
+            A[0, j + 3] = p1 * c2 - p2 * c1
+            A[1, j + 3] = p2 * c0 - p0 * c2
+            A[2, j + 3] = p0 * c1 - p1 * c0
 
 
 @_jit
@@ -192,167 +245,211 @@ def _kernel(q, qd, f0, free_index, lengths, base, offsets, pt_sec, pt_x, pt_w, p
             ld_sec, ld_x, ld_W, ld_world, act_sec, act_d, act_dd, act_coef, Kq, Dq, q0):
     n = lengths.shape[0]
     ndof = q.shape[0]
-    nfull = 6 * n
-    xi = f0.copy().reshape(nfull)
-    xid = np.zeros(nfull)
+    # --- strains and rates ---------------------------------------------------
+    xi = np.empty((n, 6))
+    xid = np.zeros((n, 6))
+    for i in range(n):
+        for a in range(6):
+            xi[i, a] = f0[i, a]
     for k in range(ndof):
-        xi[free_index[k]] = q[k]
-        xid[free_index[k]] = qd[k]
-    xi = xi.reshape((n, 6))
-    xid = xid.reshape((n, 6))
-    # --- recursive pass over sections -----------------------------------
-    g_start = np.empty((n, 4, 4))
-    W = np.empty((n, 6, 6))
-    V_end = np.empty((n, 6))
-    A_end = np.empty((n, 6))
-    g = base.copy()
+        c = free_index[k]
+        xi[c // 6, c % 6] = q[k]
+        xid[c // 6, c % 6] = qd[k]
+    # --- scratch -----------------------------------------------------------
     E = np.empty((4, 4))
+    g = np.empty((4, 4))
+    gtmp = np.empty((4, 4))
     T = np.empty((6, 6))
+    A1 = np.empty((6, 6))
+    A2 = np.empty((6, 6))
+    A3 = np.empty((6, 6))
+    A4 = np.empty((6, 6))
     Adm = np.empty((6, 6))
-    V = np.zeros(6)
-    Acc = np.zeros(6)
-    tmp = np.empty(6)
-    tmp2 = np.empty(6)
+    Ai = np.empty((6, 6))
+    own = np.empty((6, 6))
+    MA = np.empty((6, 6))
+    tmp6 = np.empty((6, 6))
+    Pm = np.empty((5, 6))
+    v1 = np.empty(6)
+    v2 = np.empty(6)
+    v3 = np.empty(6)
+    v4 = np.empty(6)
+    vacc = np.empty(6)
     Lx = np.empty(6)
     Lxd = np.empty(6)
+    eta = np.empty(6)
+    accb = np.empty(6)
+    Fb = np.empty(6)
+    Fs = np.empty(6)
+    # --- recursive pass over sections ----------------------------------------
+    g_start = np.empty((n, 4, 4))
+    W = np.empty((n, 6, 6))
+    V_end = np.zeros((n + 1, 6))     # V_end[i + 1]: spatial twist at the end of section i
+    A_end = np.zeros((n + 1, 6))
+    for r in range(4):
+        for c in range(4):
+            g[r, c] = base[r, c]
     for i in range(n):
-        g_start[i] = g
+        for r in range(4):
+            for c in range(4):
+                g_start[i, r, c] = g[r, c]
         L = lengths[i]
         for a in range(6):
             Lx[a] = L * xi[i, a]
             Lxd[a] = L * xid[i, a]
-        _exp_se3(Lx, E)
-        g = g @ E
-        _T_se3(Lx, T)
-        _Ad(g, Adm)
-        W[i] = Adm @ (L * T)
-        contrib = W[i] @ xid[i]
-        V = V + contrib
-        _ad_vec(V, contrib, tmp)
-        _T_dot_vec(Lx, Lxd, xid[i], tmp2)
-        Acc = Acc + tmp + Adm @ (L * tmp2)
-        V_end[i] = V
-        A_end[i] = Acc
+        _exp_into(Lx, E)
+        _mm(g, E, gtmp)
+        _T_into(Lx, T, A1, A2, A3, A4)
+        _Ad_into(gtmp, Adm, False)
+        _mm(Adm, T, tmp6)
+        for r in range(6):
+            for c in range(6):
+                W[i, r, c] = L * tmp6[r, c]
+        _mv(W[i], xid[i], v1)                     # contrib
+        for a in range(6):
+            V_end[i + 1, a] = V_end[i, a] + v1[a]
+        _ad_vec(V_end[i + 1], v1, v2)
+        _T_dot_into(Lx, Lxd, xid[i], v3, Pm, v4, vacc, eta)
+        _mv(Adm, v3, v4)
+        for a in range(6):
+            A_end[i + 1, a] = A_end[i, a] + v2[a] + L * v4[a]
         if i < n - 1:
-            g = g @ offsets[i]
-    # --- per point body Jacobian, bias acceleration -----------------------
-    M = np.zeros((ndof, ndof))
-    f = np.zeros(ndof)
+            _mm(gtmp, offsets[i], g)
+        else:
+            for r in range(4):
+                for c in range(4):
+                    g[r, c] = gtmp[r, c]
+    # --- per-point quantities accumulated per section --------------------------
+    Isec = np.zeros((n, 6, 6))      # sum w Ai^T Mc Ai (spatial inertia)
+    Ysec = np.zeros((n, 6, 6))      # sum w Ai^T Mc own
+    Mown = np.zeros((n, 6, 6))      # sum w own^T Mc own
+    Fsec = np.zeros((n, 6))         # spatial wrench (applied - inertial bias)
+    fown = np.zeros((n, 6))         # own-mode generalised force
     npts = pt_sec.shape[0]
     nld = ld_sec.shape[0]
-    J = np.empty((6, ndof))
-    eta = np.empty(6)
-    h = np.empty(6)
-    xx = np.empty(6)
-    xxd = np.empty(6)
-    Ai = np.empty((6, 6))
-    gp = np.empty((4, 4))
     for p in range(npts + nld):
-        if p < npts:
+        is_q = p < npts
+        if is_q:
             i, x = pt_sec[p], pt_x[p]
         else:
             i, x = ld_sec[p - npts], ld_x[p - npts]
         for a in range(6):
-            xx[a] = x * xi[i, a]
-            xxd[a] = x * xid[i, a]
-        _exp_se3(xx, E)
-        gp[:, :] = g_start[i] @ E
-        _Ad_inv(gp, Ai)
-        _T_se3(xx, T)
-        own = x * T
-        for k in range(ndof):
-            c = free_index[k]
-            j, a = c // 6, c % 6
-            if j < i:
-                for r in range(6):
-                    acc = 0.0
-                    for s in range(6):
-                        acc += Ai[r, s] * W[j, s, a]
-                    J[r, k] = acc
-            elif j == i:
-                for r in range(6):
-                    J[r, k] = own[r, a]
-            else:
-                for r in range(6):
-                    J[r, k] = 0.0
-        if p < npts:
+            Lx[a] = x * xi[i, a]
+            Lxd[a] = x * xid[i, a]
+        _exp_into(Lx, E)
+        _mm(g_start[i], E, gtmp)
+        _Ad_into(gtmp, Ai, True)
+        _T_into(Lx, T, A1, A2, A3, A4)
+        for r in range(6):
+            for c in range(6):
+                own[r, c] = x * T[r, c]
+        if is_q:
             w = pt_w[p]
             mc = pt_mc[p]
-            # body twist and bias acceleration
-            eta[:] = J @ qd
-            # spatial twist of the point and spatial bias acceleration
-            _Ad(gp, Adm)
-            Vp = Adm @ eta
-            if i > 0:
-                Ap = A_end[i - 1].copy()
-            else:
-                Ap = np.zeros(6)
-            own_sp = Adm @ (own @ xid[i])
-            _ad_vec(Vp, own_sp, tmp)
-            _T_dot_vec(xx, xxd, xid[i], tmp2)
-            Ap = Ap + tmp + Adm @ (x * tmp2)
-            acc_b = Ai @ Ap
-            # h = Mc acc - ad(eta)^T Mc eta  (Mc diagonal)
+            # body twist eta = Ai V_start + own xid_i
+            _mv(Ai, V_end[i], v1)
+            _mv(own, xid[i], v2)
             for a in range(6):
-                tmp[a] = mc[a] * eta[a]
-            # ad(eta)^T y: [ -w x yu ; -u x yu - w x yw ]
+                eta[a] = v1[a] + v2[a]
+            # body bias acceleration = Ai A_start + ad(eta) own xid + x Tdot xid
+            _mv(Ai, A_end[i], v1)
+            _ad_vec(eta, v2, v3)
+            _T_dot_into(Lx, Lxd, xid[i], v4, Pm, accb, vacc, Fs)
+            for a in range(6):
+                accb[a] = v1[a] + v3[a] + x * v4[a]
+            # inertial bias wrench h = Mc accb - ad(eta)^T Mc eta - rhoA [R^T g; 0]
             u0, u1, u2, w0, w1, w2 = eta[0], eta[1], eta[2], eta[3], eta[4], eta[5]
-            y0, y1, y2, z0, z1, z2 = tmp[0], tmp[1], tmp[2], tmp[3], tmp[4], tmp[5]
-            adT0 = -(w1 * y2 - w2 * y1)
-            adT1 = -(w2 * y0 - w0 * y2)
-            adT2 = -(w0 * y1 - w1 * y0)
-            adT3 = -(u1 * y2 - u2 * y1) - (w1 * z2 - w2 * z1)
-            adT4 = -(u2 * y0 - u0 * y2) - (w2 * z0 - w0 * z2)
-            adT5 = -(u0 * y1 - u1 * y0) - (w0 * z1 - w1 * z0)
-            h[0] = mc[0] * acc_b[0] - adT0
-            h[1] = mc[1] * acc_b[1] - adT1
-            h[2] = mc[2] * acc_b[2] - adT2
-            h[3] = mc[3] * acc_b[3] - adT3
-            h[4] = mc[4] * acc_b[4] - adT4
-            h[5] = mc[5] * acc_b[5] - adT5
-            # gravity: body force w rhoA R^T g
+            y0, y1, y2 = mc[0] * u0, mc[1] * u1, mc[2] * u2
+            z0, z1, z2 = mc[3] * w0, mc[4] * w1, mc[5] * w2
+            Fb[0] = mc[0] * accb[0] + (w1 * y2 - w2 * y1)
+            Fb[1] = mc[1] * accb[1] + (w2 * y0 - w0 * y2)
+            Fb[2] = mc[2] * accb[2] + (w0 * y1 - w1 * y0)
+            Fb[3] = mc[3] * accb[3] + (u1 * y2 - u2 * y1) + (w1 * z2 - w2 * z1)
+            Fb[4] = mc[4] * accb[4] + (u2 * y0 - u0 * y2) + (w2 * z0 - w0 * z2)
+            Fb[5] = mc[5] * accb[5] + (u0 * y1 - u1 * y0) + (w0 * z1 - w1 * z0)
             for a in range(3):
-                gb = 0.0
-                for r in range(3):
-                    gb += gp[r, a] * gravity[r]
-                h[a] -= mc[0] * gb
-            for k in range(ndof):
-                acc = 0.0
-                for a in range(6):
-                    acc += J[a, k] * h[a]
-                f[k] -= w * acc
-            for k in range(ndof):
-                for l in range(k, ndof):
-                    acc = 0.0
-                    for a in range(6):
-                        acc += J[a, k] * mc[a] * J[a, l]
-                    M[k, l] += w * acc
+                gb = gtmp[0, a] * gravity[0] + gtmp[1, a] * gravity[1] + gtmp[2, a] * gravity[2]
+                Fb[a] -= mc[0] * gb
+            for a in range(6):
+                Fb[a] = -w * Fb[a]               # applied minus inertial bias
+            # inertia accumulators
+            for r in range(6):
+                for c in range(6):
+                    MA[r, c] = mc[r] * Ai[r, c]
+            _mtm(Ai, MA, tmp6)
+            for r in range(6):
+                for c in range(6):
+                    Isec[i, r, c] += w * tmp6[r, c]
+            for r in range(6):
+                for c in range(6):
+                    MA[r, c] = mc[r] * own[r, c]
+            _mtm(Ai, MA, tmp6)
+            for r in range(6):
+                for c in range(6):
+                    Ysec[i, r, c] += w * tmp6[r, c]
+            _mtm(own, MA, tmp6)
+            for r in range(6):
+                for c in range(6):
+                    Mown[i, r, c] += w * tmp6[r, c]
         else:
             l_ = p - npts
-            Wl = ld_W[l_]
             if ld_world[l_]:
                 for a in range(3):
-                    fb = 0.0
-                    mb = 0.0
-                    for r in range(3):
-                        fb += gp[r, a] * Wl[r]
-                        mb += gp[r, a] * Wl[r + 3]
-                    tmp[a] = fb
-                    tmp[a + 3] = mb
+                    Fb[a] = gtmp[0, a] * ld_W[l_, 0] + gtmp[1, a] * ld_W[l_, 1] + gtmp[2, a] * ld_W[l_, 2]
+                    Fb[a + 3] = gtmp[0, a] * ld_W[l_, 3] + gtmp[1, a] * ld_W[l_, 4] + gtmp[2, a] * ld_W[l_, 5]
             else:
-                tmp[:] = Wl
-            for k in range(ndof):
-                acc = 0.0
                 for a in range(6):
-                    acc += J[a, k] * tmp[a]
-                f[k] += acc
-    for k in range(ndof):
-        for l in range(k):
-            M[k, l] = M[l, k]
-    # --- actuation (exact tendon/chamber forces) -------------------------
-    tau = np.zeros((n, 6))
+                    Fb[a] = ld_W[l_, a]
+        _mtv(Ai, Fb, Fs)
+        _mtv(own, Fb, v1)
+        for a in range(6):
+            Fsec[i, a] += Fs[a]
+            fown[i, a] += v1[a]
+    # --- suffix sums, generalised force and mass matrix (CRBA-like) ----------
+    Ic = np.zeros((6, 6))
+    Fd = np.zeros(6)
+    Z = np.empty((n, 6, 6))
+    ffull = np.empty((n, 6))
+    Mdiag = np.empty((n, 6, 6))
+    for k in range(n - 1, -1, -1):
+        # Ic, Fd: strictly distal to section k
+        _mtv(W[k], Fd, v1)
+        for a in range(6):
+            ffull[k, a] = v1[a] + fown[k, a]
+        _mm(Ic, W[k], tmp6)
+        for r in range(6):
+            for c in range(6):
+                Z[k, r, c] = tmp6[r, c] + Ysec[k, r, c]
+        _mtm(W[k], tmp6, A1)
+        for r in range(6):
+            for c in range(6):
+                Mdiag[k, r, c] = A1[r, c] + Mown[k, r, c]
+        for r in range(6):
+            Fd[r] += Fsec[k, r]
+            for c in range(6):
+                Ic[r, c] += Isec[k, r, c]
+    M = np.empty((ndof, ndof))
+    f = np.empty(ndof)
+    for a in range(ndof):
+        ca = free_index[a]
+        j, al = ca // 6, ca % 6
+        f[a] = ffull[j, al]
+        for b in range(a, ndof):
+            cb = free_index[b]
+            k, be = cb // 6, cb % 6
+            if j == k:
+                val = Mdiag[j, al, be]
+            else:
+                acc = 0.0
+                for r in range(6):
+                    acc += W[j, r, al] * Z[k, r, be]
+                val = acc
+            M[a, b] = val
+            M[b, a] = val
+    # --- actuation (exact tendon/chamber forces) -----------------------------
     for p in range(act_sec.shape[0]):
-        if act_coef[p] == 0.0:
+        c = act_coef[p]
+        if c == 0.0:
             continue
         i = act_sec[p]
         d = act_d[p]
@@ -361,17 +458,20 @@ def _kernel(q, qd, f0, free_index, lengths, base, offsets, pt_sec, pt_x, pt_w, p
         t2 = xi[i, 2] + xi[i, 3] * d[1] - xi[i, 4] * d[0] + act_dd[p, 2]
         nt = np.sqrt(t0 * t0 + t1 * t1 + t2 * t2)
         t0, t1, t2 = t0 / nt, t1 / nt, t2 / nt
-        c = act_coef[p]
-        tau[i, 0] += c * t0
-        tau[i, 1] += c * t1
-        tau[i, 2] += c * t2
-        tau[i, 3] += c * (d[1] * t2 - d[2] * t1)
-        tau[i, 4] += c * (d[2] * t0 - d[0] * t2)
-        tau[i, 5] += c * (d[0] * t1 - d[1] * t0)
-    tauf = tau.reshape(nfull)
-    for k in range(ndof):
-        f[k] += tauf[free_index[k]]
-    f -= Kq @ (q - q0) + Dq @ qd
+        vacc[0], vacc[1], vacc[2] = c * t0, c * t1, c * t2
+        vacc[3] = c * (d[1] * t2 - d[2] * t1)
+        vacc[4] = c * (d[2] * t0 - d[0] * t2)
+        vacc[5] = c * (d[0] * t1 - d[1] * t0)
+        for a in range(ndof):
+            ca = free_index[a]
+            if ca // 6 == i:
+                f[a] += vacc[ca % 6]
+    # --- elastic and viscous forces -----------------------------------------
+    for a in range(ndof):
+        acc = 0.0
+        for b in range(ndof):
+            acc += Kq[a, b] * (q[b] - q0[b]) + Dq[a, b] * qd[b]
+        f[a] -= acc
     return M, f
 
 
