@@ -242,7 +242,7 @@ def _Ad_into(g, A, inverse):
 
 @_jit
 def _kernel(q, qd, f0, free_index, lengths, base, offsets, pt_sec, pt_x, pt_w, pt_mc, gravity,
-            ld_sec, ld_x, ld_W, ld_world, act_sec, act_d, act_dd, act_coef, Kq, Dq, q0):
+            ld_sec, ld_x, ld_W, ld_world, act_sec, act_d, act_dd, act_coef, Kq, Dq, q0, need_mass):
     n = lengths.shape[0]
     ndof = q.shape[0]
     # --- strains and rates ---------------------------------------------------
@@ -343,6 +343,10 @@ def _kernel(q, qd, f0, free_index, lengths, base, offsets, pt_sec, pt_x, pt_w, p
         for r in range(6):
             for c in range(6):
                 own[r, c] = x * T[r, c]
+        if is_q and not need_mass and gravity[0] == 0.0 and gravity[1] == 0.0 and gravity[2] == 0.0 \
+                and V_end[n, 0] == 0.0 and V_end[n, 1] == 0.0 and V_end[n, 2] == 0.0 \
+                and V_end[n, 3] == 0.0 and V_end[n, 4] == 0.0 and V_end[n, 5] == 0.0:
+            continue            # statics without gravity: quadrature points carry nothing
         if is_q:
             w = pt_w[p]
             mc = pt_mc[p]
@@ -372,6 +376,13 @@ def _kernel(q, qd, f0, free_index, lengths, base, offsets, pt_sec, pt_x, pt_w, p
                 Fb[a] -= mc[0] * gb
             for a in range(6):
                 Fb[a] = -w * Fb[a]               # applied minus inertial bias
+            if not need_mass:
+                _mtv(Ai, Fb, Fs)
+                _mtv(own, Fb, v1)
+                for a in range(6):
+                    Fsec[i, a] += Fs[a]
+                    fown[i, a] += v1[a]
+                continue
             # inertia accumulators
             for r in range(6):
                 for c in range(6):
@@ -428,12 +439,14 @@ def _kernel(q, qd, f0, free_index, lengths, base, offsets, pt_sec, pt_x, pt_w, p
             Fd[r] += Fsec[k, r]
             for c in range(6):
                 Ic[r, c] += Isec[k, r, c]
-    M = np.empty((ndof, ndof))
+    M = np.zeros((ndof, ndof)) if need_mass else np.zeros((0, 0))
     f = np.empty(ndof)
     for a in range(ndof):
         ca = free_index[a]
         j, al = ca // 6, ca % 6
         f[a] = ffull[j, al]
+        if not need_mass:
+            continue
         for b in range(a, ndof):
             cb = free_index[b]
             k, be = cb // 6, cb % 6
@@ -552,8 +565,10 @@ def _pack_loads(model, loads):
     return packed
 
 
-def dynamics_terms(model, q, qdot, u, loads):
-    """Compiled equivalent of :func:`soft_twin_core.dynamics.dynamics_terms`."""
+def dynamics_terms(model, q, qdot, u, loads, need_mass=True):
+    """Compiled equivalent of :func:`soft_twin_core.dynamics.dynamics_terms`:
+    (M, f) with f = Q_ext + tau - K (q - q0) - D qdot - C qdot. With
+    ``need_mass=False`` M is skipped (an empty array) and f costs less."""
     pm = _pack_model(model)
     gravity, ld_sec, ld_x, ld_W, ld_world = _pack_loads(model, Loads() if loads is None else loads)
     u = np.asarray(u, dtype=float)
@@ -562,4 +577,4 @@ def dynamics_terms(model, q, qdot, u, loads):
                    pm["f0"], pm["free_index"], pm["lengths"], pm["base"], pm["offsets"],
                    pm["pt_sec"], pm["pt_x"], pm["pt_w"], pm["pt_mc"], gravity,
                    ld_sec, ld_x, ld_W, ld_world, pm["act_sec"], pm["act_d"], pm["act_dd"], coef,
-                   pm["Kq"], pm["Dq"], pm["q0"])
+                   pm["Kq"], pm["Dq"], pm["q0"], need_mass)

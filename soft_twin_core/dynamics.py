@@ -174,7 +174,7 @@ class Simulator:
     """
 
     def __init__(self, model, dt=1e-3, actuation=None, loads=None, state=None,
-                 max_iterations=8, tol=1e-10, max_substep_levels=4, theta=0.5):
+                 max_iterations=8, tol=1e-9, max_substep_levels=4, theta=0.5):
         from .model import State
         if isinstance(dt, bool) or not isinstance(dt, (int, float)) or not np.isfinite(dt) or dt <= 0:
             raise ValueError(f"dt: expected a positive time step in s, got {dt!r}")
@@ -192,7 +192,7 @@ class Simulator:
         self.last_qddot = np.zeros(model.n_dof)
         self._terms = _select_kernel(model)
         self._jac = None          # (M, df/dq, df/dv) at the last refresh
-        self._lu = {}             # factorised iteration matrices by step size
+        self._lu = {}             # stale parts of the iteration matrix by step size
         self.jacobian_refreshes = 0
 
     def set_actuation(self, actuation):
@@ -220,42 +220,49 @@ class Simulator:
         return info
 
     # --- internals ---------------------------------------------------------
-    def _refresh(self, q, v, u, loads):
-        """Finite-difference Jacobians of f at (q, v) for the iteration matrix."""
+    def _refresh(self, q, v, u, loads, dv=None):
+        """Finite-difference Jacobians of f at (q, v) for the iteration matrix,
+        and of the inertia term: column k of G is (dM/dq_k) dv, with dv the
+        expected velocity change of a step (large when the arm accelerates
+        hard; M is ill-conditioned, so this term matters)."""
         m = self.model
         M, f = self._terms(m, q, v, u, loads)
         n = m.n_dof
-        fq, fv = np.empty((n, n)), np.empty((n, n))
+        dv = np.zeros(n) if dv is None else dv
+        fq, fv, G = np.empty((n, n)), np.empty((n, n)), np.empty((n, n))
         for k in range(n):
             e = np.zeros(n)
             hq = 1e-7 * max(1.0, abs(q[k]))
             e[k] = hq
-            fq[:, k] = (self._terms(m, q + e, v, u, loads)[1] - f) / hq
+            Mk, fk = self._terms(m, q + e, v, u, loads)
+            fq[:, k] = (fk - f) / hq
+            G[:, k] = (Mk - M) @ dv / hq
             e[k] = 0.0
             hv = 1e-7 * max(1.0, abs(v[k]))
             e[k] = hv
             fv[:, k] = (self._terms(m, q, v + e, u, loads)[1] - f) / hv
-        self._jac = (M, fq, fv)
+        self._jac = (M, fq, fv, G)
         self._lu = {}
         self.jacobian_refreshes += 1
 
-    def _factor(self, h):
-        from scipy.linalg import lu_factor
-        lu = self._lu.get(h)
-        if lu is None:
-            M, fq, fv = self._jac
+    def _correction(self, h):
+        """Stale part of the iteration matrix: -theta h df/dv - (theta h)^2 df/dq
+        + theta^2 h (dM/dq) dv; the mass matrix itself is taken fresh at
+        every iteration (it is ill-conditioned: torsion has little inertia)."""
+        C = self._lu.get(h)
+        if C is None:
+            _, fq, fv, G = self._jac
             th = self.theta * h
-            lu = lu_factor(M - th * fv - th * th * fq)
-            self._lu[h] = lu
-        return lu
+            C = -th * fv - th * th * fq + self.theta * th * (h / self.dt) * G
+            self._lu[h] = C
+        return C
 
     def _newton(self, q0, v0, t, h):
-        from scipy.linalg import lu_solve
         m = self.model
         th = self.theta
         tm = t + th * h
         u, loads = self._u(tm), self._loads(tm)
-        lu = self._factor(h)
+        C = self._correction(h)
         v1 = v0 + h * (self.last_qddot if np.all(np.isfinite(self.last_qddot)) else 0.0)
         prev, rate = None, 0.0
         # relative to the rates, with a floor at round-off of the positions
@@ -263,7 +270,10 @@ class Simulator:
         for it in range(1, self.max_iterations + 1):
             vt = (1.0 - th) * v0 + th * v1
             M, f = self._terms(m, q0 + th * h * vt, vt, u, loads)
-            dv = lu_solve(lu, -(M @ (v1 - v0) - h * f))
+            try:
+                dv = np.linalg.solve(M + C, -(M @ (v1 - v0) - h * f))
+            except np.linalg.LinAlgError:
+                return None, it, np.inf
             v1 = v1 + dv
             upd = float(np.abs(dv).max())
             if not np.isfinite(upd):
@@ -281,10 +291,14 @@ class Simulator:
     def _advance(self, q0, v0, t, h, level):
         """Returns (q1, v1, iterations) or None, sub-stepping on failure."""
         v1, it, rate = self._newton(q0, v0, t, h)
-        if v1 is None or rate > 0.5 or it > 5:
-            # refresh the iteration matrix here and retry once
-            tm = t + self.theta * h
-            self._refresh(q0, v0, self._u(tm), self._loads(tm))
+        if v1 is None or rate > 0.5 or it > 4:
+            # refresh the iteration matrix at the predicted mid-step point and retry once
+            th = self.theta
+            tm = t + th * h
+            v1p = v0 + h * self.last_qddot if v1 is None else v1
+            vt = (1.0 - th) * v0 + th * v1p
+            self._refresh(q0 + th * h * vt, vt, self._u(tm), self._loads(tm),
+                          (v1p - v0) * (self.dt / h))
             if v1 is None:
                 v1, it2, rate = self._newton(q0, v0, t, h)
                 it += it2

@@ -214,3 +214,17 @@ def test_actuation_for_shape_recovers_tensions():
     q[0] += 3.0
     u2, res2 = st.actuation_for_shape(m, q)
     assert res2 > 1e-3 and np.all(u2 >= 0)
+
+
+def test_compiled_residual_and_tangent_match_reference():
+    pytest.importorskip("numba")
+    d = rod(3, "all")
+    d["actuators"] = [{"name": "h", "routing": "helical", "radius": 0.007, "turns_per_meter": 1.0}]
+    m = model_from_dict(d)
+    q = m.q0 + 0.2 * np.random.default_rng(5).normal(size=m.n_dof)
+    loads = ld.Loads(point=(ld.tip_load(m, force=(0.01, 0.02, -0.03), moment=(0.001, 0, 0.002)),))
+    u = np.array([0.4])
+    R0 = st.residual(m, q, u, loads)
+    assert np.abs(st._residual_fast(m, q, u, loads) - R0).max() < 1e-12 * np.abs(R0).max()
+    K0 = st.tangent(m, q, u, loads)
+    assert np.abs(st._fast_tangent(m, q, u, loads) - K0).max() < 1e-7 * np.abs(K0).max()
