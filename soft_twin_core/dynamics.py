@@ -174,7 +174,7 @@ class Simulator:
     """
 
     def __init__(self, model, dt=1e-3, actuation=None, loads=None, state=None,
-                 max_iterations=8, tol=1e-9, max_substep_levels=4, theta=0.5):
+                 max_iterations=10, tol=1e-9, max_substep_levels=4, theta=0.5):
         from .model import State
         if isinstance(dt, bool) or not isinstance(dt, (int, float)) or not np.isfinite(dt) or dt <= 0:
             raise ValueError(f"dt: expected a positive time step in s, got {dt!r}")
@@ -291,7 +291,7 @@ class Simulator:
     def _advance(self, q0, v0, t, h, level):
         """Returns (q1, v1, iterations) or None, sub-stepping on failure."""
         v1, it, rate = self._newton(q0, v0, t, h)
-        if v1 is None or rate > 0.5 or it > 4:
+        if v1 is None or rate > 0.5 or it > 6:
             # refresh the iteration matrix at the predicted mid-step point and retry once
             th = self.theta
             tm = t + th * h

@@ -1,0 +1,66 @@
+"""Statics: solve times (issue 5) and the common benchmark case (DESIGN.md).
+
+Run: .venv/bin/python benchmarks/bench_statics.py
+"""
+
+import time
+
+import numpy as np
+
+from _timing import fmt, machine
+from soft_twin_core import loads as ld
+from soft_twin_core import statics as st
+from soft_twin_core.model import benchmark_cantilever_dict, model_from_dict
+
+
+def timed(fn, repeat=5):
+    best, out = np.inf, None
+    for _ in range(repeat):
+        t0 = time.perf_counter()
+        out = fn()
+        best = min(best, time.perf_counter() - t0)
+    return best, out
+
+
+def main():
+    print(f"machine: {machine()}")
+    # 10-section arm, gravity + tip load + two tendons (issue 5 benchmark)
+    for free in ("bending_torsion", "all"):
+        d = benchmark_cantilever_dict(10, free)
+        d["segments"][0]["material"]["youngs_modulus"] = 5e6
+        d["actuators"] = [{"name": "t1", "offset": [0.007, 0.0]},
+                          {"name": "t2", "offset": [0.0, -0.007], "end": 0.3}]
+        m = model_from_dict(d)
+        loads = ld.Loads(point=(ld.tip_load(m, (0.0, 0.05, -0.02)),))
+        u = {"t1": 0.8, "t2": 0.4}
+        st.solve_statics(m, u, loads)                          # compile
+        t_cold, r = timed(lambda: st.solve_statics(m, u, loads))
+        u2 = {"t1": 0.85, "t2": 0.4}                           # a new command, warm-started
+        t_warm, r2 = timed(lambda: st.solve_statics(m, u2, loads, q_init=r.q))
+        print(f"10 sections ({free}, {m.n_dof} dof), gravity + tip load + 2 tendons: cold {fmt(t_cold)} "
+              f"({r.iterations} it), warm {fmt(t_warm)} ({r2.iterations} it), residual {r2.residual:.1e}")
+    # the common benchmark cantilever under gravity: convergence in sections
+    ref_n = 64
+    ref = st.solve_statics(model_from_dict(benchmark_cantilever_dict(ref_n))).tip_pose[:3, 3]
+    print(f"\nbenchmark cantilever under gravity (all modes), reference: PCS with {ref_n} sections, "
+          f"tip {np.round(ref, 6)} m")
+    print(f"{'sections':>8} {'time':>10} {'tip error [m]':>14} {'error / L':>10}")
+    for n in (2, 4, 8, 16, 32):
+        m = model_from_dict(benchmark_cantilever_dict(n))
+        st.solve_statics(m)
+        t, r = timed(lambda: st.solve_statics(m), repeat=3)
+        e = np.linalg.norm(r.tip_pose[:3, 3] - ref)
+        print(f"{n:>8} {fmt(t):>10} {e:>14.3e} {e / 0.5:>10.2e}")
+    try:
+        from soft_twin_core.continuum import solve_cosserat_statics
+        m = model_from_dict(benchmark_cantilever_dict(1))
+        sec = m.sections[0]
+        sol = solve_cosserat_statics(sec.K, 0.5, distributed_force_world=sec.M[0, 0] * m.gravity)
+        print(f"continuum BVP tip {np.round(sol.tip_pose()[:3, 3], 6)} m; PCS({ref_n}) - BVP = "
+              f"{np.linalg.norm(ref - sol.tip_pose()[:3, 3]):.2e} m")
+    except Exception as e:  # the continuum reference is optional here
+        print(f"(continuum reference unavailable: {e})")
+
+
+if __name__ == "__main__":
+    main()
