@@ -578,3 +578,59 @@ def dynamics_terms(model, q, qdot, u, loads, need_mass=True):
                    pm["pt_sec"], pm["pt_x"], pm["pt_w"], pm["pt_mc"], gravity,
                    ld_sec, ld_x, ld_W, ld_world, pm["act_sec"], pm["act_d"], pm["act_dd"], coef,
                    pm["Kq"], pm["Dq"], pm["q0"], need_mass)
+
+
+@_jit
+def _newton_kernel(q0, v0, v1, h, theta, C, tol, floor, max_it,
+                   f0, free_index, lengths, base, offsets, pt_sec, pt_x, pt_w, pt_mc, gravity,
+                   ld_sec, ld_x, ld_W, ld_world, act_sec, act_d, act_dd, act_coef, Kq, Dq, qref):
+    """Modified Newton iteration of one theta-method step (see
+    dynamics.Simulator): returns (v1, iterations, status, rate) with status
+    0 converged, 1 not converged in max_it, 2 diverging, 3 non-finite."""
+    n = q0.shape[0]
+    prev = -1.0
+    rate = 0.0
+    vt = np.empty(n)
+    qt = np.empty(n)
+    for it in range(1, max_it + 1):
+        for k in range(n):
+            vt[k] = (1.0 - theta) * v0[k] + theta * v1[k]
+            qt[k] = q0[k] + theta * h * vt[k]
+        M, f = _kernel(qt, vt, f0, free_index, lengths, base, offsets, pt_sec, pt_x, pt_w, pt_mc,
+                       gravity, ld_sec, ld_x, ld_W, ld_world, act_sec, act_d, act_dd, act_coef,
+                       Kq, Dq, qref, True)
+        r = M @ (v1 - v0) - h * f
+        dv = np.linalg.solve(M + C, -r)
+        upd = 0.0
+        vmax = 0.0
+        for k in range(n):
+            v1[k] += dv[k]
+            upd = max(upd, abs(dv[k]))
+            vmax = max(vmax, abs(v1[k]), abs(v0[k]))
+        if not np.isfinite(upd):
+            return v1, it, 3, rate
+        goal = max(tol * vmax, floor)
+        if upd <= goal:
+            return v1, it, 0, rate
+        if prev > 0.0 and upd > 100.0 * goal:
+            rate = max(rate, upd / prev)
+            if rate > 0.9:
+                return v1, it, 2, rate
+        prev = upd
+    return v1, max_it, 1, rate
+
+
+def newton_step(model, q0, v0, v1, h, theta, C, u, loads, tol, floor, max_iterations):
+    """Compiled Newton loop of one integrator step (same algorithm as the
+    Python loop in dynamics.Simulator._newton)."""
+    pm = _pack_model(model)
+    gravity, ld_sec, ld_x, ld_W, ld_world = _pack_loads(model, Loads() if loads is None else loads)
+    u = np.asarray(u, dtype=float)
+    coef = pm["act_map"] @ u if u.size else np.zeros(pm["act_sec"].shape[0])
+    return _newton_kernel(np.ascontiguousarray(q0, dtype=float), np.ascontiguousarray(v0, dtype=float),
+                          np.array(v1, dtype=float), float(h), float(theta), np.ascontiguousarray(C),
+                          float(tol), float(floor), int(max_iterations),
+                          pm["f0"], pm["free_index"], pm["lengths"], pm["base"], pm["offsets"],
+                          pm["pt_sec"], pm["pt_x"], pm["pt_w"], pm["pt_mc"], gravity,
+                          ld_sec, ld_x, ld_W, ld_world, pm["act_sec"], pm["act_d"], pm["act_dd"], coef,
+                          pm["Kq"], pm["Dq"], pm["q0"])

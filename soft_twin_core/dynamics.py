@@ -191,6 +191,10 @@ class Simulator:
         self.set_loads(loads)
         self.last_qddot = np.zeros(model.n_dof)
         self._terms = _select_kernel(model)
+        self._newton_fast = None
+        if self._terms is not dynamics_terms:
+            from . import _fast
+            self._newton_fast = _fast.newton_step
         self._jac = None          # (M, df/dq, df/dv) at the last refresh
         self._lu = {}             # stale parts of the iteration matrix by step size
         self.jacobian_refreshes = 0
@@ -267,6 +271,10 @@ class Simulator:
         prev, rate = None, 0.0
         # relative to the rates, with a floor at round-off of the positions
         floor = 1e-14 * max(1.0, np.abs(q0).max()) / h
+        if self._newton_fast is not None:
+            v1, it, status, rate = self._newton_fast(m, q0, v0, v1, h, th, C, u, loads, self.tol, floor,
+                                                     self.max_iterations)
+            return (v1 if status == 0 else None), it, (np.inf if status == 3 else rate)
         for it in range(1, self.max_iterations + 1):
             vt = (1.0 - th) * v0 + th * v1
             M, f = self._terms(m, q0 + th * h * vt, vt, u, loads)
