@@ -115,7 +115,7 @@ def test_console_script_progress_on_stderr(tmp_path):
     """A run longer than a couple of seconds reports progress on stderr."""
     path = os.path.join(CONFIG, "scenarios", "tendon_arm_dynamics.yaml")
     env = dict(os.environ, PYTHONPATH=os.path.join(HERE, ".."))
-    p = subprocess.run([sys.executable, "-m", "soft_twin_core.cli", "dynamics", path, "--duration", "3",
+    p = subprocess.run([sys.executable, "-m", "soft_twin_core.cli", "dynamics", path, "--duration", "12",
                         "--dt", "0.001", "--record-every", "100", "-o", str(tmp_path / "o.json")],
                        capture_output=True, text=True, env=env, timeout=300)
     assert p.returncode == 0, p.stderr
