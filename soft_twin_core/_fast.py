@@ -19,7 +19,7 @@ import numpy as np
 import numba as nb
 
 from . import lie
-from .loads import Loads, gauss_points
+from .loads import Loads, actuator_point_loads, gauss_points
 
 _SMALL2 = lie._SMALL ** 2
 _SMALLD2 = lie._SMALL_DERIV ** 2
@@ -511,6 +511,8 @@ def _pack_model(model):
     # actuator quadrature: geometry fixed, coefficient = -c_a u_a w
     a_sec, a_d, a_dd, a_map = [], [], [], []
     for k, a in enumerate(model.actuators):
+        if a.tendon_model == "point_moment":
+            continue            # applied as a follower point load (see dynamics_terms)
         sq, wq, sc = gauss_points(model, a.start, a.end)
         d, dd = a.offset_at(sq)
         a_sec.append(sc)
@@ -565,13 +567,25 @@ def _pack_loads(model, loads):
     return packed
 
 
+def _loads_with_actuators(model, loads, u):
+    packed = _pack_loads(model, Loads() if loads is None else loads)
+    pts = actuator_point_loads(model, u) if model.actuators else ()
+    if not pts:
+        return packed
+    gravity, ld_sec, ld_x, ld_W, ld_world = packed
+    sec, x = model.locate(np.array([p.s for p in pts]))
+    return (gravity, np.concatenate([ld_sec, sec.astype(np.int64)]), np.concatenate([ld_x, x]),
+            np.concatenate([ld_W, np.array([p.wrench for p in pts], dtype=float)]),
+            np.concatenate([ld_world, np.zeros(len(pts), dtype=np.bool_)]))
+
+
 def dynamics_terms(model, q, qdot, u, loads, need_mass=True):
     """Compiled equivalent of :func:`soft_twin_core.dynamics.dynamics_terms`:
     (M, f) with f = Q_ext + tau - K (q - q0) - D qdot - C qdot. With
     ``need_mass=False`` M is skipped (an empty array) and f costs less."""
     pm = _pack_model(model)
-    gravity, ld_sec, ld_x, ld_W, ld_world = _pack_loads(model, Loads() if loads is None else loads)
     u = np.asarray(u, dtype=float)
+    gravity, ld_sec, ld_x, ld_W, ld_world = _loads_with_actuators(model, loads, u)
     coef = pm["act_map"] @ u if u.size else np.zeros(pm["act_sec"].shape[0])
     return _kernel(np.ascontiguousarray(q, dtype=float), np.ascontiguousarray(qdot, dtype=float),
                    pm["f0"], pm["free_index"], pm["lengths"], pm["base"], pm["offsets"],
@@ -624,8 +638,8 @@ def newton_step(model, q0, v0, v1, h, theta, C, u, loads, tol, floor, max_iterat
     """Compiled Newton loop of one integrator step (same algorithm as the
     Python loop in dynamics.Simulator._newton)."""
     pm = _pack_model(model)
-    gravity, ld_sec, ld_x, ld_W, ld_world = _pack_loads(model, Loads() if loads is None else loads)
     u = np.asarray(u, dtype=float)
+    gravity, ld_sec, ld_x, ld_W, ld_world = _loads_with_actuators(model, loads, u)
     coef = pm["act_map"] @ u if u.size else np.zeros(pm["act_sec"].shape[0])
     return _newton_kernel(np.ascontiguousarray(q0, dtype=float), np.ascontiguousarray(v0, dtype=float),
                           np.array(v1, dtype=float), float(h), float(theta), np.ascontiguousarray(C),

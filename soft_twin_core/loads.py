@@ -191,13 +191,32 @@ def generalized_external_force(model, ch, loads):
     return Q, F.sum(axis=-2)
 
 
+def actuator_point_loads(model, u):
+    """Follower point moments of the actuators using the point-moment model
+    (slides part C, model (b)): the pure moment ``-c u d(end) x e_x`` at the
+    termination (c = 1 for tendons, -area for chambers). No force: the
+    tendon's compression is balanced along the arm by its channel."""
+    out = []
+    for a, val in zip(model.actuators, u):
+        if a.tendon_model != "point_moment" or val == 0.0:
+            continue
+        d, _ = a.offset_at(np.array([a.end]))
+        f = -a.force_per_unit_input * val * np.array([1.0, 0.0, 0.0])
+        out.append(PointLoad(a.end, (0.0, 0.0, 0.0) + tuple(np.cross(d[0], f)), "body"))
+    return tuple(out)
+
+
 def actuation_force(model, ch, u):
     """Generalised actuation force tau (..., n_dof) for inputs u (n_actuators,)
     (tensions N for tendons, pressures Pa for chambers)."""
     batch = ch.q.shape[:-1]
     out = np.zeros(batch + (model.n_sections, 6), dtype=ch.strains.dtype)
+    pts = actuator_point_loads(model, u)
+    extra = 0.0
+    if pts:
+        extra = generalized_external_force(model, ch, Loads(point=pts, gravity=False))[0]
     for a, val in zip(model.actuators, u):
-        if val == 0.0:
+        if val == 0.0 or a.tendon_model == "point_moment":
             continue
         sq, wq, sec = gauss_points(model, a.start, a.end)
         d, dd = a.offset_at(sq)
@@ -207,7 +226,7 @@ def actuation_force(model, ch, u):
         dens = np.concatenate([t, np.cross(d, t)], axis=-1) * (wq[:, None] * (-a.force_per_unit_input * val))
         onehot = (sec[:, None] == np.arange(model.n_sections)[None, :]).astype(float)
         out = out + np.einsum("pn,...pi->...ni", onehot, dens)
-    return out.reshape(batch + (6 * model.n_sections,))[..., model.free_index]
+    return out.reshape(batch + (6 * model.n_sections,))[..., model.free_index] + extra
 
 
 def tendon_lengths(model, q):

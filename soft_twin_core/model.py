@@ -121,6 +121,12 @@ class Actuator:
     linearly from ``offset`` at start to ``offset_end`` at end) or "helical"
     (radius ``radius``, angle ``phase + 2 pi turns_per_meter (s - start)``
     from the y axis).
+
+    tendon_model: "distributed" (exact: the tendon acts along its whole
+    path, tau = -T d(ell)/dq) or "point_moment" (the slides' model (b): the
+    pure follower moment ``-T d(end) x e_x`` at the termination ``end``;
+    equivalent to "distributed" for straight tendons in a planar,
+    inextensible, unshearable arm).
     """
     name: str
     kind: str                  # "tendon" | "chamber"
@@ -133,6 +139,7 @@ class Actuator:
     phase: float = 0.0
     turns_per_meter: float = 0.0
     area: float = 0.0          # chamber area [m^2]
+    tendon_model: str = "distributed"   # or "point_moment" (slides part C, model (b))
 
     def offset_at(self, s):
         """Offset d(s) (..., 3) in the cross-section frame (x component 0) and
@@ -439,7 +446,7 @@ def section_matrices(cs, mat):
 def _actuator(d, i, total_length):
     where = f"actuators[{i}]"
     _check_keys(d, {"name", "type", "start", "end", "routing", "offset", "offset_end", "radius",
-                    "phase", "turns_per_meter", "area"}, where)
+                    "phase", "turns_per_meter", "area", "model"}, where)
     name = d.get("name")
     if not isinstance(name, str) or not name:
         raise ModelError(f"{where}.name: expected a non-empty string, got {name!r}")
@@ -466,8 +473,11 @@ def _actuator(d, i, total_length):
     area = 0.0
     if kind == "chamber":
         area = _num(d, "area", where, positive=True)
+    tmodel = d.get("model", "distributed")
+    if tmodel not in ("distributed", "point_moment"):
+        raise ModelError(f"{where}.model: expected 'distributed' or 'point_moment', got {tmodel!r}")
     return Actuator(name, kind, start, min(end, total_length), routing, offset, offset_end,
-                    radius, phase, turns, area)
+                    radius, phase, turns, area, tmodel)
 
 
 def model_from_dict(d, n_sections_override=None):

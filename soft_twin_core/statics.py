@@ -14,7 +14,8 @@ import numpy as np
 
 from . import kinematics as kin
 from . import lie
-from .loads import Loads, actuation_force, generalized_external_force, load_points, validate_loads
+from .loads import (Loads, actuation_force, actuator_point_loads, generalized_external_force, load_points,
+                    validate_loads)
 
 
 class StaticsError(RuntimeError):
@@ -265,6 +266,10 @@ def internal_wrenches(model, q, s, actuation=None, loads=None):
     u = actuation_vector(model, actuation)
     s = np.atleast_1d(np.asarray(s, dtype=float))
     ch = kin.chain(model, q)
+    act_pts = actuator_point_loads(model, u)
+    if act_pts:
+        loads = Loads(point=tuple(loads.point) + act_pts, distributed=loads.distributed,
+                      gravity=loads.gravity)
     pts = load_points(model, ch, loads)
     idx, x, g, own = kin._point_data(model, ch, s)
     out = np.zeros((len(s), 6))
@@ -278,7 +283,7 @@ def internal_wrenches(model, q, s, actuation=None, loads=None):
     # with its tension T at offset d: the distal part then pushes the proximal
     # part with the extra wrench -T [t; d x t] (pressure: T = -area * p).
     for a, val in zip(model.actuators, u):
-        if val == 0.0:
+        if val == 0.0 or a.tendon_model == "point_moment":
             continue
         inside = (s >= a.start) & (s < a.end)
         if not np.any(inside):

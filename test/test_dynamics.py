@@ -23,7 +23,8 @@ def arm(n=3, free="all", offsets=False, actuators=True, viscosity=0.0):
     if actuators:
         d["actuators"] = [{"name": "a", "offset": [0.005, 0.002]},
                           {"name": "h", "routing": "helical", "radius": 0.006, "turns_per_meter": 1.0,
-                           "start": 0.1}]
+                           "start": 0.1},
+                          {"name": "p", "offset": [0.0, 0.006], "model": "point_moment", "end": 0.4}]
     return model_from_dict(d)
 
 
@@ -82,7 +83,7 @@ def test_compiled_kernel_matches_reference():
     loads = ld.Loads(point=(ld.tip_load(m, (0.01, 0.02, -0.01), (0.001, 0, 0)),
                             ld.PointLoad(0.3, (0, 0.01, 0, 0, 0, 0.002), "body")),
                      distributed=(ld.DistributedLoad((0, 0, 0.01, 0, 0, 0), "world", 0.1, 0.4),))
-    u = np.array([0.3, 0.2])
+    u = np.array([0.3, 0.2, 0.25])
     M0, f0 = dy.dynamics_terms(m, q, qd, u, loads)
     M1, f1 = _fast.dynamics_terms(m, q, qd, u, loads)
     assert np.abs(M1 - M0).max() < 1e-12 * np.abs(M0).max()
@@ -94,7 +95,7 @@ def test_energy_conserved_by_continuous_model():
     of the undamped arm with gravity and constant tendon tension is constant."""
     from scipy.integrate import solve_ivp
     m = arm(2, "bending_torsion")
-    u = np.array([0.2, 0.1])
+    u = np.array([0.2, 0.1, 0.0])
     n = m.n_dof
 
     def rhs(t, y):
@@ -140,7 +141,7 @@ def test_damped_response_settles_on_statics(theta):
     """Kelvin-Voigt damping near critical for the first mode; the L-stable
     (theta = 1) and damped (0.6) schemes reach the statics solution."""
     m = arm(3, "bending_torsion", viscosity=3e5)
-    u = {"a": 0.2, "h": 0.1}
+    u = {"a": 0.2, "h": 0.1, "p": 0.1}
     loads = ld.Loads(point=(ld.tip_load(m, (0.0, 0.02, 0.0)),))
     ref = st.solve_statics(m, u, loads)
     sim = dy.Simulator(m, dt=1e-2, actuation=u, loads=loads, theta=theta)

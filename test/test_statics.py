@@ -77,6 +77,27 @@ def test_tendon_equals_point_moment_and_constant_curvature(T):
     assert p[1] > 0  # towards the tendon side (+y)
 
 
+@pytest.mark.parametrize("end", [None, 0.25])
+def test_point_moment_tendon_model_matches_distributed_in_plane(end):
+    """The slides' point-moment model (b) and the distributed tendon (a) give
+    the same equilibrium for a planar, inextensible arm; the compiled and
+    reference actuation forces agree."""
+    d = rod(5, "bending")
+    d["gravity"] = [0, 0, 0]
+    extra = {} if end is None else {"end": end}
+    d["actuators"] = [{"name": "a", "offset": [0.008, 0.0], **extra},
+                      {"name": "b", "offset": [0.008, 0.0], "model": "point_moment", **extra}]
+    m = model_from_dict(d)
+    ra = st.solve_statics(m, {"a": 0.4})
+    rb = st.solve_statics(m, {"b": 0.4})
+    assert np.abs(ra.q - rb.q).max() < 1e-10 * np.abs(ra.q).max()
+    q = ra.q + 0.1
+    for u in ([0.4, 0.0], [0.0, 0.4]):
+        ref = ld.actuation_force(m, kin.chain(m, q), np.array(u))
+        assert np.abs(st._residual_fast(m, q, np.array(u), ld.Loads(gravity=False))
+                      - st.residual(m, q, np.array(u), ld.Loads(gravity=False))).max() < 1e-12 * np.abs(ref).max()
+
+
 def test_tendon_terminating_mid_arm_bends_only_its_span():
     m = planar_tendon_arm(4, 0.008, end=0.25)
     r = st.solve_statics(m, {"t1": 0.3})
