@@ -377,3 +377,22 @@ def simulate_ivp(model, t_span, state, actuation=None, loads=None, method="Radau
 
     y0 = np.concatenate([state.q, state.qdot])
     return solve_ivp(rhs, t_span, y0, method=method, rtol=rtol, atol=atol, jac=jac, t_eval=t_eval)
+
+
+def internal_wrenches_dynamic(model, q, qdot, qddot, s, u=None, loads=None):
+    """Internal wrench [force; moment] (P, 6), body frame at arc lengths s,
+    in motion: the statics cut (:func:`statics.internal_wrenches`) with the
+    d'Alembert inertial wrenches ``-(Mc eta_dot - ad(eta)^T Mc eta)`` of the
+    distal quadrature points added as follower loads."""
+    from .loads import PointLoad
+    from .statics import internal_wrenches
+    loads = Loads() if loads is None else loads
+    sq, w, Mc = _quadrature(model)
+    _, J, Jdot, eta = kin.jacobian_and_derivative(model, q, qdot, sq)
+    eta_dot = J @ qddot + Jdot @ qdot
+    h = np.einsum("pab,pb->pa", Mc, eta_dot) - np.einsum("pba,pb->pa", lie.ad(eta),
+                                                         np.einsum("pab,pb->pa", Mc, eta))
+    inertial = tuple(PointLoad(float(si), tuple(-wi * hi), "body") for si, wi, hi in zip(sq, w, h))
+    all_loads = Loads(point=tuple(loads.point) + inertial, distributed=loads.distributed,
+                      gravity=loads.gravity)
+    return internal_wrenches(model, q, s, u, all_loads)

@@ -248,8 +248,9 @@ def run_dynamics(sc, duration, dt, backbone_every=0, theta=0.5, progress=None,
                  points_per_section=10, record_every=1):
     """Integrate the scenario for ``duration`` s with step ``dt`` s.
 
-    Returns a dict of time histories: time, tip_position (N x 3),
-    base_wrench (N x 6, world, about the base origin), strains (N x n x 6),
+    Returns a dict of time histories: time, tip_position (N x 3, m),
+    tip_velocity (N x 3, m/s, world), base_wrench (N x 6, world, about the
+    base origin), strains (N x n x 6), strain_rates (N x n_dof, free modes),
     and every ``backbone_every`` steps a backbone sample. ``progress`` is
     called as progress(fraction) about once per wall-clock second."""
     import time as _time
@@ -267,8 +268,8 @@ def run_dynamics(sc, duration, dt, backbone_every=0, theta=0.5, progress=None,
         loads = sc.loads_at(None)
         sim = Simulator(m, dt, actuation=sc.actuation, loads=loads, state=state, theta=theta)
     n_steps = int(round(duration / dt))
-    out = {"time": [], "tip_position": [], "base_wrench": [], "strains": [], "backbone": [],
-           "backbone_time": [], "newton_iterations": []}
+    out = {"time": [], "tip_position": [], "tip_velocity": [], "base_wrench": [], "strains": [],
+           "strain_rates": [], "backbone": [], "backbone_time": [], "newton_iterations": []}
 
     def record(it):
         st = sim.state
@@ -278,6 +279,8 @@ def run_dynamics(sc, duration, dt, backbone_every=0, theta=0.5, progress=None,
         out["base_wrench"].append(base_reaction_dynamic(m, st.q, st.qdot, sim.last_qddot,
                                                         sim.actuation_at(t), sim.loads_at(t)).tolist())
         out["strains"].append(m.strains(st.q).tolist())
+        out["strain_rates"].append(st.qdot.tolist())
+        out["tip_velocity"].append((kin.tip_jacobian(m, st.q, frame="world")[:3] @ st.qdot).tolist())
         out["newton_iterations"].append(it)
 
     record(0)

@@ -225,3 +225,17 @@ def test_simulator_rejects_bad_input_and_keeps_state():
     assert np.array_equal(sim.state.q, q)
     sim.step(1)
     assert sim.state.t == pytest.approx(6e-3)
+
+
+def test_dynamic_internal_wrench_at_base_equals_reaction():
+    m = arm(3, "all", actuators=False)
+    q, qd = random_state(m, 0.1)
+    qdd = dy.forward_dynamics(m, q, qd)
+    W0 = dy.internal_wrenches_dynamic(m, q, qd, qdd, [0.0])[0]
+    R = dy.base_reaction_dynamic(m, q, qd, qdd)
+    Rb = m.base_pose[:3, :3]            # body frame at s = 0 is the base frame
+    assert np.allclose(np.concatenate([Rb.T @ R[:3], Rb.T @ R[3:]]), -W0, atol=1e-10 * np.abs(W0).max())
+    # at rest it equals the statics cut
+    z = np.zeros(m.n_dof)
+    s = np.array([0.1, 0.3])
+    assert np.allclose(dy.internal_wrenches_dynamic(m, q, z, z, s), st.internal_wrenches(m, q, s), atol=1e-15)
