@@ -140,14 +140,57 @@ def _mtv(A, x, out):
 
 @_jit
 def _T_into(x, T, A, A2, A3, A4):
-    b1, b2, b3, b4 = _betas(x[3] * x[3] + x[4] * x[4] + x[5] * x[5])
-    _ad_mat(x, A)
-    _mm(A, A, A2)
-    _mm(A2, A, A3)
-    _mm(A2, A2, A4)
-    for i in range(6):
-        for j in range(6):
-            T[i, j] = (1.0 if i == j else 0.0) - b1 * A[i, j] + b2 * A2[i, j] - b3 * A3[i, j] + b4 * A4[i, j]
+    """T_se3(x) = I - b1 ad + b2 ad^2 - b3 ad^3 + b4 ad^4 from 3x3 blocks:
+    ad^k = [[W^k, X_k], [0, W^k]] with X_k = sum_j W^j U W^(k-1-j),
+    W^3 = -t^2 W, W^4 = -t^2 W^2 (A..A4 are unused scratch, kept for the
+    signature)."""
+    u0, u1, u2, w0, w1, w2 = x[0], x[1], x[2], x[3], x[4], x[5]
+    t2 = w0 * w0 + w1 * w1 + w2 * w2
+    b1, b2, b3, b4 = _betas(t2)
+    W = np.empty((3, 3))
+    U = np.empty((3, 3))
+    W[0, 0], W[0, 1], W[0, 2] = 0.0, -w2, w1
+    W[1, 0], W[1, 1], W[1, 2] = w2, 0.0, -w0
+    W[2, 0], W[2, 1], W[2, 2] = -w1, w0, 0.0
+    U[0, 0], U[0, 1], U[0, 2] = 0.0, -u2, u1
+    U[1, 0], U[1, 1], U[1, 2] = u2, 0.0, -u0
+    U[2, 0], U[2, 1], U[2, 2] = -u1, u0, 0.0
+    W2 = np.empty((3, 3))
+    WU = np.empty((3, 3))
+    UW = np.empty((3, 3))
+    for i in range(3):
+        for j in range(3):
+            a2 = 0.0
+            a3 = 0.0
+            a4 = 0.0
+            for k in range(3):
+                a2 += W[i, k] * W[k, j]
+                a3 += W[i, k] * U[k, j]
+                a4 += U[i, k] * W[k, j]
+            W2[i, j] = a2
+            WU[i, j] = a3
+            UW[i, j] = a4
+    X2 = WU + UW
+    # X3 = W^2 U + W U W + U W^2 = W X2 + U W^2 ; X4 = W X3 + U W^3 = W X3 - t2 U W
+    X3 = np.empty((3, 3))
+    for i in range(3):
+        for j in range(3):
+            acc = 0.0
+            for k in range(3):
+                acc += W[i, k] * X2[k, j] + U[i, k] * W2[k, j]
+            X3[i, j] = acc
+    for i in range(3):
+        for j in range(3):
+            acc = 0.0
+            for k in range(3):
+                acc += W[i, k] * X3[k, j]
+            X4 = acc - t2 * UW[i, j]
+            # diagonal blocks: I - b1 W + b2 W^2 - b3 W^3 + b4 W^4, W^3 = -t2 W, W^4 = -t2 W^2
+            D = (1.0 if i == j else 0.0) - (b1 - b3 * t2) * W[i, j] + (b2 - b4 * t2) * W2[i, j]
+            T[i, j] = D
+            T[i + 3, j + 3] = D
+            T[i + 3, j] = 0.0
+            T[i, j + 3] = -b1 * U[i, j] + b2 * X2[i, j] - b3 * X3[i, j] + b4 * X4
 
 
 @_jit
