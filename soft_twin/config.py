@@ -1,0 +1,291 @@
+"""The node's parameters: names, defaults, descriptions and validation
+(ROS-free; the node declares them from :data:`PARAMETERS`).
+
+:func:`config_from_values` turns a {name: value} dict into a validated,
+immutable :class:`NodeConfig`; :func:`load_robot` resolves and loads the
+robot description it names. Both raise :class:`ConfigError` with a reason a
+user can act on.
+"""
+
+from dataclasses import dataclass
+import math
+import os
+from pathlib import Path
+import sys
+
+import yaml
+
+from soft_twin_core.model import ModelError, model_from_dict
+
+DEFAULT_ROBOT = "tendon_arm.yaml"
+MODES = ("dynamic", "quasi_static")
+
+
+class ConfigError(ValueError):
+    """An invalid parameter value; the message says which and why."""
+
+
+# name: (default, description). Units in the descriptions; README mirrors them.
+PARAMETERS = {
+    "robot_description_file": (
+        "", "Robot description YAML (see config/robots/). Empty: the default robot "
+            "config/robots/tendon_arm.yaml. Relative paths are looked up in the working directory, "
+            "then in the package (source checkout or share/soft_twin), then in its config/robots/."),
+    "robot_description": (
+        "", "Inline robot description (YAML text, same schema as the files); overrides "
+            "robot_description_file when non-empty."),
+    "sections_per_segment": (
+        0, "If > 0, every segment of the description is split into this many PCS sections."),
+    "actuator_names": (
+        None, "Expected actuator names (string array, any order). Unset: the robot's. Otherwise they "
+              "must be exactly the robot's actuators; this order is used for commands without names."),
+    "mode": (
+        "dynamic", "'dynamic': integrate the dynamics in real time; 'quasi_static': solve the "
+                   "static equilibrium for each new input (warm-started)."),
+    "step_rate_hz": (
+        200.0, "Dynamic mode: integration steps per second of wall time; the step is "
+               "dt = 1/step_rate_hz of twin time (Hz, in (0, 2000])."),
+    "publish_every_n_steps": (
+        1, "Dynamic mode: publish the state topics every n-th step (integer >= 1)."),
+    "republish_rate_hz": (
+        10.0, "Quasi-static mode: rate at which the unchanged state is re-published (Hz, > 0); "
+              "each new equilibrium is published at once."),
+    "wrench_rate_hz": (
+        50.0, "Dynamic mode: rate of the tip and base wrench computation and topics (Hz, > 0; "
+              "each costs about one step). Quasi-static: with every equilibrium."),
+    "marker_rate_hz": (
+        20.0, "Rate of the RViz MarkerArray (Hz, >= 0; 0 = off); only built when subscribed."),
+    "diagnostics_rate_hz": (
+        1.0, "Rate of the /diagnostics status (Hz, > 0); its statistics cover one period."),
+    "base_frame": (
+        "base_link", "Frame id of the robot's base (the robot description's world frame); "
+                     "stamps every output except the tip wrench."),
+    "tip_frame": (
+        "tip_link", "Frame id of the tip cross-section (x along the backbone tangent)."),
+    "backbone_points_per_section": (
+        10, "Backbone samples per section (integer in 1..200); the tip is added."),
+    "integrator_theta": (
+        0.5, "Dynamic mode: theta of the implicit integrator, in [0.5, 1] (0.5: midpoint rule, "
+             "2nd order, no numerical damping; 1: implicit Euler, damps stiff modes)."),
+    "integrator_tolerance": (
+        1e-9, "Dynamic mode: Newton tolerance of a step (relative to the strain rates, in (0, 1e-3])."),
+    "max_catchup_steps": (
+        4, "Dynamic mode: after a late tick, up to this many steps are taken at once to keep twin "
+           "time on wall time; a larger backlog is dropped (counted). Integer >= 1."),
+}
+
+
+@dataclass(frozen=True)
+class NodeConfig:
+    robot_description_file: str
+    robot_description: str
+    sections_per_segment: int
+    actuator_names: tuple
+    mode: str
+    step_rate_hz: float
+    publish_every_n_steps: int
+    republish_rate_hz: float
+    wrench_rate_hz: float
+    marker_rate_hz: float
+    diagnostics_rate_hz: float
+    base_frame: str
+    tip_frame: str
+    backbone_points_per_section: int
+    integrator_theta: float
+    integrator_tolerance: float
+    max_catchup_steps: int
+
+    @property
+    def dt(self):
+        return 1.0 / self.step_rate_hz
+
+    @property
+    def robot_key(self):
+        """What identifies the robot: a change rebuilds the twin."""
+        return (self.robot_description_file, self.robot_description, self.sections_per_segment)
+
+
+# ----------------------------------------------------------------------------
+# validators: value -> converted value, or ConfigError
+# ----------------------------------------------------------------------------
+
+def _number(name, v, lo=None, hi=None, lo_open=False, hi_open=False):
+    if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v):
+        raise ConfigError(f"{name}: expected a finite number, got {v!r}")
+    v = float(v)
+    if lo is not None and (v < lo or (lo_open and v == lo)):
+        raise ConfigError(f"{name}: must be {'>' if lo_open else '>='} {lo:g}, got {v:g}")
+    if hi is not None and (v > hi or (hi_open and v == hi)):
+        raise ConfigError(f"{name}: must be {'<' if hi_open else '<='} {hi:g}, got {v:g}")
+    return v
+
+
+def _integer(name, v, lo=None, hi=None):
+    if isinstance(v, bool) or not isinstance(v, int):
+        raise ConfigError(f"{name}: expected an integer, got {v!r}")
+    if (lo is not None and v < lo) or (hi is not None and v > hi):
+        rng = f"in {lo}..{hi}" if hi is not None else f">= {lo}"
+        raise ConfigError(f"{name}: must be {rng}, got {v}")
+    return v
+
+
+def _string(name, v):
+    if not isinstance(v, str):
+        raise ConfigError(f"{name}: expected a string, got {v!r}")
+    return v
+
+
+def _frame(name, v):
+    v = _string(name, v).strip()
+    if not v or any(c.isspace() for c in v):
+        raise ConfigError(f"{name}: expected a non-empty frame id without spaces, got {v!r}")
+    return v
+
+
+def _choice(name, v, choices):
+    if _string(name, v) not in choices:
+        raise ConfigError(f"{name}: expected one of {list(choices)}, got {v!r}")
+    return v
+
+
+def _names(name, v):
+    if v is None:
+        return ()
+    if isinstance(v, str) or not all(isinstance(x, str) for x in v):
+        raise ConfigError(f"{name}: expected a list of strings, got {v!r}")
+    out = tuple(x for x in v if x != "")
+    if len(set(out)) != len(out):
+        raise ConfigError(f"{name}: names repeated in {list(out)}")
+    return out
+
+
+VALIDATORS = {
+    "robot_description_file": _string,
+    "robot_description": _string,
+    "sections_per_segment": lambda n, v: _integer(n, v, 0, 500),
+    "actuator_names": _names,
+    "mode": lambda n, v: _choice(n, v, MODES),
+    "step_rate_hz": lambda n, v: _number(n, v, 0.0, 2000.0, lo_open=True),
+    "publish_every_n_steps": lambda n, v: _integer(n, v, 1, 10000),
+    "republish_rate_hz": lambda n, v: _number(n, v, 0.0, 1000.0, lo_open=True),
+    "wrench_rate_hz": lambda n, v: _number(n, v, 0.0, 2000.0, lo_open=True),
+    "marker_rate_hz": lambda n, v: _number(n, v, 0.0, 1000.0),
+    "diagnostics_rate_hz": lambda n, v: _number(n, v, 0.0, 100.0, lo_open=True),
+    "base_frame": _frame,
+    "tip_frame": _frame,
+    "backbone_points_per_section": lambda n, v: _integer(n, v, 1, 200),
+    "integrator_theta": lambda n, v: _number(n, v, 0.5, 1.0),
+    "integrator_tolerance": lambda n, v: _number(n, v, 0.0, 1e-3, lo_open=True),
+    "max_catchup_steps": lambda n, v: _integer(n, v, 1, 1000),
+}
+
+
+def validate(name, value):
+    """The converted value of one parameter, or ConfigError."""
+    if name not in VALIDATORS:
+        raise ConfigError(f"{name}: unknown parameter")
+    return VALIDATORS[name](name, value)
+
+
+def config_from_values(values):
+    """A validated NodeConfig from {name: value} (missing names: defaults)."""
+    kw = {name: validate(name, values.get(name, default)) for name, (default, _) in PARAMETERS.items()}
+    if kw["base_frame"] == kw["tip_frame"]:
+        raise ConfigError(f"base_frame and tip_frame must differ, both are {kw['base_frame']!r}")
+    return NodeConfig(**kw)
+
+
+# ----------------------------------------------------------------------------
+# The robot description
+# ----------------------------------------------------------------------------
+
+def package_roots():
+    """Folders holding the package's config/: the source checkout this module
+    lives in, the ament index share folder, and <sys.prefix>/share/soft_twin."""
+    roots = [Path(__file__).resolve().parents[1]]
+    try:
+        from ament_index_python.packages import get_package_share_directory
+        roots.append(Path(get_package_share_directory("soft_twin")))
+    except Exception:  # not on an ament index: fine, try the prefix
+        pass
+    roots.append(Path(sys.prefix) / "share" / "soft_twin")
+    out = []
+    for r in roots:
+        if (r / "config").is_dir() and r not in out:
+            out.append(r)
+    return out
+
+
+def resolve_robot_file(name):
+    """The path of a robot description file (see PARAMETERS)."""
+    name = name.strip() or DEFAULT_ROBOT
+    p = Path(os.path.expanduser(name))
+    if p.is_absolute():
+        if p.is_file():
+            return p
+        raise ConfigError(f"robot_description_file: {p} does not exist")
+    tried = [Path.cwd() / p]
+    for root in package_roots():
+        tried += [root / p, root / "config" / "robots" / p]
+        if not p.suffix:
+            tried.append(root / "config" / "robots" / (name + ".yaml"))
+    for c in tried:
+        if c.is_file():
+            return c.resolve()
+    raise ConfigError(f"robot_description_file: {name!r} not found (looked in "
+                      f"{', '.join(str(c.parent) for c in tried)})")
+
+
+@dataclass(frozen=True)
+class Robot:
+    model: object
+    description: dict
+    source: str           # file path or "inline"
+
+    sections_per_segment: int = 0
+
+    def section_radii(self):
+        """Outer radius [m] of each section, for the RViz tube."""
+        out = []
+        for seg in self.description["segments"]:
+            cs = seg.get("cross_section", {})
+            shape = cs.get("shape", "solid_circle")
+            if shape == "solid_circle":
+                r = cs.get("radius", 0.01)
+            elif shape == "hollow_tube":
+                r = cs.get("outer_radius", 0.01)
+            elif shape == "rectangle":
+                r = 0.5 * max(cs.get("width", 0.02), cs.get("height", 0.02))
+            else:
+                r = math.sqrt(cs.get("area", 3e-4) / math.pi)
+            out += [float(r)] * (self.sections_per_segment or seg.get("sections", 1))
+        return out[: self.model.n_sections] + [out[-1]] * max(0, self.model.n_sections - len(out))
+
+
+def load_robot(cfg):
+    """(Robot) from cfg.robot_description (inline YAML) or the file it names."""
+    if cfg.robot_description.strip():
+        text, source = cfg.robot_description, "inline robot_description"
+    else:
+        path = resolve_robot_file(cfg.robot_description_file)
+        try:
+            text = path.read_text(encoding="utf-8")
+        except OSError as e:
+            raise ConfigError(f"robot_description_file: {path}: {e.strerror}") from None
+        source = str(path)
+    try:
+        d = yaml.safe_load(text)
+    except yaml.YAMLError as e:
+        raise ConfigError(f"{source}: invalid YAML: {e}") from None
+    if isinstance(d, dict) and "robot" in d and "segments" not in d:
+        d = d["robot"]
+    if not isinstance(d, dict):
+        raise ConfigError(f"{source}: expected a mapping (the robot description) at top level")
+    try:
+        model = model_from_dict(d, cfg.sections_per_segment or None)
+    except ModelError as e:
+        raise ConfigError(f"{source}: {e}") from None
+    if cfg.actuator_names and set(cfg.actuator_names) != set(model.actuator_names):
+        raise ConfigError(f"actuator_names {list(cfg.actuator_names)} do not match the actuators of "
+                          f"{source}: {list(model.actuator_names)}")
+    return Robot(model, d, source, cfg.sections_per_segment)

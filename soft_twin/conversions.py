@@ -1,0 +1,117 @@
+"""numpy <-> ROS message conversions (no computation beyond a change of
+representation). Poses are 4x4 homogeneous matrices; quaternions are
+[x, y, z, w] as in geometry_msgs."""
+
+import numpy as np
+from geometry_msgs.msg import Point, Pose, PoseArray, Quaternion, Vector3, Wrench
+
+_AXIS = np.array([[0, 0, 1], [1, 0, 0], [0, 1, 0]], dtype=float)   # columns: x -> z rotation
+
+
+def quaternions_from_matrices(R):
+    """Unit quaternions [x, y, z, w] (..., 4) of rotation matrices (..., 3, 3)
+    (Shepperd's method: the largest of w, x, y, z is computed first, so it
+    stays accurate for every rotation), with w >= 0."""
+    R = np.asarray(R, dtype=float)
+    m00, m11, m22 = R[..., 0, 0], R[..., 1, 1], R[..., 2, 2]
+    tr = m00 + m11 + m22
+    cand = np.stack([tr, m00, m11, m22], axis=-1)
+    k = np.argmax(cand, axis=-1)
+    q = np.empty(R.shape[:-2] + (4,))
+    # t = 2 |largest component|: sqrt(1 + tr) for w, sqrt(1 + 2 m_ii - tr) for x, y, z;
+    # the other components follow from off-diagonal sums/differences / (2 t)
+    t = np.sqrt(np.maximum(1.0 + cand.max(axis=-1) * 2.0 - tr, 1e-300))
+    w_case = k == 0
+    x_case, y_case, z_case = k == 1, k == 2, k == 3
+    r21, r12 = R[..., 2, 1], R[..., 1, 2]
+    r02, r20 = R[..., 0, 2], R[..., 2, 0]
+    r10, r01 = R[..., 1, 0], R[..., 0, 1]
+    with np.errstate(divide="ignore", invalid="ignore"):
+        s = 0.5 / t
+        q[..., 3] = np.where(w_case, 0.5 * t, np.where(x_case, (r21 - r12) * s,
+                             np.where(y_case, (r02 - r20) * s, (r10 - r01) * s)))
+        q[..., 0] = np.where(x_case, 0.5 * t, np.where(w_case, (r21 - r12) * s,
+                             np.where(y_case, (r01 + r10) * s, (r02 + r20) * s)))
+        q[..., 1] = np.where(y_case, 0.5 * t, np.where(w_case, (r02 - r20) * s,
+                             np.where(x_case, (r01 + r10) * s, (r12 + r21) * s)))
+        q[..., 2] = np.where(z_case, 0.5 * t, np.where(w_case, (r10 - r01) * s,
+                             np.where(x_case, (r02 + r20) * s, (r12 + r21) * s)))
+    q = q * np.where(q[..., 3:4] < 0, -1.0, 1.0)
+    return q / np.linalg.norm(q, axis=-1, keepdims=True)
+
+
+def matrix_from_quaternion(x, y, z, w):
+    """3x3 rotation of a quaternion (normalised here); ValueError if zero/non-finite."""
+    q = np.array([x, y, z, w], dtype=float)
+    n = np.linalg.norm(q)
+    if not np.isfinite(n) or n < 1e-9:
+        raise ValueError(f"quaternion {q.tolist()} is zero or not finite")
+    x, y, z, w = q / n
+    return np.array([[1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)],
+                     [2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)],
+                     [2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)]])
+
+
+def pose_msgs(T):
+    """geometry_msgs/Pose list from poses (N, 4, 4)."""
+    T = np.asarray(T, dtype=float)
+    quats = quaternions_from_matrices(T[:, :3, :3]).tolist()
+    out = []
+    for p, o in zip(T[:, :3, 3].tolist(), quats):
+        m = Pose()
+        pp, oo = m.position, m.orientation
+        pp.x, pp.y, pp.z = p
+        oo.x, oo.y, oo.z, oo.w = o
+        out.append(m)
+    return out
+
+
+def pose_msg(T):
+    return pose_msgs(np.asarray(T, dtype=float)[None])[0]
+
+
+def pose_array(T, header=None):
+    msg = PoseArray()
+    if header is not None:
+        msg.header = header
+    msg.poses = pose_msgs(T)
+    return msg
+
+
+def matrix_from_pose(pose):
+    """4x4 from a geometry_msgs/Pose (quaternion normalised; ValueError if invalid)."""
+    p, o = pose.position, pose.orientation
+    pos = np.array([p.x, p.y, p.z], dtype=float)
+    if not np.all(np.isfinite(pos)):
+        raise ValueError(f"position {pos.tolist()} is not finite")
+    T = np.eye(4)
+    T[:3, :3] = matrix_from_quaternion(o.x, o.y, o.z, o.w)
+    T[:3, 3] = pos
+    return T
+
+
+def wrench_msg(w):
+    """geometry_msgs/Wrench from [f; m] (6,)."""
+    w = [float(x) for x in w]
+    return Wrench(force=Vector3(x=w[0], y=w[1], z=w[2]), torque=Vector3(x=w[3], y=w[4], z=w[5]))
+
+
+def wrench_parts(msg):
+    """(force (3,), torque (3,)) lists of a geometry_msgs/Wrench."""
+    f, t = msg.force, msg.torque
+    return [f.x, f.y, f.z], [t.x, t.y, t.z]
+
+
+def cylinder_orientation(T):
+    """Quaternions (N, 4) turning RViz's cylinder axis (z) onto each pose's
+    x axis (the backbone tangent)."""
+    R = np.asarray(T, dtype=float)[:, :3, :3] @ _AXIS
+    return quaternions_from_matrices(R)
+
+
+def point(p):
+    return Point(x=float(p[0]), y=float(p[1]), z=float(p[2]))
+
+
+def quaternion(q):
+    return Quaternion(x=float(q[0]), y=float(q[1]), z=float(q[2]), w=float(q[3]))

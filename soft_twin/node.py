@@ -1,0 +1,590 @@
+"""The soft_twin ROS 2 node: a real-time digital twin of a soft continuum arm.
+
+Thin by design: everything it computes comes from ``soft_twin_core``
+(through :mod:`soft_twin.twin`); the node converts messages, owns the clock
+and the state, and never blocks the stepping timer.
+
+Threads (:class:`soft_twin.executor.TwinExecutor`, a ``MultiThreadedExecutor``
+with rclpy 7.1's dispatch bug worked around) and callback groups:
+
+* ``step``     (mutually exclusive): the stepping timer (dynamic mode) or the
+  solve trigger and re-publish timer (quasi-static mode); it alone advances
+  the twin and publishes its state.
+* ``inputs``   (mutually exclusive): the actuation and tip-wrench
+  subscriptions; they validate, count and apply an input in microseconds.
+* ``services`` (reentrant): FK, IK, statics query, reset. They copy what they
+  need from the twin under the lock and compute outside it.
+* ``diagnostics`` (mutually exclusive): the /diagnostics timer.
+
+One lock guards the twin; it is held for one step (or solve) and for the
+microseconds an input or a service needs, never while a service computes.
+
+Topics, services and parameters: see README.md ("Interfaces").
+"""
+
+from dataclasses import replace
+import math
+import sys
+import threading
+import time
+
+import numpy as np
+import rclpy
+from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
+from geometry_msgs.msg import PoseArray, PoseStamped, Vector3, WrenchStamped
+from rcl_interfaces.msg import ParameterDescriptor, SetParametersResult
+from rclpy.callback_groups import MutuallyExclusiveCallbackGroup, ReentrantCallbackGroup
+from rclpy.clock import Clock, ClockType
+from rclpy.exceptions import ParameterUninitializedException
+from rclpy.executors import ExternalShutdownException
+from rclpy.node import Node
+from rclpy.parameter import Parameter
+from rclpy.qos import QoSProfile, ReliabilityPolicy, HistoryPolicy
+from std_msgs.msg import ColorRGBA, Header
+from std_srvs.srv import Trigger
+from visualization_msgs.msg import Marker, MarkerArray
+
+from soft_twin.msg import ActuationCommand, Strains
+from soft_twin.srv import ForwardKinematics, InverseKinematics, StaticsQuery
+
+from soft_twin import conversions as cv
+from soft_twin import twin as tw
+from soft_twin.executor import TwinExecutor
+from soft_twin.config import PARAMETERS, ConfigError, config_from_values, load_robot
+
+NODE_NAME = "soft_twin"
+
+
+class _Stats:
+    """Counters over one diagnostics period and since start."""
+
+    def __init__(self):
+        self.reset_window(time.monotonic())
+        self.totals = dict(steps=0, solver_failures=0, dropped_steps=0, commands_received=0,
+                           commands_applied=0, wrenches_received=0, wrenches_applied=0,
+                           rejected_actuation=0, rejected_wrench=0)
+        self.rejected_by_reason = {r: 0 for r in tw.REJECT_REASONS}
+        self.last_rejection = ""
+        self.last_solver_message = ""
+        self.consecutive_failures = 0
+        self.unstable = False
+
+    def reset_window(self, now):
+        self.window_start = now
+        self.steps = 0
+        self.ticks = 0
+        self.sim_time = 0.0
+        self.compute_times = []
+        self.iterations = []
+        self.publish_times = []
+        self.rejected = 0
+
+    def reject(self, kind, err):
+        self.totals[f"rejected_{kind}"] += 1
+        self.rejected_by_reason[err.reason] += 1
+        self.rejected += 1
+        self.last_rejection = f"{kind}: {err}"
+
+
+class SoftTwinNode(Node):
+    """The digital twin node (see the module docstring)."""
+
+    def __init__(self, node_name=NODE_NAME, **kwargs):
+        super().__init__(node_name, **kwargs)
+        # --- parameters: declare, validate, load the robot ------------------
+        for name, (default, description) in PARAMETERS.items():
+            if default is None:     # a string array without a default value
+                self.declare_parameter(name, Parameter.Type.STRING_ARRAY,
+                                       ParameterDescriptor(name=name, description=description))
+            else:                   # dynamic typing: 100 is as good as 100.0; validated here
+                self.declare_parameter(name, default, ParameterDescriptor(
+                    name=name, description=description, dynamic_typing=True))
+        self._values = {name: self._declared_value(name) for name in PARAMETERS}
+        self.cfg = config_from_values(self._values)      # ConfigError: the caller reports it
+        self.robot = load_robot(self.cfg)
+        self._lock = threading.Lock()
+        self._staged = None
+        self.stats = _Stats()
+        self.get_logger().info(
+            f"robot {self.robot.model.name!r} from {self.robot.source}: {self.robot.model.n_sections} "
+            f"sections, {self.robot.model.n_dof} free strains, actuators {list(self.robot.model.actuator_names)}")
+        self.twin = tw.Twin(self.robot.model, self._settings(self.cfg))
+        self.get_logger().info(f"mode {self.cfg.mode}; {self.twin.rest_message}")
+        self.get_logger().info("warming up the compiled kernels (numba: ~10 s on the first run, "
+                               "cached on disk afterwards) ...")
+        took = self.twin.warm_up()
+        self.get_logger().info(f"warm-up done in {took:.1f} s")
+
+        # --- callback groups -------------------------------------------------
+        self._step_group = MutuallyExclusiveCallbackGroup()
+        self._input_group = MutuallyExclusiveCallbackGroup()
+        self._service_group = ReentrantCallbackGroup()
+        self._diag_group = MutuallyExclusiveCallbackGroup()
+
+        # --- publishers ------------------------------------------------------
+        state_qos = QoSProfile(depth=10, reliability=ReliabilityPolicy.RELIABLE,
+                               history=HistoryPolicy.KEEP_LAST)
+        self._pub_backbone = self.create_publisher(PoseArray, "~/backbone", state_qos)
+        self._pub_tip = self.create_publisher(PoseStamped, "~/tip_pose", state_qos)
+        self._pub_tip_wrench = self.create_publisher(WrenchStamped, "~/tip_wrench", state_qos)
+        self._pub_base_wrench = self.create_publisher(WrenchStamped, "~/base_wrench", state_qos)
+        self._pub_strains = self.create_publisher(Strains, "~/strains", state_qos)
+        self._pub_markers = self.create_publisher(MarkerArray, "~/markers", 1)
+        self._pub_diag = self.create_publisher(DiagnosticArray, "/diagnostics", 10)
+
+        # --- subscriptions (depth 10, keep last: the newest inputs win) ------
+        self.create_subscription(ActuationCommand, "~/actuation", self._on_actuation, 100,
+                                 callback_group=self._input_group)
+        self.create_subscription(WrenchStamped, "~/tip_wrench_command", self._on_tip_wrench, 10,
+                                 callback_group=self._input_group)
+
+        # --- services --------------------------------------------------------
+        self.create_service(ForwardKinematics, "~/forward_kinematics", self._srv_fk,
+                            callback_group=self._service_group)
+        self.create_service(InverseKinematics, "~/inverse_kinematics", self._srv_ik,
+                            callback_group=self._service_group)
+        self.create_service(StaticsQuery, "~/statics_query", self._srv_statics,
+                            callback_group=self._service_group)
+        self.create_service(Trigger, "~/reset", self._srv_reset, callback_group=self._service_group)
+
+        # --- timers (steady clock: the twin runs on wall time) ---------------
+        self._steady = Clock(clock_type=ClockType.STEADY_TIME)
+        self._solve_trigger = self.create_guard_condition(self._on_solve_trigger,
+                                                          callback_group=self._step_group)
+        self._step_timer = None
+        self._make_step_timer()
+        self._diag_timer = self.create_timer(1.0 / self.cfg.diagnostics_rate_hz, self._publish_diagnostics,
+                                             callback_group=self._diag_group, clock=self._steady)
+        self.add_on_set_parameters_callback(self._on_set_parameters)
+        self.add_post_set_parameters_callback(self._after_set_parameters)
+        self.get_logger().info(
+            f"twin running: {self.cfg.mode}"
+            + (f" at {self.cfg.step_rate_hz:g} Hz (dt = {1e3 * self.cfg.dt:g} ms)" if self.cfg.mode == "dynamic"
+               else "") + f"; frames {self.cfg.base_frame!r} -> {self.cfg.tip_frame!r}")
+
+    # ------------------------------------------------------------------------
+    # configuration
+    # ------------------------------------------------------------------------
+    def _declared_value(self, name):
+        try:
+            return self.get_parameter(name).value
+        except ParameterUninitializedException:
+            return None
+
+    @staticmethod
+    def _settings(cfg):
+        return tw.TwinSettings(mode=cfg.mode, dt=cfg.dt, theta=cfg.integrator_theta,
+                               tolerance=cfg.integrator_tolerance,
+                               points_per_section=cfg.backbone_points_per_section)
+
+    def _make_step_timer(self):
+        if self._step_timer is not None:
+            self.destroy_timer(self._step_timer)
+        cfg = self.cfg
+        period = cfg.dt if cfg.mode == "dynamic" else 1.0 / cfg.republish_rate_hz
+        self._anchor = None            # wall time of twin step 0 (dynamic catch-up schedule)
+        self._steps_done = 0
+        self._unpublished = 0
+        self._last_wrench_time = -math.inf
+        self._last_marker_time = -math.inf
+        self._step_timer = self.create_timer(period, self._on_step_timer, callback_group=self._step_group,
+                                             clock=self._steady)
+
+    def _on_set_parameters(self, params):
+        """Validate a parameter change as a whole; reject with a reason (the
+        running twin is untouched) or stage it for _after_set_parameters."""
+        values = dict(self._values)
+        for p in params:
+            if p.name not in PARAMETERS:
+                continue            # e.g. use_sim_time: not ours
+            values[p.name] = p.value
+        try:
+            cfg = config_from_values(values)
+            robot = load_robot(cfg) if (cfg.robot_key != self.cfg.robot_key
+                                        or cfg.actuator_names != self.cfg.actuator_names) else None
+            twin = None
+            if robot is not None and cfg.robot_key != self.cfg.robot_key:
+                twin = tw.Twin(robot.model, self._settings(cfg))   # solves the rest shape: fails here, not later
+        except ConfigError as e:
+            self.get_logger().warn(f"parameter change rejected: {e}")
+            return SetParametersResult(successful=False, reason=str(e))
+        except Exception as e:  # a robot the core cannot handle: reject, keep running
+            self.get_logger().warn(f"parameter change rejected: {e}")
+            return SetParametersResult(successful=False, reason=f"{type(e).__name__}: {e}")
+        self._staged = (values, cfg, robot, twin)
+        return SetParametersResult(successful=True)
+
+    def _after_set_parameters(self, params):
+        if self._staged is None:
+            return
+        values, cfg, robot, twin = self._staged
+        self._staged = None
+        old = self.cfg
+        with self._lock:
+            self._values, self.cfg = values, cfg
+            if robot is not None:
+                self.robot = robot
+            if twin is not None:
+                self.twin = twin
+            else:
+                self.twin.change_settings(self._settings(cfg))
+        if twin is not None:
+            self.get_logger().info(f"new robot {robot.model.name!r} from {robot.source}: state reset")
+        if (cfg.mode, cfg.step_rate_hz, cfg.republish_rate_hz) != (old.mode, old.step_rate_hz,
+                                                                   old.republish_rate_hz):
+            self._make_step_timer()
+        if cfg.diagnostics_rate_hz != old.diagnostics_rate_hz:
+            self._diag_timer.timer_period_ns = int(1e9 / cfg.diagnostics_rate_hz)
+        if cfg.mode == "quasi_static":
+            self._solve_trigger.trigger()
+        self.get_logger().info("parameters applied: " + ", ".join(f"{p.name}={p.value!r}" for p in params))
+
+    # ------------------------------------------------------------------------
+    # inputs
+    # ------------------------------------------------------------------------
+    def _on_actuation(self, msg):
+        with self._lock:
+            self.stats.totals["commands_received"] += 1
+            try:
+                u = tw.parse_actuation(self.twin.model, msg.names, msg.values, self.twin.u,
+                                       self.cfg.actuator_names)
+                self.twin.set_actuation(u, stamp=msg.header)
+            except tw.InputError as e:
+                self.stats.reject("actuation", e)
+                err = e
+            else:
+                self.stats.totals["commands_applied"] += 1
+                err = None
+        if err is not None:
+            self.get_logger().warn(f"actuation command rejected ({err.reason}): {err}",
+                                   throttle_duration_sec=1.0)
+        elif self.cfg.mode == "quasi_static":
+            self._solve_trigger.trigger()
+
+    def _on_tip_wrench(self, msg):
+        force, torque = cv.wrench_parts(msg.wrench)
+        with self._lock:
+            self.stats.totals["wrenches_received"] += 1
+            try:
+                w, frame = tw.parse_tip_wrench(force, torque, msg.header.frame_id,
+                                               self.cfg.base_frame, self.cfg.tip_frame)
+                self.twin.set_tip_wrench(w, frame)
+            except tw.InputError as e:
+                self.stats.reject("wrench", e)
+                err = e
+            else:
+                self.stats.totals["wrenches_applied"] += 1
+                err = None
+        if err is not None:
+            self.get_logger().warn(f"tip wrench rejected ({err.reason}): {err}", throttle_duration_sec=1.0)
+        elif self.cfg.mode == "quasi_static":
+            self._solve_trigger.trigger()
+
+    # ------------------------------------------------------------------------
+    # stepping
+    # ------------------------------------------------------------------------
+    def _on_step_timer(self):
+        if self.cfg.mode == "dynamic":
+            self._step_dynamic()
+        else:
+            self._update_quasi_static(republish=True)
+
+    def _on_solve_trigger(self):
+        if self.cfg.mode == "quasi_static":
+            self._update_quasi_static(republish=False)
+
+    def _step_dynamic(self):
+        cfg = self.cfg
+        now = time.monotonic()
+        if self._anchor is None:
+            self._anchor = now - cfg.dt
+        due = int(round((now - self._anchor) / cfg.dt)) - self._steps_done
+        if due <= 0:
+            return
+        if due > cfg.max_catchup_steps:
+            # too far behind: drop the backlog so twin time does not race to catch up
+            self.stats.totals["dropped_steps"] += due - cfg.max_catchup_steps
+            self._steps_done += due - cfg.max_catchup_steps
+            due = cfg.max_catchup_steps
+        want_wrench = now - self._last_wrench_time >= 1.0 / cfg.wrench_rate_hz - 0.25 * cfg.dt
+        with self._lock:
+            twin = self.twin
+            info = twin.step(due)
+            self._steps_done += due
+            self._record(info, twin.settings.dt * info.steps)
+            self._unpublished += info.steps
+            publish = self._unpublished >= cfg.publish_every_n_steps
+            if publish:
+                self._unpublished = 0
+            snap = twin.outputs(with_wrenches=want_wrench and self._wrenches_wanted()) if publish else None
+        if snap is not None:
+            if snap.tip_wrench is not None:
+                self._last_wrench_time = now
+            self._publish(snap)
+
+    def _update_quasi_static(self, republish):
+        with self._lock:
+            twin = self.twin
+            if not twin.needs_solve and not republish:
+                return
+            solved = twin.needs_solve
+            info = twin.step()
+            if solved:
+                self._record(info, 0.0)
+            snap = twin.outputs(with_wrenches=True)
+        self._publish(snap)
+
+    def _record(self, info, sim_dt):
+        s = self.stats
+        s.ticks += 1
+        s.steps += info.steps
+        s.totals["steps"] += info.steps
+        s.sim_time += sim_dt
+        s.compute_times.append(info.compute_time)
+        s.iterations.append(info.iterations)
+        s.unstable = not info.stable
+        if info.converged:
+            s.consecutive_failures = 0
+            if info.message:
+                s.last_solver_message = info.message
+        else:
+            s.consecutive_failures += 1
+            s.totals["solver_failures"] += 1
+            s.last_solver_message = info.message
+            self.get_logger().error(info.message, throttle_duration_sec=1.0)
+
+    def _wrenches_wanted(self):
+        return (self._pub_tip_wrench.get_subscription_count() > 0
+                or self._pub_base_wrench.get_subscription_count() > 0)
+
+    # ------------------------------------------------------------------------
+    # outputs
+    # ------------------------------------------------------------------------
+    def _header(self, frame):
+        return Header(stamp=self.get_clock().now().to_msg(), frame_id=frame)
+
+    def _publish(self, snap):
+        t0 = time.perf_counter()
+        cfg = self.cfg
+        header = self._header(cfg.base_frame)
+        self._pub_backbone.publish(cv.pose_array(snap.backbone, header))
+        self._pub_tip.publish(PoseStamped(header=header, pose=cv.pose_msg(snap.tip_pose)))
+        strains = Strains(header=header, n_sections=len(snap.strains))
+        strains.strains = snap.strains.ravel().tolist()
+        strains.strain_rates = snap.strain_rates.ravel().tolist()
+        if snap.command_stamp is not None:
+            strains.last_command = snap.command_stamp
+        self._pub_strains.publish(strains)
+        if snap.tip_wrench is not None:
+            self._pub_tip_wrench.publish(WrenchStamped(header=Header(stamp=header.stamp, frame_id=cfg.tip_frame),
+                                                       wrench=cv.wrench_msg(snap.tip_wrench)))
+        if snap.base_wrench is not None:
+            self._pub_base_wrench.publish(WrenchStamped(header=header, wrench=cv.wrench_msg(snap.base_wrench)))
+        now = time.monotonic()
+        if (cfg.marker_rate_hz > 0 and now - self._last_marker_time >= 1.0 / cfg.marker_rate_hz
+                and self._pub_markers.get_subscription_count() > 0):
+            self._last_marker_time = now
+            self._pub_markers.publish(self._markers(snap, header))
+        self.stats.publish_times.append(time.perf_counter() - t0)
+
+    def _markers(self, snap, header):
+        """A tube of cylinders along the backbone (one per sample interval,
+        diameter of the section) and a sphere at the tip."""
+        T = snap.backbone
+        p = T[:, :3, 3]
+        mid = 0.5 * (p[1:] + p[:-1])
+        length = np.linalg.norm(p[1:] - p[:-1], axis=1)
+        quat = cv.cylinder_orientation(T[:-1]).tolist()
+        sec, _ = self.twin.model.locate(0.5 * (snap.s[1:] + snap.s[:-1]))
+        radii = np.asarray(self.robot.section_radii())[sec]
+        color = ColorRGBA(r=0.85, g=0.45, b=0.2, a=0.9)
+        out = MarkerArray()
+        for i, (c, L, q, r) in enumerate(zip(mid.tolist(), length.tolist(), quat, radii.tolist())):
+            m = Marker(header=header, ns="tube", id=i, type=Marker.CYLINDER, action=Marker.ADD, color=color)
+            m.pose.position = cv.point(c)
+            m.pose.orientation = cv.quaternion(q)
+            m.scale = Vector3(x=2 * r, y=2 * r, z=max(L * 1.05, 1e-6))
+            out.markers.append(m)
+        tip = Marker(header=header, ns="tip", id=0, type=Marker.SPHERE, action=Marker.ADD,
+                     color=ColorRGBA(r=0.2, g=0.4, b=0.9, a=1.0))
+        tip.pose = cv.pose_msg(T[-1])
+        d = 2.4 * float(radii[-1])
+        tip.scale = Vector3(x=d, y=d, z=d)
+        out.markers.append(tip)
+        # a robot with fewer samples than before: delete the extra cylinders
+        for i in range(len(mid), getattr(self, "_n_markers", 0)):
+            out.markers.append(Marker(header=header, ns="tube", id=i, action=Marker.DELETE))
+        self._n_markers = len(mid)
+        return out
+
+    def _publish_diagnostics(self):
+        now = time.monotonic()
+        with self._lock:
+            s, cfg, twin = self.stats, self.cfg, self.twin
+            wall = max(now - s.window_start, 1e-9)
+            ct = np.array(s.compute_times) if s.compute_times else np.zeros(1)
+            its = np.array(s.iterations) if s.iterations else np.zeros(1)
+            pt = np.array(s.publish_times) if s.publish_times else np.zeros(1)
+            rate = s.steps / wall
+            rtf = s.sim_time / wall
+            values = {
+                "mode": cfg.mode,
+                "robot": f"{twin.model.name} ({twin.model.n_sections} sections, {twin.model.n_dof} dof)",
+                "twin_time_s": f"{twin.state.t:.4f}",
+                "step_rate_target_hz": f"{cfg.step_rate_hz:.3f}" if cfg.mode == "dynamic" else "on input",
+                "step_rate_hz": f"{rate:.3f}",
+                "real_time_factor": f"{rtf:.4f}" if cfg.mode == "dynamic" else "n/a",
+                "step_time_mean_ms": f"{1e3 * ct.mean():.4f}",
+                "step_time_max_ms": f"{1e3 * ct.max():.4f}",
+                "publish_time_mean_ms": f"{1e3 * pt.mean():.4f}",
+                "solver_iterations_mean": f"{its.mean():.2f}",
+                "solver_iterations_max": str(int(its.max())),
+                "solver_failures_total": str(s.totals["solver_failures"]),
+                "solver_consecutive_failures": str(s.consecutive_failures),
+                "solver_last_message": s.last_solver_message,
+                "steps_total": str(s.totals["steps"]),
+                "dropped_steps_total": str(s.totals["dropped_steps"]),
+                "commands_received_total": str(s.totals["commands_received"]),
+                "commands_applied_total": str(s.totals["commands_applied"]),
+                "wrenches_received_total": str(s.totals["wrenches_received"]),
+                "wrenches_applied_total": str(s.totals["wrenches_applied"]),
+                "rejected_inputs_total": str(s.totals["rejected_actuation"] + s.totals["rejected_wrench"]),
+                "rejected_actuation_total": str(s.totals["rejected_actuation"]),
+                "rejected_wrench_total": str(s.totals["rejected_wrench"]),
+                **{f"rejected_{r}_total": str(n) for r, n in s.rejected_by_reason.items()},
+                "last_rejection": s.last_rejection,
+            }
+            level, message = DiagnosticStatus.OK, "ok"
+            if s.consecutive_failures:
+                level, message = DiagnosticStatus.ERROR, f"solver failing, state kept: {s.last_solver_message}"
+            elif cfg.mode == "dynamic" and s.steps and rate < 0.95 * cfg.step_rate_hz:
+                level, message = DiagnosticStatus.WARN, (f"behind real time: {rate:.1f} of "
+                                                         f"{cfg.step_rate_hz:g} steps/s")
+            elif s.unstable:
+                level, message = DiagnosticStatus.WARN, "only an unstable equilibrium was found"
+            elif s.rejected:
+                level, message = DiagnosticStatus.WARN, f"{s.rejected} input(s) rejected: {s.last_rejection}"
+            s.reset_window(now)
+        status = DiagnosticStatus(level=level, name=f"{self.get_name()}: twin", message=message,
+                                  hardware_id=twin.model.name,
+                                  values=[KeyValue(key=k, value=v) for k, v in values.items()])
+        self._pub_diag.publish(DiagnosticArray(header=self._header(cfg.base_frame), status=[status]))
+
+    # ------------------------------------------------------------------------
+    # services
+    # ------------------------------------------------------------------------
+    def _copy_state(self):
+        """What a query needs, copied under the lock (microseconds)."""
+        with self._lock:
+            t = self.twin
+            return (t.model, t.state.q.copy(), t.u.copy(), t.tip_wrench.copy(), t.tip_frame,
+                    self.cfg, self.cfg.actuator_names)
+
+    def _fill_shape(self, resp, res, cfg):
+        header = self._header(cfg.base_frame)
+        resp.backbone = cv.pose_array(res.backbone, header)
+        resp.strains = res.strains.ravel().tolist()
+
+    def _srv_fk(self, req, resp):
+        model, q, u, _, _, cfg, order = self._copy_state()
+        actuation = None
+        try:
+            if len(req.actuator_names) or len(req.actuator_values):
+                actuation = tw.parse_actuation(model, req.actuator_names, req.actuator_values, u, order)
+        except tw.InputError as e:
+            resp.success, resp.message = False, f"actuation rejected ({e.reason}): {e}"
+            return resp
+        res = tw.forward_kinematics(model, q, cfg.backbone_points_per_section, req.strains, actuation)
+        resp.success, resp.message = res.success, res.message
+        if res.success:
+            self._fill_shape(resp, res, cfg)
+            resp.tip_pose = cv.pose_msg(res.tip_pose)
+        return resp
+
+    def _srv_statics(self, req, resp):
+        model, q, u, _, _, cfg, order = self._copy_state()
+        try:
+            actuation = tw.parse_actuation(model, req.actuator_names, req.actuator_values, u, order) \
+                if (len(req.actuator_names) or len(req.actuator_values)) else u
+            force, torque = cv.wrench_parts(req.tip_wrench)
+            w, frame = tw.parse_tip_wrench(force, torque, cfg.base_frame, cfg.base_frame, cfg.tip_frame)
+        except tw.InputError as e:
+            resp.success, resp.message = False, f"input rejected ({e.reason}): {e}"
+            return resp
+        res = tw.statics_query(model, q, cfg.backbone_points_per_section, actuation, w, frame)
+        resp.success, resp.message = res.success, res.message
+        if res.success:
+            self._fill_shape(resp, res, cfg)
+            resp.tip_pose = cv.pose_msg(res.tip_pose)
+            resp.base_wrench = cv.wrench_msg(res.base_wrench)
+            resp.iterations, resp.residual = int(res.iterations), float(res.residual)
+        return resp
+
+    def _srv_ik(self, req, resp):
+        model, q, u, w, frame, cfg, order = self._copy_state()
+        tol = req.tolerance
+        if not math.isfinite(tol) or tol < 0:
+            resp.success, resp.message = False, f"tolerance must be >= 0 (0 = default 1e-6), got {tol}"
+            return resp
+        try:
+            target = cv.matrix_from_pose(req.target)
+        except ValueError as e:
+            resp.success, resp.message = False, f"target rejected: {e}"
+            return resp
+        res = tw.inverse_kinematics(model, q, cfg.backbone_points_per_section, target, req.position_only,
+                                    tol or 1e-6, tw.make_loads(model, w, frame))
+        resp.success, resp.message = res.success, res.message
+        if res.q is not None:
+            resp.strains = res.strains.ravel().tolist()
+            x = res.extra
+            resp.actuation_found = x["actuation_found"]
+            resp.actuator_names = list(model.actuator_names)
+            resp.actuator_values = [float(v) for v in x["u"]]
+            resp.achieved = cv.pose_msg(x["achieved_pose"])
+            resp.position_error = float(x["position_error"])
+            resp.orientation_error = float(x["orientation_error"])
+            resp.iterations = int(res.iterations)
+        return resp
+
+    def _srv_reset(self, req, resp):
+        with self._lock:
+            self.twin.reset()
+            self._anchor, self._steps_done = None, 0
+            mode = self.cfg.mode
+        resp.success = True
+        resp.message = f"twin reset: no actuation, no tip load, {self.twin.rest_message}, t = 0"
+        if mode == "quasi_static":
+            self._solve_trigger.trigger()
+        self.get_logger().info(resp.message)
+        return resp
+
+
+def main(args=None):
+    """Console entry point ``soft_twin_node`` (``--ros-args`` passed through)."""
+    # hand the GIL to the stepping thread within ~1 ms of a service computing
+    sys.setswitchinterval(0.001)
+    rclpy.init(args=args)
+    node = None
+    try:
+        try:
+            node = SoftTwinNode()
+        except ConfigError as e:
+            rclpy.logging.get_logger(NODE_NAME).fatal(f"invalid configuration: {e}")
+            return 2
+        executor = TwinExecutor(num_threads=5)
+        executor.add_node(node)
+        try:
+            executor.spin()
+        finally:
+            executor.shutdown()
+    except (KeyboardInterrupt, ExternalShutdownException):
+        pass
+    finally:
+        if node is not None:
+            node.destroy_node()
+        rclpy.try_shutdown()
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,462 @@
+"""The digital twin's state machine, free of ROS (the node wraps it).
+
+A :class:`Twin` owns one robot model, its current state and the inputs
+applied to it, and advances it with the core: ``dynamic`` mode integrates in
+time (:class:`soft_twin_core.dynamics.Simulator`, one fixed step of ``dt``
+per :meth:`Twin.step`), ``quasi_static`` mode solves the static equilibrium
+for the current inputs, warm-started from the last shape
+(:func:`soft_twin_core.statics.solve_statics`). :meth:`Twin.outputs` gives an
+immutable :class:`Snapshot` of everything the node publishes.
+
+Inputs are validated here (:func:`parse_actuation`, :func:`parse_tip_wrench`):
+a bad input raises :class:`InputError` carrying a short reason key used for
+the node's rejection counters, and is never applied.
+
+Frames: "world" of the core model = the node's base frame. Wrenches are
+[force (N); moment (N m)].
+
+Not thread-safe: the node serialises calls (one lock around the state).
+"""
+
+from dataclasses import dataclass, field
+import math
+import time
+
+import numpy as np
+
+from soft_twin_core import dynamics as dy
+from soft_twin_core import ik as core_ik
+from soft_twin_core import kinematics as kin
+from soft_twin_core import loads as ld
+from soft_twin_core import statics as st
+from soft_twin_core.model import ModelError, State
+
+MODES = ("dynamic", "quasi_static")
+
+# reason keys of rejected inputs (diagnostics counters)
+REJECT_REASONS = ("non_finite", "wrong_length", "unknown_name", "duplicate_name",
+                  "negative_tension", "bad_frame")
+
+
+class InputError(ValueError):
+    """A rejected input. ``reason`` is one of :data:`REJECT_REASONS`."""
+
+    def __init__(self, reason, message):
+        super().__init__(message)
+        self.reason = reason
+
+
+# ----------------------------------------------------------------------------
+# Input validation
+# ----------------------------------------------------------------------------
+
+def parse_actuation(model, names, values, current, order=None):
+    """Inputs vector (n_actuators,) after applying a command to ``current``.
+
+    names/values: the command. With names, each named actuator takes its
+    value and the others keep theirs (from ``current``). With names empty,
+    values must hold one value per actuator in ``order`` (actuator names;
+    default the robot's order). Tendon tensions in N (>= 0), chamber
+    pressures in Pa. Raises :class:`InputError` (never partially applies).
+    """
+    names = list(names)
+    values = np.asarray(list(values), dtype=float)
+    robot_names = list(model.actuator_names)
+    order = robot_names if not order else list(order)
+    if not names:
+        if values.size != len(order):
+            raise InputError("wrong_length", f"actuation without names needs {len(order)} values "
+                             f"(one per actuator {order}), got {values.size}")
+        names = order
+    elif len(names) != values.size:
+        raise InputError("wrong_length", f"actuation has {len(names)} names but {values.size} values")
+    if len(set(names)) != len(names):
+        dup = sorted({n for n in names if names.count(n) > 1})
+        raise InputError("duplicate_name", f"actuation names repeated: {dup}")
+    unknown = [n for n in names if n not in robot_names]
+    if unknown:
+        raise InputError("unknown_name", f"unknown actuator(s) {unknown}; this robot has {robot_names}")
+    bad = [n for n, v in zip(names, values) if not math.isfinite(v)]
+    if bad:
+        raise InputError("non_finite", f"actuation values not finite for {bad}")
+    u = np.array(current, dtype=float, copy=True)
+    for n, v in zip(names, values):
+        k = robot_names.index(n)
+        if model.actuators[k].kind == "tendon" and v < 0:
+            raise InputError("negative_tension", f"tendon {n} tension must be >= 0 N, got {v}")
+        u[k] = v
+    # the core's own check (same rules): the single source of truth
+    try:
+        return st.actuation_vector(model, u)
+    except ValueError as e:
+        raise InputError("non_finite", str(e)) from None
+
+
+def parse_tip_wrench(force, moment, frame_id, base_frame, tip_frame):
+    """External tip wrench from a WrenchStamped's parts.
+
+    frame_id == base_frame: a dead load, components along the base axes;
+    frame_id == tip_frame: a follower load, components along the tip axes.
+    Either way the force acts at the tip point and the moment is about it.
+    Returns (wrench (6,), core frame "world" | "body").
+    """
+    w = np.array(list(force) + list(moment), dtype=float)
+    if frame_id == base_frame:
+        frame = "world"
+    elif frame_id == tip_frame:
+        frame = "body"
+    else:
+        raise InputError("bad_frame", f"tip wrench frame_id {frame_id!r}: expected the base frame "
+                         f"{base_frame!r} or the tip frame {tip_frame!r}")
+    if not np.all(np.isfinite(w)):
+        raise InputError("non_finite", f"tip wrench not finite: {w.tolist()}")
+    return w, frame
+
+
+def make_loads(model, tip_wrench=None, frame="world"):
+    """Gravity plus an optional tip point load (6,) in the given core frame."""
+    if tip_wrench is None or not np.any(tip_wrench):
+        return ld.Loads()
+    return ld.Loads(point=(ld.PointLoad(model.total_length, tuple(float(x) for x in tip_wrench), frame),))
+
+
+def wrench_about_origin(model, w_base_point):
+    """A [f; m] whose moment is about the robot's base point (the core's
+    convention) re-expressed about the origin of the world (base) frame."""
+    p0 = model.base_pose[:3, 3]
+    f, m = w_base_point[:3], w_base_point[3:]
+    return np.concatenate([f, m + np.cross(p0, f)])
+
+
+def full_rates(model, qdot):
+    """Strain rates (n_sections, 6) from the free-mode rates (fixed modes 0)."""
+    out = np.zeros(6 * model.n_sections)
+    out[model.free_index] = qdot
+    return out.reshape(model.n_sections, 6)
+
+
+# ----------------------------------------------------------------------------
+# Results
+# ----------------------------------------------------------------------------
+
+@dataclass(frozen=True)
+class Snapshot:
+    """Everything the node publishes about one state (immutable, safe to
+    hand to other threads).
+
+    t: twin time [s]; q, qdot: free-mode strains and rates; u: applied
+    inputs (N / Pa, robot order); backbone: world (base-frame) poses
+    (N, 4, 4) of cross-sections at arc lengths s (N,) [m]; tip_pose (4, 4);
+    strains, strain_rates (n_sections, 6); tip_wrench: the wrench acting on
+    the tip cross-section from outside (the applied tip load), along tip
+    axes, about the tip point, or None if not computed; base_wrench: the
+    support's reaction on the robot, base axes, moment about the base-frame
+    origin, or None; command_stamp: the stamp of the last command applied
+    (opaque, from the node).
+    """
+    t: float
+    q: np.ndarray
+    qdot: np.ndarray
+    u: np.ndarray
+    s: np.ndarray
+    backbone: np.ndarray
+    tip_pose: np.ndarray
+    strains: np.ndarray
+    strain_rates: np.ndarray
+    tip_wrench: np.ndarray = None
+    base_wrench: np.ndarray = None
+    command_stamp: object = None
+
+
+@dataclass
+class UpdateInfo:
+    """Outcome of one :meth:`Twin.step`: steps taken, Newton iterations,
+    converged (False: the state was kept), message, compute time [s]."""
+    steps: int = 0
+    iterations: int = 0
+    converged: bool = True
+    message: str = ""
+    compute_time: float = 0.0
+    stable: bool = True
+
+
+@dataclass
+class TwinSettings:
+    """mode: "dynamic" | "quasi_static"; dt: dynamic step [s];
+    theta: integrator theta in [0.5, 1]; tolerance: integrator Newton
+    tolerance; points_per_section: backbone samples per section."""
+    mode: str = "dynamic"
+    dt: float = 0.005
+    theta: float = 0.5
+    tolerance: float = 1e-9
+    points_per_section: int = 10
+
+
+# ----------------------------------------------------------------------------
+# The twin
+# ----------------------------------------------------------------------------
+
+class Twin:
+    """One robot model, its state and inputs. See the module docstring."""
+
+    def __init__(self, model, settings=None, state=None):
+        self.model = model
+        self.settings = settings or TwinSettings()
+        if self.settings.mode not in MODES:
+            raise ValueError(f"mode: expected one of {MODES}, got {self.settings.mode!r}")
+        self.u = np.zeros(len(model.actuators))
+        self.tip_wrench = np.zeros(6)
+        self.tip_frame = "world"
+        self.command_stamp = None
+        self._dirty = True            # inputs changed since the last quasi-static solve
+        self._base_wrench_qs = None   # from the last statics solve
+        self._sim = None
+        self.rest_q, self.rest_message = self._rest_configuration()
+        if state is not None and state.q.shape == (model.n_dof,):
+            self.state = state.copy()
+        else:
+            self.state = State(self.rest_q.copy(), np.zeros(model.n_dof), 0.0)
+        self._make_sim()
+
+    # --- construction ------------------------------------------------------
+    def _rest_configuration(self):
+        """Equilibrium under gravity with no actuation (the twin's initial
+        and reset state); the straight reference if that cannot be solved."""
+        try:
+            res = st.solve_statics(self.model, None, ld.Loads())
+            self._base_wrench_qs = wrench_about_origin(self.model, res.base_wrench_world)
+            return res.q.copy(), "rest: static equilibrium under gravity"
+        except (st.StaticsError, ValueError) as e:
+            return self.model.q0.copy(), f"rest: reference shape (statics failed: {e})"
+
+    def _make_sim(self):
+        if self.settings.mode != "dynamic":
+            self._sim = None
+            return
+        s = self.settings
+        self._sim = dy.Simulator(self.model, dt=s.dt, actuation=self.u, loads=self.loads(),
+                                 state=self.state, theta=s.theta, tol=s.tolerance)
+        self.state = self._sim.state     # one state object, advanced in place by the simulator
+
+    def warm_up(self):
+        """Run the compiled kernels once on a throw-away copy (numba compiles
+        on first call, ~10 s without its disk cache). Returns seconds taken."""
+        t0 = time.perf_counter()
+        sim = dy.Simulator(self.model, dt=self.settings.dt, actuation=self.u, loads=self.loads(),
+                           state=self.state, theta=self.settings.theta, tol=self.settings.tolerance)
+        sim.step()
+        st.solve_statics(self.model, self.u, self.loads(), q_init=self.state.q)
+        self.outputs(with_wrenches=True)
+        return time.perf_counter() - t0
+
+    # --- inputs ------------------------------------------------------------
+    def loads(self):
+        return make_loads(self.model, self.tip_wrench, self.tip_frame)
+
+    def set_actuation(self, u, stamp=None):
+        """Apply an inputs vector (validated again by the core)."""
+        u = st.actuation_vector(self.model, u)
+        if self._sim is not None:
+            self._sim.set_actuation(u)
+        self.u = u.copy()
+        self.command_stamp = stamp
+        self._dirty = True
+
+    def set_tip_wrench(self, wrench, frame="world"):
+        """External tip load (6,) [N, N m] acting at the tip point; frame
+        "world" (base axes, dead load) or "body" (tip axes, follower)."""
+        w = np.asarray(wrench, dtype=float)
+        loads = make_loads(self.model, w, frame)
+        ld.validate_loads(self.model, loads)
+        if self._sim is not None:
+            self._sim.set_loads(loads)
+        self.tip_wrench, self.tip_frame = w.copy(), frame
+        self._dirty = True
+
+    @property
+    def needs_solve(self):
+        """Quasi-static mode: inputs changed since the last solve."""
+        return self.settings.mode == "quasi_static" and self._dirty
+
+    # --- advancing ---------------------------------------------------------
+    def step(self, n=1):
+        """Dynamic: n integration steps of dt. Quasi-static: one equilibrium
+        solve for the current inputs (if they changed). On failure the state
+        is kept (the last good one) and ``converged`` is False."""
+        t0 = time.perf_counter()
+        if self.settings.mode == "dynamic":
+            info = UpdateInfo()
+            for _ in range(n):
+                si = self._sim.step()
+                info.iterations += si.iterations
+                if not si.converged:
+                    info.converged = False
+                    info.message = (f"dynamics step at t = {self.state.t:.4f} s did not converge; "
+                                    f"state kept at the last good step")
+                    break
+                info.steps += 1
+        else:
+            info = self._solve()
+        info.compute_time = time.perf_counter() - t0
+        return info
+
+    def _solve(self):
+        if not self._dirty:
+            return UpdateInfo()
+        self._dirty = False
+        try:
+            res = st.solve_statics(self.model, self.u, self.loads(), q_init=self.state.q)
+        except (st.StaticsError, ValueError, np.linalg.LinAlgError) as e:
+            return UpdateInfo(0, 0, False, f"statics failed: {e}; state kept")
+        self.state.q = res.q.copy()
+        self.state.qdot = np.zeros(self.model.n_dof)
+        self._base_wrench_qs = wrench_about_origin(self.model, res.base_wrench_world)
+        msg = "" if res.stable else "statics: only an unstable equilibrium was found"
+        return UpdateInfo(1, res.iterations, True, msg, stable=res.stable)
+
+    def reset(self):
+        """Back to the initial state: no actuation, no tip load, the rest
+        configuration, t = 0."""
+        self.u = np.zeros(len(self.model.actuators))
+        self.tip_wrench, self.tip_frame = np.zeros(6), "world"
+        self.command_stamp = None
+        self.state = State(self.rest_q.copy(), np.zeros(self.model.n_dof), 0.0)
+        self._dirty = False
+        self._base_wrench_qs = None
+        self._make_sim()
+        if self.settings.mode == "quasi_static":
+            self._dirty = True
+            self._solve()
+
+    def change_settings(self, settings):
+        """New mode / dt / theta / tolerance / sampling; the state is kept
+        (switching to dynamic starts from rest velocity)."""
+        if settings.mode not in MODES:
+            raise ValueError(f"mode: expected one of {MODES}, got {settings.mode!r}")
+        old = self.settings
+        self.settings = settings
+        if (settings.mode, settings.dt, settings.theta, settings.tolerance) != \
+                (old.mode, old.dt, old.theta, old.tolerance):
+            self.state = State(self.state.q.copy(), np.zeros(self.model.n_dof)
+                               if settings.mode != old.mode else self.state.qdot.copy(), self.state.t)
+            self._make_sim()
+            self._dirty = True
+
+    # --- outputs -----------------------------------------------------------
+    def outputs(self, with_wrenches=True):
+        """A :class:`Snapshot` of the current state (wrenches only if asked:
+        they cost about as much as a step)."""
+        m = self.model
+        q = self.state.q.copy()
+        qdot = self.state.qdot.copy()
+        s, poses = kin.backbone(m, q, self.settings.points_per_section)
+        tip_w = base_w = None
+        if with_wrenches:
+            loads = self.loads()
+            tip_w = st.internal_wrenches(m, q, [m.total_length], self.u, loads)[0]
+            if self.settings.mode == "dynamic":
+                qdd = self._sim.last_qddot if self._sim is not None else np.zeros(m.n_dof)
+                base_w = wrench_about_origin(m, dy.base_reaction_dynamic(m, q, qdot, qdd, self.u, loads))
+            elif self._base_wrench_qs is not None:
+                base_w = self._base_wrench_qs.copy()
+        return Snapshot(t=float(self.state.t), q=q, qdot=qdot, u=self.u.copy(), s=s, backbone=poses,
+                        tip_pose=poses[-1], strains=m.strains(q), strain_rates=full_rates(m, qdot),
+                        tip_wrench=tip_w, base_wrench=base_w, command_stamp=self.command_stamp)
+
+
+# ----------------------------------------------------------------------------
+# Queries (pure: never touch a twin's state)
+# ----------------------------------------------------------------------------
+
+@dataclass
+class QueryResult:
+    """success, message; q; backbone poses (N, 4, 4); tip_pose (4, 4);
+    strains (n, 6); base_wrench (6,) or None; iterations; residual."""
+    success: bool
+    message: str
+    q: np.ndarray = None
+    s: np.ndarray = None
+    backbone: np.ndarray = None
+    tip_pose: np.ndarray = None
+    strains: np.ndarray = None
+    base_wrench: np.ndarray = None
+    iterations: int = 0
+    residual: float = 0.0
+    extra: dict = field(default_factory=dict)
+
+
+def _shape(model, q, points_per_section, **kw):
+    s, poses = kin.backbone(model, q, points_per_section)
+    return QueryResult(True, kw.pop("message", "ok"), q=q, s=s, backbone=poses, tip_pose=poses[-1],
+                       strains=model.strains(q), **kw)
+
+
+def forward_kinematics(model, q_current, points_per_section, strains=(), actuation=None):
+    """FK for given strains (n_sections*6, row-major), or for the static
+    shape under ``actuation`` (vector, gravity only, warm-started from
+    q_current), or (neither) for q_current."""
+    strains = np.asarray(list(strains), dtype=float)
+    if strains.size and actuation is not None:
+        return QueryResult(False, "give strains or an actuation, not both")
+    try:
+        if strains.size:
+            if strains.size != 6 * model.n_sections:
+                return QueryResult(False, f"strains: expected {6 * model.n_sections} values "
+                                   f"({model.n_sections} sections x 6), got {strains.size}")
+            if not np.all(np.isfinite(strains)):
+                return QueryResult(False, "strains: contain NaN or inf")
+            q = model.q_from_strains(strains.reshape(model.n_sections, 6))
+            return _shape(model, q, points_per_section, message="ok: shape of the given strains")
+        if actuation is not None:
+            res = st.solve_statics(model, actuation, ld.Loads(), q_init=q_current)
+            return _shape(model, res.q, points_per_section, iterations=res.iterations,
+                          residual=res.residual, base_wrench=wrench_about_origin(model, res.base_wrench_world),
+                          message="ok: static shape under the actuation and gravity"
+                          + ("" if res.stable else " (unstable equilibrium)"))
+        return _shape(model, np.array(q_current, dtype=float), points_per_section,
+                      message="ok: the twin's current shape")
+    except (ModelError, ValueError, st.StaticsError, np.linalg.LinAlgError) as e:
+        return QueryResult(False, str(e))
+
+
+def statics_query(model, q_current, points_per_section, actuation, tip_wrench, tip_frame="world"):
+    """Equilibrium under ``actuation`` (vector) and a tip wrench (6,) plus
+    gravity, warm-started from q_current; the twin is not touched."""
+    try:
+        loads = make_loads(model, tip_wrench, tip_frame)
+        res = st.solve_statics(model, actuation, loads, q_init=q_current)
+        return _shape(model, res.q, points_per_section, iterations=res.iterations, residual=res.residual,
+                      base_wrench=wrench_about_origin(model, res.base_wrench_world),
+                      message="ok" if res.stable else "ok (only an unstable equilibrium was found)")
+    except (ModelError, ValueError, st.StaticsError, np.linalg.LinAlgError) as e:
+        return QueryResult(False, f"statics failed: {e}")
+
+
+def inverse_kinematics(model, q_current, points_per_section, target, position_only=False,
+                       tolerance=1e-6, loads=None):
+    """Tip IK (target 4x4 in the base frame) warm-started from q_current,
+    then the actuation holding the found shape under ``loads``
+    (``extra``: u, actuation_residual, actuation_found, position_error,
+    orientation_error, achieved_pose)."""
+    try:
+        tgt = np.asarray(target, dtype=float)
+        if not np.all(np.isfinite(tgt)):
+            return QueryResult(False, "target: contains NaN or inf")
+        r = core_ik.solve_ik(model, tgt[:3, 3] if position_only else tgt, q_init=q_current,
+                             position_only=position_only, tol_position=tolerance,
+                             tol_orientation=tolerance)
+        out = _shape(model, r.q, points_per_section, iterations=r.iterations, message=r.message)
+        out.success = bool(r.success)
+        out.residual = r.position_error
+        u, rel = st.actuation_for_shape(model, r.q, loads)
+        out.extra = dict(u=u, actuation_residual=rel, actuation_found=bool(rel < 1e-6),
+                         position_error=r.position_error, orientation_error=r.orientation_error,
+                         achieved_pose=r.achieved_pose)
+        if not r.success:
+            out.message = f"IK did not reach the target: {r.message}"
+        elif rel >= 1e-6:
+            out.message += (f"; no actuation holds this shape exactly (relative residual {rel:.2e}): "
+                            f"actuator values are the best non-negative fit")
+        return out
+    except (ModelError, ValueError, st.StaticsError, np.linalg.LinAlgError) as e:
+        return QueryResult(False, f"IK failed: {e}")

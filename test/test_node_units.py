@@ -1,0 +1,254 @@
+"""The node's ROS-free parts: input validation, the twin's state machine,
+parameter validation, robot lookup. (Message conversions need the ROS
+message packages and are skipped without them.)"""
+import math
+import os
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from soft_twin import twin as tw
+from soft_twin.config import (PARAMETERS, ConfigError, config_from_values, load_robot,
+                              resolve_robot_file, validate)
+from soft_twin_core import dynamics as dy
+from soft_twin_core import kinematics as kin
+from soft_twin_core import loads as ld
+from soft_twin_core import statics as st
+from soft_twin_core.model import load_model
+
+ROOT = Path(__file__).resolve().parents[1]
+ROBOT = ROOT / "config" / "robots" / "tendon_arm.yaml"
+NAMES = ["tendon_y_pos", "tendon_y_neg", "tendon_z_pos", "tendon_z_neg"]
+
+
+@pytest.fixture(scope="module")
+def model():
+    return load_model(ROBOT)
+
+
+# ------------------------------------------------------------------ inputs
+
+def test_parse_actuation_named_keeps_the_others(model):
+    u = tw.parse_actuation(model, ["tendon_z_pos"], [0.5], [0.1, 0.2, 0.3, 0.4])
+    assert u.tolist() == [0.1, 0.2, 0.5, 0.4]
+
+
+def test_parse_actuation_positional_in_given_order(model):
+    assert tw.parse_actuation(model, [], [1, 2, 3, 4], np.zeros(4)).tolist() == [1, 2, 3, 4]
+    order = ["tendon_z_neg", "tendon_z_pos", "tendon_y_neg", "tendon_y_pos"]
+    assert tw.parse_actuation(model, [], [1, 2, 3, 4], np.zeros(4), order).tolist() == [4, 3, 2, 1]
+
+
+@pytest.mark.parametrize("names, values, reason", [
+    (["tendon_y_pos"], [math.nan], "non_finite"),
+    (["tendon_y_pos"], [math.inf], "non_finite"),
+    (["tendon_y_pos", "tendon_z_pos"], [-math.inf, 1.0], "non_finite"),
+    (["tendon_y_pos", "tendon_z_pos"], [1.0], "wrong_length"),
+    (["tendon_y_pos"], [1.0, 2.0], "wrong_length"),
+    ([], [1.0, 2.0, 3.0], "wrong_length"),
+    ([], [], "wrong_length"),
+    (["tendon_q"], [1.0], "unknown_name"),
+    (["tendon_y_pos", "tendon_y_pos"], [1.0, 2.0], "duplicate_name"),
+    (["tendon_y_neg"], [-0.1], "negative_tension"),
+    ([], [0.1, 0.2, -1e-9, 0.0], "negative_tension"),
+])
+def test_parse_actuation_rejects(model, names, values, reason):
+    current = np.array([0.1, 0.2, 0.3, 0.4])
+    with pytest.raises(tw.InputError) as exc:
+        tw.parse_actuation(model, names, values, current)
+    assert exc.value.reason == reason
+    assert current.tolist() == [0.1, 0.2, 0.3, 0.4]      # never partially applied
+
+
+def test_parse_tip_wrench_frames():
+    w, frame = tw.parse_tip_wrench([1, 2, 3], [4, 5, 6], "base", "base", "tip")
+    assert frame == "world" and w.tolist() == [1, 2, 3, 4, 5, 6]
+    assert tw.parse_tip_wrench([0, 0, 1], [0, 0, 0], "tip", "base", "tip")[1] == "body"
+    for frame_id in ("", "map", "Base"):
+        with pytest.raises(tw.InputError) as exc:
+            tw.parse_tip_wrench([0, 0, 0], [0, 0, 0], frame_id, "base", "tip")
+        assert exc.value.reason == "bad_frame"
+    with pytest.raises(tw.InputError) as exc:
+        tw.parse_tip_wrench([0, math.nan, 0], [0, 0, 0], "base", "base", "tip")
+    assert exc.value.reason == "non_finite"
+
+
+# ------------------------------------------------------------------ the twin
+
+def _settings(mode, **kw):
+    return tw.TwinSettings(mode=mode, **kw)
+
+
+def test_quasi_static_twin_equals_core_statics(model):
+    twin = tw.Twin(model, _settings("quasi_static"))
+    rest = st.solve_statics(model)
+    np.testing.assert_array_equal(twin.state.q, rest.q)
+    u = np.array([0.3, 0.0, 0.0, 0.2])
+    twin.set_actuation(u)
+    twin.set_tip_wrench([0.0, 0.0, -0.05, 0, 0, 0], "world")
+    info = twin.step()
+    assert info.converged and info.steps == 1
+    ref = st.solve_statics(model, u, ld.Loads(point=(ld.tip_load(model, (0, 0, -0.05)),)), q_init=rest.q)
+    snap = twin.outputs()
+    np.testing.assert_allclose(snap.q, ref.q, rtol=0, atol=1e-12)
+    _, P = kin.backbone(model, ref.q)
+    np.testing.assert_allclose(snap.backbone, P, rtol=0, atol=1e-12)
+    np.testing.assert_allclose(snap.base_wrench, ref.base_wrench_world, atol=1e-12)   # base at the origin
+    # the tip wrench is the applied tip load, in tip axes
+    R = snap.tip_pose[:3, :3]
+    np.testing.assert_allclose(snap.tip_wrench[:3], R.T @ [0, 0, -0.05], atol=1e-12)
+    np.testing.assert_allclose(snap.tip_wrench[3:], 0, atol=1e-12)
+    # nothing changed: no new solve
+    assert twin.step().steps == 0
+
+
+def test_dynamic_twin_steps_like_the_core_simulator(model):
+    twin = tw.Twin(model, _settings("dynamic", dt=0.005))
+    u = np.array([0.2, 0.0, 0.1, 0.0])
+    twin.set_actuation(u)
+    sim = dy.Simulator(model, dt=0.005, actuation=u, loads=ld.Loads(), state=twin.state)
+    info = twin.step(3)
+    sim.step(3)
+    assert info.converged and info.steps == 3
+    np.testing.assert_array_equal(twin.state.q, sim.state.q)
+    assert twin.state.t == pytest.approx(0.015)
+    snap = twin.outputs()
+    np.testing.assert_allclose(snap.base_wrench, dy.base_reaction_dynamic(
+        model, sim.state.q, sim.state.qdot, sim.last_qddot, u, ld.Loads()), atol=1e-12)
+
+
+def test_failed_step_keeps_the_state(model):
+    twin = tw.Twin(model, _settings("dynamic"))
+    twin.step()
+    q, t = twin.state.q.copy(), twin.state.t
+    twin._sim.step = lambda n=1: dy.StepInfo(8, False, math.inf)
+    info = twin.step()
+    assert not info.converged and "state kept" in info.message
+    np.testing.assert_array_equal(twin.state.q, q)
+    assert twin.state.t == t
+
+
+def test_failed_solve_keeps_the_state(model, monkeypatch):
+    twin = tw.Twin(model, _settings("quasi_static"))
+    twin.step()
+    q = twin.state.q.copy()
+
+    def fail(*a, **k):
+        raise st.StaticsError("no")
+    monkeypatch.setattr(st, "solve_statics", fail)
+    twin.set_actuation([1.0, 0, 0, 0])
+    info = twin.step()
+    assert not info.converged and "state kept" in info.message
+    np.testing.assert_array_equal(twin.state.q, q)
+
+
+def test_reset_and_mode_switch(model):
+    twin = tw.Twin(model, _settings("dynamic"))
+    twin.set_actuation([0.5, 0, 0, 0])
+    twin.set_tip_wrench([0, 0, -0.01, 0, 0, 0])
+    twin.step(5)
+    twin.reset()
+    assert twin.state.t == 0 and not np.any(twin.u) and not np.any(twin.tip_wrench)
+    np.testing.assert_array_equal(twin.state.q, twin.rest_q)
+    twin.change_settings(_settings("quasi_static"))
+    twin.set_actuation([0.5, 0, 0, 0])
+    assert twin.step().converged
+    assert not np.any(twin.state.qdot)
+
+
+def test_queries_leave_the_twin_alone(model):
+    twin = tw.Twin(model, _settings("quasi_static"))
+    q = twin.state.q.copy()
+    res = tw.statics_query(model, q, 10, np.array([0.4, 0, 0, 0]), np.zeros(6))
+    assert res.success
+    fk = tw.forward_kinematics(model, q, 10, strains=res.strains.ravel())
+    np.testing.assert_allclose(fk.tip_pose, res.tip_pose, atol=1e-12)
+    ik = tw.inverse_kinematics(model, q, 10, res.tip_pose, tolerance=1e-8)
+    assert ik.success, ik.message
+    assert ik.extra["position_error"] <= 1e-8
+    np.testing.assert_array_equal(twin.state.q, q)
+    bad = tw.forward_kinematics(model, q, 10, strains=[0.0] * 5)
+    assert not bad.success and "expected 36" in bad.message
+
+
+# ------------------------------------------------------------------ parameters
+
+def test_defaults_are_valid():
+    cfg = config_from_values({})
+    assert cfg.mode == "dynamic" and cfg.step_rate_hz == 200.0 and cfg.dt == 0.005
+    assert set(PARAMETERS) == set(cfg.__dataclass_fields__)
+
+
+@pytest.mark.parametrize("name, value", [
+    ("mode", "kinematic"), ("mode", 3), ("step_rate_hz", 0), ("step_rate_hz", -5.0),
+    ("step_rate_hz", math.nan), ("step_rate_hz", "fast"), ("step_rate_hz", True),
+    ("step_rate_hz", 5000.0), ("backbone_points_per_section", 0), ("backbone_points_per_section", 2.5),
+    ("base_frame", ""), ("tip_frame", "tip link"), ("integrator_theta", 0.3),
+    ("integrator_tolerance", 0.0), ("publish_every_n_steps", 0), ("marker_rate_hz", -1.0),
+    ("diagnostics_rate_hz", 0.0), ("sections_per_segment", -1), ("actuator_names", ["a", "a"]),
+    ("max_catchup_steps", 0), ("wrench_rate_hz", 0.0), ("republish_rate_hz", 0.0),
+])
+def test_bad_parameter_values_are_rejected_with_a_reason(name, value):
+    with pytest.raises(ConfigError, match=name):
+        validate(name, value)
+
+
+def test_integer_rates_are_accepted():
+    assert validate("step_rate_hz", 100) == 100.0
+
+
+def test_frames_must_differ():
+    with pytest.raises(ConfigError, match="differ"):
+        config_from_values({"base_frame": "a", "tip_frame": "a"})
+
+
+def test_robot_lookup(tmp_path, monkeypatch):
+    assert resolve_robot_file("") == ROBOT.resolve()
+    assert resolve_robot_file("pneumatic_arm") == (ROBOT.parent / "pneumatic_arm.yaml").resolve()
+    assert resolve_robot_file("config/robots/pneumatic_arm.yaml").name == "pneumatic_arm.yaml"
+    monkeypatch.chdir(tmp_path)
+    (tmp_path / "mine.yaml").write_text(ROBOT.read_text())
+    assert resolve_robot_file("mine.yaml") == tmp_path / "mine.yaml"
+    with pytest.raises(ConfigError, match="not found"):
+        resolve_robot_file("nope.yaml")
+    with pytest.raises(ConfigError, match="does not exist"):
+        resolve_robot_file(str(tmp_path / "nope.yaml"))
+
+
+def test_load_robot_inline_override_and_errors():
+    cfg = config_from_values({"robot_description": ROBOT.read_text(), "sections_per_segment": 1})
+    robot = load_robot(cfg)
+    assert robot.model.n_sections == 3 and robot.source.startswith("inline")
+    assert robot.section_radii() == [0.012, 0.010, 0.008]
+    with pytest.raises(ConfigError, match="segments"):
+        load_robot(config_from_values({"robot_description": "name: x\nsegments: []\n"}))
+    with pytest.raises(ConfigError, match="invalid YAML"):
+        load_robot(config_from_values({"robot_description": "a: [1,"}))
+    with pytest.raises(ConfigError, match="do not match"):
+        load_robot(config_from_values({"actuator_names": ["tendon_y_pos"]}))
+    cfg = config_from_values({"actuator_names": list(reversed(NAMES))})
+    assert load_robot(cfg).model.actuator_names == tuple(NAMES)
+
+
+# ------------------------------------------------------------------ conversions
+
+def test_quaternions_match_scipy_everywhere():
+    pytest.importorskip("geometry_msgs", reason="needs the ROS message packages")
+    from scipy.spatial.transform import Rotation
+    from soft_twin import conversions as cv
+    R = Rotation.random(2000, random_state=3)
+    q = cv.quaternions_from_matrices(R.as_matrix())
+    ref = R.as_quat() * np.sign(R.as_quat()[:, 3:4])
+    np.testing.assert_allclose(q, ref, atol=1e-14)
+    for ang in (0.0, 1e-9, np.pi - 1e-9, np.pi):
+        for axis in np.eye(3):
+            M = Rotation.from_rotvec(ang * axis).as_matrix()
+            back = Rotation.from_quat(cv.quaternions_from_matrices(M[None])[0]).as_matrix()
+            np.testing.assert_allclose(back, M, atol=1e-14)
+    T = np.eye(4)
+    T[:3, :3], T[:3, 3] = R[0].as_matrix(), [0.1, -0.2, 0.3]
+    np.testing.assert_allclose(cv.matrix_from_pose(cv.pose_msg(T)), T, atol=1e-15)
+    # the RViz cylinder axis (z) goes onto the pose's x axis
+    Rc = Rotation.from_quat(cv.cylinder_orientation(T[None])[0]).as_matrix()
+    np.testing.assert_allclose(Rc[:, 2], T[:3, 0], atol=1e-14)
