@@ -43,15 +43,15 @@ class NodeProcess:
 
     ros_args: extra arguments after ``--ros-args`` (e.g. ``["-p", "mode:=dynamic"]``);
     node_name: remaps the node name (topics and services follow: ``/<name>/...``).
-    Run from the repository root when it is a checkout (the sources), else
-    from the installed package. Output goes to ``log_path`` (default: a pipe
+    Run from the repository root when this module is in a checkout (the
+    node then runs from the sources), else from the current directory. Output goes to ``log_path`` (default: a pipe
     read by :meth:`output`)."""
 
     def __init__(self, ros_args=(), node_name="soft_twin", log_path=None, cwd=None, env=None):
         self.node_name = node_name
         args = [sys.executable, "-m", "soft_twin.node", "--ros-args", "-r", f"__node:={node_name}", *ros_args]
         self.log_path = log_path
-        cwd = cwd or (REPO_ROOT if (REPO_ROOT / "soft_twin_core").is_dir() else None)
+        cwd = cwd or (REPO_ROOT if (REPO_ROOT / "package.xml").is_file() else None)
         self._log = open(log_path, "w") if log_path else subprocess.PIPE
         self.proc = subprocess.Popen(args, cwd=cwd, env=env or os.environ.copy(), stdout=self._log,
                                      stderr=subprocess.STDOUT, text=True)
@@ -249,6 +249,11 @@ class TwinClient:
                         if stamp_key(b.header.stamp) == stamp_key(s.header.stamp):
                             return b, s
         return None
+
+    def arrival(self, topic, msg):
+        """When (time.monotonic) a message of ``history[topic]`` arrived, or None."""
+        with self._cond:
+            return next((t for t, m in self.history[topic] if m is msg), None)
 
     # --- services ------------------------------------------------------------
     def call(self, service, request, timeout=30.0):

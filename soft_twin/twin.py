@@ -6,7 +6,8 @@ time (:class:`soft_twin_core.dynamics.Simulator`, one fixed step of ``dt``
 per :meth:`Twin.step`), ``quasi_static`` mode solves the static equilibrium
 for the current inputs, warm-started from the last shape
 (:func:`soft_twin_core.statics.solve_statics`). :meth:`Twin.outputs` gives an
-immutable :class:`Snapshot` of everything the node publishes.
+immutable :class:`Snapshot` of everything the node publishes, and
+:func:`wrenches` the tip and base wrenches of one.
 
 Inputs are validated here (:func:`parse_actuation`, :func:`parse_tip_wrench`):
 a bad input raises :class:`InputError` carrying a short reason key used for
@@ -144,28 +145,52 @@ class Snapshot:
     """Everything the node publishes about one state (immutable, safe to
     hand to other threads).
 
-    t: twin time [s]; q, qdot: free-mode strains and rates; u: applied
-    inputs (N / Pa, robot order); backbone: world (base-frame) poses
+    t: twin time [s]; q, qdot, qddot: free-mode strains and their rates;
+    u: applied inputs (N / Pa, robot order); loads: the core Loads acting
+    (gravity and the tip load); backbone: world (base-frame) poses
     (N, 4, 4) of cross-sections at arc lengths s (N,) [m]; tip_pose (4, 4);
-    strains, strain_rates (n_sections, 6); tip_wrench: the wrench acting on
-    the tip cross-section from outside (the applied tip load), along tip
-    axes, about the tip point, or None if not computed; base_wrench: the
-    support's reaction on the robot, base axes, moment about the base-frame
-    origin, or None; command_stamp: the stamp of the last command applied
-    (opaque, from the node).
+    strains, strain_rates (n_sections, 6); static_base_wrench: the support
+    reaction from the last equilibrium solve (quasi-static mode), else None;
+    command_stamp: the stamp of the last command applied (opaque, from the
+    node). :func:`wrenches` computes the tip and base wrenches.
     """
+    mode: str
     t: float
     q: np.ndarray
     qdot: np.ndarray
+    qddot: np.ndarray
     u: np.ndarray
+    loads: object
     s: np.ndarray
     backbone: np.ndarray
     tip_pose: np.ndarray
     strains: np.ndarray
     strain_rates: np.ndarray
-    tip_wrench: np.ndarray = None
-    base_wrench: np.ndarray = None
+    static_base_wrench: np.ndarray = None
     command_stamp: object = None
+
+
+def wrenches(model, snap):
+    """(tip_wrench, base_wrench) of a snapshot, both [f (N); m (N m)] (6,).
+
+    tip_wrench: the internal wrench at the tip cross-section (s = L), i.e.
+    the wrench that whatever is beyond the tip (payload, contact, an end
+    effector) exerts on the arm, along the tip axes, moment about the tip
+    point (no inertia lies distal to the tip face, so this holds in motion
+    too). base_wrench: the reaction the support exerts on the arm at its
+    clamped base, along the base-frame axes, moment about the base-frame
+    origin; in dynamic mode it includes the inertial forces
+    (:func:`soft_twin_core.dynamics.base_reaction_dynamic`)."""
+    tip = st.internal_wrenches(model, snap.q, [model.total_length], snap.u, snap.loads)[0]
+    if snap.mode == "dynamic":
+        base = wrench_about_origin(model, dy.base_reaction_dynamic(model, snap.q, snap.qdot, snap.qddot,
+                                                                    snap.u, snap.loads))
+    elif snap.static_base_wrench is not None:
+        base = snap.static_base_wrench.copy()
+    else:
+        base = wrench_about_origin(model, st.solve_statics(model, snap.u, snap.loads,
+                                                           q_init=snap.q).base_wrench_world)
+    return tip, base
 
 
 @dataclass
@@ -246,7 +271,7 @@ class Twin:
                            state=self.state, theta=self.settings.theta, tol=self.settings.tolerance)
         sim.step()
         st.solve_statics(self.model, self.u, self.loads(), q_init=self.state.q)
-        self.outputs(with_wrenches=True)
+        wrenches(self.model, self.outputs())
         return time.perf_counter() - t0
 
     # --- inputs ------------------------------------------------------------
@@ -343,25 +368,20 @@ class Twin:
             self._dirty = True
 
     # --- outputs -----------------------------------------------------------
-    def outputs(self, with_wrenches=True):
-        """A :class:`Snapshot` of the current state (wrenches only if asked:
-        they cost about as much as a step)."""
+    def outputs(self):
+        """A :class:`Snapshot` of the current state."""
         m = self.model
         q = self.state.q.copy()
         qdot = self.state.qdot.copy()
         s, poses = kin.backbone(m, q, self.settings.points_per_section)
-        tip_w = base_w = None
-        if with_wrenches:
-            loads = self.loads()
-            tip_w = st.internal_wrenches(m, q, [m.total_length], self.u, loads)[0]
-            if self.settings.mode == "dynamic":
-                qdd = self._sim.last_qddot if self._sim is not None else np.zeros(m.n_dof)
-                base_w = wrench_about_origin(m, dy.base_reaction_dynamic(m, q, qdot, qdd, self.u, loads))
-            elif self._base_wrench_qs is not None:
-                base_w = self._base_wrench_qs.copy()
-        return Snapshot(t=float(self.state.t), q=q, qdot=qdot, u=self.u.copy(), s=s, backbone=poses,
-                        tip_pose=poses[-1], strains=m.strains(q), strain_rates=full_rates(m, qdot),
-                        tip_wrench=tip_w, base_wrench=base_w, command_stamp=self.command_stamp)
+        dynamic = self.settings.mode == "dynamic"
+        qddot = self._sim.last_qddot.copy() if dynamic else np.zeros(m.n_dof)
+        return Snapshot(mode=self.settings.mode, t=float(self.state.t), q=q, qdot=qdot, qddot=qddot,
+                        u=self.u.copy(), loads=self.loads(), s=s, backbone=poses, tip_pose=poses[-1],
+                        strains=m.strains(q), strain_rates=full_rates(m, qdot),
+                        static_base_wrench=None if dynamic or self._base_wrench_qs is None
+                        else self._base_wrench_qs.copy(),
+                        command_stamp=self.command_stamp)
 
 
 # ----------------------------------------------------------------------------

