@@ -29,6 +29,7 @@ import math
 import sys
 import threading
 import time
+import traceback
 
 import numpy as np
 import rclpy
@@ -64,7 +65,8 @@ class _Stats:
         self.reset_window(time.monotonic())
         self.totals = dict(steps=0, solver_failures=0, dropped_steps=0, commands_received=0,
                            commands_applied=0, wrenches_received=0, wrenches_applied=0,
-                           rejected_actuation=0, rejected_wrench=0)
+                           rejected_actuation=0, rejected_wrench=0, internal_errors=0)
+        self.last_internal_error = ""
         self.rejected_by_reason = {r: 0 for r in tw.REJECT_REASONS}
         self.last_rejection = ""
         self.last_solver_message = ""
@@ -103,14 +105,20 @@ class SoftTwinNode(Node):
                 self.declare_parameter(name, default, ParameterDescriptor(
                     name=name, description=description, dynamic_typing=True))
         self._values = {name: self._declared_value(name) for name in PARAMETERS}
-        self.cfg = config_from_values(self._values)      # ConfigError: the caller reports it
-        self.robot = load_robot(self.cfg)
+        try:
+            self.cfg = config_from_values(self._values)
+            self.robot = load_robot(self.cfg)
+        except ConfigError:
+            self.destroy_node()
+            raise                   # the caller reports it (main: exit status 2)
         self._lock = threading.Lock()            # the twin, its schedule and the statistics
         self._publish_lock = threading.Lock()    # state publications, in step order
         self._wrench_lock = threading.Lock()     # one wrench computation at a time
+        self._stats_lock = threading.Lock()      # internal error counts (taken without the others)
         self._staged = None
         self._command_received = None     # (header, receive time) of the newest applied command
         self._last_input_time = -math.inf
+        self._reported_internal_errors = 0
         self.stats = _Stats()
         self.get_logger().info(
             f"robot {self.robot.model.name!r} from {self.robot.source}: {self.robot.model.n_sections} "
@@ -139,28 +147,29 @@ class SoftTwinNode(Node):
         self._pub_markers = self.create_publisher(MarkerArray, "~/markers", 1)
         self._pub_diag = self.create_publisher(DiagnosticArray, "/diagnostics", 10)
 
-        # --- subscriptions (depth 10, keep last: the newest inputs win) ------
-        self.create_subscription(ActuationCommand, "~/actuation", self._on_actuation, 100,
+        # --- subscriptions (keep last: under overload the oldest inputs go) ---
+        self.create_subscription(ActuationCommand, "~/actuation", self._guarded(self._on_actuation), 100,
                                  callback_group=self._input_group)
-        self.create_subscription(WrenchStamped, "~/tip_wrench_command", self._on_tip_wrench, 10,
+        self.create_subscription(WrenchStamped, "~/tip_wrench_command", self._guarded(self._on_tip_wrench), 10,
                                  callback_group=self._input_group)
 
         # --- services --------------------------------------------------------
-        self.create_service(ForwardKinematics, "~/forward_kinematics", self._srv_fk,
+        self.create_service(ForwardKinematics, "~/forward_kinematics", self._guarded(self._srv_fk),
                             callback_group=self._service_group)
-        self.create_service(InverseKinematics, "~/inverse_kinematics", self._srv_ik,
+        self.create_service(InverseKinematics, "~/inverse_kinematics", self._guarded(self._srv_ik),
                             callback_group=self._service_group)
-        self.create_service(StaticsQuery, "~/statics_query", self._srv_statics,
+        self.create_service(StaticsQuery, "~/statics_query", self._guarded(self._srv_statics),
                             callback_group=self._service_group)
-        self.create_service(Trigger, "~/reset", self._srv_reset, callback_group=self._service_group)
+        self.create_service(Trigger, "~/reset", self._guarded(self._srv_reset), callback_group=self._service_group)
 
         # --- timers (steady clock: the twin runs on wall time) ---------------
         self._steady = Clock(clock_type=ClockType.STEADY_TIME)
-        self._solve_trigger = self.create_guard_condition(self._on_solve_trigger,
+        self._solve_trigger = self.create_guard_condition(self._guarded(self._on_solve_trigger),
                                                           callback_group=self._step_group)
         self._step_timer = None
         self._make_step_timer()
-        self._diag_timer = self.create_timer(1.0 / self.cfg.diagnostics_rate_hz, self._publish_diagnostics,
+        self._diag_timer = self.create_timer(1.0 / self.cfg.diagnostics_rate_hz,
+                                             self._guarded(self._publish_diagnostics),
                                              callback_group=self._diag_group, clock=self._steady)
         self.add_on_set_parameters_callback(self._on_set_parameters)
         self.add_post_set_parameters_callback(self._after_set_parameters)
@@ -172,6 +181,28 @@ class SoftTwinNode(Node):
     # ------------------------------------------------------------------------
     # configuration
     # ------------------------------------------------------------------------
+    def _guarded(self, callback):
+        """The callback, made unable to take the node down: an unexpected
+        exception (a bug, not a bad input: those are handled where they
+        arise) is logged with its traceback and counted in the diagnostics
+        (internal_errors_total); a service gets success=False."""
+        def run(*args):
+            try:
+                return callback(*args)
+            except Exception as e:
+                with self._stats_lock:
+                    self.stats.totals["internal_errors"] += 1
+                    self.stats.last_internal_error = f"{callback.__name__}: {type(e).__name__}: {e}"
+                self.get_logger().error(f"internal error in {callback.__name__}: {type(e).__name__}: {e}\n"
+                                        + traceback.format_exc(), throttle_duration_sec=1.0)
+                if len(args) == 2 and hasattr(args[1], "success"):      # a service response
+                    args[1].success = False
+                    args[1].message = f"internal error: {type(e).__name__}: {e}"
+                    return args[1]
+                return None
+        run.__name__ = callback.__name__
+        return run
+
     def _declared_value(self, name):
         try:
             return self.get_parameter(name).value
@@ -195,8 +226,8 @@ class SoftTwinNode(Node):
             self._unpublished = 0
             self._last_wrench_time = -math.inf
             self._last_marker_time = -math.inf
-        self._step_timer = self.create_timer(period, self._on_step_timer, callback_group=self._step_group,
-                                             clock=self._steady)
+        self._step_timer = self.create_timer(period, self._guarded(self._on_step_timer),
+                                             callback_group=self._step_group, clock=self._steady)
 
     def _on_set_parameters(self, params):
         """Validate a parameter change as a whole; reject with a reason (the
@@ -354,7 +385,7 @@ class SoftTwinNode(Node):
             info = twin.step(due)
             self._steps_done += due
             self._record(info, twin.settings.dt * info.steps)
-            self._unpublished += info.steps
+            self._unpublished += due          # failed steps too: the last good state keeps coming
             if self._unpublished < cfg.publish_every_n_steps:
                 return
             self._unpublished = 0
@@ -524,10 +555,15 @@ class SoftTwinNode(Node):
                 "rejected_wrench_total": str(s.totals["rejected_wrench"]),
                 **{f"rejected_{r}_total": str(n) for r, n in s.rejected_by_reason.items()},
                 "last_rejection": s.last_rejection,
+                "internal_errors_total": str(s.totals["internal_errors"]),
+                "last_internal_error": s.last_internal_error,
             }
             level, message = DiagnosticStatus.OK, "ok"
             if s.consecutive_failures:
                 level, message = DiagnosticStatus.ERROR, f"solver failing, state kept: {s.last_solver_message}"
+            elif s.totals["internal_errors"] > self._reported_internal_errors:
+                level, message = DiagnosticStatus.ERROR, f"internal error: {s.last_internal_error}"
+                self._reported_internal_errors = s.totals["internal_errors"]
             elif cfg.mode == "dynamic" and s.steps and rate < 0.95 * cfg.step_rate_hz:
                 level, message = DiagnosticStatus.WARN, (f"behind real time: {rate:.1f} of "
                                                          f"{cfg.step_rate_hz:g} steps/s")

@@ -151,8 +151,8 @@ class Snapshot:
     (N, 4, 4) of cross-sections at arc lengths s (N,) [m]; tip_pose (4, 4);
     strains, strain_rates (n_sections, 6); static_base_wrench: the support
     reaction from the last equilibrium solve (quasi-static mode), else None;
-    command_stamp: the stamp of the last command applied (opaque, from the
-    node). :func:`wrenches` computes the tip and base wrenches.
+    command_stamp: the stamp of the last command the state reflects
+    (opaque, from the node). :func:`wrenches` computes the tip and base wrenches.
     """
     mode: str
     t: float
@@ -233,6 +233,7 @@ class Twin:
         self.tip_wrench = np.zeros(6)
         self.tip_frame = "world"
         self.command_stamp = None
+        self._state_inputs = self._inputs()   # the inputs the current state reflects
         self._dirty = True            # inputs changed since the last quasi-static solve
         self._base_wrench_qs = None   # from the last statics solve
         self._sim = None
@@ -278,6 +279,9 @@ class Twin:
     def loads(self):
         return make_loads(self.model, self.tip_wrench, self.tip_frame)
 
+    def _inputs(self):
+        return (self.u.copy(), self.tip_wrench.copy(), self.tip_frame, self.command_stamp)
+
     def set_actuation(self, u, stamp=None):
         """Apply an inputs vector (validated again by the core)."""
         u = st.actuation_vector(self.model, u)
@@ -320,6 +324,8 @@ class Twin:
                                     f"state kept at the last good step")
                     break
                 info.steps += 1
+            if info.steps:
+                self._state_inputs = self._inputs()
         else:
             info = self._solve()
         info.compute_time = time.perf_counter() - t0
@@ -332,7 +338,12 @@ class Twin:
         try:
             res = st.solve_statics(self.model, self.u, self.loads(), q_init=self.state.q)
         except (st.StaticsError, ValueError, np.linalg.LinAlgError) as e:
-            return UpdateInfo(0, 0, False, f"statics failed: {e}; state kept")
+            # keep the last good state with the inputs it reflects: the failed input is dropped
+            u, w, frame, self.command_stamp = self._state_inputs
+            self.u, self.tip_wrench, self.tip_frame = u.copy(), w.copy(), frame
+            return UpdateInfo(0, 0, False, f"statics failed for the last input (dropped): {e}; "
+                                           f"state kept")
+        self._state_inputs = self._inputs()
         self.state.q = res.q.copy()
         self.state.qdot = np.zeros(self.model.n_dof)
         self._base_wrench_qs = wrench_about_origin(self.model, res.base_wrench_world)
@@ -345,6 +356,7 @@ class Twin:
         self.u = np.zeros(len(self.model.actuators))
         self.tip_wrench, self.tip_frame = np.zeros(6), "world"
         self.command_stamp = None
+        self._state_inputs = self._inputs()
         self.state = State(self.rest_q.copy(), np.zeros(self.model.n_dof), 0.0)
         self._dirty = False
         self._base_wrench_qs = None
@@ -369,19 +381,21 @@ class Twin:
 
     # --- outputs -----------------------------------------------------------
     def outputs(self):
-        """A :class:`Snapshot` of the current state."""
+        """A :class:`Snapshot` of the current state, with the inputs it
+        reflects (after a failed step or solve: those of the last good one)."""
         m = self.model
+        u, w, frame, stamp = self._state_inputs
         q = self.state.q.copy()
         qdot = self.state.qdot.copy()
         s, poses = kin.backbone(m, q, self.settings.points_per_section)
         dynamic = self.settings.mode == "dynamic"
         qddot = self._sim.last_qddot.copy() if dynamic else np.zeros(m.n_dof)
         return Snapshot(mode=self.settings.mode, t=float(self.state.t), q=q, qdot=qdot, qddot=qddot,
-                        u=self.u.copy(), loads=self.loads(), s=s, backbone=poses, tip_pose=poses[-1],
+                        u=u.copy(), loads=make_loads(m, w, frame), s=s, backbone=poses, tip_pose=poses[-1],
                         strains=m.strains(q), strain_rates=full_rates(m, qdot),
                         static_base_wrench=None if dynamic or self._base_wrench_qs is None
                         else self._base_wrench_qs.copy(),
-                        command_stamp=self.command_stamp)
+                        command_stamp=stamp)
 
 
 # ----------------------------------------------------------------------------

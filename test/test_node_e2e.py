@@ -275,6 +275,28 @@ class TestQuasiStatic:
         n = c.counts["strains"]
         assert c.wait_until(lambda: c.counts["strains"] > n, 5.0)
 
+    def test_solver_failure_keeps_the_last_good_state(self, qs, model):
+        c, proc = qs
+        stamp = c.send_actuation(NAMES, [0.2, 0.0, 0.0, 0.0])
+        q_good = q_of(model, c.wait_until(lambda: c.applied(stamp), 10.0))
+        c.send_actuation(["tendon_z_pos"], [1.0e4])        # valid, but no equilibrium exists
+        d = c.wait_diagnostics(lambda d: int(d["solver_consecutive_failures"]) > 0, timeout=10.0)
+        assert d is not None and "statics failed" in d["solver_last_message"], d
+        assert c.diagnostics()["level"] == 2           # ERROR
+        n = c.counts["strains"]
+        assert c.wait_until(lambda: c.counts["strains"] > n + 2, 5.0), "node stopped publishing"
+        np.testing.assert_array_equal(q_of(model, c.strains), q_good)
+        assert stamp_key(c.strains.last_command.stamp) == stamp_key(stamp)
+        # the failed command was dropped: a partial command starts from the last good inputs
+        stamp = c.send_actuation(["tendon_y_neg"], [0.1])
+        s = c.wait_until(lambda: c.applied(stamp), 10.0)
+        assert s is not None
+        ref = st.solve_statics(model, [0.2, 0.1, 0.0, 0.0], ld.Loads(), q_init=q_good)
+        np.testing.assert_allclose(np.reshape(s.strains, (-1, 6)), ref.strains, atol=1e-9)
+        d = c.wait_diagnostics(lambda d: d["solver_consecutive_failures"] == "0", timeout=5.0)
+        assert d is not None and int(d["solver_failures_total"]) >= 1
+        assert proc.alive()
+
     def test_reset(self, qs, model):
         c, _ = qs
         stamp = c.send_actuation(NAMES, [0.4, 0.0, 0.0, 0.0])
@@ -346,6 +368,24 @@ class TestDynamic:
         assert abs(float(d["step_rate_hz"]) - 200.0) < 10.0, d
         assert abs(float(d["real_time_factor"]) - 1.0) < 0.05, d
         assert d["solver_failures_total"] == "0"
+
+    def test_solver_failure_keeps_the_last_good_state(self, dyn):
+        c, proc, model = dyn
+        c.send_actuation(NAMES, [1.0e4, 0.0, 0.0, 0.0])     # valid, but the arm cannot follow
+        d = c.wait_diagnostics(lambda d: int(d["solver_consecutive_failures"]) > 0, timeout=10.0)
+        assert d is not None and "did not converge" in d["solver_last_message"], d
+        assert c.diagnostics()["level"] == 2
+        n = c.counts["strains"]
+        assert c.wait_until(lambda: c.counts["strains"] > n + 1, 5.0), "node stopped publishing"
+        frozen = np.array(c.strains.strains)
+        n = c.counts["strains"]
+        c.wait_until(lambda: c.counts["strains"] > n + 1, 5.0)
+        np.testing.assert_array_equal(c.strains.strains, frozen)     # the last good state
+        # a sane command: stepping resumes
+        stamp = c.send_actuation(NAMES, [0.2, 0.0, 0.0, 0.0])
+        assert c.wait_until(lambda: c.applied(stamp), 10.0)
+        assert c.wait_until(lambda: np.abs(np.array(c.strains.strains) - frozen).max() > 1e-6, 5.0)
+        assert proc.alive()
 
     def test_dynamic_tip_wrench(self, dyn):
         c, _, model = dyn

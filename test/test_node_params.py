@@ -77,3 +77,18 @@ def test_run_time_changes(context):
         assert not res.successful and "do not match" in res.reason
     finally:
         node.destroy_node()
+
+
+def test_unexpected_errors_never_escape_a_callback(context):
+    from soft_twin.srv import ForwardKinematics
+    node = _node(context)
+    try:
+        def broken_service(req, resp):
+            raise RuntimeError("a bug")
+        resp = node._guarded(broken_service)(ForwardKinematics.Request(), ForwardKinematics.Response())
+        assert not resp.success and "RuntimeError: a bug" in resp.message
+        assert node._guarded(lambda: 1 / 0)() is None
+        assert node.stats.totals["internal_errors"] == 2
+        assert "ZeroDivisionError" in node.stats.last_internal_error
+    finally:
+        node.destroy_node()

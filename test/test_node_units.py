@@ -144,10 +144,16 @@ def test_failed_step_keeps_the_state(model):
     twin.step()
     q, t = twin.state.q.copy(), twin.state.t
     twin._sim.step = lambda n=1: dy.StepInfo(8, False, math.inf)
+    twin.set_actuation([0.3, 0, 0, 0], stamp="new")
     info = twin.step()
     assert not info.converged and "state kept" in info.message
     np.testing.assert_array_equal(twin.state.q, q)
     assert twin.state.t == t
+    # the published state reflects the inputs of the last good step; the
+    # simulator keeps the new ones and retries at the next tick
+    snap = twin.outputs()
+    assert not np.any(snap.u) and snap.command_stamp is None
+    assert twin.u[0] == 0.3
 
 
 def test_failed_solve_keeps_the_state(model, monkeypatch):
@@ -158,10 +164,14 @@ def test_failed_solve_keeps_the_state(model, monkeypatch):
     def fail(*a, **k):
         raise st.StaticsError("no")
     monkeypatch.setattr(st, "solve_statics", fail)
-    twin.set_actuation([1.0, 0, 0, 0])
+    twin.set_actuation([1.0, 0, 0, 0], stamp="bad")
     info = twin.step()
     assert not info.converged and "state kept" in info.message
     np.testing.assert_array_equal(twin.state.q, q)
+    # the failed input is dropped: the twin keeps the inputs of its state
+    assert not np.any(twin.u) and twin.command_stamp is None
+    assert not np.any(twin.outputs().u) and twin.outputs().command_stamp is None
+    assert not twin.needs_solve
 
 
 def test_reset_and_mode_switch(model):
