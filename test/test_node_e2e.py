@@ -297,6 +297,42 @@ class TestQuasiStatic:
         assert d is not None and int(d["solver_failures_total"]) >= 1
         assert proc.alive()
 
+    def test_markers(self, qs, model):
+        from visualization_msgs.msg import MarkerArray
+        c, _ = qs
+        got = []
+        c.node.create_subscription(MarkerArray, "/twin_qs/markers", got.append, 5)
+        assert c.wait_until(lambda: got, 10.0), "no MarkerArray"
+        tube = [m for m in got[-1].markers if m.ns == "tube"]
+        assert len(tube) == 60 and all(m.type == m.CYLINDER for m in tube)
+        assert tube[0].header.frame_id == "base_link"
+        assert tube[0].scale.x == pytest.approx(0.024) and tube[-1].scale.x == pytest.approx(0.016)
+        assert [m.ns for m in got[-1].markers].count("tip") == 1
+
+    def test_parameters_over_ros(self, qs):
+        from rclpy.parameter import Parameter
+        from rclpy.parameter_client import AsyncParameterClient
+        c, _ = qs
+        params = AsyncParameterClient(c.node, "twin_qs")
+        assert params.wait_for_services(timeout_sec=10.0)
+
+        def set_(*ps):
+            fut = params.set_parameters(list(ps))
+            done = threading.Event()
+            fut.add_done_callback(lambda _: done.set())
+            assert done.wait(10.0)
+            return fut.result().results
+        res = set_(Parameter("step_rate_hz", value=-1.0))
+        assert not res[0].successful and "step_rate_hz" in res[0].reason
+        res = set_(Parameter("robot_description_file", value="no_such_arm.yaml"))
+        assert not res[0].successful and "not found" in res[0].reason
+        n = c.counts["backbone"]
+        res = set_(Parameter("backbone_points_per_section", value=5))
+        assert res[0].successful, res[0].reason
+        assert c.wait_until(lambda: c.counts["backbone"] > n and len(c.backbone.poses) == 31, 5.0)
+        assert set_(Parameter("backbone_points_per_section", value=10))[0].successful
+        assert c.wait_until(lambda: len(c.backbone.poses) == 61, 5.0)
+
     def test_reset(self, qs, model):
         c, _ = qs
         stamp = c.send_actuation(NAMES, [0.4, 0.0, 0.0, 0.0])
