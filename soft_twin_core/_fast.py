@@ -285,7 +285,13 @@ def _Ad_into(g, A, inverse):
 
 @_jit
 def _kernel(q, qd, f0, free_index, lengths, base, offsets, pt_sec, pt_x, pt_w, pt_mc, gravity,
-            ld_sec, ld_x, ld_W, ld_world, act_sec, act_d, act_dd, act_coef, Kq, Dq, q0, need_mass):
+            ld_sec, ld_x, ld_W, ld_world, act_sec, act_d, act_dd, act_coef, Kq, Dq, q0, need_mass,
+            qdd, n_act_pts):
+    """(M, f, F): M and f = Q + tau - K(q - q0) - D qd - C qd as in
+    dynamics.dynamics_terms, and F the total spatial wrench (world axes,
+    about the origin) of the external loads minus the inertial wrenches at
+    (q, qd, qdd) (qdd used only with need_mass), for the base reaction; the
+    last ``n_act_pts`` load points are actuator point moments (internal)."""
     n = lengths.shape[0]
     ndof = q.shape[0]
     # --- strains and rates ---------------------------------------------------
@@ -367,6 +373,7 @@ def _kernel(q, qd, f0, free_index, lengths, base, offsets, pt_sec, pt_x, pt_w, p
     Ysec = np.zeros((n, 6, 6))      # sum w Ai^T Mc own
     Mown = np.zeros((n, 6, 6))      # sum w own^T Mc own
     Fsec = np.zeros((n, 6))         # spatial wrench (applied - inertial bias)
+    Ftot = np.zeros(6)              # the same, all sections, without actuator points
     fown = np.zeros((n, 6))         # own-mode generalised force
     npts = pt_sec.shape[0]
     nld = ld_sec.shape[0]
@@ -425,6 +432,7 @@ def _kernel(q, qd, f0, free_index, lengths, base, offsets, pt_sec, pt_x, pt_w, p
                 for a in range(6):
                     Fsec[i, a] += Fs[a]
                     fown[i, a] += v1[a]
+                    Ftot[a] += Fs[a]
                 continue
             # inertia accumulators
             for r in range(6):
@@ -456,9 +464,12 @@ def _kernel(q, qd, f0, free_index, lengths, base, offsets, pt_sec, pt_x, pt_w, p
                     Fb[a] = ld_W[l_, a]
         _mtv(Ai, Fb, Fs)
         _mtv(own, Fb, v1)
+        internal = (not is_q) and (p - npts >= nld - n_act_pts)
         for a in range(6):
             Fsec[i, a] += Fs[a]
             fown[i, a] += v1[a]
+            if not internal:
+                Ftot[a] += Fs[a]
     # --- suffix sums, generalised force and mass matrix (CRBA-like) ----------
     Ic = np.zeros((6, 6))
     Fd = np.zeros(6)
@@ -528,7 +539,21 @@ def _kernel(q, qd, f0, free_index, lengths, base, offsets, pt_sec, pt_x, pt_w, p
         for b in range(ndof):
             acc += Kq[a, b] * (q[b] - q0[b]) + Dq[a, b] * qd[b]
         f[a] -= acc
-    return M, f
+    # --- inertial wrench of the accelerations qdd (base reaction) -----------
+    if need_mass:
+        xidd = np.zeros((n, 6))
+        for k in range(ndof):
+            c = free_index[k]
+            xidd[c // 6, c % 6] = qdd[k]
+        Aq = np.zeros(6)                 # sum_{j < i} W_j xidd_j (spatial)
+        for i in range(n):
+            _mv(Isec[i], Aq, v1)
+            _mv(Ysec[i], xidd[i], v2)
+            _mv(W[i], xidd[i], v3)
+            for a in range(6):
+                Ftot[a] -= v1[a] + v2[a]
+                Aq[a] += v3[a]
+    return M, f, Ftot
 
 
 # ----------------------------------------------------------------------------
@@ -622,19 +647,33 @@ def _loads_with_actuators(model, loads, u):
             np.concatenate([ld_world, np.zeros(len(pts), dtype=np.bool_)]))
 
 
-def dynamics_terms(model, q, qdot, u, loads, need_mass=True):
-    """Compiled equivalent of :func:`soft_twin_core.dynamics.dynamics_terms`:
-    (M, f) with f = Q_ext + tau - K (q - q0) - D qdot - C qdot. With
-    ``need_mass=False`` M is skipped (an empty array) and f costs less."""
+def _call(model, q, qdot, u, loads, need_mass, qdd):
     pm = _pack_model(model)
     u = np.asarray(u, dtype=float)
-    gravity, ld_sec, ld_x, ld_W, ld_world = _loads_with_actuators(model, loads, u)
+    packed = _loads_with_actuators(model, loads, u)
+    gravity, ld_sec, ld_x, ld_W, ld_world = packed
+    n_act = packed[1].shape[0] - _pack_loads(model, Loads() if loads is None else loads)[1].shape[0]
     coef = pm["act_map"] @ u if u.size else np.zeros(pm["act_sec"].shape[0])
     return _kernel(np.ascontiguousarray(q, dtype=float), np.ascontiguousarray(qdot, dtype=float),
                    pm["f0"], pm["free_index"], pm["lengths"], pm["base"], pm["offsets"],
                    pm["pt_sec"], pm["pt_x"], pm["pt_w"], pm["pt_mc"], gravity,
                    ld_sec, ld_x, ld_W, ld_world, pm["act_sec"], pm["act_d"], pm["act_dd"], coef,
-                   pm["Kq"], pm["Dq"], pm["q0"], need_mass)
+                   pm["Kq"], pm["Dq"], pm["q0"], need_mass, np.ascontiguousarray(qdd, dtype=float), n_act)
+
+
+def dynamics_terms(model, q, qdot, u, loads, need_mass=True):
+    """Compiled equivalent of :func:`soft_twin_core.dynamics.dynamics_terms`:
+    (M, f) with f = Q_ext + tau - K (q - q0) - D qdot - C qdot. With
+    ``need_mass=False`` M is skipped (an empty array) and f costs less."""
+    M, f, _ = _call(model, q, qdot, u, loads, need_mass, np.zeros(len(q)))
+    return M, f
+
+
+def total_wrench(model, q, qdot, qddot, u, loads):
+    """Spatial wrench (world axes, about the world origin) of the external
+    loads (gravity included) minus the inertial wrenches at (q, qd, qdd); the
+    support's reaction is its negative (see dynamics.base_reaction_dynamic)."""
+    return _call(model, q, qdot, u, loads, True, qddot)[2]
 
 
 @_jit
@@ -653,9 +692,9 @@ def _newton_kernel(q0, v0, v1, h, theta, C, tol, floor, max_it,
         for k in range(n):
             vt[k] = (1.0 - theta) * v0[k] + theta * v1[k]
             qt[k] = q0[k] + theta * h * vt[k]
-        M, f = _kernel(qt, vt, f0, free_index, lengths, base, offsets, pt_sec, pt_x, pt_w, pt_mc,
-                       gravity, ld_sec, ld_x, ld_W, ld_world, act_sec, act_d, act_dd, act_coef,
-                       Kq, Dq, qref, True)
+        M, f, _ = _kernel(qt, vt, f0, free_index, lengths, base, offsets, pt_sec, pt_x, pt_w, pt_mc,
+                          gravity, ld_sec, ld_x, ld_W, ld_world, act_sec, act_d, act_dd, act_coef,
+                          Kq, Dq, qref, True, vt, 0)
         r = M @ (v1 - v0) - h * f
         dv = np.linalg.solve(M + C, -r)
         upd = 0.0
@@ -691,3 +730,42 @@ def newton_step(model, q0, v0, v1, h, theta, C, u, loads, tol, floor, max_iterat
                           pm["pt_sec"], pm["pt_x"], pm["pt_w"], pm["pt_mc"], gravity,
                           ld_sec, ld_x, ld_W, ld_world, pm["act_sec"], pm["act_d"], pm["act_dd"], coef,
                           pm["Kq"], pm["Dq"], pm["q0"])
+
+
+@_jit
+def _poses_kernel(q, f0, free_index, lengths, base, offsets, p_sec, p_x):
+    n = lengths.shape[0]
+    xi = f0.copy()
+    for k in range(q.shape[0]):
+        c = free_index[k]
+        xi[c // 6, c % 6] = q[k]
+    g_start = np.empty((n, 4, 4))
+    g = base.copy()
+    gtmp = np.empty((4, 4))
+    E = np.empty((4, 4))
+    x6 = np.empty(6)
+    for i in range(n):
+        g_start[i] = g
+        for a in range(6):
+            x6[a] = lengths[i] * xi[i, a]
+        _exp_into(x6, E)
+        _mm(g, E, gtmp)
+        if i < n - 1:
+            _mm(gtmp, offsets[i], g)
+    out = np.empty((p_sec.shape[0], 4, 4))
+    for p in range(p_sec.shape[0]):
+        i = p_sec[p]
+        for a in range(6):
+            x6[a] = p_x[p] * xi[i, a]
+        _exp_into(x6, E)
+        _mm(g_start[i], E, gtmp)
+        out[p] = gtmp
+    return out
+
+
+def poses(model, q, s):
+    """Compiled :func:`soft_twin_core.kinematics.poses` for one real q."""
+    pm = _pack_model(model)
+    sec, x = model.locate(np.asarray(s, dtype=float))
+    return _poses_kernel(np.ascontiguousarray(q, dtype=float), pm["f0"], pm["free_index"], pm["lengths"],
+                         pm["base"], pm["offsets"], sec.astype(np.int64), np.ascontiguousarray(x))

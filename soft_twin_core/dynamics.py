@@ -102,8 +102,18 @@ def energy(model, q, qdot, u=None, gravity=True):
 
 def base_reaction_dynamic(model, q, qdot, qddot, u=None, loads=None):
     """Support reaction [f; m] (world axes, moment about the base origin):
-    total inertial wrench minus the total applied wrench."""
+    total inertial wrench minus the total applied wrench (actuators are
+    internal: their forces close through the base). Compiled when numba is
+    available; :func:`_base_reaction_reference` is the numpy version."""
     loads = Loads() if loads is None else loads
+    if _select_kernel(model) is not dynamics_terms:
+        from . import _fast
+        return base_reaction(model, _fast.total_wrench(model, q, qdot, qddot,
+                                                       actuation_vector(model, u), loads))
+    return _base_reaction_reference(model, q, qdot, qddot, loads)
+
+
+def _base_reaction_reference(model, q, qdot, qddot, loads):
     s, w, Mc = _quadrature(model)
     g, J, Jdot, eta = kin.jacobian_and_derivative(model, q, qdot, s)
     eta_dot = J @ qddot + Jdot @ qdot

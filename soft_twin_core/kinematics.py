@@ -123,8 +123,16 @@ def backbone_abscissae(model, points_per_section=10):
 
 
 def backbone(model, q, points_per_section=10):
-    """(s, poses): arc lengths (N,) and world poses (..., N, 4, 4) along the backbone."""
+    """(s, poses): arc lengths (N,) and world poses (..., N, 4, 4) along the backbone.
+    A single real q of an exponential-map model uses the compiled kernel."""
     s = backbone_abscissae(model, points_per_section)
+    q = model.check_q(q)
+    if q.ndim == 1 and not np.iscomplexobj(q) and model.kinematic_map == "exponential":
+        try:
+            from . import _fast
+            return s, _fast.poses(model, q, s)
+        except ImportError:
+            pass
     return s, poses(model, q, s)
 
 

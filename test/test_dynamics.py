@@ -239,3 +239,16 @@ def test_dynamic_internal_wrench_at_base_equals_reaction():
     z = np.zeros(m.n_dof)
     s = np.array([0.1, 0.3])
     assert np.allclose(dy.internal_wrenches_dynamic(m, q, z, z, s), st.internal_wrenches(m, q, s), atol=1e-15)
+
+
+def test_compiled_base_reaction_matches_reference():
+    pytest.importorskip("numba")
+    m = arm(3, "all", offsets=True)
+    q, qd = random_state(m)
+    qdd = RNG.normal(size=m.n_dof)
+    u = np.array([0.3, 0.2, 0.25])
+    loads = ld.Loads(point=(ld.tip_load(m, (0.01, 0.02, -0.01), (0.001, 0, 0)),
+                            ld.PointLoad(0.3, (0, 0.01, 0, 0, 0, 0.002), "body")))
+    ref = dy._base_reaction_reference(m, q, qd, qdd, loads)
+    R = dy.base_reaction_dynamic(m, q, qd, qdd, u, loads)
+    assert np.abs(R - ref).max() < 1e-12 * np.abs(ref).max()

@@ -270,3 +270,13 @@ def test_ik_warm_start_and_error_jacobian():
     T = kin.tip_pose(m, q)
     r = ik.solve_ik(m, T, q_init=q + 1e-3)
     assert r.success and r.iterations <= 4
+
+
+def test_compiled_backbone_matches_reference():
+    pytest.importorskip("numba")
+    from soft_twin_core import _fast
+    m = three_section("all", offsets=True)
+    q = random_q(m)
+    s = kin.backbone_abscissae(m, 7)
+    assert np.abs(_fast.poses(m, q, s) - kin.poses(m, q, s)).max() < 1e-14
+    assert np.abs(kin.backbone(m, q, 7)[1] - kin.poses(m, q, s)).max() < 1e-14
