@@ -639,7 +639,7 @@ class SoftTwinNode(Node):
             resp.success, resp.message = False, f"target rejected: {e}"
             return resp
         res = tw.inverse_kinematics(model, q, cfg.backbone_points_per_section, target, req.position_only,
-                                    tol or 1e-6, tw.make_loads(model, w, frame))
+                                    tol or 1e-6, tw.make_loads(model, w, frame), u_current=u)
         resp.success, resp.message = res.success, res.message
         if res.q is not None:
             resp.strains = res.strains.ravel().tolist()

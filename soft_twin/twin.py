@@ -467,15 +467,33 @@ def statics_query(model, q_current, points_per_section, actuation, tip_wrench, t
 
 
 def inverse_kinematics(model, q_current, points_per_section, target, position_only=False,
-                       tolerance=1e-6, loads=None):
-    """Tip IK (target 4x4 in the base frame) warm-started from q_current,
-    then the actuation holding the found shape under ``loads``
-    (``extra``: u, actuation_residual, actuation_found, position_error,
-    orientation_error, achieved_pose)."""
+                       tolerance=1e-6, loads=None, u_current=None):
+    """Tip IK (target 4x4 in the base frame), warm-started from the twin's
+    state. First over the actuator inputs through statics (the shape the
+    real arm would take; ``actuation_found`` True when it reaches the
+    target); failing that, over the strains, then the best non-negative
+    actuation for that shape (``extra``: u, actuation_residual,
+    actuation_found, position_error, orientation_error, achieved_pose)."""
     try:
         tgt = np.asarray(target, dtype=float)
         if not np.all(np.isfinite(tgt)):
             return QueryResult(False, "target: contains NaN or inf")
+        if model.actuators:
+            try:
+                ra = core_ik.solve_actuation_ik(
+                    model, tgt[:3, 3] if position_only else tgt, u_init=u_current, q_init=q_current,
+                    loads=loads, position_only=position_only, tol_position=tolerance,
+                    tol_orientation=tolerance, max_iterations=30)
+            except (st.StaticsError, np.linalg.LinAlgError):
+                ra = None
+            if ra is not None and ra.success:
+                out = _shape(model, ra.q, points_per_section, iterations=ra.iterations,
+                             message="converged: reached by actuation (static equilibrium)")
+                out.success, out.residual = True, ra.position_error
+                out.extra = dict(u=ra.u, actuation_residual=0.0, actuation_found=True,
+                                 position_error=ra.position_error, orientation_error=ra.orientation_error,
+                                 achieved_pose=ra.achieved_pose)
+                return out
         r = core_ik.solve_ik(model, tgt[:3, 3] if position_only else tgt, q_init=q_current,
                              position_only=position_only, tol_position=tolerance,
                              tol_orientation=tolerance)

@@ -144,3 +144,100 @@ def solve_ik(model, target, q_init=None, *, position_only=False, weights=None,
     if success:
         message = "converged"
     return IKResult(q, success, pe, oe, it, g, message)
+
+
+@dataclass
+class ActuationIKResult:
+    """u: actuator inputs found (N / Pa); q: the equilibrium they produce;
+    success, position_error [m], orientation_error [rad], iterations,
+    achieved_pose, message (as IKResult)."""
+    u: np.ndarray
+    q: np.ndarray
+    success: bool
+    position_error: float
+    orientation_error: float
+    iterations: int
+    achieved_pose: np.ndarray
+    message: str
+
+
+def solve_actuation_ik(model, target, u_init=None, q_init=None, *, loads=None, position_only=False,
+                       weights=None, u_max=None, tol_position=1e-8, tol_orientation=1e-8,
+                       max_iterations=50):
+    """Inverse kinematics over the actuator inputs, through statics: find
+    u (tendon tensions >= 0, chamber pressures) whose static equilibrium
+    under ``loads`` (default gravity) puts the tip at ``target``.
+
+    Levenberg-Marquardt on the tip error e(q(u)) with the sensitivity of the
+    equilibrium ``dq/du = Kt^-1 B`` (Kt: statics tangent, B = d tau / d u,
+    exact since tau is linear in u). Each evaluation is a warm-started
+    statics solve. Targets the actuators cannot reach return the closest
+    equilibrium found with success False.
+    """
+    from . import statics as st
+    from .loads import Loads, actuation_force
+    loads = Loads() if loads is None else loads
+    n_act = len(model.actuators)
+    if n_act == 0:
+        raise ValueError("solve_actuation_ik: this robot has no actuators")
+    target = np.asarray(target, dtype=float)
+    if position_only and target.shape == (3,):
+        T = np.eye(4)
+        T[:3, 3] = target
+        target = T
+    if target.shape != (4, 4) or not np.all(np.isfinite(target)):
+        raise ValueError(f"target: expected a finite 4x4 pose (or 3-vector with position_only), "
+                         f"got shape {target.shape}")
+    lo = np.array([0.0 if a.kind == "tendon" else -np.inf for a in model.actuators])
+    hi = np.full(n_act, np.inf) if u_max is None else np.broadcast_to(np.asarray(u_max, float), (n_act,))
+    u = np.zeros(n_act) if u_init is None else st.actuation_vector(model, u_init).copy()
+    u = np.clip(u, lo, hi)
+    m_err = 3 if position_only else 6
+    w = np.ones(m_err) if weights is None else np.asarray(weights, dtype=float)
+
+    def evaluate(u, q_start):
+        r = st.solve_statics(model, u, loads, q_init=q_start)
+        g = r.tip_pose
+        e = target[:3, 3] - g[:3, 3] if position_only else lie.log_se3(lie.se3_inv(g) @ target)
+        return r.q, g, e
+
+    q, g, e = evaluate(u, q_init)
+    cost = float(e @ (w * e))
+    lam, it, message = 1e-3, 0, "max iterations reached"
+    for it in range(1, max_iterations + 1):
+        pe, oe = _errors(g, target)
+        if pe <= tol_position and (position_only or oe <= tol_orientation):
+            it -= 1
+            break
+        ch = kin.chain(model, q)
+        B = np.stack([actuation_force(model, ch, ek) for ek in np.eye(n_act)], axis=1)
+        Kt = st._fast_tangent(model, q, u, loads)
+        dq_du = np.linalg.solve(Kt, B)
+        Jb = kin.tip_jacobian(model, q)
+        Je = (-g[:3, :3] @ Jb[:3]) if position_only else (-lie.T_se3_inv(-e) @ Jb)
+        Ju = Je @ dq_du
+        A = Ju.T @ (w[:, None] * Ju)
+        b = -Ju.T @ (w * e)
+        scale_u = np.maximum(np.abs(np.diag(A)), 1e-300)
+        improved = False
+        for _ in range(12):
+            step = np.linalg.solve(A + lam * np.diag(scale_u), b)
+            u_new = np.clip(u + step, lo, hi)
+            try:
+                q_new, g_new, e_new = evaluate(u_new, q)
+            except st.StaticsError:
+                lam *= 8.0
+                continue
+            cost_new = float(e_new @ (w * e_new))
+            if cost_new < cost:
+                u, q, g, e, cost = u_new, q_new, g_new, e_new, cost_new
+                lam = max(lam / 5.0, 1e-12)
+                improved = True
+                break
+            lam *= 8.0
+        if not improved:
+            message = "stalled: the actuators cannot bring the tip closer (target not reachable by actuation)"
+            break
+    pe, oe = _errors(g, target)
+    success = pe <= tol_position and (position_only or oe <= tol_orientation)
+    return ActuationIKResult(u, q, success, pe, oe, it, g, "converged" if success else message)

@@ -280,3 +280,21 @@ def test_compiled_backbone_matches_reference():
     s = kin.backbone_abscissae(m, 7)
     assert np.abs(_fast.poses(m, q, s) - kin.poses(m, q, s)).max() < 1e-14
     assert np.abs(kin.backbone(m, q, 7)[1] - kin.poses(m, q, s)).max() < 1e-14
+
+
+def test_actuation_ik_recovers_tensions_of_a_reachable_target():
+    import os
+    from soft_twin_core import statics as st
+    from soft_twin_core.model import load_model
+    m = load_model(os.path.join(os.path.dirname(__file__), "..", "config", "robots", "tendon_arm.yaml"))
+    u_true = np.array([1.5, 0.0, 0.0, 0.8])
+    r = st.solve_statics(m, u_true)
+    res = ik.solve_actuation_ik(m, r.tip_pose[:3, 3], position_only=True, tol_position=1e-9)
+    assert res.success and res.position_error < 1e-9
+    assert np.all(res.u >= 0)
+    # its equilibrium really reaches the target
+    r2 = st.solve_statics(m, res.u, q_init=res.q)
+    assert np.linalg.norm(r2.tip_pose[:3, 3] - r.tip_pose[:3, 3]) < 1e-8
+    # an unreachable target: best effort, no exception
+    far = ik.solve_actuation_ik(m, np.array([0.0, 0.0, 0.5]), position_only=True, max_iterations=15)
+    assert not far.success and np.all(np.isfinite(far.u)) and np.all(far.u >= 0)

@@ -198,6 +198,10 @@ def test_queries_leave_the_twin_alone(model):
     ik = tw.inverse_kinematics(model, q, 10, res.tip_pose, tolerance=1e-8)
     assert ik.success, ik.message
     assert ik.extra["position_error"] <= 1e-8
+    # the target came from an actuation: IK through statics finds one that holds it
+    assert ik.extra["actuation_found"], ik.message
+    eq = st.solve_statics(model, ik.extra["u"], q_init=ik.q)
+    np.testing.assert_allclose(eq.tip_pose[:3, 3], res.tip_pose[:3, 3], atol=1e-7)
     np.testing.assert_array_equal(twin.state.q, q)
     bad = tw.forward_kinematics(model, q, 10, strains=[0.0] * 5)
     assert not bad.success and "expected 36" in bad.message
