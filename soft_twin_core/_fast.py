@@ -769,3 +769,51 @@ def poses(model, q, s):
     sec, x = model.locate(np.asarray(s, dtype=float))
     return _poses_kernel(np.ascontiguousarray(q, dtype=float), pm["f0"], pm["free_index"], pm["lengths"],
                          pm["base"], pm["offsets"], sec.astype(np.int64), np.ascontiguousarray(x))
+
+
+@_jit
+def _tip_kernel(q, f0, free_index, lengths, base, offsets):
+    """Tip pose and spatial Jacobian (6 x n_dof) columns W_j B_j."""
+    n = lengths.shape[0]
+    ndof = q.shape[0]
+    xi = f0.copy()
+    for k in range(ndof):
+        c = free_index[k]
+        xi[c // 6, c % 6] = q[k]
+    g = base.copy()
+    gtmp = np.empty((4, 4))
+    E = np.empty((4, 4))
+    T = np.empty((6, 6))
+    A1 = np.empty((6, 6))
+    Adm = np.empty((6, 6))
+    x6 = np.empty(6)
+    Js = np.zeros((6, ndof))
+    for i in range(n):
+        for a in range(6):
+            x6[a] = lengths[i] * xi[i, a]
+        _exp_into(x6, E)
+        _mm(g, E, gtmp)
+        _T_into(x6, T, A1, A1, A1, A1)
+        _Ad_into(gtmp, Adm, False)
+        for k in range(ndof):
+            c = free_index[k]
+            if c // 6 == i:
+                a = c % 6
+                for r in range(6):
+                    acc = 0.0
+                    for s in range(6):
+                        acc += Adm[r, s] * T[s, a]
+                    Js[r, k] = lengths[i] * acc
+        if i < n - 1:
+            _mm(gtmp, offsets[i], g)
+        else:
+            g[:, :] = gtmp
+    return g, Js
+
+
+def tip_and_spatial_jacobian(model, q):
+    """(tip pose 4x4, spatial tip Jacobian 6 x n_dof) for one real q; the body
+    tip Jacobian is Ad(g_tip)^-1 Js (see kinematics.tip_jacobian)."""
+    pm = _pack_model(model)
+    return _tip_kernel(np.ascontiguousarray(q, dtype=float), pm["f0"], pm["free_index"], pm["lengths"],
+                       pm["base"], pm["offsets"])

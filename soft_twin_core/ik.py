@@ -44,6 +44,17 @@ def constant_curvature_from_tip(p_base):
     return float(kappa), float(phi), float(arc), w
 
 
+def _fast_tip(model):
+    """The compiled tip pose + spatial Jacobian, if numba is available."""
+    if model.kinematic_map != "exponential":
+        return None
+    try:
+        from . import _fast
+    except ImportError:
+        return None
+    return _fast.tip_and_spatial_jacobian
+
+
 @dataclass
 class IKResult:
     """q: free-mode strains found; success: both errors within tolerance;
@@ -93,18 +104,23 @@ def solve_ik(model, target, q_init=None, *, position_only=False, weights=None,
     hi = np.inf if upper is None else np.asarray(upper, dtype=float)
     q = np.clip(q, lo, hi)
 
+    fast = _fast_tip(model)
+
     def residual(q):
-        ch = kin.chain(model, q)
-        g = ch.g_tip
+        if fast is not None:
+            g, Js = fast(model, q)
+        else:
+            ch = kin.chain(model, q)
+            g = ch.g_tip
+            Wt = np.swapaxes(ch.W, -3, -2)
+            Js = Wt.reshape(6, 6 * model.n_sections)[:, model.free_index]
         if position_only:
             e = target[:3, 3] - g[:3, 3]
         else:
             e = lie.log_se3(lie.se3_inv(g) @ target)
-        return g, e, ch
+        return g, e, Js
 
-    def jac(g, e, ch):
-        Wt = np.swapaxes(ch.W, -3, -2)
-        Js = Wt.reshape(6, 6 * model.n_sections)[:, model.free_index]
+    def jac(g, e, Js):
         Jb = lie.Ad_inv(g) @ Js
         if position_only:
             return -g[:3, :3] @ Jb[:3]

@@ -160,13 +160,24 @@ def _rotate_to_world(g, J):
 
 
 def tip_jacobian(model, q, frame="body"):
-    """Jacobian (..., 6, n_dof) of the tip (fast path: all blocks are whole sections)."""
-    ch = chain(model, q)
-    Wt = np.swapaxes(ch.W, -3, -2)
-    Js = Wt.reshape(Wt.shape[:-2] + (6 * model.n_sections,))[..., model.free_index]
-    J = lie.Ad_inv(ch.g_tip) @ Js
+    """Jacobian (..., 6, n_dof) of the tip (all blocks are whole sections);
+    compiled for a single real q of an exponential-map model."""
+    q = model.check_q(q)
+    g, Js = None, None
+    if q.ndim == 1 and not np.iscomplexobj(q) and model.kinematic_map == "exponential":
+        try:
+            from . import _fast
+            g, Js = _fast.tip_and_spatial_jacobian(model, q)
+        except ImportError:
+            pass
+    if g is None:
+        ch = chain(model, q)
+        Wt = np.swapaxes(ch.W, -3, -2)
+        g = ch.g_tip
+        Js = Wt.reshape(Wt.shape[:-2] + (6 * model.n_sections,))[..., model.free_index]
+    J = lie.Ad_inv(g) @ Js
     if frame == "world":
-        return _rotate_to_world(ch.g_tip, J)
+        return _rotate_to_world(g, J)
     return J
 
 

@@ -298,3 +298,13 @@ def test_actuation_ik_recovers_tensions_of_a_reachable_target():
     # an unreachable target: best effort, no exception
     far = ik.solve_actuation_ik(m, np.array([0.0, 0.0, 0.5]), position_only=True, max_iterations=15)
     assert not far.success and np.all(np.isfinite(far.u)) and np.all(far.u >= 0)
+
+
+def test_compiled_tip_jacobian_matches_reference():
+    pytest.importorskip("numba")
+    from soft_twin_core import _fast
+    m = three_section("bending_torsion", offsets=True)
+    q = random_q(m)
+    g, Js = _fast.tip_and_spatial_jacobian(m, q)
+    assert np.abs(g - kin.tip_pose(m, q)).max() < 1e-14
+    assert np.abs(lie.Ad_inv(g) @ Js - kin.tip_jacobian(m, q)).max() < 1e-13
