@@ -200,6 +200,7 @@ class Simulator:
         self.set_actuation(actuation)
         self.set_loads(loads)
         self.last_qddot = np.zeros(model.n_dof)
+        self._prev_qddot = None       # for the predictor's linear extrapolation
         self._terms = _select_kernel(model)
         self._newton_fast = None
         if self._terms is not dynamics_terms:
@@ -277,7 +278,10 @@ class Simulator:
         tm = t + th * h
         u, loads = self._u(tm), self._loads(tm)
         C = self._correction(h)
-        v1 = v0 + h * (self.last_qddot if np.all(np.isfinite(self.last_qddot)) else 0.0)
+        a_pred = self.last_qddot
+        if self._prev_qddot is not None and h == self.dt:
+            a_pred = 2.0 * self.last_qddot - self._prev_qddot   # linear extrapolation
+        v1 = v0 + h * (a_pred if np.all(np.isfinite(a_pred)) else 0.0)
         prev, rate = None, 0.0
         # relative to the rates, with a floor at round-off of the positions
         floor = 1e-14 * max(1.0, np.abs(q0).max()) / h
@@ -343,6 +347,7 @@ class Simulator:
         if out is None:
             return StepInfo(self.max_iterations, False, np.inf)
         q1, v1, it = out
+        self._prev_qddot = self.last_qddot
         self.last_qddot = (v1 - st.qdot) / h
         st.q, st.qdot, st.t = q1, v1, st.t + h
         return StepInfo(it, True, 0.0)
