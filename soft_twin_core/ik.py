@@ -75,6 +75,81 @@ def _errors(g, target):
     return float(np.sqrt(dp @ dp)), float(np.sqrt(dR @ dR))
 
 
+def _target_pose(target, position_only):
+    """4x4 target from a pose, or from a 3-vector with position_only."""
+    target = np.asarray(target, dtype=float)
+    if position_only and target.shape == (3,):
+        T = np.eye(4)
+        T[:3, 3] = target
+        target = T
+    if target.shape != (4, 4) or not np.all(np.isfinite(target)):
+        raise ValueError(f"target: expected a finite 4x4 pose (or 3-vector with position_only), "
+                         f"got shape {target.shape}")
+    return target
+
+
+def _weights(weights, position_only):
+    m = 3 if position_only else 6
+    w = np.ones(m) if weights is None else np.asarray(weights, dtype=float)
+    if w.shape != (m,) or np.any(w < 0) or not np.all(np.isfinite(w)):
+        raise ValueError(f"weights: expected {m} non-negative numbers, got {weights!r}")
+    return w
+
+
+def _tip_error(g, target, position_only):
+    """Position error p_target - p (world) or the SE(3) log error
+    log(g^-1 g_target) (tip body frame)."""
+    if position_only:
+        return target[:3, 3] - g[:3, 3]
+    return lie.log_se3(lie.se3_inv(g) @ target)
+
+
+def _error_jacobian(g, e, J_body, position_only):
+    """d e / d(body twist of the tip): -R J_v, or -T_se3_inv(-e) J_body."""
+    if position_only:
+        return -g[:3, :3] @ J_body[:3]
+    return -lie.T_se3_inv(-e) @ J_body
+
+
+def _levenberg_marquardt(x, lo, hi, evaluate, jacobian, done, w, max_iterations, lam=1e-3):
+    """Bounded (projected) Levenberg-Marquardt with Marquardt's diagonal scaling.
+
+    evaluate(x, previous) -> (data, e) (may raise to reject a step);
+    jacobian(x, data, e) -> de/dx; done(data) -> bool. Returns
+    (x, data, iterations, message)."""
+    data, e = evaluate(x, None)
+    cost = float(e @ (w * e))
+    it, message = 0, "max iterations reached"
+    for it in range(1, max_iterations + 1):
+        if done(data):
+            return x, data, it - 1, "converged"
+        Je = jacobian(x, data, e)
+        A = Je.T @ (w[:, None] * Je)
+        b = -Je.T @ (w * e)
+        D = np.diag(np.maximum(np.diag(A), 1e-12 * max(np.abs(np.diag(A)).max(), 1e-300)))
+        improved = False
+        for _ in range(12):
+            x_new = np.clip(x + np.linalg.solve(A + lam * D, b), lo, hi)
+            try:
+                data_new, e_new = evaluate(x_new, data)
+            except (ArithmeticError, RuntimeError, np.linalg.LinAlgError):
+                lam *= 8.0
+                continue
+            cost_new = float(e_new @ (w * e_new))
+            if np.isfinite(cost_new) and cost_new < cost:
+                x, data, e, cost = x_new, data_new, e_new, cost_new
+                lam = max(lam / 5.0, 1e-12)
+                improved = True
+                break
+            lam *= 8.0
+        if not improved:
+            message = "stalled: no step reduces the error (target unreachable or at a bound)"
+            break
+    if done(data):
+        message = "converged"
+    return x, data, it, message
+
+
 def solve_ik(model, target, q_init=None, *, position_only=False, weights=None,
              lower=None, upper=None, tol_position=1e-8, tol_orientation=1e-8,
              max_iterations=200, initial_damping=1e-3):
@@ -87,79 +162,34 @@ def solve_ik(model, target, q_init=None, *, position_only=False, weights=None,
     of the error components. lower/upper: bounds on q (projected). Never
     raises for unreachable targets: returns the best pose, success False.
     """
-    target = np.asarray(target, dtype=float)
-    if position_only and target.shape == (3,):
-        T = np.eye(4)
-        T[:3, 3] = target
-        target = T
-    if target.shape != (4, 4) or not np.all(np.isfinite(target)):
-        raise ValueError(f"target: expected a finite 4x4 pose (or 3-vector with position_only), "
-                         f"got shape {target.shape}")
+    target = _target_pose(target, position_only)
+    w = _weights(weights, position_only)
     q = model.q0.copy() if q_init is None else model.check_q(np.array(q_init, dtype=float), "q_init")
-    m = 3 if position_only else 6
-    w = np.ones(m) if weights is None else np.asarray(weights, dtype=float)
-    if w.shape != (m,) or np.any(w < 0):
-        raise ValueError(f"weights: expected {m} non-negative numbers, got {weights!r}")
     lo = -np.inf if lower is None else np.asarray(lower, dtype=float)
     hi = np.inf if upper is None else np.asarray(upper, dtype=float)
-    q = np.clip(q, lo, hi)
-
     fast = _fast_tip(model)
 
-    def residual(q):
+    def evaluate(q, _previous):
         if fast is not None:
             g, Js = fast(model, q)
         else:
             ch = kin.chain(model, q)
             g = ch.g_tip
-            Wt = np.swapaxes(ch.W, -3, -2)
-            Js = Wt.reshape(6, 6 * model.n_sections)[:, model.free_index]
-        if position_only:
-            e = target[:3, 3] - g[:3, 3]
-        else:
-            e = lie.log_se3(lie.se3_inv(g) @ target)
-        return g, e, Js
+            Js = np.swapaxes(ch.W, -3, -2).reshape(6, 6 * model.n_sections)[:, model.free_index]
+        return (g, Js), _tip_error(g, target, position_only)
 
-    def jac(g, e, Js):
-        Jb = lie.Ad_inv(g) @ Js
-        if position_only:
-            return -g[:3, :3] @ Jb[:3]
-        return -lie.T_se3_inv(-e) @ Jb
+    def jacobian(q, data, e):
+        g, Js = data
+        return _error_jacobian(g, e, lie.Ad_inv(g) @ Js, position_only)
 
-    g, e, ch = residual(q)
-    cost = float(e @ (w * e))
-    lam = initial_damping
-    it = 0
-    message = "max iterations reached"
-    for it in range(1, max_iterations + 1):
-        pe, oe = _errors(g, target)
-        if pe <= tol_position and (position_only or oe <= tol_orientation):
-            it -= 1
-            message = "converged"
-            break
-        Je = jac(g, e, ch)
-        A = Je.T @ (w[:, None] * Je)
-        b = -Je.T @ (w * e)
-        improved = False
-        for _ in range(12):
-            step = np.linalg.solve(A + lam * (np.diag(np.diag(A)) + 1e-9 * np.eye(len(q))), b)
-            q_new = np.clip(q + step, lo, hi)
-            g_new, e_new, ch_new = residual(q_new)
-            cost_new = float(e_new @ (w * e_new))
-            if np.isfinite(cost_new) and cost_new < cost:
-                q, g, e, ch, cost = q_new, g_new, e_new, ch_new, cost_new
-                lam = max(lam / 5.0, 1e-12)
-                improved = True
-                break
-            lam *= 8.0
-        if not improved:
-            message = "stalled: no step reduces the error (target unreachable or at a bound)"
-            break
+    def done(data):
+        pe, oe = _errors(data[0], target)
+        return pe <= tol_position and (position_only or oe <= tol_orientation)
+
+    q, (g, _), it, message = _levenberg_marquardt(np.clip(q, lo, hi), lo, hi, evaluate, jacobian,
+                                                  done, w, max_iterations, initial_damping)
     pe, oe = _errors(g, target)
-    success = pe <= tol_position and (position_only or oe <= tol_orientation)
-    if success:
-        message = "converged"
-    return IKResult(q, success, pe, oe, it, g, message)
+    return IKResult(q, message == "converged", pe, oe, it, g, message)
 
 
 @dataclass
@@ -196,64 +226,30 @@ def solve_actuation_ik(model, target, u_init=None, q_init=None, *, loads=None, p
     n_act = len(model.actuators)
     if n_act == 0:
         raise ValueError("solve_actuation_ik: this robot has no actuators")
-    target = np.asarray(target, dtype=float)
-    if position_only and target.shape == (3,):
-        T = np.eye(4)
-        T[:3, 3] = target
-        target = T
-    if target.shape != (4, 4) or not np.all(np.isfinite(target)):
-        raise ValueError(f"target: expected a finite 4x4 pose (or 3-vector with position_only), "
-                         f"got shape {target.shape}")
+    target = _target_pose(target, position_only)
+    w = _weights(weights, position_only)
     lo = np.array([0.0 if a.kind == "tendon" else -np.inf for a in model.actuators])
     hi = np.full(n_act, np.inf) if u_max is None else np.broadcast_to(np.asarray(u_max, float), (n_act,))
     u = np.zeros(n_act) if u_init is None else st.actuation_vector(model, u_init).copy()
-    u = np.clip(u, lo, hi)
-    m_err = 3 if position_only else 6
-    w = np.ones(m_err) if weights is None else np.asarray(weights, dtype=float)
 
-    def evaluate(u, q_start):
-        r = st.solve_statics(model, u, loads, q_init=q_start)
-        g = r.tip_pose
-        e = target[:3, 3] - g[:3, 3] if position_only else lie.log_se3(lie.se3_inv(g) @ target)
-        return r.q, g, e
+    def evaluate(u, previous):
+        r = st.solve_statics(model, u, loads, q_init=q_init if previous is None else previous[0])
+        return (r.q, r.tip_pose), _tip_error(r.tip_pose, target, position_only)
 
-    q, g, e = evaluate(u, q_init)
-    cost = float(e @ (w * e))
-    lam, it, message = 1e-3, 0, "max iterations reached"
-    for it in range(1, max_iterations + 1):
-        pe, oe = _errors(g, target)
-        if pe <= tol_position and (position_only or oe <= tol_orientation):
-            it -= 1
-            break
+    def jacobian(u, data, e):
+        q, g = data
         ch = kin.chain(model, q)
         B = np.stack([actuation_force(model, ch, ek) for ek in np.eye(n_act)], axis=1)
-        Kt = st._fast_tangent(model, q, u, loads)
-        dq_du = np.linalg.solve(Kt, B)
-        Jb = kin.tip_jacobian(model, q)
-        Je = (-g[:3, :3] @ Jb[:3]) if position_only else (-lie.T_se3_inv(-e) @ Jb)
-        Ju = Je @ dq_du
-        A = Ju.T @ (w[:, None] * Ju)
-        b = -Ju.T @ (w * e)
-        scale_u = np.maximum(np.abs(np.diag(A)), 1e-300)
-        improved = False
-        for _ in range(12):
-            step = np.linalg.solve(A + lam * np.diag(scale_u), b)
-            u_new = np.clip(u + step, lo, hi)
-            try:
-                q_new, g_new, e_new = evaluate(u_new, q)
-            except st.StaticsError:
-                lam *= 8.0
-                continue
-            cost_new = float(e_new @ (w * e_new))
-            if cost_new < cost:
-                u, q, g, e, cost = u_new, q_new, g_new, e_new, cost_new
-                lam = max(lam / 5.0, 1e-12)
-                improved = True
-                break
-            lam *= 8.0
-        if not improved:
-            message = "stalled: the actuators cannot bring the tip closer (target not reachable by actuation)"
-            break
+        dq_du = np.linalg.solve(st._fast_tangent(model, q, u, loads), B)
+        return _error_jacobian(g, e, kin.tip_jacobian(model, q), position_only) @ dq_du
+
+    def done(data):
+        pe, oe = _errors(data[1], target)
+        return pe <= tol_position and (position_only or oe <= tol_orientation)
+
+    u, (q, g), it, message = _levenberg_marquardt(np.clip(u, lo, hi), lo, hi, evaluate, jacobian, done,
+                                                  w, max_iterations)
+    if message.startswith("stalled"):
+        message = "stalled: the actuators cannot bring the tip closer (target not reachable by actuation)"
     pe, oe = _errors(g, target)
-    success = pe <= tol_position and (position_only or oe <= tol_orientation)
-    return ActuationIKResult(u, q, success, pe, oe, it, g, "converged" if success else message)
+    return ActuationIKResult(u, q, message == "converged", pe, oe, it, g, message)

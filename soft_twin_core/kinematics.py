@@ -268,18 +268,3 @@ def helix_parameters(f):
         n = c / nc[..., None]
     b = np.cross(t, n)
     return kappa, tau, np.stack([t, n, b], axis=-1)
-
-
-def helix_pose(kappa, tau, alpha):
-    """The slides' closed-form one-element helix H(alpha) for f_u = [1,0,0],
-    f_w = [tau, 0, kappa] (torsion about x, bending about z)."""
-    kg = np.sqrt(kappa**2 + tau**2)
-    a = alpha
-    s, c = np.sin(a * kg), np.cos(a * kg)
-    return np.array([
-        [1 - (1 - c) * kappa**2 / kg**2, -s * kappa / kg, (1 - c) * kappa * tau / kg**2,
-         a + (s - a * kg) * kappa**2 / kg**3],
-        [s * kappa / kg, c, -s * tau / kg, (1 - c) * kappa / kg**2],
-        [(1 - c) * kappa * tau / kg**2, s * tau / kg, 1 - (1 - c) * tau**2 / kg**2,
-         (a * kg - s) * kappa * tau / kg**3],
-        [0, 0, 0, 1.0]])
