@@ -128,12 +128,14 @@ def _scale(model, q, R):
     return max(np.abs(Kq).max(initial=0), np.abs(Kq - R).max(initial=0), 1e-300)
 
 
-def is_stable(model, q, u, loads):
+def is_stable(model, q, u, loads, Kt=None):
     """Static stability: every eigenvalue of the tangent dR/dq has a positive
     real part (no divergence mode). Newton may converge to an unstable
     equilibrium (e.g. an arm curled up against gravity); the solver rejects
-    those and follows the loaded path from the start point instead."""
-    Kt = _fast_tangent(model, q, u, loads)
+    those and follows the loaded path from the start point instead. ``Kt``:
+    a tangent already at hand (Newton's last one, evaluated next to q)."""
+    if Kt is None:
+        Kt = _fast_tangent(model, q, u, loads)
     ev = np.linalg.eigvals(Kt)
     return bool(np.all(ev.real > -1e-9 * np.abs(ev).max()))
 
@@ -161,12 +163,12 @@ def _newton(model, q, u, loads, tol, max_iterations):
                 R_p = _residual_fast(model, q_p, u, loads)
                 if np.all(np.isfinite(R_p)) and np.linalg.norm(R_p) < np.linalg.norm(R):
                     q, R = q_p, R_p
-            return q, R, it - 1, True
+            return q, R, it - 1, True, Kt
         Kt = _fast_tangent(model, q, u, loads)
         try:
             dq = np.linalg.solve(Kt, -R)
         except np.linalg.LinAlgError:
-            return q, R, it, False
+            return q, R, it, False, None
         # backtracking line search on ||R||
         step = 1.0
         r0 = np.linalg.norm(R)
@@ -177,10 +179,10 @@ def _newton(model, q, u, loads, tol, max_iterations):
                 break
             step *= 0.5
         else:
-            return q, R, it, _converged(model, q, R, scale, tol)
+            return q, R, it, _converged(model, q, R, scale, tol), Kt
         q, R = q_try, R_try
         scale = max(scale, _scale(model, q, R))
-    return q, R, it, _converged(model, q, R, scale, tol)
+    return q, R, it, _converged(model, q, R, scale, tol), Kt
 
 
 def solve_statics(model, actuation=None, loads=None, q_init=None, *, tol=1e-10,
@@ -199,11 +201,11 @@ def solve_statics(model, actuation=None, loads=None, q_init=None, *, tol=1e-10,
     u = actuation_vector(model, actuation)
     q = model.q0.copy() if q_init is None else model.check_q(np.array(q_init, dtype=float), "q_init").copy()
     total_it = 0
-    q1, R, it, ok = _newton(model, q, u, loads, tol, max_iterations)
+    q1, R, it, ok, Kt = _newton(model, q, u, loads, tol, max_iterations)
     total_it += it
     steps = 1
     fallback = None           # a converged but unstable equilibrium
-    if ok and check_stability and not is_stable(model, q1, u, loads):
+    if ok and check_stability and not is_stable(model, q1, u, loads, Kt):
         ok, fallback = False, (q1, R)
     if not ok:
         # continuation from the start point in the load factor lam
@@ -211,10 +213,10 @@ def solve_statics(model, actuation=None, loads=None, q_init=None, *, tol=1e-10,
         q_c = q.copy()
         while lam < 1.0:
             target = min(1.0, lam + dlam)
-            q_try, R, it, ok = _newton(model, q_c, target * u, loads.scaled(target), tol, max_iterations)
+            q_try, R, it, ok, Kt = _newton(model, q_c, target * u, loads.scaled(target), tol, max_iterations)
             total_it += it
             steps += 1
-            if ok and check_stability and not is_stable(model, q_try, target * u, loads.scaled(target)):
+            if ok and check_stability and not is_stable(model, q_try, target * u, loads.scaled(target), Kt):
                 ok = False
             if ok:
                 lam, q_c = target, q_try
