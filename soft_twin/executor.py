@@ -47,3 +47,12 @@ class TwinExecutor(MultiThreadedExecutor):
             if future.done():
                 self._futures.remove(future)
                 future.result()  # raise any exception of a callback
+
+    def shutdown(self, timeout_sec=None):
+        """Stop, then wait for the callbacks still running in the pool:
+        rclpy 7.1's ``Executor.shutdown`` returns without waiting (its wait
+        is skipped once ``_is_shutdown`` is set), so a timer callback could
+        still publish while the node is being destroyed."""
+        done = super().shutdown(timeout_sec)
+        self._executor.shutdown(wait=timeout_sec is None or timeout_sec > 0)
+        return done

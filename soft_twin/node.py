@@ -190,6 +190,10 @@ class SoftTwinNode(Node):
             try:
                 return callback(*args)
             except Exception as e:
+                if not self.context.ok():
+                    # shutting down (Ctrl-C shuts the context down from the signal
+                    # handler while a step may still be publishing): not an error
+                    return None
                 with self._stats_lock:
                     self.stats.totals["internal_errors"] += 1
                     self.stats.last_internal_error = f"{callback.__name__}: {type(e).__name__}: {e}"
