@@ -708,10 +708,16 @@ def _newton_kernel(q0, v0, v1, h, theta, C, tol, floor, max_it,
         goal = max(tol * vmax, floor)
         if upd <= goal:
             return v1, it, 0, rate
-        if prev > 0.0 and upd > 100.0 * goal:
-            rate = max(rate, upd / prev)
-            if rate > 0.9:
-                return v1, it, 2, rate
+        if prev > 0.0:
+            r_k = upd / prev
+            # Hairer-Wanner stopping rule: the remaining error of a linearly
+            # converging iteration is about r/(1 - r) times the last update
+            if r_k < 0.5 and r_k / (1.0 - r_k) * upd <= goal:
+                return v1, it, 0, rate
+            if upd > 100.0 * goal:
+                rate = max(rate, r_k)
+                if rate > 0.9:
+                    return v1, it, 2, rate
         prev = upd
     return v1, max_it, 1, rate
 

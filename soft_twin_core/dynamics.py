@@ -172,7 +172,10 @@ class Simulator:
     O(dt^2) without drift). theta = 1 is implicit Euler: first order,
     L-stable, damps the stiff modes that the midpoint rule lets ring (use it
     for strongly damped arms or to reach equilibrium). Solved by a modified
-    Newton iteration with ``A = M - theta dt df/dv - (theta dt)^2 df/dq``. A is built from a
+    Newton iteration with ``A = M - theta dt df/dv - (theta dt)^2 df/dq``,
+    stopped when the update, or the remaining error estimated from the
+    convergence rate r as r/(1 - r) times the update (Hairer & Wanner), is
+    below ``tol`` relative to the strain rates. A is built from a
     finite-difference Jacobian of f and reused across steps while the
     iteration converges fast; it is refreshed when convergence slows, and a
     step that still fails is split into sub-steps (the state is only updated
@@ -303,10 +306,15 @@ class Simulator:
             goal = max(self.tol * max(np.abs(v1).max(), np.abs(v0).max()), floor)
             if upd <= goal:
                 return v1, it, rate
-            if prev is not None and upd > 100 * goal:   # rate only above the noise floor
-                rate = max(rate, upd / prev)
-                if rate > 0.9:
-                    return None, it, rate
+            if prev is not None:
+                r_k = upd / prev
+                # Hairer-Wanner stopping rule (remaining error ~ r/(1-r) * update)
+                if r_k < 0.5 and r_k / (1.0 - r_k) * upd <= goal:
+                    return v1, it, rate
+                if upd > 100 * goal:                     # rate only above the noise floor
+                    rate = max(rate, r_k)
+                    if rate > 0.9:
+                        return None, it, rate
             prev = upd
         return None, self.max_iterations, rate
 
