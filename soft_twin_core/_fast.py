@@ -139,25 +139,20 @@ def _mtv(A, x, out):
 
 
 @_jit
-def _T_into(x, T, A, A2, A3, A4):
+def _T_into(x, T, S):
     """T_se3(x) = I - b1 ad + b2 ad^2 - b3 ad^3 + b4 ad^4 from 3x3 blocks:
     ad^k = [[W^k, X_k], [0, W^k]] with X_k = sum_j W^j U W^(k-1-j),
-    W^3 = -t^2 W, W^4 = -t^2 W^2 (A..A4 are unused scratch, kept for the
-    signature)."""
+    W^3 = -t^2 W, W^4 = -t^2 W^2. S: (7, 3, 3) scratch (no allocation)."""
     u0, u1, u2, w0, w1, w2 = x[0], x[1], x[2], x[3], x[4], x[5]
     t2 = w0 * w0 + w1 * w1 + w2 * w2
     b1, b2, b3, b4 = _betas(t2)
-    W = np.empty((3, 3))
-    U = np.empty((3, 3))
+    W, U, W2, WU, UW, X2, X3 = S[0], S[1], S[2], S[3], S[4], S[5], S[6]
     W[0, 0], W[0, 1], W[0, 2] = 0.0, -w2, w1
     W[1, 0], W[1, 1], W[1, 2] = w2, 0.0, -w0
     W[2, 0], W[2, 1], W[2, 2] = -w1, w0, 0.0
     U[0, 0], U[0, 1], U[0, 2] = 0.0, -u2, u1
     U[1, 0], U[1, 1], U[1, 2] = u2, 0.0, -u0
     U[2, 0], U[2, 1], U[2, 2] = -u1, u0, 0.0
-    W2 = np.empty((3, 3))
-    WU = np.empty((3, 3))
-    UW = np.empty((3, 3))
     for i in range(3):
         for j in range(3):
             a2 = 0.0
@@ -170,9 +165,8 @@ def _T_into(x, T, A, A2, A3, A4):
             W2[i, j] = a2
             WU[i, j] = a3
             UW[i, j] = a4
-    X2 = WU + UW
+            X2[i, j] = a3 + a4
     # X3 = W^2 U + W U W + U W^2 = W X2 + U W^2 ; X4 = W X3 + U W^3 = W X3 - t2 U W
-    X3 = np.empty((3, 3))
     for i in range(3):
         for j in range(3):
             acc = 0.0
@@ -185,7 +179,6 @@ def _T_into(x, T, A, A2, A3, A4):
             for k in range(3):
                 acc += W[i, k] * X3[k, j]
             X4 = acc - t2 * UW[i, j]
-            # diagonal blocks: I - b1 W + b2 W^2 - b3 W^3 + b4 W^4, W^3 = -t2 W, W^4 = -t2 W^2
             D = (1.0 if i == j else 0.0) - (b1 - b3 * t2) * W[i, j] + (b2 - b4 * t2) * W2[i, j]
             T[i, j] = D
             T[i + 3, j + 3] = D
@@ -319,6 +312,7 @@ def _kernel(q, qd, f0, free_index, lengths, base, offsets, pt_sec, pt_x, pt_w, p
     MA = np.empty((6, 6))
     tmp6 = np.empty((6, 6))
     Pm = np.empty((5, 6))
+    S3 = np.empty((7, 3, 3))
     v1 = np.empty(6)
     v2 = np.empty(6)
     v3 = np.empty(6)
@@ -348,7 +342,7 @@ def _kernel(q, qd, f0, free_index, lengths, base, offsets, pt_sec, pt_x, pt_w, p
             Lxd[a] = L * xid[i, a]
         _exp_into(Lx, E)
         _mm(g, E, gtmp)
-        _T_into(Lx, T, A1, A2, A3, A4)
+        _T_into(Lx, T, S3)
         _Ad_into(gtmp, Adm, False)
         _mm(Adm, T, tmp6)
         for r in range(6):
@@ -389,7 +383,7 @@ def _kernel(q, qd, f0, free_index, lengths, base, offsets, pt_sec, pt_x, pt_w, p
         _exp_into(Lx, E)
         _mm(g_start[i], E, gtmp)
         _Ad_into(gtmp, Ai, True)
-        _T_into(Lx, T, A1, A2, A3, A4)
+        _T_into(Lx, T, S3)
         for r in range(6):
             for c in range(6):
                 own[r, c] = x * T[r, c]
@@ -434,14 +428,29 @@ def _kernel(q, qd, f0, free_index, lengths, base, offsets, pt_sec, pt_x, pt_w, p
                     fown[i, a] += v1[a]
                     Ftot[a] += Fs[a]
                 continue
-            # inertia accumulators
-            for r in range(6):
-                for c in range(6):
-                    MA[r, c] = mc[r] * Ai[r, c]
-            _mtm(Ai, MA, tmp6)
-            for r in range(6):
-                for c in range(6):
-                    Isec[i, r, c] += w * tmp6[r, c]
+            # inertia accumulators; spatial inertia Ai^T Mc Ai of the point
+            if mc[0] == mc[1] and mc[1] == mc[2]:
+                # isotropic linear inertia m: [[m I, -m P], [m P, -m P P + R Jd R^T]], P = hat(p)
+                mw = w * mc[0]
+                p0, p1, p2 = gtmp[0, 3], gtmp[1, 3], gtmp[2, 3]
+                P = ((0.0, -p2, p1), (p2, 0.0, -p0), (-p1, p0, 0.0))
+                for r in range(3):
+                    Isec[i, r, r] += mw
+                    for c in range(3):
+                        Isec[i, r, c + 3] -= mw * P[r][c]
+                        Isec[i, r + 3, c] += mw * P[r][c]
+                        pp = P[r][0] * P[0][c] + P[r][1] * P[1][c] + P[r][2] * P[2][c]
+                        rjr = (gtmp[r, 0] * mc[3] * gtmp[c, 0] + gtmp[r, 1] * mc[4] * gtmp[c, 1]
+                               + gtmp[r, 2] * mc[5] * gtmp[c, 2])
+                        Isec[i, r + 3, c + 3] += w * rjr - mw * pp
+            else:
+                for r in range(6):
+                    for c in range(6):
+                        MA[r, c] = mc[r] * Ai[r, c]
+                _mtm(Ai, MA, tmp6)
+                for r in range(6):
+                    for c in range(6):
+                        Isec[i, r, c] += w * tmp6[r, c]
             for r in range(6):
                 for c in range(6):
                     MA[r, c] = mc[r] * own[r, c]
@@ -793,13 +802,14 @@ def _tip_kernel(q, f0, free_index, lengths, base, offsets):
     A1 = np.empty((6, 6))
     Adm = np.empty((6, 6))
     x6 = np.empty(6)
+    S3 = np.empty((7, 3, 3))
     Js = np.zeros((6, ndof))
     for i in range(n):
         for a in range(6):
             x6[a] = lengths[i] * xi[i, a]
         _exp_into(x6, E)
         _mm(g, E, gtmp)
-        _T_into(x6, T, A1, A1, A1, A1)
+        _T_into(x6, T, S3)
         _Ad_into(gtmp, Adm, False)
         for k in range(ndof):
             c = free_index[k]
