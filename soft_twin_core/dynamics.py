@@ -150,8 +150,9 @@ class StepInfo:
     update: float
 
 
-def _profile(value, name, model, kind):
-    """A constant or a callable of time t [s]; returns a function of t."""
+def _profile(value, model, kind):
+    """A constant or a callable of time t [s]; returns a function of t.
+    kind "actuation": a dict/vector of inputs (validated); "loads": Loads."""
     if callable(value):
         return value
     if kind == "actuation":
@@ -215,10 +216,10 @@ class Simulator:
 
     def set_actuation(self, actuation):
         """Constant inputs (dict or vector, validated) or a callable of t."""
-        self._u = _profile(actuation, "actuation", self.model, "actuation")
+        self._u = _profile(actuation, self.model, "actuation")
 
     def set_loads(self, loads):
-        self._loads = _profile(loads, "loads", self.model, "loads")
+        self._loads = _profile(loads, self.model, "loads")
 
     def actuation_at(self, t):
         return self._u(t)
@@ -380,8 +381,8 @@ def simulate_ivp(model, t_span, state, actuation=None, loads=None, method="Radau
     ``jac=None``; here it is supplied by central finite differences of the
     exact right-hand side (verified in the tests)."""
     from scipy.integrate import solve_ivp
-    u_of_t = _profile(actuation, "actuation", model, "actuation")
-    loads_of_t = _profile(loads, "loads", model, "loads")
+    u_of_t = _profile(actuation, model, "actuation")
+    loads_of_t = _profile(loads, model, "loads")
     kernel = _select_kernel(model)
     n = model.n_dof
 

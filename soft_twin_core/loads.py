@@ -53,7 +53,8 @@ class Loads:
     gravity: bool = True
 
     def scaled(self, factor):
-        """The same loads times ``factor`` (gravity scaled via ``gravity_scale``)."""
+        """The same loads times ``factor`` (for load stepping); gravity is
+        scaled too (``gravity`` becomes the factor)."""
         return _ScaledLoads(self, factor)
 
 
