@@ -222,7 +222,9 @@ def scenario_from_dict(d, base_dir=".", sections=None, angle_deg=None, source="<
 
 def run_statics(sc, points_per_section=10):
     """Solve the scenario's equilibrium (loads applied in load_steps
-    increments, each warm-started). Returns a JSON-ready dict."""
+    increments, each warm-started). Returns a JSON-ready dict, including the
+    internal wrenches [N, N m] (body frame, the distal part acting on the
+    proximal part) at the backbone sample points ``backbone_s`` [m]."""
     from .statics import solve_statics
     q, iters, res = None, 0, None
     for k in range(1, sc.load_steps + 1):
@@ -230,13 +232,17 @@ def run_statics(sc, points_per_section=10):
         loads = sc.loads_at(None, f)
         res = solve_statics(sc.model, f * sc.actuation, loads, q_init=q)
         q, iters = res.q, iters + res.iterations
-    _, P = kin.backbone(sc.model, q, points_per_section)
+    s_bb, P = kin.backbone(sc.model, q, points_per_section)
+    from .statics import internal_wrenches
+    W = internal_wrenches(sc.model, q, s_bb, sc.actuation, sc.loads_at(None))
     return {
         "tip_position": res.tip_pose[:3, 3].tolist(),
         "tip_rotation": res.tip_pose[:3, :3].ravel().tolist(),
         "backbone_positions": P[:, :3, 3].tolist(),
         "base_wrench": res.base_wrench_world.tolist(),
         "strains": res.strains.tolist(),
+        "internal_wrenches": W.tolist(),
+        "backbone_s": s_bb.tolist(),
         "iterations": int(iters),
         "residual": res.residual,
         "stable": res.stable,
@@ -254,7 +260,7 @@ def run_dynamics(sc, duration, dt, backbone_every=0, theta=0.5, progress=None,
     and every ``backbone_every`` steps a backbone sample. ``progress`` is
     called as progress(fraction) about once per wall-clock second."""
     import time as _time
-    from .dynamics import Simulator, base_reaction_dynamic
+    from .dynamics import Simulator, base_reaction_dynamic, internal_wrenches_dynamic
     from .model import State
     m = sc.model
     if not (np.isfinite(duration) and duration > 0):
@@ -269,7 +275,8 @@ def run_dynamics(sc, duration, dt, backbone_every=0, theta=0.5, progress=None,
         sim = Simulator(m, dt, actuation=sc.actuation, loads=loads, state=state, theta=theta)
     n_steps = int(round(duration / dt))
     out = {"time": [], "tip_position": [], "tip_velocity": [], "base_wrench": [], "strains": [],
-           "strain_rates": [], "backbone": [], "backbone_time": [], "newton_iterations": []}
+           "strain_rates": [], "backbone": [], "backbone_time": [], "backbone_velocity": [],
+           "backbone_acceleration": [], "internal_wrenches": [], "newton_iterations": []}
 
     def record(it):
         st = sim.state
@@ -293,9 +300,15 @@ def run_dynamics(sc, duration, dt, backbone_every=0, theta=0.5, progress=None,
         if k % record_every == 0 or k == n_steps:
             record(info.iterations)
         if backbone_every and k % backbone_every == 0:
-            _, P = kin.backbone(m, sim.state.q, points_per_section)
-            out["backbone_time"].append(sim.state.t)
+            st = sim.state
+            s_bb, P = kin.backbone(m, st.q, points_per_section)
+            mot = kin.point_motion(m, st.q, st.qdot, sim.last_qddot, s_bb)
+            out["backbone_time"].append(st.t)
             out["backbone"].append(P[:, :3, 3].tolist())
+            out["backbone_velocity"].append(mot["v_world"].tolist())
+            out["backbone_acceleration"].append(mot["a_world"].tolist())
+            out["internal_wrenches"].append(internal_wrenches_dynamic(
+                m, st.q, st.qdot, sim.last_qddot, s_bb, sim.actuation_at(st.t), sim.loads_at(st.t)).tolist())
         if progress is not None and _time.monotonic() - last > 1.0:
             progress(k / n_steps)
             last = _time.monotonic()

@@ -42,6 +42,21 @@ def test_statics_json_fields_and_values(capsys):
     assert r["residual"] <= 1e-10
     # base wrench balances weight and payload
     assert r["base_wrench"][2] == pytest.approx(m.mass * 9.81 + 0.05, rel=1e-9)
+    # internal wrench (rod material, body frame = base frame at s = 0): the
+    # tendons anchored in the base compress the rod by their 2.5 N in all
+    W = np.array(r["internal_wrenches"])
+    assert W.shape == (len(r["backbone_s"]), 6)
+    assert W[0, 0] == pytest.approx(-2.5, rel=0.01)
+
+
+def test_statics_internal_wrench_at_base_is_minus_reaction_without_tendons(tmp_path, capsys):
+    sc = tmp_path / "s.yaml"
+    sc.write_text("robot: %s\nloads:\n  - {s: tip, force: [0.01, 0.02, -0.05]}\n"
+                  % os.path.join(CONFIG, "robots", "tendon_arm.yaml"))
+    code, out, err = run_cli(["statics", str(sc)], capsys)
+    assert code == 0, err
+    r = json.loads(out)
+    assert np.allclose(np.array(r["internal_wrenches"])[0], -np.array(r["base_wrench"]), atol=1e-12)
 
 
 def test_sections_override_and_princeton_sweep(capsys):
@@ -96,6 +111,8 @@ def test_dynamics_csv_and_json(tmp_path, capsys):
     assert code == 0, err
     r = json.loads(f.read_text())
     assert len(r["time"]) == 11 and len(r["backbone"]) == 2
+    assert np.array(r["backbone_velocity"]).shape == np.array(r["backbone"]).shape
+    assert np.array(r["internal_wrenches"]).shape[-1] == 6
     assert np.array(r["base_wrench"]).shape == (11, 6)
     assert r["time"][-1] == pytest.approx(0.05)
 
