@@ -418,6 +418,9 @@ def _free_modes(v, where):
                              f"list of {list(STRAIN_NAMES)}, got {v!r}")
         names = _MODE_GROUPS[v]
     else:
+        if not isinstance(v, (list, tuple)):
+            raise ModelError(f"{where}: expected 'all', 'bending', 'bending_torsion', 'shear' or a "
+                             f"list of {list(STRAIN_NAMES)}, got {v!r}")
         names = list(v)
         for nm in names:
             if nm not in STRAIN_NAMES:
@@ -502,7 +505,10 @@ def model_from_dict(d, n_sections_override=None):
             raise ModelError(f"{where}.cross_section: missing (required)")
         if "material" not in sd:
             raise ModelError(f"{where}.material: missing (required)")
-        cs = _cross_section(sd["cross_section"], where + ".cross_section")
+        try:
+            cs = _cross_section(sd["cross_section"], where + ".cross_section")
+        except OverflowError:
+            raise ModelError(f"{where}.cross_section: dimensions overflow (check the units: metres)") from None
         mat = _material(sd["material"], where + ".material")
         f0 = _vec(sd, "reference_strain", 6, where, default=[1, 0, 0, 0, 0, 0])
         if f0[0] <= 0:
@@ -510,6 +516,10 @@ def model_from_dict(d, n_sections_override=None):
         free = _free_modes(sd.get("free_modes", "all"), where + ".free_modes")
         off = pose_from_dict(sd.get("offset_to_next"), where + ".offset_to_next")
         K, D, M = section_matrices(cs, mat)
+        if not (np.all(np.isfinite(K)) and np.all(np.isfinite(D)) and np.all(np.isfinite(M))
+                and np.all(np.diag(K) > 0) and np.all(np.diag(M) > 0)):
+            raise ModelError(f"{where}: cross_section and material give a non-finite or zero stiffness or "
+                             f"inertia (K diagonal {np.diag(K).tolist()}); check the values and units")
         name = str(sd.get("name", f"segment{k}"))
         for j in range(n):
             sections.append(Section(length / n, K, D, M, f0, free, name,

@@ -308,3 +308,34 @@ def test_compiled_tip_jacobian_matches_reference():
     g, Js = _fast.tip_and_spatial_jacobian(m, q)
     assert np.abs(g - kin.tip_pose(m, q)).max() < 1e-14
     assert np.abs(lie.Ad_inv(g) @ Js - kin.tip_jacobian(m, q)).max() < 1e-13
+
+
+def test_model_fuzz_only_model_errors():
+    """Any single corrupted field of a robot description gives a ModelError
+    (never a TypeError, OverflowError, ... from deep inside)."""
+    import copy
+    import random
+    base = benchmark_cantilever_dict(3)
+    base["actuators"] = [{"name": "t", "offset": [0.005, 0]},
+                         {"name": "c", "type": "chamber", "area": 1e-5, "offset": [0, 0.004]}]
+    values = [None, -1, 0, 1e300, float("nan"), float("inf"), "x", [], {}, [1, 2], True, "1e9",
+              [1, 2, 3, 4, 5, 6], {"a": 1}, 3]
+
+    def paths(d, prefix=()):
+        items = d.items() if isinstance(d, dict) else enumerate(d) if isinstance(d, list) else ()
+        for k, v in items:
+            yield prefix + (k,)
+            yield from paths(v, prefix + (k,))
+    rng = random.Random(0)
+    all_paths = list(paths(base))
+    for _ in range(1500):
+        d = copy.deepcopy(base)
+        path = rng.choice(all_paths)
+        t = d
+        for k in path[:-1]:
+            t = t[k]
+        t[path[-1]] = rng.choice(values)
+        try:
+            model_from_dict(d)
+        except ModelError:
+            pass
