@@ -91,6 +91,12 @@ def _profile(v, where):
     return a[:, 0], a[:, 1]
 
 
+def _number(v, where):
+    if isinstance(v, bool) or not isinstance(v, (int, float)) or not np.isfinite(v):
+        raise ScenarioError(f"{where}: expected a finite number, got {v!r}")
+    return float(v)
+
+
 def _s_value(v, model, where):
     if v == "tip":
         return model.total_length
@@ -130,8 +136,8 @@ def _load(d, i, model, angle_override):
     wrench = tuple(np.concatenate([force, moment]))
     prof = _profile(d["profile"], where + ".profile") if "profile" in d else None
     if d.get("distributed", False):
-        start = float(d.get("start", 0.0))
-        end = float(d.get("end", model.total_length))
+        start = _number(d.get("start", 0.0), where + ".start")
+        end = _number(d.get("end", model.total_length), where + ".end")
         if not 0.0 <= start < end <= model.total_length + 1e-12:
             raise ScenarioError(f"{where}: need 0 <= start < end <= {model.total_length} m, got {start}, {end}")
         return DistributedLoad(wrench, frame, start, end), prof
@@ -193,14 +199,21 @@ def scenario_from_dict(d, base_dir=".", sections=None, angle_deg=None, source="<
             raise ScenarioError(f"scenario.actuation.{k}: tendon tension must be >= 0 N, got {v}")
         u[names.index(k)] = float(v)
     prof = {}
-    for k, v in (d.get("actuation_profile") or {}).items():
+    profiles = d.get("actuation_profile") or {}
+    if not isinstance(profiles, dict):
+        raise ScenarioError(f"scenario.actuation_profile: expected a mapping name -> [[t, value], ...], "
+                            f"got {profiles!r}")
+    for k, v in profiles.items():
         if k not in names:
             raise ScenarioError(f"scenario.actuation_profile: unknown actuator {k!r}; the robot has {list(names)}")
         ts, vs = _profile(v, f"scenario.actuation_profile.{k}")
         if model.actuators[names.index(k)].kind == "tendon" and np.any(vs < 0):
             raise ScenarioError(f"scenario.actuation_profile.{k}: tendon tension must be >= 0 N")
         prof[names.index(k)] = (ts, vs)
-    loads = [_load(ld, i, model, angle_deg) for i, ld in enumerate(d.get("loads") or [])]
+    raw_loads = d.get("loads") or []
+    if not isinstance(raw_loads, list):
+        raise ScenarioError(f"scenario.loads: expected a list of loads, got {raw_loads!r}")
+    loads = [_load(ld, i, model, angle_deg) for i, ld in enumerate(raw_loads)]
     steps = d.get("load_steps", 1)
     if isinstance(steps, bool) or not isinstance(steps, int) or steps < 1:
         raise ScenarioError(f"scenario.load_steps: expected an integer >= 1, got {steps!r}")
