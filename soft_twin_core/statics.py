@@ -1,11 +1,14 @@
 """Static equilibrium of the PCS model (slides part B "Statics").
 
 Solves ``R(q) = K (q - q0) - Q_ext(q) - tau_act(q, u) = 0`` by Newton's
-method. The tangent dR/dq is computed by the complex-step method on the
-batched residual (all n_dof directions in one vectorised call), exact to
-machine precision (tested against central differences). Large loads are
-applied in steps (continuation in a load factor) when a full Newton solve
-fails; a previous solution warm-starts the next call.
+method with a backtracking line search. The residual comes from the compiled
+kernel (:mod:`soft_twin_core._fast`) and the tangent dR/dq from its central
+differences (2 n_dof calls), checked in the tests against the exact
+complex-step tangent of the numpy reference (:func:`residual`,
+:func:`tangent`), which is also the fallback without numba. Equilibria with
+an unstable tangent are rejected in favour of the loaded path from the start
+point (continuation in a load factor, also used when a full Newton solve
+fails); a previous solution warm-starts the next call.
 """
 
 from dataclasses import dataclass
@@ -34,9 +37,15 @@ def actuation_vector(model, actuation):
         for k, v in actuation.items():
             if k not in names:
                 raise ValueError(f"actuation: unknown actuator {k!r}; this robot has {list(names)}")
-            u[names.index(k)] = float(v)
+            try:
+                u[names.index(k)] = float(v)
+            except (TypeError, ValueError):
+                raise ValueError(f"actuation: {k} = {v!r} is not a number") from None
     else:
-        u = np.asarray(actuation, dtype=float)
+        try:
+            u = np.asarray(actuation, dtype=float)
+        except (TypeError, ValueError):
+            raise ValueError(f"actuation: expected {n} numbers, got {actuation!r}") from None
         if u.shape != (n,):
             raise ValueError(f"actuation: expected {n} values (one per actuator {list(model.actuator_names)}), "
                              f"got shape {u.shape}")
