@@ -15,8 +15,9 @@ Conventions (shared/DESIGN.md, slides part B "The exponential map on SO(3)/SE(3)
 
 Every function accepts a stack: inputs of shape (..., 3) / (..., 6) /
 (..., 3, 3) / (..., 4, 4) and returns the matching (..., ) shapes. All maps
-are written with analytic operations only (no abs, no norm), so they accept
-complex input and can be differentiated by the complex-step method.
+but the logarithms are written with analytic operations only (no abs, no
+norm), so they accept complex input and can be differentiated by the
+complex-step method.
 
 Near theta = 0 the scalar coefficient functions switch to Taylor series whose
 coefficients are generated exactly in :mod:`soft_twin_core._series`.
