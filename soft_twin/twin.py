@@ -336,7 +336,8 @@ class Twin:
             return UpdateInfo()
         self._dirty = False
         try:
-            res = st.solve_statics(self.model, self.u, self.loads(), q_init=self.state.q)
+            res = st.solve_statics(self.model, self.u, self.loads(), q_init=self.state.q,
+                                   tangent_hint=getattr(self, "_tangent", None))
         except (st.StaticsError, ValueError, np.linalg.LinAlgError) as e:
             # keep the last good state with the inputs it reflects: the failed input is dropped
             u, w, frame, self.command_stamp = self._state_inputs
@@ -344,6 +345,7 @@ class Twin:
             return UpdateInfo(0, 0, False, f"statics failed for the last input (dropped): {e}; "
                                            f"state kept")
         self._state_inputs = self._inputs()
+        self._tangent = res.tangent
         self.state.q = res.q.copy()
         self.state.qdot = np.zeros(self.model.n_dof)
         self._base_wrench_qs = wrench_about_origin(self.model, res.base_wrench_world)

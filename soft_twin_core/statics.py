@@ -128,6 +128,7 @@ class StaticsResult:
     converged: bool
     load_steps: int
     stable: bool = True
+    tangent: object = None       # the last Newton tangent (for tangent_hint)
 
 
 def _scale(model, q, R):
@@ -159,11 +160,15 @@ def _converged(model, q, R, scale, tol):
     return bool(np.all(np.abs(R) <= tol * scale + _roundoff(model, q)))
 
 
-def _newton(model, q, u, loads, tol, max_iterations):
+def _newton(model, q, u, loads, tol, max_iterations, Kt_hint=None):
+    """Newton with line search. With ``Kt_hint`` (a tangent from a nearby
+    state) the first steps reuse it (modified Newton) while each step cuts
+    the residual at least tenfold; then fresh tangents are computed."""
     R = _residual_fast(model, q, u, loads)
     scale = _scale(model, q, R)
     it = 0
     Kt = None
+    reuse = Kt_hint is not None and Kt_hint.shape == (model.n_dof, model.n_dof)
     for it in range(1, max_iterations + 1):
         if _converged(model, q, R, scale, tol):
             if Kt is not None:
@@ -173,10 +178,13 @@ def _newton(model, q, u, loads, tol, max_iterations):
                 if np.all(np.isfinite(R_p)) and np.linalg.norm(R_p) < np.linalg.norm(R):
                     q, R = q_p, R_p
             return q, R, it - 1, True, Kt
-        Kt = _fast_tangent(model, q, u, loads)
+        Kt = Kt_hint if reuse else _fast_tangent(model, q, u, loads)
         try:
             dq = np.linalg.solve(Kt, -R)
         except np.linalg.LinAlgError:
+            if reuse:
+                reuse = False
+                continue
             return q, R, it, False, None
         # backtracking line search on ||R||
         step = 1.0
@@ -188,18 +196,25 @@ def _newton(model, q, u, loads, tol, max_iterations):
                 break
             step *= 0.5
         else:
+            if reuse:              # the stale tangent gives no descent: take a fresh one
+                reuse = False
+                continue
             return q, R, it, _converged(model, q, R, scale, tol), Kt
+        if reuse and (step < 1.0 or np.linalg.norm(R_try) > 0.1 * r0):
+            reuse = False          # slow: fresh tangents from now on
         q, R = q_try, R_try
         scale = max(scale, _scale(model, q, R))
     return q, R, it, _converged(model, q, R, scale, tol), Kt
 
 
 def solve_statics(model, actuation=None, loads=None, q_init=None, *, tol=1e-10,
-                  max_iterations=50, max_load_steps=64, check_stability=True):
+                  max_iterations=50, max_load_steps=64, check_stability=True, tangent_hint=None):
     """Static equilibrium under actuation (dict name -> tension N / pressure
     Pa, or a vector) and loads (:class:`Loads`, default: gravity only).
 
-    q_init warm-starts Newton (default: the rest configuration). If a full
+    q_init warm-starts Newton (default: the rest configuration);
+    ``tangent_hint`` (a previous result's ``tangent``) lets the first Newton
+    steps skip computing the tangent, which halves a warm solve. If a full
     solve fails or lands on an unstable equilibrium (``check_stability``),
     the loads and actuation are applied in increasing fractions from q_init
     (continuation), bisecting a failed increment. Raises StaticsError with
@@ -210,12 +225,17 @@ def solve_statics(model, actuation=None, loads=None, q_init=None, *, tol=1e-10,
     u = actuation_vector(model, actuation)
     q = model.q0.copy() if q_init is None else model.check_q(np.array(q_init, dtype=float), "q_init").copy()
     total_it = 0
-    q1, R, it, ok, Kt = _newton(model, q, u, loads, tol, max_iterations)
+    q1, R, it, ok, Kt = _newton(model, q, u, loads, tol, max_iterations, tangent_hint)
     total_it += it
     steps = 1
     fallback = None           # a converged but unstable equilibrium
-    if ok and check_stability and not is_stable(model, q1, u, loads, Kt):
-        ok, fallback = False, (q1, R)
+    if Kt is tangent_hint:
+        Kt = None             # judge stability (and hand on) a tangent of this state, not the hint
+    if ok and check_stability:
+        if Kt is None:
+            Kt = _fast_tangent(model, q1, u, loads)
+        if not is_stable(model, q1, u, loads, Kt):
+            ok, fallback = False, (q1, R)
     if not ok:
         # continuation from the start point in the load factor lam
         lam, dlam, steps = 0.0, 0.25, 0
@@ -243,7 +263,9 @@ def solve_statics(model, actuation=None, loads=None, q_init=None, *, tol=1e-10,
                                        f"or the rod buckles (try a different q_init)")
         q1 = q_c
         R = _residual_fast(model, q1, u, loads)
-    return _result(model, q1, u, loads, total_it, R, steps)
+    res = _result(model, q1, u, loads, total_it, R, steps)
+    res.tangent = Kt
+    return res
 
 
 def _result(model, q, u, loads, iterations, R, steps):

@@ -291,3 +291,21 @@ def test_pcs_converges_to_planar_continuum_under_gravity():
     assert errs[0] > errs[1] > errs[2]
     assert 3.0 < errs[1] / errs[2] < 5.0          # second order in the section length
     assert errs[2] < 2e-3 * 0.5                   # 16 sections: tip within 0.2 % of L
+
+
+def test_tangent_hint_gives_the_same_equilibrium_with_fewer_tangents(monkeypatch):
+    m = model_from_dict(rod(6, "bending_torsion"))
+    loads = ld.Loads(point=(ld.tip_load(m, (0.0, 0.02, -0.01)),))
+    r0 = st.solve_statics(m, loads=loads)
+    assert r0.tangent is not None
+    loads2 = ld.Loads(point=(ld.tip_load(m, (0.0, 0.021, -0.01)),))
+    calls = []
+    real = st._fast_tangent
+    monkeypatch.setattr(st, "_fast_tangent", lambda *a: calls.append(1) or real(*a))
+    cold = st.solve_statics(m, loads=loads2, q_init=r0.q)
+    n_cold = len(calls)
+    calls.clear()
+    hinted = st.solve_statics(m, loads=loads2, q_init=r0.q, tangent_hint=r0.tangent)
+    assert len(calls) < n_cold
+    assert np.abs(hinted.q - cold.q).max() < 1e-10 * np.abs(cold.q).max()
+    assert hinted.residual <= 1e-10
