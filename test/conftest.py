@@ -29,3 +29,27 @@ def pytest_configure(config):
 
 def pytest_report_header(config):
     return f"ROS_DOMAIN_ID={os.environ['ROS_DOMAIN_ID']}"
+
+
+def single_field_corruptions(base, values, n, seed, skip=()):
+    """Yield n deep copies of the nested dict/list ``base`` with one field
+    (a random path, not in ``skip``) replaced by a random entry of ``values``
+    (fuzzing of the input validation)."""
+    import copy
+    import random
+
+    def paths(d, prefix=()):
+        items = d.items() if isinstance(d, dict) else enumerate(d) if isinstance(d, list) else ()
+        for k, v in items:
+            yield prefix + (k,)
+            yield from paths(v, prefix + (k,))
+    rng = random.Random(seed)
+    all_paths = [p for p in paths(base) if p not in skip]
+    for _ in range(n):
+        d = copy.deepcopy(base)
+        path = rng.choice(all_paths)
+        t = d
+        for k in path[:-1]:
+            t = t[k]
+        t[path[-1]] = rng.choice(values)
+        yield d

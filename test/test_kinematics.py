@@ -313,28 +313,13 @@ def test_compiled_tip_jacobian_matches_reference():
 def test_model_fuzz_only_model_errors():
     """Any single corrupted field of a robot description gives a ModelError
     (never a TypeError, OverflowError, ... from deep inside)."""
-    import copy
-    import random
+    from conftest import single_field_corruptions
     base = benchmark_cantilever_dict(3)
     base["actuators"] = [{"name": "t", "offset": [0.005, 0]},
                          {"name": "c", "type": "chamber", "area": 1e-5, "offset": [0, 0.004]}]
     values = [None, -1, 0, 1e300, float("nan"), float("inf"), "x", [], {}, [1, 2], True, "1e9",
               [1, 2, 3, 4, 5, 6], {"a": 1}, 3]
-
-    def paths(d, prefix=()):
-        items = d.items() if isinstance(d, dict) else enumerate(d) if isinstance(d, list) else ()
-        for k, v in items:
-            yield prefix + (k,)
-            yield from paths(v, prefix + (k,))
-    rng = random.Random(0)
-    all_paths = list(paths(base))
-    for _ in range(1500):
-        d = copy.deepcopy(base)
-        path = rng.choice(all_paths)
-        t = d
-        for k in path[:-1]:
-            t = t[k]
-        t[path[-1]] = rng.choice(values)
+    for d in single_field_corruptions(base, values, 1500, seed=0):
         try:
             model_from_dict(d)
         except ModelError:
