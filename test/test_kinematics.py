@@ -237,7 +237,7 @@ def test_numerical_ik_many_random_targets():
     m = model_from_dict(benchmark_cantilever_dict(3, "bending_torsion"))
     rng = np.random.default_rng(2024)
     bounds = np.tile([1.0, 2 * np.pi / m.total_length, 2 * np.pi / m.total_length], 3)
-    n, ok = 300, 0
+    n, ok = 1000, 0
     for _ in range(n):
         q = rng.uniform(-0.5, 0.5, m.n_dof) * bounds
         r = ik.solve_ik(m, kin.tip_pose(m, q))
