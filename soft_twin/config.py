@@ -15,7 +15,7 @@ import sys
 
 import yaml
 
-from soft_twin_core.model import ModelError, model_from_dict
+from soft_twin_core.model import ModelError, model_from_dict, robot_mapping
 
 DEFAULT_ROBOT = "tendon_arm.yaml"
 MODES = ("dynamic", "quasi_static")
@@ -290,12 +290,8 @@ def load_robot(cfg):
         d = yaml.safe_load(text)
     except yaml.YAMLError as e:
         raise ConfigError(f"{source}: invalid YAML: {e}") from None
-    if isinstance(d, dict) and "robot" in d and "segments" not in d:
-        d = d["robot"]
-    if not isinstance(d, dict):
-        raise ConfigError(f"{source}: expected a mapping (the robot description) at top level")
     try:
-        model = model_from_dict(d, cfg.sections_per_segment or None)
+        model = model_from_dict(robot_mapping(d, "robot description"), cfg.sections_per_segment or None)
     except ModelError as e:
         raise ConfigError(f"{source}: {e}") from None
     if cfg.actuator_names and set(cfg.actuator_names) != set(model.actuator_names):

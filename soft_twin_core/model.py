@@ -549,22 +549,35 @@ def model_from_dict(d, n_sections_override=None):
     )
 
 
-def load_model(path, n_sections_override=None):
-    """Load a robot description from a YAML file (a top-level ``robot:`` key
-    is accepted too)."""
+def read_yaml_file(path, error=None, what="file"):
+    """Parsed YAML of ``path``; an unreadable file or bad YAML raises
+    ``error`` (default ModelError) naming the file."""
     import yaml
+    error = ModelError if error is None else error
     try:
         with open(path) as fh:
-            d = yaml.safe_load(fh)
+            return yaml.safe_load(fh)
     except OSError as e:
-        raise ModelError(f"robot file {path}: {e.strerror}") from None
+        raise error(f"{what} {path}: {e.strerror}") from None
     except yaml.YAMLError as e:
-        raise ModelError(f"robot file {path}: invalid YAML: {e}") from None
+        raise error(f"{what} {path}: invalid YAML: {e}") from None
+
+
+def robot_mapping(d, source):
+    """The robot description mapping of parsed YAML (a top-level ``robot:``
+    key is accepted too); ModelError otherwise."""
     if isinstance(d, dict) and "robot" in d and "segments" not in d:
         d = d["robot"]
     if not isinstance(d, dict):
-        raise ModelError(f"robot file {path}: expected a mapping at top level")
-    return model_from_dict(d, n_sections_override)
+        raise ModelError(f"{source}: expected a mapping (the robot description) at top level")
+    return d
+
+
+def load_model(path, n_sections_override=None):
+    """Load a robot description from a YAML file (a top-level ``robot:`` key
+    is accepted too)."""
+    d = read_yaml_file(path, ModelError, "robot file")
+    return model_from_dict(robot_mapping(d, f"robot file {path}"), n_sections_override)
 
 
 def with_sections(model_dict, n):

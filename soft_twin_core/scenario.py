@@ -25,7 +25,7 @@ import numpy as np
 
 from . import kinematics as kin
 from .loads import DistributedLoad, Loads, PointLoad
-from .model import ModelError, load_model, model_from_dict
+from .model import ModelError, load_model, model_from_dict, read_yaml_file
 
 
 class ScenarioError(ValueError):
@@ -150,14 +150,7 @@ def load_scenario(path, sections=None, angle_deg=None):
     """Parse a scenario file; ``sections`` overrides the sections per segment,
     ``angle_deg`` the angle of every ``in_plane_force``. Raises ScenarioError
     or ModelError naming the bad field."""
-    import yaml
-    try:
-        with open(path) as fh:
-            d = yaml.safe_load(fh)
-    except OSError as e:
-        raise ScenarioError(f"scenario {path}: {e.strerror}") from None
-    except yaml.YAMLError as e:
-        raise ScenarioError(f"scenario {path}: invalid YAML: {e}") from None
+    d = read_yaml_file(path, ScenarioError, "scenario")
     return scenario_from_dict(d, os.path.dirname(os.path.abspath(path)), sections, angle_deg, str(path))
 
 
