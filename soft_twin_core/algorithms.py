@@ -1,0 +1,96 @@
+"""Public multibody algorithms: thin wrappers over the compiled passes of
+:mod:`soft_twin_core.kernels.passes`, checked at entry.
+
+Each takes ``(model, ws, q, ...)``, writes into the workspace ``ws`` and
+returns views of it (copy what you keep). Conventions of
+:mod:`soft_twin_core.multibody`; gravity is the model's unless given.
+"""
+
+import numpy as np
+
+from .kernels import passes
+from .kernels.data import LoadArrays, empty_loads
+
+_NO_LOADS = empty_loads()
+
+
+def _enter(model, ws, q, v=None, a=None):
+    ws.check(model)
+    q = np.ascontiguousarray(model.check_q(q), dtype=float)
+    v = ws.zeros_v if v is None else np.ascontiguousarray(model.check_v(v), dtype=float)
+    a = ws.zeros_v if a is None else np.ascontiguousarray(model.check_v(a, "a"), dtype=float)
+    return q, v, a
+
+
+def forward_kinematics(model, ws, q, v=None, a=None):
+    """World poses of every joint's input and output frame, (g_in, g_out)
+    each (n, 4, 4); with v (and a), body twists ``ws.work.V`` (and
+    accelerations ``ws.work.A``) of the output frames."""
+    level = 0 if v is None else (1 if a is None else 2)
+    q, v, a = _enter(model, ws, q, v, a)
+    passes.forward_pass(ws.arrays, ws.work, q, v, a, level)
+    ws.level = level
+    return ws.work.g_in, ws.work.g_out
+
+
+def rnea(model, ws, q, v, a, loads=None, gravity=None, elastic=True):
+    """Inverse dynamics, recursive Newton-Euler:
+    ``tau = M a + C v + g(q) + K (q - q0) + D v - J^T F_ext`` (``elastic=False``
+    leaves out stiffness and damping). ``loads``: a :class:`LoadArrays`.
+    ``ws.work.f_in[i]`` is then the wrench the parent side exerts on joint
+    i's subtree through its input frame (body axes), ``ws.work.f[i]`` the
+    one at its output frame."""
+    q, v, a = _enter(model, ws, q, v, a)
+    g = model.gravity if gravity is None else np.asarray(gravity, dtype=float)
+    passes.forward_pass(ws.arrays, ws.work, q, v, a, 2)
+    ws.level = 2
+    passes.rnea_pass(ws.arrays, ws.work, _NO_LOADS if loads is None else loads, g, ws.tau)
+    if elastic:
+        passes.joint_forces(ws.arrays, q, v, ws.tau)
+    return ws.tau
+
+
+def crba(model, ws, q):
+    """Joint-space mass matrix M(q) (nv, nv), composite rigid body algorithm."""
+    q, _, _ = _enter(model, ws, q)
+    passes.forward_pass(ws.arrays, ws.work, q, ws.zeros_v, ws.zeros_v, 0)
+    ws.level = 0
+    passes.crba_pass(ws.arrays, ws.work, ws.M)
+    return ws.M
+
+
+def factor(model, ws, q, c_damping=0.0, c_stiffness=0.0):
+    """Articulated-body factorisation of ``M(q) + c_damping D + c_stiffness K``
+    (D, K: the joint-space damping and stiffness blocks) in O(n); solve with
+    :func:`solve`. Raises ValueError if a block is not positive definite."""
+    q, _, _ = _enter(model, ws, q)
+    passes.forward_pass(ws.arrays, ws.work, q, ws.zeros_v, ws.zeros_v, 0)
+    ws.level = 0
+    if not passes.aba_factor(ws.arrays, ws.work, float(c_damping), float(c_stiffness)):
+        raise ValueError("factor: a joint block of the mass matrix is not positive definite "
+                         "(a massless moving joint?)")
+
+
+def solve(model, ws, rhs, out=None):
+    """x = (M + cD D + cK K)^-1 rhs with the last :func:`factor`, O(n)."""
+    rhs = np.ascontiguousarray(model.check_v(rhs, "rhs"), dtype=float)
+    out = np.empty(model.nv) if out is None else out
+    passes.aba_solve(ws.arrays, ws.work, rhs, out)
+    return out
+
+
+def forward_dynamics(model, ws, q, v, tau, loads=None, gravity=None):
+    """Joint accelerations a with ``M a = tau - (C v + g + K (q - q0) + D v - J^T F_ext)``
+    in O(n): the bias by RNEA at a = 0, then the articulated-body solve."""
+    bias = rnea(model, ws, q, v, None, loads, gravity).copy()
+    rhs = np.asarray(tau, dtype=float) - bias
+    factor(model, ws, q)
+    return solve(model, ws, rhs, ws.a)
+
+
+def make_loads(model, joint, x, wrench, world):
+    """LoadArrays for point wrenches: on ``joint[k]`` at abscissa ``x[k]`` of a
+    soft section (-1: the joint's output frame), ``wrench[k]`` = [force;
+    moment] in world axes (``world[k]``: a dead load) or body axes (follower)."""
+    return LoadArrays(np.asarray(joint, np.int64).reshape(-1), np.asarray(x, float).reshape(-1),
+                      np.asarray(wrench, float).reshape(-1, 6), np.asarray(world, np.bool_).reshape(-1))

@@ -1,0 +1,266 @@
+"""Compiled (numba) primitives of SE(3) shared by every pass: ad, exp, the
+right tangent operator T and its time derivative, adjoints, small dense
+products without allocation. Same formulas as :mod:`soft_twin_core.lie`
+(tested against it)."""
+
+import numpy as np
+import numba as nb
+
+from .. import lie
+
+_jit = nb.njit(cache=True, fastmath=False)
+
+_SMALL2 = lie._SMALL ** 2
+_SMALLD2 = lie._SMALL_DERIV ** 2
+P_A, P_B, P_C = lie._P_A, lie._P_B, lie._P_C
+P_B1, P_B2, P_B3, P_B4 = lie._P_BETA
+P_D1, P_D2, P_D3, P_D4 = lie._P_DBETA
+
+
+
+@_jit
+def _horner(p, t2):
+    out = p[0]
+    for k in range(1, p.shape[0]):
+        out = out * t2 + p[k]
+    return out
+
+
+@_jit
+def _ad_vec(x, y, out):
+    """out = ad(x) y = [w x yu + u x yw; w x yw]."""
+    u0, u1, u2, w0, w1, w2 = x[0], x[1], x[2], x[3], x[4], x[5]
+    a0, a1, a2, b0, b1, b2 = y[0], y[1], y[2], y[3], y[4], y[5]
+    out[0] = w1 * a2 - w2 * a1 + u1 * b2 - u2 * b1
+    out[1] = w2 * a0 - w0 * a2 + u2 * b0 - u0 * b2
+    out[2] = w0 * a1 - w1 * a0 + u0 * b1 - u1 * b0
+    out[3] = w1 * b2 - w2 * b1
+    out[4] = w2 * b0 - w0 * b2
+    out[5] = w0 * b1 - w1 * b0
+
+
+@_jit
+def _ad_mat(x, A):
+    A[:, :] = 0.0
+    u0, u1, u2, w0, w1, w2 = x[0], x[1], x[2], x[3], x[4], x[5]
+    for o in (0, 3):
+        A[o + 0, o + 1] = -w2
+        A[o + 0, o + 2] = w1
+        A[o + 1, o + 0] = w2
+        A[o + 1, o + 2] = -w0
+        A[o + 2, o + 0] = -w1
+        A[o + 2, o + 1] = w0
+    A[0, 4] = -u2
+    A[0, 5] = u1
+    A[1, 3] = u2
+    A[1, 5] = -u0
+    A[2, 3] = -u1
+    A[2, 4] = u0
+
+
+@_jit
+def _betas(t2):
+    if t2 < _SMALL2:
+        return _horner(P_B1, t2), _horner(P_B2, t2), _horner(P_B3, t2), _horner(P_B4, t2)
+    t = np.sqrt(t2)
+    s, c = np.sin(t), np.cos(t)
+    return ((4.0 - t * s - 4.0 * c) / (2 * t2), (4.0 * t - 5.0 * s + t * c) / (2 * t2 * t),
+            (2.0 - t * s - 2.0 * c) / (2 * t2 * t2), (2.0 * t - 3.0 * s + t * c) / (2 * t2 * t2 * t))
+
+
+@_jit
+def _dbetas(t2):
+    if t2 < _SMALLD2:
+        return _horner(P_D1, t2), _horner(P_D2, t2), _horner(P_D3, t2), _horner(P_D4, t2)
+    t = np.sqrt(t2)
+    s, c = np.sin(t), np.cos(t)
+    N1, N2 = 4.0 - t * s - 4.0 * c, 4.0 * t - 5.0 * s + t * c
+    N3, N4 = 2.0 - t * s - 2.0 * c, 2.0 * t - 3.0 * s + t * c
+    d1, d2 = 3.0 * s - t * c, 4.0 - 4.0 * c - t * s
+    d3, d4 = s - t * c, 2.0 - 2.0 * c - t * s
+    return ((t * d1 - 2 * N1) / (2 * t ** 4), (t * d2 - 3 * N2) / (2 * t ** 5),
+            (t * d3 - 4 * N3) / (2 * t ** 6), (t * d4 - 5 * N4) / (2 * t ** 7))
+
+
+@_jit
+def _mm(A, B, out):
+    """out = A @ B for small dense matrices, no allocation."""
+    n, k = A.shape
+    m = B.shape[1]
+    for i in range(n):
+        for j in range(m):
+            acc = 0.0
+            for r in range(k):
+                acc += A[i, r] * B[r, j]
+            out[i, j] = acc
+
+
+@_jit
+def _mtm(A, B, out):
+    """out = A.T @ B."""
+    k, n = A.shape
+    m = B.shape[1]
+    for i in range(n):
+        for j in range(m):
+            acc = 0.0
+            for r in range(k):
+                acc += A[r, i] * B[r, j]
+            out[i, j] = acc
+
+
+@_jit
+def _mv(A, x, out):
+    for i in range(A.shape[0]):
+        acc = 0.0
+        for r in range(A.shape[1]):
+            acc += A[i, r] * x[r]
+        out[i] = acc
+
+
+@_jit
+def _mtv(A, x, out):
+    for i in range(A.shape[1]):
+        acc = 0.0
+        for r in range(A.shape[0]):
+            acc += A[r, i] * x[r]
+        out[i] = acc
+
+
+@_jit
+def _T_into(x, T, S):
+    """T_se3(x) = I - b1 ad + b2 ad^2 - b3 ad^3 + b4 ad^4 from 3x3 blocks:
+    ad^k = [[W^k, X_k], [0, W^k]] with X_k = sum_j W^j U W^(k-1-j),
+    W^3 = -t^2 W, W^4 = -t^2 W^2. S: (7, 3, 3) scratch (no allocation)."""
+    u0, u1, u2, w0, w1, w2 = x[0], x[1], x[2], x[3], x[4], x[5]
+    t2 = w0 * w0 + w1 * w1 + w2 * w2
+    b1, b2, b3, b4 = _betas(t2)
+    W, U, W2, WU, UW, X2, X3 = S[0], S[1], S[2], S[3], S[4], S[5], S[6]
+    W[0, 0], W[0, 1], W[0, 2] = 0.0, -w2, w1
+    W[1, 0], W[1, 1], W[1, 2] = w2, 0.0, -w0
+    W[2, 0], W[2, 1], W[2, 2] = -w1, w0, 0.0
+    U[0, 0], U[0, 1], U[0, 2] = 0.0, -u2, u1
+    U[1, 0], U[1, 1], U[1, 2] = u2, 0.0, -u0
+    U[2, 0], U[2, 1], U[2, 2] = -u1, u0, 0.0
+    for i in range(3):
+        for j in range(3):
+            a2 = 0.0
+            a3 = 0.0
+            a4 = 0.0
+            for k in range(3):
+                a2 += W[i, k] * W[k, j]
+                a3 += W[i, k] * U[k, j]
+                a4 += U[i, k] * W[k, j]
+            W2[i, j] = a2
+            WU[i, j] = a3
+            UW[i, j] = a4
+            X2[i, j] = a3 + a4
+    # X3 = W^2 U + W U W + U W^2 = W X2 + U W^2 ; X4 = W X3 + U W^3 = W X3 - t2 U W
+    for i in range(3):
+        for j in range(3):
+            acc = 0.0
+            for k in range(3):
+                acc += W[i, k] * X2[k, j] + U[i, k] * W2[k, j]
+            X3[i, j] = acc
+    for i in range(3):
+        for j in range(3):
+            acc = 0.0
+            for k in range(3):
+                acc += W[i, k] * X3[k, j]
+            X4 = acc - t2 * UW[i, j]
+            D = (1.0 if i == j else 0.0) - (b1 - b3 * t2) * W[i, j] + (b2 - b4 * t2) * W2[i, j]
+            T[i, j] = D
+            T[i + 3, j + 3] = D
+            T[i + 3, j] = 0.0
+            T[i, j + 3] = -b1 * U[i, j] + b2 * X2[i, j] - b3 * X3[i, j] + b4 * X4
+
+
+@_jit
+def _T_dot_into(x, xd, y, out, P, tmp, tmp2, acc):
+    """out = (d/dt T_se3(x))[xd] y (no allocation; P is 5x6 scratch)."""
+    t2 = x[3] * x[3] + x[4] * x[4] + x[5] * x[5]
+    wwd = x[3] * xd[3] + x[4] * xd[4] + x[5] * xd[5]
+    b1, b2, b3, b4 = _betas(t2)
+    d1, d2, d3, d4 = _dbetas(t2)
+    for a in range(6):
+        P[0, a] = y[a]
+    for m in range(1, 5):
+        _ad_vec(x, P[m - 1], P[m])
+    for a in range(6):
+        out[a] = 0.0
+    for k in range(1, 5):
+        if k == 1:
+            bk, dk, sign = b1, d1, -1.0
+        elif k == 2:
+            bk, dk, sign = b2, d2, 1.0
+        elif k == 3:
+            bk, dk, sign = b3, d3, -1.0
+        else:
+            bk, dk, sign = b4, d4, 1.0
+        for a in range(6):
+            acc[a] = 0.0
+        for j in range(k):
+            _ad_vec(xd, P[k - 1 - j], tmp)
+            for r in range(j):
+                _ad_vec(x, tmp, tmp2)
+                for a in range(6):
+                    tmp[a] = tmp2[a]
+            for a in range(6):
+                acc[a] += tmp[a]
+        for a in range(6):
+            out[a] += sign * (dk * wwd * P[k, a] + bk * acc[a])
+
+
+@_jit
+def _exp_into(x, g):
+    w0, w1, w2 = x[3], x[4], x[5]
+    t2 = w0 * w0 + w1 * w1 + w2 * w2
+    if t2 < _SMALL2:
+        a, b, c = _horner(P_A, t2), _horner(P_B, t2), _horner(P_C, t2)
+    else:
+        t = np.sqrt(t2)
+        s, co = np.sin(t), np.cos(t)
+        a, b, c = s / t, (1.0 - co) / t2, (t - s) / (t2 * t)
+    # W^2 = w w^T - t2 I
+    W = ((0.0, -w2, w1), (w2, 0.0, -w0), (-w1, w0, 0.0))
+    ww = (w0, w1, w2)
+    for i in range(3):
+        acc = 0.0
+        for j in range(3):
+            W2 = ww[i] * ww[j] - (t2 if i == j else 0.0)
+            e = 1.0 if i == j else 0.0
+            g[i, j] = e + a * W[i][j] + b * W2
+            acc += (e + b * W[i][j] + c * W2) * x[j]
+        g[i, 3] = acc
+        g[3, i] = 0.0
+    g[3, 3] = 1.0
+
+
+@_jit
+def _Ad_into(g, A, inverse):
+    """A = Ad(g) or Ad(g)^-1 (inverse=True)."""
+    p0, p1, p2 = g[0, 3], g[1, 3], g[2, 3]
+    for i in range(6):
+        for j in range(6):
+            A[i, j] = 0.0
+    for i in range(3):
+        for j in range(3):
+            r = g[j, i] if inverse else g[i, j]
+            A[i, j] = r
+            A[i + 3, j + 3] = r
+    if inverse:
+        # -R^T hat(p): column j of hat(p) is p x e_j
+        for i in range(3):
+            r0, r1, r2 = g[0, i], g[1, i], g[2, i]      # row i of R^T
+            # (R^T hat(p))[i, j] = sum_k R[k, i] hat(p)[k, j]
+            A[i, 3] = -(r1 * p2 - r2 * p1)
+            A[i, 4] = -(r2 * p0 - r0 * p2)
+            A[i, 5] = -(r0 * p1 - r1 * p0)
+    else:
+        # hat(p) R
+        for j in range(3):
+            c0, c1, c2 = g[0, j], g[1, j], g[2, j]
+            A[0, j + 3] = p1 * c2 - p2 * c1
+            A[1, j + 3] = p2 * c0 - p0 * c2
+            A[2, j + 3] = p0 * c1 - p1 * c0
+
+

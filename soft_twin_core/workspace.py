@@ -1,0 +1,37 @@
+"""The workspace of a multibody model: every per-call array, allocated once.
+
+>>> from soft_twin_core.multibody import from_robot_model
+>>> ws = Workspace(model)          # one per thread; never shared between callers
+
+Algorithms (:mod:`soft_twin_core.algorithms`) are free functions
+``algo(model, ws, q, ...)`` that write into the workspace and return views
+of it: copy a result you keep across calls.
+"""
+
+import numpy as np
+
+from .kernels.data import make_work, pack_model
+from .multibody import SOFT
+
+
+class Workspace:
+    """Packed model arrays (``arrays``), pass arrays (``work``) and result
+    buffers (``tau``, ``M``, ``a``) of one model."""
+
+    def __init__(self, model):
+        for i, j in enumerate(model.joints):
+            if j.kind == SOFT and j.section.kinematic_map != "exponential":
+                raise ValueError(f"joints[{i}] ({j.name}): the multibody engine supports the exponential "
+                                 f"map only, got {j.section.kinematic_map!r}")
+        self.model = model
+        self.arrays = pack_model(model)
+        self.work = make_work(self.arrays)
+        self.tau = np.zeros(model.nv)
+        self.M = np.zeros((model.nv, model.nv))
+        self.a = np.zeros(model.nv)
+        self.zeros_v = np.zeros(model.nv)
+        self.level = -1            # what the last forward pass computed (0 poses, 1 twists, 2 accelerations)
+
+    def check(self, model):
+        if model is not self.model:
+            raise ValueError("workspace: made for another model")

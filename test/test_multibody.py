@@ -1,0 +1,215 @@
+"""The multibody engine on hybrid soft-rigid trees: the compiled recursive
+passes against the explicit-Jacobian reference (soft_twin_core.reference),
+the old chain dynamics, the Newton-Euler balance and passivity. Rigid-only
+trees are checked against Pinocchio in test_multibody_pinocchio.py."""
+
+import numpy as np
+import pytest
+
+from soft_twin_core import algorithms as alg
+from soft_twin_core import dynamics as dy
+from soft_twin_core import joints as jnt
+from soft_twin_core import lie, reference
+from soft_twin_core.loads import Loads
+from soft_twin_core.model import load_model, model_from_dict, section_matrices, CrossSection, Material
+from soft_twin_core.multibody import ModelBuilder, SoftSection, from_robot_model, spatial_inertia
+from soft_twin_core.workspace import Workspace
+
+TOL = 1e-10
+
+
+def _section(length, radius=0.01, free=(True,) * 6, f0=(1, 0, 0, 0, 0, 0), E=2e6, visc=0.0):
+    K, D, M = section_matrices(CrossSection.solid_circle(radius), Material(E, E / 3, 1100.0, visc))
+    return SoftSection(length, K, D, M, np.array(f0, float), np.array(free, bool))
+
+
+def _placement(rpy=(0, 0, 0), p=(0, 0, 0)):
+    from scipy.spatial.transform import Rotation
+    H = np.eye(4)
+    H[:3, :3] = Rotation.from_euler("xyz", rpy).as_matrix()
+    H[:3, 3] = p
+    return H
+
+
+def pan_tilt_arm():
+    """A soft arm (4 sections, all six modes) on a 2-joint rigid pan-tilt."""
+    b = ModelBuilder("pan_tilt_arm", gravity=(0.2, -0.1, -9.81))
+    pan = b.add_joint("pan", "revolute", -1, _placement(p=(0, 0, 0.1)), axis=(0, 0, 1),
+                      inertia=spatial_inertia(0.8, (0.01, 0, 0.03), np.diag([2e-3, 2e-3, 1e-3])),
+                      stiffness=0.5, damping=0.01)
+    tilt = b.add_joint("tilt", "revolute", pan, _placement(p=(0, 0, 0.06)), axis=(0, 1, 0),
+                       inertia=spatial_inertia(0.3, (0.02, 0.0, 0.0), np.diag([4e-4, 5e-4, 5e-4])))
+    secs = [_section(0.1, f0=(1, 0, 0, 0.1 * k, 0, 2.0)) for k in range(4)]
+    js = b.add_soft_chain("arm", secs, tilt, _placement(rpy=(0.1, -0.3, 0.2), p=(0.04, 0, 0)))
+    b.add_path("arm", js)
+    return b.build()
+
+
+def gripper():
+    """A rigid palm on a prismatic lift with three soft fingers of 3 sections
+    (bending + torsion, one finger with all modes) and a fixed tool mass."""
+    b = ModelBuilder("gripper")
+    lift = b.add_joint("lift", "prismatic", -1, _placement(rpy=(0, np.pi / 2, 0)), axis=(1, 0, 0),
+                       inertia=spatial_inertia(0.5, (0.0, 0.0, 0.01), np.diag([1e-3, 1e-3, 2e-3])))
+    for k in range(3):
+        ang = 2 * np.pi * k / 3
+        free = (True,) * 6 if k == 0 else (False, False, False, True, True, True)
+        secs = [_section(0.05, 0.006, free=free, f0=(1, 0, 0, 0, 0.5, -1.0)) for _ in range(3)]
+        js = b.add_soft_chain(f"finger{k}", secs, lift,
+                              _placement(rpy=(ang, 0, 0.3), p=(0.02, 0.03 * np.cos(ang), 0.03 * np.sin(ang))))
+        b.add_path(f"finger{k}", js)
+    b.add_joint("tool", "fixed", 3, _placement(p=(0.01, 0, 0)),
+                inertia=spatial_inertia(0.05, (0.005, 0, 0), np.diag([1e-5, 1e-5, 1e-5])))
+    return b.build()
+
+
+HYBRID = {"pan_tilt_arm": pan_tilt_arm, "gripper": gripper}
+
+
+def _state(model, seed):
+    rng = np.random.default_rng(seed)
+    q = jnt.random_configuration(model, rng, 0.5)
+    return q, rng.standard_normal(model.nv), rng.standard_normal(model.nv)
+
+
+def _rel(a, b):
+    return np.max(np.abs(a - b)) / max(1.0, np.max(np.abs(b)))
+
+
+@pytest.mark.parametrize("name", HYBRID)
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_hybrid_recursions_match_reference(name, seed):
+    model = HYBRID[name]()
+    ws = Workspace(model)
+    q, v, a = _state(model, seed)
+    M = reference.mass_matrix(model, q)
+    assert _rel(alg.crba(model, ws, q), M) < TOL
+    tau = reference.inverse_dynamics(model, q, v, a)
+    assert _rel(alg.rnea(model, ws, q, v, a), tau) < TOL
+    # forward dynamics in O(n) inverts inverse dynamics (M is ill-conditioned: relative to a)
+    acc = alg.forward_dynamics(model, ws, q, v, tau)
+    assert np.max(np.abs(acc - a)) < 1e-8 * np.linalg.cond(M) ** 0.5
+    g_in, g_out = alg.forward_kinematics(model, ws, q)
+    assert _rel(g_out, reference.placements(model, q)[1]) < 1e-13
+
+
+@pytest.mark.parametrize("name", HYBRID)
+def test_folded_factorisation_solves_the_block_system(name):
+    """factor(cD, cK) solves (M + cD D + cK K) x = r: the implicit
+    integrator's Newton matrix, in O(n)."""
+    model = HYBRID[name]()
+    ws = Workspace(model)
+    q, v, _ = _state(model, 5)
+    M = reference.mass_matrix(model, q)
+    # D and K columns from the reference elastic force (linear in q - q0 and v)
+    n = model.nv
+    K = np.column_stack([reference.elastic_force(model, _unit_q(model, k), np.zeros(n)) for k in range(n)])
+    D = np.column_stack([reference.elastic_force(model, model.q0, np.eye(n)[k]) for k in range(n)])
+    r = np.random.default_rng(1).standard_normal(n)
+    alg.factor(model, ws, q, 0.02, 3e-4)
+    x = alg.solve(model, ws, r)
+    assert _rel(x, np.linalg.solve(M + 0.02 * D + 3e-4 * K, r)) < 1e-9
+
+
+def _unit_q(model, k):
+    """q0 displaced by 1 along velocity coordinate k (no spherical/free joints here)."""
+    dv = np.zeros(model.nv)
+    dv[k] = 1.0
+    return jnt.integrate(model, model.q0, dv)
+
+
+@pytest.mark.parametrize("name", HYBRID)
+def test_root_wrench_is_the_newton_euler_balance(name):
+    """f_in of the root joint = sum over every mass point of its inertial
+    minus gravitational wrench, moved to the root's input frame (explicit
+    Jacobians), minus the loads."""
+    model = HYBRID[name]()
+    ws = Workspace(model)
+    q, v, a = _state(model, 7)
+    frames = reference.placements(model, q)
+    g_root = frames[0][0]
+    total = np.zeros(6)
+    for i, x, g_p, I in reference.mass_points(model, q, frames):
+        J = reference.point_jacobian(model, q, i, x, None, frames)
+        Jd = reference.point_jacobian_dot(model, q, v, i, x, None, frames)
+        V, A = J @ v, J @ a + Jd @ v
+        h = I @ (A - np.r_[g_p[:3, :3].T @ model.gravity, 0, 0, 0]) - lie.ad(V).T @ I @ V
+        total += lie.Ad(lie.se3_inv(g_p) @ g_root).T @ h
+    # a dead and a follower point load on the last soft joint
+    js = model.soft_joints[-1]
+    sec = model.joints[js].section
+    loads = alg.make_loads(model, [js, js], [0.3 * sec.length, -1.0],
+                           [[0.1, -0.2, 0.3, 0.01, 0.0, -0.02], [0.0, 0.05, 0.0, 0.0, 0.003, 0.0]], [True, False])
+    for k, world in enumerate([True, False]):
+        g_p = reference.point_pose(model, q, js, [0.3 * sec.length, None][k], None, frames)
+        W = loads.wrench[k]
+        Wb = np.r_[g_p[:3, :3].T @ W[:3], g_p[:3, :3].T @ W[3:]] if world else W
+        total -= lie.Ad(lie.se3_inv(g_p) @ g_root).T @ Wb
+    alg.rnea(model, ws, q, v, a, loads)
+    assert _rel(ws.work.f_in[0], total) < TOL
+
+
+@pytest.mark.parametrize("name", HYBRID)
+def test_loads_enter_as_minus_jacobian_transpose(name):
+    model = HYBRID[name]()
+    ws = Workspace(model)
+    q, v, a = _state(model, 3)
+    frames = reference.placements(model, q)
+    js = model.soft_joints[1]
+    x = 0.7 * model.joints[js].section.length
+    W = np.array([0.3, -0.1, 0.2, 0.02, -0.01, 0.005])
+    for world in (True, False):
+        tau0 = alg.rnea(model, ws, q, v, a).copy()
+        tau1 = alg.rnea(model, ws, q, v, a, alg.make_loads(model, [js], [x], [W], [world])).copy()
+        g_p = reference.point_pose(model, q, js, x, None, frames)
+        Wb = np.r_[g_p[:3, :3].T @ W[:3], g_p[:3, :3].T @ W[3:]] if world else W
+        J = reference.point_jacobian(model, q, js, x, None, frames)
+        assert _rel(tau1 - tau0, -J.T @ Wb) < TOL
+
+
+@pytest.mark.parametrize("name", HYBRID)
+def test_passivity_mdot_minus_2c(name):
+    """v^T (Mdot - 2 C) v = 0: Mdot by a central difference of CRBA along v,
+    C v from RNEA without gravity, acceleration or elasticity."""
+    model = HYBRID[name]()
+    ws = Workspace(model)
+    q, v, _ = _state(model, 11)
+    h = 1e-6
+    Mp = alg.crba(model, ws, jnt.integrate(model, q, h * v)).copy()
+    Mm = alg.crba(model, ws, jnt.integrate(model, q, -h * v)).copy()
+    Mdot = (Mp - Mm) / (2 * h)
+    Cv = alg.rnea(model, ws, q, v, None, gravity=np.zeros(3), elastic=False)
+    lhs = v @ Mdot @ v
+    assert abs(lhs - 2 * v @ Cv) < 1e-7 * max(1.0, abs(lhs))
+
+
+def test_soft_chain_equals_the_chain_dynamics():
+    """The default robot as a tree: M and the forces equal the (tested) chain
+    dynamics of soft_twin_core.dynamics."""
+    robot = load_model("config/robots/tendon_arm.yaml")
+    model = from_robot_model(robot)
+    ws = Workspace(model)
+    rng = np.random.default_rng(0)
+    q = robot.q0 + 0.4 * rng.standard_normal(robot.n_dof)
+    v = rng.standard_normal(robot.n_dof)
+    M, f = dy.dynamics_terms(robot, q, v, np.zeros(len(robot.actuators)), Loads())
+    assert _rel(alg.crba(model, ws, q), M) < TOL
+    # f = -(C v + g + K (q - q0) + D v)
+    assert _rel(-alg.rnea(model, ws, q, v, None), f) < TOL
+
+
+def test_benchmark_cantilever_offsets_and_workspace_checks():
+    robot = model_from_dict({"name": "x", "segments": [
+        {"length": 0.2, "sections": 2, "cross_section": {"shape": "solid_circle", "radius": 0.01},
+         "material": {"youngs_modulus": 1e6, "poisson_ratio": 0.5, "density": 1000},
+         "offset_to_next": {"position": [0, 0, 0.01], "rpy": [0, 0, 1.0]}},
+        {"length": 0.2, "sections": 2, "cross_section": {"shape": "solid_circle", "radius": 0.01},
+         "material": {"youngs_modulus": 1e6, "poisson_ratio": 0.5, "density": 1000}}]})
+    model = from_robot_model(robot)
+    ws = Workspace(model)
+    with pytest.raises(ValueError, match=r"q: expected shape \(24,\)"):
+        alg.crba(model, ws, np.zeros(5))
+    with pytest.raises(ValueError, match="another model"):
+        alg.crba(pan_tilt_arm(), ws, np.zeros(24))
+    q = robot.q0 + 0.1
+    assert _rel(alg.crba(model, ws, q), dy.mass_matrix(robot, q)) < TOL
