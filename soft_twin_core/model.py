@@ -1,8 +1,10 @@
 """Immutable PCS robot model, built from a plain dict or a YAML file.
 
-A robot is a chain of *segments* (physical members: length, cross-section,
-material, reference strain, free strain modes), each discretised into
-``sections`` pieces of constant strain (piecewise constant strain, PCS).
+A robot is a chain of *segments* (physical members: length, cross-section
+and material -- or, instead of those two, explicit ``sectional`` stiffness,
+inertia and damping values -- reference strain, free strain modes), each
+discretised into ``sections`` pieces of constant strain (piecewise constant
+strain, PCS).
 Consecutive segments may be joined by a rigid offset transform (members at
 fixed angles). Actuators (tendons, fluidic chambers) belong to the model.
 
@@ -446,6 +448,40 @@ def section_matrices(cs, mat):
     return K, D, M
 
 
+# Keys of the ``sectional`` block, in the order of the strain modes
+# [axial, shear_y, shear_z, torsion, bending_y, bending_z].
+SECTIONAL_STIFFNESS_KEYS = ("EA", "GA2", "GA3", "GJ", "EI2", "EI3")
+SECTIONAL_INERTIA_KEYS = ("mass_per_length", "J1", "J2", "J3")
+
+
+def _sectional(d, where):
+    """K, D, M (6x6) of an explicit ``sectional`` block, independent of any
+    geometric cross-section::
+
+        stiffness: {EA, GA2, GA3, GJ, EI2, EI3}      # N, N, N, N m^2, N m^2, N m^2; all > 0
+        inertia: {mass_per_length, J1, J2, J3}      # kg/m; kg m (polar about x, about y, about z); all > 0
+        damping: {EA, GA2, GA3, GJ, EI2, EI3}       # optional, each >= 0 (default 0): N s, N m^2 s
+
+    K = diag(EA, GA2, GA3, GJ, EI2, EI3), M = diag(m, m, m, J1, J2, J3),
+    D = diag(damping) (zero for omitted keys).
+    """
+    _check_keys(d, {"stiffness", "inertia", "damping"}, where)
+    for key in ("stiffness", "inertia"):
+        if key not in d:
+            raise ModelError(f"{where}.{key}: missing (required)")
+    st, inn = d["stiffness"], d["inertia"]
+    _check_keys(st, set(SECTIONAL_STIFFNESS_KEYS), where + ".stiffness")
+    _check_keys(inn, set(SECTIONAL_INERTIA_KEYS), where + ".inertia")
+    k = [_num(st, key, where + ".stiffness", positive=True) for key in SECTIONAL_STIFFNESS_KEYS]
+    m, J1, J2, J3 = (_num(inn, key, where + ".inertia", positive=True) for key in SECTIONAL_INERTIA_KEYS)
+    dmp = d.get("damping")
+    if dmp is None:
+        dmp = {}
+    _check_keys(dmp, set(SECTIONAL_STIFFNESS_KEYS), where + ".damping")
+    c = [_num(dmp, key, where + ".damping", nonneg=True, default=0.0) for key in SECTIONAL_STIFFNESS_KEYS]
+    return np.diag(k), np.diag(c), np.diag([m, m, m, J1, J2, J3])
+
+
 def _actuator(d, i, total_length):
     where = f"actuators[{i}]"
     _check_keys(d, {"name", "type", "start", "end", "routing", "offset", "offset_end", "radius",
@@ -495,30 +531,41 @@ def model_from_dict(d, n_sections_override=None):
     sections = []
     for k, sd in enumerate(segs):
         where = f"segments[{k}]"
-        _check_keys(sd, {"name", "length", "sections", "cross_section", "material",
+        _check_keys(sd, {"name", "length", "sections", "cross_section", "material", "sectional",
                          "reference_strain", "free_modes", "offset_to_next"}, where)
         length = _num(sd, "length", where, positive=True)
         n = sd.get("sections", 1) if n_sections_override is None else n_sections_override
         if isinstance(n, bool) or not isinstance(n, int) or n < 1:
             raise ModelError(f"{where}.sections: expected an integer >= 1, got {n!r}")
-        if "cross_section" not in sd:
-            raise ModelError(f"{where}.cross_section: missing (required)")
-        if "material" not in sd:
-            raise ModelError(f"{where}.material: missing (required)")
-        try:
-            cs = _cross_section(sd["cross_section"], where + ".cross_section")
-        except OverflowError:
-            raise ModelError(f"{where}.cross_section: dimensions overflow (check the units: metres)") from None
-        mat = _material(sd["material"], where + ".material")
+        if "sectional" in sd:
+            both = [key for key in ("cross_section", "material") if key in sd]
+            if both:
+                raise ModelError(f"{where}.sectional: give either sectional or cross_section + material, "
+                                 f"not both (also got {' and '.join(both)})")
+            K, D, M = _sectional(sd["sectional"], where + ".sectional")
+        else:
+            if "cross_section" not in sd:
+                raise ModelError(f"{where}.cross_section: missing (required, with material, "
+                                 f"unless sectional is given)")
+            if "material" not in sd:
+                raise ModelError(f"{where}.material: missing (required, with cross_section, "
+                                 f"unless sectional is given)")
+            try:
+                cs = _cross_section(sd["cross_section"], where + ".cross_section")
+            except OverflowError:
+                raise ModelError(f"{where}.cross_section: dimensions overflow (check the units: metres)") from None
+            mat = _material(sd["material"], where + ".material")
         f0 = _vec(sd, "reference_strain", 6, where, default=[1, 0, 0, 0, 0, 0])
         if f0[0] <= 0:
             raise ModelError(f"{where}.reference_strain: axial strain must be > 0, got {f0[0]}")
         free = _free_modes(sd.get("free_modes", "all"), where + ".free_modes")
         off = pose_from_dict(sd.get("offset_to_next"), where + ".offset_to_next")
-        K, D, M = section_matrices(cs, mat)
+        if "sectional" not in sd:
+            K, D, M = section_matrices(cs, mat)
         if not (np.all(np.isfinite(K)) and np.all(np.isfinite(D)) and np.all(np.isfinite(M))
                 and np.all(np.diag(K) > 0) and np.all(np.diag(M) > 0)):
-            raise ModelError(f"{where}: cross_section and material give a non-finite or zero stiffness or "
+            src = "sectional gives" if "sectional" in sd else "cross_section and material give"
+            raise ModelError(f"{where}: {src} a non-finite or zero stiffness or "
                              f"inertia (K diagonal {np.diag(K).tolist()}); check the values and units")
         name = str(sd.get("name", f"segment{k}"))
         for j in range(n):
