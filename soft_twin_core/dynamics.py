@@ -19,8 +19,6 @@ integrators use the compiled kernels of :mod:`soft_twin_core._fast` where
 available (same formulas, tested against these).
 """
 
-from dataclasses import dataclass
-
 import numpy as np
 
 from . import kinematics as kin
@@ -141,15 +139,6 @@ def dynamics_terms(model, q, qdot, u, loads):
 # Time integration
 # ----------------------------------------------------------------------------
 
-@dataclass
-class StepInfo:
-    """Newton iterations used by the last step (all sub-steps) and whether
-    it converged."""
-    iterations: int
-    converged: bool
-    update: float
-
-
 def _profile(value, model, kind):
     """A constant or a callable of time t [s]; returns a function of t.
     kind "actuation": a dict/vector of inputs (validated); "loads": Loads."""
@@ -163,7 +152,10 @@ def _profile(value, model, kind):
 
 
 class Simulator:
-    """Fixed-step implicit integrator (theta-method) for the node and scenarios.
+    """Fixed-step implicit integrator (theta-method) of a robot description,
+    for the node and the scenario runner: the multibody engine's
+    :class:`soft_twin_core.integrators.ThetaIntegrator` on the robot's tree
+    (:func:`multibody.from_robot_model`), with the inputs of the description.
 
     One step of size dt [s] solves, for v1 (strain rates at t + dt),
         M(qt) (v1 - v0) = dt f(qt, vt, t + theta dt),
@@ -172,15 +164,13 @@ class Simulator:
     A-stable, no numerical damping (the energy error of the undamped arm stays
     O(dt^2) without drift). theta = 1 is implicit Euler: first order,
     L-stable, damps the stiff modes that the midpoint rule lets ring (use it
-    for strongly damped arms or to reach equilibrium). Solved by a modified
-    Newton iteration with ``A = M - theta dt df/dv - (theta dt)^2 df/dq``,
-    stopped when the update, or the remaining error estimated from the
-    convergence rate r as r/(1 - r) times the update (Hairer & Wanner), is
-    below ``tol`` relative to the strain rates. A is built from a
-    finite-difference Jacobian of f and reused across steps while the
-    iteration converges fast; it is refreshed when convergence slows, and a
-    step that still fails is split into sub-steps (the state is only updated
-    by converged steps).
+    for strongly damped arms or to reach equilibrium). Newton's iteration
+    uses ``M + theta dt D + (theta dt)^2 K`` factorised in O(n) by the
+    articulated-body algorithm, kept while it converges fast; it stops when
+    the update, or the remaining error estimated from the convergence rate r
+    as r/(1 - r) times the update (Hairer & Wanner), is below ``tol``
+    relative to the strain rates. A step that fails is split into sub-steps
+    (the state is only updated by converged steps).
 
     actuation: dict/vector, or a callable t -> vector; loads: Loads or a
     callable t -> Loads. The model is never modified; ``state`` holds q,
@@ -189,7 +179,11 @@ class Simulator:
 
     def __init__(self, model, dt=1e-3, actuation=None, loads=None, state=None,
                  max_iterations=10, tol=1e-9, max_substep_levels=4, theta=0.5):
+        from .forces import actuator_arrays
+        from .integrators import ThetaIntegrator
         from .model import State
+        from .multibody import from_robot_model
+        from .workspace import Workspace
         if isinstance(dt, bool) or not isinstance(dt, (int, float)) or not np.isfinite(dt) or dt <= 0:
             raise ValueError(f"dt: expected a positive time step in s, got {dt!r}")
         if not 0.5 <= theta <= 1.0:
@@ -197,22 +191,25 @@ class Simulator:
         self.theta = float(theta)
         self.model = model
         self.dt = float(dt)
-        self.max_iterations = int(max_iterations)
-        self.tol = float(tol)
-        self.max_substep_levels = int(max_substep_levels)
         self.state = State.rest(model) if state is None else state.copy()
         self.set_actuation(actuation)
         self.set_loads(loads)
-        self.last_qddot = np.zeros(model.n_dof)
-        self._prev_qddot = None       # for the predictor's linear extrapolation
-        self._terms = _select_kernel(model)
-        self._newton_fast = None
-        if self._terms is not dynamics_terms:
-            from . import _fast
-            self._newton_fast = _fast.newton_step
-        self._jac = None          # (M, df/dq, df/dv) at the last refresh
-        self._lu = {}             # stale parts of the iteration matrix by step size
-        self.jacobian_refreshes = 0
+        self.tree = from_robot_model(model)
+        self.workspace = Workspace(self.tree)
+        self._act = actuator_arrays(self.tree)
+        self._effort = np.zeros(self.tree.nv)
+        self._inputs_key = None
+        self._integrator = ThetaIntegrator(self.tree, self.workspace, self._act, self._inputs, self.dt,
+                                           self.theta, tol, max_iterations, max_substep_levels)
+
+    @property
+    def last_qddot(self):
+        return self._integrator.last_a
+
+    @property
+    def jacobian_refreshes(self):
+        """Factorisations of Newton's matrix so far."""
+        return self._integrator.factorisations
 
     def set_actuation(self, actuation):
         """Constant inputs (dict or vector, validated) or a callable of t."""
@@ -227,139 +224,30 @@ class Simulator:
     def loads_at(self, t):
         return self._loads(t)
 
+    def _inputs(self, t):
+        """Engine inputs at t, rebuilt only when the loads object or the
+        actuation values change."""
+        from .forces import gravity_of, load_arrays
+        u = np.asarray(self._u(t), dtype=float)
+        loads = self._loads(t)
+        key = self._inputs_key
+        if key is None or key[0] is not loads or not np.array_equal(key[1], u):
+            arrays = (load_arrays(self.tree, loads, u), gravity_of(self.tree, loads),
+                      np.ascontiguousarray(self._act.unit @ u) if u.size else np.zeros(len(self._act.joint)),
+                      self._effort)
+            self._inputs_key = key = (loads, u.copy(), arrays)
+        return key[2]
+
     def step(self, n=1):
         """Advance n steps; returns the StepInfo of the last one. A step that
         cannot converge even with sub-steps leaves the state at the last good
         step and returns ``converged`` False."""
         info = None
         for _ in range(n):
-            info = self._step()
+            info = self._integrator.step(self.state)
             if not info.converged:
                 break
         return info
-
-    # --- internals ---------------------------------------------------------
-    def _refresh(self, q, v, u, loads, dv=None):
-        """Finite-difference Jacobians of f at (q, v) for the iteration matrix,
-        and of the inertia term: column k of G is (dM/dq_k) dv, with dv the
-        expected velocity change of a step (large when the arm accelerates
-        hard; M is ill-conditioned, so this term matters)."""
-        m = self.model
-        M, f = self._terms(m, q, v, u, loads)
-        n = m.n_dof
-        dv = np.zeros(n) if dv is None else dv
-        fq, fv, G = np.empty((n, n)), np.empty((n, n)), np.empty((n, n))
-        for k in range(n):
-            e = np.zeros(n)
-            hq = 1e-7 * max(1.0, abs(q[k]))
-            e[k] = hq
-            Mk, fk = self._terms(m, q + e, v, u, loads)
-            fq[:, k] = (fk - f) / hq
-            G[:, k] = (Mk - M) @ dv / hq
-            e[k] = 0.0
-            hv = 1e-7 * max(1.0, abs(v[k]))
-            e[k] = hv
-            fv[:, k] = (self._terms(m, q, v + e, u, loads)[1] - f) / hv
-        self._jac = (M, fq, fv, G)
-        self._lu = {}
-        self.jacobian_refreshes += 1
-
-    def _correction(self, h):
-        """Stale part of the iteration matrix: -theta h df/dv - (theta h)^2 df/dq
-        + theta^2 h (dM/dq) dv; the mass matrix itself is taken fresh at
-        every iteration (it is ill-conditioned: torsion has little inertia)."""
-        C = self._lu.get(h)
-        if C is None:
-            _, fq, fv, G = self._jac
-            th = self.theta * h
-            C = -th * fv - th * th * fq + self.theta * th * (h / self.dt) * G
-            self._lu[h] = C
-        return C
-
-    def _newton(self, q0, v0, t, h):
-        m = self.model
-        th = self.theta
-        tm = t + th * h
-        u, loads = self._u(tm), self._loads(tm)
-        C = self._correction(h)
-        a_pred = self.last_qddot
-        if self._prev_qddot is not None and h == self.dt:
-            a_pred = 2.0 * self.last_qddot - self._prev_qddot   # linear extrapolation
-        v1 = v0 + h * (a_pred if np.all(np.isfinite(a_pred)) else 0.0)
-        prev, rate = None, 0.0
-        # relative to the rates, with a floor at round-off of the positions
-        floor = 1e-14 * max(1.0, np.abs(q0).max()) / h
-        if self._newton_fast is not None:
-            v1, it, status, rate = self._newton_fast(m, q0, v0, v1, h, th, C, u, loads, self.tol, floor,
-                                                     self.max_iterations)
-            return (v1 if status == 0 else None), it, (np.inf if status == 3 else rate)
-        for it in range(1, self.max_iterations + 1):
-            vt = (1.0 - th) * v0 + th * v1
-            M, f = self._terms(m, q0 + th * h * vt, vt, u, loads)
-            try:
-                dv = np.linalg.solve(M + C, -(M @ (v1 - v0) - h * f))
-            except np.linalg.LinAlgError:
-                return None, it, np.inf
-            v1 = v1 + dv
-            upd = float(np.abs(dv).max())
-            if not np.isfinite(upd):
-                return None, it, np.inf
-            goal = max(self.tol * max(np.abs(v1).max(), np.abs(v0).max()), floor)
-            if upd <= goal:
-                return v1, it, rate
-            if prev is not None:
-                r_k = upd / prev
-                # Hairer-Wanner stopping rule (remaining error ~ r/(1-r) * update)
-                if r_k < 0.5 and r_k / (1.0 - r_k) * upd <= goal:
-                    return v1, it, rate
-                if upd > 100 * goal:                     # rate only above the noise floor
-                    rate = max(rate, r_k)
-                    if rate > 0.9:
-                        return None, it, rate
-            prev = upd
-        return None, self.max_iterations, rate
-
-    def _advance(self, q0, v0, t, h, level):
-        """Returns (q1, v1, iterations) or None, sub-stepping on failure."""
-        v1, it, rate = self._newton(q0, v0, t, h)
-        if v1 is None or rate > 0.5 or it > 6:
-            # refresh the iteration matrix at the predicted mid-step point and retry once
-            th = self.theta
-            tm = t + th * h
-            v1p = v0 + h * self.last_qddot if v1 is None else v1
-            vt = (1.0 - th) * v0 + th * v1p
-            self._refresh(q0 + th * h * vt, vt, self._u(tm), self._loads(tm),
-                          (v1p - v0) * (self.dt / h))
-            if v1 is None:
-                v1, it2, rate = self._newton(q0, v0, t, h)
-                it += it2
-        if v1 is not None:
-            return q0 + h * ((1.0 - self.theta) * v0 + self.theta * v1), v1, it
-        if level >= self.max_substep_levels:
-            return None
-        half = self._advance(q0, v0, t, 0.5 * h, level + 1)
-        if half is None:
-            return None
-        q_m, v_m, it_a = half
-        rest = self._advance(q_m, v_m, t + 0.5 * h, 0.5 * h, level + 1)
-        if rest is None:
-            return None
-        return rest[0], rest[1], it_a + rest[2]
-
-    def _step(self):
-        st = self.state
-        h = self.dt
-        if self._jac is None:
-            u, loads = self._u(st.t), self._loads(st.t)
-            self._refresh(st.q, st.qdot, u, loads)
-        out = self._advance(st.q, st.qdot, st.t, h, 0)
-        if out is None:
-            return StepInfo(self.max_iterations, False, np.inf)
-        q1, v1, it = out
-        self._prev_qddot = self.last_qddot
-        self.last_qddot = (v1 - st.qdot) / h
-        st.q, st.qdot, st.t = q1, v1, st.t + h
-        return StepInfo(it, True, 0.0)
 
 
 def _select_kernel(model):

@@ -11,7 +11,6 @@ of it: copy a result you keep across calls.
 import numpy as np
 
 from .kernels.data import make_work, pack_model
-from .multibody import SOFT
 
 
 class Workspace:
@@ -19,10 +18,6 @@ class Workspace:
     buffers (``tau``, ``M``, ``a``) of one model."""
 
     def __init__(self, model):
-        for i, j in enumerate(model.joints):
-            if j.kind == SOFT and j.section.kinematic_map != "exponential":
-                raise ValueError(f"joints[{i}] ({j.name}): the multibody engine supports the exponential "
-                                 f"map only, got {j.section.kinematic_map!r}")
         self.model = model
         self.arrays = pack_model(model)
         self.work = make_work(self.arrays)

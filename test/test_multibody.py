@@ -18,9 +18,9 @@ from soft_twin_core.workspace import Workspace
 TOL = 1e-10
 
 
-def _section(length, radius=0.01, free=(True,) * 6, f0=(1, 0, 0, 0, 0, 0), E=2e6, visc=0.0):
+def _section(length, radius=0.01, free=(True,) * 6, f0=(1, 0, 0, 0, 0, 0), E=2e6, visc=0.0, kmap="exponential"):
     K, D, M = section_matrices(CrossSection.solid_circle(radius), Material(E, E / 3, 1100.0, visc))
-    return SoftSection(length, K, D, M, np.array(f0, float), np.array(free, bool))
+    return SoftSection(length, K, D, M, np.array(f0, float), np.array(free, bool), kmap)
 
 
 def _placement(rpy=(0, 0, 0), p=(0, 0, 0)):
@@ -31,7 +31,7 @@ def _placement(rpy=(0, 0, 0), p=(0, 0, 0)):
     return H
 
 
-def pan_tilt_arm():
+def pan_tilt_arm(kmap="exponential"):
     """A soft arm (4 sections, all six modes) on a 2-joint rigid pan-tilt."""
     b = ModelBuilder("pan_tilt_arm", gravity=(0.2, -0.1, -9.81))
     pan = b.add_joint("pan", "revolute", -1, _placement(p=(0, 0, 0.1)), axis=(0, 0, 1),
@@ -39,7 +39,7 @@ def pan_tilt_arm():
                       stiffness=0.5, damping=0.01)
     tilt = b.add_joint("tilt", "revolute", pan, _placement(p=(0, 0, 0.06)), axis=(0, 1, 0),
                        inertia=spatial_inertia(0.3, (0.02, 0.0, 0.0), np.diag([4e-4, 5e-4, 5e-4])))
-    secs = [_section(0.1, f0=(1, 0, 0, 0.1 * k, 0, 2.0)) for k in range(4)]
+    secs = [_section(0.1, f0=(1, 0, 0, 0.1 * k, 0, 2.0), kmap=kmap) for k in range(4)]
     js = b.add_soft_chain("arm", secs, tilt, _placement(rpy=(0.1, -0.3, 0.2), p=(0.04, 0, 0)))
     b.add_path("arm", js)
     return b.build()
@@ -63,7 +63,8 @@ def gripper():
     return b.build()
 
 
-HYBRID = {"pan_tilt_arm": pan_tilt_arm, "gripper": gripper}
+HYBRID = {"pan_tilt_arm": pan_tilt_arm, "gripper": gripper,
+          "pan_tilt_arm_cayley": lambda: pan_tilt_arm("cayley")}
 
 
 def _state(model, seed):

@@ -22,6 +22,7 @@ ModelArrays = namedtuple("ModelArrays", [
     "rigid_mass",  # (n,) bool: the joint carries a rigid body
     "length",      # (n,) soft section length [m]
     "f0",          # (n, 6) reference strain
+    "kmap",        # (n,) int: kinematic map of a soft section, 0 exponential, 1 Cayley
     "modes",       # (n, 6) int: free strain modes (first nv entries)
     "npt",         # (n,) int: quadrature points of the section
     "px", "pw",    # (n, P): abscissae [m] and weights [m]
@@ -46,6 +47,7 @@ WorkArrays = namedtuple("WorkArrays", [
     "fp",          # (n, P, 6) inertial-minus-applied wrench of each soft point
     "IA", "pA",    # (n, 6, 6), (n, 6): articulated / composite inertia at output frames, bias
     "U", "Dinv",   # (n, 6, 6): ABA joint terms (input frame)
+    "Sf", "Xf",    # (n, 6, 6): S and Ad(Jq^-1) at the factorisation's configuration
     "u",           # (n, 6)
     "As",          # (n, 6) accelerations of the solve pass
     "scratch",     # (16, 6, 6)
@@ -77,7 +79,7 @@ def pack_model(model):
         nv=np.array([j.nv for j in model.joints], dtype=np.int64),
         inertia=np.array([j.inertia for j in model.joints], dtype=float).reshape(n, 6, 6),
         rigid_mass=np.array([bool(np.any(j.inertia != 0)) for j in model.joints], dtype=np.bool_),
-        length=np.zeros(n), f0=np.zeros((n, 6)), modes=np.zeros((n, 6), np.int64),
+        length=np.zeros(n), f0=np.zeros((n, 6)), kmap=np.zeros(n, np.int64), modes=np.zeros((n, 6), np.int64),
         npt=np.zeros(n, np.int64), px=np.zeros((n, P)), pw=np.zeros((n, P)), mc=np.zeros((n, 6)),
         Kb=np.zeros((n, 6, 6)), Db=np.zeros((n, 6, 6)), q0=model.q0.copy(),
     )
@@ -87,6 +89,7 @@ def pack_model(model):
             m = s.modes
             arr["length"][i] = s.length
             arr["f0"][i] = s.f0
+            arr["kmap"][i] = 1 if s.kinematic_map == "cayley" else 0
             arr["modes"][i, :len(m)] = m
             xg, wg = np.polynomial.legendre.leggauss(s.quadrature_points)
             arr["npt"][i] = len(xg)
@@ -112,4 +115,4 @@ def make_work(mo):
         strain=z((n, 6)), strain_rate=z((n, 6)), V=z((n, 6)), A=z((n, 6)), Vin=z((n, 6)), Ain=z((n, 6)),
         gp=z((n, P, 4, 4)), Ad_p_inv=z((n, P, 6, 6)), Sp=z((n, P, 6, 6)), Vp=z((n, P, 6)), Ap=z((n, P, 6)),
         f=z((n, 6)), f_in=z((n, 6)), fp=z((n, P, 6)), IA=z((n, 6, 6)), pA=z((n, 6)), U=z((n, 6, 6)),
-        Dinv=z((n, 6, 6)), u=z((n, 6)), As=z((n, 6)), scratch=z((16, 6, 6)), vscratch=z((16, 6)))
+        Dinv=z((n, 6, 6)), Sf=z((n, 6, 6)), Xf=z((n, 6, 6)), u=z((n, 6)), As=z((n, 6)), scratch=z((16, 6, 6)), vscratch=z((16, 6)))

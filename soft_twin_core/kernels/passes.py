@@ -23,7 +23,7 @@ frame, with subspace Sp = x_p T(x_p f) B.
 
 import numpy as np
 
-from .spatial import _Ad_into, _T_dot_into, _T_into, _ad_vec, _exp_into, _jit
+from .spatial import _Ad_into, _ad_vec, _exp_into, _jit, _map_into, _tangent_dot_into, _tangent_into
 
 SOFT, FREE, SPHERICAL, PRISMATIC, REVOLUTE, FIXED = 5, 4, 3, 2, 1, 0
 
@@ -91,44 +91,38 @@ def _Sv(S, nv, v, iv, out):
 
 
 @_jit
-def _joint_transform(m, w, i, q, T, S3):
-    """w.Jq[i], w.S[i] (output frame) and, for soft joints, w.strain[i]."""
-    k = m.kind[i]
-    iq = m.iq[i]
-    J = w.Jq[i]
-    S = w.S[i]
+def _joint_transform(kind, kmap, iq, nv, axis, length, f0, modes, q, J, S, strain, x6, T, S3):
+    """Joint transform J (input -> output frame), subspace S (output frame)
+    and, for a soft joint, its strain."""
     S[:, :] = 0.0
     _eye4(J)
-    if k == SOFT:
-        L = m.length[i]
-        x6 = w.vscratch[0]
+    if kind == SOFT:
         for a in range(6):
-            w.strain[i, a] = m.f0[i, a]
-        for a in range(m.nv[i]):
-            w.strain[i, m.modes[i, a]] = q[iq + a]
+            strain[a] = f0[a]
+        for a in range(nv):
+            strain[modes[a]] = q[iq + a]
         for a in range(6):
-            x6[a] = L * w.strain[i, a]
-        _exp_into(x6, J)
-        _T_into(x6, T, S3)
-        for a in range(m.nv[i]):
+            x6[a] = length * strain[a]
+        _map_into(kmap, x6, J)
+        _tangent_into(kmap, x6, T, S3)
+        for a in range(nv):
             for r in range(6):
-                S[r, a] = L * T[r, m.modes[i, a]]
-    elif k == REVOLUTE:
-        x6 = w.vscratch[0]
+                S[r, a] = length * T[r, modes[a]]
+    elif kind == REVOLUTE:
         for a in range(3):
             x6[a] = 0.0
-            x6[3 + a] = m.axis[i, a] * q[iq]
-            S[3 + a, 0] = m.axis[i, a]
+            x6[3 + a] = axis[a] * q[iq]
+            S[3 + a, 0] = axis[a]
         _exp_into(x6, J)
-    elif k == PRISMATIC:
+    elif kind == PRISMATIC:
         for a in range(3):
-            J[a, 3] = m.axis[i, a] * q[iq]
-            S[a, 0] = m.axis[i, a]
-    elif k == SPHERICAL:
+            J[a, 3] = axis[a] * q[iq]
+            S[a, 0] = axis[a]
+    elif kind == SPHERICAL:
         _quat_into(q[iq], q[iq + 1], q[iq + 2], q[iq + 3], J)
         for a in range(3):
             S[3 + a, a] = 1.0
-    elif k == FREE:
+    elif kind == FREE:
         _quat_into(q[iq + 3], q[iq + 4], q[iq + 5], q[iq + 6], J)
         for a in range(3):
             J[a, 3] = q[iq + a]
@@ -137,32 +131,30 @@ def _joint_transform(m, w, i, q, T, S3):
 
 
 @_jit
-def _soft_point(m, w, i, p, T, S3):
-    """Pose gp, Ad(gp^-1) and subspace Sp of soft point p of joint i."""
-    x = m.px[i, p]
-    x6 = w.vscratch[0]
+def _soft_point(kmap, x, strain, modes, nv, gp, Ad_p_inv, Sp, x6, T, S3):
+    """Pose gp = exp(x f), Ad(gp^-1) and subspace Sp = x T(x f) B of the
+    cross-section at abscissa x of a soft section with strain f."""
     for a in range(6):
-        x6[a] = x * w.strain[i, a]
-    _exp_into(x6, w.gp[i, p])
-    _Ad_into(w.gp[i, p], w.Ad_p_inv[i, p], True)
-    _T_into(x6, T, S3)
-    Sp = w.Sp[i, p]
+        x6[a] = x * strain[a]
+    _map_into(kmap, x6, gp)
+    _Ad_into(gp, Ad_p_inv, True)
+    _tangent_into(kmap, x6, T, S3)
     Sp[:, :] = 0.0
-    for a in range(m.nv[i]):
+    for a in range(nv):
         for r in range(6):
-            Sp[r, a] = x * T[r, m.modes[i, a]]
+            Sp[r, a] = x * T[r, modes[a]]
 
 
 @_jit
-def _soft_bias(m, w, i, x, V, Sv, out):
+def _soft_bias(kmap, x, strain, rate, V, Sv, out, vs, P):
     """ad(V) S v + x Tdot(x f, x fdot) fdot: the velocity-product acceleration
-    of a cross-section at abscissa x of soft joint i (body twist V, S v = Sv)."""
-    x6, xd6, tmp, tmp2, acc = w.vscratch[0], w.vscratch[1], w.vscratch[2], w.vscratch[3], w.vscratch[4]
-    P = w.scratch[15][:5]
+    of the cross-section at abscissa x of a soft section (strain f, rate
+    fdot, body twist V, S v = Sv); vs: (>= 5, 6) scratch, P: (5, 6)."""
+    x6, xd6, tmp, tmp2, acc = vs[0], vs[1], vs[2], vs[3], vs[4]
     for a in range(6):
-        x6[a] = x * w.strain[i, a]
-        xd6[a] = x * w.strain_rate[i, a]
-    _T_dot_into(x6, xd6, w.strain_rate[i], out, P, tmp, tmp2, acc)
+        x6[a] = x * strain[a]
+        xd6[a] = x * rate[a]
+    _tangent_dot_into(kmap, x6, xd6, rate, out, P, tmp, tmp2, acc)
     _ad_vec(V, Sv, tmp)
     for a in range(6):
         out[a] = x * out[a] + tmp[a]
@@ -178,9 +170,11 @@ def forward_pass(m, w, q, v, a, level):
     Sv = w.vscratch[5]
     c = w.vscratch[6]
     t6 = w.vscratch[7]
+    P5 = w.scratch[15][:5]
     for i in range(n):
         par = m.parent[i]
-        _joint_transform(m, w, i, q, T, S3)
+        _joint_transform(m.kind[i], m.kmap[i], m.iq[i], m.nv[i], m.axis[i], m.length[i], m.f0[i], m.modes[i], q, w.Jq[i],
+                         w.S[i], w.strain[i], w.vscratch[0], T, S3)
         if par < 0:
             for r in range(4):
                 for cc in range(4):
@@ -198,7 +192,8 @@ def forward_pass(m, w, q, v, a, level):
                 for b in range(nv):
                     w.strain_rate[i, m.modes[i, b]] = v[iv + b]
             for p in range(m.npt[i]):
-                _soft_point(m, w, i, p, T, S3)
+                _soft_point(m.kmap[i], m.px[i, p], w.strain[i], m.modes[i], nv, w.gp[i, p], w.Ad_p_inv[i, p], w.Sp[i, p],
+                            w.vscratch[0], T, S3)
         if level < 1:
             continue
         if par < 0:
@@ -224,7 +219,7 @@ def forward_pass(m, w, q, v, a, level):
         else:
             _mv6(m.Ad_pl_inv[i], w.A[par], w.Ain[i])
         if soft:
-            _soft_bias(m, w, i, m.length[i], w.V[i], Sv, c)
+            _soft_bias(m.kmap[i], m.length[i], w.strain[i], w.strain_rate[i], w.V[i], Sv, c, w.vscratch, P5)
         else:
             _ad_vec(w.V[i], Sv, c)
         _mv6(w.Ad_J_inv[i], w.Ain[i], t6)
@@ -236,7 +231,7 @@ def forward_pass(m, w, q, v, a, level):
         if soft:
             for p in range(m.npt[i]):
                 _Sv(w.Sp[i, p], nv, v, iv, Sv)
-                _soft_bias(m, w, i, m.px[i, p], w.Vp[i, p], Sv, c)
+                _soft_bias(m.kmap[i], m.px[i, p], w.strain[i], w.strain_rate[i], w.Vp[i, p], Sv, c, w.vscratch, P5)
                 _mv6(w.Ad_p_inv[i, p], w.Ain[i], t6)
                 _Sv(w.Sp[i, p], nv, a, iv, Sv)
                 for b in range(6):
@@ -280,7 +275,7 @@ def _load_wrench(m, w, ld, l, T, S3, Wb, pose):
         x6 = w.vscratch[0]
         for a in range(6):
             x6[a] = x * w.strain[i, a]
-        _exp_into(x6, pose)
+        _map_into(m.kmap[i], x6, pose)
         R = np.empty((3, 3))
         for r in range(3):
             for c in range(3):
@@ -327,7 +322,7 @@ def rnea_pass(m, w, ld, g, tau):
             x6 = w.vscratch[0]
             for a in range(6):
                 x6[a] = x * w.strain[i, a]
-            _T_into(x6, T, S3)
+            _tangent_into(m.kmap[i], x6, T, S3)
             for a in range(m.nv[i]):
                 acc = 0.0
                 for r in range(6):
@@ -427,16 +422,11 @@ def _diag_congruence_add(X, d, wgt, out):
 
 
 @_jit
-def _joint_blocks(m, w, i, IA, F, Dm, Ic):
+def _joint_blocks(soft, nv, npt, pw, mc, X, S, Ad_p_inv, Sp_all, IA, F, Dm, Ic, tmp, IS):
     """For joint i with the inertia IA (output frame) of everything beyond
     its output frame: F = Ad(Jq^-1)^T IA S + sum_p Ad(gp^-1)^T Ip Sp (6 x nv,
     input frame), Dm = S^T IA S + sum_p Sp^T Ip Sp, and Ic = Ad(Jq^-1)^T IA
     Ad(Jq^-1) + sum_p Ad(gp^-1)^T Ip Ad(gp^-1) (input frame)."""
-    nv = m.nv[i]
-    X = w.Ad_J_inv[i]
-    S = w.S[i]
-    tmp = w.scratch[2]
-    IS = w.scratch[3]
     for r in range(6):
         for c in range(6):
             Ic[r, c] = 0.0
@@ -459,24 +449,24 @@ def _joint_blocks(m, w, i, IA, F, Dm, Ic):
             for k in range(6):
                 acc += S[k, a] * IS[k, b]
             Dm[a, b] = acc
-    if m.kind[i] != SOFT:
+    if not soft:
         return
-    for p in range(m.npt[i]):
-        Xp = w.Ad_p_inv[i, p]
-        Sp = w.Sp[i, p]
-        wg = m.pw[i, p]
-        _diag_congruence_add(Xp, m.mc[i], wg, Ic)
+    for p in range(npt):
+        Xp = Ad_p_inv[p]
+        Sp = Sp_all[p]
+        wg = pw[p]
+        _diag_congruence_add(Xp, mc, wg, Ic)
         for r in range(6):
             for a in range(nv):
                 acc = 0.0
                 for k in range(6):
-                    acc += Xp[k, r] * m.mc[i, k] * Sp[k, a]
+                    acc += Xp[k, r] * mc[k] * Sp[k, a]
                 F[r, a] += wg * acc
         for a in range(nv):
             for b in range(a, nv):
                 acc = 0.0
                 for k in range(6):
-                    acc += Sp[k, a] * m.mc[i, k] * Sp[k, b]
+                    acc += Sp[k, a] * mc[k] * Sp[k, b]
                 Dm[a, b] += wg * acc
                 if b != a:
                     Dm[b, a] += wg * acc
@@ -497,7 +487,8 @@ def crba_pass(m, w, M):
                 w.IA[i, r, c] = m.inertia[i, r, c] if m.rigid_mass[i] else 0.0
     for i in range(n - 1, -1, -1):
         nv, iv = m.nv[i], m.iv[i]
-        _joint_blocks(m, w, i, w.IA[i], F, Dm, Ic)
+        _joint_blocks(m.kind[i] == SOFT, nv, m.npt[i], m.pw[i], m.mc[i], w.Ad_J_inv[i], w.S[i], w.Ad_p_inv[i],
+                      w.Sp[i], w.IA[i], F, Dm, Ic, w.scratch[2], w.scratch[3])
         for a in range(nv):
             for b in range(nv):
                 M[iv + a, iv + b] = Dm[a, b]
@@ -583,7 +574,12 @@ def aba_factor(m, w, cD, cK):
     for i in range(n - 1, -1, -1):
         nv = m.nv[i]
         U = w.U[i]
-        _joint_blocks(m, w, i, w.IA[i], U, Dm, Ic)
+        for r in range(6):
+            for c in range(6):
+                w.Sf[i, r, c] = w.S[i, r, c]
+                w.Xf[i, r, c] = w.Ad_J_inv[i, r, c]
+        _joint_blocks(m.kind[i] == SOFT, nv, m.npt[i], m.pw[i], m.mc[i], w.Ad_J_inv[i], w.S[i], w.Ad_p_inv[i],
+                      w.Sp[i], w.IA[i], U, Dm, Ic, w.scratch[2], w.scratch[3])
         if nv > 0:
             for a in range(nv):
                 for b in range(nv):
@@ -611,7 +607,9 @@ def aba_factor(m, w, cD, cK):
 
 @_jit
 def aba_solve(m, w, rhs, x):
-    """x = (M + cD D + cK K)^-1 rhs with the factors of :func:`aba_factor`."""
+    """x = (M + cD D + cK K)^-1 rhs with the factors of :func:`aba_factor`
+    (which keeps its own copies of S and Ad(Jq^-1): later passes at other
+    configurations do not disturb it)."""
     n = m.parent.shape[0]
     t1 = w.vscratch[12]
     t2 = w.vscratch[13]
@@ -623,12 +621,12 @@ def aba_solve(m, w, rhs, x):
         for a in range(nv):
             acc = rhs[iv + a]
             for r in range(6):
-                acc -= w.S[i, r, a] * w.pA[i, r]
+                acc -= w.Sf[i, r, a] * w.pA[i, r]
             w.u[i, a] = acc
         par = m.parent[i]
         if par < 0:
             continue
-        _mtv6(w.Ad_J_inv[i], w.pA[i], t1)
+        _mtv6(w.Xf[i], w.pA[i], t1)
         for a in range(nv):
             acc = 0.0
             for b in range(nv):
@@ -660,9 +658,9 @@ def aba_solve(m, w, rhs, x):
             for b in range(nv):
                 acc += w.Dinv[i, a, b] * t2[b]
             x[iv + a] = acc
-        _mv6(w.Ad_J_inv[i], t1, t2)
+        _mv6(w.Xf[i], t1, t2)
         for r in range(6):
             acc = t2[r]
             for a in range(nv):
-                acc += w.S[i, r, a] * x[iv + a]
+                acc += w.Sf[i, r, a] * x[iv + a]
             w.As[i, r] = acc

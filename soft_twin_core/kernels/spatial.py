@@ -175,38 +175,56 @@ def _T_into(x, T, S):
 
 
 @_jit
+def _betas_dbetas(t2):
+    """(_betas(t2), _dbetas(t2)) with one sqrt/sin/cos."""
+    if t2 < _SMALLD2:
+        return _betas(t2), _dbetas(t2)
+    t = np.sqrt(t2)
+    s, c = np.sin(t), np.cos(t)
+    N1, N2 = 4.0 - t * s - 4.0 * c, 4.0 * t - 5.0 * s + t * c
+    N3, N4 = 2.0 - t * s - 2.0 * c, 2.0 * t - 3.0 * s + t * c
+    t3 = t2 * t
+    t4 = t2 * t2
+    t5 = t4 * t
+    d1, d2 = 3.0 * s - t * c, 4.0 - 4.0 * c - t * s
+    d3, d4 = s - t * c, 2.0 - 2.0 * c - t * s
+    return ((N1 / (2 * t2), N2 / (2 * t3), N3 / (2 * t4), N4 / (2 * t5)),
+            ((t * d1 - 2 * N1) / (2 * t4), (t * d2 - 3 * N2) / (2 * t5),
+             (t * d3 - 4 * N3) / (2 * t4 * t2), (t * d4 - 5 * N4) / (2 * t4 * t3)))
+
+
+@_jit
 def _T_dot_into(x, xd, y, out, P, tmp, tmp2, acc):
-    """out = (d/dt T_se3(x))[xd] y (no allocation; P is 5x6 scratch)."""
+    """out = (d/dt T_se3(x))[xd] y (no allocation; P is 5x6 scratch).
+
+    T = I - b1 ad + b2 ad^2 - b3 ad^3 + b4 ad^4 (ad = ad(x)); its derivative
+    along xd is sum_k (+-)(b_k' (w . wd) ad^k + b_k d(ad^k)[xd]) with
+    d(ad^k)[xd] y = Q_k, Q_1 = ad(xd) y, Q_k = ad(xd) ad^(k-1) y + ad(x) Q_(k-1)
+    (11 products ad(.) v instead of the 24 of the expanded sum)."""
     t2 = x[3] * x[3] + x[4] * x[4] + x[5] * x[5]
     wwd = x[3] * xd[3] + x[4] * xd[4] + x[5] * xd[5]
-    b1, b2, b3, b4 = _betas(t2)
-    d1, d2, d3, d4 = _dbetas(t2)
+    bb, dd = _betas_dbetas(t2)
+    b1, b2, b3, b4 = bb
+    d1, d2, d3, d4 = dd
     for a in range(6):
         P[0, a] = y[a]
     for m in range(1, 5):
         _ad_vec(x, P[m - 1], P[m])
+    # Q_1 = ad(xd) y
+    _ad_vec(xd, P[0], acc)
     for a in range(6):
-        out[a] = 0.0
-    for k in range(1, 5):
-        if k == 1:
-            bk, dk, sign = b1, d1, -1.0
-        elif k == 2:
+        out[a] = -(d1 * wwd * P[1, a] + b1 * acc[a])
+    for k in range(2, 5):
+        if k == 2:
             bk, dk, sign = b2, d2, 1.0
         elif k == 3:
             bk, dk, sign = b3, d3, -1.0
         else:
             bk, dk, sign = b4, d4, 1.0
+        _ad_vec(xd, P[k - 1], tmp)
+        _ad_vec(x, acc, tmp2)
         for a in range(6):
-            acc[a] = 0.0
-        for j in range(k):
-            _ad_vec(xd, P[k - 1 - j], tmp)
-            for r in range(j):
-                _ad_vec(x, tmp, tmp2)
-                for a in range(6):
-                    tmp[a] = tmp2[a]
-            for a in range(6):
-                acc[a] += tmp[a]
-        for a in range(6):
+            acc[a] = tmp[a] + tmp2[a]
             out[a] += sign * (dk * wwd * P[k, a] + bk * acc[a])
 
 
@@ -264,3 +282,119 @@ def _Ad_into(g, A, inverse):
             A[2, j + 3] = p0 * c1 - p1 * c0
 
 
+
+
+# ----------------------------------------------------------------------------
+# Cayley map (lie.cay_se3, lie.T_cay_se3 and the time derivative of the latter)
+# ----------------------------------------------------------------------------
+
+@_jit
+def _cross(a0, a1, a2, b0, b1, b2):
+    return a1 * b2 - a2 * b1, a2 * b0 - a0 * b2, a0 * b1 - a1 * b0
+
+
+@_jit
+def _apply_inv_half(w, v, sign):
+    """(I - sign hat(w)/2)^-1 v = v + (2 sign w x v + w x (w x v)) / (4 + t^2)."""
+    t2 = w[0] * w[0] + w[1] * w[1] + w[2] * w[2]
+    c0, c1, c2 = _cross(w[0], w[1], w[2], v[0], v[1], v[2])
+    d0, d1, d2 = _cross(w[0], w[1], w[2], c0, c1, c2)
+    k = 1.0 / (4.0 + t2)
+    return (v[0] + k * (2 * sign * c0 + d0), v[1] + k * (2 * sign * c1 + d1), v[2] + k * (2 * sign * c2 + d2))
+
+
+@_jit
+def _cay_into(x, g):
+    """g = cay_se3(x) = [[I + k (W + W^2/2), (I - W/2)^-1 u], [0, 1]], k = 4/(4 + t^2)."""
+    w0, w1, w2 = x[3], x[4], x[5]
+    t2 = w0 * w0 + w1 * w1 + w2 * w2
+    k = 4.0 / (4.0 + t2)
+    W = ((0.0, -w2, w1), (w2, 0.0, -w0), (-w1, w0, 0.0))
+    ww = (w0, w1, w2)
+    for i in range(3):
+        for j in range(3):
+            W2 = ww[i] * ww[j] - (t2 if i == j else 0.0)
+            g[i, j] = (1.0 if i == j else 0.0) + k * (W[i][j] + 0.5 * W2)
+        g[3, i] = 0.0
+    p = _apply_inv_half(x[3:], x[:3], 1.0)
+    g[0, 3], g[1, 3], g[2, 3] = p[0], p[1], p[2]
+    g[3, 3] = 1.0
+
+
+@_jit
+def _T_cay_into(x, T):
+    """T = lie.T_cay_se3(x) = [[P, -P hat(Q u/2)], [0, k (I - W/2)]] with
+    P = (I + W/2)^-1, Q = (I - W/2)^-1, k = 4/(4 + t^2)."""
+    w0, w1, w2 = x[3], x[4], x[5]
+    t2 = w0 * w0 + w1 * w1 + w2 * w2
+    k = 4.0 / (4.0 + t2)
+    kk = 1.0 / (4.0 + t2)
+    W = ((0.0, -w2, w1), (w2, 0.0, -w0), (-w1, w0, 0.0))
+    ww = (w0, w1, w2)
+    Qu = _apply_inv_half(x[3:], x[:3], 1.0)
+    h0, h1, h2 = 0.5 * Qu[0], 0.5 * Qu[1], 0.5 * Qu[2]
+    H = ((0.0, -h2, h1), (h2, 0.0, -h0), (-h1, h0, 0.0))
+    P = np.empty((3, 3))
+    for i in range(3):
+        for j in range(3):
+            W2 = ww[i] * ww[j] - (t2 if i == j else 0.0)
+            P[i, j] = (1.0 if i == j else 0.0) + kk * (-2.0 * W[i][j] + W2)
+            T[i + 3, j + 3] = k * ((1.0 if i == j else 0.0) - 0.5 * W[i][j])
+            T[i + 3, j] = 0.0
+    for i in range(3):
+        for j in range(3):
+            T[i, j] = P[i, j]
+            T[i, j + 3] = -(P[i, 0] * H[0][j] + P[i, 1] * H[1][j] + P[i, 2] * H[2][j])
+
+
+@_jit
+def _T_cay_dot_into(x, xd, y, out):
+    """out = (d/dt T_cay_se3(x))[xd] y: with T y = [P z; k (y_w - w x y_w / 2)],
+    z = y_u - (Q u / 2) x y_w, dP = -P hat(wd/2) P, dQ = Q hat(wd/2) Q,
+    dk = -8 (w . wd) / (4 + t^2)^2."""
+    w = x[3:]
+    wd = xd[3:]
+    t2 = w[0] * w[0] + w[1] * w[1] + w[2] * w[2]
+    k = 4.0 / (4.0 + t2)
+    dk = -8.0 * (w[0] * wd[0] + w[1] * wd[1] + w[2] * wd[2]) / (4.0 + t2) ** 2
+    Qu = _apply_inv_half(w, x[:3], 1.0)
+    c = _cross(wd[0], wd[1], wd[2], Qu[0], Qu[1], Qu[2])
+    a = _apply_inv_half(w, np.array([0.5 * c[0] + xd[0], 0.5 * c[1] + xd[1], 0.5 * c[2] + xd[2]]), 1.0)
+    # a = d(Q u); z and dz
+    cz = _cross(Qu[0], Qu[1], Qu[2], y[3], y[4], y[5])
+    z = np.array([y[0] - 0.5 * cz[0], y[1] - 0.5 * cz[1], y[2] - 0.5 * cz[2]])
+    cdz = _cross(a[0], a[1], a[2], y[3], y[4], y[5])
+    Pz = _apply_inv_half(w, z, -1.0)
+    e = _cross(wd[0], wd[1], wd[2], Pz[0], Pz[1], Pz[2])
+    top = _apply_inv_half(w, np.array([-0.5 * cdz[0] - 0.5 * e[0], -0.5 * cdz[1] - 0.5 * e[1],
+                                       -0.5 * cdz[2] - 0.5 * e[2]]), -1.0)
+    wy = _cross(w[0], w[1], w[2], y[3], y[4], y[5])
+    wdy = _cross(wd[0], wd[1], wd[2], y[3], y[4], y[5])
+    for i in range(3):
+        out[i] = top[i]
+        out[i + 3] = dk * (y[3 + i] - 0.5 * wy[i]) - 0.5 * k * wdy[i]
+
+
+@_jit
+def _map_into(kmap, x, g):
+    """Kinematic map of a soft section: exp (kmap 0) or Cayley (1)."""
+    if kmap == 1:
+        _cay_into(x, g)
+    else:
+        _exp_into(x, g)
+
+
+@_jit
+def _tangent_into(kmap, x, T, S3):
+    if kmap == 1:
+        _T_cay_into(x, T)
+    else:
+        _T_into(x, T, S3)
+
+
+@_jit
+def _tangent_dot_into(kmap, x, xd, y, out, P, tmp, tmp2, acc):
+    if kmap == 1:
+        _T_cay_dot_into(x, xd, y, out)
+    else:
+        _T_dot_into(x, xd, y, out, P, tmp, tmp2, acc)

@@ -1,0 +1,132 @@
+"""Applied forces on the multibody engine: point and distributed loads on a
+path, gravity, tendons and chambers.
+
+* Loads (:class:`soft_twin_core.loads.Loads`: point and distributed wrenches
+  at arc lengths s of a path, dead or follower; a gravity switch or scale)
+  become :class:`kernels.data.LoadArrays`: one point wrench per load point
+  on (soft joint, abscissa), distributed loads by Gauss quadrature over each
+  section's overlap with their span (weights folded in).
+* Actuators (tendons with straight, converging or helical routing;
+  chambers) act on the strains of the sections they cross. The exact
+  frictionless tendon gives the joint-space force density
+  ``-c u [t; d x t]`` with t the unit tangent of the tendon path at offset
+  d(s), ``t ~ f_u + f_w x d + d'`` (c = 1 for a tendon of tension u, -A for a
+  chamber of area A at pressure u), integrated over the routed span by Gauss
+  quadrature: :class:`ActuatorArrays` holds the geometry,
+  :func:`actuation_pass` the compiled sum. Tendons of the point-moment model
+  (slides part C, model (b)) are follower point moments at their
+  termination instead.
+"""
+
+from collections import namedtuple
+
+import numpy as np
+
+from .kernels.data import LoadArrays
+from .kernels.spatial import _jit
+from .loads import Loads, actuator_point_loads
+
+ActuatorArrays = namedtuple("ActuatorArrays", [
+    "joint",      # (P,) soft joint of each tendon quadrature point
+    "d", "dd",    # (P, 3) offset d(s) and d'(s) in the cross-section frame [m, -]
+    "unit",       # (P, n_actuators): coefficient per unit input (-c w: m per N or m^3 per Pa... see module)
+])
+
+
+def _gauss_on_path(model, path, start, end):
+    """(joint, x, s, w) Gauss points of each section of ``path`` over its
+    overlap with [start, end] (the section's own point count)."""
+    js, xs, ss, ws = [], [], [], []
+    for k, j in enumerate(path.joints):
+        a = max(path.s_starts[k], start)
+        b = min(path.s_starts[k] + path.lengths[k], end)
+        if b <= a:
+            continue
+        xg, wg = np.polynomial.legendre.leggauss(model.joints[j].section.quadrature_points)
+        s = 0.5 * (a + b) + 0.5 * (b - a) * xg
+        js += [j] * len(xg)
+        xs.append(s - path.s_starts[k])
+        ss.append(s)
+        ws.append(0.5 * (b - a) * wg)
+    if not js:
+        return np.zeros(0, np.int64), np.zeros(0), np.zeros(0), np.zeros(0)
+    return np.array(js, np.int64), np.concatenate(xs), np.concatenate(ss), np.concatenate(ws)
+
+
+def actuator_arrays(model):
+    """Quadrature geometry of the model's distributed actuators (tendon model
+    "distributed") on their path."""
+    path = model.paths[model.actuator_path] if model.paths else None
+    J, D, DD, U = [], [], [], []
+    na = len(model.actuators)
+    for k, a in enumerate(model.actuators):
+        if a.tendon_model == "point_moment":
+            continue
+        j, _, s, w = _gauss_on_path(model, path, a.start, a.end)
+        d, dd = a.offset_at(s)
+        unit = np.zeros((len(s), na))
+        unit[:, k] = -a.force_per_unit_input * w
+        J.append(j)
+        D.append(d)
+        DD.append(dd)
+        U.append(unit)
+    if not J:
+        return ActuatorArrays(np.zeros(0, np.int64), np.zeros((0, 3)), np.zeros((0, 3)), np.zeros((0, na)))
+    return ActuatorArrays(np.concatenate(J), np.ascontiguousarray(np.concatenate(D)),
+                          np.ascontiguousarray(np.concatenate(DD)), np.ascontiguousarray(np.concatenate(U)))
+
+
+def load_arrays(model, loads=None, u=None, path_name=None):
+    """LoadArrays of ``loads`` (on the path ``path_name``, default the first)
+    plus the follower moments of point-moment tendons at inputs u."""
+    loads = Loads() if loads is None else loads
+    path = model.path(path_name) if path_name else (model.paths[0] if model.paths else None)
+    J, X, W, F = [], [], [], []
+    for d in loads.distributed:
+        j, x, _, w = _gauss_on_path(model, path, d.start, d.end)
+        J.append(j)
+        X.append(x)
+        W.append(w[:, None] * np.asarray(d.wrench, float)[None, :])
+        F.append(np.full(len(j), d.frame == "world"))
+    points = tuple(loads.point) + (actuator_point_loads(model, u) if u is not None and model.actuators else ())
+    if points:
+        s = np.clip(np.array([p.s for p in points], float), 0.0, path.length)
+        j, x = path.locate(s)
+        J.append(j)
+        X.append(x)
+        W.append(np.array([p.wrench for p in points], float).reshape(-1, 6))
+        F.append(np.array([p.frame == "world" for p in points]))
+    if not J:
+        return LoadArrays(np.zeros(0, np.int64), np.zeros(0), np.zeros((0, 6)), np.zeros(0, np.bool_))
+    return LoadArrays(np.concatenate(J).astype(np.int64), np.ascontiguousarray(np.concatenate(X)),
+                      np.ascontiguousarray(np.concatenate(W)), np.concatenate(F).astype(np.bool_))
+
+
+def gravity_of(model, loads=None):
+    """Gravity vector [m/s^2] (world) the loads switch on or scale."""
+    grav = True if loads is None else loads.gravity
+    scale = (1.0 if grav else 0.0) if isinstance(grav, bool) else float(grav)
+    return scale * np.asarray(model.gravity, dtype=float)
+
+
+@_jit
+def actuation_pass(m, w, act, coef, out):
+    """out += tau_act: the joint-space forces of the distributed actuators,
+    coef[p] = sum_k unit[p, k] u_k, at the strains of the last forward pass."""
+    for p in range(act.joint.shape[0]):
+        c = coef[p]
+        if c == 0.0:
+            continue
+        i = act.joint[p]
+        d = act.d[p]
+        xi = w.strain[i]
+        t0 = xi[0] + xi[4] * d[2] - xi[5] * d[1] + act.dd[p, 0]
+        t1 = xi[1] + xi[5] * d[0] - xi[3] * d[2] + act.dd[p, 1]
+        t2 = xi[2] + xi[3] * d[1] - xi[4] * d[0] + act.dd[p, 2]
+        nt = np.sqrt(t0 * t0 + t1 * t1 + t2 * t2)
+        t0, t1, t2 = t0 / nt, t1 / nt, t2 / nt
+        wr = (c * t0, c * t1, c * t2, c * (d[1] * t2 - d[2] * t1), c * (d[2] * t0 - d[0] * t2),
+              c * (d[0] * t1 - d[1] * t0))
+        iv = m.iv[i]
+        for a in range(m.nv[i]):
+            out[iv + a] += wr[m.modes[i, a]]

@@ -1,0 +1,240 @@
+"""Time integration of the multibody engine: the implicit theta-method.
+
+One step of size h solves, for the velocity v1 at t + h,
+
+    R(v1) = ID(q_t, v_t, (v1 - v0)/h) + K (q_t - q0) + D v_t - tau_act(q_t, u) - effort = 0,
+    v_t = (1 - theta) v0 + theta v1,   q_t = q0 (+) theta h v_t,   q1 = q0 (+) h v_t
+
+(ID: inverse dynamics by RNEA with gravity and the external loads; (+):
+integration on each joint's group). theta = 1/2 is the implicit midpoint
+rule (second order, no numerical damping), theta = 1 implicit Euler
+(first order, L-stable). Newton's matrix ``h dR/dv1`` is
+``M + theta h D + (theta h)^2 K`` plus the geometric terms of the loads
+and the velocity products; the iteration uses the first part, whose
+articulated-body factorisation costs O(n) and whose solve is O(n)
+(:func:`kernels.passes.aba_factor`): the stiff part of the problem
+(elasticity, damping, inertia) is exact, the rest converges linearly at a
+rate O((h omega)^2) for the soft geometric modes. The factorisation is kept
+across iterations and steps while the iteration converges fast and redone
+when it slows; a step that still fails is split into halves.
+
+The whole Newton loop of a step runs compiled (one call per step).
+"""
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from .forces import actuation_pass
+from .kernels import passes
+from .kernels.spatial import _exp_into, _jit
+from .multibody import FREE, SPHERICAL
+
+SOFT_, FREE_, SPHERICAL_ = 5, 4, 3
+
+
+@_jit
+def _quat_mul_into(a, b, out):
+    ax, ay, az, aw = a[0], a[1], a[2], a[3]
+    bx, by, bz, bw = b[0], b[1], b[2], b[3]
+    out[0] = aw * bx + ax * bw + ay * bz - az * by
+    out[1] = aw * by - ax * bz + ay * bw + az * bx
+    out[2] = aw * bz + ax * by - ay * bx + az * bw
+    out[3] = aw * bw - ax * bx - ay * by - az * bz
+
+
+@_jit
+def integrate_pass(m, q, v, h, out):
+    """out = q (+) h v on each joint's group (quaternion exponential of the
+    body angular velocity for spherical joints, SE(3) exponential of the
+    body twist for free joints, addition otherwise)."""
+    n = m.parent.shape[0]
+    for k in range(q.shape[0]):
+        out[k] = q[k]
+    dq = np.empty(4)
+    tmp = np.empty(4)
+    x6 = np.zeros(6)
+    E = np.empty((4, 4))
+    for i in range(n):
+        iq, iv, kind = m.iq[i], m.iv[i], m.kind[i]
+        if kind == SPHERICAL_ or kind == FREE_:
+            o = 3 if kind == FREE_ else 0
+            wv = 3 if kind == FREE_ else 0
+            w0, w1, w2 = h * v[iv + wv], h * v[iv + wv + 1], h * v[iv + wv + 2]
+            t = np.sqrt(w0 * w0 + w1 * w1 + w2 * w2)
+            s = 0.5 - t * t / 48.0 if t < 1e-6 else np.sin(0.5 * t) / t
+            dq[0], dq[1], dq[2], dq[3] = s * w0, s * w1, s * w2, np.cos(0.5 * t)
+            if kind == FREE_:
+                # translation: p + R (T_so3(w)^T h v_lin), from exp_se3 of the body twist
+                for a in range(6):
+                    x6[a] = h * v[iv + a]
+                _exp_into(x6, E)
+                qx, qy, qz, qw = q[iq + 3], q[iq + 4], q[iq + 5], q[iq + 6]
+                R = np.empty((3, 3))
+                R[0, 0] = 1 - 2 * (qy * qy + qz * qz)
+                R[0, 1] = 2 * (qx * qy - qz * qw)
+                R[0, 2] = 2 * (qx * qz + qy * qw)
+                R[1, 0] = 2 * (qx * qy + qz * qw)
+                R[1, 1] = 1 - 2 * (qx * qx + qz * qz)
+                R[1, 2] = 2 * (qy * qz - qx * qw)
+                R[2, 0] = 2 * (qx * qz - qy * qw)
+                R[2, 1] = 2 * (qy * qz + qx * qw)
+                R[2, 2] = 1 - 2 * (qx * qx + qy * qy)
+                for a in range(3):
+                    out[iq + a] = q[iq + a] + R[a, 0] * E[0, 3] + R[a, 1] * E[1, 3] + R[a, 2] * E[2, 3]
+            _quat_mul_into(q[iq + o:iq + o + 4], dq, tmp)
+            nrm = np.sqrt(tmp[0] ** 2 + tmp[1] ** 2 + tmp[2] ** 2 + tmp[3] ** 2)
+            for a in range(4):
+                out[iq + o + a] = tmp[a] / nrm
+        else:
+            for a in range(m.nv[i]):
+                out[iq + a] = q[iq + a] + h * v[iv + a]
+
+
+@_jit
+def residual_pass(m, w, act, ld, g, coef, effort, q, v, a, out):
+    """out = ID(q, v, a) + K (q - q0) + D v - tau_act - effort."""
+    passes.forward_pass(m, w, q, v, a, 2)
+    passes.rnea_pass(m, w, ld, g, out)
+    passes.joint_forces(m, q, v, out)
+    for k in range(out.shape[0]):
+        out[k] = -out[k]
+    actuation_pass(m, w, act, coef, out)
+    for k in range(out.shape[0]):
+        out[k] = -out[k] - effort[k]
+
+
+@_jit
+def newton_step(m, w, act, ld, g, coef, effort, q0, v0, v1, h, theta, tol, floor, max_it, refactor, q1):
+    """Newton iteration of one theta-method step from (q0, v0), starting at
+    the guess v1 (updated in place); q1 receives q0 (+) h v_t. Returns
+    (iterations, status, rate, refactored): status 0 converged, 1 not in
+    max_it, 2 diverging, 3 non-finite, 4 factorisation failed."""
+    nv = v0.shape[0]
+    vt = np.empty(nv)
+    qt = np.empty(q0.shape[0])
+    acc = np.empty(nv)
+    R = np.empty(nv)
+    dv = np.empty(nv)
+    prev = -1.0
+    rate = 0.0
+    th = theta * h
+    for it in range(1, max_it + 1):
+        for k in range(nv):
+            vt[k] = (1.0 - theta) * v0[k] + theta * v1[k]
+            acc[k] = (v1[k] - v0[k]) / h
+        integrate_pass(m, q0, vt, th, qt)
+        if refactor and it == 1:
+            passes.forward_pass(m, w, qt, vt, acc, 0)
+            if not passes.aba_factor(m, w, th, th * th):
+                return it, 4, rate, True
+        residual_pass(m, w, act, ld, g, coef, effort, qt, vt, acc, R)
+        for k in range(nv):
+            R[k] = -h * R[k]
+        passes.aba_solve(m, w, R, dv)
+        upd = 0.0
+        vmax = 0.0
+        for k in range(nv):
+            v1[k] += dv[k]
+            upd = max(upd, abs(dv[k]))
+            vmax = max(vmax, abs(v1[k]), abs(v0[k]))
+        if not np.isfinite(upd):
+            return it, 3, rate, refactor
+        goal = max(tol * vmax, floor)
+        done = upd <= goal
+        if not done and prev > 0.0:
+            r_k = upd / prev
+            # Hairer-Wanner stopping rule: remaining error ~ r/(1 - r) * update
+            if r_k < 0.5 and r_k / (1.0 - r_k) * upd <= goal:
+                done = True
+            elif upd > 100.0 * goal:
+                rate = max(rate, r_k)
+                if rate > 0.9:
+                    return it, 2, rate, refactor
+        if done:
+            for k in range(nv):
+                vt[k] = (1.0 - theta) * v0[k] + theta * v1[k]
+            integrate_pass(m, q0, vt, h, q1)
+            return it, 0, rate, refactor
+        prev = upd
+    return max_it, 1, rate, refactor
+
+
+@dataclass
+class StepInfo:
+    """Newton iterations of the last step (all sub-steps) and whether it converged."""
+    iterations: int
+    converged: bool
+    update: float
+
+
+class ThetaIntegrator:
+    """Fixed-step theta-method on a multibody model and its workspace.
+
+    ``inputs(t)`` returns ``(loads, gravity, coef, effort)``: LoadArrays, the
+    gravity vector, the actuator coefficients ``act.unit @ u`` and the
+    generalised effort (nv,) of actuated joints, at time t. The state (q, v,
+    t) is plain and owned by the caller's ``state`` object (attributes q,
+    qdot, t), updated only by converged steps.
+    """
+
+    def __init__(self, model, ws, act, inputs, dt, theta=0.5, tol=1e-9, max_iterations=10,
+                 max_substep_levels=4):
+        self.model, self.ws, self.act, self.inputs = model, ws, act, inputs
+        self.dt = float(dt)
+        self.theta = float(theta)
+        self.tol = float(tol)
+        self.max_iterations = int(max_iterations)
+        self.max_substep_levels = int(max_substep_levels)
+        self.last_a = np.zeros(model.nv)
+        self._prev_a = None
+        self._factor_h = None         # step size of the current factorisation (None: refactor)
+        self.factorisations = 0
+
+    def _newton(self, q0, v0, t, h):
+        loads, g, coef, effort = self.inputs(t + self.theta * h)
+        a_pred = self.last_a
+        if self._prev_a is not None and h == self.dt:
+            a_pred = 2.0 * self.last_a - self._prev_a          # linear extrapolation
+        v1 = v0 + h * (a_pred if np.all(np.isfinite(a_pred)) else 0.0)
+        q1 = np.empty_like(q0)
+        floor = 1e-14 * max(1.0, np.abs(q0).max(initial=0.0)) / h
+        refactor = self._factor_h != h
+        m, w = self.ws.arrays, self.ws.work
+        it, status, rate, refactored = newton_step(m, w, self.act, loads, g, coef, effort, q0, v0, v1, h,
+                                                   self.theta, self.tol, floor, self.max_iterations, refactor, q1)
+        if refactored:
+            self.factorisations += 1
+            self._factor_h = h if status != 4 else None
+        if status != 0 and not refactored:
+            # stale factorisation: redo it at this step and retry once
+            self._factor_h = None
+            return self._newton(q0, v0, t, h)
+        if status == 0 and rate > 0.1:
+            self._factor_h = None              # slow: refresh at the next step
+        return (q1, v1, it) if status == 0 else None
+
+    def _advance(self, q0, v0, t, h, level):
+        out = self._newton(q0, v0, t, h)
+        if out is not None:
+            return out
+        if level >= self.max_substep_levels:
+            return None
+        half = self._advance(q0, v0, t, 0.5 * h, level + 1)
+        if half is None:
+            return None
+        rest = self._advance(half[0], half[1], t + 0.5 * h, 0.5 * h, level + 1)
+        if rest is None:
+            return None
+        return rest[0], rest[1], half[2] + rest[2]
+
+    def step(self, state):
+        """One step of dt from ``state`` (updated in place when it converges)."""
+        out = self._advance(state.q, state.qdot, state.t, self.dt, 0)
+        if out is None:
+            return StepInfo(self.max_iterations, False, np.inf)
+        q1, v1, it = out
+        self._prev_a = self.last_a
+        self.last_a = (v1 - state.qdot) / self.dt
+        state.q, state.qdot, state.t = q1, v1, state.t + self.dt
+        return StepInfo(it, True, 0.0)
