@@ -182,7 +182,6 @@ class Simulator:
         from .forces import actuator_arrays
         from .integrators import ThetaIntegrator
         from .model import State
-        from .multibody import from_robot_model
         from .workspace import Workspace
         if isinstance(dt, bool) or not isinstance(dt, (int, float)) or not np.isfinite(dt) or dt <= 0:
             raise ValueError(f"dt: expected a positive time step in s, got {dt!r}")
@@ -194,7 +193,7 @@ class Simulator:
         self.state = State.rest(model) if state is None else state.copy()
         self.set_actuation(actuation)
         self.set_loads(loads)
-        self.tree = from_robot_model(model)
+        self.tree = model.tree
         self.workspace = Workspace(self.tree)
         self._act = actuator_arrays(self.tree)
         self._effort = np.zeros(self.tree.nv)

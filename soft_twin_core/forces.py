@@ -130,3 +130,52 @@ def actuation_pass(m, w, act, coef, out):
         iv = m.iv[i]
         for a in range(m.nv[i]):
             out[iv + a] += wr[m.modes[i, a]]
+
+
+@_jit
+def actuation_tangent_pass(m, w, act, coef, Kt):
+    """Kt -= d tau_act / dq (block diagonal: each section's own strains):
+    ``d[t; d x t]/df = [I; hat(d)] (I - t t^T)/|n| [I, -hat(d)]`` per point."""
+    blk = np.empty((6, 6))
+    for p in range(act.joint.shape[0]):
+        c = coef[p]
+        if c == 0.0:
+            continue
+        i = act.joint[p]
+        d = act.d[p]
+        xi = w.strain[i]
+        n0 = xi[0] + xi[4] * d[2] - xi[5] * d[1] + act.dd[p, 0]
+        n1 = xi[1] + xi[5] * d[0] - xi[3] * d[2] + act.dd[p, 1]
+        n2 = xi[2] + xi[3] * d[1] - xi[4] * d[0] + act.dd[p, 2]
+        nn = np.sqrt(n0 * n0 + n1 * n1 + n2 * n2)
+        t = (n0 / nn, n1 / nn, n2 / nn)
+        H = ((0.0, -d[2], d[1]), (d[2], 0.0, -d[0]), (-d[1], d[0], 0.0))
+        M3 = np.empty((3, 3))
+        for r in range(3):
+            for s in range(3):
+                M3[r, s] = ((1.0 if r == s else 0.0) - t[r] * t[s]) / nn
+        # blk = [I; H] M3 [I, -H]
+        MH = np.empty((3, 3))
+        HM = np.empty((3, 3))
+        for r in range(3):
+            for s in range(3):
+                acc1 = 0.0
+                acc2 = 0.0
+                for k in range(3):
+                    acc1 += M3[r, k] * H[k][s]
+                    acc2 += H[r][k] * M3[k, s]
+                MH[r, s] = acc1
+                HM[r, s] = acc2
+        for r in range(3):
+            for s in range(3):
+                acc = 0.0
+                for k in range(3):
+                    acc += H[r][k] * MH[k, s]
+                blk[r, s] = M3[r, s]
+                blk[r, 3 + s] = -MH[r, s]
+                blk[3 + r, s] = HM[r, s]
+                blk[3 + r, 3 + s] = -acc
+        iv = m.iv[i]
+        for a in range(m.nv[i]):
+            for b in range(m.nv[i]):
+                Kt[iv + a, iv + b] -= c * blk[m.modes[i, a], m.modes[i, b]]

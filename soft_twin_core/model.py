@@ -278,6 +278,17 @@ class RobotModel:
         return tuple(a.name for a in self.actuators)
 
     @property
+    def tree(self):
+        """The multibody model of this description (a chain of soft joints,
+        :func:`multibody.from_robot_model`), built once."""
+        t = self.__dict__.get("_tree")
+        if t is None:
+            from .multibody import from_robot_model
+            t = from_robot_model(self)
+            object.__setattr__(self, "_tree", t)
+        return t
+
+    @property
     def mass(self):
         return float(sum(sec.length * sec.M[0, 0] for sec in self.sections))
 

@@ -189,6 +189,16 @@ class Model:
     def n_joints(self):
         return len(self.joints)
 
+    @property
+    def arrays(self):
+        """The packed arrays of the compiled passes (:class:`kernels.data.ModelArrays`), built once."""
+        a = self.__dict__.get("_arrays")
+        if a is None:
+            from .kernels.data import pack_model
+            a = pack_model(self)
+            object.__setattr__(self, "_arrays", a)
+        return a
+
     def joint_index(self, name):
         for i, j in enumerate(self.joints):
             if j.name == name:

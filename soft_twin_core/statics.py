@@ -1,11 +1,11 @@
 """Static equilibrium of the PCS model (slides part B "Statics").
 
 Solves ``R(q) = K (q - q0) - Q_ext(q) - tau_act(q, u) = 0`` by Newton's
-method with a backtracking line search. The residual comes from the compiled
-kernel (:mod:`soft_twin_core._fast`) and the tangent dR/dq from its central
-differences (2 n_dof calls), checked in the tests against the exact
-complex-step tangent of the numpy reference (:func:`residual`,
-:func:`tangent`), which is also the fallback without numba. Equilibria with
+method with a backtracking line search. The residual is the multibody
+engine's inverse dynamics at rest and the tangent dR/dq its analytic
+derivative (one O(n^2) pass, :mod:`soft_twin_core.kernels.tangent`), both
+checked in the tests against the numpy reference (:func:`residual`) and its
+exact complex-step tangent (:func:`tangent`). Equilibria with
 an unstable tangent are rejected in favour of the loaded path from the start
 point (continuation in a load factor, also used when a full Newton solve
 fails); a previous solution warm-starts the next call.
@@ -74,39 +74,72 @@ def tangent(model, q, u, loads, h=1e-30):
     return (residual(model, qc, u, loads).imag / h).T
 
 
-def _fast_kernel(model):
-    try:
-        from . import _fast
-        return _fast.dynamics_terms if _fast.supports(model) else None
-    except ImportError:
-        return None
+class _Problem:
+    """The equilibrium problem of a robot description under inputs u and
+    loads, bound to the multibody engine and one workspace:
+    ``R(q) = K (q - q0) + tau_rnea(q; loads, gravity) - tau_act(q, u)``
+    (:func:`integrators.residual_pass` at rest) and its analytic tangent
+    (:func:`kernels.tangent.static_tangent_pass` plus the stiffness blocks
+    and the tendons' :func:`forces.actuation_tangent_pass`)."""
+
+    def __init__(self, model, u, loads):
+        from .forces import actuator_arrays, gravity_of, load_arrays
+        from .workspace import Workspace
+        tree = model.tree
+        self.tree, self.ws = tree, Workspace(tree)
+        self.act = _actuators(model)
+        self.loads = load_arrays(tree, loads, u)
+        self.g = gravity_of(tree, loads)
+        self.coef = np.ascontiguousarray(self.act.unit @ u) if u.size else np.zeros(len(self.act.joint))
+        self.zeros = np.zeros(tree.nv)
+        self.K = _stiffness_blocks(model)
+
+    def residual(self, q):
+        from .integrators import residual_pass
+        out = np.empty(self.tree.nv)
+        q = np.ascontiguousarray(q, dtype=float)
+        residual_pass(self.tree.arrays, self.ws.work, self.act, self.loads, self.g, self.coef, self.zeros,
+                      q, self.zeros, self.zeros, out)
+        return out
+
+    def tangent(self, q):
+        """dR/dq, analytic: one forward pass, one RNEA pass and one O(n^2)
+        tangent pass."""
+        from .forces import actuation_tangent_pass
+        from .kernels import passes
+        from .kernels.tangent import static_tangent_pass
+        m, w = self.tree.arrays, self.ws.work
+        q = np.ascontiguousarray(q, dtype=float)
+        passes.forward_pass(m, w, q, self.zeros, self.zeros, 0)
+        passes.rnea_pass(m, w, self.loads, self.g, np.empty(self.tree.nv))
+        Kt = self.K.copy()
+        static_tangent_pass(m, w, self.loads, self.g, Kt)
+        actuation_tangent_pass(m, w, self.act, self.coef, Kt)
+        return Kt
+
+
+def _actuators(model):
+    a = model.__dict__.get("_actuator_arrays")
+    if a is None:
+        from .forces import actuator_arrays
+        a = actuator_arrays(model.tree)
+        object.__setattr__(model, "_actuator_arrays", a)
+    return a
+
+
+def _stiffness_blocks(model):
+    return model.K_q
 
 
 def _residual_fast(model, q, u, loads):
-    kernel = _fast_kernel(model)
-    if kernel is None:
-        return residual(model, q, u, loads)
-    return -kernel(model, q, np.zeros_like(q), u, loads, need_mass=False)[1]
+    """R(q) on the compiled engine."""
+    return _Problem(model, np.asarray(u, dtype=float), loads).residual(q)
 
 
 def _fast_tangent(model, q, u, loads):
-    """dR/dq by central differences of the compiled residual (2 n_dof calls
-    of a few microseconds); agrees with the complex step to ~1e-9 relative
-    (tested). Falls back to the complex step without numba."""
-    kernel = _fast_kernel(model)
-    if kernel is None:
-        return tangent(model, q, u, loads)
-    n = model.n_dof
-    Kt = np.empty((n, n))
-    z = np.zeros(n)
-    for k in range(n):
-        h = 1e-6 * max(1.0, abs(q[k]))
-        e = np.zeros(n)
-        e[k] = h
-        fp = kernel(model, q + e, z, u, loads, need_mass=False)[1]
-        fm = kernel(model, q - e, z, u, loads, need_mass=False)[1]
-        Kt[:, k] = -(fp - fm) / (2 * h)
-    return Kt
+    """dR/dq, analytic on the compiled engine (checked in the tests against
+    the complex step of the numpy reference :func:`tangent`)."""
+    return _Problem(model, np.asarray(u, dtype=float), loads).tangent(q)
 
 
 @dataclass
@@ -160,11 +193,12 @@ def _converged(model, q, R, scale, tol):
     return bool(np.all(np.abs(R) <= tol * scale + _roundoff(model, q)))
 
 
-def _newton(model, q, u, loads, tol, max_iterations, Kt_hint=None):
-    """Newton with line search. With ``Kt_hint`` (a tangent from a nearby
-    state) the first steps reuse it (modified Newton) while each step cuts
-    the residual at least tenfold; then fresh tangents are computed."""
-    R = _residual_fast(model, q, u, loads)
+def _newton(model, pb, q, tol, max_iterations, Kt_hint=None):
+    """Newton with line search on the problem ``pb`` (:class:`_Problem`).
+    With ``Kt_hint`` (a tangent from a nearby state) the first steps reuse it
+    (modified Newton) while each step cuts the residual at least tenfold;
+    then fresh tangents are computed."""
+    R = pb.residual(q)
     scale = _scale(model, q, R)
     it = 0
     Kt = None
@@ -174,11 +208,11 @@ def _newton(model, q, u, loads, tol, max_iterations, Kt_hint=None):
             if Kt is not None:
                 # polish: one more step with the last tangent (one residual call)
                 q_p = q + np.linalg.solve(Kt, -R)
-                R_p = _residual_fast(model, q_p, u, loads)
+                R_p = pb.residual(q_p)
                 if np.all(np.isfinite(R_p)) and np.linalg.norm(R_p) < np.linalg.norm(R):
                     q, R = q_p, R_p
             return q, R, it - 1, True, Kt
-        Kt = Kt_hint if reuse else _fast_tangent(model, q, u, loads)
+        Kt = Kt_hint if reuse else pb.tangent(q)
         try:
             dq = np.linalg.solve(Kt, -R)
         except np.linalg.LinAlgError:
@@ -191,7 +225,7 @@ def _newton(model, q, u, loads, tol, max_iterations, Kt_hint=None):
         r0 = np.linalg.norm(R)
         for _ in range(20):
             q_try = q + step * dq
-            R_try = _residual_fast(model, q_try, u, loads)
+            R_try = pb.residual(q_try)
             if np.all(np.isfinite(R_try)) and np.linalg.norm(R_try) < (1 - 1e-4 * step) * r0:
                 break
             step *= 0.5
@@ -225,7 +259,8 @@ def solve_statics(model, actuation=None, loads=None, q_init=None, *, tol=1e-10,
     u = actuation_vector(model, actuation)
     q = model.q0.copy() if q_init is None else model.check_q(np.array(q_init, dtype=float), "q_init").copy()
     total_it = 0
-    q1, R, it, ok, Kt = _newton(model, q, u, loads, tol, max_iterations, tangent_hint)
+    pb = _Problem(model, u, loads)
+    q1, R, it, ok, Kt = _newton(model, pb, q, tol, max_iterations, tangent_hint)
     total_it += it
     steps = 1
     fallback = None           # a converged but unstable equilibrium
@@ -233,7 +268,7 @@ def solve_statics(model, actuation=None, loads=None, q_init=None, *, tol=1e-10,
         Kt = None             # judge stability (and hand on) a tangent of this state, not the hint
     if ok and check_stability:
         if Kt is None:
-            Kt = _fast_tangent(model, q1, u, loads)
+            Kt = pb.tangent(q1)
         if not is_stable(model, q1, u, loads, Kt):
             ok, fallback = False, (q1, R)
     if not ok:
@@ -242,7 +277,8 @@ def solve_statics(model, actuation=None, loads=None, q_init=None, *, tol=1e-10,
         q_c = q.copy()
         while lam < 1.0:
             target = min(1.0, lam + dlam)
-            q_try, R, it, ok, Kt = _newton(model, q_c, target * u, loads.scaled(target), tol, max_iterations)
+            q_try, R, it, ok, Kt = _newton(model, _Problem(model, target * u, loads.scaled(target)), q_c, tol,
+                                           max_iterations)
             total_it += it
             steps += 1
             if ok and check_stability and not is_stable(model, q_try, target * u, loads.scaled(target), Kt):
@@ -262,7 +298,7 @@ def solve_statics(model, actuation=None, loads=None, q_init=None, *, tol=1e-10,
                                        f"the load or actuation may exceed what the model can carry, "
                                        f"or the rod buckles (try a different q_init)")
         q1 = q_c
-        R = _residual_fast(model, q1, u, loads)
+        R = pb.residual(q1)
     res = _result(model, q1, u, loads, total_it, R, steps)
     res.tangent = Kt
     return res

@@ -10,7 +10,7 @@ of it: copy a result you keep across calls.
 
 import numpy as np
 
-from .kernels.data import make_work, pack_model
+from .kernels.data import make_work
 
 
 class Workspace:
@@ -19,7 +19,7 @@ class Workspace:
 
     def __init__(self, model):
         self.model = model
-        self.arrays = pack_model(model)
+        self.arrays = model.arrays
         self.work = make_work(self.arrays)
         self.tau = np.zeros(model.nv)
         self.M = np.zeros((model.nv, model.nv))
