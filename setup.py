@@ -30,6 +30,7 @@ setup(
         "scipy>=1.10",
         "PyYAML>=6.0",
         "numba>=0.59",
+        "threadpoolctl>=3.1",
     ],
     entry_points={
         "console_scripts": [

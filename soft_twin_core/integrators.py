@@ -92,10 +92,11 @@ def integrate_pass(m, q, v, h, out):
 
 
 @_jit
-def residual_pass(m, w, act, ld, g, coef, effort, q, v, a, out):
-    """out = ID(q, v, a) + K (q - q0) + D v - tau_act - effort."""
-    passes.forward_pass(m, w, q, v, a, 2)
-    passes.rnea_pass(m, w, ld, g, out)
+def residual_pass(m, w, act, ld, g, coef, effort, q, v, a, out, at_rest=False):
+    """out = ID(q, v, a) + K (q - q0) + D v - tau_act - effort (``at_rest``:
+    v = a = 0, only the poses are computed)."""
+    passes.forward_pass(m, w, q, v, a, 0 if at_rest else 2)
+    passes.rnea_pass(m, w, ld, g, out, at_rest)
     passes.joint_forces(m, q, v, out)
     for k in range(out.shape[0]):
         out[k] = -out[k]

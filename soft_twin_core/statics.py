@@ -16,6 +16,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from . import kinematics as kin
+from ._blas import one_blas_thread
 from . import lie
 from .loads import (Loads, actuation_force, actuator_point_loads, generalized_external_force, load_points,
                     validate_loads)
@@ -99,8 +100,24 @@ class _Problem:
         out = np.empty(self.tree.nv)
         q = np.ascontiguousarray(q, dtype=float)
         residual_pass(self.tree.arrays, self.ws.work, self.act, self.loads, self.g, self.coef, self.zeros,
-                      q, self.zeros, self.zeros, out)
+                      q, self.zeros, self.zeros, out, True)
         return out
+
+    def result(self, model, q, iterations, R, steps):
+        """StaticsResult at the solution q: the tip pose and the support's
+        reaction (the wrench the root joint transmits, from the RNEA at rest:
+        tendons are internal) from the engine."""
+        self.residual(q)
+        w = self.ws.work
+        g_base = w.g_in[0]
+        f_in = w.f_in[0]
+        R_base = g_base[:3, :3]
+        base = np.concatenate([R_base @ f_in[:3], R_base @ f_in[3:]])
+        scale = _scale(model, q, R)
+        return StaticsResult(
+            q=q, strains=model.strains(q), tip_pose=w.g_out[self.tree.n_joints - 1].copy(),
+            base_wrench_world=base, iterations=iterations, residual=float(np.abs(R).max() / scale),
+            residual_abs=float(np.abs(R).max()), converged=True, load_steps=steps)
 
     def tangent(self, q):
         """dR/dq, analytic: one forward pass, one RNEA pass and one O(n^2)
@@ -179,6 +196,14 @@ def is_stable(model, q, u, loads, Kt=None):
     a tangent already at hand (Newton's last one, evaluated next to q)."""
     if Kt is None:
         Kt = _fast_tangent(model, q, u, loads)
+    scale = np.abs(Kt).max()
+    if np.abs(Kt - Kt.T).max() <= 1e-10 * scale:
+        # conservative loads: a symmetric tangent, stable iff positive definite
+        try:
+            np.linalg.cholesky(Kt + 1e-9 * scale * np.eye(len(Kt)))
+            return True
+        except np.linalg.LinAlgError:
+            return False
     ev = np.linalg.eigvals(Kt)
     return bool(np.all(ev.real > -1e-9 * np.abs(ev).max()))
 
@@ -258,6 +283,11 @@ def solve_statics(model, actuation=None, loads=None, q_init=None, *, tol=1e-10,
     validate_loads(model, loads)
     u = actuation_vector(model, actuation)
     q = model.q0.copy() if q_init is None else model.check_q(np.array(q_init, dtype=float), "q_init").copy()
+    with one_blas_thread():
+        return _solve(model, u, loads, q, tol, max_iterations, max_load_steps, check_stability, tangent_hint)
+
+
+def _solve(model, u, loads, q, tol, max_iterations, max_load_steps, check_stability, tangent_hint):
     total_it = 0
     pb = _Problem(model, u, loads)
     q1, R, it, ok, Kt = _newton(model, pb, q, tol, max_iterations, tangent_hint)
@@ -291,7 +321,7 @@ def solve_statics(model, actuation=None, loads=None, q_init=None, *, tol=1e-10,
                 if dlam < 1.0 / max_load_steps / 64 or steps > 4 * max_load_steps:
                     if fallback is not None:
                         # no stable path: report the equilibrium Newton found, flagged
-                        res = _result(model, fallback[0], u, loads, total_it, fallback[1], steps)
+                        res = pb.result(model, fallback[0], total_it, fallback[1], steps)
                         res.stable = False
                         return res
                     raise StaticsError(f"statics did not converge: reached load fraction {lam:.4f}; "
@@ -299,20 +329,9 @@ def solve_statics(model, actuation=None, loads=None, q_init=None, *, tol=1e-10,
                                        f"or the rod buckles (try a different q_init)")
         q1 = q_c
         R = pb.residual(q1)
-    res = _result(model, q1, u, loads, total_it, R, steps)
+    res = pb.result(model, q1, total_it, R, steps)
     res.tangent = Kt
     return res
-
-
-def _result(model, q, u, loads, iterations, R, steps):
-    ch = kin.chain(model, q)
-    _, F_total = generalized_external_force(model, ch, loads)
-    scale = _scale(model, q, R)
-    return StaticsResult(
-        q=q, strains=ch.strains, tip_pose=ch.g_tip,
-        base_wrench_world=base_reaction(model, F_total),
-        iterations=iterations, residual=float(np.abs(R).max() / scale),
-        residual_abs=float(np.abs(R).max()), converged=True, load_steps=steps)
 
 
 def base_reaction(model, F_total_origin):

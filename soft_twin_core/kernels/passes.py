@@ -296,11 +296,13 @@ def _load_wrench(m, w, ld, l, T, S3, Wb, pose):
 
 
 @_jit
-def rnea_pass(m, w, ld, g, tau):
-    """Inverse dynamics after :func:`forward_pass` (level 2): tau = M a + C v
-    + g(q) - J^T F_ext (no stiffness, damping or actuation: see
-    :func:`joint_forces`). Fills w.f (output frames) and w.f_in (input
-    frames): the wrench the parent side exerts on the subtree."""
+def rnea_pass(m, w, ld, g, tau, at_rest=False):
+    """Inverse dynamics after :func:`forward_pass` (level 2; level 0 with
+    ``at_rest``: v = a = 0): tau = M a + C v + g(q) - J^T F_ext (no
+    stiffness, damping or actuation: see :func:`joint_forces`). Fills w.f
+    (output frames) and w.f_in (input frames): the wrench the parent side
+    exerts on the subtree."""
+    z6 = np.zeros(6)
     n = m.parent.shape[0]
     t1, t2, t3, Wb = w.vscratch[8], w.vscratch[9], w.vscratch[10], w.vscratch[11]
     T = w.scratch[0]
@@ -337,7 +339,8 @@ def rnea_pass(m, w, ld, g, tau):
                 w.f[i, b] -= Wb[b]
     for i in range(n - 1, -1, -1):
         if m.rigid_mass[i]:
-            _inertial_wrench(m.inertia[i], m.mc[i], False, w.A[i], w.V[i], w.g_out[i], g, 1.0, t1, t2, t3)
+            _inertial_wrench(m.inertia[i], m.mc[i], False, z6 if at_rest else w.A[i], z6 if at_rest else w.V[i],
+                             w.g_out[i], g, 1.0, t1, t2, t3)
             for b in range(6):
                 w.f[i, b] += t1[b]
         nv, iv = m.nv[i], m.iv[i]
@@ -359,8 +362,8 @@ def rnea_pass(m, w, ld, g, tau):
                             acc += w.g_in[i, r, k] * w.gp[i, p, k, c]
                         R[r, c] = acc
                 fp = w.fp[i, p]
-                _inertial_wrench(m.inertia[i], m.mc[i], True, w.Ap[i, p], w.Vp[i, p], R, g, m.pw[i, p],
-                                 fp, t2, t3)
+                _inertial_wrench(m.inertia[i], m.mc[i], True, z6 if at_rest else w.Ap[i, p],
+                                 z6 if at_rest else w.Vp[i, p], R, g, m.pw[i, p], fp, t2, t3)
                 for a in range(nv):
                     acc = 0.0
                     for r in range(6):
