@@ -28,7 +28,7 @@ def forward_kinematics(model, ws, q, v=None, a=None):
     accelerations ``ws.work.A``) of the output frames."""
     level = 0 if v is None else (1 if a is None else 2)
     q, v, a = _enter(model, ws, q, v, a)
-    passes.forward_pass(ws.arrays, ws.work, q, v, a, level)
+    passes.forward_pass(ws.m, ws.w, q, v, a, level)
     ws.level = level
     return ws.work.g_in, ws.work.g_out
 
@@ -42,20 +42,20 @@ def rnea(model, ws, q, v, a, loads=None, gravity=None, elastic=True):
     one at its output frame."""
     q, v, a = _enter(model, ws, q, v, a)
     g = model.gravity if gravity is None else np.asarray(gravity, dtype=float)
-    passes.forward_pass(ws.arrays, ws.work, q, v, a, 2)
+    passes.forward_pass(ws.m, ws.w, q, v, a, 2)
     ws.level = 2
-    passes.rnea_pass(ws.arrays, ws.work, _NO_LOADS if loads is None else loads, g, ws.tau)
+    passes.rnea_pass(ws.m, ws.w, _NO_LOADS if loads is None else loads, g, ws.tau, False)
     if elastic:
-        passes.joint_forces(ws.arrays, q, v, ws.tau)
+        passes.joint_forces(ws.m, q, v, ws.tau)
     return ws.tau
 
 
 def crba(model, ws, q):
     """Joint-space mass matrix M(q) (nv, nv), composite rigid body algorithm."""
     q, _, _ = _enter(model, ws, q)
-    passes.forward_pass(ws.arrays, ws.work, q, ws.zeros_v, ws.zeros_v, 0)
+    passes.forward_pass(ws.m, ws.w, q, ws.zeros_v, ws.zeros_v, 0)
     ws.level = 0
-    passes.crba_pass(ws.arrays, ws.work, ws.M)
+    passes.crba_pass(ws.m, ws.w, ws.M)
     return ws.M
 
 
@@ -64,9 +64,9 @@ def factor(model, ws, q, c_damping=0.0, c_stiffness=0.0):
     (D, K: the joint-space damping and stiffness blocks) in O(n); solve with
     :func:`solve`. Raises ValueError if a block is not positive definite."""
     q, _, _ = _enter(model, ws, q)
-    passes.forward_pass(ws.arrays, ws.work, q, ws.zeros_v, ws.zeros_v, 0)
+    passes.forward_pass(ws.m, ws.w, q, ws.zeros_v, ws.zeros_v, 0)
     ws.level = 0
-    if not passes.aba_factor(ws.arrays, ws.work, float(c_damping), float(c_stiffness)):
+    if not passes.aba_factor(ws.m, ws.w, float(c_damping), float(c_stiffness)):
         raise ValueError("factor: a joint block of the mass matrix is not positive definite "
                          "(a massless moving joint?)")
 
@@ -75,7 +75,7 @@ def solve(model, ws, rhs, out=None):
     """x = (M + cD D + cK K)^-1 rhs with the last :func:`factor`, O(n)."""
     rhs = np.ascontiguousarray(model.check_v(rhs, "rhs"), dtype=float)
     out = np.empty(model.nv) if out is None else out
-    passes.aba_solve(ws.arrays, ws.work, rhs, out)
+    passes.aba_solve(ws.m, ws.w, rhs, out)
     return out
 
 

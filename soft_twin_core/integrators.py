@@ -92,7 +92,7 @@ def integrate_pass(m, q, v, h, out):
 
 
 @_jit
-def residual_pass(m, w, act, ld, g, coef, effort, q, v, a, out, at_rest=False):
+def residual_pass(m, w, act, ld, g, coef, effort, q, v, a, out, at_rest):
     """out = ID(q, v, a) + K (q - q0) + D v - tau_act - effort (``at_rest``:
     v = a = 0, only the poses are computed)."""
     passes.forward_pass(m, w, q, v, a, 0 if at_rest else 2)
@@ -129,7 +129,7 @@ def newton_step(m, w, act, ld, g, coef, effort, q0, v0, v1, h, theta, tol, floor
             passes.forward_pass(m, w, qt, vt, acc, 0)
             if not passes.aba_factor(m, w, th, th * th):
                 return it, 4, rate, True
-        residual_pass(m, w, act, ld, g, coef, effort, qt, vt, acc, R)
+        residual_pass(m, w, act, ld, g, coef, effort, qt, vt, acc, R, False)
         for k in range(nv):
             R[k] = -h * R[k]
         passes.aba_solve(m, w, R, dv)
@@ -201,7 +201,7 @@ class ThetaIntegrator:
         q1 = np.empty_like(q0)
         floor = 1e-14 * max(1.0, np.abs(q0).max(initial=0.0)) / h
         refactor = self._factor_h != h
-        m, w = self.ws.arrays, self.ws.work
+        m, w = self.ws.m, self.ws.w
         it, status, rate, refactored = newton_step(m, w, self.act, loads, g, coef, effort, q0, v0, v1, h,
                                                    self.theta, self.tol, floor, self.max_iterations, refactor, q1)
         if refactored:

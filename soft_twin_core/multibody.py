@@ -199,6 +199,16 @@ class Model:
             object.__setattr__(self, "_arrays", a)
         return a
 
+    @property
+    def kernel_arrays(self):
+        """:attr:`arrays` as the compiled passes take them (a structref of the same arrays)."""
+        a = self.__dict__.get("_kernel_arrays")
+        if a is None:
+            from .kernels.data import kernel_struct
+            a = kernel_struct(self.arrays)
+            object.__setattr__(self, "_kernel_arrays", a)
+        return a
+
     def joint_index(self, name):
         for i, j in enumerate(self.joints):
             if j.name == name:

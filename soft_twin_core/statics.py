@@ -99,7 +99,7 @@ class _Problem:
         from .integrators import residual_pass
         out = np.empty(self.tree.nv)
         q = np.ascontiguousarray(q, dtype=float)
-        residual_pass(self.tree.arrays, self.ws.work, self.act, self.loads, self.g, self.coef, self.zeros,
+        residual_pass(self.ws.m, self.ws.w, self.act, self.loads, self.g, self.coef, self.zeros,
                       q, self.zeros, self.zeros, out, True)
         return out
 
@@ -125,10 +125,10 @@ class _Problem:
         from .forces import actuation_tangent_pass
         from .kernels import passes
         from .kernels.tangent import static_tangent_pass
-        m, w = self.tree.arrays, self.ws.work
+        m, w = self.ws.m, self.ws.w
         q = np.ascontiguousarray(q, dtype=float)
         passes.forward_pass(m, w, q, self.zeros, self.zeros, 0)
-        passes.rnea_pass(m, w, self.loads, self.g, np.empty(self.tree.nv))
+        passes.rnea_pass(m, w, self.loads, self.g, np.empty(self.tree.nv), True)
         Kt = self.K.copy()
         static_tangent_pass(m, w, self.loads, self.g, Kt)
         actuation_tangent_pass(m, w, self.act, self.coef, Kt)

@@ -10,17 +10,20 @@ of it: copy a result you keep across calls.
 
 import numpy as np
 
-from .kernels.data import make_work
+from .kernels.data import kernel_struct, make_work
 
 
 class Workspace:
-    """Packed model arrays (``arrays``), pass arrays (``work``) and result
-    buffers (``tau``, ``M``, ``a``) of one model."""
+    """Packed model arrays (``arrays``), pass arrays (``work``), their kernel
+    views (``m``, ``w``) and result buffers (``tau``, ``M``, ``a``) of one
+    model."""
 
     def __init__(self, model):
         self.model = model
         self.arrays = model.arrays
         self.work = make_work(self.arrays)
+        self.m = model.kernel_arrays          # the same arrays as structrefs, for the kernels
+        self.w = kernel_struct(self.work)
         self.tau = np.zeros(model.nv)
         self.M = np.zeros((model.nv, model.nv))
         self.a = np.zeros(model.nv)

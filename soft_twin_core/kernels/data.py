@@ -1,12 +1,21 @@
 """The two structured arguments of every compiled pass: the model's packed
 arrays (:class:`ModelArrays`, read-only) and the workspace's arrays
 (:class:`WorkArrays`, written by the passes), plus the per-call loads
-(:class:`LoadArrays`). Named tuples of arrays: numba compiles them as one
-argument each, and Python reads them by name."""
+(:class:`LoadArrays`).
+
+Python reads them as named tuples of arrays; the kernels receive the same
+arrays as a numba *structref* (:func:`kernel_struct`), passed by reference:
+a named tuple of ~50 arrays as an argument cost about a second of
+compilation per function taking it, a structref about a tenth of that. The
+structref's constructors below are compiled once and cached on disk.
+"""
 
 from collections import namedtuple
 
+import numba as nb
 import numpy as np
+from numba.core import types
+from numba.experimental import structref
 
 from ..lie import Ad, se3_inv
 from ..multibody import SOFT
@@ -116,3 +125,58 @@ def make_work(mo):
         gp=z((n, P, 4, 4)), Ad_p_inv=z((n, P, 6, 6)), Sp=z((n, P, 6, 6)), Vp=z((n, P, 6)), Ap=z((n, P, 6)),
         f=z((n, 6)), f_in=z((n, 6)), fp=z((n, P, 6)), IA=z((n, 6, 6)), pA=z((n, 6)), U=z((n, 6, 6)),
         Dinv=z((n, 6, 6)), Sf=z((n, 6, 6)), Xf=z((n, 6, 6)), u=z((n, 6)), As=z((n, 6)), scratch=z((16, 6, 6)), vscratch=z((16, 6)))
+
+
+# ----------------------------------------------------------------------------
+# structrefs for the kernels
+# ----------------------------------------------------------------------------
+
+@structref.register
+class ModelArraysType(types.StructRef):
+    def preprocess_fields(self, fields):
+        return tuple((n, types.unliteral(t)) for n, t in fields)
+
+
+@structref.register
+class WorkArraysType(types.StructRef):
+    def preprocess_fields(self, fields):
+        return tuple((n, types.unliteral(t)) for n, t in fields)
+
+
+class ModelArraysRef(structref.StructRefProxy):
+    """Kernel view of :class:`ModelArrays` (same arrays)."""
+
+
+class WorkArraysRef(structref.StructRefProxy):
+    """Kernel view of :class:`WorkArrays` (same arrays)."""
+
+
+structref.define_constructor(ModelArraysRef, ModelArraysType, list(ModelArrays._fields))
+structref.define_boxing(ModelArraysType, ModelArraysRef)
+structref.define_constructor(WorkArraysRef, WorkArraysType, list(WorkArrays._fields))
+structref.define_boxing(WorkArraysType, WorkArraysRef)
+
+
+@nb.njit(cache=True)
+def _make_model_ref(
+        parent, kind, placement, Ad_pl_inv, axis, iq, iv, nv, inertia, rigid_mass, length, f0,
+        kmap, modes, npt, px, pw, mc, Kb, Db, q0):
+    return ModelArraysRef(
+        parent, kind, placement, Ad_pl_inv, axis, iq, iv, nv, inertia, rigid_mass, length, f0,
+        kmap, modes, npt, px, pw, mc, Kb, Db, q0)
+
+
+@nb.njit(cache=True)
+def _make_work_ref(
+        Jq, g_in, g_out, Ad_J_inv, S, strain, strain_rate, V, A, Vin, Ain, gp, Ad_p_inv, Sp, Vp,
+        Ap, f, f_in, fp, IA, pA, U, Dinv, Sf, Xf, u, As, scratch, vscratch):
+    return WorkArraysRef(
+        Jq, g_in, g_out, Ad_J_inv, S, strain, strain_rate, V, A, Vin, Ain, gp, Ad_p_inv, Sp, Vp,
+        Ap, f, f_in, fp, IA, pA, U, Dinv, Sf, Xf, u, As, scratch, vscratch)
+
+
+def kernel_struct(arrays):
+    """The structref of a ModelArrays or WorkArrays named tuple."""
+    if isinstance(arrays, ModelArrays):
+        return _make_model_ref(*arrays)
+    return _make_work_ref(*arrays)

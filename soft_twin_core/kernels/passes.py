@@ -296,7 +296,7 @@ def _load_wrench(m, w, ld, l, T, S3, Wb, pose):
 
 
 @_jit
-def rnea_pass(m, w, ld, g, tau, at_rest=False):
+def rnea_pass(m, w, ld, g, tau, at_rest):
     """Inverse dynamics after :func:`forward_pass` (level 2; level 0 with
     ``at_rest``: v = a = 0): tau = M a + C v + g(q) - J^T F_ext (no
     stiffness, damping or actuation: see :func:`joint_forces`). Fills w.f
