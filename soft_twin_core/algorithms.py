@@ -94,3 +94,36 @@ def make_loads(model, joint, x, wrench, world):
     moment] in world axes (``world[k]``: a dead load) or body axes (follower)."""
     return LoadArrays(np.asarray(joint, np.int64).reshape(-1), np.asarray(x, float).reshape(-1),
                       np.asarray(wrench, float).reshape(-1, 6), np.asarray(world, np.bool_).reshape(-1))
+
+
+def point_poses(model, ws, q, joint, x):
+    """World poses (P, 4, 4) of points (joint[p], x[p]) (x: abscissa [m] in a
+    soft section; -1: the joint's output frame)."""
+    from .kernels.frames import point_poses as _poses
+    forward_kinematics(model, ws, q)
+    joint = np.ascontiguousarray(joint, dtype=np.int64).reshape(-1)
+    x = np.ascontiguousarray(x, dtype=float).reshape(-1)
+    out = np.empty((len(joint), 4, 4))
+    _poses(ws.m, ws.w, joint, x, out)
+    return out
+
+
+def point_jacobian(model, ws, q, joint, x=-1.0, frame="body"):
+    """(pose 4x4, Jacobian 6 x nv) of the point (joint, x): frame "body" (its
+    own axes), "world" (velocity of the point and angular velocity in world
+    axes) or "spatial" (twist through the world origin)."""
+    from .kernels.frames import spatial_jacobian
+    forward_kinematics(model, ws, q)
+    g = np.empty((4, 4))
+    Js = np.empty((6, model.nv))
+    spatial_jacobian(ws.m, ws.w, int(joint), float(x), g, Js)
+    if frame == "spatial":
+        return g, Js
+    from .lie import Ad_inv
+    J = Ad_inv(g) @ Js
+    if frame == "body":
+        return g, J
+    if frame == "world":
+        R = g[:3, :3]
+        return g, np.vstack([R @ J[:3], R @ J[3:]])
+    raise ValueError(f"frame: expected 'body', 'world' or 'spatial', got {frame!r}")

@@ -14,14 +14,15 @@ the body-frame Newton-Euler bias). D and K are the generalised damping and
 stiffness ``sum_i L_i B_i^T (D_i, K_i) B_i``; Q the external loads (gravity
 included) and tau the actuation of :mod:`soft_twin_core.loads`.
 
-These functions are the readable reference implementation; the time
-integrators use the compiled kernels of :mod:`soft_twin_core._fast` where
-available (same formulas, tested against these).
+These functions are the readable reference implementation of the chain;
+the time integrators run on the multibody engine (recursive compiled
+passes, tested against these and :mod:`soft_twin_core.reference`).
 """
 
 import numpy as np
 
 from . import kinematics as kin
+from .integrators import StepInfo  # noqa: F401  (re-exported: Simulator.step returns it)
 from . import lie
 from .loads import Loads, actuation_force, gauss_points, generalized_external_force, load_points
 from .statics import actuation_vector, base_reaction
@@ -100,15 +101,20 @@ def energy(model, q, qdot, u=None, gravity=True):
 
 def base_reaction_dynamic(model, q, qdot, qddot, u=None, loads=None):
     """Support reaction [f; m] (world axes, moment about the base origin):
-    total inertial wrench minus the total applied wrench (actuators are
-    internal: their forces close through the base). Compiled when numba is
-    available; :func:`_base_reaction_reference` is the numpy version."""
+    the wrench the support transmits into the root joint, by the engine's
+    inverse dynamics at (q, qdot, qddot) under the loads (actuators are
+    internal: their forces close through the base).
+    :func:`_base_reaction_reference` is the numpy version."""
+    from . import algorithms as alg
+    from .forces import gravity_of, load_arrays
+    from .workspace import thread_workspace
     loads = Loads() if loads is None else loads
-    if _select_kernel(model) is not dynamics_terms:
-        from . import _fast
-        return base_reaction(model, _fast.total_wrench(model, q, qdot, qddot,
-                                                       actuation_vector(model, u), loads))
-    return _base_reaction_reference(model, q, qdot, qddot, loads)
+    tree = model.tree
+    ws = thread_workspace(tree)
+    alg.rnea(tree, ws, q, qdot, qddot, load_arrays(tree, loads), gravity_of(tree, loads), elastic=False)
+    R = ws.work.g_in[0, :3, :3]
+    f = ws.work.f_in[0]
+    return np.concatenate([R @ f[:3], R @ f[3:]])
 
 
 def _base_reaction_reference(model, q, qdot, qddot, loads):
@@ -237,6 +243,20 @@ class Simulator:
             self._inputs_key = key = (loads, u.copy(), arrays)
         return key[2]
 
+    def acceleration(self, q, qdot, t):
+        """qddot at (q, qdot, t) under the simulator's inputs: the solve of
+        ``M qddot = -R(q, qdot, 0)`` (R: the integrator's residual) in O(n)."""
+        from . import algorithms as alg
+        from .integrators import residual_pass
+        loads, g, coef, effort = self._inputs(t)
+        q = np.ascontiguousarray(q, dtype=float)
+        v = np.ascontiguousarray(qdot, dtype=float)
+        R = np.empty(self.tree.nv)
+        residual_pass(self.workspace.m, self.workspace.w, self._act, loads, g, coef, effort, q, v,
+                      np.zeros(self.tree.nv), R, False)
+        alg.factor(self.tree, self.workspace, q)
+        return alg.solve(self.tree, self.workspace, -R)
+
     def step(self, n=1):
         """Advance n steps; returns the StepInfo of the last one. A step that
         cannot converge even with sub-steps leaves the state at the last good
@@ -249,16 +269,6 @@ class Simulator:
         return info
 
 
-def _select_kernel(model):
-    try:
-        from . import _fast
-        if _fast.supports(model):
-            return _fast.dynamics_terms
-    except ImportError:  # numba missing: the numpy reference is used
-        pass
-    return dynamics_terms
-
-
 def simulate_ivp(model, t_span, state, actuation=None, loads=None, method="Radau",
                  rtol=1e-8, atol=1e-10, t_eval=None):
     """Adaptive offline integration with scipy.integrate.solve_ivp (Radau or
@@ -268,14 +278,11 @@ def simulate_ivp(model, t_span, state, actuation=None, loads=None, method="Radau
     ``jac=None``; here it is supplied by central finite differences of the
     exact right-hand side (verified in the tests)."""
     from scipy.integrate import solve_ivp
-    u_of_t = _profile(actuation, model, "actuation")
-    loads_of_t = _profile(loads, model, "loads")
-    kernel = _select_kernel(model)
+    sim = Simulator(model, dt=1.0, actuation=actuation, loads=loads)
     n = model.n_dof
 
     def rhs(t, y):
-        M, f = kernel(model, y[:n], y[n:], u_of_t(t), loads_of_t(t))
-        return np.concatenate([y[n:], np.linalg.solve(M, f)])
+        return np.concatenate([y[n:], sim.acceleration(y[:n], y[n:], t)])
 
     def jac(t, y):
         eps = 1e-7 * np.maximum(1.0, np.abs(y))

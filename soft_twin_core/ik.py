@@ -45,14 +45,8 @@ def constant_curvature_from_tip(p_base):
 
 
 def _fast_tip(model):
-    """The compiled tip pose + spatial Jacobian, if numba is available."""
-    if model.kinematic_map != "exponential":
-        return None
-    try:
-        from . import _fast
-    except ImportError:
-        return None
-    return _fast.tip_and_spatial_jacobian
+    """The tip pose + spatial Jacobian on the multibody engine."""
+    return kin.tip_and_spatial_jacobian
 
 
 @dataclass

@@ -127,13 +127,18 @@ def backbone(model, q, points_per_section=10):
     A single real q of an exponential-map model uses the compiled kernel."""
     s = backbone_abscissae(model, points_per_section)
     q = model.check_q(q)
-    if q.ndim == 1 and not np.iscomplexobj(q) and model.kinematic_map == "exponential":
-        try:
-            from . import _fast
-            return s, _fast.poses(model, q, s)
-        except ImportError:
-            pass
+    if q.ndim == 1 and not np.iscomplexobj(q):
+        return s, _engine_poses(model, q, s)
     return s, poses(model, q, s)
+
+
+def _engine_poses(model, q, s):
+    """World poses at arc lengths s on the multibody engine (one real q)."""
+    from . import algorithms as alg
+    from .workspace import thread_workspace
+    tree = model.tree
+    joints, x = tree.path("backbone").locate(s)
+    return alg.point_poses(tree, thread_workspace(tree), q, joints, x)
 
 
 def jacobian(model, q, s, frame="body"):
@@ -161,15 +166,11 @@ def _rotate_to_world(g, J):
 
 def tip_jacobian(model, q, frame="body"):
     """Jacobian (..., 6, n_dof) of the tip (all blocks are whole sections);
-    compiled for a single real q of an exponential-map model."""
+    on the multibody engine for a single real q."""
     q = model.check_q(q)
     g, Js = None, None
-    if q.ndim == 1 and not np.iscomplexobj(q) and model.kinematic_map == "exponential":
-        try:
-            from . import _fast
-            g, Js = _fast.tip_and_spatial_jacobian(model, q)
-        except ImportError:
-            pass
+    if q.ndim == 1 and not np.iscomplexobj(q):
+        g, Js = tip_and_spatial_jacobian(model, q)
     if g is None:
         ch = chain(model, q)
         Wt = np.swapaxes(ch.W, -3, -2)
@@ -179,6 +180,16 @@ def tip_jacobian(model, q, frame="body"):
     if frame == "world":
         return _rotate_to_world(g, J)
     return J
+
+
+def tip_and_spatial_jacobian(model, q):
+    """(tip pose 4x4, spatial tip Jacobian 6 x n_dof) for one real q, on the
+    multibody engine (:func:`algorithms.point_jacobian`); the body Jacobian
+    is ``Ad(g_tip)^-1 Js``."""
+    from . import algorithms as alg
+    from .workspace import thread_workspace
+    tree = model.tree
+    return alg.point_jacobian(tree, thread_workspace(tree), q, tree.n_joints - 1, -1.0, "spatial")
 
 
 def _full_rates(model, qdot):

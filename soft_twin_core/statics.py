@@ -90,6 +90,9 @@ class _Problem:
         self.tree, self.ws = tree, Workspace(tree)
         self.act = _actuators(model)
         self.loads = load_arrays(tree, loads, u)
+        # point-moment tendons are internal: the support's reaction excludes them
+        self.loads_ext = load_arrays(tree, loads) if u.size and any(
+            a.tendon_model == "point_moment" for a in model.actuators) else self.loads
         self.g = gravity_of(tree, loads)
         self.coef = np.ascontiguousarray(self.act.unit @ u) if u.size else np.zeros(len(self.act.joint))
         self.zeros = np.zeros(tree.nv)
@@ -107,7 +110,9 @@ class _Problem:
         """StaticsResult at the solution q: the tip pose and the support's
         reaction (the wrench the root joint transmits, from the RNEA at rest:
         tendons are internal) from the engine."""
-        self.residual(q)
+        from .kernels import passes
+        passes.forward_pass(self.ws.m, self.ws.w, q, self.zeros, self.zeros, 0)
+        passes.rnea_pass(self.ws.m, self.ws.w, self.loads_ext, self.g, np.empty(self.tree.nv), True)
         w = self.ws.work
         g_base = w.g_in[0]
         f_in = w.f_in[0]

@@ -33,3 +33,18 @@ class Workspace:
     def check(self, model):
         if model is not self.model:
             raise ValueError("workspace: made for another model")
+
+
+def thread_workspace(model):
+    """A workspace of ``model`` private to the calling thread, made on first
+    use and kept with the model (convenience functions that take only a
+    model use it; algorithms called by several threads never share one)."""
+    import threading
+    local = model.__dict__.get("_thread_workspaces")
+    if local is None:
+        local = threading.local()
+        object.__setattr__(model, "_thread_workspaces", local)
+    ws = getattr(local, "ws", None)
+    if ws is None:
+        ws = local.ws = Workspace(model)
+    return ws
