@@ -127,3 +127,21 @@ def point_jacobian(model, ws, q, joint, x=-1.0, frame="body"):
         R = g[:3, :3]
         return g, np.vstack([R @ J[:3], R @ J[3:]])
     raise ValueError(f"frame: expected 'body', 'world' or 'spatial', got {frame!r}")
+
+
+def rnea_derivatives(model, ws, q, v, a, gravity=None):
+    """Analytic partial derivatives (d tau/d q, d tau/d v), each (nv, nv), of
+    ``tau = M a + C v + g(q) + K (q - q0) + D v`` (gravity, no external
+    loads), q moving on each joint's group (right-trivialised, as Pinocchio's
+    computeRNEADerivatives); d tau/d a is M (:func:`crba`). Exponential-map
+    sections only. See :mod:`kernels.derivatives`."""
+    from .kernels.derivatives import rnea_derivatives_pass
+    if np.any(ws.arrays.kmap != 0):
+        raise NotImplementedError("rnea_derivatives: Cayley-map sections are not supported")
+    q, v, a = _enter(model, ws, q, v, a)
+    g = model.gravity if gravity is None else np.asarray(gravity, dtype=float)
+    rnea(model, ws, q, v, a, None, g)
+    dq = np.zeros((model.nv, model.nv))
+    dv = np.zeros((model.nv, model.nv))
+    rnea_derivatives_pass(ws.m, ws.w, g, q, v, a, dq, dv)
+    return dq, dv

@@ -68,7 +68,7 @@ def section_maps(section):
 def joint_transform(joint, q_i):
     """4x4 transform input -> output frame for the joint's coordinates q_i."""
     k = joint.kind
-    H = np.eye(4)
+    H = np.eye(4, dtype=np.result_type(q_i, float))
     if k == REVOLUTE:
         H[:3, :3] = lie.exp_so3(joint.axis * q_i[0])
     elif k == PRISMATIC:
@@ -94,7 +94,7 @@ def subspace(joint, q_i, x=None):
     """Motion subspace S (6 x nv) in the output frame; for a soft joint with
     ``x`` given, the subspace x T(x f) B of the cross-section at abscissa x."""
     k = joint.kind
-    S = np.zeros((6, joint.nv))
+    S = np.zeros((6, joint.nv), dtype=np.result_type(q_i, float))
     if k == REVOLUTE:
         S[3:, 0] = joint.axis
     elif k == PRISMATIC:
@@ -117,7 +117,7 @@ def subspace_dot(joint, q_i, v_i, x=None):
         return np.zeros((6, joint.nv))
     sec = joint.section
     x = sec.length if x is None else x
-    fd = np.zeros(6)
+    fd = np.zeros(6, dtype=np.result_type(v_i, float))
     fd[sec.modes] = v_i
     Td = section_maps(sec)[2](x * section_strain(sec, q_i), x * fd)
     return x * Td[:, sec.modes]

@@ -40,7 +40,8 @@ def _qv(model, i, q, v=None):
 def placements(model, q):
     """World poses of every joint's input and output frame: (g_in, g_out), (n, 4, 4)."""
     n = model.n_joints
-    g_in, g_out = np.empty((n, 4, 4)), np.empty((n, 4, 4))
+    dt = np.result_type(q, float)
+    g_in, g_out = np.empty((n, 4, 4), dtype=dt), np.empty((n, 4, 4), dtype=dt)
     for i, j in enumerate(model.joints):
         base = np.eye(4) if j.parent < 0 else g_out[j.parent]
         g_in[i] = base @ j.placement
@@ -64,7 +65,7 @@ def point_jacobian(model, q, i, x=None, local=None, frames=None):
     frames = placements(model, q) if frames is None else frames
     g_p = point_pose(model, q, i, x, local, frames)
     gi = lie.se3_inv(g_p)
-    J = np.zeros((6, model.nv))
+    J = np.zeros((6, model.nv), dtype=g_p.dtype)
     for k in model.support(i):
         jk = model.joints[k]
         b = model.idx_v[k]
@@ -83,7 +84,7 @@ def point_jacobian_dot(model, q, v, i, x=None, local=None, frames=None):
     g_p = point_pose(model, q, i, x, local, frames)
     gi = lie.se3_inv(g_p)
     V_p = point_jacobian(model, q, i, x, local, frames) @ v
-    Jd = np.zeros((6, model.nv))
+    Jd = np.zeros((6, model.nv), dtype=np.result_type(g_p, v, float))
     for k in model.support(i):
         jk = model.joints[k]
         b = model.idx_v[k]
@@ -117,7 +118,7 @@ def mass_points(model, q, frames=None):
 
 def mass_matrix(model, q):
     frames = placements(model, q)
-    M = np.zeros((model.nv, model.nv))
+    M = np.zeros((model.nv, model.nv), dtype=np.result_type(q, float))
     for i, x, g, I in mass_points(model, q, frames):
         J = point_jacobian(model, q, i, x, None, frames)
         M += J.T @ I @ J
@@ -127,7 +128,7 @@ def mass_matrix(model, q):
 def bias_force(model, q, v):
     """C(q, v) v (Coriolis and centrifugal)."""
     frames = placements(model, q)
-    out = np.zeros(model.nv)
+    out = np.zeros(model.nv, dtype=np.result_type(q, v, float))
     for i, x, g, I in mass_points(model, q, frames):
         J = point_jacobian(model, q, i, x, None, frames)
         Jd = point_jacobian_dot(model, q, v, i, x, None, frames)
@@ -141,7 +142,7 @@ def gravity_force(model, q, gravity=None):
     generalised force of gravity)."""
     gw = model.gravity if gravity is None else np.asarray(gravity, float)
     frames = placements(model, q)
-    out = np.zeros(model.nv)
+    out = np.zeros(model.nv, dtype=np.result_type(q, float))
     for i, x, g, I in mass_points(model, q, frames):
         J = point_jacobian(model, q, i, x, None, frames)
         a = np.concatenate([g[:3, :3].T @ gw, np.zeros(3)])
@@ -152,7 +153,7 @@ def gravity_force(model, q, gravity=None):
 def elastic_force(model, q, v):
     """K (q - q0) + D v, joint by joint (soft sections: B^T L K B and B^T L D B;
     rigid 1-dof joints: their passive spring and damper)."""
-    out = np.zeros(model.nv)
+    out = np.zeros(model.nv, dtype=np.result_type(q, v, float))
     for i, j in enumerate(model.joints):
         qi, vi = _qv(model, i, q, v)
         b = model.idx_v[i]

@@ -17,6 +17,17 @@ P_B1, P_B2, P_B3, P_B4 = lie._P_BETA
 P_D1, P_D2, P_D3, P_D4 = lie._P_DBETA
 
 
+def _poly_derivative(p):
+    """Horner coefficients (highest first) of d/d(t2) of a polynomial in t2."""
+    d = len(p) - 1
+    return np.array([p[i] * (d - i) for i in range(d)], dtype=float)
+
+
+# d/d(t2) of (d beta_k / d theta) / theta: Taylor branch below t2 = 1
+P_E1, P_E2, P_E3, P_E4 = (_poly_derivative(p) for p in lie._P_DBETA)
+_SMALLE2 = 1.0
+
+
 
 @_jit
 def _horner(p, t2):
@@ -398,3 +409,77 @@ def _tangent_dot_into(kmap, x, xd, y, out, P, tmp, tmp2, acc):
         _T_cay_dot_into(x, xd, y, out)
     else:
         _T_dot_into(x, xd, y, out, P, tmp, tmp2, acc)
+
+
+@_jit
+def _d2betas(t2):
+    """d/d(t2) of the coefficients g_k = (d beta_k/d theta)/theta of
+    :func:`_dbetas` (k = 1..4): with g_k = (t N_k' - m N_k)/(2 t^(m+2)),
+    m = k + 1, ``dg/dt = (t N'' + (1 - m) N')/(2 t^(m+2)) - (m + 2)(t N' - m N)/(2 t^(m+3))``
+    and d/d(t2) = (d/dt)/(2 t); the Taylor series below t2 = 1."""
+    if t2 < _SMALLE2:
+        return _horner(P_E1, t2), _horner(P_E2, t2), _horner(P_E3, t2), _horner(P_E4, t2)
+    t = np.sqrt(t2)
+    s, c = np.sin(t), np.cos(t)
+    N = (4.0 - t * s - 4.0 * c, 4.0 * t - 5.0 * s + t * c, 2.0 - t * s - 2.0 * c, 2.0 * t - 3.0 * s + t * c)
+    N1 = (3.0 * s - t * c, 4.0 - 4.0 * c - t * s, s - t * c, 2.0 - 2.0 * c - t * s)
+    N2 = (2.0 * c + t * s, 3.0 * s - t * c, t * s, s - t * c)
+    out = np.empty(4)
+    for k in range(4):
+        m = k + 2
+        dg = (t * N2[k] + (1 - m) * N1[k]) / (2 * t ** (m + 2)) - (m + 2) * (t * N1[k] - m * N[k]) / (2 * t ** (m + 3))
+        out[k] = dg / (2 * t)
+    return out[0], out[1], out[2], out[3]
+
+
+@_jit
+def _T_d2_into(x, a, b, y, out):
+    """out = D^2 T_se3(x)[a, b] y: the second directional derivative of the
+    tangent operator (exponential map). With T = sum_k s_k beta_k ad(x)^k,
+    g_k = 2 dbeta_k/d(t2), P_k = ad^k y, Q_k(a) = d(ad^k)[a] y
+    (Q_1 = ad(a) y, Q_k = ad(a) P_(k-1) + ad(x) Q_(k-1)) and
+    R_k = ad(a) Q_(k-1)(b) + ad(b) Q_(k-1)(a) + ad(x) R_(k-1) (R_1 = 0):
+    ``sum_k s_k [2 g_k' (w.a)(w.b) P_k + g_k (a_w.b_w) P_k + g_k (w.a) Q_k(b)
+    + g_k (w.b) Q_k(a) + beta_k R_k]``."""
+    t2 = x[3] * x[3] + x[4] * x[4] + x[5] * x[5]
+    wa = x[3] * a[3] + x[4] * a[4] + x[5] * a[5]
+    wb = x[3] * b[3] + x[4] * b[4] + x[5] * b[5]
+    ab = a[3] * b[3] + a[4] * b[4] + a[5] * b[5]
+    bb, gg = _betas_dbetas(t2)
+    ee = _d2betas(t2)
+    P = np.empty((5, 6))
+    Qa = np.empty(6)
+    Qb = np.empty(6)
+    R = np.zeros(6)
+    t1 = np.empty(6)
+    t2v = np.empty(6)
+    t3 = np.empty(6)
+    for i in range(6):
+        P[0, i] = y[i]
+        out[i] = 0.0
+    for k in range(1, 5):
+        _ad_vec(x, P[k - 1], P[k])
+    for k in range(1, 5):
+        sign = 1.0 if k % 2 == 0 else -1.0
+        if k == 1:
+            _ad_vec(a, P[0], Qa)
+            _ad_vec(b, P[0], Qb)
+        else:
+            # R_k uses Q_(k-1): update R before Q
+            _ad_vec(a, Qb, t1)
+            _ad_vec(b, Qa, t2v)
+            _ad_vec(x, R, t3)
+            for i in range(6):
+                R[i] = t1[i] + t2v[i] + t3[i]
+            _ad_vec(a, P[k - 1], t1)
+            _ad_vec(x, Qa, t2v)
+            for i in range(6):
+                Qa[i] = t1[i] + t2v[i]
+            _ad_vec(b, P[k - 1], t1)
+            _ad_vec(x, Qb, t2v)
+            for i in range(6):
+                Qb[i] = t1[i] + t2v[i]
+        g, e, be = gg[k - 1], ee[k - 1], bb[k - 1]
+        for i in range(6):
+            out[i] += sign * ((2.0 * e * wa * wb + g * ab) * P[k, i] + g * wa * Qb[i] + g * wb * Qa[i]
+                              + be * R[i])
