@@ -248,3 +248,63 @@ def test_rnea_derivatives_hybrid(name):
         col = (plus - alg.rnea(model, ws, q - e, v, a, elastic=False)) / (2 * h)
         K_col = np.array([reference.elastic_force(model, _unit_q(model, k), np.zeros(model.nv))]).ravel()
         assert np.max(np.abs(dq[:, k] - K_col - col)) <= 1e-7 * max(1.0, np.max(np.abs(dq)))
+
+
+def _static_residual_and_tangent(model, ld, act, coef):
+    from soft_twin_core.forces import actuation_tangent_pass
+    from soft_twin_core.integrators import residual_pass
+    from soft_twin_core.kernels import passes
+    from soft_twin_core.kernels.tangent import static_tangent_pass
+    ws = Workspace(model)
+    z = np.zeros(model.nv)
+    g = model.gravity.copy()
+
+    def R(q):
+        out = np.empty(model.nv)
+        residual_pass(ws.m, ws.w, act, ld, g, coef, z, np.ascontiguousarray(q), z, z, out, True)
+        return out
+
+    def Kt(q):
+        passes.forward_pass(ws.m, ws.w, np.ascontiguousarray(q), z, z, 0)
+        passes.rnea_pass(ws.m, ws.w, ld, g, np.empty(model.nv), True)
+        K = np.zeros((model.nv, model.nv))
+        for i in range(model.n_joints):
+            b, k = model.idx_v[i], model.joints[i].nv
+            K[b:b + k, b:b + k] = ws.arrays.Kb[i, :k, :k]
+        static_tangent_pass(ws.m, ws.w, ld, g, K)
+        actuation_tangent_pass(ws.m, ws.w, act, coef, K)
+        return K
+    return R, Kt
+
+
+@pytest.mark.parametrize("name", HYBRID)
+def test_static_tangent_is_the_derivative_of_the_static_residual(name):
+    """The analytic static tangent (one O(n^2) pass) against central
+    differences of the static residual, with dead and follower loads inside
+    a section and at output frames (rigid and soft), gravity; and on the
+    tendon arm with tendons pulling."""
+    from soft_twin_core.forces import actuator_arrays
+    model = HYBRID[name]()
+    js = model.soft_joints[-1]
+    L = model.joints[js].section.length
+    ld_ = alg.make_loads(model, [js, js, js, 1], [0.3 * L, -1, 0.8 * L, -1],
+                         np.random.default_rng(0).standard_normal((4, 6)), [True, False, False, True])
+    act = actuator_arrays(model)
+    R, Kt = _static_residual_and_tangent(model, ld_, act, np.zeros(len(act.joint)))
+    q = _state(model, 1)[0]
+    h = 1e-6
+    K_fd = np.column_stack([(R(q + h * e) - R(q - h * e)) / (2 * h) for e in np.eye(model.nv)])
+    assert _rel(Kt(q), K_fd) < 1e-8
+
+
+def test_static_tangent_with_tendons():
+    from soft_twin_core.forces import actuator_arrays
+    robot = load_model("config/robots/tendon_arm.yaml")
+    model = from_robot_model(robot)
+    act = actuator_arrays(model)
+    R, Kt = _static_residual_and_tangent(model, alg.make_loads(model, [], [], np.zeros((0, 6)), []), act,
+                                         act.unit @ np.array([3.0, 0.0, 5.0, 1.0]))
+    q = robot.q0 + 0.3 * np.random.default_rng(2).standard_normal(robot.n_dof)
+    h = 1e-6
+    K_fd = np.column_stack([(R(q + h * e) - R(q - h * e)) / (2 * h) for e in np.eye(model.nv)])
+    assert _rel(Kt(q), K_fd) < 1e-8
