@@ -135,11 +135,14 @@ def newton_step(m, w, act, ld, g, coef, effort, q0, v0, v1, h, theta, tol, floor
         passes.aba_solve(m, w, R, dv)
         upd = 0.0
         vmax = 0.0
+        finite = True
         for k in range(nv):
             v1[k] += dv[k]
+            if not np.isfinite(dv[k]):
+                finite = False          # (max() would drop a NaN)
             upd = max(upd, abs(dv[k]))
             vmax = max(vmax, abs(v1[k]), abs(v0[k]))
-        if not np.isfinite(upd):
+        if not finite:
             return it, 3, rate, refactor
         goal = max(tol * vmax, floor)
         done = upd <= goal
@@ -189,6 +192,7 @@ class ThetaIntegrator:
         self.max_substep_levels = int(max_substep_levels)
         self.last_a = np.zeros(model.nv)
         self._prev_a = None
+        self._steps = 0
         self._factor_h = None         # step size of the current factorisation (None: refactor)
         self.factorisations = 0
 
@@ -235,7 +239,9 @@ class ThetaIntegrator:
         if out is None:
             return StepInfo(self.max_iterations, False, np.inf)
         q1, v1, it = out
-        self._prev_a = self.last_a
+        # the predictor extrapolates from two real steps only (not from the initial zeros)
+        self._prev_a = self.last_a if self._steps > 0 else None
+        self._steps += 1
         self.last_a = (v1 - state.qdot) / self.dt
         state.q, state.qdot, state.t = q1, v1, state.t + self.dt
         return StepInfo(it, True, 0.0)
