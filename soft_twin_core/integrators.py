@@ -217,7 +217,46 @@ class ThetaIntegrator:
             return self._newton(q0, v0, t, h)
         if status == 0 and rate > 0.1:
             self._factor_h = None              # slow: refresh at the next step
+        if status != 0 and status != 3:
+            return self._newton_full(q0, v0, h, (loads, g, coef, effort), v0 + h * self.last_a)
         return (q1, v1, it) if status == 0 else None
+
+    def _newton_full(self, q0, v0, h, inputs, v1):
+        """Fallback when the O(n) iteration does not converge (large strain
+        rates: the geometric terms it leaves out matter): Newton with the
+        dense matrix ``M + theta h dtau/dv + (theta h)^2 dtau/dq`` from the
+        analytic derivatives of inverse dynamics (loads' and tendons'
+        geometric terms left out), refreshed every iteration."""
+        from . import algorithms as alg
+        loads, g, coef, effort = inputs
+        model, ws, th = self.model, self.ws, self.theta * h
+        if np.any(ws.arrays.kmap != 0):
+            return None
+        nv = model.nv
+        R = np.empty(nv)
+        qt = np.empty_like(q0)
+        v1 = np.array(v1, dtype=float)
+        for it in range(1, 4 * self.max_iterations + 1):
+            vt = (1.0 - self.theta) * v0 + self.theta * v1
+            acc = (v1 - v0) / h
+            integrate_pass(ws.m, q0, vt, th, qt)
+            residual_pass(ws.m, ws.w, self.act, loads, g, coef, effort, qt, vt, acc, R, False)
+            if not np.all(np.isfinite(R)):
+                return None
+            dq, dv = alg.rnea_derivatives(model, ws, qt, vt, acc, g)
+            A = alg.crba(model, ws, qt) + th * dv + th * self.theta * h * dq
+            try:
+                dv1 = np.linalg.solve(A, -h * R)
+            except np.linalg.LinAlgError:
+                return None
+            v1 += dv1
+            if np.max(np.abs(dv1)) <= max(self.tol * max(np.abs(v1).max(), np.abs(v0).max()), 1e-300):
+                vt = (1.0 - self.theta) * v0 + self.theta * v1
+                q1 = np.empty_like(q0)
+                integrate_pass(ws.m, q0, vt, h, q1)
+                self._factor_h = None
+                return q1, v1, it
+        return None
 
     def _advance(self, q0, v0, t, h, level):
         out = self._newton(q0, v0, t, h)
