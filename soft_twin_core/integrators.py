@@ -175,6 +175,8 @@ class StepInfo:
 class ThetaIntegrator:
     """Fixed-step theta-method on a multibody model and its workspace.
 
+    ``full_newton``: when the O(n) iteration fails, try a full Newton with
+    the analytic derivatives (dense, O(n^3)) before splitting the step.
     ``inputs(t)`` returns ``(loads, gravity, coef, effort)``: LoadArrays, the
     gravity vector, the actuator coefficients ``act.unit @ u`` and the
     generalised effort (nv,) of actuated joints, at time t. The state (q, v,
@@ -183,13 +185,14 @@ class ThetaIntegrator:
     """
 
     def __init__(self, model, ws, act, inputs, dt, theta=0.5, tol=1e-9, max_iterations=10,
-                 max_substep_levels=4):
+                 max_substep_levels=4, full_newton=True):
         self.model, self.ws, self.act, self.inputs = model, ws, act, inputs
         self.dt = float(dt)
         self.theta = float(theta)
         self.tol = float(tol)
         self.max_iterations = int(max_iterations)
         self.max_substep_levels = int(max_substep_levels)
+        self.full_newton = bool(full_newton)   # the dense fallback of _newton_full
         self.last_a = np.zeros(model.nv)
         self._prev_a = None
         self._steps = 0
@@ -217,7 +220,7 @@ class ThetaIntegrator:
             return self._newton(q0, v0, t, h)
         if status == 0 and rate > 0.1:
             self._factor_h = None              # slow: refresh at the next step
-        if status != 0 and status != 3:
+        if status != 0 and status != 3 and self.full_newton:
             return self._newton_full(q0, v0, h, (loads, g, coef, effort), v0 + h * self.last_a)
         return (q1, v1, it) if status == 0 else None
 
