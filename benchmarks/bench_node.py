@@ -98,7 +98,7 @@ def bench(n, mode, robot, n_commands, log_dir, rate=200.0):
             lat = latency_run(c, n_commands, 0.05, rng)
             busy = [d for t, d in c.history["diagnostics"] if t > t0 + 1.05]
             out["rate_busy"] = min(float(d["step_rate_hz"]) for d in busy) if busy else float("nan")
-            node_side = [float(d["command_to_publish_mean_ms"]) for d in busy]
+            node_side = [float(d["command_in_node_mean_ms"]) for d in busy]
             out["node_ms"] = statistics.median(node_side) if node_side else float("nan")
         else:
             t0 = time.monotonic()
@@ -107,7 +107,7 @@ def bench(n, mode, robot, n_commands, log_dir, rate=200.0):
             busy = [d for t, d in c.history["diagnostics"] if t > t0 + 1.05
                     and d["command_to_publish_mean_ms"] != "nan"]
             out["step_mean_ms"] = statistics.median(float(d["step_time_mean_ms"]) for d in busy)
-            out["node_ms"] = statistics.median(float(d["command_to_publish_mean_ms"]) for d in busy)
+            out["node_ms"] = statistics.median(float(d["command_in_node_mean_ms"]) for d in busy)
         out["lat_median_ms"] = 1e3 * float(np.median(lat))
         out["lat_p95_ms"] = 1e3 * float(np.percentile(lat, 95))
         out["lat_max_ms"] = 1e3 * float(lat.max())

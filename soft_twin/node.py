@@ -11,9 +11,14 @@ with rclpy 7.1's dispatch bug worked around) and callback groups:
   solve trigger and re-publish timer (quasi-static mode): it advances the
   twin and publishes its state.
 * ``inputs``   (mutually exclusive): the actuation and tip-wrench
-  subscriptions; they validate, count and apply an input in microseconds
-  (dynamic mode with ``step_on_command``: an input arriving at most at the
-  step rate also takes the next step itself, at once).
+  subscriptions; each callback takes everything queued on its topic (one
+  executor dispatch per message could not keep up with a 1 kHz stream while
+  services ran), validates, counts and folds it outside the lock and
+  applies the result in microseconds; inputs lost before the node took them
+  are counted from the publishers' sequence numbers (dynamic mode with
+  ``step_on_command``: an input arriving at most at the step rate also takes
+  the next step itself, at once; any input callback that finds the step
+  timer a period late takes the steps due).
 * ``services`` (reentrant): FK, IK, statics query, reset. They copy what they
   need from the twin under the lock and compute outside it.
 * ``diagnostics`` (mutually exclusive): the /diagnostics timer.
@@ -38,7 +43,7 @@ from geometry_msgs.msg import PoseArray, PoseStamped, Vector3, WrenchStamped
 from rcl_interfaces.msg import ParameterDescriptor, SetParametersResult
 from rclpy.callback_groups import MutuallyExclusiveCallbackGroup, ReentrantCallbackGroup
 from rclpy.clock import Clock, ClockType
-from rclpy.exceptions import ParameterUninitializedException
+from rclpy.exceptions import InvalidHandle, ParameterUninitializedException
 from rclpy.executors import ExternalShutdownException
 from rclpy.node import Node
 from rclpy.parameter import Parameter
@@ -56,6 +61,8 @@ from soft_twin.executor import TwinExecutor
 from soft_twin.config import PARAMETERS, ConfigError, config_from_values, load_robot
 
 NODE_NAME = "soft_twin"
+ACTUATION_QUEUE = 100       # subscription depths (keep last)
+WRENCH_QUEUE = 10
 
 
 class _Stats:
@@ -64,7 +71,8 @@ class _Stats:
     def __init__(self):
         self.reset_window(time.monotonic())
         self.totals = dict(steps=0, solver_failures=0, dropped_steps=0, commands_received=0,
-                           commands_applied=0, wrenches_received=0, wrenches_applied=0,
+                           commands_applied=0, commands_superseded=0, commands_lost=0,
+                           wrenches_received=0, wrenches_applied=0, wrenches_lost=0,
                            rejected_actuation=0, rejected_wrench=0, internal_errors=0)
         self.last_internal_error = ""
         self.rejected_by_reason = {r: 0 for r in tw.REJECT_REASONS}
@@ -81,8 +89,11 @@ class _Stats:
         self.compute_times = []
         self.iterations = []
         self.publish_times = []
-        self.command_latencies = []
+        self.command_latencies = []       # [s], command header.stamp -> first state with it
+        self.node_latencies = []          # [s], command taken by the node -> first state with it
+        self.input_batches = []           # commands taken per actuation callback
         self.rejected = 0
+        self.lost = 0                     # inputs lost before the node took them
 
     def reject(self, kind, err):
         self.totals[f"rejected_{kind}"] += 1
@@ -116,7 +127,9 @@ class SoftTwinNode(Node):
         self._wrench_lock = threading.Lock()     # one wrench computation at a time
         self._stats_lock = threading.Lock()      # internal error counts (taken without the others)
         self._staged = None
-        self._command_received = None     # (header, receive time) of the newest applied command
+        self._command_received = None     # newest applied command: (header, stamp [ns], taken [ns])
+        self._command_gaps = tw.SequenceGaps()    # commands lost upstream, from sequence numbers
+        self._wrench_gaps = tw.SequenceGaps()
         self._last_input_time = -math.inf
         self._reported_internal_errors = 0
         self.stats = _Stats()
@@ -147,11 +160,16 @@ class SoftTwinNode(Node):
         self._pub_markers = self.create_publisher(MarkerArray, "~/markers", 1)
         self._pub_diag = self.create_publisher(DiagnosticArray, "/diagnostics", 10)
 
-        # --- subscriptions (keep last: under overload the oldest inputs go) ---
-        self.create_subscription(ActuationCommand, "~/actuation", self._guarded(self._on_actuation), 100,
-                                 callback_group=self._input_group)
-        self.create_subscription(WrenchStamped, "~/tip_wrench_command", self._guarded(self._on_tip_wrench), 10,
-                                 callback_group=self._input_group)
+        # --- subscriptions (keep last: under overload the oldest inputs go, and
+        # are counted from the sequence numbers); each callback takes the
+        # message the executor handed it plus everything else queued by then
+        on_actuation, on_wrench = self._guarded(self._on_actuation), self._guarded(self._on_tip_wrench)
+        self._actuation_sub = self.create_subscription(
+            ActuationCommand, "~/actuation", lambda msg, info: on_actuation(msg, info), ACTUATION_QUEUE,
+            callback_group=self._input_group)
+        self._wrench_sub = self.create_subscription(
+            WrenchStamped, "~/tip_wrench_command", lambda msg, info: on_wrench(msg, info), WRENCH_QUEUE,
+            callback_group=self._input_group)
 
         # --- services --------------------------------------------------------
         self.create_service(ForwardKinematics, "~/forward_kinematics", self._guarded(self._srv_fk),
@@ -285,58 +303,155 @@ class SoftTwinNode(Node):
     # ------------------------------------------------------------------------
     # inputs
     # ------------------------------------------------------------------------
-    def _on_actuation(self, msg):
+    def _take_queued(self, sub, first, limit):
+        """The message the executor took (with its info) plus the others
+        waiting in the subscription's queue, oldest first, at most ``limit``
+        in all (more stay queued for the next callback). One executor
+        dispatch per message costs ~1 ms of Python and far more while a
+        service computes (GIL): at 1 kHz the queue overflowed; draining it
+        here makes that cost per batch."""
+        batch = [first]
+        try:
+            with sub.handle:
+                while len(batch) < limit:
+                    taken = sub.handle.take_message(sub.msg_type, sub.raw)
+                    if taken is None:
+                        break
+                    batch.append(taken)
+        except InvalidHandle:      # destroyed under us: shutting down
+            pass
+        return batch
+
+    @staticmethod
+    def _seq(info):
+        return info.get("publication_sequence_number") if isinstance(info, dict) else None
+
+    def _on_actuation(self, msg, info=None):
+        """Every queued command in order: counted, validated and folded into
+        the actuation (a partial command keeps the other actuators); the
+        result is applied once, stamped with the newest valid command. The
+        commands applied but not the newest of their batch, or replaced
+        before a step used them, are counted as superseded. The folding runs
+        outside the twin lock (it holds the lock for microseconds, so a step
+        never waits for a batch)."""
+        batch = self._take_queued(self._actuation_sub, (msg, info), ACTUATION_QUEUE)
+        publishers = self._actuation_sub.get_publisher_count()
+        taken_ns = self.get_clock().now().nanoseconds
+        lost = sum(self._command_gaps.add(self._seq(inf), publishers) for _, inf in batch)
         with self._lock:
-            self.stats.totals["commands_received"] += 1
-            try:
-                u = tw.parse_actuation(self.twin.model, msg.names, msg.values, self.twin.u,
-                                       self.cfg.actuator_names)
-                self.twin.set_actuation(u, stamp=msg.header)
-                self._command_received = (msg.header, time.monotonic())
-            except tw.InputError as e:
-                self.stats.reject("actuation", e)
-                err = e
-            else:
-                self.stats.totals["commands_applied"] += 1
-                err = None
-        if err is not None:
-            self.get_logger().warn(f"actuation command rejected ({err.reason}): {err}",
+            twin, cfg = self.twin, self.cfg
+            u0 = twin.u
+        fold = self._fold_commands(twin.model, batch, u0, cfg.actuator_names)
+        with self._lock:
+            twin = self.twin
+            if twin.u is not u0 or self.cfg is not cfg:
+                # reset or reconfigured meanwhile: fold again onto the new actuation
+                fold = self._fold_commands(twin.model, batch, twin.u, self.cfg.actuator_names)
+            u, newest, n_applied, errors = fold
+            s = self.stats
+            s.input_batches.append(len(batch))
+            s.totals["commands_received"] += len(batch)
+            s.totals["commands_lost"] += lost
+            s.lost += lost
+            for e in errors:
+                s.reject("actuation", e)
+            if newest is not None:
+                s.totals["commands_applied"] += n_applied
+                s.totals["commands_superseded"] += n_applied - 1 + int(twin.command_pending)
+                twin.set_actuation(u, stamp=newest.header)
+                stamp_ns = newest.header.stamp.sec * 1_000_000_000 + newest.header.stamp.nanosec
+                # latency from the command's stamp (a zero stamp: from its arrival here)
+                self._command_received = (newest.header, stamp_ns if stamp_ns > 0 else taken_ns, taken_ns)
+        if errors:
+            self.get_logger().warn(f"actuation command rejected ({errors[-1].reason}): {errors[-1]}"
+                                   + (f" (and {len(errors) - 1} more)" if len(errors) > 1 else ""),
                                    throttle_duration_sec=1.0)
-        else:
-            self._react_to_input()
+        if newest is not None:
+            self._react_to_input(batch)
 
-    def _on_tip_wrench(self, msg):
-        force, torque = cv.wrench_parts(msg.wrench)
-        with self._lock:
-            self.stats.totals["wrenches_received"] += 1
+    @staticmethod
+    def _fold_commands(model, batch, u, order):
+        """(actuation after the valid commands of batch in order, the newest
+        valid one, how many were valid, the InputErrors of the others)."""
+        newest, n_applied, errors = None, 0, []
+        for m, _ in batch:
             try:
-                w, frame = tw.parse_tip_wrench(force, torque, msg.header.frame_id,
-                                               self.cfg.base_frame, self.cfg.tip_frame)
-                self.twin.set_tip_wrench(w, frame)
+                u = tw.parse_actuation(model, m.names, m.values, u, order)
             except tw.InputError as e:
-                self.stats.reject("wrench", e)
-                err = e
+                errors.append(e)
             else:
-                self.stats.totals["wrenches_applied"] += 1
-                err = None
-        if err is not None:
-            self.get_logger().warn(f"tip wrench rejected ({err.reason}): {err}", throttle_duration_sec=1.0)
-        else:
-            self._react_to_input()
+                newest, n_applied = m, n_applied + 1
+        return u, newest, n_applied, errors
 
-    def _react_to_input(self):
+    def _on_tip_wrench(self, msg, info=None):
+        """Every queued wrench in order, counted and validated (outside the
+        twin lock); the newest valid one is applied (a wrench replaces the
+        one before)."""
+        batch = self._take_queued(self._wrench_sub, (msg, info), WRENCH_QUEUE)
+        publishers = self._wrench_sub.get_publisher_count()
+        lost = sum(self._wrench_gaps.add(self._seq(inf), publishers) for _, inf in batch)
+        cfg = self.cfg
+        newest, errors = self._parse_wrenches(batch, cfg)
+        with self._lock:
+            if self.cfg is not cfg:     # reconfigured meanwhile (frames)
+                newest, errors = self._parse_wrenches(batch, self.cfg)
+            s = self.stats
+            s.totals["wrenches_received"] += len(batch)
+            s.totals["wrenches_applied"] += len(batch) - len(errors)
+            s.totals["wrenches_lost"] += lost
+            s.lost += lost
+            for e in errors:
+                s.reject("wrench", e)
+            if newest is not None:
+                self.twin.set_tip_wrench(*newest)
+        if errors:
+            self.get_logger().warn(f"tip wrench rejected ({errors[-1].reason}): {errors[-1]}"
+                                   + (f" (and {len(errors) - 1} more)" if len(errors) > 1 else ""),
+                                   throttle_duration_sec=1.0)
+        if newest is not None:
+            self._react_to_input(batch)
+
+    @staticmethod
+    def _parse_wrenches(batch, cfg):
+        """(the newest valid (wrench, core frame) of batch or None, the InputErrors)."""
+        newest, errors = None, []
+        for m, _ in batch:
+            force, torque = cv.wrench_parts(m.wrench)
+            try:
+                newest = tw.parse_tip_wrench(force, torque, m.header.frame_id, cfg.base_frame, cfg.tip_frame)
+            except tw.InputError as e:
+                errors.append(e)
+        return newest, errors
+
+    def _react_to_input(self, batch):
         """Quasi-static: have the step group solve at once. Dynamic with
         step_on_command: take the next step right here (it saves the executor
         hand-over to the step group, ~0.5 ms and more under load) - for inputs
-        arriving at most at the step rate; a faster stream is sampled by the
-        step timer, which keeps this callback light for the next input."""
-        now = time.monotonic()
-        sparse = now - self._last_input_time >= self.cfg.dt
-        self._last_input_time = now
+        arriving at most at the step rate (one input taken, at least dt after
+        the one before, by arrival time); a faster stream is sampled by the
+        step timer, which keeps this callback light for the next inputs.
+        Either way, a step timer more than a period late (the GIL held by a
+        service, a busy CPU) is caught up here rather than dropping steps."""
+        info = batch[-1][1]
+        arrival = info.get("received_timestamp", 0) if isinstance(info, dict) else 0
+        arrival = 1e-9 * arrival if arrival else time.time()
+        sparse = len(batch) == 1 and arrival - self._last_input_time >= self.cfg.dt
+        self._last_input_time = arrival
         if self.cfg.mode == "quasi_static":
             self._solve_trigger.trigger()
         elif sparse and self._early_step_allowed():
             self._step_dynamic(early=True)
+        elif self._timer_late():
+            # the step timer missed a tick (GIL, CPU): catch up here, unless a step is under way
+            self._step_dynamic(wait=False)
+
+    def _timer_late(self):
+        """Dynamic mode: is the next step more than a period past its tick?
+        (A hint read without the lock, like _early_step_allowed.)"""
+        cfg = self.cfg
+        if cfg.mode != "dynamic" or self._anchor is None:
+            return False
+        return (time.monotonic() - self._anchor) / cfg.dt - self._steps_done > 2.0
 
     # ------------------------------------------------------------------------
     # stepping
@@ -362,15 +477,18 @@ class SoftTwinNode(Node):
             return False
         return int((time.monotonic() - self._anchor) / cfg.dt) + 1 > self._steps_done
 
-    def _step_dynamic(self, early=False):
+    def _step_dynamic(self, early=False, wait=True):
         """The steps due by the wall clock: twin step k is due at anchor + k dt.
         ``early`` (a new input arrived, step_on_command): step k may start
         now if step k - 1 is due, so twin time never leads by more than one
-        step. Called by the step timer and, for early steps, by the input
-        callbacks: the lock serialises them, the publish lock keeps the
-        published states in order."""
+        step. Called by the step timer and, for early or late steps, by the
+        input callbacks: the lock serialises them, the publish lock keeps the
+        published states in order. ``wait=False``: return at once if the
+        lock is busy (a step under way takes what is due)."""
         cfg = self.cfg
-        with self._lock:
+        if not self._lock.acquire(blocking=wait):
+            return
+        try:
             now = time.monotonic()
             if self._anchor is None:
                 self._anchor = now - cfg.dt
@@ -395,6 +513,8 @@ class SoftTwinNode(Node):
             self._unpublished = 0
             snap = twin.outputs()
             self._publish_lock.acquire()      # before the twin lock is released: states go out in order
+        finally:
+            self._lock.release()
         try:
             header = self._publish(snap, robot)
         finally:
@@ -449,7 +569,8 @@ class SoftTwinNode(Node):
         on); returns their common header."""
         t0 = time.perf_counter()
         cfg = self.cfg
-        header = self._header(cfg.base_frame)
+        stamp = self.get_clock().now()
+        header = Header(stamp=stamp.to_msg(), frame_id=cfg.base_frame)
         self._pub_backbone.publish(cv.pose_array(snap.backbone, header))
         self._pub_tip.publish(PoseStamped(header=header, pose=cv.pose_msg(snap.tip_pose)))
         strains = Strains(header=header, n_sections=len(snap.strains))
@@ -460,9 +581,11 @@ class SoftTwinNode(Node):
         self._pub_strains.publish(strains)
         received = self._command_received
         if received is not None and received[0] is snap.command_stamp:
-            # the first publication of a state with this command: node-side latency
+            # the first publication of a state with this command: latency from the
+            # command's stamp to this state's stamp (queueing in the node included)
             self._command_received = None
-            self.stats.command_latencies.append(time.monotonic() - received[1])
+            self.stats.command_latencies.append(1e-9 * (stamp.nanoseconds - received[1]))
+            self.stats.node_latencies.append(1e-9 * (stamp.nanoseconds - received[2]))
         now = time.monotonic()
         if (cfg.marker_rate_hz > 0 and now - self._last_marker_time >= 1.0 / cfg.marker_rate_hz
                 and self._pub_markers.get_subscription_count() > 0):
@@ -529,6 +652,7 @@ class SoftTwinNode(Node):
             its = np.array(s.iterations) if s.iterations else np.zeros(1)
             pt = np.array(s.publish_times) if s.publish_times else np.zeros(1)
             cl = np.array(s.command_latencies) if s.command_latencies else np.full(1, np.nan)
+            nl = np.array(s.node_latencies) if s.node_latencies else np.full(1, np.nan)
             rate = s.steps / wall
             rtf = s.sim_time / wall
             values = {
@@ -543,6 +667,7 @@ class SoftTwinNode(Node):
                 "publish_time_mean_ms": f"{1e3 * pt.mean():.4f}",
                 "command_to_publish_mean_ms": f"{1e3 * cl.mean():.4f}",
                 "command_to_publish_max_ms": f"{1e3 * cl.max():.4f}",
+                "command_in_node_mean_ms": f"{1e3 * nl.mean():.4f}",
                 "solver_iterations_mean": f"{its.mean():.2f}",
                 "solver_iterations_max": str(int(its.max())),
                 "solver_failures_total": str(s.totals["solver_failures"]),
@@ -552,8 +677,14 @@ class SoftTwinNode(Node):
                 "dropped_steps_total": str(s.totals["dropped_steps"]),
                 "commands_received_total": str(s.totals["commands_received"]),
                 "commands_applied_total": str(s.totals["commands_applied"]),
+                "commands_superseded_total": str(s.totals["commands_superseded"]),
+                "commands_lost_total": str(s.totals["commands_lost"]) if self._command_gaps.supported
+                else "n/a",
+                "command_queue_max": str(max(s.input_batches, default=0)),
                 "wrenches_received_total": str(s.totals["wrenches_received"]),
                 "wrenches_applied_total": str(s.totals["wrenches_applied"]),
+                "wrenches_lost_total": str(s.totals["wrenches_lost"]) if self._wrench_gaps.supported
+                else "n/a",
                 "rejected_inputs_total": str(s.totals["rejected_actuation"] + s.totals["rejected_wrench"]),
                 "rejected_actuation_total": str(s.totals["rejected_actuation"]),
                 "rejected_wrench_total": str(s.totals["rejected_wrench"]),
@@ -571,6 +702,9 @@ class SoftTwinNode(Node):
             elif cfg.mode == "dynamic" and s.steps and rate < 0.95 * cfg.step_rate_hz:
                 level, message = DiagnosticStatus.WARN, (f"behind real time: {rate:.1f} of "
                                                          f"{cfg.step_rate_hz:g} steps/s")
+            elif s.lost:
+                level, message = DiagnosticStatus.WARN, (f"{s.lost} input(s) lost before the node took "
+                                                         f"them (queue overflow or transport)")
             elif s.unstable:
                 level, message = DiagnosticStatus.WARN, "only an unstable equilibrium was found"
             elif s.rejected:

@@ -114,6 +114,63 @@ def parse_tip_wrench(force, moment, frame_id, base_frame, tip_frame):
     return w, frame
 
 
+class SequenceGaps:
+    """Counts the inputs lost before the node took them (a full subscription
+    queue, a publisher's own queue overflowing, a lossy link) from the
+    publication sequence number the middleware gives each sample: one count
+    per publisher, up by one per message it publishes, so a jump of k + 1
+    between two samples of a publisher means k samples lost.
+
+    rclpy does not say which publisher a sample came from, so samples are
+    sorted into streams: a sample continues the stream whose last number is
+    the closest below its own. While fewer streams are known than
+    publishers are matched, a sample that does not continue a stream
+    exactly (last + 1) starts a new one (a publisher that just joined); a
+    sample no stream can continue (a restarted publisher) starts one too.
+    A new stream counts nothing lost before its first sample. Streams
+    beyond the matched publisher count are forgotten, least recently used
+    first. Exact for one publisher; with several an estimate (their numbers
+    may interleave). ``supported`` turns False if the middleware gives no
+    numbers (then nothing can be counted)."""
+
+    UNSUPPORTED = 2 ** 64 - 1          # RMW_MESSAGE_INFO_SEQUENCE_NUMBER_UNSUPPORTED
+
+    def __init__(self, max_streams=16):
+        self.max_streams = max_streams
+        self.lost = 0
+        self.supported = True
+        self._streams = []             # [last number, last use] per stream
+        self._uses = 0
+
+    def add(self, seq, publishers=None):
+        """One received sample's publication sequence number (None or
+        ``UNSUPPORTED`` if the middleware has none) and the number of
+        publishers matched now (None: unknown). Returns how many samples
+        were lost just before it (0 for the first sample of a stream)."""
+        if seq is None or seq <= 0 or seq >= self.UNSUPPORTED:
+            self.supported = False
+            return 0
+        self._uses += 1
+        limit = self.max_streams if not publishers else max(1, min(publishers, self.max_streams))
+        while len(self._streams) > limit:
+            self._streams.remove(min(self._streams, key=lambda s: s[1]))
+        best = None
+        for s in self._streams:
+            if s[0] < seq and (best is None or s[0] > best[0]):
+                best = s
+        if best is not None and best[0] + 1 != seq and len(self._streams) < limit and publishers:
+            best = None                # a publisher that joined, not a gap in a known one
+        if best is None:
+            if len(self._streams) >= limit:
+                self._streams.remove(min(self._streams, key=lambda s: s[1]))
+            self._streams.append([seq, self._uses])
+            return 0
+        gap = seq - best[0] - 1
+        best[0], best[1] = seq, self._uses
+        self.lost += gap
+        return gap
+
+
 def make_loads(model, tip_wrench=None, frame="world"):
     """Gravity plus an optional tip point load (6,) in the given core frame."""
     if tip_wrench is None or not np.any(tip_wrench):
@@ -301,6 +358,12 @@ class Twin:
             self._sim.set_loads(loads)
         self.tip_wrench, self.tip_frame = w.copy(), frame
         self._dirty = True
+
+    @property
+    def command_pending(self):
+        """An actuation command was applied that no step or solve has used
+        yet (a newer one now supersedes it: no state will carry its stamp)."""
+        return self.command_stamp is not None and self.command_stamp is not self._state_inputs[3]
 
     @property
     def needs_solve(self):

@@ -73,6 +73,41 @@ def test_parse_tip_wrench_frames():
     assert exc.value.reason == "non_finite"
 
 
+# ------------------------------------------------------------------ lost inputs
+
+def test_sequence_gaps_one_publisher_is_exact():
+    g = tw.SequenceGaps()
+    assert [g.add(n, publishers=1) for n in (5, 6, 7, 10, 11, 200)] == [0, 0, 0, 2, 0, 188]
+    assert g.lost == 190 and g.supported
+    # the publisher restarted (numbers start again): a new stream, nothing lost
+    assert [g.add(n, publishers=1) for n in (1, 2, 4)] == [0, 0, 1]
+    assert g.lost == 191
+
+
+def test_sequence_gaps_several_publishers():
+    g = tw.SequenceGaps()
+    # A publishes 1..100, B joins at 5000 (it published before matching): not a gap
+    lost = [g.add(n, publishers=1) for n in range(1, 51)]
+    lost += [g.add(5000, publishers=2)]
+    for a, b in zip(range(51, 101), range(5001, 5051)):
+        lost += [g.add(a, publishers=2), g.add(b, publishers=2)]
+    assert sum(lost) == 0 and g.lost == 0
+    # each loses some: counted per publisher
+    for a, b in ((103, 5051), (104, 5060), (105, 5061)):
+        g.add(a, publishers=2)
+        g.add(b, publishers=2)
+    assert g.lost == 2 + 8
+    # B leaves: its stream is forgotten; A goes on
+    assert g.add(106, publishers=1) == 0 and g.add(110, publishers=1) == 3
+
+
+def test_sequence_gaps_without_numbers():
+    g = tw.SequenceGaps()
+    for n in (None, tw.SequenceGaps.UNSUPPORTED):
+        assert g.add(n) == 0
+    assert not g.supported and g.lost == 0
+
+
 # ------------------------------------------------------------------ the twin
 
 def _settings(mode, **kw):
@@ -186,6 +221,21 @@ def test_reset_and_mode_switch(model):
     twin.set_actuation([0.5, 0, 0, 0])
     assert twin.step().converged
     assert not np.any(twin.state.qdot)
+
+
+def test_command_pending_until_a_step_or_solve_uses_it(model):
+    for mode in ("dynamic", "quasi_static"):
+        twin = tw.Twin(model, _settings(mode))
+        assert not twin.command_pending
+        twin.set_actuation([0.1, 0, 0, 0], stamp=object())
+        assert twin.command_pending
+        twin.set_actuation([0.2, 0, 0, 0], stamp=object())   # supersedes the first
+        assert twin.command_pending
+        assert twin.step().converged
+        assert not twin.command_pending
+        twin.set_actuation([0.3, 0, 0, 0], stamp=object())
+        twin.reset()
+        assert not twin.command_pending
 
 
 def test_queries_leave_the_twin_alone(model):
