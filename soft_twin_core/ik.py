@@ -10,6 +10,7 @@ import numpy as np
 
 from . import kinematics as kin
 from . import lie
+from ._blas import one_blas_thread
 
 
 def one_section_strain(H_start, H_end, length):
@@ -180,8 +181,9 @@ def solve_ik(model, target, q_init=None, *, position_only=False, weights=None,
         pe, oe = _errors(data[0], target)
         return pe <= tol_position and (position_only or oe <= tol_orientation)
 
-    q, (g, _), it, message = _levenberg_marquardt(np.clip(q, lo, hi), lo, hi, evaluate, jacobian,
-                                                  done, w, max_iterations, initial_damping)
+    with one_blas_thread():
+        q, (g, _), it, message = _levenberg_marquardt(np.clip(q, lo, hi), lo, hi, evaluate, jacobian,
+                                                      done, w, max_iterations, initial_damping)
     pe, oe = _errors(g, target)
     return IKResult(q, message == "converged", pe, oe, it, g, message)
 
@@ -241,8 +243,9 @@ def solve_actuation_ik(model, target, u_init=None, q_init=None, *, loads=None, p
         pe, oe = _errors(data[1], target)
         return pe <= tol_position and (position_only or oe <= tol_orientation)
 
-    u, (q, g), it, message = _levenberg_marquardt(np.clip(u, lo, hi), lo, hi, evaluate, jacobian, done,
-                                                  w, max_iterations)
+    with one_blas_thread():
+        u, (q, g), it, message = _levenberg_marquardt(np.clip(u, lo, hi), lo, hi, evaluate, jacobian, done,
+                                                      w, max_iterations)
     if message.startswith("stalled"):
         message = "stalled: the actuators cannot bring the tip closer (target not reachable by actuation)"
     pe, oe = _errors(g, target)
