@@ -152,9 +152,12 @@ def _profile(value, model, kind):
         return value
     if kind == "actuation":
         u = actuation_vector(model, value)
-        return lambda t: u
-    loads = Loads() if value is None else value
-    return lambda t: loads
+        f = lambda t: u  # noqa: E731
+    else:
+        loads = Loads() if value is None else value
+        f = lambda t: loads  # noqa: E731
+    f.constant = True          # the same inputs at every t: Simulator.step(n) may run n steps in one call
+    return f
 
 
 class Simulator:
@@ -261,12 +264,17 @@ class Simulator:
         """Advance n steps; returns the StepInfo of the last one. A step that
         cannot converge even with sub-steps leaves the state at the last good
         step and returns ``converged`` False."""
+        if n > 1 and self._constant_inputs():
+            return self._integrator.run(self.state, n)
         info = None
         for _ in range(n):
             info = self._integrator.step(self.state)
             if not info.converged:
                 break
         return info
+
+    def _constant_inputs(self):
+        return getattr(self._u, "constant", False) and getattr(self._loads, "constant", False)
 
 
 def simulate_ivp(model, t_span, state, actuation=None, loads=None, method="Radau",

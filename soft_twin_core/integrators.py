@@ -164,6 +164,56 @@ def newton_step(m, w, act, ld, g, coef, effort, q0, v0, v1, h, theta, tol, floor
     return max_it, 1, rate, refactor
 
 
+@_jit
+def run_steps(m, w, act, ld, g, coef, effort, q, v, a_last, a_prev, have_prev, h, theta, tol, max_it, n,
+              refactor, stats):
+    """Up to n theta-method steps with constant inputs in one call: q, v,
+    a_last, a_prev advance in place after every converged step (predictor
+    and factorisation policy as :meth:`ThetaIntegrator._newton`). Stops at
+    the first step that does not converge at once, leaving it to the caller
+    as it was before the attempt (a factorisation made for a failed attempt
+    at this step is redone by the caller). Returns the
+    number of steps done; stats[0] += Newton iterations, stats[1] +=
+    factorisations; stats[2] = 1 if the factorisation is current at the end."""
+    nv = v.shape[0]
+    v1 = np.empty(nv)
+    q1 = np.empty(q.shape[0])
+    for s in range(n):
+        fin = True
+        for k in range(nv):
+            pred = (2.0 * a_last[k] - a_prev[k]) if have_prev else a_last[k]
+            v1[k] = v[k] + h * pred
+            if not np.isfinite(v1[k]):
+                fin = False
+        if not fin:
+            for k in range(nv):
+                v1[k] = v[k]
+        qmax = 1.0
+        for k in range(q.shape[0]):
+            qmax = max(qmax, abs(q[k]))
+        floor = 1e-14 * qmax / h
+        it, status, rate, refactored = newton_step(m, w, act, ld, g, coef, effort, q, v, v1, h, theta, tol, floor,
+                                                   max_it, refactor, q1)
+        if status != 0:
+            # hand the step back as it was before this attempt: the caller
+            # replays it through the single-step path (retry, fallback, sub-steps)
+            stats[2] = 0.0 if refactor else 1.0
+            return s
+        stats[0] += it
+        if refactored:
+            stats[1] += 1
+        for k in range(nv):
+            a_prev[k] = a_last[k]
+            a_last[k] = (v1[k] - v[k]) / h
+            v[k] = v1[k]
+        for k in range(q.shape[0]):
+            q[k] = q1[k]
+        have_prev = True
+        refactor = rate > 0.1
+    stats[2] = 0.0 if refactor else 1.0
+    return n
+
+
 @dataclass
 class StepInfo:
     """Newton iterations of the last step (all sub-steps) and whether it converged."""
@@ -274,6 +324,40 @@ class ThetaIntegrator:
         if rest is None:
             return None
         return rest[0], rest[1], half[2] + rest[2]
+
+    def run(self, state, n):
+        """n steps with inputs that do not change in time (``inputs`` is
+        called once), the converged ones in one compiled call
+        (:func:`run_steps`); a step that needs more (a fresh factorisation,
+        the full-Newton fallback, sub-steps) goes through :meth:`step`.
+        Returns the StepInfo of the last step taken."""
+        loads, g, coef, effort = self.inputs(state.t)
+        info = StepInfo(0, True, 0.0)
+        done = 0
+        while done < n:
+            q = np.array(state.q, dtype=float)
+            v = np.array(state.qdot, dtype=float)
+            a_last = np.array(self.last_a, dtype=float)
+            have_prev = self._prev_a is not None and self._steps > 0
+            a_prev = np.array(self._prev_a if have_prev else a_last, dtype=float)
+            stats = np.zeros(3)
+            k = run_steps(self.ws.m, self.ws.w, self.act, loads, g, coef, effort, q, v, a_last, a_prev,
+                          have_prev, self.dt, self.theta, self.tol, self.max_iterations, n - done,
+                          self._factor_h != self.dt, stats)
+            self.factorisations += int(stats[1])
+            self._factor_h = self.dt if stats[2] == 1.0 else None
+            if k > 0:
+                state.q, state.qdot, state.t = q, v, state.t + k * self.dt
+                self.last_a, self._prev_a = a_last, a_prev
+                self._steps += k
+                done += k
+                info = StepInfo(int(stats[0]) // max(k, 1), True, 0.0)
+            if done < n:
+                info = self.step(state)
+                if not info.converged:
+                    return info
+                done += 1
+        return info
 
     def step(self, state):
         """One step of dt from ``state`` (updated in place when it converges)."""
