@@ -145,3 +145,33 @@ def rnea_derivatives(model, ws, q, v, a, gravity=None):
     dv = np.zeros((model.nv, model.nv))
     rnea_derivatives_pass(ws.m, ws.w, g, q, v, a, dq, dv)
     return dq, dv
+
+
+def point_jacobian_dot(model, ws, q, v, joint, x=-1.0, frame="body"):
+    """Time derivative (6, nv) of :func:`point_jacobian` along (q, v), same
+    frames: "spatial" ``d/dt Js``; "body" ``d/dt (Ad(g)^-1 Js) = Ad(g)^-1 (Jsdot
+    - ad(Vs) Js)`` (Vs = Js v); "world" ``d/dt (blockdiag(R, R) J_body)``."""
+    from .kernels.frames import spatial_jacobian, spatial_jacobian_dot
+    from .lie import Ad_inv, ad
+    forward_kinematics(model, ws, q, v)
+    v = np.ascontiguousarray(model.check_v(v), dtype=float)
+    g = np.empty((4, 4))
+    Js = np.empty((6, model.nv))
+    Jsd = np.empty((6, model.nv))
+    spatial_jacobian(ws.m, ws.w, int(joint), float(x), g, Js)
+    spatial_jacobian_dot(ws.m, ws.w, int(joint), float(x), v, Jsd)
+    if frame == "spatial":
+        return Jsd
+    Jbd = Ad_inv(g) @ (Jsd - ad(Js @ v) @ Js)
+    if frame == "body":
+        return Jbd
+    if frame == "world":
+        R = g[:3, :3]
+        Jb = Ad_inv(g) @ Js
+        Rd = R @ _hat((Jb @ v)[3:])                          # d/dt R = R hat(w_body)
+        return np.vstack([Rd @ Jb[:3] + R @ Jbd[:3], Rd @ Jb[3:] + R @ Jbd[3:]])
+    raise ValueError(f"frame: expected 'body', 'world' or 'spatial', got {frame!r}")
+
+
+def _hat(w):
+    return np.array([[0.0, -w[2], w[1]], [w[2], 0.0, -w[0]], [-w[1], w[0], 0.0]])

@@ -308,3 +308,26 @@ def test_static_tangent_with_tendons():
     h = 1e-6
     K_fd = np.column_stack([(R(q + h * e) - R(q - h * e)) / (2 * h) for e in np.eye(model.nv)])
     assert _rel(Kt(q), K_fd) < 1e-8
+
+
+@pytest.mark.parametrize("name", HYBRID)
+def test_point_jacobians_and_their_derivatives(name):
+    """Compiled point Jacobians (body, world) and their time derivatives
+    against the explicit-Jacobian reference, at a rigid joint's output frame,
+    a soft section's end and a cross-section inside a section."""
+    model = HYBRID[name]()
+    ws = Workspace(model)
+    q, v, _ = _state(model, 8)
+    js = model.soft_joints[1]
+    for j, x in ((0, -1.0), (js, -1.0), (js, 0.37 * model.joints[js].section.length)):
+        xr = None if x < 0 else x
+        g, J = alg.point_jacobian(model, ws, q, j, x, "body")
+        assert _rel(g, reference.point_pose(model, q, j, xr)) < 1e-13
+        assert _rel(J, reference.point_jacobian(model, q, j, xr)) < 1e-12
+        Jd = alg.point_jacobian_dot(model, ws, q, v, j, x, "body")
+        assert _rel(Jd, reference.point_jacobian_dot(model, q, v, j, xr)) < 1e-11
+        # world frame: d/dt of blockdiag(R, R) J by a central difference along (q, v)
+        h = 1e-6
+        Jw = lambda qq: alg.point_jacobian(model, ws, qq, j, x, "world")[1].copy()  # noqa: E731
+        fd = (Jw(jnt.integrate(model, q, h * v)) - Jw(jnt.integrate(model, q, -h * v))) / (2 * h)
+        assert _rel(alg.point_jacobian_dot(model, ws, q, v, j, x, "world"), fd) < 1e-7

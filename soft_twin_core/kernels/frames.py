@@ -11,7 +11,7 @@ soft cross-section; the body Jacobian is ``Ad(g_p)^-1`` times it.
 
 import numpy as np
 
-from .spatial import _Ad_into, _jit, _map_into, _tangent_into
+from .spatial import _Ad_into, _ad_vec, _jit, _map_into, _tangent_dot_into, _tangent_into
 
 
 @_jit
@@ -72,4 +72,86 @@ def spatial_jacobian(m, w, j, x, g, J):
                     for c in range(6):
                         acc += Ad[r, c] * w.S[k, c, a]
                     J[r, iv + a] = acc
+        k = m.parent[k]
+
+
+@_jit
+def _col_dot(Ad, S, Sd_cols, V, nv, iv, out, tmp, tmp2):
+    """out[:, iv:iv+nv] = Ad (ad(V) S + Sdot) column by column."""
+    for c in range(nv):
+        for r in range(6):
+            tmp[r] = S[r, c]
+        _ad_vec(V, tmp, tmp2)
+        for r in range(6):
+            tmp2[r] += Sd_cols[r, c]
+        for r in range(6):
+            acc = 0.0
+            for k in range(6):
+                acc += Ad[r, k] * tmp2[k]
+            out[r, iv + c] = acc
+
+
+@_jit
+def spatial_jacobian_dot(m, w, j, x, v, Jd):
+    """Jd (6, nv): time derivative of the spatial Jacobian of point (j, x)
+    after forward_pass (level >= 1). Column of joint k: Ad(g_k) (ad(V_k) S_k
+    + Sdot_k) (g_k, V_k: pose and body twist of the frame S_k lives in;
+    soft: Sdot = x Tdot(x f)[x fdot] B)."""
+    x6 = np.empty(6)
+    xd6 = np.empty(6)
+    g = np.empty((4, 4))
+    tmp4 = np.empty((4, 4))
+    Ad = np.empty((6, 6))
+    T = np.empty((6, 6))
+    S3 = np.empty((7, 3, 3))
+    Sx = np.zeros((6, 6))
+    Sd = np.zeros((6, 6))
+    Vp = np.empty(6)
+    e = np.zeros(6)
+    col = np.empty(6)
+    P = np.empty((5, 6))
+    t1 = np.empty(6)
+    t2 = np.empty(6)
+    t3 = np.empty(6)
+    Jd[:, :] = 0.0
+    own = x >= 0.0 and m.kind[j] == 5
+    k = j
+    while k >= 0:
+        nv, iv = m.nv[k], m.iv[k]
+        soft = m.kind[k] == 5
+        xx = x if (k == j and own) else m.length[k]
+        Sd[:, :] = 0.0
+        if soft:
+            for a in range(6):
+                x6[a] = xx * w.strain[k, a]
+                xd6[a] = xx * w.strain_rate[k, a]
+            for c in range(nv):
+                e[:] = 0.0
+                e[m.modes[k, c]] = 1.0
+                _tangent_dot_into(m.kmap[k], x6, xd6, e, col, P, t1, t2, t3)
+                for r in range(6):
+                    Sd[r, c] = xx * col[r]
+        if k == j and own:
+            _point_pose(m, w, j, x, g, x6, tmp4)
+            for a in range(6):
+                x6[a] = x * w.strain[j, a]
+            _tangent_into(m.kmap[j], x6, T, S3)
+            for c in range(nv):
+                for r in range(6):
+                    Sx[r, c] = x * T[r, m.modes[j, c]]
+            # body twist of the cross-section: Ad(exp(-x f)) V_in + Sx v
+            _map_into(m.kmap[j], x6, tmp4)
+            _Ad_into(tmp4, Ad, True)
+            for r in range(6):
+                acc = 0.0
+                for c in range(6):
+                    acc += Ad[r, c] * w.Vin[j, c]
+                for c in range(nv):
+                    acc += Sx[r, c] * v[iv + c]
+                Vp[r] = acc
+            _Ad_into(g, Ad, False)
+            _col_dot(Ad, Sx, Sd, Vp, nv, iv, Jd, t1, t2)
+        else:
+            _Ad_into(w.g_out[k], Ad, False)
+            _col_dot(Ad, w.S[k], Sd, w.V[k], nv, iv, Jd, t1, t2)
         k = m.parent[k]
