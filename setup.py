@@ -1,4 +1,5 @@
-"""pip install . -> the ROS-free core only (soft_twin_core + soft-twin-sim).
+"""pip install . -> the ROS-free core only (soft_twin_core + soft-twin-sim),
+with the example robot and scenario files of config/ as package data.
 
 The ROS 2 package soft_twin (interfaces, node) is built by CMake from
 CMakeLists.txt/package.xml: `make setup` here, or colcon in a ROS 2 workspace
@@ -24,7 +25,13 @@ setup(
     long_description_content_type="text/markdown",
     license="Apache-2.0",
     python_requires=">=3.10",
-    packages=find_packages(include=["soft_twin_core", "soft_twin_core.*"]),
+    packages=find_packages(include=["soft_twin_core", "soft_twin_core.*"]) + ["soft_twin_core.config"],
+    # The example robot and scenario files ship as package data: the
+    # checkout's config/ becomes soft_twin_core/config/ in the install, where
+    # soft_twin_core.model.config_dirs() finds them (load_model("tendon_arm")).
+    package_dir={"soft_twin_core.config": "config"},
+    package_data={"soft_twin_core.config": ["robots/*.yaml", "scenarios/*.yaml"]},
+    exclude_package_data={"soft_twin_core.config": ["*.py", "params.yaml"]},
     install_requires=[
         "numpy>=1.24,<2.6",
         "scipy>=1.10",

@@ -17,7 +17,13 @@ free part of ``f0``: a straight rod at rest has axial strain 1, not 0.
 Units: SI (m, kg, s, N, Pa, rad).
 """
 
+import math
+import numbers
+import os
+import re
+import sys
 from dataclasses import dataclass, field
+from pathlib import Path
 from typing import Optional
 
 import numpy as np
@@ -129,6 +135,10 @@ class Actuator:
     pure follower moment ``-T d(end) x e_x`` at the termination ``end``;
     equivalent to "distributed" for straight tendons in a planar,
     inextensible, unshearable arm).
+
+    limit: the declared maximum input -- tension [N] for a tendon, |gauge
+    pressure| [Pa] for a chamber -- a finite float > 0, or ``math.inf``
+    when the robot file declares none (unlimited).
     """
     name: str
     kind: str                  # "tendon" | "chamber"
@@ -142,6 +152,7 @@ class Actuator:
     turns_per_meter: float = 0.0
     area: float = 0.0          # chamber area [m^2]
     tendon_model: str = "distributed"   # or "point_moment" (slides part C, model (b))
+    limit: float = math.inf    # declared maximum input: tension [N] or |pressure| [Pa]
 
     def offset_at(self, s):
         """Offset d(s) (..., 3) in the cross-section frame (x component 0) and
@@ -308,23 +319,72 @@ def _block_diag(blocks):
 # Building from dicts / YAML with validation
 # ----------------------------------------------------------------------------
 
+# A decimal number as written in a YAML file: PyYAML (a YAML 1.1 parser)
+# reads only spellings with a dot and a signed exponent (1.0e+6) as floats;
+# 1e6, 1.0e6 and 71.7e9 arrive as strings. Robot and scenario files accept
+# all of these, and nothing else (no hex, no underscores inside strings).
+_NUMBER_RE = re.compile(r"[+-]?(?:[0-9]+\.?[0-9]*|\.[0-9]+)(?:[eE][+-]?[0-9]+)?")
+_NON_FINITE = {"nan", "inf", "infinity", ".nan", ".inf"}
+
+
+def parse_number(v, where, error=None):
+    """The float value of a number in a robot or scenario file: an int or
+    float (not a bool), or a string spelling a decimal number such as
+    ``"1e6"`` or ``"1.0e6"`` (which YAML 1.1 leaves as strings). The value
+    must be finite. Raises ``error`` (default ModelError) naming ``where``.
+
+    The one number parser of the robot files (:mod:`model`) and the
+    scenario files (:mod:`scenario`)."""
+    error = ModelError if error is None else error
+    if isinstance(v, str):
+        text = v.strip()
+        if _NUMBER_RE.fullmatch(text):
+            v = float(text)
+        elif text.lower().lstrip("+-") in _NON_FINITE:
+            raise error(f"{where}: must be finite, got {v!r}")
+        else:
+            raise error(f"{where}: expected a number, got {v!r}")
+    elif isinstance(v, (bool, np.bool_)) or not isinstance(v, numbers.Real):
+        raise error(f"{where}: expected a number, got {v!r}")
+    try:
+        v = float(v)
+    except OverflowError:   # a huge int
+        raise error(f"{where}: must be finite, got {v!r}") from None
+    if not math.isfinite(v):
+        raise error(f"{where}: must be finite, got {v!r}")
+    return v
+
+
+def parse_numbers(v, shape, where, error=None):
+    """An array of the given shape (``None`` entries: any length) of numbers
+    parsed by :func:`parse_number` from nested lists; raises ``error``
+    (default ModelError) naming ``where`` with the expected shape."""
+    error = ModelError if error is None else error
+
+    def rec(x, dims, path):
+        if not dims:
+            return parse_number(x, where + path, error)
+        if isinstance(x, np.ndarray):
+            x = x.tolist()
+        if not isinstance(x, (list, tuple)) or (dims[0] is not None and len(x) != dims[0]):
+            raise error(f"{where}: expected {_shape_text(shape)} numbers, got {v!r}")
+        return [rec(xi, dims[1:], f"{path}[{i}]") for i, xi in enumerate(x)]
+    out = np.array(rec(v, tuple(shape), ""), dtype=float)
+    if out.size == 0:
+        out = out.reshape(tuple(0 if k is None else k for k in shape))
+    return out
+
+
+def _shape_text(shape):
+    return " x ".join("N" if k is None else str(k) for k in shape)
+
+
 def _num(d, key, where, *, positive=False, nonneg=False, default=None):
     if key not in d:
         if default is not None:
             return float(default)
         raise ModelError(f"{where}.{key}: missing (required)")
-    v = d[key]
-    if isinstance(v, str):
-        # PyYAML (YAML 1.1) reads 71.7e9 without a sign or dot as a string
-        try:
-            v = float(v)
-        except ValueError:
-            raise ModelError(f"{where}.{key}: expected a number, got {v!r}") from None
-    if isinstance(v, bool) or not isinstance(v, (int, float)):
-        raise ModelError(f"{where}.{key}: expected a number, got {v!r}")
-    v = float(v)
-    if not np.isfinite(v):
-        raise ModelError(f"{where}.{key}: must be finite, got {v!r}")
+    v = parse_number(d[key], f"{where}.{key}")
     if positive and v <= 0:
         raise ModelError(f"{where}.{key}: must be > 0, got {v!r}")
     if nonneg and v < 0:
@@ -339,12 +399,9 @@ def _vec(d, key, n, where, default=None):
         raise ModelError(f"{where}.{key}: missing (required)")
     v = d[key]
     try:
-        arr = np.array(v, dtype=float)
-    except (TypeError, ValueError):
-        raise ModelError(f"{where}.{key}: expected {n} numbers, got {v!r}") from None
-    if arr.shape != (n,) or not np.all(np.isfinite(arr)):
-        raise ModelError(f"{where}.{key}: expected {n} finite numbers, got {v!r}")
-    return arr
+        return parse_numbers(v, (n,), f"{where}.{key}")
+    except ModelError:
+        raise ModelError(f"{where}.{key}: expected {n} finite numbers, got {v!r}") from None
 
 
 def _check_keys(d, allowed, where):
@@ -496,7 +553,7 @@ def _sectional(d, where):
 def _actuator(d, i, total_length):
     where = f"actuators[{i}]"
     _check_keys(d, {"name", "type", "start", "end", "routing", "offset", "offset_end", "radius",
-                    "phase", "turns_per_meter", "area", "model"}, where)
+                    "phase", "turns_per_meter", "area", "model", "limit"}, where)
     name = d.get("name")
     if not isinstance(name, str) or not name:
         raise ModelError(f"{where}.name: expected a non-empty string, got {name!r}")
@@ -526,8 +583,11 @@ def _actuator(d, i, total_length):
     tmodel = d.get("model", "distributed")
     if tmodel not in ("distributed", "point_moment"):
         raise ModelError(f"{where}.model: expected 'distributed' or 'point_moment', got {tmodel!r}")
+    limit = math.inf
+    if d.get("limit") is not None:
+        limit = _num(d, "limit", where, positive=True)
     return Actuator(name, kind, start, min(end, total_length), routing, offset, offset_end,
-                    radius, phase, turns, area, tmodel)
+                    radius, phase, turns, area, tmodel, limit)
 
 
 def model_from_dict(d, n_sections_override=None):
@@ -631,9 +691,69 @@ def robot_mapping(d, source):
     return d
 
 
+# ----------------------------------------------------------------------------
+# The example robot and scenario files, by name
+# ----------------------------------------------------------------------------
+
+def config_dirs():
+    """Folders that may hold the example files (``robots/``, ``scenarios/``),
+    in search order: the package data of ``pip install .``
+    (``soft_twin_core/config``), the source checkout's ``config/``, the
+    ROS package's ``share/soft_twin/config`` under ``sys.prefix`` (``make
+    setup``), under the prefix this package is installed in and under
+    every prefix of ``AMENT_PREFIX_PATH`` (colcon)."""
+    here = Path(__file__).resolve().parent
+    cands = [here / "config", here.parent / "config", Path(sys.prefix) / "share" / "soft_twin" / "config"]
+    if len(here.parents) > 3:      # <prefix>/lib/pythonX.Y/site-packages/soft_twin_core
+        cands.append(here.parents[3] / "share" / "soft_twin" / "config")
+    for prefix in os.environ.get("AMENT_PREFIX_PATH", "").split(os.pathsep):
+        if prefix:
+            cands.append(Path(prefix) / "share" / "soft_twin" / "config")
+    out = []
+    for c in cands:
+        if (c / "robots").is_dir() and c not in out:
+            out.append(c)
+    return out
+
+
+def example_files(kind):
+    """{name: path} of the example files of ``kind`` ("robots" or
+    "scenarios"); a name found in several :func:`config_dirs` is taken from
+    the first."""
+    if kind not in ("robots", "scenarios"):
+        raise ValueError(f"kind: expected 'robots' or 'scenarios', got {kind!r}")
+    out = {}
+    for c in config_dirs():
+        for f in sorted((c / kind).glob("*.yaml")):
+            out.setdefault(f.stem, f)
+    return dict(sorted(out.items()))
+
+
+def find_file(name, kind, error=None):
+    """The file a user means by ``name``: an existing path as given, else
+    (a bare name without a directory part, with or without ``.yaml``) the
+    example file of that name (:func:`example_files`). A missing path is
+    returned unchanged (opening it reports the error); an unknown bare name
+    raises ``error`` (default ModelError) listing the examples."""
+    error = ModelError if error is None else error
+    text = os.fspath(name)
+    p = Path(os.path.expanduser(text))
+    if p.is_file() or p.is_absolute() or os.sep in text or (os.altsep and os.altsep in text):
+        return p
+    stem = p.name[:-5] if p.name.endswith(".yaml") else p.name
+    found = example_files(kind).get(stem)
+    if found is not None:
+        return found
+    what = "robot file" if kind == "robots" else "scenario"
+    raise error(f"{what} {text!r}: no such file, nor an example of that name "
+                f"(examples: {', '.join(example_files(kind)) or 'none installed'})")
+
+
 def load_model(path, n_sections_override=None):
     """Load a robot description from a YAML file (a top-level ``robot:`` key
-    is accepted too)."""
+    is accepted too). ``path`` may also name an example robot, from any
+    working directory: ``load_model("tendon_arm")`` (see :func:`find_file`)."""
+    path = find_file(path, "robots")
     d = read_yaml_file(path, ModelError, "robot file")
     return model_from_dict(robot_mapping(d, f"robot file {path}"), n_sections_override)
 
@@ -665,7 +785,7 @@ class State:
 
 
 def benchmark_cantilever_dict(n_sections=10, free_modes="all", length=0.5, radius=0.01):
-    """The common benchmark case of shared/DESIGN.md: L = 0.5 m, r = 0.01 m,
+    """The common benchmark case of docs/CONVENTIONS.md: L = 0.5 m, r = 0.01 m,
     E = 1 MPa, Poisson 0.5, 1000 kg/m^3, along +x, gravity -z."""
     return {
         "name": "benchmark_cantilever",

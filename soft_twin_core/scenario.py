@@ -3,7 +3,8 @@ for a statics solve or a dynamic simulation.
 
 Schema (YAML; SI units)::
 
-    robot: robots/tendon_arm.yaml      # path (relative to this file) or an inline robot mapping
+    robot: ../robots/tendon_arm.yaml   # path (relative to this file), an example robot's
+                                       # name (tendon_arm) or an inline robot mapping
     sections: 10                       # optional: sections per segment (CLI --sections wins)
     actuation: {tendon_y_pos: 2.0}     # constant inputs (N for tendons, Pa for chambers)
     actuation_profile:                 # optional, dynamics: piecewise-linear [t, value] pairs
@@ -16,16 +17,22 @@ Schema (YAML; SI units)::
       - {s: tip, force: [0, 1, 0], profile: [[0, 0], [1, 1]]}             # dynamics: scale vs time
     load_steps: 1                      # statics: apply the loads in this many increments
     initial_strains: null              # dynamics: optional (n_sections x 6) start, default rest
+
+Numbers may be written as the robot files accept them (``1e6``, ``1.0e6``,
+``2.5e-3``; :func:`model.parse_number`).
 """
 
+import math
 import os
 from dataclasses import dataclass
+from decimal import Decimal
 
 import numpy as np
 
 from . import kinematics as kin
 from .loads import DistributedLoad, Loads, PointLoad
-from .model import ModelError, load_model, model_from_dict, read_yaml_file
+from .model import (ModelError, find_file, load_model, model_from_dict, parse_number,
+                    parse_numbers, read_yaml_file)
 
 
 class ScenarioError(ValueError):
@@ -71,20 +78,17 @@ class Scenario:
 def _vec3(d, key, where):
     v = d.get(key, [0.0, 0.0, 0.0])
     try:
-        a = np.array(v, dtype=float)
-    except (TypeError, ValueError):
-        raise ScenarioError(f"{where}.{key}: expected 3 numbers, got {v!r}") from None
-    if a.shape != (3,) or not np.all(np.isfinite(a)):
-        raise ScenarioError(f"{where}.{key}: expected 3 finite numbers, got {v!r}")
-    return a
+        return parse_numbers(v, (3,), f"{where}.{key}", ScenarioError)
+    except ScenarioError:
+        raise ScenarioError(f"{where}.{key}: expected 3 finite numbers, got {v!r}") from None
 
 
 def _profile(v, where):
     try:
-        a = np.array(v, dtype=float)
-    except (TypeError, ValueError):
+        a = parse_numbers(v, (None, 2), where, ScenarioError)
+    except ScenarioError:
         raise ScenarioError(f"{where}: expected a list of [t, value] pairs, got {v!r}") from None
-    if a.ndim != 2 or a.shape[1] != 2 or len(a) < 1 or not np.all(np.isfinite(a)):
+    if len(a) < 1:
         raise ScenarioError(f"{where}: expected a list of [t, value] pairs, got {v!r}")
     if np.any(np.diff(a[:, 0]) <= 0):
         raise ScenarioError(f"{where}: times must increase strictly, got {a[:, 0].tolist()}")
@@ -92,19 +96,19 @@ def _profile(v, where):
 
 
 def _number(v, where):
-    if isinstance(v, bool) or not isinstance(v, (int, float)) or not np.isfinite(v):
-        raise ScenarioError(f"{where}: expected a finite number, got {v!r}")
-    return float(v)
+    return parse_number(v, where, ScenarioError)
 
 
 def _s_value(v, model, where):
     if v == "tip":
         return model.total_length
-    if isinstance(v, bool) or not isinstance(v, (int, float)):
-        raise ScenarioError(f"{where}.s: expected a number (m) or 'tip', got {v!r}")
-    if not 0.0 <= v <= model.total_length + 1e-12:
+    try:
+        s = parse_number(v, where + ".s", ScenarioError)
+    except ScenarioError:
+        raise ScenarioError(f"{where}.s: expected a finite number (m) or 'tip', got {v!r}") from None
+    if not 0.0 <= s <= model.total_length + 1e-12:
         raise ScenarioError(f"{where}.s: must lie in [0, {model.total_length}] m, got {v}")
-    return float(v)
+    return s
 
 
 _LOAD_KEYS = {"s", "force", "moment", "frame", "in_plane_force", "distributed", "start", "end", "profile"}
@@ -126,11 +130,9 @@ def _load(d, i, model, angle_override):
         ip = d["in_plane_force"]
         if not isinstance(ip, dict) or "magnitude" not in ip:
             raise ScenarioError(f"{where}.in_plane_force: expected {{magnitude: N, angle_deg: deg}}, got {ip!r}")
-        try:
-            P = float(ip["magnitude"])
-            a = float(ip.get("angle_deg", 0.0) if angle_override is None else angle_override)
-        except (TypeError, ValueError):
-            raise ScenarioError(f"{where}.in_plane_force: magnitude and angle_deg must be numbers") from None
+        P = _number(ip["magnitude"], f"{where}.in_plane_force.magnitude")
+        a = _number(ip.get("angle_deg", 0.0) if angle_override is None else angle_override,
+                    f"{where}.in_plane_force.angle_deg")
         a = np.radians(a)
         force = force + P * np.array([0.0, np.cos(a), np.sin(a)])
     wrench = tuple(np.concatenate([force, moment]))
@@ -148,8 +150,11 @@ def _load(d, i, model, angle_override):
 
 def load_scenario(path, sections=None, angle_deg=None):
     """Parse a scenario file; ``sections`` overrides the sections per segment,
-    ``angle_deg`` the angle of every ``in_plane_force``. Raises ScenarioError
-    or ModelError naming the bad field."""
+    ``angle_deg`` the angle of every ``in_plane_force``. ``path`` may also
+    name an example scenario, from any working directory
+    (``load_scenario("tendon_arm_dynamics")``; see :func:`model.find_file`).
+    Raises ScenarioError or ModelError naming the bad field."""
+    path = find_file(path, "scenarios", ScenarioError)
     d = read_yaml_file(path, ScenarioError, "scenario")
     return scenario_from_dict(d, os.path.dirname(os.path.abspath(path)), sections, angle_deg, str(path))
 
@@ -171,6 +176,8 @@ def scenario_from_dict(d, base_dir=".", sections=None, angle_deg=None, source="<
     try:
         if isinstance(robot, str):
             p = robot if os.path.isabs(robot) else os.path.join(base_dir, robot)
+            if not os.path.isfile(p) and os.path.basename(robot) == robot:
+                p = robot                     # not next to the scenario: an example robot's name
             model = load_model(p, n)
         elif isinstance(robot, dict):
             model = model_from_dict(robot, n)
@@ -186,8 +193,7 @@ def scenario_from_dict(d, base_dir=".", sections=None, angle_deg=None, source="<
     for k, v in act.items():
         if k not in names:
             raise ScenarioError(f"scenario.actuation: unknown actuator {k!r}; the robot has {list(names)}")
-        if isinstance(v, bool) or not isinstance(v, (int, float)) or not np.isfinite(v):
-            raise ScenarioError(f"scenario.actuation.{k}: expected a finite number, got {v!r}")
+        v = _number(v, f"scenario.actuation.{k}")
         if model.actuators[names.index(k)].kind == "tendon" and v < 0:
             raise ScenarioError(f"scenario.actuation.{k}: tendon tension must be >= 0 N, got {v}")
         u[names.index(k)] = float(v)
@@ -215,8 +221,9 @@ def scenario_from_dict(d, base_dir=".", sections=None, angle_deg=None, source="<
         raise ScenarioError(f"scenario.gravity: expected true or false, got {grav!r}")
     init = d.get("initial_strains")
     if init is not None:
+        init = parse_numbers(init, (model.n_sections, 6), "scenario.initial_strains", ScenarioError)
         try:
-            init = model.q_from_strains(np.array(init, dtype=float))
+            init = model.q_from_strains(init)
         except (ModelError, ValueError) as e:
             raise ScenarioError(f"scenario.initial_strains: {e}") from None
     return Scenario(model, u, prof, loads, grav, steps, init, source)
@@ -256,68 +263,176 @@ def run_statics(sc, points_per_section=10):
     }
 
 
+# Time-history fields of :func:`run_dynamics`: one row per recorded time
+# (``time``), and one row per backbone sample (``backbone_time``).
+HISTORY_FIELDS = ("time", "tip_position", "tip_velocity", "base_wrench", "strains", "strain_rates",
+                  "newton_iterations")
+BACKBONE_FIELDS = ("backbone_time", "backbone_s", "backbone", "backbone_velocity", "backbone_acceleration",
+                   "internal_wrenches")
+
+
+def _positive_time(v, name):
+    if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v) or v <= 0:
+        raise ScenarioError(f"{name}: expected a positive, finite time in s, got {v!r}")
+    return float(v)
+
+
+def _count(v, name, low):
+    if isinstance(v, bool) or not isinstance(v, (int, np.integer)) or v < low:
+        raise ScenarioError(f"{name}: expected an integer >= {low}, got {v!r}")
+    return int(v)
+
+
+def n_steps_for(duration, dt):
+    """Steps of size ``dt`` that cover ``duration`` (the last recorded time
+    is ``n dt >= duration``, within 1e-9 relative); ScenarioError naming
+    the argument if either is not a positive finite time or the duration
+    is shorter than one step."""
+    dt = _positive_time(dt, "dt")
+    duration = _positive_time(duration, "duration")
+    if duration < dt * (1.0 - 1e-9):
+        raise ScenarioError(f"duration: {duration!r} s is shorter than one time step (dt = {dt!r} s): "
+                            f"nothing to simulate")
+    return max(1, int(math.ceil(duration / dt - 1e-9)))
+
+
+def step_times(dt):
+    """t(k): the time of step k, ``k * dt`` computed exactly in decimal from
+    the shortest spelling of ``dt`` and rounded once (``0.1`` gives ``0.7``
+    at k = 7, not 0.7000000000000001; no accumulation, so no drift)."""
+    d = Decimal(repr(float(dt)))
+    return lambda k: float(d * k)
+
+
 def run_dynamics(sc, duration, dt, backbone_every=0, theta=0.5, progress=None,
                  points_per_section=10, record_every=1):
-    """Integrate the scenario for ``duration`` s with step ``dt`` s.
+    """Integrate the scenario for ``duration`` s with step ``dt`` s
+    (``n = ceil(duration / dt)`` steps; see :func:`n_steps_for`).
 
-    Returns a dict of time histories: time, tip_position (N x 3, m),
-    tip_velocity (N x 3, m/s, world), base_wrench (N x 6, world, about the
-    base origin), strains (N x n x 6), strain_rates (N x n_dof, free modes),
-    and every ``backbone_every`` steps a backbone sample. ``progress`` is
-    called as progress(fraction) about once per wall-clock second."""
+    Returns a dict of time histories, one row per recorded step (every
+    ``record_every`` steps, the first and the last, and every backbone
+    sample): ``time`` (N,) [s], ``k * dt`` (:func:`step_times`); ``tip_position`` (N, 3)
+    [m] and ``tip_velocity`` (N, 3) [m/s], world; ``base_wrench`` (N, 6)
+    [N, N m] (the support's reaction with inertia: world axes, about the
+    base origin); ``strains`` and ``strain_rates`` (N, n_sections, 6) (fixed
+    modes: the reference strain and 0); ``newton_iterations`` (N,). With
+    ``backbone_every = K > 0`` also, at t = 0 and every K steps,
+    ``backbone_time`` (B,), ``backbone_s`` (B, P) [m], ``backbone`` (B, P, 3),
+    ``backbone_velocity`` and ``backbone_acceleration`` (B, P, 3) [m/s,
+    m/s^2] (world), ``internal_wrenches`` (B, P, 6) (body frame; see
+    :func:`dynamics.internal_wrenches_dynamic`). Accelerations are those of
+    the equations of motion at the recorded (q, qdot, t). ``n_sections``,
+    ``dt`` and, when a step fails, ``error`` (the reason; the histories then
+    end at the last converged step) complete the dict.
+
+    The kernels are compiled (or loaded from numba's cache) and the inputs
+    checked by a warm-up before the clock starts: ``progress(fraction,
+    elapsed_s)`` is called once with (0.0, 0.0) right after the warm-up,
+    then about once per wall-clock second; ``elapsed_s`` counts from the
+    end of the warm-up."""
     import time as _time
     from .dynamics import Simulator, base_reaction_dynamic, internal_wrenches_dynamic
     from .model import State
     m = sc.model
-    if not (np.isfinite(duration) and duration > 0):
-        raise ScenarioError(f"duration: expected a positive time in s, got {duration}")
+    n_steps = n_steps_for(duration, dt)
+    dt = float(dt)
+    time_of = step_times(dt)
+    backbone_every = _count(backbone_every, "backbone_every", 0)
+    record_every = _count(record_every, "record_every", 1)
+    points_per_section = _count(points_per_section, "points_per_section", 1)
     state = State.rest(m)
     if sc.initial_strains is not None:
         state.q = sc.initial_strains.copy()
     if sc.time_varying:
-        sim = Simulator(m, dt, actuation=sc.actuation_at, loads=sc.loads_at, state=state, theta=theta)
+        inputs = dict(actuation=sc.actuation_at, loads=sc.loads_at)
     else:
-        loads = sc.loads_at(None)
-        sim = Simulator(m, dt, actuation=sc.actuation, loads=loads, state=state, theta=theta)
-    n_steps = int(round(duration / dt))
-    out = {"time": [], "tip_position": [], "tip_velocity": [], "base_wrench": [], "strains": [],
-           "strain_rates": [], "backbone": [], "backbone_time": [], "backbone_velocity": [],
-           "backbone_acceleration": [], "internal_wrenches": [], "newton_iterations": []}
+        inputs = dict(actuation=sc.actuation, loads=sc.loads_at(None))
+    sim = Simulator(m, dt, state=state, theta=theta, **inputs)
+    # accelerations at recorded states come from a second simulator: its own
+    # workspace, so the integrator's kept factorisation is never disturbed
+    probe = Simulator(m, dt, state=state, theta=theta, **inputs)
+    out = {key: [] for key in HISTORY_FIELDS + (BACKBONE_FIELDS if backbone_every else ())}
+    fixed_rates = np.zeros(6 * m.n_sections)
 
-    def record(it):
-        st = sim.state
-        t = st.t
+    def record(k, q, qdot, qddot, iterations):
+        t = time_of(k)
+        u, loads = sim.actuation_at(t), sim.loads_at(t)
         out["time"].append(t)
-        out["tip_position"].append(kin.tip_pose(m, st.q)[:3, 3].tolist())
-        out["base_wrench"].append(base_reaction_dynamic(m, st.q, st.qdot, sim.last_qddot,
-                                                        sim.actuation_at(t), sim.loads_at(t)).tolist())
-        out["strains"].append(m.strains(st.q).tolist())
-        out["strain_rates"].append(st.qdot.tolist())
-        out["tip_velocity"].append((kin.tip_jacobian(m, st.q, frame="world")[:3] @ st.qdot).tolist())
-        out["newton_iterations"].append(it)
+        out["tip_position"].append(kin.tip_pose(m, q)[:3, 3].tolist())
+        out["tip_velocity"].append((kin.tip_jacobian(m, q, frame="world")[:3] @ qdot).tolist())
+        out["base_wrench"].append(base_reaction_dynamic(m, q, qdot, qddot, u, loads).tolist())
+        out["strains"].append(m.strains(q).tolist())
+        rates = fixed_rates.copy()
+        rates[m.free_index] = qdot
+        out["strain_rates"].append(rates.reshape(m.n_sections, 6).tolist())
+        out["newton_iterations"].append(int(iterations))
 
-    record(0)
-    last = _time.monotonic()
+    def sample_backbone(k, q, qdot, qddot):
+        t = time_of(k)
+        s_bb, P = kin.backbone(m, q, points_per_section)
+        mot = kin.point_motion(m, q, qdot, qddot, s_bb)
+        out["backbone_time"].append(t)
+        out["backbone_s"].append(s_bb.tolist())
+        out["backbone"].append(P[:, :3, 3].tolist())
+        out["backbone_velocity"].append(mot["v_world"].tolist())
+        out["backbone_acceleration"].append(mot["a_world"].tolist())
+        out["internal_wrenches"].append(internal_wrenches_dynamic(
+            m, q, qdot, qddot, s_bb, sim.actuation_at(t), sim.loads_at(t)).tolist())
+
+    def finish(error=None):
+        if error is not None:
+            out["error"] = error
+        out["n_sections"] = m.n_sections
+        out["dt"] = dt
+        return out
+
+    # warm-up: everything the loop calls runs once (numba compiles or loads
+    # its cache) before the clock starts; the t = 0 row is computed here
+    try:
+        qddot = probe.acceleration(state.q, state.qdot, 0.0)
+        if not np.all(np.isfinite(qddot)):
+            return finish("the initial acceleration is not finite (inputs too large?); nothing simulated")
+        record(0, state.q, state.qdot, qddot, 0)
+        if backbone_every:
+            sample_backbone(0, state.q, state.qdot, qddot)
+        probe.step()           # compiles the step; probe's own state, discarded
+    except (ValueError, ArithmeticError, np.linalg.LinAlgError) as e:
+        for key in out:
+            out[key].clear()
+        return finish(f"the initial state cannot be evaluated: {type(e).__name__}: {e}; nothing simulated")
+    if progress is not None:
+        progress(0.0, 0.0)
+    t0 = last = _time.monotonic()
+    recorded = 0                # the last recorded step
+    iterations = 0              # Newton iterations of the last converged step
     for k in range(1, n_steps + 1):
-        info = sim.step()
-        if not info.converged:
-            out["error"] = f"step at t = {sim.state.t:.6g} s did not converge; history ends there"
-            break
-        if k % record_every == 0 or k == n_steps:
-            record(info.iterations)
-        if backbone_every and k % backbone_every == 0:
-            st = sim.state
-            s_bb, P = kin.backbone(m, st.q, points_per_section)
-            mot = kin.point_motion(m, st.q, st.qdot, sim.last_qddot, s_bb)
-            out["backbone_time"].append(st.t)
-            out["backbone"].append(P[:, :3, 3].tolist())
-            out["backbone_velocity"].append(mot["v_world"].tolist())
-            out["backbone_acceleration"].append(mot["a_world"].tolist())
-            out["internal_wrenches"].append(internal_wrenches_dynamic(
-                m, st.q, st.qdot, sim.last_qddot, s_bb, sim.actuation_at(st.t), sim.loads_at(st.t)).tolist())
+        sim.state.t = time_of(k - 1)
+        try:
+            info = sim.step()
+            failure = None if info.converged else (
+                f"Newton's iteration did not converge ({info.iterations} iterations, "
+                f"relative update {info.update:.3g}, even with sub-steps)")
+        except (ValueError, ArithmeticError, np.linalg.LinAlgError) as e:
+            failure = f"{type(e).__name__}: {e}"
+        if failure is None and not (np.all(np.isfinite(sim.state.q)) and np.all(np.isfinite(sim.state.qdot))):
+            failure = "the state became non-finite"
+        if failure is not None:
+            if recorded != k - 1:       # end the history at the last converged step
+                st = sim.state
+                record(k - 1, st.q, st.qdot, probe.acceleration(st.q, st.qdot, time_of(k - 1)), iterations)
+            return finish(f"step {k} of {n_steps} (t = {time_of(k - 1):.6g} -> {time_of(k):.6g} s) failed: "
+                          f"{failure}; the history ends at t = {time_of(k - 1):.6g} s")
+        st = sim.state
+        st.t = time_of(k)
+        iterations = info.iterations
+        sample = backbone_every and k % backbone_every == 0
+        if k % record_every == 0 or k == n_steps or sample:
+            qddot = probe.acceleration(st.q, st.qdot, st.t)
+            record(k, st.q, st.qdot, qddot, info.iterations)
+            recorded = k
+            if sample:
+                sample_backbone(k, st.q, st.qdot, qddot)
         if progress is not None and _time.monotonic() - last > 1.0:
-            progress(k / n_steps)
+            progress(k / n_steps, _time.monotonic() - t0)
             last = _time.monotonic()
-    out["n_sections"] = m.n_sections
-    out["dt"] = dt
-    return out
+    return finish()

@@ -69,16 +69,75 @@ def test_importing_core_loads_no_ros_module():
     assert str(CORE) in proc.stdout
 
 
+def readme_python_snippets():
+    """The ```python blocks of README.md."""
+    text = (ROOT / "README.md").read_text(encoding="utf-8")
+    return re.findall(r"^```python\n(.*?)^```", text, re.M | re.S)
+
+
+def test_readme_snippets_use_no_checkout_paths():
+    """The README's Python snippets name example files by name, not by a
+    path into the checkout (they must run from any directory)."""
+    snippets = readme_python_snippets()
+    assert len(snippets) >= 2
+    for code in snippets:
+        assert "config/" not in code and "../" not in code, code
+
+
+def test_readme_links_stay_in_the_repository():
+    """Every README link is an anchor or a file of the repository; nothing
+    points outside it (no ../ paths, no URLs); the conventions document is
+    the repository's own and the model's literature is cited."""
+    text = (ROOT / "README.md").read_text(encoding="utf-8")
+    assert not re.search(r"https?://|www\.", text)
+    assert "shared/" not in text and "slides" not in text.lower() and "DESIGN.md" not in text
+    targets = re.findall(r"\]\(([^)\s]+)\)", text)
+    assert targets
+    for t in targets:
+        if t.startswith("#"):
+            continue
+        path = (ROOT / t.split("#")[0]).resolve()
+        assert path.is_relative_to(ROOT) and path.exists(), t
+    assert "(docs/CONVENTIONS.md)" in text
+    conventions = (ROOT / "docs" / "CONVENTIONS.md").read_text(encoding="utf-8")
+    assert "shared/" not in conventions and "[linear; angular]" in conventions
+    for cite in ("Grazioso, Di Gironimo & Siciliano", "Renda et al. 2018", "Simo & Vu-Quoc",
+                 "Bisshopp & Drucker 1945", "Mattiasson 1981", "Dowell & Traybar 1975",
+                 "Featherstone", "Carpentier", "Soft Robotics", "IEEE Transactions on Robotics"):
+        assert cite in " ".join(text.split()), cite
+
+
+def test_example_files_found_by_name_from_any_directory(tmp_path):
+    """From the sources, away from the checkout: every example robot and
+    scenario loads by name."""
+    code = textwrap.dedent("""
+        from soft_twin_core.model import example_files, load_model
+        from soft_twin_core.scenario import load_scenario
+        robots, scenarios = example_files("robots"), example_files("scenarios")
+        for name in robots:
+            load_model(name)
+        for name in scenarios:
+            load_scenario(name)
+        print(sorted(robots), sorted(scenarios))
+    """)
+    env = dict(os.environ, PYTHONPATH=str(ROOT))
+    proc = _run([sys.executable, "-c", code], timeout=300, cwd=tmp_path, env=env)
+    assert "tendon_arm" in proc.stdout and "tendon_arm_dynamics" in proc.stdout
+
+
 @pytest.mark.slow
 def test_pip_install_core_in_plain_venv(tmp_path):
-    """`pip install .` in a venv without any ROS wheel: soft_twin_core imports, rclpy does not."""
+    """`pip install .` in a venv without any ROS wheel: soft_twin_core imports, rclpy does not;
+    every example robot and scenario loads by name and the README's Python
+    snippets run, from a directory outside the sources."""
     src = tmp_path / "src"
     src.mkdir()
-    for name in ("setup.py", "pyproject.toml", "README.md"):
+    for name in ("setup.py", "pyproject.toml", "README.md", "MANIFEST.in"):
         if (ROOT / name).exists():
             shutil.copy2(ROOT / name, src / name)
     shutil.copytree(CORE, src / "soft_twin_core",
                     ignore=shutil.ignore_patterns("__pycache__", "*.pyc"))
+    shutil.copytree(ROOT / "config", src / "config")
 
     base_python = getattr(sys, "_base_executable", None) or sys.executable
     venv = tmp_path / "venv"
@@ -101,6 +160,35 @@ def test_pip_install_core_in_plain_venv(tmp_path):
     listed = _run([py, "-m", "pip", "list", "--format=freeze"], timeout=120, env=env).stdout
     assert not [ln for ln in listed.splitlines() if ln.lower().startswith("ros-")], listed
     assert (venv / "bin" / "soft-twin-sim").exists()
+
+    # the example files ship as package data: by name, from anywhere
+    elsewhere = tmp_path / "elsewhere"
+    elsewhere.mkdir()
+    shutil.rmtree(src)            # nothing left to find but the install
+    robots = sorted(p.stem for p in (ROOT / "config" / "robots").glob("*.yaml"))
+    scenarios = sorted(p.stem for p in (ROOT / "config" / "scenarios").glob("*.yaml"))
+    code = textwrap.dedent(f"""
+        from pathlib import Path
+        from soft_twin_core.model import example_files, load_model
+        from soft_twin_core.scenario import load_scenario
+        assert sorted(example_files("robots")) == {robots!r}, example_files("robots")
+        assert sorted(example_files("scenarios")) == {scenarios!r}, example_files("scenarios")
+        for name in {robots!r}:
+            load_model(name)
+        for name in {scenarios!r}:
+            load_scenario(name)
+        print(Path(example_files("robots")["tendon_arm"]))
+    """)
+    proc = _run([py, "-c", code], timeout=300, env=env, cwd=elsewhere)
+    assert Path(proc.stdout.strip()).is_relative_to(venv), proc.stdout
+    sim = _run([str(venv / "bin" / "soft-twin-sim"), "statics", "tendon_arm_statics"], timeout=600,
+               env=env, cwd=elsewhere)
+    assert '"tip_position"' in sim.stdout
+    # the README's Python snippets, as a user would paste them
+    for i, snippet in enumerate(readme_python_snippets()):
+        f = elsewhere / f"readme_{i}.py"
+        f.write_text(snippet)
+        _run([py, str(f)], timeout=900, env=env, cwd=elsewhere)
 
 
 # ------------------------------------------------- ROS package (make setup)
