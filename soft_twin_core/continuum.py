@@ -21,7 +21,7 @@ Two references used to validate the piecewise-constant-strain (PCS) solver:
    problems analysed by means of elliptic integrals", Int. J. Numer. Meth.
    Eng. 17:145-153, 1981).
 
-Conventions (shared/DESIGN.md): 6-vectors are [linear; angular]; strain
+Conventions (docs/CONVENTIONS.md): 6-vectors are [linear; angular]; strain
 ``f = [f_u; f_w]`` and wrenches ``[force; moment]`` in the cross-section
 (body) frame unless the name says ``_world``; ``H' = H hat6(f)``; the
 cross-section stiffness ``K`` (6x6, e.g. ``diag(EA, G A2, G A3, G J, E I2,
@@ -139,7 +139,7 @@ def _hat(w):
 _HAT_BASIS = _hat(np.eye(3))
 
 # A converging solve needs ~5-80 integrations (the gravity benchmark of
-# DESIGN.md: ~35); this cap bounds the time spent on a hopeless case.
+# docs/CONVENTIONS.md: ~35); this cap bounds the time spent on a hopeless case.
 _MAX_SHOOTS = 400
 
 _NS = 18          # state size: P (3), R (9, row-major), n (3), m (3)

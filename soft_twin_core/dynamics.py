@@ -255,10 +255,14 @@ class Simulator:
         q = np.ascontiguousarray(q, dtype=float)
         v = np.ascontiguousarray(qdot, dtype=float)
         R = np.empty(self.tree.nv)
-        residual_pass(self.workspace.m, self.workspace.w, self._act, loads, g, coef, effort, q, v,
-                      np.zeros(self.tree.nv), R, False)
-        alg.factor(self.tree, self.workspace, q)
-        return alg.solve(self.tree, self.workspace, -R)
+        # a workspace of its own: the integrator keeps its factorisation in self.workspace
+        ws = self.__dict__.get("_acc_ws")
+        if ws is None:
+            from .workspace import Workspace
+            ws = self._acc_ws = Workspace(self.tree)
+        residual_pass(ws.m, ws.w, self._act, loads, g, coef, effort, q, v, np.zeros(self.tree.nv), R, False)
+        alg.factor(self.tree, ws, q)
+        return alg.solve(self.tree, ws, -R)
 
     def step(self, n=1):
         """Advance n steps; returns the StepInfo of the last one. A step that

@@ -1,6 +1,6 @@
 """SO(3) and SE(3): hat maps, adjoints, exp/log, tangent operators, Cayley map.
 
-Conventions (shared/DESIGN.md, slides part B "The exponential map on SO(3)/SE(3)"):
+Conventions (docs/CONVENTIONS.md; the seed lecture slides, part B "The exponential map on SO(3)/SE(3)"):
 
 * A twist / strain / wrench 6-vector is ``x = [u; w]`` = [linear; angular].
 * ``hat(w)`` is the 3x3 skew matrix, ``hat6(x) = [[hat(w), u], [0, 0]]`` (the

@@ -42,7 +42,7 @@ by arc length. A robot file of the classic schema (one chain of segments)
 becomes one path, ``"backbone"``, through :func:`from_robot_model`.
 
 Units SI; twists, strains and wrenches ``[linear; angular]`` in body frames
-(shared/DESIGN.md).
+(docs/CONVENTIONS.md).
 """
 
 from dataclasses import dataclass, field
