@@ -17,6 +17,8 @@ import yaml
 
 from soft_twin_core.model import ModelError, model_from_dict, robot_mapping
 
+from soft_twin.text import clip, short_list
+
 DEFAULT_ROBOT = "tendon_arm.yaml"
 MODES = ("dynamic", "quasi_static")
 
@@ -77,6 +79,12 @@ PARAMETERS = {
     "max_catchup_steps": (
         4, "Dynamic mode: after a late tick, up to this many steps are taken at once to keep twin "
            "time on wall time; a larger backlog is dropped (counted). Integer >= 1."),
+    "max_tip_force_n": (
+        1.0e3, "Largest tip force |f| accepted on ~/tip_wrench_command and by statics_query (N, > 0); "
+               "a larger one is rejected (over_limit)."),
+    "max_tip_torque_nm": (
+        1.0e2, "Largest tip moment |m| accepted on ~/tip_wrench_command and by statics_query (N m, > 0); "
+               "a larger one is rejected (over_limit)."),
 }
 
 
@@ -100,6 +108,8 @@ class NodeConfig:
     integrator_theta: float
     integrator_tolerance: float
     max_catchup_steps: int
+    max_tip_force_n: float
+    max_tip_torque_nm: float
 
     @property
     def dt(self):
@@ -117,7 +127,7 @@ class NodeConfig:
 
 def _number(name, v, lo=None, hi=None, lo_open=False, hi_open=False):
     if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v):
-        raise ConfigError(f"{name}: expected a finite number, got {v!r}")
+        raise ConfigError(f"{name}: expected a finite number, got {clip(repr(v))}")
     v = float(v)
     if lo is not None and (v < lo or (lo_open and v == lo)):
         raise ConfigError(f"{name}: must be {'>' if lo_open else '>='} {lo:g}, got {v:g}")
@@ -128,7 +138,7 @@ def _number(name, v, lo=None, hi=None, lo_open=False, hi_open=False):
 
 def _integer(name, v, lo=None, hi=None):
     if isinstance(v, bool) or not isinstance(v, int):
-        raise ConfigError(f"{name}: expected an integer, got {v!r}")
+        raise ConfigError(f"{name}: expected an integer, got {clip(repr(v))}")
     if (lo is not None and v < lo) or (hi is not None and v > hi):
         rng = f"in {lo}..{hi}" if hi is not None else f">= {lo}"
         raise ConfigError(f"{name}: must be {rng}, got {v}")
@@ -137,26 +147,26 @@ def _integer(name, v, lo=None, hi=None):
 
 def _boolean(name, v):
     if not isinstance(v, bool):
-        raise ConfigError(f"{name}: expected true or false, got {v!r}")
+        raise ConfigError(f"{name}: expected true or false, got {clip(repr(v))}")
     return v
 
 
 def _string(name, v):
     if not isinstance(v, str):
-        raise ConfigError(f"{name}: expected a string, got {v!r}")
+        raise ConfigError(f"{name}: expected a string, got {clip(repr(v))}")
     return v
 
 
 def _frame(name, v):
     v = _string(name, v).strip()
     if not v or any(c.isspace() for c in v):
-        raise ConfigError(f"{name}: expected a non-empty frame id without spaces, got {v!r}")
+        raise ConfigError(f"{name}: expected a non-empty frame id without spaces, got {clip(repr(v))}")
     return v
 
 
 def _choice(name, v, choices):
     if _string(name, v) not in choices:
-        raise ConfigError(f"{name}: expected one of {list(choices)}, got {v!r}")
+        raise ConfigError(f"{name}: expected one of {list(choices)}, got {clip(repr(v))}")
     return v
 
 
@@ -164,10 +174,10 @@ def _names(name, v):
     if v is None:
         return ()
     if isinstance(v, str) or not all(isinstance(x, str) for x in v):
-        raise ConfigError(f"{name}: expected a list of strings, got {v!r}")
+        raise ConfigError(f"{name}: expected a list of strings, got {clip(repr(v))}")
     out = tuple(x for x in v if x != "")
     if len(set(out)) != len(out):
-        raise ConfigError(f"{name}: names repeated in {list(out)}")
+        raise ConfigError(f"{name}: names repeated in {short_list(out)}")
     return out
 
 
@@ -190,13 +200,15 @@ VALIDATORS = {
     "integrator_theta": lambda n, v: _number(n, v, 0.5, 1.0),
     "integrator_tolerance": lambda n, v: _number(n, v, 0.0, 1e-3, lo_open=True),
     "max_catchup_steps": lambda n, v: _integer(n, v, 1, 1000),
+    "max_tip_force_n": lambda n, v: _number(n, v, 0.0, lo_open=True),
+    "max_tip_torque_nm": lambda n, v: _number(n, v, 0.0, lo_open=True),
 }
 
 
 def validate(name, value):
     """The converted value of one parameter, or ConfigError."""
     if name not in VALIDATORS:
-        raise ConfigError(f"{name}: unknown parameter")
+        raise ConfigError(f"{clip(name)}: unknown parameter")
     return VALIDATORS[name](name, value)
 
 
@@ -204,7 +216,7 @@ def config_from_values(values):
     """A validated NodeConfig from {name: value} (missing names: defaults)."""
     kw = {name: validate(name, values.get(name, default)) for name, (default, _) in PARAMETERS.items()}
     if kw["base_frame"] == kw["tip_frame"]:
-        raise ConfigError(f"base_frame and tip_frame must differ, both are {kw['base_frame']!r}")
+        raise ConfigError(f"base_frame and tip_frame must differ, both are {clip(repr(kw['base_frame']))}")
     return NodeConfig(**kw)
 
 
@@ -236,7 +248,7 @@ def resolve_robot_file(name):
     if p.is_absolute():
         if p.is_file():
             return p
-        raise ConfigError(f"robot_description_file: {p} does not exist")
+        raise ConfigError(f"robot_description_file: {clip(p)} does not exist")
     tried = [Path.cwd() / p]
     for root in package_roots():
         tried += [root / p, root / "config" / "robots" / p]
@@ -245,8 +257,8 @@ def resolve_robot_file(name):
     for c in tried:
         if c.is_file():
             return c.resolve()
-    raise ConfigError(f"robot_description_file: {name!r} not found (looked in "
-                      f"{', '.join(str(c.parent) for c in tried)})")
+    raise ConfigError(f"robot_description_file: {clip(repr(name))} not found (looked in "
+                      f"{clip(', '.join(str(c.parent) for c in tried), 600)})")
 
 
 @dataclass(frozen=True)
@@ -284,17 +296,17 @@ def load_robot(cfg):
         try:
             text = path.read_text(encoding="utf-8")
         except OSError as e:
-            raise ConfigError(f"robot_description_file: {path}: {e.strerror}") from None
+            raise ConfigError(f"robot_description_file: {clip(path)}: {e.strerror}") from None
         source = str(path)
     try:
         d = yaml.safe_load(text)
     except yaml.YAMLError as e:
-        raise ConfigError(f"{source}: invalid YAML: {e}") from None
+        raise ConfigError(f"{clip(source)}: invalid YAML: {clip(e, 400)}") from None
     try:
         model = model_from_dict(robot_mapping(d, "robot description"), cfg.sections_per_segment or None)
     except ModelError as e:
-        raise ConfigError(f"{source}: {e}") from None
+        raise ConfigError(f"{clip(source)}: {clip(e, 400)}") from None
     if cfg.actuator_names and set(cfg.actuator_names) != set(model.actuator_names):
-        raise ConfigError(f"actuator_names {list(cfg.actuator_names)} do not match the actuators of "
-                          f"{source}: {list(model.actuator_names)}")
+        raise ConfigError(f"actuator_names {short_list(cfg.actuator_names)} do not match the actuators of "
+                          f"{source}: {short_list(model.actuator_names)}")
     return Robot(model, d, source, cfg.sections_per_segment)

@@ -30,7 +30,9 @@ service computes. A second lock keeps the published states in step order.
 Topics, services and parameters: see README.md ("Interfaces").
 """
 
+import difflib
 import math
+import signal
 import sys
 import threading
 import time
@@ -43,11 +45,11 @@ from geometry_msgs.msg import PoseArray, PoseStamped, Vector3, WrenchStamped
 from rcl_interfaces.msg import ParameterDescriptor, SetParametersResult
 from rclpy.callback_groups import MutuallyExclusiveCallbackGroup, ReentrantCallbackGroup
 from rclpy.clock import Clock, ClockType
-from rclpy.exceptions import InvalidHandle, ParameterUninitializedException
-from rclpy.executors import ExternalShutdownException
+from rclpy.exceptions import InvalidHandle, ParameterNotDeclaredException, ParameterUninitializedException
 from rclpy.node import Node
 from rclpy.parameter import Parameter
 from rclpy.qos import QoSProfile, ReliabilityPolicy, HistoryPolicy
+from rclpy.signals import SignalHandlerOptions
 from std_msgs.msg import ColorRGBA, Header
 from std_srvs.srv import Trigger
 from visualization_msgs.msg import Marker, MarkerArray
@@ -59,10 +61,44 @@ from soft_twin import conversions as cv
 from soft_twin import twin as tw
 from soft_twin.executor import TwinExecutor
 from soft_twin.config import PARAMETERS, ConfigError, config_from_values, load_robot
+from soft_twin.text import clip, short_list
 
 NODE_NAME = "soft_twin"
 ACTUATION_QUEUE = 100       # subscription depths (keep last)
 WRENCH_QUEUE = 10
+# parameters rclpy declares itself (not ours, not unknown)
+ROS_PARAMETERS = ("use_sim_time", "start_type_description_service")
+
+
+def _coerced(name, value):
+    """An integer given for one of our float parameters, as that float."""
+    default = PARAMETERS[name][0] if name in PARAMETERS else None
+    if isinstance(default, float) and isinstance(value, int) and not isinstance(value, bool):
+        return float(value)
+    return value
+
+
+class StartupInterrupted(Exception):
+    """The start-up was abandoned on request (a stop signal, see main)."""
+
+
+class UnknownParameterError(ParameterNotDeclaredException):
+    """A parameter this node does not have (named, with the nearest of its
+    own); the parameter services answer with this message as the reason."""
+
+    def __init__(self, names):
+        Exception.__init__(self, unknown_parameters_message(names))
+
+
+def unknown_parameters_message(names):
+    hints = []
+    for n in names[:5]:
+        near = difflib.get_close_matches(n, list(PARAMETERS) + list(ROS_PARAMETERS), n=1)
+        if near:
+            hints.append(f"{clip(n, 60)!r} -> {near[0]!r}?")
+    return (f"unknown parameter(s) {short_list(names)}: this node has no such parameter"
+            + (f" (did you mean {', '.join(hints)})" if hints else "")
+            + f"; its parameters: {', '.join(PARAMETERS)}")
 
 
 class _Stats:
@@ -73,10 +109,12 @@ class _Stats:
         self.totals = dict(steps=0, solver_failures=0, dropped_steps=0, commands_received=0,
                            commands_applied=0, commands_superseded=0, commands_lost=0,
                            wrenches_received=0, wrenches_applied=0, wrenches_lost=0,
-                           rejected_actuation=0, rejected_wrench=0, internal_errors=0)
+                           rejected_actuation=0, rejected_wrench=0, internal_errors=0,
+                           rejected_parameter_changes=0)
         self.last_internal_error = ""
         self.rejected_by_reason = {r: 0 for r in tw.REJECT_REASONS}
         self.last_rejection = ""
+        self.last_parameter_rejection = ""
         self.last_solver_message = ""
         self.consecutive_failures = 0
         self.unstable = False
@@ -94,29 +132,43 @@ class _Stats:
         self.input_batches = []           # commands taken per actuation callback
         self.rejected = 0
         self.lost = 0                     # inputs lost before the node took them
+        self.failures = 0                 # failed steps or solves
+        self.publishes = 0                # states published
 
     def reject(self, kind, err):
         self.totals[f"rejected_{kind}"] += 1
         self.rejected_by_reason[err.reason] += 1
         self.rejected += 1
-        self.last_rejection = f"{kind}: {err}"
+        self.last_rejection = clip(f"{kind} ({err.reason}): {err}", 400)
 
 
 class SoftTwinNode(Node):
     """The digital twin node (see the module docstring)."""
 
-    def __init__(self, node_name=NODE_NAME, **kwargs):
+    def __init__(self, node_name=NODE_NAME, stop_requested=None, **kwargs):
+        """``stop_requested``: a callable asked between the start-up's steps
+        (robot, rest shape, kernel warm-up); True abandons the start-up
+        (the node is destroyed, :class:`StartupInterrupted` raised)."""
+        self._stop_requested = stop_requested or (lambda: False)
         super().__init__(node_name, **kwargs)
         # --- parameters: declare, validate, load the robot ------------------
+        # Dynamic typing, so that a wrong type gets config's reason, not rclpy's;
+        # an integer for a float parameter is taken as that float (the
+        # parameter keeps its type: at start here, on change in _coerce_parameters)
+        overrides = getattr(self, "_parameter_overrides", {})
         for name, (default, description) in PARAMETERS.items():
-            if default is None:     # a string array without a default value
-                self.declare_parameter(name, Parameter.Type.STRING_ARRAY,
-                                       ParameterDescriptor(name=name, description=description))
-            else:                   # dynamic typing: 100 is as good as 100.0; validated here
-                self.declare_parameter(name, default, ParameterDescriptor(
-                    name=name, description=description, dynamic_typing=True))
+            value = default
+            if name in overrides:
+                value = _coerced(name, overrides[name].value)
+            self.declare_parameter(name, value, ParameterDescriptor(
+                name=name, description=description, dynamic_typing=True), ignore_override=True)
         self._values = {name: self._declared_value(name) for name in PARAMETERS}
         try:
+            # a misspelt -p name:=value (or params-file entry) would silently change nothing
+            unknown = sorted(n for n in overrides if n not in self._parameters
+                             and not n.startswith("qos_overrides."))
+            if unknown:
+                raise ConfigError(unknown_parameters_message(unknown))
             self.cfg = config_from_values(self._values)
             self.robot = load_robot(self.cfg)
         except ConfigError:
@@ -136,12 +188,15 @@ class SoftTwinNode(Node):
         self.get_logger().info(
             f"robot {self.robot.model.name!r} from {self.robot.source}: {self.robot.model.n_sections} "
             f"sections, {self.robot.model.n_dof} free strains, actuators {list(self.robot.model.actuator_names)}")
+        self._startup_point()
         self.twin = tw.Twin(self.robot.model, self._settings(self.cfg))
         self.get_logger().info(f"mode {self.cfg.mode}; {self.twin.rest_message}")
+        self._startup_point()
         self.get_logger().info("warming up the compiled kernels (numba: ~10 s on the first run, "
                                "cached on disk afterwards) ...")
         took = self.twin.warm_up()
         self.get_logger().info(f"warm-up done in {took:.1f} s")
+        self._startup_point()
 
         # --- callback groups -------------------------------------------------
         self._step_group = MutuallyExclusiveCallbackGroup()
@@ -189,6 +244,7 @@ class SoftTwinNode(Node):
         self._diag_timer = self.create_timer(1.0 / self.cfg.diagnostics_rate_hz,
                                              self._guarded(self._publish_diagnostics),
                                              callback_group=self._diag_group, clock=self._steady)
+        self.add_pre_set_parameters_callback(self._coerce_parameters)
         self.add_on_set_parameters_callback(self._on_set_parameters)
         self.add_post_set_parameters_callback(self._after_set_parameters)
         self.get_logger().info(
@@ -199,6 +255,12 @@ class SoftTwinNode(Node):
     # ------------------------------------------------------------------------
     # configuration
     # ------------------------------------------------------------------------
+    def _startup_point(self):
+        """Between two steps of the start-up: abandon it if a stop was asked."""
+        if self._stop_requested():
+            self.destroy_node()
+            raise StartupInterrupted("stop requested during the start-up")
+
     def _guarded(self, callback):
         """The callback, made unable to take the node down: an unexpected
         exception (a bug, not a bad input: those are handled where they
@@ -214,12 +276,13 @@ class SoftTwinNode(Node):
                     return None
                 with self._stats_lock:
                     self.stats.totals["internal_errors"] += 1
-                    self.stats.last_internal_error = f"{callback.__name__}: {type(e).__name__}: {e}"
-                self.get_logger().error(f"internal error in {callback.__name__}: {type(e).__name__}: {e}\n"
-                                        + traceback.format_exc(), throttle_duration_sec=1.0)
+                    self.stats.last_internal_error = clip(f"{callback.__name__}: {type(e).__name__}: {e}", 400)
+                self.get_logger().error(f"internal error in {callback.__name__}: {type(e).__name__}: "
+                                        f"{clip(e, 400)}\n" + clip(traceback.format_exc(), 4000),
+                                        throttle_duration_sec=1.0)
                 if len(args) == 2 and hasattr(args[1], "success"):      # a service response
                     args[1].success = False
-                    args[1].message = f"internal error: {type(e).__name__}: {e}"
+                    args[1].message = clip(f"internal error: {type(e).__name__}: {e}", 400)
                     return args[1]
                 return None
         run.__name__ = callback.__name__
@@ -251,15 +314,37 @@ class SoftTwinNode(Node):
         self._step_timer = self.create_timer(period, self._guarded(self._on_step_timer),
                                              callback_group=self._step_group, clock=self._steady)
 
+    def _coerce_parameters(self, params):
+        """Before rclpy looks at a change: an integer for one of our float
+        parameters becomes that float (the parameter keeps its type), and a
+        name the node does not have is refused with a reason naming it
+        (rclpy's own says "undeclared parameter(s): []"), and counted."""
+        unknown = [p.name for p in params if not self.has_parameter(p.name)]
+        if unknown:
+            self._count_parameter_rejection(unknown_parameters_message(unknown))
+            raise UnknownParameterError(unknown)
+        return [Parameter(p.name, value=_coerced(p.name, p.value)) if p.name in PARAMETERS else p
+                for p in params]
+
+    def _count_parameter_rejection(self, reason):
+        reason = clip(reason, 400)
+        with self._stats_lock:
+            self.stats.totals["rejected_parameter_changes"] += 1
+            self.stats.last_parameter_rejection = reason
+        self.get_logger().warn(f"parameter change rejected: {reason}")
+
     def _on_set_parameters(self, params):
         """Validate a parameter change as a whole; reject with a reason (the
-        running twin is untouched) or stage it for _after_set_parameters."""
+        running twin is untouched, the refusal counted) or stage it for
+        _after_set_parameters."""
         values = dict(self._values)
-        for p in params:
-            if p.name not in PARAMETERS:
-                continue            # e.g. use_sim_time: not ours
-            values[p.name] = p.value
         try:
+            for p in params:
+                if p.name not in PARAMETERS:
+                    continue            # e.g. use_sim_time: not ours
+                if p.type_ == Parameter.Type.NOT_SET:
+                    raise ConfigError(f"{p.name}: cannot be unset (it is a parameter of this node)")
+                values[p.name] = p.value
             cfg = config_from_values(values)
             robot = load_robot(cfg) if (cfg.robot_key != self.cfg.robot_key
                                         or cfg.actuator_names != self.cfg.actuator_names) else None
@@ -267,11 +352,13 @@ class SoftTwinNode(Node):
             if robot is not None and cfg.robot_key != self.cfg.robot_key:
                 twin = tw.Twin(robot.model, self._settings(cfg))   # solves the rest shape: fails here, not later
         except ConfigError as e:
-            self.get_logger().warn(f"parameter change rejected: {e}")
-            return SetParametersResult(successful=False, reason=str(e))
+            reason = clip(e, 400)
+            self._count_parameter_rejection(reason)
+            return SetParametersResult(successful=False, reason=reason)
         except Exception as e:  # a robot the core cannot handle: reject, keep running
-            self.get_logger().warn(f"parameter change rejected: {e}")
-            return SetParametersResult(successful=False, reason=f"{type(e).__name__}: {e}")
+            reason = clip(f"{type(e).__name__}: {e}", 400)
+            self._count_parameter_rejection(reason)
+            return SetParametersResult(successful=False, reason=reason)
         self._staged = (values, cfg, robot, twin)
         return SetParametersResult(successful=True)
 
@@ -298,7 +385,8 @@ class SoftTwinNode(Node):
             self._diag_timer.timer_period_ns = int(1e9 / cfg.diagnostics_rate_hz)
         if cfg.mode == "quasi_static":
             self._solve_trigger.trigger()
-        self.get_logger().info("parameters applied: " + ", ".join(f"{p.name}={p.value!r}" for p in params))
+        self.get_logger().info("parameters applied: " + ", ".join(f"{p.name}={clip(repr(p.value), 100)}"
+                                                                  for p in params))
 
     # ------------------------------------------------------------------------
     # inputs
@@ -363,7 +451,7 @@ class SoftTwinNode(Node):
                 # latency from the command's stamp (a zero stamp: from its arrival here)
                 self._command_received = (newest.header, stamp_ns if stamp_ns > 0 else taken_ns, taken_ns)
         if errors:
-            self.get_logger().warn(f"actuation command rejected ({errors[-1].reason}): {errors[-1]}"
+            self.get_logger().warn(f"actuation command rejected ({errors[-1].reason}): {clip(errors[-1], 400)}"
                                    + (f" (and {len(errors) - 1} more)" if len(errors) > 1 else ""),
                                    throttle_duration_sec=1.0)
         if newest is not None:
@@ -405,7 +493,7 @@ class SoftTwinNode(Node):
             if newest is not None:
                 self.twin.set_tip_wrench(*newest)
         if errors:
-            self.get_logger().warn(f"tip wrench rejected ({errors[-1].reason}): {errors[-1]}"
+            self.get_logger().warn(f"tip wrench rejected ({errors[-1].reason}): {clip(errors[-1], 400)}"
                                    + (f" (and {len(errors) - 1} more)" if len(errors) > 1 else ""),
                                    throttle_duration_sec=1.0)
         if newest is not None:
@@ -418,7 +506,8 @@ class SoftTwinNode(Node):
         for m, _ in batch:
             force, torque = cv.wrench_parts(m.wrench)
             try:
-                newest = tw.parse_tip_wrench(force, torque, m.header.frame_id, cfg.base_frame, cfg.tip_frame)
+                newest = tw.parse_tip_wrench(force, torque, m.header.frame_id, cfg.base_frame, cfg.tip_frame,
+                                             cfg.max_tip_force_n, cfg.max_tip_torque_nm)
             except tw.InputError as e:
                 errors.append(e)
         return newest, errors
@@ -505,7 +594,8 @@ class SoftTwinNode(Node):
                 due = cfg.max_catchup_steps
             twin, robot = self.twin, self.robot
             info = twin.step(due)
-            self._steps_done += due
+            # a failed step (its input dropped) is taken again at the next tick, as a catch-up step
+            self._steps_done += due if info.converged else info.steps
             self._record(info, twin.settings.dt * info.steps)
             self._unpublished += due          # failed steps too: the last good state keeps coming
             if self._unpublished < cfg.publish_every_n_steps:
@@ -540,6 +630,9 @@ class SoftTwinNode(Node):
         self._publish_wrenches(snap, robot, header, time.monotonic())
 
     def _record(self, info, sim_dt):
+        """Statistics of one step call or solve (under the lock); a failed
+        one's dropped inputs are taken back from the applied counts and
+        counted as rejected (reason solver_failed)."""
         s = self.stats
         s.ticks += 1
         s.steps += info.steps
@@ -554,8 +647,17 @@ class SoftTwinNode(Node):
                 s.last_solver_message = info.message
         else:
             s.consecutive_failures += 1
+            s.failures += 1
             s.totals["solver_failures"] += 1
             s.last_solver_message = info.message
+            for kind in info.dropped:
+                err = tw.InputError("solver_failed", info.message)
+                if kind == "actuation":
+                    s.totals["commands_applied"] -= 1
+                    self._command_received = None
+                else:
+                    s.totals["wrenches_applied"] -= 1
+                s.reject(kind, err)
             self.get_logger().error(info.message, throttle_duration_sec=1.0)
 
     # ------------------------------------------------------------------------
@@ -592,6 +694,7 @@ class SoftTwinNode(Node):
             self._last_marker_time = now
             self._pub_markers.publish(self._markers(snap, robot, header))
         self.stats.publish_times.append(time.perf_counter() - t0)
+        self.stats.publishes += 1
         return header
 
     def _publish_wrenches(self, snap, robot, header, now):
@@ -661,6 +764,7 @@ class SoftTwinNode(Node):
                 "twin_time_s": f"{twin.state.t:.4f}",
                 "step_rate_target_hz": f"{cfg.step_rate_hz:.3f}" if cfg.mode == "dynamic" else "on input",
                 "step_rate_hz": f"{rate:.3f}",
+                "publish_rate_hz": f"{s.publishes / wall:.3f}",
                 "real_time_factor": f"{rtf:.4f}" if cfg.mode == "dynamic" else "n/a",
                 "step_time_mean_ms": f"{1e3 * ct.mean():.4f}",
                 "step_time_max_ms": f"{1e3 * ct.max():.4f}",
@@ -672,7 +776,7 @@ class SoftTwinNode(Node):
                 "solver_iterations_max": str(int(its.max())),
                 "solver_failures_total": str(s.totals["solver_failures"]),
                 "solver_consecutive_failures": str(s.consecutive_failures),
-                "solver_last_message": s.last_solver_message,
+                "solver_last_message": clip(s.last_solver_message, 400),
                 "steps_total": str(s.totals["steps"]),
                 "dropped_steps_total": str(s.totals["dropped_steps"]),
                 "commands_received_total": str(s.totals["commands_received"]),
@@ -690,12 +794,18 @@ class SoftTwinNode(Node):
                 "rejected_wrench_total": str(s.totals["rejected_wrench"]),
                 **{f"rejected_{r}_total": str(n) for r, n in s.rejected_by_reason.items()},
                 "last_rejection": s.last_rejection,
+                "rejected_parameter_changes_total": str(s.totals["rejected_parameter_changes"]),
+                "last_parameter_rejection": s.last_parameter_rejection,
                 "internal_errors_total": str(s.totals["internal_errors"]),
                 "last_internal_error": s.last_internal_error,
             }
             level, message = DiagnosticStatus.OK, "ok"
             if s.consecutive_failures:
-                level, message = DiagnosticStatus.ERROR, f"solver failing, state kept: {s.last_solver_message}"
+                level, message = DiagnosticStatus.ERROR, f"solver failing, state kept: {values['solver_last_message']}"
+            elif s.failures:
+                level, message = DiagnosticStatus.WARN, (f"{s.failures} step(s) or solve(s) failed, the "
+                                                         f"state kept and the input dropped: "
+                                                         f"{values['solver_last_message']}")
             elif s.totals["internal_errors"] > self._reported_internal_errors:
                 level, message = DiagnosticStatus.ERROR, f"internal error: {s.last_internal_error}"
                 self._reported_internal_errors = s.totals["internal_errors"]
@@ -737,10 +847,10 @@ class SoftTwinNode(Node):
             if len(req.actuator_names) or len(req.actuator_values):
                 actuation = tw.parse_actuation(model, req.actuator_names, req.actuator_values, u, order)
         except tw.InputError as e:
-            resp.success, resp.message = False, f"actuation rejected ({e.reason}): {e}"
+            resp.success, resp.message = False, clip(f"actuation rejected ({e.reason}): {e}", 400)
             return resp
         res = tw.forward_kinematics(model, q, cfg.backbone_points_per_section, req.strains, actuation)
-        resp.success, resp.message = res.success, res.message
+        resp.success, resp.message = res.success, clip(res.message, 400)
         if res.success:
             self._fill_shape(resp, res, cfg)
             resp.tip_pose = cv.pose_msg(res.tip_pose)
@@ -752,12 +862,13 @@ class SoftTwinNode(Node):
             actuation = tw.parse_actuation(model, req.actuator_names, req.actuator_values, u, order) \
                 if (len(req.actuator_names) or len(req.actuator_values)) else u
             force, torque = cv.wrench_parts(req.tip_wrench)
-            w, frame = tw.parse_tip_wrench(force, torque, cfg.base_frame, cfg.base_frame, cfg.tip_frame)
+            w, frame = tw.parse_tip_wrench(force, torque, cfg.base_frame, cfg.base_frame, cfg.tip_frame,
+                                           cfg.max_tip_force_n, cfg.max_tip_torque_nm)
         except tw.InputError as e:
-            resp.success, resp.message = False, f"input rejected ({e.reason}): {e}"
+            resp.success, resp.message = False, clip(f"input rejected ({e.reason}): {e}", 400)
             return resp
         res = tw.statics_query(model, q, cfg.backbone_points_per_section, actuation, w, frame)
-        resp.success, resp.message = res.success, res.message
+        resp.success, resp.message = res.success, clip(res.message, 400)
         if res.success:
             self._fill_shape(resp, res, cfg)
             resp.tip_pose = cv.pose_msg(res.tip_pose)
@@ -774,11 +885,11 @@ class SoftTwinNode(Node):
         try:
             target = cv.matrix_from_pose(req.target)
         except ValueError as e:
-            resp.success, resp.message = False, f"target rejected: {e}"
+            resp.success, resp.message = False, clip(f"target rejected: {e}", 400)
             return resp
         res = tw.inverse_kinematics(model, q, cfg.backbone_points_per_section, target, req.position_only,
                                     tol or 1e-6, tw.make_loads(model, w, frame), u_current=u)
-        resp.success, resp.message = res.success, res.message
+        resp.success, resp.message = res.success, clip(res.message, 400)
         if res.q is not None:
             resp.strains = res.strains.ravel().tolist()
             x = res.extra
@@ -804,30 +915,88 @@ class SoftTwinNode(Node):
         return resp
 
 
+class _StopSignals:
+    """SIGINT and SIGTERM, handled in Python instead of by rclpy.
+
+    rclpy's own handlers shut the context down from a signal thread while
+    the executor may be building a wait set or the node creating a
+    publisher: "RCLError: failed to initialize wait set: the given context is
+    not valid" (exit status 1: 5 of 20 SIGTERMs in the signal test, 4 of 28
+    and 2 of 38 SIGINTs in issue 15), and a signal during the start-up gave
+    a traceback or death by the signal. Here a signal only records itself
+    (the handler never raises: an exception raised wherever the main thread
+    happens to be can land in a ctypes callback of the kernel compiler, where
+    Python prints it as "Exception ignored", or be a KeyboardInterrupt that
+    CPython remembers and turns into death by SIGINT at exit). Main's spin
+    loop sees it within 0.1 s, stops the executor (waiting for running
+    callbacks), destroys the node and then shuts the context down, in that
+    order, and returns 0. During the start-up the node asks between its
+    steps (robot, rest shape, kernel warm-up) and gives up at the next one
+    (the longest step is the kernels' first compilation, ~10-30 s once)."""
+
+    def __init__(self):
+        self.received = None          # the first signal's number
+        self.starting = True
+
+    def install(self):
+        for sig in (signal.SIGINT, signal.SIGTERM):
+            signal.signal(sig, self._handle)
+
+    def _handle(self, signum, frame):
+        if self.received is not None:
+            return                    # already stopping
+        self.received = signum
+        if self.starting:
+            rclpy.logging.get_logger(NODE_NAME).info(
+                f"{self.name}: stopping at the end of the start-up step under way")
+
+    def requested(self):
+        return self.received is not None
+
+    @property
+    def name(self):
+        return signal.Signals(self.received).name if self.received is not None else None
+
+
 def main(args=None):
-    """Console entry point ``soft_twin_node`` (``--ros-args`` passed through)."""
+    """Console entry point ``soft_twin_node`` (``--ros-args`` passed through).
+    Exit status 0 after SIGINT or SIGTERM (at any time), 2 for an invalid
+    configuration (a bad or unknown parameter, a robot that cannot load)."""
     # hand the GIL to the stepping thread within ~1 ms of a service computing
     sys.setswitchinterval(0.001)
-    rclpy.init(args=args)
-    node = None
+    stop = _StopSignals()
+    stop.install()
+    logger = rclpy.logging.get_logger(NODE_NAME)
+    node = executor = None
     try:
+        rclpy.init(args=args, signal_handler_options=SignalHandlerOptions.NO)
         try:
-            node = SoftTwinNode()
+            node = SoftTwinNode(stop_requested=stop.requested)
         except ConfigError as e:
-            rclpy.logging.get_logger(NODE_NAME).fatal(f"invalid configuration: {e}")
+            logger.fatal(f"invalid configuration: {clip(e, 2000)}")
             return 2
+        logger = node.get_logger()
         executor = TwinExecutor(num_threads=5)
         executor.add_node(node)
-        try:
-            executor.spin()
-        finally:
-            executor.shutdown()
-    except (KeyboardInterrupt, ExternalShutdownException):
+        stop.starting = False
+        while stop.received is None and rclpy.ok():
+            executor.spin_once(timeout_sec=0.1)
+    except StartupInterrupted:
         pass
     finally:
+        stop.starting = False
+        if stop.received is not None:
+            twin = getattr(node, "twin", None)
+            logger.info(f"{stop.name}: shutting down" + (
+                f" (twin time {twin.state.t:.3f} s, {node.stats.totals['steps']} steps)"
+                if twin is not None and executor is not None else " during start-up"))
+        if executor is not None:
+            executor.shutdown()           # waits for the callbacks under way
         if node is not None:
             node.destroy_node()
         rclpy.try_shutdown()
+    if stop.received is not None:
+        logger.info("stopped")
     return 0
 
 

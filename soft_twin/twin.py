@@ -11,7 +11,16 @@ immutable :class:`Snapshot` of everything the node publishes, and
 
 Inputs are validated here (:func:`parse_actuation`, :func:`parse_tip_wrench`):
 a bad input raises :class:`InputError` carrying a short reason key used for
-the node's rejection counters, and is never applied.
+the node's rejection counters, and is never applied. Inputs beyond declared
+limits (an actuator's ``limit`` in the robot file, the node's tip force and
+torque bounds) are rejected there too ("over_limit").
+
+A dynamic step that fails (no convergence, or the core raising on absurd
+numbers) keeps the last good state and drops the input that broke it (the
+inputs go back to those of the last good state; :attr:`UpdateInfo.dropped`
+says which), so the next step runs with inputs that worked. The node's
+simulator is configured so that a failing step costs about a millisecond
+(:class:`TwinSettings`: bounded sub-stepping, no dense-Newton fallback).
 
 Frames: "world" of the core model = the node's base frame. Wrenches are
 [force (N); moment (N m)].
@@ -32,11 +41,18 @@ from soft_twin_core import loads as ld
 from soft_twin_core import statics as st
 from soft_twin_core.model import ModelError, State
 
+from soft_twin.text import clip, short_list
+
 MODES = ("dynamic", "quasi_static")
 
-# reason keys of rejected inputs (diagnostics counters)
+# reason keys of rejected inputs (diagnostics counters): the first ones at the
+# door (validation), "solver_failed" for an input dropped because the step or
+# solve it caused failed
 REJECT_REASONS = ("non_finite", "wrong_length", "unknown_name", "duplicate_name",
-                  "negative_tension", "bad_frame")
+                  "negative_tension", "over_limit", "bad_frame", "solver_failed")
+
+# what a failing step may raise on absurd (finite) numbers: a failure, not a bug
+STEP_ERRORS = (ArithmeticError, ValueError, np.linalg.LinAlgError, st.StaticsError)
 
 
 class InputError(ValueError):
@@ -58,7 +74,9 @@ def parse_actuation(model, names, values, current, order=None):
     value and the others keep theirs (from ``current``). With names empty,
     values must hold one value per actuator in ``order`` (actuator names;
     default the robot's order). Tendon tensions in N (>= 0), chamber
-    pressures in Pa. Raises :class:`InputError` (never partially applies).
+    pressures in Pa; each at most the actuator's declared ``limit`` (tension,
+    or |pressure|; none declared: ``math.inf``). Raises :class:`InputError`
+    (never partially applies); its message is bounded in length.
     """
     names = list(names)
     values = np.asarray(list(values), dtype=float)
@@ -67,24 +85,37 @@ def parse_actuation(model, names, values, current, order=None):
     if not names:
         if values.size != len(order):
             raise InputError("wrong_length", f"actuation without names needs {len(order)} values "
-                             f"(one per actuator {order}), got {values.size}")
+                             f"(one per actuator {short_list(order)}), got {values.size}")
         names = order
     elif len(names) != values.size:
         raise InputError("wrong_length", f"actuation has {len(names)} names but {values.size} values")
     if len(set(names)) != len(names):
-        dup = sorted({n for n in names if names.count(n) > 1})
-        raise InputError("duplicate_name", f"actuation names repeated: {dup}")
-    unknown = [n for n in names if n not in robot_names]
+        seen, dup = set(), {}
+        for n in names:
+            if n in seen:
+                dup[n] = None
+            seen.add(n)
+        raise InputError("duplicate_name", f"actuation names repeated: {short_list(dup)}")
+    known = set(robot_names)
+    unknown = [n for n in names if n not in known]
     if unknown:
-        raise InputError("unknown_name", f"unknown actuator(s) {unknown}; this robot has {robot_names}")
+        raise InputError("unknown_name", f"unknown actuator(s) {short_list(unknown)}; this robot has "
+                                         f"{short_list(robot_names)}")
     bad = [n for n, v in zip(names, values) if not math.isfinite(v)]
     if bad:
-        raise InputError("non_finite", f"actuation values not finite for {bad}")
+        raise InputError("non_finite", f"actuation values not finite for {short_list(bad)}")
     u = np.array(current, dtype=float, copy=True)
+    index = {n: k for k, n in enumerate(robot_names)}
     for n, v in zip(names, values):
-        k = robot_names.index(n)
-        if model.actuators[k].kind == "tendon" and v < 0:
-            raise InputError("negative_tension", f"tendon {n} tension must be >= 0 N, got {v}")
+        k = index[n]
+        act = model.actuators[k]
+        if act.kind == "tendon" and v < 0:
+            raise InputError("negative_tension", f"tendon {clip(n)} tension must be >= 0 N, got {v}")
+        limit = getattr(act, "limit", math.inf)
+        if abs(v) > limit:
+            what, unit = ("tension", "N") if act.kind == "tendon" else ("|pressure|", "Pa")
+            raise InputError("over_limit", f"{act.kind} {clip(n)}: {what} {abs(v):g} {unit} exceeds its "
+                                           f"declared limit {limit:g} {unit} (robot file)")
         u[k] = v
     # the core's own check (same rules): the single source of truth
     try:
@@ -93,13 +124,15 @@ def parse_actuation(model, names, values, current, order=None):
         raise InputError("non_finite", str(e)) from None
 
 
-def parse_tip_wrench(force, moment, frame_id, base_frame, tip_frame):
+def parse_tip_wrench(force, moment, frame_id, base_frame, tip_frame, max_force=math.inf,
+                     max_torque=math.inf):
     """External tip wrench from a WrenchStamped's parts.
 
     frame_id == base_frame: a dead load, components along the base axes;
     frame_id == tip_frame: a follower load, components along the tip axes.
     Either way the force acts at the tip point and the moment is about it.
-    Returns (wrench (6,), core frame "world" | "body").
+    |force| <= max_force [N] and |moment| <= max_torque [N m] (else
+    "over_limit"). Returns (wrench (6,), core frame "world" | "body").
     """
     w = np.array(list(force) + list(moment), dtype=float)
     if frame_id == base_frame:
@@ -107,10 +140,16 @@ def parse_tip_wrench(force, moment, frame_id, base_frame, tip_frame):
     elif frame_id == tip_frame:
         frame = "body"
     else:
-        raise InputError("bad_frame", f"tip wrench frame_id {frame_id!r}: expected the base frame "
-                         f"{base_frame!r} or the tip frame {tip_frame!r}")
+        raise InputError("bad_frame", f"tip wrench frame_id {clip(repr(frame_id))}: expected the base "
+                         f"frame {base_frame!r} or the tip frame {tip_frame!r}")
     if not np.all(np.isfinite(w)):
         raise InputError("non_finite", f"tip wrench not finite: {w.tolist()}")
+    f, m = math.hypot(*w[:3]), math.hypot(*w[3:])        # no overflow on 1e300
+    if f > max_force:
+        raise InputError("over_limit", f"tip force |f| = {f:g} N exceeds max_tip_force_n = {max_force:g} N")
+    if m > max_torque:
+        raise InputError("over_limit", f"tip torque |m| = {m:g} N m exceeds max_tip_torque_nm = "
+                                       f"{max_torque:g} N m")
     return w, frame
 
 
@@ -253,30 +292,54 @@ def wrenches(model, snap):
 @dataclass
 class UpdateInfo:
     """Outcome of one :meth:`Twin.step`: steps taken, Newton iterations,
-    converged (False: the state was kept), message, compute time [s]."""
+    converged (False: the state was kept), message, compute time [s];
+    dropped: the inputs dropped because the step or solve failed with them,
+    a tuple of "actuation" and/or "wrench" (they went back to those of the
+    last good state)."""
     steps: int = 0
     iterations: int = 0
     converged: bool = True
     message: str = ""
     compute_time: float = 0.0
     stable: bool = True
+    dropped: tuple = ()
 
 
 @dataclass
 class TwinSettings:
     """mode: "dynamic" | "quasi_static"; dt: dynamic step [s];
     theta: integrator theta in [0.5, 1]; tolerance: integrator Newton
-    tolerance; points_per_section: backbone samples per section."""
+    tolerance; points_per_section: backbone samples per section.
+
+    The work a failing dynamic step may do (real time: it must fit in a step
+    period): Newton iterations per attempt (``max_iterations``), sub-step
+    halvings (``max_substep_levels``: a step may split into 2**levels
+    pieces) and the core's dense full-Newton fallback (``full_newton``,
+    off: it costs 25-700 ms a step on the 18-dof default arm). With these
+    defaults a failing step costs about a millisecond (0.7-0.9 ms for the
+    default arm, 1.4-1.6 ms for the 36-dof pneumatic arm; it was 25-200 ms
+    with the core's defaults, 4 levels and the fallback), and a jump from
+    rest to a 100 N tendon tension (default arm, theta 0.5) still
+    integrates."""
     mode: str = "dynamic"
     dt: float = 0.005
     theta: float = 0.5
     tolerance: float = 1e-9
     points_per_section: int = 10
+    max_iterations: int = 10
+    max_substep_levels: int = 3
+    full_newton: bool = False
 
 
 # ----------------------------------------------------------------------------
 # The twin
 # ----------------------------------------------------------------------------
+
+def _same_inputs(a, b):
+    """Two (u, tip wrench, tip frame, command stamp) tuples alike."""
+    return (np.array_equal(a[0], b[0]) and np.array_equal(a[1], b[1]) and a[2] == b[2]
+            and a[3] is b[3])
+
 
 class Twin:
     """One robot model, its state and inputs. See the module docstring."""
@@ -291,6 +354,9 @@ class Twin:
         self.tip_frame = "world"
         self.command_stamp = None
         self._state_inputs = self._inputs()   # the inputs the current state reflects
+        self._good_inputs = self._state_inputs   # the inputs a failing step goes back to
+        self._fallback_inputs = None  # the good inputs before those (for a late failure)
+        self._stuck = False           # failing with nothing left to drop: keep new inputs
         self._dirty = True            # inputs changed since the last quasi-static solve
         self._base_wrench_qs = None   # from the last statics solve
         self._sim = None
@@ -312,21 +378,29 @@ class Twin:
         except (st.StaticsError, ValueError) as e:
             return self.model.q0.copy(), f"rest: reference shape (statics failed: {e})"
 
+    def _new_sim(self, state):
+        s = self.settings
+        sim = dy.Simulator(self.model, dt=s.dt, actuation=self.u, loads=self.loads(), state=state,
+                           theta=s.theta, tol=s.tolerance, max_iterations=s.max_iterations,
+                           max_substep_levels=s.max_substep_levels)
+        # the core's Simulator has no argument for its integrator's dense fallback
+        integrator = getattr(sim, "_integrator", None)
+        if integrator is not None and hasattr(integrator, "full_newton"):
+            integrator.full_newton = bool(s.full_newton)
+        return sim
+
     def _make_sim(self):
         if self.settings.mode != "dynamic":
             self._sim = None
             return
-        s = self.settings
-        self._sim = dy.Simulator(self.model, dt=s.dt, actuation=self.u, loads=self.loads(),
-                                 state=self.state, theta=s.theta, tol=s.tolerance)
+        self._sim = self._new_sim(self.state)
         self.state = self._sim.state     # one state object, advanced in place by the simulator
 
     def warm_up(self):
         """Run the compiled kernels once on a throw-away copy (numba compiles
         on first call, ~10 s without its disk cache). Returns seconds taken."""
         t0 = time.perf_counter()
-        sim = dy.Simulator(self.model, dt=self.settings.dt, actuation=self.u, loads=self.loads(),
-                           state=self.state, theta=self.settings.theta, tol=self.settings.tolerance)
+        sim = self._new_sim(self.state)
         sim.step()
         st.solve_statics(self.model, self.u, self.loads(), q_init=self.state.q)
         wrenches(self.model, self.outputs())
@@ -372,27 +446,74 @@ class Twin:
 
     # --- advancing ---------------------------------------------------------
     def step(self, n=1):
-        """Dynamic: n integration steps of dt. Quasi-static: one equilibrium
-        solve for the current inputs (if they changed). On failure the state
-        is kept (the last good one) and ``converged`` is False."""
+        """Dynamic: up to n integration steps of dt. Quasi-static: one
+        equilibrium solve for the current inputs (if they changed). On
+        failure the state is kept (the last good one), ``converged`` is
+        False, the remaining steps are not tried, and the input that failed
+        is dropped (``dropped``): the inputs go back to those of the last
+        good state, or, when the state's own inputs fail after good steps,
+        to the inputs before them (once; after that nothing is dropped and
+        the next call tries again)."""
         t0 = time.perf_counter()
         if self.settings.mode == "dynamic":
             info = UpdateInfo()
             for _ in range(n):
-                si = self._sim.step()
-                info.iterations += si.iterations
-                if not si.converged:
+                try:
+                    si = self._sim.step()
+                    converged, error = si.converged, ""
+                    info.iterations += si.iterations
+                except STEP_ERRORS as e:      # e.g. LinAlgError on inputs of 1e300: a failure
+                    converged, error = False, f" ({type(e).__name__}: {clip(e)})"
+                if not converged:
                     info.converged = False
-                    info.message = (f"dynamics step at t = {self.state.t:.4f} s did not converge; "
-                                    f"state kept at the last good step")
+                    info.dropped = self._drop_failed_inputs()
+                    info.message = (f"dynamics step at t = {self.state.t:.4f} s did not converge{error}; "
+                                    f"state kept at the last good step"
+                                    + (f", input dropped ({' and '.join(info.dropped)})" if info.dropped
+                                       else ""))
                     break
                 info.steps += 1
-            if info.steps:
-                self._state_inputs = self._inputs()
+                if info.steps == 1:
+                    self._used_inputs()
         else:
             info = self._solve()
         info.compute_time = time.perf_counter() - t0
         return info
+
+    def _used_inputs(self):
+        """A good step ran with the current inputs: they are the state's."""
+        now = self._inputs()
+        if not _same_inputs(now, self._good_inputs):
+            self._fallback_inputs = self._good_inputs
+        self._stuck = False
+        self._state_inputs = self._good_inputs = now
+
+    def _drop_failed_inputs(self):
+        """After a failed dynamic step: back to the inputs of the last good
+        state if they changed since (those failed), else, once, to the
+        inputs before the state's own. Returns what was dropped. Once that
+        is exhausted (the state itself cannot be stepped: failures with
+        nothing left to drop), new inputs are not blamed: they are kept and
+        tried at every step until one converges (or a reset)."""
+        now = self._inputs()
+        if self._stuck:
+            return ()
+        if not _same_inputs(now, self._good_inputs):
+            target = self._good_inputs
+        elif self._fallback_inputs is not None and not _same_inputs(now, self._fallback_inputs):
+            target = self._good_inputs = self._fallback_inputs
+            self._fallback_inputs = None
+        else:
+            self._stuck = True
+            return ()
+        dropped = tuple(kind for kind, changed in (
+            ("actuation", not np.array_equal(now[0], target[0]) or now[3] is not target[3]),
+            ("wrench", not np.array_equal(now[1], target[1]) or now[2] != target[2])) if changed)
+        u, w, frame, self.command_stamp = target
+        self.u, self.tip_wrench, self.tip_frame = u.copy(), w.copy(), frame
+        self._sim.set_actuation(self.u)
+        self._sim.set_loads(self.loads())
+        return dropped
 
     def _solve(self):
         if not self._dirty:
@@ -401,13 +522,17 @@ class Twin:
         try:
             res = st.solve_statics(self.model, self.u, self.loads(), q_init=self.state.q,
                                    tangent_hint=getattr(self, "_tangent", None))
-        except (st.StaticsError, ValueError, np.linalg.LinAlgError) as e:
+        except STEP_ERRORS as e:
             # keep the last good state with the inputs it reflects: the failed input is dropped
-            u, w, frame, self.command_stamp = self._state_inputs
+            now, target = self._inputs(), self._state_inputs
+            dropped = tuple(kind for kind, changed in (
+                ("actuation", not np.array_equal(now[0], target[0]) or now[3] is not target[3]),
+                ("wrench", not np.array_equal(now[1], target[1]) or now[2] != target[2])) if changed)
+            u, w, frame, self.command_stamp = target
             self.u, self.tip_wrench, self.tip_frame = u.copy(), w.copy(), frame
-            return UpdateInfo(0, 0, False, f"statics failed for the last input (dropped): {e}; "
-                                           f"state kept")
-        self._state_inputs = self._inputs()
+            return UpdateInfo(0, 0, False, f"statics failed for the last input (dropped): {clip(e)}; "
+                                           f"state kept", dropped=dropped)
+        self._state_inputs = self._good_inputs = self._inputs()
         self._tangent = res.tangent
         self.state.q = res.q.copy()
         self.state.qdot = np.zeros(self.model.n_dof)
@@ -421,7 +546,8 @@ class Twin:
         self.u = np.zeros(len(self.model.actuators))
         self.tip_wrench, self.tip_frame = np.zeros(6), "world"
         self.command_stamp = None
-        self._state_inputs = self._inputs()
+        self._state_inputs = self._good_inputs = self._inputs()
+        self._fallback_inputs, self._stuck = None, False
         self.state = State(self.rest_q.copy(), np.zeros(self.model.n_dof), 0.0)
         self._dirty = False
         self._base_wrench_qs = None
@@ -437,8 +563,10 @@ class Twin:
             raise ValueError(f"mode: expected one of {MODES}, got {settings.mode!r}")
         old = self.settings
         self.settings = settings
-        if (settings.mode, settings.dt, settings.theta, settings.tolerance) != \
-                (old.mode, old.dt, old.theta, old.tolerance):
+        if (settings.mode, settings.dt, settings.theta, settings.tolerance, settings.max_iterations,
+                settings.max_substep_levels, settings.full_newton) != \
+                (old.mode, old.dt, old.theta, old.tolerance, old.max_iterations, old.max_substep_levels,
+                 old.full_newton):
             self.state = State(self.state.q.copy(), np.zeros(self.model.n_dof)
                                if settings.mode != old.mode else self.state.qdot.copy(), self.state.t)
             self._make_sim()

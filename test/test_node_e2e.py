@@ -67,10 +67,25 @@ def _stop(proc, client):
 # quasi-static mode, default robot: exact agreement with the core
 # ============================================================================
 
+def unlimited_robot(tmp_path_factory, **material):
+    """The default robot without declared actuator limits (huge inputs must
+    reach the solver, not the door), its material optionally changed."""
+    d = yaml.safe_load(resolve_robot_file("").read_text())
+    for a in d["actuators"]:
+        a.pop("limit", None)
+    for seg in d["segments"]:
+        seg["material"].update(material)
+    path = tmp_path_factory.mktemp("robots") / ("damped_arm.yaml" if material else "unlimited_arm.yaml")
+    path.write_text(yaml.safe_dump(d))
+    return path
+
+
 @pytest.fixture(scope="class")
 def qs(tmp_path_factory):
+    robot = unlimited_robot(tmp_path_factory)
     proc, client = _start("twin_qs", ["-p", "mode:=quasi_static", "-p", "diagnostics_rate_hz:=20.0",
-                                      "-p", "republish_rate_hz:=20.0"], tmp_path_factory)
+                                      "-p", "republish_rate_hz:=20.0", "-p", f"robot_description_file:={robot}"],
+                          tmp_path_factory)
     yield client, proc
     _stop(proc, client)
 
@@ -279,10 +294,15 @@ class TestQuasiStatic:
         c, proc = qs
         stamp = c.send_actuation(NAMES, [0.2, 0.0, 0.0, 0.0])
         q_good = q_of(model, c.wait_until(lambda: c.applied(stamp), 10.0))
+        before = c.wait_diagnostics(timeout=5.0)
         c.send_actuation(["tendon_z_pos"], [1.0e4])        # valid, but no equilibrium exists
         d = c.wait_diagnostics(lambda d: int(d["solver_consecutive_failures"]) > 0, timeout=10.0)
         assert d is not None and "statics failed" in d["solver_last_message"], d
         assert c.diagnostics()["level"] == 2           # ERROR
+        # dropped: counted as rejected (solver_failed), not as applied
+        assert int(d["rejected_solver_failed_total"]) == int(before["rejected_solver_failed_total"]) + 1
+        assert int(d["commands_applied_total"]) == int(before["commands_applied_total"])
+        assert int(d["commands_received_total"]) == int(before["commands_received_total"]) + 1
         n = c.counts["strains"]
         assert c.wait_until(lambda: c.counts["strains"] > n + 2, 5.0), "node stopped publishing"
         np.testing.assert_array_equal(q_of(model, c.strains), q_good)
@@ -326,6 +346,22 @@ class TestQuasiStatic:
         assert not res[0].successful and "step_rate_hz" in res[0].reason
         res = set_(Parameter("robot_description_file", value="no_such_arm.yaml"))
         assert not res[0].successful and "not found" in res[0].reason
+        # an undeclared name: the reason names it (it was "undeclared parameter(s): []")
+        res = set_(Parameter("republish_rate", value=5.0))
+        assert not res[0].successful and "'republish_rate'" in res[0].reason, res[0].reason
+        assert "republish_rate_hz" in res[0].reason
+        # every refusal counted
+        d = c.wait_diagnostics(lambda d: int(d["rejected_parameter_changes_total"]) >= 3, timeout=5.0)
+        assert d is not None and "republish_rate" in d["last_parameter_rejection"], c.diagnostics()
+        # an integer for a float parameter: accepted, the parameter stays a double
+        assert set_(Parameter("republish_rate_hz", value=25))[0].successful
+        fut = params.get_parameters(["republish_rate_hz"])
+        got = threading.Event()
+        fut.add_done_callback(lambda _: got.set())
+        assert got.wait(10.0)
+        value = fut.result().values[0]
+        assert value.type == Parameter.Type.DOUBLE.value and value.double_value == 25.0, value
+        assert set_(Parameter("republish_rate_hz", value=20.0))[0].successful
         n = c.counts["backbone"]
         res = set_(Parameter("backbone_points_per_section", value=5))
         assert res[0].successful, res[0].reason
@@ -350,13 +386,8 @@ class TestQuasiStatic:
 
 def damped_robot(tmp_path_factory):
     """The default arm, lighter and strongly damped (first mode near
-    critical damping), so it settles in about 2 s."""
-    d = yaml.safe_load(resolve_robot_file("").read_text())
-    for seg in d["segments"]:
-        seg["material"].update(density=200.0, viscosity=5.0e4)
-    path = tmp_path_factory.mktemp("robots") / "damped_arm.yaml"
-    path.write_text(yaml.safe_dump(d))
-    return path
+    critical damping), so it settles in about 2 s; no actuator limits."""
+    return unlimited_robot(tmp_path_factory, density=200.0, viscosity=5.0e4)
 
 
 @pytest.fixture(scope="class")
@@ -402,25 +433,54 @@ class TestDynamic:
         d = c.wait_diagnostics(timeout=5.0)
         assert d is not None
         assert abs(float(d["step_rate_hz"]) - 200.0) < 10.0, d
+        # (publish_rate_hz is lower on a busy CPU: a late tick takes two steps and
+        # publishes the newer state once; 85-195 Hz measured on 2 shared cores)
+        assert 0.0 < float(d["publish_rate_hz"]) <= float(d["step_rate_hz"]) + 10.0, d
         assert abs(float(d["real_time_factor"]) - 1.0) < 0.05, d
         assert d["solver_failures_total"] == "0"
 
-    def test_solver_failure_keeps_the_last_good_state(self, dyn):
+    @pytest.mark.parametrize("magnitude", [1.0e4, 1.0e6, 1.0e100, 1.0e300])
+    def test_a_failing_step_drops_the_input_and_publishing_goes_on(self, dyn, magnitude):
+        """Valid but huge tensions (the robot declares no limit): the step
+        fails, the command is dropped (rejected, solver_failed; not applied),
+        the state topics keep coming at the step rate with the last good
+        state's command, twin time runs on, and a failing tick costs less
+        than a few step periods. (It was: every tick failed, 64 Hz at 1e6,
+        0 Hz and ~300 internal errors a second at 1e300, twin time frozen.)"""
         c, proc, model = dyn
-        c.send_actuation(NAMES, [1.0e4, 0.0, 0.0, 0.0])     # valid, but the arm cannot follow
-        d = c.wait_diagnostics(lambda d: int(d["solver_consecutive_failures"]) > 0, timeout=10.0)
-        assert d is not None and "did not converge" in d["solver_last_message"], d
-        assert c.diagnostics()["level"] == 2
-        n = c.counts["strains"]
-        assert c.wait_until(lambda: c.counts["strains"] > n + 1, 5.0), "node stopped publishing"
-        frozen = np.array(c.strains.strains)
-        n = c.counts["strains"]
-        c.wait_until(lambda: c.counts["strains"] > n + 1, 5.0)
-        np.testing.assert_array_equal(c.strains.strains, frozen)     # the last good state
-        # a sane command: stepping resumes
         stamp = c.send_actuation(NAMES, [0.2, 0.0, 0.0, 0.0])
         assert c.wait_until(lambda: c.applied(stamp), 10.0)
-        assert c.wait_until(lambda: np.abs(np.array(c.strains.strains) - frozen).max() > 1e-6, 5.0)
+        before = c.wait_diagnostics(timeout=5.0)
+        c.send_actuation(NAMES, [magnitude, 0.0, 0.0, 0.0])
+        d = c.wait_diagnostics(lambda d: int(d["rejected_solver_failed_total"])
+                               > int(before["rejected_solver_failed_total"]), timeout=10.0)
+        assert d is not None, c.diagnostics()
+        assert "did not converge" in d["solver_last_message"] and "input dropped" in d["solver_last_message"]
+        assert int(d["commands_applied_total"]) == int(before["commands_applied_total"])
+        assert int(d["rejected_actuation_total"]) == int(before["rejected_actuation_total"]) + 1
+        assert d["internal_errors_total"] == before["internal_errors_total"]
+        assert int(d["solver_failures_total"]) == int(before["solver_failures_total"]) + 1   # once
+        # the state topics keep coming with the last good command, at the step rate
+        # (the node's count: the client may miss some under load); twin time runs on
+        n = c.counts["strains"]
+        assert c.wait_until(lambda: c.counts["strains"] >= n + 50, 10.0), "node stopped publishing"
+        assert stamp_key(c.strains.last_command.stamp) == stamp_key(stamp)
+        d1 = c.wait_diagnostics(timeout=5.0)
+        d2 = c.wait_diagnostics(timeout=5.0)
+        rates = [(float(x["step_rate_hz"]), float(x["publish_rate_hz"])) for x in (d, d1, d2)]
+        # every step taken: it was 0 Hz, every tick failing. (States go out at every
+        # tick: the in-process test counts them; the publish rate here depends on the
+        # CPU: a late tick takes two steps and publishes once, 85-195 Hz measured.)
+        assert all(step > 100.0 and publish > 0.0 for step, publish in rates), rates
+        assert float(d2["twin_time_s"]) - float(d1["twin_time_s"]) > 0.4       # a 0.5 s period
+        # no stall in the failing tick's window (it was 25-200 ms a failing step; the
+        # in-process test checks the one-period bound without another process's noise)
+        assert float(d["step_time_max_ms"]) < 50.0, d["step_time_max_ms"]
+        print(f"\n{magnitude:g} N: failing window step time max {d['step_time_max_ms']} ms, step and "
+              f"publish rates {rates} Hz")
+        # a sane command is applied at once
+        stamp = c.send_actuation(NAMES, [0.3, 0.0, 0.0, 0.0])
+        assert c.wait_until(lambda: c.applied(stamp), 10.0)
         assert proc.alive()
 
     def test_dynamic_tip_wrench(self, dyn):
@@ -431,13 +491,20 @@ class TestDynamic:
         assert c.wait_until(lambda: c.base_wrench is not None, 5.0)
 
 
-def test_invalid_start_parameters_exit_with_a_reason(tmp_path):
-    proc = NodeProcess(["-p", "mode:=kinematic"], node_name="twin_bad", log_path=tmp_path / "log")
+@pytest.mark.parametrize("args, words", [
+    (["-p", "mode:=kinematic"], ["mode", "kinematic"]),
+    # a misspelt name used to be ignored: the twin ran with the default instead
+    (["-p", "unknown_param:=1"], ["unknown parameter", "'unknown_param'"]),
+    (["-p", "step_rate:=100.0"], ["unknown parameter", "'step_rate'", "'step_rate_hz'?"]),
+])
+def test_invalid_start_parameters_exit_with_a_reason(tmp_path, args, words):
+    proc = NodeProcess(args, node_name="twin_bad", log_path=tmp_path / "log")
     rc = proc.proc.wait(timeout=60)
     out = proc.output()
     proc.stop()
     assert rc == 2, out
-    assert "invalid configuration" in out and "mode" in out
+    assert "invalid configuration" in out and all(w in out for w in words), out
+    assert "Traceback" not in out
 
 
 # ============================================================================
@@ -541,3 +608,157 @@ def test_soak_flood_while_calling_services(tmp_path_factory):
     assert d["solver_failures_total"] == "0"
     assert len(windows) >= 7, windows
     assert all(abs(r - 200.0) <= 10.0 for r in rates), rates
+
+
+# ============================================================================
+# shutdown: SIGINT and SIGTERM at random times, idle, busy, starting
+# ============================================================================
+
+SIGNAL_SCENARIOS = [
+    # (label, node parameters, what runs while the signal comes)
+    ("idle, dynamic", [], None),
+    ("idle, quasi-static", ["-p", "mode:=quasi_static", "-p", "republish_rate_hz:=50.0"], None),
+    ("idle, 500 Hz, publish every 2nd", ["-p", "step_rate_hz:=500.0", "-p", "publish_every_n_steps:=2"], None),
+    ("services back to back", [], "services"),
+    ("parameter changes", [], "parameters"),
+    ("commands at 500 Hz", ["-p", "mode:=quasi_static"], "inputs"),
+    ("during start-up", [], "startup"),
+]
+
+
+def _wait_for_log(path, marker, proc, timeout):
+    """Poll the node's log file until it holds ``marker`` (False if the node
+    exits or the timeout passes first)."""
+    end = time.monotonic() + timeout
+    while time.monotonic() < end:
+        try:
+            if marker in path.read_text():
+                return True
+        except FileNotFoundError:
+            pass
+        if not proc.alive():
+            return False
+        time.sleep(0.02)
+    return False
+
+
+def _keep_busy(activity, client, node_name, stop):
+    """Load the node until ``stop``: service calls, parameter changes or
+    commands, each as fast as they go (waiting for each answer)."""
+    from rclpy.parameter import Parameter
+    from rclpy.parameter_client import AsyncParameterClient
+    rng = np.random.default_rng(1)
+    if activity == "services":
+        reqs = [("statics_query", StaticsQuery.Request(actuator_names=["tendon_y_pos"], actuator_values=[0.3])),
+                ("forward_kinematics", ForwardKinematics.Request(actuator_names=["tendon_z_pos"],
+                                                                 actuator_values=[0.2])),
+                ("inverse_kinematics", InverseKinematics.Request(target=pose_msg(np.eye(4)), position_only=True))]
+        k = 0
+        while not stop.is_set():
+            try:
+                client.call(*reqs[k % len(reqs)], timeout=2.0)
+            except TimeoutError:
+                pass
+            k += 1
+    elif activity == "parameters":
+        params = AsyncParameterClient(client.node, node_name)
+        params.wait_for_services(timeout_sec=10.0)
+        changes = [[Parameter("step_rate_hz", value=150.0)], [Parameter("mode", value="quasi_static")],
+                   [Parameter("step_rate_hz", value=200.0), Parameter("mode", value="dynamic")],
+                   [Parameter("backbone_points_per_section", value=5)],
+                   [Parameter("backbone_points_per_section", value=10)]]
+        k = 0
+        while not stop.is_set():
+            done = threading.Event()
+            params.set_parameters(changes[k % len(changes)]).add_done_callback(lambda _: done.set())
+            done.wait(2.0)
+            k += 1
+    elif activity == "inputs":
+        while not stop.is_set():
+            client.send_actuation(NAMES, rng.uniform(0.0, 0.5, 4))
+            time.sleep(0.002)          # pacing the stream, not waiting for ROS
+
+
+def _signal_run(k, sig, scenario, seed, tmp_path):
+    """Start a node, bring it into the scenario, send ``sig`` at a random
+    moment; (label, signal name, exit code (None: still running after 60 s),
+    seconds from the signal to the exit, the node's output)."""
+    import random
+    import signal
+    import subprocess
+    label, args, activity = scenario
+    rng = random.Random(seed * 100003 + k)
+    name = f"sig{seed}_{k}"
+    log = tmp_path / f"{name}.log"
+    proc = NodeProcess(args + ["-p", "diagnostics_rate_hz:=5.0"], node_name=name, log_path=log)
+    client, stop, worker, rc, took = None, threading.Event(), None, "not started", math.nan
+    try:
+        marker = "robot 'tendon_arm'" if activity == "startup" else "twin running"
+        if _wait_for_log(log, marker, proc, START_TIMEOUT):
+            if activity in ("services", "parameters", "inputs"):
+                client = TwinClient(name, client_name=f"{name}_client", topics=("strains",))
+                client.wait_ready(START_TIMEOUT)
+                worker = threading.Thread(target=_keep_busy, args=(activity, client, name, stop), daemon=True)
+                worker.start()
+            # a random moment: within the start-up (~1 s after its first line), or while running
+            time.sleep(rng.uniform(0.0, 1.0 if activity == "startup" else 0.6))
+            t0 = time.monotonic()
+            proc.proc.send_signal(sig)
+            try:
+                rc = proc.proc.wait(timeout=60.0)
+            except subprocess.TimeoutExpired:
+                rc = None                    # ignored: the node kept running
+            took = time.monotonic() - t0
+    finally:
+        stop.set()
+        if worker is not None:
+            worker.join(timeout=10.0)
+        if client is not None:
+            client.close()
+        proc.stop()
+    return label, signal.Signals(sig).name, rc, took, proc.output()
+
+
+def _signal_storm(n_each, parallel, seed, tmp_path):
+    """n_each SIGINTs and n_each SIGTERMs, spread over SIGNAL_SCENARIOS,
+    ``parallel`` nodes at a time. Asserts: every one exits with status 0
+    within 30 s of the signal (about 2 s here: Python's teardown; 7 ms from
+    the signal to "stopped" on an idle machine), without a traceback or an
+    rcl error, saying which signal stopped it."""
+    import signal
+    from concurrent.futures import ThreadPoolExecutor
+    jobs = [(k, signal.SIGINT if k % 2 == 0 else signal.SIGTERM, SIGNAL_SCENARIOS[(k // 2) % len(SIGNAL_SCENARIOS)])
+            for k in range(2 * n_each)]
+    t_start = time.monotonic()
+    with ThreadPoolExecutor(parallel) as pool:
+        results = list(pool.map(lambda job: _signal_run(*job, seed, tmp_path), jobs))
+    bad = []
+    for label, sig, rc, took, out in results:
+        clean = (rc == 0 and took < 30.0 and f"{sig}: shutting down" in out
+                 and not any(w in out for w in ("Traceback", "RCLError", "Failed to publish", "Exception")))
+        if not clean:
+            bad.append((label, sig, rc, took, out[-2500:]))
+    summary = {s: sum(1 for r in results if r[1] == s and r[2] == 0) for s in ("SIGINT", "SIGTERM")}
+    tooks = np.array([r[3] for r in results if r[2] == 0])
+    print(f"\nsignals: SIGINT {summary['SIGINT']}/{n_each} exit 0, SIGTERM {summary['SIGTERM']}/{n_each} exit 0; "
+          f"exit after the signal median {np.median(tooks):.2f} s, max {tooks.max():.2f} s; "
+          f"{len(results)} nodes in {time.monotonic() - t_start:.0f} s")
+    assert not bad, "\n\n".join(f"{label} {sig}: exit {rc} after {took:.2f} s\n{out}"
+                                for label, sig, rc, took, out in bad[:3]) + f"\n({len(bad)} bad in all)"
+
+
+def test_signals_stop_the_node_cleanly(tmp_path):
+    """20 SIGINTs and 20 SIGTERMs at random moments (idle in both modes and
+    at 500 Hz, during service calls, parameter changes and a command
+    stream, during the start-up): exit status 0, no traceback, every time.
+    (Before: "RCLError: failed to initialize wait set: the given context is
+    not valid", exit 1, in 4 of 28 SIGTERMs and 2 of 38 SIGINTs; a signal
+    during the start-up: a traceback or death by the signal.)"""
+    _signal_storm(20, 4, 1, tmp_path)
+
+
+@pytest.mark.slow
+@pytest.mark.timeout(3600)
+def test_signals_stop_the_node_cleanly_100_each(tmp_path):
+    """The issue's criterion: 100 of 100 SIGINTs and 100 of 100 SIGTERMs."""
+    _signal_storm(100, 4, 2, tmp_path)

@@ -163,7 +163,8 @@ def test_dynamic_twin_steps_like_the_core_simulator(model):
     twin = tw.Twin(model, _settings("dynamic", dt=0.005))
     u = np.array([0.2, 0.0, 0.1, 0.0])
     twin.set_actuation(u)
-    sim = dy.Simulator(model, dt=0.005, actuation=u, loads=ld.Loads(), state=twin.state)
+    sim = dy.Simulator(model, dt=0.005, actuation=u, loads=ld.Loads(), state=twin.state,
+                       max_substep_levels=twin.settings.max_substep_levels)
     info = twin.step(3)
     for _ in range(3):                 # the twin steps one tick at a time, as the node does
         sim.step()
@@ -175,21 +176,174 @@ def test_dynamic_twin_steps_like_the_core_simulator(model):
         model, sim.state.q, sim.state.qdot, sim.last_qddot, u, ld.Loads()), atol=1e-12)
 
 
-def test_failed_step_keeps_the_state(model):
+def test_failed_step_keeps_the_state_and_drops_the_input(model):
     twin = tw.Twin(model, _settings("dynamic"))
     twin.step()
     q, t = twin.state.q.copy(), twin.state.t
+    good_step = twin._sim.step
     twin._sim.step = lambda n=1: dy.StepInfo(8, False, math.inf)
     twin.set_actuation([0.3, 0, 0, 0], stamp="new")
     info = twin.step()
     assert not info.converged and "state kept" in info.message
     np.testing.assert_array_equal(twin.state.q, q)
     assert twin.state.t == t
-    # the published state reflects the inputs of the last good step; the
-    # simulator keeps the new ones and retries at the next tick
+    # the published state reflects the inputs of the last good step, and the
+    # input that failed is dropped: the next step runs with the good ones
     snap = twin.outputs()
     assert not np.any(snap.u) and snap.command_stamp is None
-    assert twin.u[0] == 0.3
+    assert info.dropped == ("actuation",) and "input dropped" in info.message
+    assert not np.any(twin.u) and twin.command_stamp is None and not twin.command_pending
+    twin._sim.step = good_step
+    assert twin.step().converged and twin.state.t > t
+
+
+def test_a_step_that_raises_is_a_failure_not_a_crash(model):
+    twin = tw.Twin(model, _settings("dynamic"))
+    twin.step()
+    q = twin.state.q.copy()
+
+    def raising(n=1):
+        raise np.linalg.LinAlgError("Array must not contain infs or NaNs")
+    twin._sim.step = raising
+    twin.set_tip_wrench([0, 0, -1e300, 0, 0, 0])
+    info = twin.step(3)
+    assert not info.converged and info.steps == 0 and "LinAlgError" in info.message
+    assert info.dropped == ("wrench",) and not np.any(twin.tip_wrench)
+    np.testing.assert_array_equal(twin.state.q, q)
+
+
+def test_a_late_failure_drops_the_state_inputs_once(model):
+    """Inputs that stepped well for a while, then fail: back to the inputs
+    before them (once); failing with nothing left to drop, new inputs are
+    kept (they are not to blame) and tried at every step."""
+    twin = tw.Twin(model, _settings("dynamic"))
+    twin.set_actuation([0.1, 0, 0, 0], stamp="a")
+    assert twin.step(2).converged
+    twin.set_actuation([0.2, 0, 0, 0], stamp="b")
+    assert twin.step(2).converged
+    good_step = twin._sim.step
+    twin._sim.step = lambda n=1: dy.StepInfo(8, False, math.inf)
+    info = twin.step()
+    assert info.dropped == ("actuation",) and twin.u[0] == 0.1 and twin.command_stamp == "a"
+    info = twin.step()                      # "a" fails too: nothing left to drop
+    assert not info.converged and info.dropped == () and twin.command_stamp == "a"
+    twin.set_actuation([0.05, 0, 0, 0], stamp="c")
+    info = twin.step()
+    assert info.dropped == () and twin.command_stamp == "c"       # kept, tried again
+    twin._sim.step = good_step
+    assert twin.step().converged and twin.outputs().command_stamp == "c"
+
+
+def _unlimited(model_path=ROBOT):
+    """The default robot's description with any declared actuator limits
+    removed (the failure path must be reached, not the door)."""
+    import yaml
+    d = yaml.safe_load(Path(model_path).read_text())
+    for a in d.get("actuators", []):
+        a.pop("limit", None)
+    return d
+
+
+@pytest.mark.parametrize("kind, magnitude", [("actuation", 1e6), ("actuation", 1e100), ("actuation", 1e300),
+                                             ("wrench", 1e6), ("wrench", 1e300)])
+def test_huge_inputs_fail_within_a_step_period_and_are_dropped(kind, magnitude):
+    """Huge but finite inputs (what the door lets through when the robot
+    declares no limit): the step fails within one step period (5 ms; it was
+    25-200 ms: 10 Newton iterations at up to 5 sub-step levels plus a dense
+    fallback), the state is kept, the input is dropped and the next step
+    runs on. The cost is the least of five tries (CPU noise on a shared
+    machine only adds)."""
+    from soft_twin_core.model import model_from_dict
+    model = model_from_dict(_unlimited())
+    twin = tw.Twin(model, _settings("dynamic", dt=0.005))
+    twin.warm_up()
+    twin.set_actuation([0.2, 0, 0, 0], stamp="good")
+    assert twin.step(2).converged
+    costs = []
+    for _ in range(5):
+        q, t = twin.state.q.copy(), twin.state.t
+        if kind == "actuation":
+            twin.set_actuation([magnitude, 0, 0, 0], stamp="huge")
+        else:
+            twin.set_tip_wrench([0, 0, -magnitude, 0, 0, 0])
+        info = twin.step()
+        assert not info.converged and info.dropped == (kind,), info
+        costs.append(info.compute_time)
+        np.testing.assert_array_equal(twin.state.q, q)
+        assert twin.state.t == t and twin.command_stamp == "good" and not np.any(twin.tip_wrench)
+        info = twin.step()                  # on with the last good inputs
+        assert info.converged and twin.state.t > t
+    assert min(costs) <= 0.005, costs
+
+
+# ------------------------------------------------------------------ limits at the door
+
+def test_actuator_limits_from_the_robot_file():
+    from soft_twin_core.model import model_from_dict
+    d = _unlimited()
+    d["actuators"][0]["limit"] = 40.0
+    model = model_from_dict(d)
+    assert model.actuators[0].limit == 40.0 and model.actuators[1].limit == math.inf
+    assert tw.parse_actuation(model, ["tendon_y_pos"], [40.0], np.zeros(4))[0] == 40.0
+    for v in (40.000001, 1e6, 1e300):
+        with pytest.raises(tw.InputError) as exc:
+            tw.parse_actuation(model, ["tendon_y_pos"], [v], np.zeros(4))
+        assert exc.value.reason == "over_limit" and "40 N" in str(exc.value)
+    # no limit declared: any finite tension passes the door
+    assert tw.parse_actuation(model, ["tendon_y_neg"], [1e300], np.zeros(4))[1] == 1e300
+
+
+def test_chamber_limits_bound_the_pressure_magnitude():
+    import yaml
+    from soft_twin_core.model import model_from_dict
+    d = yaml.safe_load((ROBOT.parent / "pneumatic_arm.yaml").read_text())
+    d["actuators"][0]["limit"] = 1.0e5
+    model = model_from_dict(d)
+    name = model.actuator_names[0]
+    u0 = np.zeros(len(model.actuators))
+    assert tw.parse_actuation(model, [name], [-1.0e5], u0)[0] == -1.0e5
+    for v in (1.5e5, -1.5e5):
+        with pytest.raises(tw.InputError) as exc:
+            tw.parse_actuation(model, [name], [v], u0)
+        assert exc.value.reason == "over_limit" and "Pa" in str(exc.value)
+
+
+def test_tip_wrench_limits():
+    assert tw.parse_tip_wrench([0, 0, 999.0], [0, 0, 0], "b", "b", "t", 1e3, 1e2)[1] == "world"
+    for force, torque in (([0, 0, 1001.0], [0, 0, 0]), ([1e300, 1e300, 0], [0, 0, 0]),
+                          ([0, 0, 0], [0, 60.0, 80.01])):
+        with pytest.raises(tw.InputError) as exc:
+            tw.parse_tip_wrench(force, torque, "b", "b", "t", 1e3, 1e2)
+        assert exc.value.reason == "over_limit"
+
+
+# ------------------------------------------------------------------ bounded messages
+
+def test_messages_from_huge_inputs_are_bounded(model):
+    """A command with 10,000 names made an 89,077-character log line: every
+    message built from user input is cut (~200 characters a piece) and says
+    how much was left out."""
+    from soft_twin.text import clip, short_list
+    cases = [
+        (["x%d" % i for i in range(10000)], [0.1] * 10000, "unknown_name", "(9"),
+        (["tendon_y_pos"] * 10000, [0.1] * 10000, "duplicate_name", "repeated"),
+        ([], [0.1] * 10000, "wrong_length", "10000"),
+        (["n" * 100000], [0.1], "unknown_name", "more characters"),
+    ]
+    for names, values, reason, hint in cases:
+        with pytest.raises(tw.InputError) as exc:
+            tw.parse_actuation(model, names, values, np.zeros(4))
+        assert exc.value.reason == reason and hint in str(exc.value)
+        assert len(str(exc.value)) <= 600, (reason, len(str(exc.value)))
+    with pytest.raises(tw.InputError) as exc:
+        tw.parse_tip_wrench([0, 0, 0], [0, 0, 0], "f" * 100000, "base", "tip")
+    assert len(str(exc.value)) <= 400 and "more characters" in str(exc.value)
+    assert short_list(range(10000)).endswith("more)") and len(short_list(range(10000))) < 260
+    assert clip("a" * 1000) == "a" * 200 + "... (800 more characters)"
+    assert clip("short") == "short" and short_list(["a", "b"]) == "['a', 'b']"
+    with pytest.raises(ConfigError) as exc:
+        validate("mode", "m" * 100000)
+    assert len(str(exc.value)) <= 400
 
 
 def test_failed_solve_keeps_the_state(model, monkeypatch):
