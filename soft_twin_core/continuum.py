@@ -591,3 +591,122 @@ def elastica_cantilever_tip(alpha):
     x = np.sqrt(2.0 * np.sin(t) / alpha)
     y = 1.0 - 2.0 * (ellipe(m) - ellipeinc(phi1, m)) / sa
     return float(x), float(y)
+
+
+# ----------------------------------------------------------------------------
+# Planar rods joined by rigid junctions: clamped-clamped beams and parallel
+# continuum robots (a boundary-value problem solved by collocation)
+# ----------------------------------------------------------------------------
+
+@dataclass
+class PlanarRod:
+    """A uniform planar Reissner rod in the x-z plane: axial stiffness EA [N],
+    shear stiffness GA [N], bending stiffness EI [N m^2] (about y), length L
+    [m]. ``start`` and ``end``: ("world", (x, z, theta)) a clamp at that pose,
+    or ("junction", j, (ox, oz, otheta)) rigidly attached to junction j at
+    that offset in the junction's frame. theta is the rotation about +y
+    (R = Ry(theta); the tangent is (cos theta, -sin theta) in (x, z))."""
+    EA: float
+    GA: float
+    EI: float
+    L: float
+    start: tuple
+    end: tuple
+
+
+@dataclass
+class PlanarRodsSolution:
+    """Solution of :func:`solve_planar_rods`: ``junctions`` (J, 3) poses
+    (x, z, theta); per rod ``s`` (n,) and ``states`` (6, n) = [x, z, theta,
+    n_x, n_z, m_y] with (n, m) the world force and moment (about p(s)) the
+    distal part exerts on the proximal part; ``wrench_at(k, s)``."""
+    junctions: np.ndarray
+    rods: list
+    sol: object
+
+    def state(self, k, s):
+        """[x, z, theta, n_x, n_z, m_y] of rod k at arc lengths s."""
+        L = self.rods[k].L
+        y = self.sol.sol(np.atleast_1d(np.asarray(s, float)) / L)
+        return y[6 * k:6 * k + 6]
+
+
+def _Ry_xz(th, o):
+    c, s = np.cos(th), np.sin(th)
+    return np.array([c * o[0] + s * o[1], -s * o[0] + c * o[1]])
+
+
+def solve_planar_rods(rods, junction_loads, junction_guess, *, tol=1e-10, n_nodes=101, guess=None):
+    """Static equilibrium of planar rods joined by massless rigid junctions.
+
+    Each rod's state y = [x, z, theta, n_x, n_z, m_y] obeys, with the body
+    strains from the internal force n = (n_x, n_z) and moment m_y
+    (axial N = n . t, shear V = n . e3, e3 = (sin, cos)):
+    ``p' = (1 + N/EA) t + (V/GA) e3``, ``theta' = m_y/EI``, ``n' = 0`` and
+    ``m_y' = -(p' x n)_y`` (no distributed load). Boundary conditions: a
+    clamp fixes (x, z, theta); an attachment to junction j ties the end pose
+    to the junction's unknown pose; each junction balances its load
+    ``junction_loads[j] = (f_x, f_z, m_y)`` (moment about the junction origin)
+    against the rods' end wrenches. All rods are mapped to tau = s/L in [0, 1]
+    and solved together by ``scipy.integrate.solve_bvp`` (junction poses are
+    its unknown parameters). An independent reference for the multibody
+    engine's closed chains (test_constrained.py)."""
+    from scipy.integrate import solve_bvp
+    R = len(rods)
+    J = len(junction_loads)
+    loads = np.asarray(junction_loads, float).reshape(J, 3)
+
+    def fun(t, y, p):
+        out = np.empty_like(y)
+        for k, rod in enumerate(rods):
+            x, z, th, nx, nz, my = y[6 * k:6 * k + 6]
+            c, si = np.cos(th), np.sin(th)
+            N = nx * c - nz * si
+            V = nx * si + nz * c
+            eps, gam = 1 + N / rod.EA, V / rod.GA
+            dx = eps * c + gam * si
+            dz = -eps * si + gam * c
+            out[6 * k:6 * k + 6] = rod.L * np.vstack([dx, dz, my / rod.EI, 0 * t, 0 * t,
+                                                     -(dz * nx - dx * nz)])
+        return out
+
+    def end_pose(spec, p):
+        if spec[0] == "world":
+            return np.asarray(spec[1], float)
+        j, o = spec[1], np.asarray(spec[2], float)
+        pj = p[3 * j:3 * j + 3]
+        return np.r_[pj[:2] + _Ry_xz(pj[2], o[:2]), pj[2] + o[2]]
+
+    def bc(ya, yb, p):
+        res = []
+        bal = loads.copy()
+        for k, rod in enumerate(rods):
+            a, b = ya[6 * k:6 * k + 6], yb[6 * k:6 * k + 6]
+            res += list(a[:3] - end_pose(rod.start, p))
+            res += list(b[:3] - end_pose(rod.end, p))
+            # the junction at the start receives +(n, m) of s = 0, at the end -(n, m) of s = L
+            for spec, y, sign in ((rod.start, a, 1.0), (rod.end, b, -1.0)):
+                if spec[0] != "junction":
+                    continue
+                j = spec[1]
+                r = y[:2] - p[3 * j:3 * j + 2]
+                f = sign * y[3:5]
+                bal[j, :2] += f
+                bal[j, 2] += sign * y[5] + (r[1] * f[0] - r[0] * f[1])
+        return np.array(res + list(bal.ravel()))
+
+    t = np.linspace(0.0, 1.0, n_nodes)
+    if guess is None:
+        y0 = np.zeros((6 * R, n_nodes))
+        for k, rod in enumerate(rods):
+            a = end_pose(rod.start, np.asarray(junction_guess, float).ravel())
+            b = end_pose(rod.end, np.asarray(junction_guess, float).ravel())
+            for r in range(3):
+                y0[6 * k + r] = a[r] + t * (b[r] - a[r])
+    else:
+        y0 = guess
+    sol = solve_bvp(fun, bc, t, y0, p=np.asarray(junction_guess, float).ravel(), tol=tol, max_nodes=200000,
+                    bc_tol=1e-12)
+    if not sol.success:
+        raise ContinuumConvergenceError(f"solve_bvp: {sol.message}")
+    return PlanarRodsSolution(sol.p.reshape(J, 3), list(rods), sol)

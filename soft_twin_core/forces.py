@@ -56,13 +56,12 @@ def _gauss_on_path(model, path, start, end):
 def actuator_arrays(model):
     """Quadrature geometry of the model's distributed actuators (tendon model
     "distributed") on their path."""
-    path = model.paths[model.actuator_path] if model.paths else None
     J, D, DD, U = [], [], [], []
     na = len(model.actuators)
     for k, a in enumerate(model.actuators):
         if a.tendon_model == "point_moment":
             continue
-        j, _, s, w = _gauss_on_path(model, path, a.start, a.end)
+        j, _, s, w = _gauss_on_path(model, model.path_of_actuator(k), a.start, a.end)
         d, dd = a.offset_at(s)
         unit = np.zeros((len(s), na))
         unit[:, k] = -a.force_per_unit_input * w

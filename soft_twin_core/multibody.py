@@ -156,6 +156,7 @@ class Model:
     paths: tuple = ()
     actuators: tuple = ()          # soft_twin_core.model.Actuator, placed on paths[actuator_path]
     actuator_path: int = 0
+    actuator_paths: tuple = ()     # per actuator, the index of its path (empty: all on actuator_path)
     # derived
     nq: int = field(init=False)
     nv: int = field(init=False)
@@ -234,6 +235,10 @@ class Model:
     @property
     def actuator_names(self):
         return tuple(a.name for a in self.actuators)
+
+    def path_of_actuator(self, k):
+        """The path actuator k is routed on."""
+        return self.paths[self.actuator_paths[k] if self.actuator_paths else self.actuator_path]
 
     def check_q(self, q, name="q"):
         return _check_vector(q, self.nq, name)
@@ -321,7 +326,7 @@ class ModelBuilder:
         self.name = name
         self.gravity = np.asarray(gravity, dtype=float)
         self.joints, self.frames, self.paths = [], [], []
-        self.actuators, self.actuator_path = (), 0
+        self.actuators, self.actuator_path, self.actuator_paths = (), 0, ()
 
     def add_joint(self, name, kind, parent=-1, placement=None, axis=(0, 0, 1), inertia=None,
                   section=None, stiffness=0.0, damping=0.0, q_ref=0.0, limits=None):
@@ -365,7 +370,8 @@ class ModelBuilder:
 
     def build(self):
         return Model(self.name, tuple(self.joints), self.gravity.copy(), tuple(self.frames),
-                     tuple(self.paths), tuple(self.actuators), self.actuator_path)
+                     tuple(self.paths), tuple(self.actuators), self.actuator_path,
+                     tuple(self.actuator_paths))
 
 
 def from_robot_model(robot):

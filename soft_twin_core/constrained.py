@@ -1,0 +1,636 @@
+"""Statics and dynamics of soft articulated robots with joint control and
+constraints (closed chains, boundary conditions), on the multibody engine.
+
+Unknowns: the configuration q (statics) or the end-of-step velocity v1
+(dynamics), and the multipliers lambda: one per constraint row
+(:class:`mechanism.Constraint`) and one per position-controlled joint.
+
+* A constraint's multipliers are its reaction: the world wrench
+  ``W = C^T lambda`` on frame a at a's origin, and -W on frame b. They enter
+  the equations as dead point loads, so the engine's RNEA gives their
+  generalised force ``G^T lambda`` (G = C (J_a - J_b), J the world-axes point
+  Jacobians) and its static tangent includes d(G^T lambda)/dq at fixed W.
+* A position-controlled joint j has the row ``q_j - q_cmd = 0``; its
+  multiplier is the joint's effort (inverse dynamics, N m or N).
+
+Statics solves ``R(q) - G^T lambda = 0, Phi(q) = 0`` by Newton on the KKT
+system ``[[Kt, -G^T], [G, 0]]`` (Kt: the engine's analytic tangent). Dynamics
+takes the integrator's theta-method step (:mod:`integrators`) with the
+constraint forces at the intermediate state and ``Phi(q1) = 0`` at the end
+of the step (position level, no drift beyond the Newton tolerance); the
+Newton matrix is ``[[ (M + th h D + (th h)^2 Kt)/h, -G_t^T ], [th h G_1, 0]]``,
+dense (these mechanisms have tens to hundreds of dof).
+
+Rotation rows of a clamp use ``log(R_a R_b^T)`` whose derivative is
+``w_a - w_b`` at zero error: Newton's matrix is exact at the solution.
+"""
+
+from collections import namedtuple
+from dataclasses import dataclass
+
+import numpy as np
+
+from . import algorithms as alg
+from ._blas import one_blas_thread
+from .forces import actuation_pass, actuation_tangent_pass, actuator_arrays, gravity_of, load_arrays
+from .integrators import integrate_pass, residual_pass
+from .kernels import passes
+from .kernels.data import LoadArrays
+from .kernels.tangent import static_tangent_pass
+from .lie import log_so3
+from .loads import Loads
+from .multibody import FREE, PRISMATIC, REVOLUTE, SPHERICAL
+from .statics import StaticsError, actuation_vector
+from .workspace import Workspace
+
+FrameLoad = namedtuple("FrameLoad", ["frame", "wrench", "axes"])
+FrameLoad.__doc__ = """A point wrench [fx, fy, fz, mx, my, mz] (N, N m) on a named frame of a
+mechanism, in ``axes`` "world" (dead load) or "body" (follower)."""
+FrameLoad.__new__.__defaults__ = ("world",)
+
+
+# ----------------------------------------------------------------------------
+# Inputs, checked once
+# ----------------------------------------------------------------------------
+
+@dataclass
+class Inputs:
+    """Checked inputs of a mechanism: actuation u (n_actuators,), efforts of
+    effort-controlled joints (nv,) [N m or N], position commands of the
+    position-controlled joints (n_pos,) [rad or m] (with velocity and
+    acceleration for dynamics), loads on paths and frames."""
+    u: np.ndarray
+    effort: np.ndarray
+    q_cmd: np.ndarray
+    v_cmd: np.ndarray
+    loads: LoadArrays
+    gravity: np.ndarray
+
+
+def joint_vector(mech, values, mode, what, unit):
+    """Values (by joint name) of the joints of control ``mode`` -> array in the
+    order of ``mech.joints_with(mode)``; unknown names, NaN and positions
+    outside the limits raise ValueError naming the joint."""
+    idx = mech.joints_with(mode)
+    names = [mech.tree.joints[i].name for i in idx]
+    out = np.array([mech.tree.joints[i].q_ref for i in idx]) if what == "position" else np.zeros(len(idx))
+    if values is None:
+        return out
+    if not isinstance(values, dict):
+        v = np.asarray(values, dtype=float)
+        if v.shape != (len(idx),):
+            raise ValueError(f"{what}: expected {len(idx)} values (joints {names}), got shape {v.shape}")
+        values = dict(zip(names, v))
+    for k, v in values.items():
+        if k not in names:
+            allj = [j.name for j in mech.tree.joints if j.kind in (REVOLUTE, PRISMATIC)]
+            why = (f"joint {k!r} is not {mode}-controlled" if k in allj else f"unknown joint {k!r}")
+            raise ValueError(f"{what}: {why}; the {mode}-controlled joints are {names}")
+        try:
+            v = float(v)
+        except (TypeError, ValueError):
+            raise ValueError(f"{what}: {k} = {v!r} is not a number") from None
+        if not np.isfinite(v):
+            raise ValueError(f"{what}: {k} = {v} is not finite")
+        j = mech.tree.joints[idx[names.index(k)]]
+        if what == "position" and j.limits is not None and not j.limits[0] <= v <= j.limits[1]:
+            raise ValueError(f"{what}: {k} = {v} {unit} lies outside the joint limits {list(j.limits)}")
+        out[names.index(k)] = v
+    return out
+
+
+def frame_loads(mech, point_loads):
+    """LoadArrays of FrameLoads (ValueError naming an unknown frame or a bad wrench)."""
+    J, X, W, F = [], [], [], []
+    for k, pl in enumerate(point_loads):
+        fl = pl if isinstance(pl, FrameLoad) else FrameLoad(*pl)
+        try:
+            ref = mech.frame(fl.frame)
+        except KeyError as e:
+            raise ValueError(f"point_loads[{k}].frame: {e.args[0]}") from None
+        w = np.asarray(fl.wrench, dtype=float)
+        if w.shape != (6,) or not np.all(np.isfinite(w)):
+            raise ValueError(f"point_loads[{k}].wrench: expected 6 finite numbers [f; m], got {fl.wrench!r}")
+        if fl.axes not in ("world", "body"):
+            raise ValueError(f"point_loads[{k}].axes: expected 'world' or 'body', got {fl.axes!r}")
+        J.append(ref.joint)
+        X.append(ref.x)
+        W.append(w)
+        F.append(fl.axes == "world")
+    return LoadArrays(np.array(J, np.int64), np.array(X, float), np.array(W, float).reshape(-1, 6),
+                      np.array(F, np.bool_))
+
+
+def _concat_loads(*lds):
+    lds = [ld for ld in lds if ld.joint.shape[0]]
+    if not lds:
+        return LoadArrays(np.zeros(0, np.int64), np.zeros(0), np.zeros((0, 6)), np.zeros(0, np.bool_))
+    return LoadArrays(np.concatenate([ld.joint for ld in lds]), np.ascontiguousarray(np.concatenate([ld.x for ld in lds])),
+                      np.ascontiguousarray(np.concatenate([ld.wrench for ld in lds])),
+                      np.concatenate([ld.world for ld in lds]))
+
+
+def make_inputs(mech, actuation=None, efforts=None, positions=None, velocities=None, loads=None,
+                point_loads=(), path=None):
+    """Check every input of a mechanism once (ValueError naming the bad one)."""
+    tree = mech.tree
+    u = actuation_vector(mech, actuation)
+    eff = joint_vector(mech, efforts, "effort", "effort", "N m or N")
+    effort = np.zeros(tree.nv)
+    for k, i in enumerate(mech.joints_with("effort")):
+        effort[tree.idx_v[i]] = eff[k]
+    q_cmd = joint_vector(mech, positions, "position", "position", "rad or m")
+    v_cmd = np.zeros(len(q_cmd)) if velocities is None else np.asarray(velocities, float)
+    loads = Loads() if loads is None else loads
+    ld = _concat_loads(load_arrays(tree, loads, None, path) if tree.paths else
+                       frame_loads(mech, ()), frame_loads(mech, point_loads))
+    return Inputs(u, effort, q_cmd, v_cmd, ld, gravity_of(tree, loads))
+
+
+# ----------------------------------------------------------------------------
+# Constraint rows
+# ----------------------------------------------------------------------------
+
+def _point(model, ws, ref):
+    """(pose 4x4, world Jacobian 6 x nv) of a PointRef (world: identity,
+    zeros) after a forward pass at the configuration."""
+    from .kernels.frames import spatial_jacobian
+    if ref.joint < 0:
+        return np.eye(4), np.zeros((6, model.nv))
+    g = np.empty((4, 4))
+    Js = np.empty((6, model.nv))
+    spatial_jacobian(ws.m, ws.w, int(ref.joint), float(ref.x), g, Js)
+    # spatial twist [v_o; w] -> world velocity of the point [v_o + w x p; w]
+    p = g[:3, 3]
+    J = Js.copy()
+    J[0] += Js[4] * p[2] - Js[5] * p[1]
+    J[1] += Js[5] * p[0] - Js[3] * p[2]
+    J[2] += Js[3] * p[1] - Js[4] * p[0]
+    return g, J
+
+
+def constraint_rows(mech, ws, q, targets=None, q_cmd=None):
+    """(Phi (m,), G (m, nv)) of all constraints and motion rows at q:
+    constraint values in world axes [m, rad] and their Jacobian (exact for
+    positions, and for rotations at zero error). ``targets``: world target
+    poses of the constraints to the world (default their own)."""
+    tree = mech.tree
+    blocks_phi, blocks_G = [], []
+    if mech.constraints:
+        passes.forward_pass(ws.m, ws.w, np.ascontiguousarray(q, float), ws.zeros_v, ws.zeros_v, 0)
+    for k, c in enumerate(mech.constraints):
+        ga, Ja = _point(tree, ws, c.a)
+        if c.b.joint < 0:
+            gb = c.target if targets is None or targets[k] is None else targets[k]
+            Jb = np.zeros_like(Ja)
+        else:
+            gb, Jb = _point(tree, ws, c.b)
+        dp = ga[:3, 3] - gb[:3, 3]
+        Jd = Ja - Jb
+        C = c.rows()
+        if c.kind == "clamped":
+            blocks_phi.append(np.concatenate([dp, log_so3(ga[:3, :3] @ gb[:3, :3].T)]))
+            blocks_G.append(Jd)
+        else:
+            blocks_phi.append(C[:, :3] @ dp)
+            blocks_G.append(C @ Jd)
+    pos = mech.joints_with("position")
+    if pos:
+        E = np.zeros((len(pos), tree.nv))
+        phi = np.zeros(len(pos))
+        for k, i in enumerate(pos):
+            E[k, tree.idx_v[i]] = 1.0
+            phi[k] = q[tree.idx_q[i]] - (q_cmd[k] if q_cmd is not None else tree.joints[i].q_ref)
+        blocks_phi.append(phi)
+        blocks_G.append(E)
+    if not blocks_phi:
+        return np.zeros(0), np.zeros((0, tree.nv))
+    return np.concatenate(blocks_phi), np.vstack(blocks_G)
+
+
+def constraint_loads(mech, lam):
+    """LoadArrays of the constraint reactions: C^T lambda on a, its opposite on b
+    (dead world wrenches at the frames' origins)."""
+    J, X, W = [], [], []
+    r = 0
+    for c in mech.constraints:
+        w = c.rows().T @ lam[r:r + c.size]
+        r += c.size
+        J.append(c.a.joint)
+        X.append(c.a.x)
+        W.append(w)
+        if c.b.joint >= 0:
+            J.append(c.b.joint)
+            X.append(c.b.x)
+            W.append(-w)
+    return LoadArrays(np.array(J, np.int64), np.array(X, float), np.array(W, float).reshape(-1, 6),
+                      np.ones(len(J), np.bool_))
+
+
+def constraint_wrenches(mech, lam):
+    """{name: world wrench [f; m] (6,) the constraint exerts on its frame a, at a's origin}."""
+    out, r = {}, 0
+    for c in mech.constraints:
+        out[c.name] = c.rows().T @ lam[r:r + c.size]
+        r += c.size
+    return out
+
+
+def _efforts_out(mech, lam, inp):
+    """{joint name: effort} of the 1-dof rigid joints: inputs of the
+    effort-controlled, multipliers of the position-controlled, 0 passive."""
+    tree = mech.tree
+    out = {}
+    npos = len(mech.joints_with("position"))
+    lam_pos = lam[len(lam) - npos:] if npos else np.zeros(0)
+    pos = mech.joints_with("position")
+    for i in mech.rigid_joints:
+        j = tree.joints[i]
+        if i in pos:
+            out[j.name] = float(lam_pos[pos.index(i)])
+        else:
+            out[j.name] = float(inp.effort[tree.idx_v[i]])
+    return out
+
+
+# ----------------------------------------------------------------------------
+# The equilibrium problem
+# ----------------------------------------------------------------------------
+
+def _dense_blocks(tree):
+    """Joint-space stiffness and damping matrices (nv, nv) of the tree."""
+    K = np.zeros((tree.nv, tree.nv))
+    D = np.zeros((tree.nv, tree.nv))
+    a = tree.arrays
+    for i in range(tree.n_joints):
+        n, iv = a.nv[i], a.iv[i]
+        K[iv:iv + n, iv:iv + n] = a.Kb[i, :n, :n]
+        D[iv:iv + n, iv:iv + n] = a.Db[i, :n, :n]
+    return K, D
+
+
+def _cached(mech, key, make):
+    v = mech.__dict__.get(key)
+    if v is None:
+        v = make()
+        object.__setattr__(mech, key, v)
+    return v
+
+
+class _Equilibrium:
+    """R(q, lambda) and Phi(q) of a mechanism under fixed inputs, with the
+    analytic Newton matrix."""
+
+    def __init__(self, mech, inp, targets=None):
+        self.mech, self.inp, self.targets = mech, inp, targets
+        tree = mech.tree
+        self.tree = tree
+        self.ws = Workspace(tree)
+        self.act = _cached(mech, "_act_arrays", lambda: actuator_arrays(tree))
+        self.K, _ = _cached(mech, "_dense_KD", lambda: _dense_blocks(tree))
+        self.coef = (np.ascontiguousarray(self.act.unit @ inp.u) if inp.u.size
+                     else np.zeros(len(self.act.joint)))
+        self.zeros = np.zeros(tree.nv)
+        self.npos = len(mech.joints_with("position"))
+        self.pos_v = np.array([tree.idx_v[i] for i in mech.joints_with("position")], dtype=np.int64)
+
+    def loads(self, lam):
+        return _concat_loads(self.inp.loads, constraint_loads(self.mech, lam))
+
+    def effort(self, lam):
+        e = self.inp.effort.copy()
+        if self.npos:
+            e[self.pos_v] += lam[len(lam) - self.npos:]
+        return e
+
+    def residual(self, q, lam):
+        out = np.empty(self.tree.nv)
+        residual_pass(self.ws.m, self.ws.w, self.act, self.loads(lam), self.inp.gravity, self.coef,
+                      self.effort(lam), np.ascontiguousarray(q, float), self.zeros, self.zeros, out, True)
+        phi, G = constraint_rows(self.mech, self.ws, q, self.targets, self.inp.q_cmd)
+        return out, phi, G
+
+    def tangent(self, q, lam):
+        m, w = self.ws.m, self.ws.w
+        q = np.ascontiguousarray(q, float)
+        ld = self.loads(lam)
+        passes.forward_pass(m, w, q, self.zeros, self.zeros, 0)
+        passes.rnea_pass(m, w, ld, self.inp.gravity, np.empty(self.tree.nv), True)
+        Kt = self.K.copy()
+        static_tangent_pass(m, w, ld, self.inp.gravity, Kt)
+        actuation_tangent_pass(m, w, self.act, self.coef, Kt)
+        return Kt
+
+
+@dataclass
+class Equilibrium:
+    """A static equilibrium of a mechanism: q; multipliers lam; joint_efforts
+    {name: N m or N}; constraint_wrenches {name: world [f; m] on frame a};
+    iterations; residual (relative); constraint_error (max |Phi|, m or rad)."""
+    q: np.ndarray
+    lam: np.ndarray
+    joint_efforts: dict
+    constraint_wrenches: dict
+    iterations: int
+    residual: float
+    constraint_error: float
+    load_steps: int = 1
+    inputs: Inputs = None
+
+
+def independent_rows(G, rtol=1e-10):
+    """Indices of a maximal set of linearly independent rows of G (QR with
+    column pivoting of G^T): redundant constraints (a planar loop closed by
+    a 3-D pin) are left out; their multipliers stay as they are."""
+    from scipy.linalg import qr
+    if G.shape[0] == 0:
+        return np.zeros(0, dtype=np.int64)
+    Gs = G / np.maximum(np.abs(G).max(axis=1, keepdims=True), 1e-300)
+    _, Rq, piv = qr(Gs.T, mode="economic", pivoting=True)
+    d = np.abs(np.diag(Rq))
+    r = int(np.sum(d > rtol * max(d.max(initial=0.0), 1e-300)))
+    return np.sort(piv[:r])
+
+
+def solve_kkt(A, G_force, G_cons, R, phi, rows=None):
+    """(dx, dlam) of ``[[A, -G_force^T], [G_cons, 0]] [dx; dlam] = [-R; -phi]``
+    over the independent rows of G_cons (dlam = 0 on the redundant ones;
+    ``rows``: those rows if known)."""
+    n = A.shape[0]
+    rows = independent_rows(G_cons) if rows is None else rows
+    m = len(rows)
+    K = np.zeros((n + m, n + m))
+    K[:n, :n] = A
+    K[:n, n:] = -G_force[rows].T
+    K[n:, :n] = G_cons[rows]
+    x = np.linalg.solve(K, -np.concatenate([R, phi[rows]]))
+    dl = np.zeros(G_cons.shape[0])
+    dl[rows] = x[n:]
+    return x[:n], dl
+
+
+def _check_statics_model(tree):
+    for j in tree.joints:
+        if j.kind in (SPHERICAL, FREE):
+            raise ValueError(f"statics: joint {j.name!r} is {'spherical' if j.kind == SPHERICAL else 'free'}; "
+                             f"statics needs joints with nq = nv (soft, revolute, prismatic, fixed): "
+                             f"use the dynamics to let it settle")
+
+
+def _length_scale(mech):
+    L = sum(p.length for p in mech.tree.paths)
+    return max(L, 1e-3)
+
+
+def _kkt_newton(pb, q, lam, tol, max_iterations):
+    """Newton with backtracking on the KKT system; (q, lam, it, ok, R, phi)."""
+    nv = pb.tree.nv
+    Ls = _length_scale(pb.mech)
+    R, phi, G = pb.residual(q, lam)
+    Kq = pb.K @ (q - pb.tree.q0)
+
+    def scale_of(R):
+        return max(np.abs(Kq).max(initial=0), np.abs(R).max(initial=0), np.abs(pb.inp.effort).max(initial=0),
+                   np.abs(lam).max(initial=0) * Ls, 1e-300)
+
+    def merit(R, phi, sc):
+        return np.sqrt(np.sum((R / sc) ** 2) + np.sum((phi / Ls) ** 2))
+
+    sc = scale_of(R)
+    for it in range(1, max_iterations + 1):
+        r_ok = np.abs(R).max(initial=0) <= tol * sc + 64 * np.finfo(float).eps * np.abs(Kq).max(initial=0)
+        if r_ok and np.abs(phi).max(initial=0) <= tol * Ls:
+            return q, lam, it - 1, True, R, phi, sc
+        Kt = pb.tangent(q, lam)
+        try:
+            dq, dl = solve_kkt(Kt, G, G, R, phi)
+        except np.linalg.LinAlgError:
+            return q, lam, it, False, R, phi, sc
+        f0 = merit(R, phi, sc)
+        step = 1.0
+        for _ in range(30):
+            q_t, l_t = q + step * dq, lam + step * dl
+            R_t, phi_t, G_t = pb.residual(q_t, l_t)
+            if np.all(np.isfinite(R_t)) and merit(R_t, phi_t, sc) < (1 - 1e-4 * step) * f0:
+                break
+            step *= 0.5
+        else:
+            return q, lam, it, False, R, phi, sc
+        q, lam, R, phi, G = q_t, l_t, R_t, phi_t, G_t
+        Kq = pb.K @ (q - pb.tree.q0)
+        sc = max(sc, scale_of(R))
+    return q, lam, max_iterations, False, R, phi, sc
+
+
+def solve_equilibrium(mech, actuation=None, efforts=None, positions=None, loads=None, point_loads=(),
+                      q_init=None, *, targets=None, tol=1e-10, max_iterations=50, max_load_steps=64):
+    """Static equilibrium of a mechanism under actuation (tendon tensions N,
+    chamber pressures Pa), joint efforts {joint: N m or N} of effort-controlled
+    joints, positions {joint: rad or m} of position-controlled joints (default
+    their reference), loads (:class:`loads.Loads` on the first path, gravity
+    switch) and point_loads (FrameLoad on named frames); constraints hold.
+    If Newton fails from q_init, the inputs are applied in increasing
+    fractions (continuation). Raises StaticsError if it cannot converge."""
+    _check_statics_model(mech.tree)
+    inp = make_inputs(mech, actuation, efforts, positions, None, loads, point_loads)
+    tree = mech.tree
+    q = tree.q0.copy() if q_init is None else tree.check_q(np.array(q_init, dtype=float), "q_init").copy()
+    m = mech.n_constraint_rows + len(mech.joints_with("position"))
+    lam = np.zeros(m)
+    with one_blas_thread():
+        pb = _Equilibrium(mech, inp, targets)
+        q1, lam1, it, ok, R, phi, sc = _kkt_newton(pb, q, lam, tol, max_iterations)
+        steps, total = 1, it
+        if not ok:
+            q1, lam1, total, steps, R, phi, sc = _continuation(mech, inp, targets, q, lam, tol, max_iterations,
+                                                               max_load_steps, total)
+    return Equilibrium(q1.copy(), lam1.copy(), _efforts_out(mech, lam1, inp), constraint_wrenches(mech, lam1),
+                       total, float(np.abs(R).max(initial=0) / sc), float(np.abs(phi).max(initial=0)), steps,
+                       inp)
+
+
+def _scaled_inputs(mech, inp, t, q_start):
+    pos = mech.joints_with("position")
+    q_from = np.array([q_start[mech.tree.idx_q[i]] for i in pos])
+    ld = inp.loads
+    return Inputs(t * inp.u, t * inp.effort, q_from + t * (inp.q_cmd - q_from), inp.v_cmd,
+                  LoadArrays(ld.joint, ld.x, t * ld.wrench, ld.world), t * inp.gravity)
+
+
+def _continuation(mech, inp, targets, q, lam, tol, max_iterations, max_load_steps, total):
+    t, dt, steps = 0.0, 0.25, 0
+    q_c, l_c = q.copy(), lam.copy()
+    while t < 1.0:
+        target = min(1.0, t + dt)
+        pb = _Equilibrium(mech, _scaled_inputs(mech, inp, target, q), targets)
+        q_t, l_t, it, ok, R, phi, sc = _kkt_newton(pb, q_c, l_c, tol, max_iterations)
+        total += it
+        steps += 1
+        if ok:
+            t, q_c, l_c = target, q_t, l_t
+            dt = min(2 * dt, 1.0)
+        else:
+            dt *= 0.5
+            if dt < 1.0 / max_load_steps / 64 or steps > 4 * max_load_steps:
+                raise StaticsError(f"statics did not converge: reached load fraction {t:.4f}; the loads, "
+                                   f"commands or constraints may be incompatible")
+    return q_c, l_c, total, steps, R, phi, sc
+
+
+# ----------------------------------------------------------------------------
+# Dynamics
+# ----------------------------------------------------------------------------
+
+class StepError(RuntimeError):
+    """A constrained step did not converge; the state is left unchanged."""
+
+
+class MechanismSimulator:
+    """Time integration of a mechanism with joint control and constraints:
+    the theta-method step of :mod:`integrators` (theta = 1/2: implicit
+    midpoint, 1: implicit Euler) with the constraint reactions and the
+    position-controlled joints' efforts as multipliers; every constraint
+    holds at the end of each step to ``constraint_tol`` (position level: no
+    drift). State: ``t`` [s], ``q``, ``v``, ``a`` (the step's mean
+    acceleration), ``lam``.
+
+    >>> sim = MechanismSimulator(mech, dt=2e-3)
+    >>> sim.step(positions={"pan": 0.2}, n=100)
+    """
+
+    def __init__(self, mech, dt, theta=0.5, q=None, v=None, *, tol=1e-10, constraint_tol=1e-12,
+                 max_iterations=40):
+        if not dt > 0 or not np.isfinite(dt):
+            raise ValueError(f"dt: expected a positive time step [s], got {dt}")
+        if not 0.5 <= theta <= 1.0:
+            raise ValueError(f"theta: expected a value in [0.5, 1], got {theta}")
+        tree = mech.tree
+        self.mech, self.tree, self.dt, self.theta = mech, tree, float(dt), float(theta)
+        self.tol, self.constraint_tol, self.max_iterations = tol, constraint_tol, max_iterations
+        self.ws = Workspace(tree)
+        self.act = _cached(mech, "_act_arrays", lambda: actuator_arrays(tree))
+        self.K, self.D = _cached(mech, "_dense_KD", lambda: _dense_blocks(tree))
+        self.t = 0.0
+        self.q = tree.q0.copy() if q is None else tree.check_q(np.array(q, float)).copy()
+        self.v = np.zeros(tree.nv) if v is None else tree.check_v(np.array(v, float)).copy()
+        self.a = np.zeros(tree.nv)
+        self.lam = np.zeros(mech.n_constraint_rows + len(mech.joints_with("position")))
+        self.iterations = 0
+        self.inputs = make_inputs(mech)
+        self.Ls = _length_scale(mech)
+
+    def step(self, actuation=None, efforts=None, positions=None, loads=None, point_loads=(), targets=None,
+             n=1, inputs=None):
+        """Advance n steps with these inputs held (positions: the commands the
+        position-controlled joints reach at the end of each step; targets:
+        world poses of constraints to the world, default their own). Raises
+        StepError (state unchanged) if a step fails."""
+        inp = inputs if inputs is not None else make_inputs(self.mech, actuation, efforts, positions, None,
+                                                            loads, point_loads)
+        self.inputs = inp
+        with one_blas_thread():
+            for _ in range(int(n)):
+                self._step(inp, targets)
+        return self
+
+    def _step(self, inp, targets):
+        tree, m, w = self.tree, self.ws.m, self.ws.w
+        h, th = self.dt, self.theta
+        q0, v0 = self.q, self.v
+        v1 = v0.copy()
+        lam = self.lam.copy()
+        coef = np.ascontiguousarray(self.act.unit @ inp.u) if inp.u.size else np.zeros(len(self.act.joint))
+        npos = len(self.mech.joints_with("position"))
+        pos_v = np.array([tree.idx_v[i] for i in self.mech.joints_with("position")], dtype=np.int64)
+        qt = np.empty(tree.nq)
+        q1 = np.empty(tree.nq)
+        R = np.empty(tree.nv)
+        z = np.zeros(tree.nv)
+        for it in range(1, self.max_iterations + 1):
+            vt = (1 - th) * v0 + th * v1
+            acc = (v1 - v0) / h
+            integrate_pass(m, q0, vt, th * h, qt)
+            integrate_pass(m, q0, vt, h, q1)
+            ld = _concat_loads(inp.loads, constraint_loads(self.mech, lam))
+            effort = inp.effort.copy()
+            if npos:
+                effort[pos_v] += lam[len(lam) - npos:]
+            # Newton matrix pieces at q_t: M, the static tangent of the loads, the tendons
+            passes.forward_pass(m, w, qt, z, z, 0)
+            Mq = np.zeros((tree.nv, tree.nv))
+            passes.crba_pass(m, w, Mq)
+            passes.rnea_pass(m, w, ld, inp.gravity, np.empty(tree.nv), True)
+            Kt = self.K.copy()
+            static_tangent_pass(m, w, ld, inp.gravity, Kt)
+            actuation_tangent_pass(m, w, self.act, coef, Kt)
+            residual_pass(m, w, self.act, ld, inp.gravity, coef, effort, qt, vt, acc, R, False)
+            _, Gt = constraint_rows(self.mech, self.ws, qt, targets, inp.q_cmd)
+            phi1, G1 = constraint_rows(self.mech, self.ws, q1, targets, inp.q_cmd)
+            if not (np.all(np.isfinite(R)) and np.all(np.isfinite(phi1))):
+                raise StepError(f"step at t = {self.t:.6g} s: non-finite residual")
+            A = (Mq + th * h * self.D + (th * h) ** 2 * Kt) / h
+            if it == 1:
+                rows = independent_rows(G1)
+            try:
+                dv, dl = solve_kkt(A, Gt, th * h * G1, R, phi1, rows)
+            except np.linalg.LinAlgError:
+                raise StepError(f"step at t = {self.t:.6g} s: singular Newton matrix") from None
+            v1 += dv
+            lam += dl
+            ndv = np.abs(dv).max(initial=0)
+            if it == 1:
+                first = ndv
+            vs = max(np.abs(v1).max(initial=0), np.abs(v0).max(initial=0), first, 1e-300)
+            phi_ok = np.abs(phi1).max(initial=0) <= self.constraint_tol * max(self.Ls, 1.0)
+            if phi_ok and (ndv <= self.tol * vs or (it > 2 and ndv <= 1e-6 * vs and ndv >= 0.5 * prev)):
+                break              # converged, or stalled at round-off
+            prev = ndv
+        else:
+            raise StepError(f"step at t = {self.t:.6g} s: Newton did not converge in {self.max_iterations} "
+                            f"iterations (constraint error {np.abs(phi1).max(initial=0):.3g})")
+        vt = (1 - th) * v0 + th * v1
+        integrate_pass(m, q0, vt, h, q1)
+        self.q, self.v, self.a, self.lam = q1.copy(), v1, (v1 - v0) / h, lam
+        self.t += h
+        self.iterations = it
+
+    # --- outputs ---------------------------------------------------------------
+    def joint_efforts(self):
+        """{joint: effort} (N m or N) of the last step (inputs or multipliers)."""
+        return _efforts_out(self.mech, self.lam, self.inputs)
+
+    def constraint_wrenches(self):
+        return constraint_wrenches(self.mech, self.lam)
+
+    def constraint_error(self, targets=None):
+        """max |Phi| [m, rad] of the constraints (not the motion rows) now."""
+        phi, _ = constraint_rows(self.mech, self.ws, self.q, targets, self.inputs.q_cmd)
+        nc = self.mech.n_constraint_rows
+        return float(np.abs(phi[:nc]).max(initial=0))
+
+    def energy(self):
+        """(kinetic, potential) [J]: 1/2 v^T M v and the elastic plus gravity
+        potential (rigid bodies and soft points) at the current state."""
+        from .algorithms import crba, point_poses
+        tree = self.tree
+        M = crba(tree, self.ws, self.q)
+        T = 0.5 * self.v @ M @ self.v
+        qd = self.q - tree.q0
+        V = 0.5 * qd @ self.K @ qd if tree.nq == tree.nv else 0.0
+        g = self.inputs.gravity
+        a = tree.arrays
+        alg_ws = self.ws
+        from .algorithms import forward_kinematics
+        forward_kinematics(tree, alg_ws, self.q)
+        for i, j in enumerate(tree.joints):
+            if a.rigid_mass[i]:
+                mass = j.inertia[0, 0]
+                c = np.array([j.inertia[5, 1], j.inertia[3, 2], j.inertia[4, 0]]) / mass
+                gout = alg_ws.work.g_out[i]
+                V -= mass * g @ (gout[:3, :3] @ c + gout[:3, 3])
+            if j.kind == 5:
+                npt = a.npt[i]
+                P = point_poses(tree, alg_ws, self.q, [i] * npt, a.px[i, :npt])
+                V -= np.sum(a.pw[i, :npt] * a.mc[i, 0] * (P[:, :3, 3] @ g))
+        return float(T), float(V)
+

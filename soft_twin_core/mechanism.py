@@ -1,0 +1,568 @@
+"""Soft articulated robots: the tree robot file, joint control and constraints.
+
+A *mechanism* is a multibody tree (:class:`multibody.Model`) plus what a
+user says about it beyond the tree itself:
+
+* which rigid joints are *effort-controlled* (their force or torque is an
+  input, like a tendon tension) and which are *position-controlled* (their
+  position follows a command; their effort is an output, the Lagrange
+  multiplier of the motion constraint, i.e. inverse dynamics);
+* *constraints* between two frames, or a frame and the world (closed chains
+  and boundary conditions): ``clamped`` (6 dof), ``pinned`` (position),
+  ``line`` (the point slides on a world line) and ``plane`` (on a world
+  plane); :mod:`soft_twin_core.constrained` solves statics and dynamics with
+  them;
+* the cross-section geometry of every soft section, for stresses.
+
+The robot file of a mechanism has a ``bodies`` list (see
+:func:`mechanism_from_dict` and the README, "Soft articulated robots"); a
+classic file (``segments``: one soft chain) becomes a mechanism with no
+rigid joints through :func:`from_robot_model`. Units SI; frames and wrench
+conventions of docs/CONVENTIONS.md.
+"""
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from .model import (ModelError, _check_keys, _num, _vec, model_from_dict, pose_from_dict, read_yaml_file,
+                    robot_mapping)
+from .multibody import FIXED, FREE, PRISMATIC, REVOLUTE, SOFT, SPHERICAL, ModelBuilder, SoftSection, \
+    spatial_inertia
+
+CONSTRAINT_TYPES = {"clamped": 6, "pinned": 3, "line": 2, "plane": 1}
+JOINT_TYPES = {"fixed": FIXED, "revolute": REVOLUTE, "prismatic": PRISMATIC, "spherical": SPHERICAL,
+               "free": FREE}
+CONTROL_MODES = ("effort", "position", "passive")
+
+
+@dataclass(frozen=True, eq=False)
+class PointRef:
+    """A point of the tree: joint ``joint`` at abscissa ``x`` [m] of its soft
+    section, or its output frame (``x = -1``). ``joint = -1`` is the world."""
+    joint: int
+    x: float = -1.0
+
+
+@dataclass(frozen=True, eq=False)
+class Constraint:
+    """A holonomic constraint of frame ``a`` on frame ``b`` (``b.joint == -1``:
+    the world, at the pose ``target``, which a trajectory may move).
+
+    Rows in world axes: ``clamped`` [p_a - p_b; log(R_a R_b^T)] (6), ``pinned``
+    p_a - p_b (3), ``line`` N (p_a - p_b) with N the two unit normals of
+    ``direction`` (2), ``plane`` n . (p_a - p_b) (1). The reaction on a is the
+    world wrench W = C^T lambda at a's origin ([force; moment], C the rows'
+    directions), -W on b."""
+    name: str
+    kind: str
+    a: PointRef
+    b: PointRef
+    target: np.ndarray = field(default_factory=lambda: np.eye(4))
+    direction: np.ndarray = field(default_factory=lambda: np.array([0.0, 0.0, 1.0]))
+
+    @property
+    def size(self):
+        return CONSTRAINT_TYPES[self.kind]
+
+    def rows(self):
+        """C (size, 6): the directions of the multipliers in the world wrench (read-only)."""
+        C = self.__dict__.get("_rows")
+        if C is None:
+            C = self._make_rows()
+            C.setflags(write=False)
+            object.__setattr__(self, "_rows", C)
+        return C
+
+    def _make_rows(self):
+        C = np.zeros((self.size, 6))
+        if self.kind == "clamped":
+            C[:] = np.eye(6)
+        elif self.kind == "pinned":
+            C[:, :3] = np.eye(3)
+        elif self.kind == "line":
+            C[:, :3] = _normals(self.direction)
+        else:
+            C[0, :3] = self.direction
+        return C
+
+
+def _normals(d):
+    """Two unit vectors orthogonal to the unit vector d (and to each other)."""
+    e = np.eye(3)[np.argmin(np.abs(d))]
+    n1 = np.cross(d, e)
+    n1 /= np.linalg.norm(n1)
+    return np.array([n1, np.cross(d, n1)])
+
+
+@dataclass(frozen=True, eq=False)
+class SectionGeometry:
+    """Cross-section geometry of a soft section, for stresses: area A
+    [m^2], second moments I2, I3 [m^4], torsion constant J [m^4], extreme
+    fibre distances cy, cz [m] along local y and z, shape name."""
+    shape: str
+    A: float
+    I2: float
+    I3: float
+    J: float
+    cy: float
+    cz: float
+
+
+@dataclass(frozen=True, eq=False)
+class Member:
+    """A soft member: consecutive soft joints (a path of the tree) with its
+    cross-section geometry per section (None: given by ``sectional``)."""
+    name: str
+    path: int
+    joints: tuple
+    geometry: tuple
+
+
+@dataclass(frozen=True, eq=False)
+class Link:
+    """A rigid link: the body of joint ``joint``, with a visual shape
+    (dict: shape box/cylinder/sphere and sizes [m]) for display."""
+    name: str
+    joint: int
+    visual: dict = None
+
+
+@dataclass(frozen=True, eq=False)
+class Mechanism:
+    """A soft articulated robot: the tree, its joint control modes,
+    constraints, members and links. Immutable."""
+    name: str
+    tree: object
+    control: tuple                 # per joint: "effort", "position", "passive" or "" (soft/fixed)
+    constraints: tuple = ()
+    members: tuple = ()
+    links: tuple = ()
+    frames: dict = field(default_factory=dict)   # name -> PointRef
+    base_motion: str = "fixed"     # fixed, floating or prescribed
+
+    @property
+    def actuators(self):
+        return self.tree.actuators
+
+    @property
+    def actuator_names(self):
+        return self.tree.actuator_names
+
+    def joints_with(self, mode):
+        """Indices of the rigid joints of control mode ``mode``."""
+        return tuple(i for i, c in enumerate(self.control) if c == mode)
+
+    @property
+    def rigid_joints(self):
+        """Indices of the 1-dof rigid joints (revolute, prismatic): those a
+        JointState names."""
+        return tuple(i for i, j in enumerate(self.tree.joints) if j.kind in (REVOLUTE, PRISMATIC))
+
+    @property
+    def joint_names(self):
+        return tuple(self.tree.joints[i].name for i in self.rigid_joints)
+
+    def frame(self, name):
+        try:
+            return self.frames[name]
+        except KeyError:
+            raise KeyError(f"no frame named {name!r}; this robot has {sorted(self.frames)}") from None
+
+    def member(self, name):
+        for m in self.members:
+            if m.name == name:
+                return m
+        raise KeyError(f"no member named {name!r}; this robot has {[m.name for m in self.members]}")
+
+    @property
+    def n_constraint_rows(self):
+        return sum(c.size for c in self.constraints)
+
+
+# ----------------------------------------------------------------------------
+# Robot file
+# ----------------------------------------------------------------------------
+
+_BODY_KEYS = {"name", "type", "parent", "joint", "mass", "com", "inertia", "visual", "segments",
+              "actuators"}
+_JOINT_KEYS = {"name", "type", "axis", "position", "rpy", "quaternion", "limits", "stiffness", "damping",
+               "reference", "control"}
+_FRAME_KEYS = {"name", "body", "s", "position", "rpy", "quaternion"}
+_CONSTRAINT_KEYS = {"name", "type", "frame", "to", "target", "direction", "normal"}
+
+
+def is_tree_file(d):
+    """True for a robot mapping of the tree schema (a ``bodies`` list)."""
+    return isinstance(d, dict) and "bodies" in d
+
+
+def load_mechanism(path):
+    """A :class:`Mechanism` from a robot file of either schema."""
+    d = robot_mapping(read_yaml_file(path, what="robot file"), str(path))
+    return mechanism_from_dict(d) if is_tree_file(d) else from_robot_model(model_from_dict(d), d)
+
+
+def _pose(d, where):
+    return pose_from_dict({k: d[k] for k in ("position", "rpy", "quaternion") if k in d} or None, where)
+
+
+def _inertia3(v, where):
+    """[ixx, iyy, izz, ixy, ixz, iyz] or a 3x3 list -> symmetric positive semi-definite 3x3."""
+    if v is None:
+        return np.zeros((3, 3))
+    a = np.asarray(v, dtype=float) if not isinstance(v, dict) else None
+    if a is None or a.shape not in ((6,), (3, 3)) or not np.all(np.isfinite(a)):
+        raise ModelError(f"{where}: expected [ixx, iyy, izz, ixy, ixz, iyz] (kg m^2, about the centre of "
+                         f"mass, link axes) or a 3x3 matrix, got {v!r}")
+    if a.shape == (6,):
+        xx, yy, zz, xy, xz, yz = a
+        a = np.array([[xx, xy, xz], [xy, yy, yz], [xz, yz, zz]])
+    if np.abs(a - a.T).max() > 1e-12 * max(1.0, np.abs(a).max()):
+        raise ModelError(f"{where}: the inertia matrix must be symmetric")
+    ev = np.linalg.eigvalsh(a)
+    if ev.min() < -1e-12 * max(1.0, ev.max()) or (ev.sum() - 2 * ev.max()) < -1e-9 * max(1e-30, ev.max()):
+        raise ModelError(f"{where}: not a physical inertia (eigenvalues {ev.tolist()} must be >= 0 and "
+                         f"satisfy the triangle inequality)")
+    return a
+
+
+def _visual(v, where):
+    if v is None:
+        return None
+    _check_keys(v, {"shape", "size", "radius", "length", "position", "rpy"}, where)
+    shape = v.get("shape", "box")
+    if shape == "box":
+        _vec(v, "size", 3, where)
+    elif shape == "cylinder":
+        _num(v, "radius", where, positive=True)
+        _num(v, "length", where, positive=True)
+    elif shape == "sphere":
+        _num(v, "radius", where, positive=True)
+    else:
+        raise ModelError(f"{where}.shape: expected box, cylinder or sphere, got {shape!r}")
+    return dict(v)
+
+
+def _joint(b, jd, where, default_name, is_member):
+    """(name, kind, placement, axis, limits, stiffness, damping, reference, control) of a body's joint."""
+    jd = {} if jd is None else jd
+    _check_keys(jd, _JOINT_KEYS, where)
+    kind_name = jd.get("type", "fixed")
+    if kind_name not in JOINT_TYPES:
+        raise ModelError(f"{where}.type: expected one of {sorted(JOINT_TYPES)}, got {kind_name!r}")
+    kind = JOINT_TYPES[kind_name]
+    if kind == FREE:
+        raise ModelError(f"{where}.type: a free joint is the floating base: give base: {{motion: floating}}")
+    name = jd.get("name", default_name)
+    if not isinstance(name, str) or not name:
+        raise ModelError(f"{where}.name: expected a non-empty string, got {name!r}")
+    placement = _pose(jd, where)
+    axis = _vec(jd, "axis", 3, where, default=[0, 0, 1])
+    if kind in (REVOLUTE, PRISMATIC) and not np.linalg.norm(axis) > 0:
+        raise ModelError(f"{where}.axis: expected a non-zero 3-vector, got {axis.tolist()}")
+    limits = None
+    if jd.get("limits") is not None:
+        lim = _vec(jd, "limits", 2, where)
+        if not lim[0] < lim[1]:
+            raise ModelError(f"{where}.limits: need lower < upper, got {lim.tolist()}")
+        limits = (float(lim[0]), float(lim[1]))
+    stiffness = _num(jd, "stiffness", where, nonneg=True, default=0.0)
+    damping = _num(jd, "damping", where, nonneg=True, default=0.0)
+    reference = _num(jd, "reference", where, default=0.0)
+    control = ""
+    if kind in (REVOLUTE, PRISMATIC):
+        control = jd.get("control", "effort")
+        if control not in CONTROL_MODES:
+            raise ModelError(f"{where}.control: expected one of {list(CONTROL_MODES)}, got {control!r}")
+        if limits is not None and not limits[0] <= reference <= limits[1]:
+            raise ModelError(f"{where}.reference: {reference} lies outside the limits {list(limits)}")
+    else:
+        for key in ("limits", "stiffness", "damping", "reference", "control"):
+            if key in jd:
+                raise ModelError(f"{where}.{key}: only revolute and prismatic joints take {key}")
+    if is_member and kind not in (FIXED, REVOLUTE, PRISMATIC, SPHERICAL):
+        raise ModelError(f"{where}.type: unsupported for a member")
+    return name, kind, placement, axis, limits, stiffness, damping, reference, control
+
+
+def _geometry(cs):
+    """SectionGeometry of a cross_section mapping (already validated)."""
+    from .model import _cross_section
+    c = _cross_section(cs, "cross_section")
+    shape = cs.get("shape", "solid_circle")
+    if shape == "solid_circle":
+        cy = cz = float(cs["radius"])
+    elif shape == "hollow_tube":
+        cy = cz = float(cs["outer_radius"])
+    elif shape == "rectangle":
+        cy, cz = 0.5 * float(cs["width"]), 0.5 * float(cs["height"])
+    else:
+        return None
+    return SectionGeometry(shape, c.area, c.I2, c.I3, c.J, cy, cz)
+
+
+def _member_geometry(segments, robot):
+    """Per-section SectionGeometry (None where a segment gives ``sectional``)."""
+    out = []
+    for sd in segments:
+        g = _geometry(sd["cross_section"]) if "cross_section" in sd else None
+        out += [g] * int(sd.get("sections", 1))
+    return out
+
+
+def _soft_sections(robot, kmap, npt):
+    return [SoftSection(s.length, s.K, s.D, np.asarray(s.M, float), np.asarray(s.f0, float),
+                        np.asarray(s.free, bool), kmap, npt) for s in robot.sections]
+
+
+def mechanism_from_dict(d):
+    """A :class:`Mechanism` from the tree schema::
+
+        name, gravity, kinematic_map, quadrature_points   # as the classic schema
+        base: {position, rpy | quaternion, motion: fixed | floating | prescribed}
+        bodies:            # in order: a parent comes before its children
+          - name: pan_link
+            type: link                    # rigid: mass [kg], com [m], inertia [kg m^2] about the com
+            parent: base                  # "base" or an earlier body (a member: its tip)
+            joint: {name, type: fixed|revolute|prismatic|spherical, axis, position, rpy,
+                    limits: [lo, hi], stiffness, damping, reference, control: effort|position|passive}
+            mass: 0.3
+            com: [0, 0, 0.02]
+            inertia: [ixx, iyy, izz, ixy, ixz, iyz]
+            visual: {shape: box|cylinder|sphere, size | radius, length}
+          - name: arm
+            type: member                  # soft: segments and actuators as in the classic schema
+            parent: pan_link
+            joint: {type: fixed, position: [0, 0, 0.05]}
+            segments: [...]
+            actuators: [...]              # arc lengths along this member
+        frames:            # named points: on a member at arc length s [m], or on a link
+          - {name: tool, body: arm, s: 0.45, position, rpy}
+        constraints:
+          - {name, type: clamped | pinned | line | plane, frame: A, to: world | FRAME,
+             target: {position, rpy} (world only), direction: [..] (line), normal: [..] (plane)}
+
+    Each member gets a path (its name) and a frame ``<member>_tip`` at its
+    end; each link a frame with its own name. Raises ModelError naming the
+    field."""
+    _check_keys(d, {"name", "base", "gravity", "kinematic_map", "quadrature_points", "bodies", "frames",
+                    "constraints"}, "robot")
+    kmap = d.get("kinematic_map", "exponential")
+    if kmap not in ("exponential", "cayley"):
+        raise ModelError(f"robot.kinematic_map: expected 'exponential' or 'cayley', got {kmap!r}")
+    npt = d.get("quadrature_points", 4)
+    if isinstance(npt, bool) or not isinstance(npt, int) or not 1 <= npt <= 20:
+        raise ModelError(f"robot.quadrature_points: expected an integer in 1..20, got {npt!r}")
+    base = dict(d.get("base") or {})
+    _check_keys(base, {"position", "rpy", "quaternion", "motion"}, "robot.base")
+    motion = base.pop("motion", "fixed")
+    if motion not in ("fixed", "floating", "prescribed"):
+        raise ModelError(f"robot.base.motion: expected fixed, floating or prescribed, got {motion!r}")
+    base_pose = pose_from_dict(base or None, "robot.base")
+    b = ModelBuilder(str(d.get("name", "robot")), _vec(d, "gravity", 3, "robot", default=[0, 0, -9.81]))
+    control = []
+    # the base: a massless free joint when it moves, else the world frame at base_pose
+    ends = {}                     # body name -> (joint whose output frame is the body's end)
+    if motion == "fixed":
+        ends["base"] = (-1, base_pose)
+    else:
+        jb = b.add_joint("base", FREE, -1, base_pose)
+        control.append("")
+        ends["base"] = (jb, np.eye(4))
+    bodies = d.get("bodies")
+    if not isinstance(bodies, list) or not bodies:
+        raise ModelError("robot.bodies: expected a non-empty list of bodies (links and members)")
+    members, links, frames = [], [], {}
+    actuators, act_paths = [], []
+    if motion != "fixed":
+        frames["base"] = PointRef(ends["base"][0])
+    for k, bd in enumerate(bodies):
+        where = f"bodies[{k}]"
+        _check_keys(bd, _BODY_KEYS, where)
+        name = bd.get("name")
+        if not isinstance(name, str) or not name:
+            raise ModelError(f"{where}.name: expected a non-empty string, got {name!r}")
+        where = f"bodies[{k}] ({name})"
+        if name in ends or name == "world":
+            raise ModelError(f"{where}.name: {name!r} is already used")
+        btype = bd.get("type")
+        if btype not in ("link", "member"):
+            raise ModelError(f"{where}.type: expected 'link' or 'member', got {btype!r}")
+        parent = bd.get("parent", "base")
+        if parent not in ends:
+            raise ModelError(f"{where}.parent: {parent!r} is not 'base' or an earlier body; earlier bodies: "
+                             f"{[n for n in ends if n != 'base']}")
+        pj, pre = ends[parent]
+        jname, kind, placement, axis, limits, stiff, damp, ref, ctrl = _joint(
+            bd, bd.get("joint"), where + ".joint", f"{name}_joint", btype == "member")
+        if jname in [j.name for j in b.joints]:
+            raise ModelError(f"{where}.joint.name: {jname!r} is already used")
+        placement = pre @ placement
+        if btype == "link":
+            for key in ("segments", "actuators"):
+                if key in bd:
+                    raise ModelError(f"{where}.{key}: only members have {key}")
+            mass = _num(bd, "mass", where, nonneg=True, default=0.0)
+            com = _vec(bd, "com", 3, where, default=[0, 0, 0])
+            Ic = _inertia3(bd.get("inertia"), where + ".inertia")
+            if kind in (REVOLUTE, PRISMATIC, SPHERICAL) and mass == 0.0 and not np.any(Ic):
+                pass      # a massless moving link is allowed if something massive follows it
+            ji = b.add_joint(jname, kind, pj, placement, axis, spatial_inertia(mass, com, Ic), None,
+                             stiff, damp, ref, limits)
+            control.append(ctrl)
+            links.append(Link(name, ji, _visual(bd.get("visual"), where + ".visual")))
+            ends[name] = (ji, np.eye(4))
+            frames[name] = PointRef(ji)
+        else:
+            for key in ("mass", "com", "inertia", "visual"):
+                if key in bd:
+                    raise ModelError(f"{where}.{key}: a member's inertia comes from its segments; "
+                                     f"{key} is for links")
+            if kind != FIXED:
+                ji = b.add_joint(jname, kind, pj, placement, axis, None, None, stiff, damp, ref, limits)
+                control.append(ctrl)
+                pj, placement = ji, np.eye(4)
+            sub = {"name": name, "segments": bd.get("segments"), "actuators": bd.get("actuators", []),
+                   "gravity": [0.0, 0.0, 0.0]}
+            try:
+                robot = model_from_dict(sub)
+            except ModelError as e:
+                raise ModelError(f"{where}.{e}") from None
+            for a in robot.actuators:
+                if a.tendon_model == "point_moment":
+                    raise ModelError(f"{where}.actuators ({a.name}): the point_moment tendon model is "
+                                     f"supported in the classic single-chain schema only")
+                if a.name in [x.name for x in actuators]:
+                    raise ModelError(f"{where}.actuators: name {a.name!r} is already used")
+            secs = _soft_sections(robot, kmap, npt)
+            js = b.add_soft_chain(name, secs, pj, placement, [s.offset_after for s in robot.sections[:-1]])
+            control += [""] * len(js)
+            pi = b.add_path(name, js)
+            actuators += list(robot.actuators)
+            act_paths += [pi] * len(robot.actuators)
+            geo = _member_geometry(bd["segments"], robot)
+            members.append(Member(name, pi, tuple(js), tuple(geo)))
+            ends[name] = (js[-1], robot.sections[-1].offset_after)
+            frames[f"{name}_tip"] = PointRef(js[-1], secs[-1].length)
+    b.actuators, b.actuator_paths = tuple(actuators), tuple(act_paths)
+    if len({a.name for a in actuators}) != len(actuators):
+        raise ModelError("robot: actuator names must be unique across members")
+    # named frames: a frame with a placement on a link or a member's end is a massless fixed joint
+    fr = d.get("frames") or []
+    if not isinstance(fr, list):
+        raise ModelError("robot.frames: expected a list")
+    for k, fd in enumerate(fr):
+        where = f"frames[{k}]"
+        _check_keys(fd, _FRAME_KEYS, where)
+        fname = fd.get("name")
+        if not isinstance(fname, str) or not fname:
+            raise ModelError(f"{where}.name: expected a non-empty string, got {fname!r}")
+        if fname in frames or fname == "world":
+            raise ModelError(f"{where}.name: {fname!r} is already used")
+        body = fd.get("body")
+        pl = _pose(fd, where)
+        mem = next((m for m in members if m.name == body), None)
+        lnk = next((lk for lk in links if lk.name == body), None)
+        if mem is None and lnk is None:
+            raise ModelError(f"{where}.body: {body!r} is not a body of this robot")
+        if mem is not None:
+            path = b.paths[mem.path]
+            s = _num(fd, "s", where, nonneg=True, default=path.length)
+            if s > path.length + 1e-12:
+                raise ModelError(f"{where}.s: {s} m is beyond the member's length {path.length} m")
+            j, x = path.locate(min(s, path.length))
+            j, x = int(j), float(x)
+            if np.abs(pl - np.eye(4)).max() == 0:
+                frames[fname] = PointRef(j, x)
+                continue
+            if abs(x - b.joints[j].section.length) > 1e-12:
+                raise ModelError(f"{where}: a frame with a placement on a member must be at its end or a "
+                                 f"section end (s = {path.s_starts[1:].tolist() + [path.length]})")
+            parent_joint = j
+        else:
+            if "s" in fd:
+                raise ModelError(f"{where}.s: only frames on members take an arc length")
+            parent_joint = lnk.joint
+        ji = b.add_joint(fname, FIXED, parent_joint, pl)
+        control.append("")
+        frames[fname] = PointRef(ji)
+    tree = b.build()
+    constraints = _with_targets(tree, _constraints(d.get("constraints") or [], frames, motion))
+    mech = Mechanism(tree.name, tree, tuple(control), tuple(constraints), tuple(members), tuple(links),
+                     frames, motion)
+    return mech
+
+
+def _constraints(cl, frames, motion):
+    if not isinstance(cl, list):
+        raise ModelError("robot.constraints: expected a list")
+    out = []
+    names = set()
+    for k, cd in enumerate(cl):
+        where = f"constraints[{k}]"
+        _check_keys(cd, _CONSTRAINT_KEYS, where)
+        name = str(cd.get("name", f"constraint{k}"))
+        if name in names:
+            raise ModelError(f"{where}.name: {name!r} is already used")
+        names.add(name)
+        kind = cd.get("type")
+        if kind not in CONSTRAINT_TYPES:
+            raise ModelError(f"{where}.type: expected one of {list(CONSTRAINT_TYPES)}, got {kind!r}")
+        fa = cd.get("frame")
+        if fa not in frames:
+            raise ModelError(f"{where}.frame: {fa!r} is not a frame of this robot; frames: {sorted(frames)}")
+        to = cd.get("to", "world")
+        if to != "world" and to not in frames:
+            raise ModelError(f"{where}.to: {to!r} is not 'world' or a frame; frames: {sorted(frames)}")
+        if to == fa:
+            raise ModelError(f"{where}.to: a frame cannot be constrained to itself")
+        direction = np.array([0.0, 0.0, 1.0])
+        if kind in ("line", "plane"):
+            key = "direction" if kind == "line" else "normal"
+            if to != "world":
+                raise ModelError(f"{where}.to: {kind} constraints are to the world only")
+            direction = _vec(cd, key, 3, where)
+            nrm = np.linalg.norm(direction)
+            if not nrm > 0:
+                raise ModelError(f"{where}.{key}: expected a non-zero 3-vector")
+            direction = direction / nrm
+        target = None
+        if "target" in cd:
+            if to != "world":
+                raise ModelError(f"{where}.target: only constraints to the world take a target pose")
+            target = pose_from_dict(cd["target"], where + ".target")
+        out.append(Constraint(name, kind, frames[fa], PointRef(-1) if to == "world" else frames[to],
+                              target, direction))
+    return out
+
+
+def _with_targets(tree, constraints):
+    """Constraints to the world without a target pose hold their frame where
+    it is in the reference configuration q0."""
+    from dataclasses import replace
+    from . import algorithms as alg
+    from .workspace import Workspace
+    ws = None
+    out = []
+    for c in constraints:
+        if c.b.joint < 0 and c.target is None:
+            ws = Workspace(tree) if ws is None else ws
+            g = np.eye(4) if c.a.joint < 0 else alg.point_poses(tree, ws, tree.q0, [c.a.joint], [c.a.x])[0]
+            c = replace(c, target=g.copy())
+        out.append(c)
+    return out
+
+
+def from_robot_model(robot, d=None):
+    """The mechanism of a classic robot description: the soft chain
+    (:func:`multibody.from_robot_model`), one member "backbone", no rigid
+    joints, no constraints. ``d``: its mapping, for the stress geometry."""
+    tree = robot.tree
+    geo = [None] * len(robot.sections)
+    if d is not None:
+        geo = _member_geometry(d.get("segments", []), robot)
+    p = tree.paths[0]
+    member = Member("backbone", 0, p.joints, tuple(geo))
+    frames = {"tip": PointRef(p.joints[-1], tree.joints[p.joints[-1]].section.length)}
+    return Mechanism(tree.name, tree, ("",) * tree.n_joints, (), (member,), (), frames, "fixed")

@@ -1,0 +1,209 @@
+"""What a state of a mechanism gives the user: joint states and efforts, the
+wrench through every joint, constraint reactions, and along every soft
+member the internal wrench, strains and peak stresses.
+
+Everything comes from one forward pass and one RNEA pass of the engine at the
+state (q, v, a) with the applied loads and the constraint reactions
+(:mod:`constrained`), so it holds in statics and in dynamics (inertia
+included). Frames and signs (docs/CONVENTIONS.md):
+
+* ``joint_wrenches[i]``: the wrench [f; m] (N, N m) the parent side exerts
+  on joint i's subtree through the joint, world axes, moment about the
+  joint's input-frame origin (for the root: the support's reaction).
+* member ``internal_wrench`` at a cross-section: the wrench the distal part
+  exerts on the proximal part (stress resultant), in the cross-section's
+  axes [N, N m]: [axial, shear_y, shear_z, torsion, bending_y, bending_z];
+  it includes the tendons' pull on the cut (a tendon of tension T crossing
+  the cut at offset d with unit tangent t adds -T [t; d x t]).
+* peak stresses from the cross-section geometry (:func:`peak_stresses`).
+"""
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from .kernels import passes
+
+
+def peak_stresses(geometry, wrench):
+    """Peak normal and shear stress [Pa] of a cross-section under the
+    internal wrench [N, V2, V3, T, M2, M3] (..., 6), linear elastic beam
+    theory:
+
+    * normal: ``sigma = N/A + M2 z/I2 - M3 y/I3`` over the section; its peak
+      magnitude is ``|N|/A + sqrt((M2/I2)^2 + (M3/I3)^2) c`` for circles and
+      tubes (c = outer radius, I2 = I3) and ``|N|/A + |M2| cz/I2 + |M3| cy/I3``
+      for rectangles (corners);
+    * shear: torsion ``|T| c/J`` (circles, tubes; rectangles: ``|T| t/J``
+      with t the smaller side, thin-wall estimate) plus the peak transverse
+      shear ``k |V|/A`` (k = 4/3 solid circle, 2 thin tube, 3/2 rectangle),
+      added as an upper bound.
+
+    Returns (normal, shear) arrays of the leading shape; NaN when the
+    section has no geometry (a ``sectional`` block)."""
+    w = np.asarray(wrench, dtype=float)
+    if geometry is None:
+        nan = np.full(w.shape[:-1], np.nan)
+        return nan, nan.copy()
+    g = geometry
+    N, V2, V3, T, M2, M3 = np.moveaxis(w, -1, 0)
+    V = np.hypot(V2, V3)
+    if g.shape in ("solid_circle", "hollow_tube"):
+        normal = np.abs(N) / g.A + np.hypot(M2 / g.I2, M3 / g.I3) * g.cy
+        k = 4.0 / 3.0 if g.shape == "solid_circle" else 2.0
+        shear = np.abs(T) * g.cy / g.J + k * V / g.A
+    else:
+        normal = np.abs(N) / g.A + np.abs(M2) * g.cz / g.I2 + np.abs(M3) * g.cy / g.I3
+        shear = np.abs(T) * 2 * min(g.cy, g.cz) / g.J + 1.5 * V / g.A
+    return normal, shear
+
+
+@dataclass
+class MemberOutput:
+    """Along one soft member, at its section boundaries (n_sections + 1
+    points, base to tip): arc length s [m], cross-section poses (world),
+    internal wrench (body axes, see the module), strains of the section at
+    or after each point (the last: the last section's), peak normal and shear
+    stress [Pa]."""
+    name: str
+    s: np.ndarray
+    poses: np.ndarray
+    internal_wrench: np.ndarray
+    strains: np.ndarray
+    normal_stress: np.ndarray
+    shear_stress: np.ndarray
+
+
+def _to_world(g, w):
+    R = g[:3, :3]
+    return np.concatenate([R @ w[:3], R @ w[3:]])
+
+
+def _tendon_pull(mech, member, s, strains, u):
+    """Tendon contributions -T [t; d x t] (body axes) at arc lengths s of the member."""
+    out = np.zeros((len(s), 6))
+    if u is None or not len(u):
+        return out
+    for k, a in enumerate(mech.actuators):
+        if u[k] == 0.0 or mech.tree.path_of_actuator(k) is not mech.tree.paths[member.path]:
+            continue
+        inside = (s >= a.start) & (s < a.end)
+        if not np.any(inside):
+            continue
+        d, dd = a.offset_at(s)
+        t = strains[:, :3] + np.cross(strains[:, 3:], d) + dd
+        t = t / np.linalg.norm(t, axis=-1, keepdims=True)
+        w = -a.force_per_unit_input * u[k] * np.concatenate([t, np.cross(d, t)], axis=-1)
+        out[inside] += w[inside]
+    return out
+
+
+def _end_loads(ws, loads, j, L):
+    """Sum (body axes at the section's end) of the loads at the end x = L of soft joint j."""
+    g = ws.work.g_out[j]
+    R = g[:3, :3]
+    out = np.zeros(6)
+    if loads is None:
+        return out
+    for k in range(loads.joint.shape[0]):
+        if loads.joint[k] == j and loads.x[k] >= L - 1e-12:
+            wk = loads.wrench[k]
+            out += np.concatenate([R.T @ wk[:3], R.T @ wk[3:]]) if loads.world[k] else wk
+    return out
+
+
+def member_outputs(mech, ws, u=None, loads=None):
+    """MemberOutput of every soft member from the workspace's last forward
+    and RNEA passes; ``u``: the actuation (for the tendons' pull), ``loads``:
+    the LoadArrays of the passes (a load at a member's very end counts as
+    distal to its last cut, as at any other cut)."""
+    w = ws.work
+    out = []
+    for mem in mech.members:
+        path = mech.tree.paths[mem.path]
+        js = list(path.joints)
+        s = np.concatenate([path.s_starts, [path.length]])
+        poses = np.concatenate([w.g_in[js], w.g_out[js[-1:]]])
+        # the cut at a section's start: -f_in (the parent side acts on the distal part with f_in)
+        wr = np.concatenate([-w.f_in[js], -w.f[js[-1:]]])
+        wr[-1] += _end_loads(ws, loads, js[-1], path.lengths[-1])
+        strains = np.concatenate([w.strain[js], w.strain[js[-1:]]])
+        wr = wr + _tendon_pull(mech, mem, s, strains, u)
+        geo = list(mem.geometry) + [mem.geometry[-1]]
+        normal = np.empty(len(s))
+        shear = np.empty(len(s))
+        for k in range(len(s)):
+            normal[k], shear[k] = peak_stresses(geo[k], wr[k])
+        out.append(MemberOutput(mem.name, s, poses.copy(), wr, strains.copy(), normal, shear))
+    return out
+
+
+def joint_wrenches(mech, ws):
+    """(n_joints, 6) wrench through every joint, world axes, about its input
+    frame origin (see the module), from the last RNEA pass."""
+    w = ws.work
+    return np.array([_to_world(w.g_in[i], w.f_in[i]) for i in range(mech.tree.n_joints)])
+
+
+def run_passes(mech, ws, q, v, a, loads, gravity):
+    """Forward and RNEA passes at (q, v, a) with ``loads`` (LoadArrays incl.
+    constraint reactions); v = a = None: at rest."""
+    tree = mech.tree
+    z = np.zeros(tree.nv)
+    at_rest = v is None
+    v = z if v is None else np.ascontiguousarray(v, float)
+    a = z if a is None else np.ascontiguousarray(a, float)
+    passes.forward_pass(ws.m, ws.w, np.ascontiguousarray(q, float), v, a, 0 if at_rest else 2)
+    passes.rnea_pass(ws.m, ws.w, loads, gravity, np.empty(tree.nv), at_rest)
+
+
+@dataclass
+class MechanismOutputs:
+    """Every output of one state of a mechanism (see the module for frames
+    and signs): joint ``positions``, ``velocities``, ``accelerations`` and
+    ``efforts`` by name (1-dof rigid joints; rad, rad/s, rad/s^2, N m, or m,
+    m/s, m/s^2, N), ``joint_wrenches`` {joint: world [f; m] (6,)} for every
+    joint (soft sections included), ``constraint_wrenches`` {constraint:
+    world [f; m] on its frame a}, ``frames`` {name: world pose 4x4},
+    ``members`` (MemberOutput list)."""
+    positions: dict
+    velocities: dict
+    accelerations: dict
+    efforts: dict
+    joint_wrenches: dict
+    constraint_wrenches: dict
+    frames: dict
+    members: list
+
+
+def state_outputs(mech, q, lam, inputs, v=None, a=None, ws=None):
+    """MechanismOutputs at (q, v, a) with multipliers lam under ``inputs``
+    (:class:`constrained.Inputs`); v = a = None: statics."""
+    from .constrained import _concat_loads, _efforts_out, constraint_loads, constraint_wrenches
+    from .kernels.frames import point_poses
+    from .workspace import Workspace
+    tree = mech.tree
+    ws = Workspace(tree) if ws is None else ws
+    loads = _concat_loads(inputs.loads, constraint_loads(mech, lam))
+    run_passes(mech, ws, q, v, a, loads, inputs.gravity)
+    names = [tree.joints[i].name for i in mech.rigid_joints]
+    iq = [tree.idx_q[i] for i in mech.rigid_joints]
+    iv = [tree.idx_v[i] for i in mech.rigid_joints]
+    z = np.zeros(tree.nv)
+    v_ = z if v is None else v
+    a_ = z if a is None else a
+    fnames = list(mech.frames)
+    refs = [mech.frames[n] for n in fnames]
+    P = np.empty((len(refs), 4, 4))
+    if refs:
+        point_poses(ws.m, ws.w, np.array([r.joint for r in refs], np.int64), np.array([r.x for r in refs]), P)
+    jw = joint_wrenches(mech, ws)
+    return MechanismOutputs(
+        positions={n: float(q[k]) for n, k in zip(names, iq)},
+        velocities={n: float(v_[k]) for n, k in zip(names, iv)},
+        accelerations={n: float(a_[k]) for n, k in zip(names, iv)},
+        efforts=_efforts_out(mech, lam, inputs),
+        joint_wrenches={j.name: jw[i] for i, j in enumerate(tree.joints)},
+        constraint_wrenches=constraint_wrenches(mech, lam),
+        frames=dict(zip(fnames, P)),
+        members=member_outputs(mech, ws, inputs.u, loads))
