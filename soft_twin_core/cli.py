@@ -96,16 +96,31 @@ def csv_columns(out):
     n = len(out["time"])
     header, columns = [], []
     row_of = {t: i for i, t in enumerate(out["time"])}
-    for field in HISTORY_FIELDS + BACKBONE_FIELDS:
+    fields = HISTORY_FIELDS + BACKBONE_FIELDS
+    named = {}                            # field -> names along its last axis
+    if "history_fields" in out:           # an articulated robot's run: its own fields, named columns
+        fields = tuple(out["history_fields"])
+        named.update(joint_positions=out["joint_names"], joint_velocities=out["joint_names"],
+                      joint_accelerations=out["joint_names"], joint_efforts=out["joint_names"],
+                      peak_normal_stress=out["member_names"], peak_shear_stress=out["member_names"])
+    for field in fields:
         if field not in out or field == "backbone_time":    # backbone_time: the rows' own time
             continue
         a = np.asarray(out[field], dtype=float)
+        if a.ndim > 1 and a.size == 0 and n:       # nothing per row (a robot without constraints)
+            continue
         if field in BACKBONE_FIELDS:
             rows = [row_of[t] for t in out["backbone_time"]]   # a sample time is a recorded time
         else:
             rows = list(range(n))
-        shape = a.shape[1:] if a.size else _EMPTY_SHAPES.get(field, lambda m: ())(out["n_sections"])
+        shape = a.shape[1:] if a.size else _EMPTY_SHAPES.get(field, lambda m: ())(out.get("n_sections", 0))
         labels = _labels(field, shape)
+        if field in named and shape == (len(named[field]),):
+            labels = [f"{field}_{nm}" for nm in named[field]]
+        elif field in ("frame_positions", "constraint_wrenches") and len(shape) == 2:
+            names = out["frame_names" if field == "frame_positions" else "constraint_names"]
+            last = _VEC3 if field == "frame_positions" else _WRENCH
+            labels = [f"{field}_{nm}_{lab}" for nm in names for lab in last]
         flat = a.reshape(len(rows), -1) if len(rows) else np.zeros((0, len(labels)))
         col = [[""] * n for _ in labels]
         for r, values in zip(rows, flat):

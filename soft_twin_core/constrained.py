@@ -568,6 +568,12 @@ class MechanismSimulator:
             phi1, G1 = constraint_rows(self.mech, self.ws, q1, targets, inp.q_cmd)
             if not (np.all(np.isfinite(R)) and np.all(np.isfinite(phi1))):
                 raise StepError(f"step at t = {self.t:.6g} s: non-finite residual")
+            nR = np.abs(R).max(initial=0)
+            phi_ok = np.abs(phi1).max(initial=0) <= self.constraint_tol * max(self.Ls, 1.0)
+            if it == 1:
+                Rs = max(nR, np.abs(Gt.T @ lam).max(initial=0), 1e-300)
+            elif phi_ok and nR <= self.tol * Rs:
+                break              # balanced: forces to tol of their scale, constraints held
             A = (Mq + th * h * self.D + (th * h) ** 2 * Kt) / h
             if it == 1:
                 rows = independent_rows(G1)
@@ -581,7 +587,6 @@ class MechanismSimulator:
             if it == 1:
                 first = ndv
             vs = max(np.abs(v1).max(initial=0), np.abs(v0).max(initial=0), first, 1e-300)
-            phi_ok = np.abs(phi1).max(initial=0) <= self.constraint_tol * max(self.Ls, 1.0)
             if phi_ok and (ndv <= self.tol * vs or (it > 2 and ndv <= 1e-6 * vs and ndv >= 0.5 * prev)):
                 break              # converged, or stalled at round-off
             prev = ndv
@@ -593,6 +598,26 @@ class MechanismSimulator:
         self.q, self.v, self.a, self.lam = q1.copy(), v1, (v1 - v0) / h, lam
         self.t += h
         self.iterations = it
+
+    def start_multipliers(self, inputs=None, targets=None):
+        """Accelerations and multipliers of the current state when the
+        constraint rows' accelerations vanish (``G a = -dG/dt v``, evaluated
+        at rest: the t = 0 state of a run that starts at rest): the efforts
+        and reactions a run reports before its first step."""
+        inp = self.inputs if inputs is None else inputs
+        tree, m, w = self.tree, self.ws.m, self.ws.w
+        lam0 = np.zeros_like(self.lam)
+        coef = np.ascontiguousarray(self.act.unit @ inp.u) if inp.u.size else np.zeros(len(self.act.joint))
+        bias = np.empty(tree.nv)
+        residual_pass(m, w, self.act, _concat_loads(inp.loads, constraint_loads(self.mech, lam0)), inp.gravity,
+                      coef, inp.effort, np.ascontiguousarray(self.q), self.v, np.zeros(tree.nv), bias, False)
+        M = np.zeros((tree.nv, tree.nv))
+        passes.forward_pass(m, w, np.ascontiguousarray(self.q), self.ws.zeros_v, self.ws.zeros_v, 0)
+        passes.crba_pass(m, w, M)
+        phi, G = constraint_rows(self.mech, self.ws, self.q, targets, inp.q_cmd)
+        a, lam = solve_kkt(M, G, G, bias, np.zeros(len(phi)))
+        self.a, self.lam, self.inputs = a, lam, inp
+        return self
 
     # --- outputs ---------------------------------------------------------------
     def joint_efforts(self):

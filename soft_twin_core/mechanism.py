@@ -489,6 +489,11 @@ def mechanism_from_dict(d):
         frames[fname] = PointRef(ji)
     tree = b.build()
     constraints = _with_targets(tree, _constraints(d.get("constraints") or [], frames, motion))
+    if motion == "prescribed":
+        # the base follows a trajectory: a clamp of its frame to a moving world target
+        if any(c.name == "base" for c in constraints):
+            raise ModelError("robot.constraints: the name 'base' is taken by the prescribed base motion")
+        constraints.insert(0, Constraint("base", "clamped", frames["base"], PointRef(-1), base_pose.copy()))
     mech = Mechanism(tree.name, tree, tuple(control), tuple(constraints), tuple(members), tuple(links),
                      frames, motion)
     return mech

@@ -159,9 +159,36 @@ def load_scenario(path, sections=None, angle_deg=None):
     return scenario_from_dict(d, os.path.dirname(os.path.abspath(path)), sections, angle_deg, str(path))
 
 
+def _is_tree_robot(robot, base_dir):
+    """True if the scenario's robot is a tree robot file (a ``bodies`` list)."""
+    from .mechanism import is_tree_file
+    from .model import robot_mapping
+    if isinstance(robot, dict):
+        return is_tree_file(robot)
+    if not isinstance(robot, str):
+        return False
+    p = robot if os.path.isabs(robot) else os.path.join(base_dir, robot)
+    if not os.path.isfile(p) and os.path.basename(robot) == robot:
+        try:
+            p = find_file(robot, "robots")
+        except ModelError:
+            return False
+    try:
+        return is_tree_file(robot_mapping(read_yaml_file(p), p))
+    except ModelError:
+        return False
+
+
 def scenario_from_dict(d, base_dir=".", sections=None, angle_deg=None, source="<dict>"):
+    """A Scenario (or, for a tree robot file, a
+    :class:`mechanism_scenario.MechanismScenario`) from a parsed mapping."""
     if not isinstance(d, dict):
         raise ScenarioError("scenario: expected a mapping at top level")
+    if "robot" in d and _is_tree_robot(d["robot"], base_dir):
+        from .mechanism_scenario import mechanism_scenario_from_dict
+        if sections is not None:
+            raise ScenarioError("sections: articulated robots take their section counts from the robot file")
+        return mechanism_scenario_from_dict(d, base_dir, source)
     allowed = {"robot", "sections", "actuation", "actuation_profile", "gravity", "loads", "load_steps",
                "initial_strains", "description"}
     unknown = set(d) - allowed
@@ -238,6 +265,9 @@ def run_statics(sc, points_per_section=10):
     increments, each warm-started). Returns a JSON-ready dict, including the
     internal wrenches [N, N m] (body frame, the distal part acting on the
     proximal part) at the backbone sample points ``backbone_s`` [m]."""
+    from .mechanism_scenario import MechanismScenario, run_mechanism_statics
+    if isinstance(sc, MechanismScenario):
+        return run_mechanism_statics(sc)
     from .statics import solve_statics
     q, iters, res = None, 0, None
     for k in range(1, sc.load_steps + 1):
@@ -331,6 +361,9 @@ def run_dynamics(sc, duration, dt, backbone_every=0, theta=0.5, progress=None,
     then about once per wall-clock second; ``elapsed_s`` counts from the
     end of the warm-up."""
     import time as _time
+    from .mechanism_scenario import MechanismScenario, run_mechanism_dynamics
+    if isinstance(sc, MechanismScenario):
+        return run_mechanism_dynamics(sc, duration, dt, theta, progress, record_every, backbone_every)
     from .dynamics import Simulator, base_reaction_dynamic, internal_wrenches_dynamic
     from .model import State
     m = sc.model

@@ -431,3 +431,76 @@ def test_joint_commands_are_checked():
         make_inputs(mech, positions={"pan": float("nan")})
     with pytest.raises(ValueError, match="not effort-controlled"):
         make_inputs(mech, efforts={"pan": 1.0})
+
+
+# ----------------------------------------------------------------------------
+# Moving bases; example robots
+# ----------------------------------------------------------------------------
+
+def _arm_on(motion):
+    return mechanism_from_dict({"name": "b", "gravity": [0, 0, -9.81], "base": {"motion": motion},
+                                "bodies": [_member("arm", 0.3, 3, modes="bending_torsion")]})
+
+
+def test_floating_base_falls_freely_without_deforming():
+    mech = _arm_on("floating")
+    sim = MechanismSimulator(mech, 5e-3)
+    sim.step(n=100)
+    t = sim.t
+    p = state_outputs(mech, sim.q, sim.lam, sim.inputs, sim.v, sim.a).frames["base"][:3, 3]
+    # uniform gravity: every point falls alike (the midpoint rule is exact for constant acceleration)
+    assert abs(p[2] + 0.5 * 9.81 * t * t) < 1e-9 and abs(p[0]) < 1e-12
+    soft = [mech.tree.idx_q[i] for i in mech.tree.soft_joints]
+    assert np.abs(sim.q[soft[0]:] - mech.tree.q0[soft[0]:]).max() < 1e-9
+    with pytest.raises(ValueError, match="statics needs joints"):
+        solve_equilibrium(mech)
+
+
+def test_prescribed_base_follows_its_trajectory_and_reports_its_reaction():
+    mech = _arm_on("prescribed")
+    assert [c.name for c in mech.constraints] == ["base"]
+    sim = MechanismSimulator(mech, 2e-3)
+    for k in range(1, 201):
+        t = k * sim.dt
+        target = np.eye(4)
+        target[0, 3] = 0.05 * np.sin(2 * np.pi * t)
+        sim.step(targets=[target])
+        assert sim.constraint_error([target]) < 1e-10
+    # held still at a static equilibrium, the base constraint's wrench is the fixed base's reaction
+    fixed = _arm_on("fixed")
+    eq = solve_equilibrium(fixed)
+    reaction = state_outputs(fixed, eq.q, eq.lam, eq.inputs).joint_wrenches["arm_0"]
+    held = MechanismSimulator(mech, 2e-3, q=np.r_[0, 0, 0, 0, 0, 0, 1, eq.q])
+    held.step(n=5)
+    assert np.abs(held.v).max() < 1e-9
+    w = held.constraint_wrenches()["base"]
+    assert np.abs(w - reaction).max() < 1e-9 * np.abs(reaction).max()
+    assert reaction[2] == pytest.approx(1000.0 * AREA * 0.3 * 9.81, rel=1e-12)
+
+
+def test_gripper_closes_symmetrically_and_turns_with_its_wrist():
+    mech = load_mechanism(find_file("soft_gripper", "robots"))
+    eq = solve_equilibrium(mech, actuation={f"close_{k}": 2.0 for k in range(3)}, positions={"wrist": 0.5})
+    out = state_outputs(mech, eq.q, eq.lam, eq.inputs)
+    tips = np.array([out.frames[f"finger_{k}_tip"][:3, 3] for k in range(3)])
+    r = np.hypot(tips[:, 0], tips[:, 1])
+    assert np.ptp(r) < 1e-9 and r[0] < 0.03 - 5e-3          # all three close by the same amount
+    ang = np.arctan2(tips[:, 1], tips[:, 0])
+    assert abs(np.angle(np.exp(1j * (ang[0] - 0.5)))) < 1e-6    # finger 0 turned with the wrist
+    assert np.ptp(tips[:, 2]) < 1e-9
+    # the fingers' tendons are internal: the wrist's torque is zero (no gravity moment about z)
+    assert abs(eq.joint_efforts["wrist"]) < 1e-9
+
+
+def test_parallel_robot_example_balances_its_loads():
+    mech = load_mechanism(find_file("planar_parallel_robot", "robots"))
+    load = np.array([2.0, 0.0, -3.0, 0.0, 0.0, 0.0])
+    eq = solve_equilibrium(mech, point_loads=[FrameLoad("platform", load)])
+    out = state_outputs(mech, eq.q, eq.lam, eq.inputs)
+    weight = sum(out.members[k].s[-1] for k in range(2)) * 6450.0 * np.pi * 0.002**2 + 0.05
+    f, m = _balance([(np.array([-0.05, 0, 0]), out.joint_wrenches["rod1_0"]),
+                     (np.array([0.05, 0, 0]), out.joint_wrenches["rod2_0"]),
+                     (out.frames["platform"][:3, 3], load)])
+    # the weight of rods and platform is the rest
+    assert abs(f[0]) < 1e-9 and abs(f[2] - weight * 9.81) < 1e-6
+    assert out.frames["platform"][0, 3] > 5e-3

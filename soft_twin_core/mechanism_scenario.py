@@ -1,0 +1,329 @@
+"""Scenario files for soft articulated robots (tree robot files): statics and
+dynamics runs with joint commands, frame loads and a prescribed base, for
+``soft-twin-sim`` (:mod:`scenario` hands a scenario over here when its robot
+file has ``bodies``).
+
+Schema (YAML; SI units, angles in rad)::
+
+    robot: ../robots/pan_tilt_arm.yaml
+    actuation: {tendon_z_pos: 2.0}               # N (tendons), Pa (chambers)
+    actuation_profile: {tendon_z_pos: [[0, 0], [1, 4]]}     # piecewise linear [t, value]
+    joint_positions: {pan: 0.5}                  # position-controlled joints (default: reference)
+    joint_trajectories: {tilt: [[0, 0], [1, 0.6]]}   # [t, position]: a C2 cubic spline through the
+                                                 # points, at rest at both ends
+    joint_efforts: {wrist: 0.1}                  # effort-controlled joints [N m or N]
+    joint_effort_profile: {wrist: [[0, 0], [1, 0.2]]}
+    base_trajectory: [[t, x, y, z, roll, pitch, yaw], ...]   # base motion "prescribed": the base
+                                                 # pose (cubic spline per coordinate, at rest at both ends)
+    gravity: true
+    loads:
+      - {frame: tool, force: [0, 0, -1], moment: [0, 0, 0], axes: world, profile: [[0, 0], [1, 1]]}
+
+Outputs (JSON; the CSV has the same time histories): see
+:func:`run_mechanism_statics` and :func:`run_mechanism_dynamics`.
+"""
+
+import os
+from dataclasses import dataclass
+
+import numpy as np
+
+from .constrained import FrameLoad, MechanismSimulator, StepError, make_inputs, solve_equilibrium
+from .mechanism import load_mechanism, mechanism_from_dict
+from .model import ModelError, parse_number, parse_numbers
+
+
+def _error():
+    from .scenario import ScenarioError
+    return ScenarioError
+
+
+@dataclass
+class MechanismScenario:
+    """A checked scenario of a mechanism (see the module)."""
+    mech: object
+    actuation: np.ndarray
+    actuation_profile: dict        # actuator index -> (t, values)
+    positions: dict                # joint -> value
+    trajectories: dict             # joint -> CubicSpline
+    efforts: dict
+    effort_profile: dict           # joint -> (t, values)
+    base_trajectory: object        # CubicSpline of [x, y, z, roll, pitch, yaw] or None
+    loads: list                    # (FrameLoad, profile or None)
+    gravity: bool
+    source: str
+
+    def inputs_at(self, t, sim=None):
+        """(actuation, efforts, positions, point loads) at time t [s]."""
+        u = self.actuation.copy()
+        for i, (ts, vs) in self.actuation_profile.items():
+            u[i] = float(np.interp(t, ts, vs))
+        eff = dict(self.efforts)
+        for j, (ts, vs) in self.effort_profile.items():
+            eff[j] = float(np.interp(t, ts, vs))
+        pos = dict(self.positions)
+        for j, sp in self.trajectories.items():
+            pos[j] = float(sp(t))
+        pls = []
+        for fl, prof in self.loads:
+            k = 1.0 if prof is None else float(np.interp(t, prof[0], prof[1]))
+            pls.append(FrameLoad(fl.frame, k * np.asarray(fl.wrench), fl.axes))
+        return u, eff, pos, pls
+
+    def base_pose_at(self, t):
+        if self.base_trajectory is None:
+            return None
+        from .model import pose_from_dict
+        x = self.base_trajectory(t)
+        return pose_from_dict({"position": x[:3].tolist(), "rpy": x[3:].tolist()}, "base_trajectory")
+
+
+def _spline(a, where):
+    from scipy.interpolate import CubicSpline
+    if len(a) == 1:
+        return lambda t, v=a[0, 1:]: v.copy() if v.size > 1 else float(v[0])
+    if np.any(np.diff(a[:, 0]) <= 0):
+        raise _error()(f"{where}: times must increase strictly, got {a[:, 0].tolist()}")
+    sp = CubicSpline(a[:, 0], a[:, 1:] if a.shape[1] > 2 else a[:, 1], bc_type="clamped", extrapolate=False)
+    t0, t1 = a[0, 0], a[-1, 0]
+    return lambda t: sp(min(max(t, t0), t1))
+
+
+def _profile(v, where):
+    from .scenario import _profile as prof
+    return prof(v, where)
+
+
+def mechanism_scenario_from_dict(d, base_dir, source):
+    """A MechanismScenario from a parsed scenario mapping whose robot is a
+    tree robot file; ScenarioError naming the field."""
+    Err = _error()
+    allowed = {"robot", "actuation", "actuation_profile", "joint_positions", "joint_trajectories",
+               "joint_efforts", "joint_effort_profile", "base_trajectory", "gravity", "loads", "description"}
+    unknown = set(d) - allowed
+    if unknown:
+        raise Err(f"scenario: unknown field(s) {sorted(unknown)} for an articulated robot; allowed: "
+                  f"{sorted(allowed)}")
+    robot = d["robot"]
+    try:
+        if isinstance(robot, str):
+            p = robot if os.path.isabs(robot) else os.path.join(base_dir, robot)
+            if not os.path.isfile(p) and os.path.basename(robot) == robot:
+                from .model import find_file
+                p = find_file(robot, "robots")
+            mech = load_mechanism(p)
+        else:
+            mech = mechanism_from_dict(robot)
+    except ModelError as e:
+        raise Err(f"scenario.robot: {e}") from None
+    names = mech.actuator_names
+    u = np.zeros(len(names))
+
+    def mapping(key):
+        v = d.get(key) or {}
+        if not isinstance(v, dict):
+            raise Err(f"scenario.{key}: expected a mapping name -> value, got {v!r}")
+        return v
+
+    for k, v in mapping("actuation").items():
+        if k not in names:
+            raise Err(f"scenario.actuation: unknown actuator {k!r}; the robot has {list(names)}")
+        u[names.index(k)] = parse_number(v, f"scenario.actuation.{k}", Err)
+    aprof = {}
+    for k, v in mapping("actuation_profile").items():
+        if k not in names:
+            raise Err(f"scenario.actuation_profile: unknown actuator {k!r}; the robot has {list(names)}")
+        aprof[names.index(k)] = _profile(v, f"scenario.actuation_profile.{k}")
+    pos_names = [mech.tree.joints[i].name for i in mech.joints_with("position")]
+    eff_names = [mech.tree.joints[i].name for i in mech.joints_with("effort")]
+
+    def joints(key, allowed_names, kind):
+        out = {}
+        for k, v in mapping(key).items():
+            if k not in allowed_names:
+                raise Err(f"scenario.{key}: {k!r} is not a {kind}-controlled joint; those are {allowed_names}")
+            out[k] = v
+        return out
+
+    positions = {k: parse_number(v, f"scenario.joint_positions.{k}", Err)
+                 for k, v in joints("joint_positions", pos_names, "position").items()}
+    trajectories = {}
+    for k, v in joints("joint_trajectories", pos_names, "position").items():
+        a = parse_numbers(v, (None, 2), f"scenario.joint_trajectories.{k}", Err)
+        trajectories[k] = _spline(a, f"scenario.joint_trajectories.{k}")
+    efforts = {k: parse_number(v, f"scenario.joint_efforts.{k}", Err)
+               for k, v in joints("joint_efforts", eff_names, "effort").items()}
+    eprof = {k: _profile(v, f"scenario.joint_effort_profile.{k}")
+             for k, v in joints("joint_effort_profile", eff_names, "effort").items()}
+    base = None
+    if d.get("base_trajectory") is not None:
+        if mech.base_motion != "prescribed":
+            raise Err(f"scenario.base_trajectory: the robot's base motion is {mech.base_motion!r}; "
+                      f"give base: {{motion: prescribed}} in the robot file")
+        a = parse_numbers(d["base_trajectory"], (None, 7), "scenario.base_trajectory", Err)
+        base = _spline(a, "scenario.base_trajectory")
+    loads = []
+    raw = d.get("loads") or []
+    if not isinstance(raw, list):
+        raise Err(f"scenario.loads: expected a list, got {raw!r}")
+    for i, ld in enumerate(raw):
+        where = f"scenario.loads[{i}]"
+        if not isinstance(ld, dict):
+            raise Err(f"{where}: expected a mapping, got {ld!r}")
+        extra = set(ld) - {"frame", "force", "moment", "axes", "profile"}
+        if extra:
+            raise Err(f"{where}: unknown field(s) {sorted(extra)}; allowed: axes, force, frame, moment, profile")
+        if ld.get("frame") not in mech.frames:
+            raise Err(f"{where}.frame: {ld.get('frame')!r} is not a frame of the robot; frames: {sorted(mech.frames)}")
+        axes = ld.get("axes", "world")
+        if axes not in ("world", "body"):
+            raise Err(f"{where}.axes: expected 'world' or 'body', got {axes!r}")
+        w = np.concatenate([parse_numbers(ld.get("force", [0, 0, 0]), (3,), where + ".force", Err),
+                            parse_numbers(ld.get("moment", [0, 0, 0]), (3,), where + ".moment", Err)])
+        prof = _profile(ld["profile"], where + ".profile") if "profile" in ld else None
+        loads.append((FrameLoad(ld["frame"], w, axes), prof))
+    grav = d.get("gravity", True)
+    if not isinstance(grav, bool):
+        raise Err(f"scenario.gravity: expected true or false, got {grav!r}")
+    sc = MechanismScenario(mech, u, aprof, positions, trajectories, efforts, eprof, base, loads, grav, source)
+    try:                                   # every input checked once, at t = 0
+        _inputs(sc, 0.0)
+    except ValueError as e:
+        raise Err(f"scenario: {e}") from None
+    return sc
+
+
+def _inputs(sc, t):
+    from .loads import Loads
+    u, eff, pos, pls = sc.inputs_at(t)
+    return make_inputs(sc.mech, u, eff, pos, None, Loads(gravity=sc.gravity), pls)
+
+
+def _targets(sc, t):
+    g = sc.base_pose_at(t)
+    if g is None:
+        return None
+    return [g if c.name == "base" else None for c in sc.mech.constraints]
+
+
+def _outputs_dict(sc, out, prefix=""):
+    """JSON-ready dict of MechanismOutputs."""
+    mech = sc.mech
+    d = {
+        "joint_names": list(mech.joint_names),
+        "joint_positions": [out.positions[n] for n in mech.joint_names],
+        "joint_velocities": [out.velocities[n] for n in mech.joint_names],
+        "joint_accelerations": [out.accelerations[n] for n in mech.joint_names],
+        "joint_efforts": [out.efforts[n] for n in mech.joint_names],
+        "frame_names": list(out.frames),
+        "frame_positions": [out.frames[n][:3, 3].tolist() for n in out.frames],
+        "constraint_names": list(out.constraint_wrenches),
+        "constraint_wrenches": [w.tolist() for w in out.constraint_wrenches.values()],
+        "transmitted_names": list(out.joint_wrenches),
+        "transmitted_wrenches": [w.tolist() for w in out.joint_wrenches.values()],
+        "members": {m.name: {"s": m.s.tolist(), "positions": m.poses[:, :3, 3].tolist(),
+                             "internal_wrench": m.internal_wrench.tolist(), "strains": m.strains.tolist(),
+                             "normal_stress": _nan_none(m.normal_stress), "shear_stress": _nan_none(m.shear_stress)}
+                    for m in out.members},
+    }
+    return d
+
+
+def _nan_none(a):
+    return [None if not np.isfinite(x) else float(x) for x in a]
+
+
+def run_mechanism_statics(sc):
+    """Equilibrium of the scenario at t = 0. JSON-ready dict: joint_names and
+    joint_positions/efforts [rad or m, N m or N]; frame_names and
+    frame_positions (world, m); constraint_names and constraint_wrenches
+    (world [f; m] on the constraint's frame, N, N m); transmitted_names and
+    transmitted_wrenches (the wrench through every joint, world axes, about
+    its input origin); members: per soft member at its section boundaries
+    s [m], positions, internal_wrench (body axes), strains, normal_stress and
+    shear_stress [Pa] (null without geometry); iterations, residual."""
+    from .outputs import state_outputs
+    from .loads import Loads
+    u, eff, pos, pls = sc.inputs_at(0.0)
+    eq = solve_equilibrium(sc.mech, u, eff, pos, loads=Loads(gravity=sc.gravity), point_loads=pls,
+                           targets=_targets(sc, 0.0))
+    out = state_outputs(sc.mech, eq.q, eq.lam, eq.inputs)
+    d = _outputs_dict(sc, out)
+    d.update(iterations=eq.iterations, residual=eq.residual, constraint_error=eq.constraint_error)
+    return d
+
+
+# history fields of a dynamics run, in CSV column order
+HISTORY_FIELDS = ("time", "joint_positions", "joint_velocities", "joint_accelerations", "joint_efforts",
+                  "frame_positions", "constraint_wrenches", "constraint_error", "peak_normal_stress",
+                  "peak_shear_stress", "newton_iterations")
+
+
+def run_mechanism_dynamics(sc, duration, dt, theta=0.5, progress=None, record_every=1, backbone_every=0):
+    """Integrate the scenario (``n = ceil(duration / dt)`` steps). Returns the
+    time histories, one row per recorded step: time [s]; joint_positions,
+    velocities, accelerations, efforts (N, n_joints) in the order of
+    ``joint_names``; frame_positions (N, n_frames, 3) world [m] in the order
+    of ``frame_names``; constraint_wrenches (N, n_constraints, 6);
+    constraint_error (N,) [m or rad]; peak_normal_stress and
+    peak_shear_stress (N, n_members) [Pa], the largest over each member's
+    section boundaries; newton_iterations. With ``backbone_every = K``,
+    every K steps the full member outputs under ``members_time`` and
+    ``members`` (as in statics). ``error`` when a step fails (the history
+    ends at the last converged step)."""
+    import time as _time
+    from .outputs import state_outputs
+    from .scenario import n_steps_for, step_times
+    mech = sc.mech
+    n_steps = n_steps_for(duration, dt)
+    time_of = step_times(dt)
+    sim = MechanismSimulator(mech, float(dt), theta)
+    inp0 = _inputs(sc, 0.0)
+    # start where the commanded joints are at t = 0
+    for k, i in enumerate(mech.joints_with("position")):
+        sim.q[mech.tree.idx_q[i]] = inp0.q_cmd[k]
+    out = {key: [] for key in HISTORY_FIELDS}
+    out.update(joint_names=list(mech.joint_names), frame_names=list(mech.frames),
+               constraint_names=[c.name for c in mech.constraints], member_names=[m.name for m in mech.members],
+               history_fields=list(HISTORY_FIELDS))
+    if backbone_every:
+        out.update(members_time=[], members=[])
+
+    def record(k, inp, iterations):
+        o = state_outputs(mech, sim.q, sim.lam, inp, sim.v, sim.a, sim.ws)
+        out["time"].append(time_of(k))
+        out["joint_positions"].append([o.positions[n] for n in mech.joint_names])
+        out["joint_velocities"].append([o.velocities[n] for n in mech.joint_names])
+        out["joint_accelerations"].append([o.accelerations[n] for n in mech.joint_names])
+        out["joint_efforts"].append([o.efforts[n] for n in mech.joint_names])
+        out["frame_positions"].append([o.frames[n][:3, 3].tolist() for n in mech.frames])
+        out["constraint_wrenches"].append([w.tolist() for w in o.constraint_wrenches.values()])
+        out["constraint_error"].append(sim.constraint_error(_targets(sc, time_of(k))))
+        out["peak_normal_stress"].append([float(np.nanmax(m.normal_stress, initial=0)) for m in o.members])
+        out["peak_shear_stress"].append([float(np.nanmax(m.shear_stress, initial=0)) for m in o.members])
+        out["newton_iterations"].append(int(iterations))
+        if backbone_every and k % backbone_every == 0:
+            out["members_time"].append(time_of(k))
+            out["members"].append(_outputs_dict(sc, o)["members"])
+
+    sim.start_multipliers(inp0, _targets(sc, 0.0))
+    record(0, inp0, 0)
+    if progress is not None:
+        progress(0.0, 0.0)
+    t0 = last = _time.monotonic()
+    for k in range(1, n_steps + 1):
+        t1 = time_of(k)
+        inp = _inputs(sc, t1)
+        try:
+            sim.step(inputs=inp, targets=_targets(sc, t1))
+        except (StepError, ValueError, ArithmeticError, np.linalg.LinAlgError) as e:
+            out["error"] = (f"step {k} of {n_steps} (t = {time_of(k - 1):.6g} -> {t1:.6g} s) failed: {e}; "
+                            f"the history ends at t = {time_of(k - 1):.6g} s")
+            break
+        if k % record_every == 0 or k == n_steps or (backbone_every and k % backbone_every == 0):
+            record(k, inp, sim.iterations)
+        if progress is not None and _time.monotonic() - last > 1.0:
+            progress(k / n_steps, _time.monotonic() - t0)
+            last = _time.monotonic()
+    out["dt"] = float(dt)
+    return out
