@@ -25,6 +25,7 @@ import rclpy
 from diagnostic_msgs.msg import DiagnosticArray
 from geometry_msgs.msg import PoseArray, PoseStamped, WrenchStamped
 from rclpy.executors import SingleThreadedExecutor
+from sensor_msgs.msg import JointState
 from std_srvs.srv import Trigger
 
 from soft_twin.msg import ActuationCommand, Strains
@@ -93,7 +94,8 @@ class TwinClient:
     """Subscribes to a twin's outputs, publishes its inputs, calls its services.
 
     Latest messages: ``backbone``, ``tip_pose``, ``strains``, ``tip_wrench``,
-    ``base_wrench`` (None until received), counts in ``counts``,
+    ``base_wrench`` (None until received; an articulated robot's
+    ``joint_states`` too when asked for in ``topics``), counts in ``counts``,
     ``diagnostics()`` as a dict. ``history`` keeps (receive time
     (time.monotonic), message) of the last ``keep`` backbones, strains and
     diagnostics dicts, for latency and rate measurements."""
@@ -107,18 +109,21 @@ class TwinClient:
         self.node = rclpy.create_node(client_name, context=self.context)
         self._cond = threading.Condition()
         self.backbone = self.tip_pose = self.strains = self.tip_wrench = self.base_wrench = None
+        self.joint_states = None
         self._diag = None
-        self.counts = dict(backbone=0, tip_pose=0, strains=0, tip_wrench=0, base_wrench=0, diagnostics=0)
+        self.counts = dict(backbone=0, tip_pose=0, strains=0, tip_wrench=0, base_wrench=0, diagnostics=0,
+                           joint_states=0)
         self.history = dict(backbone=deque(maxlen=keep), strains=deque(maxlen=keep),
-                            diagnostics=deque(maxlen=keep))
+                            diagnostics=deque(maxlen=keep), joint_states=deque(maxlen=keep))
         n = self.node
         types = dict(backbone=PoseArray, tip_pose=PoseStamped, strains=Strains, tip_wrench=WrenchStamped,
-                     base_wrench=WrenchStamped)
+                     base_wrench=WrenchStamped, joint_states=JointState)
         for name in topics:
             n.create_subscription(types[name], f"{self.ns}/{name}", self._store(name), 50)
         n.create_subscription(DiagnosticArray, "/diagnostics", self._on_diag, 10)
         self.pub_actuation = n.create_publisher(ActuationCommand, f"{self.ns}/actuation", 10)
         self.pub_wrench = n.create_publisher(WrenchStamped, f"{self.ns}/tip_wrench_command", 10)
+        self.pub_joints = n.create_publisher(JointState, f"{self.ns}/joint_commands", 10)
         self.clients = {
             "forward_kinematics": n.create_client(ForwardKinematics, f"{self.ns}/forward_kinematics"),
             "inverse_kinematics": n.create_client(InverseKinematics, f"{self.ns}/inverse_kinematics"),
@@ -234,6 +239,27 @@ class TwinClient:
         self.pub_wrench.publish(msg)
         return msg.header.stamp
 
+    def send_joint_command(self, names, positions=(), efforts=()):
+        """Publish a JointState command (articulated robots); returns its stamp."""
+        msg = JointState()
+        msg.header.stamp = self.now()
+        msg.name = list(names)
+        msg.position = [float(v) for v in positions]
+        msg.effort = [float(v) for v in efforts]
+        self.pub_joints.publish(msg)
+        return msg.header.stamp
+
+    def subscribe(self, msg_type, topic, depth=50):
+        """Keep every message of another topic: returns the list they go into."""
+        box = []
+
+        def cb(msg):
+            with self._cond:
+                box.append(msg)
+                self._cond.notify_all()
+        self.node.create_subscription(msg_type, topic, cb, depth)
+        return box
+
     def applied(self, stamp):
         """The latest Strains message if it reflects the command stamped ``stamp``."""
         s = self.strains
@@ -265,3 +291,28 @@ class TwinClient:
             self.clients[service].remove_pending_request(fut)
             raise TimeoutError(f"{service}: no response within {timeout} s")
         return fut.result()
+
+
+def start_twin(node_name, ros_args, log_path, topics=TwinClient.TOPICS, timeout=120.0, ready=None):
+    """(NodeProcess, TwinClient) of a node started in a second process and
+    ready (services up, inputs matched, states arriving; ``ready(client)``:
+    a further condition); AssertionError with the node's output otherwise."""
+    proc = NodeProcess(ros_args, node_name=node_name, log_path=log_path)
+    client = TwinClient(node_name, client_name=f"{node_name}_test_client", topics=topics)
+    try:
+        client.wait_ready(timeout)
+        if ready is not None and not client.wait_until(lambda: ready(client), 20.0):
+            raise TimeoutError("not ready")
+    except Exception:
+        client.close()
+        proc.stop()
+        raise AssertionError(f"node did not come up:\n{proc.output()[-3000:]}")
+    return proc, client
+
+
+def stop_twin(proc, client):
+    """Close the client, stop the node (SIGINT) and check it exited cleanly."""
+    client.close()
+    rc = proc.stop()
+    out = proc.output()
+    assert rc == 0 and "Traceback" not in out, f"exit code {rc}\n{out[-3000:]}"

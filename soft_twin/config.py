@@ -268,6 +268,11 @@ class Robot:
     source: str           # file path or "inline"
 
     sections_per_segment: int = 0
+    mechanism: object = None      # soft_twin_core.mechanism.Mechanism of a tree robot file, else None
+
+    @property
+    def articulated(self):
+        return self.mechanism is not None
 
     def section_radii(self):
         """Outer radius [m] of each section, for the RViz tube."""
@@ -302,11 +307,20 @@ def load_robot(cfg):
         d = yaml.safe_load(text)
     except yaml.YAMLError as e:
         raise ConfigError(f"{clip(source)}: invalid YAML: {clip(e, 400)}") from None
+    from soft_twin_core.mechanism import is_tree_file, mechanism_from_dict
+    mech = None
     try:
-        model = model_from_dict(robot_mapping(d, "robot description"), cfg.sections_per_segment or None)
+        mapping = robot_mapping(d, "robot description")
+        if is_tree_file(mapping):
+            if cfg.sections_per_segment:
+                raise ConfigError(f"sections_per_segment: {source} is an articulated robot (tree schema): "
+                                  f"its section counts come from the file; leave sections_per_segment at 0")
+            model = mech = mechanism_from_dict(mapping)
+        else:
+            model = model_from_dict(mapping, cfg.sections_per_segment or None)
     except ModelError as e:
         raise ConfigError(f"{clip(source)}: {clip(e, 400)}") from None
     if cfg.actuator_names and set(cfg.actuator_names) != set(model.actuator_names):
         raise ConfigError(f"actuator_names {short_list(cfg.actuator_names)} do not match the actuators of "
                           f"{source}: {short_list(model.actuator_names)}")
-    return Robot(model, d, source, cfg.sections_per_segment)
+    return Robot(model, d, source, cfg.sections_per_segment, mech)

@@ -42,6 +42,7 @@ import numpy as np
 import rclpy
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
 from geometry_msgs.msg import PoseArray, PoseStamped, Vector3, WrenchStamped
+from sensor_msgs.msg import JointState
 from rcl_interfaces.msg import ParameterDescriptor, SetParametersResult
 from rclpy.callback_groups import MutuallyExclusiveCallbackGroup, ReentrantCallbackGroup
 from rclpy.clock import Clock, ClockType
@@ -57,6 +58,7 @@ from visualization_msgs.msg import Marker, MarkerArray
 from soft_twin.msg import ActuationCommand, Strains
 from soft_twin.srv import ForwardKinematics, InverseKinematics, StaticsQuery
 
+from soft_twin import articulated as art
 from soft_twin import conversions as cv
 from soft_twin import twin as tw
 from soft_twin.executor import TwinExecutor
@@ -66,6 +68,7 @@ from soft_twin.text import clip, short_list
 NODE_NAME = "soft_twin"
 ACTUATION_QUEUE = 100       # subscription depths (keep last)
 WRENCH_QUEUE = 10
+JOINT_QUEUE = 100
 # parameters rclpy declares itself (not ours, not unknown)
 ROS_PARAMETERS = ("use_sim_time", "start_type_description_service")
 
@@ -110,7 +113,8 @@ class _Stats:
                            commands_applied=0, commands_superseded=0, commands_lost=0,
                            wrenches_received=0, wrenches_applied=0, wrenches_lost=0,
                            rejected_actuation=0, rejected_wrench=0, internal_errors=0,
-                           rejected_parameter_changes=0)
+                           rejected_parameter_changes=0, joint_commands_received=0,
+                           joint_commands_applied=0, rejected_joint=0)
         self.last_internal_error = ""
         self.rejected_by_reason = {r: 0 for r in tw.REJECT_REASONS}
         self.last_rejection = ""
@@ -185,11 +189,10 @@ class SoftTwinNode(Node):
         self._last_input_time = -math.inf
         self._reported_internal_errors = 0
         self.stats = _Stats()
-        self.get_logger().info(
-            f"robot {self.robot.model.name!r} from {self.robot.source}: {self.robot.model.n_sections} "
-            f"sections, {self.robot.model.n_dof} free strains, actuators {list(self.robot.model.actuator_names)}")
+        self.get_logger().info(f"robot {self.robot.model.name!r} from {self.robot.source}: "
+                               f"{self._describe_robot(self.robot)}")
         self._startup_point()
-        self.twin = tw.Twin(self.robot.model, self._settings(self.cfg))
+        self.twin = self._make_twin(self.robot, self._settings(self.cfg))
         self.get_logger().info(f"mode {self.cfg.mode}; {self.twin.rest_message}")
         self._startup_point()
         self.get_logger().info("warming up the compiled kernels (numba: ~10 s on the first run, "
@@ -214,6 +217,7 @@ class SoftTwinNode(Node):
         self._pub_strains = self.create_publisher(Strains, "~/strains", state_qos)
         self._pub_markers = self.create_publisher(MarkerArray, "~/markers", 1)
         self._pub_diag = self.create_publisher(DiagnosticArray, "/diagnostics", 10)
+        self._make_articulated_interfaces(state_qos)
 
         # --- subscriptions (keep last: under overload the oldest inputs go, and
         # are counted from the sequence numbers); each callback takes the
@@ -251,6 +255,79 @@ class SoftTwinNode(Node):
             f"twin running: {self.cfg.mode}"
             + (f" at {self.cfg.step_rate_hz:g} Hz (dt = {1e3 * self.cfg.dt:g} ms)" if self.cfg.mode == "dynamic"
                else "") + f"; frames {self.cfg.base_frame!r} -> {self.cfg.tip_frame!r}")
+
+    # ------------------------------------------------------------------------
+    # articulated robots (tree robot files): joints, members, constraints
+    # ------------------------------------------------------------------------
+    @staticmethod
+    def _describe_robot(robot):
+        m = robot.model
+        if not robot.articulated:
+            return f"{m.n_sections} sections, {m.n_dof} free strains, actuators {list(m.actuator_names)}"
+        return (f"articulated: joints {list(m.joint_names)}, soft members {[x.name for x in m.members]}, "
+                f"constraints {[c.name for c in m.constraints]}, {m.tree.nv} dof, "
+                f"actuators {list(m.actuator_names)}")
+
+    @staticmethod
+    def _make_twin(robot, settings):
+        return art.ArticulatedTwin(robot.mechanism, settings) if robot.articulated else tw.Twin(robot.model, settings)
+
+    def _make_articulated_interfaces(self, qos):
+        """Joint states out and joint commands in, one backbone per soft
+        member, one wrench topic per constraint (articulated robots only)."""
+        self._pub_joints = self._sub_joints = None
+        self._pub_members, self._pub_constraints = {}, {}
+        if not self.robot.articulated:
+            return
+        mech = self.robot.mechanism
+        self._pub_joints = self.create_publisher(JointState, "~/joint_states", qos)
+        for m in mech.members:
+            self._pub_members[m.name] = self.create_publisher(PoseArray, f"~/backbones/{_topic_name(m.name)}", qos)
+        for c in mech.constraints:
+            self._pub_constraints[c.name] = self.create_publisher(
+                WrenchStamped, f"~/constraint_wrenches/{_topic_name(c.name)}", qos)
+        on_joints = self._guarded(self._on_joint_command)
+        self._sub_joints = self.create_subscription(
+            JointState, "~/joint_commands", lambda msg, info: on_joints(msg, info), JOINT_QUEUE,
+            callback_group=self._input_group)
+
+    def _on_joint_command(self, msg, info=None):
+        """Every queued JointState command in order: validated
+        (:func:`articulated.parse_joint_command`), counted, and the result
+        applied once (a command naming some joints keeps the others')."""
+        batch = self._take_queued(self._sub_joints, (msg, info), JOINT_QUEUE)
+        errors, newest = [], None
+        with self._lock:
+            twin = self.twin
+            pos, eff = twin.positions, twin.efforts
+            for m, _ in batch:
+                try:
+                    pos, eff = art.parse_joint_command(twin.mech, m.name, m.position, m.velocity, m.effort,
+                                                       pos, eff)
+                    newest = m
+                except tw.InputError as e:
+                    errors.append(e)
+            s = self.stats
+            s.totals["joint_commands_received"] += len(batch)
+            for e in errors:
+                s.reject("joint", e)
+            if newest is not None:
+                s.totals["joint_commands_applied"] += len(batch) - len(errors)
+                twin.set_joint_commands(pos, eff, stamp=newest.header)
+        if errors:
+            self.get_logger().warn(f"joint command rejected ({errors[-1].reason}): {clip(errors[-1], 400)}",
+                                   throttle_duration_sec=1.0)
+        if newest is not None:
+            self._react_to_input(batch)
+
+    def _publish_articulated(self, snap, header):
+        js = JointState(header=header, name=list(snap.joint_names))
+        js.position = snap.joint_positions.tolist()
+        js.velocity = snap.joint_velocities.tolist()
+        js.effort = snap.joint_efforts.tolist()
+        self._pub_joints.publish(js)
+        for name, pub in self._pub_members.items():
+            pub.publish(cv.pose_array(snap.backbones[name][0], header))
 
     # ------------------------------------------------------------------------
     # configuration
@@ -681,6 +758,9 @@ class SoftTwinNode(Node):
         if snap.command_stamp is not None:
             strains.last_command = snap.command_stamp
         self._pub_strains.publish(strains)
+        if self.robot.articulated:
+            self._publish_articulated(snap, header)
+            self._last_articulated = snap
         received = self._command_received
         if received is not None and received[0] is snap.command_stamp:
             # the first publication of a state with this command: latency from the
@@ -702,13 +782,19 @@ class SoftTwinNode(Node):
         outside the locks, only when someone listens, by one thread at a time
         (another thread already at it: skipped)."""
         if (self._pub_tip_wrench.get_subscription_count() == 0
-                and self._pub_base_wrench.get_subscription_count() == 0):
+                and self._pub_base_wrench.get_subscription_count() == 0
+                and not any(p.get_subscription_count() for p in self._pub_constraints.values())):
             return
         if not self._wrench_lock.acquire(blocking=False):
             return
         try:
             self._last_wrench_time = now
-            tip, base = tw.wrenches(robot.model, snap)
+            if robot.articulated:
+                tip, base = snap.tip_wrench, snap.base_wrench
+                for name, pub in self._pub_constraints.items():
+                    pub.publish(WrenchStamped(header=header, wrench=cv.wrench_msg(snap.constraint_wrenches[name])))
+            else:
+                tip, base = tw.wrenches(robot.model, snap)
             self._pub_tip_wrench.publish(WrenchStamped(header=Header(stamp=header.stamp,
                                                                      frame_id=self.cfg.tip_frame),
                                                        wrench=cv.wrench_msg(tip)))
@@ -718,7 +804,10 @@ class SoftTwinNode(Node):
 
     def _markers(self, snap, robot, header):
         """A tube of cylinders along the backbone (one per sample interval,
-        diameter of the section) and a sphere at the tip."""
+        diameter of the section) and a sphere at the tip; articulated robots:
+        every member's tube and the rigid links' shapes."""
+        if robot.articulated:
+            return self._articulated_markers(snap, robot, header)
         T = snap.backbone
         p = T[:, :3, 3]
         mid = 0.5 * (p[1:] + p[:-1])
@@ -746,6 +835,51 @@ class SoftTwinNode(Node):
         self._n_markers = len(mid)
         return out
 
+    def _articulated_markers(self, snap, robot, header):
+        mech = robot.mechanism
+        out = MarkerArray()
+        tube = ColorRGBA(r=0.85, g=0.45, b=0.2, a=0.9)
+        n = 0
+        for mem in mech.members:
+            T = snap.backbones[mem.name][0]
+            p = T[:, :3, 3]
+            mid = 0.5 * (p[1:] + p[:-1])
+            length = np.linalg.norm(p[1:] - p[:-1], axis=1)
+            quat = cv.cylinder_orientation(T[:-1]).tolist()
+            for k, (c, L, q) in enumerate(zip(mid.tolist(), length.tolist(), quat)):
+                g = mem.geometry[min(k, len(mem.geometry) - 1)]
+                r = max(g.cy, g.cz) if g is not None else 0.005
+                m = Marker(header=header, ns="tube", id=n, type=Marker.CYLINDER, action=Marker.ADD, color=tube)
+                m.pose.position = cv.point(c)
+                m.pose.orientation = cv.quaternion(q)
+                m.scale = Vector3(x=2 * r, y=2 * r, z=max(L * 1.05, 1e-6))
+                out.markers.append(m)
+                n += 1
+        for i in range(n, getattr(self, "_n_markers", 0)):
+            out.markers.append(Marker(header=header, ns="tube", id=i, action=Marker.DELETE))
+        self._n_markers = n
+        link = ColorRGBA(r=0.6, g=0.6, b=0.65, a=1.0)
+        for k, lk in enumerate(mech.links):
+            vis = lk.visual or {"shape": "sphere", "radius": 0.01}
+            kind = {"box": Marker.CUBE, "cylinder": Marker.CYLINDER, "sphere": Marker.SPHERE}[vis["shape"]]
+            m = Marker(header=header, ns="links", id=k, type=kind, action=Marker.ADD, color=link)
+            m.pose = cv.pose_msg(snap.frames[lk.name])
+            if vis["shape"] == "box":
+                m.scale = Vector3(x=float(vis["size"][0]), y=float(vis["size"][1]), z=float(vis["size"][2]))
+            elif vis["shape"] == "cylinder":
+                d = 2 * float(vis["radius"])
+                m.scale = Vector3(x=d, y=d, z=float(vis["length"]))
+            else:
+                d = 2 * float(vis["radius"])
+                m.scale = Vector3(x=d, y=d, z=d)
+            out.markers.append(m)
+        tip = Marker(header=header, ns="tip", id=0, type=Marker.SPHERE, action=Marker.ADD,
+                     color=ColorRGBA(r=0.2, g=0.4, b=0.9, a=1.0))
+        tip.pose = cv.pose_msg(snap.tip_pose)
+        tip.scale = Vector3(x=0.015, y=0.015, z=0.015)
+        out.markers.append(tip)
+        return out
+
     def _publish_diagnostics(self):
         now = time.monotonic()
         with self._lock:
@@ -760,7 +894,9 @@ class SoftTwinNode(Node):
             rtf = s.sim_time / wall
             values = {
                 "mode": cfg.mode,
-                "robot": f"{twin.model.name} ({twin.model.n_sections} sections, {twin.model.n_dof} dof)",
+                "robot": (f"{twin.model.name} (articulated: {twin.mech.tree.n_joints} joints, {twin.mech.tree.nv} dof)"
+                          if self.robot.articulated else
+                          f"{twin.model.name} ({twin.model.n_sections} sections, {twin.model.n_dof} dof)"),
                 "twin_time_s": f"{twin.state.t:.4f}",
                 "step_rate_target_hz": f"{cfg.step_rate_hz:.3f}" if cfg.mode == "dynamic" else "on input",
                 "step_rate_hz": f"{rate:.3f}",
@@ -789,7 +925,8 @@ class SoftTwinNode(Node):
                 "wrenches_applied_total": str(s.totals["wrenches_applied"]),
                 "wrenches_lost_total": str(s.totals["wrenches_lost"]) if self._wrench_gaps.supported
                 else "n/a",
-                "rejected_inputs_total": str(s.totals["rejected_actuation"] + s.totals["rejected_wrench"]),
+                "rejected_inputs_total": str(s.totals["rejected_actuation"] + s.totals["rejected_wrench"]
+                                             + s.totals["rejected_joint"]),
                 "rejected_actuation_total": str(s.totals["rejected_actuation"]),
                 "rejected_wrench_total": str(s.totals["rejected_wrench"]),
                 **{f"rejected_{r}_total": str(n) for r, n in s.rejected_by_reason.items()},
@@ -799,6 +936,8 @@ class SoftTwinNode(Node):
                 "internal_errors_total": str(s.totals["internal_errors"]),
                 "last_internal_error": s.last_internal_error,
             }
+            if self.robot.articulated:
+                values.update(self._articulated_diagnostics(s))
             level, message = DiagnosticStatus.OK, "ok"
             if s.consecutive_failures:
                 level, message = DiagnosticStatus.ERROR, f"solver failing, state kept: {values['solver_last_message']}"
@@ -825,6 +964,19 @@ class SoftTwinNode(Node):
                                   values=[KeyValue(key=k, value=v) for k, v in values.items()])
         self._pub_diag.publish(DiagnosticArray(header=self._header(cfg.base_frame), status=[status]))
 
+    def _articulated_diagnostics(self, s):
+        """Joint command counters and the members' peak stresses [Pa] of the
+        last published state."""
+        out = {"joint_commands_received_total": str(s.totals["joint_commands_received"]),
+               "joint_commands_applied_total": str(s.totals["joint_commands_applied"]),
+               "rejected_joint_total": str(s.totals["rejected_joint"])}
+        snap = getattr(self, "_last_articulated", None)
+        if snap is not None:
+            for name, (normal, shear) in snap.stresses.items():
+                out[f"peak_normal_stress_{name}_pa"] = f"{normal:.6g}"
+                out[f"peak_shear_stress_{name}_pa"] = f"{shear:.6g}"
+        return out
+
     # ------------------------------------------------------------------------
     # services
     # ------------------------------------------------------------------------
@@ -841,6 +993,11 @@ class SoftTwinNode(Node):
         resp.strains = res.strains.ravel().tolist()
 
     def _srv_fk(self, req, resp):
+        if self.robot.articulated:
+            resp.success, resp.message = False, ("forward_kinematics: not available for articulated robots; "
+                                                 "use statics_query (equilibrium with the current joint "
+                                                 "commands) or the published states")
+            return resp
         model, q, u, _, _, cfg, order = self._copy_state()
         actuation = None
         try:
@@ -867,6 +1024,8 @@ class SoftTwinNode(Node):
         except tw.InputError as e:
             resp.success, resp.message = False, clip(f"input rejected ({e.reason}): {e}", 400)
             return resp
+        if self.robot.articulated:
+            return self._articulated_statics(resp, actuation, w, frame, cfg)
         res = tw.statics_query(model, q, cfg.backbone_points_per_section, actuation, w, frame)
         resp.success, resp.message = res.success, clip(res.message, 400)
         if res.success:
@@ -877,6 +1036,9 @@ class SoftTwinNode(Node):
         return resp
 
     def _srv_ik(self, req, resp):
+        if self.robot.articulated:
+            resp.success, resp.message = False, "inverse_kinematics: not available for articulated robots yet"
+            return resp
         model, q, u, w, frame, cfg, order = self._copy_state()
         tol = req.tolerance
         if not math.isfinite(tol) or tol < 0:
@@ -902,6 +1064,22 @@ class SoftTwinNode(Node):
             resp.iterations = int(res.iterations)
         return resp
 
+    def _articulated_statics(self, resp, actuation, w, frame, cfg):
+        """Equilibrium of an articulated robot under the actuation, the tip
+        wrench and the twin's current joint commands (the twin untouched)."""
+        with self._lock:
+            query = self.twin.query_copy()
+        info, snap = query.statics(actuation, w, frame)
+        resp.success, resp.message = info.converged, clip(info.message or "ok", 400)
+        if info.converged:
+            header = self._header(cfg.base_frame)
+            resp.backbone = cv.pose_array(snap.backbone, header)
+            resp.strains = snap.strains.ravel().tolist()
+            resp.tip_pose = cv.pose_msg(snap.tip_pose)
+            resp.base_wrench = cv.wrench_msg(snap.base_wrench)
+            resp.iterations = int(info.iterations)
+        return resp
+
     def _srv_reset(self, req, resp):
         with self._lock:
             self.twin.reset()
@@ -913,6 +1091,13 @@ class SoftTwinNode(Node):
             self._solve_trigger.trigger()
         self.get_logger().info(resp.message)
         return resp
+
+
+def _topic_name(name):
+    """A ROS topic token for a user-given name (letters, digits, underscores)."""
+    import re
+    t = re.sub(r"[^A-Za-z0-9_]", "_", name)
+    return t if t and not t[0].isdigit() else f"_{t}"
 
 
 class _StopSignals:

@@ -49,7 +49,7 @@ MODES = ("dynamic", "quasi_static")
 # door (validation), "solver_failed" for an input dropped because the step or
 # solve it caused failed
 REJECT_REASONS = ("non_finite", "wrong_length", "unknown_name", "duplicate_name",
-                  "negative_tension", "over_limit", "bad_frame", "solver_failed")
+                  "negative_tension", "over_limit", "bad_frame", "wrong_mode", "solver_failed")
 
 # what a failing step may raise on absurd (finite) numbers: a failure, not a bug
 STEP_ERRORS = (ArithmeticError, ValueError, np.linalg.LinAlgError, st.StaticsError)

@@ -58,7 +58,7 @@ class Inputs:
     """Checked inputs of a mechanism: actuation u (n_actuators,), efforts of
     effort-controlled joints (nv,) [N m or N], position commands of the
     position-controlled joints (n_pos,) [rad or m] (with velocity and
-    acceleration for dynamics), loads on paths and frames."""
+    acceleration for dynamics; ``v_cmd`` None: not given), loads on paths and frames."""
     u: np.ndarray
     effort: np.ndarray
     q_cmd: np.ndarray
@@ -140,7 +140,12 @@ def make_inputs(mech, actuation=None, efforts=None, positions=None, velocities=N
     for k, i in enumerate(mech.joints_with("effort")):
         effort[tree.idx_v[i]] = eff[k]
     q_cmd = joint_vector(mech, positions, "position", "position", "rad or m")
-    v_cmd = np.zeros(len(q_cmd)) if velocities is None else np.asarray(velocities, float)
+    v_cmd = None
+    if velocities is not None:
+        v_cmd = joint_vector(mech, velocities, "position", "velocity", "rad/s or m/s") if isinstance(
+            velocities, dict) else np.asarray(velocities, float)
+        if v_cmd.shape != q_cmd.shape or not np.all(np.isfinite(v_cmd)):
+            raise ValueError(f"velocities: expected {len(q_cmd)} finite values (the position-controlled joints)")
     loads = Loads() if loads is None else loads
     ld = _concat_loads(load_arrays(tree, loads, None, path) if tree.paths else
                        frame_loads(mech, ()), frame_loads(mech, point_loads))
@@ -595,7 +600,15 @@ class MechanismSimulator:
                             f"iterations (constraint error {np.abs(phi1).max(initial=0):.3g})")
         vt = (1 - th) * v0 + th * v1
         integrate_pass(m, q0, vt, h, q1)
-        self.q, self.v, self.a, self.lam = q1.copy(), v1, (v1 - v0) / h, lam
+        self.a = (v1 - v0) / h              # the step's mean acceleration (its forces' state)
+        if npos:
+            # a position-controlled joint moves at its commanded velocity (given) or, without one, at
+            # its position change over the step: not at the midpoint rule's v1 = 2 dq/h - v0, which
+            # would alternate in sign for ever after a change of the commanded acceleration
+            iq = np.array([tree.idx_q[i] for i in self.mech.joints_with("position")], dtype=np.int64)
+            v1 = v1.copy()
+            v1[pos_v] = inp.v_cmd if inp.v_cmd is not None else (q1[iq] - q0[iq]) / h
+        self.q, self.v, self.lam = q1.copy(), v1, lam
         self.t += h
         self.iterations = it
 

@@ -140,6 +140,7 @@ class Mechanism:
     links: tuple = ()
     frames: dict = field(default_factory=dict)   # name -> PointRef
     base_motion: str = "fixed"     # fixed, floating or prescribed
+    motion_limits: dict = field(default_factory=dict)   # position-controlled joint -> (max vel, max acc)
 
     @property
     def actuators(self):
@@ -187,7 +188,10 @@ class Mechanism:
 _BODY_KEYS = {"name", "type", "parent", "joint", "mass", "com", "inertia", "visual", "segments",
               "actuators"}
 _JOINT_KEYS = {"name", "type", "axis", "position", "rpy", "quaternion", "limits", "stiffness", "damping",
-               "reference", "control"}
+               "reference", "control", "max_velocity", "max_acceleration"}
+# speed and acceleration bounds of a position-controlled joint's motion towards
+# a new command (rad/s, rad/s^2 or m/s, m/s^2) when the robot file gives none
+DEFAULT_MAX_VELOCITY, DEFAULT_MAX_ACCELERATION = 1.0, 10.0
 _FRAME_KEYS = {"name", "body", "s", "position", "rpy", "quaternion"}
 _CONSTRAINT_KEYS = {"name", "type", "frame", "to", "target", "direction", "normal"}
 
@@ -245,7 +249,8 @@ def _visual(v, where):
 
 
 def _joint(b, jd, where, default_name, is_member):
-    """(name, kind, placement, axis, limits, stiffness, damping, reference, control) of a body's joint."""
+    """(name, kind, placement, axis, limits, stiffness, damping, reference, control, (max velocity, max
+    acceleration) or None) of a body's joint."""
     jd = {} if jd is None else jd
     _check_keys(jd, _JOINT_KEYS, where)
     kind_name = jd.get("type", "fixed")
@@ -271,19 +276,25 @@ def _joint(b, jd, where, default_name, is_member):
     damping = _num(jd, "damping", where, nonneg=True, default=0.0)
     reference = _num(jd, "reference", where, default=0.0)
     control = ""
+    motion = None
     if kind in (REVOLUTE, PRISMATIC):
         control = jd.get("control", "effort")
         if control not in CONTROL_MODES:
             raise ModelError(f"{where}.control: expected one of {list(CONTROL_MODES)}, got {control!r}")
+        for key in ("max_velocity", "max_acceleration"):
+            if key in jd and control != "position":
+                raise ModelError(f"{where}.{key}: only position-controlled joints take {key}")
+        motion = (_num(jd, "max_velocity", where, positive=True, default=DEFAULT_MAX_VELOCITY),
+                  _num(jd, "max_acceleration", where, positive=True, default=DEFAULT_MAX_ACCELERATION))
         if limits is not None and not limits[0] <= reference <= limits[1]:
             raise ModelError(f"{where}.reference: {reference} lies outside the limits {list(limits)}")
     else:
-        for key in ("limits", "stiffness", "damping", "reference", "control"):
+        for key in ("limits", "stiffness", "damping", "reference", "control", "max_velocity", "max_acceleration"):
             if key in jd:
                 raise ModelError(f"{where}.{key}: only revolute and prismatic joints take {key}")
     if is_member and kind not in (FIXED, REVOLUTE, PRISMATIC, SPHERICAL):
         raise ModelError(f"{where}.type: unsupported for a member")
-    return name, kind, placement, axis, limits, stiffness, damping, reference, control
+    return name, kind, placement, axis, limits, stiffness, damping, reference, control, motion
 
 
 def _geometry(cs):
@@ -375,6 +386,7 @@ def mechanism_from_dict(d):
         raise ModelError("robot.bodies: expected a non-empty list of bodies (links and members)")
     members, links, frames = [], [], {}
     actuators, act_paths = [], []
+    motion_limits = {}
     if motion != "fixed":
         frames["base"] = PointRef(ends["base"][0])
     for k, bd in enumerate(bodies):
@@ -394,11 +406,13 @@ def mechanism_from_dict(d):
             raise ModelError(f"{where}.parent: {parent!r} is not 'base' or an earlier body; earlier bodies: "
                              f"{[n for n in ends if n != 'base']}")
         pj, pre = ends[parent]
-        jname, kind, placement, axis, limits, stiff, damp, ref, ctrl = _joint(
+        jname, kind, placement, axis, limits, stiff, damp, ref, ctrl, jmotion = _joint(
             bd, bd.get("joint"), where + ".joint", f"{name}_joint", btype == "member")
         if jname in [j.name for j in b.joints]:
             raise ModelError(f"{where}.joint.name: {jname!r} is already used")
         placement = pre @ placement
+        if ctrl == "position":
+            motion_limits[jname] = jmotion
         if btype == "link":
             for key in ("segments", "actuators"):
                 if key in bd:
@@ -495,7 +509,7 @@ def mechanism_from_dict(d):
             raise ModelError("robot.constraints: the name 'base' is taken by the prescribed base motion")
         constraints.insert(0, Constraint("base", "clamped", frames["base"], PointRef(-1), base_pose.copy()))
     mech = Mechanism(tree.name, tree, tuple(control), tuple(constraints), tuple(members), tuple(links),
-                     frames, motion)
+                     frames, motion, motion_limits)
     return mech
 
 
@@ -571,3 +585,24 @@ def from_robot_model(robot, d=None):
     member = Member("backbone", 0, p.joints, tuple(geo))
     frames = {"tip": PointRef(p.joints[-1], tree.joints[p.joints[-1]].section.length)}
     return Mechanism(tree.name, tree, ("",) * tree.n_joints, (), (member,), (), frames, "fixed")
+
+
+def shape_command(r, v, target, vmax, amax, h):
+    """One step h of a position reference (r, v) towards ``target`` within
+    |v| <= vmax and |a| <= amax: the velocity goes towards the fastest one
+    that can still stop at the target (sqrt(2 amax |error|), at most vmax),
+    changing by at most amax h; the last bit snaps onto the target. Returns
+    the new (r, v). A stream of commands that respects the bounds is
+    followed without lag; a jump becomes a smooth trapezoidal move."""
+    err = target - r
+    if abs(err) <= 0.5 * amax * h * h and abs(v) <= amax * h:
+        return target, 0.0
+    # braking distance of a discrete step: stop in time with the step's own acceleration
+    v_des = np.sign(err) * min(vmax, np.sqrt(2.0 * amax * abs(err)) - 0.5 * amax * h)
+    if np.sign(v_des) != np.sign(err):
+        v_des = 0.0
+    v_new = v + np.clip(v_des - v, -amax * h, amax * h)
+    r_new = r + v_new * h
+    if (target - r_new) * err <= 0:         # reached (or would overshoot): land on the target at rest
+        return target, 0.0
+    return r_new, v_new

@@ -53,6 +53,15 @@ class MechanismScenario:
     gravity: bool
     source: str
 
+    def velocities_at(self, t):
+        """{joint: commanded velocity} of the position-controlled joints at t
+        (trajectories: the spline's derivative; constant positions: 0)."""
+        out = {j: 0.0 for j in self.positions}
+        for j, sp in self.trajectories.items():
+            out[j] = float(sp.velocity(t))
+        pos_names = [self.mech.tree.joints[i].name for i in self.mech.joints_with("position")]
+        return [out.get(j, 0.0) for j in pos_names]
+
     def inputs_at(self, t, sim=None):
         """(actuation, efforts, positions, point loads) at time t [s]."""
         u = self.actuation.copy()
@@ -78,15 +87,36 @@ class MechanismScenario:
         return pose_from_dict({"position": x[:3].tolist(), "rpy": x[3:].tolist()}, "base_trajectory")
 
 
+class _Spline:
+    """A clamped cubic spline through [t, values...] rows (at rest at both
+    ends), held constant outside its time span; ``velocity(t)`` its derivative."""
+
+    def __init__(self, a, where):
+        from scipy.interpolate import CubicSpline
+        self.t0, self.t1 = a[0, 0], a[-1, 0]
+        y = a[:, 1:] if a.shape[1] > 2 else a[:, 1]
+        if len(a) == 1:
+            self.sp = None
+            self.value = y[0]
+            return
+        if np.any(np.diff(a[:, 0]) <= 0):
+            raise _error()(f"{where}: times must increase strictly, got {a[:, 0].tolist()}")
+        self.sp = CubicSpline(a[:, 0], y, bc_type="clamped")
+        self.dsp = self.sp.derivative()
+
+    def __call__(self, t):
+        if self.sp is None:
+            return np.copy(self.value)
+        return self.sp(min(max(t, self.t0), self.t1))
+
+    def velocity(self, t):
+        if self.sp is None or not self.t0 <= t <= self.t1:
+            return 0.0 * np.asarray(self(t))
+        return self.dsp(t)
+
+
 def _spline(a, where):
-    from scipy.interpolate import CubicSpline
-    if len(a) == 1:
-        return lambda t, v=a[0, 1:]: v.copy() if v.size > 1 else float(v[0])
-    if np.any(np.diff(a[:, 0]) <= 0):
-        raise _error()(f"{where}: times must increase strictly, got {a[:, 0].tolist()}")
-    sp = CubicSpline(a[:, 0], a[:, 1:] if a.shape[1] > 2 else a[:, 1], bc_type="clamped", extrapolate=False)
-    t0, t1 = a[0, 0], a[-1, 0]
-    return lambda t: sp(min(max(t, t0), t1))
+    return _Spline(a, where)
 
 
 def _profile(v, where):
@@ -196,7 +226,7 @@ def mechanism_scenario_from_dict(d, base_dir, source):
 def _inputs(sc, t):
     from .loads import Loads
     u, eff, pos, pls = sc.inputs_at(t)
-    return make_inputs(sc.mech, u, eff, pos, None, Loads(gravity=sc.gravity), pls)
+    return make_inputs(sc.mech, u, eff, pos, sc.velocities_at(t), Loads(gravity=sc.gravity), pls)
 
 
 def _targets(sc, t):

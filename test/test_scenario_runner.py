@@ -188,10 +188,11 @@ def test_progress_excludes_the_warm_up(monkeypatch, capsys, tmp_path):
     assert re.search(r"kernels ready and t = 0 evaluated in [2-9]\.\d s", err), err
     lines = [ln for ln in err.splitlines() if "% simulated" in ln]
     assert lines, err
-    for ln in lines:
-        frac, elapsed, left = map(float, re.search(r"([\d.]+) % simulated, ([\d.]+) s elapsed, ~(\d+) s left",
-                                                   ln).groups())
-        assert elapsed < 1.9 and left <= 3, ln
+    # the first report comes about a second into the run: its elapsed time would be at least the
+    # warm-up's 2 s if it were counted (later ones depend on the machine's load)
+    frac, elapsed, left = map(float, re.search(r"([\d.]+) % simulated, ([\d.]+) s elapsed, ~(\d+) s left",
+                                               lines[0]).groups())
+    assert elapsed < 1.9 and left <= 3 / max(frac / 100, 0.1), lines[0]
     wall = float(re.search(r"simulated 1.5 s in ([\d.]+) s wall time", err).group(1))
     assert 1.0 < wall < 3.5, err
 
@@ -259,7 +260,10 @@ def test_scenarios_and_robots_by_name(tmp_path, monkeypatch, capsys):
     monkeypatch.chdir(tmp_path)
     assert set(model_mod.example_files("scenarios")) >= {"tendon_arm_dynamics", "tendon_arm_statics"}
     for name in model_mod.example_files("scenarios"):
-        assert load_scenario(name).model.n_sections >= 1
+        sc = load_scenario(name)
+        # classic robots have sections; articulated ones (tree files) a multibody tree
+        assert (sc.model.n_sections if hasattr(sc, "model") else len(sc.mech.tree.soft_joints)) >= 1
+    assert {"pan_tilt_arm_dynamics", "fixed_fixed_beam"} <= set(model_mod.example_files("scenarios"))
     sc = scenario_from_dict({"robot": "tendon_arm"}, str(tmp_path))
     assert sc.model.name == "tendon_arm"
     code, out, err = run_cli(["statics", "tendon_arm_statics"], capsys)

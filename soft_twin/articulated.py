@@ -1,0 +1,393 @@
+"""The twin of a soft articulated robot (a tree robot file), free of ROS.
+
+:class:`ArticulatedTwin` has the interface of :class:`soft_twin.twin.Twin`
+that the node drives (inputs, ``step``, ``outputs``, ``reset``,
+``change_settings``, ``warm_up``) on the multibody engine with joints and
+constraints (:mod:`soft_twin_core.constrained`): ``dynamic`` mode steps a
+:class:`~soft_twin_core.constrained.MechanismSimulator`, ``quasi_static``
+mode solves the equilibrium on every input change. On top of actuation and
+a tip wrench it takes *joint commands* (:func:`parse_joint_command`):
+positions of position-controlled joints (their efforts are outputs) and
+efforts of effort-controlled joints.
+
+Its :class:`ArticulatedSnapshot` carries everything the node publishes,
+computed once per state by one engine pass
+(:func:`soft_twin_core.outputs.state_outputs`): joint states and efforts,
+one backbone per soft member, frame poses, constraint and base wrenches,
+peak stresses. Frames: the core's world = the node's base frame.
+"""
+
+from dataclasses import dataclass
+import math
+import time
+
+import numpy as np
+
+from soft_twin_core import constrained as cs
+from soft_twin_core.loads import Loads
+from soft_twin_core.mechanism import shape_command
+from soft_twin_core.model import State
+from soft_twin_core.outputs import state_outputs
+
+from soft_twin.text import clip, short_list
+from soft_twin.twin import STEP_ERRORS, InputError, TwinSettings, UpdateInfo
+
+
+def tip_frame_of(mech):
+    """The frame the node calls the tip: ``tool`` if the robot has one,
+    else the last member's tip."""
+    if "tool" in mech.frames:
+        return "tool"
+    if mech.members:
+        return f"{mech.members[-1].name}_tip"
+    return list(mech.frames)[-1]
+
+
+def parse_joint_command(mech, names, positions, velocities, efforts, current_pos, current_eff):
+    """Apply a JointState command to (positions, efforts) dicts.
+
+    Every name must be a rigid 1-dof joint of the robot. A position-
+    controlled joint takes ``position[k]`` (rad or m, within its limits); an
+    effort-controlled joint takes ``effort[k]`` (N m or N). ``positions`` and
+    ``efforts`` are empty or as long as ``names``; velocities are ignored
+    (the twin differentiates the commanded positions). Raises InputError
+    (reasons: wrong_length, duplicate_name, unknown_name, wrong_mode,
+    non_finite, over_limit); nothing is applied then."""
+    names = list(names)
+    pos = np.asarray(list(positions), dtype=float)
+    eff = np.asarray(list(efforts), dtype=float)
+    if not names:
+        raise InputError("wrong_length", "joint command without joint names")
+    for what, arr in (("position", pos), ("effort", eff)):
+        if arr.size not in (0, len(names)):
+            raise InputError("wrong_length", f"joint command has {len(names)} names but {arr.size} {what} values")
+    if len(set(names)) != len(names):
+        raise InputError("duplicate_name", f"joint names repeated in {short_list(names)}")
+    tree = mech.tree
+    known = {tree.joints[i].name: i for i in mech.rigid_joints}
+    unknown = [n for n in names if n not in known]
+    if unknown:
+        raise InputError("unknown_name", f"unknown joint(s) {short_list(unknown)}; this robot has "
+                                         f"{short_list(list(known))}")
+    new_pos, new_eff = dict(current_pos), dict(current_eff)
+    for k, n in enumerate(names):
+        i = known[n]
+        mode = mech.control[i]
+        j = tree.joints[i]
+        if mode == "position":
+            v = _joint_value(pos, k, n, "position")
+            if j.limits is not None and not j.limits[0] <= v <= j.limits[1]:
+                raise InputError("over_limit", f"joint {clip(n)} position {v:g} lies outside its limits "
+                                               f"{list(j.limits)}")
+            new_pos[n] = v
+        elif mode == "effort":
+            new_eff[n] = _joint_value(eff, k, n, "effort")
+        else:
+            raise InputError("wrong_mode", f"joint {clip(n)} is passive: it takes no command")
+    return new_pos, new_eff
+
+
+def _joint_value(values, k, name, what):
+    """values[k], the ``what`` (position or effort) a joint's control mode
+    takes: present and finite, else InputError."""
+    if values.size == 0:
+        raise InputError("wrong_mode", f"joint {clip(name)} is {what}-controlled: give its {what}")
+    v = float(values[k])
+    if not math.isfinite(v):
+        raise InputError("non_finite", f"joint {clip(name)} {what} is not finite")
+    return v
+
+
+@dataclass(frozen=True)
+class ArticulatedSnapshot:
+    """One state: mode, t [s], u (actuation), joint names and positions,
+    velocities, efforts (rad, rad/s, N m or m, m/s, N); backbones {member:
+    (poses (N, 4, 4), s (N,))} at section boundaries; main member name;
+    backbone and s of the main member (the one with the tip), tip_pose;
+    strains and strain_rates (n_soft_sections, 6) in tree order; frames
+    {name: 4x4}; tip_wrench (the load at the tip frame, tip axes) and
+    base_wrench (the support's reaction on the robot: the sum of the root
+    joints' transmitted wrenches, base axes, about the base origin);
+    constraint_wrenches {name: world [f; m] on its frame}; stresses
+    {member: (peak normal, peak shear) Pa}; command_stamp."""
+    mode: str
+    t: float
+    u: np.ndarray
+    joint_names: tuple
+    joint_positions: np.ndarray
+    joint_velocities: np.ndarray
+    joint_efforts: np.ndarray
+    backbones: dict
+    main_member: str
+    s: np.ndarray
+    backbone: np.ndarray
+    tip_pose: np.ndarray
+    strains: np.ndarray
+    strain_rates: np.ndarray
+    frames: dict
+    tip_wrench: np.ndarray
+    base_wrench: np.ndarray
+    constraint_wrenches: dict
+    stresses: dict
+    command_stamp: object = None
+
+
+class ArticulatedTwin:
+    """A mechanism, its state and inputs (see the module docstring). Not
+    thread-safe: the node serialises calls."""
+
+    def __init__(self, mech, settings=None):
+        self.mech = mech
+        self.model = mech            # what the node reads: name, actuators, actuator_names
+        self.settings = settings or TwinSettings()
+        self.tip = tip_frame_of(mech)
+        self.u = np.zeros(len(mech.actuators))
+        self.tip_wrench = np.zeros(6)
+        self.tip_frame = "world"
+        self.positions = {mech.tree.joints[i].name: mech.tree.joints[i].q_ref for i in mech.joints_with("position")}
+        self.efforts = {mech.tree.joints[i].name: 0.0 for i in mech.joints_with("effort")}
+        self.command_stamp = None
+        self._dirty = True
+        self.rest_q, self.rest_message = self._rest()
+        self.lam = np.zeros(mech.n_constraint_rows + len(mech.joints_with("position")))
+        self._good = self._inputs_tuple()
+        self.reset(solve=False)
+
+    # --- inputs -------------------------------------------------------------
+    def _inputs_tuple(self):
+        return (self.u.copy(), self.tip_wrench.copy(), self.tip_frame, dict(self.positions), dict(self.efforts),
+                self.command_stamp)
+
+    def core_inputs(self, positions=None, velocities=None):
+        """The checked core Inputs of the current commands (``positions``,
+        ``velocities``: instead of the commanded ones, e.g. the shaped
+        references)."""
+        pl = [cs.FrameLoad(self.tip, self.tip_wrench, "world" if self.tip_frame == "world" else "body")] \
+            if np.any(self.tip_wrench) else []
+        return cs.make_inputs(self.mech, self.u, self.efforts, self.positions if positions is None else positions,
+                              velocities, Loads(), pl)
+
+    def _shaped(self, h):
+        """The position references after one step h towards the commands
+        (:func:`mechanism.shape_command`, the joints' max_velocity and
+        max_acceleration): new {joint: (r, v)}."""
+        out = {}
+        for name, (r, v) in self._ref.items():
+            vmax, amax = self.mech.motion_limits.get(name, (np.inf, np.inf))
+            out[name] = shape_command(r, v, self.positions[name], vmax, amax, h)
+        return out
+
+    def set_actuation(self, u, stamp=None):
+        self.u = np.array(u, dtype=float)
+        self.command_stamp = stamp
+        self._dirty = True
+
+    def set_tip_wrench(self, wrench, frame="world"):
+        self.tip_wrench, self.tip_frame = np.array(wrench, dtype=float), frame
+        self._dirty = True
+
+    def set_joint_commands(self, positions, efforts, stamp=None):
+        self.positions, self.efforts = dict(positions), dict(efforts)
+        self.command_stamp = stamp if stamp is not None else self.command_stamp
+        self._dirty = True
+
+    @property
+    def command_pending(self):
+        return self.command_stamp is not None and self.command_stamp is not self._good[5]
+
+    @property
+    def needs_solve(self):
+        return self.settings.mode == "quasi_static" and self._dirty
+
+    # --- state --------------------------------------------------------------
+    def _rest(self):
+        """Equilibrium under gravity with the joints at their references
+        (statics; a robot with a floating base or spherical joints starts
+        from its reference configuration)."""
+        try:
+            eq = cs.solve_equilibrium(self.mech)
+            return eq.q.copy(), "rest: static equilibrium under gravity"
+        except (ValueError, cs.StaticsError) as e:
+            return self.mech.tree.q0.copy(), f"rest: reference configuration ({clip(e, 200)})"
+
+    def _new_sim(self, q, v):
+        s = self.settings
+        sim = cs.MechanismSimulator(self.mech, s.dt, s.theta, q, v, tol=s.tolerance,
+                                    max_iterations=max(s.max_iterations, 10))
+        return sim
+
+    def reset(self, solve=True):
+        mech = self.mech
+        self.u = np.zeros(len(mech.actuators))
+        self.tip_wrench, self.tip_frame = np.zeros(6), "world"
+        self.positions = {mech.tree.joints[i].name: mech.tree.joints[i].q_ref for i in mech.joints_with("position")}
+        self.efforts = {mech.tree.joints[i].name: 0.0 for i in mech.joints_with("effort")}
+        self.command_stamp = None
+        self._good = self._inputs_tuple()
+        self.state = State(self.rest_q.copy(), np.zeros(mech.tree.nv), 0.0)
+        self._ref = {n: (float(v), 0.0) for n, v in self.positions.items()}
+        self.lam = np.zeros_like(self.lam)
+        self._sim = self._new_sim(self.state.q, self.state.qdot) if self.settings.mode == "dynamic" else None
+        if self._sim is not None:
+            self._sim.start_multipliers(self.core_inputs())
+            self.lam = self._sim.lam.copy()
+        self._dirty = self.settings.mode == "quasi_static"
+        if solve and self._dirty:
+            self._solve()
+
+    def change_settings(self, settings):
+        if settings.mode not in ("dynamic", "quasi_static"):
+            raise ValueError(f"mode: expected dynamic or quasi_static, got {settings.mode!r}")
+        old, self.settings = self.settings, settings
+        if (settings.mode, settings.dt, settings.theta, settings.tolerance) != \
+                (old.mode, old.dt, old.theta, old.tolerance):
+            v = self.state.qdot if settings.mode == old.mode else np.zeros(self.mech.tree.nv)
+            self.state = State(self.state.q.copy(), v.copy(), self.state.t)
+            self._sim = self._new_sim(self.state.q, self.state.qdot) if settings.mode == "dynamic" else None
+            if self._sim is not None:
+                self._sim.t = self.state.t
+            tree = self.mech.tree
+            self._ref = {n: (float(self.state.q[tree.idx_q[tree.joint_index(n)]]), 0.0) for n in self.positions}
+            self._dirty = True
+
+    def warm_up(self):
+        """One throw-away step and solve (numba's kernels load or compile)."""
+        t0 = time.perf_counter()
+        sim = self._new_sim(self.state.q, self.state.qdot)
+        sim.step(inputs=self.core_inputs())
+        self.outputs()
+        return time.perf_counter() - t0
+
+    # --- advancing ----------------------------------------------------------
+    def step(self, n=1):
+        t0 = time.perf_counter()
+        if self.settings.mode == "dynamic":
+            info = UpdateInfo()
+            for _ in range(n):
+                ref = self._shaped(self.settings.dt)
+                try:
+                    inp = self.core_inputs({k: r for k, (r, _) in ref.items()}, {k: v for k, (_, v) in ref.items()})
+                    self._sim.step(inputs=inp)
+                except (cs.StepError,) + STEP_ERRORS as e:
+                    info.converged = False
+                    info.dropped = self._drop()
+                    info.message = (f"dynamics step at t = {self.state.t:.4f} s failed ({clip(e, 300)}); state kept"
+                                    + (", input dropped" if info.dropped else ""))
+                    break
+                info.steps += 1
+                self._ref = ref
+                info.iterations += self._sim.iterations
+                self.state = State(self._sim.q.copy(), self._sim.v.copy(), self._sim.t)
+                self.lam = self._sim.lam.copy()
+                self._good = self._inputs_tuple()
+        else:
+            info = self._solve()
+        info.compute_time = time.perf_counter() - t0
+        return info
+
+    def _drop(self):
+        """Back to the inputs of the last good state; what changed is dropped."""
+        now, good = self._inputs_tuple(), self._good
+        dropped = []
+        if not np.array_equal(now[0], good[0]) or now[3] != good[3] or now[4] != good[4]:
+            dropped.append("actuation")
+        if not np.array_equal(now[1], good[1]) or now[2] != good[2]:
+            dropped.append("wrench")
+        (u, w, frame, pos, eff, self.command_stamp) = good
+        self.u, self.tip_wrench, self.tip_frame = u.copy(), w.copy(), frame
+        self.positions, self.efforts = dict(pos), dict(eff)
+        # the simulator's state is unchanged by a failed step
+        return tuple(dropped)
+
+    def _solve(self):
+        if not self._dirty:
+            return UpdateInfo()
+        self._dirty = False
+        try:
+            inp = self.core_inputs()
+            pl = [cs.FrameLoad(self.tip, self.tip_wrench, "world" if self.tip_frame == "world" else "body")] \
+                if np.any(self.tip_wrench) else []
+            eq = cs.solve_equilibrium(self.mech, inp.u, self.efforts, self.positions, Loads(), pl,
+                                      q_init=self.state.q)
+        except (ValueError, cs.StaticsError) + STEP_ERRORS as e:
+            dropped = self._drop()
+            return UpdateInfo(0, 0, False, f"statics failed for the last input (dropped): {clip(e, 300)}; "
+                                           f"state kept", dropped=dropped)
+        self._good = self._inputs_tuple()
+        self._ref = {n: (float(v), 0.0) for n, v in self.positions.items()}
+        self.state.q = eq.q.copy()
+        self.state.qdot = np.zeros(self.mech.tree.nv)
+        self.lam = eq.lam.copy()
+        return UpdateInfo(1, eq.iterations, True, "")
+
+    # --- queries (never touch this twin) ------------------------------------
+    def query_copy(self):
+        """A quasi-static copy with this twin's commands and shape (cheap:
+        the model is shared), for queries run outside the node's lock."""
+        import copy
+        q = copy.copy(self)
+        q.settings = TwinSettings(mode="quasi_static")
+        q.state = State(self.state.q.copy(), np.zeros(self.mech.tree.nv), self.state.t)
+        q.positions, q.efforts = dict(self.positions), dict(self.efforts)
+        q.lam, q._sim = self.lam.copy(), None
+        return q
+
+    def statics(self, actuation, wrench, frame="world"):
+        """(UpdateInfo, snapshot) of the equilibrium under these inputs,
+        warm-started from the current shape (on a :meth:`query_copy`)."""
+        self.set_actuation(actuation)
+        self.set_tip_wrench(wrench, frame)
+        info = self._solve()
+        return info, (self.outputs() if info.converged else None)
+
+    # --- outputs ------------------------------------------------------------
+    def outputs(self):
+        mech, tree = self.mech, self.mech.tree
+        u, w, frame, pos, eff, stamp = self._good
+        dynamic = self.settings.mode == "dynamic" and self._sim is not None
+        q = self.state.q.copy()
+        v = self.state.qdot.copy() if dynamic else None
+        a = self._sim.a.copy() if dynamic else None
+        pl = [cs.FrameLoad(self.tip, w, "world" if frame == "world" else "body")] if np.any(w) else []
+        inp = cs.make_inputs(mech, u, eff, pos, None, Loads(), pl)
+        out = state_outputs(mech, q, self.lam, inp, v, a)
+        names = mech.joint_names
+        backbones = {m.name: (m.poses, m.s) for m in out.members}
+        tip_pose = out.frames[self.tip]
+        main = next((m.name for m in mech.members if self.tip.startswith(m.name)), None) \
+            or (mech.members[-1].name if mech.members else "")
+        bb, s = backbones.get(main, (tip_pose[None], np.zeros(1)))
+        soft = tree.soft_joints
+        strains = np.array([self._full_strain(i, q) for i in soft]).reshape(-1, 6)
+        rates = np.zeros((len(soft), 6))
+        if v is not None:
+            for k, i in enumerate(soft):
+                modes = tree.joints[i].section.modes
+                rates[k, modes] = v[tree.idx_v[i]:tree.idx_v[i] + len(modes)]
+        # the support's reaction: every root joint's transmitted wrench, about the base origin
+        base = np.zeros(6)
+        for i, j in enumerate(tree.joints):
+            if j.parent == -1:
+                wr = out.joint_wrenches[j.name]
+                p = j.placement[:3, 3]
+                base += np.concatenate([wr[:3], wr[3:] + np.cross(p, wr[:3])])
+        R = tip_pose[:3, :3]
+        tip_w = np.concatenate([R.T @ w[:3], R.T @ w[3:]]) if frame == "world" else w.copy()
+        return ArticulatedSnapshot(
+            mode=self.settings.mode, t=float(self.state.t), u=u.copy(), joint_names=names,
+            joint_positions=np.array([out.positions[n] for n in names]),
+            joint_velocities=np.array([out.velocities[n] for n in names]),
+            joint_efforts=np.array([out.efforts[n] for n in names]),
+            backbones=backbones, main_member=main, s=s, backbone=bb, tip_pose=tip_pose,
+            strains=strains, strain_rates=rates, frames=out.frames, tip_wrench=tip_w, base_wrench=base,
+            constraint_wrenches=out.constraint_wrenches,
+            stresses={m.name: (float(np.nanmax(m.normal_stress, initial=0.0)),
+                               float(np.nanmax(m.shear_stress, initial=0.0))) for m in out.members},
+            command_stamp=stamp)
+
+    def _full_strain(self, i, q):
+        j = self.mech.tree.joints[i]
+        f = j.section.f0.copy()
+        iq = self.mech.tree.idx_q[i]
+        f[j.section.modes] = q[iq:iq + len(j.section.modes)]
+        return f

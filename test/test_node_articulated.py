@@ -1,0 +1,124 @@
+"""The node with an articulated robot (tree robot file), end to end: the node
+in a second process, this process as its client over real rclpy. Joint
+commands in (sensor_msgs/JointState), joint states, backbones and wrenches
+out, compared with the core for the same inputs; bad joint commands
+rejected and counted."""
+
+import math
+
+import numpy as np
+import pytest
+
+rclpy = pytest.importorskip("rclpy", reason="needs ROS 2: the venv of `make setup`")
+
+from geometry_msgs.msg import PoseArray, WrenchStamped  # noqa: E402
+
+from soft_twin.client import TwinClient, stamp_key, start_twin, stop_twin  # noqa: E402
+from soft_twin.conversions import matrix_from_pose  # noqa: E402
+from soft_twin_core.constrained import FrameLoad, solve_equilibrium  # noqa: E402
+from soft_twin_core.mechanism import load_mechanism  # noqa: E402
+from soft_twin_core.model import find_file  # noqa: E402
+from soft_twin_core.outputs import state_outputs  # noqa: E402
+
+pytestmark = pytest.mark.ros
+START_TIMEOUT = 120.0
+TOPICS = TwinClient.TOPICS + ("joint_states",)
+
+
+def _start(name, args, tmp_path_factory):
+    return start_twin(name, args, tmp_path_factory.mktemp(name) / "node.log", TOPICS, START_TIMEOUT,
+                      ready=lambda c: c.pub_joints.get_subscription_count() > 0)
+
+
+def _stop(proc, client):
+    stop_twin(proc, client)
+
+
+def poses_of(msg):
+    return np.array([matrix_from_pose(p) for p in msg.poses])
+
+
+@pytest.fixture(scope="module")
+def pan_tilt_qs(tmp_path_factory):
+    proc, client = _start("twin_art_qs", ["-p", "mode:=quasi_static", "-p", "diagnostics_rate_hz:=20.0",
+                                          "-p", "republish_rate_hz:=20.0",
+                                          "-p", "robot_description_file:=pan_tilt_arm"], tmp_path_factory)
+    yield client
+    _stop(proc, client)
+
+
+def test_joint_commands_give_the_core_equilibrium(pan_tilt_qs):
+    c = pan_tilt_qs
+    mech = load_mechanism(find_file("pan_tilt_arm", "robots"))
+    stamp = c.send_actuation(["tendon_z_pos"], [2.0])
+    assert c.wait_until(lambda: c.state_after(stamp), 10.0)
+    stamp = c.send_joint_command(["pan", "tilt"], positions=[0.4, -0.3])
+    assert c.wait_until(lambda: c.state_after(stamp), 10.0), "joint command never applied"
+    backbone, strains = c.state_after(stamp)
+    ref = solve_equilibrium(mech, {"tendon_z_pos": 2.0}, None, {"pan": 0.4, "tilt": -0.3})
+    out = state_outputs(mech, ref.q, ref.lam, ref.inputs)
+    got = poses_of(backbone)
+    want = out.members[0].poses
+    assert backbone.header.frame_id == "base_link" and len(got) == len(want) == 5
+    np.testing.assert_allclose(got[:, :3, 3], want[:, :3, 3], rtol=0, atol=1e-9)
+    # joint states of that state (same stamp): positions and the inverse-dynamics efforts
+    js = c.wait_until(lambda: next((m for _, m in c.history["joint_states"]
+                                    if stamp_key(m.header.stamp) == stamp_key(backbone.header.stamp)), None), 5.0)
+    assert list(js.name) == ["pan", "tilt"]
+    np.testing.assert_allclose(js.position, [0.4, -0.3], rtol=0, atol=1e-12)
+    np.testing.assert_allclose(js.effort, [out.efforts["pan"], out.efforts["tilt"]], rtol=0, atol=1e-9)
+    assert abs(js.effort[1]) > 0.05              # the tilt joint holds the arm up
+    # the base wrench: the support's reaction balances the weight
+    assert c.wait_until(lambda: c.base_wrench is not None and stamp_key(c.base_wrench.header.stamp)
+                        >= stamp_key(backbone.header.stamp), 10.0)
+    weight = 9.81 * (0.40 + 0.15 + 1100.0 * 0.15 * math.pi * (0.012**2 + 0.009**2))
+    assert abs(c.base_wrench.wrench.force.z - weight) < 1e-9 * weight
+
+
+@pytest.mark.parametrize("names,positions,efforts,reason", [
+    (["elbow"], [0.1], [], "unknown_name"),
+    (["pan"], [float("nan")], [], "non_finite"),
+    (["tilt"], [2.0], [], "over_limit"),
+    (["pan"], [], [0.3], "wrong_mode"),
+    (["pan", "tilt"], [0.1], [], "wrong_length"),
+])
+def test_bad_joint_commands_are_rejected_and_counted(pan_tilt_qs, names, positions, efforts, reason):
+    c = pan_tilt_qs
+    before = c.wait_diagnostics(timeout=10.0)
+    n0 = int(before[f"rejected_{reason}_total"])
+    j0 = int(before["rejected_joint_total"])
+    pan0 = c.joint_states.position[0]
+    c.send_joint_command(names, positions, efforts)
+    d = c.wait_diagnostics(lambda d: int(d[f"rejected_{reason}_total"]) > n0, 10.0)
+    assert d is not None, f"rejection {reason} never counted"
+    assert int(d["rejected_joint_total"]) == j0 + 1
+    assert c.joint_states.position[0] == pan0          # nothing applied
+
+
+def test_dynamic_joint_motion_and_constraint_wrenches(tmp_path_factory):
+    """Dynamic mode: a step command becomes a smooth move within the joint's
+    speed bound; the parallel robot's constraint wrench topic matches the core."""
+    proc, c = _start("twin_art_dyn", ["-p", "robot_description_file:=pan_tilt_arm"], tmp_path_factory)
+    try:
+        c.send_joint_command(["pan"], positions=[0.3])
+        assert c.wait_until(lambda: c.joint_states is not None and abs(c.joint_states.position[0] - 0.3) < 1e-9,
+                            10.0), f"pan never reached 0.3: {c.joint_states}"
+        vel = [abs(m.velocity[0]) for _, m in c.history["joint_states"]]
+        assert max(vel) <= 1.0 + 1e-9 and max(vel) > 0.3       # moved, within max_velocity 1 rad/s
+    finally:
+        _stop(proc, c)
+    proc, c = _start("twin_art_par", ["-p", "mode:=quasi_static", "-p", "republish_rate_hz:=20.0",
+                                      "-p", "robot_description_file:=planar_parallel_robot"], tmp_path_factory)
+    try:
+        got = c.subscribe(WrenchStamped, "/twin_art_par/constraint_wrenches/rod2_to_platform")
+        rods = c.subscribe(PoseArray, "/twin_art_par/backbones/rod2")
+        assert c.wait_until(lambda: got and rods, 10.0)
+        mech = load_mechanism(find_file("planar_parallel_robot", "robots"))
+        ref = solve_equilibrium(mech)
+        w = ref.constraint_wrenches["rod2_to_platform"]
+        m = got[-1].wrench
+        np.testing.assert_allclose([m.force.x, m.force.y, m.force.z, m.torque.x, m.torque.y, m.torque.z], w,
+                                   rtol=0, atol=1e-9)
+        assert len(rods[-1].poses) == 9
+    finally:
+        _stop(proc, c)
