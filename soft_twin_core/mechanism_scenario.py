@@ -252,6 +252,7 @@ def _outputs_dict(sc, out, prefix=""):
         "transmitted_names": list(out.joint_wrenches),
         "transmitted_wrenches": [w.tolist() for w in out.joint_wrenches.values()],
         "members": {m.name: {"s": m.s.tolist(), "positions": m.poses[:, :3, 3].tolist(),
+                             "velocities": m.velocities.tolist(), "accelerations": m.accelerations.tolist(),
                              "internal_wrench": m.internal_wrench.tolist(), "strains": m.strains.tolist(),
                              "normal_stress": _nan_none(m.normal_stress), "shear_stress": _nan_none(m.shear_stress)}
                     for m in out.members},

@@ -64,7 +64,8 @@ class MemberOutput:
     points, base to tip): arc length s [m], cross-section poses (world),
     internal wrench (body axes, see the module), strains of the section at
     or after each point (the last: the last section's), peak normal and shear
-    stress [Pa]."""
+    stress [Pa]; ``velocities`` and ``accelerations`` (world, m/s and m/s^2)
+    of the centre-line points (zero in statics)."""
     name: str
     s: np.ndarray
     poses: np.ndarray
@@ -72,6 +73,8 @@ class MemberOutput:
     strains: np.ndarray
     normal_stress: np.ndarray
     shear_stress: np.ndarray
+    velocities: np.ndarray = None
+    accelerations: np.ndarray = None
 
 
 def _to_world(g, w):
@@ -134,7 +137,13 @@ def member_outputs(mech, ws, u=None, loads=None):
         shear = np.empty(len(s))
         for k in range(len(s)):
             normal[k], shear[k] = peak_stresses(geo[k], wr[k])
-        out.append(MemberOutput(mem.name, s, poses.copy(), wr, strains.copy(), normal, shear))
+        # body twists and accelerations of the cross-sections -> world point velocity and acceleration
+        V = np.concatenate([w.Vin[js], w.V[js[-1:]]])
+        A = np.concatenate([w.Ain[js], w.A[js[-1:]]])
+        R = poses[:, :3, :3]
+        vel = np.einsum("nij,nj->ni", R, V[:, :3])
+        acc = np.einsum("nij,nj->ni", R, A[:, :3] + np.cross(V[:, 3:], V[:, :3]))
+        out.append(MemberOutput(mem.name, s, poses.copy(), wr, strains.copy(), normal, shear, vel, acc))
     return out
 
 
@@ -198,6 +207,11 @@ def state_outputs(mech, q, lam, inputs, v=None, a=None, ws=None):
     if refs:
         point_poses(ws.m, ws.w, np.array([r.joint for r in refs], np.int64), np.array([r.x for r in refs]), P)
     jw = joint_wrenches(mech, ws)
+    members = member_outputs(mech, ws, inputs.u, loads)
+    if v is None:                    # statics: the pass computed no motion (its arrays may hold old values)
+        for mo in members:
+            mo.velocities[:] = 0.0
+            mo.accelerations[:] = 0.0
     return MechanismOutputs(
         positions={n: float(q[k]) for n, k in zip(names, iq)},
         velocities={n: float(v_[k]) for n, k in zip(names, iv)},
@@ -206,4 +220,4 @@ def state_outputs(mech, q, lam, inputs, v=None, a=None, ws=None):
         joint_wrenches={j.name: jw[i] for i, j in enumerate(tree.joints)},
         constraint_wrenches=constraint_wrenches(mech, lam),
         frames=dict(zip(fnames, P)),
-        members=member_outputs(mech, ws, inputs.u, loads))
+        members=members)

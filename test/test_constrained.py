@@ -504,3 +504,24 @@ def test_parallel_robot_example_balances_its_loads():
     # the weight of rods and platform is the rest
     assert abs(f[0]) < 1e-9 and abs(f[2] - weight * 9.81) < 1e-6
     assert out.frames["platform"][0, 3] > 5e-3
+
+
+def test_member_point_velocities_and_accelerations_match_the_jacobians():
+    mech = load_mechanism(find_file("pan_tilt_arm", "robots"))
+    tree = mech.tree
+    sim = MechanismSimulator(mech, 2e-3)
+    for k in range(40):
+        sim.step(actuation={"tendon_y_pos": 1.5}, positions={"pan": 0.01 * k, "tilt": -0.005 * k})
+    out = state_outputs(mech, sim.q, sim.lam, sim.inputs, sim.v, sim.a)
+    mo = out.members[0]
+    ws = Workspace(tree)
+    js = list(tree.paths[0].joints)
+    for k, (j, x) in enumerate([(j, 0.0) for j in js] + [(js[-1], tree.joints[js[-1]].section.length)]):
+        g, J = alg.point_jacobian(tree, ws, sim.q, j, x, frame="world")
+        Jd = alg.point_jacobian_dot(tree, ws, sim.q, sim.v, j, x, frame="world")
+        assert np.abs(g - mo.poses[k]).max() < 1e-12
+        np.testing.assert_allclose(mo.velocities[k], (J @ sim.v)[:3], rtol=0, atol=1e-12)
+        np.testing.assert_allclose(mo.accelerations[k], (J @ sim.a + Jd @ sim.v)[:3], rtol=0, atol=1e-10)
+    assert np.abs(mo.velocities).max() > 1e-3
+    still = state_outputs(mech, sim.q, sim.lam, sim.inputs)
+    assert not np.any(still.members[0].velocities) and not np.any(still.members[0].accelerations)
