@@ -203,8 +203,28 @@ def is_tree_file(d):
 
 def load_mechanism(path):
     """A :class:`Mechanism` from a robot file of either schema."""
+    import os
     d = robot_mapping(read_yaml_file(path, what="robot file"), str(path))
-    return mechanism_from_dict(d) if is_tree_file(d) else from_robot_model(model_from_dict(d), d)
+    if is_tree_file(d):
+        return mechanism_from_dict(d, os.path.dirname(os.path.abspath(path)))
+    return from_robot_model(model_from_dict(d), d)
+
+
+def _with_urdf(d, base_dir):
+    """The bodies of ``d`` after those of its ``urdf`` file (a path relative
+    to ``base_dir``): a rigid robot onto which members are mounted."""
+    import os
+    from .urdf import bodies_from_urdf
+    path = d["urdf"]
+    if not isinstance(path, str) or not path:
+        raise ModelError(f"robot.urdf: expected a file path, got {path!r}")
+    full = path if os.path.isabs(path) or base_dir is None else os.path.join(base_dir, path)
+    try:
+        with open(full, encoding="utf-8") as fh:
+            text = fh.read()
+    except OSError as e:
+        raise ModelError(f"robot.urdf: {full}: {e.strerror}") from None
+    return bodies_from_urdf(text, f"robot.urdf ({path})") + list(d.get("bodies") or [])
 
 
 def _pose(d, where):
@@ -327,7 +347,7 @@ def _soft_sections(robot, kmap, npt):
                         np.asarray(s.free, bool), kmap, npt) for s in robot.sections]
 
 
-def mechanism_from_dict(d):
+def mechanism_from_dict(d, base_dir=None):
     """A :class:`Mechanism` from the tree schema::
 
         name, gravity, kinematic_map, quadrature_points   # as the classic schema
@@ -354,11 +374,14 @@ def mechanism_from_dict(d):
           - {name, type: clamped | pinned | line | plane, frame: A, to: world | FRAME,
              target: {position, rpy} (world only), direction: [..] (line), normal: [..] (plane)}
 
+        urdf: rigid.urdf   # optional: its links and joints come first (bodies named after its links;
+                           # the root link is the base), relative to ``base_dir`` (the file's folder)
+
     Each member gets a path (its name) and a frame ``<member>_tip`` at its
     end; each link a frame with its own name. Raises ModelError naming the
     field."""
     _check_keys(d, {"name", "base", "gravity", "kinematic_map", "quadrature_points", "bodies", "frames",
-                    "constraints"}, "robot")
+                    "constraints", "urdf"}, "robot")
     kmap = d.get("kinematic_map", "exponential")
     if kmap not in ("exponential", "cayley"):
         raise ModelError(f"robot.kinematic_map: expected 'exponential' or 'cayley', got {kmap!r}")
@@ -381,7 +404,7 @@ def mechanism_from_dict(d):
         jb = b.add_joint("base", FREE, -1, base_pose)
         control.append("")
         ends["base"] = (jb, np.eye(4))
-    bodies = d.get("bodies")
+    bodies = _with_urdf(d, base_dir) if "urdf" in d else d.get("bodies")
     if not isinstance(bodies, list) or not bodies:
         raise ModelError("robot.bodies: expected a non-empty list of bodies (links and members)")
     members, links, frames = [], [], {}
