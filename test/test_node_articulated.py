@@ -122,3 +122,17 @@ def test_dynamic_joint_motion_and_constraint_wrenches(tmp_path_factory):
         assert len(rods[-1].poses) == 9
     finally:
         _stop(proc, c)
+
+
+def test_markers_draw_members_and_links(pan_tilt_qs):
+    from visualization_msgs.msg import MarkerArray
+    c = pan_tilt_qs
+    got = c.subscribe(MarkerArray, "/twin_art_qs/markers", depth=5)
+    assert c.wait_until(lambda: got, 10.0), "no markers"
+    ms = got[-1].markers
+    links = {m.id: m for m in ms if m.ns == "links"}
+    tubes = [m for m in ms if m.ns == "tube" and m.action == 0]
+    assert len(links) == 2 and len(tubes) == 4                 # pan and tilt links; 4 arm sections
+    assert links[0].type == links[0].CYLINDER and links[1].type == links[1].CUBE
+    assert abs(links[1].pose.position.z - 0.08) < 1e-12        # the tilt link sits on top of the pan link
+    assert abs(tubes[0].scale.x - 0.024) < 1e-12               # the proximal member's diameter
