@@ -380,14 +380,9 @@ class Twin:
 
     def _new_sim(self, state):
         s = self.settings
-        sim = dy.Simulator(self.model, dt=s.dt, actuation=self.u, loads=self.loads(), state=state,
-                           theta=s.theta, tol=s.tolerance, max_iterations=s.max_iterations,
-                           max_substep_levels=s.max_substep_levels)
-        # the core's Simulator has no argument for its integrator's dense fallback
-        integrator = getattr(sim, "_integrator", None)
-        if integrator is not None and hasattr(integrator, "full_newton"):
-            integrator.full_newton = bool(s.full_newton)
-        return sim
+        return dy.Simulator(self.model, dt=s.dt, actuation=self.u, loads=self.loads(), state=state,
+                            theta=s.theta, tol=s.tolerance, max_iterations=s.max_iterations,
+                            max_substep_levels=s.max_substep_levels, full_newton=bool(s.full_newton))
 
     def _make_sim(self):
         if self.settings.mode != "dynamic":

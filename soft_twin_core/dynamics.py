@@ -182,12 +182,14 @@ class Simulator:
     (the state is only updated by converged steps).
 
     actuation: dict/vector, or a callable t -> vector; loads: Loads or a
-    callable t -> Loads. The model is never modified; ``state`` holds q,
-    qdot and t.
+    callable t -> Loads. ``full_newton``: when the O(n) iteration fails, try
+    a dense full Newton before splitting the step (robust, but 25-700 ms a
+    step; real-time users turn it off). The model is never modified;
+    ``state`` holds q, qdot and t.
     """
 
     def __init__(self, model, dt=1e-3, actuation=None, loads=None, state=None,
-                 max_iterations=10, tol=1e-9, max_substep_levels=4, theta=0.5):
+                 max_iterations=10, tol=1e-9, max_substep_levels=4, theta=0.5, full_newton=True):
         from .forces import actuator_arrays
         from .integrators import ThetaIntegrator
         from .model import State
@@ -208,7 +210,7 @@ class Simulator:
         self._effort = np.zeros(self.tree.nv)
         self._inputs_key = None
         self._integrator = ThetaIntegrator(self.tree, self.workspace, self._act, self._inputs, self.dt,
-                                           self.theta, tol, max_iterations, max_substep_levels)
+                                           self.theta, tol, max_iterations, max_substep_levels, full_newton)
 
     @property
     def last_qddot(self):
