@@ -357,10 +357,10 @@ def independent_rows(G, rtol=1e-10):
     return np.sort(piv[:r])
 
 
-def solve_kkt(A, G_force, G_cons, R, phi, rows=None):
-    """(dx, dlam) of ``[[A, -G_force^T], [G_cons, 0]] [dx; dlam] = [-R; -phi]``
-    over the independent rows of G_cons (dlam = 0 on the redundant ones;
-    ``rows``: those rows if known)."""
+def factor_kkt(A, G_force, G_cons, rows=None):
+    """LU factors of ``[[A, -G_force^T], [G_cons, 0]]`` over the independent
+    rows of G_cons (``rows``: those rows if known), for :func:`solve_factored`."""
+    from scipy.linalg import lu_factor
     n = A.shape[0]
     rows = independent_rows(G_cons) if rows is None else rows
     m = len(rows)
@@ -368,10 +368,28 @@ def solve_kkt(A, G_force, G_cons, R, phi, rows=None):
     K[:n, :n] = A
     K[:n, n:] = -G_force[rows].T
     K[n:, :n] = G_cons[rows]
-    x = np.linalg.solve(K, -np.concatenate([R, phi[rows]]))
-    dl = np.zeros(G_cons.shape[0])
+    lu = lu_factor(K, check_finite=False)
+    if not np.all(np.isfinite(lu[0])) or np.min(np.abs(np.diag(lu[0])), initial=np.inf) == 0.0:
+        raise np.linalg.LinAlgError("singular Newton matrix")
+    return lu, rows, n, G_cons.shape[0]
+
+
+def solve_factored(fac, R, phi):
+    """(dx, dlam) of the system of :func:`factor_kkt` for the right-hand side
+    [-R; -phi] (dlam = 0 on redundant rows)."""
+    from scipy.linalg import lu_solve
+    lu, rows, n, mall = fac
+    x = lu_solve(lu, -np.concatenate([R, phi[rows]]), check_finite=False)
+    dl = np.zeros(mall)
     dl[rows] = x[n:]
     return x[:n], dl
+
+
+def solve_kkt(A, G_force, G_cons, R, phi, rows=None):
+    """(dx, dlam) of ``[[A, -G_force^T], [G_cons, 0]] [dx; dlam] = [-R; -phi]``
+    over the independent rows of G_cons (dlam = 0 on the redundant ones;
+    ``rows``: those rows if known)."""
+    return solve_factored(factor_kkt(A, G_force, G_cons, rows), R, phi)
 
 
 def _check_statics_model(tree):
@@ -538,7 +556,29 @@ class MechanismSimulator:
                 self._step(inp, targets)
         return self
 
+    def _newton_matrix(self, inp, coef, ld, qt, q1, targets):
+        """Factors of the step's Newton matrix at (q_t, lambda):
+        ``[[(M + th h D + (th h)^2 Kt)/h, -G_t^T], [th h G_1, 0]]`` with Kt
+        the static tangent of the elastic forces, loads and tendons."""
+        tree, m, w = self.tree, self.ws.m, self.ws.w
+        h, th = self.dt, self.theta
+        z = self.ws.zeros_v
+        passes.forward_pass(m, w, qt, z, z, 0)
+        Mq = np.zeros((tree.nv, tree.nv))
+        passes.crba_pass(m, w, Mq)
+        passes.rnea_pass(m, w, ld, inp.gravity, np.empty(tree.nv), True)
+        Kt = self.K.copy()
+        static_tangent_pass(m, w, ld, inp.gravity, Kt)
+        actuation_tangent_pass(m, w, self.act, coef, Kt)
+        _, Gt = constraint_rows(self.mech, self.ws, qt, targets, inp.q_cmd)
+        _, G1 = constraint_rows(self.mech, self.ws, q1, targets, inp.q_cmd)
+        A = (Mq + th * h * self.D + (th * h) ** 2 * Kt) / h
+        return factor_kkt(A, Gt, th * h * G1)
+
     def _step(self, inp, targets):
+        """One theta step by modified Newton: the Newton matrix is factorised
+        at the first iteration and again only when the iteration slows down
+        (update shrinking less than fourfold)."""
         tree, m, w = self.tree, self.ws.m, self.ws.w
         h, th = self.dt, self.theta
         q0, v0 = self.q, self.v
@@ -550,7 +590,7 @@ class MechanismSimulator:
         qt = np.empty(tree.nq)
         q1 = np.empty(tree.nq)
         R = np.empty(tree.nv)
-        z = np.zeros(tree.nv)
+        fac, refactor, prev, first, Rs = None, True, np.inf, 0.0, 1e-300
         for it in range(1, self.max_iterations + 1):
             vt = (1 - th) * v0 + th * v1
             acc = (v1 - v0) / h
@@ -560,32 +600,23 @@ class MechanismSimulator:
             effort = inp.effort.copy()
             if npos:
                 effort[pos_v] += lam[len(lam) - npos:]
-            # Newton matrix pieces at q_t: M, the static tangent of the loads, the tendons
-            passes.forward_pass(m, w, qt, z, z, 0)
-            Mq = np.zeros((tree.nv, tree.nv))
-            passes.crba_pass(m, w, Mq)
-            passes.rnea_pass(m, w, ld, inp.gravity, np.empty(tree.nv), True)
-            Kt = self.K.copy()
-            static_tangent_pass(m, w, ld, inp.gravity, Kt)
-            actuation_tangent_pass(m, w, self.act, coef, Kt)
+            if refactor:
+                try:
+                    fac = self._newton_matrix(inp, coef, ld, qt, q1, targets)
+                except np.linalg.LinAlgError:
+                    raise StepError(f"step at t = {self.t:.6g} s: singular Newton matrix") from None
+                refactor = False
             residual_pass(m, w, self.act, ld, inp.gravity, coef, effort, qt, vt, acc, R, False)
-            _, Gt = constraint_rows(self.mech, self.ws, qt, targets, inp.q_cmd)
-            phi1, G1 = constraint_rows(self.mech, self.ws, q1, targets, inp.q_cmd)
+            phi1, _ = constraint_rows(self.mech, self.ws, q1, targets, inp.q_cmd)
             if not (np.all(np.isfinite(R)) and np.all(np.isfinite(phi1))):
                 raise StepError(f"step at t = {self.t:.6g} s: non-finite residual")
             nR = np.abs(R).max(initial=0)
             phi_ok = np.abs(phi1).max(initial=0) <= self.constraint_tol * max(self.Ls, 1.0)
             if it == 1:
-                Rs = max(nR, np.abs(Gt.T @ lam).max(initial=0), 1e-300)
+                Rs = max(nR, np.abs(lam).max(initial=0) * max(self.Ls, 1.0), 1e-300)
             elif phi_ok and nR <= self.tol * Rs:
                 break              # balanced: forces to tol of their scale, constraints held
-            A = (Mq + th * h * self.D + (th * h) ** 2 * Kt) / h
-            if it == 1:
-                rows = independent_rows(G1)
-            try:
-                dv, dl = solve_kkt(A, Gt, th * h * G1, R, phi1, rows)
-            except np.linalg.LinAlgError:
-                raise StepError(f"step at t = {self.t:.6g} s: singular Newton matrix") from None
+            dv, dl = solve_factored(fac, R, phi1)
             v1 += dv
             lam += dl
             ndv = np.abs(dv).max(initial=0)
@@ -594,6 +625,7 @@ class MechanismSimulator:
             vs = max(np.abs(v1).max(initial=0), np.abs(v0).max(initial=0), first, 1e-300)
             if phi_ok and (ndv <= self.tol * vs or (it > 2 and ndv <= 1e-6 * vs and ndv >= 0.5 * prev)):
                 break              # converged, or stalled at round-off
+            refactor = it > 1 and ndv > 0.25 * prev
             prev = ndv
         else:
             raise StepError(f"step at t = {self.t:.6g} s: Newton did not converge in {self.max_iterations} "
