@@ -158,7 +158,7 @@ def main_workspace(args):
     (out / "workspace.json").write_text(json.dumps(summary, indent=1))
     color = w["U"][:, idx[0]] if len(idx) else None
     plot_workspace(w["points"], hs, out / "workspace.png", f"{sc.model.name} workspace",
-                   color=color, color_label=names[idx[0]] if len(idx) else None)
+                   color=color, color_label=names[idx[0]] if len(idx) else None, mark=w["corner"])
     ext = np.array(summary["extent_max_m"]) - np.array(summary["extent_min_m"])
     _say(f"{len(rows) - len(w['failed'])} of {len(rows)} samples solved in {dt:.1f} s; hull volume "
          f"{hs['volume_m3'] * 1e6:.4g} cm^3 (dimension {hs['dimension']}), extent "

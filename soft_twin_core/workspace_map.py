@@ -229,10 +229,12 @@ def workspace_of(scenario, opts):
     return {"U": U, "corner": corner, "points": P, "failed": failed, "hull": hull_summary(P)}
 
 
-def plot_workspace(points, hs, path, title="workspace", color=None, color_label=None):
+def plot_workspace(points, hs, path, title="workspace", color=None, color_label=None, mark=None):
     """PNG of a point cloud (n, 3) [m]: a 3-D view with the hull's facets
     and the three projections (x-y, x-z, y-z) with the outline of each
-    projection's convex hull. ``color``: a value per point (e.g. an input)."""
+    projection's convex hull. ``color``: a value per point (e.g. an input);
+    ``mark``: a mask of points drawn as red crosses (the actuation box's
+    corners)."""
     import matplotlib
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
@@ -258,6 +260,11 @@ def plot_workspace(points, hs, path, title="workspace", color=None, color_label=
     for k, (i, j) in enumerate(((0, 1), (0, 2), (1, 2))):
         a = fig.add_subplot(2, 2, k + 2)
         a.scatter(Q[:, i], Q[:, j], s=3, c=cvals if cvals is not None else "tab:blue")
+        if mark is not None:
+            M = P[np.asarray(mark, bool) & ok]
+            a.plot(M[:, i], M[:, j], "x", color="red", ms=5, label="inputs at their limits (corners)")
+            if k == 0:
+                a.legend(fontsize=7, loc="best")
         xy = Q[:, [i, j]]
         if len(xy) >= 3 and np.linalg.matrix_rank(xy - xy.mean(0), tol=1e-12) == 2:
             h = ConvexHull(xy)
