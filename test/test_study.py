@@ -387,3 +387,47 @@ def test_command_interrupted_by_sigint_resumes(tmp_path):
     assert f"{len(saved)} already in" in r.stderr and f"{150 - len(saved)} to compute" in r.stderr
     rows = read_rows(out / "results.parquet")
     assert len(rows) == 150 and all(x["status"] == "ok" for x in rows)
+
+
+@pytest.mark.slow
+def test_command_on_an_existing_scheduler(tmp_path):
+    """`dask scheduler` and `dask worker` processes on this machine (the
+    loopback), as on a cluster of machines; the command with --scheduler
+    runs the study there and its results equal a serial run."""
+    from distributed import Client
+    env = {**os.environ, "PYTHONPATH": str(ROOT)}
+    sched_file = tmp_path / "scheduler.json"
+    dask_cli = [sys.executable, "-c", "import sys; from dask.cli import run_cli; sys.argv[0] = 'dask'; run_cli()"]
+    procs = [subprocess.Popen(dask_cli + ["scheduler", "--host", "127.0.0.1", "--port", "0", "--no-dashboard",
+                                          "--scheduler-file", str(sched_file)],
+                              env=env, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)]
+    try:
+        deadline = time.monotonic() + 60
+        while not sched_file.exists() and time.monotonic() < deadline:
+            time.sleep(0.1)
+        address = json.loads(sched_file.read_text())["address"]
+        procs.append(subprocess.Popen(dask_cli + ["worker", address, "--nworkers", "2", "--nthreads", "1",
+                                                  "--no-dashboard", "--host", "127.0.0.1"],
+                                      env=env, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL))
+        with Client(address, timeout=30) as c:
+            c.wait_for_workers(2, timeout=60)
+        f = tmp_path / "s.yaml"
+        f.write_text(f"scenario: {ROOT}/config/scenarios/tendon_arm_statics.yaml\nparameters:\n"
+                     "  - path: segments[1].cross_section.radius\n    values: [0.009, 0.01, 0.011]\n"
+                     "  - path: scenario.actuation.tendon_y_pos\n    values: [0.0, 2.0]\n"
+                     "compute: {statics: true}\n")
+        from soft_twin_core.cli import main
+        assert main(["study", str(f), "-o", str(tmp_path / "remote"), "--scheduler", address]) == 0
+        assert main(["study", str(f), "-o", str(tmp_path / "serial"), "--serial"]) == 0
+        rows = read_rows(tmp_path / "remote" / "results.parquet")
+        _same_rows(read_rows(tmp_path / "serial" / "results.parquet"), rows)
+        assert len({r["worker"] for r in rows}) >= 1 and all(str(os.getpid()) not in r["worker"] for r in rows)
+    finally:
+        for p in reversed(procs):
+            p.terminate()
+        for p in reversed(procs):
+            try:
+                p.wait(timeout=30)
+            except subprocess.TimeoutExpired:
+                p.kill()
+                p.wait()
