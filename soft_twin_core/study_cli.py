@@ -9,7 +9,8 @@ Exit status: 0 done, every case ok; 2 a bad study file, option or case
 (every bad case listed by index and field; nothing run); 3 the study
 finished but some cases failed or were lost (their reasons are in the
 results and the summary), or the workspace had failed samples; 130
-interrupted (the rows computed so far are saved; run again to resume).
+interrupted by SIGINT (Ctrl-C) or SIGTERM (the rows computed so far are
+saved; run again to resume).
 """
 
 import json
@@ -59,6 +60,11 @@ def main_study(args):
         if v is not None and v < 1:
             _say(f"--{name.replace('_', '-')} must be >= 1, got {v}")
             return 2
+    import signal
+
+    def _terminate(signum, frame):           # SIGTERM (a batch system, kill): save and stop as on Ctrl-C
+        raise KeyboardInterrupt
+    previous = signal.signal(signal.SIGTERM, _terminate)
     try:
         study = load_study(args.study)
         out = args.output or os.path.join("out", study.name)
@@ -74,6 +80,8 @@ def main_study(args):
     except StudyInterrupted as e:
         _say(str(e))
         return 130
+    finally:
+        signal.signal(signal.SIGTERM, previous)
     _say(f"summary: {res.get('summary')}")
     return 0 if res["failed"] == 0 and res["lost"] == 0 else 3
 

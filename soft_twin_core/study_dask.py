@@ -230,7 +230,17 @@ def start_local_cluster(n_workers):
     from distributed import Client, LocalCluster
     cluster = LocalCluster(n_workers=n_workers, threads_per_worker=1, processes=True,
                            dashboard_address=None, silence_logs=logging.ERROR)
-    return cluster, Client(cluster)
+    client = Client(cluster)
+    # Ctrl-C in a terminal reaches the whole process group: this process
+    # saves the rows and closes the cluster; the workers need not (they
+    # would print a KeyboardInterrupt traceback each)
+    client.run(_ignore_sigint)
+    return cluster, client
+
+
+def _ignore_sigint():
+    import signal
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
 
 
 def _lost_rows(study, chunk, reason):

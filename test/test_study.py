@@ -357,32 +357,46 @@ def test_an_interrupted_study_resumes_computing_only_the_missing_cases(client, t
 
 
 def test_command_interrupted_by_sigint_resumes(tmp_path):
-    """The command, Ctrl-C (SIGINT) in the middle: exit 130 with the rows
-    saved; the same command again computes only the missing cases."""
+    """The command on a local cluster, Ctrl-C in the middle (SIGINT to its
+    whole process group, workers included, as a terminal sends it): exit
+    130, the rows saved, no traceback, no process left; the same command
+    again (here serial) computes only the missing cases."""
     f = tmp_path / "s.yaml"
     f.write_text(f"scenario: {ROOT}/config/scenarios/tendon_arm_statics.yaml\nparameters:\n"
                  "  - path: scenario.actuation.tendon_y_pos\n    range: [0.0, 4.0]\n"
                  "design: {type: random, samples: 150, seed: 5}\ncompute: {statics: {points_per_section: 2}}\n"
                  "record: [tip_pose]\n")
     out = tmp_path / "o"
-    cmd = [sys.executable, "-m", "soft_twin_core.cli", "study", str(f), "-o", str(out), "--serial",
+    cmd = [sys.executable, "-m", "soft_twin_core.cli", "study", str(f), "-o", str(out),
            "--flush-seconds", "0", "--chunk-size", "1"]
     env = {**os.environ, "PYTHONPATH": str(ROOT)}
-    p = subprocess.Popen(cmd, stderr=subprocess.PIPE, text=True, env=env, cwd=tmp_path)
+    p = subprocess.Popen(cmd + ["--workers", "2"], stderr=subprocess.PIPE, text=True, env=env, cwd=tmp_path,
+                         start_new_session=True)
     try:
         deadline = time.monotonic() + 120
-        while time.monotonic() < deadline and len(list((out / "parts").glob("part-*"))) < 20:
+        while time.monotonic() < deadline and len(list((out / "parts").glob("part-*"))) < 10:
             time.sleep(0.05)
-        p.send_signal(signal.SIGINT)
+        os.killpg(p.pid, signal.SIGINT)
         err = p.communicate(timeout=60)[1]
     finally:
         if p.poll() is None:
-            p.kill()
+            os.killpg(p.pid, signal.SIGKILL)
+            p.wait()
     assert p.returncode == 130, err
-    assert "interrupted" in err and "run the same command again" in err
+    assert "interrupted" in err and "run the same command again" in err and "Traceback" not in err
+    deadline = time.monotonic() + 20                 # nothing of the group is left
+    while time.monotonic() < deadline:
+        try:
+            os.killpg(p.pid, 0)
+        except ProcessLookupError:
+            break
+        time.sleep(0.1)
+    else:
+        raise AssertionError(subprocess.run(["ps", "-o", "pid,stat,cmd", "-g", str(p.pid)], capture_output=True,
+                                            text=True).stdout)
     saved = {r["case_key"] for g in (out / "parts").glob("part-*.parquet") for r in read_rows(g)}
-    assert 20 <= len(saved) < 150
-    r = subprocess.run(cmd, capture_output=True, text=True, env=env, cwd=tmp_path, timeout=300)
+    assert 10 <= len(saved) < 150
+    r = subprocess.run(cmd + ["--serial"], capture_output=True, text=True, env=env, cwd=tmp_path, timeout=300)
     assert r.returncode == 0, r.stderr
     assert f"{len(saved)} already in" in r.stderr and f"{150 - len(saved)} to compute" in r.stderr
     rows = read_rows(out / "results.parquet")
