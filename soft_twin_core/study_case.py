@@ -25,7 +25,7 @@ workspace (:mod:`workspace_map`): ``volume_m3``, ``hull_area_m2``,
   the point cloud goes to the study's points table (row key ``_points``).
 
 Every row also has ``compute_time_s`` (wall time of the case in its
-worker) and ``worker`` (host:pid).
+worker), ``started_unix_s`` (when it started) and ``worker`` (host:pid).
 """
 
 import math
@@ -147,6 +147,7 @@ def run_case(study, index, values, key):
     """The results row of one case (a dict; see the module docstring)."""
     from .study import build_scenario, case_documents, parameter_columns
     t0 = time.perf_counter()
+    started = time.time()
     row = {"case": int(index), "case_key": key}
     row.update(parameter_columns(study, values))
     row["status"], row["error"] = "ok", ""
@@ -162,6 +163,7 @@ def run_case(study, index, values, key):
         outs = {}
     row.update(outs)
     row["compute_time_s"] = time.perf_counter() - t0
+    row["started_unix_s"] = started
     row["worker"] = f"{socket.gethostname()}:{os.getpid()}"
     return row
 

@@ -42,7 +42,7 @@ import numpy as np
 
 from .study import StudyError, make_cases, validate_cases
 
-META_COLUMNS = ("compute_time_s", "worker")
+META_COLUMNS = ("compute_time_s", "started_unix_s", "worker")
 
 
 class StudyInterrupted(RuntimeError):

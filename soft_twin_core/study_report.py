@@ -24,7 +24,7 @@ from pathlib import Path
 
 import numpy as np
 
-SKIP = {"case", "case_key", "status", "error", "compute_time_s", "worker"}
+SKIP = {"case", "case_key", "status", "error", "compute_time_s", "started_unix_s", "worker"}
 
 
 def _numeric(rows, col):
@@ -119,7 +119,7 @@ def write_summary(study, rows, points, out_dir, run_info):
                      "std": float(f.std())} if len(f) else None)
     # timings: does a worker's first case cost more than its later ones (numba compiling)?
     by_worker = {}
-    for r in sorted(rows, key=lambda r: r["case"]):
+    for r in sorted((r for r in rows if r.get("started_unix_s") is not None), key=lambda r: r["started_unix_s"]):
         if r.get("worker") and r.get("compute_time_s") is not None:
             by_worker.setdefault(r["worker"], []).append(r["compute_time_s"])
     first = [v[0] for v in by_worker.values()]
