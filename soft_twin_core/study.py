@@ -20,10 +20,13 @@ Schema (YAML; SI units; paths relative to the study file)::
       - path: segments[0].material.youngs_modulus
         range: [1.0e6, 4.0e6]              # uniform (random, lhs); grid: `count` points
         scale: log                         # optional: log-uniform / geometric grid
-      - {path: actuators[0].offset[0], values: [0.005, 0.007, 0.009]}   # grid only; any YAML value
-      - {path: segments[2].cross_section.radius, normal: {mean: 0.008, std: 2.0e-4}}  # random, lhs
-      - {path: segments[1].length, range: [-0.05, 0.05], relative: true}   # base * (1 + x)
+      - path: actuators[0].offset[0]
+        values: [0.005, 0.007, 0.009]      # grid only; any YAML values (vectors, names)
+      - path: segments[2].cross_section.radius
+        normal: {mean: 0.008, std: 2.0e-4} # random, lhs
+      - {path: "segments[1].length", range: [-0.05, 0.05], relative: true}   # base * (1 + x)
       - {path: scenario.actuation.tendon_y_pos, range: [0.0, 5.0], count: 6}
+                                           # (in {...} flow style a path with [ ] needs quotes)
     design: {type: lhs, samples: 200, seed: 1}   # grid (every combination) | random | lhs
     compute:                               # one or more of:
       statics: {points_per_section: 10}    # (or `statics: true`)

@@ -488,3 +488,20 @@ def test_command_on_an_existing_scheduler(tmp_path):
             except subprocess.TimeoutExpired:
                 p.kill()
                 p.wait()
+
+
+def test_example_studies_and_the_readme_study_are_valid():
+    import re
+
+    import yaml
+    from soft_twin_core.study import load_study
+    files = sorted((ROOT / "config" / "studies").glob("*.yaml"))
+    assert files
+    for f in files:
+        st = load_study(f)
+        validate_cases(st, make_cases(st))
+    text = (ROOT / "README.md").read_text()
+    sec = text[text.index("## Design studies"):]
+    block = re.search(r"```yaml\n(.*?)```", sec, re.S).group(1)
+    st = study_from_dict(yaml.safe_load(block), str(ROOT / "config" / "studies"))
+    assert st.parameter_names == load_study(ROOT / "config" / "studies" / "tendon_arm_offsets.yaml").parameter_names
