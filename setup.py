@@ -39,6 +39,9 @@ setup(
         "numba>=0.59",
         "threadpoolctl>=3.1",
     ],
+    # design studies (soft-twin-sim study / workspace): the versions pinned in
+    # requirements/dev.txt are the tested ones
+    extras_require={"study": ["dask>=2024.1", "distributed>=2024.1", "pyarrow>=14", "matplotlib>=3.7"]},
     entry_points={
         "console_scripts": [
             "soft-twin-sim = soft_twin_core.cli:main",

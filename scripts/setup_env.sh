@@ -172,5 +172,12 @@ EOF
 # ---- 4. compile the numba kernels into their disk cache (seconds when cached) ----
 "$VENV/bin/python" -m soft_twin_core.warmup >>"$LOG" 2>&1 || fail "compiling the kernels (python -m soft_twin_core.warmup)"
 say "kernels: $(tail -n 1 "$LOG")"
+# ... and those of the copy installed in the venv, which the commands
+# (soft-twin-sim and the Dask workers of its studies, soft_twin_node) import:
+# numba keeps a cache per source file, so the checkout's cache does not serve
+# it (without this, their first run compiles for about a minute).
+(cd "$VENV" && "$VENV/bin/python" -m soft_twin_core.warmup) >>"$LOG" 2>&1 \
+    || fail "compiling the installed kernels (cd $VENV && python -m soft_twin_core.warmup)"
+say "installed kernels: $(tail -n 1 "$LOG")"
 
 say "ready: $VENV ($(($(date +%s) - T0)) s)"

@@ -3,6 +3,10 @@
     soft-twin-sim statics SCENARIO [--sections N] [--sweep-angle 0:90:15]
     soft-twin-sim dynamics SCENARIO --duration T --dt DT [--format json|csv]
                   [--output FILE] [--backbone-every K] [--record-every K] [--theta 0.5]
+    soft-twin-sim study STUDY.yaml [-o OUT] [--scheduler ADDRESS | --workers N | --serial]
+    soft-twin-sim workspace ROBOT_OR_SCENARIO [-o OUT] [--limit MAX] [--samples N]
+
+(study and workspace: see soft_twin_core/study_cli.py.)
 
 SCENARIO is a scenario file or the name of an example scenario
 (``tendon_arm_dynamics``). Exit status: 0 success; 2 a bad argument or
@@ -62,6 +66,9 @@ def _parser():
                    help="record the time histories every K steps (and the last one)")
     d.add_argument("--points-per-section", type=int, default=10)
     d.add_argument("--output", "-o", help="write to this file instead of stdout")
+    # --- design studies and workspaces (issue 16): soft_twin_core/study_cli.py
+    from .study_cli import add_parsers
+    add_parsers(sub)
     return p
 
 
@@ -145,6 +152,10 @@ def main(argv=None):
     from .scenario import ScenarioError, load_scenario, n_steps_for, run_dynamics, run_statics
     from .statics import StaticsError
     args = _parser().parse_args(argv)
+    # --- design studies and workspaces (issue 16): soft_twin_core/study_cli.py
+    if args.command in ("study", "workspace"):
+        from .study_cli import main_study, main_workspace
+        return main_study(args) if args.command == "study" else main_workspace(args)
     failed = None
     for name in ("sections", "backbone_every", "record_every", "points_per_section"):
         v = getattr(args, name, None)

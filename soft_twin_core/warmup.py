@@ -46,6 +46,17 @@ def run():
         alg.crba(tree, ws, q)
         alg.forward_dynamics(tree, ws, q, v, np.zeros(tree.nv), alg.make_loads(tree, [0], [0.05], [np.ones(6)],
                                                                                  [True]))
+        # what the scenario runner adds (backbone, internal wrenches, recorded
+        # states): the design studies' workers run it for every case
+        from .scenario import run_dynamics, run_statics, scenario_from_dict
+        sc = scenario_from_dict({"robot": {"segments": [{
+            "length": 0.2, "sections": 2, "cross_section": {"shape": "solid_circle", "radius": 0.01},
+            "material": {"youngs_modulus": 1e6, "density": 1000, "viscosity": 10.0}}],
+            "kinematic_map": robot.kinematic_map,
+            "actuators": [{"name": "t", "type": "tendon", "offset": [0.005, 0.0]}]},
+            "actuation": {"t": 0.5}, "loads": [{"s": "tip", "force": [0, 0, -0.01]}]})
+        run_statics(sc, 2)
+        run_dynamics(sc, 2e-3, 1e-3, 1, points_per_section=2)
 
 
 def main(argv=None):
