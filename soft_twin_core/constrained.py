@@ -623,7 +623,10 @@ class MechanismSimulator:
             if it == 1:
                 first = ndv
             vs = max(np.abs(v1).max(initial=0), np.abs(v0).max(initial=0), first, 1e-300)
-            if phi_ok and (ndv <= self.tol * vs or (it > 2 and ndv <= 1e-6 * vs and ndv >= 0.5 * prev)):
+            # below this an update is round-off for any motion of the robot (a length scale per step)
+            floor = 1e-14 * max(self.Ls, 1.0) / h
+            if phi_ok and (ndv <= max(self.tol * vs, floor)
+                           or (it > 2 and ndv <= 1e-6 * vs and ndv >= 0.5 * prev)):
                 break              # converged, or stalled at round-off
             refactor = it > 1 and ndv > 0.25 * prev
             prev = ndv

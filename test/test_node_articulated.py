@@ -136,3 +136,17 @@ def test_markers_draw_members_and_links(pan_tilt_qs):
     assert links[0].type == links[0].CYLINDER and links[1].type == links[1].CUBE
     assert abs(links[1].pose.position.z - 0.08) < 1e-12        # the tilt link sits on top of the pan link
     assert abs(tubes[0].scale.x - 0.024) < 1e-12               # the proximal member's diameter
+
+
+@pytest.mark.parametrize("robot", ["soft_gripper", "fixed_fixed_beam"])
+def test_every_example_robot_runs_in_the_node(robot, tmp_path_factory):
+    """Dynamic mode at 200 Hz: the node starts, steps without failures and stops cleanly."""
+    name = f"twin_ex_{robot}"
+    proc, c = _start(name, ["-p", f"robot_description_file:={robot}", "-p", "diagnostics_rate_hz:=5.0"],
+                     tmp_path_factory)
+    try:
+        d = c.wait_diagnostics(lambda d: float(d["twin_time_s"]) > 0.5, 20.0)
+        assert d is not None, "the twin did not advance"
+        assert d["solver_failures_total"] == "0" and d["internal_errors_total"] == "0", d
+    finally:
+        _stop(proc, c)
