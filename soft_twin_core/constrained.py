@@ -156,22 +156,14 @@ def make_inputs(mech, actuation=None, efforts=None, positions=None, velocities=N
 # Constraint rows
 # ----------------------------------------------------------------------------
 
-def _point(model, ws, ref):
-    """(pose 4x4, world Jacobian 6 x nv) of a PointRef (world: identity,
-    zeros) after a forward pass at the configuration."""
-    from .kernels.frames import spatial_jacobian
-    if ref.joint < 0:
-        return np.eye(4), np.zeros((6, model.nv))
-    g = np.empty((4, 4))
-    Js = np.empty((6, model.nv))
-    spatial_jacobian(ws.m, ws.w, int(ref.joint), float(ref.x), g, Js)
-    # spatial twist [v_o; w] -> world velocity of the point [v_o + w x p; w]
-    p = g[:3, 3]
-    J = Js.copy()
-    J[0] += Js[4] * p[2] - Js[5] * p[1]
-    J[1] += Js[5] * p[0] - Js[3] * p[2]
-    J[2] += Js[3] * p[1] - Js[4] * p[0]
-    return g, J
+def _constraint_points(mech):
+    """(joint, x) arrays of the constraints' frames a and b, in order (cached)."""
+    pts = mech.__dict__.get("_constraint_points")
+    if pts is None:
+        refs = [r for c in mech.constraints for r in (c.a, c.b)]
+        pts = (np.array([r.joint for r in refs], np.int64), np.array([r.x for r in refs], float))
+        object.__setattr__(mech, "_constraint_points", pts)
+    return pts
 
 
 def constraint_rows(mech, ws, q, targets=None, q_cmd=None):
@@ -179,17 +171,22 @@ def constraint_rows(mech, ws, q, targets=None, q_cmd=None):
     constraint values in world axes [m, rad] and their Jacobian (exact for
     positions, and for rotations at zero error). ``targets``: world target
     poses of the constraints to the world (default their own)."""
+    from .kernels.frames import world_point_jacobians
     tree = mech.tree
     blocks_phi, blocks_G = [], []
     if mech.constraints:
+        joint, x = _constraint_points(mech)
+        g = np.empty((len(joint), 4, 4))
+        J = np.empty((len(joint), 6, tree.nv))
         passes.forward_pass(ws.m, ws.w, np.ascontiguousarray(q, float), ws.zeros_v, ws.zeros_v, 0)
+        world_point_jacobians(ws.m, ws.w, joint, x, g, J)
     for k, c in enumerate(mech.constraints):
-        ga, Ja = _point(tree, ws, c.a)
+        ga, Ja = g[2 * k], J[2 * k]
         if c.b.joint < 0:
             gb = c.target if targets is None or targets[k] is None else targets[k]
-            Jb = np.zeros_like(Ja)
+            Jb = J[2 * k + 1]                  # zeros
         else:
-            gb, Jb = _point(tree, ws, c.b)
+            gb, Jb = g[2 * k + 1], J[2 * k + 1]
         dp = ga[:3, 3] - gb[:3, 3]
         Jd = Ja - Jb
         C = c.rows()

@@ -151,8 +151,12 @@ class Mechanism:
         return self.tree.actuator_names
 
     def joints_with(self, mode):
-        """Indices of the rigid joints of control mode ``mode``."""
-        return tuple(i for i, c in enumerate(self.control) if c == mode)
+        """Indices of the rigid joints of control mode ``mode`` (cached)."""
+        cache = self.__dict__.setdefault("_joints_with", {})
+        out = cache.get(mode)
+        if out is None:
+            out = cache[mode] = tuple(i for i, c in enumerate(self.control) if c == mode)
+        return out
 
     @property
     def rigid_joints(self):

@@ -57,6 +57,28 @@ def run():
             "actuation": {"t": 0.5}, "loads": [{"s": "tip", "force": [0, 0, -0.01]}]})
         run_statics(sc, 2)
         run_dynamics(sc, 2e-3, 1e-3, 1, points_per_section=2)
+    tiny_mechanism_run()
+
+
+def tiny_mechanism_run():
+    """A soft member on a position-controlled revolute joint, its tip pinned
+    to the world: the articulated robots' passes (constraint frames, KKT
+    statics and dynamics, outputs)."""
+    from .constrained import MechanismSimulator, solve_equilibrium
+    from .mechanism import mechanism_from_dict
+    from .outputs import state_outputs
+    mech = mechanism_from_dict({"name": "warmup_tree", "bodies": [
+        {"name": "link", "type": "link", "mass": 0.1, "inertia": [1e-4, 1e-4, 1e-4, 0, 0, 0],
+         "joint": {"name": "j", "type": "revolute", "axis": [0, 0, 1], "control": "position"}},
+        {"name": "arm", "type": "member", "parent": "link", "segments": [{
+            "length": 0.2, "sections": 2, "cross_section": {"shape": "solid_circle", "radius": 0.01},
+            "material": {"youngs_modulus": 1e6, "density": 1000, "viscosity": 10.0}}]}],
+        "constraints": [{"name": "pin", "type": "pinned", "frame": "arm_tip", "to": "world"}]})
+    eq = solve_equilibrium(mech, positions={"j": 0.01})
+    state_outputs(mech, eq.q, eq.lam, eq.inputs)
+    sim = MechanismSimulator(mech, 1e-3, q=eq.q)
+    sim.step(positions={"j": 0.01}, n=2)
+    state_outputs(mech, sim.q, sim.lam, sim.inputs, sim.v, sim.a, sim.ws)
 
 
 def main(argv=None):

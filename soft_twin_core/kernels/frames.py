@@ -92,6 +92,28 @@ def _col_dot(Ad, S, Sd_cols, V, nv, iv, out, tmp, tmp2):
 
 
 @_jit
+def world_point_jacobians(m, w, joint, x, g, J):
+    """For points (joint[p], x[p]) (joint -1: the world origin): g[p] their
+    world poses and J[p] (6, nv) the Jacobians of [velocity of the point;
+    angular velocity], world axes (the spatial Jacobian shifted to the
+    point: v_p = v_o + w x p)."""
+    for p in range(joint.shape[0]):
+        if joint[p] < 0:
+            g[p, :, :] = 0.0
+            for a in range(4):
+                g[p, a, a] = 1.0
+            J[p, :, :] = 0.0
+            continue
+        spatial_jacobian(m, w, joint[p], x[p], g[p], J[p])
+        px, py, pz = g[p, 0, 3], g[p, 1, 3], g[p, 2, 3]
+        for c in range(J.shape[2]):
+            wx, wy, wz = J[p, 3, c], J[p, 4, c], J[p, 5, c]
+            J[p, 0, c] += wy * pz - wz * py
+            J[p, 1, c] += wz * px - wx * pz
+            J[p, 2, c] += wx * py - wy * px
+
+
+@_jit
 def spatial_jacobian_dot(m, w, j, x, v, Jd):
     """Jd (6, nv): time derivative of the spatial Jacobian of point (j, x)
     after forward_pass (level >= 1). Column of joint k: Ad(g_k) (ad(V_k) S_k
