@@ -46,7 +46,7 @@ def peak_stresses(geometry, wrench):
         nan = np.full(w.shape[:-1], np.nan)
         return nan, nan.copy()
     g = geometry
-    N, V2, V3, T, M2, M3 = np.moveaxis(w, -1, 0)
+    N, V2, V3, T, M2, M3 = (w[..., k] for k in range(6))
     V = np.hypot(V2, V3)
     if g.shape in ("solid_circle", "hollow_tube"):
         normal = np.abs(N) / g.A + np.hypot(M2 / g.I2, M3 / g.I3) * g.cy
@@ -75,11 +75,6 @@ class MemberOutput:
     shear_stress: np.ndarray
     velocities: np.ndarray = None
     accelerations: np.ndarray = None
-
-
-def _to_world(g, w):
-    R = g[:3, :3]
-    return np.concatenate([R @ w[:3], R @ w[3:]])
 
 
 def _tendon_pull(mech, member, s, strains, u):
@@ -135,14 +130,19 @@ def member_outputs(mech, ws, u=None, loads=None):
         geo = list(mem.geometry) + [mem.geometry[-1]]
         normal = np.empty(len(s))
         shear = np.empty(len(s))
-        for k in range(len(s)):
-            normal[k], shear[k] = peak_stresses(geo[k], wr[k])
+        for g in {id(x): x for x in geo}.values():          # each cross-section once, vectorised
+            idx = [k for k, x in enumerate(geo) if x is g]
+            normal[idx], shear[idx] = peak_stresses(g, wr[idx])
         # body twists and accelerations of the cross-sections -> world point velocity and acceleration
         V = np.concatenate([w.Vin[js], w.V[js[-1:]]])
         A = np.concatenate([w.Ain[js], w.A[js[-1:]]])
         R = poses[:, :3, :3]
         vel = np.einsum("nij,nj->ni", R, V[:, :3])
-        acc = np.einsum("nij,nj->ni", R, A[:, :3] + np.cross(V[:, 3:], V[:, :3]))
+        wv = V[:, 3:]
+        vv = V[:, :3]
+        wxv = np.stack([wv[:, 1] * vv[:, 2] - wv[:, 2] * vv[:, 1], wv[:, 2] * vv[:, 0] - wv[:, 0] * vv[:, 2],
+                        wv[:, 0] * vv[:, 1] - wv[:, 1] * vv[:, 0]], axis=1)
+        acc = np.einsum("nij,nj->ni", R, A[:, :3] + wxv)
         out.append(MemberOutput(mem.name, s, poses.copy(), wr, strains.copy(), normal, shear, vel, acc))
     return out
 
@@ -151,7 +151,9 @@ def joint_wrenches(mech, ws):
     """(n_joints, 6) wrench through every joint, world axes, about its input
     frame origin (see the module), from the last RNEA pass."""
     w = ws.work
-    return np.array([_to_world(w.g_in[i], w.f_in[i]) for i in range(mech.tree.n_joints)])
+    R = w.g_in[:, :3, :3]
+    return np.concatenate([np.einsum("nij,nj->ni", R, w.f_in[:, :3]), np.einsum("nij,nj->ni", R, w.f_in[:, 3:])],
+                          axis=1)
 
 
 def run_passes(mech, ws, q, v, a, loads, gravity):
