@@ -206,8 +206,11 @@ def is_tree_file(d):
 
 
 def load_mechanism(path):
-    """A :class:`Mechanism` from a robot file of either schema."""
+    """A :class:`Mechanism` from a robot file of either schema; ``path`` may
+    also name an example robot (``load_mechanism("pan_tilt_arm")``)."""
     import os
+    from .model import find_file
+    path = find_file(path, "robots")
     d = robot_mapping(read_yaml_file(path, what="robot file"), str(path))
     if is_tree_file(d):
         return mechanism_from_dict(d, os.path.dirname(os.path.abspath(path)))

@@ -754,8 +754,11 @@ def load_model(path, n_sections_override=None):
     is accepted too). ``path`` may also name an example robot, from any
     working directory: ``load_model("tendon_arm")`` (see :func:`find_file`)."""
     path = find_file(path, "robots")
-    d = read_yaml_file(path, ModelError, "robot file")
-    return model_from_dict(robot_mapping(d, f"robot file {path}"), n_sections_override)
+    d = robot_mapping(read_yaml_file(path, ModelError, "robot file"), f"robot file {path}")
+    if isinstance(d, dict) and "bodies" in d:
+        raise ModelError(f"robot file {path}: an articulated robot (tree schema: bodies); load it with "
+                         f"soft_twin_core.mechanism.load_mechanism")
+    return model_from_dict(d, n_sections_override)
 
 
 def with_sections(model_dict, n):

@@ -111,11 +111,12 @@ def test_example_files_found_by_name_from_any_directory(tmp_path):
     """From the sources, away from the checkout: every example robot and
     scenario loads by name."""
     code = textwrap.dedent("""
-        from soft_twin_core.model import example_files, load_model
+        from soft_twin_core.mechanism import load_mechanism
+        from soft_twin_core.model import example_files
         from soft_twin_core.scenario import load_scenario
         robots, scenarios = example_files("robots"), example_files("scenarios")
         for name in robots:
-            load_model(name)
+            load_mechanism(name)                 # classic and tree robot files alike
         for name in scenarios:
             load_scenario(name)
         print(sorted(robots), sorted(scenarios))
@@ -169,12 +170,13 @@ def test_pip_install_core_in_plain_venv(tmp_path):
     scenarios = sorted(p.stem for p in (ROOT / "config" / "scenarios").glob("*.yaml"))
     code = textwrap.dedent(f"""
         from pathlib import Path
-        from soft_twin_core.model import example_files, load_model
+        from soft_twin_core.mechanism import load_mechanism
+        from soft_twin_core.model import example_files
         from soft_twin_core.scenario import load_scenario
         assert sorted(example_files("robots")) == {robots!r}, example_files("robots")
         assert sorted(example_files("scenarios")) == {scenarios!r}, example_files("scenarios")
         for name in {robots!r}:
-            load_model(name)
+            load_mechanism(name)
         for name in {scenarios!r}:
             load_scenario(name)
         print(Path(example_files("robots")["tendon_arm"]))
