@@ -119,7 +119,7 @@ def test_slides_arm_distributed_tendon_is_the_same():
 # Default robot
 # --------------------------------------------------------------------------
 
-CIRCLE = dict(center=[0.3, 0.0, -0.22], radius=0.05, duration=4.0, normal=[1.0, 0.0, 0.0])
+CIRCLE = dict(center=[0.38, 0.0, -0.22], radius=0.05, duration=4.0, normal=[1.0, 0.0, 0.0])
 
 
 def test_circle_quasi_static_within_1mm(arm):
