@@ -19,10 +19,11 @@ Each sample of the path is an actuation IK through the static equilibrium
 * **Redundancy resolution.** Among the inputs that reach a sample, the
   planner takes the one of least ``sum_k ((u_k - lower_k) / s_k)^2``
   (``lower``: the pretension of a tendon; ``s_k``: the input's scale, the
-  norm of its tip sensitivity): first a Gauss-Newton phase on
-  ``|W e|^2 + eps^2 |S (u - lower)|^2`` (``eps = 1e-3``) walks along the
-  redundant directions to the least such inputs, then a phase on the tip
-  error alone polishes the target without moving along them. For
+  norm of its tip sensitivity): first Gauss-Newton phases on
+  ``|W e|^2 + eps^2 |S (u - lower)|^2`` (``eps = 1e-3``, then ``1e-5``,
+  biasing the tip by O(eps^2)) walk along the redundant directions to the
+  least such inputs, then a phase on the tip error alone polishes the
+  target without moving along them. For
   antagonistic tendons (co-contraction is a direction that leaves the
   shape unchanged) this puts the slack tendon of every pair exactly at the
   pretension and the other at the least tension that holds the pose: the
@@ -95,6 +96,13 @@ def actuation_matrix(model, q):
     return B
 
 
+@dataclass
+class _Eq:
+    q: np.ndarray
+    tip_pose: np.ndarray
+    tangent: object
+
+
 class _Equilibrium:
     """The statics problem of one model and loads, re-used for many inputs
     u (the engine workspace is made once)."""
@@ -104,13 +112,30 @@ class _Equilibrium:
         self.pb = st._Problem(model, np.zeros(len(model.actuators)), loads)
         self.point_moment = any(a.tendon_model == "point_moment" for a in model.actuators)
 
-    def tangent(self, q, u):
+    def _set(self, u):
         from .forces import load_arrays
         pb = self.pb
+        key = getattr(self, "_u", None)
+        if key is not None and np.array_equal(key, u):
+            return pb
         pb.coef = np.ascontiguousarray(pb.act.unit @ u) if u.size else pb.coef
         if self.point_moment:
             pb.loads = load_arrays(self.model.tree, self.loads, u)
-        return pb.tangent(q)
+        self._u = np.array(u, dtype=float)
+        return pb
+
+    def tangent(self, q, u):
+        return self._set(u).tangent(q)
+
+    def newton(self, q, u, hint=None, tol=1e-12):
+        """(q, converged and stable, last tangent): Newton from q under u."""
+        pb = self._set(np.asarray(u, dtype=float))
+        q1, _, _, ok, Kt = st._newton(self.model, pb, q, tol, 30, hint)
+        if ok and Kt is not None and Kt is not hint:
+            ok = st.is_stable(self.model, q1, u, self.loads, Kt)
+        elif ok:
+            Kt = None
+        return q1, ok, Kt
 
 
 def tip_sensitivity(model, q, u, loads=None, _eq=None):
@@ -130,6 +155,52 @@ def tip_position_sensitivity(model, q, u, loads=None):
     """d(tip position, world)/du (3, n_act) = R J_v Kt^-1 B."""
     g, J, dq_du = tip_sensitivity(model, q, u, loads)
     return g[:3, :3] @ J[:3] @ dq_du
+
+
+def box_lstsq(A, b, lo, hi, max_iterations=None):
+    """min |A x - b|^2 subject to lo <= x <= hi (lo <= 0 <= hi), by the
+    active-set method of Stark and Parker (BVLS) from x = 0; for the few
+    columns of an actuation IK step (a scipy call costs more than the
+    solve). Returns x, always inside the box."""
+    n = A.shape[1]
+    x = np.zeros(n)
+    free = hi > lo
+    at = np.zeros(n, dtype=np.int8)          # -1 at lower, +1 at upper, 0 free
+    at[~free] = -1
+    x[~free] = lo[~free]
+    for _ in range(max_iterations or 10 * n + 10):
+        F = at == 0
+        if np.any(F):
+            r = b - A[:, ~F] @ x[~F]
+            z = np.linalg.lstsq(A[:, F], r, rcond=None)[0]
+            xf = x[F]
+            viol = (z < lo[F]) | (z > hi[F])
+            if np.any(viol):
+                d = z - xf
+                with np.errstate(divide="ignore", invalid="ignore"):
+                    step = np.where(d < 0, (lo[F] - xf) / d, np.where(d > 0, (hi[F] - xf) / d, np.inf))
+                alpha = float(np.clip(np.min(step[viol]), 0.0, 1.0))
+                xf = xf + alpha * d
+                idx = np.flatnonzero(F)
+                hit_lo = (xf <= lo[F] + 1e-14 * np.maximum(1, np.abs(xf))) & (d < 0)
+                hit_hi = (xf >= hi[F] - 1e-14 * np.maximum(1, np.abs(xf))) & (d > 0)
+                if not np.any(hit_lo | hit_hi):      # round-off: fix the first violator
+                    k = int(np.flatnonzero(viol)[np.argmin(step[viol])])
+                    hit_lo[k], hit_hi[k] = d[k] < 0, d[k] > 0
+                x[idx] = np.clip(xf, lo[F], hi[F])
+                x[idx[hit_lo]] = lo[idx[hit_lo]]
+                x[idx[hit_hi]] = hi[idx[hit_hi]]
+                at[idx[hit_lo]], at[idx[hit_hi]] = -1, 1
+                continue
+            x[F] = z
+        w = A.T @ (b - A @ x)                  # minus the gradient
+        tol = 1e-12 * max(np.abs(w).max(initial=0.0), 1e-300) if np.any(F) else 0.0
+        cand = ((at == -1) & (w > tol) & free) | ((at == 1) & (w < -tol) & free)
+        if not np.any(cand):
+            break
+        k = int(np.argmax(np.where(cand, np.abs(w), -1.0)))
+        at[k] = 0
+    return np.clip(x, lo, hi)
 
 
 # ----------------------------------------------------------------------------
@@ -291,6 +362,14 @@ class TipSolver:
         return Je
 
     def _statics(self, u, q_init, hint=None):
+        """Equilibrium under u from q_init: Newton on the cached problem
+        (tangent hint first), else the full solver (continuation,
+        stability). Returns an object with q, tip_pose, tangent."""
+        if q_init is not None:
+            q, ok, Kt = self.eq.newton(np.asarray(q_init, float), u, hint)
+            if ok:
+                g, _ = kin.tip_and_spatial_jacobian(self.model, q)
+                return _Eq(q, g, Kt)
         return st.solve_statics(self.model, u, self.loads, q_init=q_init, tangent_hint=hint)
 
     def _errors(self, g, target, with_rot):
@@ -322,7 +401,7 @@ class TipSolver:
             e = self._error(g, target, with_rot)
             it_total = 0
             scale = None
-            for phase_eps in ((self.EPS_REDUNDANCY, 0.0) if redundancy else (0.0,)):
+            for phase_eps in ((self.EPS_REDUNDANCY, 1e-2 * self.EPS_REDUNDANCY, 0.0) if redundancy else (0.0,)):
                 u, q, g, e, it, scale, hint = self._gauss_newton(u, q, g, e, target, lo, hi, phase_eps, with_rot,
                                                                  res.tangent)
                 it_total += it
@@ -332,7 +411,6 @@ class TipSolver:
         return SampleResult(u, q, g, pe, we, oe, reached, status, it_total)
 
     def _gauss_newton(self, u, q, g, e, target, lo, hi, eps, with_rot, hint):
-        from scipy.optimize import lsq_linear
         n = u.size
         lam = 0.0
         it = 0
@@ -347,6 +425,7 @@ class TipSolver:
             return c
 
         lo_reg = np.where(np.isfinite(lo), lo, 0.0)
+        costs = []
         for it in range(1, self.options.max_iterations + 1):
             if eps == 0.0 and self._reached(g, target, with_rot):
                 return u, q, g, e, it - 1, scale, hint
@@ -371,9 +450,7 @@ class TipSolver:
                 fixed = dhi - dlo <= 0
                 du = np.zeros(n)
                 if np.any(~fixed):
-                    sol = lsq_linear(A[:, ~fixed], b, bounds=(dlo[~fixed], dhi[~fixed]), method="bvls",
-                                     tol=1e-12)
-                    du[~fixed] = sol.x
+                    du[~fixed] = box_lstsq(A[:, ~fixed], b, dlo[~fixed], dhi[~fixed])
                 if np.linalg.norm(du * scale) <= 1e-14 * max(np.linalg.norm(u * scale), tol):
                     return u, q, g, e, it, scale, hint
                 u_new = np.clip(u + du, lo, hi)
@@ -394,6 +471,9 @@ class TipSolver:
                 break
             if eps > 0 and cost(u, e) > (1 - 1e-10) * c0:
                 break
+            costs.append(cost(u, e))
+            if len(costs) > 4 and costs[-1] > 0.25 * costs[-5]:
+                break      # stagnating (error not halved in 4 steps): a near-singular direction or a bound
         return u, q, g, e, it, scale, hint
 
     def _blocking(self, u, q, g, e, lo, hi, rate_box, with_rot):

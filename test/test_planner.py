@@ -269,3 +269,18 @@ def test_dynamic_verification_and_compensation(arm):
     assert 1e-3 < hist[0]["rms_error_m"] < 0.02
     assert min(h["rms_error_m"] for h in hist[1:]) < 0.8 * hist[0]["rms_error_m"]
     assert tr.summary()["rms_error_m"] == min(h["rms_error_m"] for h in hist)
+
+
+def test_box_lstsq_matches_scipy_bvls():
+    from scipy.optimize import lsq_linear
+    rng = np.random.default_rng(3)
+    for _ in range(200):
+        m, n = rng.integers(1, 7), rng.integers(1, 6)
+        A, b = rng.normal(size=(m, n)), rng.normal(size=m)
+        lo = -rng.uniform(0, 1, n) * (rng.uniform(size=n) < 0.8)
+        hi = np.where(rng.uniform(size=n) < 0.2, np.inf, rng.uniform(0, 1, n))
+        x = pl.box_lstsq(A, b, lo, hi)
+        assert np.all(x >= lo) and np.all(x <= hi)
+        ref = lsq_linear(A, b, bounds=(lo, hi), method="bvls", tol=1e-13).x
+        f = lambda z: np.sum((A @ z - b) ** 2)  # noqa: E731
+        assert f(x) <= f(ref) + 1e-9 * max(1.0, f(ref))
