@@ -352,6 +352,15 @@ class TipSolver:
         return e
 
     def _error_jacobian(self, g, e, q, u, with_rot):
+        key = getattr(self, "_jac_key", None)
+        if key is not None and key[0] is q and np.array_equal(key[1], u) and np.array_equal(key[2], e) \
+                and key[3] == with_rot:
+            return key[4]
+        Je = self._error_jacobian_new(g, e, q, u, with_rot)
+        self._jac_key = (q, np.array(u), np.array(e), with_rot, Je)
+        return Je
+
+    def _error_jacobian_new(self, g, e, q, u, with_rot):
         g_, J, dq_du = tip_sensitivity(self.model, q, u, self.loads, self.eq)
         R = g[:3, :3]
         Je = -(self.sw[:, None] * (R @ J[:3] @ dq_du))
@@ -452,6 +461,16 @@ class TipSolver:
                 if np.any(~fixed):
                     du[~fixed] = box_lstsq(A[:, ~fixed], b, dlo[~fixed], dhi[~fixed])
                 if np.linalg.norm(du * scale) <= 1e-14 * max(np.linalg.norm(u * scale), tol):
+                    return u, q, g, e, it, scale, hint
+                # the linear model promises (almost) nothing: at the (regularised) optimum
+                n_task = e.size
+                r_lin = Je @ du + e
+                pred = float(r_lin @ r_lin)
+                if eps > 0:
+                    rr = eps * scale * (u + du - lo_reg)
+                    pred += float(rr @ rr)
+                if lam <= 1e-8 and (np.linalg.norm(scale * du) <= 0.1 * tol or c0 - pred <= 1e-3 * c0) \
+                        and (eps > 0 or not n_task or np.sqrt(pred) > tol or np.linalg.norm(scale * du) <= 1e-3 * tol):
                     return u, q, g, e, it, scale, hint
                 u_new = np.clip(u + du, lo, hi)
                 try:
