@@ -82,11 +82,13 @@ class PlanRunner:
         return pub
 
     def prepare(self, topic):
-        """Make the publishers now (subscribers can match before a plan runs)."""
+        """Make the output publisher now (subscribers can match before a plan
+        runs). The publisher on the twin's own input exists only while a
+        plan runs (an idle extra publisher there would blur the node's
+        accounting of lost commands by sequence numbers)."""
         with self._lock:
-            self._publisher(topic)
             if self._resolved(topic) != self._resolved(self._own):
-                self._publisher(self._own)
+                self._publisher(topic)
 
     def _resolved(self, topic):
         try:
@@ -102,19 +104,33 @@ class PlanRunner:
             out = [self._publisher(topic)]
             if self._resolved(topic) != self._resolved(self._own):
                 out.append(self._publisher(self._own))
+            own = self._pubs.get(self._own)
             clock = self._node.get_clock()
             start_ns = clock.now().nanoseconds + int(START_DELAY_S * 1e9)
             t0 = time.monotonic() + START_DELAY_S
             self._stop = stop = threading.Event()
             self._thread = threading.Thread(
                 target=self._run, args=(stop, out, list(names), np.asarray(times, float),
-                                        np.asarray(values, float), start_ns, t0, frame_id),
+                                        np.asarray(values, float), start_ns, t0, frame_id, own),
                 name="plan_runner", daemon=True)
             self._thread.start()
         from builtin_interfaces.msg import Time
         return Time(sec=start_ns // 1_000_000_000, nanosec=start_ns % 1_000_000_000)
 
-    def _run(self, stop, pubs, names, times, values, start_ns, t0, frame_id):
+    def _run(self, stop, pubs, names, times, values, start_ns, t0, frame_id, own):
+        try:
+            self._publish_all(stop, pubs, names, times, values, start_ns, t0, frame_id)
+        finally:
+            if own is not None:
+                with self._lock:
+                    if self._pubs.get(self._own) is own and self._thread is threading.current_thread():
+                        del self._pubs[self._own]
+                        try:
+                            self._node.destroy_publisher(own)
+                        except Exception:      # the node is going away
+                            pass
+
+    def _publish_all(self, stop, pubs, names, times, values, start_ns, t0, frame_id):
         for k, t in enumerate(times):
             if stop.wait(max(0.0, t0 + t - time.monotonic())):
                 return
