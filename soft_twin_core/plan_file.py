@@ -31,7 +31,7 @@ import numpy as np
 from . import paths as pth
 from . import planner as pl
 from .loads import Loads
-from .model import ModelError, config_dirs, find_file, load_model, model_from_dict, read_yaml_file, robot_mapping
+from .model import config_dirs, find_file, load_model, model_from_dict, read_yaml_file, robot_mapping
 
 
 class PlanFileError(ValueError):
@@ -177,4 +177,4 @@ def plan_csv(out):
     return buf.getvalue()
 
 
-__all__ = ["PlanFileError", "load_plan_file", "plan_from_dict", "run_plan", "plan_csv", "ModelError"]
+__all__ = ["PlanFileError", "load_plan_file", "plan_from_dict", "run_plan", "plan_csv"]

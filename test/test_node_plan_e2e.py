@@ -105,54 +105,55 @@ def test_plan_path_executes_on_the_output_topic(twin, model):
 
     def on_cmd(msg):
         with cond:
-            got.append((time.monotonic(), msg))
+            got.append((c.node.get_clock().now().nanoseconds, msg))
             cond.notify_all()
+    # kept until the client closes (destroying it while the client's executor spins can stall that executor)
     sub = c.node.create_subscription(ActuationCommand, OUTPUT, on_cmd, 100)
-    try:
-        # the node makes its output publisher at start: wait for the match
-        assert c.wait_until(lambda: sub.get_publisher_count() > 0, 20.0), f"no publisher on {OUTPUT}"
-        # the node's output publisher is made at the first execution: plan once without, to check the answer
-        path = {"type": "circle", "center": [0.38, 0.0, -0.22], "radius": 0.03, "normal": [1, 0, 0],
-                "duration": 1.0, "sample_period": 0.1}
-        req = PlanPath.Request(path_yaml=yaml.safe_dump(path), position_weights=[0.0, 1.0, 1.0])
-        resp = c.call("plan_path", req)
-        assert resp.success, resp.message
-        assert not resp.executing and len(resp.times) == 11
-        names = list(resp.actuator_names)
-        U = np.reshape(resp.values, (len(resp.times), len(names)))
-        assert np.all(U >= 0) and max(resp.errors) <= 1e-6 and all(resp.reached)
-        # execute
-        req.execute = True
-        t_call = time.monotonic()
-        resp = c.call("plan_path", req)
-        assert resp.success and resp.executing, resp.message
-        U = np.reshape(resp.values, (len(resp.times), len(names)))
-        n = len(resp.times)
-        with cond:
-            ok = cond.wait_for(lambda: len(got) >= n, timeout=20.0)
-        assert ok, f"{len(got)} of {n} commands arrived on {OUTPUT}"
-        assert len(got) == n
-        start = _ns(resp.start_stamp)
-        for k, (_, msg) in enumerate(got):
-            assert list(msg.names) == names
-            assert list(msg.values) == list(U[k])                      # the planned values, exactly
-            assert _ns(msg.header.stamp) - start == pytest.approx(resp.times[k] * 1e9, abs=1.0)
-        # published at their times (arrival spacing vs plan, generous for a loaded 2-CPU machine)
-        arrivals = np.array([a for a, _ in got])
-        assert np.abs(np.diff(arrivals) - np.diff(resp.times)).max() < 0.08
-        assert arrivals[-1] - t_call >= resp.times[-1]
-        # the twin applied the same commands: its state reflects the last one
-        last = got[-1][1].header.stamp
-        assert c.wait_until(lambda: c.applied(last), 10.0), "the twin never applied the last command"
-        # and follows: after settling, its tip is at the plan's last predicted tip (y, z)
-        tip_last = np.reshape(resp.predicted_tip, (-1, 3))[-1]
+    # the node makes its output publisher at start: wait for the match
+    assert c.wait_until(lambda: sub.get_publisher_count() > 0, 20.0), f"no publisher on {OUTPUT}"
+    # the node's output publisher is made at the first execution: plan once without, to check the answer
+    path = {"type": "circle", "center": [0.38, 0.0, -0.22], "radius": 0.03, "normal": [1, 0, 0],
+            "duration": 1.0, "sample_period": 0.1}
+    req = PlanPath.Request(path_yaml=yaml.safe_dump(path), position_weights=[0.0, 1.0, 1.0])
+    resp = c.call("plan_path", req)
+    assert resp.success, resp.message
+    assert not resp.executing and len(resp.times) == 11
+    names = list(resp.actuator_names)
+    U = np.reshape(resp.values, (len(resp.times), len(names)))
+    assert np.all(U >= 0) and max(resp.errors) <= 1e-6 and all(resp.reached)
+    # execute
+    req.execute = True
+    t_call = time.monotonic()
+    resp = c.call("plan_path", req)
+    assert resp.success and resp.executing, resp.message
+    U = np.reshape(resp.values, (len(resp.times), len(names)))
+    n = len(resp.times)
+    with cond:
+        ok = cond.wait_for(lambda: len(got) >= n, timeout=20.0)
+    assert ok, f"{len(got)} of {n} commands arrived on {OUTPUT}"
+    assert len(got) == n
+    start = _ns(resp.start_stamp)
+    for k, (_, msg) in enumerate(got):
+        assert list(msg.names) == names
+        assert list(msg.values) == list(U[k])                      # the planned values, exactly
+        assert _ns(msg.header.stamp) - start == pytest.approx(resp.times[k] * 1e9, abs=1.0)
+    # published at their times: never before its stamp (the node and this process share the
+    # system clock), delivered within 0.3 s (generous for a loaded 2-CPU machine)
+    latency = np.array([(a - _ns(m.header.stamp)) * 1e-9 for a, m in got])
+    assert latency.min() >= -1e-3 and latency.max() < 0.3, latency
+    print(f"plan execution: command latency median {1e3 * np.median(latency):.1f} ms, "
+          f"max {1e3 * latency.max():.1f} ms")
+    assert (time.monotonic() - t_call) >= resp.times[-1]
+    # the twin applied the same commands: its state reflects the last one
+    last = got[-1][1].header.stamp
+    assert c.wait_until(lambda: c.applied(last), 10.0), "the twin never applied the last command"
+    # and follows: after settling, its tip is at the plan's last predicted tip (y, z)
+    tip_last = np.reshape(resp.predicted_tip, (-1, 3))[-1]
 
-        def settled():
-            p = c.tip_pose.pose.position
-            return math.hypot(p.y - tip_last[1], p.z - tip_last[2]) < 2e-3
-        assert c.wait_until(settled, 15.0)
-    finally:
-        c.node.destroy_subscription(sub)
+    def settled():
+        p = c.tip_pose.pose.position
+        return math.hypot(p.y - tip_last[1], p.z - tip_last[2]) < 2e-3
+    assert c.wait_until(settled, 15.0)
 
 
 def test_plan_path_rejects_bad_requests(twin):
