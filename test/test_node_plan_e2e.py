@@ -111,7 +111,7 @@ def test_plan_path_executes_on_the_output_topic(twin, model):
     sub = c.node.create_subscription(ActuationCommand, OUTPUT, on_cmd, 100)
     # the node makes its output publisher at start: wait for the match
     assert c.wait_until(lambda: sub.get_publisher_count() > 0, 20.0), f"no publisher on {OUTPUT}"
-    # the node's output publisher is made at the first execution: plan once without, to check the answer
+    # plan once without executing: the answer alone
     path = {"type": "circle", "center": [0.38, 0.0, -0.22], "radius": 0.03, "normal": [1, 0, 0],
             "duration": 1.0, "sample_period": 0.1}
     req = PlanPath.Request(path_yaml=yaml.safe_dump(path), position_weights=[0.0, 1.0, 1.0])
