@@ -30,7 +30,7 @@ setup(
     # checkout's config/ becomes soft_twin_core/config/ in the install, where
     # soft_twin_core.model.config_dirs() finds them (load_model("tendon_arm")).
     package_dir={"soft_twin_core.config": "config"},
-    package_data={"soft_twin_core.config": ["robots/*.yaml", "scenarios/*.yaml"]},
+    package_data={"soft_twin_core.config": ["robots/*.yaml", "scenarios/*.yaml", "paths/*.yaml"]},
     exclude_package_data={"soft_twin_core.config": ["*.py", "params.yaml"]},
     install_requires=[
         "numpy>=1.24,<2.6",

@@ -29,7 +29,7 @@ from sensor_msgs.msg import JointState
 from std_srvs.srv import Trigger
 
 from soft_twin.msg import ActuationCommand, Strains
-from soft_twin.srv import ForwardKinematics, InverseKinematics, StaticsQuery
+from soft_twin.srv import ForwardKinematics, InverseKinematics, PlanPath, StaticsQuery
 
 REPO_ROOT = Path(__file__).resolve().parents[1]
 
@@ -129,6 +129,7 @@ class TwinClient:
             "inverse_kinematics": n.create_client(InverseKinematics, f"{self.ns}/inverse_kinematics"),
             "statics_query": n.create_client(StaticsQuery, f"{self.ns}/statics_query"),
             "reset": n.create_client(Trigger, f"{self.ns}/reset"),
+            "plan_path": n.create_client(PlanPath, f"{self.ns}/plan_path"),
         }
         self.executor = SingleThreadedExecutor(context=self.context)
         self.executor.add_node(n)

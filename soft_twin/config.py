@@ -85,6 +85,10 @@ PARAMETERS = {
     "max_tip_torque_nm": (
         1.0e2, "Largest tip moment |m| accepted on ~/tip_wrench_command and by statics_query (N m, > 0); "
                "a larger one is rejected (over_limit)."),
+    "plan_output_topic": (
+        "~/planned_actuation", "Topic (ActuationCommand) on which ~/plan_path executes a plan: one command "
+                               "per sample at its time, for the real robot; the twin follows the same "
+                               "commands through ~/actuation."),
 }
 
 
@@ -110,6 +114,7 @@ class NodeConfig:
     max_catchup_steps: int
     max_tip_force_n: float
     max_tip_torque_nm: float
+    plan_output_topic: str
 
     @property
     def dt(self):
@@ -154,6 +159,14 @@ def _boolean(name, v):
 def _string(name, v):
     if not isinstance(v, str):
         raise ConfigError(f"{name}: expected a string, got {clip(repr(v))}")
+    return v
+
+
+def _topic(name, v):
+    v = _string(name, v).strip()
+    ok = bool(v) and all(c.isalnum() or c in "_/~{}" for c in v) and "//" not in v and not v.endswith("/")
+    if not ok or v[0].isdigit():
+        raise ConfigError(f"{name}: expected a ROS topic name (letters, digits, _ / ~), got {clip(repr(v))}")
     return v
 
 
@@ -202,6 +215,7 @@ VALIDATORS = {
     "max_catchup_steps": lambda n, v: _integer(n, v, 1, 1000),
     "max_tip_force_n": lambda n, v: _number(n, v, 0.0, lo_open=True),
     "max_tip_torque_nm": lambda n, v: _number(n, v, 0.0, lo_open=True),
+    "plan_output_topic": lambda n, v: _topic(n, v),
 }
 
 

@@ -238,6 +238,13 @@ class SoftTwinNode(Node):
         self.create_service(StaticsQuery, "~/statics_query", self._guarded(self._srv_statics),
                             callback_group=self._service_group)
         self.create_service(Trigger, "~/reset", self._guarded(self._srv_reset), callback_group=self._service_group)
+        # --- issue 13: tip path planning and timed execution (soft_twin.plan_service)
+        from soft_twin import plan_service
+        from soft_twin.srv import PlanPath
+        self._plan_runner = plan_service.PlanRunner(self, ActuationCommand)
+        self._plan_runner.prepare(self.cfg.plan_output_topic)
+        self.create_service(PlanPath, "~/plan_path", self._guarded(self._srv_plan_path),
+                            callback_group=self._service_group)
 
         # --- timers (steady clock: the twin runs on wall time) ---------------
         self._steady = Clock(clock_type=ClockType.STEADY_TIME)
@@ -1079,6 +1086,15 @@ class SoftTwinNode(Node):
             resp.base_wrench = cv.wrench_msg(snap.base_wrench)
             resp.iterations = int(info.iterations)
         return resp
+    def _srv_plan_path(self, req, resp):
+        from soft_twin import plan_service
+        return plan_service.handle(self, self._plan_runner, req, resp)
+
+    def destroy_node(self):
+        runner = getattr(self, "_plan_runner", None)
+        if runner is not None:
+            runner.cancel()
+        return super().destroy_node()
 
     def _srv_reset(self, req, resp):
         with self._lock:

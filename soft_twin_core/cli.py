@@ -5,8 +5,9 @@
                   [--output FILE] [--backbone-every K] [--record-every K] [--theta 0.5]
     soft-twin-sim study STUDY.yaml [-o OUT] [--scheduler ADDRESS | --workers N | --serial]
     soft-twin-sim workspace ROBOT_OR_SCENARIO [-o OUT] [--limit MAX] [--samples N]
+    soft-twin-sim plan PLAN_FILE [--output PREFIX] [--no-dynamics]
 
-(study and workspace: see soft_twin_core/study_cli.py.)
+(study and workspace: see soft_twin_core/study_cli.py; plan: soft_twin_core/plan_file.py.)
 
 SCENARIO is a scenario file or the name of an example scenario
 (``tendon_arm_dynamics``). Exit status: 0 success; 2 a bad argument or
@@ -69,7 +70,53 @@ def _parser():
     # --- design studies and workspaces (issue 16): soft_twin_core/study_cli.py
     from .study_cli import add_parsers
     add_parsers(sub)
+    # --- issue 13: tip path planning ---
+    pp = sub.add_parser("plan", help="plan the actuation sequence of a tip path (writes CSV and JSON)")
+    pp.add_argument("plan_file", help="a plan file (robot, path, tracking, actuation, dynamics)")
+    pp.add_argument("--output", "-o", metavar="PREFIX",
+                    help="write PREFIX.csv and PREFIX.json (default: the plan file's name in the "
+                         "current directory)")
+    pp.add_argument("--no-dynamics", action="store_true", help="skip the dynamic verification")
     return p
+
+
+def _run_plan(args):
+    """``soft-twin-sim plan``: exit 0 when every sample is reached, 3 when
+    some are not (the files are written either way), 2 on a bad file."""
+    import os
+    from .model import ModelError
+    from .paths import PathError
+    from .plan_file import PlanFileError, load_plan_file, plan_csv, run_plan
+    from .planner import PlanError
+    from .statics import StaticsError
+    try:
+        model, path, opts, u0, dyn = load_plan_file(args.plan_file)
+        t0 = time.monotonic()
+        out = run_plan(model, path, opts, u0, None if args.no_dynamics else dyn)
+    except (PlanFileError, PathError, PlanError, ModelError, ValueError) as e:
+        print(f"soft-twin-sim: {e}", file=sys.stderr)
+        return 2
+    except StaticsError as e:
+        print(f"soft-twin-sim: {e}", file=sys.stderr)
+        return 3
+    prefix = args.output or os.path.splitext(os.path.basename(args.plan_file))[0]
+    with open(prefix + ".json", "w") as fh:
+        json.dump(out, fh)
+    with open(prefix + ".csv", "w") as fh:
+        fh.write(plan_csv(out))
+    s = out["summary"]
+    err = s["max_error_reached_m"]
+    print(f"soft-twin-sim: planned {s['samples']} samples in {time.monotonic() - t0:.1f} s: "
+          f"{s['reached']} reached (max error {err if err is None else f'{1e3 * err:.3g} mm'}), "
+          f"{s['unreachable']} unreachable {s['statuses']}", file=sys.stderr)
+    if "dynamics" in out:
+        d = out["dynamics"]
+        print(f"soft-twin-sim: dynamics: rms tracking error {1e3 * d['uncompensated']['rms_error_m']:.3g} mm "
+              f"(max {1e3 * d['uncompensated']['max_error_m']:.3g} mm); with lag compensation "
+              f"{1e3 * d['compensated']['rms_error_m']:.3g} mm (max {1e3 * d['compensated']['max_error_m']:.3g} mm)",
+              file=sys.stderr)
+    print(f"soft-twin-sim: wrote {prefix}.csv and {prefix}.json", file=sys.stderr)
+    return 0 if s["unreachable"] == 0 else 3
 
 
 _VEC3 = ("x", "y", "z")
@@ -156,6 +203,8 @@ def main(argv=None):
     if args.command in ("study", "workspace"):
         from .study_cli import main_study, main_workspace
         return main_study(args) if args.command == "study" else main_workspace(args)
+    if args.command == "plan":
+        return _run_plan(args)
     failed = None
     for name in ("sections", "backbone_every", "record_every", "points_per_section"):
         v = getattr(args, name, None)

@@ -1,0 +1,113 @@
+"""IK service timing (issue 13): the answer of ~/inverse_kinematics for the
+default robot, warm-started from the twin's current state (at rest, no
+actuation), for reachable tip positions and full poses (tips and poses of
+random least-tension actuations, 0..3 N) and for unreachable ones.
+
+Run: .venv/bin/python benchmarks/bench_ik.py [--node]
+
+Without --node: the service's body (soft_twin.twin.inverse_kinematics) in
+this process. With --node: the real service round trip to a node in a
+second process (dynamic mode, 200 Hz stepping in that process), this
+process a real rclpy client. Prints the median and 90th percentile, the
+share of successes and the machine's load (the 2 CPUs may be shared).
+"""
+
+import argparse
+import os
+import time
+
+import numpy as np
+
+from _timing import machine
+from soft_twin_core import statics as st
+from soft_twin_core.model import load_model
+
+
+def targets(model, n, seed=0):
+    """(4x4 poses) of the equilibria of random least-tension actuations:
+    one tendon of each antagonistic pair slack, the other 0..3 N."""
+    rng = np.random.default_rng(seed)
+    out = []
+    for _ in range(n):
+        u = np.zeros(4)
+        u[rng.integers(0, 2)] = rng.uniform(0, 3)
+        u[2 + rng.integers(0, 2)] = rng.uniform(0, 3)
+        out.append(st.solve_statics(model, u).tip_pose)
+    return out
+
+
+def report(label, times, ok, cpu=None):
+    t = 1e3 * np.asarray(times)
+    extra = "" if cpu is None else f"  (CPU time of this process: median {1e3 * np.median(cpu):5.1f} ms)"
+    print(f"{label:42s} median {np.median(t):6.1f} ms  p90 {np.percentile(t, 90):6.1f} ms  "
+          f"success {sum(ok)}/{len(ok)}{extra}")
+    return float(np.median(t))
+
+
+def in_process(model, poses):
+    from soft_twin import twin as tw
+    q0 = st.solve_statics(model).q
+    tw.inverse_kinematics(model, q0, 10, poses[0], position_only=True, u_current=np.zeros(4))  # warm-up
+    res = {}
+    for label, po in (("position only", True), ("full pose", False)):
+        ts, cpu, ok = [], [], []
+        for T in poses:
+            t0, c0 = time.perf_counter(), time.process_time()
+            r = tw.inverse_kinematics(model, q0, 10, T, position_only=po, u_current=np.zeros(4))
+            ts.append(time.perf_counter() - t0)
+            cpu.append(time.process_time() - c0)
+            ok.append(r.success)
+        res[label] = report(f"in process, {label}", ts, ok, cpu)
+    ts, cpu, ok = [], [], []
+    for T in poses[:10]:
+        T = T.copy()
+        T[:3, 3] += [0.0, 0.03, 0.05]           # off the tendons' reachable surface
+        t0, c0 = time.perf_counter(), time.process_time()
+        r = tw.inverse_kinematics(model, q0, 10, T, position_only=True, u_current=np.zeros(4))
+        ts.append(time.perf_counter() - t0)
+        cpu.append(time.process_time() - c0)
+        ok.append(not r.success)
+    report("in process, unreachable (flagged)", ts, ok, cpu)
+    return res
+
+
+def through_node(poses):
+    import rclpy  # noqa: F401
+    from soft_twin.client import NodeProcess, TwinClient
+    from soft_twin.conversions import pose_msg
+    from soft_twin.srv import InverseKinematics
+    os.environ.setdefault("ROS_DOMAIN_ID", str(1 + os.getpid() % 101))
+    with NodeProcess([], node_name="bench_ik") as proc:
+        c = TwinClient("bench_ik", client_name="bench_ik_client")
+        try:
+            c.wait_ready(120.0)
+            c.call("inverse_kinematics", InverseKinematics.Request(target=pose_msg(poses[0]), position_only=True))
+            for label, po in (("position only", True), ("full pose", False)):
+                ts, ok = [], []
+                for T in poses:
+                    t0 = time.perf_counter()
+                    r = c.call("inverse_kinematics", InverseKinematics.Request(target=pose_msg(T), position_only=po))
+                    ts.append(time.perf_counter() - t0)
+                    ok.append(r.success)
+                report(f"node round trip, {label}", ts, ok)
+        finally:
+            c.close()
+        del proc
+
+
+def main():
+    ap = argparse.ArgumentParser()
+    ap.add_argument("--node", action="store_true", help="also time the service through a node")
+    ap.add_argument("-n", type=int, default=40)
+    args = ap.parse_args()
+    print(f"machine: {machine()}, {os.cpu_count()} CPUs, load average {os.getloadavg()[0]:.2f} (1 min)")
+    model = load_model("tendon_arm")
+    poses = targets(model, args.n)
+    in_process(model, poses)
+    if args.node:
+        through_node(poses)
+    print(f"load average after: {os.getloadavg()[0]:.2f}")
+
+
+if __name__ == "__main__":
+    main()

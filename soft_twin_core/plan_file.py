@@ -1,0 +1,180 @@
+"""Plan files for ``soft-twin-sim plan PATH.yaml``: a robot, a tip path
+and the planner's options; the result as a JSON-ready dict and CSV text.
+
+    robot: tendon_arm               # example name, file (relative to this file) or inline mapping
+    path: {type: circle, center: [0.30, 0.0, -0.22], radius: 0.05,
+           normal: [1, 0, 0], duration: 4.0, sample_period: 0.02}   # base frame, m, s
+    tracking:                       # optional
+      position_weights: [0, 1, 1]   # per world axis (here: y and z tracked, x free)
+      orientation_weight: 0.1       # m/rad, when the path has orientations
+      tolerance: 1.0e-6             # m: a sample is reached within it
+    actuation:                      # optional
+      pretension: 0.0               # N (scalar or {actuator: value})
+      max_tension: null             # N, on top of each actuator's `limit`
+      max_pressure: null            # Pa
+      max_rate: null                # N/s (Pa/s)
+      initial: null                 # inputs before the path (rate limits hold from them)
+    gravity: true
+    dynamics:                       # optional: verify the plan in the dynamics
+      dt: 0.005                     # s
+      compensation_iterations: 3    # 0: verification only
+
+See :mod:`soft_twin_core.planner` for the method.
+"""
+
+import csv
+import io
+import os
+
+import numpy as np
+
+from . import paths as pth
+from . import planner as pl
+from .loads import Loads
+from .model import config_dirs, find_file, load_model, model_from_dict, read_yaml_file, robot_mapping
+
+
+class PlanFileError(ValueError):
+    """A bad plan file field; the message names it."""
+
+
+_TOP = {"robot", "path", "tracking", "actuation", "gravity", "dynamics", "description"}
+_TRACK = {"position_weights", "orientation_weight", "tolerance", "tolerance_rad", "max_iterations"}
+_ACT = {"pretension", "max_tension", "max_pressure", "max_rate", "initial"}
+_DYN = {"dt", "compensation_iterations", "gain", "filter_s"}
+
+
+def find_plan_file(name):
+    """A path as given, else the example plan of that name (config/paths/)."""
+    p = os.path.expanduser(os.fspath(name))
+    if os.path.isfile(p) or os.sep in p:
+        return p
+    stem = p[:-5] if p.endswith(".yaml") else p
+    for c in config_dirs():
+        f = c / "paths" / f"{stem}.yaml"
+        if f.is_file():
+            return str(f)
+    return p
+
+
+def _keys(d, allowed, where):
+    if d is None:
+        return {}
+    if not isinstance(d, dict):
+        raise PlanFileError(f"{where}: expected a mapping, got {d!r}")
+    bad = sorted(set(d) - allowed)
+    if bad:
+        raise PlanFileError(f"{where}.{bad[0]}: unknown field; allowed: {sorted(allowed)}")
+    return d
+
+
+def load_plan_file(path):
+    """(model, TipPath, PlanOptions, u_start, dynamics dict) of a plan file."""
+    path = find_plan_file(path)
+    d = read_yaml_file(path, PlanFileError, "plan file")
+    return plan_from_dict(d, os.path.dirname(os.path.abspath(path)))
+
+
+def plan_from_dict(d, base_dir="."):
+    d = _keys(d, _TOP, "plan")
+    if "robot" not in d:
+        raise PlanFileError("plan.robot: missing (an example name, a robot file or a mapping)")
+    if "path" not in d:
+        raise PlanFileError("plan.path: missing (a path mapping with a type)")
+    robot = d["robot"]
+    if isinstance(robot, dict):
+        model = model_from_dict(robot_mapping(robot, "plan.robot"))
+    elif isinstance(robot, str):
+        p = robot if os.path.isabs(robot) else os.path.join(base_dir, robot)
+        model = load_model(p if os.path.isfile(p) else find_file(robot, "robots"))
+    else:
+        raise PlanFileError(f"plan.robot: expected a name, a file or a mapping, got {robot!r}")
+    path = pth.path_from_dict(d["path"], "path")
+    tr = _keys(d.get("tracking"), _TRACK, "tracking")
+    ac = _keys(d.get("actuation"), _ACT, "actuation")
+    grav = d.get("gravity", True)
+    if not isinstance(grav, bool):
+        raise PlanFileError(f"plan.gravity: expected true or false, got {grav!r}")
+    opts = pl.PlanOptions(loads=Loads(gravity=grav),
+                          **{k: (tuple(v) if k == "position_weights" and isinstance(v, list) else v)
+                             for k, v in tr.items()},
+                          **{k: v for k, v in ac.items() if k != "initial"})
+    opts.weights()
+    pl.actuator_bounds(model, opts)
+    pl.rate_limits(model, opts)
+    u0 = ac.get("initial")
+    if u0 is not None:
+        from .statics import actuation_vector
+        u0 = actuation_vector(model, u0)
+    dyn = _keys(d.get("dynamics"), _DYN, "dynamics") if "dynamics" in d else None
+    if dyn is not None:
+        dt = dyn.get("dt", 0.005)
+        if isinstance(dt, bool) or not isinstance(dt, (int, float)) or not 0 < dt <= 0.1:
+            raise PlanFileError(f"dynamics.dt: expected a time step in (0, 0.1] s, got {dt!r}")
+        it = dyn.get("compensation_iterations", 3)
+        if isinstance(it, bool) or not isinstance(it, int) or not 0 <= it <= 20:
+            raise PlanFileError(f"dynamics.compensation_iterations: expected an integer in 0..20, got {it!r}")
+    return model, path, opts, u0, dyn
+
+
+def run_plan(model, path, options, u_start=None, dynamics=None):
+    """Plan (and, with ``dynamics``, verify and compensate) -> result dict."""
+    plan = pl.plan_path(model, path, options, u_start=u_start)
+    out = {"robot": model.name, "actuator_names": list(model.actuator_names),
+           "frame": "world (the base frame for an identity base pose)",
+           "units": {"time": "s", "inputs": {a.name: ("N" if a.kind == "tendon" else "Pa")
+                                             for a in model.actuators}, "positions": "m"},
+           "position_weights": list(options.position_weights),
+           "lower": plan.lower.tolist(), "upper": _finite(plan.upper), "max_rate": _finite(plan.max_rate),
+           "summary": plan.summary(), "time": plan.times.tolist(), "actuation": plan.u.tolist(),
+           "target": plan.target.tolist(), "predicted_tip": plan.tip.tolist(),
+           "error_m": plan.weighted_error.tolist(), "distance_m": plan.position_error.tolist(),
+           "orientation_error_rad": plan.orientation_error.tolist(),
+           "reached": plan.reached.tolist(), "status": list(plan.status)}
+    if dynamics is not None:
+        w = np.asarray(options.position_weights, float)
+        best, tr, hist = pl.compensate_lag(model, path, options, dynamics.get("compensation_iterations", 3),
+                                           dynamics.get("gain", 0.5), dynamics.get("dt", 0.005), u_start,
+                                           dynamics.get("filter_s", 0.25))
+        tr0 = pl.simulate_plan(model, plan, plan.target, dynamics.get("dt", 0.005), options.loads, w)
+        at = lambda tr_: np.stack([np.interp(plan.times, tr_.time, tr_.tip[:, k]) for k in range(3)], -1)  # noqa
+        out["dynamics"] = {
+            "dt": dynamics.get("dt", 0.005), "uncompensated": tr0.summary(), "compensated": tr.summary(),
+            "iterations": hist, "simulated_tip": at(tr0).tolist(),
+            "simulated_error_m": (np.linalg.norm((plan.target - at(tr0)) * np.sqrt(w), axis=1)).tolist(),
+            "compensated_actuation": best.u.tolist(), "compensated_tip": at(tr).tolist(),
+            "compensated_error_m": (np.linalg.norm((plan.target - at(tr)) * np.sqrt(w), axis=1)).tolist()}
+    return out
+
+
+def _finite(a):
+    return [float(x) if np.isfinite(x) else None for x in a]
+
+
+def plan_csv(out):
+    """One row per sample: time, inputs, target, predicted tip, errors,
+    reached, status (and the dynamics columns when present)."""
+    names = out["actuator_names"]
+    cols = ["time_s"] + [f"u_{n}" for n in names] + [f"target_{c}_m" for c in "xyz"] \
+        + [f"tip_{c}_m" for c in "xyz"] + ["error_m", "distance_m", "orientation_error_rad", "reached", "status"]
+    dyn = out.get("dynamics")
+    if dyn:
+        cols += [f"sim_tip_{c}_m" for c in "xyz"] + ["sim_error_m"] + [f"u_ff_{n}" for n in names] \
+            + [f"ff_tip_{c}_m" for c in "xyz"] + ["ff_error_m"]
+    buf = io.StringIO()
+    wr = csv.writer(buf, lineterminator="\n")
+    wr.writerow(cols)
+    for i, t in enumerate(out["time"]):
+        row = [repr(t)] + [repr(v) for v in out["actuation"][i]] + [repr(v) for v in out["target"][i]] \
+            + [repr(v) for v in out["predicted_tip"][i]] \
+            + [repr(out["error_m"][i]), repr(out["distance_m"][i]), repr(out["orientation_error_rad"][i]),
+               int(out["reached"][i]), out["status"][i]]
+        if dyn:
+            row += [repr(v) for v in dyn["simulated_tip"][i]] + [repr(dyn["simulated_error_m"][i])] \
+                + [repr(v) for v in dyn["compensated_actuation"][i]] + [repr(v) for v in dyn["compensated_tip"][i]] \
+                + [repr(dyn["compensated_error_m"][i])]
+        wr.writerow(row)
+    return buf.getvalue()
+
+
+__all__ = ["PlanFileError", "load_plan_file", "plan_from_dict", "run_plan", "plan_csv"]

@@ -1,0 +1,191 @@
+"""End to end (issue 13): the IK service answers honestly (unreachable
+targets: success false and the closest pose the tendons can hold; a robot
+without actuators: no talk of actuation) and ~/plan_path plans a circle and
+executes it: the commands appear on the configured output topic with the
+planned values at the planned times, and the twin applies them. The node
+runs in a second process; this process is a real rclpy client; every wait
+is for a condition with a timeout."""
+import math
+import threading
+import time
+
+import numpy as np
+import pytest
+import yaml
+
+rclpy = pytest.importorskip("rclpy", reason="needs ROS 2: the venv of `make setup`")
+
+from geometry_msgs.msg import Pose  # noqa: E402
+
+from soft_twin.client import NodeProcess, TwinClient  # noqa: E402
+from soft_twin.config import resolve_robot_file  # noqa: E402
+from soft_twin.conversions import matrix_from_pose  # noqa: E402
+from soft_twin.msg import ActuationCommand  # noqa: E402
+from soft_twin.srv import InverseKinematics, PlanPath  # noqa: E402
+from soft_twin_core import statics as st  # noqa: E402
+from soft_twin_core.model import load_model  # noqa: E402
+
+pytestmark = pytest.mark.ros
+
+START_TIMEOUT = 120.0
+OUTPUT = "/plan_e2e/commands"
+
+
+@pytest.fixture(scope="module")
+def model():
+    return load_model(resolve_robot_file(""))
+
+
+def _start(node_name, ros_args, tmp_path_factory):
+    log = tmp_path_factory.mktemp(node_name) / "node.log"
+    proc = NodeProcess(ros_args, node_name=node_name, log_path=log)
+    client = TwinClient(node_name, client_name=f"{node_name}_test_client")
+    try:
+        client.wait_ready(START_TIMEOUT)
+    except Exception:
+        client.close()
+        proc.stop()
+        raise AssertionError(f"node did not come up:\n{proc.output()[-3000:]}")
+    return proc, client
+
+
+def _stop(proc, client):
+    client.close()
+    rc = proc.stop()
+    out = proc.output()
+    assert rc == 0 and "Traceback" not in out, f"exit code {rc}\n{out[-3000:]}"
+
+
+@pytest.fixture(scope="module")
+def twin(tmp_path_factory):
+    proc, client = _start("twin_plan", ["-p", f"plan_output_topic:={OUTPUT}"], tmp_path_factory)
+    yield client, proc
+    _stop(proc, client)
+
+
+def _ns(stamp):
+    return stamp.sec * 1_000_000_000 + stamp.nanosec
+
+
+def _pose(p):
+    m = Pose()
+    m.position.x, m.position.y, m.position.z = (float(v) for v in p)
+    return m
+
+
+def test_ik_unreachable_target_gives_the_closest_holdable_pose(twin, model):
+    c, _ = twin
+    target = (0.3, 0.1, -0.2)             # off the tendons' reachable surface (~5 cm)
+    resp = c.call("inverse_kinematics", InverseKinematics.Request(target=_pose(target), position_only=True))
+    assert not resp.success
+    assert "closest pose" in resp.message and "best" not in resp.message
+    assert resp.actuation_found and min(resp.actuator_values) >= 0.0
+    assert resp.position_error > 0.01
+    # the answer is a pose the tendons actually hold: the statics of those tensions
+    q = model.q_from_strains(np.reshape(resp.strains, (-1, 6)))
+    eq = st.solve_statics(model, list(resp.actuator_values), q_init=q)
+    np.testing.assert_allclose(eq.tip_pose, matrix_from_pose(resp.achieved), atol=1e-7)
+    a = resp.achieved.position
+    assert math.dist((a.x, a.y, a.z), target) == pytest.approx(resp.position_error, rel=1e-9)
+    # a reachable one: success, within the tolerance; timing reported
+    p_t = st.solve_statics(model, [0.0, 1.0, 0.6, 0.0]).tip_pose[:3, 3]
+    times = []
+    for _ in range(5):
+        t = time.monotonic()
+        resp = c.call("inverse_kinematics", InverseKinematics.Request(target=_pose(p_t), position_only=True))
+        times.append(time.monotonic() - t)
+        assert resp.success, resp.message
+        assert resp.position_error <= 1e-6
+    print(f"IK round trip through the node: median {1e3 * np.median(times):.1f} ms")
+
+
+def test_plan_path_executes_on_the_output_topic(twin, model):
+    c, _ = twin
+    got, cond = [], threading.Condition()
+
+    def on_cmd(msg):
+        with cond:
+            got.append((c.node.get_clock().now().nanoseconds, msg))
+            cond.notify_all()
+    # kept until the client closes (destroying it while the client's executor spins can stall that executor)
+    sub = c.node.create_subscription(ActuationCommand, OUTPUT, on_cmd, 100)
+    # the node makes its output publisher at start: wait for the match
+    assert c.wait_until(lambda: sub.get_publisher_count() > 0, 20.0), f"no publisher on {OUTPUT}"
+    # plan once without executing: the answer alone
+    path = {"type": "circle", "center": [0.38, 0.0, -0.22], "radius": 0.03, "normal": [1, 0, 0],
+            "duration": 1.0, "sample_period": 0.1}
+    req = PlanPath.Request(path_yaml=yaml.safe_dump(path), position_weights=[0.0, 1.0, 1.0])
+    resp = c.call("plan_path", req)
+    assert resp.success, resp.message
+    assert not resp.executing and len(resp.times) == 11
+    names = list(resp.actuator_names)
+    U = np.reshape(resp.values, (len(resp.times), len(names)))
+    assert np.all(U >= 0) and max(resp.errors) <= 1e-6 and all(resp.reached)
+    # execute
+    req.execute = True
+    t_call = time.monotonic()
+    resp = c.call("plan_path", req)
+    assert resp.success and resp.executing, resp.message
+    U = np.reshape(resp.values, (len(resp.times), len(names)))
+    n = len(resp.times)
+    with cond:
+        ok = cond.wait_for(lambda: len(got) >= n, timeout=20.0)
+    assert ok, f"{len(got)} of {n} commands arrived on {OUTPUT}"
+    assert len(got) == n
+    start = _ns(resp.start_stamp)
+    for k, (_, msg) in enumerate(got):
+        assert list(msg.names) == names
+        assert list(msg.values) == list(U[k])                      # the planned values, exactly
+        assert _ns(msg.header.stamp) - start == pytest.approx(resp.times[k] * 1e9, abs=1.0)
+    # published at their times: never before its stamp (the node and this process share the
+    # system clock), delivered within 0.3 s (generous for a loaded 2-CPU machine)
+    latency = np.array([(a - _ns(m.header.stamp)) * 1e-9 for a, m in got])
+    assert latency.min() >= -1e-3 and latency.max() < 0.3, latency
+    print(f"plan execution: command latency median {1e3 * np.median(latency):.1f} ms, "
+          f"max {1e3 * latency.max():.1f} ms")
+    assert (time.monotonic() - t_call) >= resp.times[-1]
+    # the twin applied the same commands: its state reflects the last one
+    last = got[-1][1].header.stamp
+    assert c.wait_until(lambda: c.applied(last), 10.0), "the twin never applied the last command"
+    # and follows: after settling, its tip is at the plan's last predicted tip (y, z)
+    tip_last = np.reshape(resp.predicted_tip, (-1, 3))[-1]
+
+    def settled():
+        p = c.tip_pose.pose.position
+        return math.hypot(p.y - tip_last[1], p.z - tip_last[2]) < 2e-3
+    assert c.wait_until(settled, 15.0)
+
+
+def test_plan_path_rejects_bad_requests(twin):
+    c, _ = twin
+    for req, word in [(PlanPath.Request(path_yaml="{type: spiral}"), "path.type"),
+                      (PlanPath.Request(path_yaml="[1, 2"), "invalid YAML"),
+                      (PlanPath.Request(path_yaml="{type: line, start: [0,0,0], end: [0,0,1], duration: 1}",
+                                        max_rate=-1.0), "max_rate"),
+                      (PlanPath.Request(path_yaml="{type: line, start: [0,0,0], end: [0,0,1], duration: 1}",
+                                        position_weights=[1.0, 1.0]), "position_weights")]:
+        resp = c.call("plan_path", req)
+        assert not resp.success and word in resp.message, resp.message
+
+
+def test_ik_without_actuators_speaks_of_shapes_only(tmp_path_factory):
+    d = yaml.safe_load(resolve_robot_file("").read_text())
+    d.pop("actuators")
+    f = tmp_path_factory.mktemp("robots") / "no_actuators.yaml"
+    f.write_text(yaml.safe_dump(d))
+    proc, c = _start("twin_noact", ["-p", f"robot_description_file:={f}", "-p", "mode:=quasi_static"],
+                     tmp_path_factory)
+    try:
+        m = load_model(str(f))
+        target = st.solve_statics(m, loads=None).tip_pose.copy()
+        target[:3, 3] += [0.0, 0.02, 0.03]
+        resp = c.call("inverse_kinematics", InverseKinematics.Request(target=_pose(target[:3, 3]),
+                                                                       position_only=True))
+        assert resp.success, resp.message
+        assert "best" not in resp.message and "fit" not in resp.message
+        assert not resp.actuation_found and list(resp.actuator_values) == []
+        resp = c.call("plan_path", PlanPath.Request(
+            path_yaml="{type: line, start: [0.3, 0, -0.2], end: [0.3, 0.1, -0.2], duration: 1}"))
+        assert not resp.success and "no actuators" in resp.message
+    finally:
+        _stop(proc, c)
