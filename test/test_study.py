@@ -283,6 +283,10 @@ def test_sensitivity_against_known_functions():
     sx, sy = X.std(axis=0), Y[:, 0].std()
     assert src[0] == pytest.approx([3 * sx[0] / sy, -2 * sx[1] / sy], rel=1e-10)
     assert r2[0] == pytest.approx(1.0, abs=1e-12)
+    # round-off columns (a force that is zero up to 1e-16) get no sensitivity
+    from soft_twin_core.study_report import numeric_columns
+    rows = [{"a": float(i), "f_fx": 1e-16 * (-1) ** i, "f_fz": 1.0 + i, "g": 1e-16 * i} for i in range(5)]
+    assert numeric_columns(rows, ["a", "f_fx", "f_fz", "g"]) == ["a", "f_fz", "g"]
 
 
 # ----------------------------------------------------------------------------
