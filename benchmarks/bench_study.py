@@ -11,6 +11,7 @@ average before each, since the machine may be shared.
 """
 
 import argparse
+import logging
 import os
 import shutil
 import sys
@@ -59,6 +60,7 @@ def main():
     ap.add_argument("--repeat", type=int, default=3)
     args = ap.parse_args()
     st = bench_study(args.cases)
+    logging.getLogger("distributed").setLevel(logging.ERROR)     # two clusters: keep both quiet
     tmp = Path(tempfile.mkdtemp(prefix="bench_study_"))
     quiet = lambda m: None      # noqa: E731
     print(f"machine: {machine()}, {os.cpu_count()} CPUs; {args.cases} statics cases of the default robot")

@@ -230,7 +230,7 @@ def start_local_cluster(n_workers):
     (the kernels hold the GIL: threads would not run cases in parallel)."""
     from distributed import Client, LocalCluster
     cluster = LocalCluster(n_workers=n_workers, threads_per_worker=1, processes=True,
-                           dashboard_address=None, silence_logs=logging.ERROR)
+                           dashboard_address=":0", silence_logs=logging.ERROR)   # any free port (no bokeh: no dashboard)
     client = Client(cluster)
     # Ctrl-C in a terminal reaches the whole process group: this process
     # saves the rows and closes the cluster; the workers need not (they
