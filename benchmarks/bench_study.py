@@ -21,7 +21,7 @@ from pathlib import Path
 
 from _timing import machine
 from soft_twin_core.study import study_from_dict
-from soft_twin_core.study_dask import read_rows, run_study, start_local_cluster
+from soft_twin_core.study_dask import META_COLUMNS, read_rows, run_study, start_local_cluster
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -44,7 +44,7 @@ def max_difference(a, b):
     worst = 0.0
     for ra, rb in zip(a, b):
         for k, x in ra.items():
-            if k in ("compute_time_s", "worker"):
+            if k in META_COLUMNS:          # timings and the worker's name differ by nature
                 continue
             y = rb[k]
             if isinstance(x, float):
