@@ -11,6 +11,7 @@ average before each, since the machine may be shared.
 """
 
 import argparse
+import logging
 import os
 import shutil
 import sys
@@ -20,7 +21,7 @@ from pathlib import Path
 
 from _timing import machine
 from soft_twin_core.study import study_from_dict
-from soft_twin_core.study_dask import read_rows, run_study, start_local_cluster
+from soft_twin_core.study_dask import META_COLUMNS, read_rows, run_study, start_local_cluster
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -43,7 +44,7 @@ def max_difference(a, b):
     worst = 0.0
     for ra, rb in zip(a, b):
         for k, x in ra.items():
-            if k in ("compute_time_s", "worker"):
+            if k in META_COLUMNS:          # timings and the worker's name differ by nature
                 continue
             y = rb[k]
             if isinstance(x, float):
@@ -59,6 +60,7 @@ def main():
     ap.add_argument("--repeat", type=int, default=3)
     args = ap.parse_args()
     st = bench_study(args.cases)
+    logging.getLogger("distributed").setLevel(logging.ERROR)     # two clusters: keep both quiet
     tmp = Path(tempfile.mkdtemp(prefix="bench_study_"))
     quiet = lambda m: None      # noqa: E731
     print(f"machine: {machine()}, {os.cpu_count()} CPUs; {args.cases} statics cases of the default robot")
@@ -74,33 +76,42 @@ def main():
             print(f"  serial (this process): {res['timing']['compute_s']:.2f} s (load {load:.2f})")
         times["serial"] = best
         serial_rows = read_rows(tmp / "serial" / "results.parquet")
-        for n in (1, 2):
-            t0 = time.monotonic()
-            cluster, client = start_local_cluster(n)
-            t_start = time.monotonic() - t0
-            t0 = time.monotonic()
-            client.run(_warm)
-            t_warm = time.monotonic() - t0
-            print(f"  {n} worker(s): cluster started in {t_start:.2f} s, kernels loaded in {t_warm:.2f} s")
-            best = float("inf")
-            try:
-                for _ in range(args.repeat):
+        clusters = {}
+        try:
+            for n in (1, 2):
+                t0 = time.monotonic()
+                cluster, client = start_local_cluster(n)
+                t_start = time.monotonic() - t0
+                t0 = time.monotonic()
+                client.run(_warm)
+                t_warm = time.monotonic() - t0
+                clusters[n] = (cluster, client)
+                print(f"  {n} worker(s): cluster started in {t_start:.2f} s, kernels loaded in {t_warm:.2f} s")
+            # alternate 1 and 2 workers, so that a change of the machine's load hits both alike
+            best = {1: float("inf"), 2: float("inf")}
+            for rep in range(args.repeat):
+                pair = {}
+                for n in (1, 2):
                     load = os.getloadavg()[0]
-                    res = run_study(st, tmp / f"dask{n}", client=client, overwrite=True, log=quiet, summary=False)
+                    res = run_study(st, tmp / f"dask{n}", client=clusters[n][1], overwrite=True, log=quiet,
+                                    summary=False)
                     rows = read_rows(tmp / f"dask{n}" / "results.parquet")
                     diff = max_difference(serial_rows, rows)
                     per_case = sorted(r["compute_time_s"] for r in rows)
-                    print(f"  {n} worker(s): {res['timing']['compute_s']:.2f} s (load {load:.2f}); {res['ok']} ok; "
+                    pair[n] = res["timing"]["compute_s"]
+                    print(f"  {n} worker(s): {pair[n]:.2f} s (load {load:.2f}); {res['ok']} ok; "
                           f"max difference from serial {diff:.1e}; per case median "
                           f"{per_case[len(per_case) // 2] * 1e3:.1f} ms")
                     if diff > 1e-12 or res["ok"] != args.cases:
                         print("  MISMATCH with the serial run")
                         return 1
-                    best = min(best, res["timing"]["compute_s"])
-            finally:
+                    best[n] = min(best[n], pair[n])
+                print(f"  repeat {rep + 1}: 2 workers {pair[1] / pair[2]:.2f}x faster than 1")
+        finally:
+            for cluster, client in clusters.values():
                 client.close()
                 cluster.close()
-            times[n] = best
+        times.update(best)
         print(f"best: serial {times['serial']:.2f} s, 1 worker {times[1]:.2f} s, 2 workers {times[2]:.2f} s; "
               f"speed-up 2 vs 1 workers: {times[1] / times[2]:.2f}x; load now {os.getloadavg()[0]:.2f}")
     finally:

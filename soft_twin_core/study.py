@@ -34,7 +34,9 @@ Schema (YAML; SI units; paths relative to the study file)::
       workspace: {samples: 200, design: lhs, seed: 0, corners: true,
                   limits: {tendon_y_pos: 10.0}, limit: 10.0}   # see workspace_map
     record: [tip_pose, base_wrench, max_stress, iterations, residual, stable,
-             settling_time, max_tip_speed, strains]   # optional; default: all but strains
+             settling_time, max_tip_speed]   # optional, this is the default; also strains,
+                                             # backbone, internal_wrenches (statics), tip_velocity,
+                                             # strain_rates (dynamics): every output of the runner
 
 A path is a chain of mapping keys and list indices, ``segments[0].material.
 youngs_modulus``, ``actuators[1].offset`` (a whole vector: grid values are
@@ -90,8 +92,10 @@ DESIGNS = ("grid", "random", "lhs")
 COMPUTES = ("statics", "dynamics", "workspace")
 # what ``record`` may name, per computation (see study_case)
 RECORDS = {
-    "statics": ("tip_pose", "base_wrench", "max_stress", "iterations", "residual", "stable", "strains"),
-    "dynamics": ("tip_pose", "base_wrench", "settling_time", "max_tip_speed", "iterations", "strains"),
+    "statics": ("tip_pose", "base_wrench", "max_stress", "iterations", "residual", "stable", "strains",
+                "backbone", "internal_wrenches"),
+    "dynamics": ("tip_pose", "base_wrench", "settling_time", "max_tip_speed", "iterations", "strains",
+                 "tip_velocity", "strain_rates"),
     "workspace": ("workspace",),
 }
 DEFAULT_RECORD = ("tip_pose", "base_wrench", "max_stress", "iterations", "residual", "stable",

@@ -12,14 +12,18 @@ statics (:func:`scenario.run_statics`, cold start from the rest shape):
   world axes, about the base origin); ``max_stress``: ``max_stress_pa``
   and its arc length ``max_stress_s_m`` (:mod:`stress`, von Mises at the
   backbone samples); ``iterations``, ``residual``, ``stable``; ``strains``:
-  ``strains_<section>_<mode>``.
+  ``strains_<section>_<mode>``; ``backbone``: ``backbone_s_<i>`` [m] and
+  ``backbone_<i>_{x,y,z}`` [m, world]; ``internal_wrenches``:
+  ``internal_wrenches_<i>_{fx,...,mz}`` (body frame, at the backbone samples).
 dynamics (:func:`scenario.run_dynamics` from rest, the scenario's
   profiles): the state at the end: ``tip_pose``, ``base_wrench`` (with
   inertia), ``strains``; ``settling_time``: ``settling_time_s`` (the first
   time after which the tip stays within ``settling_band`` of its travel
   from the static equilibrium under the final inputs; NaN if it never does
   within the duration) and ``settled``; ``max_tip_speed``:
-  ``max_tip_speed_m_s``; ``iterations``: the most Newton iterations of a step.
+  ``max_tip_speed_m_s``; ``iterations``: the most Newton iterations of a step;
+  ``tip_velocity`` (``tip_velocity_{x,y,z}`` [m/s], world) and
+  ``strain_rates`` (``strain_rates_<section>_<mode>``) at the end.
 workspace (:mod:`workspace_map`): ``volume_m3``, ``hull_area_m2``,
   ``dimension``, ``samples_ok``, ``samples_failed``, ``{x,y,z}_{min,max}_m``;
   the point cloud goes to the study's points table (row key ``_points``).
@@ -96,6 +100,15 @@ def _statics(study, sc, robot, opts, out):
         out[P + "stable"] = bool(r["stable"])
     if "strains" in rec:
         _strain_cols(P, r["strains"], out)
+    if "backbone" in rec:           # the backbone samples: arc length and position
+        for i, (s_i, p) in enumerate(zip(r["backbone_s"], r["backbone_positions"])):
+            out[f"{P}backbone_s_{i}"] = float(s_i)
+            for a, v in zip(_VEC3, p):
+                out[f"{P}backbone_{i}_{a}"] = float(v)
+    if "internal_wrenches" in rec:
+        for i, w in enumerate(r["internal_wrenches"]):
+            for a, v in zip(_WRENCH, w):
+                out[f"{P}internal_wrenches_{i}_{a}"] = float(v)
 
 
 def _dynamics(study, sc, robot, opts, out):
@@ -127,6 +140,13 @@ def _dynamics(study, sc, robot, opts, out):
         out[P + "iterations"] = int(max(r["newton_iterations"]))
     if "strains" in rec:
         _strain_cols(P, r["strains"][-1], out)
+    if "tip_velocity" in rec:
+        for a, v in zip(_VEC3, r["tip_velocity"][-1]):
+            out[f"{P}tip_velocity_{a}"] = float(v)
+    if "strain_rates" in rec:
+        for i, row in enumerate(np.asarray(r["strain_rates"][-1])):
+            for name, v in zip(STRAIN_NAMES, row):
+                out[f"{P}strain_rates_{i}_{name}"] = float(v)
 
 
 def _workspace(study, sc, robot, opts, out):

@@ -80,6 +80,9 @@ def main_study(args):
     except StudyInterrupted as e:
         _say(str(e))
         return 130
+    except KeyboardInterrupt:
+        _say("interrupted before any case was computed")
+        return 130
     finally:
         signal.signal(signal.SIGTERM, previous)
     _say(f"summary: {res.get('summary')}")

@@ -230,7 +230,7 @@ def start_local_cluster(n_workers):
     (the kernels hold the GIL: threads would not run cases in parallel)."""
     from distributed import Client, LocalCluster
     cluster = LocalCluster(n_workers=n_workers, threads_per_worker=1, processes=True,
-                           dashboard_address=None, silence_logs=logging.ERROR)
+                           dashboard_address=":0", silence_logs=logging.ERROR)   # any free port (no bokeh: no dashboard)
     client = Client(cluster)
     # Ctrl-C in a terminal reaches the whole process group: this process
     # saves the rows and closes the cluster; the workers need not (they
@@ -296,11 +296,17 @@ def run_study(study, out_dir, *, scheduler=None, n_workers=None, serial=False, c
                 timing["cluster_start_s"] = time.monotonic() - t0
                 t0 = time.monotonic()
                 from .study_case import _warm
-                warm = client.run(_warm)          # every worker loads the kernels once, in parallel
+                # every worker loads the kernels once, in parallel; a worker that
+                # cannot (soft_twin_core missing there) is named, its tasks will fail
+                warm = client.run(_warm, on_error="return")
                 timing["workers_ready_s"] = time.monotonic() - t0
-                n_w = len(warm)
-                log(f"{where}: {n_w} workers ready in {timing['cluster_start_s'] + timing['workers_ready_s']:.1f} s "
-                    f"(kernels from numba's cache: {', '.join(f'{s:.2f}' for s in warm.values())} s)")
+                bad = {w: v for w, v in warm.items() if isinstance(v, BaseException)}
+                for w, e in bad.items():
+                    log(f"worker {w} cannot load soft_twin_core's kernels: {type(e).__name__}: {e}")
+                n_w = max(1, len(warm))
+                log(f"{where}: {len(warm) - len(bad)} workers ready in "
+                    f"{timing['cluster_start_s'] + timing['workers_ready_s']:.1f} s (kernels from numba's cache: "
+                    f"{', '.join(f'{v:.2f}' for v in warm.values() if not isinstance(v, BaseException))} s)")
             else:
                 n_w = 1
             chunk = chunk_size or default_chunk_size(study, len(todo), n_w)

@@ -38,12 +38,21 @@ def _numeric(rows, col):
 
 
 def numeric_columns(rows, names):
-    """The columns of ``names`` with numbers that vary over ``rows``."""
+    """The columns of ``names`` with numbers that vary over ``rows``, less
+    those at round-off level against their group (the columns of one
+    vector, ``statics.base_wrench_fx`` against ``statics.base_wrench_*``:
+    largest magnitude below 1e-12 of the group's), whose "sensitivities"
+    would be noise."""
+    data = {c: _numeric(rows, c) for c in names}
+    group_max = {}
+    for c, x in data.items():
+        g = c.rsplit("_", 1)[0]
+        f = np.abs(x[np.isfinite(x)])
+        group_max[g] = max(group_max.get(g, 0.0), float(f.max()) if len(f) else 0.0)
     out = []
-    for c in names:
-        x = _numeric(rows, c)
+    for c, x in data.items():
         f = x[np.isfinite(x)]
-        if len(f) >= 2 and np.ptp(f) > 0:
+        if len(f) >= 2 and np.ptp(f) > 0 and np.abs(f).max() > 1e-12 * group_max[c.rsplit("_", 1)[0]]:
             out.append(c)
     return out
 
@@ -198,7 +207,8 @@ def _plots(study, ok, p_num, o_num, X, Y, rho, points, plots):
         for i in range(len(o_num)):
             for j in range(len(p_num)):
                 if np.isfinite(rho[i, j]):
-                    ax.text(j, i, f"{rho[i, j]:.2f}", ha="center", va="center", fontsize=6)
+                    ax.text(j, i, f"{rho[i, j]:.2f}", ha="center", va="center", fontsize=6,
+                            color="white" if abs(rho[i, j]) > 0.6 else "black")
         fig.colorbar(im, ax=ax, label="Spearman rho")
         ax.set_title(f"{study.name}: sensitivity of each output to each parameter", fontsize=9)
         fig.tight_layout()

@@ -14,8 +14,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from soft_twin_core.study import (CaseValidationError, StudyError, case_documents, design_matrix, format_path,
-                                  get_path, make_cases, parse_path, study_from_dict, validate_cases)
+from soft_twin_core.study import (CaseValidationError, StudyError, build_scenario, case_documents, design_matrix,
+                                  format_path, get_path, make_cases, parse_path, study_from_dict, validate_cases)
 from soft_twin_core.study_dask import StudyInterrupted, read_rows, run_study
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -176,7 +176,7 @@ def test_rows_equal_direct_statics_and_the_scenario_runner(tmp_path):
     from soft_twin_core import statics as stt
     from soft_twin_core.model import load_model
     from soft_twin_core.scenario import load_scenario
-    st = _study(record=["tip_pose", "base_wrench", "iterations", "strains"])
+    st = _study(record=["tip_pose", "base_wrench", "iterations", "strains", "backbone", "internal_wrenches"])
     run_study(st, tmp_path / "o", serial=True, log=lambda m: None)
     rows = read_rows(tmp_path / "o" / "results.parquet")
     sc = load_scenario("tendon_arm_statics")
@@ -196,6 +196,13 @@ def test_rows_equal_direct_statics_and_the_scenario_runner(tmp_path):
         q = [r[f"statics.tip_quaternion_{a}"] for a in "xyzw"]
         assert Rotation.from_quat(q).as_matrix() == pytest.approx(eq.tip_pose[:3, :3], abs=1e-12)
         assert r["statics.strains_5_bending_z"] == pytest.approx(eq.strains[5, 5], abs=1e-12)
+        from soft_twin_core.scenario import run_statics
+        sc_case = build_scenario(st, {k: r[k] for k in st.parameter_names})
+        ref = run_statics(sc_case, 3)          # the runner's own output, every field
+        P = np.array(ref["backbone_positions"])
+        assert [r[f"statics.backbone_{len(P) - 1}_{a}"] for a in "xyz"] == pytest.approx(P[-1], abs=0)
+        assert r["statics.internal_wrenches_0_my"] == ref["internal_wrenches"][0][4]
+        assert r[f"statics.backbone_s_{len(P) - 1}"] == pytest.approx(0.45, abs=1e-15)
     assert load_model("tendon_arm").n_sections == 6
 
 
@@ -241,13 +248,15 @@ def test_settling_time_of_a_first_order_response():
 
 def test_dynamics_case_records_settling_against_the_static_equilibrium(tmp_path):
     st = _study(parameters=[{"path": "scenario.actuation.tendon_y_pos", "values": [2.0]}],
-                compute={"dynamics": {"duration": 4.0, "dt": 0.01, "theta": 1.0}})
+                compute={"dynamics": {"duration": 4.0, "dt": 0.01, "theta": 1.0}},
+                record=["tip_pose", "settling_time", "max_tip_speed", "tip_velocity", "strain_rates"])
     res = run_study(st, tmp_path / "o", serial=True, log=lambda m: None)
     r = read_rows(tmp_path / "o" / "results.parquet")[0]
     assert res["ok"] == 1, r["error"]
     # from straight under gravity to the loaded equilibrium: settles within the 4 s
     assert r["dynamics.settled"] and 0.3 < r["dynamics.settling_time_s"] < 4.0
     assert r["dynamics.max_tip_speed_m_s"] > 0.1
+    assert abs(r["dynamics.tip_velocity_y"]) < 0.01 and r["dynamics.strain_rates_0_axial"] == 0.0
     from soft_twin_core import statics as stt
     from soft_twin_core.scenario import load_scenario
     sc = load_scenario("tendon_arm_statics")
@@ -274,6 +283,10 @@ def test_sensitivity_against_known_functions():
     sx, sy = X.std(axis=0), Y[:, 0].std()
     assert src[0] == pytest.approx([3 * sx[0] / sy, -2 * sx[1] / sy], rel=1e-10)
     assert r2[0] == pytest.approx(1.0, abs=1e-12)
+    # round-off columns (a force that is zero up to 1e-16) get no sensitivity
+    from soft_twin_core.study_report import numeric_columns
+    rows = [{"a": float(i), "f_fx": 1e-16 * (-1) ** i, "f_fz": 1.0 + i, "g": 1e-16 * i} for i in range(5)]
+    assert numeric_columns(rows, ["a", "f_fx", "f_fz", "g"]) == ["a", "f_fz", "g"]
 
 
 # ----------------------------------------------------------------------------
