@@ -3,6 +3,8 @@
     soft-twin-sim statics SCENARIO [--sections N] [--sweep-angle 0:90:15]
     soft-twin-sim dynamics SCENARIO --duration T --dt DT [--format json|csv]
                   [--output FILE] [--backbone-every K] [--record-every K] [--theta 0.5]
+    ... [--plot DIR] [--animate FILE.gif|FILE.mp4] [--fps HZ]     (both commands; soft_twin_core.render)
+    soft-twin-sim render RUN.json [--scenario S] [--plot DIR] [--animate FILE] [--fps HZ]
 
 SCENARIO is a scenario file or the name of an example scenario
 (``tendon_arm_dynamics``). Exit status: 0 success; 2 a bad argument or
@@ -22,10 +24,13 @@ import argparse
 import csv
 import io
 import json
+import os
 import sys
 import time
 
 import numpy as np
+
+from . import render
 
 
 def _parse_sweep(text):
@@ -48,6 +53,7 @@ def _parser():
                    help="solve for each angle (deg) of the in_plane_force loads; prints a JSON list")
     s.add_argument("--points-per-section", type=int, default=10)
     s.add_argument("--output", "-o", help="write to this file instead of stdout")
+    render.add_visual_arguments(s, sweep=True)
     d = sub.add_parser("dynamics", help="time simulation of a scenario (JSON or CSV)")
     d.add_argument("scenario")
     d.add_argument("--duration", type=float, required=True, help="simulated time [s]")
@@ -62,6 +68,12 @@ def _parser():
                    help="record the time histories every K steps (and the last one)")
     d.add_argument("--points-per-section", type=int, default=10)
     d.add_argument("--output", "-o", help="write to this file instead of stdout")
+    render.add_visual_arguments(d)
+    r = sub.add_parser("render", help="figures and/or an animation of a saved dynamics run (its JSON)")
+    r.add_argument("run", help="a JSON file written by soft-twin-sim dynamics (with --backbone-every K)")
+    r.add_argument("--scenario", help="the run's scenario: members split at rigid offsets, energies")
+    r.add_argument("--sections", type=int, help="sections per segment, as for the run")
+    render.add_visual_arguments(r)
     return p
 
 
@@ -137,7 +149,14 @@ def main(argv=None):
         if v is not None and v < low:
             print(f"soft-twin-sim: --{name.replace('_', '-')} must be >= {low}, got {v}", file=sys.stderr)
             return 2
+    bad = render.check_visual_arguments(args)
+    if bad:
+        print(f"soft-twin-sim: {bad}", file=sys.stderr)
+        return 2
     try:
+        if args.command == "render":
+            render.render_main(args)
+            return 0
         if args.command == "statics":
             angles = args.sweep_angle if args.sweep_angle is not None else [None]
             results = []
@@ -150,6 +169,8 @@ def main(argv=None):
                           file=sys.stderr)
                 results.append(r)
             text = json.dumps(results if args.sweep_angle is not None else results[0], indent=1)
+            render.render_statics(results, args, sc, args.sweep_angle is not None,
+                                  os.path.splitext(os.path.basename(sc.source))[0])
         else:
             n_steps_for(args.duration, args.dt)      # refuses impossible durations before any work
             sc = load_scenario(args.scenario, args.sections)
@@ -164,7 +185,7 @@ def main(argv=None):
                 elif frac > 0:
                     print(f"soft-twin-sim: {100 * frac:5.1f} % simulated, {elapsed:.1f} s elapsed, "
                           f"~{elapsed / frac - elapsed:.0f} s left", file=sys.stderr)
-            out = run_dynamics(sc, args.duration, args.dt, args.backbone_every, args.theta,
+            out = run_dynamics(sc, args.duration, args.dt, render.backbone_every_for(args, args.dt), args.theta,
                                progress, args.points_per_section, args.record_every)
             t_end = out["time"][-1] if out["time"] else 0.0
             wall = time.monotonic() - (clock["ready"] or clock["start"])
@@ -172,6 +193,7 @@ def main(argv=None):
             text = _csv(out) if args.format == "csv" else json.dumps(out)
             if "error" in out:
                 failed = f"dynamics failed: {out['error']}"
+            render.render_dynamics(out, args, sc.model, sc.gravity, os.path.splitext(os.path.basename(sc.source))[0])
     except (ScenarioError, ModelError, ValueError) as e:
         print(f"soft-twin-sim: {e}", file=sys.stderr)
         return 2
