@@ -39,6 +39,11 @@ setup(
         "numba>=0.59",
         "threadpoolctl>=3.1",
     ],
+    # soft-twin-sim --plot/--animate (figures, GIF/MP4) and MCAP recordings
+    extras_require={
+        "visual": ["matplotlib>=3.7", "imageio>=2.31", "imageio-ffmpeg>=0.4.9"],
+        "mcap": ["mcap>=1.1", "mcap-ros2-support>=0.5"],
+    },
     entry_points={
         "console_scripts": [
             "soft-twin-sim = soft_twin_core.cli:main",

@@ -10,7 +10,7 @@ and tip wrench, writes a PNG of the backbone shapes, stops the node (SIGINT,
 as Ctrl-C would) and exits.
 
     make demo                        # or: .venv/bin/python scripts/demo.py
-    make demo ARGS="--out /tmp/demo.png --mode quasi_static"
+    make demo ARGS="--out /tmp/demo.png --mode quasi_static --animation /tmp/demo.mp4"
 """
 
 import argparse
@@ -27,6 +27,7 @@ PAYLOAD_N = 0.0981          # 10 g on the tip, along -z of the base frame
 DURATION = 10.0             # s of sweep
 COMMAND_RATE = 50.0         # Hz
 SAMPLE_EVERY = 1.0          # s between table rows / drawn shapes
+FRAME_RATE = 20.0           # Hz: backbone frames of the animation (plays in real time)
 
 
 def say(msg):
@@ -82,6 +83,13 @@ def xyz(v):
     return np.array([v.x, v.y, v.z])
 
 
+def frame(backbone, t, u):
+    """A snapshot of the received backbone (base_link) for the animation."""
+    from soft_twin_core.scene import Snapshot
+    P = np.array([[p.position.x, p.position.y, p.position.z] for p in backbone.poses])
+    return Snapshot([P], time=t, caption=f"t = {t:5.2f} s   T(y+) = {u[0]:5.2f} N   T(z+) = {u[2]:5.2f} N")
+
+
 def plot(samples, out, mode):
     import matplotlib
     matplotlib.use("Agg")
@@ -116,7 +124,11 @@ def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--out", type=Path, default=ROOT / "out" / "demo_backbones.png", help="PNG to write")
     ap.add_argument("--mode", choices=("dynamic", "quasi_static"), default="dynamic")
+    ap.add_argument("--animation", type=Path, default=ROOT / "out" / "demo.gif",
+                    help="animation of the run to write (.gif or .mp4; empty: none)")
     args = ap.parse_args(argv)
+    if args.animation.name and args.animation.suffix.lower() not in (".gif", ".mp4"):
+        ap.error(f"--animation: expected a .gif or .mp4 file name, got {str(args.animation)!r}")
     os.environ.setdefault("ROS_DOMAIN_ID", str(1 + os.getpid() % 101))   # our own ROS 2 domain
     os.environ.setdefault("ROS_AUTOMATIC_DISCOVERY_RANGE", "LOCALHOST")
 
@@ -139,9 +151,9 @@ def main(argv=None):
             end = time.monotonic() + 1.5
             client.wait_until(lambda: time.monotonic() >= end, 2.0)
         say(f"sweeping the tendon tensions for {DURATION:.0f} s (commands at {COMMAND_RATE:.0f} Hz) ...")
-        samples = []
+        samples, frames = [], []
         t0 = time.monotonic()
-        next_cmd, next_sample = t0, t0
+        next_cmd, next_sample, next_frame = t0, t0, t0
         while True:
             now = time.monotonic()
             t = now - t0
@@ -160,7 +172,10 @@ def main(argv=None):
                     base_force=xyz(bw.wrench.force), base_torque=xyz(bw.wrench.torque),
                     static_tip=static_tip(client, u_now)))
                 next_sample += SAMPLE_EVERY
-            wake = min(next_cmd, next_sample)
+            if now >= next_frame and args.animation.name:
+                frames.append(frame(client.backbone, len(frames) / FRAME_RATE, tensions(min(t, DURATION))))
+                next_frame += 1.0 / FRAME_RATE
+            wake = min(next_cmd, next_sample, next_frame)
             client.wait_until(lambda: time.monotonic() >= wake, max(0.0, wake - time.monotonic()) + 0.01)
         diag = client.wait_diagnostics(timeout=3.0) or {}
     finally:
@@ -187,7 +202,12 @@ def main(argv=None):
             f"step {diag.get('step_time_mean_ms')} ms mean, {diag.get('commands_applied_total')} commands applied, "
             f"{diag.get('solver_failures_total')} solver failures")
     plot(samples, args.out, args.mode)
-    say(f"wrote {args.out}")
+    say(f"wrote the backbone shapes: {args.out}")
+    if args.animation.name:
+        from soft_twin_core.animate import write_animation
+        n, seconds = write_animation(frames, str(args.animation), FRAME_RATE,
+                                     f"soft_twin demo: tendon arm ({args.mode} twin), 10 g payload")
+        say(f"wrote the animation: {args.animation} ({n} frames, {seconds:.1f} s at {FRAME_RATE:g} fps)")
     if rc != 0:
         say(f"the node exited with code {rc}; its log:\n{proc.output()}")
         return 1

@@ -85,6 +85,16 @@ PARAMETERS = {
     "max_tip_torque_nm": (
         1.0e2, "Largest tip moment |m| accepted on ~/tip_wrench_command and by statics_query (N m, > 0); "
                "a larger one is rejected (over_limit)."),
+    # --- seeing the twin (issue 12): /tf, recording --------------------------
+    "publish_tf": (
+        True, "Broadcast the base, section-start and tip frames of every published state on /tf "
+              "(tf2_msgs/TFMessage, children of base_frame; the tip is tip_frame)."),
+    "tf_prefix": (
+        "", "Prefix of the base and section frame ids on /tf (<prefix>base, <prefix>section_<i>); "
+            "empty: the node's name and a slash (soft_twin/section_1)."),
+    "record_file": (
+        "", "MCAP file (ROS 2 bag format) recording every topic the node publishes and every input "
+            "it receives; empty: not recording. Setting it starts a new recording, '' stops it."),
 }
 
 
@@ -110,6 +120,10 @@ class NodeConfig:
     max_catchup_steps: int
     max_tip_force_n: float
     max_tip_torque_nm: float
+    # seeing the twin (issue 12)
+    publish_tf: bool = True
+    tf_prefix: str = ""
+    record_file: str = ""
 
     @property
     def dt(self):
@@ -202,7 +216,29 @@ VALIDATORS = {
     "max_catchup_steps": lambda n, v: _integer(n, v, 1, 1000),
     "max_tip_force_n": lambda n, v: _number(n, v, 0.0, lo_open=True),
     "max_tip_torque_nm": lambda n, v: _number(n, v, 0.0, lo_open=True),
+    # seeing the twin (issue 12)
+    "publish_tf": lambda n, v: _boolean(n, v),
+    "tf_prefix": lambda n, v: _tf_prefix(n, v),
+    "record_file": lambda n, v: _record_file(n, v),
 }
+
+
+def _tf_prefix(name, v):
+    v = _string(name, v)
+    if any(c.isspace() for c in v) or v.startswith("/"):
+        raise ConfigError(f"{name}: expected a frame id prefix without spaces or a leading '/', got {clip(repr(v))}")
+    return v
+
+
+def _record_file(name, v):
+    v = _string(name, v).strip()
+    if v and not v.endswith(".mcap"):
+        raise ConfigError(f"{name}: expected a file name ending in .mcap (or '' for no recording), "
+                          f"got {clip(repr(v))}")
+    folder = os.path.dirname(os.path.abspath(v)) if v else ""
+    if v and not (os.path.isdir(folder) and os.access(folder, os.W_OK)):
+        raise ConfigError(f"{name}: the folder {clip(repr(folder))} does not exist or is not writable")
+    return v
 
 
 def validate(name, value):

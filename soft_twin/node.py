@@ -58,6 +58,7 @@ from soft_twin.msg import ActuationCommand, Strains
 from soft_twin.srv import ForwardKinematics, InverseKinematics, StaticsQuery
 
 from soft_twin import conversions as cv
+from soft_twin import recorder, tf_out
 from soft_twin import twin as tw
 from soft_twin.executor import TwinExecutor
 from soft_twin.config import PARAMETERS, ConfigError, config_from_values, load_robot
@@ -235,6 +236,13 @@ class SoftTwinNode(Node):
                             callback_group=self._service_group)
         self.create_service(Trigger, "~/reset", self._guarded(self._srv_reset), callback_group=self._service_group)
 
+        # --- seeing the twin (issue 12): /tf frames, MCAP recording ----------
+        self._tf = tf_out.TfOutput(self)
+        self._recorder = recorder.Recorder(self, [
+            self._pub_backbone, self._pub_tip, self._pub_tip_wrench, self._pub_base_wrench,
+            self._pub_strains, self._pub_markers, self._pub_diag, self._tf.publisher])
+        self._recorder.follow(self.cfg.record_file)
+
         # --- timers (steady clock: the twin runs on wall time) ---------------
         self._steady = Clock(clock_type=ClockType.STEADY_TIME)
         self._solve_trigger = self.create_guard_condition(self._guarded(self._on_solve_trigger),
@@ -385,6 +393,8 @@ class SoftTwinNode(Node):
             self._diag_timer.timer_period_ns = int(1e9 / cfg.diagnostics_rate_hz)
         if cfg.mode == "quasi_static":
             self._solve_trigger.trigger()
+        if cfg.record_file != old.record_file or any(p.name == "record_file" for p in params):
+            self._recorder.follow(cfg.record_file)     # issue 12: a new recording ('' stops)
         self.get_logger().info("parameters applied: " + ", ".join(f"{p.name}={clip(repr(p.value), 100)}"
                                                                   for p in params))
 
@@ -408,6 +418,7 @@ class SoftTwinNode(Node):
                     batch.append(taken)
         except InvalidHandle:      # destroyed under us: shutting down
             pass
+        self._recorder.received(sub, batch)            # issue 12: recording of the inputs
         return batch
 
     @staticmethod
@@ -681,6 +692,7 @@ class SoftTwinNode(Node):
         if snap.command_stamp is not None:
             strains.last_command = snap.command_stamp
         self._pub_strains.publish(strains)
+        self._tf.publish(snap, robot, header)          # issue 12: /tf
         received = self._command_received
         if received is not None and received[0] is snap.command_stamp:
             # the first publication of a state with this command: latency from the
@@ -913,6 +925,13 @@ class SoftTwinNode(Node):
             self._solve_trigger.trigger()
         self.get_logger().info(resp.message)
         return resp
+
+    # --- issue 12: the MCAP recording is closed with the node ---------------
+    def destroy_node(self):
+        recorder_ = getattr(self, "_recorder", None)
+        if recorder_ is not None:
+            recorder_.close()
+        return super().destroy_node()
 
 
 class _StopSignals:

@@ -55,16 +55,22 @@ class FrameDrawer:
         ax3.set_zlabel("z [m]")
         ax3.set_title("3D view", fontsize=10)
         self.fig.suptitle(title, fontsize=11)
-        self.caption = self.fig.text(0.01, 0.025, "", fontsize=15, family="monospace", weight="bold")
+        self.caption = self.fig.text(0.01, 0.025, "", fontsize=15, family="monospace", weight="bold",
+                                     animated=True)
         self.fig.tight_layout(rect=(0, 0.05, 1, 1))
         n_members = max(len(s.members) for s in snapshots)
         n_links = max(len(s.links) for s in snapshots)
         self.lines = {}
         for name, ax in self.axes.items():
-            mk = (lambda **kw: ax.plot([], [], [], **kw)[0]) if name == "3d" else (lambda **kw: ax.plot([], [], **kw)[0])
+            mk = ((lambda **kw: ax.plot([], [], [], animated=True, **kw)[0]) if name == "3d"
+                  else (lambda **kw: ax.plot([], [], animated=True, **kw)[0]))
             self.lines[name] = ([mk(color=f"C{k % 10}", lw=2.5) for k in range(n_members)],
                                 [mk(color="0.25", lw=4, solid_capstyle="round") for _ in range(n_links)],
                                 mk(color="C3", marker="o", ms=5, ls="none"))
+        # blitting: the axes, grids and labels (fixed camera) are drawn once;
+        # each frame restores them and draws the moving artists only
+        self.fig.canvas.draw()
+        self.background = self.fig.canvas.copy_from_bbox(self.fig.bbox)
 
     def frame(self, snap):
         for name, (members, links, tip) in self.lines.items():
@@ -74,7 +80,12 @@ class FrameDrawer:
                 self._set(name, line, snap.links[k] if k < len(snap.links) else np.zeros((0, 3)))
             self._set(name, tip, snap.tip[None, :])
         self.caption.set_text(snap.caption)
-        self.fig.canvas.draw()
+        canvas = self.fig.canvas
+        canvas.restore_region(self.background)
+        for members, links, tip in self.lines.values():
+            for line in members + links + [tip]:
+                line.axes.draw_artist(line)
+        self.fig.draw_artist(self.caption)
         rgba = np.asarray(self.fig.canvas.buffer_rgba())
         return np.ascontiguousarray(rgba[..., :3])
 

@@ -1,0 +1,78 @@
+"""The twin's frames on ``/tf`` (tf2_msgs/TFMessage): with every published
+state, the cross-section frames at the robot's base (s = 0), at the start of
+every further section, and at the tip, each as a child of ``base_frame``
+(the robot description's world frame), stamped like the state topics.
+
+Frame ids: ``<prefix>base``, ``<prefix>section_<i>`` (i = 1 .. n-1, the
+start of section i) and ``tip_frame`` (the tip pose topic's frame, so
+``lookup_transform(base_frame, tip_frame)`` gives exactly ``~/tip_pose``).
+The prefix is the ``tf_prefix`` parameter, by default the node's name and a
+slash (``soft_twin/section_3``), so several twins share one /tf.
+
+tf2_msgs comes from a ROS installation or, in the pinned venv, from the
+set-up's build of interfaces/tf2_msgs (the ROS wheels on PyPI have none).
+"""
+
+import numpy as np
+from geometry_msgs.msg import TransformStamped
+from rclpy.qos import DurabilityPolicy, HistoryPolicy, QoSProfile, ReliabilityPolicy
+from tf2_msgs.msg import TFMessage
+
+from soft_twin.conversions import quaternions_from_matrices
+
+# tf2_ros's TransformBroadcaster profile
+TF_QOS = QoSProfile(depth=100, reliability=ReliabilityPolicy.RELIABLE, durability=DurabilityPolicy.VOLATILE,
+                    history=HistoryPolicy.KEEP_LAST)
+
+
+def frame_prefix(tf_prefix, node_name):
+    return tf_prefix if tf_prefix else f"{node_name}/"
+
+
+def frame_indices(model, s):
+    """Indices into the backbone samples ``s`` [m] of the base (s = 0) and of
+    the start of every section after the first."""
+    idx = np.searchsorted(s, model.s_starts)
+    if not np.allclose(s[idx], model.s_starts, rtol=0, atol=1e-12):
+        raise ValueError("the backbone samples do not include the section starts")
+    return idx
+
+
+def frames(snap, model, prefix, tip_frame):
+    """[(child frame id, 4x4 pose in base_frame)] of one state."""
+    idx = frame_indices(model, snap.s)
+    out = [(f"{prefix}base", snap.backbone[idx[0]])]
+    out += [(f"{prefix}section_{i}", snap.backbone[k]) for i, k in enumerate(idx[1:], start=1)]
+    out.append((tip_frame, snap.tip_pose))
+    return out
+
+
+def tf_message(named_poses, header):
+    """TFMessage of [(child, 4x4)] with the parent ``header.frame_id`` and its stamp."""
+    T = np.array([p for _, p in named_poses], dtype=float)
+    quats = quaternions_from_matrices(T[:, :3, :3]).tolist()
+    msg = TFMessage()
+    for (child, _), p, q in zip(named_poses, T[:, :3, 3].tolist(), quats):
+        t = TransformStamped()
+        t.header = header
+        t.child_frame_id = child
+        tr, ro = t.transform.translation, t.transform.rotation
+        tr.x, tr.y, tr.z = p
+        ro.x, ro.y, ro.z, ro.w = q
+        msg.transforms.append(t)
+    return msg
+
+
+class TfOutput:
+    """Publishes the frames of each state on /tf while ``publish_tf`` is on."""
+
+    def __init__(self, node):
+        self._node = node
+        self.publisher = node.create_publisher(TFMessage, "/tf", TF_QOS)
+
+    def publish(self, snap, robot, header):
+        cfg = self._node.cfg
+        if not cfg.publish_tf:
+            return
+        prefix = frame_prefix(cfg.tf_prefix, self._node.get_name())
+        self.publisher.publish(tf_message(frames(snap, robot.model, prefix, cfg.tip_frame), header))
