@@ -240,7 +240,7 @@ class SoftTwinNode(Node):
         self._tf = tf_out.TfOutput(self)
         self._recorder = recorder.Recorder(self, [
             self._pub_backbone, self._pub_tip, self._pub_tip_wrench, self._pub_base_wrench,
-            self._pub_strains, self._pub_markers, self._pub_diag, self._tf.publisher])
+            self._pub_strains, self._pub_markers, self._pub_diag, self._tf.publisher], self._publish_lock)
         self._recorder.follow(self.cfg.record_file)
 
         # --- timers (steady clock: the twin runs on wall time) ---------------

@@ -155,10 +155,14 @@ class Recorder:
     """The node's recorder: wraps its publishers, takes its inputs, follows
     the ``record_file`` parameter."""
 
-    def __init__(self, node, publishers):
+    def __init__(self, node, publishers, state_lock=None):
+        """``state_lock``: held while a state's topics are published; a
+        recording starts and stops between states (all of a state's topics
+        or none)."""
         self._node = node
         self._recording = None
         self._lock = threading.Lock()
+        self._state_lock = state_lock if state_lock is not None else threading.Lock()
         for pub in publishers:
             self._wrap(pub)
 
@@ -197,20 +201,23 @@ class Recorder:
             self._write(rec, sub.topic_name, msg)
 
     def follow(self, path):
-        """Start recording into ``path`` (a new file; '' stops)."""
+        """Start recording into ``path`` (a new file; '' stops). False if the
+        file cannot be opened (logged)."""
         with self._lock:
-            old, self._recording = self._recording, None
+            new = None
+            if path:
+                try:
+                    new = McapRecording(path)
+                except OSError as e:
+                    self._node.get_logger().error(f"record_file: cannot record to {path!r}: {e}")
+            with self._state_lock:          # between two states
+                old, self._recording = self._recording, new
             if old is not None:
                 counts = old.close()
                 self._node.get_logger().info(f"recording closed: {old.path} ({json.dumps(counts)})")
-            if path:
-                try:
-                    self._recording = McapRecording(path)
-                except OSError as e:
-                    self._node.get_logger().error(f"record_file: cannot record to {path!r}: {e}")
-                    return False
+            if new is not None:
                 self._node.get_logger().info(f"recording every published topic and input to {path}")
-        return True
+            return new is not None or not path
 
     def close(self):
         self.follow("")

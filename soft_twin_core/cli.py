@@ -69,10 +69,14 @@ def _parser():
     d.add_argument("--points-per-section", type=int, default=10)
     d.add_argument("--output", "-o", help="write to this file instead of stdout")
     render.add_visual_arguments(d)
-    r = sub.add_parser("render", help="figures and/or an animation of a saved dynamics run (its JSON)")
-    r.add_argument("run", help="a JSON file written by soft-twin-sim dynamics (with --backbone-every K)")
+    r = sub.add_parser("render", help="figures and/or an animation of a saved run: the JSON of "
+                       "soft-twin-sim dynamics, or an MCAP recording of the twin node")
+    r.add_argument("run", help="a JSON file written by soft-twin-sim dynamics (with --backbone-every K), "
+                   "or a .mcap recording of the node (record_file)")
     r.add_argument("--scenario", help="the run's scenario: members split at rigid offsets, energies")
+    r.add_argument("--robot", help="the recorded node's robot (file or example name): energies, members")
     r.add_argument("--sections", type=int, help="sections per segment, as for the run")
+    r.add_argument("--node", help="the twin node's name when the recording holds several")
     render.add_visual_arguments(r)
     return p
 

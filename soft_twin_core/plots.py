@@ -126,20 +126,26 @@ def plot_shapes(snapshots, folder, title="backbone shapes", stem="backbone_shape
 
 
 def plot_tip(out, folder, title="tip motion"):
-    """Tip position [m] and velocity [m/s] (world) against time [s]."""
+    """Tip position [m] and, when the run has it, velocity [m/s] (world)
+    against time [s]."""
     plt = _plt()
     t = np.asarray(out["time"])
     p = np.asarray(out["tip_position"]).reshape(len(t), 3)
-    v = np.asarray(out["tip_velocity"]).reshape(len(t), 3)
-    fig, (a, b) = plt.subplots(2, 1, figsize=(8, 6.5), sharex=True)
+    has_v = "tip_velocity" in out
+    fig, axs = plt.subplots(2 if has_v else 1, 1, figsize=(8, 6.5 if has_v else 3.8), sharex=True, squeeze=False)
+    a = axs[0, 0]
     for k, c in enumerate("xyz"):
         a.plot(t, p[:, k], label=f"{c}")
-        b.plot(t, v[:, k], label=f"v_{c}")
-    b.plot(t, np.linalg.norm(v, axis=1), "k--", lw=1, label="|v|")
     a.set_ylabel("tip position [m]")
-    b.set_ylabel("tip velocity [m/s]")
-    b.set_xlabel("time [s]")
-    for ax in (a, b):
+    if has_v:
+        b = axs[1, 0]
+        v = np.asarray(out["tip_velocity"]).reshape(len(t), 3)
+        for k, c in enumerate("xyz"):
+            b.plot(t, v[:, k], label=f"v_{c}")
+        b.plot(t, np.linalg.norm(v, axis=1), "k--", lw=1, label="|v|")
+        b.set_ylabel("tip velocity [m/s]")
+    axs[-1, 0].set_xlabel("time [s]")
+    for ax in axs[:, 0]:
         ax.grid(alpha=0.3)
         ax.legend(fontsize=8)
     fig.suptitle(title)
@@ -242,7 +248,8 @@ def plot_dynamics(out, folder, model=None, gravity=True, name="run"):
     paths = []
     if out.get("backbone"):
         paths += plot_shapes(dynamics_snapshots(out, model), folder, f"{name}: backbone shapes")
-        paths += plot_internal_wrenches(out, folder, f"{name}: internal wrench along the backbone")
+        if out.get("internal_wrenches"):
+            paths += plot_internal_wrenches(out, folder, f"{name}: internal wrench along the backbone")
     if out.get("time"):
         paths += plot_tip(out, folder, f"{name}: tip motion (world)")
         paths += plot_strains(out, folder, f"{name}: strains per section")

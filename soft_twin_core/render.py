@@ -101,17 +101,28 @@ def load_run(path):
 
 
 def render_main(args):
-    """``soft-twin-sim render RUN [--scenario S [--sections N]] --plot DIR --animate FILE``."""
+    """``soft-twin-sim render RUN [--scenario S [--sections N] | --robot R] [--node NAME]
+    --plot DIR --animate FILE``: RUN is the JSON of ``soft-twin-sim dynamics`` or an
+    MCAP recording of the twin node (its ``record_file``)."""
+    from .model import load_model
     from .scenario import load_scenario
     if not (args.plot or args.animate):
         raise ValueError("render: nothing to do; give --plot DIR and/or --animate FILE")
-    out = load_run(args.run)
-    model, gravity = None, True
+    if args.scenario and args.robot:
+        raise ValueError("render: give --scenario or --robot, not both")
+    model, gravity, name = None, True, os.path.splitext(os.path.basename(args.run))[0]
     if args.scenario:
         sc = load_scenario(args.scenario, args.sections)
         model, gravity = sc.model, sc.gravity
-        if out.get("n_sections", model.n_sections) != model.n_sections:
-            raise ValueError(f"render: the run has {out['n_sections']} sections, the scenario "
-                             f"{model.n_sections}; pass the run's --sections")
-    name = os.path.splitext(os.path.basename(sc.source if args.scenario else args.run))[0]
+        name = os.path.splitext(os.path.basename(sc.source))[0]
+    elif args.robot:
+        model = load_model(args.robot, args.sections)
+    if args.run.lower().endswith(".mcap"):
+        from .recording import read_node_run
+        out = read_node_run(args.run, args.node, model)
+    else:
+        out = load_run(args.run)
+    if model is not None and out.get("n_sections", model.n_sections) != model.n_sections:
+        raise ValueError(f"render: the run has {out['n_sections']} sections, the model "
+                         f"{model.n_sections}; pass the run's --sections")
     render_dynamics(out, args, model, gravity, name)

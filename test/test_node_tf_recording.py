@@ -15,6 +15,7 @@ rclpy = pytest.importorskip("rclpy", reason="needs ROS 2: the venv of `make setu
 from rcl_interfaces.msg import Parameter as ParameterMsg  # noqa: E402
 from rcl_interfaces.msg import ParameterType, ParameterValue  # noqa: E402
 from rcl_interfaces.srv import SetParameters  # noqa: E402
+from geometry_msgs.msg import PoseStamped  # noqa: E402
 from tf2_msgs.msg import TFMessage  # noqa: E402
 from visualization_msgs.msg import MarkerArray  # noqa: E402
 
@@ -35,10 +36,11 @@ class Listener:
     """/tf and ~/markers in the client's node: every message kept."""
 
     def __init__(self, client):
-        self.tf, self.markers = [], 0
+        self.tf, self.markers, self.tips = [], 0, []
         self._client = client
         n = client.node
         n.create_subscription(TFMessage, "/tf", self._on_tf, 1000)
+        n.create_subscription(PoseStamped, f"/{NODE}/tip_pose", self.tips.append, 1000)
         n.create_subscription(MarkerArray, f"/{NODE}/markers", self._on_markers, 10)
         self.set_params = n.create_client(SetParameters, f"/{NODE}/set_parameters")
 
@@ -143,6 +145,14 @@ def test_tf_section_frames_equal_the_core_kinematics(twin):
         assert np.allclose(transform_matrix(t), T_ref[i], atol=1e-9), t.child_frame_id
 
 
+def test_bad_record_file_is_refused(twin, tmp_path):
+    proc, client, listener = twin
+    res = listener.set_string("record_file", str(tmp_path / "run.bag"))
+    assert not res.successful and "record_file" in res.reason and ".mcap" in res.reason
+    res = listener.set_string("record_file", str(tmp_path / "missing" / "run.mcap"))
+    assert not res.successful and "does not exist" in res.reason
+
+
 def _read_mcap(path):
     from mcap.reader import make_reader
     from mcap_ros2.decoder import DecoderFactory
@@ -158,6 +168,7 @@ def _read_mcap(path):
 
 def test_recording_holds_every_topic_and_input(twin, tmp_path):
     proc, client, listener = twin
+    model = load_model(resolve_robot_file(""))
     path = tmp_path / "run.mcap"
     res = listener.set_string("record_file", str(path))
     assert res.successful, res.reason
@@ -171,6 +182,8 @@ def test_recording_holds_every_topic_and_input(twin, tmp_path):
     assert client.wait_until(lambda: client.counts["diagnostics"] >= n_diag + 2 and listener.markers > 0, 10.0)
     with client._cond:
         live_tips = {stamp_key(m.header.stamp): m for _, m in list(client.history["strains"])}
+        live = dict(backbone=[m for _, m in client.history["backbone"]], tip_pose=list(listener.tips),
+                    strains=[m for _, m in client.history["strains"]])
     res = listener.set_string("record_file", "")
     assert res.successful, res.reason
     header, meta, msgs = _read_mcap(path)
@@ -204,15 +217,38 @@ def test_recording_holds_every_topic_and_input(twin, tmp_path):
         assert all(b >= a for a, b in zip(logs, logs[1:])), topic
     # what this process received live is in the recording, equal
     for _, _, d in msgs[f"{ns}/strains"]:
-        live = live_tips.get(stamp_key(d.header.stamp))
-        if live is not None:
-            assert list(live.strains) == list(d.strains)
+        got = live_tips.get(stamp_key(d.header.stamp))
+        if got is not None:
+            assert list(got.strains) == list(d.strains)
     assert sum(stamp_key(d.header.stamp) in live_tips for _, _, d in msgs[f"{ns}/strains"]) > 50
 
 
-def test_bad_record_file_is_refused(twin, tmp_path):
-    proc, client, listener = twin
-    res = listener.set_string("record_file", str(tmp_path / "run.bag"))
-    assert not res.successful and "record_file" in res.reason and ".mcap" in res.reason
-    res = listener.set_string("record_file", str(tmp_path / "missing" / "run.mcap"))
-    assert not res.successful and "does not exist" in res.reason
+    # figures drawn from the recording equal those drawn from the live messages
+    from soft_twin_core import plots, recording
+    from soft_twin_core.scene import dynamics_snapshots
+    from PIL import Image
+    rec = recording.read_messages(str(path))
+    common = (set.intersection(*(set(stamp_key(m.header.stamp) for m in live[k]) for k in live))
+              & set(stamp_key(m.header.stamp) for m in rec[f"{ns}/strains"]))
+    assert len(common) > 50
+
+    def pick(ms):
+        return [m for m in ms if stamp_key(m.header.stamp) in common]
+    out_live = recording.run_from_messages(*(pick(live[k]) for k in ("backbone", "tip_pose", "strains")), model)
+    out_rec = recording.run_from_messages(*(pick(rec[f"{ns}/{k}"]) for k in ("backbone", "tip_pose", "strains")),
+                                          model)
+    assert out_live == out_rec
+    for name, out in (("live", out_live), ("rec", out_rec)):
+        plots.plot_dynamics(out, str(tmp_path / name), None, True, "twin")   # no model: no energies (time)
+    for stem in ("backbone_shapes", "tip", "strains"):
+        a = np.asarray(Image.open(tmp_path / "live" / f"{stem}.png"))
+        b = np.asarray(Image.open(tmp_path / "rec" / f"{stem}.png"))
+        assert np.array_equal(a, b), stem
+    assert len(dynamics_snapshots(out_rec, model)) == len(common)
+    # and soft-twin-sim renders the recording
+    from soft_twin_core import cli
+    code = cli.main(["render", str(path), "--robot", "tendon_arm", "--plot", str(tmp_path / "cli"),
+                     "--animate", str(tmp_path / "rec.gif"), "--fps", "10"])
+    assert code == 0
+    with Image.open(tmp_path / "rec.gif") as im:
+        assert im.n_frames >= 5 and im.size == (1120, 448)
