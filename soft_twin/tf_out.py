@@ -38,9 +38,10 @@ def frame_indices(model, s):
     return idx
 
 
-def frames(snap, model, prefix, tip_frame):
-    """[(child frame id, 4x4 pose in base_frame)] of one state."""
-    idx = frame_indices(model, snap.s)
+def frames(snap, model, prefix, tip_frame, indices=None):
+    """[(child frame id, 4x4 pose in base_frame)] of one state
+    (``indices``: :func:`frame_indices` of its samples, when known)."""
+    idx = frame_indices(model, snap.s) if indices is None else indices
     out = [(f"{prefix}base", snap.backbone[idx[0]])]
     out += [(f"{prefix}section_{i}", snap.backbone[k]) for i, k in enumerate(idx[1:], start=1)]
     out.append((tip_frame, snap.tip_pose))
@@ -69,10 +70,14 @@ class TfOutput:
     def __init__(self, node):
         self._node = node
         self.publisher = node.create_publisher(TFMessage, "/tf", TF_QOS)
+        self._indices = (None, None, None)     # (model, number of samples, indices)
 
     def publish(self, snap, robot, header):
         cfg = self._node.cfg
         if not cfg.publish_tf:
             return
+        model, n = robot.model, len(snap.s)
+        if self._indices[:2] != (model, n):
+            self._indices = (model, n, frame_indices(model, snap.s))
         prefix = frame_prefix(cfg.tf_prefix, self._node.get_name())
-        self.publisher.publish(tf_message(frames(snap, robot.model, prefix, cfg.tip_frame), header))
+        self.publisher.publish(tf_message(frames(snap, model, prefix, cfg.tip_frame, self._indices[2]), header))
