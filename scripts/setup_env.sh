@@ -65,6 +65,24 @@ if [ ${#missing[@]} -gt 0 ]; then
         || fail "apt-get install cmake make gcc g++"
 fi
 
+# ---- 0b. headless Chromium for the browser tests of the live 3D view ----------
+# Debian's chromium package (the test drives it over the DevTools protocol).
+# Not needed to run the twin; without it those tests fail and say so.
+if ! command -v chromium >/dev/null 2>&1 && ! command -v chromium-browser >/dev/null 2>&1; then
+    if command -v apt-get >/dev/null 2>&1 && { [ "$(id -u)" -eq 0 ] || command -v sudo >/dev/null 2>&1; }; then
+        SUDO=""
+        [ "$(id -u)" -eq 0 ] || SUDO="sudo"
+        say "installing Debian's chromium with apt-get (headless browser for the live-view tests; once)"
+        if ! { $SUDO env DEBIAN_FRONTEND=noninteractive apt-get install -y -q chromium >>"$LOG" 2>&1 ||
+            { $SUDO env DEBIAN_FRONTEND=noninteractive apt-get update -q >>"$LOG" 2>&1 &&
+                $SUDO env DEBIAN_FRONTEND=noninteractive apt-get install -y -q chromium >>"$LOG" 2>&1; }; }; then
+            say "WARNING: could not install chromium (see $LOG); the browser tests of the live view will fail"
+        fi
+    else
+        say "WARNING: no chromium and no apt-get: install Debian's chromium for the live-view browser tests"
+    fi
+fi
+
 # ---- 1. venv with pinned wheels ----------------------------------------------
 # The ROS 2 Jazzy wheels exist for CPython 3.11 only.
 pick_python() {

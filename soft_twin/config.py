@@ -95,6 +95,9 @@ PARAMETERS = {
     "record_file": (
         "", "MCAP file (ROS 2 bag format) recording every topic the node publishes and every input "
             "it receives; empty: not recording. Setting it starts a new recording, '' stops it."),
+    "live_view_port": (
+        0, "Port of the live 3D view in the browser (http://127.0.0.1:<port>, viser; works offline); "
+           "0: off. Integer in 0..65535."),
 }
 
 
@@ -124,6 +127,7 @@ class NodeConfig:
     publish_tf: bool = True
     tf_prefix: str = ""
     record_file: str = ""
+    live_view_port: int = 0
 
     @property
     def dt(self):
@@ -220,6 +224,7 @@ VALIDATORS = {
     "publish_tf": lambda n, v: _boolean(n, v),
     "tf_prefix": lambda n, v: _tf_prefix(n, v),
     "record_file": lambda n, v: _record_file(n, v),
+    "live_view_port": lambda n, v: _integer(n, v, 0, 65535),
 }
 
 

@@ -58,7 +58,7 @@ from soft_twin.msg import ActuationCommand, Strains
 from soft_twin.srv import ForwardKinematics, InverseKinematics, StaticsQuery
 
 from soft_twin import conversions as cv
-from soft_twin import recorder, tf_out
+from soft_twin import live_view_out, recorder, tf_out
 from soft_twin import twin as tw
 from soft_twin.executor import TwinExecutor
 from soft_twin.config import PARAMETERS, ConfigError, config_from_values, load_robot
@@ -242,6 +242,8 @@ class SoftTwinNode(Node):
             self._pub_backbone, self._pub_tip, self._pub_tip_wrench, self._pub_base_wrench,
             self._pub_strains, self._pub_markers, self._pub_diag, self._tf.publisher], self._publish_lock)
         self._recorder.follow(self.cfg.record_file)
+        self._live_view = live_view_out.LiveViewOutput(self)
+        self._live_view.follow(self.cfg.live_view_port)
 
         # --- timers (steady clock: the twin runs on wall time) ---------------
         self._steady = Clock(clock_type=ClockType.STEADY_TIME)
@@ -395,6 +397,7 @@ class SoftTwinNode(Node):
             self._solve_trigger.trigger()
         if cfg.record_file != old.record_file or any(p.name == "record_file" for p in params):
             self._recorder.follow(cfg.record_file)     # issue 12: a new recording ('' stops)
+        self._live_view.follow(cfg.live_view_port)     # issue 12: browser view on/off
         self.get_logger().info("parameters applied: " + ", ".join(f"{p.name}={clip(repr(p.value), 100)}"
                                                                   for p in params))
 
@@ -693,6 +696,7 @@ class SoftTwinNode(Node):
             strains.last_command = snap.command_stamp
         self._pub_strains.publish(strains)
         self._tf.publish(snap, robot, header)          # issue 12: /tf
+        self._live_view.publish(snap, robot)           # issue 12: browser view (throttled)
         received = self._command_received
         if received is not None and received[0] is snap.command_stamp:
             # the first publication of a state with this command: latency from the
@@ -931,6 +935,8 @@ class SoftTwinNode(Node):
         recorder_ = getattr(self, "_recorder", None)
         if recorder_ is not None:
             recorder_.close()
+        if getattr(self, "_live_view", None) is not None:
+            self._live_view.close()
         return super().destroy_node()
 
 
