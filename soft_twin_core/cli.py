@@ -4,7 +4,8 @@
     soft-twin-sim dynamics SCENARIO --duration T --dt DT [--format json|csv]
                   [--output FILE] [--backbone-every K] [--record-every K] [--theta 0.5]
     ... [--plot DIR] [--animate FILE.gif|FILE.mp4] [--fps HZ]     (both commands; soft_twin_core.render)
-    soft-twin-sim render RUN.json [--scenario S] [--plot DIR] [--animate FILE] [--fps HZ]
+    soft-twin-sim render RUN.json|RUN.mcap [--scenario S | --robot R] [--plot DIR] [--animate FILE] [--fps HZ]
+    soft-twin-sim view RUN.json|RUN.mcap [--port 8080]      (live 3D view in the browser, in a loop)
 
 SCENARIO is a scenario file or the name of an example scenario
 (``tendon_arm_dynamics``). Exit status: 0 success; 2 a bad argument or
@@ -78,6 +79,15 @@ def _parser():
     r.add_argument("--sections", type=int, help="sections per segment, as for the run")
     r.add_argument("--node", help="the twin node's name when the recording holds several")
     render.add_visual_arguments(r)
+    v = sub.add_parser("view", help="play a saved run (JSON or MCAP) in the live 3D view in the browser")
+    v.add_argument("run", help="as for render: a dynamics JSON (with --backbone-every K) or a .mcap of the node")
+    v.add_argument("--scenario")
+    v.add_argument("--robot")
+    v.add_argument("--sections", type=int)
+    v.add_argument("--node")
+    v.add_argument("--port", type=int, default=8080, help="http://127.0.0.1:PORT (default 8080)")
+    v.add_argument("--radius", type=float, default=0.01, help="tube radius [m] (default 0.01)")
+    v.add_argument("--seconds", type=float, help="stop after this many seconds (default: Ctrl-C)")
     return p
 
 
@@ -160,6 +170,9 @@ def main(argv=None):
     try:
         if args.command == "render":
             render.render_main(args)
+            return 0
+        if args.command == "view":
+            render.view_main(args)
             return 0
         if args.command == "statics":
             angles = args.sweep_angle if args.sweep_angle is not None else [None]

@@ -29,6 +29,11 @@ def check_visual_arguments(args):
     """Reason a visual option is bad, or None."""
     if getattr(args, "fps", None) is not None and not (np.isfinite(args.fps) and 0 < args.fps <= 100):
         return f"--fps must lie in (0, 100] frames/s, got {args.fps}"
+    port = getattr(args, "port", None)
+    if port is not None and not 1 <= port <= 65535:
+        return f"--port must lie in 1..65535, got {port}"
+    if getattr(args, "radius", None) is not None and not (np.isfinite(args.radius) and args.radius > 0):
+        return f"--radius must be a positive length in m, got {args.radius}"
     anim = getattr(args, "animate", None)
     if anim and os.path.splitext(anim)[1].lower() not in (".gif", ".mp4"):
         return f"--animate: expected a file name ending in .gif or .mp4, got {anim!r}"
@@ -126,3 +131,65 @@ def render_main(args):
         raise ValueError(f"render: the run has {out['n_sections']} sections, the model "
                          f"{model.n_sections}; pass the run's --sections")
     render_dynamics(out, args, model, gravity, name)
+
+
+def view_main(args, stop=None):
+    """``soft-twin-sim view RUN [--scenario S | --robot R] [--port P] [--radius R] [--seconds T]``:
+    plays a saved run (JSON or MCAP, as for ``render``) in the live 3D view
+    in real time, in a loop, until Ctrl-C (or ``--seconds`` of wall time)."""
+    import time as _time
+    from .live_view import LiveView
+    from .model import load_model
+    from .scenario import load_scenario
+    from .scene import dynamics_snapshots
+    model = None
+    if args.scenario:
+        model = load_scenario(args.scenario, args.sections).model
+    elif args.robot:
+        model = load_model(args.robot, args.sections)
+    if args.run.lower().endswith(".mcap"):
+        from .recording import read_node_run
+        out = read_node_run(args.run, args.node, model)
+    else:
+        out = load_run(args.run)
+    snaps = dynamics_snapshots(out, model)
+    try:
+        view = LiveView(port=args.port)
+    except OSError as e:
+        raise ValueError(f"view: cannot serve on port {args.port}: {e}") from None
+    say(f"live 3D view of {args.run}: {view.url} ({len(snaps)} states, "
+        f"{snaps[-1].time - snaps[0].time:.2f} s, in a loop; Ctrl-C to stop)")
+    start = _time.monotonic()
+    t0, t_end = snaps[0].time, snaps[-1].time
+    shown = None
+    try:
+        while args.seconds is None or _time.monotonic() - start < args.seconds:
+            if stop is not None and stop.is_set():
+                break
+            t = t0 + ((_time.monotonic() - start) % max(t_end - t0, 1e-9) if t_end > t0 else 0.0)
+            k = int(np.searchsorted([s.time for s in snaps], t, side="right") - 1)
+            if k != shown:
+                s = snaps[max(k, 0)]
+                view.show(s, args.radius, tip_pose=_tip_pose(s), base_pose=np.eye(4))
+                shown = k
+            _time.sleep(0.02)
+    except KeyboardInterrupt:
+        pass
+    finally:
+        view.close()
+    return view.updates
+
+
+def _tip_pose(snap):
+    """A frame at the tip: x along the last backbone segment."""
+    P = snap.members[-1]
+    T = np.eye(4)
+    T[:3, 3] = P[-1]
+    if len(P) >= 2:
+        x = P[-1] - P[-2]
+        x /= np.linalg.norm(x) or 1.0
+        a = np.eye(3)[np.argmin(np.abs(x))]
+        y = np.cross(a, x)
+        y /= np.linalg.norm(y)
+        T[:3, :3] = np.c_[x, y, np.cross(x, y)]
+    return T

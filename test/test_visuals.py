@@ -5,6 +5,7 @@ against independent computations."""
 
 import json
 import os
+import time
 
 import numpy as np
 import pytest
@@ -230,3 +231,38 @@ def test_bad_reference_is_named(tmp_path):
     d = {"robot": "princeton_beam", "reference": {"angle_deg": [0, 10], "tip_position": [[0, 0, 0]]}}
     with pytest.raises(ScenarioError, match=r"scenario\.reference\.tip_position"):
         scenario_from_dict(d)
+
+
+def test_view_serves_a_saved_run_in_real_time(dynamics_run):
+    """soft-twin-sim view: the page is served (viser's bundled client) and the
+    run's states are shown one after the other in real time."""
+    import socket
+    import threading
+    import urllib.request
+    from soft_twin_core import render
+    d, _ = dynamics_run
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        port = s.getsockname()[1]
+    args = cli._parser().parse_args(["view", str(d / "run.json"), "--scenario", "tendon_arm_dynamics",
+                                     "--port", str(port), "--seconds", "2.0"])
+    result = {}
+    th = threading.Thread(target=lambda: result.setdefault("updates", render.view_main(args)))
+    th.start()
+    html = None
+    end = time.monotonic() + 20
+    while html is None and time.monotonic() < end:
+        try:
+            with urllib.request.urlopen(f"http://127.0.0.1:{port}/", timeout=2) as r:
+                html = r.read().decode("utf-8", "replace")
+        except OSError:
+            time.sleep(0.1)
+    th.join(30)
+    assert html is not None and "<html" in html.lower() and len(html) > 100_000   # the whole client, offline
+    # 0.4 s of run sampled every 0.04 s, looped for 2 s: about 5 loops of 11 states
+    assert 30 <= result["updates"] <= 60, result
+
+
+def test_view_refuses_bad_port(capsys):
+    code, _, err = run_cli(["view", "x.json", "--port", "70000"], capsys)
+    assert code == 2 and "--port must lie in 1..65535" in err
