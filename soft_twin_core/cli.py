@@ -70,6 +70,8 @@ def _parser():
     d.add_argument("--points-per-section", type=int, default=10)
     d.add_argument("--output", "-o", help="write to this file instead of stdout")
     render.add_visual_arguments(d)
+    d.add_argument("--mcap", metavar="FILE", help="also write the backbone samples as the twin node publishes "
+                   "them (ROS 2 bag format: ~/backbone, ~/tip_pose, ~/strains of node soft_twin_sim)")
     r = sub.add_parser("render", help="figures and/or an animation of a saved run: the JSON of "
                        "soft-twin-sim dynamics, or an MCAP recording of the twin node")
     r.add_argument("run", help="a JSON file written by soft-twin-sim dynamics (with --backbone-every K), "
@@ -211,6 +213,7 @@ def main(argv=None):
             if "error" in out:
                 failed = f"dynamics failed: {out['error']}"
             render.render_dynamics(out, args, sc.model, sc.gravity, os.path.splitext(os.path.basename(sc.source))[0])
+            render.write_mcap(out, args, sc.model)
     except (ScenarioError, ModelError, ValueError) as e:
         print(f"soft-twin-sim: {e}", file=sys.stderr)
         return 2

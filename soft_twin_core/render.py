@@ -34,6 +34,9 @@ def check_visual_arguments(args):
         return f"--port must lie in 1..65535, got {port}"
     if getattr(args, "radius", None) is not None and not (np.isfinite(args.radius) and args.radius > 0):
         return f"--radius must be a positive length in m, got {args.radius}"
+    mc = getattr(args, "mcap", None)
+    if mc is not None and not mc.lower().endswith(".mcap"):
+        return f"--mcap: expected a file name ending in .mcap, got {mc!r}"
     anim = getattr(args, "animate", None)
     if anim and os.path.splitext(anim)[1].lower() not in (".gif", ".mp4"):
         return f"--animate: expected a file name ending in .gif or .mp4, got {anim!r}"
@@ -43,10 +46,18 @@ def check_visual_arguments(args):
 def backbone_every_for(args, dt):
     """Backbone sampling (steps) an animation needs: one sample per frame at
     least (``--backbone-every`` wins when given)."""
-    if args.backbone_every or not (args.animate or args.plot):
+    if args.backbone_every or not (args.animate or args.plot or getattr(args, "mcap", None)):
         return args.backbone_every
     fps = args.fps or DEFAULT_FPS
     return max(1, int(round(1.0 / (fps * dt))))
+
+
+def write_mcap(out, args, model):
+    """``dynamics --mcap FILE``: the run in the node's topics (ROS 2 bag format)."""
+    if getattr(args, "mcap", None) and out.get("backbone_time"):
+        from .recording import write_run_mcap
+        n = write_run_mcap(out, model, args.mcap, points_per_section=args.points_per_section)
+        say(f"wrote {args.mcap} ({n} states as /soft_twin_sim/backbone, tip_pose, strains)")
 
 
 def say(msg):

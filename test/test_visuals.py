@@ -266,3 +266,34 @@ def test_view_serves_a_saved_run_in_real_time(dynamics_run):
 def test_view_refuses_bad_port(capsys):
     code, _, err = run_cli(["view", "x.json", "--port", "70000"], capsys)
     assert code == 2 and "--port must lie in 1..65535" in err
+
+
+def test_dynamics_run_as_mcap_renders_like_the_run(tmp_path, capsys):
+    """dynamics --mcap: the node's topics in the ROS 2 bag format; read back,
+    its backbone, tip and strains are the run's, and its backbone
+    orientations are the model's kinematics of the recorded strains."""
+    from soft_twin_core import recording
+    from soft_twin_core import kinematics as kin
+    from soft_twin_core.scenario import load_scenario
+    path = tmp_path / "run.mcap"
+    code, _, err = run_cli(["dynamics", "tendon_arm_dynamics", "--duration", "0.2", "--dt", "0.005",
+                            "--backbone-every", "4", "--mcap", str(path), "-o", str(tmp_path / "run.json")], capsys)
+    assert code == 0, err
+    out = json.loads((tmp_path / "run.json").read_text())
+    model = load_scenario("tendon_arm_dynamics").model
+    run = recording.read_node_run(str(path), model=model)
+    assert run["time"] == pytest.approx(out["backbone_time"], abs=1e-9)
+    assert np.allclose(run["backbone"], out["backbone"], atol=1e-12)
+    rows = [out["time"].index(t) for t in out["backbone_time"]]
+    assert np.allclose(run["tip_position"], np.array(out["tip_position"])[rows], atol=1e-12)
+    assert np.array_equal(np.array(run["strains"]), np.array(out["strains"])[rows])
+    msgs = recording.read_messages(str(path))
+    b = msgs["/soft_twin_sim/backbone"][-1]
+    q = model.q_from_strains(np.array(msgs["/soft_twin_sim/strains"][-1].strains).reshape(-1, 6))
+    _, T = kin.backbone(model, q, 10)
+    from scipy.spatial.transform import Rotation
+    o = b.poses[7].orientation
+    assert np.allclose(Rotation.from_quat([o.x, o.y, o.z, o.w]).as_matrix(), T[7, :3, :3], atol=1e-9)
+    code, _, err = run_cli(["render", str(path), "--robot", "tendon_arm", "--plot", str(tmp_path / "fig")], capsys)
+    assert code == 0, err
+    check_png(tmp_path / "fig" / "backbone_shapes.png")
