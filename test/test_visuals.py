@@ -297,3 +297,18 @@ def test_dynamics_run_as_mcap_renders_like_the_run(tmp_path, capsys):
     code, _, err = run_cli(["render", str(path), "--robot", "tendon_arm", "--plot", str(tmp_path / "fig")], capsys)
     assert code == 0, err
     check_png(tmp_path / "fig" / "backbone_shapes.png")
+
+
+def test_rviz_config_shows_the_node_topics_and_frames():
+    import yaml
+    root = os.path.join(HERE, "..")
+    cfg = yaml.safe_load(open(os.path.join(root, "config", "soft_twin.rviz")))
+    vm = cfg["Visualization Manager"]
+    params = yaml.safe_load(open(os.path.join(root, "config", "params.yaml")))["soft_twin"]["ros__parameters"]
+    assert vm["Global Options"]["Fixed Frame"] == params["base_frame"]
+    displays = {d["Class"]: d for d in vm["Displays"]}
+    for cls in ("rviz_default_plugins/MarkerArray", "rviz_default_plugins/TF", "rviz_default_plugins/Wrench",
+                "rviz_default_plugins/Pose"):
+        assert cls in displays, cls
+    topics = {d["Topic"]["Value"] for d in vm["Displays"] if "Topic" in d}
+    assert topics == {"/soft_twin/markers", "/soft_twin/tip_pose", "/soft_twin/tip_wrench", "/soft_twin/base_wrench"}
