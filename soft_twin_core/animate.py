@@ -101,11 +101,17 @@ class FrameDrawer:
         _plt().close(self.fig)
 
 
-def write_animation(snapshots, path, fps, title="", progress=sys.stderr):
+_STDERR = object()
+
+
+def write_animation(snapshots, path, fps, title="", progress=_STDERR):
     """Render ``snapshots`` (one per frame) to ``path`` (.gif or .mp4) at
     ``fps`` frames/s. Returns (frames, seconds of video). GIF frame
     durations are whole centiseconds: choose fps dividing 100 (10, 20, 25,
-    50) for exact real time."""
+    50) for exact real time. ``progress``: a text stream (default: the
+    current sys.stderr) or None."""
+    if progress is _STDERR:
+        progress = sys.stderr
     ext = os.path.splitext(path)[1].lower()
     if ext not in (".gif", ".mp4"):
         raise ValueError(f"animation file: expected a .gif or .mp4 name, got {path!r}")
