@@ -86,9 +86,10 @@ PARAMETERS = {
         1.0e2, "Largest tip moment |m| accepted on ~/tip_wrench_command and by statics_query (N m, > 0); "
                "a larger one is rejected (over_limit)."),
     # --- seeing the twin (issue 12): /tf, recording --------------------------
-    "publish_tf": (
-        True, "Broadcast the base, section-start and tip frames of every published state on /tf "
-              "(tf2_msgs/TFMessage, children of base_frame; the tip is tip_frame)."),
+    "tf_rate_hz": (
+        50.0, "Rate of the base, section-start and tip frames on /tf (tf2_msgs/TFMessage, children of "
+              "base_frame, the tip is tip_frame; stamped like the published state they belong to). "
+              "Hz, >= 0; 0 = off; at or above the state rate: every state."),
     "tf_prefix": (
         "", "Prefix of the base and section frame ids on /tf (<prefix>base, <prefix>section_<i>); "
             "empty: the node's name and a slash (soft_twin/section_1)."),
@@ -124,7 +125,7 @@ class NodeConfig:
     max_tip_force_n: float
     max_tip_torque_nm: float
     # seeing the twin (issue 12)
-    publish_tf: bool = True
+    tf_rate_hz: float = 50.0
     tf_prefix: str = ""
     record_file: str = ""
     live_view_port: int = 0
@@ -221,7 +222,7 @@ VALIDATORS = {
     "max_tip_force_n": lambda n, v: _number(n, v, 0.0, lo_open=True),
     "max_tip_torque_nm": lambda n, v: _number(n, v, 0.0, lo_open=True),
     # seeing the twin (issue 12)
-    "publish_tf": lambda n, v: _boolean(n, v),
+    "tf_rate_hz": lambda n, v: _number(n, v, 0.0, 2000.0),
     "tf_prefix": lambda n, v: _tf_prefix(n, v),
     "record_file": lambda n, v: _record_file(n, v),
     "live_view_port": lambda n, v: _integer(n, v, 0, 65535),

@@ -1,5 +1,5 @@
-"""The twin's frames on ``/tf`` (tf2_msgs/TFMessage): with every published
-state, the cross-section frames at the robot's base (s = 0), at the start of
+"""The twin's frames on ``/tf`` (tf2_msgs/TFMessage): with the published
+states, at most ``tf_rate_hz`` (default 50 Hz), the cross-section frames at the robot's base (s = 0), at the start of
 every further section, and at the tip, each as a child of ``base_frame``
 (the robot description's world frame), stamped like the state topics.
 
@@ -12,6 +12,8 @@ slash (``soft_twin/section_3``), so several twins share one /tf.
 tf2_msgs comes from a ROS installation or, in the pinned venv, from the
 set-up's build of interfaces/tf2_msgs (the ROS wheels on PyPI have none).
 """
+
+import time
 
 import numpy as np
 from geometry_msgs.msg import TransformStamped
@@ -65,17 +67,23 @@ def tf_message(named_poses, header):
 
 
 class TfOutput:
-    """Publishes the frames of each state on /tf while ``publish_tf`` is on."""
+    """Publishes the frames of the published states on /tf at ``tf_rate_hz``."""
 
     def __init__(self, node):
         self._node = node
         self.publisher = node.create_publisher(TFMessage, "/tf", TF_QOS)
         self._indices = (None, None, None)     # (model, number of samples, indices)
+        self._last = -float("inf")
 
     def publish(self, snap, robot, header):
+        """Broadcast the frames of a published state, at most ``tf_rate_hz``
+        (a state is taken when 1/rate has passed since the last, less half a
+        step: a 50 Hz rate takes every 4th state at 200 Hz)."""
         cfg = self._node.cfg
-        if not cfg.publish_tf:
+        now = time.monotonic()
+        if cfg.tf_rate_hz <= 0 or now - self._last < 1.0 / cfg.tf_rate_hz - 0.5 * cfg.dt:
             return
+        self._last = now
         model, n = robot.model, len(snap.s)
         if self._indices[:2] != (model, n):
             self._indices = (model, n, frame_indices(model, snap.s))
