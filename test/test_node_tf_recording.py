@@ -211,7 +211,10 @@ def test_recording_holds_every_topic_and_input(twin, tmp_path):
     assert len(stamps[f"{ns}/backbone"]) > 50
     # /tf: the frames of some of those states (tf_rate_hz 50 of the 200 Hz states)
     assert set(stamps["/tf"]) <= set(stamps[f"{ns}/backbone"])
-    assert 0.1 < len(stamps["/tf"]) / len(stamps[f"{ns}/backbone"]) < 0.6
+    b = stamps[f"{ns}/backbone"]
+    duration = (b[-1][0] - b[0][0]) + 1e-9 * (b[-1][1] - b[0][1])
+    assert 0.3 * min(len(b), 50 * duration) <= len(stamps["/tf"]) <= 50 * duration * 1.1 + 2, (len(stamps["/tf"]),
+                                                                                                len(b), duration)
     # stamps and log times increase
     st = [s[0] * 10**9 + s[1] for s in stamps[f"{ns}/backbone"]]
     assert all(b > a for a, b in zip(st, st[1:]))
