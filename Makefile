@@ -15,7 +15,8 @@ export SOFT_TWIN_VENV := $(abspath $(VENV))
 setup:
 	@bash scripts/setup_env.sh
 
-# The main job: the twin node driven by a demo client; prints a table, writes a PNG.
+# The main job: the twin node driven by a demo client; prints a table, writes a PNG,
+# an animation (out/demo.gif) and the node's recording (out/demo.mcap).
 demo: setup
 	$(PY) scripts/demo.py $(ARGS)
 

@@ -39,9 +39,13 @@ setup(
         "numba>=0.59",
         "threadpoolctl>=3.1",
     ],
-    # design studies (soft-twin-sim study / workspace): the versions pinned in
-    # requirements/dev.txt are the tested ones
-    extras_require={"study": ["dask>=2024.1", "distributed>=2024.1", "pyarrow>=14", "matplotlib>=3.7"]},
+    # optional extras (the versions pinned in requirements/dev.txt are the tested ones):
+    # design studies (soft-twin-sim study / workspace); figures, GIF/MP4; MCAP recordings
+    extras_require={
+        "study": ["dask>=2024.1", "distributed>=2024.1", "pyarrow>=14", "matplotlib>=3.7"],
+        "visual": ["matplotlib>=3.7", "imageio>=2.31", "imageio-ffmpeg>=0.4.9"],
+        "mcap": ["mcap>=1.1", "mcap-ros2-support>=0.5"],
+    },
     entry_points={
         "console_scripts": [
             "soft-twin-sim = soft_twin_core.cli:main",

@@ -6,11 +6,13 @@ Starts the twin node on the default robot (config/robots/tendon_arm.yaml, a
 hangs a 10 g payload on its tip, then drives it for 10 s from this process:
 the tendon on the +z side lifts the arm, the one on the +y side swings it
 sideways, then both are released. Prints a table of actuation -> tip position
-and tip wrench, writes a PNG of the backbone shapes, stops the node (SIGINT,
-as Ctrl-C would) and exits.
+and tip wrench, writes a PNG of the backbone shapes and an animation (GIF or
+MP4, real time) of the whole run, has the node record it to MCAP (ROS 2 bag
+format), stops the node (SIGINT, as Ctrl-C would), says where each file is
+and exits.
 
     make demo                        # or: .venv/bin/python scripts/demo.py
-    make demo ARGS="--out /tmp/demo.png --mode quasi_static"
+    make demo ARGS="--out /tmp/demo.png --mode quasi_static --animation /tmp/demo.mp4 --record /tmp/demo.mcap"
 """
 
 import argparse
@@ -27,6 +29,7 @@ PAYLOAD_N = 0.0981          # 10 g on the tip, along -z of the base frame
 DURATION = 10.0             # s of sweep
 COMMAND_RATE = 50.0         # Hz
 SAMPLE_EVERY = 1.0          # s between table rows / drawn shapes
+FRAME_RATE = 20.0           # Hz: backbone frames of the animation (plays in real time)
 
 
 def say(msg):
@@ -82,6 +85,13 @@ def xyz(v):
     return np.array([v.x, v.y, v.z])
 
 
+def frame(backbone, t, u):
+    """A snapshot of the received backbone (base_link) for the animation."""
+    from soft_twin_core.scene import Snapshot
+    P = np.array([[p.position.x, p.position.y, p.position.z] for p in backbone.poses])
+    return Snapshot([P], time=t, caption=f"t = {t:5.2f} s   T(y+) = {u[0]:5.2f} N   T(z+) = {u[2]:5.2f} N")
+
+
 def plot(samples, out, mode):
     import matplotlib
     matplotlib.use("Agg")
@@ -116,14 +126,27 @@ def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--out", type=Path, default=ROOT / "out" / "demo_backbones.png", help="PNG to write")
     ap.add_argument("--mode", choices=("dynamic", "quasi_static"), default="dynamic")
+    ap.add_argument("--animation", type=Path, default=ROOT / "out" / "demo.gif",
+                    help="animation of the run to write (.gif or .mp4; empty: none)")
+    ap.add_argument("--record", type=Path, default=ROOT / "out" / "demo.mcap",
+                    help="MCAP recording (ROS 2 bag format) the node makes of the run (empty: none)")
     args = ap.parse_args(argv)
+    if args.animation.name and args.animation.suffix.lower() not in (".gif", ".mp4"):
+        ap.error(f"--animation: expected a .gif or .mp4 file name, got {str(args.animation)!r}")
+    if args.record.name and args.record.suffix.lower() != ".mcap":
+        ap.error(f"--record: expected a .mcap file name, got {str(args.record)!r}")
     os.environ.setdefault("ROS_DOMAIN_ID", str(1 + os.getpid() % 101))   # our own ROS 2 domain
     os.environ.setdefault("ROS_AUTOMATIC_DISCOVERY_RANGE", "LOCALHOST")
 
     from soft_twin.client import NodeProcess, TwinClient
 
     say(f"starting the twin node (python -m soft_twin.node, mode {args.mode}, default robot) ...")
-    proc = NodeProcess(["-p", f"mode:={args.mode}", "-p", "wrench_rate_hz:=50.0"], node_name="soft_twin_demo")
+    node_args = ["-p", f"mode:={args.mode}", "-p", "wrench_rate_hz:=50.0"]
+    if args.record.name:
+        args.record.parent.mkdir(parents=True, exist_ok=True)
+        node_args += ["-p", f"record_file:={args.record.resolve()}"]
+    proc = NodeProcess(node_args, node_name="soft_twin_demo")
+    sent = 0
     client = TwinClient("soft_twin_demo", client_name="soft_twin_demo_client")
     try:
         took = wait_for_node(proc, client)
@@ -131,6 +154,7 @@ def main(argv=None):
             f"{'200 Hz' if args.mode == 'dynamic' else 'each new equilibrium'}")
         client.send_tip_wrench([0.0, 0.0, -PAYLOAD_N], [0.0, 0.0, 0.0], "base_link")
         client.send_actuation(NAMES, [0.0] * 4)
+        sent += 1
         if not client.wait_until(lambda: client.tip_wrench is not None
                                  and abs(abs(client.tip_wrench.wrench.force.x) + abs(client.tip_wrench.wrench.force.y)
                                          + abs(client.tip_wrench.wrench.force.z) - 0.0) > 0.05, 10.0):
@@ -139,9 +163,9 @@ def main(argv=None):
             end = time.monotonic() + 1.5
             client.wait_until(lambda: time.monotonic() >= end, 2.0)
         say(f"sweeping the tendon tensions for {DURATION:.0f} s (commands at {COMMAND_RATE:.0f} Hz) ...")
-        samples = []
+        samples, frames = [], []
         t0 = time.monotonic()
-        next_cmd, next_sample = t0, t0
+        next_cmd, next_sample, next_frame = t0, t0, t0
         while True:
             now = time.monotonic()
             t = now - t0
@@ -150,6 +174,7 @@ def main(argv=None):
             if now >= next_cmd:
                 u = tensions(t)
                 client.send_actuation(NAMES, u)
+                sent += 1
                 next_cmd += 1.0 / COMMAND_RATE
             if now >= next_sample:
                 b, w, bw = client.backbone, client.tip_wrench, client.base_wrench
@@ -160,7 +185,10 @@ def main(argv=None):
                     base_force=xyz(bw.wrench.force), base_torque=xyz(bw.wrench.torque),
                     static_tip=static_tip(client, u_now)))
                 next_sample += SAMPLE_EVERY
-            wake = min(next_cmd, next_sample)
+            if now >= next_frame and args.animation.name:
+                frames.append(frame(client.backbone, len(frames) / FRAME_RATE, tensions(min(t, DURATION))))
+                next_frame += 1.0 / FRAME_RATE
+            wake = min(next_cmd, next_sample, next_frame)
             client.wait_until(lambda: time.monotonic() >= wake, max(0.0, wake - time.monotonic()) + 0.01)
         diag = client.wait_diagnostics(timeout=3.0) or {}
     finally:
@@ -187,7 +215,19 @@ def main(argv=None):
             f"step {diag.get('step_time_mean_ms')} ms mean, {diag.get('commands_applied_total')} commands applied, "
             f"{diag.get('solver_failures_total')} solver failures")
     plot(samples, args.out, args.mode)
-    say(f"wrote {args.out}")
+    say(f"wrote the backbone shapes: {args.out}")
+    if args.animation.name:
+        from soft_twin_core.animate import write_animation
+        n, seconds = write_animation(frames, str(args.animation), FRAME_RATE,
+                                     f"soft_twin demo: tendon arm ({args.mode} twin), 10 g payload")
+        say(f"wrote the animation: {args.animation} ({n} frames, {seconds:.1f} s at {FRAME_RATE:g} fps)")
+    if args.record.name and rc == 0:
+        from soft_twin_core.recording import read_messages
+        msgs = read_messages(str(args.record))
+        say(f"the node recorded {sum(map(len, msgs.values()))} messages on {len(msgs)} topics "
+            f"({len(msgs.get('/soft_twin_demo/actuation', []))} of the {sent} commands sent): {args.record}")
+        say(f"  replay as figures: .venv/bin/soft-twin-sim render {args.record} --robot tendon_arm "
+            f"--plot out/demo_figures")
     if rc != 0:
         say(f"the node exited with code {rc}; its log:\n{proc.output()}")
         return 1

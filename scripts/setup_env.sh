@@ -10,6 +10,8 @@
 #      the hand-written soft_twin/ modules and soft_twin_core in
 #      .venv/lib/python3.11/site-packages, the interface libraries in
 #      .venv/lib, the commands soft_twin_node and soft-twin-sim in .venv/bin;
+#   2b. tf2_msgs/TFMessage built the same way from interfaces/tf2_msgs when the
+#      venv has no tf2_msgs (the ROS wheels on PyPI carry none);
 #   3. on every run, a cheap re-install of the Python sources (cmake --install
 #      copies changed files only) so code edits reach the venv;
 #   4. the numba kernels compiled into their disk cache (soft_twin_core.warmup:
@@ -61,6 +63,24 @@ if [ ${#missing[@]} -gt 0 ]; then
     $SUDO env DEBIAN_FRONTEND=noninteractive apt-get update -q >>"$LOG" 2>&1 || fail "apt-get update"
     $SUDO env DEBIAN_FRONTEND=noninteractive apt-get install -y -q cmake make gcc g++ >>"$LOG" 2>&1 \
         || fail "apt-get install cmake make gcc g++"
+fi
+
+# ---- 0b. headless Chromium for the browser tests of the live 3D view ----------
+# Debian's chromium package (the test drives it over the DevTools protocol).
+# Not needed to run the twin; without it those tests fail and say so.
+if ! command -v chromium >/dev/null 2>&1 && ! command -v chromium-browser >/dev/null 2>&1; then
+    if command -v apt-get >/dev/null 2>&1 && { [ "$(id -u)" -eq 0 ] || command -v sudo >/dev/null 2>&1; }; then
+        SUDO=""
+        [ "$(id -u)" -eq 0 ] || SUDO="sudo"
+        say "installing Debian's chromium with apt-get (headless browser for the live-view tests; once)"
+        if ! { $SUDO env DEBIAN_FRONTEND=noninteractive apt-get install -y -q chromium >>"$LOG" 2>&1 ||
+            { $SUDO env DEBIAN_FRONTEND=noninteractive apt-get update -q >>"$LOG" 2>&1 &&
+                $SUDO env DEBIAN_FRONTEND=noninteractive apt-get install -y -q chromium >>"$LOG" 2>&1; }; }; then
+            say "WARNING: could not install chromium (see $LOG); the browser tests of the live view will fail"
+        fi
+    else
+        say "WARNING: no chromium and no apt-get: install Debian's chromium for the live-view browser tests"
+    fi
 fi
 
 # ---- 1. venv with pinned wheels ----------------------------------------------
@@ -152,6 +172,40 @@ if [ "$(cat "$BUILD_STAMP" 2>/dev/null)" != "$BUILD_HASH" ]; then
     } >>"$LOG" 2>&1 || fail "cmake build"
     echo "$BUILD_HASH" >"$BUILD_STAMP"
     say "  built in $(($(date +%s) - T)) s"
+fi
+
+# ---- 2b. tf2_msgs (the /tf message) when the environment has none -----------
+# The ROS 2 Jazzy wheels on PyPI carry no tf2_msgs: build TFMessage from its
+# upstream definition (interfaces/tf2_msgs) into the venv prefix, like the
+# package's own interfaces. An environment that has tf2_msgs (a ROS 2
+# installation's) keeps its own: nothing is built.
+TF_SRC=$ROOT/interfaces/tf2_msgs
+TF_BUILD=$ROOT/build/tf2_msgs
+TF_HASH=$( { echo "$DEPS_HASH"; echo "$VENV"; hash_of "$TF_SRC/CMakeLists.txt" "$TF_SRC/package.xml" "$TF_SRC"/msg/*; } \
+    | sha256sum | cut -c1-64)
+TF_STAMP=$TF_BUILD/.tf2_msgs-build.sha256
+if [ "$(cat "$TF_STAMP" 2>/dev/null)" != "$TF_HASH" ]; then
+    if [ ! -f "$TF_STAMP" ] && "$VENV/bin/python" -c 'import tf2_msgs.msg' >/dev/null 2>&1; then
+        say "tf2_msgs: using the environment's own package"
+    else
+        say "building tf2_msgs/TFMessage with cmake (the ROS wheels have no tf2_msgs; build/tf2_msgs -> $VENV)"
+        T=$(date +%s)
+        if [ -f "$TF_BUILD/CMakeCache.txt" ] &&
+            ! grep -qx "CMAKE_INSTALL_PREFIX:PATH=$VENV" "$TF_BUILD/CMakeCache.txt"; then
+            rm -rf "$TF_BUILD"
+        fi
+        {
+            "${CMAKE_ENV[@]}" cmake -S "$TF_SRC" -B "$TF_BUILD" \
+                -DCMAKE_INSTALL_PREFIX="$VENV" \
+                -DPython3_EXECUTABLE="$VENV/bin/python3" \
+                -DCMAKE_BUILD_TYPE=Release \
+                -DBUILD_TESTING=OFF &&
+                "${CMAKE_ENV[@]}" cmake --build "$TF_BUILD" -j "$(nproc)" &&
+                "${CMAKE_ENV[@]}" cmake --install "$TF_BUILD"
+        } >>"$LOG" 2>&1 || fail "cmake build of tf2_msgs"
+        echo "$TF_HASH" >"$TF_STAMP"
+        say "  built in $(($(date +%s) - T)) s"
+    fi
 fi
 
 # ---- 3. (re-)install: copies only what changed, then drops stale modules ----

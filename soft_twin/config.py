@@ -89,6 +89,20 @@ PARAMETERS = {
         "~/planned_actuation", "Topic (ActuationCommand) on which ~/plan_path executes a plan: one command "
                                "per sample at its time, for the real robot; the twin follows the same "
                                "commands through ~/actuation."),
+    # --- seeing the twin (issue 12): /tf, recording --------------------------
+    "tf_rate_hz": (
+        50.0, "Rate of the base, section-start and tip frames on /tf (tf2_msgs/TFMessage, children of "
+              "base_frame, the tip is tip_frame; stamped like the published state they belong to). "
+              "Hz, >= 0; 0 = off; at or above the state rate: every state."),
+    "tf_prefix": (
+        "", "Prefix of the base and section frame ids on /tf (<prefix>base, <prefix>section_<i>); "
+            "empty: the node's name and a slash (soft_twin/section_1)."),
+    "record_file": (
+        "", "MCAP file (ROS 2 bag format) recording every topic the node publishes and every input "
+            "it receives; empty: not recording. Setting it starts a new recording, '' stops it."),
+    "live_view_port": (
+        0, "Port of the live 3D view in the browser (http://127.0.0.1:<port>, viser; works offline); "
+           "0: off. Integer in 0..65535."),
 }
 
 
@@ -115,6 +129,11 @@ class NodeConfig:
     max_tip_force_n: float
     max_tip_torque_nm: float
     plan_output_topic: str
+    # seeing the twin (issue 12)
+    tf_rate_hz: float = 50.0
+    tf_prefix: str = ""
+    record_file: str = ""
+    live_view_port: int = 0
 
     @property
     def dt(self):
@@ -216,7 +235,30 @@ VALIDATORS = {
     "max_tip_force_n": lambda n, v: _number(n, v, 0.0, lo_open=True),
     "max_tip_torque_nm": lambda n, v: _number(n, v, 0.0, lo_open=True),
     "plan_output_topic": lambda n, v: _topic(n, v),
+    # seeing the twin (issue 12)
+    "tf_rate_hz": lambda n, v: _number(n, v, 0.0, 2000.0),
+    "tf_prefix": lambda n, v: _tf_prefix(n, v),
+    "record_file": lambda n, v: _record_file(n, v),
+    "live_view_port": lambda n, v: _integer(n, v, 0, 65535),
 }
+
+
+def _tf_prefix(name, v):
+    v = _string(name, v)
+    if any(c.isspace() for c in v) or v.startswith("/"):
+        raise ConfigError(f"{name}: expected a frame id prefix without spaces or a leading '/', got {clip(repr(v))}")
+    return v
+
+
+def _record_file(name, v):
+    v = _string(name, v).strip()
+    if v and not v.endswith(".mcap"):
+        raise ConfigError(f"{name}: expected a file name ending in .mcap (or '' for no recording), "
+                          f"got {clip(repr(v))}")
+    folder = os.path.dirname(os.path.abspath(v)) if v else ""
+    if v and not (os.path.isdir(folder) and os.access(folder, os.W_OK)):
+        raise ConfigError(f"{name}: the folder {clip(repr(folder))} does not exist or is not writable")
+    return v
 
 
 def validate(name, value):

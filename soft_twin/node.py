@@ -60,6 +60,7 @@ from soft_twin.srv import ForwardKinematics, InverseKinematics, StaticsQuery
 
 from soft_twin import articulated as art
 from soft_twin import conversions as cv
+from soft_twin import live_view_out, recorder, tf_out
 from soft_twin import twin as tw
 from soft_twin.executor import TwinExecutor
 from soft_twin.config import PARAMETERS, ConfigError, config_from_values, load_robot
@@ -245,6 +246,15 @@ class SoftTwinNode(Node):
         self._plan_runner.prepare(self.cfg.plan_output_topic)
         self.create_service(PlanPath, "~/plan_path", self._guarded(self._srv_plan_path),
                             callback_group=self._service_group)
+
+        # --- seeing the twin (issue 12): /tf frames, MCAP recording ----------
+        self._tf = tf_out.TfOutput(self)
+        self._recorder = recorder.Recorder(self, [
+            self._pub_backbone, self._pub_tip, self._pub_tip_wrench, self._pub_base_wrench,
+            self._pub_strains, self._pub_markers, self._pub_diag, self._tf.publisher], self._publish_lock)
+        self._recorder.follow(self.cfg.record_file)
+        self._live_view = live_view_out.LiveViewOutput(self)
+        self._live_view.follow(self.cfg.live_view_port)
 
         # --- timers (steady clock: the twin runs on wall time) ---------------
         self._steady = Clock(clock_type=ClockType.STEADY_TIME)
@@ -469,6 +479,9 @@ class SoftTwinNode(Node):
             self._diag_timer.timer_period_ns = int(1e9 / cfg.diagnostics_rate_hz)
         if cfg.mode == "quasi_static":
             self._solve_trigger.trigger()
+        if cfg.record_file != old.record_file or any(p.name == "record_file" for p in params):
+            self._recorder.follow(cfg.record_file)     # issue 12: a new recording ('' stops)
+        self._live_view.follow(cfg.live_view_port)     # issue 12: browser view on/off
         self.get_logger().info("parameters applied: " + ", ".join(f"{p.name}={clip(repr(p.value), 100)}"
                                                                   for p in params))
 
@@ -492,6 +505,7 @@ class SoftTwinNode(Node):
                     batch.append(taken)
         except InvalidHandle:      # destroyed under us: shutting down
             pass
+        self._recorder.received(sub, batch)            # issue 12: recording of the inputs
         return batch
 
     @staticmethod
@@ -768,6 +782,8 @@ class SoftTwinNode(Node):
         if self.robot.articulated:
             self._publish_articulated(snap, header)
             self._last_articulated = snap
+        self._tf.publish(snap, robot, header)          # issue 12: /tf
+        self._live_view.publish(snap, robot)           # issue 12: browser view (throttled)
         received = self._command_received
         if received is not None and received[0] is snap.command_stamp:
             # the first publication of a state with this command: latency from the
@@ -1090,12 +1106,6 @@ class SoftTwinNode(Node):
         from soft_twin import plan_service
         return plan_service.handle(self, self._plan_runner, req, resp)
 
-    def destroy_node(self):
-        runner = getattr(self, "_plan_runner", None)
-        if runner is not None:
-            runner.cancel()
-        return super().destroy_node()
-
     def _srv_reset(self, req, resp):
         with self._lock:
             self.twin.reset()
@@ -1107,6 +1117,18 @@ class SoftTwinNode(Node):
             self._solve_trigger.trigger()
         self.get_logger().info(resp.message)
         return resp
+
+    # --- the plan execution stops, the MCAP recording closes with the node ----
+    def destroy_node(self):
+        runner = getattr(self, "_plan_runner", None)
+        if runner is not None:
+            runner.cancel()
+        recorder_ = getattr(self, "_recorder", None)
+        if recorder_ is not None:
+            recorder_.close()
+        if getattr(self, "_live_view", None) is not None:
+            self._live_view.close()
+        return super().destroy_node()
 
 
 def _topic_name(name):

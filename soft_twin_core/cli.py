@@ -6,6 +6,9 @@
     soft-twin-sim study STUDY.yaml [-o OUT] [--scheduler ADDRESS | --workers N | --serial]
     soft-twin-sim workspace ROBOT_OR_SCENARIO [-o OUT] [--limit MAX] [--samples N]
     soft-twin-sim plan PLAN_FILE [--output PREFIX] [--no-dynamics]
+    ... [--plot DIR] [--animate FILE.gif|FILE.mp4] [--fps HZ]     (statics and dynamics; soft_twin_core.render)
+    soft-twin-sim render RUN.json|RUN.mcap [--scenario S | --robot R] [--plot DIR] [--animate FILE] [--fps HZ]
+    soft-twin-sim view RUN.json|RUN.mcap [--port 8080]      (live 3D view in the browser, in a loop)
 
 (study and workspace: see soft_twin_core/study_cli.py; plan: soft_twin_core/plan_file.py.)
 
@@ -27,10 +30,13 @@ import argparse
 import csv
 import io
 import json
+import os
 import sys
 import time
 
 import numpy as np
+
+from . import render
 
 
 def _parse_sweep(text):
@@ -53,6 +59,7 @@ def _parser():
                    help="solve for each angle (deg) of the in_plane_force loads; prints a JSON list")
     s.add_argument("--points-per-section", type=int, default=10)
     s.add_argument("--output", "-o", help="write to this file instead of stdout")
+    render.add_visual_arguments(s, sweep=True)
     d = sub.add_parser("dynamics", help="time simulation of a scenario (JSON or CSV)")
     d.add_argument("scenario")
     d.add_argument("--duration", type=float, required=True, help="simulated time [s]")
@@ -77,6 +84,27 @@ def _parser():
                     help="write PREFIX.csv and PREFIX.json (default: the plan file's name in the "
                          "current directory)")
     pp.add_argument("--no-dynamics", action="store_true", help="skip the dynamic verification")
+    render.add_visual_arguments(d)
+    d.add_argument("--mcap", metavar="FILE", help="also write the backbone samples as the twin node publishes "
+                   "them (ROS 2 bag format: ~/backbone, ~/tip_pose, ~/strains of node soft_twin_sim)")
+    r = sub.add_parser("render", help="figures and/or an animation of a saved run: the JSON of "
+                       "soft-twin-sim dynamics, or an MCAP recording of the twin node")
+    r.add_argument("run", help="a JSON file written by soft-twin-sim dynamics (with --backbone-every K), "
+                   "or a .mcap recording of the node (record_file)")
+    r.add_argument("--scenario", help="the run's scenario: members split at rigid offsets, energies")
+    r.add_argument("--robot", help="the recorded node's robot (file or example name): energies, members")
+    r.add_argument("--sections", type=int, help="sections per segment, as for the run")
+    r.add_argument("--node", help="the twin node's name when the recording holds several")
+    render.add_visual_arguments(r)
+    v = sub.add_parser("view", help="play a saved run (JSON or MCAP) in the live 3D view in the browser")
+    v.add_argument("run", help="as for render: a dynamics JSON (with --backbone-every K) or a .mcap of the node")
+    v.add_argument("--scenario")
+    v.add_argument("--robot")
+    v.add_argument("--sections", type=int)
+    v.add_argument("--node")
+    v.add_argument("--port", type=int, default=8080, help="http://127.0.0.1:PORT (default 8080)")
+    v.add_argument("--radius", type=float, default=0.01, help="tube radius [m] (default 0.01)")
+    v.add_argument("--seconds", type=float, help="stop after this many seconds (default: Ctrl-C)")
     return p
 
 
@@ -212,7 +240,17 @@ def main(argv=None):
         if v is not None and v < low:
             print(f"soft-twin-sim: --{name.replace('_', '-')} must be >= {low}, got {v}", file=sys.stderr)
             return 2
+    bad = render.check_visual_arguments(args)
+    if bad:
+        print(f"soft-twin-sim: {bad}", file=sys.stderr)
+        return 2
     try:
+        if args.command == "render":
+            render.render_main(args)
+            return 0
+        if args.command == "view":
+            render.view_main(args)
+            return 0
         if args.command == "statics":
             angles = args.sweep_angle if args.sweep_angle is not None else [None]
             results = []
@@ -225,6 +263,8 @@ def main(argv=None):
                           file=sys.stderr)
                 results.append(r)
             text = json.dumps(results if args.sweep_angle is not None else results[0], indent=1)
+            render.render_statics(results, args, sc, args.sweep_angle is not None,
+                                  os.path.splitext(os.path.basename(sc.source))[0])
         else:
             n_steps_for(args.duration, args.dt)      # refuses impossible durations before any work
             sc = load_scenario(args.scenario, args.sections)
@@ -239,7 +279,7 @@ def main(argv=None):
                 elif frac > 0:
                     print(f"soft-twin-sim: {100 * frac:5.1f} % simulated, {elapsed:.1f} s elapsed, "
                           f"~{elapsed / frac - elapsed:.0f} s left", file=sys.stderr)
-            out = run_dynamics(sc, args.duration, args.dt, args.backbone_every, args.theta,
+            out = run_dynamics(sc, args.duration, args.dt, render.backbone_every_for(args, args.dt), args.theta,
                                progress, args.points_per_section, args.record_every)
             t_end = out["time"][-1] if out["time"] else 0.0
             wall = time.monotonic() - (clock["ready"] or clock["start"])
@@ -247,6 +287,8 @@ def main(argv=None):
             text = _csv(out) if args.format == "csv" else json.dumps(out)
             if "error" in out:
                 failed = f"dynamics failed: {out['error']}"
+            render.render_dynamics(out, args, sc.model, sc.gravity, os.path.splitext(os.path.basename(sc.source))[0])
+            render.write_mcap(out, args, sc.model)
     except (ScenarioError, ModelError, ValueError) as e:
         print(f"soft-twin-sim: {e}", file=sys.stderr)
         return 2

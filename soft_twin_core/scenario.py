@@ -17,6 +17,8 @@ Schema (YAML; SI units)::
       - {s: tip, force: [0, 1, 0], profile: [[0, 0], [1, 1]]}             # dynamics: scale vs time
     load_steps: 1                      # statics: apply the loads in this many increments
     initial_strains: null              # dynamics: optional (n_sections x 6) start, default rest
+    reference:                         # optional: values to plot a --sweep-angle against
+      {label: text, angle_deg: [0, 45], tip_position: [[x, y, z], [x, y, z]]}   # m, world
 
 Numbers may be written as the robot files accept them (``1e6``, ``1.0e6``,
 ``2.5e-3``; :func:`model.parse_number`).
@@ -49,6 +51,7 @@ class Scenario:
     load_steps: int
     initial_strains: object
     source: str
+    reference: object = None      # reference values of a sweep (issue 12; see _reference)
 
     def loads_at(self, t=None, factor=1.0):
         """Loads at time t (profiles applied; None: profiles ignored)."""
@@ -190,7 +193,7 @@ def scenario_from_dict(d, base_dir=".", sections=None, angle_deg=None, source="<
             raise ScenarioError("sections: articulated robots take their section counts from the robot file")
         return mechanism_scenario_from_dict(d, base_dir, source)
     allowed = {"robot", "sections", "actuation", "actuation_profile", "gravity", "loads", "load_steps",
-               "initial_strains", "description"}
+               "initial_strains", "description", "reference"}
     unknown = set(d) - allowed
     if unknown:
         raise ScenarioError(f"scenario: unknown field(s) {sorted(unknown)}; allowed: {sorted(allowed)}")
@@ -253,7 +256,23 @@ def scenario_from_dict(d, base_dir=".", sections=None, angle_deg=None, source="<
             init = model.q_from_strains(init)
         except (ModelError, ValueError) as e:
             raise ScenarioError(f"scenario.initial_strains: {e}") from None
-    return Scenario(model, u, prof, loads, grav, steps, init, source)
+    return Scenario(model, u, prof, loads, grav, steps, init, source, _reference(d.get("reference")))
+
+
+def _reference(v):
+    """``reference: {label: text, angle_deg: [a_1, ...], tip_position: [[x, y, z], ...]}``:
+    tip positions [m] (world) to plot against a statics sweep over the
+    in_plane_force angle [deg] (soft-twin-sim statics --sweep-angle --plot)."""
+    if v is None:
+        return None
+    where = "scenario.reference"
+    if not isinstance(v, dict) or set(v) - {"label", "angle_deg", "tip_position"} or "angle_deg" not in v \
+            or "tip_position" not in v:
+        raise ScenarioError(f"{where}: expected {{label: text, angle_deg: [...], tip_position: [[x, y, z], ...]}}, "
+                            f"got {v!r}")
+    a = parse_numbers(v["angle_deg"], (None,), where + ".angle_deg", ScenarioError)
+    p = parse_numbers(v["tip_position"], (len(a), 3), where + ".tip_position", ScenarioError)
+    return {"label": str(v.get("label", "reference")), "angle_deg": a.tolist(), "tip_position": p.tolist()}
 
 
 # ----------------------------------------------------------------------------

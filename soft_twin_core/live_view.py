@@ -1,0 +1,130 @@
+"""A live 3D view of the twin in the browser (viser: a local web server and
+its bundled three.js client; works offline). Shows the backbone as a tube
+with the members' radii, rigid links as bars, the frames of the base and
+the tip, the tip wrench as an arrow, and a panel with the time and the
+actuation values.
+
+    view = LiveView(port=8080)            # http://127.0.0.1:8080
+    view.show(snapshot, radii=..., actuation={"tendon_y_pos": 2.0}, tip_force=[0, 0, -0.1])
+
+Used by ``soft-twin-sim view`` (a recorded or simulated run played back in
+a loop) and by the twin node (parameter ``live_view_port``). ``show`` is
+cheap and thread-safe (viser sends the updates from its own thread).
+"""
+
+import threading
+
+import numpy as np
+
+TUBE_SIDES = 16
+TUBE_COLOR = (217, 115, 51)
+LINK_COLOR = (70, 70, 70)
+FORCE_COLOR = (204, 41, 204)
+
+
+def tube_mesh(points, radii, sides=TUBE_SIDES):
+    """(vertices (P*sides + 2, 3), faces (F, 3)) of a closed tube of
+    radius ``radii`` (P,) [m] around the polyline ``points`` (P, 3) [m]; the
+    rings are normal to the local tangent (parallel transport of one normal,
+    so the tube does not twist), the ends capped."""
+    P = np.asarray(points, dtype=float)
+    r = np.broadcast_to(np.asarray(radii, dtype=float), (len(P),))
+    if len(P) < 2:
+        raise ValueError(f"points: a tube needs at least 2 points, got {len(P)}")
+    d = np.gradient(P, axis=0)
+    n = np.linalg.norm(d, axis=1, keepdims=True)
+    T = d / np.where(n > 0, n, 1.0)
+    a = np.eye(3)[np.argmin(np.abs(T[0]))]
+    N = np.empty_like(P)
+    N[0] = np.cross(T[0], a)
+    N[0] /= np.linalg.norm(N[0])
+    for k in range(1, len(P)):
+        v = N[k - 1] - (N[k - 1] @ T[k]) * T[k]
+        nv = np.linalg.norm(v)
+        N[k] = v / nv if nv > 1e-12 else N[k - 1]
+    B = np.cross(T, N)
+    ang = 2 * np.pi * np.arange(sides) / sides
+    ring = np.cos(ang)[None, :, None] * N[:, None, :] + np.sin(ang)[None, :, None] * B[:, None, :]
+    V = (P[:, None, :] + r[:, None, None] * ring).reshape(-1, 3)
+    V = np.vstack([V, P[0], P[-1]])
+    i = np.arange(len(P) - 1)[:, None] * sides
+    j = np.arange(sides)[None, :]
+    a0, a1 = i + j, i + (j + 1) % sides
+    b0, b1 = a0 + sides, a1 + sides
+    F = np.concatenate([np.stack([a0, b0, a1], -1).reshape(-1, 3), np.stack([a1, b0, b1], -1).reshape(-1, 3)])
+    c0, c1 = len(P) * sides, len(P) * sides + 1
+    last = (len(P) - 1) * sides
+    caps0 = np.stack([np.full(sides, c0), (np.arange(sides) + 1) % sides, np.arange(sides)], -1)
+    caps1 = np.stack([np.full(sides, c1), last + np.arange(sides), last + (np.arange(sides) + 1) % sides], -1)
+    return V.astype(np.float32), np.concatenate([F, caps0, caps1]).astype(np.uint32)
+
+
+def wxyz(R):
+    """Quaternion [w, x, y, z] of a rotation matrix (viser's convention)."""
+    from scipy.spatial.transform import Rotation
+    x, y, z, w = Rotation.from_matrix(np.asarray(R, dtype=float)).as_quat()
+    return np.array([w, x, y, z])
+
+
+class LiveView:
+    """The browser view: a viser server on ``host:port`` (port 0: a free one)."""
+
+    def __init__(self, port=8080, host="127.0.0.1", title="soft_twin", look_at=(0.2, 0.0, -0.1), distance=0.9):
+        import viser
+        self.server = viser.ViserServer(host=host, port=port, label=title, verbose=False)
+        self.port = self.server.get_port()
+        self.host = host
+        self._lock = threading.Lock()
+        self._text = self.server.gui.add_markdown("**soft_twin**: waiting for the twin ...")
+        self.server.scene.add_grid("/grid", width=1.0, height=1.0, cell_size=0.05, position=(0.2, 0.0, -0.5))
+        self.server.scene.set_up_direction("+z")
+        # the camera of every new page: from the front-left, a little above, on the arm
+        c = np.asarray(look_at, dtype=float)
+        self.server.initial_camera.look_at = tuple(c)
+        self.server.initial_camera.position = tuple(c + distance * np.array([0.35, -0.85, 0.4]))
+        self._n_links = 0
+        self.updates = 0
+
+    @property
+    def url(self):
+        return f"http://{self.host}:{self.port}"
+
+    def show(self, snap, radii=0.01, base_pose=None, tip_pose=None, tip_force=None, actuation=None,
+             force_scale=0.5, text=""):
+        """Draw one :class:`scene.Snapshot`: a tube per member (radii [m]: one
+        value or one per point of each member, a list per member), links as
+        bars, the base and tip frames (4x4 poses, world), the tip force [N]
+        as an arrow of ``force_scale`` m per N, the actuation values."""
+        sc = self.server.scene
+        with self._lock:
+            for k, P in enumerate(snap.members):
+                r = radii[k] if isinstance(radii, (list, tuple)) else radii
+                if len(P) >= 2:
+                    V, F = tube_mesh(P, r)
+                    sc.add_mesh_simple(f"/twin/member_{k}", V, F, color=TUBE_COLOR, flat_shading=False)
+            for k, seg in enumerate(snap.links):
+                sc.add_line_segments(f"/twin/link_{k}", np.asarray(seg, np.float32)[None], colors=LINK_COLOR,
+                                     line_width=6.0)
+            for k in range(len(snap.links), self._n_links):
+                sc.remove_by_name(f"/twin/link_{k}")
+            self._n_links = len(snap.links)
+            for name, T in (("base", base_pose), ("tip", tip_pose)):
+                if T is not None:
+                    T = np.asarray(T, dtype=float)
+                    sc.add_frame(f"/twin/{name}_frame", wxyz=wxyz(T[:3, :3]), position=T[:3, 3],
+                                 axes_length=0.05, axes_radius=0.002)
+            if tip_force is not None and tip_pose is not None:
+                p0 = np.asarray(tip_pose, dtype=float)[:3, 3]
+                seg = np.array([[p0, p0 + force_scale * np.asarray(tip_force, dtype=float)]], np.float32)
+                sc.add_line_segments("/twin/tip_force", seg, colors=FORCE_COLOR, line_width=5.0)
+            lines = [f"**soft_twin** {snap.caption}  {text}".rstrip()]
+            if actuation:
+                lines += [f"- `{k}`: {v:.3g}" for k, v in actuation.items()]
+            if tip_force is not None:
+                f = np.asarray(tip_force, dtype=float)
+                lines.append(f"- tip force: [{f[0]:.3g}, {f[1]:.3g}, {f[2]:.3g}] N")
+            self._text.content = "\n".join(lines)
+            self.updates += 1
+
+    def close(self):
+        self.server.stop()

@@ -1,0 +1,206 @@
+"""``soft-twin-sim`` options that make a run visible: ``--plot DIR``
+(PNG + SVG figures, :mod:`plots`), ``--animate FILE.gif|.mp4``
+(:mod:`animate`), ``--fps``; and the ``render`` command, which draws the
+same from a saved run (the JSON of ``soft-twin-sim dynamics``).
+
+Kept apart from cli.py so the runner's own options stay where they are.
+"""
+
+import json
+import os
+import sys
+
+import numpy as np
+
+DEFAULT_FPS = 25.0           # dynamics: real time at 25 frames/s (40 ms, exact in GIF)
+DEFAULT_SWEEP_FPS = 2.0      # a statics sweep: two angles per second
+
+
+def add_visual_arguments(p, sweep=False):
+    p.add_argument("--plot", metavar="DIR", help="write PNG and SVG figures of the run into DIR")
+    p.add_argument("--animate", metavar="FILE", help="write an animation (.gif or .mp4) of the run"
+                   + (" (with --sweep-angle: one frame per angle)" if sweep else ""))
+    p.add_argument("--fps", type=float, default=None, metavar="HZ",
+                   help=f"animation frame rate (default {DEFAULT_SWEEP_FPS if sweep else DEFAULT_FPS:g}"
+                   + ("" if sweep else "; the run plays in real time") + ")")
+
+
+def check_visual_arguments(args):
+    """Reason a visual option is bad, or None."""
+    if getattr(args, "fps", None) is not None and not (np.isfinite(args.fps) and 0 < args.fps <= 100):
+        return f"--fps must lie in (0, 100] frames/s, got {args.fps}"
+    port = getattr(args, "port", None)
+    if port is not None and not 1 <= port <= 65535:
+        return f"--port must lie in 1..65535, got {port}"
+    if getattr(args, "radius", None) is not None and not (np.isfinite(args.radius) and args.radius > 0):
+        return f"--radius must be a positive length in m, got {args.radius}"
+    mc = getattr(args, "mcap", None)
+    if mc is not None and not mc.lower().endswith(".mcap"):
+        return f"--mcap: expected a file name ending in .mcap, got {mc!r}"
+    anim = getattr(args, "animate", None)
+    if anim and os.path.splitext(anim)[1].lower() not in (".gif", ".mp4"):
+        return f"--animate: expected a file name ending in .gif or .mp4, got {anim!r}"
+    return None
+
+
+def backbone_every_for(args, dt):
+    """Backbone sampling (steps) an animation needs: one sample per frame at
+    least (``--backbone-every`` wins when given)."""
+    if args.backbone_every or not (args.animate or args.plot or getattr(args, "mcap", None)):
+        return args.backbone_every
+    fps = args.fps or DEFAULT_FPS
+    return max(1, int(round(1.0 / (fps * dt))))
+
+
+def write_mcap(out, args, model):
+    """``dynamics --mcap FILE``: the run in the node's topics (ROS 2 bag format)."""
+    if getattr(args, "mcap", None) and out.get("backbone_time"):
+        from .recording import write_run_mcap
+        n = write_run_mcap(out, model, args.mcap, points_per_section=args.points_per_section)
+        say(f"wrote {args.mcap} ({n} states as /soft_twin_sim/backbone, tip_pose, strains)")
+
+
+def say(msg):
+    print(f"soft-twin-sim: {msg}", file=sys.stderr, flush=True)
+
+
+def animate_dynamics(out, path, fps, model=None, title=""):
+    """Animation of a dynamics run's backbone samples, real time at ``fps``."""
+    from .animate import write_animation
+    from .scene import dynamics_snapshots, sample_times
+    snaps = dynamics_snapshots(out, model)
+    idx = sample_times([s.time for s in snaps], fps)
+    n, seconds = write_animation([snaps[i] for i in idx], path, fps, title)
+    say(f"wrote {path} ({n} frames at {fps:g} fps, {seconds:.2f} s)")
+    return n, seconds
+
+
+def render_dynamics(out, args, model=None, gravity=True, name="run"):
+    from .plots import plot_dynamics
+    if args.plot:
+        paths = plot_dynamics(out, args.plot, model, gravity, name)
+        say(f"wrote {len(paths)} figures into {args.plot}: " + ", ".join(os.path.basename(p) for p in paths))
+    if args.animate:
+        animate_dynamics(out, args.animate, args.fps or DEFAULT_FPS, model, name)
+
+
+def render_statics(results, args, sc, sweep, name="statics"):
+    from .plots import plot_statics, plot_sweep
+    if args.plot:
+        if sweep:
+            paths = plot_sweep(results, args.plot, sc.reference, sc.model, name)
+        else:
+            paths = plot_statics(results[0], args.plot, sc.model, name)
+        say(f"wrote {len(paths)} figures into {args.plot}: " + ", ".join(os.path.basename(p) for p in paths))
+    if args.animate:
+        from .animate import write_animation
+        from .scene import statics_snapshot
+        snaps = [statics_snapshot(r, sc.model, f"load angle {r['angle_deg']:g} deg" if sweep else "equilibrium")
+                 for r in results]
+        fps = args.fps or DEFAULT_SWEEP_FPS
+        n, seconds = write_animation(snaps, args.animate, fps, name)
+        say(f"wrote {args.animate} ({n} frames at {fps:g} fps, {seconds:.2f} s)")
+
+
+def load_run(path):
+    """A saved dynamics run: the JSON of ``soft-twin-sim dynamics``."""
+    try:
+        with open(path) as fh:
+            out = json.load(fh)
+    except OSError as e:
+        raise ValueError(f"render: cannot read the run {path!r}: {e.strerror or e}") from None
+    except (json.JSONDecodeError, UnicodeDecodeError) as e:
+        raise ValueError(f"{path}: not a JSON run of soft-twin-sim dynamics ({e})") from None
+    if not isinstance(out, dict) or "time" not in out:
+        raise ValueError(f"{path}: not a run of soft-twin-sim dynamics (no 'time' field)")
+    return out
+
+
+def render_main(args):
+    """``soft-twin-sim render RUN [--scenario S [--sections N] | --robot R] [--node NAME]
+    --plot DIR --animate FILE``: RUN is the JSON of ``soft-twin-sim dynamics`` or an
+    MCAP recording of the twin node (its ``record_file``)."""
+    from .model import load_model
+    from .scenario import load_scenario
+    if not (args.plot or args.animate):
+        raise ValueError("render: nothing to do; give --plot DIR and/or --animate FILE")
+    if args.scenario and args.robot:
+        raise ValueError("render: give --scenario or --robot, not both")
+    model, gravity, name = None, True, os.path.splitext(os.path.basename(args.run))[0]
+    if args.scenario:
+        sc = load_scenario(args.scenario, args.sections)
+        model, gravity = sc.model, sc.gravity
+        name = os.path.splitext(os.path.basename(sc.source))[0]
+    elif args.robot:
+        model = load_model(args.robot, args.sections)
+    if args.run.lower().endswith(".mcap"):
+        from .recording import read_node_run
+        out = read_node_run(args.run, args.node, model)
+    else:
+        out = load_run(args.run)
+    if model is not None and out.get("n_sections", model.n_sections) != model.n_sections:
+        raise ValueError(f"render: the run has {out['n_sections']} sections, the model "
+                         f"{model.n_sections}; pass the run's --sections")
+    render_dynamics(out, args, model, gravity, name)
+
+
+def view_main(args, stop=None):
+    """``soft-twin-sim view RUN [--scenario S | --robot R] [--port P] [--radius R] [--seconds T]``:
+    plays a saved run (JSON or MCAP, as for ``render``) in the live 3D view
+    in real time, in a loop, until Ctrl-C (or ``--seconds`` of wall time)."""
+    import time as _time
+    from .live_view import LiveView
+    from .model import load_model
+    from .scenario import load_scenario
+    from .scene import dynamics_snapshots
+    model = None
+    if args.scenario:
+        model = load_scenario(args.scenario, args.sections).model
+    elif args.robot:
+        model = load_model(args.robot, args.sections)
+    if args.run.lower().endswith(".mcap"):
+        from .recording import read_node_run
+        out = read_node_run(args.run, args.node, model)
+    else:
+        out = load_run(args.run)
+    snaps = dynamics_snapshots(out, model)
+    try:
+        view = LiveView(port=args.port)
+    except OSError as e:
+        raise ValueError(f"view: cannot serve on port {args.port}: {e}") from None
+    say(f"live 3D view of {args.run}: {view.url} ({len(snaps)} states, "
+        f"{snaps[-1].time - snaps[0].time:.2f} s, in a loop; Ctrl-C to stop)")
+    start = _time.monotonic()
+    t0, t_end = snaps[0].time, snaps[-1].time
+    shown = None
+    try:
+        while args.seconds is None or _time.monotonic() - start < args.seconds:
+            if stop is not None and stop.is_set():
+                break
+            t = t0 + ((_time.monotonic() - start) % max(t_end - t0, 1e-9) if t_end > t0 else 0.0)
+            k = int(np.searchsorted([s.time for s in snaps], t, side="right") - 1)
+            if k != shown:
+                s = snaps[max(k, 0)]
+                view.show(s, args.radius, tip_pose=_tip_pose(s), base_pose=np.eye(4))
+                shown = k
+            _time.sleep(0.02)
+    except KeyboardInterrupt:
+        pass
+    finally:
+        view.close()
+    return view.updates
+
+
+def _tip_pose(snap):
+    """A frame at the tip: x along the last backbone segment."""
+    P = snap.members[-1]
+    T = np.eye(4)
+    T[:3, 3] = P[-1]
+    if len(P) >= 2:
+        x = P[-1] - P[-2]
+        x /= np.linalg.norm(x) or 1.0
+        a = np.eye(3)[np.argmin(np.abs(x))]
+        y = np.cross(a, x)
+        y /= np.linalg.norm(y)
+        T[:3, :3] = np.c_[x, y, np.cross(x, y)]
+    return T
