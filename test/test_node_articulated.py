@@ -150,3 +150,36 @@ def test_every_example_robot_runs_in_the_node(robot, tmp_path_factory):
         assert d["solver_failures_total"] == "0" and d["internal_errors_total"] == "0", d
     finally:
         _stop(proc, c)
+
+
+def test_tf_carries_the_articulated_frames(pan_tilt_qs):
+    from tf2_msgs.msg import TFMessage
+    c = pan_tilt_qs
+    got = c.subscribe(TFMessage, "/tf", depth=20)
+    assert c.wait_until(lambda: any(t.child_frame_id.endswith("tilt_link") for m in got for t in m.transforms),
+                        10.0), "no articulated frames on /tf"
+    msg = next(m for m in reversed(got) if any(t.child_frame_id.endswith("tilt_link") for t in m.transforms))
+    tf = {t.child_frame_id: t for t in msg.transforms}
+    assert abs(tf["twin_art_qs/tilt_link"].transform.translation.z - 0.08) < 1e-12
+    assert "tip_link" in tf and "twin_art_qs/arm_0" in tf and "twin_art_qs/arm_4" in tf
+    tip = tf["tip_link"].transform.translation
+    # the tip frame equals the published tip pose of a state (same stamps)
+    same = c.wait_until(lambda: c.tip_pose is not None and stamp_key(c.tip_pose.header.stamp)
+                        >= stamp_key(msg.transforms[0].header.stamp), 5.0)
+    assert same
+    p = c.tip_pose.pose.position
+    if stamp_key(c.tip_pose.header.stamp) == stamp_key(msg.transforms[0].header.stamp):
+        assert abs(p.x - tip.x) < 1e-12 and abs(p.z - tip.z) < 1e-12
+
+
+def test_live_view_snapshot_of_an_articulated_robot():
+    from soft_twin.articulated import ArticulatedTwin
+    from soft_twin.live_view_out import articulated_view_snapshot
+    mech = load_mechanism(find_file("soft_gripper", "robots"))
+    twin = ArticulatedTwin(mech)
+    snap = twin.outputs()
+    shot, radii = articulated_view_snapshot(mech, snap)
+    assert len(shot.members) == 3 and [len(r) for r in radii] == [4, 4, 4]
+    assert np.allclose(radii[0], 0.008)                      # half the 16 mm finger width
+    np.testing.assert_allclose(shot.members[1][-1], snap.frames["finger_1_tip"][:3, 3], atol=1e-15)
+    assert len(shot.links) == 1 and np.allclose(shot.links[0][1], [0, 0, 0.3])
