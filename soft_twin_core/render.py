@@ -75,6 +75,41 @@ def animate_dynamics(out, path, fps, model=None, title=""):
     return n, seconds
 
 
+def mechanism_snapshots(out, mech):
+    """scene.Snapshots of an articulated robot's dynamics run (its member
+    samples, ``--backbone-every``): every member's section boundaries, each
+    rigid link as a bar from its parent link's frame (or the base origin) to
+    its own frame, the frames' positions of the same rows."""
+    from .scene import Snapshot
+    tree = mech.tree
+    names = {lk.joint: lk.name for lk in mech.links}
+    rows = {t: k for k, t in enumerate(out["time"])}
+    fidx = {n: k for k, n in enumerate(out["frame_names"])}
+    snaps = []
+    for t, members in zip(out["members_time"], out["members"]):
+        fp = out["frame_positions"][rows[t]]
+        links = []
+        for lk in mech.links:
+            par = tree.joints[lk.joint].parent
+            start = [0.0, 0.0, 0.0] if par < 0 else (fp[fidx[names[par]]] if par in names else None)
+            if start is not None:
+                links.append(np.array([start, fp[fidx[lk.name]]]))
+        snaps.append(Snapshot([np.asarray(m["positions"]) for m in members.values()], links, time=float(t)))
+    return snaps
+
+
+def render_mechanism_dynamics(out, args, mech, name="run"):
+    """--animate of an articulated robot's run (--plot and --mcap are for classic robots so far)."""
+    if args.animate:
+        from .animate import write_animation
+        from .scene import sample_times
+        fps = args.fps or DEFAULT_FPS
+        snaps = mechanism_snapshots(out, mech)
+        idx = sample_times([s.time for s in snaps], fps)
+        n, seconds = write_animation([snaps[i] for i in idx], args.animate, fps, name)
+        say(f"wrote {args.animate} ({n} frames at {fps:g} fps, {seconds:.2f} s)")
+
+
 def render_dynamics(out, args, model=None, gravity=True, name="run"):
     from .plots import plot_dynamics
     if args.plot:

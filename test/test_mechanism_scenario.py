@@ -93,3 +93,17 @@ def test_prescribed_base_trajectory_moves_the_robot(tmp_path):
     # the base's constraint wrench: the support carrying and accelerating the arm
     assert r["constraint_names"] == ["base"] and np.isfinite(r["constraint_wrenches"]).all()
     assert r["members_time"] == [0.0, 0.3, 0.6] and "velocities" in r["members"][-1]["arm"]
+
+
+def test_articulated_run_animates(tmp_path):
+    import imageio.v3 as iio
+    gif = tmp_path / "pan_tilt.gif"
+    rc, _ = _run(tmp_path, "dynamics", "pan_tilt_arm_dynamics", "--duration", "0.5", "--dt", "0.01",
+                 "--animate", str(gif), "--fps", "10")
+    assert rc == 0
+    frames = iio.imread(gif, index=None)
+    assert len(frames) == 6 and frames.shape[1] > 100
+    assert np.abs(frames[-1].astype(float) - frames[0].astype(float)).mean() > 0.5     # the arm moved
+    rc, _ = _run(tmp_path, "dynamics", "pan_tilt_arm_dynamics", "--duration", "0.1", "--dt", "0.01",
+                 "--plot", str(tmp_path / "figs"))
+    assert rc == 2
