@@ -1,0 +1,241 @@
+"""Measurement models of the sensors a soft arm carries, with analytic
+Jacobians (for the estimator, :mod:`soft_twin_core.estimation`, and the
+calibration, :mod:`soft_twin_core.calibration`).
+
+Sensors sit on the classic robot's backbone (a :class:`model.RobotModel`)
+at arc length ``s`` [m]; their frame is the cross-section frame ``g(s)``
+followed by a fixed ``placement`` (4x4, in the cross-section frame):
+
+    T_world_sensor(q) = g(s; q) @ placement
+
+- :class:`PoseSensor` (an electromagnetic tracker): measures the position
+  p [m] and rotation R of its frame, noise ``sigma_position_m`` on each
+  position axis and ``sigma_rotation_rad`` on each axis of the rotation
+  error vector.
+- :class:`PositionMarker` (motion capture): the position only, of the point
+  ``offset_m`` (3,) in the cross-section frame.
+
+Every sensor gives a *residual* ``e(q) = h(q) [-] z`` in its tangent space
+(zero when the model explains the measurement z exactly):
+
+    position:  e_p = p(q) - p_meas                       (world axes, m)
+    rotation:  e_R = log(R_meas^T R(q))                  (rad, sensor axes)
+
+and its analytic Jacobian ``de/dq`` from the body Jacobian of the sensor
+frame ``J_sensor = Ad(placement)^-1 J_body(s)``
+(:func:`algorithms.point_jacobian`):
+
+    de_p/dq = R_sensor J_sensor[:3]
+    de_R/dq = Jr(e_R)^-1 J_sensor[3:]
+
+(Jr: the right Jacobian of SO(3), :func:`lie.T_so3`; right perturbation
+``R(q + dq) = R(q) exp(hat(J_sensor[3:] dq))``.) A Kalman filter's
+innovation is ``-e`` with ``H = de/dq``. The measurement noise covariance
+of the residual is ``diag(sigma_position^2 I3, sigma_rotation^2 I3)`` (for
+rotation noise ``R_meas = R_true exp(hat(n))``, ``e_R = -n`` at the truth).
+
+:class:`TensionSensor`: a measured tendon tension [N] (or chamber pressure
+[Pa]) is an *input* of the twin, not a function of q; the estimator feeds
+it to the process model and turns its noise into process noise through the
+actuation matrix ``B(q) = d tau_act / d u`` (:func:`actuation_matrix`,
+exact: the actuation force is linear in the inputs).
+
+Units SI; conventions of docs/CONVENTIONS.md.
+"""
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from . import lie
+
+
+@dataclass(frozen=True, eq=False)
+class PoseSensor:
+    """A 6-dof pose sensor at arc length ``s`` [m] (see the module docstring)."""
+    name: str
+    s: float
+    sigma_position_m: float
+    sigma_rotation_rad: float
+    placement: np.ndarray = field(default_factory=lambda: np.eye(4))
+    size = 6
+
+    def noise_covariance(self):
+        return np.diag([self.sigma_position_m ** 2] * 3 + [self.sigma_rotation_rad ** 2] * 3)
+
+
+@dataclass(frozen=True, eq=False)
+class PositionMarker:
+    """A position-only marker at arc length ``s`` [m], ``offset_m`` (3,) from
+    the centre line in the cross-section frame."""
+    name: str
+    s: float
+    sigma_position_m: float
+    offset_m: np.ndarray = field(default_factory=lambda: np.zeros(3))
+    size = 3
+
+    @property
+    def placement(self):
+        P = np.eye(4)
+        P[:3, 3] = self.offset_m
+        return P
+
+    def noise_covariance(self):
+        return self.sigma_position_m ** 2 * np.eye(3)
+
+
+@dataclass(frozen=True, eq=False)
+class TensionSensor:
+    """A measured input of actuator ``actuator`` (tension [N] or pressure
+    [Pa]) with noise ``sigma`` in the same unit."""
+    name: str
+    actuator: str
+    sigma: float
+    size = 0
+
+
+def check_sensors(model, sensors):
+    """Validate a list of sensors against a robot model; returns it as a
+    tuple. Raises ValueError naming the bad sensor and field."""
+    names = set()
+    out = []
+    for k, sen in enumerate(sensors):
+        where = f"sensors[{k}] ({getattr(sen, 'name', '?')!r})"
+        if not isinstance(sen, (PoseSensor, PositionMarker, TensionSensor)):
+            raise ValueError(f"{where}: expected a PoseSensor, PositionMarker or TensionSensor, got {type(sen)}")
+        if not isinstance(sen.name, str) or not sen.name:
+            raise ValueError(f"{where}.name: expected a non-empty string")
+        if sen.name in names:
+            raise ValueError(f"{where}.name: duplicate sensor name {sen.name!r}")
+        names.add(sen.name)
+        if isinstance(sen, TensionSensor):
+            if sen.actuator not in model.actuator_names:
+                raise ValueError(f"{where}.actuator: unknown actuator {sen.actuator!r}; "
+                                 f"this robot has {list(model.actuator_names)}")
+            if not (np.isfinite(sen.sigma) and sen.sigma > 0):
+                raise ValueError(f"{where}.sigma: expected a positive noise level, got {sen.sigma!r}")
+        else:
+            if not (np.isfinite(sen.s) and -1e-12 <= sen.s <= model.total_length + 1e-12):
+                raise ValueError(f"{where}.s: expected an arc length in [0, {model.total_length}] m, got {sen.s!r}")
+            sig = [sen.sigma_position_m] + ([sen.sigma_rotation_rad] if isinstance(sen, PoseSensor) else [])
+            if not all(np.isfinite(x) and x > 0 for x in sig):
+                raise ValueError(f"{where}: noise standard deviations must be positive, got {sig}")
+            P = np.asarray(sen.placement, dtype=float)
+            if P.shape != (4, 4) or not np.all(np.isfinite(P)):
+                raise ValueError(f"{where}.placement: expected a finite 4x4 transform")
+        out.append(sen)
+    return tuple(out)
+
+
+def sensor_pose(model, q, sensor, ws=None):
+    """World pose (4x4) of the sensor frame at configuration q."""
+    return pose_and_jacobian(model, q, sensor, ws)[0]
+
+
+def pose_and_jacobian(model, q, sensor, ws=None):
+    """(T_world_sensor 4x4, body Jacobian of the sensor frame 6 x n_dof)."""
+    from . import algorithms as alg
+    from .workspace import thread_workspace
+    tree = model.tree
+    ws = thread_workspace(tree) if ws is None else ws
+    joint, x = tree.path("backbone").locate(np.array([sensor.s]))
+    g, Jb = alg.point_jacobian(tree, ws, q, int(joint[0]), float(x[0]), "body")
+    P = np.asarray(sensor.placement, dtype=float)
+    return g @ P, lie.Ad_inv(P) @ Jb
+
+
+def measurement_vector(sensor, z):
+    """A measurement as an array: a pose sensor takes a 4x4 pose or
+    (position (3,), quaternion [x, y, z, w]) as 7 numbers; a marker a
+    position (3,). Raises ValueError for a wrong shape or non-finite values
+    (the estimator counts those as rejected)."""
+    z = np.asarray(z, dtype=float)
+    if isinstance(sensor, PoseSensor):
+        if z.shape == (7,):
+            z = pose_from_position_quaternion(z[:3], z[3:])
+        if z.shape != (4, 4):
+            raise ValueError(f"sensor {sensor.name!r}: expected a 4x4 pose or 7 numbers "
+                             f"(position, quaternion x y z w), got shape {z.shape}")
+    elif isinstance(sensor, PositionMarker):
+        if z.shape != (3,):
+            raise ValueError(f"sensor {sensor.name!r}: expected a position of 3 numbers, got shape {z.shape}")
+    else:
+        if z.shape not in ((), (1,)):
+            raise ValueError(f"sensor {sensor.name!r}: expected one number, got shape {z.shape}")
+    if not np.all(np.isfinite(z)):
+        raise ValueError(f"sensor {sensor.name!r}: measurement contains NaN or inf")
+    return z
+
+
+def pose_from_position_quaternion(p, quat_xyzw):
+    """4x4 pose from a position and a unit quaternion [x, y, z, w] (normalised)."""
+    x, y, z, w = np.asarray(quat_xyzw, dtype=float) / np.linalg.norm(quat_xyzw)
+    T = np.eye(4)
+    T[:3, :3] = [[1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)],
+                 [2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)],
+                 [2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)]]
+    T[:3, 3] = p
+    return T
+
+
+def residual(model, q, sensor, z, ws=None):
+    """Residual ``e(q) = h(q) [-] z`` of one measurement (see the module
+    docstring): (6,) for a pose sensor, (3,) for a marker."""
+    return residual_and_jacobian(model, q, sensor, z, ws)[0]
+
+
+def residual_and_jacobian(model, q, sensor, z, ws=None):
+    """(e (m,), de/dq (m, n_dof)) of one pose sensor or marker measurement z
+    (a 4x4 pose / a position (3,)), analytic (module docstring)."""
+    T, J = pose_and_jacobian(model, q, sensor, ws)
+    R = T[:3, :3]
+    Hp = R @ J[:3]
+    if isinstance(sensor, PositionMarker):
+        return T[:3, 3] - z, Hp
+    e_rot = lie.log_so3(z[:3, :3].T @ R)
+    Hr = lie.T_so3_inv(e_rot) @ J[3:]
+    return np.concatenate([T[:3, 3] - z[:3, 3], e_rot]), np.vstack([Hp, Hr])
+
+
+def predict_measurement(model, q, sensor, ws=None):
+    """What the sensor would read at q (no noise): a 4x4 pose, or a position (3,)."""
+    T = sensor_pose(model, q, sensor, ws)
+    return T[:3, 3].copy() if isinstance(sensor, PositionMarker) else T
+
+
+def simulate_measurement(model_or_pose, sensor, rng, q=None):
+    """A noisy reading of ``sensor``: from a model at q, or from a given
+    true sensor pose (4x4). Position noise N(0, sigma_p^2 I); rotation noise
+    ``R_true exp(hat(n))``, n ~ N(0, sigma_r^2 I)."""
+    T = model_or_pose if q is None else sensor_pose(model_or_pose, q, sensor)
+    if isinstance(sensor, PositionMarker):
+        return T[:3, 3] + sensor.sigma_position_m * rng.standard_normal(3)
+    out = T.copy()
+    out[:3, 3] += sensor.sigma_position_m * rng.standard_normal(3)
+    out[:3, :3] = T[:3, :3] @ lie.exp_so3(sensor.sigma_rotation_rad * rng.standard_normal(3))
+    return out
+
+
+def actuation_matrix(model, q, ws=None):
+    """B(q) = d tau_act / d u (n_dof, n_actuators): the generalised actuation
+    force per unit input at q, exact (the actuation force is linear in u:
+    column k is the engine's actuation force for the unit input e_k)."""
+    from .forces import actuation_pass
+    from .kernels import passes
+    from .statics import _actuators
+    from .workspace import thread_workspace
+    if any(a.tendon_model == "point_moment" for a in model.actuators):
+        raise NotImplementedError("actuation_matrix: point-moment tendons are not supported "
+                                  "(use the distributed tendon model)")
+    tree = model.tree
+    ws = thread_workspace(tree) if ws is None else ws
+    act = _actuators(model)
+    q = np.ascontiguousarray(model.check_q(q), dtype=float)
+    z = np.zeros(tree.nv)
+    passes.forward_pass(ws.m, ws.w, q, z, z, 0)
+    B = np.zeros((tree.nv, len(model.actuators)))
+    for k in range(len(model.actuators)):
+        out = np.zeros(tree.nv)
+        actuation_pass(ws.m, ws.w, act, np.ascontiguousarray(act.unit[:, k]), out)
+        B[:, k] = out
+    return B
