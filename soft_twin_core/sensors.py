@@ -132,16 +132,38 @@ def sensor_pose(model, q, sensor, ws=None):
     return pose_and_jacobian(model, q, sensor, ws)[0]
 
 
-def pose_and_jacobian(model, q, sensor, ws=None):
-    """(T_world_sensor 4x4, body Jacobian of the sensor frame 6 x n_dof)."""
-    from . import algorithms as alg
+def _located(model, sensor):
+    """(joint, abscissa) of the sensor's arc length on the backbone, cached."""
+    cache = model.__dict__.get("_sensor_locations")
+    if cache is None:
+        cache = {}
+        object.__setattr__(model, "_sensor_locations", cache)
+    key = float(sensor.s)
+    loc = cache.get(key)
+    if loc is None:
+        joint, x = model.tree.path("backbone").locate(np.array([key]))
+        loc = cache[key] = (int(joint[0]), float(x[0]))
+    return loc
+
+
+def pose_and_jacobian(model, q, sensor, ws=None, kinematics_done=False):
+    """(T_world_sensor 4x4, body Jacobian of the sensor frame 6 x n_dof).
+    ``kinematics_done``: the forward pass of ``ws`` is already at q (several
+    sensors share one pass)."""
+    from .kernels import passes
+    from .kernels.frames import spatial_jacobian
     from .workspace import thread_workspace
     tree = model.tree
     ws = thread_workspace(tree) if ws is None else ws
-    joint, x = tree.path("backbone").locate(np.array([sensor.s]))
-    g, Jb = alg.point_jacobian(tree, ws, q, int(joint[0]), float(x[0]), "body")
-    P = np.asarray(sensor.placement, dtype=float)
-    return g @ P, lie.Ad_inv(P) @ Jb
+    if not kinematics_done:
+        q = np.ascontiguousarray(model.check_q(q), dtype=float)
+        passes.forward_pass(ws.m, ws.w, q, ws.zeros_v, ws.zeros_v, 0)
+    joint, x = _located(model, sensor)
+    g = np.empty((4, 4))
+    Js = np.empty((6, tree.nv))
+    spatial_jacobian(ws.m, ws.w, joint, x, g, Js)
+    T = g @ np.asarray(sensor.placement, dtype=float)
+    return T, lie.Ad_inv(T) @ Js
 
 
 def measurement_vector(sensor, z):
@@ -184,10 +206,10 @@ def residual(model, q, sensor, z, ws=None):
     return residual_and_jacobian(model, q, sensor, z, ws)[0]
 
 
-def residual_and_jacobian(model, q, sensor, z, ws=None):
+def residual_and_jacobian(model, q, sensor, z, ws=None, kinematics_done=False):
     """(e (m,), de/dq (m, n_dof)) of one pose sensor or marker measurement z
     (a 4x4 pose / a position (3,)), analytic (module docstring)."""
-    T, J = pose_and_jacobian(model, q, sensor, ws)
+    T, J = pose_and_jacobian(model, q, sensor, ws, kinematics_done)
     R = T[:3, :3]
     Hp = R @ J[:3]
     if isinstance(sensor, PositionMarker):
