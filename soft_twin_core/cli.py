@@ -3,6 +3,7 @@
     soft-twin-sim statics SCENARIO [--sections N] [--sweep-angle 0:90:15]
     soft-twin-sim dynamics SCENARIO --duration T --dt DT [--format json|csv]
                   [--output FILE] [--backbone-every K] [--record-every K] [--theta 0.5]
+    soft-twin-sim calibrate ROBOT --sensors S.yaml --data D.csv --fit PARAMS [--output R.yaml]
 
 SCENARIO is a scenario file or the name of an example scenario
 (``tendon_arm_dynamics``). Exit status: 0 success; 2 a bad argument or
@@ -62,6 +63,9 @@ def _parser():
                    help="record the time histories every K steps (and the last one)")
     d.add_argument("--points-per-section", type=int, default=10)
     d.add_argument("--output", "-o", help="write to this file instead of stdout")
+    # issue 14: calibration from recorded data (soft_twin_core.calibration)
+    from .calibration import add_cli_parser
+    add_cli_parser(sub)
     return p
 
 
@@ -145,6 +149,9 @@ def main(argv=None):
     from .scenario import ScenarioError, load_scenario, n_steps_for, run_dynamics, run_statics
     from .statics import StaticsError
     args = _parser().parse_args(argv)
+    if args.command == "calibrate":              # issue 14
+        from .calibration import cli_main
+        return cli_main(args)
     failed = None
     for name in ("sections", "backbone_every", "record_every", "points_per_section"):
         v = getattr(args, name, None)

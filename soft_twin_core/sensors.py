@@ -261,3 +261,92 @@ def actuation_matrix(model, q, ws=None):
         actuation_pass(ws.m, ws.w, act, np.ascontiguousarray(act.unit[:, k]), out)
         B[:, k] = out
     return B
+
+
+# ----------------------------------------------------------------------------
+# Sensor files
+# ----------------------------------------------------------------------------
+
+def sensors_from_list(items, model, where="sensors"):
+    """Sensors from plain dicts (the YAML schema of a sensors file)::
+
+        - {name: em0, type: pose, s: 0.16, sigma_position: 1.0e-3, sigma_rotation: 0.01,
+           offset: [0, 0, 0], rpy: [0, 0, 0]}            # placement in the cross-section frame
+        - {name: tip, type: marker, s: 0.40, sigma_position: 5.0e-4, offset: [0, 0, 0]}
+        - {name: t_y, type: tension, actuator: tendon_y_pos, sigma: 0.2}
+
+    (m, rad, N). Raises ValueError naming the bad entry and field."""
+    from .model import ModelError, parse_number, pose_from_dict
+    if not isinstance(items, list) or not items:
+        raise ValueError(f"{where}: expected a non-empty list of sensors")
+    out = []
+    for k, d in enumerate(items):
+        w = f"{where}[{k}]"
+        if not isinstance(d, dict):
+            raise ValueError(f"{w}: expected a mapping")
+        kind = d.get("type")
+        allowed = {"pose": {"name", "type", "s", "sigma_position", "sigma_rotation", "offset", "rpy"},
+                   "marker": {"name", "type", "s", "sigma_position", "offset"},
+                   "tension": {"name", "type", "actuator", "sigma"}}
+        if kind not in allowed:
+            raise ValueError(f"{w}.type: expected pose, marker or tension, got {kind!r}")
+        extra = set(d) - allowed[kind]
+        if extra:
+            raise ValueError(f"{w}: unknown field(s) {sorted(extra)} for a {kind} sensor")
+        name = d.get("name")
+        if not isinstance(name, str) or not name:
+            raise ValueError(f"{w}.name: expected a non-empty string, got {name!r}")
+
+        def num(key, default=None):
+            if key not in d:
+                if default is None:
+                    raise ValueError(f"{w}.{key}: missing")
+                return default
+            try:
+                return parse_number(d[key], f"{w}.{key}")
+            except ModelError as e:
+                raise ValueError(str(e)) from None
+        try:
+            if kind == "tension":
+                out.append(TensionSensor(name, str(d.get("actuator")), num("sigma")))
+            elif kind == "marker":
+                off = np.asarray(d.get("offset", [0.0, 0.0, 0.0]), dtype=float)
+                if off.shape != (3,):
+                    raise ValueError(f"{w}.offset: expected 3 numbers [m], got {d.get('offset')!r}")
+                out.append(PositionMarker(name, num("s"), num("sigma_position"), off))
+            else:
+                P = pose_from_dict({"position": d.get("offset", [0.0, 0.0, 0.0]), "rpy": d.get("rpy", [0.0, 0.0, 0.0])},
+                                   f"{w}")
+                out.append(PoseSensor(name, num("s"), num("sigma_position"), num("sigma_rotation"), P))
+        except ModelError as e:
+            raise ValueError(str(e)) from None
+        except TypeError as e:
+            raise ValueError(f"{w}: {e}") from None
+    return check_sensors(model, out)
+
+
+def load_sensors(path, model):
+    """Sensors of a YAML file (a list, or a mapping with a ``sensors:`` list)."""
+    from .model import read_yaml_file
+    d = read_yaml_file(path, ValueError, "sensors file")
+    if isinstance(d, dict):
+        d = d.get("sensors")
+    return sensors_from_list(d, model, f"sensors file {path}")
+
+
+def sensors_to_list(sensors):
+    """The plain-dict form of sensors (inverse of :func:`sensors_from_list`)."""
+    out = []
+    for s in sensors:
+        if isinstance(s, TensionSensor):
+            out.append({"name": s.name, "type": "tension", "actuator": s.actuator, "sigma": float(s.sigma)})
+        elif isinstance(s, PositionMarker):
+            out.append({"name": s.name, "type": "marker", "s": float(s.s), "sigma_position": float(s.sigma_position_m),
+                        "offset": [float(x) for x in s.offset_m]})
+        else:
+            from scipy.spatial.transform import Rotation
+            rpy = Rotation.from_matrix(s.placement[:3, :3]).as_euler("xyz")
+            out.append({"name": s.name, "type": "pose", "s": float(s.s), "sigma_position": float(s.sigma_position_m),
+                        "sigma_rotation": float(s.sigma_rotation_rad),
+                        "offset": [float(x) for x in s.placement[:3, 3]], "rpy": [float(x) for x in rpy]})
+    return out
