@@ -31,6 +31,11 @@ wrench ``T [t; d x t]``, ``t = n/|n|``, ``n = nu + kappa x d``, with
 ``d = r_a e_a``), ``dR/dm = -J_tip,world^T [g; 0]`` and, for a sensor
 offset, ``de_p/dt = R_section``.
 
+Damping (``viscosity:<member>`` [Pa s]) needs a dynamic recording (a
+time series from rest): :func:`calibrate_damping` fits it by simulating the
+recording, with central-difference sensitivities of the simulated
+trajectory.
+
 Confidence intervals: ``cov = s^2 (J^T J)^-1`` with the residual variance
 ``s^2 = |r|^2 / (N - p)`` (J: the weighted Jacobian at the solution), 95 %
 intervals ``+- t_{0.975, N-p} sqrt(diag cov)``. Held-out rows (every k-th)
@@ -49,6 +54,10 @@ from .loads import Loads, PointLoad
 
 class CalibrationError(ValueError):
     """A bad calibration input (data file, parameter name); the message names it."""
+
+
+class CalibrationFailed(RuntimeError):
+    """A simulation of the recording failed (a time step did not converge)."""
 
 
 @dataclass
@@ -467,6 +476,139 @@ def write_robot_file(path, robot_dict, header=""):
 
 
 # ----------------------------------------------------------------------------
+# Damping from a dynamic recording
+# ----------------------------------------------------------------------------
+
+def simulate_readings(model, sensors, times, inputs, dt, theta=0.5):
+    """Noise-free readings {sensor: (N, ...)} of a time series: the arm
+    starts at rest in equilibrium under ``inputs[0]`` at ``times[0]``; each
+    row's inputs are held until the next row's time (zero-order hold);
+    integrator steps of about ``dt`` [s] (:class:`dynamics.Simulator`).
+    Raises CalibrationFailed if a step fails, CalibrationError if the times
+    do not increase."""
+    from .dynamics import Simulator
+    from .model import State
+    from .statics import solve_statics
+    times = np.asarray(times, dtype=float)
+    if np.any(np.diff(times) <= 0):
+        raise CalibrationError("t: the times of a dynamic recording must increase")
+    q0 = solve_statics(model, inputs[0]).q
+    sim = Simulator(model, dt, actuation=inputs[0], state=State(q0, np.zeros(model.n_dof), times[0]),
+                    theta=theta, full_newton=False)
+    out = {s.name: [] for s in sensors}
+    for r in range(len(times)):
+        if r > 0:
+            span = times[r] - times[r - 1]
+            n = max(1, int(round(span / dt)))
+            if n * dt != span:
+                sim = _resized(sim, span / n)
+            sim.set_actuation(inputs[r - 1])
+            info = sim.step(n)
+            if not info.converged:
+                raise CalibrationFailed(f"row {r}: the simulation failed at t = {sim.state.t:.4g} s")
+        for s in sensors:
+            out[s.name].append(sn.predict_measurement(model, sim.state.q, s))
+    return {k: np.array(v) for k, v in out.items()}
+
+
+def _resized(sim, dt):
+    from .dynamics import Simulator
+    return Simulator(sim.model, dt, actuation=sim.actuation_at(sim.state.t), state=sim.state,
+                     theta=sim.theta, full_newton=False)
+
+
+def record_dynamic(model, sensors, times, inputs, rng, dt=1e-3):
+    """Simulated noisy recording of a time series (see :func:`simulate_readings`)."""
+    clean = simulate_readings(model, sensors, times, inputs, dt)
+    readings = {}
+    for s in sensors:
+        readings[s.name] = np.array([sn.simulate_measurement(
+            _as_pose(z), s, rng) for z in clean[s.name]])
+    return Recording(np.asarray(inputs, dtype=float), readings, np.asarray(times, dtype=float))
+
+
+def _as_pose(z):
+    if np.shape(z) == (3,):
+        T = np.eye(4)
+        T[:3, 3] = z
+        return T
+    return z
+
+
+def calibrate_damping(robot_dict, sensors, recording, members=None, *, dt=5e-3, n_sections=None, verbose=0):
+    """Fit the viscosity [Pa s] of ``members`` (default: every member with a
+    material) to a dynamic recording (rows at increasing times ``t``, the arm
+    at rest at the first row; :func:`simulate_readings`), the other
+    parameters as in the robot dict (calibrate them first from a static
+    sweep). Sensitivities: central differences of the simulated trajectory
+    (``least_squares(jac="3-point")``; a static sweep carries no damping
+    information, and no analytic sensitivity through the integrator is
+    implemented). Returns a :class:`CalibrationResult` (no held-out rows)."""
+    from scipy.optimize import least_squares
+    from scipy.stats import t as student_t
+    from .model import model_from_dict
+    if recording.time is None:
+        raise CalibrationError("damping: the recording needs a time column t")
+    segs = [(str(sd.get("name", f"segment{k}")), sd) for k, sd in enumerate(robot_dict["segments"])]
+    if members is None:
+        members = [n for n, sd in segs if "material" in sd]
+    lookup = dict(segs)
+    for m in members:
+        if m not in lookup or "material" not in lookup[m]:
+            raise CalibrationError(f"parameter 'viscosity:{m}': no member {m!r} with a material "
+                                   f"(members: {[n for n, _ in segs]})")
+    nominal = np.array([float(lookup[m]["material"].get("viscosity", 0.0)) for m in members])
+    if np.any(nominal <= 0):
+        raise CalibrationError("damping: the starting viscosities must be > 0 (set them in the robot file)")
+    model0 = model_from_dict(robot_dict, n_sections)
+    sensors = [s for s in sn.check_sensors(model0, sensors) if not isinstance(s, sn.TensionSensor)]
+
+    def with_visc(x):
+        d = copy.deepcopy(robot_dict)
+        dd = {str(sd.get("name", f"segment{k}")): sd for k, sd in enumerate(d["segments"])}
+        for m, v in zip(members, x):
+            dd[m]["material"]["viscosity"] = float(v)
+        return d
+
+    def fun(x):
+        model = model_from_dict(with_visc(x * nominal), n_sections)
+        pred = simulate_readings(model, sensors, recording.time, recording.inputs, dt)
+        res = []
+        for s in sensors:
+            for r in range(len(recording)):
+                z = recording.readings[s.name][r]
+                if not np.all(np.isfinite(z)):
+                    continue
+                if isinstance(s, sn.PositionMarker):
+                    res.append((pred[s.name][r] - z) / s.sigma_position_m)
+                else:
+                    e_p = (pred[s.name][r][:3, 3] - z[:3, 3]) / s.sigma_position_m
+                    e_r = _log_so3(z[:3, :3].T @ pred[s.name][r][:3, :3]) / s.sigma_rotation_rad
+                    res.append(np.concatenate([e_p, e_r]))
+        return np.concatenate(res)
+
+    sol = least_squares(fun, np.ones(len(members)), jac="3-point", diff_step=1e-3, bounds=(1e-3, 1e3),
+                        verbose=verbose)
+    r = sol.fun
+    J = sol.jac / nominal                                 # d r / d eta
+    dof = max(len(r) - len(members), 1)
+    s2 = float(r @ r) / dof
+    Jx = J * nominal
+    cov = s2 * nominal[:, None] * np.linalg.pinv(Jx.T @ Jx) * nominal[None, :]
+    std = np.sqrt(np.diag(cov))
+    values = sol.x * nominal
+    return CalibrationResult(names=[f"viscosity:{m}" for m in members], nominal=nominal, values=values, std=std,
+                             ci95=student_t.ppf(0.975, dof) * std, residual_sigma=float(np.sqrt(s2)),
+                             n_residuals=len(r), iterations=int(sol.nfev), robot_dict=with_visc(values),
+                             sensors=sensors, payload_mass=0.0)
+
+
+def _log_so3(R):
+    from .lie import log_so3
+    return log_so3(R)
+
+
+# ----------------------------------------------------------------------------
 # Command line: soft-twin-sim calibrate
 # ----------------------------------------------------------------------------
 
@@ -483,6 +625,10 @@ def add_cli_parser(sub):
     c.add_argument("--holdout-every", type=int, default=4, metavar="K",
                    help="hold out every K-th row to report the error before/after (0: none; default 4)")
     c.add_argument("--sections", type=int, help="sections per member for the fit (default: the robot file's)")
+    c.add_argument("--dynamic", action="store_true",
+                   help="the rows are a time series from rest (column t): fit viscosity:<member> (or "
+                        "'viscosity' for all members) by simulating it")
+    c.add_argument("--dt", type=float, default=5e-3, help="integrator step for --dynamic [s] (default 0.005)")
     c.add_argument("--output", "-o", help="write the calibrated robot file here")
     c.add_argument("--sensors-output", help="write the calibrated sensors file here")
     return c
@@ -520,14 +666,25 @@ def cli_main(args):
         model = model_from_dict(robot_dict, args.sections)
         sensors = sn.load_sensors(args.sensors, model)
         rec = read_csv(args.data, model, sensors)
-        names = _expand([n.strip() for n in args.fit.split(",") if n.strip()], robot_dict)
+        names = [n.strip() for n in args.fit.split(",") if n.strip()]
         if not names:
             raise CalibrationError("--fit: no parameter given")
-        res = calibrate(robot_dict, sensors, rec, names, holdout_every=args.holdout_every, n_sections=args.sections)
+        if args.dynamic:
+            bad = [n for n in names if n != "viscosity" and not n.startswith("viscosity:")]
+            if bad:
+                raise CalibrationError(f"--fit with --dynamic: only viscosity:<member> or viscosity, got {bad}")
+            if not (np.isfinite(args.dt) and args.dt > 0):
+                raise CalibrationError(f"--dt must be a positive step in s, got {args.dt}")
+            members = None if "viscosity" in names else [n.split(":", 1)[1] for n in names]
+            res = calibrate_damping(robot_dict, sensors, rec, members, dt=args.dt, n_sections=args.sections)
+        else:
+            names = _expand(names, robot_dict)
+            res = calibrate(robot_dict, sensors, rec, names, holdout_every=args.holdout_every,
+                            n_sections=args.sections)
     except (CalibrationError, ModelError, ValueError) as e:
         print(f"soft-twin-sim calibrate: {e}", file=sys.stderr)
         return 2
-    except StaticsError as e:
+    except (StaticsError, CalibrationFailed) as e:
         print(f"soft-twin-sim calibrate: {e}", file=sys.stderr)
         return 3
     print(res.table(), file=sys.stderr)
