@@ -123,6 +123,11 @@ class StrainEKF:
             raise ValueError(f"dt: expected a positive step in s, got {dt!r}")
         if not 0.0 < gate_probability < 1.0:
             raise ValueError(f"gate_probability: expected a value in (0, 1), got {gate_probability!r}")
+        if model.kinematic_map != "exponential":
+            raise ValueError("StrainEKF: only exponential-map robots are supported (the process Jacobian uses "
+                             "algorithms.rnea_derivatives)")
+        if any(a.tendon_model == "point_moment" for a in model.actuators):
+            raise ValueError("StrainEKF: point-moment tendons are not supported (use the distributed model)")
         self.model = model
         self.sensors = check_sensors(model, sensors)
         self.by_name = {s.name: s for s in self.sensors}

@@ -240,3 +240,29 @@ def test_tension_sensor_sets_the_input_and_its_noise_widens_the_prediction(coars
     assert np.allclose(ekf.x, quiet.x)
     assert np.trace(ekf.P) > np.trace(quiet.P)
     assert np.allclose(ekf.P - quiet.P, 0.25 * np.outer(Gamma[:, 0], Gamma[:, 0]), atol=1e-12 * np.abs(ekf.P).max())
+
+
+def test_motion_capture_markers_alone_track_the_static_tip(coarse, fine):
+    """Three position-only markers on the surface (0.5 mm noise): within 1 %."""
+    markers = [sn.PositionMarker(f"mk{i}", s, 5e-4, np.array([0.0, 0.0, 0.012 if s < 0.24 else 0.009]))
+               for i, s in enumerate([0.16, 0.28, 0.40])]
+    u = np.array([0.0, 12.0, 0.0, 9.0])
+    rng = np.random.default_rng(21)
+    truth = st.solve_statics(fine, u)
+    ekf = es.StrainEKF(coarse, markers, DT, actuation=np.zeros(4))
+    for _ in range(150):
+        ekf.step({m.name: sn.simulate_measurement(fine, m, rng, truth.q) for m in markers}, u)
+    assert np.linalg.norm(ekf.tip_position() - truth.tip_pose[:3, 3]) < ONE_PERCENT
+    assert ekf.health.accepted >= 440 and ekf.health.rejected == 0
+
+
+def test_unsupported_models_are_refused(sensors):
+    from soft_twin_core.model import benchmark_cantilever_dict
+    d = benchmark_cantilever_dict(3)
+    d["kinematic_map"] = "cayley"
+    with pytest.raises(ValueError, match="exponential-map"):
+        es.StrainEKF(model_from_dict(d), [sn.PositionMarker("m", 0.5, 1e-3)], DT)
+    d = benchmark_cantilever_dict(3)
+    d["actuators"] = [{"name": "t", "offset": [0.005, 0.0], "model": "point_moment"}]
+    with pytest.raises(ValueError, match="point-moment"):
+        es.StrainEKF(model_from_dict(d), [sn.PositionMarker("m", 0.5, 1e-3)], DT)
