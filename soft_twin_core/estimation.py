@@ -50,7 +50,6 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from .loads import Loads, PointLoad
 from .sensors import TensionSensor, actuation_matrix, check_sensors, measurement_vector, residual_and_jacobian
 
 _WRENCH_DIMS = {None: 0, "payload": 1, "force": 3, "wrench": 6}
