@@ -9,6 +9,7 @@
     ... [--plot DIR] [--animate FILE.gif|FILE.mp4] [--fps HZ]     (statics and dynamics; soft_twin_core.render)
     soft-twin-sim render RUN.json|RUN.mcap [--scenario S | --robot R] [--plot DIR] [--animate FILE] [--fps HZ]
     soft-twin-sim view RUN.json|RUN.mcap [--port 8080]      (live 3D view in the browser, in a loop)
+    soft-twin-sim calibrate ROBOT --sensors S.yaml --data D.csv --fit PARAMS [--output R.yaml]
 
 (study and workspace: see soft_twin_core/study_cli.py; plan: soft_twin_core/plan_file.py.)
 
@@ -105,6 +106,9 @@ def _parser():
     v.add_argument("--port", type=int, default=8080, help="http://127.0.0.1:PORT (default 8080)")
     v.add_argument("--radius", type=float, default=0.01, help="tube radius [m] (default 0.01)")
     v.add_argument("--seconds", type=float, help="stop after this many seconds (default: Ctrl-C)")
+    # issue 14: calibration from recorded data (soft_twin_core.calibration)
+    from .calibration import add_cli_parser
+    add_cli_parser(sub)
     return p
 
 
@@ -233,6 +237,9 @@ def main(argv=None):
         return main_study(args) if args.command == "study" else main_workspace(args)
     if args.command == "plan":
         return _run_plan(args)
+    if args.command == "calibrate":              # issue 14
+        from .calibration import cli_main
+        return cli_main(args)
     failed = None
     for name in ("sections", "backbone_every", "record_every", "points_per_section"):
         v = getattr(args, name, None)

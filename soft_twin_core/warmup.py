@@ -46,6 +46,10 @@ def run():
         alg.crba(tree, ws, q)
         alg.forward_dynamics(tree, ws, q, v, np.zeros(tree.nv), alg.make_loads(tree, [0], [0.05], [np.ones(6)],
                                                                                  [True]))
+        # the state estimator's and the calibration's passes (issue 14)
+        alg.point_jacobian(tree, ws, q, tree.n_joints - 1, 0.05)
+        if robot.kinematic_map == "exponential":
+            alg.rnea_derivatives(tree, ws, q, v, v)
         # what the scenario runner adds (backbone, internal wrenches, recorded
         # states): the design studies' workers run it for every case
         from .scenario import run_dynamics, run_statics, scenario_from_dict

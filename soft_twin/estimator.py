@@ -1,0 +1,226 @@
+"""soft_twin_estimator: a ROS 2 node that tracks the real robot from its
+sensors with the core's extended Kalman filter
+(:class:`soft_twin_core.estimation.StrainEKF`), next to the open-loop twin
+(``soft_twin.node``), which it leaves untouched.
+
+    python -m soft_twin.estimator --ros-args -p robot_description_file:=tracked_arm \\
+        -p sensors_file:=sensors.yaml -p rate_hz:=100.0 -p wrench:=payload
+
+Parameters: ``robot_description_file`` (path or example name),
+``sensors_file`` (YAML, :func:`soft_twin_core.sensors.load_sensors`),
+``rate_hz`` (filter rate, default 100), ``wrench`` (none, payload, force,
+wrench), ``actuation_topic`` (default ``/soft_twin/actuation``: the twin's
+commands are the filter's inputs), ``frame_id`` (default ``base_link``).
+
+Subscriptions (the pose of each sensor frame in the base frame):
+``~/measurements/poses`` (geometry_msgs/PoseArray: one pose per pose
+sensor of the sensors file, in its order), ``~/measurements/pose``
+(geometry_msgs/PoseStamped, ``header.frame_id`` = the sensor's name),
+``~/measurements/position`` (geometry_msgs/PointStamped, ``frame_id`` = a
+marker's name), and the actuation topic (soft_twin/ActuationCommand).
+Malformed readings (NaN, an unknown sensor name, a PoseArray of the wrong
+length) are rejected and counted; the filter gates outliers.
+
+Publications: ``~/estimate/tip_pose`` (geometry_msgs/PoseWithCovarianceStamped:
+the tip position covariance in the position block, m^2; the rotation block
+is left 0), ``~/estimate/backbone`` (PoseArray), ``~/estimate/tip_wrench``
+(WrenchStamped, world axes: the estimated external tip load) and the
+filter's health on ``/diagnostics`` (name ``soft_twin_estimator``). Service
+``~/estimate/reset`` (std_srvs/Trigger).
+"""
+
+import math
+import sys
+
+import numpy as np
+import rclpy
+from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
+from geometry_msgs.msg import PointStamped, PoseArray, PoseStamped, PoseWithCovarianceStamped, WrenchStamped
+from rcl_interfaces.msg import ParameterDescriptor
+from rclpy.node import Node
+from std_srvs.srv import Trigger
+
+from soft_twin.msg import ActuationCommand
+from soft_twin import conversions as cv
+from soft_twin_core import estimation as es
+from soft_twin_core import sensors as sn
+from soft_twin_core.model import load_model
+
+NODE_NAME = "soft_twin_estimator"
+_REJECTION_KINDS = ("non_finite", "malformed", "wrong_length", "unknown_sensor", "actuation")
+_WRENCH = {"none": None, "payload": "payload", "force": "force", "wrench": "wrench"}
+
+
+class EstimatorNode(Node):
+
+    def __init__(self, node_name=NODE_NAME, **kwargs):
+        super().__init__(node_name, **kwargs)
+        p = {
+            "robot_description_file": ("tendon_arm", "robot file or example name"),
+            "sensors_file": ("", "YAML list of the sensors (soft_twin_core.sensors.load_sensors)"),
+            "rate_hz": (100.0, "filter rate [Hz]"),
+            "wrench": ("none", "estimated tip load: none, payload, force or wrench"),
+            "actuation_topic": ("/soft_twin/actuation", "the twin's actuation commands (the inputs)"),
+            "frame_id": ("base_link", "frame of the published estimates"),
+        }
+        for name, (value, doc) in p.items():
+            self.declare_parameter(name, value, ParameterDescriptor(description=doc))
+        get = lambda n: self.get_parameter(n).value  # noqa: E731
+        if get("wrench") not in _WRENCH:
+            raise ValueError(f"wrench: expected one of {list(_WRENCH)}, got {get('wrench')!r}")
+        if not get("sensors_file"):
+            raise ValueError("sensors_file: required (a YAML list of the sensors)")
+        rate = float(get("rate_hz"))
+        if not (math.isfinite(rate) and rate > 0):
+            raise ValueError(f"rate_hz: expected a positive rate, got {rate!r}")
+        self.model = load_model(get("robot_description_file"))
+        self.sensors = sn.load_sensors(get("sensors_file"), self.model)
+        self.pose_sensors = [s for s in self.sensors if isinstance(s, sn.PoseSensor)]
+        self.frame_id = get("frame_id")
+        self.ekf = es.StrainEKF(self.model, self.sensors, 1.0 / rate, wrench=_WRENCH[get("wrench")])
+        self.pending = {}
+        self.rejections = dict.fromkeys(_REJECTION_KINDS, 0)
+        self.last_rejection = ""
+        self.pub_tip = self.create_publisher(PoseWithCovarianceStamped, "~/estimate/tip_pose", 10)
+        self.pub_backbone = self.create_publisher(PoseArray, "~/estimate/backbone", 10)
+        self.pub_wrench = self.create_publisher(WrenchStamped, "~/estimate/tip_wrench", 10)
+        self.pub_diag = self.create_publisher(DiagnosticArray, "/diagnostics", 10)
+        self.create_subscription(PoseArray, "~/measurements/poses", self._on_poses, 50)
+        self.create_subscription(PoseStamped, "~/measurements/pose", self._on_pose, 50)
+        self.create_subscription(PointStamped, "~/measurements/position", self._on_position, 50)
+        self.create_subscription(ActuationCommand, get("actuation_topic"), self._on_actuation, 50)
+        self.create_service(Trigger, "~/estimate/reset", self._on_reset)
+        self.create_timer(1.0 / rate, self._on_timer)
+        self.create_timer(0.2, self._publish_diagnostics)
+
+    # ------------------------------------------------------------------ inputs
+    def _reject(self, kind, reason):
+        self.rejections[kind] += 1
+        self.last_rejection = reason
+        self.get_logger().warn(f"measurement rejected: {reason}", throttle_duration_sec=1.0)
+
+    def _accept(self, sensor, reading):
+        """Validate ``reading()`` (a message converted to an array) for the sensor."""
+        try:
+            self.pending[sensor.name] = sn.measurement_vector(sensor, reading())
+        except ValueError as e:
+            text = str(e)
+            self._reject("non_finite" if ("NaN" in text or "finite" in text) else "malformed",
+                         f"sensor {sensor.name!r}: {text}")
+
+    def _on_poses(self, msg):
+        if len(msg.poses) != len(self.pose_sensors):
+            self._reject("wrong_length", f"poses: expected {len(self.pose_sensors)} poses (one per pose sensor "
+                         f"{[s.name for s in self.pose_sensors]}), got {len(msg.poses)}")
+            return
+        for s, pose in zip(self.pose_sensors, msg.poses):
+            self._accept(s, lambda pose=pose: cv.matrix_from_pose(pose))
+
+    def _on_pose(self, msg):
+        s = self.ekf.by_name.get(msg.header.frame_id)
+        if not isinstance(s, sn.PoseSensor):
+            self._reject("unknown_sensor", f"pose: unknown pose sensor {msg.header.frame_id!r}; "
+                         f"configured: {[x.name for x in self.pose_sensors]}")
+            return
+        self._accept(s, lambda: cv.matrix_from_pose(msg.pose))
+
+    def _on_position(self, msg):
+        s = self.ekf.by_name.get(msg.header.frame_id)
+        if not isinstance(s, sn.PositionMarker):
+            self._reject("unknown_sensor", f"position: unknown marker {msg.header.frame_id!r}")
+            return
+        self._accept(s, lambda: np.array([msg.point.x, msg.point.y, msg.point.z]))
+
+    def _on_actuation(self, msg):
+        names = list(self.model.actuator_names)
+        u = self.ekf.u.copy()
+        if len(msg.names) != len(msg.values):
+            self._reject("actuation", f"actuation: {len(msg.names)} names but {len(msg.values)} values")
+            return
+        for n, v in zip(msg.names, msg.values):
+            if n not in names or not math.isfinite(v) or (v < 0 and self.model.actuators[names.index(n)].kind
+                                                           == "tendon"):
+                self._reject("actuation", f"actuation: bad entry {n!r} = {v!r}")
+                return
+            u[names.index(n)] = v
+        self.ekf.u = u
+
+    def _on_reset(self, req, resp):
+        self.ekf.reset()
+        self.pending.clear()
+        self.rejections = dict.fromkeys(_REJECTION_KINDS, 0)
+        self.last_rejection = ""
+        resp.success = True
+        resp.message = "estimate reset to the initial state"
+        return resp
+
+    # ----------------------------------------------------------------- filter
+    def _on_timer(self):
+        self.ekf.predict()
+        meas, self.pending = self.pending, {}
+        self.ekf.update(meas)
+        stamp = self.get_clock().now().to_msg()
+        T = self.ekf.tip_pose()
+        msg = PoseWithCovarianceStamped()
+        msg.header.stamp, msg.header.frame_id = stamp, self.frame_id
+        msg.pose.pose = cv.pose_msg(T)
+        cov = np.zeros((6, 6))
+        cov[:3, :3] = self.ekf.tip_position_cov()
+        msg.pose.covariance = [float(x) for x in cov.ravel()]
+        self.pub_tip.publish(msg)
+        _, P = self.ekf.backbone(4)
+        self.pub_backbone.publish(cv.pose_array(P, _header(stamp, self.frame_id)))
+        w = WrenchStamped()
+        w.header = _header(stamp, self.frame_id)
+        w.wrench = cv.wrench_msg(self.ekf.wrench())
+        self.pub_wrench.publish(w)
+
+    def _publish_diagnostics(self):
+        h = self.ekf.health
+        st = DiagnosticStatus(name="soft_twin_estimator", hardware_id=self.model.name)
+        ok = h.integrator_failures == 0
+        st.level = DiagnosticStatus.OK if ok else DiagnosticStatus.WARN
+        st.message = "tracking" if h.accepted else "no measurement yet"
+        mass, mass_std = self.ekf.payload_mass_kg()
+        values = {"predictions": h.predictions, "measurements_accepted": h.accepted, "measurements_gated": h.gated,
+                  "measurements_dropped": h.dropped,
+                  "measurements_rejected": h.rejected + sum(self.rejections.values()),
+                  **{f"rejected_{k}": n for k, n in self.rejections.items()}, "last_rejection": self.last_rejection,
+                  "mean_nis_per_dof": f"{h.mean_nis_per_dof:.3f}", "integrator_failures": h.integrator_failures,
+                  "tip_position_std_m": f"{float(np.sqrt(np.trace(self.ekf.tip_position_cov()))):.6g}",
+                  "payload_mass_kg": f"{mass:.6g}", "payload_mass_std_kg": f"{mass_std:.6g}"}
+        st.values = [KeyValue(key=k, value=str(v)) for k, v in values.items()]
+        arr = DiagnosticArray()
+        arr.header.stamp = self.get_clock().now().to_msg()
+        arr.status = [st]
+        self.pub_diag.publish(arr)
+
+
+def _header(stamp, frame):
+    from std_msgs.msg import Header
+    return Header(stamp=stamp, frame_id=frame)
+
+
+def main(args=None):
+    rclpy.init(args=args)
+    node = None
+    try:
+        node = EstimatorNode()
+        rclpy.spin(node)
+    except KeyboardInterrupt:
+        pass
+    except (ValueError, OSError) as e:
+        print(f"soft_twin_estimator: {e}", file=sys.stderr)
+        return 2
+    except rclpy.executors.ExternalShutdownException:
+        pass
+    finally:
+        if node is not None:
+            node.destroy_node()
+        if rclpy.ok():
+            rclpy.shutdown()
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

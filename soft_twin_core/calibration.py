@@ -1,0 +1,711 @@
+"""Calibration of a classic robot's parameters from a recorded static sweep
+by nonlinear least squares (scipy.optimize.least_squares, trust region
+reflective) with analytic sensitivities.
+
+Data: a :class:`Recording` -- per row the actuator inputs u (N or Pa) and
+the readings of pose sensors and position markers (:mod:`sensors`) at the
+equilibrium those inputs reach (a static sweep; CSV format in
+:func:`read_csv`).
+
+Parameters (names as given to :func:`calibrate`, SI units):
+
+- ``youngs_modulus:<segment>`` [Pa] of a member (its shear modulus follows
+  at the fixed Poisson ratio; the stiffness is linear in E);
+- ``tendon_offset:<actuator>`` [m]: the distance of a straight tendon from
+  the centre line, along its nominal direction;
+- ``payload_mass`` [kg]: a point mass at the tip (its weight; starts at 0);
+- ``sensor_offset:<sensor>:<x|y|z>`` [m]: the position of a marker or pose
+  sensor in its cross-section frame.
+
+Residual of row r and sensor i: ``e_ri(theta) / sigma_i`` (the sensor's
+residual, :func:`sensors.residual_and_jacobian`, at the equilibrium
+``q_r(theta)`` of the model with parameters theta). Sensitivities by the
+implicit function theorem at each equilibrium ``R(q, theta) = 0``:
+
+    dq/dtheta = -K_t^-1 dR/dtheta,   de/dtheta = H dq/dtheta + de/dtheta|_q
+
+with K_t the statics tangent and, analytically,
+``dR/dE_j = K_j (q - q0) / E_j`` (K_j: the stiffness rows of member j),
+``dR/dr_a = -d tau_act/dr_a`` (the derivative of the tendon's distributed
+wrench ``T [t; d x t]``, ``t = n/|n|``, ``n = nu + kappa x d``, with
+``d = r_a e_a``), ``dR/dm = -J_tip,world^T [g; 0]`` and, for a sensor
+offset, ``de_p/dt = R_section``.
+
+Damping (``viscosity:<member>`` [Pa s]) needs a dynamic recording (a
+time series from rest): :func:`calibrate_damping` fits it by simulating the
+recording, with central-difference sensitivities of the simulated
+trajectory.
+
+Confidence intervals: ``cov = s^2 (J^T J)^-1`` with the residual variance
+``s^2 = |r|^2 / (N - p)`` (J: the weighted Jacobian at the solution), 95 %
+intervals ``+- t_{0.975, N-p} sqrt(diag cov)``. Held-out rows (every k-th)
+are left out of the fit and report the error before and after.
+"""
+
+import copy
+import csv
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from . import sensors as sn
+from .loads import Loads, PointLoad
+
+
+class CalibrationError(ValueError):
+    """A bad calibration input (data file, parameter name); the message names it."""
+
+
+class CalibrationFailed(RuntimeError):
+    """A simulation of the recording failed (a time step did not converge)."""
+
+
+@dataclass
+class Recording:
+    """A static sweep: inputs (N, n_actuators) and per sensor name an array
+    of readings (N, 4, 4) for pose sensors or (N, 3) for markers (NaN rows:
+    not seen)."""
+    inputs: np.ndarray
+    readings: dict
+    time: np.ndarray = None
+
+    def __len__(self):
+        return len(self.inputs)
+
+    def rows(self, idx):
+        idx = np.asarray(idx)
+        return Recording(self.inputs[idx], {k: v[idx] for k, v in self.readings.items()},
+                         None if self.time is None else self.time[idx])
+
+
+# ----------------------------------------------------------------------------
+# CSV
+# ----------------------------------------------------------------------------
+
+_POSE_COLS = ("x", "y", "z", "qx", "qy", "qz", "qw")
+
+
+def csv_header(model, sensors):
+    """Columns: ``t``, one per actuator (its name), then per marker
+    ``<name>.x .y .z`` and per pose sensor also ``.qx .qy .qz .qw``."""
+    cols = ["t"] + list(model.actuator_names)
+    for s in sensors:
+        if isinstance(s, sn.PositionMarker):
+            cols += [f"{s.name}.{c}" for c in _POSE_COLS[:3]]
+        elif isinstance(s, sn.PoseSensor):
+            cols += [f"{s.name}.{c}" for c in _POSE_COLS]
+    return cols
+
+
+def write_csv(path, model, sensors, rec):
+    from scipy.spatial.transform import Rotation
+    with open(path, "w", newline="") as fh:
+        w = csv.writer(fh)
+        w.writerow(csv_header(model, sensors))
+        t = np.arange(len(rec)) if rec.time is None else rec.time
+        for r in range(len(rec)):
+            row = [repr(float(t[r]))] + [repr(float(x)) for x in rec.inputs[r]]
+            for s in sensors:
+                z = rec.readings.get(s.name)
+                if isinstance(s, sn.PositionMarker):
+                    row += [repr(float(x)) for x in z[r]]
+                elif isinstance(s, sn.PoseSensor):
+                    row += [repr(float(x)) for x in z[r][:3, 3]]
+                    row += [repr(float(x)) for x in Rotation.from_matrix(z[r][:3, :3]).as_quat()]
+            w.writerow(row)
+
+
+def read_csv(path, model, sensors):
+    """A :class:`Recording` from a CSV file of :func:`csv_header`'s columns
+    (any order; extra columns are ignored; ``t`` optional). Raises
+    CalibrationError naming a missing column or a bad value (row, column)."""
+    try:
+        with open(path, newline="") as fh:
+            rows = list(csv.reader(fh))
+    except OSError as e:
+        raise CalibrationError(f"data file {path}: {e.strerror}") from None
+    if not rows:
+        raise CalibrationError(f"data file {path}: empty")
+    header = [h.strip() for h in rows[0]]
+    need = [c for c in csv_header(model, sensors) if c != "t"]
+    missing = [c for c in need if c not in header]
+    if missing:
+        raise CalibrationError(f"data file {path}: missing column(s) {missing}")
+    data = np.empty((len(rows) - 1, len(header)))
+    for i, row in enumerate(rows[1:]):
+        if len(row) != len(header):
+            raise CalibrationError(f"data file {path}, row {i + 2}: expected {len(header)} values, got {len(row)}")
+        for j, v in enumerate(row):
+            try:
+                data[i, j] = float(v) if v.strip() else np.nan
+            except ValueError:
+                raise CalibrationError(f"data file {path}, row {i + 2}, column {header[j]}: "
+                                       f"not a number: {v!r}") from None
+    col = {h: data[:, j] for j, h in enumerate(header)}
+    u = np.stack([col[a] for a in model.actuator_names], axis=1) if model.actuators else np.zeros((len(data), 0))
+    if not np.all(np.isfinite(u)):
+        raise CalibrationError(f"data file {path}: the actuator inputs must be finite numbers in every row")
+    readings = {}
+    for s in sensors:
+        if isinstance(s, sn.PositionMarker):
+            readings[s.name] = np.stack([col[f"{s.name}.{c}"] for c in "xyz"], axis=1)
+        elif isinstance(s, sn.PoseSensor):
+            v = np.stack([col[f"{s.name}.{c}"] for c in _POSE_COLS], axis=1)
+            T = np.full((len(v), 4, 4), np.nan)
+            for r in range(len(v)):
+                if np.all(np.isfinite(v[r])):
+                    T[r] = sn.pose_from_position_quaternion(v[r, :3], v[r, 3:])
+            readings[s.name] = T
+    return Recording(u, readings, col.get("t"))
+
+
+def record_static_sweep(model, sensors, inputs, rng, loads=None):
+    """Simulated recording: the equilibria of ``model`` under each row of
+    ``inputs`` (and ``loads``), read by the sensors with their noise."""
+    from .statics import solve_statics
+    q = None
+    readings = {s.name: [] for s in sensors if not isinstance(s, sn.TensionSensor)}
+    for u in np.asarray(inputs, dtype=float):
+        q = solve_statics(model, u, loads, q_init=q).q
+        for s in sensors:
+            if s.name in readings:
+                readings[s.name].append(sn.simulate_measurement(model, s, rng, q))
+    return Recording(np.asarray(inputs, dtype=float), {k: np.array(v) for k, v in readings.items()})
+
+
+# ----------------------------------------------------------------------------
+# Parameters
+# ----------------------------------------------------------------------------
+
+@dataclass
+class _Param:
+    name: str
+    kind: str
+    target: str
+    axis: int = 0
+    nominal: float = 0.0
+    scale: float = 1.0
+
+
+def _params(names, robot_dict, model, sensors):
+    segs = {str(s.get("name", f"segment{k}")): s for k, s in enumerate(robot_dict["segments"])}
+    acts = {a["name"]: a for a in robot_dict.get("actuators", []) or []}
+    by_name = {s.name: s for s in sensors}
+    out = []
+    for name in names:
+        kind, _, rest = name.partition(":")
+        if kind == "youngs_modulus":
+            seg = segs.get(rest)
+            if seg is None or "material" not in seg:
+                raise CalibrationError(f"parameter {name!r}: no member {rest!r} with a material "
+                                       f"(members: {list(segs)})")
+            E = float(seg["material"]["youngs_modulus"])
+            out.append(_Param(name, kind, rest, 0, E, E))
+        elif kind == "tendon_offset":
+            a = acts.get(rest)
+            if a is None or a.get("routing", "straight") != "straight":
+                raise CalibrationError(f"parameter {name!r}: no straight tendon {rest!r} "
+                                       f"(actuators: {list(acts)})")
+            out.append(_Param(name, kind, rest, 0, float(np.linalg.norm(np.asarray(a["offset"], float))), 1e-3))
+        elif name == "payload_mass":
+            out.append(_Param(name, "payload_mass", "", 0, 0.0, 0.01))
+        elif kind == "sensor_offset":
+            sname, _, ax = rest.partition(":")
+            s = by_name.get(sname)
+            if s is None or isinstance(s, sn.TensionSensor) or ax not in ("x", "y", "z"):
+                raise CalibrationError(f"parameter {name!r}: expected sensor_offset:<marker or pose sensor>:<x|y|z> "
+                                       f"(sensors: {list(by_name)})")
+            i = "xyz".index(ax)
+            out.append(_Param(name, kind, sname, i, float(np.asarray(s.placement)[i, 3]), 1e-3))
+        else:
+            raise CalibrationError(f"parameter {name!r}: expected youngs_modulus:<member>, "
+                                   f"tendon_offset:<tendon>, payload_mass or sensor_offset:<sensor>:<axis>")
+    if len({p.name for p in out}) != len(out):
+        raise CalibrationError(f"parameters: duplicates in {list(names)}")
+    return out
+
+
+def apply_parameters(robot_dict, sensors, params, theta):
+    """(robot dict, sensors, payload mass [kg]) with the parameter values theta."""
+    d = copy.deepcopy(robot_dict)
+    segs = {str(s.get("name", f"segment{k}")): s for k, s in enumerate(d["segments"])}
+    acts = {a["name"]: a for a in d.get("actuators", []) or []}
+    placements = {s.name: np.array(s.placement, dtype=float) for s in sensors
+                  if not isinstance(s, sn.TensionSensor)}
+    mass = 0.0
+    for p, v in zip(params, theta):
+        if p.kind == "youngs_modulus":
+            segs[p.target]["material"]["youngs_modulus"] = float(v)
+        elif p.kind == "tendon_offset":
+            off = np.asarray(acts[p.target]["offset"], dtype=float)
+            acts[p.target]["offset"] = [float(x) for x in off / np.linalg.norm(off) * v]
+        elif p.kind == "payload_mass":
+            mass = float(v)
+        else:
+            placements[p.target][p.axis, 3] = v
+    new = []
+    for s in sensors:
+        if isinstance(s, sn.PositionMarker):
+            new.append(sn.PositionMarker(s.name, s.s, s.sigma_position_m, placements[s.name][:3, 3].copy()))
+        elif isinstance(s, sn.PoseSensor):
+            new.append(sn.PoseSensor(s.name, s.s, s.sigma_position_m, s.sigma_rotation_rad, placements[s.name]))
+        else:
+            new.append(s)
+    return d, new, mass
+
+
+def _payload_loads(model, mass):
+    if mass == 0.0:
+        return Loads()
+    g = np.asarray(model.gravity, dtype=float)
+    return Loads(point=(PointLoad(model.total_length, tuple(mass * g) + (0.0, 0.0, 0.0)),))
+
+
+def _tendon_offset_derivative(model, ws, act, k, u_k, out):
+    """out (nv,) = d tau_act / d r_k for the straight tendon k at the strains
+    of the last forward pass of ws: per quadrature point with coefficient c,
+    ``d/dr c [t; d x t] = c [dt; e x t + d x dt]``, ``dt = (I - t t^T) (kappa x e)/|n|``."""
+    m, w = ws.arrays, ws.work
+    pts = np.flatnonzero(act.unit[:, k])
+    for p in pts:
+        c = act.unit[p, k] * u_k
+        i = act.joint[p]
+        d = act.d[p]
+        e = d / np.linalg.norm(d)
+        xi = w.strain[i]
+        n = xi[:3] + np.cross(xi[3:], d) + act.dd[p]
+        nn = np.linalg.norm(n)
+        t = n / nn
+        dn = np.cross(xi[3:], e)
+        dt = (dn - t * (t @ dn)) / nn
+        dwr = c * np.concatenate([dt, np.cross(e, t) + np.cross(d, dt)])
+        iv, nv = m.iv[i], m.nv[i]
+        out[iv:iv + nv] += dwr[m.modes[i, :nv]]
+
+
+# ----------------------------------------------------------------------------
+# The least-squares problem
+# ----------------------------------------------------------------------------
+
+class Problem:
+    """Residuals and their analytic Jacobian of a recording, as functions of
+    the parameter values theta (SI)."""
+
+    def __init__(self, robot_dict, sensors, recording, names, n_sections=None):
+        from .model import model_from_dict
+        self.robot_dict = robot_dict
+        self.n_sections = n_sections
+        model = model_from_dict(robot_dict, n_sections)
+        self.sensors = [s for s in sn.check_sensors(model, sensors) if not isinstance(s, sn.TensionSensor)]
+        if not self.sensors:
+            raise CalibrationError("sensors: calibration needs at least one pose sensor or marker")
+        self.rec = recording
+        self.params = _params(names, robot_dict, model, self.sensors)
+        self.theta0 = np.array([p.nominal for p in self.params])
+        self.scale = np.array([p.scale for p in self.params])
+        self._q = [None] * len(recording)
+        self._cache = None
+
+    def model(self, theta):
+        from .model import model_from_dict
+        d, sensors, mass = apply_parameters(self.robot_dict, self.sensors, self.params, theta)
+        return model_from_dict(d, self.n_sections), sensors, mass
+
+    def evaluate(self, theta, jacobian=True, rows=None):
+        """(weighted residuals (M,), Jacobian (M, p) d r / d theta, or None)."""
+        from . import algorithms as alg
+        from .forces import actuator_arrays
+        from .kernels import passes
+        from .statics import _Problem, solve_statics
+        from .workspace import Workspace
+        theta = np.asarray(theta, dtype=float)
+        model, sensors, mass = self.model(theta)
+        loads = _payload_loads(model, mass)
+        tree = model.tree
+        ws = Workspace(tree)
+        act = actuator_arrays(tree) if model.actuators else None
+        rows = range(len(self.rec)) if rows is None else rows
+        res, jac = [], []
+        seg_of_dof = np.array([model.sections[i].segment for i in model.free_index // 6])
+        for r in rows:
+            u = self.rec.inputs[r]
+            sol = solve_statics(model, u, loads, q_init=self._q[r])
+            q = sol.q
+            self._q[r] = q
+            if jacobian:
+                Kt = _Problem(model, u, loads).tangent(q)
+                dR = np.zeros((model.n_dof, len(self.params)))
+                passes.forward_pass(ws.m, ws.w, np.ascontiguousarray(q), ws.zeros_v, ws.zeros_v, 0)
+                for j, p in enumerate(self.params):
+                    if p.kind == "youngs_modulus":
+                        rows_j = seg_of_dof == p.target
+                        dR[rows_j, j] = (model.K_q @ (q - model.q0))[rows_j] / theta[j]
+                    elif p.kind == "tendon_offset":
+                        k = model.actuator_names.index(p.target)
+                        col = np.zeros(model.n_dof)
+                        _tendon_offset_derivative(model, ws, act, k, u[k], col)
+                        dR[:, j] = -col
+                    elif p.kind == "payload_mass":
+                        _, Jw = alg.point_jacobian(tree, ws, q, tree.n_joints - 1, -1.0, "world")
+                        dR[:, j] = -Jw.T @ np.concatenate([model.gravity, np.zeros(3)])
+                        passes.forward_pass(ws.m, ws.w, np.ascontiguousarray(q), ws.zeros_v, ws.zeros_v, 0)
+                dq = -np.linalg.solve(Kt, dR)
+            passes.forward_pass(ws.m, ws.w, np.ascontiguousarray(q), ws.zeros_v, ws.zeros_v, 0)
+            for s in sensors:
+                z = self.rec.readings[s.name][r]
+                if not np.all(np.isfinite(z)):
+                    continue
+                e, H = sn.residual_and_jacobian(model, q, s, z, ws, kinematics_done=True)
+                sig = np.full(len(e), s.sigma_position_m)
+                if len(e) == 6:
+                    sig[3:] = s.sigma_rotation_rad
+                res.append(e / sig)
+                if jacobian:
+                    J = H @ dq
+                    for j, p in enumerate(self.params):
+                        if p.kind == "sensor_offset" and p.target == s.name:
+                            T = sn.sensor_pose(model, q, s, ws)
+                            # p_sensor = p_section + R_section t: d/dt = R_section = R_sensor P_R^T
+                            R_sec = T[:3, :3] @ np.asarray(s.placement)[:3, :3].T
+                            J[:3, j] += R_sec[:, p.axis]
+                            passes.forward_pass(ws.m, ws.w, np.ascontiguousarray(q), ws.zeros_v, ws.zeros_v, 0)
+                    jac.append(J / sig[:, None])
+        r = np.concatenate(res)
+        return r, (np.vstack(jac) if jacobian else None)
+
+
+@dataclass
+class CalibrationResult:
+    """Fitted values (SI), their standard errors and 95 % confidence
+    half-widths, the nominal values, the residual standard deviation (in
+    units of the stated sensor noise: about 1 when the model fits), held-out
+    errors before/after, the calibrated robot dict, sensors and payload."""
+    names: list
+    nominal: np.ndarray
+    values: np.ndarray
+    std: np.ndarray
+    ci95: np.ndarray
+    residual_sigma: float
+    n_residuals: int
+    iterations: int
+    robot_dict: dict
+    sensors: list
+    payload_mass: float
+    heldout: dict = field(default_factory=dict)
+
+    def table(self):
+        lines = [f"{'parameter':32s} {'nominal':>12s} {'fitted':>12s} {'95 % CI':>12s}"]
+        for n, a, b, c in zip(self.names, self.nominal, self.values, self.ci95):
+            lines.append(f"{n:32s} {a:12.6g} {b:12.6g} {'+-':>3s}{c:9.3g}")
+        lines.append(f"residual sigma (in sensor-noise units): {self.residual_sigma:.3f} "
+                     f"over {self.n_residuals} residuals")
+        for k, v in self.heldout.items():
+            lines.append(f"held-out {k}: {v:.6g}")
+        return "\n".join(lines)
+
+
+def tip_errors(problem, theta, rows, truth_tips=None):
+    """(RMS, max) [m] over ``rows`` of the distance between the model's
+    prediction of the sensor nearest the tip and its reading (or the given
+    true positions (R, 3))."""
+    from .statics import solve_statics
+    model, sensors, mass = problem.model(theta)
+    loads = _payload_loads(model, mass)
+    tip = max(sensors, key=lambda s: s.s)
+    d = []
+    q = None
+    for k, r in enumerate(rows):
+        q = solve_statics(model, problem.rec.inputs[r], loads, q_init=q).q
+        p = sn.sensor_pose(model, q, tip)[:3, 3]
+        z = problem.rec.readings[tip.name][r] if truth_tips is None else truth_tips[k]
+        z = z[:3, 3] if np.shape(z) == (4, 4) else z
+        d.append(np.linalg.norm(p - z))
+    d = np.array(d)
+    return float(np.sqrt(np.mean(d ** 2))), float(d.max())
+
+
+def calibrate(robot_dict, sensors, recording, names, *, holdout_every=4, n_sections=None, verbose=0):
+    """Fit the parameters ``names`` (module docstring) to the recording;
+    every ``holdout_every``-th row (0: none) is held out and reports the
+    tip-sensor error before and after. Returns a :class:`CalibrationResult`."""
+    from scipy.optimize import least_squares
+    from scipy.stats import t as student_t
+    n = len(recording)
+    held = np.arange(n)[holdout_every - 1::holdout_every] if holdout_every else np.zeros(0, int)
+    fit_rows = np.setdiff1d(np.arange(n), held)
+    pb = Problem(robot_dict, sensors, recording.rows(fit_rows), names, n_sections)
+    s = pb.scale
+
+    def fun(x):
+        return pb.evaluate(x * s, jacobian=False)[0]
+
+    def jac(x):
+        return pb.evaluate(x * s)[1] * s
+
+    x0 = pb.theta0 / s
+    sol = least_squares(fun, x0, jac=jac, method="trf", x_scale=1.0, verbose=verbose)
+    theta = sol.x * s
+    r, J = pb.evaluate(theta)
+    m, p = len(r), len(theta)
+    dof = max(m - p, 1)
+    s2 = float(r @ r) / dof
+    Jx = J * s                                   # in the scaled parameters (well conditioned)
+    cov = s2 * s[:, None] * np.linalg.pinv(Jx.T @ Jx) * s[None, :]
+    std = np.sqrt(np.diag(cov))
+    ci = student_t.ppf(0.975, dof) * std
+    d, new_sensors, mass = apply_parameters(robot_dict, pb.sensors, pb.params, theta)
+    out = CalibrationResult(names=[q.name for q in pb.params], nominal=pb.theta0, values=theta, std=std, ci95=ci,
+                            residual_sigma=float(np.sqrt(s2)), n_residuals=m, iterations=int(sol.nfev),
+                            robot_dict=d, sensors=new_sensors, payload_mass=mass)
+    if len(held):
+        hp = Problem(robot_dict, sensors, recording.rows(held), names, n_sections)
+        before = tip_errors(hp, hp.theta0, range(len(held)))
+        after = tip_errors(hp, theta, range(len(held)))
+        out.heldout = {"rows": len(held), "tip_rms_before_m": before[0], "tip_max_before_m": before[1],
+                       "tip_rms_after_m": after[0], "tip_max_after_m": after[1]}
+    return out
+
+
+def write_robot_file(path, robot_dict, header=""):
+    """Write a robot description (YAML) with an optional comment header."""
+    import yaml
+    with open(path, "w") as fh:
+        if header:
+            fh.write("".join(f"# {line}\n" for line in header.splitlines()))
+        yaml.safe_dump(robot_dict, fh, sort_keys=False, default_flow_style=None)
+
+
+# ----------------------------------------------------------------------------
+# Damping from a dynamic recording
+# ----------------------------------------------------------------------------
+
+def simulate_readings(model, sensors, times, inputs, dt, theta=0.5):
+    """Noise-free readings {sensor: (N, ...)} of a time series: the arm
+    starts at rest in equilibrium under ``inputs[0]`` at ``times[0]``; each
+    row's inputs are held until the next row's time (zero-order hold);
+    integrator steps of about ``dt`` [s] (:class:`dynamics.Simulator`).
+    Raises CalibrationFailed if a step fails, CalibrationError if the times
+    do not increase."""
+    from .dynamics import Simulator
+    from .model import State
+    from .statics import solve_statics
+    times = np.asarray(times, dtype=float)
+    if np.any(np.diff(times) <= 0):
+        raise CalibrationError("t: the times of a dynamic recording must increase")
+    q0 = solve_statics(model, inputs[0]).q
+    sim = Simulator(model, dt, actuation=inputs[0], state=State(q0, np.zeros(model.n_dof), times[0]),
+                    theta=theta, full_newton=False)
+    out = {s.name: [] for s in sensors}
+    for r in range(len(times)):
+        if r > 0:
+            span = times[r] - times[r - 1]
+            n = max(1, int(round(span / dt)))
+            if n * dt != span:
+                sim = _resized(sim, span / n)
+            sim.set_actuation(inputs[r - 1])
+            info = sim.step(n)
+            if not info.converged:
+                raise CalibrationFailed(f"row {r}: the simulation failed at t = {sim.state.t:.4g} s")
+        for s in sensors:
+            out[s.name].append(sn.predict_measurement(model, sim.state.q, s))
+    return {k: np.array(v) for k, v in out.items()}
+
+
+def _resized(sim, dt):
+    from .dynamics import Simulator
+    return Simulator(sim.model, dt, actuation=sim.actuation_at(sim.state.t), state=sim.state,
+                     theta=sim.theta, full_newton=False)
+
+
+def record_dynamic(model, sensors, times, inputs, rng, dt=1e-3):
+    """Simulated noisy recording of a time series (see :func:`simulate_readings`)."""
+    clean = simulate_readings(model, sensors, times, inputs, dt)
+    readings = {}
+    for s in sensors:
+        readings[s.name] = np.array([sn.simulate_measurement(
+            _as_pose(z), s, rng) for z in clean[s.name]])
+    return Recording(np.asarray(inputs, dtype=float), readings, np.asarray(times, dtype=float))
+
+
+def _as_pose(z):
+    if np.shape(z) == (3,):
+        T = np.eye(4)
+        T[:3, 3] = z
+        return T
+    return z
+
+
+def calibrate_damping(robot_dict, sensors, recording, members=None, *, dt=5e-3, n_sections=None, verbose=0):
+    """Fit the viscosity [Pa s] of ``members`` (default: every member with a
+    material) to a dynamic recording (rows at increasing times ``t``, the arm
+    at rest at the first row; :func:`simulate_readings`), the other
+    parameters as in the robot dict (calibrate them first from a static
+    sweep). Sensitivities: central differences of the simulated trajectory
+    (``least_squares(jac="3-point")``; a static sweep carries no damping
+    information, and no analytic sensitivity through the integrator is
+    implemented). Returns a :class:`CalibrationResult` (no held-out rows)."""
+    from scipy.optimize import least_squares
+    from scipy.stats import t as student_t
+    from .model import model_from_dict
+    if recording.time is None:
+        raise CalibrationError("damping: the recording needs a time column t")
+    segs = [(str(sd.get("name", f"segment{k}")), sd) for k, sd in enumerate(robot_dict["segments"])]
+    if members is None:
+        members = [n for n, sd in segs if "material" in sd]
+    lookup = dict(segs)
+    for m in members:
+        if m not in lookup or "material" not in lookup[m]:
+            raise CalibrationError(f"parameter 'viscosity:{m}': no member {m!r} with a material "
+                                   f"(members: {[n for n, _ in segs]})")
+    nominal = np.array([float(lookup[m]["material"].get("viscosity", 0.0)) for m in members])
+    if np.any(nominal <= 0):
+        raise CalibrationError("damping: the starting viscosities must be > 0 (set them in the robot file)")
+    model0 = model_from_dict(robot_dict, n_sections)
+    sensors = [s for s in sn.check_sensors(model0, sensors) if not isinstance(s, sn.TensionSensor)]
+
+    def with_visc(x):
+        d = copy.deepcopy(robot_dict)
+        dd = {str(sd.get("name", f"segment{k}")): sd for k, sd in enumerate(d["segments"])}
+        for m, v in zip(members, x):
+            dd[m]["material"]["viscosity"] = float(v)
+        return d
+
+    def fun(x):
+        model = model_from_dict(with_visc(x * nominal), n_sections)
+        pred = simulate_readings(model, sensors, recording.time, recording.inputs, dt)
+        res = []
+        for s in sensors:
+            for r in range(len(recording)):
+                z = recording.readings[s.name][r]
+                if not np.all(np.isfinite(z)):
+                    continue
+                if isinstance(s, sn.PositionMarker):
+                    res.append((pred[s.name][r] - z) / s.sigma_position_m)
+                else:
+                    e_p = (pred[s.name][r][:3, 3] - z[:3, 3]) / s.sigma_position_m
+                    e_r = _log_so3(z[:3, :3].T @ pred[s.name][r][:3, :3]) / s.sigma_rotation_rad
+                    res.append(np.concatenate([e_p, e_r]))
+        return np.concatenate(res)
+
+    sol = least_squares(fun, np.ones(len(members)), jac="3-point", diff_step=1e-3, bounds=(1e-3, 1e3),
+                        verbose=verbose)
+    r = sol.fun
+    J = sol.jac / nominal                                 # d r / d eta
+    dof = max(len(r) - len(members), 1)
+    s2 = float(r @ r) / dof
+    Jx = J * nominal
+    cov = s2 * nominal[:, None] * np.linalg.pinv(Jx.T @ Jx) * nominal[None, :]
+    std = np.sqrt(np.diag(cov))
+    values = sol.x * nominal
+    return CalibrationResult(names=[f"viscosity:{m}" for m in members], nominal=nominal, values=values, std=std,
+                             ci95=student_t.ppf(0.975, dof) * std, residual_sigma=float(np.sqrt(s2)),
+                             n_residuals=len(r), iterations=int(sol.nfev), robot_dict=with_visc(values),
+                             sensors=sensors, payload_mass=0.0)
+
+
+def _log_so3(R):
+    from .lie import log_so3
+    return log_so3(R)
+
+
+# ----------------------------------------------------------------------------
+# Command line: soft-twin-sim calibrate
+# ----------------------------------------------------------------------------
+
+def add_cli_parser(sub):
+    """The ``calibrate`` subcommand of ``soft-twin-sim``."""
+    c = sub.add_parser("calibrate", help="fit robot parameters to a recorded static sweep (CSV)")
+    c.add_argument("robot", help="robot file or example name")
+    c.add_argument("--sensors", required=True, help="sensors file (YAML list of pose/marker sensors)")
+    c.add_argument("--data", required=True, help="CSV: t, one column per actuator, <sensor>.x/.y/.z[/.qx..qw]")
+    c.add_argument("--fit", required=True,
+                   help="comma-separated parameters: youngs_modulus:<member>, tendon_offset:<tendon>, "
+                        "payload_mass, sensor_offset:<sensor>:<x|y|z>; 'youngs_modulus' or 'tendon_offset' "
+                        "alone mean all members / all straight tendons")
+    c.add_argument("--holdout-every", type=int, default=4, metavar="K",
+                   help="hold out every K-th row to report the error before/after (0: none; default 4)")
+    c.add_argument("--sections", type=int, help="sections per member for the fit (default: the robot file's)")
+    c.add_argument("--dynamic", action="store_true",
+                   help="the rows are a time series from rest (column t): fit viscosity:<member> (or "
+                        "'viscosity' for all members) by simulating it")
+    c.add_argument("--dt", type=float, default=5e-3, help="integrator step for --dynamic [s] (default 0.005)")
+    c.add_argument("--output", "-o", help="write the calibrated robot file here")
+    c.add_argument("--sensors-output", help="write the calibrated sensors file here")
+    return c
+
+
+def _expand(names, robot_dict):
+    out = []
+    for n in names:
+        if n == "youngs_modulus":
+            out += [f"youngs_modulus:{s.get('name', f'segment{k}')}" for k, s in enumerate(robot_dict["segments"])
+                    if "material" in s]
+        elif n == "tendon_offset":
+            out += [f"tendon_offset:{a['name']}" for a in robot_dict.get("actuators", []) or []
+                    if a.get("type", "tendon") == "tendon" and a.get("routing", "straight") == "straight"]
+        else:
+            out.append(n)
+    return out
+
+
+def cli_main(args):
+    """Run ``soft-twin-sim calibrate``; JSON report on stdout, the table on
+    stderr. Exit 0, or 2 for a bad argument or file (named on stderr), 3 if
+    a statics solve fails."""
+    import json
+    import sys
+    from .model import ModelError, find_file, model_from_dict, read_yaml_file, robot_mapping
+    from .statics import StaticsError
+    try:
+        if args.sections is not None and args.sections < 1:
+            raise CalibrationError(f"--sections must be >= 1, got {args.sections}")
+        if args.holdout_every < 0:
+            raise CalibrationError(f"--holdout-every must be >= 0, got {args.holdout_every}")
+        path = find_file(args.robot, "robots")
+        robot_dict = robot_mapping(read_yaml_file(path, ModelError, "robot file"), f"robot file {path}")
+        model = model_from_dict(robot_dict, args.sections)
+        sensors = sn.load_sensors(args.sensors, model)
+        rec = read_csv(args.data, model, sensors)
+        names = [n.strip() for n in args.fit.split(",") if n.strip()]
+        if not names:
+            raise CalibrationError("--fit: no parameter given")
+        if args.dynamic:
+            bad = [n for n in names if n != "viscosity" and not n.startswith("viscosity:")]
+            if bad:
+                raise CalibrationError(f"--fit with --dynamic: only viscosity:<member> or viscosity, got {bad}")
+            if not (np.isfinite(args.dt) and args.dt > 0):
+                raise CalibrationError(f"--dt must be a positive step in s, got {args.dt}")
+            members = None if "viscosity" in names else [n.split(":", 1)[1] for n in names]
+            res = calibrate_damping(robot_dict, sensors, rec, members, dt=args.dt, n_sections=args.sections)
+        else:
+            names = _expand(names, robot_dict)
+            res = calibrate(robot_dict, sensors, rec, names, holdout_every=args.holdout_every,
+                            n_sections=args.sections)
+    except (CalibrationError, ModelError, ValueError) as e:
+        print(f"soft-twin-sim calibrate: {e}", file=sys.stderr)
+        return 2
+    except (StaticsError, CalibrationFailed) as e:
+        print(f"soft-twin-sim calibrate: {e}", file=sys.stderr)
+        return 3
+    print(res.table(), file=sys.stderr)
+    report = {"parameters": {n: {"nominal": float(a), "fitted": float(b), "std": float(c), "ci95": float(e)}
+                             for n, a, b, c, e in zip(res.names, res.nominal, res.values, res.std, res.ci95)},
+              "residual_sigma": res.residual_sigma, "n_residuals": res.n_residuals,
+              "heldout": res.heldout, "payload_mass_kg": res.payload_mass}
+    if args.output:
+        lines = [f"Calibrated by soft-twin-sim calibrate from {args.data} ({len(rec)} rows)."]
+        lines += [f"{n}: {b:.6g} +- {e:.3g} (95 %), nominal {a:.6g}"
+                  for n, a, b, e in zip(res.names, res.nominal, res.values, res.ci95)]
+        if res.heldout:
+            lines.append(f"held-out tip error RMS {res.heldout['tip_rms_before_m']:.4g} m before, "
+                         f"{res.heldout['tip_rms_after_m']:.4g} m after")
+        write_robot_file(args.output, res.robot_dict, "\n".join(lines))
+        report["robot_file"] = args.output
+    if args.sensors_output:
+        import yaml
+        with open(args.sensors_output, "w") as fh:
+            yaml.safe_dump({"sensors": sn.sensors_to_list(res.sensors)}, fh, sort_keys=False,
+                           default_flow_style=None)
+        report["sensors_file"] = args.sensors_output
+    print(json.dumps(report, indent=1))
+    return 0

@@ -1,0 +1,192 @@
+"""The estimator node (python -m soft_twin.estimator) in a second process;
+this process plays a "real" robot whose stiffness differs from the twin's
+(the tracked arm 25 % stiffer, discretised 3.2 times finer) and publishes
+its three pose sensors with noise over real rclpy. The estimate follows the
+real robot while the open-loop prediction does not; malformed readings are
+rejected and counted. Every wait is for a condition with a timeout."""
+
+import os
+import signal
+import subprocess
+import sys
+import threading
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+import yaml
+
+rclpy = pytest.importorskip("rclpy", reason="needs ROS 2: the venv of `make setup`")
+
+from diagnostic_msgs.msg import DiagnosticArray  # noqa: E402
+from geometry_msgs.msg import PoseArray, PoseStamped, PoseWithCovarianceStamped  # noqa: E402
+from rclpy.executors import SingleThreadedExecutor  # noqa: E402
+from std_srvs.srv import Trigger  # noqa: E402
+
+from soft_twin.conversions import matrix_from_pose, pose_array, pose_msg  # noqa: E402
+from soft_twin.msg import ActuationCommand  # noqa: E402
+from soft_twin_core import sensors as sn  # noqa: E402
+from soft_twin_core import statics as st  # noqa: E402
+from soft_twin_core.model import find_file, load_model, model_from_dict, read_yaml_file  # noqa: E402
+
+pytestmark = pytest.mark.ros
+
+ROOT = Path(__file__).resolve().parents[1]
+NAMES = ["tendon_y_pos", "tendon_y_neg", "tendon_z_pos", "tendon_z_neg"]
+U = [14.0, 0.0, 8.0, 0.0]
+SENSORS = [{"name": f"em{i}", "type": "pose", "s": s, "sigma_position": 1.0e-3, "sigma_rotation": 0.01}
+           for i, s in enumerate([0.16, 0.28, 0.40])]
+
+
+class Client:
+    """Publishers of the measurements and the actuation; the estimate and
+    diagnostics as they arrive (a private context, spun in a thread)."""
+
+    def __init__(self, ns):
+        self.context = rclpy.Context()
+        rclpy.init(context=self.context)
+        self.node = rclpy.create_node("estimator_test_client", context=self.context)
+        n = self.node
+        self.pub_poses = n.create_publisher(PoseArray, f"{ns}/measurements/poses", 50)
+        self.pub_pose = n.create_publisher(PoseStamped, f"{ns}/measurements/pose", 50)
+        self.pub_act = n.create_publisher(ActuationCommand, "/soft_twin/actuation", 10)
+        self.tip = None
+        self.diag = None
+        self.tip_count = 0
+        n.create_subscription(PoseWithCovarianceStamped, f"{ns}/estimate/tip_pose", self._on_tip, 10)
+        n.create_subscription(DiagnosticArray, "/diagnostics", self._on_diag, 10)
+        self.reset = n.create_client(Trigger, f"{ns}/estimate/reset")
+        self.executor = SingleThreadedExecutor(context=self.context)
+        self.executor.add_node(n)
+        self.thread = threading.Thread(target=self._spin, daemon=True)
+        self.thread.start()
+
+    def _spin(self):
+        try:
+            self.executor.spin()
+        except Exception:          # shutdown
+            pass
+
+    def _on_tip(self, msg):
+        self.tip = msg
+        self.tip_count += 1
+
+    def _on_diag(self, msg):
+        for s in msg.status:
+            if s.name == "soft_twin_estimator":
+                self.diag = {kv.key: kv.value for kv in s.values}
+
+    @staticmethod
+    def wait_until(pred, timeout):
+        end = time.monotonic() + timeout
+        while time.monotonic() < end:
+            v = pred()
+            if v:
+                return v
+            time.sleep(0.01)
+        return pred()
+
+    def close(self):
+        self.executor.shutdown()
+        self.node.destroy_node()
+        rclpy.shutdown(context=self.context)
+
+
+@pytest.fixture(scope="module")
+def running(tmp_path_factory):
+    tmp = tmp_path_factory.mktemp("estimator")
+    (tmp / "sensors.yaml").write_text(yaml.safe_dump({"sensors": SENSORS}))
+    log = open(tmp / "node.log", "w")
+    proc = subprocess.Popen([sys.executable, "-m", "soft_twin.estimator", "--ros-args", "-r",
+                             "__node:=est_test", "-p", "robot_description_file:=tracked_arm",
+                             "-p", f"sensors_file:={tmp / 'sensors.yaml'}", "-p", "rate_hz:=100.0"],
+                            cwd=ROOT, env=os.environ.copy(), stdout=log, stderr=subprocess.STDOUT, text=True)
+    client = Client("/est_test")
+    try:
+        ok = client.wait_until(lambda: client.tip_count > 0 and client.pub_poses.get_subscription_count() > 0
+                               and client.pub_act.get_subscription_count() > 0, 120.0)
+        assert ok, "estimator node did not come up:\n" + (tmp / "node.log").read_text()[-3000:]
+        yield client, proc, tmp
+    finally:
+        client.close()
+        if proc.poll() is None:
+            proc.send_signal(signal.SIGINT)
+            try:
+                proc.wait(timeout=20)
+            except subprocess.TimeoutExpired:
+                proc.kill()
+                proc.wait()
+        log.close()
+    out = (tmp / "node.log").read_text()
+    assert proc.returncode == 0 and "Traceback" not in out, out[-3000:]
+
+
+def _real_robot():
+    d = read_yaml_file(find_file("tracked_arm", "robots"))
+    for seg in d["segments"]:
+        seg["material"]["youngs_modulus"] = 1.25 * float(seg["material"]["youngs_modulus"])
+    return model_from_dict(d, 8)
+
+
+def test_estimate_follows_the_real_robot_and_bad_readings_are_counted(running):
+    client, proc, tmp = running
+    real = _real_robot()
+    truth = st.solve_statics(real, U)
+    sensors = sn.sensors_from_list(SENSORS, real)
+    T = [sn.sensor_pose(real, truth.q, s) for s in sensors]
+    tip_true = truth.tip_pose[:3, 3]
+    twin = load_model("tracked_arm")
+    open_loop = st.solve_statics(twin, U).tip_pose[:3, 3]
+    assert np.linalg.norm(open_loop - tip_true) > 0.004          # 1 % of the 0.4 m arm
+    msg = ActuationCommand(names=NAMES, values=U)
+    client.pub_act.publish(msg)
+    rng = np.random.default_rng(5)
+
+    def tip_error():
+        if client.tip is None:
+            return np.inf
+        return np.linalg.norm(matrix_from_pose(client.tip.pose.pose)[:3, 3] - tip_true)
+
+    # the sensors stream at about 100 Hz from a thread (the publishing rate, not a wait for ROS)
+    stop = threading.Event()
+
+    def stream():
+        k = 0
+        while not stop.is_set():
+            z = [sn.simulate_measurement(Ti, s, rng) for Ti, s in zip(T, sensors)]
+            client.pub_poses.publish(pose_array(np.array(z)))
+            if k % 10 == 0:
+                client.pub_act.publish(msg)           # the twin's commands are re-sent, as a controller does
+            k += 1
+            stop.wait(0.01)
+    th = threading.Thread(target=stream, daemon=True)
+    th.start()
+    try:
+        assert client.wait_until(lambda: client.diag and int(client.diag["measurements_accepted"]) > 300
+                                 and tip_error() < 0.004, 60.0), (tip_error(), client.diag)
+        cov = np.reshape(client.tip.pose.covariance, (6, 6))[:3, :3]
+        assert 0 < np.sqrt(np.trace(cov)) < 0.004
+        # malformed readings: NaN, a wrong-length array, an unknown sensor name
+        before = int(client.diag["measurements_rejected"])
+        arr = pose_array(np.array(T))
+        arr.poses[1].position.x = float("nan")
+        client.pub_poses.publish(arr)
+        client.pub_poses.publish(pose_array(np.array(T[:2])))
+        ps = PoseStamped()
+        ps.header.frame_id = "em7"
+        ps.pose = pose_msg(T[0])
+        client.pub_pose.publish(ps)
+        assert client.wait_until(lambda: int(client.diag["measurements_rejected"]) >= before + 3, 20.0), client.diag
+        assert [int(client.diag[f"rejected_{k}"]) for k in ("non_finite", "wrong_length", "unknown_sensor")] \
+            == [1, 1, 1], client.diag
+        assert tip_error() < 0.004
+    finally:
+        stop.set()
+        th.join()
+    # reset: back to the initial estimate, counters cleared
+    assert client.reset.wait_for_service(timeout_sec=20.0)
+    fut = client.reset.call_async(Trigger.Request())
+    assert client.wait_until(lambda: fut.done(), 20.0) and fut.result().success
+    assert client.wait_until(lambda: client.diag and int(client.diag["measurements_rejected"]) == 0
+                             and tip_error() > 0.004, 20.0), client.diag
