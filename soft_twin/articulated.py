@@ -27,7 +27,7 @@ from soft_twin_core import constrained as cs
 from soft_twin_core.loads import Loads
 from soft_twin_core.mechanism import shape_command
 from soft_twin_core.model import State
-from soft_twin_core.outputs import state_outputs
+from soft_twin_core.outputs import section_strains, state_outputs
 
 from soft_twin.text import clip, short_list
 from soft_twin.twin import STEP_ERRORS, InputError, TwinSettings, UpdateInfo
@@ -109,7 +109,9 @@ class ArticulatedSnapshot:
     base_wrench (the support's reaction on the robot: the sum of the root
     joints' transmitted wrenches, base axes, about the base origin);
     constraint_wrenches {name: world [f; m] on its frame}; stresses
-    {member: (peak normal, peak shear) Pa}; command_stamp."""
+    {member: (peak normal, peak shear) Pa}; command_stamp; joint_wrenches
+    {rigid joint: world [f; m] transmitted through it (the parent side on
+    the child side), about the joint's origin}."""
     mode: str
     t: float
     u: np.ndarray
@@ -130,6 +132,7 @@ class ArticulatedSnapshot:
     constraint_wrenches: dict
     stresses: dict
     command_stamp: object = None
+    joint_wrenches: dict = None     # {joint: world [f; m] through it, about its input origin}
 
 
 class ArticulatedTwin:
@@ -361,7 +364,7 @@ class ArticulatedTwin:
             or (mech.members[-1].name if mech.members else "")
         bb, s = backbones.get(main, (tip_pose[None], np.zeros(1)))
         soft = tree.soft_joints
-        strains = np.array([self._full_strain(i, q) for i in soft]).reshape(-1, 6)
+        strains = section_strains(mech, q)
         rates = np.zeros((len(soft), 6))
         if v is not None:
             for k, i in enumerate(soft):
@@ -386,11 +389,5 @@ class ArticulatedTwin:
             constraint_wrenches=out.constraint_wrenches,
             stresses={m.name: (float(np.nanmax(m.normal_stress, initial=0.0)),
                                float(np.nanmax(m.shear_stress, initial=0.0))) for m in out.members},
-            command_stamp=stamp)
-
-    def _full_strain(self, i, q):
-        j = self.mech.tree.joints[i]
-        f = j.section.f0.copy()
-        iq = self.mech.tree.idx_q[i]
-        f[j.section.modes] = q[iq:iq + len(j.section.modes)]
-        return f
+            command_stamp=stamp,
+            joint_wrenches={n: out.joint_wrenches[n] for n in names})

@@ -291,7 +291,9 @@ class SoftTwinNode(Node):
 
     def _make_articulated_interfaces(self, qos):
         """Joint states out and joint commands in, one backbone per soft
-        member, one wrench topic per constraint (articulated robots only)."""
+        member, one wrench topic per constraint and per rigid joint
+        (``_pub_constraints`` keys: constraint names, ("joint", name));
+        articulated robots only."""
         self._pub_joints = self._sub_joints = None
         self._pub_members, self._pub_constraints = {}, {}
         if not self.robot.articulated:
@@ -303,6 +305,9 @@ class SoftTwinNode(Node):
         for c in mech.constraints:
             self._pub_constraints[c.name] = self.create_publisher(
                 WrenchStamped, f"~/constraint_wrenches/{_topic_name(c.name)}", qos)
+        for name in mech.joint_names:
+            self._pub_constraints[("joint", name)] = self.create_publisher(
+                WrenchStamped, f"~/joint_wrenches/{_topic_name(name)}", qos)
         on_joints = self._guarded(self._on_joint_command)
         self._sub_joints = self.create_subscription(
             JointState, "~/joint_commands", lambda msg, info: on_joints(msg, info), JOINT_QUEUE,
@@ -814,8 +819,9 @@ class SoftTwinNode(Node):
             self._last_wrench_time = now
             if robot.articulated:
                 tip, base = snap.tip_wrench, snap.base_wrench
-                for name, pub in self._pub_constraints.items():
-                    pub.publish(WrenchStamped(header=header, wrench=cv.wrench_msg(snap.constraint_wrenches[name])))
+                for key, pub in self._pub_constraints.items():
+                    w = snap.joint_wrenches[key[1]] if isinstance(key, tuple) else snap.constraint_wrenches[key]
+                    pub.publish(WrenchStamped(header=header, wrench=cv.wrench_msg(w)))
             else:
                 tip, base = tw.wrenches(robot.model, snap)
             self._pub_tip_wrench.publish(WrenchStamped(header=Header(stamp=header.stamp,

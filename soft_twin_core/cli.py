@@ -203,9 +203,12 @@ def csv_columns(out):
         labels = _labels(field, shape)
         if field in named and shape == (len(named[field]),):
             labels = [f"{field}_{nm}" for nm in named[field]]
-        elif field in ("frame_positions", "constraint_wrenches") and len(shape) == 2:
-            names = out["frame_names" if field == "frame_positions" else "constraint_names"]
-            last = _VEC3 if field == "frame_positions" else _WRENCH
+        elif field in ("frame_positions", "constraint_wrenches", "transmitted_wrenches", "strains") \
+                and len(shape) == 2 and "history_fields" in out:
+            from .model import STRAIN_NAMES
+            names = out[{"frame_positions": "frame_names", "constraint_wrenches": "constraint_names",
+                         "transmitted_wrenches": "transmitted_names", "strains": "section_names"}[field]]
+            last = {"frame_positions": _VEC3, "strains": STRAIN_NAMES}.get(field, _WRENCH)
             labels = [f"{field}_{nm}_{lab}" for nm in names for lab in last]
         flat = a.reshape(len(rows), -1) if len(rows) else np.zeros((0, len(labels)))
         col = [[""] * n for _ in labels]

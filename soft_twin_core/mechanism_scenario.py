@@ -286,8 +286,8 @@ def run_mechanism_statics(sc):
 
 # history fields of a dynamics run, in CSV column order
 HISTORY_FIELDS = ("time", "joint_positions", "joint_velocities", "joint_accelerations", "joint_efforts",
-                  "frame_positions", "constraint_wrenches", "constraint_error", "peak_normal_stress",
-                  "peak_shear_stress", "newton_iterations")
+                  "frame_positions", "constraint_wrenches", "constraint_error", "transmitted_wrenches", "strains",
+                  "peak_normal_stress", "peak_shear_stress", "newton_iterations")
 
 
 def run_mechanism_dynamics(sc, duration, dt, theta=0.5, progress=None, record_every=1, backbone_every=0):
@@ -296,14 +296,17 @@ def run_mechanism_dynamics(sc, duration, dt, theta=0.5, progress=None, record_ev
     velocities, accelerations, efforts (N, n_joints) in the order of
     ``joint_names``; frame_positions (N, n_frames, 3) world [m] in the order
     of ``frame_names``; constraint_wrenches (N, n_constraints, 6);
-    constraint_error (N,) [m or rad]; peak_normal_stress and
+    constraint_error (N,) [m or rad]; transmitted_wrenches (N, n_joints, 6)
+    (the wrench through every joint, world axes about its input origin, in
+    the order of ``transmitted_names``); strains (N, n_soft_sections, 6) of
+    every soft section in tree order (``section_names``); peak_normal_stress and
     peak_shear_stress (N, n_members) [Pa], the largest over each member's
     section boundaries; newton_iterations. With ``backbone_every = K``,
     every K steps the full member outputs under ``members_time`` and
     ``members`` (as in statics). ``error`` when a step fails (the history
     ends at the last converged step)."""
     import time as _time
-    from .outputs import state_outputs
+    from .outputs import section_strains, state_outputs
     from .scenario import n_steps_for, step_times
     mech = sc.mech
     n_steps = n_steps_for(duration, dt)
@@ -314,6 +317,9 @@ def run_mechanism_dynamics(sc, duration, dt, theta=0.5, progress=None, record_ev
     for k, i in enumerate(mech.joints_with("position")):
         sim.q[mech.tree.idx_q[i]] = inp0.q_cmd[k]
     out = {key: [] for key in HISTORY_FIELDS}
+    soft = mech.tree.soft_joints
+    out.update(transmitted_names=[j.name for j in mech.tree.joints],
+               section_names=[mech.tree.joints[i].name for i in soft])
     out.update(joint_names=list(mech.joint_names), frame_names=list(mech.frames),
                constraint_names=[c.name for c in mech.constraints], member_names=[m.name for m in mech.members],
                history_fields=list(HISTORY_FIELDS))
@@ -330,6 +336,8 @@ def run_mechanism_dynamics(sc, duration, dt, theta=0.5, progress=None, record_ev
         out["frame_positions"].append([o.frames[n][:3, 3].tolist() for n in mech.frames])
         out["constraint_wrenches"].append([w.tolist() for w in o.constraint_wrenches.values()])
         out["constraint_error"].append(sim.constraint_error(_targets(sc, time_of(k))))
+        out["transmitted_wrenches"].append([w.tolist() for w in o.joint_wrenches.values()])
+        out["strains"].append(section_strains(mech, sim.q).tolist())
         out["peak_normal_stress"].append([float(np.nanmax(m.normal_stress, initial=0)) for m in o.members])
         out["peak_shear_stress"].append([float(np.nanmax(m.shear_stress, initial=0)) for m in o.members])
         out["newton_iterations"].append(int(iterations))

@@ -147,6 +147,20 @@ def member_outputs(mech, ws, u=None, loads=None):
     return out
 
 
+def section_strains(mech, q):
+    """(n_soft_sections, 6) full strains of every soft section in tree order
+    (free modes from q, the others at the reference strain f0)."""
+    tree = mech.tree
+    out = []
+    for i in tree.soft_joints:
+        sec = tree.joints[i].section
+        f = sec.f0.copy()
+        iq = tree.idx_q[i]
+        f[sec.modes] = q[iq:iq + len(sec.modes)]
+        out.append(f)
+    return np.array(out, dtype=float).reshape(-1, 6)
+
+
 def joint_wrenches(mech, ws):
     """(n_joints, 6) wrench through every joint, world axes, about its input
     frame origin (see the module), from the last RNEA pass."""

@@ -107,3 +107,18 @@ def test_articulated_run_animates(tmp_path):
     rc, _ = _run(tmp_path, "dynamics", "pan_tilt_arm_dynamics", "--duration", "0.1", "--dt", "0.01",
                  "--plot", str(tmp_path / "figs"))
     assert rc == 2
+
+
+def test_dynamics_histories_carry_transmitted_wrenches_and_strains(tmp_path):
+    rc, js = _run(tmp_path, "dynamics", "pan_tilt_arm_dynamics", "--duration", "0.02", "--dt", "0.01")
+    r = json.loads(js)
+    rc2, cs = _run(tmp_path, "dynamics", "pan_tilt_arm_dynamics", "--duration", "0.02", "--dt", "0.01",
+                   "--format", "csv")
+    assert rc == rc2 == 0
+    rows = list(csv.DictReader(cs.splitlines()))
+    assert np.array(r["transmitted_wrenches"]).shape == (3, len(r["transmitted_names"]), 6)
+    assert np.array(r["strains"]).shape == (3, 4, 6) and r["section_names"] == ["arm_0", "arm_1", "arm_2", "arm_3"]
+    assert float(rows[-1]["transmitted_wrenches_tilt_fz"]) == r["transmitted_wrenches"][-1][1][2]
+    assert float(rows[-1]["strains_arm_3_bending_y"]) == r["strains"][-1][3][4]
+    # the base's vertical reaction at rest carries the robot's weight
+    assert r["transmitted_wrenches"][0][0][2] > 0

@@ -183,3 +183,18 @@ def test_live_view_snapshot_of_an_articulated_robot():
     assert np.allclose(radii[0], 0.008)                      # half the 16 mm finger width
     np.testing.assert_allclose(shot.members[1][-1], snap.frames["finger_1_tip"][:3, 3], atol=1e-15)
     assert len(shot.links) == 1 and np.allclose(shot.links[0][1], [0, 0, 0.3])
+
+
+def test_joint_wrench_topics_carry_the_transmitted_wrenches(pan_tilt_qs):
+    c = pan_tilt_qs
+    got = c.subscribe(WrenchStamped, "/twin_art_qs/joint_wrenches/pan")
+    stamp = c.send_joint_command(["pan", "tilt"], positions=[0.1, -0.2])
+    assert c.wait_until(lambda: c.state_after(stamp), 10.0)
+    assert c.wait_until(lambda: got, 10.0), "no joint wrench"
+    mech = load_mechanism(find_file("pan_tilt_arm", "robots"))
+    ref = solve_equilibrium(mech, {"tendon_z_pos": 2.0}, None, {"pan": 0.1, "tilt": -0.2})
+    w = state_outputs(mech, ref.q, ref.lam, ref.inputs).joint_wrenches["pan"]
+    assert c.wait_until(lambda: abs(got[-1].wrench.force.z - w[2]) < 1e-9, 10.0)
+    m = got[-1].wrench
+    np.testing.assert_allclose([m.force.x, m.force.y, m.force.z, m.torque.x, m.torque.y, m.torque.z], w,
+                               rtol=0, atol=1e-9)
