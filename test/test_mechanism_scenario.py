@@ -122,3 +122,22 @@ def test_dynamics_histories_carry_transmitted_wrenches_and_strains(tmp_path):
     assert float(rows[-1]["strains_arm_3_bending_y"]) == r["strains"][-1][3][4]
     # the base's vertical reaction at rest carries the robot's weight
     assert r["transmitted_wrenches"][0][0][2] > 0
+
+
+def test_gripper_and_parallel_robot_scenarios(tmp_path):
+    rc, js = _run(tmp_path, "statics", "planar_parallel_robot")
+    assert rc == 0
+    r = json.loads(js)
+    names = r["transmitted_names"]
+    f = np.array(r["transmitted_wrenches"][names.index("rod1_0")]) + np.array(
+        r["transmitted_wrenches"][names.index("rod2_0")])
+    weight = 9.81 * (0.05 + 2 * 0.4 * 6450.0 * np.pi * 0.002**2)
+    assert abs(f[0] + 2.0) < 1e-9 and abs(f[2] - 3.0 - weight) < 1e-6      # balance: load + weight
+    rc, js = _run(tmp_path, "dynamics", "soft_gripper_grasp", "--duration", "0.3", "--dt", "0.01",
+                  "--record-every", "10")
+    assert rc == 0
+    r = json.loads(js)
+    assert r["joint_names"] == ["wrist"] and r["joint_positions"][-1][0] > 0.05
+    tips = np.array(r["frame_positions"][-1])
+    rad = [np.hypot(*tips[r["frame_names"].index(f"finger_{k}_tip")][:2]) for k in range(3)]
+    assert max(rad) < 0.03 and np.ptp(rad) < 1e-6                # the fingers close alike
