@@ -133,6 +133,7 @@ class ArticulatedSnapshot:
     stresses: dict
     command_stamp: object = None
     joint_wrenches: dict = None     # {joint: world [f; m] through it, about its input origin}
+    internal_wrenches: dict = None  # {member: (n_sections + 1, 6) at its section boundaries, section axes}
 
 
 class ArticulatedTwin:
@@ -390,4 +391,5 @@ class ArticulatedTwin:
             stresses={m.name: (float(np.nanmax(m.normal_stress, initial=0.0)),
                                float(np.nanmax(m.shear_stress, initial=0.0))) for m in out.members},
             command_stamp=stamp,
-            joint_wrenches={n: out.joint_wrenches[n] for n in names})
+            joint_wrenches={n: out.joint_wrenches[n] for n in names},
+            internal_wrenches={m.name: m.internal_wrench for m in out.members})

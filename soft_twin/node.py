@@ -51,7 +51,7 @@ from rclpy.node import Node
 from rclpy.parameter import Parameter
 from rclpy.qos import QoSProfile, ReliabilityPolicy, HistoryPolicy
 from rclpy.signals import SignalHandlerOptions
-from std_msgs.msg import ColorRGBA, Header
+from std_msgs.msg import ColorRGBA, Float64MultiArray, Header, MultiArrayDimension
 from std_srvs.srv import Trigger
 from visualization_msgs.msg import Marker, MarkerArray
 
@@ -300,8 +300,11 @@ class SoftTwinNode(Node):
             return
         mech = self.robot.mechanism
         self._pub_joints = self.create_publisher(JointState, "~/joint_states", qos)
+        self._pub_internal = {}
         for m in mech.members:
             self._pub_members[m.name] = self.create_publisher(PoseArray, f"~/backbones/{_topic_name(m.name)}", qos)
+            self._pub_internal[m.name] = self.create_publisher(
+                Float64MultiArray, f"~/internal_wrenches/{_topic_name(m.name)}", qos)
         for c in mech.constraints:
             self._pub_constraints[c.name] = self.create_publisher(
                 WrenchStamped, f"~/constraint_wrenches/{_topic_name(c.name)}", qos)
@@ -350,6 +353,13 @@ class SoftTwinNode(Node):
         self._pub_joints.publish(js)
         for name, pub in self._pub_members.items():
             pub.publish(cv.pose_array(snap.backbones[name][0], header))
+        for name, pub in self._pub_internal.items():
+            if pub.get_subscription_count():
+                w = np.asarray(snap.internal_wrenches[name], dtype=float)
+                msg = Float64MultiArray(data=w.ravel().tolist())
+                msg.layout.dim = [MultiArrayDimension(label="section_boundary", size=len(w), stride=w.size),
+                                  MultiArrayDimension(label="N_V2_V3_T_M2_M3", size=6, stride=6)]
+                pub.publish(msg)
 
     # ------------------------------------------------------------------------
     # configuration

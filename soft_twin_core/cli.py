@@ -184,8 +184,10 @@ def csv_columns(out):
     row_of = {t: i for i, t in enumerate(out["time"])}
     fields = HISTORY_FIELDS + BACKBONE_FIELDS
     named = {}                            # field -> names along its last axis
+    samples = {}                          # articulated runs: sample field -> its rows
     if "history_fields" in out:           # an articulated robot's run: its own fields, named columns
-        fields = tuple(out["history_fields"])
+        fields = tuple(out["history_fields"]) + tuple(out.get("sample_fields", ()))
+        samples = {f: [row_of[t] for t in out["members_time"]] for f in out.get("sample_fields", ())}
         named.update(joint_positions=out["joint_names"], joint_velocities=out["joint_names"],
                       joint_accelerations=out["joint_names"], joint_efforts=out["joint_names"],
                       peak_normal_stress=out["member_names"], peak_shear_stress=out["member_names"])
@@ -195,7 +197,11 @@ def csv_columns(out):
         a = np.asarray(out[field], dtype=float)
         if a.ndim > 1 and a.size == 0 and n:       # nothing per row (a robot without constraints)
             continue
-        if field in BACKBONE_FIELDS:
+        if field in samples:
+            rows = samples[field]
+            if not rows:
+                continue
+        elif field in BACKBONE_FIELDS:
             rows = [row_of[t] for t in out["backbone_time"]]   # a sample time is a recorded time
         else:
             rows = list(range(n))
@@ -203,12 +209,14 @@ def csv_columns(out):
         labels = _labels(field, shape)
         if field in named and shape == (len(named[field]),):
             labels = [f"{field}_{nm}" for nm in named[field]]
-        elif field in ("frame_positions", "constraint_wrenches", "transmitted_wrenches", "strains") \
-                and len(shape) == 2 and "history_fields" in out:
+        elif field in ("frame_positions", "constraint_wrenches", "transmitted_wrenches", "strains",
+                       "member_positions", "member_internal_wrenches") and len(shape) == 2 and "history_fields" in out:
             from .model import STRAIN_NAMES
             names = out[{"frame_positions": "frame_names", "constraint_wrenches": "constraint_names",
-                         "transmitted_wrenches": "transmitted_names", "strains": "section_names"}[field]]
-            last = {"frame_positions": _VEC3, "strains": STRAIN_NAMES}.get(field, _WRENCH)
+                         "transmitted_wrenches": "transmitted_names", "strains": "section_names",
+                         "member_positions": "member_point_names",
+                         "member_internal_wrenches": "member_point_names"}[field]]
+            last = {"frame_positions": _VEC3, "member_positions": _VEC3, "strains": STRAIN_NAMES}.get(field, _WRENCH)
             labels = [f"{field}_{nm}_{lab}" for nm in names for lab in last]
         flat = a.reshape(len(rows), -1) if len(rows) else np.zeros((0, len(labels)))
         col = [[""] * n for _ in labels]

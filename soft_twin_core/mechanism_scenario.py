@@ -303,7 +303,10 @@ def run_mechanism_dynamics(sc, duration, dt, theta=0.5, progress=None, record_ev
     peak_shear_stress (N, n_members) [Pa], the largest over each member's
     section boundaries; newton_iterations. With ``backbone_every = K``,
     every K steps the full member outputs under ``members_time`` and
-    ``members`` (as in statics). ``error`` when a step fails (the history
+    ``members`` (as in statics), and the same samples flat for the CSV:
+    ``member_positions`` (B, P, 3) [m] and ``member_internal_wrenches``
+    (B, P, 6) [N, N m] at every member's section boundaries
+    (``member_point_names``: ``<member>_<k>``). ``error`` when a step fails (the history
     ends at the last converged step)."""
     import time as _time
     from .outputs import section_strains, state_outputs
@@ -324,7 +327,10 @@ def run_mechanism_dynamics(sc, duration, dt, theta=0.5, progress=None, record_ev
                constraint_names=[c.name for c in mech.constraints], member_names=[m.name for m in mech.members],
                history_fields=list(HISTORY_FIELDS))
     if backbone_every:
-        out.update(members_time=[], members=[])
+        out.update(members_time=[], members=[], member_positions=[], member_internal_wrenches=[],
+                   member_point_names=[f"{m.name}_{k}" for m in mech.members
+                                       for k in range(len(mech.tree.paths[m.path].joints) + 1)],
+                   sample_fields=["member_positions", "member_internal_wrenches"])
 
     def record(k, inp, iterations):
         o = state_outputs(mech, sim.q, sim.lam, inp, sim.v, sim.a, sim.ws)
@@ -344,6 +350,9 @@ def run_mechanism_dynamics(sc, duration, dt, theta=0.5, progress=None, record_ev
         if backbone_every and k % backbone_every == 0:
             out["members_time"].append(time_of(k))
             out["members"].append(_outputs_dict(sc, o)["members"])
+            # the same samples flat (every member's section boundaries in order), for the CSV
+            out["member_positions"].append(np.concatenate([m.poses[:, :3, 3] for m in o.members]).tolist())
+            out["member_internal_wrenches"].append(np.concatenate([m.internal_wrench for m in o.members]).tolist())
 
     sim.start_multipliers(inp0, _targets(sc, 0.0))
     record(0, inp0, 0)

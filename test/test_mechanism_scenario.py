@@ -141,3 +141,18 @@ def test_gripper_and_parallel_robot_scenarios(tmp_path):
     tips = np.array(r["frame_positions"][-1])
     rad = [np.hypot(*tips[r["frame_names"].index(f"finger_{k}_tip")][:2]) for k in range(3)]
     assert max(rad) < 0.03 and np.ptp(rad) < 1e-6                # the fingers close alike
+
+
+def test_member_samples_in_json_and_csv_alike(tmp_path):
+    args = ("dynamics", "pan_tilt_arm_dynamics", "--duration", "0.04", "--dt", "0.01", "--backbone-every", "2")
+    rc, js = _run(tmp_path, *args)
+    rc2, cs = _run(tmp_path, *args, "--format", "csv")
+    assert rc == rc2 == 0
+    r = json.loads(js)
+    rows = list(csv.DictReader(cs.splitlines()))
+    assert r["members_time"] == [0.0, 0.02, 0.04] and r["member_point_names"][-1] == "arm_4"
+    for k, t in enumerate(r["members_time"]):
+        row = rows[r["time"].index(t)]
+        assert float(row["member_internal_wrenches_arm_0_my"]) == r["members"][k]["arm"]["internal_wrench"][0][4]
+        assert float(row["member_positions_arm_4_z"]) == r["members"][k]["arm"]["positions"][4][2]
+    assert rows[1]["member_positions_arm_4_z"] == ""          # not a sample time

@@ -198,3 +198,17 @@ def test_joint_wrench_topics_carry_the_transmitted_wrenches(pan_tilt_qs):
     m = got[-1].wrench
     np.testing.assert_allclose([m.force.x, m.force.y, m.force.z, m.torque.x, m.torque.y, m.torque.z], w,
                                rtol=0, atol=1e-9)
+
+
+def test_internal_wrench_topic_along_the_member(pan_tilt_qs):
+    from std_msgs.msg import Float64MultiArray
+    c = pan_tilt_qs
+    got = c.subscribe(Float64MultiArray, "/twin_art_qs/internal_wrenches/arm")
+    stamp = c.send_joint_command(["pan", "tilt"], positions=[0.2, 0.1])
+    assert c.wait_until(lambda: c.state_after(stamp), 10.0)
+    mech = load_mechanism(find_file("pan_tilt_arm", "robots"))
+    ref = solve_equilibrium(mech, {"tendon_z_pos": 2.0}, None, {"pan": 0.2, "tilt": 0.1})
+    want = state_outputs(mech, ref.q, ref.lam, ref.inputs).members[0].internal_wrench
+    assert c.wait_until(lambda: got and np.allclose(np.reshape(got[-1].data, (-1, 6)), want, rtol=0, atol=1e-9),
+                        10.0), "internal wrenches differ from the core's"
+    assert [d.size for d in got[-1].layout.dim] == [5, 6]
