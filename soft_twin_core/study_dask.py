@@ -347,10 +347,14 @@ def run_study(study, out_dir, *, scheduler=None, n_workers=None, serial=False, c
             store.flush()
             timing["compute_s"] = time.monotonic() - t0
         finally:
-            if own_client is not None:
-                own_client.close()
-            if cluster is not None:
-                cluster.close()
+            # bounded: after Ctrl-C to the whole process group a close could wait for ever on a worker
+            # process that is shutting down too (seen once in 2 full runs: the command hung)
+            for closing in (own_client, cluster):
+                if closing is not None:
+                    try:
+                        closing.close(timeout=15)
+                    except Exception:            # a timeout or an already-dead worker: we are leaving anyway
+                        pass
     # --- merge: every case of this study, in case order
     rows, pts = [], []
     for c in cases:
