@@ -17,7 +17,7 @@ rclpy = pytest.importorskip("rclpy", reason="needs ROS 2: the venv of `make setu
 
 from geometry_msgs.msg import Pose  # noqa: E402
 
-from soft_twin.client import NodeProcess, TwinClient  # noqa: E402
+from soft_twin.client import start_twin, stop_twin  # noqa: E402
 from soft_twin.config import resolve_robot_file  # noqa: E402
 from soft_twin.conversions import matrix_from_pose  # noqa: E402
 from soft_twin.msg import ActuationCommand  # noqa: E402
@@ -37,23 +37,11 @@ def model():
 
 
 def _start(node_name, ros_args, tmp_path_factory):
-    log = tmp_path_factory.mktemp(node_name) / "node.log"
-    proc = NodeProcess(ros_args, node_name=node_name, log_path=log)
-    client = TwinClient(node_name, client_name=f"{node_name}_test_client")
-    try:
-        client.wait_ready(START_TIMEOUT)
-    except Exception:
-        client.close()
-        proc.stop()
-        raise AssertionError(f"node did not come up:\n{proc.output()[-3000:]}")
-    return proc, client
+    return start_twin(node_name, ros_args, tmp_path_factory.mktemp(node_name) / "node.log", timeout=START_TIMEOUT)
 
 
 def _stop(proc, client):
-    client.close()
-    rc = proc.stop()
-    out = proc.output()
-    assert rc == 0 and "Traceback" not in out, f"exit code {rc}\n{out[-3000:]}"
+    stop_twin(proc, client)
 
 
 @pytest.fixture(scope="module")
