@@ -217,6 +217,11 @@ class Simulator:
         return self._integrator.last_a
 
     @property
+    def newton_iterations(self):
+        """Newton iterations so far (all steps)."""
+        return self._integrator.iterations
+
+    @property
     def jacobian_refreshes(self):
         """Factorisations of Newton's matrix so far."""
         return self._integrator.factorisations

@@ -14,9 +14,13 @@ and the velocity products; the iteration uses the first part, whose
 articulated-body factorisation costs O(n) and whose solve is O(n)
 (:func:`kernels.passes.aba_factor`): the stiff part of the problem
 (elasticity, damping, inertia) is exact, the rest converges linearly at a
-rate O((h omega)^2) for the soft geometric modes. The factorisation is kept
-across iterations and steps while the iteration converges fast and redone
-when it slows; a step that still fails is split into halves.
+rate O((h omega)^2) for the soft geometric modes. The factorisation is made
+once per step, at the first iterate, from the poses the residual's forward
+pass has just computed (about half a residual's cost): a fresh matrix
+contracts the error about 100-fold per iteration on the benchmark
+cantilever, a matrix kept across steps 20-60-fold, which costs more
+iterations than the factorisations it saves. A step that fails is split
+into halves.
 
 The whole Newton loop of a step runs compiled (one call per step).
 """
@@ -106,11 +110,12 @@ def residual_pass(m, w, act, ld, g, coef, effort, q, v, a, out, at_rest):
 
 
 @_jit
-def newton_step(m, w, act, ld, g, coef, effort, q0, v0, v1, h, theta, tol, floor, max_it, refactor, q1):
+def newton_step(m, w, act, ld, g, coef, effort, q0, v0, v1, h, theta, tol, floor, max_it, q1):
     """Newton iteration of one theta-method step from (q0, v0), starting at
-    the guess v1 (updated in place); q1 receives q0 (+) h v_t. Returns
-    (iterations, status, rate, refactored): status 0 converged, 1 not in
-    max_it, 2 diverging, 3 non-finite, 4 factorisation failed."""
+    the guess v1 (updated in place); q1 receives q0 (+) h v_t. Newton's
+    matrix is factorised at the first iterate. Returns (iterations, status,
+    rate): status 0 converged, 1 not in max_it, 2 diverging, 3 non-finite,
+    4 factorisation failed."""
     nv = v0.shape[0]
     vt = np.empty(nv)
     qt = np.empty(q0.shape[0])
@@ -125,11 +130,11 @@ def newton_step(m, w, act, ld, g, coef, effort, q0, v0, v1, h, theta, tol, floor
             vt[k] = (1.0 - theta) * v0[k] + theta * v1[k]
             acc[k] = (v1[k] - v0[k]) / h
         integrate_pass(m, q0, vt, th, qt)
-        if refactor and it == 1:
-            passes.forward_pass(m, w, qt, vt, acc, 0)
-            if not passes.aba_factor(m, w, th, th * th):
-                return it, 4, rate, True
         residual_pass(m, w, act, ld, g, coef, effort, qt, vt, acc, R, False)
+        if it == 1:
+            # the residual's forward pass left the poses and subspaces at qt
+            if not passes.aba_factor(m, w, th, th * th):
+                return it, 4, rate
         for k in range(nv):
             R[k] = -h * R[k]
         passes.aba_solve(m, w, R, dv)
@@ -143,7 +148,7 @@ def newton_step(m, w, act, ld, g, coef, effort, q0, v0, v1, h, theta, tol, floor
             upd = max(upd, abs(dv[k]))
             vmax = max(vmax, abs(v1[k]), abs(v0[k]))
         if not finite:
-            return it, 3, rate, refactor
+            return it, 3, rate
         goal = max(tol * vmax, floor)
         done = upd <= goal
         if not done and prev > 0.0:
@@ -154,27 +159,24 @@ def newton_step(m, w, act, ld, g, coef, effort, q0, v0, v1, h, theta, tol, floor
             elif upd > 100.0 * goal:
                 rate = max(rate, r_k)
                 if rate > 0.9:
-                    return it, 2, rate, refactor
+                    return it, 2, rate
         if done:
             for k in range(nv):
                 vt[k] = (1.0 - theta) * v0[k] + theta * v1[k]
             integrate_pass(m, q0, vt, h, q1)
-            return it, 0, rate, refactor
+            return it, 0, rate
         prev = upd
-    return max_it, 1, rate, refactor
+    return max_it, 1, rate
 
 
 @_jit
-def run_steps(m, w, act, ld, g, coef, effort, q, v, a_last, a_prev, have_prev, h, theta, tol, max_it, n,
-              refactor, stats):
+def run_steps(m, w, act, ld, g, coef, effort, q, v, a_last, a_prev, have_prev, h, theta, tol, max_it, n, stats):
     """Up to n theta-method steps with constant inputs in one call: q, v,
-    a_last, a_prev advance in place after every converged step (predictor
-    and factorisation policy as :meth:`ThetaIntegrator._newton`). Stops at
-    the first step that does not converge at once, leaving it to the caller
-    as it was before the attempt (a factorisation made for a failed attempt
-    at this step is redone by the caller). Returns the
-    number of steps done; stats[0] += Newton iterations, stats[1] +=
-    factorisations; stats[2] = 1 if the factorisation is current at the end."""
+    a_last, a_prev advance in place after every converged step (predictor as
+    :meth:`ThetaIntegrator._newton`). Stops at the first step that does not
+    converge, leaving it to the caller as it was before the attempt. Returns
+    the number of steps done; stats[0] += Newton iterations, stats[1] +=
+    factorisations."""
     nv = v.shape[0]
     v1 = np.empty(nv)
     q1 = np.empty(q.shape[0])
@@ -192,16 +194,13 @@ def run_steps(m, w, act, ld, g, coef, effort, q, v, a_last, a_prev, have_prev, h
         for k in range(q.shape[0]):
             qmax = max(qmax, abs(q[k]))
         floor = 1e-14 * qmax / h
-        it, status, rate, refactored = newton_step(m, w, act, ld, g, coef, effort, q, v, v1, h, theta, tol, floor,
-                                                   max_it, refactor, q1)
+        it, status, rate = newton_step(m, w, act, ld, g, coef, effort, q, v, v1, h, theta, tol, floor, max_it, q1)
         if status != 0:
             # hand the step back as it was before this attempt: the caller
-            # replays it through the single-step path (retry, fallback, sub-steps)
-            stats[2] = 0.0 if refactor else 1.0
+            # replays it through the single-step path (fallback, sub-steps)
             return s
         stats[0] += it
-        if refactored:
-            stats[1] += 1
+        stats[1] += 1
         for k in range(nv):
             a_prev[k] = a_last[k]
             a_last[k] = (v1[k] - v[k]) / h
@@ -209,8 +208,6 @@ def run_steps(m, w, act, ld, g, coef, effort, q, v, a_last, a_prev, have_prev, h
         for k in range(q.shape[0]):
             q[k] = q1[k]
         have_prev = True
-        refactor = rate > 0.1
-    stats[2] = 0.0 if refactor else 1.0
     return n
 
 
@@ -246,8 +243,8 @@ class ThetaIntegrator:
         self.last_a = np.zeros(model.nv)
         self._prev_a = None
         self._steps = 0
-        self._factor_h = None         # step size of the current factorisation (None: refactor)
         self.factorisations = 0
+        self.iterations = 0           # Newton iterations so far (all steps)
 
     def _newton(self, q0, v0, t, h):
         loads, g, coef, effort = self.inputs(t + self.theta * h)
@@ -257,19 +254,10 @@ class ThetaIntegrator:
         v1 = v0 + h * (a_pred if np.all(np.isfinite(a_pred)) else 0.0)
         q1 = np.empty_like(q0)
         floor = 1e-14 * max(1.0, np.abs(q0).max(initial=0.0)) / h
-        refactor = self._factor_h != h
         m, w = self.ws.m, self.ws.w
-        it, status, rate, refactored = newton_step(m, w, self.act, loads, g, coef, effort, q0, v0, v1, h,
-                                                   self.theta, self.tol, floor, self.max_iterations, refactor, q1)
-        if refactored:
-            self.factorisations += 1
-            self._factor_h = h if status != 4 else None
-        if status != 0 and not refactored:
-            # stale factorisation: redo it at this step and retry once
-            self._factor_h = None
-            return self._newton(q0, v0, t, h)
-        if status == 0 and rate > 0.1:
-            self._factor_h = None              # slow: refresh at the next step
+        it, status, rate = newton_step(m, w, self.act, loads, g, coef, effort, q0, v0, v1, h,
+                                       self.theta, self.tol, floor, self.max_iterations, q1)
+        self.factorisations += 1
         if status != 0 and status != 3 and self.full_newton:
             return self._newton_full(q0, v0, h, (loads, g, coef, effort), v0 + h * self.last_a)
         return (q1, v1, it) if status == 0 else None
@@ -307,7 +295,6 @@ class ThetaIntegrator:
                 vt = (1.0 - self.theta) * v0 + self.theta * v1
                 q1 = np.empty_like(q0)
                 integrate_pass(ws.m, q0, vt, h, q1)
-                self._factor_h = None
                 return q1, v1, it
         return None
 
@@ -328,8 +315,8 @@ class ThetaIntegrator:
     def run(self, state, n):
         """n steps with inputs that do not change in time (``inputs`` is
         called once), the converged ones in one compiled call
-        (:func:`run_steps`); a step that needs more (a fresh factorisation,
-        the full-Newton fallback, sub-steps) goes through :meth:`step`.
+        (:func:`run_steps`); a step that needs more (the full-Newton
+        fallback, sub-steps) goes through :meth:`step`.
         Returns the StepInfo of the last step taken."""
         loads, g, coef, effort = self.inputs(state.t)
         info = StepInfo(0, True, 0.0)
@@ -340,12 +327,11 @@ class ThetaIntegrator:
             a_last = np.array(self.last_a, dtype=float)
             have_prev = self._prev_a is not None and self._steps > 0
             a_prev = np.array(self._prev_a if have_prev else a_last, dtype=float)
-            stats = np.zeros(3)
+            stats = np.zeros(2)
             k = run_steps(self.ws.m, self.ws.w, self.act, loads, g, coef, effort, q, v, a_last, a_prev,
-                          have_prev, self.dt, self.theta, self.tol, self.max_iterations, n - done,
-                          self._factor_h != self.dt, stats)
+                          have_prev, self.dt, self.theta, self.tol, self.max_iterations, n - done, stats)
             self.factorisations += int(stats[1])
-            self._factor_h = self.dt if stats[2] == 1.0 else None
+            self.iterations += int(stats[0])
             if k > 0:
                 state.q, state.qdot, state.t = q, v, state.t + k * self.dt
                 self.last_a, self._prev_a = a_last, a_prev
@@ -365,6 +351,7 @@ class ThetaIntegrator:
         if out is None:
             return StepInfo(self.max_iterations, False, np.inf)
         q1, v1, it = out
+        self.iterations += it
         # the predictor extrapolates from two real steps only (not from the initial zeros)
         self._prev_a = self.last_a if self._steps > 0 else None
         self._steps += 1

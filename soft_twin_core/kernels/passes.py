@@ -23,7 +23,8 @@ frame, with subspace Sp = x_p T(x_p f) B.
 
 import numpy as np
 
-from .spatial import _Ad_into, _ad_vec, _exp_into, _jit, _map_into, _tangent_dot_into, _tangent_into
+from .spatial import (_Ad_into, _ad_t, _ad_vec, _exp_into, _jit, _map_into, _T_dot_along, _tangent_dot_into,
+                      _tangent_into)
 
 SOFT, FREE, SPHERICAL, PRISMATIC, REVOLUTE, FIXED = 5, 4, 3, 2, 1, 0
 
@@ -150,6 +151,14 @@ def _soft_bias(kmap, x, strain, rate, V, Sv, out, vs, P):
     """ad(V) S v + x Tdot(x f, x fdot) fdot: the velocity-product acceleration
     of the cross-section at abscissa x of a soft section (strain f, rate
     fdot, body twist V, S v = Sv); vs: (>= 5, 6) scratch, P: (5, 6)."""
+    if kmap == 0:
+        X = (x * strain[0], x * strain[1], x * strain[2], x * strain[3], x * strain[4], x * strain[5])
+        Y = (rate[0], rate[1], rate[2], rate[3], rate[4], rate[5])
+        d = _T_dot_along(x, X, Y)
+        e = _ad_t((V[0], V[1], V[2], V[3], V[4], V[5]), (Sv[0], Sv[1], Sv[2], Sv[3], Sv[4], Sv[5]))
+        for a in range(6):
+            out[a] = x * d[a] + e[a]
+        return
     x6, xd6, tmp, tmp2, acc = vs[0], vs[1], vs[2], vs[3], vs[4]
     for a in range(6):
         x6[a] = x * strain[a]
@@ -241,7 +250,9 @@ def forward_pass(m, w, q, v, a, level):
 @_jit
 def _inertial_wrench(I6, mc, diag, A, V, R, g, scale, out, tmp, tmp2):
     """out = scale (I (A - [R^T g; 0]) - ad(V)^T I V): inertial minus
-    gravitational body wrench of a rigid inertia I6 (or diagonal mc)."""
+    gravitational body wrench of a rigid inertia I6 (or diagonal mc); R:
+    the body's rotation (its upper-left 3x3 block is read) in the frame
+    where g is given."""
     for a in range(3):
         tmp[a] = A[a] - (R[0, a] * g[0] + R[1, a] * g[1] + R[2, a] * g[2])
         tmp[a + 3] = A[a + 3]
@@ -303,6 +314,7 @@ def rnea_pass(m, w, ld, g, tau, at_rest):
     (output frames) and w.f_in (input frames): the wrench the parent side
     exerts on the subtree."""
     z6 = np.zeros(6)
+    gin = np.empty(3)
     n = m.parent.shape[0]
     t1, t2, t3, Wb = w.vscratch[8], w.vscratch[9], w.vscratch[10], w.vscratch[11]
     T = w.scratch[0]
@@ -353,17 +365,13 @@ def rnea_pass(m, w, ld, g, tau, at_rest):
         for b in range(6):
             w.f_in[i, b] += t1[b]
         if m.kind[i] == SOFT:
-            R = np.empty((3, 3))
+            # gravity in the input frame; at a point, R_p^T of it
+            for a in range(3):
+                gin[a] = w.g_in[i, 0, a] * g[0] + w.g_in[i, 1, a] * g[1] + w.g_in[i, 2, a] * g[2]
             for p in range(m.npt[i]):
-                for r in range(3):
-                    for c in range(3):
-                        acc = 0.0
-                        for k in range(3):
-                            acc += w.g_in[i, r, k] * w.gp[i, p, k, c]
-                        R[r, c] = acc
                 fp = w.fp[i, p]
                 _inertial_wrench(m.inertia[i], m.mc[i], True, z6 if at_rest else w.Ap[i, p],
-                                 z6 if at_rest else w.Vp[i, p], R, g, m.pw[i, p], fp, t2, t3)
+                                 z6 if at_rest else w.Vp[i, p], w.gp[i, p], gin, m.pw[i, p], fp, t2, t3)
                 for a in range(nv):
                     acc = 0.0
                     for r in range(6):
@@ -396,28 +404,33 @@ def joint_forces(m, q, v, out):
 
 @_jit
 def _congruence_add(X, I, out, tmp):
-    """out += X^T I X (6x6)."""
+    """out += X^T I X (6x6, I symmetric) for an adjoint X = Ad(g^-1), whose
+    lower-left 3x3 block is zero: the products skip it and only the upper
+    triangle is summed (mirrored)."""
     for r in range(6):
         for c in range(6):
             acc = 0.0
-            for k in range(6):
+            for k in range(3 if c < 3 else 6):
                 acc += I[r, k] * X[k, c]
             tmp[r, c] = acc
     for r in range(6):
-        for c in range(6):
+        kr = 3 if r < 3 else 6
+        for c in range(r, 6):
             acc = 0.0
-            for k in range(6):
+            for k in range(kr):
                 acc += X[k, r] * tmp[k, c]
             out[r, c] += acc
+            if c != r:
+                out[c, r] += acc
 
 
 @_jit
 def _diag_congruence_add(X, d, wgt, out):
-    """out += wgt X^T diag(d) X."""
+    """out += wgt X^T diag(d) X for an adjoint X (zero lower-left block)."""
     for r in range(6):
         for c in range(r, 6):
             acc = 0.0
-            for k in range(6):
+            for k in range(3 if r < 3 else 6):
                 acc += X[k, r] * d[k] * X[k, c]
             out[r, c] += wgt * acc
             if c != r:
@@ -429,7 +442,8 @@ def _joint_blocks(soft, nv, npt, pw, mc, X, S, Ad_p_inv, Sp_all, IA, F, Dm, Ic, 
     """For joint i with the inertia IA (output frame) of everything beyond
     its output frame: F = Ad(Jq^-1)^T IA S + sum_p Ad(gp^-1)^T Ip Sp (6 x nv,
     input frame), Dm = S^T IA S + sum_p Sp^T Ip Sp, and Ic = Ad(Jq^-1)^T IA
-    Ad(Jq^-1) + sum_p Ad(gp^-1)^T Ip Ad(gp^-1) (input frame)."""
+    Ad(Jq^-1) + sum_p Ad(gp^-1)^T Ip Ad(gp^-1) (input frame). The adjoints'
+    zero lower-left blocks and the symmetry of Dm and Ic are used."""
     for r in range(6):
         for c in range(6):
             Ic[r, c] = 0.0
@@ -443,15 +457,16 @@ def _joint_blocks(soft, nv, npt, pw, mc, X, S, Ad_p_inv, Sp_all, IA, F, Dm, Ic, 
     for r in range(6):
         for a in range(nv):
             acc = 0.0
-            for k in range(6):
+            for k in range(3 if r < 3 else 6):
                 acc += X[k, r] * IS[k, a]
             F[r, a] = acc
     for a in range(nv):
-        for b in range(nv):
+        for b in range(a, nv):
             acc = 0.0
             for k in range(6):
                 acc += S[k, a] * IS[k, b]
             Dm[a, b] = acc
+            Dm[b, a] = acc
     if not soft:
         return
     for p in range(npt):
@@ -459,20 +474,23 @@ def _joint_blocks(soft, nv, npt, pw, mc, X, S, Ad_p_inv, Sp_all, IA, F, Dm, Ic, 
         Sp = Sp_all[p]
         wg = pw[p]
         _diag_congruence_add(Xp, mc, wg, Ic)
+        for k in range(6):
+            for a in range(nv):
+                tmp[k, a] = wg * mc[k] * Sp[k, a]
         for r in range(6):
             for a in range(nv):
                 acc = 0.0
-                for k in range(6):
-                    acc += Xp[k, r] * mc[k] * Sp[k, a]
-                F[r, a] += wg * acc
+                for k in range(3 if r < 3 else 6):
+                    acc += Xp[k, r] * tmp[k, a]
+                F[r, a] += acc
         for a in range(nv):
             for b in range(a, nv):
                 acc = 0.0
                 for k in range(6):
-                    acc += Sp[k, a] * mc[k] * Sp[k, b]
-                Dm[a, b] += wg * acc
+                    acc += Sp[k, a] * tmp[k, b]
+                Dm[a, b] += acc
                 if b != a:
-                    Dm[b, a] += wg * acc
+                    Dm[b, a] += acc
 
 
 @_jit
@@ -589,7 +607,7 @@ def aba_factor(m, w, cD, cK):
                     Dm[a, b] += cD * m.Db[i, a, b] + cK * m.Kb[i, a, b]
             if not _small_inverse(Dm, nv, w.Dinv[i]):
                 return False
-            # Ic -= U Dinv U^T
+            # Ic -= U Dinv U^T (symmetric)
             for r in range(6):
                 for b in range(nv):
                     acc = 0.0
@@ -597,11 +615,13 @@ def aba_factor(m, w, cD, cK):
                         acc += U[r, k] * w.Dinv[i, k, b]
                     UD[r, b] = acc
             for r in range(6):
-                for c in range(6):
+                for c in range(r, 6):
                     acc = 0.0
                     for k in range(nv):
                         acc += UD[r, k] * U[c, k]
                     Ic[r, c] -= acc
+                    if c != r:
+                        Ic[c, r] -= acc
         par = m.parent[i]
         if par >= 0:
             _congruence_add(m.Ad_pl_inv[i], Ic, w.IA[par], tmp)
