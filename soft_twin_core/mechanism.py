@@ -29,6 +29,7 @@ from .model import (ModelError, _check_keys, _num, _vec, model_from_dict, pose_f
                     robot_mapping)
 from .multibody import FIXED, FREE, PRISMATIC, REVOLUTE, SOFT, SPHERICAL, ModelBuilder, SoftSection, \
     spatial_inertia
+from .stress import SectionGeometry, section_geometry  # noqa: F401  (SectionGeometry: re-exported)
 
 CONSTRAINT_TYPES = {"clamped": 6, "pinned": 3, "line": 2, "plane": 1}
 JOINT_TYPES = {"fixed": FIXED, "revolute": REVOLUTE, "prismatic": PRISMATIC, "spherical": SPHERICAL,
@@ -93,20 +94,6 @@ def _normals(d):
     n1 = np.cross(d, e)
     n1 /= np.linalg.norm(n1)
     return np.array([n1, np.cross(d, n1)])
-
-
-@dataclass(frozen=True, eq=False)
-class SectionGeometry:
-    """Cross-section geometry of a soft section, for stresses: area A
-    [m^2], second moments I2, I3 [m^4], torsion constant J [m^4], extreme
-    fibre distances cy, cz [m] along local y and z, shape name."""
-    shape: str
-    A: float
-    I2: float
-    I3: float
-    J: float
-    cy: float
-    cz: float
 
 
 @dataclass(frozen=True, eq=False)
@@ -324,27 +311,11 @@ def _joint(b, jd, where, default_name, is_member):
     return name, kind, placement, axis, limits, stiffness, damping, reference, control, motion
 
 
-def _geometry(cs):
-    """SectionGeometry of a cross_section mapping (already validated)."""
-    from .model import _cross_section
-    c = _cross_section(cs, "cross_section")
-    shape = cs.get("shape", "solid_circle")
-    if shape == "solid_circle":
-        cy = cz = float(cs["radius"])
-    elif shape == "hollow_tube":
-        cy = cz = float(cs["outer_radius"])
-    elif shape == "rectangle":
-        cy, cz = 0.5 * float(cs["width"]), 0.5 * float(cs["height"])
-    else:
-        return None
-    return SectionGeometry(shape, c.area, c.I2, c.I3, c.J, cy, cz)
-
-
 def _member_geometry(segments, robot):
     """Per-section SectionGeometry (None where a segment gives ``sectional``)."""
     out = []
     for sd in segments:
-        g = _geometry(sd["cross_section"]) if "cross_section" in sd else None
+        g = section_geometry(sd["cross_section"]) if "cross_section" in sd else None
         out += [g] * int(sd.get("sections", 1))
     return out
 

@@ -15,7 +15,7 @@ included). Frames and signs (docs/CONVENTIONS.md):
   axes [N, N m]: [axial, shear_y, shear_z, torsion, bending_y, bending_z];
   it includes the tendons' pull on the cut (a tendon of tension T crossing
   the cut at offset d with unit tangent t adds -T [t; d x t]).
-* peak stresses from the cross-section geometry (:func:`peak_stresses`).
+* peak stresses from the cross-section geometry (:func:`stress.peak_stresses`).
 """
 
 from dataclasses import dataclass
@@ -23,39 +23,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from .kernels import passes
-
-
-def peak_stresses(geometry, wrench):
-    """Peak normal and shear stress [Pa] of a cross-section under the
-    internal wrench [N, V2, V3, T, M2, M3] (..., 6), linear elastic beam
-    theory:
-
-    * normal: ``sigma = N/A + M2 z/I2 - M3 y/I3`` over the section; its peak
-      magnitude is ``|N|/A + sqrt((M2/I2)^2 + (M3/I3)^2) c`` for circles and
-      tubes (c = outer radius, I2 = I3) and ``|N|/A + |M2| cz/I2 + |M3| cy/I3``
-      for rectangles (corners);
-    * shear: torsion ``|T| c/J`` (circles, tubes; rectangles: ``|T| t/J``
-      with t the smaller side, thin-wall estimate) plus the peak transverse
-      shear ``k |V|/A`` (k = 4/3 solid circle, 2 thin tube, 3/2 rectangle),
-      added as an upper bound.
-
-    Returns (normal, shear) arrays of the leading shape; NaN when the
-    section has no geometry (a ``sectional`` block)."""
-    w = np.asarray(wrench, dtype=float)
-    if geometry is None:
-        nan = np.full(w.shape[:-1], np.nan)
-        return nan, nan.copy()
-    g = geometry
-    N, V2, V3, T, M2, M3 = (w[..., k] for k in range(6))
-    V = np.hypot(V2, V3)
-    if g.shape in ("solid_circle", "hollow_tube"):
-        normal = np.abs(N) / g.A + np.hypot(M2 / g.I2, M3 / g.I3) * g.cy
-        k = 4.0 / 3.0 if g.shape == "solid_circle" else 2.0
-        shear = np.abs(T) * g.cy / g.J + k * V / g.A
-    else:
-        normal = np.abs(N) / g.A + np.abs(M2) * g.cz / g.I2 + np.abs(M3) * g.cy / g.I3
-        shear = np.abs(T) * 2 * min(g.cy, g.cz) / g.J + 1.5 * V / g.A
-    return normal, shear
+from .stress import peak_stresses
 
 
 @dataclass

@@ -1,68 +1,107 @@
-"""Material stresses from the internal wrenches of a rod (beam theory).
+"""Material stresses of a soft member's cross-section from its internal
+wrench (linear elastic beam theory), the one place for them: the
+articulated outputs (:mod:`outputs`), the studies' maximum stress
+(:mod:`study_case`) and the node's diagnostics use these functions.
 
 At a cross-section with internal wrench ``[N, V2, V3, T, M2, M3]`` (body
 frame, x along the tangent; :func:`statics.internal_wrenches`):
 
-- solid circle (radius r) and hollow tube (outer radius r): the largest
-  normal stress ``|N|/A + sqrt(M2^2 + M3^2) r / I`` and the torsional shear
-  ``|T| r / J`` at the outer fibre; von Mises ``sqrt(sigma^2 + 3 tau^2)``
-  there (exact for these sections, transverse shear neglected: it vanishes
-  at the outer fibre in the bending plane);
-- rectangle (width w along y, height h along z): the corner stress
-  ``|N|/A + |M2| (h/2) / I2 + |M3| (w/2) / I3`` and ``tau = |T| b / J``
-  (b the smaller side; exact for thin strips); von Mises combined as if
-  both were at one point: an upper bound;
-- explicit sections and ``sectional`` members have no fibre distance: NaN.
+* normal: ``sigma = N/A + M2 z/I2 - M3 y/I3`` over the section; its peak
+  magnitude is ``|N|/A + sqrt((M2/I2)^2 + (M3/I3)^2) c`` for circles and
+  tubes (c = outer radius, I2 = I3) and ``|N|/A + |M2| cz/I2 + |M3| cy/I3``
+  for rectangles (corners);
+* shear: torsion ``|T| c/J`` (circles, tubes; rectangles: ``|T| b/J`` with b
+  the smaller side, thin-wall estimate) plus the peak transverse shear
+  ``k |V|/A`` (k = 4/3 solid circle, 2 thin tube, 3/2 rectangle), added as
+  an upper bound;
+* von Mises ``sqrt(sigma^2 + 3 tau^2)`` at the outer fibre with the
+  torsional shear there (the transverse shear vanishes at the outer fibre
+  of the bending plane): exact for round sections, for rectangles an upper
+  bound (corner normal stress with the mid-side torsional shear);
+* explicit sections and ``sectional`` members have no fibre distance: NaN.
 
-Stresses in Pa. A sample point on the boundary of two members is
-evaluated with both cross-sections (the larger stress counts).
+Section properties (A, I2, I3, J) are those of the model's stiffness
+(:func:`model._cross_section`). Stresses in Pa. A sample point on the
+boundary of two members is evaluated with both cross-sections (the larger
+stress counts).
 """
 
 import math
+from dataclasses import dataclass
 
 import numpy as np
 
 
-def _geometry(cs):
-    """(kind, A, I2, I3, J, c2, c3, b) of a robot file's cross_section
-    mapping; kind None when no fibre distance is known."""
-    from .model import parse_number
+@dataclass(frozen=True, eq=False)
+class SectionGeometry:
+    """Cross-section geometry of a soft section, for stresses: area A
+    [m^2], second moments I2, I3 [m^4], torsion constant J [m^4], extreme
+    fibre distances cy, cz [m] along local y and z, shape name."""
+    shape: str
+    A: float
+    I2: float
+    I3: float
+    J: float
+    cy: float
+    cz: float
+
+
+def section_geometry(cs):
+    """SectionGeometry of a robot file's ``cross_section`` mapping (already
+    validated), None for shapes without a fibre distance (explicit)."""
+    from .model import _cross_section
     shape = cs.get("shape", "solid_circle")
-
-    def num(k):
-        return parse_number(cs[k], k)
-    if shape in ("solid_circle", "hollow_tube"):
-        if shape == "solid_circle":
-            ro, ri = num("radius"), 0.0
-        else:
-            ro, ri = num("outer_radius"), num("inner_radius")
-        A = math.pi * (ro ** 2 - ri ** 2)
-        I = math.pi * (ro ** 4 - ri ** 4) / 4
-        J = num("J") if "J" in cs else 2 * I
-        return ("round", A, I, I, J, ro, ro, ro)
-    if shape == "rectangle":
-        w, h = num("width"), num("height")
-        a, b = max(w, h), min(w, h)
-        J = num("J") if "J" in cs else a * b ** 3 * (1 / 3 - 0.21 * (b / a) * (1 - b ** 4 / (12 * a ** 4)))
-        return ("rect", w * h, w * h ** 3 / 12, h * w ** 3 / 12, J, h / 2, w / 2, b)
-    return (None,) * 8
-
-
-def von_mises(W, geom):
-    """Von Mises stress [Pa] (P,) of internal wrenches W (P, 6) on a
-    cross-section of :func:`_geometry` ``geom`` (NaN if unknown)."""
-    kind, A, I2, I3, J, c2, c3, b = geom
-    W = np.atleast_2d(W)
-    if kind is None:
-        return np.full(len(W), np.nan)
-    N, T, M2, M3 = W[:, 0], W[:, 3], W[:, 4], W[:, 5]
-    if kind == "round":
-        sigma = np.abs(N) / A + np.hypot(M2, M3) * c2 / I2
-        tau = np.abs(T) * c2 / J
+    if shape == "solid_circle":
+        cy = cz = float(cs["radius"])
+    elif shape == "hollow_tube":
+        cy = cz = float(cs["outer_radius"])
+    elif shape == "rectangle":
+        cy, cz = 0.5 * float(cs["width"]), 0.5 * float(cs["height"])
     else:
-        sigma = np.abs(N) / A + np.abs(M2) * c2 / I2 + np.abs(M3) * c3 / I3
-        tau = np.abs(T) * b / J
-    return np.sqrt(sigma ** 2 + 3 * tau ** 2)
+        return None
+    c = _cross_section(cs, "cross_section")
+    return SectionGeometry(shape, c.area, c.I2, c.I3, c.J, cy, cz)
+
+
+def _stress_parts(g, w):
+    """(peak normal, torsional shear at the outer fibre, peak transverse
+    shear) [Pa] of wrenches w (..., 6) on a SectionGeometry g."""
+    N, V2, V3, T, M2, M3 = (w[..., k] for k in range(6))
+    V = np.hypot(V2, V3)
+    if g.shape in ("solid_circle", "hollow_tube"):
+        normal = np.abs(N) / g.A + np.hypot(M2 / g.I2, M3 / g.I3) * g.cy
+        torsion = np.abs(T) * g.cy / g.J
+        transverse = (4.0 / 3.0 if g.shape == "solid_circle" else 2.0) * V / g.A
+    else:
+        normal = np.abs(N) / g.A + np.abs(M2) * g.cz / g.I2 + np.abs(M3) * g.cy / g.I3
+        torsion = np.abs(T) * 2 * min(g.cy, g.cz) / g.J
+        transverse = 1.5 * V / g.A
+    return normal, torsion, transverse
+
+
+def peak_stresses(geometry, wrench):
+    """(normal, shear) peak stresses [Pa] of a cross-section of ``geometry``
+    (a SectionGeometry or None) under internal wrenches (..., 6); the shear
+    adds the torsional and the transverse peaks (an upper bound). Arrays of
+    the leading shape, NaN when the geometry is unknown."""
+    w = np.asarray(wrench, dtype=float)
+    if geometry is None:
+        nan = np.full(w.shape[:-1], np.nan)
+        return nan, nan.copy()
+    normal, torsion, transverse = _stress_parts(geometry, w)
+    return normal, torsion + transverse
+
+
+def von_mises(wrench, geometry):
+    """Von Mises stress [Pa] (P,) of internal wrenches (P, 6) at the outer
+    fibre, where the normal stress peaks: sqrt(sigma^2 + 3 tau^2) with the
+    torsional shear there (the transverse shear vanishes at the outer fibre
+    of the bending plane); NaN if the geometry is unknown."""
+    w = np.atleast_2d(np.asarray(wrench, dtype=float))
+    if geometry is None:
+        return np.full(w.shape[:-1], np.nan)
+    normal, torsion, _ = _stress_parts(geometry, w)
+    return np.sqrt(normal ** 2 + 3 * torsion ** 2)
 
 
 def max_von_mises(robot_doc, s, W):
@@ -79,7 +118,7 @@ def max_von_mises(robot_doc, s, W):
         end = start + L
         inside = (s >= start - 1e-12) & (s <= end + 1e-12)
         if "cross_section" in seg and np.any(inside):
-            v = von_mises(W[inside], _geometry(seg["cross_section"]))
+            v = von_mises(W[inside], section_geometry(seg["cross_section"]))
             best[inside] = np.fmax(best[inside], v)
         start = end
     if not np.any(np.isfinite(best)):

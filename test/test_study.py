@@ -226,7 +226,7 @@ def test_max_stress_of_a_cantilever_is_the_beam_formula():
         assert s_at == 0.0
         assert smax == pytest.approx(F * r["tip_position"][0] * r_out / I, rel=1e-9)
     # rectangle: M about y with the stress at z = h/2; sectional members: unknown
-    from soft_twin_core.stress import _geometry, von_mises
+    from soft_twin_core.stress import section_geometry as _geometry, von_mises
     g = _geometry({"shape": "rectangle", "width": 0.02, "height": 0.01})
     W = np.array([[2.0, 0, 0, 0, 0.3, 0.1]])
     expect = 2.0 / 2e-4 + 0.3 * 0.005 / (0.02 * 0.01 ** 3 / 12) + 0.1 * 0.01 / (0.01 * 0.02 ** 3 / 12)
