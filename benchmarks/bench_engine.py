@@ -56,6 +56,7 @@ T_END = 1.0               # simulated time [s]
 # dt ladder [ms], largest first: divisors of the 10 ms sample interval, and 20 ms (compared every 20 ms)
 LADDER_MS = (20.0, 10.0, 5.0, 10 / 3, 2.5, 2.0, 5 / 3, 1.25, 1.0, 0.5, 0.25)
 ACCURACY = 1e-3           # max tip deviation from the dt -> 0 trajectory [m]
+TOL = 1e-6                # Newton tolerance of the timed runs: dynamics.Simulator's default
 PEERS = (("PyElastica, 100 elements", 0.98, 9.2e-3, 10.0),
          ("PyElastica, 200 elements", 2.5, 3.7e-3, 10.0),
          ("SoRoMoX, 10 segments", 1.9, 11.6e-3, 40.0))
@@ -89,7 +90,7 @@ class Run:
     (sampling excluded), Newton iterations, factorisations, sub-steps,
     failures."""
 
-    def __init__(self, m, dt, T=T_END, tol=1e-9, theta=0.5, sample=SAMPLE, record=True):
+    def __init__(self, m, dt, T=T_END, tol=TOL, theta=0.5, sample=SAMPLE, record=True):
         sim = dy.Simulator(m, dt, tol=tol, theta=theta)
         self.substeps = self.fallbacks = 0
         if record:
@@ -112,27 +113,23 @@ class Run:
         every = max(1, int(round(max(sample, dt) / dt)))
         self.dt, self.sample = dt, every * dt
         self.tips = [tip(m, sim.state.q)] if record else []
-        wall, cpu, its, done, ok = 0.0, 0.0, 0, 0, True
-        step = sim.step
+        wall, cpu, done, ok = 0.0, 0.0, 0, True
         while done < n_steps:
+            # k steps with constant inputs in one call (the compiled multi-step path users get)
             k = min(every, n_steps - done)
             c0, t0 = time.process_time(), time.perf_counter()
-            for _ in range(k):
-                info = step()
-                its += info.iterations
-                if not info.converged:
-                    ok = False
-                    break
+            info = sim.step(k)
             wall += time.perf_counter() - t0
             cpu += time.process_time() - c0
-            if not ok:
+            if not info.converged:
+                ok = False
                 break
             done += k
             if record:
                 self.tips.append(tip(m, sim.state.q))
         self.tips = np.array(self.tips)
         self.wall, self.cpu, self.steps, self.ok = wall, cpu, done, ok
-        self.iterations = its / max(done, 1)
+        self.iterations = sim.newton_iterations / max(done, 1)
         self.factorisations = sim.jacobian_refreshes
         self.final = tip(m, sim.state.q)
 
@@ -191,8 +188,8 @@ def fit_exponent(ns, ts):
 def kernel_costs(m, dt):
     """Per-call time of the compiled pieces of a Newton iteration at a
     mid-motion state (t = 0.2 s): residual pass (forward kinematics + RNEA +
-    joint forces), articulated-body factorisation (with its forward pass),
-    solve."""
+    joint forces), articulated-body factorisation (from the poses of a
+    forward pass), solve."""
     from soft_twin_core.integrators import residual_pass
     from soft_twin_core.kernels import passes
     sim = dy.Simulator(m, dt)
@@ -204,39 +201,38 @@ def kernel_costs(m, dt):
     th = 0.5 * dt
     t_res = per_call(lambda: residual_pass(ws.m, ws.w, act, loads, g, coef, effort, q, v, a, R, False))
 
-    def fac():
-        passes.forward_pass(ws.m, ws.w, q, v, a, 0)
-        passes.aba_factor(ws.m, ws.w, th, th * th)
-    t_fac = per_call(fac)
+    # the integrator factorises from the poses its residual pass has just computed
+    passes.forward_pass(ws.m, ws.w, q, v, a, 0)
+    t_fac = per_call(lambda: passes.aba_factor(ws.m, ws.w, th, th * th))
     t_sol = per_call(lambda: passes.aba_solve(ws.m, ws.w, R, x))
     return t_res, t_fac, t_sol
 
 
 def kernel_share(m, dt):
-    """(compiled Newton loop, rest) per step [s] over 1 s: the time spent in
-    ``integrators.newton_step`` (the compiled Newton iteration of a step,
-    one call per step) against the whole ``Simulator.step``, in one run."""
+    """(compiled steps, rest) per step [s] over 1 s: the time spent in
+    ``integrators.run_steps`` (the compiled loop over the steps of a sample
+    interval) against the whole ``Simulator.step(k)``, in one run."""
     from soft_twin_core import integrators
-    orig = integrators.newton_step
+    orig = integrators.run_steps
     spent = [0.0]
 
-    def timed_newton_step(*a):
+    def timed_run_steps(*a):
         t0 = time.perf_counter()
         out = orig(*a)
         spent[0] += time.perf_counter() - t0
         return out
-    integrators.newton_step = timed_newton_step
+    integrators.run_steps = timed_run_steps
     try:
         r = Run(m, dt, record=False)
     finally:
-        integrators.newton_step = orig
+        integrators.run_steps = orig
     return spent[0] / r.steps, (r.wall - spent[0]) / r.steps
 
 
 def item1(args, dt2):
     ns = (5, 10, 20, 40)
     for dt in sorted({1e-3, dt2}):
-        header(f"1. Per-step cost of dynamics.Simulator(model, dt={dt * 1e3:g} ms, tol=1e-9), 1 s simulated "
+        header(f"1. Per-step cost of dynamics.Simulator(model, dt={dt * 1e3:g} ms, tol={TOL:g}), 1 s simulated "
                f"({int(round(T_END / dt))} steps), {args.repeat} runs")
         print(f"{'sections':>8} {'dof':>4} {'wall min':>10} {'median':>10} {'CPU min':>10} {'it/step':>8} "
               f"{'factor.':>8} {'per it':>10} | {'compiled':>9} {'rest':>9} | {'residual':>10} {'factor':>10} "
@@ -261,9 +257,9 @@ def item1(args, dt2):
               f"(10-40 sections: CPU {fit_exponent(ns[1:], cpus[1:]):.2f})   goal <= 1.2")
         print(f"  40 sections: {fmt(cpus[-1]).strip()} CPU, {fmt(walls[-1]).strip()} wall per step   goal <= 0.5 ms")
         print("  (per step: over 1 s, min / median of the runs; per it = CPU per step / iterations; factor. = "
-              "factorisations in 1 s; compiled / rest: per step, in integrators.newton_step (the compiled Newton "
-              "loop) / in the Python layer around it (Simulator.step, ThetaIntegrator), one more run; right: the "
-              "kernels alone, best per call at t = 0.2 s: residual pass, forward pass + articulated-body "
+              "factorisations in 1 s; compiled / rest: per step, in integrators.run_steps (the compiled loop over "
+              "the steps of a 10 ms sample) / in the Python layer around it (Simulator.step, ThetaIntegrator.run), "
+              "one more run; right: the kernels alone, best per call at t = 0.2 s: residual pass, articulated-body "
               "factorisation, solve)")
     print(f"[{load()}]")
 
@@ -320,7 +316,7 @@ def item2(args):
             continue
         dt_ms = max(ok)
         tr = Timed(m, dt_ms * 1e-3, args.repeat_fine, tol=tol, theta=theta)
-        if (tol, theta) == (1e-9, 0.5):
+        if (tol, theta) == (TOL, 0.5):
             best = dt_ms * 1e-3
         print(f"{name:>20} {dt_ms:>5.3g} ms {runs[tol, theta, dt_ms].deviation(ref) * 1e3:>7.3f} mm "
               f"{tr.wall * 1e3:>7.1f} ms {tr.wall_median * 1e3:>7.1f} ms {tr.cpu * 1e3:>7.1f} ms "
@@ -354,7 +350,7 @@ def item3(args, ref10):
           f"{d_h / 3 * 1e3:.3f} mm (second order; less if faster); its time-step error (Richardson, "
           f"|x(2dt) - x(dt)| / 3 over the trajectory) {e_t * 1e3:.4f} mm")
     print(f"each n at its own largest dt of the ladder within {ACCURACY * 1e3:g} mm of its own dt -> 0 trajectory "
-          f"(dt = {args.dt_ref_n * 1e3:g} ms, tol 1e-11; 10 sections: item 2's reference); tol 1e-9, theta 0.5; "
+          f"(dt = {args.dt_ref_n * 1e3:g} ms, tol 1e-11; 10 sections: item 2's reference); tol {TOL:g}, theta 0.5; "
           f"{args.repeat_fine} timed runs")
     print(f"\n{'sections':>8} {'dof':>4} {'dt':>8} {'dt dev':>8} {'tip err @1s':>12} {'max err':>9} "
           f"{'wall min':>10} {'CPU min':>10} {'it/step':>8}")
@@ -455,8 +451,7 @@ r = st.solve_statics(m)
 t2 = time.perf_counter()
 dt = float(sys.argv[1])
 sim = dy.Simulator(m, dt)
-for _ in range(int(round(1.0 / dt))):
-    assert sim.step().converged
+assert sim.step(int(round(1.0 / dt))).converged     # constant inputs: one compiled call
 t3 = time.perf_counter()
 import soft_twin_core
 print(json.dumps({"import": t1 - t0, "statics": t2 - t1, "dynamics": t3 - t2, "file": soft_twin_core.__file__,
