@@ -185,9 +185,9 @@ class Simulator:
     converged steps).
 
     actuation: dict/vector, or a callable t -> vector; loads: Loads or a
-    callable t -> Loads. ``full_newton``: when the O(n) iteration fails, try
-    a dense full Newton before splitting the step (robust, but 25-700 ms a
-    step; real-time users turn it off). The model is never modified;
+    callable t -> Loads. ``full_newton``: when the O(n) iteration fails even
+    in sub-steps, try a dense full Newton (robust, but 25-700 ms a step;
+    real-time users turn it off). The model is never modified;
     ``state`` holds q, qdot and t.
     """
 
