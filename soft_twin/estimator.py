@@ -10,7 +10,12 @@ Parameters: ``robot_description_file`` (path or example name),
 ``sensors_file`` (YAML, :func:`soft_twin_core.sensors.load_sensors`),
 ``rate_hz`` (filter rate, default 100), ``wrench`` (none, payload, force,
 wrench), ``actuation_topic`` (default ``/soft_twin/actuation``: the twin's
-commands are the filter's inputs), ``frame_id`` (default ``base_link``).
+commands are the filter's inputs), ``frame_id`` (default ``base_link``),
+``joint_command_topic`` (tree robots, default ``/soft_twin/joint_commands``).
+
+A tree robot file (soft articulated robot, e.g. ``pan_tilt_arm``) runs the
+tree filter instead, with joint-state measurements: see
+:mod:`soft_twin.tree_estimator` for its topics.
 
 Subscriptions (the pose of each sensor frame in the base frame):
 ``~/measurements/poses`` (geometry_msgs/PoseArray: one pose per pose
@@ -62,6 +67,7 @@ class EstimatorNode(Node):
             "wrench": ("none", "estimated tip load: none, payload, force or wrench"),
             "actuation_topic": ("/soft_twin/actuation", "the twin's actuation commands (the inputs)"),
             "frame_id": ("base_link", "frame of the published estimates"),
+            "joint_command_topic": ("/soft_twin/joint_commands", "the twin's joint commands (tree robots)"),
         }
         for name, (value, doc) in p.items():
             self.declare_parameter(name, value, ParameterDescriptor(description=doc))
@@ -73,6 +79,19 @@ class EstimatorNode(Node):
         rate = float(get("rate_hz"))
         if not (math.isfinite(rate) and rate > 0):
             raise ValueError(f"rate_hz: expected a positive rate, got {rate!r}")
+        # --- soft articulated robots (tree robot files): soft_twin.tree_estimator ---
+        self.tree = None
+        mech = _tree_robot(get("robot_description_file"))
+        if mech is not None:
+            from soft_twin import tree_estimator
+            self.tree = tree_estimator.TreeEstimation(self, mech, get("sensors_file"), rate, get("frame_id"),
+                                                      get("actuation_topic"), get("joint_command_topic"))
+            self.model = mech
+            self.pub_diag = self.create_publisher(DiagnosticArray, "/diagnostics", 10)
+            self.create_service(Trigger, "~/estimate/reset", self._on_reset)
+            self.create_timer(1.0 / rate, self.tree.on_timer)
+            self.create_timer(0.2, self._publish_diagnostics)
+            return
         self.model = load_model(get("robot_description_file"))
         self.sensors = sn.load_sensors(get("sensors_file"), self.model)
         self.pose_sensors = [s for s in self.sensors if isinstance(s, sn.PoseSensor)]
@@ -146,6 +165,10 @@ class EstimatorNode(Node):
         self.ekf.u = u
 
     def _on_reset(self, req, resp):
+        if self.tree is not None:
+            self.tree.reset()
+            resp.success, resp.message = True, "estimate reset to the initial state"
+            return resp
         self.ekf.reset()
         self.pending.clear()
         self.rejections = dict.fromkeys(_REJECTION_KINDS, 0)
@@ -176,6 +199,17 @@ class EstimatorNode(Node):
         self.pub_wrench.publish(w)
 
     def _publish_diagnostics(self):
+        if self.tree is not None:
+            h = self.tree.ekf.health
+            st = DiagnosticStatus(name="soft_twin_estimator", hardware_id=self.model.name)
+            st.level = DiagnosticStatus.OK if h.integrator_failures == 0 else DiagnosticStatus.WARN
+            st.message = "tracking" if h.accepted else "no measurement yet"
+            st.values = [KeyValue(key=k, value=str(v)) for k, v in self.tree.diagnostics().items()]
+            arr = DiagnosticArray()
+            arr.header.stamp = self.get_clock().now().to_msg()
+            arr.status = [st]
+            self.pub_diag.publish(arr)
+            return
         h = self.ekf.health
         st = DiagnosticStatus(name="soft_twin_estimator", hardware_id=self.model.name)
         ok = h.integrator_failures == 0
@@ -194,6 +228,15 @@ class EstimatorNode(Node):
         arr.header.stamp = self.get_clock().now().to_msg()
         arr.status = [st]
         self.pub_diag.publish(arr)
+
+
+def _tree_robot(name):
+    """The Mechanism of a tree robot file (``bodies``), else None (a classic robot)."""
+    from soft_twin_core.mechanism import is_tree_file, load_mechanism
+    from soft_twin_core.model import ModelError, find_file, read_yaml_file, robot_mapping
+    path = find_file(name, "robots")
+    d = robot_mapping(read_yaml_file(path, ModelError, "robot file"), f"robot file {path}")
+    return load_mechanism(path) if is_tree_file(d) else None
 
 
 def _header(stamp, frame):

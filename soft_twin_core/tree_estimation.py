@@ -2,29 +2,34 @@
 :class:`mechanism.Mechanism`: soft members carried by rigid 1-dof joints,
 e.g. ``pan_tilt_arm``) from joint encoders and pose sensors: an extended
 Kalman filter over the positions and velocities of every joint of the tree,
-rigid joints and soft strains alike, ``x = [q (nv); v (nv)]``.
+rigid joints and soft strains alike, and the tracking offsets b of the
+position-controlled joints (a real servo stands off its command: gravity,
+friction, calibration), ``x = [q (nv); v (nv); b (n_pos)]``.
 
 **Process model.** The twin's tree dynamics ``M a + tau(q, v) = effort +
 tau_act(q, u)`` (``tau``: inertia, gravity, stiffness and damping of the
 soft sections and the joints) stepped by its theta integrator
 (:class:`integrators.ThetaIntegrator`, implicit Euler by default). A
-*position-controlled* joint is modelled as a servo tracking its command:
-the effort, evaluated at the start of each step, is the bias that holds the
-joint (the joint's row of ``tau(q, v, 0)``: gravity, coupling, damping)
-plus ``m_j (w^2 (q_cmd - q_j) - 2 zeta w v_j)`` (``m_j = 1 / (M^-1)_jj``) (w = 2 pi ``servo_hz``,
-zeta = ``servo_damping``; by default the twin's position control: ``w = 1/dt``, ``zeta = 1/2``,
-the gains with which one implicit Euler step brings a lone joint onto its
-command, then the efforts corrected (at most 3 times, by ``m_j dq /
-(theta dt^2)``) until the joints land on their commands at the end of the
-step despite the members' reaction; the joints' process noise stands for
-the real servo's tracking error); an *effort-controlled* joint gets its commanded
-effort, a passive one none. Constraints (closed chains) are not supported.
+*position-controlled* joint is a servo towards ``q_cmd + b`` (b a random
+walk, density ``offset_walk``): its effort, evaluated at the start of each
+step, is the bias that holds the joint (its row of ``tau(q, v, 0)``:
+gravity, coupling, damping) plus ``m_j (w^2 (q_cmd + b_j - q_j) - 2 zeta w
+v_j)`` with ``m_j = 1 / (M^-1)_jj``. With ``servo_hz`` given, ``w = 2 pi
+servo_hz`` and ``zeta = servo_damping`` (a servo with lag); by default the
+twin's own position control: ``w = 1/dt``, ``zeta = 1/2`` (one implicit
+Euler step brings a lone joint onto its target), then the efforts are
+corrected (at most 3 times, by ``m_j dq / (theta dt^2)``) until the joints
+land on their targets at the end of the step despite the members'
+reaction. The joints' process noise stands for the servo's transient
+tracking error. An *effort-controlled* joint gets its commanded effort, a
+passive one none. Constraints (closed chains) are not supported.
 
 The covariance goes through the linearisation of that model,
-``A = [[0, I], [-M^-1 dF/dq, -M^-1 dF/dv]]`` with ``dF/dq = dtau/dq -
+``A = [[0, I, 0], [-M^-1 dF/dq, -M^-1 dF/dv, M^-1 F_b], [0, 0, 0]]`` with ``dF/dq = dtau/dq -
 d effort/dq + (tendons' geometric stiffness)``, analytic
 (:func:`algorithms.rnea_derivatives`, :func:`forces.actuation_tangent_pass`),
-``d effort_j/dq = dtau_j(q, v, 0)/dq - m_j w^2 e_j`` (m_j held), and likewise in v;
+``d effort_j/dq = dtau_j(q, v, 0)/dq - m_j w^2 e_j`` (m_j held),
+``F_b = d effort/db = m_j w^2`` on the joint's row, and likewise in v;
 discretised by the theta method as in :mod:`estimation`:
 ``Phi = (I - theta dt A)^-1 (I + (1 - theta) dt A)``,
 ``P <- Phi P Phi^T + Q dt`` (white process noise, separate densities for
@@ -64,7 +69,7 @@ class TreeEKF:
     def __init__(self, mech, sensors, dt=0.01, *, theta=1.0, actuation=None, positions=None, efforts=None,
                  q_init=None, sigma_joint0=0.05, sigma_q0=0.5, sigma_v0=1.0, process_noise_joint=(0.05, 2.0),
                  process_noise_q=1.0, process_noise_v=10.0, servo_hz=None, servo_damping=1.0,
-                 gate_probability=0.999):
+                 sigma_offset0=0.05, offset_walk=0.01, gate_probability=0.999):
         from scipy.stats import chi2
         from .constrained import make_inputs, solve_equilibrium
         from .forces import actuator_arrays
@@ -114,11 +119,13 @@ class TreeEKF:
         rigid[[tree.idx_v[i] for i in mech.rigid_joints]] = True
         self.rigid = rigid
         n = self.n
+        self.nb = nb = len(self._pos_v)                  # tracking offsets of the position-controlled joints
         pj_q, pj_v = process_noise_joint
         self.Q = np.diag(np.concatenate([np.where(rigid, pj_q ** 2, process_noise_q ** 2),
-                                         np.where(rigid, pj_v ** 2, process_noise_v ** 2)]))
+                                         np.where(rigid, pj_v ** 2, process_noise_v ** 2),
+                                         np.full(nb, offset_walk ** 2)]))
         self._P0 = np.diag(np.concatenate([np.where(rigid, sigma_joint0 ** 2, sigma_q0 ** 2),
-                                           np.full(n, sigma_v0 ** 2)]))
+                                           np.full(n, sigma_v0 ** 2), np.full(nb, sigma_offset0 ** 2)]))
         if q_init is None:
             q_init = solve_equilibrium(mech, actuation, efforts, positions).q
         self._q_init = tree.check_q(np.array(q_init, dtype=float)).copy()
@@ -129,7 +136,7 @@ class TreeEKF:
         """Back to the initial estimate (or q), zero velocities, the initial
         covariance and inputs, counters cleared."""
         n = self.n
-        self.x = np.zeros(2 * n)
+        self.x = np.zeros(2 * n + self.nb)
         self.x[:n] = self._q_init if q is None else self.tree.check_q(np.asarray(q, dtype=float))
         self.P = self._P0.copy()
         self.t = 0.0
@@ -146,7 +153,19 @@ class TreeEKF:
 
     @property
     def v(self):
-        return self.x[self.n:]
+        return self.x[self.n:2 * self.n]
+
+    @property
+    def offsets(self):
+        """Estimated tracking offsets (position - command) of the
+        position-controlled joints, in the order of ``mech.joints_with("position")``."""
+        return self.x[2 * self.n:]
+
+    def joint_offsets(self):
+        """{position-controlled joint: (offset [rad or m], standard deviation)}."""
+        i0 = 2 * self.n
+        return {self.tree.joints[i].name: (float(self.x[i0 + k]), float(np.sqrt(self.P[i0 + k, i0 + k])))
+                for k, i in enumerate(self._pos_joints)}
 
     def set_inputs(self, actuation=None, positions=None, efforts=None):
         """New inputs (each None: kept); ValueError naming a bad one."""
@@ -210,11 +229,11 @@ class TreeEKF:
             bias = alg.rnea(self.tree, self.ws, q, v, np.zeros(self.n)).copy()
             j = self._pos_v
             mjj = _servo_inertia(M, j)
-            effort[j] = bias[j] + mjj * (self._w ** 2 * (self.q_cmd - q[j]) - 2 * self._zeta * self._w * v[j])
+            effort[j] = bias[j] + mjj * (self._w ** 2 * (self.q_cmd + self.offsets - q[j]) - 2 * self._zeta * self._w * v[j])
         return effort, M
 
     def linearisation(self):
-        """(Phi (2n, 2n)) of one step from the current state, analytic."""
+        """Phi (N, N) of one step from the current state, analytic."""
         from . import algorithms as alg
         from .forces import actuation_tangent_pass
         from .kernels import passes
@@ -234,14 +253,19 @@ class TreeEKF:
             dv[j] -= dv0[j]
             dq[j, j] += mjj * self._w ** 2
             dv[j, j] += mjj * 2 * self._zeta * self._w
-        X = np.linalg.solve(M, np.hstack([dq, dv]))
-        A = np.zeros((2 * n, 2 * n))
-        A[:n, n:] = np.eye(n)
-        A[n:, :n] = -X[:, :n]
-        A[n:, n:] = -X[:, n:]
+        Fb = np.zeros((n, self.nb))                       # d effort / d offset
+        if len(j):
+            Fb[j, np.arange(len(j))] = mjj * self._w ** 2
+        X = np.linalg.solve(M, np.hstack([dq, dv, Fb]))
+        N = 2 * n + self.nb
+        A = np.zeros((N, N))
+        A[:n, n:2 * n] = np.eye(n)
+        A[n:2 * n, :n] = -X[:, :n]
+        A[n:2 * n, n:2 * n] = -X[:, n:2 * n]
+        A[n:2 * n, 2 * n:] = X[:, 2 * n:]
         h, th = self.dt, self.theta
-        L = np.eye(2 * n) - th * h * A
-        return np.linalg.solve(L, np.eye(2 * n) + (1.0 - th) * h * A)
+        L = np.eye(N) - th * h * A
+        return np.linalg.solve(L, np.eye(N) + (1.0 - th) * h * A)
 
     def predict(self, actuation=None, positions=None, efforts=None):
         """Advance the estimate by dt (inputs as :meth:`set_inputs`; None:
@@ -263,7 +287,7 @@ class TreeEKF:
                 break
             # the twin's tracking: correct the efforts until the joints land on their commands
             # (dq1 = theta h^2 d effort / m_j, the soft members free to bend)
-            err = self.q_cmd - state.q[j]
+            err = self.q_cmd + self.offsets - state.q[j]
             if np.abs(err).max() <= 1e-9:
                 break
             effort = effort.copy()
@@ -271,7 +295,7 @@ class TreeEKF:
         if ok:
             self.a = (state.qdot - self.v) / self.dt
             self.x[:n] = state.q
-            self.x[n:] = state.qdot
+            self.x[n:2 * n] = state.qdot
         else:
             self.health.integrator_failures += 1
         self.P = Phi @ self.P @ Phi.T + self.Q * self.dt

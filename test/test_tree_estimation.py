@@ -206,3 +206,31 @@ def test_tree_sensor_files_and_errors():
         ekf.update({"x": 1.0})
     with pytest.raises(ValueError, match="unknown joint 'elbow'"):
         ekf.set_inputs(positions={"elbow": 0.1})
+
+
+def test_joint_tracking_offset_is_estimated():
+    """The real pan joint stands 30 mrad off its command (static, the finer
+    stiffer robot): the filter's offset state finds it from the encoders
+    (within 3 of its standard deviations and 3 mrad; the tilt offset, 0,
+    within 3 of its), the joints within 3 of theirs, and the tool follows."""
+    real = _robot(sections=6, stiffness=1.2)
+    cmd = {"pan": 0.2, "tilt": -0.1}
+    u = np.array([5.0, 0.0, 0.0, 0.0])
+    truth = solve_equilibrium(real, u, positions={"pan": 0.23, "tilt": -0.1})
+    sens = _sensors()
+    _, where = ts.check_tree_sensors(real, sens)
+    ws = Workspace(real.tree)
+    from soft_twin_core import algorithms as alg
+    alg.forward_kinematics(real.tree, ws, truth.q)
+    z_true = {s.name: ts.predict_measurement(ws, truth.q, s, where[s.name]) for s in sens}
+    tool = real.frame("tool")
+    tip = alg.point_poses(real.tree, ws, truth.q, [tool.joint], [tool.x])[0][:3, 3]
+    ekf = te.TreeEKF(_robot(), sens, DT, positions=cmd, actuation=u)
+    rng = np.random.default_rng(11)
+    for _ in range(300):
+        ekf.step({s.name: ts.simulate_measurement(s, z_true[s.name], rng) for s in sens}, positions=cmd)
+    off, jp = ekf.joint_offsets(), ekf.joint_positions()
+    assert abs(off["pan"][0] - 0.03) < min(3 * off["pan"][1], 3e-3), off
+    assert abs(off["tilt"][0]) < 3 * off["tilt"][1], off
+    assert abs(jp["pan"][0] - 0.23) < 3 * jp["pan"][1] and abs(jp["tilt"][0] + 0.1) < 3 * jp["tilt"][1], jp
+    assert np.linalg.norm(ekf.frame_pose("tool")[:3, 3] - tip) < 0.01 * ARM_LENGTH
