@@ -38,8 +38,11 @@ the rigid joints and the strains).
 **Update**: the sensors of :mod:`tree_sensors` (joint states, poses and
 positions of frames), residuals and analytic Jacobians, each reading checked
 (rejected: wrong shape, NaN), absent ones dropped, each gated by its NIS
-against the chi-square quantile ``gate_probability``; one joint Joseph-form
-update. Outputs: :attr:`q`, :attr:`v`, :meth:`joint_positions`,
+against the chi-square quantile ``gate_probability`` -- unless the same
+sensor was gated ``max_gated_run`` times in a row: then the filter, not the
+sensor, has drifted (a model error larger than its covariance admits, e.g.
+while readings are sparse) and the reading is taken (lock-out protection);
+one joint Joseph-form update. Outputs: :attr:`q`, :attr:`v`, :meth:`joint_positions`,
 :meth:`frame_pose`, :meth:`frame_position_cov`, counters (:attr:`health`).
 """
 
@@ -63,13 +66,16 @@ class TreeEKF:
     on the rigid joints' positions (the servo's tracking error) and
     velocities; process_noise_q, process_noise_v: on the strains and the
     strain rates; servo_hz, servo_damping: the
-    position servo model (None: the twin's tracking, module docstring).
+    position servo model (None: the twin's tracking, module docstring);
+    sigma_offset0 [rad or m], offset_walk (per sqrt(s)): the joints'
+    tracking offsets; max_gated_run: consecutive gated readings of a sensor
+    after which the next is taken (module docstring).
     """
 
     def __init__(self, mech, sensors, dt=0.01, *, theta=1.0, actuation=None, positions=None, efforts=None,
                  q_init=None, sigma_joint0=0.05, sigma_q0=0.5, sigma_v0=1.0, process_noise_joint=(0.05, 2.0),
                  process_noise_q=1.0, process_noise_v=10.0, servo_hz=None, servo_damping=1.0,
-                 sigma_offset0=0.05, offset_walk=0.01, gate_probability=0.999):
+                 sigma_offset0=0.05, offset_walk=0.01, gate_probability=0.999, max_gated_run=10):
         from scipy.stats import chi2
         from .constrained import make_inputs, solve_equilibrium
         from .forces import actuator_arrays
@@ -115,6 +121,7 @@ class TreeEKF:
                                            self.dt, self.theta, 1e-9, 10, 4, False)
         self.gate = {m: float(chi2.ppf(gate_probability, m)) for m in range(1, 7)}
         self._gate_probability = gate_probability
+        self.max_gated_run = int(max_gated_run)
         rigid = np.zeros(self.n, dtype=bool)
         rigid[[tree.idx_v[i] for i in mech.rigid_joints]] = True
         self.rigid = rigid
@@ -146,6 +153,7 @@ class TreeEKF:
         self.effort_cmd = self._effort_nominal.copy()
         self.health = FilterHealth()
         self.last_report = UpdateReport()
+        self._gated_run = {s.name: 0 for s in self.sensors}
 
     @property
     def q(self):
@@ -336,9 +344,11 @@ class TreeEKF:
             nis = float(e @ np.linalg.solve(Sm, e))
             rep.innovations[sen.name] = -e
             rep.nis[sen.name] = nis
-            if not np.isfinite(nis) or nis > self._gate(len(e)):
+            if not np.isfinite(nis) or (nis > self._gate(len(e)) and self._gated_run[sen.name] < self.max_gated_run):
                 rep.gated.append(sen.name)
+                self._gated_run[sen.name] += 1
                 continue
+            self._gated_run[sen.name] = 0
             rep.accepted.append(sen.name)
             es.append(e)
             Hs.append(H)
