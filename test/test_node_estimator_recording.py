@@ -140,6 +140,7 @@ def test_estimator_node_records_a_sweep_that_calibrates(tmp_path, capsys):
     cap = capsys.readouterr()
     assert code == 0, cap.err
     rep = json.loads(cap.out)
+    print(cap.err)
     for name in ("youngs_modulus:proximal", "youngs_modulus:distal"):
         assert rep["parameters"][name]["fitted"] == pytest.approx(2.6e7, rel=0.02), cap.err
     assert rep["recording"]["rows"] == len(_sweep()) and rep["recording"]["skipped"] == {}
