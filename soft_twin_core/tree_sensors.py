@@ -16,6 +16,18 @@ tree estimator (:mod:`soft_twin_core.tree_estimation`).
   (:func:`kernels.frames.spatial_jacobian`) through every rigid and soft
   joint on its path.
 
+- :class:`BaseWrenchSensor` (a force/torque sensor under the base,
+  ``geometry_msgs/WrenchStamped``): the wrench the support exerts on the
+  robot [N; N m], world axes, about the base origin, in the quasi-static
+  approximation (inertial forces neglected: a robot at rest or moving
+  slowly): ``h(q) = [-m g; hat(g) c(q)]`` with m the total mass and
+  ``c = sum_k m_k p_k`` the first mass moment, computed as the root joints'
+  transmitted wrench of inverse dynamics at rest; Jacobian ``[0; hat(g)
+  S]`` with ``S = dc/dq = sum_k m_k Jp_k = -[tau_x, tau_y, tau_z]^T``, the
+  columns being the generalised gravity forces of inverse dynamics under a
+  unit gravity along x, y, z (the gravity potential ``-m_k g . p_k``
+  differentiated). Noise ``sigma_force_n``, ``sigma_moment_nm`` per axis.
+
 Units SI; conventions of docs/CONVENTIONS.md.
 """
 
@@ -67,6 +79,42 @@ class FramePoseSensor:
         return np.diag([self.sigma_position_m ** 2] * 3 + [self.sigma_rotation_rad ** 2] * 3)
 
 
+@dataclass(frozen=True, eq=False)
+class BaseWrenchSensor:
+    """A base force/torque sensor (module docstring), noise per axis [N], [N m]."""
+    name: str
+    sigma_force_n: float
+    sigma_moment_nm: float
+    size = 6
+
+    def noise_covariance(self):
+        return np.diag([self.sigma_force_n ** 2] * 3 + [self.sigma_moment_nm ** 2] * 3)
+
+
+def base_wrench_and_jacobian(tree, ws, q, jacobian=True):
+    """(W (6,) the support's wrench on the robot at rest, world axes about
+    the base origin; dW/dq (6, nv) or None), module docstring."""
+    from . import algorithms as alg
+    q = np.ascontiguousarray(q, dtype=float)
+    z = np.zeros(tree.nv)
+    g = np.asarray(tree.gravity, dtype=float)
+    alg.rnea(tree, ws, q, z, z, None, g, elastic=False)
+    W = np.zeros(6)
+    for i in np.flatnonzero(tree.parents < 0):
+        G = ws.work.g_in[i]
+        R, p = G[:3, :3], G[:3, 3]
+        f, m = R @ ws.work.f_in[i, :3], R @ ws.work.f_in[i, 3:]
+        W += np.concatenate([f, m + np.cross(p, f)])
+    if not jacobian:
+        return W, None
+    S = np.empty((3, tree.nv))
+    for a in range(3):
+        S[a] = -alg.rnea(tree, ws, q, z, z, None, np.eye(3)[a], elastic=False)
+    H = np.zeros((6, tree.nv))
+    H[3:] = lie.hat(g) @ S
+    return W, H
+
+
 def locate(mech, sensor):
     """(joint, abscissa) of a FramePoseSensor's point on the tree (ValueError naming the field)."""
     if sensor.frame is not None:
@@ -104,8 +152,9 @@ def check_tree_sensors(mech, sensors):
     names, where_of = set(), {}
     for k, s in enumerate(sensors):
         w = f"sensors[{k}] ({getattr(s, 'name', '?')!r})"
-        if not isinstance(s, (JointStateSensor, FramePoseSensor)):
-            raise ValueError(f"{w}: expected a JointStateSensor or FramePoseSensor, got {type(s).__name__}")
+        if not isinstance(s, (JointStateSensor, FramePoseSensor, BaseWrenchSensor)):
+            raise ValueError(f"{w}: expected a JointStateSensor, FramePoseSensor or BaseWrenchSensor, "
+                             f"got {type(s).__name__}")
         if not isinstance(s.name, str) or not s.name or s.name in names:
             raise ValueError(f"{w}.name: expected a unique non-empty string")
         names.add(s.name)
@@ -116,6 +165,12 @@ def check_tree_sensors(mech, sensors):
             if sig.shape != (len(s.joints),) or not np.all(np.isfinite(sig) & (sig > 0)):
                 raise ValueError(f"{w}.sigma_position: expected {len(s.joints)} positive values, got {s.sigma!r}")
             where_of[s.name] = joint_velocity_indices(mech, s.joints, f"{w}.joints")
+        elif isinstance(s, BaseWrenchSensor):
+            if not all(np.isfinite(x) and x > 0 for x in (s.sigma_force_n, s.sigma_moment_nm)):
+                raise ValueError(f"{w}: noise standard deviations must be positive")
+            if mech.base_motion != "fixed":
+                raise ValueError(f"{w}: a base wrench sensor needs a fixed base")
+            where_of[s.name] = None
         else:
             if (s.frame is None) == (s.member is None):
                 raise ValueError(f"{w}: give either frame or member (with s)")
@@ -146,7 +201,10 @@ def measurement_vector(sensor, z):
     ValueError for a wrong shape or non-finite values."""
     from .sensors import pose_from_position_quaternion
     z = np.asarray(z, dtype=float)
-    if isinstance(sensor, JointStateSensor):
+    if isinstance(sensor, BaseWrenchSensor):
+        if z.shape != (6,):
+            raise ValueError(f"sensor {sensor.name!r}: expected a wrench of 6 numbers [f; m], got shape {z.shape}")
+    elif isinstance(sensor, JointStateSensor):
         if z.shape != (sensor.size,):
             raise ValueError(f"sensor {sensor.name!r}: expected {sensor.size} joint positions "
                              f"{list(sensor.joints)}, got shape {z.shape}")
@@ -167,6 +225,9 @@ def residual_and_jacobian(ws, q, sensor, where, z):
     """(e (m,), de/dq (m, nv)) of one reading at q (the forward pass of ``ws``
     done at q); ``where``: the sensor's entry of :func:`check_tree_sensors`."""
     nv = ws.zeros_v.shape[0]
+    if isinstance(sensor, BaseWrenchSensor):
+        W, H = base_wrench_and_jacobian(ws.model, ws, q)
+        return W - z, H
     if isinstance(sensor, JointStateSensor):
         H = np.zeros((sensor.size, nv))
         H[np.arange(sensor.size), where] = 1.0
@@ -182,6 +243,8 @@ def residual_and_jacobian(ws, q, sensor, where, z):
 
 def predict_measurement(ws, q, sensor, where):
     """Noise-free reading at q (forward pass of ``ws`` done at q)."""
+    if isinstance(sensor, BaseWrenchSensor):
+        return base_wrench_and_jacobian(ws.model, ws, q, jacobian=False)[0]
     if isinstance(sensor, JointStateSensor):
         return q[where].copy()
     T, _ = point_pose_and_body_jacobian(ws, where[0], where[1], np.asarray(sensor.placement, dtype=float))
@@ -190,6 +253,8 @@ def predict_measurement(ws, q, sensor, where):
 
 def simulate_measurement(sensor, truth, rng):
     """A noisy reading from the noise-free one ``truth``."""
+    if isinstance(sensor, BaseWrenchSensor):
+        return truth + np.repeat([sensor.sigma_force_n, sensor.sigma_moment_nm], 3) * rng.standard_normal(6)
     if isinstance(sensor, JointStateSensor):
         return truth + np.asarray(sensor.sigma) * rng.standard_normal(sensor.size)
     if sensor.position_only:
@@ -208,6 +273,7 @@ def tree_sensors_from_list(items, mech, where="sensors"):
            offset: [0, 0, 0], rpy: [0, 0, 0]}
         - {name: em_tool, type: pose, frame: tool, sigma_position: 1.0e-3, sigma_rotation: 0.01}
         - {name: mk, type: marker, frame: tool, sigma_position: 5.0e-4, offset: [0, 0, 0]}
+        - {name: ft, type: base_wrench, sigma_force: 0.05, sigma_moment: 0.005}
 
     (m, rad; ``sigma_position`` of a joint_state: one value or one per
     joint, rad or m). Raises ValueError naming the bad entry and field."""
@@ -216,7 +282,8 @@ def tree_sensors_from_list(items, mech, where="sensors"):
         raise ValueError(f"{where}: expected a non-empty list of sensors")
     allowed = {"joint_state": {"name", "type", "joints", "sigma_position"},
                "pose": {"name", "type", "frame", "member", "s", "sigma_position", "sigma_rotation", "offset", "rpy"},
-               "marker": {"name", "type", "frame", "member", "s", "sigma_position", "offset"}}
+               "marker": {"name", "type", "frame", "member", "s", "sigma_position", "offset"},
+               "base_wrench": {"name", "type", "sigma_force", "sigma_moment"}}
     out = []
     for k, d in enumerate(items):
         w = f"{where}[{k}]"
@@ -224,7 +291,7 @@ def tree_sensors_from_list(items, mech, where="sensors"):
             raise ValueError(f"{w}: expected a mapping")
         kind = d.get("type")
         if kind not in allowed:
-            raise ValueError(f"{w}.type: expected joint_state, pose or marker, got {kind!r}")
+            raise ValueError(f"{w}.type: expected joint_state, pose, marker or base_wrench, got {kind!r}")
         extra = set(d) - allowed[kind]
         if extra:
             raise ValueError(f"{w}: unknown field(s) {sorted(extra)} for a {kind} sensor")
@@ -246,6 +313,9 @@ def tree_sensors_from_list(items, mech, where="sensors"):
                 sig = [sig] * len(joints) if not isinstance(sig, list) else sig
                 sig = [parse_number(x, f"{w}.sigma_position") for x in sig]
                 out.append(JointStateSensor(name, tuple(joints), np.array(sig, dtype=float)))
+                continue
+            if kind == "base_wrench":
+                out.append(BaseWrenchSensor(name, num("sigma_force"), num("sigma_moment")))
                 continue
             P = pose_from_dict({"position": d.get("offset", [0.0, 0.0, 0.0]), "rpy": d.get("rpy", [0.0, 0.0, 0.0])}, w)
             s = num("s", 0.0) if "member" in d else 0.0
