@@ -10,7 +10,10 @@ Subscriptions (next to the classic ones): ``~/measurements/joint_states``
 all its joints), ``~/measurements/pose`` (PoseStamped, ``frame_id`` = a
 pose sensor's name), ``~/measurements/poses`` (PoseArray, one pose per
 pose sensor in file order), ``~/measurements/position`` (PointStamped, a
-marker's name), the actuation topic and ``joint_command_topic`` (default
+marker's name), ``~/measurements/base_wrench`` (geometry_msgs/WrenchStamped:
+the reading of the sensors file's ``base_wrench`` sensor, the support's
+wrench on the robot in world axes about the base origin), the actuation
+topic and ``joint_command_topic`` (default
 ``/soft_twin/joint_commands``: the twin's joint commands, positions of
 position-controlled joints and efforts of effort-controlled ones).
 
@@ -30,7 +33,7 @@ member), the filter's health on ``/diagnostics``.
 import math
 
 import numpy as np
-from geometry_msgs.msg import PointStamped, PoseArray, PoseStamped, PoseWithCovarianceStamped
+from geometry_msgs.msg import PointStamped, PoseArray, PoseStamped, PoseWithCovarianceStamped, WrenchStamped
 from sensor_msgs.msg import JointState
 
 from soft_twin import conversions as cv
@@ -52,6 +55,7 @@ class TreeEstimation:
         self.sensors = ts.load_tree_sensors(sensors_file, mech)
         self.pose_sensors = [s for s in self.sensors if isinstance(s, ts.FramePoseSensor) and not s.position_only]
         self.joint_sensors = [s for s in self.sensors if isinstance(s, ts.JointStateSensor)]
+        self.wrench_sensors = [s for s in self.sensors if isinstance(s, ts.BaseWrenchSensor)]
         self.ekf = te.TreeEKF(mech, self.sensors, 1.0 / rate)
         self.tip = tip_frame_of(mech)
         self.pending = {}
@@ -67,6 +71,7 @@ class TreeEstimation:
         n.create_subscription(PoseArray, "~/measurements/poses", self.on_poses, 50)
         n.create_subscription(PoseStamped, "~/measurements/pose", self.on_pose, 50)
         n.create_subscription(PointStamped, "~/measurements/position", self.on_position, 50)
+        n.create_subscription(WrenchStamped, "~/measurements/base_wrench", self.on_base_wrench, 50)
         n.create_subscription(ActuationCommand, actuation_topic, self.on_actuation, 50)
         n.create_subscription(JointState, joint_command_topic, self.on_joint_command, 50)
 
@@ -121,6 +126,13 @@ class TreeEstimation:
             self.reject("unknown_sensor", f"position: unknown marker {msg.header.frame_id!r}")
             return
         self.accept(s, lambda: np.array([msg.point.x, msg.point.y, msg.point.z]))
+
+    def on_base_wrench(self, msg):
+        if not self.wrench_sensors:
+            self.reject("unknown_sensor", "base_wrench: no base_wrench sensor in the sensors file")
+            return
+        f, t = msg.wrench.force, msg.wrench.torque
+        self.accept(self.wrench_sensors[0], lambda: np.array([f.x, f.y, f.z, t.x, t.y, t.z], dtype=float))
 
     def on_actuation(self, msg):
         names = list(self.mech.actuator_names)

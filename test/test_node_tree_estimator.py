@@ -3,11 +3,12 @@ robot (pan_tilt_arm) in a second process; this process plays the "real"
 robot over real rclpy: its member 20 % stiffer than the twin's (and 2.5 times finer) and its pan
 joint standing 40 mrad away from the command (a servo offset). It publishes
 the twin's commands (actuation, joint commands) and the real robot's
-encoders (sensor_msgs/JointState) and two pose sensors with noise at about 100 Hz (PoseStamped and PoseArray
+encoders (sensor_msgs/JointState), a base force/torque sensor
+(WrenchStamped) and two pose sensors with noise at about 100 Hz (PoseStamped and PoseArray
 alternately), the filter running at 50 Hz. The
 estimate follows the real robot (joints and tool) while the open-loop
-prediction does not; bad joint states (NaN, unknown joint, wrong length)
-and bad joint commands are rejected and counted. Every wait is for a
+prediction does not; bad joint states (NaN, unknown joint, wrong length),
+a NaN wrench and bad joint commands are rejected and counted. Every wait is for a
 condition with a timeout."""
 
 import os
@@ -25,7 +26,7 @@ import yaml
 rclpy = pytest.importorskip("rclpy", reason="needs ROS 2: the venv of `make setup`")
 
 from diagnostic_msgs.msg import DiagnosticArray  # noqa: E402
-from geometry_msgs.msg import PoseArray, PoseStamped, PoseWithCovarianceStamped  # noqa: E402
+from geometry_msgs.msg import PoseArray, PoseStamped, PoseWithCovarianceStamped, WrenchStamped  # noqa: E402
 from rclpy.executors import SingleThreadedExecutor  # noqa: E402
 from sensor_msgs.msg import JointState  # noqa: E402
 from std_srvs.srv import Trigger  # noqa: E402
@@ -51,7 +52,8 @@ TOL = 0.004             # m: the tool's tolerance, 1.1 % of the robot's 0.37 m r
 SENSORS = [{"name": "encoders", "type": "joint_state", "joints": ["pan", "tilt"], "sigma_position": 1.0e-3},
            {"name": "em_mid", "type": "pose", "member": "arm", "s": 0.15, "sigma_position": 1.0e-3,
             "sigma_rotation": 0.01},
-           {"name": "em_tool", "type": "pose", "frame": "tool", "sigma_position": 1.0e-3, "sigma_rotation": 0.01}]
+           {"name": "em_tool", "type": "pose", "frame": "tool", "sigma_position": 1.0e-3, "sigma_rotation": 0.01},
+           {"name": "ft", "type": "base_wrench", "sigma_force": 0.05, "sigma_moment": 0.005}]
 
 
 class Client:
@@ -65,6 +67,7 @@ class Client:
         self.pub_joints = n.create_publisher(JointState, f"{NS}/measurements/joint_states", 50)
         self.pub_pose = n.create_publisher(PoseStamped, f"{NS}/measurements/pose", 50)
         self.pub_poses = n.create_publisher(PoseArray, f"{NS}/measurements/poses", 50)
+        self.pub_ft = n.create_publisher(WrenchStamped, f"{NS}/measurements/base_wrench", 50)
         self.pub_act = n.create_publisher(ActuationCommand, "/soft_twin/actuation", 10)
         self.pub_cmd = n.create_publisher(JointState, "/soft_twin/joint_commands", 10)
         self.tip, self.joints, self.diag, self.tip_count = None, None, None, 0
@@ -157,6 +160,14 @@ def _tool(mech, q):
     return alg.point_poses(mech.tree, Workspace(mech.tree), q, [ref.joint], [ref.x])[0][:3, 3]
 
 
+def _wrench(w):
+    m = WrenchStamped()
+    m.header.frame_id = "base_link"
+    (m.wrench.force.x, m.wrench.force.y, m.wrench.force.z, m.wrench.torque.x, m.wrench.torque.y,
+     m.wrench.torque.z) = (float(x) for x in w)
+    return m
+
+
 def _joint_state(names, positions):
     m = JointState()
     m.name = list(names)
@@ -205,6 +216,7 @@ def test_tree_estimate_follows_the_real_robot_and_bad_joint_states_are_counted(r
         while not stop.is_set():
             z = {s.name: ts.simulate_measurement(s, z_true[s.name], rng) for s in sensors}
             client.pub_joints.publish(_joint_state(["pan", "tilt"], z["encoders"]))
+            client.pub_ft.publish(_wrench(z["ft"]))
             if k % 2:                                 # PoseStamped by name, or both in a PoseArray
                 for name in ("em_mid", "em_tool"):
                     ps = PoseStamped()
@@ -235,10 +247,11 @@ def test_tree_estimate_follows_the_real_robot_and_bad_joint_states_are_counted(r
         client.pub_joints.publish(bad)
         client.pub_cmd.publish(_joint_state(["pan"], [9.0]))                              # over the limit
         client.pub_poses.publish(PoseArray())                                             # wrong length
-        assert client.wait_until(lambda: int(client.diag["measurements_rejected"]) >= before + 5, 20.0), client.diag
+        client.pub_ft.publish(_wrench([0.0, 0.0, float("nan"), 0.0, 0.0, 0.0]))           # NaN wrench
+        assert client.wait_until(lambda: int(client.diag["measurements_rejected"]) >= before + 6, 20.0), client.diag
         counts = {k: int(client.diag[f"rejected_{k}"]) for k in ("non_finite", "unknown_joint", "wrong_length",
                                                                   "joint_command")}
-        assert counts == {"non_finite": 1, "unknown_joint": 1, "wrong_length": 2, "joint_command": 1}, client.diag
+        assert counts == {"non_finite": 2, "unknown_joint": 1, "wrong_length": 2, "joint_command": 1}, client.diag
         n0 = client.tip_count
         assert client.wait_until(lambda: client.tip_count > n0 + 50, 20.0)
         last = np.array([np.linalg.norm(t - tool_true) for t in client.tips[-50:]])
