@@ -10,7 +10,16 @@ Parameters: ``robot_description_file`` (path or example name),
 ``sensors_file`` (YAML, :func:`soft_twin_core.sensors.load_sensors`),
 ``rate_hz`` (filter rate, default 100), ``wrench`` (none, payload, force,
 wrench), ``actuation_topic`` (default ``/soft_twin/actuation``: the twin's
-commands are the filter's inputs), ``frame_id`` (default ``base_link``).
+commands are the filter's inputs), ``frame_id`` (default ``base_link``),
+``joint_command_topic`` (tree robots, default ``/soft_twin/joint_commands``),
+``record_file`` (an MCAP file, ROS 2 bag format, that records every
+message the node receives -- measurements and commands -- for
+``soft-twin-sim calibrate --data FILE.mcap``; closed when the node stops;
+``recorded_inputs`` in the diagnostics counts them).
+
+A tree robot file (soft articulated robot, e.g. ``pan_tilt_arm``) runs the
+tree filter instead, with joint-state measurements: see
+:mod:`soft_twin.tree_estimator` for its topics.
 
 Subscriptions (the pose of each sensor frame in the base frame):
 ``~/measurements/poses`` (geometry_msgs/PoseArray: one pose per pose
@@ -62,6 +71,8 @@ class EstimatorNode(Node):
             "wrench": ("none", "estimated tip load: none, payload, force or wrench"),
             "actuation_topic": ("/soft_twin/actuation", "the twin's actuation commands (the inputs)"),
             "frame_id": ("base_link", "frame of the published estimates"),
+            "joint_command_topic": ("/soft_twin/joint_commands", "the twin's joint commands (tree robots)"),
+            "record_file": ("", "MCAP file recording every measurement and command received ('' : none)"),
         }
         for name, (value, doc) in p.items():
             self.declare_parameter(name, value, ParameterDescriptor(description=doc))
@@ -73,6 +84,23 @@ class EstimatorNode(Node):
         rate = float(get("rate_hz"))
         if not (math.isfinite(rate) and rate > 0):
             raise ValueError(f"rate_hz: expected a positive rate, got {rate!r}")
+        # --- recording of the inputs (MCAP, for soft-twin-sim calibrate --data FILE.mcap) ---
+        from soft_twin import recorder
+        self._recorder = recorder.Recorder(self, [])     # started at the end (nothing is received before)
+        # --- soft articulated robots (tree robot files): soft_twin.tree_estimator ---
+        self.tree = None
+        mech = _tree_robot(get("robot_description_file"))
+        if mech is not None:
+            from soft_twin import tree_estimator
+            self.tree = tree_estimator.TreeEstimation(self, mech, get("sensors_file"), rate, get("frame_id"),
+                                                      get("actuation_topic"), get("joint_command_topic"))
+            self.model = mech
+            self.pub_diag = self.create_publisher(DiagnosticArray, "/diagnostics", 10)
+            self.create_service(Trigger, "~/estimate/reset", self._on_reset)
+            self.create_timer(1.0 / rate, self.tree.on_timer)
+            self.create_timer(0.2, self._publish_diagnostics)
+            self._start_recording(get("record_file"))
+            return
         self.model = load_model(get("robot_description_file"))
         self.sensors = sn.load_sensors(get("sensors_file"), self.model)
         self.pose_sensors = [s for s in self.sensors if isinstance(s, sn.PoseSensor)]
@@ -92,6 +120,32 @@ class EstimatorNode(Node):
         self.create_service(Trigger, "~/estimate/reset", self._on_reset)
         self.create_timer(1.0 / rate, self._on_timer)
         self.create_timer(0.2, self._publish_diagnostics)
+        self._start_recording(get("record_file"))
+
+    def _start_recording(self, path):
+        if path and not self._recorder.follow(path):
+            raise ValueError(f"record_file: cannot record to {path!r}")
+
+    def create_subscription(self, msg_type, topic, callback, qos_profile, **kwargs):
+        """Every subscription's messages are recorded (``record_file``) before they are handled."""
+        holder = []
+
+        def recorded(msg):
+            rec = getattr(self, "_recorder", None)
+            if rec is not None and holder:
+                rec.received(holder[0], [(msg, None)])
+            return callback(msg)
+        sub = super().create_subscription(msg_type, topic, recorded, qos_profile, **kwargs)
+        holder.append(sub)
+        return sub
+
+    def recorded_inputs(self):
+        """Messages written to the current recording (0 when not recording)."""
+        rec = getattr(self._recorder, "_recording", None)
+        return sum(rec.counts.values()) if rec is not None else 0
+
+    def close_recording(self):
+        self._recorder.close()
 
     # ------------------------------------------------------------------ inputs
     def _reject(self, kind, reason):
@@ -146,6 +200,10 @@ class EstimatorNode(Node):
         self.ekf.u = u
 
     def _on_reset(self, req, resp):
+        if self.tree is not None:
+            self.tree.reset()
+            resp.success, resp.message = True, "estimate reset to the initial state"
+            return resp
         self.ekf.reset()
         self.pending.clear()
         self.rejections = dict.fromkeys(_REJECTION_KINDS, 0)
@@ -176,6 +234,18 @@ class EstimatorNode(Node):
         self.pub_wrench.publish(w)
 
     def _publish_diagnostics(self):
+        if self.tree is not None:
+            h = self.tree.ekf.health
+            st = DiagnosticStatus(name="soft_twin_estimator", hardware_id=self.model.name)
+            st.level = DiagnosticStatus.OK if h.integrator_failures == 0 else DiagnosticStatus.WARN
+            st.message = "tracking" if h.accepted else "no measurement yet"
+            values = {**self.tree.diagnostics(), "recorded_inputs": self.recorded_inputs()}
+            st.values = [KeyValue(key=k, value=str(v)) for k, v in values.items()]
+            arr = DiagnosticArray()
+            arr.header.stamp = self.get_clock().now().to_msg()
+            arr.status = [st]
+            self.pub_diag.publish(arr)
+            return
         h = self.ekf.health
         st = DiagnosticStatus(name="soft_twin_estimator", hardware_id=self.model.name)
         ok = h.integrator_failures == 0
@@ -188,12 +258,22 @@ class EstimatorNode(Node):
                   **{f"rejected_{k}": n for k, n in self.rejections.items()}, "last_rejection": self.last_rejection,
                   "mean_nis_per_dof": f"{h.mean_nis_per_dof:.3f}", "integrator_failures": h.integrator_failures,
                   "tip_position_std_m": f"{float(np.sqrt(np.trace(self.ekf.tip_position_cov()))):.6g}",
-                  "payload_mass_kg": f"{mass:.6g}", "payload_mass_std_kg": f"{mass_std:.6g}"}
+                  "payload_mass_kg": f"{mass:.6g}", "payload_mass_std_kg": f"{mass_std:.6g}",
+                  "recorded_inputs": self.recorded_inputs()}
         st.values = [KeyValue(key=k, value=str(v)) for k, v in values.items()]
         arr = DiagnosticArray()
         arr.header.stamp = self.get_clock().now().to_msg()
         arr.status = [st]
         self.pub_diag.publish(arr)
+
+
+def _tree_robot(name):
+    """The Mechanism of a tree robot file (``bodies``), else None (a classic robot)."""
+    from soft_twin_core.mechanism import is_tree_file, load_mechanism
+    from soft_twin_core.model import ModelError, find_file, read_yaml_file, robot_mapping
+    path = find_file(name, "robots")
+    d = robot_mapping(read_yaml_file(path, ModelError, "robot file"), f"robot file {path}")
+    return load_mechanism(path) if is_tree_file(d) else None
 
 
 def _header(stamp, frame):
@@ -216,6 +296,7 @@ def main(args=None):
         pass
     finally:
         if node is not None:
+            node.close_recording()
             node.destroy_node()
         if rclpy.ok():
             rclpy.shutdown()

@@ -614,10 +614,12 @@ def _log_so3(R):
 
 def add_cli_parser(sub):
     """The ``calibrate`` subcommand of ``soft-twin-sim``."""
-    c = sub.add_parser("calibrate", help="fit robot parameters to a recorded static sweep (CSV)")
+    c = sub.add_parser("calibrate", help="fit robot parameters to a recorded static sweep (CSV or MCAP)")
     c.add_argument("robot", help="robot file or example name")
     c.add_argument("--sensors", required=True, help="sensors file (YAML list of pose/marker sensors)")
-    c.add_argument("--data", required=True, help="CSV: t, one column per actuator, <sensor>.x/.y/.z[/.qx..qw]")
+    c.add_argument("--data", required=True,
+                   help="CSV (t, one column per actuator, <sensor>.x/.y/.z[/.qx..qw]) or an MCAP recording "
+                        "(ROS 2 bag: commands and sensor topics, see --actuation-topic, --topic)")
     c.add_argument("--fit", required=True,
                    help="comma-separated parameters: youngs_modulus:<member>, tendon_offset:<tendon>, "
                         "payload_mass, sensor_offset:<sensor>:<x|y|z>; 'youngs_modulus' or 'tendon_offset' "
@@ -629,6 +631,18 @@ def add_cli_parser(sub):
                    help="the rows are a time series from rest (column t): fit viscosity:<member> (or "
                         "'viscosity' for all members) by simulating it")
     c.add_argument("--dt", type=float, default=5e-3, help="integrator step for --dynamic [s] (default 0.005)")
+    # MCAP recordings (soft_twin_core.calibration_mcap)
+    c.add_argument("--actuation-topic", default="/soft_twin/actuation",
+                   help="MCAP: topic of the actuation commands (default /soft_twin/actuation)")
+    c.add_argument("--measurements-ns", default="/soft_twin_estimator",
+                   help="MCAP: namespace of the estimator's measurement topics <ns>/measurements/poses, "
+                        "/pose, /position (default /soft_twin_estimator)")
+    c.add_argument("--topic", action="append", default=[], metavar="SENSOR=TOPIC",
+                   help="MCAP: a sensor's own topic (PoseStamped, PoseWithCovarianceStamped, "
+                        "TransformStamped or PointStamped); repeatable")
+    c.add_argument("--settle", type=float, metavar="S",
+                   help="MCAP: seconds after each command before the readings are averaged "
+                        "(default: the second half of each hold)")
     c.add_argument("--output", "-o", help="write the calibrated robot file here")
     c.add_argument("--sensors-output", help="write the calibrated sensors file here")
     return c
@@ -665,7 +679,12 @@ def cli_main(args):
         robot_dict = robot_mapping(read_yaml_file(path, ModelError, "robot file"), f"robot file {path}")
         model = model_from_dict(robot_dict, args.sections)
         sensors = sn.load_sensors(args.sensors, model)
-        rec = read_csv(args.data, model, sensors)
+        mcap_report = None
+        from . import calibration_mcap as cm
+        if cm.is_mcap(args.data):                      # an MCAP recording of the node
+            rec, mcap_report = _read_mcap(args, model, sensors)
+        else:
+            rec = read_csv(args.data, model, sensors)
         names = [n.strip() for n in args.fit.split(",") if n.strip()]
         if not names:
             raise CalibrationError("--fit: no parameter given")
@@ -692,6 +711,8 @@ def cli_main(args):
                              for n, a, b, c, e in zip(res.names, res.nominal, res.values, res.std, res.ci95)},
               "residual_sigma": res.residual_sigma, "n_residuals": res.n_residuals,
               "heldout": res.heldout, "payload_mass_kg": res.payload_mass}
+    if mcap_report is not None:
+        report["recording"] = mcap_report
     if args.output:
         lines = [f"Calibrated by soft-twin-sim calibrate from {args.data} ({len(rec)} rows)."]
         lines += [f"{n}: {b:.6g} +- {e:.3g} (95 %), nominal {a:.6g}"
@@ -709,3 +730,18 @@ def cli_main(args):
         report["sensors_file"] = args.sensors_output
     print(json.dumps(report, indent=1))
     return 0
+
+
+def _read_mcap(args, model, sensors):
+    """(Recording, report) of ``--data FILE.mcap`` with the topic flags."""
+    from . import calibration_mcap as cm
+    topics = {}
+    for item in args.topic:
+        name, sep, topic = item.partition("=")
+        if not sep or not name or not topic.startswith("/"):
+            raise CalibrationError(f"--topic: expected SENSOR=/topic, got {item!r}")
+        topics[name] = topic
+    kw = dict(actuation_topic=args.actuation_topic, measurements_ns=args.measurements_ns, topics=topics)
+    if args.dynamic:
+        return cm.read_time_series(args.data, model, sensors, **kw)
+    return cm.read_static_sweep(args.data, model, sensors, settle_s=args.settle, **kw)
