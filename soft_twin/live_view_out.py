@@ -26,24 +26,12 @@ def tip_force_world(model, snap):
 def articulated_view_snapshot(mech, snap):
     """(scene.Snapshot, radii per member) of an articulated robot's state:
     its members through their section boundaries (radii from their
-    cross-sections), each rigid link drawn as a bar from its parent link's
-    frame (or the base) to its own frame."""
-    members, radii = [], []
-    for mem in mech.members:
-        poses, _ = snap.backbones[mem.name]
-        members.append(poses[:, :3, 3])
-        r = [max(g.cy, g.cz) if g is not None else 0.005 for g in mem.geometry]
-        radii.append(np.asarray(r + r[-1:], dtype=float))
-    tree = mech.tree
-    names = {lk.joint: lk.name for lk in mech.links}
-    links = []
-    for lk in mech.links:
-        j = tree.joints[lk.joint]
-        start = np.zeros(3) if j.parent < 0 else (snap.frames[names[j.parent]][:3, 3] if j.parent in names
-                                                  else None)
-        if start is not None:
-            links.append(np.array([start, snap.frames[lk.name][:3, 3]]))
-    return Snapshot(members or [snap.tip_pose[None, :3, 3]], links, time=float(snap.t)), radii or [0.005]
+    cross-sections), its links' visual shapes (a bar from the parent link's
+    frame for a link without one) and its rigid joints
+    (:func:`soft_twin_core.mechanism_scene.snapshot`)."""
+    from soft_twin_core.mechanism_scene import member_radii, snapshot
+    members = {name: poses[:, :3, 3] for name, (poses, _) in snap.backbones.items()}
+    return snapshot(mech, members, snap.frames, time=float(snap.t)), member_radii(mech)
 
 
 def view_snapshot(model, snap, radii_per_section):

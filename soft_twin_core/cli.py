@@ -289,9 +289,6 @@ def main(argv=None):
         else:
             n_steps_for(args.duration, args.dt)      # refuses impossible durations before any work
             sc = load_scenario(args.scenario, args.sections)
-            if hasattr(sc, "mech") and (args.plot or getattr(args, "mcap", None)):
-                raise ScenarioError("--plot/--mcap: not available for articulated robots yet (--animate is; "
-                                    "the JSON and CSV have every output)")
             clock = {"start": time.monotonic(), "ready": None}
 
             def progress(frac, elapsed):

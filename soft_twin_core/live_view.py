@@ -1,6 +1,8 @@
 """A live 3D view of the twin in the browser (viser: a local web server and
 its bundled three.js client; works offline). Shows the backbone as a tube
-with the members' radii, rigid links as bars, the frames of the base and
+with the members' radii, rigid links as bars or, for articulated robots,
+their visual shapes (boxes, cylinders, spheres) with the rigid joints as
+dots and axis segments, the frames of the base and
 the tip, the tip wrench as an arrow, and a panel with the time and the
 actuation values.
 
@@ -19,6 +21,8 @@ import numpy as np
 TUBE_SIDES = 16
 TUBE_COLOR = (217, 115, 51)
 LINK_COLOR = (70, 70, 70)
+SHAPE_COLOR = (64, 96, 170)    # rigid links' visual shapes (articulated robots)
+JOINT_COLOR = (20, 20, 20)
 FORCE_COLOR = (204, 41, 204)
 
 
@@ -59,6 +63,39 @@ def tube_mesh(points, radii, sides=TUBE_SIDES):
     return V.astype(np.float32), np.concatenate([F, caps0, caps1]).astype(np.uint32)
 
 
+def box_mesh(size, pose):
+    """(vertices (8, 3), faces (12, 3)) of a box of ``size`` [m] (edge
+    lengths along its local x, y, z) centred at ``pose`` (4x4, world),
+    faces wound outwards."""
+    h = 0.5 * np.asarray(size, dtype=float)
+    c = np.array([[x, y, z] for x in (-1, 1) for y in (-1, 1) for z in (-1, 1)], dtype=float) * h
+    T = np.asarray(pose, dtype=float)
+    V = c @ T[:3, :3].T + T[:3, 3]
+    F = np.array([[0, 1, 3], [0, 3, 2], [4, 6, 7], [4, 7, 5], [0, 4, 5], [0, 5, 1],
+                  [2, 3, 7], [2, 7, 6], [0, 2, 6], [0, 6, 4], [1, 5, 7], [1, 7, 3]])
+    return V.astype(np.float32), F.astype(np.uint32)
+
+
+def shape_mesh(visual, pose, sides=TUBE_SIDES):
+    """(vertices, faces) of a rigid link's visual shape at ``pose`` (4x4
+    world pose of the shape's centre): box (``size``), cylinder (``radius``,
+    ``length`` along its local z axis, capped), sphere (``radius``)."""
+    T = np.asarray(pose, dtype=float)
+    shape = visual.get("shape", "box")
+    if shape == "box":
+        return box_mesh(visual["size"], T)
+    if shape == "cylinder":
+        h = 0.5 * float(visual["length"]) * T[:3, 2]
+        return tube_mesh(np.array([T[:3, 3] - h, T[:3, 3] + h]), float(visual["radius"]), sides)
+    if shape == "sphere":
+        r = float(visual["radius"])
+        t = np.linspace(-1.0, 1.0, sides)[1:-1]          # a UV sphere: rings along z, capped at the poles
+        P = T[:3, 3] + np.outer(t * r, T[:3, 2])
+        return tube_mesh(np.vstack([T[:3, 3] - r * T[:3, 2], P, T[:3, 3] + r * T[:3, 2]]),
+                         np.r_[0.0, r * np.sqrt(1 - t ** 2), 0.0], sides)
+    raise ValueError(f"visual.shape: expected box, cylinder or sphere, got {shape!r}")
+
+
 def wxyz(R):
     """Quaternion [w, x, y, z] of a rotation matrix (viser's convention)."""
     from scipy.spatial.transform import Rotation
@@ -82,7 +119,7 @@ class LiveView:
         c = np.asarray(look_at, dtype=float)
         self.server.initial_camera.look_at = tuple(c)
         self.server.initial_camera.position = tuple(c + distance * np.array([0.35, -0.85, 0.4]))
-        self._n_links = 0
+        self._n_links = self._n_shapes = self._n_joints = 0
         self.updates = 0
 
     @property
@@ -108,6 +145,21 @@ class LiveView:
             for k in range(len(snap.links), self._n_links):
                 sc.remove_by_name(f"/twin/link_{k}")
             self._n_links = len(snap.links)
+            # articulated robots: the links' visual shapes, the rigid joints and their axes
+            for k, (vis, T) in enumerate(snap.shapes):
+                V, F = shape_mesh(vis, T)
+                sc.add_mesh_simple(f"/twin/shape_{k}", V, F, color=SHAPE_COLOR, flat_shading=True)
+            for k in range(len(snap.shapes), self._n_shapes):
+                sc.remove_by_name(f"/twin/shape_{k}")
+            self._n_shapes = len(snap.shapes)
+            for k, p in enumerate(snap.joints):
+                sc.add_icosphere(f"/twin/joint_{k}", radius=0.006, color=JOINT_COLOR, position=tuple(p))
+            for k in range(len(snap.joints), self._n_joints):
+                sc.remove_by_name(f"/twin/joint_{k}")
+            self._n_joints = len(snap.joints)
+            if snap.joint_axes:
+                sc.add_line_segments("/twin/joint_axes", np.asarray(snap.joint_axes, np.float32),
+                                     colors=JOINT_COLOR, line_width=3.0)
             for name, T in (("base", base_pose), ("tip", tip_pose)):
                 if T is not None:
                     T = np.asarray(T, dtype=float)

@@ -247,17 +247,26 @@ def _outputs_dict(sc, out, prefix=""):
         "joint_efforts": [out.efforts[n] for n in mech.joint_names],
         "frame_names": list(out.frames),
         "frame_positions": [out.frames[n][:3, 3].tolist() for n in out.frames],
+        "frame_poses": [np.asarray(out.frames[n], dtype=float).tolist() for n in out.frames],
         "constraint_names": list(out.constraint_wrenches),
         "constraint_wrenches": [w.tolist() for w in out.constraint_wrenches.values()],
         "transmitted_names": list(out.joint_wrenches),
         "transmitted_wrenches": [w.tolist() for w in out.joint_wrenches.values()],
         "members": {m.name: {"s": m.s.tolist(), "positions": m.poses[:, :3, 3].tolist(),
+                             "orientations": _quaternions(m.poses),
                              "velocities": m.velocities.tolist(), "accelerations": m.accelerations.tolist(),
                              "internal_wrench": m.internal_wrench.tolist(), "strains": m.strains.tolist(),
                              "normal_stress": _nan_none(m.normal_stress), "shear_stress": _nan_none(m.shear_stress)}
                     for m in out.members},
     }
     return d
+
+
+def _quaternions(T):
+    """[x, y, z, w] (w >= 0) of the rotations of poses (N, 4, 4)."""
+    from scipy.spatial.transform import Rotation
+    q = Rotation.from_matrix(np.asarray(T, dtype=float)[:, :3, :3]).as_quat()
+    return np.where(q[:, 3:] < 0, -q, q).tolist()
 
 
 def _nan_none(a):
@@ -306,8 +315,11 @@ def run_mechanism_dynamics(sc, duration, dt, theta=0.5, progress=None, record_ev
     ``members`` (as in statics), and the same samples flat for the CSV:
     ``member_positions`` (B, P, 3) [m] and ``member_internal_wrenches``
     (B, P, 6) [N, N m] at every member's section boundaries
-    (``member_point_names``: ``<member>_<k>``). ``error`` when a step fails (the history
-    ends at the last converged step)."""
+    (``member_point_names``: ``<member>_<k>``); JSON only, at the same samples:
+    ``frame_poses`` (B, n_frames, 4, 4) world poses of the frames of
+    ``frame_names`` and ``energies`` (B, 3) [J]: kinetic, elastic (members and
+    joint springs), gravitational (:func:`sample_energies`). ``error`` when a
+    step fails (the history ends at the last converged step)."""
     import time as _time
     from .outputs import section_strains, state_outputs
     from .scenario import n_steps_for, step_times
@@ -330,7 +342,7 @@ def run_mechanism_dynamics(sc, duration, dt, theta=0.5, progress=None, record_ev
         out.update(members_time=[], members=[], member_positions=[], member_internal_wrenches=[],
                    member_point_names=[f"{m.name}_{k}" for m in mech.members
                                        for k in range(len(mech.tree.paths[m.path].joints) + 1)],
-                   sample_fields=["member_positions", "member_internal_wrenches"])
+                   sample_fields=["member_positions", "member_internal_wrenches"], frame_poses=[], energies=[])
 
     def record(k, inp, iterations):
         o = state_outputs(mech, sim.q, sim.lam, inp, sim.v, sim.a, sim.ws)
@@ -353,6 +365,9 @@ def run_mechanism_dynamics(sc, duration, dt, theta=0.5, progress=None, record_ev
             # the same samples flat (every member's section boundaries in order), for the CSV
             out["member_positions"].append(np.concatenate([m.poses[:, :3, 3] for m in o.members]).tolist())
             out["member_internal_wrenches"].append(np.concatenate([m.internal_wrench for m in o.members]).tolist())
+            # issue 12 (figures): every frame's pose and the energies at the samples
+            out["frame_poses"].append([np.asarray(o.frames[n], dtype=float).tolist() for n in mech.frames])
+            out["energies"].append(list(sample_energies(sim)))
 
     sim.start_multipliers(inp0, _targets(sc, 0.0))
     record(0, inp0, 0)
@@ -375,3 +390,18 @@ def run_mechanism_dynamics(sc, duration, dt, theta=0.5, progress=None, record_ev
             last = _time.monotonic()
     out["dt"] = float(dt)
     return out
+
+
+def sample_energies(sim):
+    """(kinetic, elastic, gravitational) [J] of a MechanismSimulator's state:
+    its :meth:`~constrained.MechanismSimulator.energy` with the potential
+    split into the strain (and joint spring) energy 1/2 dq^T K dq and the
+    rest, the gravity potential (zero at the world origin). NaN elastic and
+    gravitational parts when the tree has quaternion joints (nq != nv)."""
+    kin, pot = sim.energy()
+    tree = sim.tree
+    if tree.nq != tree.nv:
+        return float(kin), float("nan"), float("nan")
+    dq = sim.q - tree.q0
+    ela = 0.5 * float(dq @ sim.K @ dq)
+    return float(kin), ela, float(pot) - ela
