@@ -79,7 +79,8 @@ class LiveViewOutput:
             shot, radii = articulated_view_snapshot(robot.mechanism, snap)
             view.show(shot, radii, base_pose=np.eye(4), tip_pose=snap.tip_pose,
                       actuation=dict(zip(model.actuator_names, np.asarray(snap.u, dtype=float).tolist())),
-                      text=f"({snap.mode})")
+                      text=f"({snap.mode})",
+                      joints=dict(zip(snap.joint_names, np.asarray(snap.joint_positions, dtype=float).tolist())))
             return
         shot, radii = view_snapshot(model, snap, robot.section_radii())
         view.show(shot, radii, base_pose=snap.backbone[0], tip_pose=snap.tip_pose,

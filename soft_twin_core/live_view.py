@@ -127,11 +127,12 @@ class LiveView:
         return f"http://{self.host}:{self.port}"
 
     def show(self, snap, radii=0.01, base_pose=None, tip_pose=None, tip_force=None, actuation=None,
-             force_scale=0.5, text=""):
+             force_scale=0.5, text="", joints=None):
         """Draw one :class:`scene.Snapshot`: a tube per member (radii [m]: one
         value or one per point of each member, a list per member), links as
         bars, the base and tip frames (4x4 poses, world), the tip force [N]
-        as an arrow of ``force_scale`` m per N, the actuation values."""
+        as an arrow of ``force_scale`` m per N, the actuation values and the
+        joint positions (``joints``: {name: rad or m})."""
         sc = self.server.scene
         with self._lock:
             for k, P in enumerate(snap.members):
@@ -172,6 +173,8 @@ class LiveView:
             lines = [f"**soft_twin** {snap.caption}  {text}".rstrip()]
             if actuation:
                 lines += [f"- `{k}`: {v:.3g}" for k, v in actuation.items()]
+            if joints:
+                lines += [f"- joint `{k}`: {v:.3g}" for k, v in joints.items()]
             if tip_force is not None:
                 f = np.asarray(tip_force, dtype=float)
                 lines.append(f"- tip force: [{f[0]:.3g}, {f[1]:.3g}, {f[2]:.3g}] N")

@@ -152,13 +152,25 @@ def read_articulated_run(path, mech, node=None, tf_prefix=None):
     else:
         raise ValueError(f"{path}: " + (f"several articulated twins recorded {found}: choose one with --node"
                                         if found else "no joint_states topic of an articulated twin"))
+    try:
+        return articulated_run_from_messages(msgs, mech, ns, tf_prefix)
+    except ValueError as e:
+        raise ValueError(f"{path}: {e}") from None
+
+
+def articulated_run_from_messages(msgs, mech, ns, tf_prefix=None):
+    """:func:`read_articulated_run` of decoded messages {topic: [msg, ...]}
+    (from a recording, or received live by rclpy: read by attribute) of the
+    node ``ns`` (``/soft_twin``)."""
     prefix = tf_prefix if tf_prefix is not None else ns.strip("/") + "/"
+    if not msgs.get(f"{ns}/joint_states"):
+        raise ValueError(f"no {ns}/joint_states")
     js = {_stamp(m): m for m in msgs[f"{ns}/joint_states"]}
     bb = {}
     for mem in mech.members:
         topic = f"{ns}/backbones/{topic_name(mem.name)}"
         if topic not in msgs:
-            raise ValueError(f"{path}: no {topic} (the robot's member {mem.name!r}); is it the recorded robot?")
+            raise ValueError(f"no {topic} (the robot's member {mem.name!r}); is it the recorded robot?")
         bb[mem.name] = {_stamp(m): m for m in msgs[topic]}
     fnames = list(mech.frames)
     want = {prefix + n: n for n in fnames}
@@ -172,7 +184,7 @@ def read_articulated_run(path, mech, node=None, tf_prefix=None):
         stamps &= set(d)
     stamps = sorted(k for k in stamps if len(tf.get(k, {})) == len(fnames))
     if not stamps:
-        raise ValueError(f"{path}: no state of {ns} with joint states, every member's backbone and the "
+        raise ValueError(f"no state of {ns} with joint states, every member's backbone and the "
                          f"robot's frames on /tf (prefix {prefix!r}) at one stamp")
     names = list(js[stamps[0]].name)
     st = {_stamp(m): m for m in msgs.get(f"{ns}/strains", [])}
