@@ -274,9 +274,6 @@ def main(argv=None):
             results = []
             for a in angles:
                 sc = load_scenario(args.scenario, args.sections, a)
-                if hasattr(sc, "mech") and (args.plot or args.animate):
-                    raise ScenarioError("--plot/--animate: not available for the statics of articulated robots "
-                                        "yet (the JSON has every output)")
                 r = run_statics(sc, args.points_per_section)
                 if a is not None:
                     r = {"angle_deg": float(a), **r}

@@ -107,7 +107,26 @@ def render_dynamics(out, args, model=None, gravity=True, name="run"):
         animate_dynamics(out, args.animate, args.fps or DEFAULT_FPS, model, name)
 
 
+def render_mechanism_statics(results, args, mech, name="statics"):
+    """--plot and --animate of an articulated robot's equilibria (one frame
+    each): the members, links and joints, and the internal wrench along
+    every member."""
+    from .mechanism_scene import statics_snapshot
+    snaps = [statics_snapshot(r, mech, "equilibrium") for r in results]
+    if args.plot:
+        from .mechanism_plots import plot_mechanism_statics
+        paths = plot_mechanism_statics(results[-1], snaps[-1], args.plot, name)
+        say(f"wrote {len(paths)} figures into {args.plot}: " + ", ".join(os.path.basename(p) for p in paths))
+    if args.animate:
+        from .animate import write_animation
+        fps = args.fps or DEFAULT_SWEEP_FPS
+        n, seconds = write_animation(snaps, args.animate, fps, name)
+        say(f"wrote {args.animate} ({n} frames at {fps:g} fps, {seconds:.2f} s)")
+
+
 def render_statics(results, args, sc, sweep, name="statics"):
+    if hasattr(sc, "mech"):                     # an articulated robot (tree robot file)
+        return render_mechanism_statics(results, args, sc.mech, name)
     from .plots import plot_statics, plot_sweep
     if args.plot:
         if sweep:
@@ -155,7 +174,7 @@ def render_main(args):
         out = load_articulated_run(args, mech)
         if args.scenario:
             name = os.path.splitext(os.path.basename(args.scenario))[0]
-        render_mechanism_dynamics(out, argparse_without_mcap(args), mech, name)
+        render_mechanism_dynamics(out, args, mech, name)     # (render has no --mcap)
         return
     if args.scenario:
         sc = load_scenario(args.scenario, args.sections)
@@ -206,14 +225,6 @@ def load_articulated_run(args, mech):
         raise ValueError(f"{args.run}: not a run of an articulated robot (no joint histories); its robot is "
                          f"not {mech.name!r}")
     return out
-
-
-def argparse_without_mcap(args):
-    """``args`` with no ``--mcap`` (render and view read a run, never write one)."""
-    import argparse
-    d = dict(vars(args))
-    d["mcap"] = None
-    return argparse.Namespace(**d)
 
 
 def view_main(args, stop=None):

@@ -326,3 +326,50 @@ def test_plots_from_the_mcap_equal_those_of_the_run(tmp_path):
         assert a.shape == b.shape and np.array_equal(a, b), stem
     with Image.open(tmp_path / "rec.gif") as im:
         assert im.n_frames == 3                     # 0.1 s at 25 fps
+
+
+def test_articulated_statics_figures_and_frame(tmp_path):
+    code, out, err = run_cli(["statics", "planar_parallel_robot", "--plot", str(tmp_path / "fig"),
+                              "--animate", str(tmp_path / "eq.gif")])
+    assert code == 0, err
+    for stem in ("backbone_shapes", "internal_wrenches_rod1", "internal_wrenches_rod2"):
+        check_png(tmp_path / "fig" / f"{stem}.png")
+    with Image.open(tmp_path / "eq.gif") as im:
+        assert im.n_frames == 1 and im.size == (1120, 448) and ink(im) > 0.01
+    r = json.loads(out)
+    # the platform's pose in the JSON is its frame's: position equal, rotation orthonormal
+    k = r["frame_names"].index("platform")
+    T = np.array(r["frame_poses"][k])
+    assert np.array_equal(T[:3, 3], r["frame_positions"][k]) and np.allclose(T[:3, :3] @ T[:3, :3].T, np.eye(3))
+
+
+def test_view_plays_an_articulated_run(pan_tilt_run):
+    """soft-twin-sim view of an articulated run (JSON and MCAP): the page is
+    served and the states are shown in real time."""
+    import socket
+    import threading
+    import time
+    import urllib.request
+    from soft_twin_core import render
+    d, _ = pan_tilt_run
+    for run in ("run.json", "run.mcap"):
+        with socket.socket() as s:
+            s.bind(("127.0.0.1", 0))
+            port = s.getsockname()[1]
+        args = cli._parser().parse_args(["view", str(d / run), "--scenario", "pan_tilt_arm_dynamics",
+                                         "--port", str(port), "--seconds", "1.5"])
+        result = {}
+        th = threading.Thread(target=lambda: result.setdefault("updates", render.view_main(args)))
+        th.start()
+        html, end = None, time.monotonic() + 20
+        while html is None and time.monotonic() < end:
+            try:
+                with urllib.request.urlopen(f"http://127.0.0.1:{port}/", timeout=2) as r:
+                    html = r.read().decode("utf-8", "replace")
+            except OSError:
+                time.sleep(0.1)
+        th.join(30)
+        assert html is not None and "<html" in html.lower()
+        # 0.4 s of run sampled every 0.04 s (11 states), looped for 1.5 s: about 3.5 loops (38 states);
+        # at least one whole loop on a loaded machine, never faster than real time
+        assert 11 <= result["updates"] <= 42, (run, result)
