@@ -52,6 +52,7 @@ class LiveViewOutput:
         self._node = node
         self._view, self._port = None, 0
         self._last = -np.inf
+        self._framed = False
 
     def follow(self, port):
         """Serve on ``port`` (0: stop)."""
@@ -66,6 +67,7 @@ class LiveViewOutput:
                 self._node.get_logger().error(f"live_view_port: cannot serve on port {port}: {e}")
                 return
             self._port = port
+            self._framed = False
             self._node.get_logger().info(f"live 3D view: {self._view.url}")
 
     def publish(self, snap, robot):
@@ -77,6 +79,10 @@ class LiveViewOutput:
         model = robot.model
         if getattr(robot, "articulated", False):
             shot, radii = articulated_view_snapshot(robot.mechanism, snap)
+            if not self._framed:              # the first state: frame the robot for every new page
+                from soft_twin_core.scene import bounds
+                view.frame(*bounds([shot], pad=0.3))
+                self._framed = True
             view.show(shot, radii, base_pose=np.eye(4), tip_pose=snap.tip_pose,
                       actuation=dict(zip(model.actuator_names, np.asarray(snap.u, dtype=float).tolist())),
                       text=f"({snap.mode})",

@@ -113,14 +113,26 @@ class LiveView:
         self.host = host
         self._lock = threading.Lock()
         self._text = self.server.gui.add_markdown("**soft_twin**: waiting for the twin ...")
-        self.server.scene.add_grid("/grid", width=1.0, height=1.0, cell_size=0.05, position=(0.2, 0.0, -0.5))
+        self._grid = self.server.scene.add_grid("/grid", width=1.0, height=1.0, cell_size=0.05,
+                                                position=(0.2, 0.0, -0.5))
         self.server.scene.set_up_direction("+z")
         # the camera of every new page: from the front-left, a little above, on the arm
         c = np.asarray(look_at, dtype=float)
         self.server.initial_camera.look_at = tuple(c)
         self.server.initial_camera.position = tuple(c + distance * np.array([0.35, -0.85, 0.4]))
         self._n_links = self._n_shapes = self._n_joints = 0
+        self._sent = {}                  # scene node -> the data last sent
         self.updates = 0
+
+    def frame(self, lo, hi):
+        """Aim the camera of every new page at the box (lo, hi) [m] (a robot's
+        extent, e.g. :func:`scene.bounds`) from the front-left, a little
+        above, and put the grid just under it."""
+        lo, hi = np.asarray(lo, dtype=float), np.asarray(hi, dtype=float)
+        c, size = 0.5 * (lo + hi), max(float(np.max(hi - lo)), 0.05)
+        self.server.initial_camera.look_at = tuple(c)
+        self.server.initial_camera.position = tuple(c + (1.6 * size + 0.1) * np.array([0.35, -0.85, 0.4]))
+        self._grid.position = (float(c[0]), float(c[1]), float(lo[2]) - 0.02)
 
     @property
     def url(self):
@@ -139,37 +151,42 @@ class LiveView:
                 r = radii[k] if isinstance(radii, (list, tuple)) else radii
                 if len(P) >= 2:
                     V, F = tube_mesh(P, r)
-                    sc.add_mesh_simple(f"/twin/member_{k}", V, F, color=TUBE_COLOR, flat_shading=False)
+                    if self._changed(f"/twin/member_{k}", V, F):
+                        sc.add_mesh_simple(f"/twin/member_{k}", V, F, color=TUBE_COLOR, flat_shading=False)
             for k, seg in enumerate(snap.links):
-                sc.add_line_segments(f"/twin/link_{k}", np.asarray(seg, np.float32)[None], colors=LINK_COLOR,
-                                     line_width=6.0)
+                if self._changed(f"/twin/link_{k}", seg):
+                    sc.add_line_segments(f"/twin/link_{k}", np.asarray(seg, np.float32)[None], colors=LINK_COLOR,
+                                         line_width=6.0)
             for k in range(len(snap.links), self._n_links):
-                sc.remove_by_name(f"/twin/link_{k}")
+                self._remove(f"/twin/link_{k}")
             self._n_links = len(snap.links)
             # articulated robots: the links' visual shapes, the rigid joints and their axes
             for k, (vis, T) in enumerate(snap.shapes):
                 V, F = shape_mesh(vis, T)
-                sc.add_mesh_simple(f"/twin/shape_{k}", V, F, color=SHAPE_COLOR, flat_shading=True)
+                if self._changed(f"/twin/shape_{k}", V, F):
+                    sc.add_mesh_simple(f"/twin/shape_{k}", V, F, color=SHAPE_COLOR, flat_shading=True)
             for k in range(len(snap.shapes), self._n_shapes):
-                sc.remove_by_name(f"/twin/shape_{k}")
+                self._remove(f"/twin/shape_{k}")
             self._n_shapes = len(snap.shapes)
             for k, p in enumerate(snap.joints):
-                sc.add_icosphere(f"/twin/joint_{k}", radius=0.006, color=JOINT_COLOR, position=tuple(p))
+                if self._changed(f"/twin/joint_{k}", p):
+                    sc.add_icosphere(f"/twin/joint_{k}", radius=0.006, color=JOINT_COLOR, position=tuple(p))
             for k in range(len(snap.joints), self._n_joints):
-                sc.remove_by_name(f"/twin/joint_{k}")
+                self._remove(f"/twin/joint_{k}")
             self._n_joints = len(snap.joints)
-            if snap.joint_axes:
+            if snap.joint_axes and self._changed("/twin/joint_axes", *snap.joint_axes):
                 sc.add_line_segments("/twin/joint_axes", np.asarray(snap.joint_axes, np.float32),
                                      colors=JOINT_COLOR, line_width=3.0)
             for name, T in (("base", base_pose), ("tip", tip_pose)):
-                if T is not None:
+                if T is not None and self._changed(f"/twin/{name}_frame", T):
                     T = np.asarray(T, dtype=float)
                     sc.add_frame(f"/twin/{name}_frame", wxyz=wxyz(T[:3, :3]), position=T[:3, 3],
                                  axes_length=0.05, axes_radius=0.002)
             if tip_force is not None and tip_pose is not None:
                 p0 = np.asarray(tip_pose, dtype=float)[:3, 3]
                 seg = np.array([[p0, p0 + force_scale * np.asarray(tip_force, dtype=float)]], np.float32)
-                sc.add_line_segments("/twin/tip_force", seg, colors=FORCE_COLOR, line_width=5.0)
+                if self._changed("/twin/tip_force", seg):
+                    sc.add_line_segments("/twin/tip_force", seg, colors=FORCE_COLOR, line_width=5.0)
             lines = [f"**soft_twin** {snap.caption}  {text}".rstrip()]
             if actuation:
                 lines += [f"- `{k}`: {v:.3g}" for k, v in actuation.items()]
@@ -178,8 +195,24 @@ class LiveView:
             if tip_force is not None:
                 f = np.asarray(tip_force, dtype=float)
                 lines.append(f"- tip force: [{f[0]:.3g}, {f[1]:.3g}, {f[2]:.3g}] N")
-            self._text.content = "\n".join(lines)
+            content = "\n".join(lines)
+            if content != self._text.content:
+                self._text.content = content
             self.updates += 1
+
+    def _changed(self, name, *arrays):
+        """True (and remembered) when the data of scene node ``name`` differ
+        from what was last sent: an unchanged state (a quasi-static twin
+        republishing) sends nothing, so a slow browser never falls behind."""
+        key = b"".join(np.ascontiguousarray(a, dtype=np.float64).tobytes() for a in arrays)
+        if self._sent.get(name) == key:
+            return False
+        self._sent[name] = key
+        return True
+
+    def _remove(self, name):
+        self.server.scene.remove_by_name(name)
+        self._sent.pop(name, None)
 
     def close(self):
         self.server.stop()

@@ -257,6 +257,9 @@ def view_main(args, stop=None):
         view = LiveView(port=args.port)
     except OSError as e:
         raise ValueError(f"view: cannot serve on port {args.port}: {e}") from None
+    if mech is not None:                        # an articulated robot: frame its whole motion
+        from .scene import bounds
+        view.frame(*bounds(snaps, pad=0.3))
     say(f"live 3D view of {args.run}: {view.url} ({len(snaps)} states, "
         f"{snaps[-1].time - snaps[0].time:.2f} s, in a loop; Ctrl-C to stop)")
     start = _time.monotonic()
