@@ -87,7 +87,8 @@ def _parser():
     pp.add_argument("--no-dynamics", action="store_true", help="skip the dynamic verification")
     render.add_visual_arguments(d)
     d.add_argument("--mcap", metavar="FILE", help="also write the backbone samples as the twin node publishes "
-                   "them (ROS 2 bag format: ~/backbone, ~/tip_pose, ~/strains of node soft_twin_sim)")
+                   "them (ROS 2 bag format: ~/backbone, ~/tip_pose, ~/strains of node soft_twin_sim; articulated robots: "
+                   "~/joint_states, ~/backbones/<member>, ~/tip_pose, ~/strains, ~/joint_wrenches/<joint>, /tf)")
     r = sub.add_parser("render", help="figures and/or an animation of a saved run: the JSON of "
                        "soft-twin-sim dynamics, or an MCAP recording of the twin node")
     r.add_argument("run", help="a JSON file written by soft-twin-sim dynamics (with --backbone-every K), "

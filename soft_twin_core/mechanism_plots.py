@@ -92,14 +92,14 @@ def plot_section_strains(out, folder, title="strains of the soft sections"):
     t = np.asarray(out["time"], dtype=float)
     names = out["section_names"]
     S = np.asarray(out["strains"], dtype=float).reshape(len(t), len(names), 6)
-    members = sorted({n.rsplit("_", 1)[0] for n in names}, key=[n.rsplit("_", 1)[0] for n in names].index)
+    owner = [n.rsplit("_", 1)[0] for n in names]          # soft joints are named <member>_<k>
+    members = list(dict.fromkeys(owner))
+    first = {mb: owner.index(mb) for mb in members}
     fig, axs = plt.subplots(2, 3, figsize=(13, 6.5), sharex=True)
     for m, ax in enumerate(axs.ravel()):
-        for i, n in enumerate(names):
-            c = f"C{members.index(n.rsplit('_', 1)[0]) % 10}"
-            ax.plot(t, S[:, i, m], color=c, lw=1.0, alpha=0.9,
-                    label=n.rsplit("_", 1)[0] if m == 0 and i == [x.rsplit("_", 1)[0] for x in names].index(
-                        n.rsplit("_", 1)[0]) else None)
+        for i, mb in enumerate(owner):
+            ax.plot(t, S[:, i, m], color=f"C{members.index(mb) % 10}", lw=1.0, alpha=0.9,
+                    label=mb if m == 0 and first[mb] == i else None)
         ax.set_title(STRAIN_NAMES[m])
         ax.set_ylabel("[-]" if m < 3 else "[1/m]")
         ax.grid(alpha=0.3)

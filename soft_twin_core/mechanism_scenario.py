@@ -276,12 +276,12 @@ def _nan_none(a):
 def run_mechanism_statics(sc):
     """Equilibrium of the scenario at t = 0. JSON-ready dict: joint_names and
     joint_positions/efforts [rad or m, N m or N]; frame_names and
-    frame_positions (world, m); constraint_names and constraint_wrenches
+    frame_positions (world, m) and frame_poses (4x4, world); constraint_names and constraint_wrenches
     (world [f; m] on the constraint's frame, N, N m); transmitted_names and
     transmitted_wrenches (the wrench through every joint, world axes, about
     its input origin); members: per soft member at its section boundaries
-    s [m], positions, internal_wrench (body axes), strains, normal_stress and
-    shear_stress [Pa] (null without geometry); iterations, residual."""
+    s [m], positions, orientations (quaternions x, y, z, w), internal_wrench (body axes), strains,
+    normal_stress and shear_stress [Pa] (null without geometry); iterations, residual."""
     from .outputs import state_outputs
     from .loads import Loads
     u, eff, pos, pls = sc.inputs_at(0.0)
@@ -367,7 +367,7 @@ def run_mechanism_dynamics(sc, duration, dt, theta=0.5, progress=None, record_ev
             out["member_internal_wrenches"].append(np.concatenate([m.internal_wrench for m in o.members]).tolist())
             # issue 12 (figures): every frame's pose and the energies at the samples
             out["frame_poses"].append([np.asarray(o.frames[n], dtype=float).tolist() for n in mech.frames])
-            out["energies"].append(list(sample_energies(sim)))
+            out["energies"].append(_nan_none(sample_energies(sim)))
 
     sim.start_multipliers(inp0, _targets(sc, 0.0))
     record(0, inp0, 0)
@@ -396,12 +396,13 @@ def sample_energies(sim):
     """(kinetic, elastic, gravitational) [J] of a MechanismSimulator's state:
     its :meth:`~constrained.MechanismSimulator.energy` with the potential
     split into the strain (and joint spring) energy 1/2 dq^T K dq and the
-    rest, the gravity potential (zero at the world origin). NaN elastic and
-    gravitational parts when the tree has quaternion joints (nq != nv)."""
+    rest, the gravity potential (zero at the world origin). The elastic part
+    is NaN when the tree has quaternion joints (nq != nv: ``energy`` then
+    gives the gravity potential only)."""
     kin, pot = sim.energy()
     tree = sim.tree
     if tree.nq != tree.nv:
-        return float(kin), float("nan"), float("nan")
+        return float(kin), float("nan"), float(pot)
     dq = sim.q - tree.q0
     ela = 0.5 * float(dq @ sim.K @ dq)
     return float(kin), ela, float(pot) - ela

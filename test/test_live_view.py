@@ -77,8 +77,11 @@ def test_browser_shows_the_arm_and_follows_the_actuation(tmp_path):
         assert client.wait_until(lambda: client.tip_pose.pose.position.z > tip0 + 0.05, 20.0), "the twin did not lift"
 
         def moved():
-            shots["after"] = browser.screenshot()
-            after = arm_pixels(shots["after"])
+            png = screenshot()
+            if png is None:
+                return False
+            shots["after"] = png
+            after = arm_pixels(png)
             inter, union = (before & after).sum(), (before | after).sum()
             return after.sum() > 400 and inter / union < 0.6
         assert wait_for(moved, 30.0, 0.5), "the arm in the page did not move"
@@ -143,12 +146,23 @@ def test_browser_shows_an_articulated_robot_and_follows_a_joint_command(tmp_path
         browser.open(f"http://127.0.0.1:{port}")
         shots = {}
 
+        def screenshot():
+            """A screenshot, or None when the (software-rendering) browser is
+            too busy to answer in time on a loaded machine: try again."""
+            try:
+                return browser.screenshot()
+            except TimeoutError:
+                return None
+
         def robot_visible():               # and the page settled (it fades the scene in)
-            prev, shots["before"] = shots.get("before"), browser.screenshot()
-            arm, links = arm_pixels(shots["before"]), link_pixels(shots["before"])
+            prev, png = shots.get("before"), screenshot()
+            if png is None:
+                return False
+            shots["before"] = png
+            arm, links = arm_pixels(png), link_pixels(png)
             return (arm.sum() > 300 and links.sum() > 300 and prev is not None
                     and np.array_equal(arm, arm_pixels(prev)) and np.array_equal(links, link_pixels(prev)))
-        assert wait_for(robot_visible, 60.0, 0.5), "the page shows no arm and links"
+        assert wait_for(robot_visible, 120.0, 0.5), "the page shows no arm and links"
         (tmp_path / "before.png").write_bytes(shots["before"])
         before, links_before = arm_pixels(shots["before"]), link_pixels(shots["before"])
         text = browser.evaluate("document.body.innerText")
@@ -160,15 +174,17 @@ def test_browser_shows_an_articulated_robot_and_follows_a_joint_command(tmp_path
                                  and abs(client.history["joint_states"][-1][1].position[0] - 0.9) < 1e-9, 30.0)
 
         def moved():
-            shots["after"] = browser.screenshot()
-            after = arm_pixels(shots["after"])
+            png = screenshot()
+            if png is None:
+                return False
+            shots["after"] = png
+            after = arm_pixels(png)
             inter, union = (before & after).sum(), (before | after).sum()
             return after.sum() > 100 and inter / union < 0.5
-        ok = wait_for(moved, 30.0, 0.5)
-        (tmp_path / "after.png").write_bytes(shots["after"])
+        ok = wait_for(moved, 60.0, 0.5)
+        if "after" in shots:
+            (tmp_path / "after.png").write_bytes(shots["after"])
         assert ok, "the arm in the page did not turn with the pan joint"
-        client.wait_until(lambda: False, 2.0)
-        (tmp_path / "final.png").write_bytes(browser.screenshot())
         assert link_pixels(shots["after"]).sum() > 300
         assert not np.array_equal(links_before, link_pixels(shots["after"]))     # the tilt box turned too
         assert "0.9" in browser.evaluate("document.body.innerText")
