@@ -26,24 +26,12 @@ def tip_force_world(model, snap):
 def articulated_view_snapshot(mech, snap):
     """(scene.Snapshot, radii per member) of an articulated robot's state:
     its members through their section boundaries (radii from their
-    cross-sections), each rigid link drawn as a bar from its parent link's
-    frame (or the base) to its own frame."""
-    members, radii = [], []
-    for mem in mech.members:
-        poses, _ = snap.backbones[mem.name]
-        members.append(poses[:, :3, 3])
-        r = [max(g.cy, g.cz) if g is not None else 0.005 for g in mem.geometry]
-        radii.append(np.asarray(r + r[-1:], dtype=float))
-    tree = mech.tree
-    names = {lk.joint: lk.name for lk in mech.links}
-    links = []
-    for lk in mech.links:
-        j = tree.joints[lk.joint]
-        start = np.zeros(3) if j.parent < 0 else (snap.frames[names[j.parent]][:3, 3] if j.parent in names
-                                                  else None)
-        if start is not None:
-            links.append(np.array([start, snap.frames[lk.name][:3, 3]]))
-    return Snapshot(members or [snap.tip_pose[None, :3, 3]], links, time=float(snap.t)), radii or [0.005]
+    cross-sections), its links' visual shapes (a bar from the parent link's
+    frame for a link without one) and its rigid joints
+    (:func:`soft_twin_core.mechanism_scene.snapshot`)."""
+    from soft_twin_core.mechanism_scene import member_radii, snapshot
+    members = {name: poses[:, :3, 3] for name, (poses, _) in snap.backbones.items()}
+    return snapshot(mech, members, snap.frames, time=float(snap.t)), member_radii(mech)
 
 
 def view_snapshot(model, snap, radii_per_section):
@@ -64,6 +52,7 @@ class LiveViewOutput:
         self._node = node
         self._view, self._port = None, 0
         self._last = -np.inf
+        self._framed = False
 
     def follow(self, port):
         """Serve on ``port`` (0: stop)."""
@@ -78,6 +67,7 @@ class LiveViewOutput:
                 self._node.get_logger().error(f"live_view_port: cannot serve on port {port}: {e}")
                 return
             self._port = port
+            self._framed = False
             self._node.get_logger().info(f"live 3D view: {self._view.url}")
 
     def publish(self, snap, robot):
@@ -89,9 +79,14 @@ class LiveViewOutput:
         model = robot.model
         if getattr(robot, "articulated", False):
             shot, radii = articulated_view_snapshot(robot.mechanism, snap)
+            if not self._framed:              # the first state: frame the robot for every new page
+                from soft_twin_core.scene import bounds
+                view.frame(*bounds([shot], pad=0.3))
+                self._framed = True
             view.show(shot, radii, base_pose=np.eye(4), tip_pose=snap.tip_pose,
                       actuation=dict(zip(model.actuator_names, np.asarray(snap.u, dtype=float).tolist())),
-                      text=f"({snap.mode})")
+                      text=f"({snap.mode})",
+                      joints=dict(zip(snap.joint_names, np.asarray(snap.joint_positions, dtype=float).tolist())))
             return
         shot, radii = view_snapshot(model, snap, robot.section_radii())
         view.show(shot, radii, base_pose=snap.backbone[0], tip_pose=snap.tip_pose,

@@ -251,7 +251,8 @@ class SoftTwinNode(Node):
         self._tf = tf_out.TfOutput(self)
         self._recorder = recorder.Recorder(self, [
             self._pub_backbone, self._pub_tip, self._pub_tip_wrench, self._pub_base_wrench,
-            self._pub_strains, self._pub_markers, self._pub_diag, self._tf.publisher], self._publish_lock)
+            self._pub_strains, self._pub_markers, self._pub_diag, self._tf.publisher]
+            + self._articulated_publishers(), self._publish_lock)
         self._recorder.follow(self.cfg.record_file)
         self._live_view = live_view_out.LiveViewOutput(self)
         self._live_view.follow(self.cfg.live_view_port)
@@ -315,6 +316,13 @@ class SoftTwinNode(Node):
         self._sub_joints = self.create_subscription(
             JointState, "~/joint_commands", lambda msg, info: on_joints(msg, info), JOINT_QUEUE,
             callback_group=self._input_group)
+
+    def _articulated_publishers(self):
+        """Every publisher of an articulated robot's topics (recorded too; issue 12)."""
+        if self._pub_joints is None:
+            return []
+        return ([self._pub_joints] + list(self._pub_members.values()) + list(self._pub_internal.values())
+                + list(self._pub_constraints.values()))
 
     def _on_joint_command(self, msg, info=None):
         """Every queued JointState command in order: validated

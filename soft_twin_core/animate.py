@@ -60,13 +60,19 @@ class FrameDrawer:
         self.fig.tight_layout(rect=(0, 0.05, 1, 1))
         n_members = max(len(s.members) for s in snapshots)
         n_links = max(len(s.links) for s in snapshots)
-        self.lines = {}
+        n_solids = max(len(s.solids) for s in snapshots)
+        n_axes = max(len(s.joint_axes) for s in snapshots)
+        self.lines, self.rigid = {}, {}
         for name, ax in self.axes.items():
             mk = ((lambda **kw: ax.plot([], [], [], animated=True, **kw)[0]) if name == "3d"
                   else (lambda **kw: ax.plot([], [], animated=True, **kw)[0]))
             self.lines[name] = ([mk(color=f"C{k % 10}", lw=2.5) for k in range(n_members)],
                                 [mk(color="0.25", lw=4, solid_capstyle="round") for _ in range(n_links)],
                                 mk(color="C3", marker="o", ms=5, ls="none"))
+            # rigid links' visual shapes (wire outlines), joint axes and joint markers (articulated robots)
+            self.rigid[name] = ([mk(color="0.3", lw=1.6) for _ in range(n_solids)],
+                                [mk(color="k", lw=1.2) for _ in range(n_axes)],
+                                mk(color="k", marker="o", mfc="w", ms=6, ls="none"))
         # blitting: the axes, grids and labels (fixed camera) are drawn once;
         # each frame restores them and draws the moving artists only
         self.fig.canvas.draw()
@@ -79,11 +85,17 @@ class FrameDrawer:
             for k, line in enumerate(links):
                 self._set(name, line, snap.links[k] if k < len(snap.links) else np.zeros((0, 3)))
             self._set(name, tip, snap.tip[None, :])
+        for name, (solids, axes, joints) in self.rigid.items():
+            for k, line in enumerate(solids):
+                self._set(name, line, snap.solids[k] if k < len(snap.solids) else np.zeros((0, 3)))
+            for k, line in enumerate(axes):
+                self._set(name, line, snap.joint_axes[k] if k < len(snap.joint_axes) else np.zeros((0, 3)))
+            self._set(name, joints, snap.joints)
         self.caption.set_text(snap.caption)
         canvas = self.fig.canvas
         canvas.restore_region(self.background)
-        for members, links, tip in self.lines.values():
-            for line in members + links + [tip]:
+        for (members, links, tip), (solids, axes, joints) in zip(self.lines.values(), self.rigid.values()):
+            for line in solids + members + links + axes + [joints, tip]:
                 line.axes.draw_artist(line)
         self.fig.draw_artist(self.caption)
         rgba = np.asarray(self.fig.canvas.buffer_rgba())

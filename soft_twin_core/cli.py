@@ -87,7 +87,8 @@ def _parser():
     pp.add_argument("--no-dynamics", action="store_true", help="skip the dynamic verification")
     render.add_visual_arguments(d)
     d.add_argument("--mcap", metavar="FILE", help="also write the backbone samples as the twin node publishes "
-                   "them (ROS 2 bag format: ~/backbone, ~/tip_pose, ~/strains of node soft_twin_sim)")
+                   "them (ROS 2 bag format: ~/backbone, ~/tip_pose, ~/strains of node soft_twin_sim; articulated robots: "
+                   "~/joint_states, ~/backbones/<member>, ~/tip_pose, ~/strains, ~/joint_wrenches/<joint>, /tf)")
     r = sub.add_parser("render", help="figures and/or an animation of a saved run: the JSON of "
                        "soft-twin-sim dynamics, or an MCAP recording of the twin node")
     r.add_argument("run", help="a JSON file written by soft-twin-sim dynamics (with --backbone-every K), "
@@ -274,9 +275,6 @@ def main(argv=None):
             results = []
             for a in angles:
                 sc = load_scenario(args.scenario, args.sections, a)
-                if hasattr(sc, "mech") and (args.plot or args.animate):
-                    raise ScenarioError("--plot/--animate: not available for the statics of articulated robots "
-                                        "yet (the JSON has every output)")
                 r = run_statics(sc, args.points_per_section)
                 if a is not None:
                     r = {"angle_deg": float(a), **r}
@@ -289,9 +287,6 @@ def main(argv=None):
         else:
             n_steps_for(args.duration, args.dt)      # refuses impossible durations before any work
             sc = load_scenario(args.scenario, args.sections)
-            if hasattr(sc, "mech") and (args.plot or getattr(args, "mcap", None)):
-                raise ScenarioError("--plot/--mcap: not available for articulated robots yet (--animate is; "
-                                    "the JSON and CSV have every output)")
             clock = {"start": time.monotonic(), "ready": None}
 
             def progress(frac, elapsed):

@@ -247,17 +247,26 @@ def _outputs_dict(sc, out, prefix=""):
         "joint_efforts": [out.efforts[n] for n in mech.joint_names],
         "frame_names": list(out.frames),
         "frame_positions": [out.frames[n][:3, 3].tolist() for n in out.frames],
+        "frame_poses": [np.asarray(out.frames[n], dtype=float).tolist() for n in out.frames],
         "constraint_names": list(out.constraint_wrenches),
         "constraint_wrenches": [w.tolist() for w in out.constraint_wrenches.values()],
         "transmitted_names": list(out.joint_wrenches),
         "transmitted_wrenches": [w.tolist() for w in out.joint_wrenches.values()],
         "members": {m.name: {"s": m.s.tolist(), "positions": m.poses[:, :3, 3].tolist(),
+                             "orientations": _quaternions(m.poses),
                              "velocities": m.velocities.tolist(), "accelerations": m.accelerations.tolist(),
                              "internal_wrench": m.internal_wrench.tolist(), "strains": m.strains.tolist(),
                              "normal_stress": _nan_none(m.normal_stress), "shear_stress": _nan_none(m.shear_stress)}
                     for m in out.members},
     }
     return d
+
+
+def _quaternions(T):
+    """[x, y, z, w] (w >= 0) of the rotations of poses (N, 4, 4)."""
+    from scipy.spatial.transform import Rotation
+    q = Rotation.from_matrix(np.asarray(T, dtype=float)[:, :3, :3]).as_quat()
+    return np.where(q[:, 3:] < 0, -q, q).tolist()
 
 
 def _nan_none(a):
@@ -267,12 +276,12 @@ def _nan_none(a):
 def run_mechanism_statics(sc):
     """Equilibrium of the scenario at t = 0. JSON-ready dict: joint_names and
     joint_positions/efforts [rad or m, N m or N]; frame_names and
-    frame_positions (world, m); constraint_names and constraint_wrenches
+    frame_positions (world, m) and frame_poses (4x4, world); constraint_names and constraint_wrenches
     (world [f; m] on the constraint's frame, N, N m); transmitted_names and
     transmitted_wrenches (the wrench through every joint, world axes, about
     its input origin); members: per soft member at its section boundaries
-    s [m], positions, internal_wrench (body axes), strains, normal_stress and
-    shear_stress [Pa] (null without geometry); iterations, residual."""
+    s [m], positions, orientations (quaternions x, y, z, w), internal_wrench (body axes), strains,
+    normal_stress and shear_stress [Pa] (null without geometry); iterations, residual."""
     from .outputs import state_outputs
     from .loads import Loads
     u, eff, pos, pls = sc.inputs_at(0.0)
@@ -306,8 +315,11 @@ def run_mechanism_dynamics(sc, duration, dt, theta=0.5, progress=None, record_ev
     ``members`` (as in statics), and the same samples flat for the CSV:
     ``member_positions`` (B, P, 3) [m] and ``member_internal_wrenches``
     (B, P, 6) [N, N m] at every member's section boundaries
-    (``member_point_names``: ``<member>_<k>``). ``error`` when a step fails (the history
-    ends at the last converged step)."""
+    (``member_point_names``: ``<member>_<k>``); JSON only, at the same samples:
+    ``frame_poses`` (B, n_frames, 4, 4) world poses of the frames of
+    ``frame_names`` and ``energies`` (B, 3) [J]: kinetic, elastic (members and
+    joint springs), gravitational (:func:`sample_energies`). ``error`` when a
+    step fails (the history ends at the last converged step)."""
     import time as _time
     from .outputs import section_strains, state_outputs
     from .scenario import n_steps_for, step_times
@@ -330,7 +342,7 @@ def run_mechanism_dynamics(sc, duration, dt, theta=0.5, progress=None, record_ev
         out.update(members_time=[], members=[], member_positions=[], member_internal_wrenches=[],
                    member_point_names=[f"{m.name}_{k}" for m in mech.members
                                        for k in range(len(mech.tree.paths[m.path].joints) + 1)],
-                   sample_fields=["member_positions", "member_internal_wrenches"])
+                   sample_fields=["member_positions", "member_internal_wrenches"], frame_poses=[], energies=[])
 
     def record(k, inp, iterations):
         o = state_outputs(mech, sim.q, sim.lam, inp, sim.v, sim.a, sim.ws)
@@ -353,6 +365,9 @@ def run_mechanism_dynamics(sc, duration, dt, theta=0.5, progress=None, record_ev
             # the same samples flat (every member's section boundaries in order), for the CSV
             out["member_positions"].append(np.concatenate([m.poses[:, :3, 3] for m in o.members]).tolist())
             out["member_internal_wrenches"].append(np.concatenate([m.internal_wrench for m in o.members]).tolist())
+            # issue 12 (figures): every frame's pose and the energies at the samples
+            out["frame_poses"].append([np.asarray(o.frames[n], dtype=float).tolist() for n in mech.frames])
+            out["energies"].append(_nan_none(sample_energies(sim)))
 
     sim.start_multipliers(inp0, _targets(sc, 0.0))
     record(0, inp0, 0)
@@ -375,3 +390,19 @@ def run_mechanism_dynamics(sc, duration, dt, theta=0.5, progress=None, record_ev
             last = _time.monotonic()
     out["dt"] = float(dt)
     return out
+
+
+def sample_energies(sim):
+    """(kinetic, elastic, gravitational) [J] of a MechanismSimulator's state:
+    its :meth:`~constrained.MechanismSimulator.energy` with the potential
+    split into the strain (and joint spring) energy 1/2 dq^T K dq and the
+    rest, the gravity potential (zero at the world origin). The elastic part
+    is NaN when the tree has quaternion joints (nq != nv: ``energy`` then
+    gives the gravity potential only)."""
+    kin, pot = sim.energy()
+    tree = sim.tree
+    if tree.nq != tree.nv:
+        return float(kin), float("nan"), float(pot)
+    dq = sim.q - tree.q0
+    ela = 0.5 * float(dq @ sim.K @ dq)
+    return float(kin), ela, float(pot) - ela

@@ -80,6 +80,20 @@ def draw_snapshot(axes, snap, color, label=None, lw=2.0):
             else:
                 i, j = {"side": (0, 2), "top": (0, 1)}[name]
                 ax.plot(seg[:, i], seg[:, j], color="0.25", lw=lw + 1.5, solid_capstyle="round")
+        rigid = [(P, 1.4, "0.3") for P in snap.solids] + [(P, 1.0, "k") for P in snap.joint_axes]
+        for P, lw_s, col in rigid:                     # rigid links' shapes and joint axes
+            if name == "3d":
+                ax.plot(P[:, 0], P[:, 1], P[:, 2], color=col, lw=lw_s)
+            else:
+                i, j = {"side": (0, 2), "top": (0, 1)}[name]
+                ax.plot(P[:, i], P[:, j], color=col, lw=lw_s)
+        if len(snap.joints):
+            J = snap.joints
+            if name == "3d":
+                ax.plot(J[:, 0], J[:, 1], J[:, 2], "o", mfc="w", mec="k", ms=5)
+            else:
+                i, j = {"side": (0, 2), "top": (0, 1)}[name]
+                ax.plot(J[:, i], J[:, j], "o", mfc="w", mec="k", ms=5)
         tip = snap.tip
         if name == "3d":
             ax.plot([tip[0]], [tip[1]], [tip[2]], "o", color=color, ms=4)

@@ -75,39 +75,27 @@ def animate_dynamics(out, path, fps, model=None, title=""):
     return n, seconds
 
 
-def mechanism_snapshots(out, mech):
-    """scene.Snapshots of an articulated robot's dynamics run (its member
-    samples, ``--backbone-every``): every member's section boundaries, each
-    rigid link as a bar from its parent link's frame (or the base origin) to
-    its own frame, the frames' positions of the same rows."""
-    from .scene import Snapshot
-    tree = mech.tree
-    names = {lk.joint: lk.name for lk in mech.links}
-    rows = {t: k for k, t in enumerate(out["time"])}
-    fidx = {n: k for k, n in enumerate(out["frame_names"])}
-    snaps = []
-    for t, members in zip(out["members_time"], out["members"]):
-        fp = out["frame_positions"][rows[t]]
-        links = []
-        for lk in mech.links:
-            par = tree.joints[lk.joint].parent
-            start = [0.0, 0.0, 0.0] if par < 0 else (fp[fidx[names[par]]] if par in names else None)
-            if start is not None:
-                links.append(np.array([start, fp[fidx[lk.name]]]))
-        snaps.append(Snapshot([np.asarray(m["positions"]) for m in members.values()], links, time=float(t)))
-    return snaps
-
-
 def render_mechanism_dynamics(out, args, mech, name="run"):
-    """--animate of an articulated robot's run (--plot and --mcap are for classic robots so far)."""
+    """--plot, --animate and --mcap of an articulated robot's run: its
+    members, rigid links (visual shapes) and joints (:mod:`mechanism_scene`,
+    :mod:`mechanism_plots`, :mod:`mechanism_recording`)."""
+    if args.plot:
+        from .mechanism_plots import plot_mechanism_dynamics
+        paths = plot_mechanism_dynamics(out, args.plot, mech, name)
+        say(f"wrote {len(paths)} figures into {args.plot}: " + ", ".join(os.path.basename(p) for p in paths))
     if args.animate:
         from .animate import write_animation
+        from .mechanism_scene import run_snapshots
         from .scene import sample_times
         fps = args.fps or DEFAULT_FPS
-        snaps = mechanism_snapshots(out, mech)
+        snaps = run_snapshots(out, mech)
         idx = sample_times([s.time for s in snaps], fps)
         n, seconds = write_animation([snaps[i] for i in idx], args.animate, fps, name)
         say(f"wrote {args.animate} ({n} frames at {fps:g} fps, {seconds:.2f} s)")
+    if getattr(args, "mcap", None) and out.get("members_time"):
+        from .mechanism_recording import write_articulated_mcap
+        n = write_articulated_mcap(out, mech, args.mcap)
+        say(f"wrote {args.mcap} ({n} states as /soft_twin_sim/joint_states, backbones/<member>, tip_pose, /tf)")
 
 
 def render_dynamics(out, args, model=None, gravity=True, name="run"):
@@ -119,7 +107,26 @@ def render_dynamics(out, args, model=None, gravity=True, name="run"):
         animate_dynamics(out, args.animate, args.fps or DEFAULT_FPS, model, name)
 
 
+def render_mechanism_statics(results, args, mech, name="statics"):
+    """--plot and --animate of an articulated robot's equilibria (one frame
+    each): the members, links and joints, and the internal wrench along
+    every member."""
+    from .mechanism_scene import statics_snapshot
+    snaps = [statics_snapshot(r, mech, "equilibrium") for r in results]
+    if args.plot:
+        from .mechanism_plots import plot_mechanism_statics
+        paths = plot_mechanism_statics(results[-1], snaps[-1], args.plot, name)
+        say(f"wrote {len(paths)} figures into {args.plot}: " + ", ".join(os.path.basename(p) for p in paths))
+    if args.animate:
+        from .animate import write_animation
+        fps = args.fps or DEFAULT_SWEEP_FPS
+        n, seconds = write_animation(snaps, args.animate, fps, name)
+        say(f"wrote {args.animate} ({n} frames at {fps:g} fps, {seconds:.2f} s)")
+
+
 def render_statics(results, args, sc, sweep, name="statics"):
+    if hasattr(sc, "mech"):                     # an articulated robot (tree robot file)
+        return render_mechanism_statics(results, args, sc.mech, name)
     from .plots import plot_statics, plot_sweep
     if args.plot:
         if sweep:
@@ -162,6 +169,13 @@ def render_main(args):
     if args.scenario and args.robot:
         raise ValueError("render: give --scenario or --robot, not both")
     model, gravity, name = None, True, os.path.splitext(os.path.basename(args.run))[0]
+    mech = articulated_robot_of(args)
+    if mech is not None:                      # an articulated robot (tree robot file)
+        out = load_articulated_run(args, mech)
+        if args.scenario:
+            name = os.path.splitext(os.path.basename(args.scenario))[0]
+        render_mechanism_dynamics(out, args, mech, name)     # (render has no --mcap)
+        return
     if args.scenario:
         sc = load_scenario(args.scenario, args.sections)
         model, gravity = sc.model, sc.gravity
@@ -173,10 +187,44 @@ def render_main(args):
         out = read_node_run(args.run, args.node, model)
     else:
         out = load_run(args.run)
+        if "history_fields" in out:
+            raise ValueError(f"render: {args.run} is a run of an articulated robot; give its --scenario "
+                             f"or --robot (the tree robot file)")
     if model is not None and out.get("n_sections", model.n_sections) != model.n_sections:
         raise ValueError(f"render: the run has {out['n_sections']} sections, the model "
                          f"{model.n_sections}; pass the run's --sections")
     render_dynamics(out, args, model, gravity, name)
+
+
+def articulated_robot_of(args):
+    """The Mechanism of ``--scenario`` / ``--robot`` when it is a tree robot
+    file (an articulated robot), else None."""
+    from .mechanism import is_tree_file, load_mechanism
+    from .model import find_file, read_yaml_file, robot_mapping
+    from .scenario import load_scenario
+    if getattr(args, "scenario", None) and getattr(args, "robot", None):
+        raise ValueError(f"{args.command}: give --scenario or --robot, not both")
+    if getattr(args, "scenario", None):
+        sc = load_scenario(args.scenario, args.sections)
+        return getattr(sc, "mech", None)
+    if getattr(args, "robot", None):
+        p = find_file(args.robot, "robots")
+        if is_tree_file(robot_mapping(read_yaml_file(p, what="robot file"), str(p))):
+            return load_mechanism(p)
+    return None
+
+
+def load_articulated_run(args, mech):
+    """An articulated robot's run: the JSON of ``soft-twin-sim dynamics`` or
+    an MCAP recording (:func:`mechanism_recording.read_articulated_run`)."""
+    if args.run.lower().endswith(".mcap"):
+        from .mechanism_recording import read_articulated_run
+        return read_articulated_run(args.run, mech, args.node)
+    out = load_run(args.run)
+    if "history_fields" not in out:
+        raise ValueError(f"{args.run}: not a run of an articulated robot (no joint histories); its robot is "
+                         f"not {mech.name!r}")
+    return out
 
 
 def view_main(args, stop=None):
@@ -188,21 +236,30 @@ def view_main(args, stop=None):
     from .model import load_model
     from .scenario import load_scenario
     from .scene import dynamics_snapshots
-    model = None
-    if args.scenario:
-        model = load_scenario(args.scenario, args.sections).model
-    elif args.robot:
-        model = load_model(args.robot, args.sections)
-    if args.run.lower().endswith(".mcap"):
-        from .recording import read_node_run
-        out = read_node_run(args.run, args.node, model)
+    model, radii = None, args.radius
+    mech = articulated_robot_of(args)
+    if mech is not None:
+        from .mechanism_scene import member_radii, run_snapshots
+        snaps = run_snapshots(load_articulated_run(args, mech), mech)
+        radii = member_radii(mech)
     else:
-        out = load_run(args.run)
-    snaps = dynamics_snapshots(out, model)
+        if args.scenario:
+            model = load_scenario(args.scenario, args.sections).model
+        elif args.robot:
+            model = load_model(args.robot, args.sections)
+        if args.run.lower().endswith(".mcap"):
+            from .recording import read_node_run
+            out = read_node_run(args.run, args.node, model)
+        else:
+            out = load_run(args.run)
+        snaps = dynamics_snapshots(out, model)
     try:
         view = LiveView(port=args.port)
     except OSError as e:
         raise ValueError(f"view: cannot serve on port {args.port}: {e}") from None
+    if mech is not None:                        # an articulated robot: frame its whole motion
+        from .scene import bounds
+        view.frame(*bounds(snaps, pad=0.3))
     say(f"live 3D view of {args.run}: {view.url} ({len(snaps)} states, "
         f"{snaps[-1].time - snaps[0].time:.2f} s, in a loop; Ctrl-C to stop)")
     start = _time.monotonic()
@@ -216,7 +273,7 @@ def view_main(args, stop=None):
             k = int(np.searchsorted([s.time for s in snaps], t, side="right") - 1)
             if k != shown:
                 s = snaps[max(k, 0)]
-                view.show(s, args.radius, tip_pose=_tip_pose(s), base_pose=np.eye(4))
+                view.show(s, radii, tip_pose=_tip_pose(s), base_pose=np.eye(4))
                 shown = k
             _time.sleep(0.02)
     except KeyboardInterrupt:

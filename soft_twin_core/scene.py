@@ -25,12 +25,24 @@ class Snapshot:
     frames: dict name -> (4, 4) world pose (drawn as axes triads).
     time: s, or None for a static snapshot.
     caption: text shown with the snapshot (default: ``t = ... s``).
+    solids: list of (N, 3) arrays [m], world: the outlines of rigid bodies'
+        visual shapes (boxes, cylinders, spheres) as polylines, NaN rows
+        separating their edges (:mod:`mechanism_scene`).
+    joints: (K, 3) [m], world: the origins of the rigid joints (drawn as
+        markers), with ``joint_axes``: (2, 3) segments along their axes.
+    shapes: list of (visual dict, 4x4 world pose of the shape's centre,
+        its placement in the link applied): the rigid bodies' shapes
+        themselves, for viewers drawing solids (the live view).
     """
     members: list
     links: list = field(default_factory=list)
     frames: dict = field(default_factory=dict)
     time: object = None
     caption: str = ""
+    solids: list = field(default_factory=list)
+    joints: object = None
+    joint_axes: list = field(default_factory=list)
+    shapes: list = field(default_factory=list)
 
     def __post_init__(self):
         ms = []
@@ -49,13 +61,17 @@ class Snapshot:
                 raise ValueError(f"links[{i}]: expected a segment of shape (2, 3), got {a.shape}")
             ls.append(a)
         self.links = ls
+        self.solids = [np.asarray(a, dtype=float).reshape(-1, 3) for a in self.solids]
+        self.joints = np.zeros((0, 3)) if self.joints is None else np.asarray(self.joints, float).reshape(-1, 3)
+        self.joint_axes = [np.asarray(a, dtype=float).reshape(2, 3) for a in self.joint_axes]
         if not self.caption and self.time is not None:
             self.caption = f"t = {self.time:.2f} s"
 
     @property
     def points(self):
-        """All member and link points, (N, 3) [m]."""
-        return np.concatenate(self.members + self.links, axis=0)
+        """All member, link, solid and joint points, (N, 3) [m] (no NaN)."""
+        P = np.concatenate(self.members + self.links + self.solids + [self.joints] + self.joint_axes, axis=0)
+        return P[np.all(np.isfinite(P), axis=1)]
 
     @property
     def tip(self):

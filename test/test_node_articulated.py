@@ -182,7 +182,10 @@ def test_live_view_snapshot_of_an_articulated_robot():
     assert len(shot.members) == 3 and [len(r) for r in radii] == [4, 4, 4]
     assert np.allclose(radii[0], 0.008)                      # half the 16 mm finger width
     np.testing.assert_allclose(shot.members[1][-1], snap.frames["finger_1_tip"][:3, 3], atol=1e-15)
-    assert len(shot.links) == 1 and np.allclose(shot.links[0][1], [0, 0, 0.3])
+    # the palm: its visual cylinder (no bar), the wrist joint at the base point with its axis along z
+    assert not shot.links and len(shot.shapes) == 1 and shot.shapes[0][0]["shape"] == "cylinder"
+    np.testing.assert_allclose(shot.shapes[0][1], snap.frames["palm"], atol=1e-15)
+    assert np.allclose(shot.joints, [[0, 0, 0.3]]) and np.allclose(np.diff(shot.joint_axes[0], axis=0), [[0, 0, 0.03]])
 
 
 def test_joint_wrench_topics_carry_the_transmitted_wrenches(pan_tilt_qs):
