@@ -8,7 +8,11 @@ Run: .venv/bin/python benchmarks/bench_ik.py [--node]
 Without --node: the service's body (soft_twin.twin.inverse_kinematics) in
 this process. With --node: the real service round trip to a node in a
 second process (dynamic mode, 200 Hz stepping in that process), this
-process a real rclpy client. Prints the median and 90th percentile, the
+process a real rclpy client; the node answers from its warm IK worker
+process (soft_twin/query_worker.py; the benchmark waits until the
+diagnostics say ``ik_worker: ready``). ``--no-worker`` also times the node
+computing in its service thread (SOFT_TWIN_IK_WORKER=0). Prints the CPU
+time the node process and the worker spend per request. Prints the median and 90th percentile, the
 share of successes and the machine's load (the 2 CPUs may be shared).
 """
 
@@ -71,25 +75,67 @@ def in_process(model, poses):
     return res
 
 
-def through_node(poses):
+def _cpu_s(pid, thread=None):
+    """utime + stime [s] of a process (or one of its threads) from /proc."""
+    f = f"/proc/{pid}/task/{thread}/stat" if thread else f"/proc/{pid}/stat"
+    st = open(f).read()
+    x = st[st.rindex(")") + 2:].split()
+    return (int(x[11]) + int(x[12])) / os.sysconf("SC_CLK_TCK")
+
+
+def _threads_cpu(pid):
+    return {t: _cpu_s(pid, t) for t in os.listdir(f"/proc/{pid}/task")}
+
+
+def _children(pid):
+    try:
+        with open(f"/proc/{pid}/task/{pid}/children") as fh:
+            return [int(c) for c in fh.read().split()]
+    except OSError:
+        return []
+
+
+def through_node(poses, worker=True, idle_s=3.0):
+    """The service round trip through a node in a second process; with the
+    CPU time the node process (per thread) and its IK worker spend."""
     import rclpy  # noqa: F401
     from soft_twin.client import NodeProcess, TwinClient
     from soft_twin.conversions import pose_msg
     from soft_twin.srv import InverseKinematics
     os.environ.setdefault("ROS_DOMAIN_ID", str(1 + os.getpid() % 101))
-    with NodeProcess([], node_name="bench_ik") as proc:
+    env = dict(os.environ, SOFT_TWIN_IK_WORKER="1" if worker else "0")
+    tag = "worker" if worker else "in node thread"
+    with NodeProcess([], node_name="bench_ik", env=env) as proc:
         c = TwinClient("bench_ik", client_name="bench_ik_client")
         try:
             c.wait_ready(120.0)
+            if worker and not c.wait_until(lambda: (c.diagnostics() or {}).get("ik_worker") == "ready", 120.0):
+                print("IK worker not ready after 120 s:", (c.diagnostics() or {}).get("ik_worker"))
+            pid = proc.proc.pid
+            a, t0 = _threads_cpu(pid), time.monotonic()
+            time.sleep(idle_s)
+            b, T = _threads_cpu(pid), time.monotonic() - t0
+            busy = sorted(((b[k] - a.get(k, 0.0)) / T for k in b), reverse=True)
+            print(f"node at rest (no requests): {100 * sum(busy):.0f} % of one CPU in all its threads "
+                  f"(busiest: {', '.join(f'{100 * x:.0f} %' for x in busy[:4])})")
             c.call("inverse_kinematics", InverseKinematics.Request(target=pose_msg(poses[0]), position_only=True))
             for label, po in (("position only", True), ("full pose", False)):
                 ts, ok = [], []
+                kids = _children(pid)
+                n0, k0, w0 = _cpu_s(pid), sum(_cpu_s(k) for k in kids), time.monotonic()
                 for T in poses:
                     t0 = time.perf_counter()
                     r = c.call("inverse_kinematics", InverseKinematics.Request(target=pose_msg(T), position_only=po))
                     ts.append(time.perf_counter() - t0)
                     ok.append(r.success)
-                report(f"node round trip, {label}", ts, ok)
+                n1, k1, w1 = _cpu_s(pid), sum(_cpu_s(k) for k in kids), time.monotonic()
+                report(f"node round trip ({tag}), {label}", ts, ok)
+                print(f"    CPU per request: node process {1e3 * (n1 - n0) / len(poses):.1f} ms "
+                      f"(incl. its 200 Hz twin), worker {1e3 * (k1 - k0) / len(poses):.1f} ms; "
+                      f"wall per request {1e3 * (w1 - w0) / len(poses):.1f} ms")
+            d = c.diagnostics() or {}
+            print(f"    diagnostics: ik_worker {d.get('ik_worker')}, answers by the worker "
+                  f"{d.get('ik_worker_answers_total')}, in the node {d.get('ik_local_answers_total')}")
         finally:
             c.close()
         del proc
@@ -98,6 +144,9 @@ def through_node(poses):
 def main():
     ap = argparse.ArgumentParser()
     ap.add_argument("--node", action="store_true", help="also time the service through a node")
+    ap.add_argument("--no-worker", action="store_true",
+                    help="with --node: also time the node computing IK in its service thread "
+                         "(SOFT_TWIN_IK_WORKER=0), for comparison")
     ap.add_argument("-n", type=int, default=40)
     args = ap.parse_args()
     print(f"machine: {machine()}, {os.cpu_count()} CPUs, load average {os.getloadavg()[0]:.2f} (1 min)")
@@ -105,7 +154,9 @@ def main():
     poses = targets(model, args.n)
     in_process(model, poses)
     if args.node:
-        through_node(poses)
+        through_node(poses, worker=True)
+        if args.no_worker:
+            through_node(poses, worker=False)
     print(f"load average after: {os.getloadavg()[0]:.2f}")
 
 

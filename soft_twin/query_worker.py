@@ -1,0 +1,217 @@
+"""A warm worker process for the node's heavy queries (issue 13: the IK
+service), so they do not share the node's GIL with the 200 Hz twin.
+
+Why: the IK body costs ~10 ms of CPU, all of it Python and small numpy
+calls holding the GIL. In the node the same interpreter also steps the twin
+at 200 Hz, publishes its states and runs the executor's spin loop: ~40 % of
+one core of GIL time at rest (measured per thread from /proc, see
+benchmarks/bench_ik.py --node). A service thread therefore gets the GIL
+only part of the time and the answer took 2-3 times its CPU time (node
+round trip 33 ms median on an idle machine against 8-11 ms in a process of
+its own). A second process has its own interpreter and runs on the other
+core: the answer costs its CPU time plus ~1 ms of pipe traffic.
+
+:class:`QueryWorker` owns one child process (``multiprocessing`` spawn, a
+daemon; it also exits when the node's end of the pipe closes, so a killed
+node leaves nothing behind). It starts in the background; until it is ready
+(imports and kernel warm-up, a few seconds), while it is busy with another
+request, or if it died, :meth:`call` returns None and the caller computes in
+its own thread as before (answers never depend on where they were computed).
+The model goes to the worker once per model (pickled, ~13 kB); a call sends
+only the state and the request.
+"""
+
+import multiprocessing as mp
+import os
+import threading
+
+def enabled():
+    """False when the environment sets SOFT_TWIN_IK_WORKER=0 (then the node
+    computes IK in its service thread, as before; for comparisons)."""
+    return os.environ.get("SOFT_TWIN_IK_WORKER", "1").strip() != "0"
+
+
+# the functions a worker may run: soft_twin.twin.<name>
+ALLOWED = ("inverse_kinematics",)
+
+
+def _warm_up(tw, model):
+    """One IK solve on the model (kernels loaded, caches built): the first
+    real request then costs what the others do."""
+    import numpy as np
+    from soft_twin_core import statics as st
+    if model is None or not model.actuators:
+        return
+    try:
+        n = len(model.actuators)
+        q = st.solve_statics(model).q
+        u = np.zeros(n)
+        u[0] = 0.5 if model.actuators[0].kind == "tendon" else 0.0
+        tw.inverse_kinematics(model, q, 5, st.solve_statics(model, u).tip_pose, True, u_current=np.zeros(n))
+    except Exception:
+        pass
+
+
+def _serve(conn, token=None, model=None):
+    """The worker's loop: ("model", token, model) stores a model (and warms
+    up on it); ("call", token, name, args, kwargs) answers ("ok", result) or
+    ("error", text); ("stop",) or a closed pipe ends it."""
+    from soft_twin import twin as tw
+    models = {} if model is None else {token: model}
+    _warm_up(tw, model)
+    conn.send(("ready",))
+    while True:
+        try:
+            msg = conn.recv()
+        except (EOFError, OSError):
+            return
+        if msg[0] == "stop":
+            return
+        if msg[0] == "model":
+            models.clear()
+            models[msg[1]] = msg[2]
+            _warm_up(tw, msg[2])
+            continue
+        _, token, name, args, kwargs = msg
+        try:
+            if name not in ALLOWED or token not in models:
+                raise RuntimeError(f"worker: cannot run {name!r} (model {token!r} known: {token in models})")
+            out = ("ok", getattr(tw, name)(models[token], *args, **kwargs))
+        except Exception as e:  # reported to the caller, who computes in its own thread
+            out = ("error", f"{type(e).__name__}: {e}")
+        try:
+            conn.send(out)
+        except (EOFError, OSError):
+            return
+
+
+def _picklable(model):
+    """A shallow copy of the model without its private caches that cannot
+    be pickled (e.g. ``_tree``, the compiled multibody arrays; the worker
+    rebuilds them on first use)."""
+    import copy
+    import pickle
+    out = copy.copy(model)
+    for k, v in list(vars(out).items()):
+        if k.startswith("_"):
+            try:
+                pickle.dumps(v)
+            except Exception:
+                object.__delattr__(out, k)
+    return out
+
+
+class QueryWorker:
+    """One warm worker process; thread-safe (one request at a time, others
+    answered None: compute locally)."""
+
+    def __init__(self):
+        self._lock = threading.Lock()
+        self._proc = self._conn = None
+        self._ready = False
+        self._model_token = None
+        self._models_sent = 0
+        self.calls = self.fallbacks = 0
+        self.last_error = ""
+
+    def start(self, model=None):
+        """Start the child in the background (returns at once), warming up
+        on ``model`` (the node's robot) if given."""
+        ctx = mp.get_context("spawn")
+        parent, child = ctx.Pipe()
+        args = (child,)
+        if model is not None:
+            self._models_sent += 1
+            self._model_token = (self._models_sent, model)
+            args = (child, self._models_sent, _picklable(model))
+        self._proc = ctx.Process(target=_serve, args=args, daemon=True, name="soft_twin_query_worker")
+        self._proc.start()
+        child.close()
+        self._conn = parent
+        return self
+
+    @property
+    def ready(self):
+        return self._ready
+
+    def state(self):
+        """"ready", "starting" or "off" (never started, stopped or lost)."""
+        if self._lock.acquire(blocking=False):
+            try:
+                self._check_ready()
+            finally:
+                self._lock.release()
+        if self._ready:
+            return "ready"
+        return "starting" if self._proc is not None and self._proc.is_alive() else "off"
+
+    def _check_ready(self):
+        if self._ready:
+            return True
+        if self._conn is None or self._proc is None or not self._proc.is_alive():
+            return False
+        if self._conn.poll(0):
+            try:
+                self._ready = self._conn.recv()[0] == "ready"
+            except (EOFError, OSError):
+                return False
+        return self._ready
+
+    def call(self, name, model, *args, timeout=30.0, **kwargs):
+        """``soft_twin.twin.<name>(model, *args, **kwargs)`` in the worker, or
+        None when the worker is not ready, busy, or failed (the caller then
+        computes it itself)."""
+        if not self._lock.acquire(blocking=False):
+            self.fallbacks += 1
+            return None
+        try:
+            if not self._check_ready():
+                self.fallbacks += 1
+                return None
+            try:
+                if self._model_token is None or self._model_token[1] is not model:
+                    self._models_sent += 1
+                    self._model_token = (self._models_sent, model)
+                    self._conn.send(("model", self._models_sent, _picklable(model)))
+                self._conn.send(("call", self._model_token[0], name, args, kwargs))
+                if not self._conn.poll(timeout):
+                    raise TimeoutError
+                status, out = self._conn.recv()
+            except (EOFError, OSError, TimeoutError, ValueError) as e:
+                self.last_error = f"worker lost: {type(e).__name__}: {e}"
+                self._broken()
+                self.fallbacks += 1
+                return None
+            if status != "ok":
+                self.last_error = out
+                self.fallbacks += 1
+                return None
+            self.calls += 1
+            return out
+        finally:
+            self._lock.release()
+
+    def _broken(self):
+        """The worker died or hung: stop it; the node computes locally from now on."""
+        self._ready = False
+        proc, self._proc = self._proc, None
+        if proc is not None and proc.is_alive():
+            proc.kill()
+            proc.join(5.0)
+
+    def close(self):
+        with self._lock:
+            if self._conn is not None:
+                try:
+                    self._conn.send(("stop",))
+                except (EOFError, OSError):
+                    pass
+            if self._proc is not None:
+                self._proc.join(2.0)
+                if self._proc.is_alive():
+                    self._proc.kill()
+                    self._proc.join(2.0)
+            if self._conn is not None:
+                self._conn.close()
+            self._proc = self._conn = None
+            self._ready = False
