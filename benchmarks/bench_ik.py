@@ -106,7 +106,10 @@ def through_node(poses, worker=True, idle_s=3.0):
     env = dict(os.environ, SOFT_TWIN_IK_WORKER="1" if worker else "0")
     tag = "worker" if worker else "in node thread"
     with NodeProcess([], node_name="bench_ik", env=env) as proc:
-        c = TwinClient("bench_ik", client_name="bench_ik_client")
+        # subscribed to the strains only (wait_ready needs them) and /diagnostics: a client that calls
+        # the IK service, not one that also takes every 200 Hz state topic in Python (that client
+        # alone used ~half a CPU of the two, which the node and its worker then lacked)
+        c = TwinClient("bench_ik", client_name="bench_ik_client", topics=("strains",))
         try:
             c.wait_ready(120.0)
             if worker and not c.wait_until(lambda: (c.diagnostics() or {}).get("ik_worker") == "ready", 120.0):

@@ -253,7 +253,7 @@ class SoftTwinNode(Node):
         # --- issue 13: the IK service computes in a warm worker process (soft_twin.query_worker)
         from soft_twin import query_worker
         self._query_worker = query_worker.QueryWorker()
-        if query_worker.enabled():
+        if query_worker.enabled() and not self.robot.articulated:
             self._query_worker.start(self.twin.model)
 
         # --- seeing the twin (issue 12): /tf frames, MCAP recording ----------

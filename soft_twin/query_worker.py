@@ -118,12 +118,19 @@ class QueryWorker:
         """Start the child in the background (returns at once), warming up
         on ``model`` (the node's robot) if given."""
         ctx = mp.get_context("spawn")
-        parent, child = ctx.Pipe()
-        args = (child,)
+        args = ()
         if model is not None:
+            try:
+                args = (self._models_sent + 1, _picklable(model))
+                import pickle
+                pickle.dumps(args[1])
+            except Exception as e:       # a model the worker cannot take: compute in the node
+                self.last_error = f"worker not started: the model cannot be sent ({type(e).__name__}: {e})"
+                return self
             self._models_sent += 1
             self._model_token = (self._models_sent, model)
-            args = (child, self._models_sent, _picklable(model))
+        parent, child = ctx.Pipe()
+        args = (child,) + args
         self._proc = ctx.Process(target=_serve, args=args, daemon=True, name="soft_twin_query_worker")
         self._proc.start()
         child.close()
