@@ -144,18 +144,65 @@ def through_node(poses, worker=True, idle_s=3.0):
         del proc
 
 
+def ab_through_nodes(poses, rounds=2):
+    """A/B under the same machine load: two nodes at once, one answering from
+    its IK worker, one in its service thread (SOFT_TWIN_IK_WORKER=0), the
+    requests alternating between them (order swapped every request)."""
+    import rclpy  # noqa: F401
+    from soft_twin.client import NodeProcess, TwinClient
+    from soft_twin.conversions import pose_msg
+    from soft_twin.srv import InverseKinematics
+    os.environ.setdefault("ROS_DOMAIN_ID", str(1 + os.getpid() % 101))
+    procs, clients = {}, {}
+    try:
+        for tag, on in (("worker", "1"), ("thread", "0")):
+            procs[tag] = NodeProcess([], node_name=f"bench_ik_{tag}", env=dict(os.environ, SOFT_TWIN_IK_WORKER=on))
+        for tag in procs:
+            clients[tag] = c = TwinClient(f"bench_ik_{tag}", client_name=f"bench_ik_{tag}_client", topics=("strains",))
+            c.wait_ready(180.0)
+        c = clients["worker"]
+        if not c.wait_until(lambda: (c.diagnostics() or {}).get("ik_worker") == "ready", 120.0):
+            print("IK worker not ready after 120 s")
+        for c in clients.values():
+            c.call("inverse_kinematics", InverseKinematics.Request(target=pose_msg(poses[0]), position_only=True))
+        for label, po in (("position only", True), ("full pose", False)):
+            ts = {k: [] for k in clients}
+            for r in range(rounds):
+                for i, T in enumerate(poses):
+                    order = ("worker", "thread") if (i + r) % 2 == 0 else ("thread", "worker")
+                    for tag in order:
+                        t0 = time.perf_counter()
+                        clients[tag].call("inverse_kinematics",
+                                          InverseKinematics.Request(target=pose_msg(T), position_only=po))
+                        ts[tag].append(time.perf_counter() - t0)
+            for tag in ("worker", "thread"):
+                t = 1e3 * np.asarray(ts[tag])
+                print(f"A/B {label:14s} node answering {'from its worker' if tag == 'worker' else 'in its thread'}: "
+                      f"median {np.median(t):6.1f} ms  p90 {np.percentile(t, 90):6.1f} ms  (n = {len(t)})")
+        print(f"    load average {os.getloadavg()[0]:.2f} (two nodes at 200 Hz running)")
+    finally:
+        for c in clients.values():
+            c.close()
+        for p in procs.values():
+            p.stop()
+
+
 def main():
     ap = argparse.ArgumentParser()
     ap.add_argument("--node", action="store_true", help="also time the service through a node")
     ap.add_argument("--no-worker", action="store_true",
                     help="with --node: also time the node computing IK in its service thread "
                          "(SOFT_TWIN_IK_WORKER=0), for comparison")
+    ap.add_argument("--ab", action="store_true",
+                    help="A/B under the same load: two nodes (worker / service thread), requests alternating")
     ap.add_argument("-n", type=int, default=40)
     args = ap.parse_args()
     print(f"machine: {machine()}, {os.cpu_count()} CPUs, load average {os.getloadavg()[0]:.2f} (1 min)")
     model = load_model("tendon_arm")
     poses = targets(model, args.n)
     in_process(model, poses)
+    if args.ab:
+        ab_through_nodes(poses)
     if args.node:
         through_node(poses, worker=True)
         if args.no_worker:

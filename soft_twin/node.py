@@ -1093,8 +1093,12 @@ class SoftTwinNode(Node):
             try:
                 return self._srv_ik_body(req, resp)
             finally:
+                wt = self._query_worker.last_timing
+                self._query_worker.last_timing = None
                 self.get_logger().info(f"timing inverse_kinematics: wall {1e3 * (time.perf_counter() - w0):.2f} ms "
-                                       f"thread CPU {1e3 * (time.thread_time() - c0):.2f} ms")
+                                       f"thread CPU {1e3 * (time.thread_time() - c0):.2f} ms" + (
+                                           f" worker wall {1e3 * wt[0]:.2f} ms worker CPU {1e3 * wt[1]:.2f} ms"
+                                           if wt else ""))
         return self._srv_ik_body(req, resp)
 
     def _srv_ik_body(self, req, resp):

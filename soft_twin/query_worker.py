@@ -24,6 +24,7 @@ only the state and the request.
 import multiprocessing as mp
 import os
 import threading
+import time
 
 def enabled():
     """False when the environment sets SOFT_TWIN_IK_WORKER=0 (then the node
@@ -57,6 +58,11 @@ def _serve(conn, token=None, model=None):
     up on it); ("call", token, name, args, kwargs) answers ("ok", result) or
     ("error", text); ("stop",) or a closed pipe ends it."""
     from soft_twin import twin as tw
+    try:     # one BLAS thread for good: idle OpenBLAS threads spin and take CPU time from the node
+        from threadpoolctl import threadpool_limits
+        threadpool_limits(limits=1, user_api="blas")
+    except ImportError:
+        pass
     models = {} if model is None else {token: model}
     _warm_up(tw, model)
     conn.send(("ready",))
@@ -76,7 +82,9 @@ def _serve(conn, token=None, model=None):
         try:
             if name not in ALLOWED or token not in models:
                 raise RuntimeError(f"worker: cannot run {name!r} (model {token!r} known: {token in models})")
-            out = ("ok", getattr(tw, name)(models[token], *args, **kwargs))
+            w0, c0 = time.perf_counter(), time.process_time()
+            res = getattr(tw, name)(models[token], *args, **kwargs)
+            out = ("ok", res, (time.perf_counter() - w0, time.process_time() - c0))
         except Exception as e:  # reported to the caller, who computes in its own thread
             out = ("error", f"{type(e).__name__}: {e}")
         try:
@@ -113,6 +121,7 @@ class QueryWorker:
         self._models_sent = 0
         self.calls = self.fallbacks = 0
         self.last_error = ""
+        self.last_timing = None
 
     def start(self, model=None):
         """Start the child in the background (returns at once), warming up
@@ -183,7 +192,8 @@ class QueryWorker:
                 self._conn.send(("call", self._model_token[0], name, args, kwargs))
                 if not self._conn.poll(timeout):
                     raise TimeoutError
-                status, out = self._conn.recv()
+                answer = self._conn.recv()
+                status, out = answer[0], answer[1]
             except (EOFError, OSError, TimeoutError, ValueError) as e:
                 self.last_error = f"worker lost: {type(e).__name__}: {e}"
                 self._broken()
@@ -194,6 +204,7 @@ class QueryWorker:
                 self.fallbacks += 1
                 return None
             self.calls += 1
+            self.last_timing = answer[2]      # (wall, CPU) [s] of the computation in the worker
             return out
         finally:
             self._lock.release()
