@@ -250,11 +250,11 @@ class SoftTwinNode(Node):
                             callback_group=self._service_group)
         self.create_service(Trigger, "~/cancel_plan", self._guarded(self._srv_cancel_plan),
                             callback_group=self._service_group)
-        # --- issue 13: the IK service computes in a warm worker process (soft_twin.query_worker)
+        # --- issue 13: the IK service computes in a warm worker process (soft_twin.query_worker),
+        # started at the first IK request
         from soft_twin import query_worker
         self._query_worker = query_worker.QueryWorker()
-        if query_worker.enabled() and not self.robot.articulated:
-            self._query_worker.start(self.twin.model)
+        self._query_worker_enabled = query_worker.enabled()
 
         # --- seeing the twin (issue 12): /tf frames, MCAP recording ----------
         self._tf = tf_out.TfOutput(self)
@@ -1119,6 +1119,8 @@ class SoftTwinNode(Node):
                 tw.make_loads(model, w, frame))
         # issue 13: in the warm worker process (not sharing this process's GIL
         # with the 200 Hz twin), else here (worker starting, busy or gone)
+        if self._query_worker_enabled:
+            self._query_worker.ensure_started(model)
         res = self._query_worker.call("inverse_kinematics", model, *args, u_current=u)
         if res is None:
             if self._query_worker.last_error:

@@ -11,9 +11,12 @@ round trip 33 ms median on an idle machine against 8-11 ms in a process of
 its own). A second process has its own interpreter and runs on the other
 core: the answer costs its CPU time plus ~1 ms of pipe traffic.
 
-:class:`QueryWorker` owns one child process (``multiprocessing`` spawn, a
-daemon; it also exits when the node's end of the pipe closes, so a killed
-node leaves nothing behind). It starts in the background; until it is ready
+:class:`QueryWorker` owns one child process (``python -m
+soft_twin.query_worker FD``, in a session of its own so that a Ctrl-C or a
+SIGINT/SIGTERM to the node's process group never reaches it: the node stops
+it, and it exits by itself when the node's end of the pipe closes, so a
+killed node leaves nothing behind). The node starts it at its first IK
+request (nodes that never answer one never pay for it); until it is ready
 (imports and kernel warm-up, a few seconds), while it is busy with another
 request, or if it died, :meth:`call` returns None and the caller computes in
 its own thread as before (answers never depend on where they were computed).
@@ -21,7 +24,6 @@ The model goes to the worker once per model (pickled, ~13 kB); a call sends
 only the state and the request.
 """
 
-import multiprocessing as mp
 import os
 import threading
 import time
@@ -53,7 +55,7 @@ def _warm_up(tw, model):
         pass
 
 
-def _serve(conn, token=None, model=None):
+def _serve(conn):
     """The worker's loop: ("model", token, model) stores a model (and warms
     up on it); ("call", token, name, args, kwargs) answers ("ok", result) or
     ("error", text); ("stop",) or a closed pipe ends it."""
@@ -63,8 +65,12 @@ def _serve(conn, token=None, model=None):
         threadpool_limits(limits=1, user_api="blas")
     except ImportError:
         pass
-    models = {} if model is None else {token: model}
-    _warm_up(tw, model)
+    models = {}
+    if conn.poll(0.5):                  # the node's model first: warm up on it before saying ready
+        msg = conn.recv()
+        if msg[0] == "model":
+            models[msg[1]] = msg[2]
+            _warm_up(tw, msg[2])
     conn.send(("ready",))
     while True:
         try:
@@ -122,29 +128,53 @@ class QueryWorker:
         self.calls = self.fallbacks = 0
         self.last_error = ""
         self.last_timing = None
+        self._gave_up = False
 
     def start(self, model=None):
         """Start the child in the background (returns at once), warming up
         on ``model`` (the node's robot) if given."""
-        ctx = mp.get_context("spawn")
-        args = ()
+        import subprocess
+        import sys
+        from multiprocessing.connection import Pipe
+        if self._proc is not None:
+            return self
+        first = None
         if model is not None:
             try:
-                args = (self._models_sent + 1, _picklable(model))
+                first = ("model", self._models_sent + 1, _picklable(model))
                 import pickle
-                pickle.dumps(args[1])
+                pickle.dumps(first)
             except Exception as e:       # a model the worker cannot take: compute in the node
                 self.last_error = f"worker not started: the model cannot be sent ({type(e).__name__}: {e})"
                 return self
+        parent, child = Pipe()
+        try:
+            self._proc = subprocess.Popen(
+                [sys.executable, "-m", "soft_twin.query_worker", str(child.fileno())], pass_fds=(child.fileno(),),
+                start_new_session=True, stdin=subprocess.DEVNULL)
+        except OSError as e:
+            self.last_error = f"worker not started: {e}"
+            parent.close()
+            return self
+        finally:
+            child.close()
+        self._conn = parent
+        if first is not None:
             self._models_sent += 1
             self._model_token = (self._models_sent, model)
-        parent, child = ctx.Pipe()
-        args = (child,) + args
-        self._proc = ctx.Process(target=_serve, args=args, daemon=True, name="soft_twin_query_worker")
-        self._proc.start()
-        child.close()
-        self._conn = parent
+            parent.send(first)
         return self
+
+    def ensure_started(self, model):
+        """Start the worker (warming up on ``model``) unless it runs or was
+        given up on; returns at once."""
+        if self._proc is None and not self._gave_up:
+            self._gave_up = True          # one start per node: a worker that died is not restarted
+            with self._lock:
+                self.start(model)
+
+    def _alive(self):
+        return self._proc is not None and self._proc.poll() is None
 
     @property
     def ready(self):
@@ -159,12 +189,12 @@ class QueryWorker:
                 self._lock.release()
         if self._ready:
             return "ready"
-        return "starting" if self._proc is not None and self._proc.is_alive() else "off"
+        return "starting" if self._alive() else "off"
 
     def _check_ready(self):
         if self._ready:
             return True
-        if self._conn is None or self._proc is None or not self._proc.is_alive():
+        if self._conn is None or not self._alive():
             return False
         if self._conn.poll(0):
             try:
@@ -213,9 +243,9 @@ class QueryWorker:
         """The worker died or hung: stop it; the node computes locally from now on."""
         self._ready = False
         proc, self._proc = self._proc, None
-        if proc is not None and proc.is_alive():
+        if proc is not None and proc.poll() is None:
             proc.kill()
-            proc.join(5.0)
+            proc.wait(5.0)
 
     def close(self):
         with self._lock:
@@ -225,11 +255,29 @@ class QueryWorker:
                 except (EOFError, OSError):
                     pass
             if self._proc is not None:
-                self._proc.join(2.0)
-                if self._proc.is_alive():
+                import subprocess
+                try:
+                    self._proc.wait(2.0)
+                except subprocess.TimeoutExpired:
                     self._proc.kill()
-                    self._proc.join(2.0)
+                    self._proc.wait(2.0)
             if self._conn is not None:
                 self._conn.close()
             self._proc = self._conn = None
             self._ready = False
+
+
+def main(argv=None):
+    """The worker process: ``python -m soft_twin.query_worker FD`` (FD: its
+    end of the pipe, a multiprocessing Connection)."""
+    import signal
+    import sys
+    from multiprocessing.connection import Connection
+    for sig in (signal.SIGINT, signal.SIGTERM):
+        signal.signal(sig, signal.SIG_IGN)      # the node stops it (or the pipe closes)
+    argv = sys.argv[1:] if argv is None else argv
+    _serve(Connection(int(argv[0])))
+
+
+if __name__ == "__main__":
+    main()

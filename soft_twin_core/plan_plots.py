@@ -78,7 +78,7 @@ def plot_plan_actuation(out, folder, title=None):
     names = list(out["actuator_names"])
     joints = list(out.get("joint_names") or [])
     n_ax = (1 if names else 0) + (1 if joints else 0)
-    fig, axs = plt.subplots(max(n_ax, 1), 1, figsize=(9, 3.6 * max(n_ax, 1)), sharex=True, squeeze=False)
+    fig, axs = plt.subplots(max(n_ax, 1), 1, figsize=(9, max(5.5, 3.6 * n_ax)), sharex=True, squeeze=False)
     k = 0
     if names:
         ax = axs[k, 0]

@@ -77,16 +77,51 @@ def test_not_started_and_lost_worker_fall_back(model):
             time.sleep(0.05)
         proc = w._proc
         proc.kill()
-        proc.join(10)
+        proc.wait(10)
         assert w.call("inverse_kinematics", model, q, 10, T, True) is None
         assert "worker lost" in w.last_error and w.state() == "off"
     finally:
         w.close()
-    assert not proc.is_alive()
+    assert proc.poll() is not None
+
+
+def test_signals_to_the_group_do_not_reach_it(model):
+    """A Ctrl-C to the node's process group must not kill the worker with a
+    traceback: it runs in a session of its own and ignores SIGINT/SIGTERM."""
+    import os
+    import signal
+    w = QueryWorker().start(model)
+    try:
+        assert os.getsid(w._proc.pid) != os.getsid(0)       # a group signal cannot reach it
+        end = time.monotonic() + 120
+        while w.state() == "starting" and time.monotonic() < end:
+            time.sleep(0.05)
+        assert w.state() == "ready"
+        os.kill(w._proc.pid, signal.SIGINT)                 # and it ignores direct ones
+        os.kill(w._proc.pid, signal.SIGTERM)
+        q = st.solve_statics(model).q
+        T = st.solve_statics(model, [1.0, 0.0, 0.5, 0.0]).tip_pose
+        assert w.call("inverse_kinematics", model, q, 10, T, True) is not None, w.last_error
+    finally:
+        w.close()
+
+
+def test_ensure_started_starts_once(model):
+    w = QueryWorker()
+    try:
+        w.ensure_started(model)
+        proc = w._proc
+        assert proc is not None
+        w.ensure_started(model)
+        assert w._proc is proc
+    finally:
+        w.close()
+    w.ensure_started(model)            # given up after one start: stays off
+    assert w.state() == "off"
 
 
 def test_close_ends_the_process(model):
     w = QueryWorker().start(model)
     proc = w._proc
     w.close()
-    assert not proc.is_alive() and w.state() == "off"
+    assert proc.poll() is not None and w.state() == "off"
