@@ -88,11 +88,15 @@ def _threads_cpu(pid):
 
 
 def _children(pid):
-    try:
-        with open(f"/proc/{pid}/task/{pid}/children") as fh:
-            return [int(c) for c in fh.read().split()]
-    except OSError:
-        return []
+    """Child processes of every thread of pid (the IK worker is started by a service thread)."""
+    out = []
+    for t in os.listdir(f"/proc/{pid}/task"):
+        try:
+            with open(f"/proc/{pid}/task/{t}/children") as fh:
+                out += [int(c) for c in fh.read().split()]
+        except OSError:
+            pass
+    return out
 
 
 def through_node(poses, worker=True, idle_s=3.0):
@@ -112,6 +116,8 @@ def through_node(poses, worker=True, idle_s=3.0):
         c = TwinClient("bench_ik", client_name="bench_ik_client", topics=("strains",))
         try:
             c.wait_ready(120.0)
+            # the first request starts the worker (answered in the node meanwhile)
+            c.call("inverse_kinematics", InverseKinematics.Request(target=pose_msg(poses[0]), position_only=True))
             if worker and not c.wait_until(lambda: (c.diagnostics() or {}).get("ik_worker") == "ready", 120.0):
                 print("IK worker not ready after 120 s:", (c.diagnostics() or {}).get("ik_worker"))
             pid = proc.proc.pid
@@ -161,6 +167,7 @@ def ab_through_nodes(poses, rounds=2):
             clients[tag] = c = TwinClient(f"bench_ik_{tag}", client_name=f"bench_ik_{tag}_client", topics=("strains",))
             c.wait_ready(180.0)
         c = clients["worker"]
+        c.call("inverse_kinematics", InverseKinematics.Request(target=pose_msg(poses[0]), position_only=True))
         if not c.wait_until(lambda: (c.diagnostics() or {}).get("ik_worker") == "ready", 120.0):
             print("IK worker not ready after 120 s")
         for c in clients.values():
