@@ -250,8 +250,8 @@ class SoftTwinNode(Node):
                             callback_group=self._service_group)
         self.create_service(Trigger, "~/cancel_plan", self._guarded(self._srv_cancel_plan),
                             callback_group=self._service_group)
-        # --- issue 13: the IK service computes in a warm worker process (soft_twin.query_worker),
-        # started at the first IK request
+        # --- issue 13: optionally (SOFT_TWIN_IK_WORKER=1) the IK service computes in a warm worker
+        # process (soft_twin.query_worker), started at the first IK request
         from soft_twin import query_worker
         self._query_worker = query_worker.QueryWorker()
         self._query_worker_enabled = query_worker.enabled()
@@ -1117,8 +1117,8 @@ class SoftTwinNode(Node):
             return resp
         args = (q, cfg.backbone_points_per_section, target, req.position_only, tol or 1e-6,
                 tw.make_loads(model, w, frame))
-        # issue 13: in the warm worker process (not sharing this process's GIL
-        # with the 200 Hz twin), else here (worker starting, busy or gone)
+        # issue 13: in the warm worker process if enabled (not sharing this process's
+        # GIL with the 200 Hz twin), else here (off, worker starting, busy or gone)
         if self._query_worker_enabled:
             self._query_worker.ensure_started(model)
         res = self._query_worker.call("inverse_kinematics", model, *args, u_current=u)
