@@ -130,6 +130,7 @@ class TwinClient:
             "statics_query": n.create_client(StaticsQuery, f"{self.ns}/statics_query"),
             "reset": n.create_client(Trigger, f"{self.ns}/reset"),
             "plan_path": n.create_client(PlanPath, f"{self.ns}/plan_path"),
+            "cancel_plan": n.create_client(Trigger, f"{self.ns}/cancel_plan"),
         }
         self.executor = SingleThreadedExecutor(context=self.context)
         self.executor.add_node(n)

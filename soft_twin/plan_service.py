@@ -74,6 +74,7 @@ class PlanRunner:
         self._stop = threading.Event()
         self._lock = threading.Lock()
         self.published = 0
+        self._progress = [0, 0]        # commands of the current/last execution: [published, planned]
 
     def _publisher(self, topic):
         pub = self._pubs.get(topic)
@@ -109,6 +110,7 @@ class PlanRunner:
             start_ns = clock.now().nanoseconds + int(START_DELAY_S * 1e9)
             t0 = time.monotonic() + START_DELAY_S
             self._stop = stop = threading.Event()
+            self._progress = [0, len(times)]
             self._thread = threading.Thread(
                 target=self._run, args=(stop, out, list(names), np.asarray(times, float),
                                         np.asarray(values, float), start_ns, t0, frame_id, own),
@@ -146,16 +148,40 @@ class PlanRunner:
             except Exception:     # the node is shutting down
                 return
             self.published += 1
+            self._progress[0] += 1
 
     def running(self):
         return self._thread is not None and self._thread.is_alive()
 
     def cancel(self):
+        """Stop the running execution (if any) and wait for its thread: no
+        command of it goes out after this returns. Returns (was running,
+        commands published, commands planned)."""
         with self._lock:
+            was = self._thread is not None and self._thread.is_alive() and not self._stop.is_set()
             self._stop.set()
             th = self._thread
         if th is not None and th is not threading.current_thread():
             th.join(timeout=2.0)
+        return was, self._progress[0], self._progress[1]
+
+
+def handle_cancel(node, runner, resp):
+    """The ~/cancel_plan callback body (std_srvs/Trigger): success True when
+    an execution was running and is now stopped (its remaining commands are
+    never published; the twin and the robot keep the last command sent),
+    False when none was running."""
+    was, done, total = runner.cancel()
+    if was:
+        resp.success = True
+        resp.message = (f"plan execution cancelled after {done} of {total} commands; the last command "
+                        f"sent stays applied")
+    else:
+        resp.success = False
+        resp.message = "no plan is executing" + (f" (the last one published {done} of {total} commands)"
+                                                 if total else "")
+    node.get_logger().info(f"cancel_plan: {resp.message}")
+    return resp
 
 
 def handle(node, runner, req, resp):

@@ -20,6 +20,15 @@ and the planner's options; the result as a JSON-ready dict and CSV text.
       compensation_iterations: 3    # 0: verification only
 
 See :mod:`soft_twin_core.planner` for the method.
+
+Articulated robots (a tree robot file, e.g. ``robot: pan_tilt_arm``): the plan
+gives the position-controlled joints' commands and the actuators' inputs
+(:mod:`soft_twin_core.articulated_planner`); ``tracking.frame`` names the
+frame that follows the path (default ``tip``, else the last soft member's
+end), ``joints.limits_margin`` [rad or m] keeps the commands inside the
+joint limits, and the joints' ``max_velocity``/``max_acceleration`` from the
+robot file are the rate limits; ``dynamics`` and orientations are not
+available for them. The CSV then has one ``q_<joint>`` column per joint.
 """
 
 import csv
@@ -38,7 +47,7 @@ class PlanFileError(ValueError):
     """A bad plan file field; the message names it."""
 
 
-_TOP = {"robot", "path", "tracking", "actuation", "gravity", "dynamics", "description"}
+_TOP = {"robot", "path", "tracking", "actuation", "gravity", "dynamics", "description", "joints"}
 _TRACK = {"position_weights", "orientation_weight", "tolerance", "tolerance_rad", "max_iterations"}
 _ACT = {"pretension", "max_tension", "max_pressure", "max_rate", "initial"}
 _DYN = {"dt", "compensation_iterations", "gain", "filter_s"}
@@ -82,6 +91,10 @@ def plan_from_dict(d, base_dir="."):
     if "path" not in d:
         raise PlanFileError("plan.path: missing (a path mapping with a type)")
     robot = d["robot"]
+    if _is_tree_robot(robot, base_dir):
+        return _articulated_from_dict(d, robot, base_dir)
+    if "joints" in d:
+        raise PlanFileError("plan.joints: only for articulated robots (a tree robot file)")
     if isinstance(robot, dict):
         model = model_from_dict(robot_mapping(robot, "plan.robot"))
     elif isinstance(robot, str):
@@ -117,8 +130,86 @@ def plan_from_dict(d, base_dir="."):
     return model, path, opts, u0, dyn
 
 
+def _is_tree_robot(robot, base_dir):
+    from .scenario import _is_tree_robot as is_tree
+    return is_tree(robot, base_dir)
+
+
+_TRACK_ART = {"position_weights", "tolerance", "max_iterations", "frame"}
+_JOINTS = {"limits_margin", "initial"}
+
+
+def _articulated_from_dict(d, robot, base_dir):
+    """(Mechanism, TipPath, ArticulatedPlanOptions, start x or None, None)."""
+    from . import articulated_planner as ap
+    from .mechanism import load_mechanism, mechanism_from_dict
+    if isinstance(robot, dict):
+        mech = mechanism_from_dict(robot_mapping(robot, "plan.robot"), base_dir)
+    else:
+        p = robot if os.path.isabs(robot) else os.path.join(base_dir, robot)
+        mech = load_mechanism(p if os.path.isfile(p) else robot)
+    if d.get("dynamics") is not None:
+        raise PlanFileError("plan.dynamics: the dynamic verification is not available for articulated robots "
+                            "(remove it: the plan is quasi-static)")
+    path = pth.path_from_dict(d["path"], "path")
+    if path.orientations is not None:
+        raise PlanFileError("path.orientations: articulated robots are planned for positions only")
+    tr = _keys(d.get("tracking"), _TRACK_ART, "tracking")
+    ac = _keys(d.get("actuation"), _ACT - {"initial"}, "actuation")
+    jn = _keys(d.get("joints"), _JOINTS, "joints")
+    grav = d.get("gravity", True)
+    if not isinstance(grav, bool):
+        raise PlanFileError(f"plan.gravity: expected true or false, got {grav!r}")
+    opts = ap.ArticulatedPlanOptions(
+        loads=Loads(gravity=grav), joint_limits_margin=jn.get("limits_margin", 0.0),
+        **{k: (tuple(v) if k == "position_weights" and isinstance(v, list) else v) for k, v in tr.items()},
+        **ac)
+    solver = ap.ArticulatedTipSolver(mech, opts)        # checks every option (PlanError naming it)
+    start = None
+    if jn.get("initial") is not None:
+        ini = jn["initial"]
+        if not isinstance(ini, dict):
+            raise PlanFileError(f"joints.initial: expected a mapping {{joint: position}}, got {ini!r}")
+        start = np.concatenate([[mech.tree.joints[i].q_ref for i in solver.pos],
+                                np.where(np.isfinite(solver.lower[solver.n_j:]), solver.lower[solver.n_j:], 0.0)])
+        for k, v in ini.items():
+            if k not in solver.joint_names:
+                raise PlanFileError(f"joints.initial.{k}: not a position-controlled joint; those are "
+                                    f"{list(solver.joint_names)}")
+            start[solver.joint_names.index(k)] = pl._number(v, f"joints.initial.{k}", False)
+    return mech, path, opts, start, None
+
+
+def run_articulated_plan(mech, path, options, start=None):
+    """Plan an articulated robot's joint commands and inputs -> result dict."""
+    from . import articulated_planner as ap
+    plan = ap.plan_articulated_path(mech, path, options, start)
+    units = {}
+    for a in mech.actuators:
+        units[a.name] = "N" if a.kind == "tendon" else "Pa"
+    from .multibody import PRISMATIC
+    junits = {mech.tree.joints[i].name: ("m" if mech.tree.joints[i].kind == PRISMATIC else "rad")
+              for i in mech.joints_with("position")}
+    return {"robot": mech.name, "articulated": True, "frame_followed": plan.frame,
+            "actuator_names": list(plan.actuator_names), "joint_names": list(plan.joint_names),
+            "frame": "world", "units": {"time": "s", "inputs": units, "joints": junits, "positions": "m"},
+            "position_weights": list(options.position_weights),
+            "lower": plan.lower.tolist(), "upper": _finite(plan.upper), "max_rate": _finite(plan.max_rate),
+            "joint_lower": _finite(plan.joint_lower), "joint_upper": _finite(plan.joint_upper),
+            "max_velocity": _finite(plan.max_velocity), "max_acceleration": _finite(plan.max_acceleration),
+            "summary": plan.summary(), "violations": ap.check_articulated_plan(plan),
+            "time": plan.times.tolist(), "joints": plan.joints.tolist(), "actuation": plan.u.tolist(),
+            "target": plan.target.tolist(), "predicted_tip": plan.tip.tolist(),
+            "error_m": plan.weighted_error.tolist(), "distance_m": plan.position_error.tolist(),
+            "orientation_error_rad": plan.orientation_error.tolist(),
+            "reached": plan.reached.tolist(), "status": list(plan.status)}
+
+
 def run_plan(model, path, options, u_start=None, dynamics=None):
     """Plan (and, with ``dynamics``, verify and compensate) -> result dict."""
+    from .mechanism import Mechanism
+    if isinstance(model, Mechanism):
+        return run_articulated_plan(model, path, options, u_start)
     plan = pl.plan_path(model, path, options, u_start=u_start)
     out = {"robot": model.name, "actuator_names": list(model.actuator_names),
            "frame": "world (the base frame for an identity base pose)",
@@ -155,7 +246,9 @@ def plan_csv(out):
     """One row per sample: time, inputs, target, predicted tip, errors,
     reached, status (and the dynamics columns when present)."""
     names = out["actuator_names"]
-    cols = ["time_s"] + [f"u_{n}" for n in names] + [f"target_{c}_m" for c in "xyz"] \
+    joints = out.get("joint_names", [])
+    cols = ["time_s"] + [f"q_{n}_{out['units']['joints'][n]}" for n in joints] + [f"u_{n}" for n in names] \
+        + [f"target_{c}_m" for c in "xyz"] \
         + [f"tip_{c}_m" for c in "xyz"] + ["error_m", "distance_m", "orientation_error_rad", "reached", "status"]
     dyn = out.get("dynamics")
     if dyn:
@@ -165,7 +258,8 @@ def plan_csv(out):
     wr = csv.writer(buf, lineterminator="\n")
     wr.writerow(cols)
     for i, t in enumerate(out["time"]):
-        row = [repr(t)] + [repr(v) for v in out["actuation"][i]] + [repr(v) for v in out["target"][i]] \
+        row = [repr(t)] + [repr(v) for v in (out["joints"][i] if joints else [])] \
+            + [repr(v) for v in out["actuation"][i]] + [repr(v) for v in out["target"][i]] \
             + [repr(v) for v in out["predicted_tip"][i]] \
             + [repr(out["error_m"][i]), repr(out["distance_m"][i]), repr(out["orientation_error_rad"][i]),
                int(out["reached"][i]), out["status"][i]]
@@ -177,4 +271,4 @@ def plan_csv(out):
     return buf.getvalue()
 
 
-__all__ = ["PlanFileError", "load_plan_file", "plan_from_dict", "run_plan", "plan_csv"]
+__all__ = ["PlanFileError", "load_plan_file", "plan_from_dict", "run_plan", "run_articulated_plan", "plan_csv"]

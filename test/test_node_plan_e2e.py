@@ -144,6 +144,54 @@ def test_plan_path_executes_on_the_output_topic(twin, model):
     assert c.wait_until(settled, 15.0)
 
 
+def test_cancel_plan_stops_the_execution(twin):
+    """~/cancel_plan (std_srvs/Trigger) stops a running execution: the
+    commands published before the answer are all there is (checked once a
+    later plan's first command arrived: one publisher, reliable, in order),
+    fewer than planned; a second cancel says nothing is executing."""
+    from std_srvs.srv import Trigger
+    c, _ = twin
+    got, cond = [], threading.Condition()
+
+    def on_cmd(msg):
+        with cond:
+            got.append(msg)
+            cond.notify_all()
+    sub = c.node.create_subscription(ActuationCommand, OUTPUT, on_cmd, 100)
+    assert c.wait_until(lambda: sub.get_publisher_count() > 0, 20.0), f"no publisher on {OUTPUT}"
+    assert c.wait_until(lambda: c.clients["cancel_plan"].service_is_ready(), 20.0)
+    path = {"type": "circle", "center": [0.38, 0.0, -0.22], "radius": 0.03, "normal": [1, 0, 0],
+            "duration": 4.0, "sample_period": 0.1}
+    resp = c.call("plan_path", PlanPath.Request(path_yaml=yaml.safe_dump(path), position_weights=[0.0, 1.0, 1.0],
+                                                execute=True))
+    assert resp.success and resp.executing, resp.message
+    n_planned, start = len(resp.times), _ns(resp.start_stamp)
+    with cond:
+        assert cond.wait_for(lambda: len(got) >= 3, timeout=20.0), f"{len(got)} commands arrived"
+    cancel = c.call("cancel_plan", Trigger.Request())
+    assert cancel.success, cancel.message
+    n_sent = int(cancel.message.split("cancelled after ")[1].split(" of ")[0])
+    assert f"of {n_planned} commands" in cancel.message
+    assert 3 <= n_sent < n_planned
+    again = c.call("cancel_plan", Trigger.Request())
+    assert not again.success and "no plan is executing" in again.message
+    # a marker: a short plan executed now; its first command comes after every earlier one
+    line = {"type": "line", "start": [0.38, 0.0, -0.25], "end": [0.38, 0.0, -0.25], "duration": 0.2,
+            "sample_period": 0.1}
+    resp2 = c.call("plan_path", PlanPath.Request(path_yaml=yaml.safe_dump(line), position_weights=[0.0, 1.0, 1.0],
+                                                 execute=True))
+    assert resp2.executing, resp2.message
+    start2 = _ns(resp2.start_stamp)
+    with cond:
+        assert cond.wait_for(lambda: any(_ns(m.header.stamp) >= start2 for m in got), timeout=20.0)
+        first = [m for m in got if start <= _ns(m.header.stamp) < start2]
+    assert len(first) == n_sent, (len(first), n_sent)
+    stamps = [_ns(m.header.stamp) - start for m in first]
+    assert stamps == pytest.approx([t * 1e9 for t in resp.times[:n_sent]], abs=1.0)
+    with cond:
+        assert cond.wait_for(lambda: sum(_ns(m.header.stamp) >= start2 for m in got) >= 3, timeout=20.0)
+
+
 def test_plan_path_rejects_bad_requests(twin):
     c, _ = twin
     for req, word in [(PlanPath.Request(path_yaml="{type: spiral}"), "path.type"),

@@ -89,3 +89,23 @@ def test_shipped_example_circle_within_1mm():
     assert dyn == {"dt": 0.005, "compensation_iterations": 3}
     with pytest.raises(PlanFileError):
         plan_from_dict({"path": {}})
+
+
+def test_plan_cli_plot_writes_nonblank_figures(tmp_path):
+    """--plot DIR (issue 13): the planned vs achieved tip path (with the
+    simulated tips) and the actuation sequence, PNG and SVG, not blank."""
+    from PIL import Image
+    f = _write(tmp_path, SMALL)
+    rc = cli.main(["plan", f, "-o", str(tmp_path / "out"), "--plot", str(tmp_path / "figs")])
+    assert rc == 0
+    for stem in ("plan_tip_path", "plan_actuation"):
+        img = np.asarray(Image.open(tmp_path / "figs" / f"{stem}.png").convert("RGB"), dtype=float)
+        h, w, _ = img.shape
+        assert w >= 800 and h >= 600, (stem, img.shape)
+        dark = (img.mean(axis=2) < 200).mean()
+        colour = (np.ptp(img, axis=2) > 60).mean()
+        assert 0.01 < dark < 0.5 and colour > 0.002, (stem, dark, colour)
+        assert (tmp_path / "figs" / f"{stem}.svg").stat().st_size > 10_000
+    # a blank figure fails the same check
+    blank = np.full((700, 900, 3), 255.0)
+    assert not (blank.mean(axis=2) < 200).mean() > 0.01

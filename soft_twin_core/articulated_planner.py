@@ -1,0 +1,440 @@
+"""Planner for soft articulated robots (tree robot files,
+:mod:`soft_twin_core.mechanism`): a tip path to a sequence of joint position
+commands (rad or m) of the position-controlled joints and tendon tensions
+[N] / chamber pressures [Pa], through the articulated statics
+(:func:`soft_twin_core.constrained.solve_equilibrium`).
+
+Unknowns per sample: ``x = [q_cmd (position-controlled joints, in the order
+of mech.joints_with("position")), u (actuators)]``.
+
+* **Sensitivity (exact).** The equilibrium ``R(q, lam; u) = 0``,
+  ``Phi(q; q_cmd) = 0`` (constraints and the rows ``q_j - q_cmd,j = 0``)
+  is differentiated by the implicit function theorem:
+  ``[[Kt, -G^T], [G, 0]] [dq; dlam] = -[dR/dx; dPhi/dx] dx`` with Kt the
+  engine's analytic tangent, ``dPhi/dq_cmd = -E`` and ``dR/du`` the
+  actuation force per unit input (exact: it is linear in u at fixed q).
+  The frame's world velocity Jacobian turns dq into d(frame position).
+  Tested against finite differences of full equilibrium solves.
+* **Bounds.** Joint commands within the joint ``limits``; tendons in
+  ``[pretension, min(limit, max_tension)]``, chambers
+  ``[-limit, min(limit, max_pressure)]``.
+* **Rate limits.** A position-controlled joint's ``max_velocity`` and
+  ``max_acceleration`` (robot file; the same bounds with which the twin
+  shapes its commands, so a plan within them is followed without lag):
+  with samples dt apart, ``|dq_k| <= v_max dt`` and
+  ``|dq_k - dq_{k-1}| <= a_max dt^2`` (``dq_k = q_cmd,k - q_cmd,k-1``);
+  the plan starts at rest at its first sample (``dq_0 = 0``), the first
+  sample itself is free (moving there is not part of the plan). Actuators:
+  ``max_rate`` [N/s, Pa/s] as in :mod:`planner`. Each becomes a per-sample
+  box; every planned value lies in its box.
+* **Redundancy resolution** (a 3-D tip target, more inputs): among the
+  inputs that reach the sample, the least change of the joint commands from
+  the previous sample plus the least input above its lower bound
+  (pretension), each scaled by its tip sensitivity: a Gauss-Newton phase on
+  ``|W e|^2 + eps^2 |S (x - x_ref)|^2`` (eps = 1e-3), then a phase on the
+  tip error alone polishes the target.
+* **Unreachable samples** are flagged (``reached`` False; ``status``
+  ``at_limit``, ``rate_limit``, ``out_of_workspace`` or ``statics_failed``)
+  and the plan follows the closest reachable point (locally).
+
+The result is a :class:`ArticulatedPlan` (a :class:`planner.Plan` with joint
+columns); :func:`check_articulated_plan` lists violated bounds.
+"""
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from . import algorithms as alg
+from . import constrained as cs
+from .planner import Plan, PlanError, box_lstsq, _number
+from .statics import StaticsError
+from .workspace import Workspace
+
+
+@dataclass
+class ArticulatedPlanOptions:
+    """frame: the frame that follows the path (default ``tip`` if the robot
+    has one, else the end of its last soft member ``<member>_tip``);
+    position_weights (3,) per world axis; tolerance [m] on the weighted
+    position error; pretension [N], max_tension [N], max_pressure [Pa],
+    max_rate [N/s or Pa/s] of the actuators (scalar or {name: value});
+    joint_limits_margin [rad or m] kept inside the joint limits;
+    max_iterations per sample; loads (:class:`loads.Loads`, default
+    gravity)."""
+    frame: str = None
+    position_weights: tuple = (1.0, 1.0, 1.0)
+    tolerance: float = 1e-6
+    pretension: object = 0.0
+    max_tension: object = None
+    max_pressure: object = None
+    max_rate: object = None
+    joint_limits_margin: float = 0.0
+    max_iterations: int = 40
+    loads: object = None
+
+
+def default_frame(mech):
+    if "tip" in mech.frames:
+        return "tip"
+    if mech.members:
+        name = f"{mech.members[-1].name}_tip"
+        if name in mech.frames:
+            return name
+    raise PlanError(f"frame: this robot has no 'tip' frame and no soft member; name one of {sorted(mech.frames)}")
+
+
+def _per(names, value, what, default):
+    n = len(names)
+    if value is None:
+        return np.full(n, default, float)
+    if isinstance(value, dict):
+        out = np.full(n, default, float)
+        for k, v in value.items():
+            if k not in names:
+                raise PlanError(f"{what}: unknown actuator {k!r}; this robot has {list(names)}")
+            out[list(names).index(k)] = _number(v, f"{what}.{k}")
+        return out
+    if np.ndim(value) == 0:
+        return np.full(n, _number(value, what))
+    vals = list(value)
+    if len(vals) != n:
+        raise PlanError(f"{what}: expected one value per actuator {list(names)}, got {len(vals)}")
+    return np.array([_number(v, f"{what}[{i}]") for i, v in enumerate(vals)])
+
+
+class ArticulatedTipSolver:
+    """Joint commands and actuator inputs reaching a frame position, through
+    the articulated statics; re-used sample after sample (warm starts)."""
+
+    EPS_REDUNDANCY = 1e-3
+
+    def __init__(self, mech, options=None):
+        self.mech = mech
+        self.options = o = ArticulatedPlanOptions() if options is None else options
+        tree = mech.tree
+        self.pos = mech.joints_with("position")
+        self.joint_names = tuple(tree.joints[i].name for i in self.pos)
+        self.actuator_names = tuple(mech.actuator_names)
+        self.n_j, self.n_u = len(self.pos), len(self.actuator_names)
+        if self.n_j + self.n_u == 0:
+            raise PlanError("this robot has no position-controlled joints and no actuators: nothing to plan")
+        self.frame = o.frame or default_frame(mech)
+        try:
+            self.ref = mech.frame(self.frame)
+        except KeyError as e:
+            raise PlanError(f"frame: {e.args[0]}") from None
+        w = np.asarray(o.position_weights, float)
+        if w.shape != (3,) or not np.all(np.isfinite(w)) or np.any(w < 0) or not np.any(w > 0):
+            raise PlanError(f"position_weights: expected 3 non-negative numbers, not all 0, got "
+                            f"{o.position_weights!r}")
+        self.sw = np.sqrt(w)
+        if _number(o.tolerance, "tolerance", False) <= 0:
+            raise PlanError(f"tolerance: expected a number > 0 (m), got {o.tolerance}")
+        margin = _number(o.joint_limits_margin, "joint_limits_margin", False)
+        if margin < 0:
+            raise PlanError(f"joint_limits_margin: expected a number >= 0, got {margin}")
+        from .loads import Loads
+        self.loads = Loads() if o.loads is None else o.loads
+        # bounds: joints, then actuators
+        jlo, jhi = np.full(self.n_j, -np.inf), np.full(self.n_j, np.inf)
+        vmax, amax = np.full(self.n_j, np.inf), np.full(self.n_j, np.inf)
+        for k, i in enumerate(self.pos):
+            j = tree.joints[i]
+            if j.limits is not None:
+                jlo[k], jhi[k] = j.limits[0] + margin, j.limits[1] - margin
+                if not jlo[k] < jhi[k]:
+                    raise PlanError(f"joint_limits_margin: {margin} leaves no range of joint {j.name!r} "
+                                    f"(limits {list(j.limits)})")
+            vmax[k], amax[k] = mech.motion_limits.get(j.name, (np.inf, np.inf))
+        pre = _per(self.actuator_names, o.pretension, "pretension", 0.0)
+        tmax = _per(self.actuator_names, o.max_tension, "max_tension", np.inf)
+        pmax = _per(self.actuator_names, o.max_pressure, "max_pressure", np.inf)
+        ulo, uhi = np.empty(self.n_u), np.empty(self.n_u)
+        for k, a in enumerate(mech.actuators):
+            if a.kind == "tendon":
+                if pre[k] < 0:
+                    raise PlanError(f"pretension.{a.name}: a tendon's pretension must be >= 0 N, got {pre[k]}")
+                ulo[k], uhi[k] = pre[k], min(a.limit, tmax[k])
+            else:
+                ulo[k], uhi[k] = -a.limit, min(a.limit, pmax[k])
+            if not ulo[k] <= uhi[k]:
+                raise PlanError(f"{a.name}: empty input range [{ulo[k]}, {uhi[k]}]")
+        self.rate = _per(self.actuator_names, o.max_rate, "max_rate", np.inf)
+        if np.any(self.rate <= 0):
+            raise PlanError(f"max_rate: expected values > 0 (per second), got {self.rate.tolist()}")
+        self.lower, self.upper = np.concatenate([jlo, ulo]), np.concatenate([jhi, uhi])
+        self.max_velocity, self.max_acceleration = vmax, amax
+        self.ws = Workspace(tree)
+        self._pidx = np.array([tree.idx_v[i] for i in self.pos], np.int64)
+
+    # -- equilibrium and its sensitivity ---------------------------------------
+    def split(self, x):
+        return x[:self.n_j], x[self.n_j:]
+
+    def equilibrium(self, x, q_init):
+        qc, u = self.split(x)
+        return cs.solve_equilibrium(self.mech, actuation=u if self.n_u else None,
+                                    positions=qc if self.n_j else None, loads=self.loads, q_init=q_init)
+
+    def frame_pose(self, q):
+        return alg.point_poses(self.mech.tree, self.ws, q, [self.ref.joint], [self.ref.x])[0]
+
+    def sensitivity(self, eq):
+        """(frame pose 4x4, d(frame position, world)/dx (3, n_j + n_u)) at an equilibrium."""
+        mech, tree = self.mech, self.mech.tree
+        pb = cs._Equilibrium(mech, eq.inputs)
+        q, lam = eq.q, eq.lam
+        Kt = pb.tangent(q, lam)
+        R, phi, G = pb.residual(q, lam)
+        n_x = self.n_j + self.n_u
+        dR = np.zeros((tree.nv, n_x))
+        dphi = np.zeros((len(phi), n_x))
+        npos = self.n_j
+        for k in range(npos):                       # rows q_j - q_cmd,j: d/dq_cmd = -1
+            dphi[len(phi) - npos + k, k] = -1.0
+        if self.n_u:
+            coef = pb.coef
+            pb.coef = np.zeros_like(coef)
+            r0 = pb.residual(q, lam)[0]
+            for k in range(self.n_u):
+                pb.coef = np.ascontiguousarray(pb.act.unit[:, k], dtype=float)
+                dR[:, npos + k] = pb.residual(q, lam)[0] - r0     # linear in u at fixed q
+            pb.coef = coef
+        fac = cs.factor_kkt(Kt, G, G)
+        dq = np.empty((tree.nv, n_x))
+        for k in range(n_x):
+            dq[:, k] = cs.solve_factored(fac, dR[:, k], dphi[:, k])[0]
+        g, J = alg.point_jacobian(tree, self.ws, q, self.ref.joint, self.ref.x, frame="world")
+        return g, J[:3] @ dq
+
+    # -- one sample ----------------------------------------------------------
+    def _error(self, g, target):
+        return self.sw * (target - g[:3, 3])
+
+    def solve(self, target, x_init, q_init, lo, hi, x_ref, rate_box=None):
+        """x within [lo, hi] whose equilibrium puts the frame at ``target``
+        (world position, m); ``x_ref``: the reference of the redundancy
+        resolution (previous joint commands, lower input bounds)."""
+        x = np.clip(np.asarray(x_init, float), lo, hi)
+        try:
+            eq = self.equilibrium(x, q_init)
+        except (StaticsError, ValueError):
+            eq = self.equilibrium(x, None)
+        g = self.frame_pose(eq.q)
+        e = self._error(g, target)
+        it_total = 0
+        scale = None
+        for eps in (self.EPS_REDUNDANCY, 0.0):
+            x, eq, g, e, it, scale = self._gauss_newton(x, eq, g, e, target, lo, hi, eps, x_ref, scale)
+            it_total += it
+        d = target - g[:3, 3]
+        we = float(np.linalg.norm(self.sw * d))
+        reached = we <= self.options.tolerance
+        status = "reached" if reached else self._blocking(x, eq, e, lo, hi, rate_box)
+        return x, eq, g, float(np.linalg.norm(d)), we, reached, status, it_total
+
+    def _gauss_newton(self, x, eq, g, e, target, lo, hi, eps, x_ref, scale):
+        n = x.size
+        tol = self.options.tolerance
+        lam = 0.0
+        it = 0
+
+        def cost(x_, e_):
+            c = float(e_ @ e_)
+            if eps > 0:
+                r = eps * scale * (x_ - x_ref)
+                c += float(r @ r)
+            return c
+
+        for it in range(1, self.options.max_iterations + 1):
+            if eps == 0.0 and np.linalg.norm(e) <= tol:
+                return x, eq, g, e, it - 1, scale
+            try:
+                _, S = self.sensitivity(eq)
+            except (np.linalg.LinAlgError, ValueError):
+                return x, eq, g, e, it, scale
+            Je = -(self.sw[:, None] * S)
+            if scale is None:
+                scale = np.maximum(np.linalg.norm(Je, axis=0), 1e-12 * max(np.linalg.norm(Je), 1e-300))
+            c0 = cost(x, e)
+            improved = False
+            for _ in range(10):
+                rows, rhs = [Je], [-e]
+                if eps > 0:
+                    rows.append(eps * np.diag(scale))
+                    rhs.append(-eps * scale * (x - x_ref))
+                rows.append(np.sqrt(max(lam, 1e-12)) * np.diag(scale))
+                rhs.append(np.zeros(n))
+                A, b = np.vstack(rows), np.concatenate(rhs)
+                dlo, dhi = lo - x, np.maximum(hi - x, lo - x)
+                fixed = dhi - dlo <= 0
+                dx = np.zeros(n)
+                if np.any(~fixed):
+                    dx[~fixed] = box_lstsq(A[:, ~fixed], b, dlo[~fixed], dhi[~fixed])
+                if np.linalg.norm(dx * scale) <= 1e-3 * tol:
+                    return x, eq, g, e, it, scale
+                x_new = np.clip(x + dx, lo, hi)
+                try:
+                    eq_new = self.equilibrium(x_new, eq.q)
+                except (StaticsError, ValueError):
+                    lam = max(4 * lam, 1e-4)
+                    continue
+                g_new = self.frame_pose(eq_new.q)
+                e_new = self._error(g_new, target)
+                if cost(x_new, e_new) < c0:
+                    x, eq, g, e = x_new, eq_new, g_new, e_new
+                    lam = lam / 10 if lam > 1e-8 else 0.0
+                    improved = True
+                    break
+                lam = max(4 * lam, 1e-4)
+            if not improved:
+                break
+            if eps > 0 and cost(x, e) > (1 - 1e-8) * c0:
+                break
+        return x, eq, g, e, it, scale
+
+    def _blocking(self, x, eq, e, lo, hi, rate_box):
+        try:
+            _, S = self.sensitivity(eq)
+        except (np.linalg.LinAlgError, ValueError):
+            return "statics_failed"
+        grad = -(self.sw[:, None] * S).T @ e
+        sc = np.abs(grad).max(initial=0.0)
+        atol = 1e-9 * np.maximum(1.0, np.abs(x))
+        press_lo = (x <= lo + atol) & (grad > 1e-6 * sc)
+        press_hi = (x >= hi - atol) & (grad < -1e-6 * sc)
+        if not np.any(press_lo | press_hi):
+            return "out_of_workspace"
+        if rate_box is not None:
+            rlo, rhi = rate_box
+            if np.any((press_lo & (rlo > self.lower + atol)) | (press_hi & (rhi < self.upper - atol))):
+                return "rate_limit"
+        return "at_limit"
+
+
+@dataclass
+class ArticulatedPlan(Plan):
+    """A :class:`planner.Plan` (``u``: actuator inputs) plus joint_names,
+    joints (N, n_joints) position commands [rad or m], joint_lower/upper,
+    max_velocity [rad/s or m/s] and max_acceleration [rad/s^2 or m/s^2] of
+    those joints, and the frame that follows the path."""
+    joint_names: tuple = ()
+    joints: np.ndarray = None
+    joint_lower: np.ndarray = None
+    joint_upper: np.ndarray = None
+    max_velocity: np.ndarray = None
+    max_acceleration: np.ndarray = None
+    frame: str = ""
+
+
+def _rate_box(solver, x_prev, d_prev, dt):
+    """(lo, hi) of x from the rate limits: joints by velocity and
+    acceleration (d_prev: previous joint increment), inputs by max_rate."""
+    nj = solver.n_j
+    lo, hi = np.full(x_prev.size, -np.inf), np.full(x_prev.size, np.inf)
+    vstep = solver.max_velocity * dt
+    astep = solver.max_acceleration * dt * dt
+    dlo = np.maximum(-vstep, d_prev - astep)
+    dhi = np.minimum(vstep, d_prev + astep)
+    lo[:nj], hi[:nj] = x_prev[:nj] + dlo, x_prev[:nj] + dhi
+    ustep = solver.rate * dt
+    lo[nj:], hi[nj:] = x_prev[nj:] - ustep, x_prev[nj:] + ustep
+    return lo, hi
+
+
+def plan_articulated_path(mech, path, options=None, start=None):
+    """Plan joint commands and actuator inputs for a :class:`paths.TipPath`
+    (positions in the world frame of the mechanism; orientations are not
+    tracked). ``start``: x = [joint commands, inputs] to warm-start the
+    first sample from (default: the joint references, inputs at their lower
+    bounds)."""
+    from .paths import TipPath
+    if not isinstance(path, TipPath):
+        raise PlanError(f"path: expected a TipPath, got {type(path).__name__}")
+    if path.orientations is not None:
+        raise PlanError("path: orientations are not planned for articulated robots (positions only)")
+    solver = ArticulatedTipSolver(mech, options)
+    tree = mech.tree
+    nj = solver.n_j
+    if start is None:
+        x = np.concatenate([[tree.joints[i].q_ref for i in solver.pos], np.where(
+            np.isfinite(solver.lower[nj:]), solver.lower[nj:], 0.0)])
+    else:
+        x = np.asarray(start, float)
+        if x.shape != solver.lower.shape:
+            raise PlanError(f"start: expected {solver.lower.size} values (joints {list(solver.joint_names)}, "
+                            f"actuators {list(solver.actuator_names)})")
+    x = np.clip(x, solver.lower, solver.upper)
+    q = solver.equilibrium(x, None).q
+    N = len(path)
+    targets = path.positions
+    out = {k: [] for k in ("x", "q", "tip", "pe", "we", "reached", "status", "it")}
+    x_ref_lo = np.where(np.isfinite(solver.lower[nj:]), solver.lower[nj:], 0.0)
+    d_prev = np.zeros(nj)
+    hist = []
+    for i in range(N):
+        lo, hi, box = solver.lower, solver.upper, None
+        if i > 0:
+            rlo, rhi = _rate_box(solver, x, d_prev, path.times[i] - path.times[i - 1])
+            lo, hi = np.maximum(solver.lower, rlo), np.minimum(solver.upper, rhi)
+            lo, hi = np.minimum(lo, hi), np.maximum(np.minimum(lo, hi), hi)
+            box = (rlo, rhi)
+        if len(hist) >= 2:
+            (x1, q1), (x2, q2) = hist[-2], hist[-1]
+            x0, q0 = x2 + (x2 - x1), q2 + (q2 - q1)
+        elif hist:
+            x0, q0 = hist[-1]
+        else:
+            x0, q0 = x, q
+        x_ref = np.concatenate([x[:nj], x_ref_lo])
+        x_new, eq, g, pe, we, reached, status, it = solver.solve(targets[i], np.clip(x0, lo, hi), q0, lo, hi,
+                                                                 x_ref, box)
+        if i > 0:
+            d_prev = x_new[:nj] - x[:nj]
+        x = x_new
+        hist.append((x, eq.q))
+        out["x"].append(x)
+        out["q"].append(eq.q)
+        out["tip"].append(g[:3, 3])
+        out["pe"].append(pe)
+        out["we"].append(we)
+        out["reached"].append(reached)
+        out["status"].append(status)
+        out["it"].append(it)
+    X = np.array(out["x"]).reshape(N, -1)
+    return ArticulatedPlan(
+        path.times.copy(), X[:, nj:].copy(), np.array(out["q"]), np.array(out["tip"]), targets.copy(),
+        np.array(out["pe"]), np.array(out["we"]), np.zeros(N), np.array(out["reached"], bool), out["status"],
+        solver.lower[nj:].copy(), solver.upper[nj:].copy(), solver.rate.copy(), solver.actuator_names,
+        np.array(out["it"]), None, solver.joint_names, X[:, :nj].copy(), solver.lower[:nj].copy(),
+        solver.upper[:nj].copy(), solver.max_velocity.copy(), solver.max_acceleration.copy(), solver.frame)
+
+
+def check_articulated_plan(plan, rtol=1e-12):
+    """Violations of the plan's joint limits, joint velocity/acceleration
+    limits and actuator bounds and rates (a list of strings, empty when
+    none). The plan starts at rest at its first sample."""
+    from .planner import check_plan
+    bad = check_plan(plan, rtol)
+    dt = np.diff(plan.times)
+    for k, name in enumerate(plan.joint_names):
+        qk = plan.joints[:, k]
+        if np.any(qk < plan.joint_lower[k] - rtol) or np.any(qk > plan.joint_upper[k] + rtol):
+            bad.append(f"joint {name}: outside [{plan.joint_lower[k]}, {plan.joint_upper[k]}]")
+        if len(qk) < 2:
+            continue
+        d = np.diff(qk)
+        vmax, amax = plan.max_velocity[k], plan.max_acceleration[k]
+        if np.isfinite(vmax) and np.any(np.abs(d) > vmax * dt * (1 + 1e-9) + rtol):
+            bad.append(f"joint {name}: speed {np.max(np.abs(d) / dt)} > {vmax}")
+        if np.isfinite(amax):
+            dd = np.diff(np.concatenate([[0.0], d]))
+            lim = amax * dt ** 2
+            if np.any(np.abs(dd) > lim * (1 + 1e-9) + rtol):
+                bad.append(f"joint {name}: acceleration {np.max(np.abs(dd) / lim * amax)} > {amax}")
+    return bad
+
+
+__all__ = ["ArticulatedPlanOptions", "ArticulatedTipSolver", "ArticulatedPlan", "plan_articulated_path",
+           "check_articulated_plan", "default_frame"]

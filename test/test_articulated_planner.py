@@ -1,0 +1,194 @@
+"""Planner for soft articulated robots (soft_twin_core.articulated_planner):
+the sensitivity of the frame to joint commands and tendon tensions against
+finite differences of full equilibrium solves, the pan-tilt arm's circle
+tracked within 1 mm (checked by independent equilibrium solves of the
+planned commands, from scratch), joint limits and velocity/acceleration
+limits never violated over random paths (hypothesis), unreachable samples
+flagged, and soft-twin-sim plan with an articulated robot (CSV/JSON joint
+columns, --plot figures)."""
+
+import csv
+import json
+import os
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+from hypothesis import HealthCheck, given, settings
+from hypothesis import strategies as hst
+
+from soft_twin_core import algorithms as alg
+from soft_twin_core import articulated_planner as ap
+from soft_twin_core import constrained as cs
+from soft_twin_core import paths
+from soft_twin_core.mechanism import load_mechanism
+from soft_twin_core.planner import PlanError
+from soft_twin_core.workspace import Workspace
+
+ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+
+
+@pytest.fixture(scope="module")
+def mech():
+    return load_mechanism("pan_tilt_arm")
+
+
+def frame_position(mech, name, x):
+    """The frame's world position at the equilibrium of x = [pan, tilt,
+    tensions], solved from the reference configuration (no warm start)."""
+    eq = cs.solve_equilibrium(mech, actuation=x[2:], positions=x[:2])
+    ref = mech.frame(name)
+    return alg.point_poses(mech.tree, Workspace(mech.tree), eq.q, [ref.joint], [ref.x])[0][:3, 3]
+
+
+def test_sensitivity_matches_finite_differences(mech):
+    s = ap.ArticulatedTipSolver(mech, ap.ArticulatedPlanOptions(frame="tool"))
+    assert s.joint_names == ("pan", "tilt") and len(s.actuator_names) == 4
+    x = np.array([0.3, -0.2, 0.5, 0.1, 0.2, 0.05])
+    eq = s.equilibrium(x, None)
+    g, S = s.sensitivity(eq)
+    assert np.allclose(g[:3, 3], frame_position(mech, "tool", x), atol=1e-9)
+    h = 1e-6
+    fd = np.empty_like(S)
+    for k in range(x.size):
+        xp, xm = x.copy(), x.copy()
+        xp[k] += h
+        xm[k] -= h
+        fd[:, k] = (frame_position(mech, "tool", xp) - frame_position(mech, "tool", xm)) / (2 * h)
+    assert np.abs(S - fd).max() <= 1e-6 * np.abs(fd).max()
+    # pan turns the tool about the world z axis: d(tool)/d(pan) = z x p
+    p = g[:3, 3]
+    assert np.allclose(S[:, 0], np.cross([0, 0, 1.0], p), atol=1e-9)
+
+
+def test_circle_tracked_within_1_mm_and_within_limits(mech):
+    path = paths.circle([0.33, 0.0, 0.0], 0.05, 8.0, normal=(1, 0, 0), sample_period=0.08)
+    plan = ap.plan_articulated_path(mech, path, ap.ArticulatedPlanOptions(frame="tool"))
+    assert plan.reached.all(), plan.summary()
+    assert plan.joint_names == ("pan", "tilt") and plan.joints.shape == (len(path), 2)
+    assert ap.check_articulated_plan(plan) == []
+    # independent check: the planned commands, solved from scratch, put the tool on the circle
+    for i in range(0, len(path), 10):
+        x = np.concatenate([plan.joints[i], plan.u[i]])
+        p = frame_position(mech, "tool", x)
+        assert np.linalg.norm(p - path.positions[i]) < 1e-3
+        assert np.linalg.norm(p - plan.tip[i]) < 1e-7
+    # continuity: no jumps between consecutive samples
+    assert np.abs(np.diff(plan.joints, axis=0)).max() < 0.05
+
+
+def test_unreachable_samples_are_flagged(mech):
+    # 0.6 m from the base: beyond the arm (0.36 m from the tilt axis)
+    path = paths.line([0.33, 0.0, 0.0], [0.6, 0.0, 0.0], 1.0, sample_period=0.1)
+    plan = ap.plan_articulated_path(mech, path, ap.ArticulatedPlanOptions(frame="tool", tolerance=1e-4))
+    far = np.linalg.norm(path.positions - [0, 0, 0.08], axis=1) > 0.40
+    assert far.any()
+    assert not plan.reached[far].any()
+    for i in np.flatnonzero(far):
+        assert plan.status[i] in ("out_of_workspace", "at_limit", "rate_limit")
+        assert plan.position_error[i] > 1e-4
+    # reached exactly when within the tolerance
+    assert np.array_equal(plan.reached, plan.weighted_error <= 1e-4)
+    assert ap.check_articulated_plan(plan) == []
+
+
+def test_joint_limits_hold_when_the_path_asks_beyond_them(mech):
+    # the tilt joint limited to +-0.1 rad by the margin: a tall line needs more
+    path = paths.line([0.33, 0.0, -0.10], [0.33, 0.0, 0.12], 2.0, sample_period=0.1)
+    opts = ap.ArticulatedPlanOptions(frame="tool", joint_limits_margin=1.4, max_tension=0.5, tolerance=1e-4)
+    plan = ap.plan_articulated_path(mech, path, opts)
+    assert np.all(np.abs(plan.joints[:, 1]) <= 0.1 + 1e-12)
+    assert np.all(plan.u <= 0.5 + 1e-12)
+    assert not plan.reached.all()
+    assert {plan.status[i] for i in np.flatnonzero(~plan.reached)} <= {"at_limit", "rate_limit"}
+    assert ap.check_articulated_plan(plan) == []
+
+
+@settings(max_examples=6, deadline=None, suppress_health_check=[HealthCheck.too_slow,
+                                                                 HealthCheck.function_scoped_fixture])
+@given(kind=hst.sampled_from(["line", "circle"]),
+       c=hst.tuples(hst.floats(0.2, 0.4), hst.floats(-0.2, 0.2), hst.floats(-0.15, 0.15)),
+       r=hst.floats(0.02, 0.2), duration=hst.floats(0.3, 2.0), margin=hst.floats(0.0, 1.2))
+def test_property_limits_never_violated(mech, kind, c, r, duration, margin):
+    if kind == "line":
+        path = paths.line(c, np.add(c, [0.0, r, -r]), duration, sample_period=duration / 8)
+    else:
+        path = paths.circle(c, r, duration, normal=(1, 0, 0), sample_period=duration / 8)
+    opts = ap.ArticulatedPlanOptions(frame="tool", joint_limits_margin=margin, max_tension=4.0,
+                                     max_rate=40.0, tolerance=1e-5, max_iterations=15)
+    plan = ap.plan_articulated_path(mech, path, opts)
+    assert ap.check_articulated_plan(plan) == []
+    assert np.array_equal(plan.reached, plan.weighted_error <= 1e-5)
+    assert all(s == "reached" for s, ok in zip(plan.status, plan.reached) if ok)
+    assert all(s != "reached" for s, ok in zip(plan.status, plan.reached) if not ok)
+
+
+def test_check_catches_violations(mech):
+    path = paths.line([0.33, 0.0, 0.0], [0.33, 0.02, 0.0], 0.4, sample_period=0.1)
+    plan = ap.plan_articulated_path(mech, path, ap.ArticulatedPlanOptions(frame="tool"))
+    bad = plan.joints.copy()
+    bad[2, 0] += 0.5                       # a jump: 5 rad/s against max_velocity 1 rad/s
+    plan.joints = bad
+    msgs = ap.check_articulated_plan(plan)
+    assert any("pan: speed" in m for m in msgs) and any("pan: acceleration" in m for m in msgs)
+
+
+def test_bad_options_name_the_field(mech):
+    with pytest.raises(PlanError, match="frame: no frame named 'nose'"):
+        ap.ArticulatedTipSolver(mech, ap.ArticulatedPlanOptions(frame="nose"))
+    with pytest.raises(PlanError, match="joint_limits_margin"):
+        ap.ArticulatedTipSolver(mech, ap.ArticulatedPlanOptions(joint_limits_margin=2.0))
+    with pytest.raises(PlanError, match="max_rate"):
+        ap.ArticulatedTipSolver(mech, ap.ArticulatedPlanOptions(max_rate=0.0))
+
+
+def _cli(*args, cwd):
+    env = dict(os.environ, PYTHONPATH=ROOT)
+    return subprocess.run([sys.executable, "-m", "soft_twin_core.cli", *args], cwd=cwd, env=env,
+                          capture_output=True, text=True, timeout=600)
+
+
+def test_cli_plan_articulated_writes_joint_columns_and_plots(tmp_path):
+    plan_file = tmp_path / "p.yaml"
+    plan_file.write_text(
+        "robot: pan_tilt_arm\n"
+        "path: {type: circle, center: [0.33, 0.0, 0.0], radius: 0.05, normal: [1, 0, 0],\n"
+        "       duration: 4.0, sample_period: 0.2}\n"
+        "tracking: {frame: tool}\n")
+    r = _cli("plan", str(plan_file), "-o", "out", "--plot", "figs", cwd=tmp_path)
+    assert r.returncode == 0, r.stderr
+    with open(tmp_path / "out.csv") as fh:
+        rows = list(csv.DictReader(fh))
+    assert len(rows) == 21
+    assert {"q_pan_rad", "q_tilt_rad", "u_tendon_y_pos", "tip_x_m", "reached"} <= set(rows[0])
+    out = json.loads((tmp_path / "out.json").read_text())
+    assert out["joint_names"] == ["pan", "tilt"] and out["violations"] == []
+    assert np.allclose([[float(r_["q_pan_rad"]), float(r_["q_tilt_rad"])] for r_ in rows], out["joints"])
+    assert all(r_["reached"] == "1" for r_ in rows)
+    check_pngs(tmp_path / "figs")
+
+
+def check_pngs(folder):
+    """Both figures exist, have a sensible size and are not blank."""
+    from PIL import Image
+    for stem in ("plan_tip_path", "plan_actuation"):
+        img = np.asarray(Image.open(folder / f"{stem}.png").convert("RGB"), dtype=float)
+        h, w, _ = img.shape
+        assert w >= 800 and h >= 600, (stem, img.shape)
+        dark = (img.mean(axis=2) < 200).mean()          # axes, lines, text
+        colour = (np.ptp(img, axis=2) > 60).mean()      # the coloured curves
+        assert 0.01 < dark < 0.5 and colour > 0.002, (stem, dark, colour)
+        assert (folder / f"{stem}.svg").stat().st_size > 10_000
+
+
+def test_cli_plan_articulated_bad_field(tmp_path):
+    plan_file = tmp_path / "p.yaml"
+    plan_file.write_text("robot: pan_tilt_arm\npath: {type: line, start: [0.3, 0, 0], end: [0.3, 0.01, 0], "
+                         "duration: 1}\ntracking: {frame: nose}\n")
+    r = _cli("plan", str(plan_file), "-o", "out", cwd=tmp_path)
+    assert r.returncode == 2 and "frame: no frame named 'nose'" in r.stderr
+    plan_file.write_text("robot: pan_tilt_arm\npath: {type: line, start: [0.3, 0, 0], end: [0.3, 0.01, 0], "
+                         "duration: 1}\ndynamics: {dt: 0.005}\n")
+    r = _cli("plan", str(plan_file), "-o", "out", cwd=tmp_path)
+    assert r.returncode == 2 and "plan.dynamics" in r.stderr
