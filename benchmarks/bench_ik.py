@@ -9,12 +9,8 @@ Without --node: the service's body (soft_twin.twin.inverse_kinematics) in
 this process. With --node: the real service round trip to a node in a
 second process (dynamic mode, 200 Hz stepping in that process), this
 process a real rclpy client subscribed to the strains only (``--all-topics``:
-every state topic, as before). The node computes in its service thread;
-``--worker`` also times it answering from its IK worker process
-(SOFT_TWIN_IK_WORKER=1, soft_twin/query_worker.py; the benchmark waits until
-the diagnostics say ``ik_worker: ready``); ``--ab`` compares both under the
-same load (two nodes, requests alternating). Prints the CPU time the node
-process and the worker spend per request. ``--autogroup-nice -10`` (root)
+every state topic, as before). The node computes in its service thread.
+Prints the CPU time the node process spends per request. ``--autogroup-nice -10`` (root)
 puts the benchmark's sessions ahead of other sessions on a shared machine. Prints the median and 90th percentile, the
 share of successes and the machine's load (the 2 CPUs may be shared).
 """
@@ -90,18 +86,6 @@ def _threads_cpu(pid):
     return {t: _cpu_s(pid, t) for t in os.listdir(f"/proc/{pid}/task")}
 
 
-def _children(pid):
-    """Child processes of every thread of pid (the IK worker is started by a service thread)."""
-    out = []
-    for t in os.listdir(f"/proc/{pid}/task"):
-        try:
-            with open(f"/proc/{pid}/task/{t}/children") as fh:
-                out += [int(c) for c in fh.read().split()]
-        except OSError:
-            pass
-    return out
-
-
 def _autogroup_nice(pid, value):
     """Give a process's scheduling group (its session, with the kernel's
     autogroup) the nice value ``value``; --autogroup-nice: our processes ahead
@@ -119,31 +103,22 @@ AUTOGROUP_NICE = None
 CLIENT_TOPICS = ("strains",)
 
 
-def through_node(poses, worker=True, idle_s=3.0):
+def through_node(poses, idle_s=3.0):
     """The service round trip through a node in a second process; with the
-    CPU time the node process (per thread) and its IK worker spend."""
+    CPU time the node process (per thread) spends."""
     import rclpy  # noqa: F401
     from soft_twin.client import NodeProcess, TwinClient
     from soft_twin.conversions import pose_msg
     from soft_twin.srv import InverseKinematics
     os.environ.setdefault("ROS_DOMAIN_ID", str(1 + os.getpid() % 101))
-    env = dict(os.environ, SOFT_TWIN_IK_WORKER="1" if worker else "0")
-    tag = "worker" if worker else "in node thread"
-    with NodeProcess([], node_name="bench_ik", env=env) as proc:
+    with NodeProcess([], node_name="bench_ik") as proc:
         # subscribed to the strains only (wait_ready needs them) and /diagnostics: a client that calls
         # the IK service, not one that also takes every 200 Hz state topic in Python (that client
-        # alone used ~half a CPU of the two, which the node and its worker then lacked)
+        # alone used ~half a CPU of the two, which the node then lacked)
         c = TwinClient("bench_ik", client_name="bench_ik_client", topics=CLIENT_TOPICS)
         try:
             c.wait_ready(120.0)
-            # the first request starts the worker (answered in the node meanwhile)
-            c.call("inverse_kinematics", InverseKinematics.Request(target=pose_msg(poses[0]), position_only=True))
-            if worker and not c.wait_until(lambda: (c.diagnostics() or {}).get("ik_worker") == "ready", 120.0):
-                print("IK worker not ready after 120 s:", (c.diagnostics() or {}).get("ik_worker"))
             pid = proc.proc.pid
-            if AUTOGROUP_NICE is not None:
-                for k in _children(pid):           # the worker runs in a session of its own
-                    _autogroup_nice(k, AUTOGROUP_NICE)
             a, t0 = _threads_cpu(pid), time.monotonic()
             time.sleep(idle_s)
             b, T = _threads_cpu(pid), time.monotonic() - t0
@@ -153,81 +128,27 @@ def through_node(poses, worker=True, idle_s=3.0):
             c.call("inverse_kinematics", InverseKinematics.Request(target=pose_msg(poses[0]), position_only=True))
             for label, po in (("position only", True), ("full pose", False)):
                 ts, ok = [], []
-                kids = _children(pid)
-                n0, k0, w0 = _cpu_s(pid), sum(_cpu_s(k) for k in kids), time.monotonic()
+                n0, w0 = _cpu_s(pid), time.monotonic()
                 for T in poses:
                     t0 = time.perf_counter()
                     r = c.call("inverse_kinematics", InverseKinematics.Request(target=pose_msg(T), position_only=po))
                     ts.append(time.perf_counter() - t0)
                     ok.append(r.success)
-                n1, k1, w1 = _cpu_s(pid), sum(_cpu_s(k) for k in kids), time.monotonic()
-                report(f"node round trip ({tag}{', client on all topics' if len(CLIENT_TOPICS) > 1 else ''}), {label}",
+                n1, w1 = _cpu_s(pid), time.monotonic()
+                report(f"node round trip{' (client on all topics)' if len(CLIENT_TOPICS) > 1 else ''}, {label}",
                        ts, ok)
                 print(f"    CPU per request: node process {1e3 * (n1 - n0) / len(poses):.1f} ms "
-                      f"(incl. its 200 Hz twin), worker {1e3 * (k1 - k0) / len(poses):.1f} ms; "
-                      f"wall per request {1e3 * (w1 - w0) / len(poses):.1f} ms")
-            d = c.diagnostics() or {}
-            print(f"    diagnostics: ik_worker {d.get('ik_worker')}, answers by the worker "
-                  f"{d.get('ik_worker_answers_total')}, in the node {d.get('ik_local_answers_total')}")
+                      f"(incl. its 200 Hz twin); wall per request {1e3 * (w1 - w0) / len(poses):.1f} ms")
         finally:
             c.close()
         del proc
 
 
-def ab_through_nodes(poses, rounds=2):
-    """A/B under the same machine load: two nodes at once, one answering from
-    its IK worker, one in its service thread (SOFT_TWIN_IK_WORKER=0), the
-    requests alternating between them (order swapped every request)."""
-    import rclpy  # noqa: F401
-    from soft_twin.client import NodeProcess, TwinClient
-    from soft_twin.conversions import pose_msg
-    from soft_twin.srv import InverseKinematics
-    os.environ.setdefault("ROS_DOMAIN_ID", str(1 + os.getpid() % 101))
-    procs, clients = {}, {}
-    try:
-        for tag, on in (("worker", "1"), ("thread", "0")):
-            procs[tag] = NodeProcess([], node_name=f"bench_ik_{tag}", env=dict(os.environ, SOFT_TWIN_IK_WORKER=on))
-        for tag in procs:
-            clients[tag] = c = TwinClient(f"bench_ik_{tag}", client_name=f"bench_ik_{tag}_client", topics=("strains",))
-            c.wait_ready(180.0)
-        c = clients["worker"]
-        c.call("inverse_kinematics", InverseKinematics.Request(target=pose_msg(poses[0]), position_only=True))
-        if not c.wait_until(lambda: (c.diagnostics() or {}).get("ik_worker") == "ready", 120.0):
-            print("IK worker not ready after 120 s")
-        for c in clients.values():
-            c.call("inverse_kinematics", InverseKinematics.Request(target=pose_msg(poses[0]), position_only=True))
-        for label, po in (("position only", True), ("full pose", False)):
-            ts = {k: [] for k in clients}
-            for r in range(rounds):
-                for i, T in enumerate(poses):
-                    order = ("worker", "thread") if (i + r) % 2 == 0 else ("thread", "worker")
-                    for tag in order:
-                        t0 = time.perf_counter()
-                        clients[tag].call("inverse_kinematics",
-                                          InverseKinematics.Request(target=pose_msg(T), position_only=po))
-                        ts[tag].append(time.perf_counter() - t0)
-            for tag in ("worker", "thread"):
-                t = 1e3 * np.asarray(ts[tag])
-                print(f"A/B {label:14s} node answering {'from its worker' if tag == 'worker' else 'in its thread'}: "
-                      f"median {np.median(t):6.1f} ms  p90 {np.percentile(t, 90):6.1f} ms  (n = {len(t)})")
-        print(f"    load average {os.getloadavg()[0]:.2f} (two nodes at 200 Hz running)")
-    finally:
-        for c in clients.values():
-            c.close()
-        for p in procs.values():
-            p.stop()
-
-
 def main():
     ap = argparse.ArgumentParser()
     ap.add_argument("--node", action="store_true", help="also time the service through a node")
-    ap.add_argument("--worker", action="store_true",
-                    help="with --node: also time the node answering from its IK worker process "
-                         "(SOFT_TWIN_IK_WORKER=1), for comparison")
-    ap.add_argument("--ab", action="store_true",
-                    help="A/B under the same load: two nodes (worker / service thread), requests alternating")
     ap.add_argument("--autogroup-nice", type=int, default=None, metavar="N",
-                    help="run this benchmark's sessions (this process, the node, its worker) at autogroup nice N "
+                    help="run this benchmark's sessions (this process and the node) at autogroup nice N "
                          "(e.g. -10): ahead of other sessions on a shared machine; restored to 0 at the end")
     ap.add_argument("--all-topics", action="store_true",
                     help="the client also takes every state topic (backbone, tip pose, strains, wrenches: "
@@ -245,12 +166,8 @@ def main():
     model = load_model("tendon_arm")
     poses = targets(model, args.n)
     in_process(model, poses)
-    if args.ab:
-        ab_through_nodes(poses)
     if args.node:
-        through_node(poses, worker=False)
-        if args.worker:
-            through_node(poses, worker=True)
+        through_node(poses)
     print(f"load average after: {os.getloadavg()[0]:.2f}")
     if AUTOGROUP_NICE is not None:
         _autogroup_nice(os.getpid(), 0)

@@ -250,11 +250,6 @@ class SoftTwinNode(Node):
                             callback_group=self._service_group)
         self.create_service(Trigger, "~/cancel_plan", self._guarded(self._srv_cancel_plan),
                             callback_group=self._service_group)
-        # --- issue 13: optionally (SOFT_TWIN_IK_WORKER=1) the IK service computes in a warm worker
-        # process (soft_twin.query_worker), started at the first IK request
-        from soft_twin import query_worker
-        self._query_worker = query_worker.QueryWorker()
-        self._query_worker_enabled = query_worker.enabled()
 
         # --- seeing the twin (issue 12): /tf frames, MCAP recording ----------
         self._tf = tf_out.TfOutput(self)
@@ -994,10 +989,6 @@ class SoftTwinNode(Node):
             }
             if self.robot.articulated:
                 values.update(self._articulated_diagnostics(s))
-            qw = getattr(self, "_query_worker", None)     # issue 13: where the IK service computes
-            if qw is not None:
-                values.update(ik_worker=qw.state(), ik_worker_answers_total=str(qw.calls),
-                              ik_local_answers_total=str(qw.fallbacks))
             level, message = DiagnosticStatus.OK, "ok"
             if s.consecutive_failures:
                 level, message = DiagnosticStatus.ERROR, f"solver failing, state kept: {values['solver_last_message']}"
@@ -1101,12 +1092,8 @@ class SoftTwinNode(Node):
             try:
                 return self._srv_ik_body(req, resp)
             finally:
-                wt = self._query_worker.last_timing
-                self._query_worker.last_timing = None
                 self.get_logger().info(f"timing inverse_kinematics: wall {1e3 * (time.perf_counter() - w0):.2f} ms "
-                                       f"thread CPU {1e3 * (time.thread_time() - c0):.2f} ms" + (
-                                           f" worker wall {1e3 * wt[0]:.2f} ms worker CPU {1e3 * wt[1]:.2f} ms"
-                                           if wt else ""))
+                                       f"thread CPU {1e3 * (time.thread_time() - c0):.2f} ms")
         return self._srv_ik_body(req, resp)
 
     def _srv_ik_body(self, req, resp):
@@ -1123,18 +1110,8 @@ class SoftTwinNode(Node):
         except ValueError as e:
             resp.success, resp.message = False, clip(f"target rejected: {e}", 400)
             return resp
-        args = (q, cfg.backbone_points_per_section, target, req.position_only, tol or 1e-6,
-                tw.make_loads(model, w, frame))
-        # issue 13: in the warm worker process if enabled (not sharing this process's
-        # GIL with the 200 Hz twin), else here (off, worker starting, busy or gone)
-        if self._query_worker_enabled:
-            self._query_worker.ensure_started(model)
-        res = self._query_worker.call("inverse_kinematics", model, *args, u_current=u)
-        if res is None:
-            if self._query_worker.last_error:
-                self.get_logger().warn(f"IK worker: {clip(self._query_worker.last_error, 400)}; computing here",
-                                       throttle_duration_sec=10.0)
-            res = tw.inverse_kinematics(model, *args, u_current=u)
+        res = tw.inverse_kinematics(model, q, cfg.backbone_points_per_section, target, req.position_only,
+                                    tol or 1e-6, tw.make_loads(model, w, frame), u_current=u)
         resp.success, resp.message = res.success, clip(res.message, 400)
         if res.q is not None:
             resp.strains = res.strains.ravel().tolist()
@@ -1188,8 +1165,6 @@ class SoftTwinNode(Node):
         runner = getattr(self, "_plan_runner", None)
         if runner is not None:
             runner.cancel()
-        if getattr(self, "_query_worker", None) is not None:
-            self._query_worker.close()
         recorder_ = getattr(self, "_recorder", None)
         if recorder_ is not None:
             recorder_.close()
