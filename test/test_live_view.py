@@ -48,6 +48,15 @@ def arm_pixels(png):
 
 @pytest.mark.ros
 @pytest.mark.slow
+def _screenshot(browser):
+    """A screenshot, or None when the (software-rendering) browser is too
+    busy to answer in time on a loaded machine: try again."""
+    try:
+        return browser.screenshot()
+    except TimeoutError:
+        return None
+
+
 def test_browser_shows_the_arm_and_follows_the_actuation(tmp_path):
     pytest.importorskip("rclpy", reason="needs ROS 2: the venv of `make setup`")
     from chromium_cdp import Browser, chromium_path, wait_for
@@ -77,7 +86,7 @@ def test_browser_shows_the_arm_and_follows_the_actuation(tmp_path):
         assert client.wait_until(lambda: client.tip_pose.pose.position.z > tip0 + 0.05, 20.0), "the twin did not lift"
 
         def moved():
-            png = screenshot()
+            png = _screenshot(browser)
             if png is None:
                 return False
             shots["after"] = png
@@ -146,16 +155,8 @@ def test_browser_shows_an_articulated_robot_and_follows_a_joint_command(tmp_path
         browser.open(f"http://127.0.0.1:{port}")
         shots = {}
 
-        def screenshot():
-            """A screenshot, or None when the (software-rendering) browser is
-            too busy to answer in time on a loaded machine: try again."""
-            try:
-                return browser.screenshot()
-            except TimeoutError:
-                return None
-
         def robot_visible():               # and the page settled (it fades the scene in)
-            prev, png = shots.get("before"), screenshot()
+            prev, png = shots.get("before"), _screenshot(browser)
             if png is None:
                 return False
             shots["before"] = png
@@ -174,7 +175,7 @@ def test_browser_shows_an_articulated_robot_and_follows_a_joint_command(tmp_path
                                  and abs(client.history["joint_states"][-1][1].position[0] - 0.9) < 1e-9, 30.0)
 
         def moved():
-            png = screenshot()
+            png = _screenshot(browser)
             if png is None:
                 return False
             shots["after"] = png
