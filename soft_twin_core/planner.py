@@ -390,6 +390,15 @@ class TipSolver:
         _, we, oe = self._errors(g, target, with_rot)
         return we <= self.options.tolerance and (not with_rot or oe <= self.options.tolerance_rad)
 
+    def held(self, target, u, q):
+        """A sample whose statics failed from every start: the inputs and
+        equilibrium (u, q) of the sample before are kept, flagged
+        ``statics_failed`` (never reached)."""
+        with_rot = getattr(self, "_with_rot", False) and self.swo > 0
+        g = kin.tip_pose(self.model, q)
+        pe, we, oe = self._errors(g, target, with_rot)
+        return SampleResult(np.array(u, float), np.array(q, float), g, pe, we, oe, False, "statics_failed", 0)
+
     # -- the solve ---------------------------------------------------------
     def solve(self, target, u_init, q_init, lower=None, upper=None, rate_box=None, redundancy=True):
         """Inputs whose equilibrium puts the tip at ``target`` (world 4x4; the
@@ -600,7 +609,17 @@ def plan_path(model, path, options=None, u_start=None, q_start=None, solver=None
             u0, q0 = hist[-1]
         else:
             u0, q0 = u_guess, q
-        r = solver.solve(targets[i], np.clip(u0, lo, hi), q0, lo, hi, box)
+        try:
+            r = solver.solve(targets[i], np.clip(u0, lo, hi), q0, lo, hi, box)
+        except st.StaticsError:
+            if not hist:
+                raise
+            # the extrapolated start may lie beyond what the rod carries: from the sample before,
+            # else that sample held and flagged
+            try:
+                r = solver.solve(targets[i], np.clip(hist[-1][0], lo, hi), hist[-1][1], lo, hi, box)
+            except st.StaticsError:
+                r = solver.held(targets[i], *hist[-1])
         u_prev, t_prev = r.u, path.times[i]
         hist.append((r.u, r.q))
         out["u"].append(r.u)

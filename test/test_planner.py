@@ -284,3 +284,26 @@ def test_box_lstsq_matches_scipy_bvls():
         ref = lsq_linear(A, b, bounds=(lo, hi), method="bvls", tol=1e-13).x
         f = lambda z: np.sum((A @ z - b) ** 2)  # noqa: E731
         assert f(x) <= f(ref) + 1e-9 * max(1.0, f(ref))
+
+
+def test_a_sample_whose_statics_fails_from_every_start_is_held_and_flagged(arm, monkeypatch):
+    """A sample whose statics fails from the extrapolated start and from the
+    sample before keeps that sample's inputs and shape, flagged
+    ``statics_failed`` (never reached); the plan goes on after it."""
+    path = paths.line([0.3, 0.0, -0.05], [0.3, 0.02, -0.07], 1.0, sample_period=0.25)
+    o = pl.PlanOptions(position_weights=(0, 1, 1))
+    ref = pl.plan_path(arm, path, o)
+    solver = pl.TipSolver(arm, o)
+    solve, calls = solver.solve, {"n": 0}
+
+    def failing(target, *a, **k):
+        calls["n"] += 1
+        if np.allclose(target[:3, 3], path.positions[2]):
+            raise st.StaticsError("forced")
+        return solve(target, *a, **k)
+    monkeypatch.setattr(solver, "solve", failing)
+    plan = pl.plan_path(arm, path, o, solver=solver)
+    assert plan.status[2] == "statics_failed" and not plan.reached[2]
+    np.testing.assert_array_equal(plan.u[2], plan.u[1])
+    assert plan.status[3] == ref.status[3] and pl.check_plan(plan) == []
+    np.testing.assert_allclose(plan.u[:2], ref.u[:2])
