@@ -472,10 +472,14 @@ def test_command_on_an_existing_scheduler(tmp_path):
                                           "--scheduler-file", str(sched_file)],
                               env=env, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)]
     try:
-        deadline = time.monotonic() + 60
-        while not sched_file.exists() and time.monotonic() < deadline:
-            time.sleep(0.1)
-        address = json.loads(sched_file.read_text())["address"]
+        # the scheduler writes its file non-atomically: wait until it parses, not until it exists
+        deadline, address = time.monotonic() + 60, None
+        while address is None and time.monotonic() < deadline:
+            try:
+                address = json.loads(sched_file.read_text())["address"]
+            except (OSError, ValueError, KeyError):
+                time.sleep(0.1)
+        assert address, "the dask scheduler wrote no address in 60 s"
         procs.append(subprocess.Popen(dask_cli + ["worker", address, "--nworkers", "2", "--nthreads", "1",
                                                   "--no-dashboard", "--host", "127.0.0.1"],
                                       env=env, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL))
