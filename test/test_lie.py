@@ -227,3 +227,24 @@ def test_helix_example_strains_cayley_slides():
     for K in np.linspace(np.pi / 10, np.pi * 0.99, 5):
         f = np.array([1.0, 0, 0, 0, 0, K])
         assert np.abs(lie.cay_se3(lie.cayley_coordinates(f)) - lie.exp_se3(f)).max() < 1e-10
+
+
+@pytest.mark.parametrize("angle", [0.05, 0.4, 1.3, 3.0])     # Taylor and closed-form branches
+def test_compiled_T_dot_along_a_pcs_point_is_the_derivative_of_T(angle):
+    """kernels.spatial._T_dot_along(x, X, Y) = d/dt T_se3(X(t)) Y at
+    Xdot = x Y (a PCS point: X = x f, Xdot = x fdot, Y = fdot): against a
+    central difference of lie.T_se3 and the general compiled _T_dot_into."""
+    from soft_twin_core.kernels import spatial as sp
+    rng = np.random.default_rng(3)
+    x = 0.07
+    f = rng.standard_normal(6)
+    f[3:] *= angle / (x * np.linalg.norm(f[3:]))
+    Y = rng.standard_normal(6) * [0.3, 0.3, 0.3, 4.0, 4.0, 4.0]
+    X = x * f
+    got = np.array(sp._T_dot_along(x, tuple(X), tuple(Y)))
+    h = 1e-6
+    fd = (lie.T_se3(X + h * x * Y) - lie.T_se3(X - h * x * Y)) @ Y / (2 * h)
+    assert np.abs(got - fd).max() < 1e-7 * max(1.0, np.abs(fd).max())
+    general = np.empty(6)
+    sp._T_dot_into(X, x * Y, Y, general, np.empty((5, 6)), np.empty(6), np.empty(6), np.empty(6))
+    assert np.abs(got - general).max() < 1e-13 * max(1.0, np.abs(general).max())
