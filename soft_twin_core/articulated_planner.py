@@ -47,7 +47,7 @@ import numpy as np
 
 from . import algorithms as alg
 from . import constrained as cs
-from .planner import Plan, PlanError, box_lstsq, _number
+from .planner import Plan, PlanError, _number, box_lstsq, rate_bounds, warm_start
 from .statics import StaticsError
 from .workspace import Workspace
 
@@ -377,16 +377,9 @@ def plan_articulated_path(mech, path, options=None, start=None):
         lo, hi, box = solver.lower, solver.upper, None
         if i > 0:
             rlo, rhi = _rate_box(solver, x, d_prev, path.times[i] - path.times[i - 1])
-            lo, hi = np.maximum(solver.lower, rlo), np.minimum(solver.upper, rhi)
-            lo, hi = np.minimum(lo, hi), np.maximum(np.minimum(lo, hi), hi)
+            lo, hi = rate_bounds(solver.lower, solver.upper, rlo, rhi)
             box = (rlo, rhi)
-        if len(hist) >= 2:
-            (x1, q1), (x2, q2) = hist[-2], hist[-1]
-            x0, q0 = x2 + (x2 - x1), q2 + (q2 - q1)
-        elif hist:
-            x0, q0 = hist[-1]
-        else:
-            x0, q0 = x, q
+        x0, q0 = warm_start(hist, (x, q))
         x_ref = np.concatenate([x[:nj], x_ref_lo])
         x_new, eq, g, pe, we, reached, status, it = solver.solve(targets[i], np.clip(x0, lo, hi), q0, lo, hi,
                                                                  x_ref, box)

@@ -566,6 +566,23 @@ class Plan:
                 "statuses": {s: self.status.count(s) for s in sorted(set(self.status))}}
 
 
+def rate_bounds(lower, upper, rlo, rhi):
+    """Bounds [lo, hi] of a sample: the actuator (or joint) bounds cut by the
+    rate box [rlo, rhi]; where they do not overlap, the bound nearest the box."""
+    lo, hi = np.maximum(lower, rlo), np.minimum(upper, rhi)
+    return np.minimum(lo, hi), np.maximum(np.minimum(lo, hi), hi)
+
+
+def warm_start(hist, default):
+    """Start (inputs, shape) of the next sample: linear extrapolation from the
+    two previous samples' (inputs, shape) in ``hist``, the previous one after
+    the first, ``default`` before any."""
+    if len(hist) >= 2:
+        (u1, q1), (u2, q2) = hist[-2], hist[-1]
+        return u2 + (u2 - u1), q2 + (q2 - q1)
+    return hist[-1] if hist else default
+
+
 def plan_path(model, path, options=None, u_start=None, q_start=None, solver=None):
     """Plan the actuation sequence of a :class:`TipPath` (base frame).
 
@@ -598,17 +615,9 @@ def plan_path(model, path, options=None, u_start=None, q_start=None, solver=None
                 dt = 0.0
             step = solver.rate * dt
             rlo, rhi = u_prev - step, u_prev + step
-            lo, hi = np.maximum(solver.lower, rlo), np.minimum(solver.upper, rhi)
-            lo, hi = np.minimum(lo, hi), np.maximum(np.minimum(lo, hi), hi)
+            lo, hi = rate_bounds(solver.lower, solver.upper, rlo, rhi)
             box = (rlo, rhi)
-        # first-order predictor from the two previous samples
-        if len(hist) >= 2:
-            (u1, q1), (u2, q2) = hist[-2], hist[-1]
-            u0, q0 = u2 + (u2 - u1), q2 + (q2 - q1)
-        elif hist:
-            u0, q0 = hist[-1]
-        else:
-            u0, q0 = u_guess, q
+        u0, q0 = warm_start(hist, (u_guess, q))
         try:
             r = solver.solve(targets[i], np.clip(u0, lo, hi), q0, lo, hi, box)
         except st.StaticsError:
