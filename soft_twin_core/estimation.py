@@ -373,25 +373,8 @@ class StrainEKF:
             Hs.append(H)
             Rs.append(Rm)
         if es:
-            e = np.concatenate(es)
-            H = np.vstack(Hs)
-            Rm = _block_diag(Rs)
-            PHt = self.P @ H.T
-            Sm = H @ PHt + Rm
-            K = np.linalg.solve(Sm, PHt.T).T
-            self.x = self.x - K @ e
-            IKH = np.eye(N) - K @ H
-            self.P = IKH @ self.P @ IKH.T + K @ Rm @ K.T
-            self.P = 0.5 * (self.P + self.P.T)
-            nis_sum, dof = rep.total_nis
-            self.health.nis_sum += nis_sum
-            self.health.nis_dof += dof
-        hl = self.health
-        hl.updates += 1
-        hl.accepted += len(rep.accepted)
-        hl.gated += len(rep.gated)
-        hl.dropped += len(rep.dropped)
-        hl.rejected += len(rep.rejected)
+            self.x, self.P = kalman_update(self.x, self.P, es, Hs, Rs)
+        tally_update(self.health, rep)
         self.last_report = rep
         return rep
 
@@ -399,6 +382,33 @@ class StrainEKF:
         """predict(u) then update(measurements); returns the UpdateReport."""
         self.predict(u)
         return self.update(measurements)
+
+
+def kalman_update(x, P, es, Hs, Rs):
+    """The EKF measurement update with the accepted sensors' residuals es
+    (e = h(x) - z), Jacobians Hs and noise covariances Rs stacked: gain
+    K = P H^T (H P H^T + R)^-1, x - K e, and the covariance in Joseph form
+    (I - K H) P (I - K H)^T + K R K^T, symmetrised. Returns (x, P)."""
+    e, H, Rm = np.concatenate(es), np.vstack(Hs), _block_diag(Rs)
+    PHt = P @ H.T
+    K = np.linalg.solve(H @ PHt + Rm, PHt.T).T
+    IKH = np.eye(len(x)) - K @ H
+    P = IKH @ P @ IKH.T + K @ Rm @ K.T
+    return x - K @ e, 0.5 * (P + P.T)
+
+
+def tally_update(health, rep):
+    """Add an update's report (NIS of the accepted sensors, counts of
+    accepted, gated, dropped and rejected readings) to the filter's health."""
+    if rep.accepted:
+        nis_sum, dof = rep.total_nis
+        health.nis_sum += nis_sum
+        health.nis_dof += dof
+    health.updates += 1
+    health.accepted += len(rep.accepted)
+    health.gated += len(rep.gated)
+    health.dropped += len(rep.dropped)
+    health.rejected += len(rep.rejected)
 
 
 def _block_diag(blocks):

@@ -48,7 +48,7 @@ one joint Joseph-form update. Outputs: :attr:`q`, :attr:`v`, :meth:`joint_positi
 
 import numpy as np
 
-from .estimation import FilterHealth, UpdateReport, _block_diag
+from .estimation import FilterHealth, UpdateReport, kalman_update, tally_update
 from .multibody import FIXED, PRISMATIC, REVOLUTE, SOFT
 from . import tree_sensors as ts
 
@@ -354,24 +354,8 @@ class TreeEKF:
             Hs.append(H)
             Rs.append(Rm)
         if es:
-            e = np.concatenate(es)
-            H = np.vstack(Hs)
-            Rm = _block_diag(Rs)
-            PHt = self.P @ H.T
-            K = np.linalg.solve(H @ PHt + Rm, PHt.T).T
-            self.x = self.x - K @ e
-            IKH = np.eye(N) - K @ H
-            self.P = IKH @ self.P @ IKH.T + K @ Rm @ K.T
-            self.P = 0.5 * (self.P + self.P.T)
-            s, dof = rep.total_nis
-            self.health.nis_sum += s
-            self.health.nis_dof += dof
-        hl = self.health
-        hl.updates += 1
-        hl.accepted += len(rep.accepted)
-        hl.gated += len(rep.gated)
-        hl.dropped += len(rep.dropped)
-        hl.rejected += len(rep.rejected)
+            self.x, self.P = kalman_update(self.x, self.P, es, Hs, Rs)
+        tally_update(self.health, rep)
         self.last_report = rep
         return rep
 
