@@ -2,14 +2,18 @@
 
 Thin by design: everything it computes comes from ``soft_twin_core``
 (through :mod:`soft_twin.twin`); the node converts messages, owns the clock
-and the state, and never blocks the stepping timer.
+and the state, and never blocks the stepping clock.
 
-Threads (:class:`soft_twin.executor.TwinExecutor`, a ``MultiThreadedExecutor``
-with rclpy 7.1's dispatch bug worked around) and callback groups:
+Threads: the stepping clock (:class:`soft_twin.stepper.Stepper`, a thread of
+its own, not an rclpy timer: each timer tick cost the Python executor a
+wake-up of ~2.5 ms under the GIL) advances the twin every step period
+(dynamic mode) or re-publishes it (quasi-static mode) and publishes its state.
+The executor (:class:`soft_twin.executor.TwinExecutor`, a
+``MultiThreadedExecutor`` with rclpy 7.1's dispatch bug worked around) runs
+the callbacks in groups:
 
-* ``step``     (mutually exclusive): the stepping timer (dynamic mode) or the
-  solve trigger and re-publish timer (quasi-static mode): it advances the
-  twin and publishes its state.
+* ``step``     (mutually exclusive): the quasi-static solve trigger (a new
+  input solves at once).
 * ``inputs``   (mutually exclusive): the actuation and tip-wrench
   subscriptions; each callback takes everything queued on its topic (one
   executor dispatch per message could not keep up with a 1 kHz stream while
@@ -18,7 +22,7 @@ with rclpy 7.1's dispatch bug worked around) and callback groups:
   are counted from the publishers' sequence numbers (dynamic mode with
   ``step_on_command``: an input arriving at most at the step rate also takes
   the next step itself, at once; any input callback that finds the step
-  timer a period late takes the steps due).
+  clock a period late takes the steps due).
 * ``services`` (reentrant): FK, IK, statics query, reset. They copy what they
   need from the twin under the lock and compute outside it.
 * ``diagnostics`` (mutually exclusive): the /diagnostics timer.
@@ -46,6 +50,7 @@ from sensor_msgs.msg import JointState
 from rcl_interfaces.msg import ParameterDescriptor, SetParametersResult
 from rclpy.callback_groups import MutuallyExclusiveCallbackGroup, ReentrantCallbackGroup
 from rclpy.clock import Clock, ClockType
+from rclpy.event_handler import PublisherEventCallbacks
 from rclpy.exceptions import InvalidHandle, ParameterNotDeclaredException, ParameterUninitializedException
 from rclpy.node import Node
 from rclpy.parameter import Parameter
@@ -56,6 +61,7 @@ from std_srvs.srv import Trigger
 from visualization_msgs.msg import Marker, MarkerArray
 
 from soft_twin.msg import ActuationCommand, Strains
+from soft_twin.stepper import Stepper
 from soft_twin.srv import ForwardKinematics, InverseKinematics, StaticsQuery
 
 from soft_twin import articulated as art
@@ -265,8 +271,8 @@ class SoftTwinNode(Node):
         self._steady = Clock(clock_type=ClockType.STEADY_TIME)
         self._solve_trigger = self.create_guard_condition(self._guarded(self._on_solve_trigger),
                                                           callback_group=self._step_group)
-        self._step_timer = None
-        self._make_step_timer()
+        self._stepper = None
+        self._make_stepper()
         self._diag_timer = self.create_timer(1.0 / self.cfg.diagnostics_rate_hz,
                                              self._guarded(self._publish_diagnostics),
                                              callback_group=self._diag_group, clock=self._steady)
@@ -277,6 +283,19 @@ class SoftTwinNode(Node):
             f"twin running: {self.cfg.mode}"
             + (f" at {self.cfg.step_rate_hz:g} Hz (dt = {1e3 * self.cfg.dt:g} ms)" if self.cfg.mode == "dynamic"
                else "") + f"; frames {self.cfg.base_frame!r} -> {self.cfg.tip_frame!r}")
+
+    @property
+    def executor(self):
+        return Node.executor.fget(self)
+
+    @executor.setter
+    def executor(self, new_executor):
+        """Added to an executor: the stepping clock starts (as an rclpy timer
+        would fire once the node is spun; a node made but never spun, e.g.
+        in a test taking its steps by hand, does not step by itself)."""
+        Node.executor.fset(self, new_executor)
+        if new_executor is not None and getattr(self, "_stepper", None) is not None:
+            self._stepper.start()
 
     # ------------------------------------------------------------------------
     # articulated robots (tree robot files): joints, members, constraints
@@ -358,15 +377,17 @@ class SoftTwinNode(Node):
             self._react_to_input(batch)
 
     def _publish_articulated(self, snap, header):
-        js = JointState(header=header, name=list(snap.joint_names))
-        js.position = snap.joint_positions.tolist()
-        js.velocity = snap.joint_velocities.tolist()
-        js.effort = snap.joint_efforts.tolist()
-        self._pub_joints.publish(js)
+        if self._listened(self._pub_joints):
+            js = JointState(header=header, name=list(snap.joint_names))
+            js.position = snap.joint_positions.tolist()
+            js.velocity = snap.joint_velocities.tolist()
+            js.effort = snap.joint_efforts.tolist()
+            self._pub_joints.publish(js)
         for name, pub in self._pub_members.items():
-            pub.publish(cv.pose_array(snap.backbones[name][0], header))
+            if self._listened(pub):
+                pub.publish(cv.pose_array(snap.backbones[name][0], header))
         for name, pub in self._pub_internal.items():
-            if pub.get_subscription_count():
+            if self._listened(pub):
                 w = np.asarray(snap.internal_wrenches[name], dtype=float)
                 msg = Float64MultiArray(data=w.ravel().tolist())
                 msg.layout.dim = [MultiArrayDimension(label="section_boundary", size=len(w), stride=w.size),
@@ -421,9 +442,10 @@ class SoftTwinNode(Node):
                                tolerance=cfg.integrator_tolerance,
                                points_per_section=cfg.backbone_points_per_section)
 
-    def _make_step_timer(self):
-        if self._step_timer is not None:
-            self.destroy_timer(self._step_timer)
+    def _make_stepper(self):
+        """The stepping clock (:class:`soft_twin.stepper.Stepper`, a thread,
+        not an rclpy timer: see its module) at the step period (dynamic) or
+        the re-publish period (quasi-static), its schedule restarted."""
         cfg = self.cfg
         period = cfg.dt if cfg.mode == "dynamic" else 1.0 / cfg.republish_rate_hz
         with self._lock:
@@ -432,8 +454,10 @@ class SoftTwinNode(Node):
             self._unpublished = 0
             self._last_wrench_time = -math.inf
             self._last_marker_time = -math.inf
-        self._step_timer = self.create_timer(period, self._guarded(self._on_step_timer),
-                                             callback_group=self._step_group, clock=self._steady)
+        if self._stepper is None:
+            self._stepper = Stepper(self._guarded(self._on_step_tick), period)
+        else:
+            self._stepper.set_period(period)
 
     def _coerce_parameters(self, params):
         """Before rclpy looks at a change: an integer for one of our float
@@ -501,7 +525,7 @@ class SoftTwinNode(Node):
             self.get_logger().info(f"new robot {robot.model.name!r} from {robot.source}: state reset")
         if (cfg.mode, cfg.step_rate_hz, cfg.republish_rate_hz) != (old.mode, old.step_rate_hz,
                                                                    old.republish_rate_hz):
-            self._make_step_timer()
+            self._make_stepper()
         if cfg.diagnostics_rate_hz != old.diagnostics_rate_hz:
             self._diag_timer.timer_period_ns = int(1e9 / cfg.diagnostics_rate_hz)
         if cfg.mode == "quasi_static":
@@ -643,8 +667,8 @@ class SoftTwinNode(Node):
         hand-over to the step group, ~0.5 ms and more under load) - for inputs
         arriving at most at the step rate (one input taken, at least dt after
         the one before, by arrival time); a faster stream is sampled by the
-        step timer, which keeps this callback light for the next inputs.
-        Either way, a step timer more than a period late (the GIL held by a
+        stepping clock, which keeps this callback light for the next inputs.
+        Either way, a stepping clock more than a period late (the GIL held by a
         service, a busy CPU) is caught up here rather than dropping steps."""
         info = batch[-1][1]
         arrival = info.get("received_timestamp", 0) if isinstance(info, dict) else 0
@@ -655,11 +679,11 @@ class SoftTwinNode(Node):
             self._solve_trigger.trigger()
         elif sparse and self._early_step_allowed():
             self._step_dynamic(early=True)
-        elif self._timer_late():
-            # the step timer missed a tick (GIL, CPU): catch up here, unless a step is under way
+        elif self._clock_late():
+            # the stepping clock missed a tick (GIL, CPU): catch up here, unless a step is under way
             self._step_dynamic(wait=False)
 
-    def _timer_late(self):
+    def _clock_late(self):
         """Dynamic mode: is the next step more than a period past its tick?
         (A hint read without the lock, like _early_step_allowed.)"""
         cfg = self.cfg
@@ -670,7 +694,7 @@ class SoftTwinNode(Node):
     # ------------------------------------------------------------------------
     # stepping
     # ------------------------------------------------------------------------
-    def _on_step_timer(self):
+    def _on_step_tick(self):
         if self.cfg.mode == "dynamic":
             self._step_dynamic()
         else:
@@ -695,7 +719,7 @@ class SoftTwinNode(Node):
         """The steps due by the wall clock: twin step k is due at anchor + k dt.
         ``early`` (a new input arrived, step_on_command): step k may start
         now if step k - 1 is due, so twin time never leads by more than one
-        step. Called by the step timer and, for early or late steps, by the
+        step. Called by the stepping clock and, for early or late steps, by the
         input callbacks: the lock serialises them, the publish lock keeps the
         published states in order. ``wait=False``: return at once if the
         lock is busy (a step under way takes what is due)."""
@@ -788,24 +812,45 @@ class SoftTwinNode(Node):
     # ------------------------------------------------------------------------
     # outputs
     # ------------------------------------------------------------------------
+    def create_publisher(self, *args, **kwargs):
+        """rclpy's, without its default QoS-event handlers (two per publisher:
+        a warning on an incompatible subscriber's QoS or type; that
+        subscriber's own node warns too). Each is a waitable the Python
+        executor visits on every wake-up: the node's 20 of them were a third
+        of a wake-up's ~2.5 ms under the GIL (py-spy), paid twice per service
+        request. The subscriptions keep theirs (a user's publisher that cannot
+        reach the twin is reported here)."""
+        kwargs.setdefault("event_callbacks", PublisherEventCallbacks(use_default_callbacks=False))
+        return super().create_publisher(*args, **kwargs)
+
     def _header(self, frame):
         return Header(stamp=self.get_clock().now().to_msg(), frame_id=frame)
 
+    def _listened(self, pub):
+        """Someone takes ``pub``'s messages: a subscriber, or the recording.
+        A state topic nobody takes is not built: the backbone's PoseArray
+        alone cost ~1 ms of Python per state under the GIL (py-spy), time a
+        service computing in the node waited for."""
+        return pub.get_subscription_count() > 0 or self._recorder.recording
+
     def _publish(self, snap, robot):
-        """The state topics (backbone first: it is what latency is measured
+        """The state topics someone takes (backbone first: it is what latency is measured
         on); returns their common header."""
         t0 = time.perf_counter()
         cfg = self.cfg
         stamp = self.get_clock().now()
         header = Header(stamp=stamp.to_msg(), frame_id=cfg.base_frame)
-        self._pub_backbone.publish(cv.pose_array(snap.backbone, header))
-        self._pub_tip.publish(PoseStamped(header=header, pose=cv.pose_msg(snap.tip_pose)))
-        strains = Strains(header=header, n_sections=len(snap.strains))
-        strains.strains = snap.strains.ravel().tolist()
-        strains.strain_rates = snap.strain_rates.ravel().tolist()
-        if snap.command_stamp is not None:
-            strains.last_command = snap.command_stamp
-        self._pub_strains.publish(strains)
+        if self._listened(self._pub_backbone):
+            self._pub_backbone.publish(cv.pose_array(snap.backbone, header))
+        if self._listened(self._pub_tip):
+            self._pub_tip.publish(PoseStamped(header=header, pose=cv.pose_msg(snap.tip_pose)))
+        if self._listened(self._pub_strains):
+            strains = Strains(header=header, n_sections=len(snap.strains))
+            strains.strains = snap.strains.ravel().tolist()
+            strains.strain_rates = snap.strain_rates.ravel().tolist()
+            if snap.command_stamp is not None:
+                strains.last_command = snap.command_stamp
+            self._pub_strains.publish(strains)
         if self.robot.articulated:
             self._publish_articulated(snap, header)
             self._last_articulated = snap
@@ -1162,6 +1207,8 @@ class SoftTwinNode(Node):
 
     # --- the plan execution stops, the MCAP recording closes with the node ----
     def destroy_node(self):
+        if getattr(self, "_stepper", None) is not None:
+            self._stepper.close()
         runner = getattr(self, "_plan_runner", None)
         if runner is not None:
             runner.cancel()

@@ -192,6 +192,11 @@ class Recorder:
             except Exception:      # noqa: BLE001
                 pass
 
+    @property
+    def recording(self):
+        """A recording is open (every published state must be built)."""
+        return self._recording is not None
+
     def received(self, sub, batch):
         """Inputs taken from a subscription: (msg, info) pairs."""
         rec = self._recording
