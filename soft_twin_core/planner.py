@@ -138,14 +138,17 @@ class _Equilibrium:
         return q1, ok, Kt
 
 
-def tip_sensitivity(model, q, u, loads=None, _eq=None):
+def tip_sensitivity(model, q, u, loads=None, _eq=None, Kt=None):
     """Exact sensitivities at an equilibrium (q, u): returns
     (tip pose 4x4 world, body tip Jacobian J (6, n_dof), dq/du (n_dof, n_act)),
-    so that the body twist of the tip per input is ``J @ dq_du``."""
+    so that the body twist of the tip per input is ``J @ dq_du``. ``Kt``:
+    the statics tangent if at hand (the equilibrium's last Newton tangent,
+    evaluated within Newton's last step of q), else computed at q."""
     loads = Loads() if loads is None else loads
     eq = _Equilibrium(model, loads) if _eq is None else _eq
     u = np.asarray(u, dtype=float)
-    Kt = eq.tangent(q, u)
+    if Kt is None:
+        Kt = eq.tangent(q, u)
     B = actuation_matrix(model, q)
     g, Js = kin.tip_and_spatial_jacobian(model, np.ascontiguousarray(q, dtype=float))
     return g, lie.Ad_inv(g) @ Js, np.linalg.solve(Kt, B)
@@ -159,48 +162,15 @@ def tip_position_sensitivity(model, q, u, loads=None):
 
 def box_lstsq(A, b, lo, hi, max_iterations=None):
     """min |A x - b|^2 subject to lo <= x <= hi (lo <= 0 <= hi), by the
-    active-set method of Stark and Parker (BVLS) from x = 0; for the few
-    columns of an actuation IK step (a scipy call costs more than the
-    solve). Returns x, always inside the box."""
+    active-set method of Stark and Parker (BVLS) from x = 0, compiled
+    (:func:`soft_twin_core.kernels.bvls.box_lstsq_kernel`; for the few
+    columns of an actuation IK step a scipy call costs more than the solve).
+    Returns x, always inside the box."""
+    from .kernels.bvls import box_lstsq_kernel
+    A = np.ascontiguousarray(A, dtype=float)
     n = A.shape[1]
-    x = np.zeros(n)
-    free = hi > lo
-    at = np.zeros(n, dtype=np.int8)          # -1 at lower, +1 at upper, 0 free
-    at[~free] = -1
-    x[~free] = lo[~free]
-    for _ in range(max_iterations or 10 * n + 10):
-        F = at == 0
-        if np.any(F):
-            r = b - A[:, ~F] @ x[~F]
-            z = np.linalg.lstsq(A[:, F], r, rcond=None)[0]
-            xf = x[F]
-            viol = (z < lo[F]) | (z > hi[F])
-            if np.any(viol):
-                d = z - xf
-                with np.errstate(divide="ignore", invalid="ignore"):
-                    step = np.where(d < 0, (lo[F] - xf) / d, np.where(d > 0, (hi[F] - xf) / d, np.inf))
-                alpha = float(np.clip(np.min(step[viol]), 0.0, 1.0))
-                xf = xf + alpha * d
-                idx = np.flatnonzero(F)
-                hit_lo = (xf <= lo[F] + 1e-14 * np.maximum(1, np.abs(xf))) & (d < 0)
-                hit_hi = (xf >= hi[F] - 1e-14 * np.maximum(1, np.abs(xf))) & (d > 0)
-                if not np.any(hit_lo | hit_hi):      # round-off: fix the first violator
-                    k = int(np.flatnonzero(viol)[np.argmin(step[viol])])
-                    hit_lo[k], hit_hi[k] = d[k] < 0, d[k] > 0
-                x[idx] = np.clip(xf, lo[F], hi[F])
-                x[idx[hit_lo]] = lo[idx[hit_lo]]
-                x[idx[hit_hi]] = hi[idx[hit_hi]]
-                at[idx[hit_lo]], at[idx[hit_hi]] = -1, 1
-                continue
-            x[F] = z
-        w = A.T @ (b - A @ x)                  # minus the gradient
-        tol = 1e-12 * max(np.abs(w).max(initial=0.0), 1e-300) if np.any(F) else 0.0
-        cand = ((at == -1) & (w > tol) & free) | ((at == 1) & (w < -tol) & free)
-        if not np.any(cand):
-            break
-        k = int(np.argmax(np.where(cand, np.abs(w), -1.0)))
-        at[k] = 0
-    return np.clip(x, lo, hi)
+    return box_lstsq_kernel(A, np.ascontiguousarray(b, dtype=float), np.ascontiguousarray(lo, dtype=float),
+                            np.ascontiguousarray(hi, dtype=float), int(max_iterations or 10 * n + 10))
 
 
 # ----------------------------------------------------------------------------
@@ -351,17 +321,18 @@ class TipSolver:
             e = np.concatenate([e, self.swo * lie.log_so3(g[:3, :3].T @ target[:3, :3])])
         return e
 
-    def _error_jacobian(self, g, e, q, u, with_rot):
+    def _error_jacobian(self, g, e, q, u, with_rot, Kt=None):
         key = getattr(self, "_jac_key", None)
         if key is not None and key[0] is q and np.array_equal(key[1], u) and np.array_equal(key[2], e) \
                 and key[3] == with_rot:
             return key[4]
-        Je = self._error_jacobian_new(g, e, q, u, with_rot)
+        Je = self._error_jacobian_new(g, e, q, u, with_rot, Kt)
         self._jac_key = (q, np.array(u), np.array(e), with_rot, Je)
         return Je
 
-    def _error_jacobian_new(self, g, e, q, u, with_rot):
-        g_, J, dq_du = tip_sensitivity(self.model, q, u, self.loads, self.eq)
+    def _error_jacobian_new(self, g, e, q, u, with_rot, Kt=None):
+        g_, J, dq_du = tip_sensitivity(self.model, q, u, self.loads, self.eq, Kt)
+        self._dq_du = (q, np.array(u), dq_du)
         R = g[:3, :3]
         Je = -(self.sw[:, None] * (R @ J[:3] @ dq_du))
         if with_rot:
@@ -370,16 +341,27 @@ class TipSolver:
             Je = np.vstack([Je, Jr])
         return Je
 
-    def _statics(self, u, q_init, hint=None):
+    def _statics(self, u, q_init, hint=None, q_guess=None):
         """Equilibrium under u from q_init: Newton on the cached problem
-        (tangent hint first), else the full solver (continuation,
-        stability). Returns an object with q, tip_pose, tangent."""
-        if q_init is not None:
-            q, ok, Kt = self.eq.newton(np.asarray(q_init, float), u, hint)
-            if ok:
-                g, _ = kin.tip_and_spatial_jacobian(self.model, q)
-                return _Eq(q, g, Kt)
+        (tangent hint first; from ``q_guess`` first if given), else the full
+        solver (continuation, stability). Returns an object with q,
+        tip_pose, tangent."""
+        for start in ((q_guess, q_init) if q_guess is not None else (q_init,)):
+            if start is not None:
+                q, ok, Kt = self.eq.newton(np.asarray(start, float), u, hint)
+                if ok:
+                    g, _ = kin.tip_and_spatial_jacobian(self.model, q)
+                    return _Eq(q, g, Kt)
         return st.solve_statics(self.model, u, self.loads, q_init=q_init, tangent_hint=hint)
+
+    def _predicted(self, q, u, u_new):
+        """The equilibrium under u_new to first order from the one at (q, u):
+        q + dq/du (u_new - u), with the sensitivity of the last Jacobian
+        (None if that was not taken at q)."""
+        d = getattr(self, "_dq_du", None)
+        if d is None or d[0] is not q or not np.array_equal(d[1], u):
+            return None
+        return q + d[2] @ (u_new - u)
 
     def _errors(self, g, target, with_rot):
         dp = target[:3, 3] - g[:3, 3]
@@ -419,9 +401,10 @@ class TipSolver:
             e = self._error(g, target, with_rot)
             it_total = 0
             scale = None
+            hint = res.tangent          # the statics tangent at (about) the current q, carried along
             for phase_eps in ((self.EPS_REDUNDANCY, 1e-2 * self.EPS_REDUNDANCY, 0.0) if redundancy else (0.0,)):
                 u, q, g, e, it, scale, hint = self._gauss_newton(u, q, g, e, target, lo, hi, phase_eps, with_rot,
-                                                                 res.tangent)
+                                                                 hint)
                 it_total += it
         pe, we, oe = self._errors(g, target, with_rot)
         reached = self._reached(g, target, with_rot)
@@ -447,7 +430,8 @@ class TipSolver:
         for it in range(1, self.options.max_iterations + 1):
             if eps == 0.0 and self._reached(g, target, with_rot):
                 return u, q, g, e, it - 1, scale, hint
-            Je = self._error_jacobian(g, e, q, u, with_rot)
+            # the tangent of the statics that gave q (Gauss-Newton needs no more accurate a Jacobian)
+            Je = self._error_jacobian(g, e, q, u, with_rot, hint)
             if scale is None:
                 scale = np.maximum(np.linalg.norm(Je, axis=0), 1e-12 * max(np.linalg.norm(Je), 1e-300))
             c0 = cost(u, e)
@@ -483,7 +467,7 @@ class TipSolver:
                     return u, q, g, e, it, scale, hint
                 u_new = np.clip(u + du, lo, hi)
                 try:
-                    r = self._statics(u_new, q, hint)
+                    r = self._statics(u_new, q, hint, self._predicted(q, u, u_new))
                 except st.StaticsError:
                     lam = max(4 * lam, 1e-4)
                     continue

@@ -8,7 +8,7 @@ import numba as nb
 
 from .. import lie
 
-_jit = nb.njit(cache=True, fastmath=False)
+_jit = nb.njit(cache=True, fastmath=False, nogil=True)   # nogil: a node service computes while the twin steps
 
 _SMALL2 = lie._SMALL ** 2
 _SMALLD2 = lie._SMALL_DERIV ** 2
