@@ -377,17 +377,17 @@ class SoftTwinNode(Node):
             self._react_to_input(batch)
 
     def _publish_articulated(self, snap, header):
-        if self._listened(self._pub_joints):
+        if self.listened(self._pub_joints):
             js = JointState(header=header, name=list(snap.joint_names))
             js.position = snap.joint_positions.tolist()
             js.velocity = snap.joint_velocities.tolist()
             js.effort = snap.joint_efforts.tolist()
             self._pub_joints.publish(js)
         for name, pub in self._pub_members.items():
-            if self._listened(pub):
+            if self.listened(pub):
                 pub.publish(cv.pose_array(snap.backbones[name][0], header))
         for name, pub in self._pub_internal.items():
-            if self._listened(pub):
+            if self.listened(pub):
                 w = np.asarray(snap.internal_wrenches[name], dtype=float)
                 msg = Float64MultiArray(data=w.ravel().tolist())
                 msg.layout.dim = [MultiArrayDimension(label="section_boundary", size=len(w), stride=w.size),
@@ -826,7 +826,7 @@ class SoftTwinNode(Node):
     def _header(self, frame):
         return Header(stamp=self.get_clock().now().to_msg(), frame_id=frame)
 
-    def _listened(self, pub):
+    def listened(self, pub):
         """Someone takes ``pub``'s messages: a subscriber, or the recording.
         A state topic nobody takes is not built: the backbone's PoseArray
         alone cost ~1 ms of Python per state under the GIL (py-spy), time a
@@ -840,11 +840,11 @@ class SoftTwinNode(Node):
         cfg = self.cfg
         stamp = self.get_clock().now()
         header = Header(stamp=stamp.to_msg(), frame_id=cfg.base_frame)
-        if self._listened(self._pub_backbone):
+        if self.listened(self._pub_backbone):
             self._pub_backbone.publish(cv.pose_array(snap.backbone, header))
-        if self._listened(self._pub_tip):
+        if self.listened(self._pub_tip):
             self._pub_tip.publish(PoseStamped(header=header, pose=cv.pose_msg(snap.tip_pose)))
-        if self._listened(self._pub_strains):
+        if self.listened(self._pub_strains):
             strains = Strains(header=header, n_sections=len(snap.strains))
             strains.strains = snap.strains.ravel().tolist()
             strains.strain_rates = snap.strain_rates.ravel().tolist()

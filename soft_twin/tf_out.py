@@ -95,6 +95,8 @@ class TfOutput:
         now = time.monotonic()
         if cfg.tf_rate_hz <= 0 or now - self._last < 1.0 / cfg.tf_rate_hz - 0.5 * cfg.dt:
             return
+        if not self._node.listened(self.publisher):       # no TF listener and no recording: nothing to build
+            return
         self._last = now
         prefix = frame_prefix(cfg.tf_prefix, self._node.get_name())
         if getattr(robot, "articulated", False):

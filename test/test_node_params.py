@@ -345,7 +345,7 @@ def test_a_failing_step_drops_its_input_and_publishing_goes_on(context, magnitud
                  step_on_command=False)       # the ticks are taken here, one by one
     published = []
     node._pub_strains.publish = published.append
-    node._listened = lambda pub: True       # no subscriber here: count what each tick publishes
+    node.listened = lambda pub: True       # no subscriber here: count what each tick publishes
 
     def take(msg):
         node._anchor = None           # no schedule: the input callback takes no step itself
