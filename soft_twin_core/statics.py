@@ -97,6 +97,8 @@ class _Problem:
         self.coef = np.ascontiguousarray(self.act.unit @ u) if u.size else np.zeros(len(self.act.joint))
         self.zeros = np.zeros(tree.nv)
         self.K = _stiffness_blocks(model)
+        self.absK = np.abs(self.K)            # for the round-off level of the residual
+        self.n_tangents = 0                    # tangents computed (Newton's and tangent()'s)
 
     def residual(self, q):
         from .integrators import residual_pass
@@ -132,6 +134,7 @@ class _Problem:
         from .kernels.tangent import static_tangent_pass
         m, w = self.ws.m, self.ws.w
         q = np.ascontiguousarray(q, dtype=float)
+        self.n_tangents += 1
         passes.forward_pass(m, w, q, self.zeros, self.zeros, 0)
         passes.rnea_pass(m, w, self.loads, self.g, np.empty(self.tree.nv), True)
         Kt = self.K.copy()
@@ -213,34 +216,62 @@ def is_stable(model, q, u, loads, Kt=None):
     return bool(np.all(ev.real > -1e-9 * np.abs(ev).max()))
 
 
-def _roundoff(model, q):
-    """Per-component round-off level of R: K (q - q0) cancels terms of size
-    |K| |q| (large for stiff axial/shear modes of metal rods)."""
-    return 64 * np.finfo(float).eps * (np.abs(model.K_q) @ (np.abs(q) + np.abs(model.q0)))
-
-
-def _converged(model, q, R, scale, tol):
-    return bool(np.all(np.abs(R) <= tol * scale + _roundoff(model, q)))
+# Up to this many free strains the compiled Newton (one call per solve) is
+# used; above, the numpy loop, whose LAPACK solve is blocked: measured, the
+# compiled elimination takes 73 / 491 / 7662 us at 60 / 120 / 240 unknowns,
+# numpy 51 / 192 / 857 us, while the compiled loop saves ~0.1 ms of Python per
+# iteration.
+COMPILED_NEWTON_MAX_DOF = 96
 
 
 def _newton(model, pb, q, tol, max_iterations, Kt_hint=None):
     """Newton with line search on the problem ``pb`` (:class:`_Problem`).
-    With ``Kt_hint`` (a tangent from a nearby state) the first steps reuse it
-    (modified Newton) while each step cuts the residual at least tenfold;
-    then fresh tangents are computed."""
+    With ``Kt_hint`` (a tangent from a nearby state) the first steps reuse
+    it (modified Newton) while each step cuts the residual at least
+    tenfold; then fresh tangents are computed; a converged solve takes one
+    more (polish) step with the last tangent when it lowers |R|. Compiled
+    (:func:`kernels.static_newton.static_newton`) up to
+    ``COMPILED_NEWTON_MAX_DOF`` unknowns, else :func:`_newton_numpy` (the
+    same iterates). Returns (q, R, iterations, converged, the last tangent
+    used: the hint object itself, a fresh array, or None)."""
+    n = model.n_dof
+    if n > COMPILED_NEWTON_MAX_DOF:
+        return _newton_numpy(model, pb, np.array(q, dtype=float), tol, max_iterations, Kt_hint)
+    from .kernels.static_newton import static_newton
+    use_hint = Kt_hint is not None and Kt_hint.shape == (n, n)
+    q = np.array(q, dtype=float)
+    Kt, R = np.empty((n, n)), np.empty(n)
+    hint = np.ascontiguousarray(Kt_hint, dtype=float) if use_hint else Kt
+    it, ok, which, n_tangents = static_newton(pb.ws.m, pb.ws.w, pb.act, pb.loads, pb.g, pb.coef, pb.K, pb.absK,
+                                              model.q0, q, float(tol), int(max_iterations), hint, use_hint, Kt, R)
+    pb.n_tangents += n_tangents
+    return q, R, int(it), bool(ok), (None, Kt_hint, Kt)[which]
+
+
+def _converged(model, pb, q, R, scale, tol):
+    """|R| <= tol scale + the round-off level 64 eps |K| (|q| + |q0|) of the
+    stiff axial/shear modes (K (q - q0) cancels terms of size |K| |q|)."""
+    roundoff = 64 * np.finfo(float).eps * (pb.absK @ (np.abs(q) + np.abs(model.q0)))
+    return bool(np.all(np.abs(R) <= tol * scale + roundoff))
+
+
+def _newton_numpy(model, pb, q, tol, max_iterations, Kt_hint=None):
+    """:func:`_newton` as a numpy loop (LAPACK solves): for large models,
+    and the tests' reference of the compiled kernel."""
     R = pb.residual(q)
     scale = _scale(model, q, R)
-    it = 0
-    Kt = None
+    it, Kt = 0, None
     reuse = Kt_hint is not None and Kt_hint.shape == (model.n_dof, model.n_dof)
     for it in range(1, max_iterations + 1):
-        if _converged(model, q, R, scale, tol):
+        if _converged(model, pb, q, R, scale, tol):
             if Kt is not None:
-                # polish: one more step with the last tangent (one residual call)
-                q_p = q + np.linalg.solve(Kt, -R)
-                R_p = pb.residual(q_p)
-                if np.all(np.isfinite(R_p)) and np.linalg.norm(R_p) < np.linalg.norm(R):
-                    q, R = q_p, R_p
+                try:
+                    q_p = q + np.linalg.solve(Kt, -R)
+                    R_p = pb.residual(q_p)
+                    if np.all(np.isfinite(R_p)) and np.linalg.norm(R_p) < np.linalg.norm(R):
+                        q, R = q_p, R_p
+                except np.linalg.LinAlgError:
+                    pass
             return q, R, it - 1, True, Kt
         Kt = Kt_hint if reuse else pb.tangent(q)
         try:
@@ -250,9 +281,7 @@ def _newton(model, pb, q, tol, max_iterations, Kt_hint=None):
                 reuse = False
                 continue
             return q, R, it, False, None
-        # backtracking line search on ||R||
-        step = 1.0
-        r0 = np.linalg.norm(R)
+        step, r0 = 1.0, np.linalg.norm(R)
         for _ in range(20):
             q_try = q + step * dq
             R_try = pb.residual(q_try)
@@ -263,12 +292,12 @@ def _newton(model, pb, q, tol, max_iterations, Kt_hint=None):
             if reuse:              # the stale tangent gives no descent: take a fresh one
                 reuse = False
                 continue
-            return q, R, it, _converged(model, q, R, scale, tol), Kt
+            return q, R, it, _converged(model, pb, q, R, scale, tol), Kt
         if reuse and (step < 1.0 or np.linalg.norm(R_try) > 0.1 * r0):
             reuse = False          # slow: fresh tangents from now on
         q, R = q_try, R_try
         scale = max(scale, _scale(model, q, R))
-    return q, R, it, _converged(model, q, R, scale, tol), Kt
+    return q, R, it, _converged(model, pb, q, R, scale, tol), Kt
 
 
 def solve_statics(model, actuation=None, loads=None, q_init=None, *, tol=1e-10,

@@ -3,7 +3,8 @@
 ``python -m soft_twin_core.warmup`` (run by ``make setup``) exercises every
 compiled pass (kinematics, inverse dynamics with loads, mass matrix,
 articulated-body factorisation and solve, static tangent, tendons, the
-integrator's Newton step, exponential and Cayley sections) on a tiny soft
+integrator's Newton step, the statics Newton, the IK's bounded least
+squares, exponential and Cayley sections) on a tiny soft
 arm on a rigid joint, so that a new process starts in about a second instead
 of compiling for tens of seconds. Prints what it took.
 """
@@ -61,6 +62,9 @@ def run():
             "actuation": {"t": 0.5}, "loads": [{"s": "tip", "force": [0, 0, -0.01]}]})
         run_statics(sc, 2)
         run_dynamics(sc, 2e-3, 1e-3, 1, points_per_section=2)
+    # the actuation IK's bounded least squares (node's ~/inverse_kinematics, the planner)
+    from .planner import box_lstsq
+    box_lstsq(np.eye(3, 2), np.ones(3), np.zeros(2), np.array([np.inf, 0.5]))
     tiny_mechanism_run()
 
 
