@@ -31,7 +31,7 @@ import numpy as np
 
 from .forces import actuation_pass
 from .kernels import passes
-from .kernels.spatial import _exp_into, _jit
+from .kernels.spatial import FALSE, _exp_into, _jit
 from .multibody import FREE, SPHERICAL
 
 SOFT_, FREE_, SPHERICAL_ = 5, 4, 3
@@ -130,7 +130,7 @@ def newton_step(m, w, act, ld, g, coef, effort, q0, v0, v1, h, theta, tol, floor
             vt[k] = (1.0 - theta) * v0[k] + theta * v1[k]
             acc[k] = (v1[k] - v0[k]) / h
         integrate_pass(m, q0, vt, th, qt)
-        residual_pass(m, w, act, ld, g, coef, effort, qt, vt, acc, R, False)
+        residual_pass(m, w, act, ld, g, coef, effort, qt, vt, acc, R, FALSE)
         if it == 1:
             # the residual's forward pass left the poses and subspaces at qt
             if not passes.aba_factor(m, w, th, th * th):

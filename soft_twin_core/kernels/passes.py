@@ -23,7 +23,7 @@ frame, with subspace Sp = x_p T(x_p f) B.
 
 import numpy as np
 
-from .spatial import (_Ad_into, _ad_t, _ad_vec, _exp_into, _jit, _map_into, _T_dot_along, _tangent_dot_into,
+from .spatial import (FALSE, TRUE, _Ad_into, _ad_t, _ad_vec, _exp_into, _jit, _map_into, _T_dot_along, _tangent_dot_into,
                       _tangent_into)
 
 SOFT, FREE, SPHERICAL, PRISMATIC, REVOLUTE, FIXED = 5, 4, 3, 2, 1, 0
@@ -138,7 +138,7 @@ def _soft_point(kmap, x, strain, modes, nv, gp, Ad_p_inv, Sp, x6, T, S3):
     for a in range(6):
         x6[a] = x * strain[a]
     _map_into(kmap, x6, gp)
-    _Ad_into(gp, Ad_p_inv, True)
+    _Ad_into(gp, Ad_p_inv, TRUE)
     _tangent_into(kmap, x6, T, S3)
     Sp[:, :] = 0.0
     for a in range(nv):
@@ -191,7 +191,7 @@ def forward_pass(m, w, q, v, a, level):
         else:
             _mm4(w.g_out[par], m.placement[i], w.g_in[i])
         _mm4(w.g_in[i], w.Jq[i], w.g_out[i])
-        _Ad_into(w.Jq[i], w.Ad_J_inv[i], True)
+        _Ad_into(w.Jq[i], w.Ad_J_inv[i], TRUE)
         soft = m.kind[i] == SOFT
         nv, iv = m.nv[i], m.iv[i]
         if soft:
@@ -342,7 +342,7 @@ def rnea_pass(m, w, ld, g, tau, at_rest):
                 for r in range(6):
                     acc += x * T[r, m.modes[i, a]] * Wb[r]
                 tau[m.iv[i] + a] -= acc
-            _Ad_into(pose, Ad, True)
+            _Ad_into(pose, Ad, TRUE)
             _mtv6(Ad, Wb, t1)
             for b in range(6):
                 w.f_in[i, b] -= t1[b]
@@ -351,7 +351,7 @@ def rnea_pass(m, w, ld, g, tau, at_rest):
                 w.f[i, b] -= Wb[b]
     for i in range(n - 1, -1, -1):
         if m.rigid_mass[i]:
-            _inertial_wrench(m.inertia[i], m.mc[i], False, z6 if at_rest else w.A[i], z6 if at_rest else w.V[i],
+            _inertial_wrench(m.inertia[i], m.mc[i], FALSE, z6 if at_rest else w.A[i], z6 if at_rest else w.V[i],
                              w.g_out[i], g, 1.0, t1, t2, t3)
             for b in range(6):
                 w.f[i, b] += t1[b]
@@ -370,7 +370,7 @@ def rnea_pass(m, w, ld, g, tau, at_rest):
                 gin[a] = w.g_in[i, 0, a] * g[0] + w.g_in[i, 1, a] * g[1] + w.g_in[i, 2, a] * g[2]
             for p in range(m.npt[i]):
                 fp = w.fp[i, p]
-                _inertial_wrench(m.inertia[i], m.mc[i], True, z6 if at_rest else w.Ap[i, p],
+                _inertial_wrench(m.inertia[i], m.mc[i], TRUE, z6 if at_rest else w.Ap[i, p],
                                  z6 if at_rest else w.Vp[i, p], w.gp[i, p], gin, m.pw[i, p], fp, t2, t3)
                 for a in range(nv):
                     acc = 0.0

@@ -10,6 +10,12 @@ from .. import lie
 
 _jit = nb.njit(cache=True, fastmath=False)
 
+# Flags one kernel passes to another. A literal True / False argument from
+# compiled code makes numba compile the callee once per value (a
+# Literal[bool] signature, besides the plain bool of a call from Python);
+# numpy bools type as plain bool: one compilation serves every caller.
+TRUE, FALSE = np.True_, np.False_
+
 _SMALL2 = lie._SMALL ** 2
 _SMALLD2 = lie._SMALL_DERIV ** 2
 P_A, P_B, P_C = lie._P_A, lie._P_B, lie._P_C

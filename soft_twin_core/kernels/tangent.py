@@ -29,7 +29,7 @@ with fs, ms the summed dead forces and moments of the set and
 
 import numpy as np
 
-from .spatial import _Ad_into, _T_cay_dot_into, _betas_dbetas, _jit, _map_into, _tangent_into
+from .spatial import FALSE, _Ad_into, _T_cay_dot_into, _betas_dbetas, _jit, _map_into, _tangent_into
 
 SOFT = 5
 
@@ -97,7 +97,7 @@ def _Tdot_T_columns(kmap, x, f, out):
 
 @_jit
 def _spatial_subspace(g, S, nv, Sw, Ad):
-    _Ad_into(g, Ad, False)
+    _Ad_into(g, Ad, FALSE)
     for r in range(6):
         for a in range(nv):
             acc = 0.0
@@ -158,13 +158,16 @@ def _add_set(nv, Sw, fs, Ph, ms, Ff, Y, Z, D, Om, with_diag):
 
 
 @_jit
-def _dead_point(fd, md, p, fs, Ph, ms):
-    """Dead sums of one wrench (fd, md) at world position p (accumulated)."""
+def _dead_point(fd, md, p0, p1, p2, fs, Ph, ms):
+    """Dead sums of one wrench (fd, md) at world position (p0, p1, p2)
+    (accumulated; the position as numbers, so that callers holding it in a
+    vector or in a pose's column share one compilation)."""
     for r in range(3):
         fs[r] += fd[r]
         ms[r] += md[r]
-        for c in range(3):
-            Ph[r, c] += fd[r] * p[c]
+        Ph[r, 0] += fd[r] * p0
+        Ph[r, 1] += fd[r] * p1
+        Ph[r, 2] += fd[r] * p2
 
 
 @_jit
@@ -220,7 +223,7 @@ def static_tangent_pass(m, w, ld, g, Kt):
                 pw[r] = w.g_out[i, r, 3] + w.g_out[i, r, 0] * c[0] + w.g_out[i, r, 1] * c[1] \
                     + w.g_out[i, r, 2] * c[2]
                 fd[r] = -mass * g[r]
-            _dead_point(fd, z3, pw, fs[i], Ph[i], ms[i])
+            _dead_point(fd, z3, pw[0], pw[1], pw[2], fs[i], Ph[i], ms[i])
     for l in range(ld.joint.shape[0]):
         i = ld.joint[l]
         if ld.x[l] >= 0.0 and m.kind[i] == SOFT:
@@ -243,7 +246,7 @@ def static_tangent_pass(m, w, ld, g, Kt):
                     mass = m.pw[i, p] * m.mc[i, 0]
                     for r in range(3):
                         fd[r] = -mass * g[r]
-                    _dead_point(fd, z3, gp[:3, 3], pfs, pPh, pms)
+                    _dead_point(fd, z3, gp[0, 3], gp[1, 3], gp[2, 3], pfs, pPh, pms)
                     for a in range(6):
                         fb[a] = w.fp[i, p, a]
                 else:
@@ -346,7 +349,7 @@ def _add_load(ld, l, g, fs, Ph, ms, Ff, fb, Ad):
         for r in range(3):
             fd[r] = -W[r]
             md[r] = -W[3 + r]
-        _dead_point(fd, md, g[:3, 3], fs, Ph, ms)
+        _dead_point(fd, md, g[0, 3], g[1, 3], g[2, 3], fs, Ph, ms)
         for a in range(3):
             fb[a] = -(g[0, a] * W[0] + g[1, a] * W[1] + g[2, a] * W[2])
             fb[3 + a] = -(g[0, a] * W[3] + g[1, a] * W[4] + g[2, a] * W[5])
