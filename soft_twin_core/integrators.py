@@ -31,7 +31,7 @@ import numpy as np
 
 from .forces import actuation_pass
 from .kernels import passes
-from .kernels.spatial import FALSE, _exp_into, _jit
+from .kernels.spatial import FALSE, _exp_into, _jit, _jit_inline
 from .multibody import FREE, SPHERICAL
 
 SOFT_, FREE_, SPHERICAL_ = 5, 4, 3
@@ -109,7 +109,7 @@ def residual_pass(m, w, act, ld, g, coef, effort, q, v, a, out, at_rest):
         out[k] = -out[k] - effort[k]
 
 
-@_jit
+@_jit_inline
 def newton_step(m, w, act, ld, g, coef, effort, q0, v0, v1, h, theta, tol, floor, max_it, q1):
     """Newton iteration of one theta-method step from (q0, v0), starting at
     the guess v1 (updated in place); q1 receives q0 (+) h v_t. Newton's

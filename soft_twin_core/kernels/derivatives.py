@@ -26,7 +26,7 @@ external loads); exponential-map sections. O(n) per column.
 
 import numpy as np
 
-from .spatial import FALSE, TRUE, _T_d2_into, _T_dot_into, _ad_vec, _jit
+from .spatial import _T_d2_into, _T_dot_into, _ad_vec, _jit
 
 SOFT = 5
 
@@ -251,7 +251,7 @@ def rnea_derivatives_pass(m, w, g, q, v, a, dtau_dq, dtau_dv):
                                 _Scol(w.Sp[i, p], nvk, a, ivk, Sa)
                                 _perturbed_frame(m.px[i, p], w.strain[i], w.strain_rate[i], fa, e_full,
                                                  w.Vp[i, p], w.Ap[i, p], Sv, Sa, w.Ad_p_inv[i, p], w.Ain[i], t3,
-                                                 wrt_q, TRUE, dVp[i, p], dAp[i, p], tmp)
+                                                 wrt_q, True, dVp[i, p], dAp[i, p], tmp)
                                 for r in range(6):
                                     dlp[i, p, r] = t3[r] if wrt_q else 0.0
                         continue
@@ -285,7 +285,7 @@ def rnea_derivatives_pass(m, w, g, q, v, a, dtau_dq, dtau_dv):
                         for r in range(6):
                             df[r] = dfacc[i, r]
                         if m.rigid_mass[i]:
-                            _dwrench(m.inertia[i], m.mc[i], FALSE, 1.0, dA[i], dl[i], w.g_out[i], g, w.V[i],
+                            _dwrench(m.inertia[i], m.mc[i], False, 1.0, dA[i], dl[i], w.g_out[i], g, w.V[i],
                                      dV[i], t1, t2, t3, dfin)
                             for r in range(6):
                                 df[r] += t1[r]
@@ -312,7 +312,7 @@ def rnea_derivatives_pass(m, w, g, q, v, a, dtau_dq, dtau_dv):
                                         for s in range(3):
                                             acc += w.g_in[i, r, s] * w.gp[i, p, s, c]
                                         R[r, c] = acc
-                                _dwrench(m.inertia[i], m.mc[i], TRUE, m.pw[i, p], dAp[i, p], dlp[i, p], R, g,
+                                _dwrench(m.inertia[i], m.mc[i], True, m.pw[i, p], dAp[i, p], dlp[i, p], R, g,
                                          w.Vp[i, p], dVp[i, p], t1, t2, t3, col)
                                 for c in range(nv):
                                     acc = 0.0

@@ -16,6 +16,13 @@ _jit = nb.njit(cache=True, fastmath=False)
 # numpy bools type as plain bool: one compilation serves every caller.
 TRUE, FALSE = np.True_, np.False_
 
+# A kernel with one compiled caller (besides Python): numba inlines its IR
+# there instead of compiling and linking a separate copy, whose optimisation
+# and machine code would be redone in every library above it (the caller's
+# library links all its callees' code). Called from Python, it compiles as
+# usual. Options as _jit's (nogil as on main) plus the inlining.
+_jit_inline = nb.njit(cache=True, fastmath=False, nogil=True, inline="always")
+
 _SMALL2 = lie._SMALL ** 2
 _SMALLD2 = lie._SMALL_DERIV ** 2
 P_A, P_B, P_C = lie._P_A, lie._P_B, lie._P_C
