@@ -31,13 +31,13 @@ import numpy as np
 
 from .forces import actuation_pass
 from .kernels import passes
-from .kernels.spatial import FALSE, _exp_into, _jit, _jit_inline
+from .kernels.spatial import FALSE, _exp_into, _jit, _jit_inner, _jit_inline
 from .multibody import FREE, SPHERICAL
 
 SOFT_, FREE_, SPHERICAL_ = 5, 4, 3
 
 
-@_jit
+@_jit_inner
 def _quat_mul_into(a, b, out):
     ax, ay, az, aw = a[0], a[1], a[2], a[3]
     bx, by, bz, bw = b[0], b[1], b[2], b[3]

@@ -11,10 +11,10 @@ soft cross-section; the body Jacobian is ``Ad(g_p)^-1`` times it.
 
 import numpy as np
 
-from .spatial import FALSE, TRUE, _Ad_into, _ad_vec, _jit, _map_into, _tangent_dot_into, _tangent_into
+from .spatial import FALSE, TRUE, _Ad_into, _ad_vec, _jit, _jit_inner, _map_into, _tangent_dot_into, _tangent_into
 
 
-@_jit
+@_jit_inner
 def _point_pose(m, w, j, x, out, x6, tmp):
     if x >= 0.0 and m.kind[j] == 5:
         for a in range(6):
@@ -75,7 +75,7 @@ def spatial_jacobian(m, w, j, x, g, J):
         k = m.parent[k]
 
 
-@_jit
+@_jit_inner
 def _col_dot(Ad, S, Sd_cols, V, nv, iv, out, tmp, tmp2):
     """out[:, iv:iv+nv] = Ad (ad(V) S + Sdot) column by column."""
     for c in range(nv):

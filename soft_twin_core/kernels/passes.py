@@ -23,13 +23,13 @@ frame, with subspace Sp = x_p T(x_p f) B.
 
 import numpy as np
 
-from .spatial import (TRUE, _Ad_into, _ad_t, _ad_vec, _exp_into, _jit, _jit_inline, _map_into, _T_dot_along,
-                      _tangent_dot_into, _tangent_into)
+from .spatial import (TRUE, _Ad_into, _ad_t, _ad_vec, _exp_into, _jit, _jit_inner, _jit_inline, _map_into,
+                      _T_dot_along, _tangent_dot_into, _tangent_into)
 
 SOFT, FREE, SPHERICAL, PRISMATIC, REVOLUTE, FIXED = 5, 4, 3, 2, 1, 0
 
 
-@_jit
+@_jit_inner
 def _quat_into(qx, qy, qz, qw, g):
     g[0, 0] = 1 - 2 * (qy * qy + qz * qz)
     g[0, 1] = 2 * (qx * qy - qz * qw)
@@ -42,14 +42,14 @@ def _quat_into(qx, qy, qz, qw, g):
     g[2, 2] = 1 - 2 * (qx * qx + qy * qy)
 
 
-@_jit
+@_jit_inner
 def _eye4(g):
     for r in range(4):
         for c in range(4):
             g[r, c] = 1.0 if r == c else 0.0
 
 
-@_jit
+@_jit_inner
 def _mm4(A, B, out):
     for r in range(3):
         for c in range(4):
@@ -63,7 +63,7 @@ def _mm4(A, B, out):
     out[3, 3] = 1.0
 
 
-@_jit
+@_jit_inner
 def _mv6(A, x, out):
     for r in range(6):
         acc = 0.0
@@ -72,7 +72,7 @@ def _mv6(A, x, out):
         out[r] = acc
 
 
-@_jit
+@_jit_inner
 def _mtv6(A, x, out):
     for r in range(6):
         acc = 0.0
@@ -81,7 +81,7 @@ def _mtv6(A, x, out):
         out[r] = acc
 
 
-@_jit
+@_jit_inner
 def _Sv(S, nv, v, iv, out):
     """out = S[:, :nv] v[iv:iv+nv]."""
     for r in range(6):
@@ -91,7 +91,7 @@ def _Sv(S, nv, v, iv, out):
         out[r] = acc
 
 
-@_jit
+@_jit_inner
 def _joint_transform(kind, kmap, iq, nv, axis, length, f0, modes, q, J, S, strain, x6, T, S3):
     """Joint transform J (input -> output frame), subspace S (output frame)
     and, for a soft joint, its strain."""
@@ -131,7 +131,7 @@ def _joint_transform(kind, kmap, iq, nv, axis, length, f0, modes, q, J, S, strai
             S[a, a] = 1.0
 
 
-@_jit
+@_jit_inner
 def _soft_point(kmap, x, strain, modes, nv, gp, Ad_p_inv, Sp, x6, T, S3):
     """Pose gp = exp(x f), Ad(gp^-1) and subspace Sp = x T(x f) B of the
     cross-section at abscissa x of a soft section with strain f."""
@@ -146,7 +146,7 @@ def _soft_point(kmap, x, strain, modes, nv, gp, Ad_p_inv, Sp, x6, T, S3):
             Sp[r, a] = x * T[r, modes[a]]
 
 
-@_jit
+@_jit_inner
 def _soft_bias(kmap, x, strain, rate, V, Sv, out, vs, P):
     """ad(V) S v + x Tdot(x f, x fdot) fdot: the velocity-product acceleration
     of the cross-section at abscissa x of a soft section (strain f, rate
@@ -247,7 +247,7 @@ def forward_pass(m, w, q, v, a, level):
                     w.Ap[i, p, b] = t6[b] + Sv[b] + c[b]
 
 
-@_jit
+@_jit_inner
 def _inertial_wrench(I6, mc, diag, A, V, R, g, scale, out, tmp, tmp2):
     """out = scale (I (A - [R^T g; 0]) - ad(V)^T I V): inertial minus
     gravitational body wrench of a rigid inertia I6 (or diagonal mc); R:
@@ -276,7 +276,7 @@ def _inertial_wrench(I6, mc, diag, A, V, R, g, scale, out, tmp, tmp2):
         out[a] *= scale
 
 
-@_jit
+@_jit_inner
 def _load_wrench(m, w, ld, l, T, S3, Wb, pose):
     """Body wrench Wb of load l at its point, and the point's pose in the
     joint's input frame (soft) or output frame (rigid: identity)."""
@@ -403,7 +403,7 @@ def joint_forces(m, q, v, out):
             out[iv + a] += acc
 
 
-@_jit
+@_jit_inner
 def _congruence_add(X, I, out, tmp):
     """out += X^T I X (6x6, I symmetric) for an adjoint X = Ad(g^-1), whose
     lower-left 3x3 block is zero: the products skip it and only the upper
@@ -425,7 +425,7 @@ def _congruence_add(X, I, out, tmp):
                 out[c, r] += acc
 
 
-@_jit
+@_jit_inner
 def _diag_congruence_add(X, d, wgt, out):
     """out += wgt X^T diag(d) X for an adjoint X (zero lower-left block)."""
     for r in range(6):
@@ -438,7 +438,7 @@ def _diag_congruence_add(X, d, wgt, out):
                 out[c, r] += wgt * acc
 
 
-@_jit
+@_jit_inner
 def _joint_blocks(soft, nv, npt, pw, mc, X, S, Ad_p_inv, Sp_all, IA, F, Dm, Ic, tmp, IS):
     """For joint i with the inertia IA (output frame) of everything beyond
     its output frame: F = Ad(Jq^-1)^T IA S + sum_p Ad(gp^-1)^T Ip Sp (6 x nv,
@@ -544,7 +544,7 @@ def crba_pass(m, w, M):
             _congruence_add(m.Ad_pl_inv[i], Ic, w.IA[par], tmp)
 
 
-@_jit
+@_jit_inner
 def _small_inverse(A, n, out):
     """Inverse of a small symmetric positive definite A[:n, :n] (Cholesky);
     returns False if A is not positive definite."""

@@ -29,12 +29,12 @@ with fs, ms the summed dead forces and moments of the set and
 
 import numpy as np
 
-from .spatial import FALSE, _Ad_into, _T_cay_dot_into, _betas_dbetas, _jit, _map_into, _tangent_into
+from .spatial import FALSE, _Ad_into, _T_cay_dot_into, _betas_dbetas, _jit, _jit_inner, _map_into, _tangent_into
 
 SOFT = 5
 
 
-@_jit
+@_jit_inner
 def _adT_vec(x, y, out):
     """out = ad(x)^T y = [-w x yu; -u x yu - w x yw]."""
     u0, u1, u2, w0, w1, w2 = x[0], x[1], x[2], x[3], x[4], x[5]
@@ -47,7 +47,7 @@ def _adT_vec(x, y, out):
     out[5] = -(u0 * a1 - u1 * a0) - (w0 * b1 - w1 * b0)
 
 
-@_jit
+@_jit_inner
 def _Tdot_T_columns(kmap, x, f, out):
     """out[:, b] = (d/dx T(x)[e_b])^T f, b = 0..5 (the transposed directional
     derivatives of the tangent operator applied to a wrench f)."""
@@ -95,7 +95,7 @@ def _Tdot_T_columns(kmap, x, f, out):
                 out[a, b] += sign * (dd[k - 1] * wwd * P[k, a] + bb[k - 1] * acc[a])
 
 
-@_jit
+@_jit_inner
 def _spatial_subspace(g, S, nv, Sw, Ad):
     _Ad_into(g, Ad, FALSE)
     for r in range(6):
@@ -106,7 +106,7 @@ def _spatial_subspace(g, S, nv, Sw, Ad):
             Sw[r, a] = acc
 
 
-@_jit
+@_jit_inner
 def _add_set(nv, Sw, fs, Ph, ms, Ff, Y, Z, D, Om, with_diag):
     """Y += (Lam + Psi) Sw, Z += Sw^T Gam, D += Sw^T Gam Om (with_diag) for
     a moving set with dead sums (fs, Ph, ms) and follower sum Ff."""
@@ -157,7 +157,7 @@ def _add_set(nv, Sw, fs, Ph, ms, Ff, Y, Z, D, Om, with_diag):
                 D[a, b] += SG[a, 0] * Om[3, b] + SG[a, 1] * Om[4, b] + SG[a, 2] * Om[5, b]
 
 
-@_jit
+@_jit_inner
 def _dead_point(fd, md, p0, p1, p2, fs, Ph, ms):
     """Dead sums of one wrench (fd, md) at world position (p0, p1, p2)
     (accumulated; the position as numbers, so that callers holding it in a
@@ -170,7 +170,7 @@ def _dead_point(fd, md, p0, p1, p2, fs, Ph, ms):
         Ph[r, 2] += fd[r] * p2
 
 
-@_jit
+@_jit_inner
 def _own_term(kmap, x, strain, modes, nv, fb, D, tmp6):
     """D[a, b] += x^2 [(d/dx T(x f)[e_mb])^T fb]_ma: the change of the own
     subspace x T(x f) B of a soft cross-section carrying the body wrench fb."""
@@ -314,7 +314,7 @@ def static_tangent_pass(m, w, ld, g, Kt):
             j = m.parent[j]
 
 
-@_jit
+@_jit_inner
 def _mm4(A, B, out):
     for r in range(3):
         for c in range(4):
@@ -328,7 +328,7 @@ def _mm4(A, B, out):
     out[3, 3] = 1.0
 
 
-@_jit
+@_jit_inner
 def _point_subspace(kmap, x6, x, modes, nv, Sp):
     T = np.empty((6, 6))
     S3 = np.empty((7, 3, 3))
@@ -338,7 +338,7 @@ def _point_subspace(kmap, x6, x, modes, nv, Sp):
             Sp[r, a] = x * T[r, modes[a]]
 
 
-@_jit
+@_jit_inner
 def _add_load(ld, l, g, fs, Ph, ms, Ff, fb, Ad):
     """Sums of load l (RNEA sign: minus the applied wrench) at world pose g;
     fb receives its body wrench."""
