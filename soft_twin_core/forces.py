@@ -23,7 +23,7 @@ from collections import namedtuple
 import numpy as np
 
 from .kernels.data import LoadArrays
-from .kernels.spatial import _jit
+from .kernels.spatial import _jit, _jit_inline
 from .loads import Loads, actuator_point_loads
 
 ActuatorArrays = namedtuple("ActuatorArrays", [
@@ -108,7 +108,7 @@ def gravity_of(model, loads=None):
     return scale * np.asarray(model.gravity, dtype=float)
 
 
-@_jit
+@_jit_inline
 def actuation_pass(m, w, act, coef, out):
     """out += tau_act: the joint-space forces of the distributed actuators,
     coef[p] = sum_k unit[p, k] u_k, at the strains of the last forward pass."""

@@ -31,13 +31,13 @@ import numpy as np
 
 from .forces import actuation_pass
 from .kernels import passes
-from .kernels.spatial import _exp_into, _jit
+from .kernels.spatial import FALSE, _exp_into, _jit, _jit_inner, _jit_inline
 from .multibody import FREE, SPHERICAL
 
 SOFT_, FREE_, SPHERICAL_ = 5, 4, 3
 
 
-@_jit
+@_jit_inner
 def _quat_mul_into(a, b, out):
     ax, ay, az, aw = a[0], a[1], a[2], a[3]
     bx, by, bz, bw = b[0], b[1], b[2], b[3]
@@ -109,7 +109,7 @@ def residual_pass(m, w, act, ld, g, coef, effort, q, v, a, out, at_rest):
         out[k] = -out[k] - effort[k]
 
 
-@_jit
+@_jit_inline
 def newton_step(m, w, act, ld, g, coef, effort, q0, v0, v1, h, theta, tol, floor, max_it, q1):
     """Newton iteration of one theta-method step from (q0, v0), starting at
     the guess v1 (updated in place); q1 receives q0 (+) h v_t. Newton's
@@ -130,7 +130,7 @@ def newton_step(m, w, act, ld, g, coef, effort, q0, v0, v1, h, theta, tol, floor
             vt[k] = (1.0 - theta) * v0[k] + theta * v1[k]
             acc[k] = (v1[k] - v0[k]) / h
         integrate_pass(m, q0, vt, th, qt)
-        residual_pass(m, w, act, ld, g, coef, effort, qt, vt, acc, R, False)
+        residual_pass(m, w, act, ld, g, coef, effort, qt, vt, acc, R, FALSE)
         if it == 1:
             # the residual's forward pass left the poses and subspaces at qt
             if not passes.aba_factor(m, w, th, th * th):

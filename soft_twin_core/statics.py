@@ -100,21 +100,23 @@ class _Problem:
         self.absK = np.abs(self.K)            # for the round-off level of the residual
         self.n_tangents = 0                    # tangents computed (Newton's and tangent()'s)
 
-    def residual(self, q):
+    def residual(self, q, loads=None):
+        """R(q); the workspace then holds the forward pass and the RNEA
+        wrenches at rest under ``loads`` (default the problem's): what
+        :meth:`tangent` and :meth:`result` read (one compiled kernel for
+        all three, so a new process loads or compiles one kernel less)."""
         from .integrators import residual_pass
         out = np.empty(self.tree.nv)
         q = np.ascontiguousarray(q, dtype=float)
-        residual_pass(self.ws.m, self.ws.w, self.act, self.loads, self.g, self.coef, self.zeros,
-                      q, self.zeros, self.zeros, out, True)
+        residual_pass(self.ws.m, self.ws.w, self.act, self.loads if loads is None else loads, self.g, self.coef,
+                      self.zeros, q, self.zeros, self.zeros, out, True)
         return out
 
     def result(self, model, q, iterations, R, steps):
         """StaticsResult at the solution q: the tip pose and the support's
         reaction (the wrench the root joint transmits, from the RNEA at rest:
         tendons are internal) from the engine."""
-        from .kernels import passes
-        passes.forward_pass(self.ws.m, self.ws.w, q, self.zeros, self.zeros, 0)
-        passes.rnea_pass(self.ws.m, self.ws.w, self.loads_ext, self.g, np.empty(self.tree.nv), True)
+        self.residual(q, self.loads_ext)            # poses and RNEA wrenches at rest
         w = self.ws.work
         g_base = w.g_in[0]
         f_in = w.f_in[0]
@@ -127,16 +129,13 @@ class _Problem:
             residual_abs=float(np.abs(R).max()), converged=True, load_steps=steps)
 
     def tangent(self, q):
-        """dR/dq, analytic: one forward pass, one RNEA pass and one O(n^2)
-        tangent pass."""
+        """dR/dq, analytic: one forward pass, one RNEA pass (those of the
+        residual) and one O(n^2) tangent pass."""
         from .forces import actuation_tangent_pass
-        from .kernels import passes
         from .kernels.tangent import static_tangent_pass
         m, w = self.ws.m, self.ws.w
-        q = np.ascontiguousarray(q, dtype=float)
         self.n_tangents += 1
-        passes.forward_pass(m, w, q, self.zeros, self.zeros, 0)
-        passes.rnea_pass(m, w, self.loads, self.g, np.empty(self.tree.nv), True)
+        self.residual(q)                            # poses and RNEA wrenches at rest
         Kt = self.K.copy()
         static_tangent_pass(m, w, self.loads, self.g, Kt)
         actuation_tangent_pass(m, w, self.act, self.coef, Kt)

@@ -89,8 +89,44 @@ def tiny_mechanism_run():
     state_outputs(mech, sim.q, sim.lam, sim.inputs, sim.v, sim.a, sim.ws)
 
 
+def purge_stale_caches(root=None):
+    """Delete every kernel cache of this package when any of its sources
+    changed since the last warm-up; returns True if it did.
+
+    numba checks a cached kernel against its own file's timestamp only: a
+    kernel whose callee in another file changed (linked or inlined into it)
+    would load the old machine code. A hash of all the package's sources,
+    kept beside the caches, catches that (and an upgrade installed over an
+    old ``__pycache__``). ``NUMBA_CACHE_DIR``: its copy of this package's
+    tree is purged too."""
+    import hashlib
+    import os
+    from pathlib import Path
+    root = Path(__file__).resolve().parent if root is None else Path(root)
+    h = hashlib.sha256()
+    for f in sorted(root.rglob("*.py")):
+        h.update(f.relative_to(root).as_posix().encode())
+        h.update(f.read_bytes())
+    digest = h.hexdigest()
+    stamp = root / "__pycache__" / "soft_twin_kernels.sha256"
+    if stamp.is_file() and stamp.read_text().strip() == digest:
+        return False
+    dirs = [root]
+    cache_dir = os.environ.get("NUMBA_CACHE_DIR")
+    if cache_dir:
+        dirs += [d for d in Path(cache_dir).rglob(root.name) if d.is_dir()]
+    for d in dirs:
+        for f in list(d.rglob("*.nbi")) + list(d.rglob("*.nbc")):
+            f.unlink(missing_ok=True)
+    stamp.parent.mkdir(exist_ok=True)
+    stamp.write_text(digest + "\n")
+    return True
+
+
 def main(argv=None):
     t0 = time.perf_counter()
+    if purge_stale_caches():
+        print("soft_twin_core sources changed since the last warm-up: kernel caches cleared", file=sys.stderr)
     run()
     print(f"soft_twin_core kernels compiled and cached in {time.perf_counter() - t0:.1f} s", file=sys.stderr)
     return 0

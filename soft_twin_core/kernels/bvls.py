@@ -11,10 +11,10 @@ answer). Tested against scipy's ``lsq_linear(method="bvls")``.
 
 import numpy as np
 
-from .spatial import _jit
+from .spatial import _jit, _jit_inner
 
 
-@_jit
+@_jit_inner
 def _free_lstsq(A, b, x, at, F, nf):
     """Least squares over the free columns F[:nf] with the others fixed at x."""
     m, n = A.shape

@@ -26,12 +26,12 @@ external loads); exponential-map sections. O(n) per column.
 
 import numpy as np
 
-from .spatial import _T_d2_into, _T_dot_into, _ad_vec, _jit
+from .spatial import _T_d2_into, _T_dot_into, _ad_vec, _jit, _jit_inner
 
 SOFT = 5
 
 
-@_jit
+@_jit_inner
 def _adT(x, y, out):
     """out = ad(x)^T y."""
     u0, u1, u2, w0, w1, w2 = x[0], x[1], x[2], x[3], x[4], x[5]
@@ -44,7 +44,7 @@ def _adT(x, y, out):
     out[5] = -(u0 * a1 - u1 * a0) - (w0 * b1 - w1 * b0)
 
 
-@_jit
+@_jit_inner
 def _mv(A, x, out):
     for r in range(6):
         acc = 0.0
@@ -53,7 +53,7 @@ def _mv(A, x, out):
         out[r] = acc
 
 
-@_jit
+@_jit_inner
 def _mtv(A, x, out):
     for r in range(6):
         acc = 0.0
@@ -62,7 +62,7 @@ def _mtv(A, x, out):
         out[r] = acc
 
 
-@_jit
+@_jit_inner
 def _Scol(S, nv, vec, iv, out):
     for r in range(6):
         acc = 0.0
@@ -71,7 +71,7 @@ def _Scol(S, nv, vec, iv, out):
         out[r] = acc
 
 
-@_jit
+@_jit_inner
 def _dwrench(I6, mc, diag, scale, dA, dl, R, g, V, dV, out, t1, t2, t3):
     """out = scale (I (dA + [dl_w x R^T g; 0]) - ad(dV)^T I V - ad(V)^T I dV)."""
     for r in range(3):
@@ -98,7 +98,7 @@ def _dwrench(I6, mc, diag, scale, dA, dl, R, g, V, dV, out, t1, t2, t3):
         out[r] = scale * (out[r] - t1[r])
 
 
-@_jit
+@_jit_inner
 def _perturbed_frame(x, strain, rate, fa, e_full, V, A, Sv, Sa, Ad_in, Ain, zeta, wrt_q, soft,
                      dV, dA, tmp):
     """dV, dA of a frame moved by its own joint's coordinate (zeta = S e):
@@ -161,7 +161,7 @@ def _perturbed_frame(x, strain, rate, fa, e_full, V, A, Sv, Sa, Ad_in, Ain, zeta
                 dA[r] += x * (t1[r] + t2[r])
 
 
-@_jit
+@_jit_inner
 def _dS_T_f(x, strain, e_full, modes, nv, f, out, tmp):
     """out[a] = (x^2 Tdot(x f)[e] e_(m_a)) . f: d(S^T f)/dq at fixed f."""
     x6, xd6, y, col, t1, t2, t3 = tmp[0], tmp[1], tmp[2], tmp[3], tmp[5], tmp[6], tmp[7]
@@ -360,7 +360,7 @@ def rnea_derivatives_pass(m, w, g, q, v, a, dtau_dq, dtau_dv):
                     out[iv + r, iv + c] += m.Kb[i, r, c] if wrt_q else m.Db[i, r, c]
 
 
-@_jit
+@_jit_inner
 def _is_ancestor(parent, j, k):
     i = parent[k]
     while i >= 0:

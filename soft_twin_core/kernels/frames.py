@@ -11,10 +11,10 @@ soft cross-section; the body Jacobian is ``Ad(g_p)^-1`` times it.
 
 import numpy as np
 
-from .spatial import _Ad_into, _ad_vec, _jit, _map_into, _tangent_dot_into, _tangent_into
+from .spatial import FALSE, TRUE, _Ad_into, _ad_vec, _jit, _jit_inner, _map_into, _tangent_dot_into, _tangent_into
 
 
-@_jit
+@_jit_inner
 def _point_pose(m, w, j, x, out, x6, tmp):
     if x >= 0.0 and m.kind[j] == 5:
         for a in range(6):
@@ -57,7 +57,7 @@ def spatial_jacobian(m, w, j, x, g, J):
         nv, iv = m.nv[k], m.iv[k]
         if k == j and own:
             _tangent_into(m.kmap[j], x6, T, S3)
-            _Ad_into(g, Ad, False)
+            _Ad_into(g, Ad, FALSE)
             for r in range(6):
                 for a in range(nv):
                     acc = 0.0
@@ -65,7 +65,7 @@ def spatial_jacobian(m, w, j, x, g, J):
                         acc += Ad[r, c] * T[c, m.modes[j, a]]
                     J[r, iv + a] = x * acc
         else:
-            _Ad_into(w.g_out[k], Ad, False)
+            _Ad_into(w.g_out[k], Ad, FALSE)
             for r in range(6):
                 for a in range(nv):
                     acc = 0.0
@@ -75,7 +75,7 @@ def spatial_jacobian(m, w, j, x, g, J):
         k = m.parent[k]
 
 
-@_jit
+@_jit_inner
 def _col_dot(Ad, S, Sd_cols, V, nv, iv, out, tmp, tmp2):
     """out[:, iv:iv+nv] = Ad (ad(V) S + Sdot) column by column."""
     for c in range(nv):
@@ -163,7 +163,7 @@ def spatial_jacobian_dot(m, w, j, x, v, Jd):
                     Sx[r, c] = x * T[r, m.modes[j, c]]
             # body twist of the cross-section: Ad(exp(-x f)) V_in + Sx v
             _map_into(m.kmap[j], x6, tmp4)
-            _Ad_into(tmp4, Ad, True)
+            _Ad_into(tmp4, Ad, TRUE)
             for r in range(6):
                 acc = 0.0
                 for c in range(6):
@@ -171,9 +171,9 @@ def spatial_jacobian_dot(m, w, j, x, v, Jd):
                 for c in range(nv):
                     acc += Sx[r, c] * v[iv + c]
                 Vp[r] = acc
-            _Ad_into(g, Ad, False)
+            _Ad_into(g, Ad, FALSE)
             _col_dot(Ad, Sx, Sd, Vp, nv, iv, Jd, t1, t2)
         else:
-            _Ad_into(w.g_out[k], Ad, False)
+            _Ad_into(w.g_out[k], Ad, FALSE)
             _col_dot(Ad, w.S[k], Sd, w.V[k], nv, iv, Jd, t1, t2)
         k = m.parent[k]

@@ -23,13 +23,13 @@ frame, with subspace Sp = x_p T(x_p f) B.
 
 import numpy as np
 
-from .spatial import (_Ad_into, _ad_t, _ad_vec, _exp_into, _jit, _map_into, _T_dot_along, _tangent_dot_into,
-                      _tangent_into)
+from .spatial import (TRUE, _Ad_into, _ad_t, _ad_vec, _exp_into, _jit, _jit_inner, _jit_inline, _map_into,
+                      _T_dot_along, _tangent_dot_into, _tangent_into)
 
 SOFT, FREE, SPHERICAL, PRISMATIC, REVOLUTE, FIXED = 5, 4, 3, 2, 1, 0
 
 
-@_jit
+@_jit_inner
 def _quat_into(qx, qy, qz, qw, g):
     g[0, 0] = 1 - 2 * (qy * qy + qz * qz)
     g[0, 1] = 2 * (qx * qy - qz * qw)
@@ -42,14 +42,14 @@ def _quat_into(qx, qy, qz, qw, g):
     g[2, 2] = 1 - 2 * (qx * qx + qy * qy)
 
 
-@_jit
+@_jit_inner
 def _eye4(g):
     for r in range(4):
         for c in range(4):
             g[r, c] = 1.0 if r == c else 0.0
 
 
-@_jit
+@_jit_inner
 def _mm4(A, B, out):
     for r in range(3):
         for c in range(4):
@@ -63,7 +63,7 @@ def _mm4(A, B, out):
     out[3, 3] = 1.0
 
 
-@_jit
+@_jit_inner
 def _mv6(A, x, out):
     for r in range(6):
         acc = 0.0
@@ -72,7 +72,7 @@ def _mv6(A, x, out):
         out[r] = acc
 
 
-@_jit
+@_jit_inner
 def _mtv6(A, x, out):
     for r in range(6):
         acc = 0.0
@@ -81,7 +81,7 @@ def _mtv6(A, x, out):
         out[r] = acc
 
 
-@_jit
+@_jit_inner
 def _Sv(S, nv, v, iv, out):
     """out = S[:, :nv] v[iv:iv+nv]."""
     for r in range(6):
@@ -91,7 +91,7 @@ def _Sv(S, nv, v, iv, out):
         out[r] = acc
 
 
-@_jit
+@_jit_inner
 def _joint_transform(kind, kmap, iq, nv, axis, length, f0, modes, q, J, S, strain, x6, T, S3):
     """Joint transform J (input -> output frame), subspace S (output frame)
     and, for a soft joint, its strain."""
@@ -131,14 +131,14 @@ def _joint_transform(kind, kmap, iq, nv, axis, length, f0, modes, q, J, S, strai
             S[a, a] = 1.0
 
 
-@_jit
+@_jit_inner
 def _soft_point(kmap, x, strain, modes, nv, gp, Ad_p_inv, Sp, x6, T, S3):
     """Pose gp = exp(x f), Ad(gp^-1) and subspace Sp = x T(x f) B of the
     cross-section at abscissa x of a soft section with strain f."""
     for a in range(6):
         x6[a] = x * strain[a]
     _map_into(kmap, x6, gp)
-    _Ad_into(gp, Ad_p_inv, True)
+    _Ad_into(gp, Ad_p_inv, TRUE)
     _tangent_into(kmap, x6, T, S3)
     Sp[:, :] = 0.0
     for a in range(nv):
@@ -146,7 +146,7 @@ def _soft_point(kmap, x, strain, modes, nv, gp, Ad_p_inv, Sp, x6, T, S3):
             Sp[r, a] = x * T[r, modes[a]]
 
 
-@_jit
+@_jit_inner
 def _soft_bias(kmap, x, strain, rate, V, Sv, out, vs, P):
     """ad(V) S v + x Tdot(x f, x fdot) fdot: the velocity-product acceleration
     of the cross-section at abscissa x of a soft section (strain f, rate
@@ -169,7 +169,7 @@ def _soft_bias(kmap, x, strain, rate, V, Sv, out, vs, P):
         out[a] = x * out[a] + tmp[a]
 
 
-@_jit
+@_jit_inline
 def forward_pass(m, w, q, v, a, level):
     """level 0: poses and subspaces; 1: + twists; 2: + accelerations (a may
     be zeros: the velocity-product accelerations alone)."""
@@ -191,7 +191,7 @@ def forward_pass(m, w, q, v, a, level):
         else:
             _mm4(w.g_out[par], m.placement[i], w.g_in[i])
         _mm4(w.g_in[i], w.Jq[i], w.g_out[i])
-        _Ad_into(w.Jq[i], w.Ad_J_inv[i], True)
+        _Ad_into(w.Jq[i], w.Ad_J_inv[i], TRUE)
         soft = m.kind[i] == SOFT
         nv, iv = m.nv[i], m.iv[i]
         if soft:
@@ -247,7 +247,7 @@ def forward_pass(m, w, q, v, a, level):
                     w.Ap[i, p, b] = t6[b] + Sv[b] + c[b]
 
 
-@_jit
+@_jit_inner
 def _inertial_wrench(I6, mc, diag, A, V, R, g, scale, out, tmp, tmp2):
     """out = scale (I (A - [R^T g; 0]) - ad(V)^T I V): inertial minus
     gravitational body wrench of a rigid inertia I6 (or diagonal mc); R:
@@ -276,7 +276,7 @@ def _inertial_wrench(I6, mc, diag, A, V, R, g, scale, out, tmp, tmp2):
         out[a] *= scale
 
 
-@_jit
+@_jit_inner
 def _load_wrench(m, w, ld, l, T, S3, Wb, pose):
     """Body wrench Wb of load l at its point, and the point's pose in the
     joint's input frame (soft) or output frame (rigid: identity)."""
@@ -306,7 +306,7 @@ def _load_wrench(m, w, ld, l, T, S3, Wb, pose):
             Wb[a] = ld.wrench[l, a]
 
 
-@_jit
+@_jit_inline
 def rnea_pass(m, w, ld, g, tau, at_rest):
     """Inverse dynamics after :func:`forward_pass` (level 2; level 0 with
     ``at_rest``: v = a = 0): tau = M a + C v + g(q) - J^T F_ext (no
@@ -342,7 +342,7 @@ def rnea_pass(m, w, ld, g, tau, at_rest):
                 for r in range(6):
                     acc += x * T[r, m.modes[i, a]] * Wb[r]
                 tau[m.iv[i] + a] -= acc
-            _Ad_into(pose, Ad, True)
+            _Ad_into(pose, Ad, TRUE)
             _mtv6(Ad, Wb, t1)
             for b in range(6):
                 w.f_in[i, b] -= t1[b]
@@ -350,6 +350,7 @@ def rnea_pass(m, w, ld, g, tau, at_rest):
             for b in range(6):
                 w.f[i, b] -= Wb[b]
     for i in range(n - 1, -1, -1):
+        # literal flags (not TRUE/FALSE): a copy of _inertial_wrench per case, 8 % faster RNEA than one with the branch
         if m.rigid_mass[i]:
             _inertial_wrench(m.inertia[i], m.mc[i], False, z6 if at_rest else w.A[i], z6 if at_rest else w.V[i],
                              w.g_out[i], g, 1.0, t1, t2, t3)
@@ -387,7 +388,7 @@ def rnea_pass(m, w, ld, g, tau, at_rest):
                 w.f[par, b] += t1[b]
 
 
-@_jit
+@_jit_inline
 def joint_forces(m, q, v, out):
     """out += Kb (q - q0) + Db v joint by joint (stiffness and damping)."""
     n = m.parent.shape[0]
@@ -402,7 +403,7 @@ def joint_forces(m, q, v, out):
             out[iv + a] += acc
 
 
-@_jit
+@_jit_inner
 def _congruence_add(X, I, out, tmp):
     """out += X^T I X (6x6, I symmetric) for an adjoint X = Ad(g^-1), whose
     lower-left 3x3 block is zero: the products skip it and only the upper
@@ -424,7 +425,7 @@ def _congruence_add(X, I, out, tmp):
                 out[c, r] += acc
 
 
-@_jit
+@_jit_inner
 def _diag_congruence_add(X, d, wgt, out):
     """out += wgt X^T diag(d) X for an adjoint X (zero lower-left block)."""
     for r in range(6):
@@ -437,7 +438,7 @@ def _diag_congruence_add(X, d, wgt, out):
                 out[c, r] += wgt * acc
 
 
-@_jit
+@_jit_inner
 def _joint_blocks(soft, nv, npt, pw, mc, X, S, Ad_p_inv, Sp_all, IA, F, Dm, Ic, tmp, IS):
     """For joint i with the inertia IA (output frame) of everything beyond
     its output frame: F = Ad(Jq^-1)^T IA S + sum_p Ad(gp^-1)^T Ip Sp (6 x nv,
@@ -543,7 +544,7 @@ def crba_pass(m, w, M):
             _congruence_add(m.Ad_pl_inv[i], Ic, w.IA[par], tmp)
 
 
-@_jit
+@_jit_inner
 def _small_inverse(A, n, out):
     """Inverse of a small symmetric positive definite A[:n, :n] (Cholesky);
     returns False if A is not positive definite."""
@@ -578,7 +579,7 @@ def _small_inverse(A, n, out):
     return True
 
 
-@_jit
+@_jit_inline
 def aba_factor(m, w, cD, cK):
     """Articulated-body factorisation of M + cD D + cK K after
     :func:`forward_pass` (level 0). Returns False if a joint block is not
@@ -628,7 +629,7 @@ def aba_factor(m, w, cD, cK):
     return True
 
 
-@_jit
+@_jit_inline
 def aba_solve(m, w, rhs, x):
     """x = (M + cD D + cK K)^-1 rhs with the factors of :func:`aba_factor`
     (which keeps its own copies of S and Ad(Jq^-1): later passes at other

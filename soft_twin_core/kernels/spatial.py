@@ -10,6 +10,24 @@ from .. import lie
 
 _jit = nb.njit(cache=True, fastmath=False, nogil=True)   # nogil: a node service computes while the twin steps
 
+# Flags one kernel passes to another. A literal True / False argument from
+# compiled code makes numba compile the callee once per value (a
+# Literal[bool] signature, besides the plain bool of a call from Python);
+# numpy bools type as plain bool: one compilation serves every caller.
+TRUE, FALSE = np.True_, np.False_
+
+# A kernel with one compiled caller (besides Python): numba inlines its IR
+# there instead of compiling and linking a separate copy, whose optimisation
+# and machine code would be redone in every library above it (the caller's
+# library links all its callees' code). Called from Python, it compiles as
+# usual. Options as _jit's (nogil as on main) plus the inlining.
+_jit_inline = nb.njit(cache=True, fastmath=False, nogil=True, inline="always")
+
+# A helper that only compiled code calls: numba generates no Python (and no
+# first-class-function) entry point for it, a third of a small helper's
+# compile time. One called from Python (a test) keeps _jit.
+_jit_inner = nb.njit(cache=True, fastmath=False, no_cpython_wrapper=True, no_cfunc_wrapper=True)
+
 _SMALL2 = lie._SMALL ** 2
 _SMALLD2 = lie._SMALL_DERIV ** 2
 P_A, P_B, P_C = lie._P_A, lie._P_B, lie._P_C
@@ -29,7 +47,7 @@ _SMALLE2 = 1.0
 
 
 
-@_jit
+@_jit_inner
 def _horner(p, t2):
     out = p[0]
     for k in range(1, p.shape[0]):
@@ -37,7 +55,7 @@ def _horner(p, t2):
     return out
 
 
-@_jit
+@_jit_inner
 def _ad_vec(x, y, out):
     """out = ad(x) y = [w x yu + u x yw; w x yw]."""
     u0, u1, u2, w0, w1, w2 = x[0], x[1], x[2], x[3], x[4], x[5]
@@ -50,7 +68,7 @@ def _ad_vec(x, y, out):
     out[5] = w0 * b1 - w1 * b0
 
 
-@_jit
+@_jit_inner
 def _ad_mat(x, A):
     A[:, :] = 0.0
     u0, u1, u2, w0, w1, w2 = x[0], x[1], x[2], x[3], x[4], x[5]
@@ -69,7 +87,7 @@ def _ad_mat(x, A):
     A[2, 4] = u0
 
 
-@_jit
+@_jit_inner
 def _betas(t2):
     if t2 < _SMALL2:
         return _horner(P_B1, t2), _horner(P_B2, t2), _horner(P_B3, t2), _horner(P_B4, t2)
@@ -79,7 +97,7 @@ def _betas(t2):
             (2.0 - t * s - 2.0 * c) / (2 * t2 * t2), (2.0 * t - 3.0 * s + t * c) / (2 * t2 * t2 * t))
 
 
-@_jit
+@_jit_inner
 def _dbetas(t2):
     if t2 < _SMALLD2:
         return _horner(P_D1, t2), _horner(P_D2, t2), _horner(P_D3, t2), _horner(P_D4, t2)
@@ -93,7 +111,7 @@ def _dbetas(t2):
             (t * d3 - 4 * N3) / (2 * t ** 6), (t * d4 - 5 * N4) / (2 * t ** 7))
 
 
-@_jit
+@_jit_inner
 def _mm(A, B, out):
     """out = A @ B for small dense matrices, no allocation."""
     n, k = A.shape
@@ -106,7 +124,7 @@ def _mm(A, B, out):
             out[i, j] = acc
 
 
-@_jit
+@_jit_inner
 def _mtm(A, B, out):
     """out = A.T @ B."""
     k, n = A.shape
@@ -119,7 +137,7 @@ def _mtm(A, B, out):
             out[i, j] = acc
 
 
-@_jit
+@_jit_inner
 def _mv(A, x, out):
     for i in range(A.shape[0]):
         acc = 0.0
@@ -128,7 +146,7 @@ def _mv(A, x, out):
         out[i] = acc
 
 
-@_jit
+@_jit_inner
 def _mtv(A, x, out):
     for i in range(A.shape[1]):
         acc = 0.0
@@ -137,7 +155,7 @@ def _mtv(A, x, out):
         out[i] = acc
 
 
-@_jit
+@_jit_inner
 def _T_into(x, T, S):
     """T_se3(x) = I - b1 ad + b2 ad^2 - b3 ad^3 + b4 ad^4 from 3x3 blocks:
     ad^k = [[W^k, X_k], [0, W^k]] with X_k = sum_j W^j U W^(k-1-j),
@@ -185,7 +203,7 @@ def _T_into(x, T, S):
             T[i, j + 3] = -b1 * U[i, j] + b2 * X2[i, j] - b3 * X3[i, j] + b4 * X4
 
 
-@_jit
+@_jit_inner
 def _betas_dbetas(t2):
     """(_betas(t2), _dbetas(t2)) with one sqrt/sin/cos."""
     if t2 < _SMALLD2:
@@ -239,7 +257,7 @@ def _T_dot_into(x, xd, y, out, P, tmp, tmp2, acc):
             out[a] += sign * (dk * wwd * P[k, a] + bk * acc[a])
 
 
-@_jit
+@_jit_inner
 def _ad_t(x, y):
     """ad(x) y on 6-tuples (kept in registers): [w x yu + u x yw; w x yw]."""
     return (x[4] * y[2] - x[5] * y[1] + x[1] * y[5] - x[2] * y[4],
@@ -282,7 +300,7 @@ def _T_dot_along(x, X, Y):
             c1 * P1[5] + c2 * P2[5] + c3 * P3[5] + c4 * P4[5] + b2 * Q2[5] + b3 * Q3[5] + b4 * (x * A4[5] + B4[5]))
 
 
-@_jit
+@_jit_inner
 def _exp_into(x, g):
     w0, w1, w2 = x[3], x[4], x[5]
     t2 = w0 * w0 + w1 * w1 + w2 * w2
@@ -307,7 +325,7 @@ def _exp_into(x, g):
     g[3, 3] = 1.0
 
 
-@_jit
+@_jit_inner
 def _Ad_into(g, A, inverse):
     """A = Ad(g) or Ad(g)^-1 (inverse=True)."""
     p0, p1, p2 = g[0, 3], g[1, 3], g[2, 3]
@@ -342,12 +360,12 @@ def _Ad_into(g, A, inverse):
 # Cayley map (lie.cay_se3, lie.T_cay_se3 and the time derivative of the latter)
 # ----------------------------------------------------------------------------
 
-@_jit
+@_jit_inner
 def _cross(a0, a1, a2, b0, b1, b2):
     return a1 * b2 - a2 * b1, a2 * b0 - a0 * b2, a0 * b1 - a1 * b0
 
 
-@_jit
+@_jit_inner
 def _apply_inv_half(w, v, sign):
     """(I - sign hat(w)/2)^-1 v = v + (2 sign w x v + w x (w x v)) / (4 + t^2)."""
     t2 = w[0] * w[0] + w[1] * w[1] + w[2] * w[2]
@@ -357,7 +375,7 @@ def _apply_inv_half(w, v, sign):
     return (v[0] + k * (2 * sign * c0 + d0), v[1] + k * (2 * sign * c1 + d1), v[2] + k * (2 * sign * c2 + d2))
 
 
-@_jit
+@_jit_inner
 def _cay_into(x, g):
     """g = cay_se3(x) = [[I + k (W + W^2/2), (I - W/2)^-1 u], [0, 1]], k = 4/(4 + t^2)."""
     w0, w1, w2 = x[3], x[4], x[5]
@@ -375,7 +393,7 @@ def _cay_into(x, g):
     g[3, 3] = 1.0
 
 
-@_jit
+@_jit_inner
 def _T_cay_into(x, T):
     """T = lie.T_cay_se3(x) = [[P, -P hat(Q u/2)], [0, k (I - W/2)]] with
     P = (I + W/2)^-1, Q = (I - W/2)^-1, k = 4/(4 + t^2)."""
@@ -401,7 +419,7 @@ def _T_cay_into(x, T):
             T[i, j + 3] = -(P[i, 0] * H[0][j] + P[i, 1] * H[1][j] + P[i, 2] * H[2][j])
 
 
-@_jit
+@_jit_inner
 def _T_cay_dot_into(x, xd, y, out):
     """out = (d/dt T_cay_se3(x))[xd] y: with T y = [P z; k (y_w - w x y_w / 2)],
     z = y_u - (Q u / 2) x y_w, dP = -P hat(wd/2) P, dQ = Q hat(wd/2) Q,
@@ -429,7 +447,7 @@ def _T_cay_dot_into(x, xd, y, out):
         out[i + 3] = dk * (y[3 + i] - 0.5 * wy[i]) - 0.5 * k * wdy[i]
 
 
-@_jit
+@_jit_inner
 def _map_into(kmap, x, g):
     """Kinematic map of a soft section: exp (kmap 0) or Cayley (1)."""
     if kmap == 1:
@@ -438,7 +456,7 @@ def _map_into(kmap, x, g):
         _exp_into(x, g)
 
 
-@_jit
+@_jit_inner
 def _tangent_into(kmap, x, T, S3):
     if kmap == 1:
         _T_cay_into(x, T)
@@ -446,7 +464,7 @@ def _tangent_into(kmap, x, T, S3):
         _T_into(x, T, S3)
 
 
-@_jit
+@_jit_inner
 def _tangent_dot_into(kmap, x, xd, y, out, P, tmp, tmp2, acc):
     if kmap == 1:
         _T_cay_dot_into(x, xd, y, out)
@@ -454,7 +472,7 @@ def _tangent_dot_into(kmap, x, xd, y, out, P, tmp, tmp2, acc):
         _T_dot_into(x, xd, y, out, P, tmp, tmp2, acc)
 
 
-@_jit
+@_jit_inner
 def _d2betas(t2):
     """d/d(t2) of the coefficients g_k = (d beta_k/d theta)/theta of
     :func:`_dbetas` (k = 1..4): with g_k = (t N_k' - m N_k)/(2 t^(m+2)),
@@ -475,7 +493,7 @@ def _d2betas(t2):
     return out[0], out[1], out[2], out[3]
 
 
-@_jit
+@_jit_inner
 def _T_d2_into(x, a, b, y, out):
     """out = D^2 T_se3(x)[a, b] y: the second directional derivative of the
     tangent operator (exponential map). With T = sum_k s_k beta_k ad(x)^k,

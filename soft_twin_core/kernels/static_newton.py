@@ -26,16 +26,16 @@ import numpy as np
 
 from ..forces import actuation_tangent_pass
 from ..integrators import residual_pass
-from .spatial import _jit
+from .spatial import TRUE, _jit, _jit_inline, _jit_inner
 from .tangent import static_tangent_pass
 
 
-@_jit
+@_jit_inline
 def _residual(m, w, act, ld, g, coef, zeros, q, out):
-    residual_pass(m, w, act, ld, g, coef, zeros, q, zeros, zeros, out, True)
+    residual_pass(m, w, act, ld, g, coef, zeros, q, zeros, zeros, out, TRUE)
 
 
-@_jit
+@_jit_inline
 def _tangent(m, w, act, ld, g, coef, K, Kt):
     """dR/dq at the q of the workspace's last residual_pass, whose poses and
     RNEA wrenches at rest it reads (no pass of its own)."""
@@ -44,7 +44,7 @@ def _tangent(m, w, act, ld, g, coef, K, Kt):
     actuation_tangent_pass(m, w, act, coef, Kt)
 
 
-@_jit
+@_jit_inner
 def _scale(K, q, q0, R):
     """max(|K (q - q0)|, |K (q - q0) - R|): the elastic and the applied force."""
     n = q.shape[0]
@@ -57,7 +57,7 @@ def _scale(K, q, q0, R):
     return s
 
 
-@_jit
+@_jit_inner
 def _converged(absK, q, q0, R, scale, tol):
     """|R_i| <= tol scale + 64 eps (|K| (|q| + |q0|))_i for every i."""
     n = q.shape[0]
@@ -71,7 +71,7 @@ def _converged(absK, q, q0, R, scale, tol):
     return True
 
 
-@_jit
+@_jit_inner
 def _norm(x):
     s = 0.0
     for i in range(x.shape[0]):
@@ -79,7 +79,7 @@ def _norm(x):
     return np.sqrt(s)
 
 
-@_jit
+@_jit_inner
 def _finite(x):
     for i in range(x.shape[0]):
         if not np.isfinite(x[i]):
@@ -87,7 +87,7 @@ def _finite(x):
     return True
 
 
-@_jit
+@_jit_inner
 def _solve(A, b, out):
     """out = A^-1 b by Gaussian elimination with partial pivoting (no BLAS or
     LAPACK: the kernel loads without scipy); False if A is singular (an

@@ -29,12 +29,12 @@ with fs, ms the summed dead forces and moments of the set and
 
 import numpy as np
 
-from .spatial import _Ad_into, _T_cay_dot_into, _betas_dbetas, _jit, _map_into, _tangent_into
+from .spatial import FALSE, _Ad_into, _T_cay_dot_into, _betas_dbetas, _jit, _jit_inner, _map_into, _tangent_into
 
 SOFT = 5
 
 
-@_jit
+@_jit_inner
 def _adT_vec(x, y, out):
     """out = ad(x)^T y = [-w x yu; -u x yu - w x yw]."""
     u0, u1, u2, w0, w1, w2 = x[0], x[1], x[2], x[3], x[4], x[5]
@@ -47,7 +47,7 @@ def _adT_vec(x, y, out):
     out[5] = -(u0 * a1 - u1 * a0) - (w0 * b1 - w1 * b0)
 
 
-@_jit
+@_jit_inner
 def _Tdot_T_columns(kmap, x, f, out):
     """out[:, b] = (d/dx T(x)[e_b])^T f, b = 0..5 (the transposed directional
     derivatives of the tangent operator applied to a wrench f)."""
@@ -95,9 +95,9 @@ def _Tdot_T_columns(kmap, x, f, out):
                 out[a, b] += sign * (dd[k - 1] * wwd * P[k, a] + bb[k - 1] * acc[a])
 
 
-@_jit
+@_jit_inner
 def _spatial_subspace(g, S, nv, Sw, Ad):
-    _Ad_into(g, Ad, False)
+    _Ad_into(g, Ad, FALSE)
     for r in range(6):
         for a in range(nv):
             acc = 0.0
@@ -106,7 +106,7 @@ def _spatial_subspace(g, S, nv, Sw, Ad):
             Sw[r, a] = acc
 
 
-@_jit
+@_jit_inner
 def _add_set(nv, Sw, fs, Ph, ms, Ff, Y, Z, D, Om, with_diag):
     """Y += (Lam + Psi) Sw, Z += Sw^T Gam, D += Sw^T Gam Om (with_diag) for
     a moving set with dead sums (fs, Ph, ms) and follower sum Ff."""
@@ -157,17 +157,20 @@ def _add_set(nv, Sw, fs, Ph, ms, Ff, Y, Z, D, Om, with_diag):
                 D[a, b] += SG[a, 0] * Om[3, b] + SG[a, 1] * Om[4, b] + SG[a, 2] * Om[5, b]
 
 
-@_jit
-def _dead_point(fd, md, p, fs, Ph, ms):
-    """Dead sums of one wrench (fd, md) at world position p (accumulated)."""
+@_jit_inner
+def _dead_point(fd, md, p0, p1, p2, fs, Ph, ms):
+    """Dead sums of one wrench (fd, md) at world position (p0, p1, p2)
+    (accumulated; the position as numbers, so that callers holding it in a
+    vector or in a pose's column share one compilation)."""
     for r in range(3):
         fs[r] += fd[r]
         ms[r] += md[r]
-        for c in range(3):
-            Ph[r, c] += fd[r] * p[c]
+        Ph[r, 0] += fd[r] * p0
+        Ph[r, 1] += fd[r] * p1
+        Ph[r, 2] += fd[r] * p2
 
 
-@_jit
+@_jit_inner
 def _own_term(kmap, x, strain, modes, nv, fb, D, tmp6):
     """D[a, b] += x^2 [(d/dx T(x f)[e_mb])^T fb]_ma: the change of the own
     subspace x T(x f) B of a soft cross-section carrying the body wrench fb."""
@@ -220,7 +223,7 @@ def static_tangent_pass(m, w, ld, g, Kt):
                 pw[r] = w.g_out[i, r, 3] + w.g_out[i, r, 0] * c[0] + w.g_out[i, r, 1] * c[1] \
                     + w.g_out[i, r, 2] * c[2]
                 fd[r] = -mass * g[r]
-            _dead_point(fd, z3, pw, fs[i], Ph[i], ms[i])
+            _dead_point(fd, z3, pw[0], pw[1], pw[2], fs[i], Ph[i], ms[i])
     for l in range(ld.joint.shape[0]):
         i = ld.joint[l]
         if ld.x[l] >= 0.0 and m.kind[i] == SOFT:
@@ -243,7 +246,7 @@ def static_tangent_pass(m, w, ld, g, Kt):
                     mass = m.pw[i, p] * m.mc[i, 0]
                     for r in range(3):
                         fd[r] = -mass * g[r]
-                    _dead_point(fd, z3, gp[:3, 3], pfs, pPh, pms)
+                    _dead_point(fd, z3, gp[0, 3], gp[1, 3], gp[2, 3], pfs, pPh, pms)
                     for a in range(6):
                         fb[a] = w.fp[i, p, a]
                 else:
@@ -311,7 +314,7 @@ def static_tangent_pass(m, w, ld, g, Kt):
             j = m.parent[j]
 
 
-@_jit
+@_jit_inner
 def _mm4(A, B, out):
     for r in range(3):
         for c in range(4):
@@ -325,7 +328,7 @@ def _mm4(A, B, out):
     out[3, 3] = 1.0
 
 
-@_jit
+@_jit_inner
 def _point_subspace(kmap, x6, x, modes, nv, Sp):
     T = np.empty((6, 6))
     S3 = np.empty((7, 3, 3))
@@ -335,7 +338,7 @@ def _point_subspace(kmap, x6, x, modes, nv, Sp):
             Sp[r, a] = x * T[r, modes[a]]
 
 
-@_jit
+@_jit_inner
 def _add_load(ld, l, g, fs, Ph, ms, Ff, fb, Ad):
     """Sums of load l (RNEA sign: minus the applied wrench) at world pose g;
     fb receives its body wrench."""
@@ -346,7 +349,7 @@ def _add_load(ld, l, g, fs, Ph, ms, Ff, fb, Ad):
         for r in range(3):
             fd[r] = -W[r]
             md[r] = -W[3 + r]
-        _dead_point(fd, md, g[:3, 3], fs, Ph, ms)
+        _dead_point(fd, md, g[0, 3], g[1, 3], g[2, 3], fs, Ph, ms)
         for a in range(3):
             fb[a] = -(g[0, a] * W[0] + g[1, a] * W[1] + g[2, a] * W[2])
             fb[3 + a] = -(g[0, a] * W[3] + g[1, a] * W[4] + g[2, a] * W[5])

@@ -1,0 +1,88 @@
+"""Start-up of a new process (issue 10): numba's BLAS probe is answered
+without importing scipy.linalg, and a kernel that does use BLAS still works.
+
+Each check runs in a fresh interpreter (the probe happens once per process,
+at numba's first compile or cache load).
+"""
+
+import os
+import subprocess
+import sys
+import textwrap
+
+ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+
+
+def _run(code):
+    env = dict(os.environ, PYTHONPATH=ROOT + os.pathsep + os.environ.get("PYTHONPATH", ""))
+    p = subprocess.run([sys.executable, "-c", textwrap.dedent(code)], env=env, capture_output=True, text=True,
+                       timeout=300, cwd=ROOT)
+    assert p.returncode == 0, p.stderr
+    return p.stdout
+
+
+def test_statics_and_dynamics_start_without_scipy_linalg():
+    out = _run("""
+        import sys
+        from soft_twin_core import dynamics as dy, statics as st
+        from soft_twin_core.model import benchmark_cantilever_dict, model_from_dict
+        m = model_from_dict(benchmark_cantilever_dict(2, "all"))
+        st.solve_statics(m)
+        assert dy.Simulator(m, 2e-3).step(5).converged
+        import numba.np.arraymath as am, numba.np.linalg as nl
+        print(am._HAVE_BLAS, "scipy.linalg" in sys.modules, am.ensure_blas is nl.ensure_blas,
+              nl.ensure_blas.__module__)
+    """)
+    assert out.split() == ["True", "False", "True", "numba.np.linalg"]
+
+
+def test_a_blas_kernel_still_compiles_after_the_skipped_probe():
+    # np.dot of two vectors goes through BLAS when numba found one (the
+    # probe's answer); np.linalg.solve through LAPACK: both import scipy.linalg
+    # at compile time, with the real probe
+    out = _run("""
+        import sys
+        import numba as nb, numpy as np
+        import soft_twin_core.kernels  # noqa: F401  (skips the probe)
+        assert "scipy.linalg" not in sys.modules
+
+        @nb.njit
+        def f(a, b, A):
+            return np.dot(a, b), np.linalg.solve(A, b)
+
+        a, b = np.array([1.0, 2.0, 3.0]), np.array([4.0, -5.0, 6.0])
+        A = np.array([[4.0, 1.0, 0.0], [1.0, 3.0, 1.0], [0.0, 1.0, 2.0]])
+        d, x = f(a, b, A)
+        assert d == 12.0 and np.allclose(A @ x, b, rtol=0, atol=1e-14)
+        print("scipy.linalg" in sys.modules)
+    """)
+    assert out.split() == ["True"]
+
+
+def test_probe_is_left_alone_once_numba_has_run():
+    out = _run("""
+        import numba.np.arraymath  # noqa: F401  (numba's own probe, with scipy.linalg)
+        from soft_twin_core.kernels._blas_probe import skip_probe
+        print(skip_probe())
+    """)
+    assert out.split() == ["False"]
+
+
+def test_warm_up_purges_every_kernel_cache_when_a_source_changes(tmp_path):
+    """numba checks a cached kernel against its own file only, so a change in
+    a callee's file must clear the package's caches (warmup.purge_stale_caches)."""
+    from soft_twin_core.warmup import purge_stale_caches
+    pkg = tmp_path / "soft_twin_core"
+    (pkg / "kernels" / "__pycache__").mkdir(parents=True)
+    (pkg / "a.py").write_text("x = 1\n")
+    (pkg / "kernels" / "b.py").write_text("y = 2\n")
+    caches = [pkg / "kernels" / "__pycache__" / "b.f-1.py311.nbi", pkg / "kernels" / "__pycache__" / "b.f-1.py311.1.nbc"]
+    assert purge_stale_caches(pkg)                     # first time: no stamp
+    for c in caches:
+        c.write_bytes(b"cache")
+    assert not purge_stale_caches(pkg)                 # nothing changed: caches kept
+    assert all(c.exists() for c in caches)
+    (pkg / "a.py").write_text("x = 3\n")               # a source elsewhere changes
+    assert purge_stale_caches(pkg)
+    assert not any(c.exists() for c in caches)
+    assert not purge_stale_caches(pkg)
