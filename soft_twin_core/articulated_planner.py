@@ -47,7 +47,7 @@ import numpy as np
 
 from . import algorithms as alg
 from . import constrained as cs
-from .planner import Plan, PlanError, _number, box_lstsq, rate_bounds, warm_start
+from .planner import Plan, PlanError, _number, bounded_gauss_newton_step, rate_bounds, warm_start
 from .statics import StaticsError
 from .workspace import Workspace
 
@@ -235,7 +235,6 @@ class ArticulatedTipSolver:
         return x, eq, g, float(np.linalg.norm(d)), we, reached, status, it_total
 
     def _gauss_newton(self, x, eq, g, e, target, lo, hi, eps, x_ref, scale):
-        n = x.size
         tol = self.options.tolerance
         lam = 0.0
         it = 0
@@ -260,18 +259,7 @@ class ArticulatedTipSolver:
             c0 = cost(x, e)
             improved = False
             for _ in range(10):
-                rows, rhs = [Je], [-e]
-                if eps > 0:
-                    rows.append(eps * np.diag(scale))
-                    rhs.append(-eps * scale * (x - x_ref))
-                rows.append(np.sqrt(max(lam, 1e-12)) * np.diag(scale))
-                rhs.append(np.zeros(n))
-                A, b = np.vstack(rows), np.concatenate(rhs)
-                dlo, dhi = lo - x, np.maximum(hi - x, lo - x)
-                fixed = dhi - dlo <= 0
-                dx = np.zeros(n)
-                if np.any(~fixed):
-                    dx[~fixed] = box_lstsq(A[:, ~fixed], b, dlo[~fixed], dhi[~fixed])
+                dx, _ = bounded_gauss_newton_step(Je, e, x, lo, hi, scale, eps, x_ref, lam)
                 if np.linalg.norm(dx * scale) <= 1e-3 * tol:
                     return x, eq, g, e, it, scale
                 x_new = np.clip(x + dx, lo, hi)

@@ -173,6 +173,30 @@ def box_lstsq(A, b, lo, hi, max_iterations=None):
                             np.ascontiguousarray(hi, dtype=float), int(max_iterations or 10 * n + 10))
 
 
+def bounded_gauss_newton_step(Je, e, x, lo, hi, scale, eps, x_ref, lam):
+    """The step dx of a regularised Gauss-Newton iteration inside the box:
+    min |Je dx + e|^2 + |eps scale (x + dx - x_ref)|^2 + lam |scale dx|^2
+    subject to lo <= x + dx <= hi (Levenberg-Marquardt damping ``lam``,
+    floored at 1e-12; ``eps`` > 0 pulls toward ``x_ref``: the least-input
+    resolution of redundancy). Inputs whose box is empty stay put. Returns
+    (dx, all_fixed)."""
+    n = x.size
+    rows, rhs = [Je], [-e]
+    if eps > 0:
+        rows.append(eps * np.diag(scale))
+        rhs.append(-eps * scale * (x - x_ref))
+    rows.append(np.sqrt(max(lam, 1e-12)) * np.diag(scale))
+    rhs.append(np.zeros(n))
+    A, b = np.vstack(rows), np.concatenate(rhs)
+    dlo = lo - x
+    dhi = np.maximum(hi - x, dlo)
+    free = dhi - dlo > 0
+    dx = np.zeros(n)
+    if np.any(free):
+        dx[free] = box_lstsq(A[:, free], b, dlo[free], dhi[free])
+    return dx, not np.any(free)
+
+
 # ----------------------------------------------------------------------------
 # Options, bounds
 # ----------------------------------------------------------------------------
@@ -412,7 +436,6 @@ class TipSolver:
         return SampleResult(u, q, g, pe, we, oe, reached, status, it_total)
 
     def _gauss_newton(self, u, q, g, e, target, lo, hi, eps, with_rot, hint):
-        n = u.size
         lam = 0.0
         it = 0
         scale = None
@@ -437,22 +460,9 @@ class TipSolver:
             c0 = cost(u, e)
             improved = False
             for _ in range(10):
-                rows, rhs = [Je], [-e]
-                if eps > 0:
-                    rows.append(eps * np.diag(scale))
-                    rhs.append(-eps * scale * (u - lo_reg))
-                lam_eff = max(lam, 1e-12)
-                rows.append(np.sqrt(lam_eff) * np.diag(scale))
-                rhs.append(np.zeros(n))
-                A, b = np.vstack(rows), np.concatenate(rhs)
-                dlo, dhi = lo - u, hi - u
-                dhi = np.maximum(dhi, dlo)
-                if np.all(dhi - dlo <= 0):
+                du, all_fixed = bounded_gauss_newton_step(Je, e, u, lo, hi, scale, eps, lo_reg, lam)
+                if all_fixed:
                     return u, q, g, e, it, scale, hint
-                fixed = dhi - dlo <= 0
-                du = np.zeros(n)
-                if np.any(~fixed):
-                    du[~fixed] = box_lstsq(A[:, ~fixed], b, dlo[~fixed], dhi[~fixed])
                 if np.linalg.norm(du * scale) <= 1e-14 * max(np.linalg.norm(u * scale), tol):
                     return u, q, g, e, it, scale, hint
                 # the linear model promises (almost) nothing: at the (regularised) optimum
