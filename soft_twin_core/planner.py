@@ -54,6 +54,7 @@ from . import lie
 from . import statics as st
 from ._blas import one_blas_thread
 from .loads import Loads
+from .kernels.tip_error import error_jacobian, tip_error
 from .paths import TipPath
 
 
@@ -65,26 +66,29 @@ class PlanError(ValueError):
 # Exact sensitivities
 # ----------------------------------------------------------------------------
 
-def actuation_matrix(model, q):
+def actuation_matrix(model, q, ws=None):
     """B(q) (n_dof, n_actuators) with ``tau_act(q, u) = B(q) u`` exactly:
     distributed actuators by the compiled actuation pass with unit inputs,
     point-moment tendons as ``J_body(end)^T [0; d(end) x (-c e_x)]``."""
-    from . import algorithms as alg
-    from .forces import actuation_pass
     from .kernels import passes
     from .workspace import thread_workspace
-    tree = model.tree
-    ws = thread_workspace(tree)
+    ws = thread_workspace(model.tree) if ws is None else ws
     q = np.ascontiguousarray(q, dtype=float)
-    zeros = np.zeros(tree.nv)
-    n_act = len(model.actuators)
-    B = np.zeros((tree.nv, n_act))
+    passes.forward_pass(ws.m, ws.w, q, ws.zeros_v, ws.zeros_v, 0)
+    return _actuation_columns(model, ws, q)
+
+
+def _actuation_columns(model, ws, q):
+    """:func:`actuation_matrix` on a workspace already posed at q (forward
+    pass, level 0)."""
+    from . import algorithms as alg
+    from .forces import actuation_pass
+    tree = model.tree
+    B = np.zeros((tree.nv, len(model.actuators)))
     act = st._actuators(model)
-    passes.forward_pass(ws.m, ws.w, q, zeros, zeros, 0)
     for k, a in enumerate(model.actuators):
         if a.tendon_model != "point_moment":
-            coef = np.ascontiguousarray(act.unit[:, k])
-            actuation_pass(ws.m, ws.w, act, coef, B[:, k])
+            actuation_pass(ws.m, ws.w, act, np.ascontiguousarray(act.unit[:, k]), B[:, k])
     for k, a in enumerate(model.actuators):
         if a.tendon_model == "point_moment":
             path = tree.path_of_actuator(k)
@@ -127,6 +131,31 @@ class _Equilibrium:
     def tangent(self, q, u):
         return self._set(u).tangent(q)
 
+    def tip_pose(self, q):
+        """World tip pose (4x4) at q (checked), on this problem's workspace."""
+        from .kernels import passes
+        from .kernels.frames import point_pose
+        ws = self.pb.ws
+        passes.forward_pass(ws.m, ws.w, q, ws.zeros_v, ws.zeros_v, 0)
+        g = np.empty((4, 4))
+        point_pose(ws.m, ws.w, self.model.tree.n_joints - 1, -1.0, g)
+        return g
+
+    def sensitivity(self, q, u, Kt=None):
+        """(tip pose, spatial tip Jacobian (6, n_dof), dq/du = Kt^-1 B) at the
+        equilibrium (q, u) (q contiguous), from one forward pass; ``Kt``: the
+        statics tangent if at hand, else computed at q."""
+        from .kernels import passes
+        from .kernels.frames import spatial_jacobian
+        if Kt is None:
+            Kt = self.tangent(q, u)
+        ws = self.pb.ws
+        passes.forward_pass(ws.m, ws.w, q, ws.zeros_v, ws.zeros_v, 0)
+        B = _actuation_columns(self.model, ws, q)
+        g, Js = np.empty((4, 4)), np.empty((6, self.model.tree.nv))
+        spatial_jacobian(ws.m, ws.w, self.model.tree.n_joints - 1, -1.0, g, Js)
+        return g, Js, np.linalg.solve(Kt, B)
+
     def newton(self, q, u, hint=None, tol=1e-12):
         """(q, converged and stable, last tangent): Newton from q under u."""
         pb = self._set(np.asarray(u, dtype=float))
@@ -146,12 +175,8 @@ def tip_sensitivity(model, q, u, loads=None, _eq=None, Kt=None):
     evaluated within Newton's last step of q), else computed at q."""
     loads = Loads() if loads is None else loads
     eq = _Equilibrium(model, loads) if _eq is None else _eq
-    u = np.asarray(u, dtype=float)
-    if Kt is None:
-        Kt = eq.tangent(q, u)
-    B = actuation_matrix(model, q)
-    g, Js = kin.tip_and_spatial_jacobian(model, np.ascontiguousarray(q, dtype=float))
-    return g, lie.Ad_inv(g) @ Js, np.linalg.solve(Kt, B)
+    g, Js, dq_du = eq.sensitivity(np.ascontiguousarray(q, dtype=float), np.asarray(u, dtype=float), Kt)
+    return g, lie.Ad_inv(g) @ Js, dq_du
 
 
 def tip_position_sensitivity(model, q, u, loads=None):
@@ -178,23 +203,16 @@ def bounded_gauss_newton_step(Je, e, x, lo, hi, scale, eps, x_ref, lam):
     min |Je dx + e|^2 + |eps scale (x + dx - x_ref)|^2 + lam |scale dx|^2
     subject to lo <= x + dx <= hi (Levenberg-Marquardt damping ``lam``,
     floored at 1e-12; ``eps`` > 0 pulls toward ``x_ref``: the least-input
-    resolution of redundancy). Inputs whose box is empty stay put. Returns
-    (dx, all_fixed)."""
-    n = x.size
-    rows, rhs = [Je], [-e]
-    if eps > 0:
-        rows.append(eps * np.diag(scale))
-        rhs.append(-eps * scale * (x - x_ref))
-    rows.append(np.sqrt(max(lam, 1e-12)) * np.diag(scale))
-    rhs.append(np.zeros(n))
-    A, b = np.vstack(rows), np.concatenate(rhs)
-    dlo = lo - x
-    dhi = np.maximum(hi - x, dlo)
-    free = dhi - dlo > 0
-    dx = np.zeros(n)
-    if np.any(free):
-        dx[free] = box_lstsq(A[:, free], b, dlo[free], dhi[free])
-    return dx, not np.any(free)
+    resolution of redundancy), by the compiled BVLS
+    (:func:`kernels.bvls.regularised_box_step`). Inputs whose box is empty
+    stay put. Returns (dx, all_fixed)."""
+    from .kernels.bvls import regularised_box_step
+    c = np.ascontiguousarray
+    dx = np.empty(x.size)
+    held = regularised_box_step(c(Je, dtype=float), c(e, dtype=float), c(x, dtype=float), c(lo, dtype=float),
+                                c(hi, dtype=float), c(scale, dtype=float), float(eps), c(x_ref, dtype=float),
+                                float(lam), dx)
+    return dx, bool(held)
 
 
 # ----------------------------------------------------------------------------
@@ -340,9 +358,8 @@ class TipSolver:
 
     # -- error model ------------------------------------------------------
     def _error(self, g, target, with_rot):
-        e = self.sw * (target[:3, 3] - g[:3, 3])
-        if with_rot:
-            e = np.concatenate([e, self.swo * lie.log_so3(g[:3, :3].T @ target[:3, :3])])
+        e = np.empty(6 if with_rot else 3)
+        tip_error(np.ascontiguousarray(g, dtype=float), target, self.sw, self.swo, with_rot, e)
         return e
 
     def _error_jacobian(self, g, e, q, u, with_rot, Kt=None):
@@ -355,14 +372,10 @@ class TipSolver:
         return Je
 
     def _error_jacobian_new(self, g, e, q, u, with_rot, Kt=None):
-        g_, J, dq_du = tip_sensitivity(self.model, q, u, self.loads, self.eq, Kt)
+        g_, Js, dq_du = self.eq.sensitivity(q, u, Kt)
         self._dq_du = (q, np.array(u), dq_du)
-        R = g[:3, :3]
-        Je = -(self.sw[:, None] * (R @ J[:3] @ dq_du))
-        if with_rot:
-            er = e[3:] / self.swo if self.swo > 0 else np.zeros(3)
-            Jr = -self.swo * (lie.T_so3_inv(-er) @ J[3:] @ dq_du)
-            Je = np.vstack([Je, Jr])
+        Je = np.empty((e.size, dq_du.shape[1]))
+        error_jacobian(g_, Js, dq_du, e, self.sw, self.swo, with_rot, Je)
         return Je
 
     def _statics(self, u, q_init, hint=None, q_guess=None):
@@ -374,8 +387,7 @@ class TipSolver:
             if start is not None:
                 q, ok, Kt = self.eq.newton(np.asarray(start, float), u, hint)
                 if ok:
-                    g, _ = kin.tip_and_spatial_jacobian(self.model, q)
-                    return _Eq(q, g, Kt)
+                    return _Eq(q, self.eq.tip_pose(q), Kt)
         return st.solve_statics(self.model, u, self.loads, q_init=q_init, tangent_hint=hint)
 
     def _predicted(self, q, u, u_new):
@@ -388,9 +400,9 @@ class TipSolver:
         return q + d[2] @ (u_new - u)
 
     def _errors(self, g, target, with_rot):
-        dp = target[:3, 3] - g[:3, 3]
-        oe = float(np.linalg.norm(lie.log_so3(g[:3, :3].T @ target[:3, :3]))) if with_rot else 0.0
-        return float(np.linalg.norm(dp)), float(np.linalg.norm(self.sw * dp)), oe
+        """(position distance [m], weighted position error [m], orientation error [rad] or 0)."""
+        return tip_error(np.ascontiguousarray(g, dtype=float), np.ascontiguousarray(target, dtype=float), self.sw,
+                         self.swo, with_rot, np.empty(6))
 
     def _reached(self, g, target, with_rot):
         _, we, oe = self._errors(g, target, with_rot)
@@ -415,6 +427,7 @@ class TipSolver:
         lo = self.lower if lower is None else np.asarray(lower, float)
         hi = self.upper if upper is None else np.asarray(upper, float)
         with_rot = getattr(self, "_with_rot", False) and self.swo > 0
+        target = np.ascontiguousarray(target, dtype=float)
         u = np.clip(np.asarray(u_init, dtype=float), lo, hi)
         with one_blas_thread():
             try:

@@ -62,9 +62,16 @@ def run():
             "actuation": {"t": 0.5}, "loads": [{"s": "tip", "force": [0, 0, -0.01]}]})
         run_statics(sc, 2)
         run_dynamics(sc, 2e-3, 1e-3, 1, points_per_section=2)
-    # the actuation IK's bounded least squares (node's ~/inverse_kinematics, the planner)
-    from .planner import box_lstsq
-    box_lstsq(np.eye(3, 2), np.ones(3), np.zeros(2), np.array([np.inf, 0.5]))
+    # the actuation IK (node's ~/inverse_kinematics, the planner): its tip
+    # error, sensitivities and bounded least squares, position and full pose
+    from . import planner as pl
+    robot = tiny_models()[0]
+    solver = pl.TipSolver(robot)
+    target = st.solve_statics(robot, {"t": 0.3}).tip_pose
+    for with_rot in (False, True):
+        solver._with_rot = with_rot
+        solver.solve(target, np.zeros(1), None)
+    pl.box_lstsq(np.eye(3, 2), np.ones(3), np.zeros(2), np.array([np.inf, 0.5]))
     tiny_mechanism_run()
 
 

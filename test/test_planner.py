@@ -290,6 +290,77 @@ def test_box_lstsq_matches_scipy_bvls():
         assert f(x) <= f(ref) + 1e-9 * max(1.0, f(ref))
 
 
+def test_bounded_gauss_newton_step_solves_the_stacked_problem():
+    """The compiled step (kernels.bvls.regularised_box_step) against scipy's
+    BVLS on the stacked least squares written out from its definition,
+    held inputs (empty box) left out."""
+    from scipy.optimize import lsq_linear
+    rng = np.random.default_rng(5)
+    for _ in range(200):
+        m, n = rng.integers(1, 7), rng.integers(1, 6)
+        Je, e = rng.normal(size=(m, n)), rng.normal(size=m)
+        x = rng.uniform(0, 2, n)
+        lo = np.where(rng.uniform(size=n) < 0.5, 0.0, x - rng.uniform(0, 1, n))
+        hi = np.where(rng.uniform(size=n) < 0.2, np.inf, x + rng.uniform(0, 1, n))
+        held = rng.uniform(size=n) < 0.15
+        lo[held], hi[held] = x[held], x[held]
+        scale, x_ref = rng.uniform(0.1, 3, n), rng.uniform(0, 1, n)
+        eps, lam = rng.choice([0.0, 1e-3, 0.3]), rng.choice([0.0, 1e-4, 0.5])
+        dx, all_held = pl.bounded_gauss_newton_step(Je, e, x, lo, hi, scale, eps, x_ref, lam)
+        assert all_held == bool(np.all(held))
+        assert np.all(dx[held] == 0.0) and np.all(x + dx >= lo) and np.all(x + dx <= hi)
+        A = np.vstack([Je, eps * np.diag(scale), np.sqrt(max(lam, 1e-12)) * np.diag(scale)])
+        b = np.concatenate([-e, -eps * scale * (x - x_ref), np.zeros(n)])
+        f = lambda z: np.sum((A @ z - b) ** 2)  # noqa: E731
+        ref = np.zeros(n)
+        if np.any(~held):
+            ref[~held] = lsq_linear(A[:, ~held], b, bounds=((lo - x)[~held], (hi - x)[~held]), method="bvls",
+                                    tol=1e-13).x
+        assert f(dx) <= f(ref) + 1e-9 * max(1.0, f(ref))
+
+
+def test_tip_error_kernels_match_their_definitions(arm):
+    """kernels.tip_error: e against lie.log_so3 (small angles, generic, near
+    pi); de/du against central differences of e along dq/du of the
+    equilibrium (the tip pose of q + h dq/du dv)."""
+    from soft_twin_core import lie
+    from soft_twin_core.kernels.tip_error import error_jacobian, tip_error
+    rng = np.random.default_rng(2)
+    sw, swo = np.array([1.0, 0.5, 2.0]), 0.3
+    for k in range(300):
+        w = rng.normal(size=3)
+        angle = (1e-7, 0.1, rng.uniform(0, np.pi), np.pi - 1e-6, np.pi - 1e-10)[k % 5]
+        w *= angle / np.linalg.norm(w)
+        g = np.eye(4)
+        g[:3, :3], g[:3, 3] = lie.exp_so3(rng.normal(size=3)), rng.normal(size=3)
+        t = np.eye(4)
+        t[:3, :3], t[:3, 3] = g[:3, :3] @ lie.exp_so3(w), rng.normal(size=3)
+        e = np.empty(6)
+        pe, we, oe = tip_error(g, t, sw, swo, True, e)
+        ref = lie.log_so3(g[:3, :3].T @ t[:3, :3])
+        np.testing.assert_allclose(e[3:] / swo, ref, rtol=0, atol=1e-12)
+        np.testing.assert_allclose(e[:3], sw * (t[:3, 3] - g[:3, 3]), rtol=1e-15, atol=0)
+        assert abs(pe - np.linalg.norm(t[:3, 3] - g[:3, 3])) < 1e-14 and abs(oe - np.linalg.norm(ref)) < 1e-12
+        assert abs(we - np.linalg.norm(e[:3])) < 1e-14
+    # the Jacobian: e(q(u)) with q(u) linear along dq/du, through the engine's tip pose
+    solver = pl.TipSolver(arm)
+    u = np.array([1.0, 0.0, 0.5, 0.0])
+    q = st.solve_statics(arm, u).q
+    g, Js, dq_du = solver.eq.sensitivity(np.ascontiguousarray(q), u)
+    target = np.eye(4)
+    target[:3, :3], target[:3, 3] = lie.exp_so3([0.3, -0.2, 0.5]), g[:3, 3] + [0.01, -0.02, 0.03]
+    solver.sw, solver.swo = sw, swo
+    for with_rot in (False, True):
+        e = solver._error(g, target, with_rot)
+        Je = np.empty((e.size, 4))
+        error_jacobian(g, Js, dq_du, e, sw, swo, with_rot, Je)
+        h = 1e-6
+        fd = np.column_stack([(solver._error(solver.eq.tip_pose(q + h * dq_du[:, k]), target, with_rot)
+                               - solver._error(solver.eq.tip_pose(q - h * dq_du[:, k]), target, with_rot)) / (2 * h)
+                              for k in range(4)])
+        np.testing.assert_allclose(Je, fd, rtol=1e-6, atol=1e-9 * np.abs(fd).max())
+
+
 def test_a_sample_whose_statics_fails_from_every_start_is_held_and_flagged(arm, monkeypatch):
     """A sample whose statics fails from the extrapolated start and from the
     sample before keeps that sample's inputs and shape, flagged

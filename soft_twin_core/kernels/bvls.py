@@ -112,3 +112,44 @@ def box_lstsq_kernel(A, b, lo, hi, max_iterations):
     for j in range(n):
         x[j] = min(max(x[j], lo[j]), hi[j])
     return x
+
+
+@_jit
+def regularised_box_step(Je, e, x, lo, hi, scale, eps, x_ref, lam, dx):
+    """dx of :func:`soft_twin_core.planner.bounded_gauss_newton_step`:
+    min |Je dx + e|^2 + |eps scale (x + dx - x_ref)|^2 + max(lam, 1e-12) |scale dx|^2
+    subject to lo <= x + dx <= hi, the inputs whose box is empty held at
+    dx = 0. Returns True when every input is held (dx = 0)."""
+    m, n = Je.shape
+    rows = m + (n if eps > 0 else 0) + n
+    A = np.zeros((rows, n))
+    b = np.zeros(rows)
+    for i in range(m):
+        b[i] = -e[i]
+        for j in range(n):
+            A[i, j] = Je[i, j]
+    r = m
+    if eps > 0:
+        for j in range(n):
+            A[r + j, j] = eps * scale[j]
+            b[r + j] = -eps * scale[j] * (x[j] - x_ref[j])
+        r += n
+    s = np.sqrt(max(lam, 1e-12))
+    for j in range(n):
+        A[r + j, j] = s * scale[j]
+    dlo = np.empty(n)
+    dhi = np.empty(n)
+    held = True
+    for j in range(n):
+        dlo[j] = lo[j] - x[j]
+        dhi[j] = max(hi[j] - x[j], dlo[j])
+        if dhi[j] - dlo[j] > 0:
+            held = False
+        else:
+            dlo[j] = dhi[j] = 0.0
+    if held:
+        for j in range(n):
+            dx[j] = 0.0
+        return True
+    dx[:] = box_lstsq_kernel(A, b, dlo, dhi, 10 * n + 10)
+    return False

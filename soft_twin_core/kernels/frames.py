@@ -33,6 +33,12 @@ def _point_pose(m, w, j, x, out, x6, tmp):
 
 
 @_jit
+def point_pose(m, w, j, x, out):
+    """out (4x4): world pose of the point (j, x)."""
+    _point_pose(m, w, j, x, out, np.empty(6), np.empty((4, 4)))
+
+
+@_jit
 def point_poses(m, w, joint, x, out):
     """out[p] (4x4): world pose of point p = (joint[p], x[p])."""
     x6 = np.empty(6)
