@@ -56,7 +56,7 @@ T_END = 1.0               # simulated time [s]
 # dt ladder [ms], largest first: divisors of the 10 ms sample interval, and 20 ms (compared every 20 ms)
 LADDER_MS = (20.0, 10.0, 5.0, 10 / 3, 2.5, 2.0, 5 / 3, 1.25, 1.0, 0.5, 0.25)
 ACCURACY = 1e-3           # max tip deviation from the dt -> 0 trajectory [m]
-TOL = 1e-6                # Newton tolerance of the timed runs: dynamics.Simulator's default
+TOL = 1e-4                # Newton tolerance of the timed runs: dynamics.Simulator's default
 PEERS = (("PyElastica, 100 elements", 0.98, 9.2e-3, 10.0),
          ("PyElastica, 200 elements", 2.5, 3.7e-3, 10.0),
          ("SoRoMoX, 10 segments", 1.9, 11.6e-3, 40.0))
@@ -281,7 +281,7 @@ def item2(args):
           f"check at 2 dt); its error, Richardson |x(2dt) - x(dt)| / 3 max over the trajectory: "
           f"{rich * 1e3:.4f} mm; tip at 1 s {np.round(ref.final, 5)} m")
     print("deviation = max over t = 0, 10, ..., 1000 ms (every 20 ms for dt = 20 ms) of |tip(t) - tip_ref(t)|")
-    variants = [(1e-9, 0.5), (1e-7, 0.5), (1e-6, 0.5), (1e-5, 0.5), (1e-9, 1.0)]
+    variants = [(1e-9, 0.5), (1e-6, 0.5), (1e-5, 0.5), (1e-4, 0.5), (1e-9, 1.0)]
     runs = {}
     for tol, theta in variants:
         for dt_ms in LADDER_MS:

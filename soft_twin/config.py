@@ -75,7 +75,7 @@ PARAMETERS = {
         0.5, "Dynamic mode: theta of the implicit integrator, in [0.5, 1] (0.5: midpoint rule, "
              "2nd order, no numerical damping; 1: implicit Euler, damps stiff modes)."),
     "integrator_tolerance": (
-        1e-6, "Dynamic mode: Newton tolerance of a step (relative to the largest strain rate, in (0, 1e-3])."),
+        1e-4, "Dynamic mode: Newton tolerance of a step (relative to the largest strain rate, in (0, 1e-3])."),
     "max_catchup_steps": (
         4, "Dynamic mode: after a late tick, up to this many steps are taken at once to keep twin "
            "time on wall time; a larger backlog is dropped (counted). Integer >= 1."),

@@ -234,7 +234,7 @@ class ThetaIntegrator:
     qdot, t), updated only by converged steps.
     """
 
-    def __init__(self, model, ws, act, inputs, dt, theta=0.5, tol=1e-6, max_iterations=10,
+    def __init__(self, model, ws, act, inputs, dt, theta=0.5, tol=1e-4, max_iterations=10,
                  max_substep_levels=4, full_newton=True):
         self.model, self.ws, self.act, self.inputs = model, ws, act, inputs
         self.dt = float(dt)
