@@ -23,6 +23,7 @@ import time
 
 import numpy as np
 
+from soft_twin_core import articulated_planner as ap
 from soft_twin_core import constrained as cs
 from soft_twin_core.loads import Loads
 from soft_twin_core.mechanism import shape_command
@@ -96,6 +97,24 @@ def _joint_value(values, k, name, what):
     if not math.isfinite(v):
         raise InputError("non_finite", f"joint {clip(name)} {what} is not finite")
     return v
+
+
+@dataclass
+class ArticulatedIK:
+    """An IK answer of an articulated robot: ``names`` its position-controlled
+    joints, then its actuators; ``values`` their commands (rad or m, then N
+    or Pa) whose equilibrium ``q`` puts the tip at ``achieved_pose`` (4x4,
+    base frame); ``status`` as the planner's (``reached``, ``at_limit``,
+    ``rate_limit``, ``out_of_workspace``); ``strains`` (n_soft_sections, 6)."""
+    reached: bool
+    status: str
+    names: tuple
+    values: np.ndarray
+    q: np.ndarray
+    strains: np.ndarray
+    achieved_pose: np.ndarray
+    position_error: float
+    iterations: int
 
 
 @dataclass(frozen=True)
@@ -346,6 +365,46 @@ class ArticulatedTwin:
         self.set_tip_wrench(wrench, frame)
         info = self._solve()
         return info, (self.outputs() if info.converged else None)
+
+    def held_loads(self):
+        """The tip wrench as the core's point loads (empty without one)."""
+        return [cs.FrameLoad(self.tip, self.tip_wrench, "world" if self.tip_frame == "world" else "body")] \
+            if np.any(self.tip_wrench) else []
+
+    def plan_options(self, **kw):
+        """Planner options for this twin's tip frame, with its current joint
+        efforts and tip wrench held (``kw``: the other options)."""
+        return ap.ArticulatedPlanOptions(frame=self.tip, efforts=dict(self.efforts),
+                                         point_loads=tuple(self.held_loads()), **kw)
+
+    def command_vector(self, solver):
+        """x = [position commands of ``solver.joint_names``, actuator inputs] now."""
+        return np.concatenate([[self.positions[n] for n in solver.joint_names], self.u])
+
+    def inverse_kinematics(self, target, tolerance=1e-6):
+        """Joint commands and actuator inputs putting the tip at ``target``
+        (base-frame position, m), from the current commands and shape (the
+        planner's sample solve, :class:`soft_twin_core.articulated_planner.ArticulatedTipSolver`:
+        joint limits, tensions in [0, limit], least change of the joint
+        commands and least tension among redundant inputs; the current joint
+        efforts and tip wrench held). Raises PlanError, StaticsError or
+        ValueError."""
+        solver = ap.ArticulatedTipSolver(self.mech, self.plan_options(tolerance=tolerance))
+        x0 = np.clip(self.command_vector(solver), solver.lower, solver.upper)
+        nj = solver.n_j
+        x_ref = np.concatenate([x0[:nj], np.where(np.isfinite(solver.lower[nj:]), solver.lower[nj:], 0.0)])
+        x, eq, g, pe, we, reached, status, it = solver.solve(np.asarray(target, float), x0, self.state.q,
+                                                             solver.lower, solver.upper, x_ref)
+        return ArticulatedIK(bool(reached), status, solver.joint_names + solver.actuator_names, x, eq.q.copy(),
+                             section_strains(self.mech, eq.q), g, pe, int(it))
+
+    def plan(self, path, **options):
+        """:func:`soft_twin_core.articulated_planner.plan_articulated_path`
+        from the current commands, the tip frame following ``path`` (base
+        frame), the current joint efforts and tip wrench held."""
+        o = self.plan_options(**options)
+        solver = ap.ArticulatedTipSolver(self.mech, o)
+        return ap.plan_articulated_path(self.mech, path, o, start=self.command_vector(solver))
 
     # --- outputs ------------------------------------------------------------
     def outputs(self):

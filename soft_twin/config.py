@@ -89,6 +89,10 @@ PARAMETERS = {
         "~/planned_actuation", "Topic (ActuationCommand) on which ~/plan_path executes a plan: one command "
                                "per sample at its time, for the real robot; the twin follows the same "
                                "commands through ~/actuation."),
+    "plan_joint_output_topic": (
+        "~/planned_joint_commands", "Topic (sensor_msgs/JointState, positions) on which ~/plan_path executes "
+                                    "an articulated robot's joint commands: one per sample at its time, for "
+                                    "the real robot; the twin follows them through ~/joint_commands."),
     # --- seeing the twin (issue 12): /tf, recording --------------------------
     "tf_rate_hz": (
         50.0, "Rate of the base, section-start and tip frames on /tf (tf2_msgs/TFMessage, children of "
@@ -129,6 +133,7 @@ class NodeConfig:
     max_tip_force_n: float
     max_tip_torque_nm: float
     plan_output_topic: str
+    plan_joint_output_topic: str = "~/planned_joint_commands"
     # seeing the twin (issue 12)
     tf_rate_hz: float = 50.0
     tf_prefix: str = ""
@@ -235,6 +240,7 @@ VALIDATORS = {
     "max_tip_force_n": lambda n, v: _number(n, v, 0.0, lo_open=True),
     "max_tip_torque_nm": lambda n, v: _number(n, v, 0.0, lo_open=True),
     "plan_output_topic": lambda n, v: _topic(n, v),
+    "plan_joint_output_topic": lambda n, v: _topic(n, v),
     # seeing the twin (issue 12)
     "tf_rate_hz": lambda n, v: _number(n, v, 0.0, 2000.0),
     "tf_prefix": lambda n, v: _tf_prefix(n, v),

@@ -60,6 +60,10 @@ from std_msgs.msg import ColorRGBA, Float64MultiArray, Header, MultiArrayDimensi
 from std_srvs.srv import Trigger
 from visualization_msgs.msg import Marker, MarkerArray
 
+from soft_twin_core.model import ModelError
+from soft_twin_core.planner import PlanError
+from soft_twin_core.statics import StaticsError
+
 from soft_twin.msg import ActuationCommand, Strains
 from soft_twin.stepper import Stepper
 from soft_twin.srv import ForwardKinematics, InverseKinematics, StaticsQuery
@@ -250,8 +254,10 @@ class SoftTwinNode(Node):
         # --- issue 13: tip path planning and timed execution (soft_twin.plan_service)
         from soft_twin import plan_service
         from soft_twin.srv import PlanPath
-        self._plan_runner = plan_service.PlanRunner(self, ActuationCommand)
-        self._plan_runner.prepare(self.cfg.plan_output_topic)
+        self._plan_runner = plan_service.PlanRunner(self)
+        self._plan_runner.prepare(ActuationCommand, self.cfg.plan_output_topic, "~/actuation")
+        if self.robot.articulated:
+            self._plan_runner.prepare(JointState, self.cfg.plan_joint_output_topic, "~/joint_commands")
         self.create_service(PlanPath, "~/plan_path", self._guarded(self._srv_plan_path),
                             callback_group=self._service_group)
         self.create_service(Trigger, "~/cancel_plan", self._guarded(self._srv_cancel_plan),
@@ -1142,10 +1148,6 @@ class SoftTwinNode(Node):
         return self._srv_ik_body(req, resp)
 
     def _srv_ik_body(self, req, resp):
-        if self.robot.articulated:
-            resp.success, resp.message = False, "inverse_kinematics: not available for articulated robots yet"
-            return resp
-        model, q, u, w, frame, cfg, order = self._copy_state()
         tol = req.tolerance
         if not math.isfinite(tol) or tol < 0:
             resp.success, resp.message = False, f"tolerance must be >= 0 (0 = default 1e-6), got {tol}"
@@ -1155,6 +1157,9 @@ class SoftTwinNode(Node):
         except ValueError as e:
             resp.success, resp.message = False, clip(f"target rejected: {e}", 400)
             return resp
+        if self.robot.articulated:
+            return self._articulated_ik(req, resp, target, tol or 1e-6)
+        model, q, u, w, frame, cfg, order = self._copy_state()
         res = tw.inverse_kinematics(model, q, cfg.backbone_points_per_section, target, req.position_only,
                                     tol or 1e-6, tw.make_loads(model, w, frame), u_current=u)
         resp.success, resp.message = res.success, clip(res.message, 400)
@@ -1168,6 +1173,36 @@ class SoftTwinNode(Node):
             resp.position_error = float(x["position_error"])
             resp.orientation_error = float(x["orientation_error"])
             resp.iterations = int(res.iterations)
+        return resp
+
+    def _articulated_ik(self, req, resp, target, tol):
+        """IK of an articulated robot's tip position (:meth:`articulated.ArticulatedTwin.inverse_kinematics`):
+        ``actuator_names``/``actuator_values`` its position-controlled joints
+        (rad or m) first, then its actuators (N or Pa)."""
+        if not req.position_only:
+            resp.success, resp.message = False, ("inverse_kinematics: an articulated robot's IK reaches tip "
+                                                 "positions only (set position_only: true)")
+            return resp
+        with self._lock:
+            query = self.twin.query_copy()
+        try:
+            r = query.inverse_kinematics(target[:3, 3], tol)
+        except (PlanError, StaticsError, ModelError, ValueError, np.linalg.LinAlgError) as e:
+            resp.success, resp.message = False, clip(f"IK failed: {e}", 400)
+            return resp
+        resp.success = r.reached
+        resp.message = ("converged: reached by joint commands and actuation (static equilibrium)" if r.reached else
+                        f"target not reached ({tw._IK_STATUS.get(r.status, r.status)}): the closest position "
+                        f"the joints and actuators can hold, position error {r.position_error:.3g} m")
+        resp.strains = r.strains.ravel().tolist()
+        resp.actuation_found = True
+        resp.actuator_names = list(r.names)
+        resp.actuator_values = [float(v) for v in r.values]
+        resp.achieved = cv.pose_msg(r.achieved_pose)
+        resp.position_error = float(r.position_error)
+        rel = r.achieved_pose[:3, :3].T @ target[:3, :3]
+        resp.orientation_error = float(np.arccos(np.clip(0.5 * (np.trace(rel) - 1.0), -1.0, 1.0)))
+        resp.iterations = int(r.iterations)
         return resp
 
     def _articulated_statics(self, resp, actuation, w, frame, cfg):
@@ -1187,7 +1222,7 @@ class SoftTwinNode(Node):
         return resp
     def _srv_plan_path(self, req, resp):
         from soft_twin import plan_service
-        return plan_service.handle(self, self._plan_runner, req, resp)
+        return plan_service.handle(self, self._plan_runner, req, resp, ActuationCommand, JointState)
 
     def _srv_cancel_plan(self, req, resp):
         from soft_twin import plan_service

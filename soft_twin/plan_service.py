@@ -1,10 +1,14 @@
 """The node's ~/plan_path service: plan a tip path through statics
-(:mod:`soft_twin_core.planner`) from the twin's current state and, on
-request, execute it: one ActuationCommand per sample, stamped and published
-at its planned time on the ``plan_output_topic`` (for the real robot), and
-on the twin's own ``~/actuation`` so that the twin follows the same
-commands through its ordinary input path."""
+(:mod:`soft_twin_core.planner`; an articulated robot:
+:mod:`soft_twin_core.articulated_planner`) from the twin's current state
+and, on request, execute it: one ActuationCommand per sample, stamped and
+published at its planned time on the ``plan_output_topic`` (for the real
+robot), and on the twin's own ``~/actuation`` so that the twin follows the
+same commands through its ordinary input path; an articulated robot's
+position-controlled joints likewise get one JointState per sample on the
+``plan_joint_output_topic`` and on the twin's ``~/joint_commands``."""
 
+from dataclasses import dataclass
 import threading
 import time
 
@@ -45,10 +49,40 @@ def plan_request(model, q, u, loads, req):
         return None, clip(str(e), 400)
 
 
+def articulated_plan_request(query, req):
+    """(ArticulatedPlan, None) or (None, message) for a PlanPath request to
+    an articulated robot (``query``: the twin's query copy)."""
+    try:
+        d = yaml.safe_load(req.path_yaml) if req.path_yaml.strip() else None
+    except yaml.YAMLError as e:
+        return None, f"path_yaml: invalid YAML: {clip(str(e), 200)}"
+    try:
+        path = pth.path_from_dict(d, "path")
+        w = tuple(req.position_weights) if len(req.position_weights) else (1.0, 1.0, 1.0)
+        for name in ("tolerance", "pretension", "max_rate"):
+            v = getattr(req, name)
+            if not np.isfinite(v) or v < 0:
+                return None, f"{name}: expected a finite number >= 0, got {v}"
+        return query.plan(path, position_weights=w, tolerance=req.tolerance or 1e-6, pretension=req.pretension,
+                          max_rate=req.max_rate or None), None
+    except (pth.PathError, pl.PlanError, ModelError, ValueError, StaticsError, np.linalg.LinAlgError) as e:
+        return None, clip(str(e), 400)
+
+
+def plan_columns(plan):
+    """(names, values (N, k)): an articulated plan's joint commands first,
+    then the actuator inputs; a rod plan's inputs."""
+    joints = tuple(getattr(plan, "joint_names", ()))
+    if joints:
+        return joints + tuple(plan.actuator_names), np.hstack([plan.joints, plan.u])
+    return tuple(plan.actuator_names), plan.u
+
+
 def fill_response(resp, plan):
-    resp.actuator_names = list(plan.actuator_names)
+    names, values = plan_columns(plan)
+    resp.actuator_names = list(names)
     resp.times = (plan.times - plan.times[0]).tolist()
-    resp.values = plan.u.ravel().tolist()
+    resp.values = values.ravel().tolist()
     resp.predicted_tip = plan.tip.ravel().tolist()
     resp.errors = plan.weighted_error.tolist()
     resp.reached = [bool(r) for r in plan.reached]
@@ -61,35 +95,58 @@ def fill_response(resp, plan):
                     f"the plan follows the closest reachable points")
 
 
+@dataclass
+class Channel:
+    """One stream of a plan's execution: ``values`` (N, len(names)) as
+    ``msg_type`` (ActuationCommand or sensor_msgs/JointState positions) on
+    ``topic`` (for the real robot) and on the twin's own input ``own``."""
+    msg_type: type
+    names: tuple
+    values: np.ndarray
+    topic: str
+    own: str
+
+
+def _message(msg_type, names, values, ns, frame_id):
+    msg = msg_type()
+    msg.header.stamp.sec, msg.header.stamp.nanosec = ns // 1_000_000_000, ns % 1_000_000_000
+    msg.header.frame_id = frame_id
+    vals = [float(v) for v in values]
+    if hasattr(msg, "position"):              # sensor_msgs/JointState
+        msg.name, msg.position = list(names), vals
+    else:                                     # soft_twin/ActuationCommand
+        msg.names, msg.values = list(names), vals
+    return msg
+
+
 class PlanRunner:
     """Publishes a plan's commands at their times from a thread of its own;
     a new plan or :meth:`cancel` stops the running one."""
 
-    def __init__(self, node, msg_type, own_topic="~/actuation"):
+    def __init__(self, node):
         self._node = node
-        self._type = msg_type
         self._pubs = {}
-        self._own = own_topic
         self._thread = None
         self._stop = threading.Event()
         self._lock = threading.Lock()
         self.published = 0
-        self._progress = [0, 0]        # commands of the current/last execution: [published, planned]
+        self._progress = [0, 0]        # samples of the current/last execution: [published, planned]
 
-    def _publisher(self, topic):
-        pub = self._pubs.get(topic)
+    def _publisher(self, msg_type, topic):
+        key = (msg_type, self._resolved(topic))
+        pub = self._pubs.get(key)
         if pub is None:
-            pub = self._pubs[topic] = self._node.create_publisher(self._type, topic, 100)
+            pub = self._pubs[key] = self._node.create_publisher(msg_type, topic, 100)
         return pub
 
-    def prepare(self, topic):
+    def prepare(self, msg_type, topic, own):
         """Make the output publisher now (subscribers can match before a plan
         runs). The publisher on the twin's own input exists only while a
         plan runs (an idle extra publisher there would blur the node's
         accounting of lost commands by sequence numbers)."""
         with self._lock:
-            if self._resolved(topic) != self._resolved(self._own):
-                self._publisher(topic)
+            if self._resolved(topic) != self._resolved(own):
+                self._publisher(msg_type, topic)
 
     def _resolved(self, topic):
         try:
@@ -97,54 +154,54 @@ class PlanRunner:
         except Exception:      # older rclpy: compare as given
             return topic
 
-    def start(self, names, times, values, topic, frame_id=""):
+    def start(self, channels, times, frame_id=""):
         """Start publishing now + START_DELAY_S; returns the start stamp
-        (builtin_interfaces/Time): command k is stamped start + times[k]."""
+        (builtin_interfaces/Time): sample k of every channel is stamped start
+        + times[k]."""
         self.cancel()
         with self._lock:
-            out = [self._publisher(topic)]
-            if self._resolved(topic) != self._resolved(self._own):
-                out.append(self._publisher(self._own))
-            own = self._pubs.get(self._own)
+            streams, own = [], []
+            for ch in channels:
+                pubs = [self._publisher(ch.msg_type, ch.topic)]
+                if self._resolved(ch.topic) != self._resolved(ch.own):
+                    pubs.append(self._publisher(ch.msg_type, ch.own))
+                    own.append(((ch.msg_type, self._resolved(ch.own)), pubs[-1]))
+                streams.append((ch.msg_type, tuple(ch.names), np.asarray(ch.values, float), pubs))
             clock = self._node.get_clock()
             start_ns = clock.now().nanoseconds + int(START_DELAY_S * 1e9)
             t0 = time.monotonic() + START_DELAY_S
             self._stop = stop = threading.Event()
             self._progress = [0, len(times)]
             self._thread = threading.Thread(
-                target=self._run, args=(stop, out, list(names), np.asarray(times, float),
-                                        np.asarray(values, float), start_ns, t0, frame_id, own),
+                target=self._run, args=(stop, streams, np.asarray(times, float), start_ns, t0, frame_id, own),
                 name="plan_runner", daemon=True)
             self._thread.start()
         from builtin_interfaces.msg import Time
         return Time(sec=start_ns // 1_000_000_000, nanosec=start_ns % 1_000_000_000)
 
-    def _run(self, stop, pubs, names, times, values, start_ns, t0, frame_id, own):
+    def _run(self, stop, streams, times, start_ns, t0, frame_id, own):
         try:
-            self._publish_all(stop, pubs, names, times, values, start_ns, t0, frame_id)
+            self._publish_all(stop, streams, times, start_ns, t0, frame_id)
         finally:
-            if own is not None:
-                with self._lock:
-                    if self._pubs.get(self._own) is own and self._thread is threading.current_thread():
-                        del self._pubs[self._own]
+            with self._lock:
+                for key, pub in own:
+                    if self._pubs.get(key) is pub and self._thread is threading.current_thread():
+                        del self._pubs[key]
                         try:
-                            self._node.destroy_publisher(own)
+                            self._node.destroy_publisher(pub)
                         except Exception:      # the node is going away
                             pass
 
-    def _publish_all(self, stop, pubs, names, times, values, start_ns, t0, frame_id):
+    def _publish_all(self, stop, streams, times, start_ns, t0, frame_id):
         for k, t in enumerate(times):
             if stop.wait(max(0.0, t0 + t - time.monotonic())):
                 return
-            msg = self._type()
             ns = start_ns + int(round(t * 1e9))
-            msg.header.stamp.sec, msg.header.stamp.nanosec = ns // 1_000_000_000, ns % 1_000_000_000
-            msg.header.frame_id = frame_id
-            msg.names = names
-            msg.values = [float(v) for v in values[k]]
             try:
-                for p in pubs:
-                    p.publish(msg)
+                for msg_type, names, values, pubs in streams:
+                    msg = _message(msg_type, names, values[k], ns, frame_id)
+                    for p in pubs:
+                        p.publish(msg)
             except Exception:     # the node is shutting down
                 return
             self.published += 1
@@ -156,7 +213,7 @@ class PlanRunner:
     def cancel(self):
         """Stop the running execution (if any) and wait for its thread: no
         command of it goes out after this returns. Returns (was running,
-        commands published, commands planned)."""
+        samples published, samples planned)."""
         with self._lock:
             was = self._thread is not None and self._thread.is_alive() and not self._stop.is_set()
             self._stop.set()
@@ -184,25 +241,46 @@ def handle_cancel(node, runner, resp):
     return resp
 
 
-def handle(node, runner, req, resp):
+def channels(plan, cfg, actuation_type, joint_type):
+    """The execution's streams: the actuator inputs (ActuationCommand on
+    ``plan_output_topic`` and ``~/actuation``) and, for an articulated
+    robot, the joint position commands (JointState on
+    ``plan_joint_output_topic`` and ``~/joint_commands``)."""
+    out = []
+    joints = tuple(getattr(plan, "joint_names", ()))
+    if joints:
+        out.append(Channel(joint_type, joints, plan.joints, cfg.plan_joint_output_topic, "~/joint_commands"))
+    if len(plan.actuator_names):
+        out.append(Channel(actuation_type, tuple(plan.actuator_names), plan.u, cfg.plan_output_topic,
+                           "~/actuation"))
+    return out
+
+
+def handle(node, runner, req, resp, actuation_type, joint_type):
     """The ~/plan_path callback body (node: the TwinNode)."""
     model, q, u, w, frame, cfg, _ = node._copy_state()
-    try:
-        loads = tw.make_loads(model, w, frame)
-    except (ValueError, ModelError) as e:
-        resp.success, resp.message = False, clip(f"tip load: {e}", 400)
-        return resp
-    if not model.actuators:
-        resp.success, resp.message = False, "this robot has no actuators: there is nothing to plan"
-        return resp
-    plan, err = plan_request(model, q, u, loads, req)
+    if node.robot.articulated:
+        with node._lock:
+            query = node.twin.query_copy()
+        plan, err = articulated_plan_request(query, req)
+    else:
+        try:
+            loads = tw.make_loads(model, w, frame)
+        except (ValueError, ModelError) as e:
+            resp.success, resp.message = False, clip(f"tip load: {e}", 400)
+            return resp
+        if not model.actuators:
+            resp.success, resp.message = False, "this robot has no actuators: there is nothing to plan"
+            return resp
+        plan, err = plan_request(model, q, u, loads, req)
     if plan is None:
         resp.success, resp.message = False, f"plan rejected: {err}"
         return resp
     fill_response(resp, plan)
     if req.execute:
-        resp.start_stamp = runner.start(plan.actuator_names, resp.times, plan.u, cfg.plan_output_topic)
+        chans = channels(plan, cfg, actuation_type, joint_type)
+        resp.start_stamp = runner.start(chans, resp.times)
         resp.executing = True
-        resp.message += f"; executing on {cfg.plan_output_topic} over {resp.times[-1]:.3g} s"
+        resp.message += f"; executing on {', '.join(c.topic for c in chans)} over {resp.times[-1]:.3g} s"
     node.get_logger().info(f"plan_path: {resp.message}")
     return resp

@@ -324,7 +324,7 @@ class TwinSettings:
     mode: str = "dynamic"
     dt: float = 0.005
     theta: float = 0.5
-    tolerance: float = 1e-6
+    tolerance: float = 1e-4
     points_per_section: int = 10
     max_iterations: int = 10
     max_substep_levels: int = 3

@@ -61,7 +61,10 @@ class ArticulatedPlanOptions:
     max_rate [N/s or Pa/s] of the actuators (scalar or {name: value});
     joint_limits_margin [rad or m] kept inside the joint limits;
     max_iterations per sample; loads (:class:`loads.Loads`, default
-    gravity)."""
+    gravity); efforts {joint: N m or N} held by the effort-controlled joints
+    (default 0) and point_loads (:class:`constrained.FrameLoad` on named
+    frames), both constant over the path (e.g. the node's current joint
+    efforts and tip wrench)."""
     frame: str = None
     position_weights: tuple = (1.0, 1.0, 1.0)
     tolerance: float = 1e-6
@@ -72,6 +75,8 @@ class ArticulatedPlanOptions:
     joint_limits_margin: float = 0.0
     max_iterations: int = 40
     loads: object = None
+    efforts: object = None
+    point_loads: tuple = ()
 
 
 def default_frame(mech):
@@ -174,8 +179,10 @@ class ArticulatedTipSolver:
 
     def equilibrium(self, x, q_init):
         qc, u = self.split(x)
-        return cs.solve_equilibrium(self.mech, actuation=u if self.n_u else None,
-                                    positions=qc if self.n_j else None, loads=self.loads, q_init=q_init)
+        o = self.options
+        return cs.solve_equilibrium(self.mech, actuation=u if self.n_u else None, efforts=o.efforts,
+                                    positions=qc if self.n_j else None, loads=self.loads,
+                                    point_loads=tuple(o.point_loads), q_init=q_init)
 
     def frame_pose(self, q):
         return alg.point_poses(self.mech.tree, self.ws, q, [self.ref.joint], [self.ref.x])[0]

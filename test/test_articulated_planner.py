@@ -62,6 +62,33 @@ def test_sensitivity_matches_finite_differences(mech):
     assert np.allclose(S[:, 0], np.cross([0, 0, 1.0], p), atol=1e-9)
 
 
+def test_held_loads_enter_the_equilibrium_and_its_sensitivity(mech):
+    """A tip wrench held over the path (``point_loads``) is part of every
+    equilibrium: the solved sample's frame lies at the target in the
+    equilibrium solved independently with that load, and the sensitivity
+    still matches finite differences under it."""
+    load = cs.FrameLoad("tool", np.array([0.0, 0.3, -0.5, 0.0, 0.0, 0.0]), "world")
+    o = ap.ArticulatedPlanOptions(frame="tool", point_loads=(load,))
+    s = ap.ArticulatedTipSolver(mech, o)
+    x = np.array([0.2, -0.1, 0.4, 0.05, 0.1, 0.05])
+    free = s.equilibrium(x, None)
+    eq = s.equilibrium(x, free.q)
+    loaded = cs.solve_equilibrium(mech, actuation=x[2:], positions=x[:2], point_loads=(load,))
+    np.testing.assert_allclose(eq.q, loaded.q, atol=1e-9)
+    unloaded = ap.ArticulatedTipSolver(mech, ap.ArticulatedPlanOptions(frame="tool")).equilibrium(x, None)
+    assert np.abs(s.frame_pose(eq.q)[:3, 3] - s.frame_pose(unloaded.q)[:3, 3]).max() > 1e-3   # the load matters
+    target = s.frame_pose(eq.q)[:3, 3] + np.array([0.0, 0.01, 0.01])
+    x1, eq1, g1, pe, we, reached, status, it = s.solve(target, x, eq.q, s.lower, s.upper, x)
+    assert reached and pe <= 1e-6
+    ref = cs.solve_equilibrium(mech, actuation=x1[2:], positions=x1[:2], point_loads=(load,), q_init=eq1.q)
+    np.testing.assert_allclose(s.frame_pose(ref.q)[:3, 3], target, atol=2e-6)
+    g, S = s.sensitivity(eq)
+    h = 1e-6
+    pos = lambda xx: s.frame_pose(s.equilibrium(xx, eq.q).q)[:3, 3]  # noqa: E731
+    fd = np.column_stack([(pos(x + h * e) - pos(x - h * e)) / (2 * h) for e in np.eye(x.size)])
+    assert np.abs(S - fd).max() <= 1e-6 * np.abs(fd).max()
+
+
 def test_circle_tracked_within_1_mm_and_within_limits(mech):
     path = paths.circle([0.33, 0.0, 0.0], 0.05, 8.0, normal=(1, 0, 0), sample_period=0.08)
     plan = ap.plan_articulated_path(mech, path, ap.ArticulatedPlanOptions(frame="tool"))
