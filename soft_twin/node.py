@@ -208,8 +208,8 @@ class SoftTwinNode(Node):
         self.twin = self._make_twin(self.robot, self._settings(self.cfg))
         self.get_logger().info(f"mode {self.cfg.mode}; {self.twin.rest_message}")
         self._startup_point()
-        self.get_logger().info("warming up the compiled kernels (numba: ~10 s on the first run, "
-                               "cached on disk afterwards) ...")
+        self.get_logger().info("warming up the compiled kernels (about a second from numba's disk cache, "
+                               "which `make setup` fills; about a minute compiling when there is none) ...")
         took = self.twin.warm_up()
         self.get_logger().info(f"warm-up done in {took:.1f} s")
         self._startup_point()
@@ -1279,7 +1279,8 @@ class _StopSignals:
     callbacks), destroys the node and then shuts the context down, in that
     order, and returns 0. During the start-up the node asks between its
     steps (robot, rest shape, kernel warm-up) and gives up at the next one
-    (the longest step is the kernels' first compilation, ~10-30 s once)."""
+    (the longest step is the kernels' first compilation, about a minute once
+    when `make setup` did not cache them)."""
 
     def __init__(self):
         self.received = None          # the first signal's number
