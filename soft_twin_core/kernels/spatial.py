@@ -8,7 +8,16 @@ import numba as nb
 
 from .. import lie
 
-_jit = nb.njit(cache=True, fastmath=False, nogil=True)   # nogil: a node service computes while the twin steps
+# Floating-point freedoms of every kernel: "contract" lets LLVM fuse a * b + c
+# into one FMA instruction, "reassoc" lets it reorder the small fixed-length
+# sums (6-vectors, 3x3 and 6x6 products) into vector code. Results move at
+# round-off level only; NaN and inf keep their IEEE meaning (no "nnan" /
+# "ninf": the finiteness checks of Newton's loops stay). Measured on the
+# benchmark cantilever: 8 % less CPU per dynamics step (1 s at 10 sections,
+# 2 ms steps: 50-53 against 55-57 ms, interleaved runs).
+FASTMATH = {"contract", "reassoc"}
+
+_jit = nb.njit(cache=True, fastmath=FASTMATH, nogil=True)   # nogil: a node service computes while the twin steps
 
 # Flags one kernel passes to another. A literal True / False argument from
 # compiled code makes numba compile the callee once per value (a
@@ -21,12 +30,12 @@ TRUE, FALSE = np.True_, np.False_
 # and machine code would be redone in every library above it (the caller's
 # library links all its callees' code). Called from Python, it compiles as
 # usual. Options as _jit's (nogil as on main) plus the inlining.
-_jit_inline = nb.njit(cache=True, fastmath=False, nogil=True, inline="always")
+_jit_inline = nb.njit(cache=True, fastmath=FASTMATH, nogil=True, inline="always")
 
 # A helper that only compiled code calls: numba generates no Python (and no
 # first-class-function) entry point for it, a third of a small helper's
 # compile time. One called from Python (a test) keeps _jit.
-_jit_inner = nb.njit(cache=True, fastmath=False, no_cpython_wrapper=True, no_cfunc_wrapper=True)
+_jit_inner = nb.njit(cache=True, fastmath=FASTMATH, no_cpython_wrapper=True, no_cfunc_wrapper=True)
 
 _SMALL2 = lie._SMALL ** 2
 _SMALLD2 = lie._SMALL_DERIV ** 2
