@@ -28,8 +28,14 @@ from soft_twin.text import clip
 START_DELAY_S = 0.2
 
 
-def plan_request(model, q, u, loads, req):
-    """(Plan, None) or (None, message) for a PlanPath request."""
+_PLAN_ERRORS = (pth.PathError, pl.PlanError, ModelError, ValueError, StaticsError, np.linalg.LinAlgError)
+
+
+def plan_request(req, plan):
+    """(a plan, None) or (None, message) for a PlanPath request: the path
+    parsed and the numbers checked at the door, then ``plan(path,
+    position_weights=, tolerance=, pretension=, max_rate=)`` (the robot's
+    planner: :func:`rod_planner`, :meth:`articulated.ArticulatedTwin.plan`)."""
     try:
         d = yaml.safe_load(req.path_yaml) if req.path_yaml.strip() else None
     except yaml.YAMLError as e:
@@ -41,32 +47,20 @@ def plan_request(model, q, u, loads, req):
             v = getattr(req, name)
             if not np.isfinite(v) or v < 0:
                 return None, f"{name}: expected a finite number >= 0, got {v}"
-        opts = pl.PlanOptions(position_weights=w, tolerance=req.tolerance or 1e-6, pretension=req.pretension,
-                              max_rate=req.max_rate or None, loads=loads)
-        u_start = np.maximum(u, pl.actuator_bounds(model, opts)[0]) if req.max_rate > 0 else None
-        return pl.plan_path(model, path, opts, u_start=u_start, q_start=q), None
-    except (pth.PathError, pl.PlanError, ModelError, ValueError, StaticsError, np.linalg.LinAlgError) as e:
+        return plan(path, position_weights=w, tolerance=req.tolerance or 1e-6, pretension=req.pretension,
+                    max_rate=req.max_rate or None), None
+    except _PLAN_ERRORS as e:
         return None, clip(str(e), 400)
 
 
-def articulated_plan_request(query, req):
-    """(ArticulatedPlan, None) or (None, message) for a PlanPath request to
-    an articulated robot (``query``: the twin's query copy)."""
-    try:
-        d = yaml.safe_load(req.path_yaml) if req.path_yaml.strip() else None
-    except yaml.YAMLError as e:
-        return None, f"path_yaml: invalid YAML: {clip(str(e), 200)}"
-    try:
-        path = pth.path_from_dict(d, "path")
-        w = tuple(req.position_weights) if len(req.position_weights) else (1.0, 1.0, 1.0)
-        for name in ("tolerance", "pretension", "max_rate"):
-            v = getattr(req, name)
-            if not np.isfinite(v) or v < 0:
-                return None, f"{name}: expected a finite number >= 0, got {v}"
-        return query.plan(path, position_weights=w, tolerance=req.tolerance or 1e-6, pretension=req.pretension,
-                          max_rate=req.max_rate or None), None
-    except (pth.PathError, pl.PlanError, ModelError, ValueError, StaticsError, np.linalg.LinAlgError) as e:
-        return None, clip(str(e), 400)
+def rod_planner(model, q, u, loads):
+    """The planner of a rod robot from the twin's shape q and inputs u, under
+    ``loads``; with a rate limit the first sample is rate-limited from u."""
+    def plan(path, **options):
+        opts = pl.PlanOptions(loads=loads, **options)
+        u_start = np.maximum(u, pl.actuator_bounds(model, opts)[0]) if opts.max_rate is not None else None
+        return pl.plan_path(model, path, opts, u_start=u_start, q_start=q)
+    return plan
 
 
 def plan_columns(plan):
@@ -262,7 +256,7 @@ def handle(node, runner, req, resp, actuation_type, joint_type):
     if node.robot.articulated:
         with node._lock:
             query = node.twin.query_copy()
-        plan, err = articulated_plan_request(query, req)
+        plan, err = plan_request(req, query.plan)
     else:
         try:
             loads = tw.make_loads(model, w, frame)
@@ -272,7 +266,7 @@ def handle(node, runner, req, resp, actuation_type, joint_type):
         if not model.actuators:
             resp.success, resp.message = False, "this robot has no actuators: there is nothing to plan"
             return resp
-        plan, err = plan_request(model, q, u, loads, req)
+        plan, err = plan_request(req, rod_planner(model, q, u, loads))
     if plan is None:
         resp.success, resp.message = False, f"plan rejected: {err}"
         return resp
