@@ -60,6 +60,7 @@ from std_msgs.msg import ColorRGBA, Float64MultiArray, Header, MultiArrayDimensi
 from std_srvs.srv import Trigger
 from visualization_msgs.msg import Marker, MarkerArray
 
+from soft_twin_core import lie
 from soft_twin_core.model import ModelError
 from soft_twin_core.planner import PlanError
 from soft_twin_core.statics import StaticsError
@@ -1200,8 +1201,8 @@ class SoftTwinNode(Node):
         resp.actuator_values = [float(v) for v in r.values]
         resp.achieved = cv.pose_msg(r.achieved_pose)
         resp.position_error = float(r.position_error)
-        rel = r.achieved_pose[:3, :3].T @ target[:3, :3]
-        resp.orientation_error = float(np.arccos(np.clip(0.5 * (np.trace(rel) - 1.0), -1.0, 1.0)))
+        # as the rod robots' position-only answer: |log(R_achieved^T R_target)| (informative only)
+        resp.orientation_error = float(np.linalg.norm(lie.log_so3(r.achieved_pose[:3, :3].T @ target[:3, :3])))
         resp.iterations = int(r.iterations)
         return resp
 

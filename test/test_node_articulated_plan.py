@@ -86,6 +86,9 @@ def test_ik_reaches_positions_with_joints_and_tendons(twin, mech):
     np.testing.assert_allclose(tool_position(mech, x), target, rtol=0, atol=1e-6)
     np.testing.assert_allclose(matrix_from_pose(resp.achieved)[:3, 3], target, rtol=0, atol=1e-7)
     assert len(resp.strains) == 6 * len(mech.tree.soft_joints)
+    # informative: the angle between the achieved and the requested (identity) orientation
+    angle = np.arccos(np.clip(0.5 * (np.trace(matrix_from_pose(resp.achieved)[:3, :3]) - 1.0), -1.0, 1.0))
+    assert angle > 1e-3 and resp.orientation_error == pytest.approx(angle, rel=1e-9)
 
 
 def test_ik_refuses_full_poses_and_flags_unreachable_targets(twin, mech):
