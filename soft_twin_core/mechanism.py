@@ -363,7 +363,7 @@ def mechanism_from_dict(d, base_dir=None):
     kmap = d.get("kinematic_map", "exponential")
     if kmap not in ("exponential", "cayley"):
         raise ModelError(f"robot.kinematic_map: expected 'exponential' or 'cayley', got {kmap!r}")
-    npt = d.get("quadrature_points", 3)
+    npt = d.get("quadrature_points", 2)
     if isinstance(npt, bool) or not isinstance(npt, int) or not 1 <= npt <= 20:
         raise ModelError(f"robot.quadrature_points: expected an integer in 1..20, got {npt!r}")
     base = dict(d.get("base") or {})

@@ -193,7 +193,7 @@ class RobotModel:
     gravity: np.ndarray                 # (3,) world frame [m/s^2]
     actuators: tuple = ()
     kinematic_map: str = "exponential"  # or "cayley"
-    quadrature_points: int = 3
+    quadrature_points: int = 2
     # derived (filled in __post_init__)
     n_sections: int = field(init=False)
     lengths: np.ndarray = field(init=False)
@@ -653,7 +653,7 @@ def model_from_dict(d, n_sections_override=None):
     kmap = d.get("kinematic_map", "exponential")
     if kmap not in ("exponential", "cayley"):
         raise ModelError(f"robot.kinematic_map: expected 'exponential' or 'cayley', got {kmap!r}")
-    nq = d.get("quadrature_points", 3)
+    nq = d.get("quadrature_points", 2)
     if isinstance(nq, bool) or not isinstance(nq, int) or not 1 <= nq <= 20:
         raise ModelError(f"robot.quadrature_points: expected an integer in 1..20, got {nq!r}")
     return RobotModel(

@@ -70,7 +70,7 @@ class SoftSection:
     f0: np.ndarray
     free: np.ndarray
     kinematic_map: str = "exponential"
-    quadrature_points: int = 3
+    quadrature_points: int = 2
 
     @property
     def modes(self):
