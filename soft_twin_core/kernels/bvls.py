@@ -151,5 +151,7 @@ def regularised_box_step(Je, e, x, lo, hi, scale, eps, x_ref, lam, dx):
         for j in range(n):
             dx[j] = 0.0
         return True
-    dx[:] = box_lstsq_kernel(A, b, dlo, dhi, 10 * n + 10)
+    x = box_lstsq_kernel(A, b, dlo, dhi, 10 * n + 10)
+    for j in range(n):                 # a loop, not a slice assignment (static_newton._copy)
+        dx[j] = x[j]
     return False

@@ -29,7 +29,9 @@ def _point_pose(m, w, j, x, out, x6, tmp):
         out[3, :3] = 0.0
         out[3, 3] = 1.0
     else:
-        out[:, :] = w.g_out[j]
+        for r in range(4):             # a loop, not a slice assignment (static_newton._copy)
+            for c in range(4):
+                out[r, c] = w.g_out[j, r, c]
 
 
 @_jit

@@ -39,7 +39,9 @@ def _residual(m, w, act, ld, g, coef, zeros, q, out):
 def _tangent(m, w, act, ld, g, coef, K, Kt):
     """dR/dq at the q of the workspace's last residual_pass, whose poses and
     RNEA wrenches at rest it reads (no pass of its own)."""
-    Kt[:, :] = K
+    for i in range(K.shape[0]):      # element loops, not slice assignment: see _copy
+        for j in range(K.shape[1]):
+            Kt[i, j] = K[i, j]
     static_tangent_pass(m, w, ld, g, Kt)
     actuation_tangent_pass(m, w, act, coef, Kt)
 
@@ -69,6 +71,15 @@ def _converged(absK, q, q0, R, scale, tol):
         if not abs(R[i]) <= tol * scale + eps64 * ro:
             return False
     return True
+
+
+@_jit_inner
+def _copy(src, dst):
+    """dst[:] = src as a loop: numba compiles a slice assignment from an
+    array with a shape-mismatch error whose message formatting (str of
+    ints, joins) cost about 3 s of the first compile of this kernel."""
+    for i in range(src.shape[0]):
+        dst[i] = src[i]
 
 
 @_jit_inner
@@ -149,8 +160,8 @@ def static_newton(m, w, act, ld, g, coef, K, absK, q0, q, tol, max_it, Kt_hint, 
                         q_try[i] = q[i] + dq[i]
                     _residual(m, w, act, ld, g, coef, zeros, q_try, R_try)
                     if _finite(R_try) and _norm(R_try) < _norm(R):
-                        q[:] = q_try
-                        R[:] = R_try
+                        _copy(q_try, q)
+                        _copy(R_try, R)
             return it - 1, True, which, n_tan
         if reuse:
             which = 1
@@ -190,8 +201,8 @@ def static_newton(m, w, act, ld, g, coef, K, absK, q0, q, tol, max_it, Kt_hint, 
             return it, _converged(absK, q, q0, R, scale, tol), which, n_tan
         if reuse and (step < 1.0 or r_try > 0.1 * r0):
             reuse = False         # slow: fresh tangents from now on
-        q[:] = q_try
-        R[:] = R_try
+        _copy(q_try, q)
+        _copy(R_try, R)
         at_q = True
         scale = max(scale, _scale(K, q, q0, R))
     return it, _converged(absK, q, q0, R, scale, tol), which, n_tan
