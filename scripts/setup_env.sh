@@ -224,14 +224,25 @@ for pkg in ("soft_twin", "soft_twin_core"):
 EOF
 
 # ---- 4. compile the numba kernels into their disk cache (seconds when cached) ----
-"$VENV/bin/python" -m soft_twin_core.warmup >>"$LOG" 2>&1 || fail "compiling the kernels (python -m soft_twin_core.warmup)"
-say "kernels: $(tail -n 1 "$LOG")"
-# ... and those of the copy installed in the venv, which the commands
+# Two trees, compiled side by side (each is one process; the machine's two
+# cores halve the first set-up's 2 x 2.5 minutes): the checkout's kernels,
+# and those of the copy installed in the venv, which the commands
 # (soft-twin-sim and the Dask workers of its studies, soft_twin_node) import:
 # numba keeps a cache per source file, so the checkout's cache does not serve
 # it (without this, their first run compiles for about a minute).
-(cd "$VENV" && "$VENV/bin/python" -m soft_twin_core.warmup) >>"$LOG" 2>&1 \
-    || fail "compiling the installed kernels (cd $VENV && python -m soft_twin_core.warmup)"
-say "installed kernels: $(tail -n 1 "$LOG")"
+say "kernels: compiling into numba's cache if needed (about 2.5 minutes after a change of soft_twin_core, seconds otherwise)"
+"$VENV/bin/python" -m soft_twin_core.warmup >"$LOG.warmup" 2>&1 &
+WARM_CHECKOUT=$!
+(cd "$VENV" && "$VENV/bin/python" -m soft_twin_core.warmup) >"$LOG.warmup_installed" 2>&1 &
+WARM_INSTALLED=$!
+ok_checkout=0; ok_installed=0
+wait "$WARM_CHECKOUT" || ok_checkout=$?
+wait "$WARM_INSTALLED" || ok_installed=$?
+cat "$LOG.warmup" "$LOG.warmup_installed" >>"$LOG"
+[ "$ok_checkout" -eq 0 ] || fail "compiling the kernels (python -m soft_twin_core.warmup; its output: $LOG.warmup)"
+[ "$ok_installed" -eq 0 ] || \
+    fail "compiling the installed kernels (cd $VENV && python -m soft_twin_core.warmup; its output: $LOG.warmup_installed)"
+say "kernels: $(tail -n 1 "$LOG.warmup")"
+say "installed kernels: $(tail -n 1 "$LOG.warmup_installed")"
 
 say "ready: $VENV ($(($(date +%s) - T0)) s)"

@@ -121,13 +121,23 @@ def purge_stale_caches(root=None):
     dirs = [root]
     cache_dir = os.environ.get("NUMBA_CACHE_DIR")
     if cache_dir:
-        dirs += [d for d in Path(cache_dir).rglob(root.name) if d.is_dir()]
+        dirs += _user_cache_dirs(root, Path(cache_dir))
     for d in dirs:
         for f in list(d.rglob("*.nbi")) + list(d.rglob("*.nbc")):
             f.unlink(missing_ok=True)
     stamp.parent.mkdir(exist_ok=True)
     stamp.write_text(digest + "\n")
     return True
+
+
+def _user_cache_dirs(root, cache_dir):
+    """The directories under ``NUMBA_CACHE_DIR`` that hold the caches of the
+    sources under ``root``: numba names one per source directory, by its
+    name and a hash of its absolute path (``<name>_<sha1>``), so the caches
+    of another copy of the package (the venv's) are left alone."""
+    from numba.core.caching import _CacheLocator
+    src_dirs = {f.resolve().parent for f in root.rglob("*.py")}
+    return [cache_dir / _CacheLocator.get_suitable_cache_subpath(str(d / "_.py")) for d in sorted(src_dirs)]
 
 
 def main(argv=None):

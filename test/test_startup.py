@@ -86,3 +86,36 @@ def test_warm_up_purges_every_kernel_cache_when_a_source_changes(tmp_path):
     assert purge_stale_caches(pkg)
     assert not any(c.exists() for c in caches)
     assert not purge_stale_caches(pkg)
+
+
+def test_warm_up_purge_reaches_numba_cache_dir_but_not_another_copy(tmp_path, monkeypatch):
+    """With NUMBA_CACHE_DIR, numba keeps each source directory's caches in
+    <dir>_<sha1 of its path>: the purge clears this copy's there and leaves
+    another copy's (the venv's, warmed up at the same time by make setup)."""
+    from numba.core.caching import _CacheLocator
+    from soft_twin_core.warmup import purge_stale_caches
+    cache = tmp_path / "numba_cache"
+    copies = []
+    for name in ("checkout", "venv"):
+        pkg = tmp_path / name / "soft_twin_core"
+        (pkg / "kernels").mkdir(parents=True)
+        (pkg / "__init__.py").write_text("")
+        (pkg / "kernels" / "__init__.py").write_text("")
+        (pkg / "a.py").write_text("x = 1\n")
+        (pkg / "kernels" / "b.py").write_text("import numba\n@numba.njit(cache=True)\ndef f(x):\n    return x + 1\n")
+        copies.append(pkg)
+    monkeypatch.setenv("NUMBA_CACHE_DIR", str(cache))
+    for pkg in copies:
+        assert purge_stale_caches(pkg)                 # first time: no stamp
+    # numba's own cache files for each copy's kernel, in a subprocess with that cache dir
+    for pkg in copies:
+        subprocess.run([sys.executable, "-c", "import sys; sys.path.insert(0, sys.argv[1]); "
+                        "from soft_twin_core.kernels.b import f; f(1)", str(pkg.parent)],
+                       check=True, env=dict(os.environ, NUMBA_CACHE_DIR=str(cache)))
+    where = {pkg: cache / _CacheLocator.get_suitable_cache_subpath(str(pkg / "kernels" / "b.py")) for pkg in copies}
+    assert all(list(d.glob("*.nbi")) and list(d.glob("*.nbc")) for d in where.values()), list(cache.rglob("*"))
+    checkout, venv = copies
+    (checkout / "a.py").write_text("x = 2\n")         # the checkout changes
+    assert purge_stale_caches(checkout)
+    assert not list(where[checkout].glob("*.nb*"))
+    assert list(where[venv].glob("*.nbi")) and list(where[venv].glob("*.nbc"))
