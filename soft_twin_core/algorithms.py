@@ -66,6 +66,7 @@ def factor(model, ws, q, c_damping=0.0, c_stiffness=0.0):
     q, _, _ = _enter(model, ws, q)
     passes.forward_pass(ws.m, ws.w, q, ws.zeros_v, ws.zeros_v, 0)
     ws.level = 0
+    ws.factor_key = None                  # an integrator's factorisation is gone
     if not passes.aba_factor(ws.m, ws.w, float(c_damping), float(c_stiffness)):
         raise ValueError("factor: a joint block of the mass matrix is not positive definite "
                          "(a massless moving joint?)")

@@ -29,6 +29,10 @@ class Workspace:
         self.a = np.zeros(model.nv)
         self.zeros_v = np.zeros(model.nv)
         self.level = -1            # what the last forward pass computed (0 poses, 1 twists, 2 accelerations)
+        # who left the articulated-body factorisation in ``work`` (U, Dinv,
+        # Sf, Xf) and for what: an integrator's (token, h) while it may reuse
+        # it in its next steps; None after any other factorisation
+        self.factor_key = None
 
     def check(self, model):
         if model is not self.model:

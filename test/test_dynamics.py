@@ -276,11 +276,13 @@ def test_acceleration_query_does_not_disturb_the_integrator():
 def test_default_newton_tolerance_is_far_below_the_time_step_error():
     """The Simulator's default Newton tolerance (1e-4 of the largest strain
     rate) moves the tip trajectory of the benchmark cantilever (all six
-    modes, falling under gravity) by under 5 % of the time-step error at the
-    same dt (estimated by Richardson from dt and dt/2, both converged to
-    1e-11; measured 1.1 %: every step takes at least two iterations of a
-    Newton matrix that contracts the error ~100-fold each), and takes fewer
-    iterations than a tight tolerance."""
+    modes, falling under gravity) by under 20 % of the time-step error at
+    the same dt (estimated by Richardson from dt and dt/2, both converged to
+    1e-11; measured 13 %, and 1.1 % with a fresh factorisation every step:
+    a fresh Newton matrix contracts the error ~100-1000-fold an iteration
+    and two iterations overshoot the tolerance, a reused one leaves about
+    what the tolerance allows), and takes fewer iterations than a tight
+    tolerance."""
     m = model_from_dict(benchmark_cantilever_dict(6, "all"))
 
     def tips(dt, **kw):
@@ -296,5 +298,49 @@ def test_default_newton_tolerance_is_far_below_the_time_step_error():
     newton_error = np.abs(default - tight).max()
     step_error = 4.0 / 3.0 * np.abs(tight - half).max()
     assert step_error > 1e-5                       # 0.5 s of the fall: the time step matters
-    assert newton_error < 0.05 * step_error, (newton_error, step_error)
+    assert newton_error < 0.2 * step_error, (newton_error, step_error)
     assert it_default < 0.7 * it_tight
+
+
+def test_run_reuses_factorisations_across_steps_and_calls():
+    """Simulator.step(k) (the compiled run) reuses Newton's factorisation
+    while it contracts the error as a fresh one does
+    (integrators.REUSE_MAX_RATIO), also across calls, and takes the steps of
+    the single-step path (a fresh factorisation every step) to the Newton
+    tolerance's effect."""
+    m = model_from_dict(benchmark_cantilever_dict(6, "all"))
+    dt = 2e-3
+    run, single = dy.Simulator(m, dt=dt), dy.Simulator(m, dt=dt)
+    tips_run, tips_single = [], []
+    for _ in range(25):                            # 0.5 s of the fall
+        run.step(5)
+        for _ in range(5):
+            single.step()
+        tips_run.append(kin.tip_pose(m, run.state.q)[:3, 3].copy())
+        tips_single.append(kin.tip_pose(m, single.state.q)[:3, 3].copy())
+    assert single.jacobian_refreshes == 125
+    assert run.jacobian_refreshes < 0.5 * 125, run.jacobian_refreshes
+    assert run.jacobian_refreshes < 25                # fewer than one per call: kept across calls
+    assert np.abs(np.array(tips_run) - np.array(tips_single)).max() < 2e-4
+
+
+def test_an_outside_factorisation_of_the_workspace_is_never_reused():
+    """A factorisation that another caller leaves in the simulator's
+    workspace (algorithms.factor, here of a matrix 1e6 times too stiff, whose
+    tiny Newton updates would pass the convergence test at once) is not
+    mistaken for the integrator's: the next steps are those of an untouched
+    simulator, to the Newton tolerance."""
+    from soft_twin_core import algorithms as alg
+    m = model_from_dict(benchmark_cantilever_dict(6, "all"))
+    # a tight tolerance: every step iterates more than twice and so takes a
+    # fresh factorisation, the two runs compute the same (reusing the
+    # outside factorisation: 0.55 and 151 /s apart)
+    a, b = dy.Simulator(m, dt=2e-3, tol=1e-8), dy.Simulator(m, dt=2e-3, tol=1e-8)
+    for sim in (a, b):
+        sim.step(5)
+    alg.factor(m.tree, b.workspace, b.state.q, 1e6, 1e6)
+    assert b.workspace.factor_key is None
+    for sim in (a, b):
+        sim.step(5)
+    assert np.abs(a.state.q - b.state.q).max() < 1e-6
+    assert np.abs(a.state.qdot - b.state.qdot).max() < 1e-3

@@ -543,7 +543,8 @@ def test_full_newton_fallback_rescues_large_strain_rates():
 def test_compiled_multi_step_run_equals_single_steps():
     """ThetaIntegrator.run (n steps in one compiled call, constant inputs)
     takes the same steps as n calls of step(): equal to the Newton
-    tolerance, same count of factorisations, same time."""
+    tolerance, same time (it may reuse a factorisation where step() takes a
+    fresh one every step: test_run_reuses_factorisations_...)."""
     model = pan_tilt_arm()
     q0 = _gentle_start(model, 2, 0.5)
     a, _ = _integrator(model, 1e-3, tol=1e-12)
@@ -553,4 +554,4 @@ def test_compiled_multi_step_run_equals_single_steps():
     for _ in range(50):
         assert b.step(sb).converged
     assert np.max(np.abs(sa.q - sb.q)) < 1e-9 and np.max(np.abs(sa.qdot - sb.qdot)) < 1e-7
-    assert sa.t == pytest.approx(sb.t, abs=1e-15) and a.factorisations == b.factorisations
+    assert sa.t == pytest.approx(sb.t, abs=1e-15)
