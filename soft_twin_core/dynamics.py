@@ -189,12 +189,17 @@ class Simulator:
     actuation: dict/vector, or a callable t -> vector; loads: Loads or a
     callable t -> Loads. ``full_newton``: when the O(n) iteration fails even
     in sub-steps, try a dense full Newton (robust, but 25-700 ms a step;
-    real-time users turn it off). The model is never modified;
+    real-time users turn it off). ``reuse_factorisation``: Newton's
+    factorisation serves later steps while it contracts the error as a fresh
+    one does (:data:`integrators.REUSE_MAX_RATIO`); False: a fresh one every
+    step (the Newton tolerance's effect on the trajectory is then smaller,
+    the step dearer). The model is never modified;
     ``state`` holds q, qdot and t.
     """
 
     def __init__(self, model, dt=1e-3, actuation=None, loads=None, state=None,
-                 max_iterations=10, tol=1e-4, max_substep_levels=4, theta=0.5, full_newton=True):
+                 max_iterations=10, tol=1e-4, max_substep_levels=4, theta=0.5, full_newton=True,
+                 reuse_factorisation=True):
         from .forces import actuator_arrays
         from .integrators import ThetaIntegrator
         from .model import State
@@ -215,7 +220,8 @@ class Simulator:
         self._effort = np.zeros(self.tree.nv)
         self._inputs_key = None
         self._integrator = ThetaIntegrator(self.tree, self.workspace, self._act, self._inputs, self.dt,
-                                           self.theta, tol, max_iterations, max_substep_levels, full_newton)
+                                           self.theta, tol, max_iterations, max_substep_levels, full_newton,
+                                           reuse_factorisation)
 
     @property
     def last_qddot(self):

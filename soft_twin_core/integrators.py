@@ -195,7 +195,7 @@ REUSE_MAX_RATIO = 0.01
 
 @_jit
 def run_steps(m, w, act, ld, g, coef, effort, q, v, a_last, a_prev, have_prev, steps_before, h, theta, tol, max_it,
-              n, fresh, stats):
+              n, fresh, max_ratio, stats):
     """Up to n theta-method steps with constant inputs in one call: q, v,
     a_last, a_prev advance in place after every converged step (predictor as
     :meth:`ThetaIntegrator._newton`: it extrapolates from two real steps,
@@ -206,7 +206,9 @@ def run_steps(m, w, act, ld, g, coef, effort, q, v, a_last, a_prev, have_prev, s
     factorisations, stats[2] = 1 if the workspace's factorisation (of step
     h) may serve the next step, else 0. ``fresh``: factorise at the first
     step (False: the workspace holds this integrator's factorisation of
-    step h, which served its last step)."""
+    step h, which served its last step); ``max_ratio``: the contraction
+    ratio up to which a factorisation is kept for the next step
+    (REUSE_MAX_RATIO; negative: a fresh one every step)."""
     nv = v.shape[0]
     v1 = np.empty(nv)
     v_pred = np.empty(nv)
@@ -247,7 +249,7 @@ def run_steps(m, w, act, ld, g, coef, effort, q, v, a_last, a_prev, have_prev, s
             for k in range(nv):
                 v1[k] = v_pred[k]
         stats[0] += it
-        fresh = it > 2 or ratio > REUSE_MAX_RATIO
+        fresh = it > 2 or ratio > max_ratio
         stats[2] = 0.0 if fresh else 1.0
         for k in range(nv):
             a_prev[k] = a_last[k]
@@ -280,7 +282,7 @@ class ThetaIntegrator:
     """
 
     def __init__(self, model, ws, act, inputs, dt, theta=0.5, tol=1e-4, max_iterations=10,
-                 max_substep_levels=4, full_newton=True):
+                 max_substep_levels=4, full_newton=True, reuse_factorisation=True):
         self.model, self.ws, self.act, self.inputs = model, ws, act, inputs
         self.dt = float(dt)
         self.theta = float(theta)
@@ -289,6 +291,8 @@ class ThetaIntegrator:
         self.max_substep_levels = int(max_substep_levels)
         self.full_newton = bool(full_newton)   # the dense fallback of _newton_full
         self._token = object()                 # names this integrator in ws.factor_key
+        # keep Newton's factorisation across steps while it serves (REUSE_MAX_RATIO); False: a fresh one every step
+        self.max_ratio = REUSE_MAX_RATIO if reuse_factorisation else -1.0
         self.last_a = np.zeros(model.nv)
         self._prev_a = None
         self._steps = 0
@@ -304,12 +308,25 @@ class ThetaIntegrator:
         q1 = np.empty_like(q0)
         floor = 1e-14 * max(1.0, np.abs(q0).max(initial=0.0)) / h
         m, w = self.ws.m, self.ws.w
+        key = (self._token, h)
+        it0 = 0
+        if self.ws.factor_key == key:
+            # this integrator's factorisation of this h served its last step: reuse it, as run_steps does
+            v_pred = v1.copy()
+            it0, status, ratio = newton_step(m, w, self.act, loads, g, coef, effort, q0, v0, v1, h, self.theta,
+                                             self.tol, floor, min(self.max_iterations, 3), q1, FALSE)
+            if status == 0:
+                self.ws.factor_key = key if it0 <= 2 and ratio <= self.max_ratio else None
+                return (q1, v1, it0), status
+            v1 = v_pred
+        self.ws.factor_key = None
         it, status, ratio = newton_step(m, w, self.act, loads, g, coef, effort, q0, v0, v1, h,
                                         self.theta, self.tol, floor, self.max_iterations, q1, TRUE)
-        # a factorisation of this h, which the next run() may reuse as run_steps would
-        ok = status == 0 and it <= 2 and ratio <= REUSE_MAX_RATIO
-        self.ws.factor_key = (self._token, h) if ok else None
         self.factorisations += 1
+        it += it0
+        # a factorisation of this h, which the next step may reuse
+        if status == 0 and it - it0 <= 2 and ratio <= self.max_ratio:
+            self.ws.factor_key = key
         return ((q1, v1, it) if status == 0 else None), status
 
     def _newton_full(self, q0, v0, h, inputs, v1):
@@ -389,7 +406,7 @@ class ThetaIntegrator:
             self.ws.factor_key = None         # until run_steps says what it left
             k = run_steps(self.ws.m, self.ws.w, self.act, loads, g, coef, effort, q, v, a_last, a_prev,
                           have_prev, self._steps, self.dt, self.theta, self.tol, self.max_iterations, n - done,
-                          not reuse, stats)
+                          not reuse, self.max_ratio, stats)
             if stats[2] == 1.0:
                 self.ws.factor_key = (self._token, self.dt)
             self.factorisations += int(stats[1])
