@@ -17,15 +17,15 @@ articulated-body factorisation costs O(n) and whose solve is O(n)
 rate O((h omega)^2) for the soft geometric modes. A factorisation is made
 at a step's first iterate, from the poses the residual's forward pass has
 just computed (about one residual's cost): a fresh matrix contracts the
-error 100-1000-fold per iteration on the benchmark cantilever. The
-compiled multi-step path (:func:`run_steps`) keeps it for the next steps,
-also across calls, while the last step took two iterations and contracted
-at least 100-fold (``REUSE_MAX_RATIO``), and takes a fresh one when a
-step with it does not converge: on the benchmark cantilever one
-factorisation serves 3-7 steps (10 sections at 2 ms: 168 for 500 steps,
-2.2 iterations a step instead of 2.0; 40 sections at 1 ms: 296 for 1000),
-12-25 % less CPU per simulated second. A step that fails is split into
-halves.
+error 100-1000-fold per iteration on the benchmark cantilever. Both the
+compiled multi-step path (:func:`run_steps`) and the single step keep it
+for the next steps, also across calls, while the last step took two
+iterations and contracted at least 100-fold (``REUSE_MAX_RATIO``), and
+take a fresh one when a step with it does not converge: on the benchmark
+cantilever one factorisation serves 3-7 steps (10 sections at 2 ms: 168
+for 500 steps, 2.2 iterations a step instead of 2.0; 40 sections at 1 ms:
+296 for 1000), 10-25 % less CPU per simulated second. A step that fails
+is split into halves.
 
 The whole Newton loop of a step runs compiled (one call per step).
 """
@@ -179,15 +179,16 @@ def newton_step(m, w, act, ld, g, coef, effort, q0, v0, v1, h, theta, tol, floor
     return max_it, 1, ratio
 
 
-# Reuse of Newton's factorisation across the steps of run_steps: the matrix
-# M + theta h D + (theta h)^2 K moves slowly with the state, so a step may
-# iterate with the previous step's factorisation while that one still
-# contracts Newton's error as a fresh one does. A fresh factorisation is
-# taken at the first step of a call, after a step that needed more than two
-# iterations or whose last contraction ratio exceeded REUSE_MAX_RATIO, and
-# whenever a step with the reused one does not converge (the step is then
-# retried from the same predictor, after at most three iterations with the
-# reused one). With a fresh factorisation the ratio is
+# Reuse of Newton's factorisation across steps (run_steps and
+# ThetaIntegrator._newton): the matrix M + theta h D + (theta h)^2 K moves
+# slowly with the state, so a step may iterate with an earlier step's
+# factorisation while that one still contracts Newton's error as a fresh one
+# does. A fresh factorisation is taken when the workspace holds none of this
+# integrator for this h (Workspace.factor_key), after a step that needed more
+# than two iterations or whose last contraction ratio exceeded
+# REUSE_MAX_RATIO, and whenever a step with the reused one does not converge
+# (the step is then retried from the same predictor, after at most three
+# iterations with the reused one). With a fresh factorisation the ratio is
 # 1e-3 - 1e-2 on the benchmark cantilever; two iterations meet the default
 # tolerance while it stays below ~0.02.
 REUSE_MAX_RATIO = 0.01
