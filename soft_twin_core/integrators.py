@@ -36,7 +36,7 @@ import numpy as np
 
 from .forces import actuation_pass
 from .kernels import passes
-from .kernels.spatial import FALSE, TRUE, _exp_into, _jit, _jit_inner, _jit_inline
+from .kernels.spatial import FALSE, _exp_into, _jit, _jit_inner, _jit_inline
 from .multibody import FREE, SPHERICAL
 
 SOFT_, FREE_, SPHERICAL_ = 5, 4, 3
@@ -179,8 +179,8 @@ def newton_step(m, w, act, ld, g, coef, effort, q0, v0, v1, h, theta, tol, floor
     return max_it, 1, ratio
 
 
-# Reuse of Newton's factorisation across steps (run_steps and
-# ThetaIntegrator._newton): the matrix M + theta h D + (theta h)^2 K moves
+# Reuse of Newton's factorisation across steps (run_steps, which the single
+# step calls too): the matrix M + theta h D + (theta h)^2 K moves
 # slowly with the state, so a step may iterate with an earlier step's
 # factorisation while that one still contracts Newton's error as a fresh one
 # does. A fresh factorisation is taken when the workspace holds none of this
@@ -205,7 +205,8 @@ def run_steps(m, w, act, ld, g, coef, effort, q, v, a_last, a_prev, have_prev, s
     converge, leaving it to the caller as it was before the attempt. Returns
     the number of steps done; stats[0] += Newton iterations, stats[1] +=
     factorisations, stats[2] = 1 if the workspace's factorisation (of step
-    h) may serve the next step, else 0. ``fresh``: factorise at the first
+    h) may serve the next step, else 0; stats[3] = the Newton status of a
+    step that failed (newton_step's). ``fresh``: factorise at the first
     step (False: the workspace holds this integrator's factorisation of
     step h, which served its last step); ``max_ratio``: the contraction
     ratio up to which a factorisation is kept for the next step
@@ -242,6 +243,7 @@ def run_steps(m, w, act, ld, g, coef, effort, q, v, a_last, a_prev, have_prev, s
             if fresh:
                 # hand the step back as it was before this attempt: the caller
                 # replays it through the single-step path (fallback, sub-steps)
+                stats[3] = status
                 return s
             stats[2] = 0.0
             # the reused factorisation does not serve here: a fresh one from the same predictor
@@ -300,35 +302,34 @@ class ThetaIntegrator:
         self.factorisations = 0
         self.iterations = 0           # Newton iterations so far (all steps)
 
-    def _newton(self, q0, v0, t, h):
-        loads, g, coef, effort = self.inputs(t + self.theta * h)
-        a_pred = self.last_a
-        if self._prev_a is not None and h == self.dt:
-            a_pred = 2.0 * self.last_a - self._prev_a          # linear extrapolation
-        v1 = v0 + h * (a_pred if np.all(np.isfinite(a_pred)) else 0.0)
-        q1 = np.empty_like(q0)
-        floor = 1e-14 * max(1.0, np.abs(q0).max(initial=0.0)) / h
-        m, w = self.ws.m, self.ws.w
+    def _run_steps(self, inputs, q, v, a_last, a_prev, have_prev, h, n, stats):
+        """:func:`run_steps` of n steps of size h on this integrator's
+        workspace, reusing the factorisation it holds when it is this
+        integrator's of this h (``Workspace.factor_key``) and recording what
+        it leaves; counts the factorisations. Returns the steps done."""
+        loads, g, coef, effort = inputs
         key = (self._token, h)
-        it0 = 0
-        if self.ws.factor_key == key:
-            # this integrator's factorisation of this h served its last step: reuse it, as run_steps does
-            v_pred = v1.copy()
-            it0, status, ratio = newton_step(m, w, self.act, loads, g, coef, effort, q0, v0, v1, h, self.theta,
-                                             self.tol, floor, min(self.max_iterations, 3), q1, FALSE)
-            if status == 0:
-                self.ws.factor_key = key if it0 <= 2 and ratio <= self.max_ratio else None
-                return (q1, v1, it0), status
-            v1 = v_pred
-        self.ws.factor_key = None
-        it, status, ratio = newton_step(m, w, self.act, loads, g, coef, effort, q0, v0, v1, h,
-                                        self.theta, self.tol, floor, self.max_iterations, q1, TRUE)
-        self.factorisations += 1
-        it += it0
-        # a factorisation of this h, which the next step may reuse
-        if status == 0 and it - it0 <= 2 and ratio <= self.max_ratio:
+        reuse = self.ws.factor_key == key
+        self.ws.factor_key = None         # until run_steps says what it left
+        k = run_steps(self.ws.m, self.ws.w, self.act, loads, g, coef, effort, q, v, a_last, a_prev, have_prev,
+                      self._steps, h, self.theta, self.tol, self.max_iterations, n, not reuse, self.max_ratio, stats)
+        if stats[2] == 1.0:
             self.ws.factor_key = key
-        return ((q1, v1, it) if status == 0 else None), status
+        self.factorisations += int(stats[1])
+        return k
+
+    def _newton(self, q0, v0, t, h):
+        """One step of size h from (q0, v0), inputs at t + theta h: (q1, v1,
+        iterations) or None, and the Newton status (0 converged, 3 non-finite, ...)."""
+        q = np.array(q0, dtype=float)
+        v = np.array(v0, dtype=float)
+        a_last = np.array(self.last_a, dtype=float)
+        have_prev = self._prev_a is not None and h == self.dt          # linear extrapolation
+        a_prev = np.array(self._prev_a if have_prev else a_last, dtype=float)
+        stats = np.zeros(4)
+        if self._run_steps(self.inputs(t + self.theta * h), q, v, a_last, a_prev, have_prev, h, 1, stats) == 0:
+            return None, int(stats[3])
+        return (q, v, int(stats[0])), 0
 
     def _newton_full(self, q0, v0, h, inputs, v1):
         """Fallback when the O(n) iteration does not converge (large strain
@@ -402,15 +403,8 @@ class ThetaIntegrator:
             a_last = np.array(self.last_a, dtype=float)
             have_prev = self._prev_a is not None and self._steps > 0
             a_prev = np.array(self._prev_a if have_prev else a_last, dtype=float)
-            stats = np.zeros(3)
-            reuse = self.ws.factor_key == (self._token, self.dt)
-            self.ws.factor_key = None         # until run_steps says what it left
-            k = run_steps(self.ws.m, self.ws.w, self.act, loads, g, coef, effort, q, v, a_last, a_prev,
-                          have_prev, self._steps, self.dt, self.theta, self.tol, self.max_iterations, n - done,
-                          not reuse, self.max_ratio, stats)
-            if stats[2] == 1.0:
-                self.ws.factor_key = (self._token, self.dt)
-            self.factorisations += int(stats[1])
+            stats = np.zeros(4)
+            k = self._run_steps((loads, g, coef, effort), q, v, a_last, a_prev, have_prev, self.dt, n - done, stats)
             self.iterations += int(stats[0])
             if k > 0:
                 state.q, state.qdot, state.t = q, v, state.t + k * self.dt
