@@ -78,20 +78,16 @@ for ts, kind, e in events:
         depth -= 1
         if depth == 0:
             llvm[owner] += ts - l_start
+entry_points = json.loads(sys.argv[1])
 for ts, e in rec_c.buffer:
-    if not e.is_start:
-        continue
     name = name_of(e.data)
-    if name in passes:
-        continue
-    disp = e.data["dispatcher"]
-    for cres in disp.overloads.values():
+    if e.is_start and name in entry_points and name not in passes:
+        cres = next(iter(e.data["dispatcher"].overloads.values()))
         tot = collections.Counter()
         for pipe in cres.metadata.get("pipeline_times", {}).values():
             for k, v in pipe.items():
                 tot[k.split("_", 1)[1]] += v.run
         passes[name] = dict(tot.most_common(4))
-        break
 print(json.dumps({"import": t1 - t0, "statics": t2 - t1, "dynamics": t3 - t2,
                   "excl": excl, "llvm": llvm, "count": count, "passes": passes}))
 '''
@@ -114,7 +110,7 @@ def main():
           + (f"; child environment {' '.join(args.env)}" if args.env else ""))
     with tempfile.TemporaryDirectory(prefix="numba_empty_") as d:
         env["NUMBA_CACHE_DIR"] = d
-        p = subprocess.run([sys.executable, "-c", CHILD], env=env, capture_output=True, text=True, cwd=ROOT)
+        p = subprocess.run([sys.executable, "-c", CHILD, json.dumps(ENTRY_POINTS)], env=env, capture_output=True, text=True, cwd=ROOT)
     if p.returncode != 0:
         sys.exit(f"the child failed:\n{p.stderr}")
     r = json.loads(p.stdout.strip().splitlines()[-1])
