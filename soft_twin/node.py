@@ -36,6 +36,7 @@ Topics, services and parameters: see README.md ("Interfaces").
 
 import difflib
 import math
+import os
 import signal
 import sys
 import threading
@@ -79,10 +80,11 @@ from soft_twin.text import clip, short_list
 
 NODE_NAME = "soft_twin"
 # benchmark hook: SOFT_TWIN_SERVICE_TIMING=1 logs the IK service body's wall and thread CPU time
-_SERVICE_TIMING = bool(__import__("os").environ.get("SOFT_TWIN_SERVICE_TIMING"))
+_SERVICE_TIMING = bool(os.environ.get("SOFT_TWIN_SERVICE_TIMING"))
 ACTUATION_QUEUE = 100       # subscription depths (keep last)
 WRENCH_QUEUE = 10
 JOINT_QUEUE = 100
+TEARDOWN_TIMEOUT_S = 10.0  # after a stop signal: the longest wait for the node's teardown
 # parameters rclpy declares itself (not ours, not unknown)
 ROS_PARAMETERS = ("use_sim_time", "start_type_description_service")
 
@@ -1281,11 +1283,16 @@ class _StopSignals:
     order, and returns 0. During the start-up the node asks between its
     steps (robot, rest shape, kernel warm-up) and gives up at the next one
     (the longest step is the kernels' first compilation, about a minute once
-    when `make setup` did not cache them)."""
+    when `make setup` did not cache them). From the moment the teardown
+    starts, a watchdog gives it ``TEARDOWN_TIMEOUT_S``: a teardown stuck in the
+    middleware is logged and the process exits anyway (:meth:`begin_teardown`)."""
 
-    def __init__(self):
+    def __init__(self, teardown_timeout_s=None):
         self.received = None          # the first signal's number
         self.starting = True
+        self.teardown_timeout_s = TEARDOWN_TIMEOUT_S if teardown_timeout_s is None else teardown_timeout_s
+        self._torn_down = threading.Event()
+        self._watchdog = None
 
     def install(self):
         for sig in (signal.SIGINT, signal.SIGTERM):
@@ -1300,7 +1307,45 @@ class _StopSignals:
                 f"{self.name}: stopping at the end of the start-up step under way")
 
     def requested(self):
-        return self.received is not None
+        """True once a signal came. A True answer starts the teardown, so it
+        also starts the teardown's watchdog (:meth:`begin_teardown`)."""
+        if self.received is None:
+            return False
+        self.begin_teardown()
+        return True
+
+    def begin_teardown(self):
+        """Time the teardown from here: if it has not ended (:meth:`end_teardown`)
+        within ``teardown_timeout_s``, a watchdog thread logs where the main
+        thread is stuck and ends the process with status 0. The stop was asked
+        for and the twin's own parts (stepping thread, plan, recording, live
+        view) close first; what can hang after them is the middleware's
+        teardown (a DDS entity's deletion racing its discovery threads, rare:
+        1 of 200 signals in a CI run of the signal test). Idempotent."""
+        if self._watchdog is None:
+            main = threading.main_thread().ident
+            self._watchdog = threading.Thread(target=self._watch, args=(main,), name="teardown_watchdog",
+                                              daemon=True)
+            self._watchdog.start()
+
+    def end_teardown(self):
+        self._torn_down.set()
+
+    def _watch(self, main_ident):
+        if self._torn_down.wait(self.teardown_timeout_s):
+            return
+        frame = sys._current_frames().get(main_ident)
+        where = " <- ".join(f"{f.name} ({f.filename.rsplit('/', 1)[-1]}:{f.lineno})"
+                            for f in reversed(traceback.extract_stack(frame)[-6:])) if frame else "unknown"
+        rclpy.logging.get_logger(NODE_NAME).warning(
+            f"{self.name or 'stop'}: the teardown did not end within {self.teardown_timeout_s:.0f} s "
+            f"(the main thread is in {where}); exiting without waiting for it")
+        for stream in (sys.stdout, sys.stderr):
+            try:
+                stream.flush()
+            except (OSError, ValueError):
+                pass
+        os._exit(0)
 
     @property
     def name(self):
@@ -1335,6 +1380,7 @@ def main(args=None):
     finally:
         stop.starting = False
         if stop.received is not None:
+            stop.begin_teardown()
             twin = getattr(node, "twin", None)
             logger.info(f"{stop.name}: shutting down" + (
                 f" (twin time {twin.state.t:.3f} s, {node.stats.totals['steps']} steps)"
@@ -1344,6 +1390,7 @@ def main(args=None):
         if node is not None:
             node.destroy_node()
         rclpy.try_shutdown()
+        stop.end_teardown()
     if stop.received is not None:
         logger.info("stopped")
     return 0

@@ -721,19 +721,27 @@ def _signal_storm(n_each, parallel, seed, tmp_path):
     t_start = time.monotonic()
     with ThreadPoolExecutor(parallel) as pool:
         results = list(pool.map(lambda job: _signal_run(*job, seed, tmp_path), jobs))
-    bad = []
+    bad, rescued = [], []
     for label, sig, rc, took, out in results:
-        clean = (rc == 0 and took < 30.0 and f"{sig}: shutting down" in out
+        # a teardown stuck in the middleware is ended by the node's watchdog (a
+        # WARN line, still status 0); it happened once in 200 signals in CI
+        ended_by_watchdog = "the teardown did not end within" in out
+        clean = (rc == 0 and took < 30.0 and (f"{sig}: shutting down" in out or ended_by_watchdog)
                  and not any(w in out for w in ("Traceback", "RCLError", "Failed to publish", "Exception")))
         if not clean:
             bad.append((label, sig, rc, took, out[-2500:]))
+        elif ended_by_watchdog:
+            rescued.append((label, sig, rc, took, out[-2500:]))
     summary = {s: sum(1 for r in results if r[1] == s and r[2] == 0) for s in ("SIGINT", "SIGTERM")}
     tooks = np.array([r[3] for r in results if r[2] == 0])
     print(f"\nsignals: SIGINT {summary['SIGINT']}/{n_each} exit 0, SIGTERM {summary['SIGTERM']}/{n_each} exit 0; "
           f"exit after the signal median {np.median(tooks):.2f} s, max {tooks.max():.2f} s; "
-          f"{len(results)} nodes in {time.monotonic() - t_start:.0f} s")
+          f"{len(rescued)} teardowns ended by the watchdog; {len(results)} nodes in {time.monotonic() - t_start:.0f} s")
     assert not bad, "\n\n".join(f"{label} {sig}: exit {rc} after {took:.2f} s\n{out}"
                                 for label, sig, rc, took, out in bad[:3]) + f"\n({len(bad)} bad in all)"
+    # rare is the middleware; often would be a teardown of ours that hangs
+    assert len(rescued) <= max(1, len(results) // 50), "\n\n".join(
+        f"{label} {sig}: ended by the watchdog after {took:.2f} s\n{out}" for label, sig, rc, took, out in rescued[:3])
 
 
 def test_signals_stop_the_node_cleanly(tmp_path):
@@ -751,3 +759,71 @@ def test_signals_stop_the_node_cleanly(tmp_path):
 def test_signals_stop_the_node_cleanly_100_each(tmp_path):
     """The issue's criterion: 100 of 100 SIGINTs and 100 of 100 SIGTERMs."""
     _signal_storm(100, 4, 2, tmp_path)
+
+
+STUCK_TEARDOWN = """\
+import sys, threading
+sys.path.insert(0, {root!r})          # the sources, as NodeProcess runs them
+import rclpy.node
+from soft_twin import node as twin_node
+twin_node.TEARDOWN_TIMEOUT_S = {timeout}
+if {stuck}:
+    # a middleware teardown that never returns (as a DDS deletion racing its discovery threads can)
+    rclpy.node.Node.destroy_node = lambda self: threading.Event().wait()
+sys.exit(twin_node.main(sys.argv))
+"""
+
+
+@pytest.mark.parametrize("stuck", [True, False], ids=["stuck", "normal"])
+@pytest.mark.parametrize("when", ["running", "start-up"])
+def test_a_stuck_teardown_is_logged_and_the_node_exits_anyway(tmp_path, stuck, when):
+    """A teardown that never returns (rclpy's Node.destroy_node blocking, in a
+    real node process) is given TEARDOWN_TIMEOUT_S (2 s here): the watchdog
+    logs where the main thread is stuck and the process exits with status 0
+    (a signal test in CI once saw a node stay for 60 s after SIGINT during the
+    start-up: 1 of 200). Without the block the watchdog stays silent."""
+    import signal
+    import subprocess
+    import sys
+    from soft_twin.client import REPO_ROOT
+    name = f"stuck_{int(stuck)}_{when.replace('-', '_')}"
+    script = tmp_path / "run_node.py"
+    script.write_text(STUCK_TEARDOWN.format(root=str(REPO_ROOT), timeout=2.0, stuck=stuck))
+    log = tmp_path / "node.log"
+    with open(log, "w") as out:
+        proc = subprocess.Popen([sys.executable, str(script), "--ros-args", "-r", f"__node:={name}"],
+                                cwd=REPO_ROOT, stdout=out,
+                                stderr=subprocess.STDOUT)
+    try:
+        marker = "mode dynamic" if when == "start-up" else "twin running"
+        assert _wait_for_log(log, marker, _Alive(proc), START_TIMEOUT), log.read_text()[-2000:]
+        t0 = time.monotonic()
+        proc.send_signal(signal.SIGINT)
+        rc = proc.wait(timeout=30.0)
+        took = time.monotonic() - t0
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait()
+    text = log.read_text()
+    assert rc == 0, text[-2000:]
+    assert ("SIGINT: stopping at the end of the start-up step" if when == "start-up"
+            else "SIGINT: shutting down") in text, text[-2000:]
+    assert "Traceback" not in text, text[-2000:]
+    assert "/.venv/" not in text, "the node ran from the installed copy, not the sources"
+    if stuck:
+        assert "the teardown did not end within 2 s" in text and "destroy_node" in text, text[-2000:]
+        assert 2.0 <= took < 10.0, took
+        assert "stopped" not in text.splitlines()[-1]
+    else:
+        assert "teardown did not end" not in text, text[-2000:]
+        assert text.rstrip().endswith("stopped"), text[-2000:]
+
+
+class _Alive:
+    """_wait_for_log's view of a plain Popen."""
+    def __init__(self, proc):
+        self.proc = proc
+
+    def alive(self):
+        return self.proc.poll() is None
