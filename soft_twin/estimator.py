@@ -46,11 +46,14 @@ import rclpy
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
 from geometry_msgs.msg import PointStamped, PoseArray, PoseStamped, PoseWithCovarianceStamped, WrenchStamped
 from rcl_interfaces.msg import ParameterDescriptor
+from rclpy.executors import SingleThreadedExecutor
 from rclpy.node import Node
+from rclpy.signals import SignalHandlerOptions
 from std_srvs.srv import Trigger
 
 from soft_twin.msg import ActuationCommand
 from soft_twin import conversions as cv
+from soft_twin.shutdown import StopSignals, spin_until_stopped
 from soft_twin_core import estimation as es
 from soft_twin_core import sensors as sn
 from soft_twin_core.model import load_model
@@ -282,24 +285,40 @@ def _header(stamp, frame):
 
 
 def main(args=None):
-    rclpy.init(args=args)
-    node = None
+    """Entry point (``python -m soft_twin.estimator --ros-args ...``). Exit
+    status 0 after SIGINT or SIGTERM (at any time: :mod:`soft_twin.shutdown`),
+    2 for a robot, sensors file or parameter that does not load."""
+    stop = StopSignals(NODE_NAME)
+    stop.install()
+    logger = rclpy.logging.get_logger(NODE_NAME)
+    node = executor = None
     try:
-        node = EstimatorNode()
-        rclpy.spin(node)
-    except KeyboardInterrupt:
-        pass
+        rclpy.init(args=args, signal_handler_options=SignalHandlerOptions.NO)
+        node = EstimatorNode()        # a signal during it: the start-up ends, then the node stops
+        logger = node.get_logger()
+        logger.info(f"estimator running: robot {getattr(node.model, 'name', '?')!r}, "
+                    f"{'tree filter' if node.tree is not None else 'strain EKF'} at "
+                    f"{node.get_parameter('rate_hz').value:g} Hz")
+        executor = SingleThreadedExecutor()
+        executor.add_node(node)
+        spin_until_stopped(executor, stop)
     except (ValueError, OSError) as e:
         print(f"soft_twin_estimator: {e}", file=sys.stderr)
         return 2
-    except rclpy.executors.ExternalShutdownException:
-        pass
     finally:
+        stop.starting = False
+        if stop.received is not None:
+            stop.begin_teardown()
+            logger.info(f"{stop.name}: shutting down")
+        if executor is not None:
+            executor.shutdown()       # waits for the callback under way
         if node is not None:
             node.close_recording()
             node.destroy_node()
-        if rclpy.ok():
-            rclpy.shutdown()
+        rclpy.try_shutdown()
+        stop.end_teardown()
+    if stop.received is not None:
+        logger.info("stopped")
     return 0
 
 

@@ -37,7 +37,6 @@ Topics, services and parameters: see README.md ("Interfaces").
 import difflib
 import math
 import os
-import signal
 import sys
 import threading
 import time
@@ -75,6 +74,7 @@ from soft_twin import conversions as cv
 from soft_twin import live_view_out, recorder, tf_out
 from soft_twin import twin as tw
 from soft_twin.executor import TwinExecutor
+from soft_twin.shutdown import StopSignals, spin_until_stopped
 from soft_twin.config import PARAMETERS, ConfigError, config_from_values, load_robot
 from soft_twin.text import clip, short_list
 
@@ -84,7 +84,6 @@ _SERVICE_TIMING = bool(os.environ.get("SOFT_TWIN_SERVICE_TIMING"))
 ACTUATION_QUEUE = 100       # subscription depths (keep last)
 WRENCH_QUEUE = 10
 JOINT_QUEUE = 100
-TEARDOWN_TIMEOUT_S = 10.0  # after a stop signal: the longest wait for the node's teardown
 # parameters rclpy declares itself (not ours, not unknown)
 ROS_PARAMETERS = ("use_sim_time", "start_type_description_service")
 
@@ -1265,100 +1264,13 @@ def _topic_name(name):
     return t if t and not t[0].isdigit() else f"_{t}"
 
 
-class _StopSignals:
-    """SIGINT and SIGTERM, handled in Python instead of by rclpy.
-
-    rclpy's own handlers shut the context down from a signal thread while
-    the executor may be building a wait set or the node creating a
-    publisher: "RCLError: failed to initialize wait set: the given context is
-    not valid" (exit status 1: 5 of 20 SIGTERMs in the signal test, 4 of 28
-    and 2 of 38 SIGINTs in issue 15), and a signal during the start-up gave
-    a traceback or death by the signal. Here a signal only records itself
-    (the handler never raises: an exception raised wherever the main thread
-    happens to be can land in a ctypes callback of the kernel compiler, where
-    Python prints it as "Exception ignored", or be a KeyboardInterrupt that
-    CPython remembers and turns into death by SIGINT at exit). Main's spin
-    loop sees it within 0.1 s, stops the executor (waiting for running
-    callbacks), destroys the node and then shuts the context down, in that
-    order, and returns 0. During the start-up the node asks between its
-    steps (robot, rest shape, kernel warm-up) and gives up at the next one
-    (the longest step is the kernels' first compilation, about a minute once
-    when `make setup` did not cache them). From the moment the teardown
-    starts, a watchdog gives it ``TEARDOWN_TIMEOUT_S``: a teardown stuck in the
-    middleware is logged and the process exits anyway (:meth:`begin_teardown`)."""
-
-    def __init__(self, teardown_timeout_s=None):
-        self.received = None          # the first signal's number
-        self.starting = True
-        self.teardown_timeout_s = TEARDOWN_TIMEOUT_S if teardown_timeout_s is None else teardown_timeout_s
-        self._torn_down = threading.Event()
-        self._watchdog = None
-
-    def install(self):
-        for sig in (signal.SIGINT, signal.SIGTERM):
-            signal.signal(sig, self._handle)
-
-    def _handle(self, signum, frame):
-        if self.received is not None:
-            return                    # already stopping
-        self.received = signum
-        if self.starting:
-            rclpy.logging.get_logger(NODE_NAME).info(
-                f"{self.name}: stopping at the end of the start-up step under way")
-
-    def requested(self):
-        """True once a signal came. A True answer starts the teardown, so it
-        also starts the teardown's watchdog (:meth:`begin_teardown`)."""
-        if self.received is None:
-            return False
-        self.begin_teardown()
-        return True
-
-    def begin_teardown(self):
-        """Time the teardown from here: if it has not ended (:meth:`end_teardown`)
-        within ``teardown_timeout_s``, a watchdog thread logs where the main
-        thread is stuck and ends the process with status 0. The stop was asked
-        for and the twin's own parts (stepping thread, plan, recording, live
-        view) close first; what can hang after them is the middleware's
-        teardown (a DDS entity's deletion racing its discovery threads, rare:
-        1 of 200 signals in a CI run of the signal test). Idempotent."""
-        if self._watchdog is None:
-            main = threading.main_thread().ident
-            self._watchdog = threading.Thread(target=self._watch, args=(main,), name="teardown_watchdog",
-                                              daemon=True)
-            self._watchdog.start()
-
-    def end_teardown(self):
-        self._torn_down.set()
-
-    def _watch(self, main_ident):
-        if self._torn_down.wait(self.teardown_timeout_s):
-            return
-        frame = sys._current_frames().get(main_ident)
-        where = " <- ".join(f"{f.name} ({f.filename.rsplit('/', 1)[-1]}:{f.lineno})"
-                            for f in reversed(traceback.extract_stack(frame)[-6:])) if frame else "unknown"
-        rclpy.logging.get_logger(NODE_NAME).warning(
-            f"{self.name or 'stop'}: the teardown did not end within {self.teardown_timeout_s:.0f} s "
-            f"(the main thread is in {where}); exiting without waiting for it")
-        for stream in (sys.stdout, sys.stderr):
-            try:
-                stream.flush()
-            except (OSError, ValueError):
-                pass
-        os._exit(0)
-
-    @property
-    def name(self):
-        return signal.Signals(self.received).name if self.received is not None else None
-
-
 def main(args=None):
     """Console entry point ``soft_twin_node`` (``--ros-args`` passed through).
     Exit status 0 after SIGINT or SIGTERM (at any time), 2 for an invalid
     configuration (a bad or unknown parameter, a robot that cannot load)."""
     # hand the GIL to the stepping thread within ~1 ms of a service computing
     sys.setswitchinterval(0.001)
-    stop = _StopSignals()
+    stop = StopSignals(NODE_NAME)
     stop.install()
     logger = rclpy.logging.get_logger(NODE_NAME)
     node = executor = None
@@ -1372,9 +1284,7 @@ def main(args=None):
         logger = node.get_logger()
         executor = TwinExecutor(num_threads=5)
         executor.add_node(node)
-        stop.starting = False
-        while stop.received is None and rclpy.ok():
-            executor.spin_once(timeout_sec=0.1)
+        spin_until_stopped(executor, stop)
     except StartupInterrupted:
         pass
     finally:

@@ -765,8 +765,8 @@ STUCK_TEARDOWN = """\
 import sys, threading
 sys.path.insert(0, {root!r})          # the sources, as NodeProcess runs them
 import rclpy.node
-from soft_twin import node as twin_node
-twin_node.TEARDOWN_TIMEOUT_S = {timeout}
+from soft_twin import node as twin_node, shutdown
+shutdown.TEARDOWN_TIMEOUT_S = {timeout}
 if {stuck}:
     # a middleware teardown that never returns (as a DDS deletion racing its discovery threads can)
     rclpy.node.Node.destroy_node = lambda self: threading.Event().wait()
