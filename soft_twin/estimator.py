@@ -296,6 +296,7 @@ def main(args=None):
         rclpy.init(args=args, signal_handler_options=SignalHandlerOptions.NO)
         node = EstimatorNode()        # a signal during it: the start-up ends, then the node stops
         logger = node.get_logger()
+        stop.add_last_act(node._recorder.close_now)
         logger.info(f"estimator running: robot {getattr(node.model, 'name', '?')!r}, "
                     f"{'tree filter' if node.tree is not None else 'strain EKF'} at "
                     f"{node.get_parameter('rate_hz').value:g} Hz")

@@ -1282,6 +1282,7 @@ def main(args=None):
             logger.fatal(f"invalid configuration: {clip(e, 2000)}")
             return 2
         logger = node.get_logger()
+        stop.add_last_act(node._recorder.close_now)
         executor = TwinExecutor(num_threads=5)
         executor.add_node(node)
         spin_until_stopped(executor, stop)

@@ -226,3 +226,13 @@ class Recorder:
 
     def close(self):
         self.follow("")
+
+    def close_now(self):
+        """Close the open recording at once: the teardown watchdog's last act
+        (:mod:`soft_twin.shutdown`) before it ends a process whose teardown is
+        stuck. Without the state lock, which a publication stuck in the
+        middleware may hold: the file gets its summary and footer (readable),
+        and the state being published at that moment may lack some topics."""
+        rec = self._recording
+        if rec is not None:
+            rec.close()

@@ -24,7 +24,9 @@ From the moment the teardown starts, a watchdog gives it
 ``TEARDOWN_TIMEOUT_S``: a teardown stuck below the node's code is logged with
 the main thread's place and the process exits anyway, with status 0 (the
 stop was asked for, and the node's own parts -- stepping thread, plan,
-recording, live view -- close before the middleware's part). Once in 200
+recording, live view -- close before the middleware's part; an MCAP
+recording still open then is closed by the watchdog, so that it stays
+readable). Once in 200
 signals of a CI run, a node stayed for 60 s after SIGINT during its
 start-up, between two log lines where only rclpy's ``destroy_node`` ran.
 """
@@ -53,6 +55,7 @@ class StopSignals:
         self.teardown_timeout_s = TEARDOWN_TIMEOUT_S if teardown_timeout_s is None else teardown_timeout_s
         self._torn_down = threading.Event()
         self._watchdog = None
+        self._last_acts = []
 
     def install(self):
         for sig in (signal.SIGINT, signal.SIGTERM):
@@ -91,12 +94,24 @@ class StopSignals:
     def end_teardown(self):
         self._torn_down.set()
 
+    def add_last_act(self, fn):
+        """``fn()`` is called by the watchdog before it ends the process (e.g.
+        closing an MCAP recording so that it stays readable); an exception
+        in it is logged and the exit goes on."""
+        self._last_acts.append(fn)
+
     def _watch(self, main_ident):
         if self._torn_down.wait(self.teardown_timeout_s):
             return
         rclpy.logging.get_logger(self.logger_name).warning(
             f"{self.name or 'stop'}: the teardown did not end within {self.teardown_timeout_s:.0f} s "
             f"(the main thread is in {_where(main_ident)}); exiting without waiting for it")
+        for fn in self._last_acts:
+            try:
+                fn()
+            except Exception as e:     # noqa: BLE001 - the exit must go on
+                rclpy.logging.get_logger(self.logger_name).error(
+                    f"before the exit: {getattr(fn, '__qualname__', fn)}: {type(e).__name__}: {e}")
         for stream in (sys.stdout, sys.stderr):
             try:
                 stream.flush()

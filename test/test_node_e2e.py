@@ -772,37 +772,50 @@ import sys, threading
 sys.path.insert(0, {root!r})          # the sources, as NodeProcess runs them
 import rclpy.node
 from soft_twin import node as twin_node, shutdown
+from soft_twin.executor import TwinExecutor
 shutdown.TEARDOWN_TIMEOUT_S = {timeout}
-if {stuck}:
+never = lambda *args, **kwargs: threading.Event().wait()
+if {stuck!r} == "destroy_node":
     # a middleware teardown that never returns (as a DDS deletion racing its discovery threads can)
-    rclpy.node.Node.destroy_node = lambda self: threading.Event().wait()
+    rclpy.node.Node.destroy_node = never
+elif {stuck!r} == "executor":
+    # a callback that never ends: the executor's shutdown waits for it, the recording is still open
+    TwinExecutor.shutdown = never
 sys.exit(twin_node.main(sys.argv))
 """
 
 
-@pytest.mark.parametrize("stuck", [True, False], ids=["stuck", "normal"])
-@pytest.mark.parametrize("when", ["running", "start-up"])
+@pytest.mark.parametrize("stuck,when", [("destroy_node", "running"), ("destroy_node", "start-up"),
+                                        ("executor", "running"), ("nothing", "running"),
+                                        ("nothing", "start-up")])
 def test_a_stuck_teardown_is_logged_and_the_node_exits_anyway(tmp_path, stuck, when):
-    """A teardown that never returns (rclpy's Node.destroy_node blocking, in a
-    real node process) is given TEARDOWN_TIMEOUT_S (2 s here): the watchdog
-    logs where the main thread is stuck and the process exits with status 0
-    (a signal test in CI once saw a node stay for 60 s after SIGINT during the
-    start-up: 1 of 200). Without the block the watchdog stays silent."""
+    """A teardown that never returns, in a real node process that records to
+    MCAP (rclpy's Node.destroy_node blocking, or the executor's shutdown
+    waiting for a callback that never ends), is given TEARDOWN_TIMEOUT_S (2 s
+    here): the watchdog logs where the main thread is stuck, closes the
+    recording and the process exits with status 0; the recording reads back
+    with the mcap library. (A signal test in CI once saw a node stay for 60 s
+    after SIGINT during the start-up: 1 of 200.) Without a block the watchdog
+    stays silent."""
     import signal
     import subprocess
     import sys
+    from mcap.reader import make_reader
     from soft_twin.client import REPO_ROOT
-    name = f"stuck_{int(stuck)}_{when.replace('-', '_')}"
+    name = f"stuck_{stuck}_{when.replace('-', '_')}"
     script = tmp_path / "run_node.py"
     script.write_text(STUCK_TEARDOWN.format(root=str(REPO_ROOT), timeout=2.0, stuck=stuck))
-    log = tmp_path / "node.log"
+    log, mcap_path = tmp_path / "node.log", tmp_path / "run.mcap"
     with open(log, "w") as out:
-        proc = subprocess.Popen([sys.executable, str(script), "--ros-args", "-r", f"__node:={name}"],
-                                cwd=REPO_ROOT, stdout=out,
+        proc = subprocess.Popen([sys.executable, str(script), "--ros-args", "-r", f"__node:={name}",
+                                 "-p", f"record_file:={mcap_path}"], cwd=REPO_ROOT, stdout=out,
                                 stderr=subprocess.STDOUT)
     try:
-        marker = "mode dynamic" if when == "start-up" else "twin running"
+        marker = "mode dynamic" if when == "start-up" else "recording every published topic"
         assert _wait_for_log(log, marker, _Alive(proc), START_TIMEOUT), log.read_text()[-2000:]
+        if when == "running":
+            assert _wait_for_log(log, "twin running", _Alive(proc), 10.0), log.read_text()[-2000:]
+            time.sleep(0.3)            # some states recorded (200 Hz), not waiting for ROS
         t0 = time.monotonic()
         proc.send_signal(signal.SIGINT)
         rc = proc.wait(timeout=30.0)
@@ -815,15 +828,24 @@ def test_a_stuck_teardown_is_logged_and_the_node_exits_anyway(tmp_path, stuck, w
     assert rc == 0, text[-2000:]
     assert ("SIGINT: stopping at the end of the start-up step" if when == "start-up"
             else "SIGINT: shutting down") in text, text[-2000:]
-    assert "Traceback" not in text, text[-2000:]
+    assert "Traceback" not in text and "before the exit" not in text, text[-2000:]
     assert "/.venv/" not in text, "the node ran from the installed copy, not the sources"
-    if stuck:
-        assert "the teardown did not end within 2 s" in text and "destroy_node" in text, text[-2000:]
+    if stuck != "nothing":
+        assert "the teardown did not end within 2 s" in text, text[-2000:]
+        assert ("destroy_node (node.py" if stuck == "destroy_node" else "main (node.py") in text, text[-2000:]
         assert 2.0 <= took < 10.0, took
         assert "stopped" not in text.splitlines()[-1]
     else:
         assert "teardown did not end" not in text, text[-2000:]
         assert text.rstrip().endswith("stopped"), text[-2000:]
+    if when == "running":              # the recording is whole: summary, footer, the states
+        with open(mcap_path, "rb") as fh:
+            reader = make_reader(fh)
+            summary = reader.get_summary()
+            topics = {ch.topic for ch in summary.channels.values()}
+            n_backbones = sum(1 for _, ch, _ in reader.iter_messages() if ch.topic == f"/{name}/backbone")
+        assert f"/{name}/backbone" in topics and n_backbones >= 10, (topics, n_backbones)
+        assert summary.statistics.message_count >= n_backbones
 
 
 class _Alive:
