@@ -53,7 +53,7 @@ from std_srvs.srv import Trigger
 
 from soft_twin.msg import ActuationCommand
 from soft_twin import conversions as cv
-from soft_twin.shutdown import StopSignals, spin_until_stopped
+from soft_twin.shutdown import StopSignals, spin_until_stopped, tear_down
 from soft_twin_core import estimation as es
 from soft_twin_core import sensors as sn
 from soft_twin_core.model import load_model
@@ -147,8 +147,12 @@ class EstimatorNode(Node):
         rec = getattr(self._recorder, "_recording", None)
         return sum(rec.counts.values()) if rec is not None else 0
 
-    def close_recording(self):
-        self._recorder.close()
+    def destroy_node(self):
+        """The recording closes with the node (``record_file``)."""
+        rec = getattr(self, "_recorder", None)
+        if rec is not None:
+            rec.close()
+        return super().destroy_node()
 
     # ------------------------------------------------------------------ inputs
     def _reject(self, kind, reason):
@@ -307,17 +311,7 @@ def main(args=None):
         print(f"soft_twin_estimator: {e}", file=sys.stderr)
         return 2
     finally:
-        stop.starting = False
-        if stop.received is not None:
-            stop.begin_teardown()
-            logger.info(f"{stop.name}: shutting down")
-        if executor is not None:
-            executor.shutdown()       # waits for the callback under way
-        if node is not None:
-            node.close_recording()
-            node.destroy_node()
-        rclpy.try_shutdown()
-        stop.end_teardown()
+        tear_down(stop, logger, executor, node)
     if stop.received is not None:
         logger.info("stopped")
     return 0

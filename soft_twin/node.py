@@ -74,7 +74,7 @@ from soft_twin import conversions as cv
 from soft_twin import live_view_out, recorder, tf_out
 from soft_twin import twin as tw
 from soft_twin.executor import TwinExecutor
-from soft_twin.shutdown import StopSignals, spin_until_stopped
+from soft_twin.shutdown import StopSignals, spin_until_stopped, tear_down
 from soft_twin.config import PARAMETERS, ConfigError, config_from_values, load_robot
 from soft_twin.text import clip, short_list
 
@@ -1289,19 +1289,10 @@ def main(args=None):
     except StartupInterrupted:
         pass
     finally:
-        stop.starting = False
-        if stop.received is not None:
-            stop.begin_teardown()
-            twin = getattr(node, "twin", None)
-            logger.info(f"{stop.name}: shutting down" + (
-                f" (twin time {twin.state.t:.3f} s, {node.stats.totals['steps']} steps)"
-                if twin is not None and executor is not None else " during start-up"))
-        if executor is not None:
-            executor.shutdown()           # waits for the callbacks under way
-        if node is not None:
-            node.destroy_node()
-        rclpy.try_shutdown()
-        stop.end_teardown()
+        twin = getattr(node, "twin", None)
+        tear_down(stop, logger, executor, node,
+                  f" (twin time {twin.state.t:.3f} s, {node.stats.totals['steps']} steps)"
+                  if twin is not None and executor is not None else " during start-up")
     if stop.received is not None:
         logger.info("stopped")
     return 0

@@ -15,9 +15,9 @@ raises: an exception raised wherever the main thread happens to be can land
 in a ctypes callback of the kernel compiler, where Python prints it as
 "Exception ignored", or be a KeyboardInterrupt that CPython remembers and
 turns into death by SIGINT at exit). The main loop (:func:`spin_until_stopped`)
-sees it within 0.1 s; ``main`` then stops the executor (waiting for running
-callbacks), destroys the node and shuts the context down, in that order, and
-returns 0. A node's start-up can ask :meth:`StopSignals.requested` between
+sees it within 0.1 s; ``main`` then calls :func:`tear_down`: it stops the
+executor (waiting for running callbacks), destroys the node and shuts the
+context down, in that order, and returns 0. A node's start-up can ask :meth:`StopSignals.requested` between
 its steps and give up at the next one.
 
 From the moment the teardown starts, a watchdog gives it
@@ -26,9 +26,9 @@ the main thread's place and the process exits anyway, with status 0 (the
 stop was asked for, and the node's own parts -- stepping thread, plan,
 recording, live view -- close before the middleware's part; an MCAP
 recording still open then is closed by the watchdog, so that it stays
-readable). Once in 200
-signals of a CI run, a node stayed for 60 s after SIGINT during its
-start-up, between two log lines where only rclpy's ``destroy_node`` ran.
+readable). Once in 200 signals of a CI run, a node stayed for 60 s after
+SIGINT during its start-up, between two log lines where only rclpy's
+``destroy_node`` ran.
 """
 
 import os
@@ -135,3 +135,21 @@ def spin_until_stopped(executor, stop, period_s=0.1):
     stop.starting = False
     while stop.received is None and rclpy.ok():
         executor.spin_once(timeout_sec=period_s)
+
+
+def tear_down(stop, logger, executor, node, detail=""):
+    """A node main's ``finally``, in this order: log "<SIGNAL>: shutting
+    down<detail>" (after a signal, and start the watchdog), stop the executor
+    (waiting for the callbacks under way), destroy the node (which closes its
+    own parts first), shut the context down. ``executor``, ``node``: None when
+    not made yet."""
+    stop.starting = False
+    if stop.received is not None:
+        stop.begin_teardown()
+        logger.info(f"{stop.name}: shutting down{detail}")
+    if executor is not None:
+        executor.shutdown()
+    if node is not None:
+        node.destroy_node()
+    rclpy.try_shutdown()
+    stop.end_teardown()
