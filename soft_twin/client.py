@@ -107,6 +107,7 @@ class TwinClient:
         self.context = rclpy.Context()
         rclpy.init(context=self.context)
         self.node = rclpy.create_node(client_name, context=self.context)
+        self._topics = tuple(topics)
         self._cond = threading.Condition()
         self.backbone = self.tip_pose = self.strains = self.tip_wrench = self.base_wrench = None
         self.joint_states = None
@@ -190,15 +191,21 @@ class TwinClient:
                     return ok
                 self._cond.wait(min(left, 0.05))
 
+    # The state topics every twin publishes on each step: wait_ready waits for the
+    # first message of each one subscribed, so that a caller can read them at once.
+    STATE_TOPICS = ("backbone", "tip_pose", "strains")
+
     def wait_ready(self, timeout=60.0):
-        """Services up, inputs matched, strains arriving (TimeoutError otherwise)."""
+        """Services up, inputs matched, a first message on every subscribed state
+        topic (backbone, tip pose, strains) arrived; TimeoutError otherwise."""
         end = time.monotonic() + timeout
         for c in self.clients.values():
             if not c.wait_for_service(timeout_sec=max(0.1, end - time.monotonic())):
                 raise TimeoutError(f"service {c.srv_name} not available after {timeout} s")
         ok = self.wait_until(lambda: (self.pub_actuation.get_subscription_count() > 0
                                       and self.pub_wrench.get_subscription_count() > 0
-                                      and self.counts["strains"] > 0),
+                                      and all(self.counts[t] > 0 for t in self.STATE_TOPICS
+                                              if t in self._topics)),
                              max(0.1, end - time.monotonic()))
         if not ok:
             raise TimeoutError(f"twin {self.ns} not publishing/subscribed after {timeout} s")
