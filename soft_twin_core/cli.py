@@ -50,6 +50,16 @@ def _parse_sweep(text):
     return np.arange(a, b + 1e-9 * max(1.0, abs(b)), step)
 
 
+def _non_negative_seconds(text):
+    try:
+        v = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a number of seconds, got {text!r}") from None
+    if not (v >= 0 and np.isfinite(v)):
+        raise argparse.ArgumentTypeError(f"expected a finite number of seconds >= 0, got {text!r}")
+    return v
+
+
 def _parser():
     p = argparse.ArgumentParser(prog="soft-twin-sim", description=__doc__.split("\n\n")[0])
     sub = p.add_subparsers(dest="command", required=True)
@@ -74,6 +84,8 @@ def _parser():
     d.add_argument("--record-every", type=int, default=1, metavar="K",
                    help="record the time histories every K steps (and the last one)")
     d.add_argument("--points-per-section", type=int, default=10)
+    d.add_argument("--progress-every", type=_non_negative_seconds, default=1.0, metavar="SECONDS",
+                   help="a progress line on stderr at most every SECONDS of wall time (default 1; 0: every step)")
     d.add_argument("--output", "-o", help="write to this file instead of stdout")
     # --- design studies and workspaces (issue 16): soft_twin_core/study_cli.py
     from .study_cli import add_parsers
@@ -305,7 +317,7 @@ def main(argv=None):
                     print(f"soft-twin-sim: {100 * frac:5.1f} % simulated, {elapsed:.1f} s elapsed, "
                           f"~{elapsed / frac - elapsed:.0f} s left", file=sys.stderr)
             out = run_dynamics(sc, args.duration, args.dt, render.backbone_every_for(args, args.dt), args.theta,
-                               progress, args.points_per_section, args.record_every)
+                               progress, args.points_per_section, args.record_every, args.progress_every)
             t_end = out["time"][-1] if out["time"] else 0.0
             wall = time.monotonic() - (clock["ready"] or clock["start"])
             print(f"soft-twin-sim: simulated {t_end:.6g} s in {wall:.2f} s wall time", file=sys.stderr)

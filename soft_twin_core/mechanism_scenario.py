@@ -299,7 +299,8 @@ HISTORY_FIELDS = ("time", "joint_positions", "joint_velocities", "joint_accelera
                   "peak_normal_stress", "peak_shear_stress", "newton_iterations")
 
 
-def run_mechanism_dynamics(sc, duration, dt, theta=0.5, progress=None, record_every=1, backbone_every=0):
+def run_mechanism_dynamics(sc, duration, dt, theta=0.5, progress=None, record_every=1, backbone_every=0,
+                           progress_every=1.0):
     """Integrate the scenario (``n = ceil(duration / dt)`` steps). Returns the
     time histories, one row per recorded step: time [s]; joint_positions,
     velocities, accelerations, efforts (N, n_joints) in the order of
@@ -385,7 +386,7 @@ def run_mechanism_dynamics(sc, duration, dt, theta=0.5, progress=None, record_ev
             break
         if k % record_every == 0 or k == n_steps or (backbone_every and k % backbone_every == 0):
             record(k, inp, sim.iterations)
-        if progress is not None and _time.monotonic() - last > 1.0:
+        if progress is not None and _time.monotonic() - last >= progress_every:
             progress(k / n_steps, _time.monotonic() - t0)
             last = _time.monotonic()
     out["dt"] = float(dt)

@@ -354,7 +354,7 @@ def step_times(dt):
 
 
 def run_dynamics(sc, duration, dt, backbone_every=0, theta=0.5, progress=None,
-                 points_per_section=10, record_every=1):
+                 points_per_section=10, record_every=1, progress_every=1.0):
     """Integrate the scenario for ``duration`` s with step ``dt`` s
     (``n = ceil(duration / dt)`` steps; see :func:`n_steps_for`).
 
@@ -377,12 +377,13 @@ def run_dynamics(sc, duration, dt, backbone_every=0, theta=0.5, progress=None,
     The kernels are compiled (or loaded from numba's cache) and the inputs
     checked by a warm-up before the clock starts: ``progress(fraction,
     elapsed_s)`` is called once with (0.0, 0.0) right after the warm-up,
-    then about once per wall-clock second; ``elapsed_s`` counts from the
-    end of the warm-up."""
+    then at most once per ``progress_every`` wall-clock seconds (0: after
+    every step); ``elapsed_s`` counts from the end of the warm-up."""
     import time as _time
     from .mechanism_scenario import MechanismScenario, run_mechanism_dynamics
     if isinstance(sc, MechanismScenario):
-        return run_mechanism_dynamics(sc, duration, dt, theta, progress, record_every, backbone_every)
+        return run_mechanism_dynamics(sc, duration, dt, theta, progress, record_every, backbone_every,
+                                      progress_every)
     from .dynamics import Simulator, base_reaction_dynamic, internal_wrenches_dynamic
     from .model import State
     m = sc.model
@@ -484,7 +485,7 @@ def run_dynamics(sc, duration, dt, backbone_every=0, theta=0.5, progress=None,
             recorded = k
             if sample:
                 sample_backbone(k, st.q, st.qdot, qddot)
-        if progress is not None and _time.monotonic() - last > 1.0:
+        if progress is not None and _time.monotonic() - last >= progress_every:
             progress(k / n_steps, _time.monotonic() - t0)
             last = _time.monotonic()
     return finish()
