@@ -417,11 +417,13 @@ def test_command_interrupted_by_sigint_resumes(tmp_path):
     """The command on a local cluster, Ctrl-C in the middle (SIGINT to its
     whole process group, workers included, as a terminal sends it): exit
     130, the rows saved, no traceback, no process left; the same command
-    again (here serial) computes only the missing cases."""
+    again (here serial) computes only the missing cases. 600 cases, so that
+    the study is still running when the signal comes (with 60, a quiet
+    machine finished them before the signal arrived)."""
     f = tmp_path / "s.yaml"
     f.write_text(f"scenario: {ROOT}/config/scenarios/tendon_arm_statics.yaml\nparameters:\n"
                  "  - path: scenario.actuation.tendon_y_pos\n    range: [0.0, 4.0]\n"
-                 "design: {type: random, samples: 60, seed: 5}\ncompute: {statics: {points_per_section: 2}}\n"
+                 "design: {type: random, samples: 600, seed: 5}\ncompute: {statics: {points_per_section: 2}}\n"
                  "record: [tip_pose]\n")
     out = tmp_path / "o"
     cmd = [sys.executable, "-m", "soft_twin_core.cli", "study", str(f), "-o", str(out)]
@@ -451,12 +453,12 @@ def test_command_interrupted_by_sigint_resumes(tmp_path):
         raise AssertionError(subprocess.run(["ps", "-o", "pid,stat,cmd", "-g", str(p.pid)], capture_output=True,
                                             text=True).stdout)
     saved = {r["case_key"] for g in (out / "parts").glob("part-*.parquet") for r in read_rows(g)}
-    assert 5 <= len(saved) < 60
+    assert 5 <= len(saved) < 600
     r = subprocess.run(cmd + ["--serial"], capture_output=True, text=True, env=env, cwd=tmp_path, timeout=300)
     assert r.returncode == 0, r.stderr
-    assert f"{len(saved)} already in" in r.stderr and f"{60 - len(saved)} to compute" in r.stderr
+    assert f"{len(saved)} already in" in r.stderr and f"{600 - len(saved)} to compute" in r.stderr
     rows = read_rows(out / "results.parquet")
-    assert len(rows) == 60 and all(x["status"] == "ok" for x in rows)
+    assert len(rows) == 600 and all(x["status"] == "ok" for x in rows)
 
 
 @pytest.mark.slow
