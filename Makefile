@@ -10,7 +10,7 @@ PYTEST_ARGS ?=
 
 export SOFT_TWIN_VENV := $(abspath $(VENV))
 
-.PHONY: setup demo test run lock clean
+.PHONY: setup demo test test-quick test-shuffled run lock clean
 
 setup:
 	@bash scripts/setup_env.sh
@@ -23,6 +23,16 @@ demo: setup
 # The whole suite. pytest exits 5 when it collected no test: that fails too.
 test: setup
 	$(PY) -m pytest $(PYTEST_ARGS)
+
+# The inner loop: the tests that start no ROS entity and are not marked slow
+# (the physics, the files, the CLI; a few minutes on 2 cores).
+test-quick: setup
+	$(PY) -m pytest -m "not ros and not slow" $(PYTEST_ARGS)
+
+# The whole suite in a random order across modules (pytest-random-order; the
+# seed is printed: rerun one order with PYTEST_ARGS=--random-order-seed=N).
+test-shuffled: setup
+	$(PY) -m pytest --random-order-bucket=global $(PYTEST_ARGS)
 
 # The node alone, e.g. make run ARGS="--ros-args --params-file config/params.yaml -p mode:=dynamic"
 run: setup
