@@ -3,6 +3,8 @@ passes against the explicit-Jacobian reference (soft_twin_core.reference),
 the old chain dynamics, the Newton-Euler balance and passivity. Rigid-only
 trees are checked against Pinocchio in test_multibody_pinocchio.py."""
 
+from pathlib import Path
+
 import numpy as np
 import pytest
 
@@ -16,6 +18,7 @@ from soft_twin_core.multibody import ModelBuilder, SoftSection, from_robot_model
 from soft_twin_core.workspace import Workspace
 
 TOL = 1e-10
+TENDON_ARM = str(Path(__file__).resolve().parents[1] / "config" / "robots" / "tendon_arm.yaml")
 
 
 def _section(length, radius=0.01, free=(True,) * 6, f0=(1, 0, 0, 0, 0, 0), E=2e6, visc=0.0, kmap="exponential"):
@@ -187,7 +190,7 @@ def test_passivity_mdot_minus_2c(name):
 def test_soft_chain_equals_the_chain_dynamics():
     """The default robot as a tree: M and the forces equal the (tested) chain
     dynamics of soft_twin_core.dynamics."""
-    robot = load_model("config/robots/tendon_arm.yaml")
+    robot = load_model(TENDON_ARM)
     model = from_robot_model(robot)
     ws = Workspace(model)
     rng = np.random.default_rng(0)
@@ -299,7 +302,7 @@ def test_static_tangent_is_the_derivative_of_the_static_residual(name):
 
 def test_static_tangent_with_tendons():
     from soft_twin_core.forces import actuator_arrays
-    robot = load_model("config/robots/tendon_arm.yaml")
+    robot = load_model(TENDON_ARM)
     model = from_robot_model(robot)
     act = actuator_arrays(model)
     R, Kt = _static_residual_and_tangent(model, alg.make_loads(model, [], [], np.zeros((0, 6)), []), act,

@@ -211,8 +211,8 @@ def test_statics_plot_without_sweep(tmp_path, capsys):
     (["dynamics", "tendon_arm_dynamics", "--duration", "0.1", "--animate", "x.gif", "--fps", "0"], "--fps must"),
     (["render", "nonexistent.json", "--plot", "d"], "No such file"),
 ])
-def test_bad_visual_arguments_are_refused_by_name(args, msg, capsys, tmp_path):
-    os.chdir(tmp_path)
+def test_bad_visual_arguments_are_refused_by_name(args, msg, capsys, tmp_path, monkeypatch):
+    monkeypatch.chdir(tmp_path)       # restored after the test: a bare os.chdir moved every later test
     code, _, err = run_cli(args, capsys)
     assert code == 2 and msg in err, err
     assert not os.listdir(tmp_path)
