@@ -244,6 +244,26 @@ def _ignore_sigint():
     signal.signal(signal.SIGINT, signal.SIG_IGN)
 
 
+_quiet = {}        # the logger levels to restore once an interrupted study's cluster is closed
+
+
+def _silence_distributed_logs():
+    """Raise every ``distributed`` logger above CRITICAL; returns the levels to
+    restore. After Ctrl-C the shutdown is ours: the scheduler then logs each
+    comm its closing workers broke as CRITICAL, with a traceback, which is
+    no news to the user (seen with a few hundred pending cases)."""
+    names = ["distributed"] + [n for n in logging.root.manager.loggerDict if n.startswith("distributed.")]
+    saved = {n: logging.getLogger(n).level for n in names}
+    for n in names:
+        logging.getLogger(n).setLevel(logging.CRITICAL + 1)
+    return saved
+
+
+def _restore_logs(saved):
+    for n, level in saved.items():
+        logging.getLogger(n).setLevel(level)
+
+
 def _lost_rows(study, chunk, reason):
     from .study import parameter_columns
     return [{"case": i, "case_key": k, **parameter_columns(study, v), "status": "lost", "error": reason}
@@ -355,6 +375,8 @@ def run_study(study, out_dir, *, scheduler=None, n_workers=None, serial=False, c
                         closing.close(timeout=15)
                     except Exception:            # a timeout or an already-dead worker: we are leaving anyway
                         pass
+            if _quiet.get("saved"):
+                _restore_logs(_quiet.pop("saved"))
     # --- merge: every case of this study, in case order
     rows, pts = [], []
     for c in cases:
@@ -414,5 +436,8 @@ def _run_on_dask(client, study, chunks, take, log):
                 log(f"cases {ch[0][0]}..{ch[-1][0]} lost: {reason}")
                 rows = _lost_rows(study, ch, reason)
             take(rows)
+    except KeyboardInterrupt:
+        _quiet["saved"] = _quiet.get("saved") or _silence_distributed_logs()
+        raise
     finally:
         client.cancel(list(futures))
