@@ -160,9 +160,9 @@ class ArticulatedTipSolver:
             if a.kind == "tendon":
                 if pre[k] < 0:
                     raise PlanError(f"pretension.{a.name}: a tendon's pretension must be >= 0 N, got {pre[k]}")
-                ulo[k], uhi[k] = pre[k], min(a.limit, tmax[k])
-            else:
-                ulo[k], uhi[k] = -a.limit, min(a.limit, pmax[k])
+                ulo[k], uhi[k] = max(pre[k], a.lower), min(a.upper, tmax[k])
+            else:   # the robot file's range (limit, min, max: Actuator.lower/upper) cut by max_pressure
+                ulo[k], uhi[k] = a.lower, min(a.upper, pmax[k])
             if not ulo[k] <= uhi[k]:
                 raise PlanError(f"{a.name}: empty input range [{ulo[k]}, {uhi[k]}]")
         self.rate = _per(self.actuator_names, o.max_rate, "max_rate", np.inf)

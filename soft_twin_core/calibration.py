@@ -159,10 +159,32 @@ def read_csv(path, model, sensors):
     return Recording(u, readings, col.get("t"))
 
 
+def check_recording_inputs(model, inputs, source="recording"):
+    """Refuse (CalibrationError naming the row, the actuator, the value and
+    the bound) a recorded input outside the actuator's declared range
+    (:func:`model.check_actuator_input`, the node's rule): such a row cannot
+    come from this robot as declared (wrong units, wrong robot file, or a
+    bound the robot file should not declare), and fitting it would
+    calibrate the model to inputs the twin refuses."""
+    from .model import check_actuator_input
+    u = np.asarray(inputs, dtype=float)
+    if u.ndim != 2 or u.shape[1] != len(model.actuators):
+        return
+    for k, a in enumerate(model.actuators):
+        if np.all((u[:, k] >= a.lower) & (u[:, k] <= a.upper)):
+            continue
+        for i in range(len(u)):
+            bad = check_actuator_input(a, u[i, k])
+            if bad is not None:
+                raise CalibrationError(f"{source}, row {i + 1}, actuator {a.name}: {bad[1]} [{bad[0]}]")
+
+
 def record_static_sweep(model, sensors, inputs, rng, loads=None):
     """Simulated recording: the equilibria of ``model`` under each row of
-    ``inputs`` (and ``loads``), read by the sensors with their noise."""
+    ``inputs`` (and ``loads``), read by the sensors with their noise. The
+    inputs must lie in the actuators' declared ranges."""
     from .statics import solve_statics
+    check_recording_inputs(model, inputs, "inputs")
     q = None
     readings = {s.name: [] for s in sensors if not isinstance(s, sn.TensionSensor)}
     for u in np.asarray(inputs, dtype=float):
@@ -299,6 +321,7 @@ class Problem:
         self.sensors = [s for s in sn.check_sensors(model, sensors) if not isinstance(s, sn.TensionSensor)]
         if not self.sensors:
             raise CalibrationError("sensors: calibration needs at least one pose sensor or marker")
+        check_recording_inputs(model, recording.inputs)      # the declared actuator ranges
         self.rec = recording
         self.params = _params(names, robot_dict, model, self.sensors)
         self.theta0 = np.array([p.nominal for p in self.params])
@@ -561,6 +584,7 @@ def calibrate_damping(robot_dict, sensors, recording, members=None, *, dt=5e-3, 
     if np.any(nominal <= 0):
         raise CalibrationError("damping: the starting viscosities must be > 0 (set them in the robot file)")
     model0 = model_from_dict(robot_dict, n_sections)
+    check_recording_inputs(model0, recording.inputs)         # the declared actuator ranges
     sensors = [s for s in sn.check_sensors(model0, sensors) if not isinstance(s, sn.TensionSensor)]
 
     def with_visc(x):
@@ -677,6 +701,9 @@ def cli_main(args):
             raise CalibrationError(f"--holdout-every must be >= 0, got {args.holdout_every}")
         path = find_file(args.robot, "robots")
         robot_dict = robot_mapping(read_yaml_file(path, ModelError, "robot file"), f"robot file {path}")
+        if "bodies" in robot_dict:
+            raise CalibrationError(f"calibration supports classic single-chain robots (segments); robot file {path} "
+                                   f"is a tree robot (bodies/frames), which it cannot calibrate yet")
         model = model_from_dict(robot_dict, args.sections)
         sensors = sn.load_sensors(args.sensors, model)
         mcap_report = None

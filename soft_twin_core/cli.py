@@ -69,6 +69,9 @@ def _parser():
     s.add_argument("--sweep-angle", type=_parse_sweep, metavar="START:STOP:STEP",
                    help="solve for each angle (deg) of the in_plane_force loads; prints a JSON list")
     s.add_argument("--points-per-section", type=int, default=10)
+    s.add_argument("--time", type=_non_negative_seconds, metavar="T",
+                   help="evaluate the scenario's time-varying inputs (actuation_profile, joint_trajectories, "
+                        "load profiles) at T s; default: where every profile has reached its final value")
     s.add_argument("--output", "-o", help="write to this file instead of stdout")
     render.add_visual_arguments(s, sweep=True)
     d = sub.add_parser("dynamics", help="time simulation of a scenario (JSON or CSV)")
@@ -256,11 +259,34 @@ def _csv(out):
     return buf.getvalue()
 
 
+def show_plausibility_warnings(prog="soft-twin-sim"):
+    """Print the plausibility warnings of the input files (a likely unit
+    slip: soft_twin_core.plausibility) as one plain line each on stderr,
+    ``<prog>: warning: <field>: ...``, each once."""
+    import warnings
+    from .limits import PlausibilityWarning
+    from .mcap_salvage import TruncatedRecordingWarning      # a recording read up to its last chunk (issue 25)
+    previous = warnings.showwarning
+    if getattr(previous, "soft_twin_plausibility", False):     # already installed (main called again)
+        return
+
+    def show(message, category, filename, lineno, file=None, line=None):
+        if issubclass(category, (PlausibilityWarning, TruncatedRecordingWarning)):
+            print(f"{prog}: warning: {message}", file=sys.stderr)
+        else:
+            previous(message, category, filename, lineno, file, line)
+    show.soft_twin_plausibility = True
+    warnings.showwarning = show
+    warnings.filterwarnings("default", category=PlausibilityWarning)
+    warnings.filterwarnings("always", category=TruncatedRecordingWarning)
+
+
 def main(argv=None):
     from .model import ModelError
     from .scenario import ScenarioError, load_scenario, n_steps_for, run_dynamics, run_statics
     from .statics import StaticsError
     args = _parser().parse_args(argv)
+    show_plausibility_warnings()
     # --- design studies and workspaces (issue 16): soft_twin_core/study_cli.py
     if args.command in ("study", "workspace"):
         from .study_cli import main_study, main_workspace
@@ -277,6 +303,11 @@ def main(argv=None):
         if v is not None and v < low:
             print(f"soft-twin-sim: --{name.replace('_', '-')} must be >= {low}, got {v}", file=sys.stderr)
             return 2
+    from .limits import MAX_POINTS_PER_SECTION, over_limit
+    if getattr(args, "points_per_section", None) is not None and args.points_per_section > MAX_POINTS_PER_SECTION:
+        print(f"soft-twin-sim: {over_limit('--points-per-section', args.points_per_section, MAX_POINTS_PER_SECTION)}",
+              file=sys.stderr)
+        return 2
     bad = render.check_visual_arguments(args)
     if bad:
         print(f"soft-twin-sim: {bad}", file=sys.stderr)
@@ -291,17 +322,26 @@ def main(argv=None):
         if args.command == "statics":
             angles = args.sweep_angle if args.sweep_angle is not None else [None]
             results = []
+            note = None
             for a in angles:
                 sc = load_scenario(args.scenario, args.sections, a)
-                r = run_statics(sc, args.points_per_section)
+                if note is None:
+                    from .scenario import statics_time
+                    t_solve, note = statics_time(sc, args.time)
+                    if note is not None:
+                        print(f"soft-twin-sim: statics: {note}", file=sys.stderr)
+                    note = note or ""
+                r = run_statics(sc, args.points_per_section, args.time)
                 if a is not None:
                     r = {"angle_deg": float(a), **r}
                     print(f"soft-twin-sim: angle {a:g} deg solved ({r['iterations']} iterations)",
                           file=sys.stderr)
                 results.append(r)
             text = json.dumps(results if args.sweep_angle is not None else results[0], indent=1)
-            render.render_statics(results, args, sc, args.sweep_angle is not None,
-                                  os.path.splitext(os.path.basename(sc.source))[0])
+            title = os.path.splitext(os.path.basename(sc.source))[0]
+            if note:                    # time-varying inputs: the figures say at which time
+                title += f" (t = {t_solve:g} s)"
+            render.render_statics(results, args, sc, args.sweep_angle is not None, title)
         else:
             n_steps_for(args.duration, args.dt)      # refuses impossible durations before any work
             sc = load_scenario(args.scenario, args.sections)

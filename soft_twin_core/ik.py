@@ -107,11 +107,24 @@ def _error_jacobian(g, e, J_body, position_only):
 
 
 def _levenberg_marquardt(x, lo, hi, evaluate, jacobian, done, w, max_iterations, lam=1e-3):
-    """Bounded (projected) Levenberg-Marquardt with Marquardt's diagonal scaling.
+    """Bounded Levenberg-Marquardt with Marquardt's diagonal scaling.
+
+    With finite bounds each trial step is the exact minimiser of the damped
+    linear model inside the box (the compiled BVLS of the planner,
+    :func:`planner.bounded_gauss_newton_step`): a variable at a bound whose
+    descent points out of the box is held there and the others are solved
+    without it (a merely projected step can fail to descend there). With
+    no finite bound, the plain damped normal equations.
 
     evaluate(x, previous) -> (data, e) (may raise to reject a step);
     jacobian(x, data, e) -> de/dx; done(data) -> bool. Returns
     (x, data, iterations, message)."""
+    lo_b = np.broadcast_to(np.asarray(lo, dtype=float), x.shape)
+    hi_b = np.broadcast_to(np.asarray(hi, dtype=float), x.shape)
+    boxed = bool(np.any(np.isfinite(lo_b)) or np.any(np.isfinite(hi_b)))
+    if boxed:
+        from .planner import bounded_gauss_newton_step
+        sw = np.sqrt(w)
     data, e = evaluate(x, None)
     cost = float(e @ (w * e))
     it, message = 0, "max iterations reached"
@@ -121,10 +134,18 @@ def _levenberg_marquardt(x, lo, hi, evaluate, jacobian, done, w, max_iterations,
         Je = jacobian(x, data, e)
         A = Je.T @ (w[:, None] * Je)
         b = -Je.T @ (w * e)
-        D = np.diag(np.maximum(np.diag(A), 1e-12 * max(np.abs(np.diag(A)).max(), 1e-300)))
+        dA = np.maximum(np.diag(A), 1e-12 * max(np.abs(np.diag(A)).max(), 1e-300))
+        D = np.diag(dA)
         improved = False
         for _ in range(12):
-            x_new = np.clip(x + np.linalg.solve(A + lam * D, b), lo, hi)
+            if boxed:
+                dx, all_held = bounded_gauss_newton_step(sw[:, None] * Je, sw * e, x, lo_b, hi_b, np.sqrt(dA),
+                                                         0.0, x, lam)
+                if all_held:
+                    break
+                x_new = np.clip(x + dx, lo, hi)
+            else:
+                x_new = np.clip(x + np.linalg.solve(A + lam * D, b), lo, hi)
             try:
                 data_new, e_new = evaluate(x_new, data)
             except (ArithmeticError, RuntimeError, np.linalg.LinAlgError):
@@ -208,7 +229,9 @@ def solve_actuation_ik(model, target, u_init=None, q_init=None, *, loads=None, p
                        max_iterations=50):
     """Inverse kinematics over the actuator inputs, through statics: find
     u (tendon tensions >= 0, chamber pressures) whose static equilibrium
-    under ``loads`` (default gravity) puts the tip at ``target``.
+    under ``loads`` (default gravity) puts the tip at ``target``, within
+    each actuator's declared range ([Actuator.lower, Actuator.upper]: the
+    robot file's limit, min, max) cut by ``u_max``.
 
     Levenberg-Marquardt on the tip error e(q(u)) with the sensitivity of the
     equilibrium ``dq/du = Kt^-1 B`` (Kt: statics tangent, B = d tau / d u,
@@ -224,8 +247,10 @@ def solve_actuation_ik(model, target, u_init=None, q_init=None, *, loads=None, p
         raise ValueError("solve_actuation_ik: this robot has no actuators")
     target = _target_pose(target, position_only)
     w = _weights(weights, position_only)
-    lo = np.array([0.0 if a.kind == "tendon" else -np.inf for a in model.actuators])
-    hi = np.full(n_act, np.inf) if u_max is None else np.broadcast_to(np.asarray(u_max, float), (n_act,))
+    lo = np.array([a.lower for a in model.actuators], dtype=float)
+    hi = np.array([a.upper for a in model.actuators], dtype=float)
+    if u_max is not None:
+        hi = np.minimum(hi, np.broadcast_to(np.asarray(u_max, float), (n_act,)))
     u = np.zeros(n_act) if u_init is None else st.actuation_vector(model, u_init).copy()
 
     def evaluate(u, previous):
@@ -247,6 +272,8 @@ def solve_actuation_ik(model, target, u_init=None, q_init=None, *, loads=None, p
         u, (q, g), it, message = _levenberg_marquardt(np.clip(u, lo, hi), lo, hi, evaluate, jacobian, done,
                                                       w, max_iterations)
     if message.startswith("stalled"):
-        message = "stalled: the actuators cannot bring the tip closer (target not reachable by actuation)"
+        at = [a.name for a, v, l, h in zip(model.actuators, u, lo, hi) if v <= l or v >= h]
+        message = ("stalled: the actuators cannot bring the tip closer (target not reachable by actuation"
+                   + (f" within the bounds; at a bound: {at})" if at else ")"))
     pe, oe = _errors(g, target)
     return ActuationIKResult(u, q, message == "converged", pe, oe, it, g, message)

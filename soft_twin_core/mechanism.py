@@ -22,8 +22,12 @@ conventions of docs/CONVENTIONS.md.
 """
 
 from dataclasses import dataclass, field
+import warnings
 
 import numpy as np
+
+from . import plausibility
+from .limits import MAX_BODIES, MAX_SECTIONS_PER_SEGMENT, MAX_SECTIONS_TOTAL, check_limit
 
 from .model import (ModelError, _check_keys, _num, _vec, model_from_dict, pose_from_dict, read_yaml_file,
                     robot_mapping)
@@ -187,6 +191,16 @@ _FRAME_KEYS = {"name", "body", "s", "position", "rpy", "quaternion"}
 _CONSTRAINT_KEYS = {"name", "type", "frame", "to", "target", "direction", "normal"}
 
 
+def check_joint_position(joint, value):
+    """None if ``value`` (rad or m) lies within the joint's declared
+    ``limits`` (or it declares none), else ("over_limit", message). The
+    one rule for the node's joint commands and the offline scenario runner."""
+    lim = joint.limits
+    if lim is not None and not lim[0] <= value <= lim[1]:
+        return "over_limit", f"joint {joint.name} position {value:g} lies outside the joint limits {list(lim)}"
+    return None
+
+
 def is_tree_file(d):
     """True for a robot mapping of the tree schema (a ``bodies`` list)."""
     return isinstance(d, dict) and "bodies" in d
@@ -213,11 +227,8 @@ def _with_urdf(d, base_dir):
     if not isinstance(path, str) or not path:
         raise ModelError(f"robot.urdf: expected a file path, got {path!r}")
     full = path if os.path.isabs(path) or base_dir is None else os.path.join(base_dir, path)
-    try:
-        with open(full, encoding="utf-8") as fh:
-            text = fh.read()
-    except OSError as e:
-        raise ModelError(f"robot.urdf: {full}: {e.strerror}") from None
+    from .limits import read_text
+    text = read_text(full, ModelError, "robot.urdf:")      # size and encoding checked (a binary file)
     return bodies_from_urdf(text, f"robot.urdf ({path})") + list(d.get("bodies") or [])
 
 
@@ -286,9 +297,13 @@ def _joint(b, jd, where, default_name, is_member):
         if not lim[0] < lim[1]:
             raise ModelError(f"{where}.limits: need lower < upper, got {lim.tolist()}")
         limits = (float(lim[0]), float(lim[1]))
+        if kind == REVOLUTE:
+            plausibility.check_revolute_limits(where, limits, ModelError)
     stiffness = _num(jd, "stiffness", where, nonneg=True, default=0.0)
     damping = _num(jd, "damping", where, nonneg=True, default=0.0)
     reference = _num(jd, "reference", where, default=0.0)
+    if kind == REVOLUTE:
+        plausibility.check_angles(f"{where}.reference", (reference,))
     control = ""
     motion = None
     if kind in (REVOLUTE, PRISMATIC):
@@ -385,6 +400,8 @@ def mechanism_from_dict(d, base_dir=None):
     bodies = _with_urdf(d, base_dir) if "urdf" in d else d.get("bodies")
     if not isinstance(bodies, list) or not bodies:
         raise ModelError("robot.bodies: expected a non-empty list of bodies (links and members)")
+    check_limit("robot.bodies: number of bodies", len(bodies), MAX_BODIES, ModelError)
+    n_soft = 0                    # soft sections of all members (resource bound)
     members, links, frames = [], [], {}
     actuators, act_paths = [], []
     motion_limits = {}
@@ -440,10 +457,26 @@ def mechanism_from_dict(d, base_dir=None):
                 pj, placement = ji, np.eye(4)
             sub = {"name": name, "segments": bd.get("segments"), "actuators": bd.get("actuators", []),
                    "gravity": [0.0, 0.0, 0.0]}
+            segs = sub["segments"]
+            if isinstance(segs, list):       # the total over all members, before any allocation
+                for k_seg, sd in enumerate(segs):
+                    n = sd.get("sections", 1) if isinstance(sd, dict) else 1
+                    n = n if isinstance(n, int) and not isinstance(n, bool) else 0
+                    check_limit(f"{where}.segments[{k_seg}].sections", n, MAX_SECTIONS_PER_SEGMENT, ModelError)
+                    n_soft += n
+                check_limit("robot: total sections of all members (sum of bodies[*].segments[*].sections)",
+                            n_soft, MAX_SECTIONS_TOTAL, ModelError)
             try:
-                robot = model_from_dict(sub)
+                with warnings.catch_warnings(record=True) as caught:
+                    warnings.simplefilter("always", plausibility.PlausibilityWarning)
+                    robot = model_from_dict(sub)
             except ModelError as e:
                 raise ModelError(f"{where}.{e}") from None
+            for w in caught:             # the member's warnings, with the body named
+                if issubclass(w.category, plausibility.PlausibilityWarning):
+                    warnings.warn(f"{where}.{w.message}", plausibility.PlausibilityWarning, stacklevel=2)
+                else:
+                    warnings.warn_explicit(w.message, w.category, w.filename, w.lineno)
             for a in robot.actuators:
                 if a.tendon_model == "point_moment":
                     raise ModelError(f"{where}.actuators ({a.name}): the point_moment tendon model is "
@@ -467,6 +500,7 @@ def mechanism_from_dict(d, base_dir=None):
     fr = d.get("frames") or []
     if not isinstance(fr, list):
         raise ModelError("robot.frames: expected a list")
+    check_limit("robot.frames: number of frames", len(fr), MAX_BODIES, ModelError)
     for k, fd in enumerate(fr):
         where = f"frames[{k}]"
         _check_keys(fd, _FRAME_KEYS, where)
@@ -517,6 +551,7 @@ def mechanism_from_dict(d, base_dir=None):
 def _constraints(cl, frames, motion):
     if not isinstance(cl, list):
         raise ModelError("robot.constraints: expected a list")
+    check_limit("robot.constraints: number of constraints", len(cl), MAX_BODIES, ModelError)
     out = []
     names = set()
     for k, cd in enumerate(cl):

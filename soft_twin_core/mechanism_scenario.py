@@ -29,7 +29,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from .constrained import FrameLoad, MechanismSimulator, StepError, make_inputs, solve_equilibrium
-from .mechanism import load_mechanism, mechanism_from_dict
+from .mechanism import check_joint_position, load_mechanism, mechanism_from_dict
 from .model import ModelError, parse_number, parse_numbers
 
 
@@ -124,6 +124,11 @@ def _profile(v, where):
     return prof(v, where)
 
 
+def check_scenario_input(act, values, where, error):
+    from .scenario import check_scenario_input as check
+    return check(act, values, where, error)
+
+
 def mechanism_scenario_from_dict(d, base_dir, source):
     """A MechanismScenario from a parsed scenario mapping whose robot is a
     tree robot file; ScenarioError naming the field."""
@@ -159,11 +164,15 @@ def mechanism_scenario_from_dict(d, base_dir, source):
         if k not in names:
             raise Err(f"scenario.actuation: unknown actuator {k!r}; the robot has {list(names)}")
         u[names.index(k)] = parse_number(v, f"scenario.actuation.{k}", Err)
+        # the node's rule for the actuator's declared range (tension >= 0, limit, min/max)
+        check_scenario_input(mech.actuators[names.index(k)], [u[names.index(k)]], f"scenario.actuation.{k}", Err)
     aprof = {}
     for k, v in mapping("actuation_profile").items():
         if k not in names:
             raise Err(f"scenario.actuation_profile: unknown actuator {k!r}; the robot has {list(names)}")
         aprof[names.index(k)] = _profile(v, f"scenario.actuation_profile.{k}")
+        check_scenario_input(mech.actuators[names.index(k)], aprof[names.index(k)][1],
+                             f"scenario.actuation_profile.{k}", Err)
     pos_names = [mech.tree.joints[i].name for i in mech.joints_with("position")]
     eff_names = [mech.tree.joints[i].name for i in mech.joints_with("effort")]
 
@@ -177,9 +186,18 @@ def mechanism_scenario_from_dict(d, base_dir, source):
 
     positions = {k: parse_number(v, f"scenario.joint_positions.{k}", Err)
                  for k, v in joints("joint_positions", pos_names, "position").items()}
+    jointof = {j.name: j for j in mech.tree.joints}
+    for k, v in positions.items():              # the node's rule (over_limit)
+        bad = check_joint_position(jointof[k], v)
+        if bad is not None:
+            raise Err(f"scenario.joint_positions.{k}: {bad[1]} [{bad[0]}]")
     trajectories = {}
     for k, v in joints("joint_trajectories", pos_names, "position").items():
         a = parse_numbers(v, (None, 2), f"scenario.joint_trajectories.{k}", Err)
+        for t, x in a:
+            bad = check_joint_position(jointof[k], float(x))
+            if bad is not None:
+                raise Err(f"scenario.joint_trajectories.{k}: at t = {t:g} s, {bad[1]} [{bad[0]}]")
         trajectories[k] = _spline(a, f"scenario.joint_trajectories.{k}")
     efforts = {k: parse_number(v, f"scenario.joint_efforts.{k}", Err)
                for k, v in joints("joint_efforts", eff_names, "effort").items()}
@@ -273,8 +291,9 @@ def _nan_none(a):
     return [None if not np.isfinite(x) else float(x) for x in a]
 
 
-def run_mechanism_statics(sc):
-    """Equilibrium of the scenario at t = 0. JSON-ready dict: joint_names and
+def run_mechanism_statics(sc, t=0.0):
+    """Equilibrium of the scenario's inputs at time ``t`` [s] (default 0;
+    :func:`scenario.run_statics` picks the end of the profiles). JSON-ready dict: joint_names and
     joint_positions/efforts [rad or m, N m or N]; frame_names and
     frame_positions (world, m) and frame_poses (4x4, world); constraint_names and constraint_wrenches
     (world [f; m] on the constraint's frame, N, N m); transmitted_names and
@@ -284,9 +303,9 @@ def run_mechanism_statics(sc):
     normal_stress and shear_stress [Pa] (null without geometry); iterations, residual."""
     from .outputs import state_outputs
     from .loads import Loads
-    u, eff, pos, pls = sc.inputs_at(0.0)
+    u, eff, pos, pls = sc.inputs_at(t)
     eq = solve_equilibrium(sc.mech, u, eff, pos, loads=Loads(gravity=sc.gravity), point_loads=pls,
-                           targets=_targets(sc, 0.0))
+                           targets=_targets(sc, t))
     out = state_outputs(sc.mech, eq.q, eq.lam, eq.inputs)
     d = _outputs_dict(sc, out)
     d.update(iterations=eq.iterations, residual=eq.residual, constraint_error=eq.constraint_error)
@@ -323,9 +342,11 @@ def run_mechanism_dynamics(sc, duration, dt, theta=0.5, progress=None, record_ev
     step fails (the history ends at the last converged step)."""
     import time as _time
     from .outputs import section_strains, state_outputs
-    from .scenario import n_steps_for, step_times
+    from .scenario import _count, check_output_size, n_steps_for, step_times
     mech = sc.mech
     n_steps = n_steps_for(duration, dt)
+    check_output_size(n_steps, _count(record_every, "record_every", 1), _count(backbone_every, "backbone_every", 0),
+                      mech.tree.n_joints + len(mech.frames) + 1)
     time_of = step_times(dt)
     sim = MechanismSimulator(mech, float(dt), theta)
     inp0 = _inputs(sc, 0.0)

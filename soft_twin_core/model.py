@@ -29,6 +29,8 @@ from typing import Optional
 import numpy as np
 
 from .lie import exp_so3, se3_from_rp
+from . import plausibility
+from .limits import MAX_SECTIONS_PER_SEGMENT, MAX_SECTIONS_TOTAL, check_limit
 
 STRAIN_NAMES = ("axial", "shear_y", "shear_z", "torsion", "bending_y", "bending_z")
 _MODE_GROUPS = {
@@ -139,6 +141,14 @@ class Actuator:
     limit: the declared maximum input -- tension [N] for a tendon, |gauge
     pressure| [Pa] for a chamber -- a finite float > 0, or ``math.inf``
     when the robot file declares none (unlimited).
+
+    lower, upper: the admissible input range [lower, upper] (see
+    :func:`actuator_range`): ``limit`` (|u| <= limit) intersected with the
+    robot file's optional ``min``/``max``; a tendon's lower bound is never
+    below 0 (it can only pull). A missing bound is unbounded on that side
+    (a chamber without ``min`` may take any suction). Every consumer (the
+    node, the offline runners, IK, the planners, calibration) checks inputs
+    with :func:`check_actuator_input`.
     """
     name: str
     kind: str                  # "tendon" | "chamber"
@@ -153,6 +163,17 @@ class Actuator:
     area: float = 0.0          # chamber area [m^2]
     tendon_model: str = "distributed"   # or "point_moment" (slides part C, model (b))
     limit: float = math.inf    # declared maximum input: tension [N] or |pressure| [Pa]
+    lower: float = None        # admissible range [lower, upper]; None: from kind and limit
+    upper: float = None
+
+    def __post_init__(self):
+        lo, hi = actuator_range(self.kind, self.limit)
+        if self.lower is not None:
+            lo = max(lo, float(self.lower))
+        if self.upper is not None:
+            hi = min(hi, float(self.upper))
+        object.__setattr__(self, "lower", lo)
+        object.__setattr__(self, "upper", hi)
 
     def offset_at(self, s):
         """Offset d(s) (..., 3) in the cross-section frame (x component 0) and
@@ -181,6 +202,50 @@ class Actuator:
         """Tension equivalent per unit input: +1 for tendons, -area for chambers
         (a pressurised chamber pushes where a tendon pulls)."""
         return 1.0 if self.kind == "tendon" else -self.area
+
+
+def actuator_range(kind, limit=math.inf):
+    """The input range [lower, upper] implied by an actuator's ``kind`` and
+    ``limit`` alone: a tendon [0, limit], a chamber [-limit, limit]."""
+    limit = float(limit)
+    return (0.0, limit) if kind == "tendon" else (-limit, limit)
+
+
+# reasons of a rejected actuator input (:func:`check_actuator_input`)
+ACTUATOR_REJECT_REASONS = ("non_finite", "negative_tension", "over_limit", "under_limit")
+
+
+def check_actuator_input(act, value):
+    """None if ``value`` is an admissible input of actuator ``act``, else
+    (reason, message): "non_finite", "negative_tension" (a tendon below 0
+    N), "over_limit" (|value| above ``limit``, or above ``max``) or
+    "under_limit" (below ``min``). The one rule for the node, the offline runners, IK, the
+    planners and calibration; the message names the actuator, the value and
+    the bound."""
+    v = float(value)
+    unit = "N" if act.kind == "tendon" else "Pa"
+    what = "tension" if act.kind == "tendon" else "pressure"
+    if not math.isfinite(v):
+        return "non_finite", f"{act.kind} {act.name}: {what} {v} is not finite"
+    if act.kind == "tendon" and v < 0:
+        return "negative_tension", f"tendon {act.name}: tension must be >= 0 N, got {v:g} N"
+    rng = f"(robot file; admissible range [{act.lower:g}, {act.upper:g}] {unit})"
+    if abs(v) > act.limit:
+        return "over_limit", (f"{act.kind} {act.name}: |{what}| {abs(v):g} {unit} exceeds its declared "
+                              f"limit {act.limit:g} {unit} {rng}")
+    if v > act.upper:
+        return "over_limit", (f"{act.kind} {act.name}: {what} {v:g} {unit} exceeds its declared "
+                              f"max {act.upper:g} {unit} {rng}")
+    if v < act.lower:
+        return "under_limit", (f"{act.kind} {act.name}: {what} {v:g} {unit} is below its declared "
+                               f"min {act.lower:g} {unit} {rng}")
+    return None
+
+
+def actuator_bounds_of(model):
+    """(lower, upper) arrays (n_actuators,) of the declared input ranges."""
+    acts = model.actuators
+    return (np.array([a.lower for a in acts], dtype=float), np.array([a.upper for a in acts], dtype=float))
 
 
 @dataclass(frozen=True, eq=False)
@@ -431,6 +496,7 @@ def pose_from_dict(d, where):
                       [2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)]])
     else:
         r, pch, y = _vec(d, "rpy", 3, where, default=[0, 0, 0])
+        plausibility.check_angles(f"{where}.rpy", (r, pch, y))
         R = exp_so3(np.array([0, 0, y])) @ exp_so3(np.array([0, pch, 0])) @ exp_so3(np.array([r, 0, 0]))
     return se3_from_rp(R, p)
 
@@ -553,7 +619,7 @@ def _sectional(d, where):
 def _actuator(d, i, total_length):
     where = f"actuators[{i}]"
     _check_keys(d, {"name", "type", "start", "end", "routing", "offset", "offset_end", "radius",
-                    "phase", "turns_per_meter", "area", "model", "limit"}, where)
+                    "phase", "turns_per_meter", "area", "model", "limit", "min", "max"}, where)
     name = d.get("name")
     if not isinstance(name, str) or not name:
         raise ModelError(f"{where}.name: expected a non-empty string, got {name!r}")
@@ -586,28 +652,60 @@ def _actuator(d, i, total_length):
     limit = math.inf
     if d.get("limit") is not None:
         limit = _num(d, "limit", where, positive=True)
+    lower, upper = _input_bounds(d, where, kind, limit)
     return Actuator(name, kind, start, min(end, total_length), routing, offset, offset_end,
-                    radius, phase, turns, area, tmodel, limit)
+                    radius, phase, turns, area, tmodel, limit, lower, upper)
+
+
+def _input_bounds(d, where, kind, limit):
+    """[lower, upper] of an actuator: ``limit`` (|u| <= limit; [0, limit] for
+    a tendon) intersected with the optional ``min``/``max`` [N or Pa] (the
+    tighter bound wins, so a study may vary ``limit`` under a file's
+    ``max``); an empty range is an error."""
+    unit = "N" if kind == "tendon" else "Pa"
+    lo, hi = actuator_range(kind, limit)
+    if d.get("min") is not None:
+        m = _num(d, "min", where)
+        if kind == "tendon" and m < 0:
+            raise ModelError(f"{where}.min: {m:g} N is below 0 N: a tendon can only pull (tension >= 0)")
+        lo = max(lo, m)
+    if d.get("max") is not None:
+        hi = min(hi, _num(d, "max", where))
+    if not lo < hi:
+        raise ModelError(f"{where}: empty input range [{lo:g}, {hi:g}] {unit} (min {d.get('min')}, max "
+                         f"{d.get('max')}, limit {d.get('limit')}): need lower < upper")
+    return lo, hi
 
 
 def model_from_dict(d, n_sections_override=None):
     """Build a :class:`RobotModel` from a plain dict (the YAML schema in
     config/*.yaml). ``n_sections_override`` replaces every segment's section
     count (for convergence studies). Raises ModelError naming the bad field."""
+    if isinstance(d, dict) and "bodies" in d:
+        raise ModelError("robot: an articulated robot (tree schema: bodies/frames), not a classic single-chain "
+                         "robot (segments); load it with soft_twin_core.mechanism.mechanism_from_dict")
     _check_keys(d, {"name", "base", "gravity", "kinematic_map", "quadrature_points",
                     "segments", "actuators"}, "robot")
     segs = d.get("segments")
     if not isinstance(segs, list) or not segs:
         raise ModelError("robot.segments: expected a non-empty list of segments")
+    check_limit("robot.segments: number of segments", len(segs), MAX_SECTIONS_TOTAL, ModelError)
     sections = []
+    seg_names, spans = [], []        # for the unique names and the actuator offset check
     for k, sd in enumerate(segs):
         where = f"segments[{k}]"
         _check_keys(sd, {"name", "length", "sections", "cross_section", "material", "sectional",
                          "reference_strain", "free_modes", "offset_to_next"}, where)
         length = _num(sd, "length", where, positive=True)
+        plausibility.check_length(where, length)
         n = sd.get("sections", 1) if n_sections_override is None else n_sections_override
         if isinstance(n, bool) or not isinstance(n, int) or n < 1:
             raise ModelError(f"{where}.sections: expected an integer >= 1, got {n!r}")
+        # resource bounds, before any allocation (soft_twin_core.limits)
+        check_limit(f"{where}.sections" if n_sections_override is None else
+                    "sections per segment (the override, e.g. --sections)", n, MAX_SECTIONS_PER_SEGMENT, ModelError)
+        check_limit("robot: total sections (sum of segments[*].sections)",
+                    len(sections) + n, MAX_SECTIONS_TOTAL, ModelError)
         if "sectional" in sd:
             both = [key for key in ("cross_section", "material") if key in sd]
             if both:
@@ -626,6 +724,9 @@ def model_from_dict(d, n_sections_override=None):
             except OverflowError:
                 raise ModelError(f"{where}.cross_section: dimensions overflow (check the units: metres)") from None
             mat = _material(sd["material"], where + ".material")
+            plausibility.check_cross_section(where + ".cross_section", sd["cross_section"])
+            plausibility.check_material(where + ".material", mat.E, mat.G, mat.density,
+                                        "shear_modulus" in sd["material"])
         f0 = _vec(sd, "reference_strain", 6, where, default=[1, 0, 0, 0, 0, 0])
         if f0[0] <= 0:
             raise ModelError(f"{where}.reference_strain: axial strain must be > 0, got {f0[0]}")
@@ -639,6 +740,13 @@ def model_from_dict(d, n_sections_override=None):
             raise ModelError(f"{where}: {src} a non-finite or zero stiffness or "
                              f"inertia (K diagonal {np.diag(K).tolist()}); check the values and units")
         name = str(sd.get("name", f"segment{k}"))
+        if name in seg_names:
+            raise ModelError(f"{where}.name: {name!r} is already used by segments[{seg_names.index(name)}]; "
+                             f"segment names must be unique")
+        seg_names.append(name)
+        s_at = sum(x.length for x in sections)
+        spans.append((s_at, s_at + length, None if "sectional" in sd else
+                      plausibility.section_extent(sd["cross_section"]), f"{where} ({name})"))
         for j in range(n):
             sections.append(Section(length / n, K, D, M, f0, free, name,
                                     off if j == n - 1 else np.eye(4)))
@@ -650,6 +758,7 @@ def model_from_dict(d, n_sections_override=None):
     names = [a.name for a in actuators]
     if len(set(names)) != len(names):
         raise ModelError(f"robot.actuators: names must be unique, got {names}")
+    plausibility.check_actuator_offsets(actuators, spans, ModelError)
     kmap = d.get("kinematic_map", "exponential")
     if kmap not in ("exponential", "cayley"):
         raise ModelError(f"robot.kinematic_map: expected 'exponential' or 'cayley', got {kmap!r}")
@@ -668,17 +777,13 @@ def model_from_dict(d, n_sections_override=None):
 
 
 def read_yaml_file(path, error=None, what="file"):
-    """Parsed YAML of ``path``; an unreadable file or bad YAML raises
-    ``error`` (default ModelError) naming the file."""
-    import yaml
+    """Parsed YAML of ``path``; an unreadable, binary, oversized or too
+    deeply nested file or bad YAML raises ``error`` (default ModelError)
+    naming the file (limits: soft_twin_core.limits)."""
+    from .limits import load_yaml_text, read_text
     error = ModelError if error is None else error
-    try:
-        with open(path) as fh:
-            return yaml.safe_load(fh)
-    except OSError as e:
-        raise error(f"{what} {path}: {e.strerror}") from None
-    except yaml.YAMLError as e:
-        raise error(f"{what} {path}: invalid YAML: {e}") from None
+    # size, encoding (a binary file) and nesting are checked before parsing
+    return load_yaml_text(read_text(path, error, what), f"{what} {path}", error)
 
 
 def robot_mapping(d, source):
@@ -745,8 +850,29 @@ def find_file(name, kind, error=None):
     if found is not None:
         return found
     what = "robot file" if kind == "robots" else "scenario"
+    if kind == "scenarios" and stem in example_files("robots"):
+        raise error(f"scenario {text!r}: {stem} is an example robot, not a scenario. {robot_not_scenario_hint(stem)}")
     raise error(f"{what} {text!r}: no such file, nor an example of that name "
                 f"(examples: {', '.join(example_files(kind)) or 'none installed'})")
+
+
+def robot_not_scenario_hint(name):
+    """How to use the robot ``name`` where a scenario was expected: the
+    example scenarios built on it, or a scenario file naming it."""
+    import re
+    uses = []
+    for sname, f in example_files("scenarios").items():
+        try:
+            text = f.read_text(encoding="utf-8")
+        except (OSError, UnicodeDecodeError):
+            continue
+        if re.search(rf"^robot:\s*(\S*/)?{re.escape(name)}(\.yaml)?\s*(#.*)?$", text, re.M):
+            uses.append(sname)
+    uses.sort(key=lambda n: "statics" not in n)          # a statics example first
+    how = (f"The example scenarios on it: {', '.join(uses)} (e.g. `soft-twin-sim statics {uses[0]}`). "
+           if uses else "")
+    return (how + f"Or write a scenario file with `robot: {name}` and its actuation and loads; "
+            f"`soft-twin-sim workspace {name}` takes a robot directly.")
 
 
 def load_model(path, n_sections_override=None):

@@ -33,6 +33,7 @@ available for them. The CSV then has one ``q_<joint>`` column per joint.
 
 import csv
 import io
+import math
 import os
 
 import numpy as np
@@ -40,6 +41,7 @@ import numpy as np
 from . import paths as pth
 from . import planner as pl
 from .loads import Loads
+from .limits import MAX_PATH_SAMPLES, MAX_TIME_STEPS, check_limit
 from .model import config_dirs, find_file, load_model, model_from_dict, read_yaml_file, robot_mapping
 
 
@@ -84,8 +86,47 @@ def load_plan_file(path):
     return plan_from_dict(d, os.path.dirname(os.path.abspath(path)))
 
 
+def _real(v):
+    """v as a finite float (numbers and numeric strings such as YAML's 1.0e9), else None."""
+    from .model import ModelError, parse_number
+    try:
+        x = parse_number(v, "")
+    except (ModelError, TypeError, ValueError):
+        return None
+    return x if math.isfinite(x) else None
+
+
+def check_plan_size(d):
+    """Resource bounds of a plan (soft_twin_core.limits), before the path
+    is sampled: samples = duration / sample_period (each an IK solve) and,
+    with ``dynamics``, time steps = duration / dynamics.dt. Values that are
+    not numbers are left to the field checks."""
+    path = d.get("path")
+    if not isinstance(path, dict):
+        return
+    kind = path.get("type")
+    sp = _real(path.get("sample_period", 0.02 if kind != "waypoints" else None))
+    if kind == "waypoints":
+        pts = path.get("points")
+        ts = [_real(p.get("t")) for p in pts if isinstance(p, dict)] if isinstance(pts, list) else []
+        ts = [t for t in ts if t is not None]
+        duration = max(ts) - min(ts) if ts else None
+    else:
+        duration = _real(path.get("duration"))
+    if duration is None or duration <= 0:
+        return
+    if sp is not None and sp > 0:
+        check_limit("path.duration / path.sample_period: samples", duration / sp, MAX_PATH_SAMPLES, PlanFileError)
+    dyn = d.get("dynamics")
+    if isinstance(dyn, dict):
+        dt = _real(dyn.get("dt", 0.005))
+        if dt is not None and dt > 0:
+            check_limit("path.duration / dynamics.dt: time steps", duration / dt, MAX_TIME_STEPS, PlanFileError)
+
+
 def plan_from_dict(d, base_dir="."):
     d = _keys(d, _TOP, "plan")
+    check_plan_size(d)
     if "robot" not in d:
         raise PlanFileError("plan.robot: missing (an example name, a robot file or a mapping)")
     if "path" not in d:

@@ -10,9 +10,11 @@ Each sample of the path is an actuation IK through the static equilibrium
   ``Kt = dR/dq`` the analytic statics tangent, and the tip twist per input
   is ``J_tip(q) Kt^-1 B(q)`` (:func:`tip_sensitivity`; tested against
   finite differences of full statics solves).
-* **Bounds.** Tendon tensions in ``[pretension, limit]``, chamber
-  pressures in ``[-limit, min(limit, max_pressure)]`` (``limit`` from the
-  robot file, unlimited when none is declared); rate limits ``|du/dt| <=
+* **Bounds.** Tendon tensions in ``[max(pretension, min), min(limit, max,
+  max_tension)]``, chamber pressures in ``[max(-limit, min), min(limit,
+  max, max_pressure)]`` (``limit``, ``min``, ``max`` from the robot file,
+  :attr:`model.Actuator.lower`/``upper``; unbounded when none is
+  declared; ``min: 0`` makes a chamber positive-only); rate limits ``|du/dt| <=
   max_rate`` between consecutive samples turn into a per-sample box around
   the previous sample's inputs. Every planned value lies in its box (a
   projected method: the box is never left, not even by round-off).
@@ -289,8 +291,10 @@ class PlanOptions:
 
 
 def actuator_bounds(model, options=None):
-    """(lower, upper) input bounds (n_act,): tendons [pretension, min(limit,
-    max_tension)], chambers [-limit, min(limit, max_pressure)]."""
+    """(lower, upper) input bounds (n_act,): the robot file's range of each
+    actuator ([Actuator.lower, Actuator.upper]: limit, min, max) cut by the
+    options: tendons [max(lower, pretension), min(upper, max_tension)],
+    chambers [lower, min(upper, max_pressure)]."""
     o = PlanOptions() if options is None else options
     pre = _per_actuator(model, o.pretension, "pretension", 0.0, allow_inf=False)
     tmax = _per_actuator(model, o.max_tension, "max_tension", np.inf)
@@ -300,9 +304,9 @@ def actuator_bounds(model, options=None):
         if a.kind == "tendon":
             if pre[k] < 0:
                 raise PlanError(f"pretension.{a.name}: a tendon's pretension must be >= 0 N, got {pre[k]}")
-            lo[k], hi[k] = pre[k], min(a.limit, tmax[k])
+            lo[k], hi[k] = max(pre[k], a.lower), min(a.upper, tmax[k])
         else:
-            lo[k], hi[k] = -a.limit, min(a.limit, pmax[k])
+            lo[k], hi[k] = a.lower, min(a.upper, pmax[k])
         if not lo[k] <= hi[k]:
             raise PlanError(f"{a.name}: empty input range [{lo[k]}, {hi[k]}] (pretension above the "
                             f"limit or max_tension/max_pressure?)")

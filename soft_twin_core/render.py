@@ -83,6 +83,8 @@ def render_mechanism_dynamics(out, args, mech, name="run"):
         from .mechanism_plots import plot_mechanism_dynamics
         paths = plot_mechanism_dynamics(out, args.plot, mech, name)
         say(f"wrote {len(paths)} figures into {args.plot}: " + ", ".join(os.path.basename(p) for p in paths))
+        for note in left_out_figures(out, articulated=True):
+            say(f"warning: {note}")
     if args.animate:
         from .animate import write_animation
         from .mechanism_scene import run_snapshots
@@ -98,11 +100,30 @@ def render_mechanism_dynamics(out, args, mech, name="run"):
         say(f"wrote {args.mcap} ({n} states as /soft_twin_sim/joint_states, backbones/<member>, tip_pose, /tf)")
 
 
+def left_out_figures(out, model=None, articulated=False):
+    """Sentences naming the figures --plot cannot draw from ``out`` and how
+    to get them (said on stderr; the other figures are written)."""
+    notes = []
+    if articulated:
+        if not out.get("members_time"):
+            notes.append("the run has no member samples, so the backbone_shapes, member internal wrench and "
+                         "energies figures are left out: run dynamics with --backbone-every K (K >= 1)")
+        return notes
+    if not out.get("backbone"):
+        notes.append("the run has no backbone samples, so the backbone_shapes and internal_wrenches figures are "
+                     "left out: run dynamics with --backbone-every K (K >= 1)")
+    if model is None and out.get("time"):
+        notes.append("no robot given, so the energies figure is left out: give --scenario or --robot")
+    return notes
+
+
 def render_dynamics(out, args, model=None, gravity=True, name="run"):
     from .plots import plot_dynamics
     if args.plot:
         paths = plot_dynamics(out, args.plot, model, gravity, name)
         say(f"wrote {len(paths)} figures into {args.plot}: " + ", ".join(os.path.basename(p) for p in paths))
+        for note in left_out_figures(out, model):
+            say(f"warning: {note}")
     if args.animate:
         animate_dynamics(out, args.animate, args.fps or DEFAULT_FPS, model, name)
 
@@ -153,6 +174,10 @@ def load_run(path):
         raise ValueError(f"render: cannot read the run {path!r}: {e.strerror or e}") from None
     except (json.JSONDecodeError, UnicodeDecodeError) as e:
         raise ValueError(f"{path}: not a JSON run of soft-twin-sim dynamics ({e})") from None
+    except RecursionError:
+        from .limits import MAX_NESTING
+        raise ValueError(f"{path}: not a JSON run of soft-twin-sim dynamics (nested deeper than a run is; "
+                         f"the limit is {MAX_NESTING} levels)") from None
     if not isinstance(out, dict) or "time" not in out:
         raise ValueError(f"{path}: not a run of soft-twin-sim dynamics (no 'time' field)")
     return out

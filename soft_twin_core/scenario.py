@@ -33,6 +33,7 @@ import numpy as np
 
 from . import kinematics as kin
 from .loads import DistributedLoad, Loads, PointLoad
+from .limits import MAX_BACKBONE_POINTS, MAX_RECORDED_ROWS, MAX_TIME_STEPS
 from .model import (ModelError, find_file, load_model, model_from_dict, parse_number,
                     parse_numbers, read_yaml_file)
 
@@ -159,6 +160,12 @@ def load_scenario(path, sections=None, angle_deg=None):
     Raises ScenarioError or ModelError naming the bad field."""
     path = find_file(path, "scenarios", ScenarioError)
     d = read_yaml_file(path, ScenarioError, "scenario")
+    if isinstance(d, dict) and "robot" not in d and ("segments" in d or "bodies" in d):
+        from .model import robot_not_scenario_hint
+        stem = os.path.splitext(os.path.basename(str(path)))[0]
+        has = "segments" if "segments" in d else "bodies"
+        raise ScenarioError(f"scenario {path}: this is a robot file (it has {has}), not a scenario. "
+                            f"{robot_not_scenario_hint(stem)}")
     return scenario_from_dict(d, os.path.dirname(os.path.abspath(path)), sections, angle_deg, str(path))
 
 
@@ -180,6 +187,19 @@ def _is_tree_robot(robot, base_dir):
         return is_tree_file(robot_mapping(read_yaml_file(p), p))
     except ModelError:
         return False
+
+
+def check_scenario_input(act, values, where, error):
+    """Refuse (``error`` naming ``where``) any of ``values`` outside the
+    actuator's declared range: the node's rule
+    (:func:`model.check_actuator_input`), so a scenario cannot run offline
+    with an input the node would reject. A profile is piecewise linear, so
+    checking its points bounds every interpolated value."""
+    from .model import check_actuator_input
+    for v in np.atleast_1d(np.asarray(values, dtype=float)):
+        bad = check_actuator_input(act, v)
+        if bad is not None:
+            raise error(f"{where}: {bad[1]} [{bad[0]}]")
 
 
 def scenario_from_dict(d, base_dir=".", sections=None, angle_deg=None, source="<dict>"):
@@ -224,8 +244,7 @@ def scenario_from_dict(d, base_dir=".", sections=None, angle_deg=None, source="<
         if k not in names:
             raise ScenarioError(f"scenario.actuation: unknown actuator {k!r}; the robot has {list(names)}")
         v = _number(v, f"scenario.actuation.{k}")
-        if model.actuators[names.index(k)].kind == "tendon" and v < 0:
-            raise ScenarioError(f"scenario.actuation.{k}: tendon tension must be >= 0 N, got {v}")
+        check_scenario_input(model.actuators[names.index(k)], [v], f"scenario.actuation.{k}", ScenarioError)
         u[names.index(k)] = float(v)
     prof = {}
     profiles = d.get("actuation_profile") or {}
@@ -236,8 +255,8 @@ def scenario_from_dict(d, base_dir=".", sections=None, angle_deg=None, source="<
         if k not in names:
             raise ScenarioError(f"scenario.actuation_profile: unknown actuator {k!r}; the robot has {list(names)}")
         ts, vs = _profile(v, f"scenario.actuation_profile.{k}")
-        if model.actuators[names.index(k)].kind == "tendon" and np.any(vs < 0):
-            raise ScenarioError(f"scenario.actuation_profile.{k}: tendon tension must be >= 0 N")
+        check_scenario_input(model.actuators[names.index(k)], vs, f"scenario.actuation_profile.{k}",
+                             ScenarioError)
         prof[names.index(k)] = (ts, vs)
     raw_loads = d.get("loads") or []
     if not isinstance(raw_loads, list):
@@ -279,24 +298,86 @@ def _reference(v):
 # Runs
 # ----------------------------------------------------------------------------
 
-def run_statics(sc, points_per_section=10):
+def input_profiles(sc):
+    """(end time [s], names) of the scenario's time-varying inputs (either
+    kind of scenario): the time at which every profile, trajectory and
+    load profile has reached its final value, and what varies
+    ("actuation_profile.close_0", "loads[1].profile", ...); (0.0, []) for
+    constant inputs."""
+    ends, names = [], []
+    mech = getattr(sc, "mech", None)
+    acts = (mech.actuator_names if mech is not None else sc.model.actuator_names)
+    for i, (ts, _) in sc.actuation_profile.items():
+        ends.append(float(ts[-1]))
+        names.append(f"actuation_profile.{acts[i]}")
+    if mech is not None:
+        for j, (ts, _) in sc.effort_profile.items():
+            ends.append(float(ts[-1]))
+            names.append(f"joint_effort_profile.{j}")
+        for j, sp in sc.trajectories.items():
+            ends.append(float(sp.t1))
+            names.append(f"joint_trajectories.{j}")
+        if sc.base_trajectory is not None:
+            ends.append(float(sc.base_trajectory.t1))
+            names.append("base_trajectory")
+    for k, (_, prof) in enumerate(sc.loads):
+        if prof is not None:
+            ends.append(float(prof[0][-1]))
+            names.append(f"loads[{k}].profile")
+    return (max(ends) if ends else 0.0), names
+
+
+def statics_time(sc, time=None):
+    """(t, note) of a statics solve: ``time`` if given (its profiles
+    evaluated there), else, when inputs vary in time, the end of the last
+    profile (every input at its final value: the state the scenario
+    settles to), else 0. ``note``: a sentence saying which, or None."""
+    end, names = input_profiles(sc)
+    if time is not None:
+        t = _positive_or_zero_time(time, "time")
+        if not names:
+            return t, f"solved at t = {t:g} s (the scenario's inputs are constant)"
+        return t, f"solved at t = {t:g} s of the scenario's time-varying inputs ({', '.join(names)})"
+    if not names:
+        return 0.0, None
+    return end, (f"the scenario's inputs vary in time ({', '.join(names)}): solved at t = {end:g} s, where every "
+                 f"profile has reached its final value (--time T for another time)")
+
+
+def _positive_or_zero_time(v, name):
+    if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v) or v < 0:
+        raise ScenarioError(f"{name}: expected a finite time >= 0 in s, got {v!r}")
+    return float(v)
+
+
+def run_statics(sc, points_per_section=10, time=None):
     """Solve the scenario's equilibrium (loads applied in load_steps
     increments, each warm-started). Returns a JSON-ready dict, including the
     internal wrenches [N, N m] (body frame, the distal part acting on the
-    proximal part) at the backbone sample points ``backbone_s`` [m]."""
+    proximal part) at the backbone sample points ``backbone_s`` [m].
+
+    Time-varying inputs (profiles, trajectories) are evaluated at ``time``
+    [s], by default at the end of the last profile (:func:`statics_time`);
+    the result then holds ``time`` and ``time_note``."""
+    t, note = statics_time(sc, time)
     from .mechanism_scenario import MechanismScenario, run_mechanism_statics
     if isinstance(sc, MechanismScenario):
-        return run_mechanism_statics(sc)
+        out = run_mechanism_statics(sc, t)
+        if note is not None:
+            out.update(time=t, time_note=note)
+        return out
     from .statics import solve_statics
     q, iters, res = None, 0, None
+    u = sc.actuation_at(t)
     for k in range(1, sc.load_steps + 1):
         f = k / sc.load_steps
-        loads = sc.loads_at(None, f)
-        res = solve_statics(sc.model, f * sc.actuation, loads, q_init=q)
+        loads = sc.loads_at(t, f)
+        res = solve_statics(sc.model, f * u, loads, q_init=q)
         q, iters = res.q, iters + res.iterations
     s_bb, P = kin.backbone(sc.model, q, points_per_section)
     from .statics import internal_wrenches
-    W = internal_wrenches(sc.model, q, s_bb, sc.actuation, sc.loads_at(None))
+    W = internal_wrenches(sc.model, q, s_bb, u, sc.loads_at(t))
+    extra = {} if note is None else {"time": t, "time_note": note}
     return {
         "tip_position": res.tip_pose[:3, 3].tolist(),
         "tip_rotation": res.tip_pose[:3, :3].ravel().tolist(),
@@ -309,6 +390,7 @@ def run_statics(sc, points_per_section=10):
         "residual": res.residual,
         "stable": res.stable,
         "n_sections": sc.model.n_sections,
+        **extra,
     }
 
 
@@ -332,6 +414,22 @@ def _count(v, name, low):
     return int(v)
 
 
+def check_output_size(n_steps, record_every, backbone_every, backbone_points):
+    """Refuse a run whose recorded rows or backbone samples would exceed
+    the limits of soft_twin_core.limits (before the run allocates them)."""
+    rows = n_steps // record_every + 2
+    if rows > MAX_RECORDED_ROWS:
+        raise ScenarioError(f"record_every: {record_every} gives {rows} recorded rows over {n_steps} steps, "
+                            f"which exceeds the limit of {MAX_RECORDED_ROWS} rows (soft_twin_core.limits); "
+                            f"record every {-(-n_steps // MAX_RECORDED_ROWS)} steps or more")
+    if backbone_every:
+        points = (n_steps // backbone_every + 1) * backbone_points
+        if points > MAX_BACKBONE_POINTS:
+            raise ScenarioError(f"backbone_every: {backbone_every} gives {points} backbone points ("
+                                f"{n_steps // backbone_every + 1} samples of {backbone_points} points), "
+                                f"which exceeds the limit of {MAX_BACKBONE_POINTS} (soft_twin_core.limits)")
+
+
 def n_steps_for(duration, dt):
     """Steps of size ``dt`` that cover ``duration`` (the last recorded time
     is ``n dt >= duration``, within 1e-9 relative); ScenarioError naming
@@ -342,7 +440,11 @@ def n_steps_for(duration, dt):
     if duration < dt * (1.0 - 1e-9):
         raise ScenarioError(f"duration: {duration!r} s is shorter than one time step (dt = {dt!r} s): "
                             f"nothing to simulate")
-    return max(1, int(math.ceil(duration / dt - 1e-9)))
+    steps = duration / dt
+    if steps > MAX_TIME_STEPS:          # a resource bound, before any allocation (soft_twin_core.limits)
+        raise ScenarioError(f"duration / dt: {duration:g} s / {dt:g} s = {steps:.4g} time steps exceeds the "
+                            f"limit of {MAX_TIME_STEPS} steps (soft_twin_core.limits)")
+    return max(1, int(math.ceil(steps - 1e-9)))
 
 
 def step_times(dt):
@@ -393,6 +495,7 @@ def run_dynamics(sc, duration, dt, backbone_every=0, theta=0.5, progress=None,
     backbone_every = _count(backbone_every, "backbone_every", 0)
     record_every = _count(record_every, "record_every", 1)
     points_per_section = _count(points_per_section, "points_per_section", 1)
+    check_output_size(n_steps, record_every, backbone_every, m.n_sections * points_per_section + 1)
     state = State.rest(m)
     if sc.initial_strains is not None:
         state.q = sc.initial_strains.copy()

@@ -66,6 +66,7 @@ from pathlib import Path
 
 import numpy as np
 
+from .limits import MAX_STUDY_SAMPLES, check_limit
 from .model import ModelError, find_file, parse_number, read_yaml_file, robot_mapping
 
 
@@ -354,6 +355,7 @@ def _axis(d, i, robot_doc, scenario_doc):
         ax.range = (lo, hi)
         if "count" in d:
             ax.count = _int(d["count"], f"{where}.count")
+            check_limit(f"{where}.count", ax.count, MAX_STUDY_SAMPLES, StudyError)
     else:
         n = d["normal"]
         _check_keys(n, {"mean", "std"}, f"{where}.normal")
@@ -505,10 +507,16 @@ def study_from_dict(d, base_dir=".", source="<dict>", name=None):
                 raise StudyError(f"parameters[{i}]: a normal distribution needs design random or lhs")
             if a.range is not None and a.count is None:
                 raise StudyError(f"parameters[{i}].count: a range on a grid needs count (number of points)")
+        n_grid = 1                  # the number of cases, before any is made (soft_twin_core.limits)
+        for a in axes:
+            n_grid *= len(a.values) if a.values is not None else a.count
+        check_limit("study.parameters: cases of the grid (the product of the counts)", n_grid,
+                    MAX_STUDY_SAMPLES, StudyError)
     else:
         design["samples"] = _int(des.get("samples"), "study.design.samples") if "samples" in des else None
         if design["samples"] is None:
             raise StudyError(f"study.design.samples: missing (number of cases of a {kind} design)")
+        check_limit("study.design.samples", design["samples"], MAX_STUDY_SAMPLES, StudyError)
         for i, a in enumerate(axes):
             if a.values is not None:
                 raise StudyError(f"parameters[{i}].values: a list of values needs design grid "
@@ -624,19 +632,36 @@ def validate_cases(study, cases):
     checks) and check the computations' needs (the workspace's actuator
     ranges); raise :class:`CaseValidationError` listing every bad case by
     index with its parameter values and the field, before anything runs."""
+    import warnings
+    from .limits import PlausibilityWarning
     from .scenario import ScenarioError
     errors = []
+    flagged = {}                  # plausibility warnings by field: [(case index, message)]
     for c in cases:
+        vals = ", ".join(f"{k} = {_short(v)}" for k, v in c.values.items())
         try:
-            sc = build_scenario(study, c.values)
-            if "workspace" in study.compute:
-                from .workspace_map import actuation_ranges
-                actuation_ranges(sc.model, study.compute["workspace"], StudyError)
+            with warnings.catch_warnings(record=True) as caught:
+                warnings.simplefilter("always", PlausibilityWarning)
+                sc = build_scenario(study, c.values)
+                if "workspace" in study.compute:
+                    from .workspace_map import actuation_ranges
+                    actuation_ranges(sc.model, study.compute["workspace"], StudyError)
         except (ScenarioError, ModelError, StudyError) as e:
-            vals = ", ".join(f"{k} = {_short(v)}" for k, v in c.values.items())
             errors.append((c.index, (f"({vals}) " if vals else "") + str(e)))
+            continue
+        for w in caught:
+            if issubclass(w.category, PlausibilityWarning):
+                text = str(w.message)
+                flagged.setdefault(text.split(": ", 1)[0], []).append((c.index, vals, text))
+            else:
+                warnings.warn_explicit(w.message, w.category, w.filename, w.lineno)
     if errors:
         raise CaseValidationError(errors, len(cases))
+    for field_name, hits in flagged.items():     # one line per field, not one per case
+        idx, vals, text = hits[0]
+        cases_text = f"{len(hits)} of {len(cases)} cases" if len(cases) > 1 else "the case"
+        warnings.warn(f"{cases_text} (first: case {idx}{f', {vals}' if vals else ''}): {text}",
+                      PlausibilityWarning, stacklevel=2)
 
 
 def _short(v):

@@ -36,9 +36,11 @@ import math
 import os
 import socket
 import time
+import warnings
 
 import numpy as np
 
+from .limits import PlausibilityWarning
 from .model import STRAIN_NAMES
 
 _VEC3 = ("x", "y", "z")
@@ -174,7 +176,9 @@ def run_case(study, index, values, key):
     outs = {}
     try:
         robot, _ = case_documents(study, values)      # the case's cross-sections, for the stresses
-        sc = build_scenario(study, values)
+        with warnings.catch_warnings():             # reported once per field by study.validate_cases
+            warnings.simplefilter("ignore", PlausibilityWarning)
+            sc = build_scenario(study, values)
         for name, fn in (("statics", _statics), ("dynamics", _dynamics), ("workspace", _workspace)):
             if name in study.compute:
                 fn(study, sc, robot, study.compute[name], outs)

@@ -294,6 +294,7 @@ def run_study(study, out_dir, *, scheduler=None, n_workers=None, serial=False, c
         + (f"{n_reused} already in {out_dir}, " if n_reused else "") + f"{len(todo)} to compute")
     new_rows = {}
     counts = {"ok": 0, "failed": 0, "lost": 0}
+    worker_losses = []            # workers that died under a chunk (dead_workers)
     timing = {"validate_s": t_valid, "cluster_start_s": 0.0, "workers_ready_s": 0.0, "compute_s": 0.0}
     where = "this process (serial)"
     if todo:
@@ -358,7 +359,7 @@ def run_study(study, out_dir, *, scheduler=None, n_workers=None, serial=False, c
                     for ch in chunks:
                         take(run_cases(study, ch))
                 else:
-                    _run_on_dask(client, study, chunks, take, log)
+                    _run_on_dask(client, study, chunks, take, log, worker_losses)
             except KeyboardInterrupt:
                 store.flush()
                 raise StudyInterrupted(
@@ -403,18 +404,47 @@ def run_study(study, out_dir, *, scheduler=None, n_workers=None, serial=False, c
     timing["total_s"] = time.monotonic() - t_start
     result = {"cases": len(cases), "computed": len(todo), "reused": n_reused, **n_status,
               "timing": timing, "where": where, "results": str(out / "results.parquet"),
-              "csv": str(out / "results.csv"), "points": str(out / "points.parquet") if pts else None}
+              "csv": str(out / "results.csv"), "points": str(out / "points.parquet") if pts else None,
+              "worker_losses": worker_losses}
     if summary:
         from .study_report import write_summary
         result["summary"] = write_summary(study, rows, pts, out, result)
     log(f"study {study.name!r}: {n_status['ok']} ok, {n_status['failed']} failed"
         + (f", {n_status['lost']} lost" if n_status["lost"] else "")
+        + (f"; {len({w['worker'] for w in worker_losses})} worker(s) died during the run (cases re-run: "
+           f"{sorted(c for w in worker_losses if w['rerun'] for c in w['cases'])})" if worker_losses else "")
         + f" of {len(cases)} cases; {len(todo)} computed in {timing['compute_s']:.2f} s on {where}; "
         f"results in {out / 'results.parquet'} (and .csv)")
     return result
 
 
-def _run_on_dask(client, study, chunks, take, log):
+def dead_workers(client, chunk_of, lost_keys, log):
+    """The workers that died (not a clean close) while computing chunks of
+    this run, from the scheduler's ``remove-worker`` events: one record per
+    worker and chunk, {worker, time_unix_s, cases, rerun} (rerun: the chunk
+    was computed again on another worker, else its cases are ``lost``), each
+    also logged, so that a killed worker leaves a trace in the output."""
+    try:
+        events = client.get_events("all")
+    except Exception as e:                   # an old or unreachable scheduler: say so, do not fail the study
+        log(f"could not read the scheduler's worker events ({type(e).__name__}: {e}); "
+            f"a worker that died during the run is not reported")
+        return []
+    out = []
+    for stamp, msg in events:
+        if not isinstance(msg, dict) or msg.get("action") != "remove-worker" or msg.get("expected"):
+            continue
+        for key in sorted(k for k in msg.get("processing-tasks", ()) if k in chunk_of):
+            cases = [c[0] for c in chunk_of[key]]
+            rec = {"worker": str(msg.get("worker")), "time_unix_s": float(stamp), "cases": cases,
+                   "rerun": key not in lost_keys}
+            out.append(rec)
+            log(f"worker {rec['worker']} died while computing cases {cases[0]}..{cases[-1]}; "
+                + ("they were re-run on another worker" if rec["rerun"] else "they are recorded lost"))
+    return out
+
+
+def _run_on_dask(client, study, chunks, take, log, worker_losses=None):
     """Submit the chunks (one task each) and hand every chunk's rows to
     ``take`` as it completes. A task whose workers kept dying
     (KilledWorker) gives ``lost`` rows; other task errors (not raised by a
@@ -426,6 +456,7 @@ def _run_on_dask(client, study, chunks, take, log):
     for j, ch in enumerate(chunks):
         f = client.submit(run_cases, study, ch, key=f"soft_twin-study-{tag}-{j}", pure=False)
         futures[f] = ch
+    lost_keys = set()
     try:
         for f in as_completed(list(futures)):
             ch = futures[f]
@@ -435,7 +466,10 @@ def _run_on_dask(client, study, chunks, take, log):
                 reason = f"{type(e).__name__}: {e}"[:2000]
                 log(f"cases {ch[0][0]}..{ch[-1][0]} lost: {reason}")
                 rows = _lost_rows(study, ch, reason)
+                lost_keys.add(f.key)
             take(rows)
+        if worker_losses is not None:
+            worker_losses += dead_workers(client, {f.key: ch for f, ch in futures.items()}, lost_keys, log)
     except KeyboardInterrupt:
         _quiet["saved"] = _quiet.get("saved") or _silence_distributed_logs()
         raise

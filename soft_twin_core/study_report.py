@@ -146,6 +146,7 @@ def write_summary(study, rows, points, out_dir, run_info):
         "lost": sum(r["status"] == "lost" for r in rows),
         "computed_this_run": run_info.get("computed"), "reused": run_info.get("reused"),
         "where": run_info.get("where"), "timing": timing, "failures": failures[:50],
+        "worker_losses": run_info.get("worker_losses", []),
         "parameters": p_num, "outputs": stats,
         "sensitivity": {"outputs": o_num, "parameters": p_num, "spearman_rho": rho.tolist(),
                         "src": src.tolist(), "src_r2": r2.tolist()},
@@ -164,6 +165,11 @@ def write_summary(study, rows, points, out_dir, run_info):
            f"First case per worker: {', '.join(f'{x * 1e3:.1f}' for x in first)} ms; later cases: median "
            f"{_fmt(None if t['later_cases_median_s'] is None else t['later_cases_median_s'] * 1e3)} ms, max "
            f"{_fmt(None if t['later_cases_max_s'] is None else t['later_cases_max_s'] * 1e3)} ms.", ""]
+    if summary["worker_losses"]:
+        md += ["## Workers that died during the run", "", "| worker | cases | outcome |", "|---|---|---|"]
+        md += [f"| {w['worker']} | {w['cases'][0]}..{w['cases'][-1]} | "
+               f"{'re-run on another worker' if w['rerun'] else 'lost'} |" for w in summary["worker_losses"]]
+        md += [""]
     if failures:
         md += ["## Failed cases", "", "| case | status | reason |", "|---:|---|---|"]
         md += [f"| {f['case']} | {f['status']} | {f['error'][:300].replace('|', '/')} |" for f in failures[:50]]

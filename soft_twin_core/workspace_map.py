@@ -52,6 +52,8 @@ def parse_workspace_options(v, where, error=ValueError):
     n = v.get("samples", 200)
     if isinstance(n, bool) or not isinstance(n, int) or n < 0:
         raise error(f"{where}.samples: expected an integer >= 0, got {n!r}")
+    from .limits import MAX_STUDY_SAMPLES, check_limit
+    check_limit(f"{where}.samples", n, MAX_STUDY_SAMPLES, error)     # before any allocation (issue 25)
     design = v.get("design", "lhs")
     if design not in ("lhs", "random", "grid"):
         raise error(f"{where}.design: expected lhs, random or grid, got {design!r}")
@@ -104,8 +106,8 @@ def actuation_ranges(model, opts, error=ValueError):
             r = opts["limits"][nm]
         elif opts["limit"] is not None:
             r = (0.0, opts["limit"])
-        elif math.isfinite(a.limit):
-            r = (0.0, a.limit)
+        elif math.isfinite(a.upper):            # the robot file's range (limit, min, max)
+            r = (max(0.0, a.lower), a.upper)
         else:
             raise error(f"workspace: actuator {nm} has no limit in the robot file; give "
                         f"compute.workspace.limits.{nm} (or limit) for the range to sample")
@@ -113,6 +115,9 @@ def actuation_ranges(model, opts, error=ValueError):
             raise error(f"workspace.limits.{nm}: a tendon tension must be >= 0 N, got {r[0]}")
         if max(abs(r[0]), abs(r[1])) > a.limit * (1 + 1e-12):
             raise error(f"workspace.limits.{nm}: [{r[0]}, {r[1]}] exceeds the robot file's limit {a.limit}")
+        if r[0] < a.lower or r[1] > a.upper:
+            raise error(f"workspace.limits.{nm}: [{r[0]}, {r[1]}] lies outside the robot file's range "
+                        f"[{a.lower}, {a.upper}] (min/max)")
         idx.append(names.index(nm))
         lo.append(float(r[0]))
         hi.append(float(r[1]))
@@ -140,6 +145,11 @@ def sample_actuations(model, opts, base=None):
             unit.append(np.random.default_rng(opts["seed"]).random((n, k)))
         else:
             import itertools
+            from .limits import MAX_STUDY_SAMPLES
+            if float(n) ** k > MAX_STUDY_SAMPLES:     # before any allocation (issue 25)
+                raise ValueError(f"workspace: a grid of {n} points per actuator over {k} actuators gives "
+                                 f"{float(n) ** k:.4g} samples, which exceeds the limit of {MAX_STUDY_SAMPLES} "
+                                 f"(soft_twin_core.limits)")
             g = np.linspace(0.0, 1.0, n)
             unit.append(np.array(list(itertools.product(g, repeat=k)), dtype=float))
     u = np.concatenate(unit, axis=0)

@@ -18,7 +18,7 @@ def arm(n=3, free="all", offsets=False, actuators=True, viscosity=0.0):
     d["segments"][0]["material"]["viscosity"] = viscosity
     if offsets:
         d["segments"][0]["offset_to_next"] = {"position": [0.01, 0, 0], "rpy": [0.0, 0.4, 0.2]}
-        d["segments"].append(dict(d["segments"][0], length=0.2, sections=2, offset_to_next=None))
+        d["segments"].append(dict(d["segments"][0], name="distal", length=0.2, sections=2, offset_to_next=None))
         del d["segments"][1]["offset_to_next"]
     if actuators:
         d["actuators"] = [{"name": "a", "offset": [0.005, 0.002]},

@@ -21,7 +21,7 @@ def three_section(free="all", kmap="exponential", offsets=False):
     if offsets:
         seg = dict(d["segments"][0], length=0.2, sections=2,
                    offset_to_next={"position": [0.01, 0, 0], "rpy": [0, 0, 0.7]})
-        d["segments"] = [seg, dict(d["segments"][0], length=0.3, sections=2)]
+        d["segments"] = [dict(seg, name="proximal"), dict(d["segments"][0], name="distal", length=0.3, sections=2)]
     return model_from_dict(d)
 
 
