@@ -12,9 +12,9 @@ import math
 import os
 from pathlib import Path
 import sys
+import warnings
 
-import yaml
-
+from soft_twin_core.limits import MAX_FILE_BYTES, PlausibilityWarning, load_yaml_text, read_text
 from soft_twin_core.model import ModelError, model_from_dict, robot_mapping
 
 from soft_twin.text import clip, short_list
@@ -104,6 +104,13 @@ PARAMETERS = {
     "record_file": (
         "", "MCAP file (ROS 2 bag format) recording every topic the node publishes and every input "
             "it receives; empty: not recording. Setting it starts a new recording, '' stops it."),
+    "record_max_bytes": (
+        0, "Size limit of one recording file, bytes (>= 0; 0 = none): past it the file is closed "
+           "(complete) and the recording goes on in <stem>_001.mcap, <stem>_002.mcap, ... "
+           "Checked at each chunk (256 KiB of messages). Taken when record_file starts a recording."),
+    "record_max_duration_s": (
+        0.0, "Duration limit of one recording file, seconds (>= 0; 0 = none): rotates like "
+             "record_max_bytes. Taken when record_file starts a recording."),
     "live_view_port": (
         0, "Port of the live 3D view in the browser (http://127.0.0.1:<port>, viser; works offline); "
            "0: off. Integer in 0..65535."),
@@ -138,6 +145,8 @@ class NodeConfig:
     tf_rate_hz: float = 50.0
     tf_prefix: str = ""
     record_file: str = ""
+    record_max_bytes: int = 0
+    record_max_duration_s: float = 0.0
     live_view_port: int = 0
 
     @property
@@ -245,6 +254,8 @@ VALIDATORS = {
     "tf_rate_hz": lambda n, v: _number(n, v, 0.0, 2000.0),
     "tf_prefix": lambda n, v: _tf_prefix(n, v),
     "record_file": lambda n, v: _record_file(n, v),
+    "record_max_bytes": lambda n, v: _integer(n, v, 0),
+    "record_max_duration_s": lambda n, v: _number(n, v, 0.0, 1e9),
     "live_view_port": lambda n, v: _integer(n, v, 0, 65535),
 }
 
@@ -331,6 +342,7 @@ class Robot:
 
     sections_per_segment: int = 0
     mechanism: object = None      # soft_twin_core.mechanism.Mechanism of a tree robot file, else None
+    warnings: tuple = ()          # plausibility warnings of the robot file (the node logs them)
 
     @property
     def articulated(self):
@@ -358,31 +370,35 @@ def load_robot(cfg):
     """(Robot) from cfg.robot_description (inline YAML) or the file it names."""
     if cfg.robot_description.strip():
         text, source = cfg.robot_description, "inline robot_description"
+        if len(text) > MAX_FILE_BYTES:
+            raise ConfigError(f"robot_description: {len(text)} characters exceeds the limit of {MAX_FILE_BYTES} "
+                              f"(soft_twin_core.limits)")
     else:
         path = resolve_robot_file(cfg.robot_description_file)
-        try:
-            text = path.read_text(encoding="utf-8")
-        except OSError as e:
-            raise ConfigError(f"robot_description_file: {clip(path)}: {e.strerror}") from None
+        # size and encoding (a binary file) checked before parsing: soft_twin_core.limits
+        text = read_text(path, ConfigError, "robot_description_file:")
         source = str(path)
     try:
-        d = yaml.safe_load(text)
-    except yaml.YAMLError as e:
-        raise ConfigError(f"{clip(source)}: invalid YAML: {clip(e, 400)}") from None
+        d = load_yaml_text(text, clip(source), ConfigError)
+    except ConfigError as e:
+        raise ConfigError(clip(e, 400)) from None
     from soft_twin_core.mechanism import is_tree_file, mechanism_from_dict
     mech = None
-    try:
-        mapping = robot_mapping(d, "robot description")
-        if is_tree_file(mapping):
-            if cfg.sections_per_segment:
-                raise ConfigError(f"sections_per_segment: {source} is an articulated robot (tree schema): "
-                                  f"its section counts come from the file; leave sections_per_segment at 0")
-            model = mech = mechanism_from_dict(mapping)
-        else:
-            model = model_from_dict(mapping, cfg.sections_per_segment or None)
-    except ModelError as e:
-        raise ConfigError(f"{clip(source)}: {clip(e, 400)}") from None
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always", PlausibilityWarning)
+        try:
+            mapping = robot_mapping(d, "robot description")
+            if is_tree_file(mapping):
+                if cfg.sections_per_segment:
+                    raise ConfigError(f"sections_per_segment: {source} is an articulated robot (tree schema): "
+                                      f"its section counts come from the file; leave sections_per_segment at 0")
+                model = mech = mechanism_from_dict(mapping)
+            else:
+                model = model_from_dict(mapping, cfg.sections_per_segment or None)
+        except ModelError as e:
+            raise ConfigError(f"{clip(source)}: {clip(e, 400)}") from None
+    found = tuple(f"{clip(source)}: {w.message}" for w in caught if issubclass(w.category, PlausibilityWarning))
     if cfg.actuator_names and set(cfg.actuator_names) != set(model.actuator_names):
         raise ConfigError(f"actuator_names {short_list(cfg.actuator_names)} do not match the actuators of "
                           f"{source}: {short_list(model.actuator_names)}")
-    return Robot(model, d, source, cfg.sections_per_segment, mech)
+    return Robot(model, d, source, cfg.sections_per_segment, mech, found)

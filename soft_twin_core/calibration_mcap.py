@@ -66,23 +66,11 @@ def _time_ns(msg, log_time):
 
 def _iter(path, topics):
     """(topic, time [ns], decoded message) of the topics, in log-time order."""
-    from mcap.reader import make_reader
-    from mcap_ros2.decoder import DecoderFactory
-    try:
-        fh = open(path, "rb")
-    except OSError as e:
-        raise CalibrationError(f"data file {path}: {e.strerror or e}") from None
-    out = []
-    with fh:
-        try:
-            reader = make_reader(fh, decoder_factories=[DecoderFactory()])
-            for _, channel, message, decoded in reader.iter_decoded_messages(topics=list(topics),
-                                                                             log_time_order=True):
-                out.append((channel.topic, _time_ns(decoded, message.log_time), decoded))
-        except Exception as e:       # the mcap library raises its own error types
-            raise CalibrationError(f"data file {path}: not a readable MCAP recording "
-                                   f"({type(e).__name__}: {e})") from None
-    return out
+    from .mcap_salvage import read_decoded
+    # a recording cut short is read up to its last complete chunk, with a warning
+    return [(channel.topic, _time_ns(decoded, message.log_time), decoded)
+            for channel, message, decoded in read_decoded(path, list(topics), CalibrationError,
+                                                          what="data file")]
 
 
 def _pose_of(p):

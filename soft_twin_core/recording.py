@@ -62,20 +62,12 @@ def run_from_messages(backbones, tip_poses, strains, model=None):
 def read_messages(path, topics=None):
     """{topic: [decoded message, ...]} of an MCAP file in the ROS 2 format
     (log-time order); ``topics``: keep only these."""
-    from mcap.reader import make_reader
-    from mcap_ros2.decoder import DecoderFactory
+    from .mcap_salvage import read_decoded
     out = {}
-    try:
-        fh = open(path, "rb")
-    except OSError as e:
-        raise ValueError(f"cannot read the recording {path!r}: {e.strerror or e}") from None
-    with fh:
-        try:
-            reader = make_reader(fh, decoder_factories=[DecoderFactory()])
-            for _, channel, _, decoded in reader.iter_decoded_messages(topics=topics, log_time_order=True):
-                out.setdefault(channel.topic, []).append(decoded)
-        except Exception as e:       # the mcap library raises its own error types
-            raise ValueError(f"{path}: not a readable MCAP recording ({type(e).__name__}: {e})") from None
+    # a recording cut short (killed node, truncated file) is read up to its last
+    # complete chunk, with a warning: soft_twin_core.mcap_salvage
+    for channel, _, decoded in read_decoded(path, topics, ValueError):
+        out.setdefault(channel.topic, []).append(decoded)
     return out
 
 
