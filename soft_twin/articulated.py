@@ -26,7 +26,7 @@ import numpy as np
 from soft_twin_core import articulated_planner as ap
 from soft_twin_core import constrained as cs
 from soft_twin_core.loads import Loads
-from soft_twin_core.mechanism import shape_command
+from soft_twin_core.mechanism import check_joint_position, shape_command
 from soft_twin_core.model import State
 from soft_twin_core.outputs import section_strains, state_outputs
 
@@ -77,9 +77,9 @@ def parse_joint_command(mech, names, positions, velocities, efforts, current_pos
         j = tree.joints[i]
         if mode == "position":
             v = _joint_value(pos, k, n, "position")
-            if j.limits is not None and not j.limits[0] <= v <= j.limits[1]:
-                raise InputError("over_limit", f"joint {clip(n)} position {v:g} lies outside its limits "
-                                               f"{list(j.limits)}")
+            bad = check_joint_position(j, v)        # the core's rule (robot file's limits)
+            if bad is not None:
+                raise InputError(*bad)
             new_pos[n] = v
         elif mode == "effort":
             new_eff[n] = _joint_value(eff, k, n, "effort")

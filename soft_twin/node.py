@@ -206,6 +206,8 @@ class SoftTwinNode(Node):
         self.stats = _Stats()
         self.get_logger().info(f"robot {self.robot.model.name!r} from {self.robot.source}: "
                                f"{self._describe_robot(self.robot)}")
+        for w in self.robot.warnings:            # implausible values: a likely unit slip (issue 25)
+            self.get_logger().warning(w)
         self._startup_point()
         self.twin = self._make_twin(self.robot, self._settings(self.cfg))
         self.get_logger().info(f"mode {self.cfg.mode}; {self.twin.rest_message}")

@@ -39,7 +39,7 @@ from soft_twin_core import ik as core_ik
 from soft_twin_core import kinematics as kin
 from soft_twin_core import loads as ld
 from soft_twin_core import statics as st
-from soft_twin_core.model import ModelError, State
+from soft_twin_core.model import ModelError, State, check_actuator_input
 
 from soft_twin.text import clip, short_list
 
@@ -49,7 +49,8 @@ MODES = ("dynamic", "quasi_static")
 # door (validation), "solver_failed" for an input dropped because the step or
 # solve it caused failed
 REJECT_REASONS = ("non_finite", "wrong_length", "unknown_name", "duplicate_name",
-                  "negative_tension", "over_limit", "bad_frame", "wrong_mode", "solver_failed")
+                  "negative_tension", "over_limit", "under_limit", "bad_frame", "wrong_mode",
+                  "solver_failed")
 
 # what a failing step may raise on absurd (finite) numbers: a failure, not a bug
 STEP_ERRORS = (ArithmeticError, ValueError, np.linalg.LinAlgError, st.StaticsError)
@@ -109,13 +110,9 @@ def parse_actuation(model, names, values, current, order=None):
     for n, v in zip(names, values):
         k = index[n]
         act = model.actuators[k]
-        if act.kind == "tendon" and v < 0:
-            raise InputError("negative_tension", f"tendon {clip(n)} tension must be >= 0 N, got {v}")
-        limit = getattr(act, "limit", math.inf)
-        if abs(v) > limit:
-            what, unit = ("tension", "N") if act.kind == "tendon" else ("|pressure|", "Pa")
-            raise InputError("over_limit", f"{act.kind} {clip(n)}: {what} {abs(v):g} {unit} exceeds its "
-                                           f"declared limit {limit:g} {unit} (robot file)")
+        bad = check_actuator_input(act, v)      # the core's rule (robot file's limit/min/max)
+        if bad is not None:
+            raise InputError(*bad)
         u[k] = v
     # the core's own check (same rules): the single source of truth
     try:
