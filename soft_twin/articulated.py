@@ -170,13 +170,22 @@ class ArticulatedTwin:
         self.positions = {mech.tree.joints[i].name: mech.tree.joints[i].q_ref for i in mech.joints_with("position")}
         self.efforts = {mech.tree.joints[i].name: 0.0 for i in mech.joints_with("effort")}
         self.command_stamp = None
+        self.joint_stamp = None          # the newest joint command's header
+        self.actuation_stamp = None      # the newest actuation command's header
         self._dirty = True
         self.rest_q, self.rest_message = self._rest()
         self.lam = np.zeros(mech.n_constraint_rows + len(mech.joints_with("position")))
-        self._good = self._inputs_tuple()
+        self._keep_good()
         self.reset(solve=False)
 
     # --- inputs -------------------------------------------------------------
+    def _keep_good(self):
+        """The current inputs are those of a good state (a step or solve
+        succeeded with them): what a failed one falls back to."""
+        self._good = self._inputs_tuple()
+        self._good_joint_stamp = self.joint_stamp
+        self._good_actuation_stamp = self.actuation_stamp
+
     def _inputs_tuple(self):
         return (self.u.copy(), self.tip_wrench.copy(), self.tip_frame, dict(self.positions), dict(self.efforts),
                 self.command_stamp)
@@ -202,7 +211,7 @@ class ArticulatedTwin:
 
     def set_actuation(self, u, stamp=None):
         self.u = np.array(u, dtype=float)
-        self.command_stamp = stamp
+        self.command_stamp = self.actuation_stamp = stamp
         self._dirty = True
 
     def set_tip_wrench(self, wrench, frame="world"):
@@ -212,11 +221,18 @@ class ArticulatedTwin:
     def set_joint_commands(self, positions, efforts, stamp=None):
         self.positions, self.efforts = dict(positions), dict(efforts)
         self.command_stamp = stamp if stamp is not None else self.command_stamp
+        self.joint_stamp = stamp
         self._dirty = True
 
     @property
+    def joint_command_pending(self):
+        """A joint command applied that no step or solve has used yet."""
+        return self.joint_stamp is not None and self.joint_stamp is not self._good_joint_stamp
+
+    @property
     def command_pending(self):
-        return self.command_stamp is not None and self.command_stamp is not self._good[5]
+        """An actuation command applied that no step or solve has used yet."""
+        return self.actuation_stamp is not None and self.actuation_stamp is not self._good_actuation_stamp
 
     @property
     def needs_solve(self):
@@ -245,8 +261,8 @@ class ArticulatedTwin:
         self.tip_wrench, self.tip_frame = np.zeros(6), "world"
         self.positions = {mech.tree.joints[i].name: mech.tree.joints[i].q_ref for i in mech.joints_with("position")}
         self.efforts = {mech.tree.joints[i].name: 0.0 for i in mech.joints_with("effort")}
-        self.command_stamp = None
-        self._good = self._inputs_tuple()
+        self.command_stamp = self.joint_stamp = self.actuation_stamp = None
+        self._keep_good()
         self.state = State(self.rest_q.copy(), np.zeros(mech.tree.nv), 0.0)
         self._ref = {n: (float(v), 0.0) for n, v in self.positions.items()}
         self.lam = np.zeros_like(self.lam)
@@ -305,7 +321,7 @@ class ArticulatedTwin:
                 info.iterations += self._sim.iterations
                 self.state = State(self._sim.q.copy(), self._sim.v.copy(), self._sim.t)
                 self.lam = self._sim.lam.copy()
-                self._good = self._inputs_tuple()
+                self._keep_good()
         else:
             info = self._solve()
         info.compute_time = time.perf_counter() - t0
@@ -315,11 +331,14 @@ class ArticulatedTwin:
         """Back to the inputs of the last good state; what changed is dropped."""
         now, good = self._inputs_tuple(), self._good
         dropped = []
-        if not np.array_equal(now[0], good[0]) or now[3] != good[3] or now[4] != good[4]:
+        if not np.array_equal(now[0], good[0]):
             dropped.append("actuation")
+        if now[3] != good[3] or now[4] != good[4]:
+            dropped.append("joint")
         if not np.array_equal(now[1], good[1]) or now[2] != good[2]:
             dropped.append("wrench")
         (u, w, frame, pos, eff, self.command_stamp) = good
+        self.joint_stamp, self.actuation_stamp = self._good_joint_stamp, self._good_actuation_stamp
         self.u, self.tip_wrench, self.tip_frame = u.copy(), w.copy(), frame
         self.positions, self.efforts = dict(pos), dict(eff)
         # the simulator's state is unchanged by a failed step
@@ -339,7 +358,7 @@ class ArticulatedTwin:
             dropped = self._drop()
             return UpdateInfo(0, 0, False, f"statics failed for the last input (dropped): {clip(e, 300)}; "
                                            f"state kept", dropped=dropped)
-        self._good = self._inputs_tuple()
+        self._keep_good()
         self._ref = {n: (float(v), 0.0) for n, v in self.positions.items()}
         self.state.q = eq.q.copy()
         self.state.qdot = np.zeros(self.mech.tree.nv)
@@ -357,6 +376,21 @@ class ArticulatedTwin:
         q.positions, q.efforts = dict(self.positions), dict(self.efforts)
         q.lam, q._sim = self.lam.copy(), None
         return q
+
+    def query_state(self):
+        """What a query needs of this twin, as plain data (for a query run
+        in another process: :mod:`soft_twin.query_worker`)."""
+        return dict(q=self.state.q.copy(), t=float(self.state.t), u=self.u.copy(),
+                    tip_wrench=self.tip_wrench.copy(), tip_frame=self.tip_frame, positions=dict(self.positions),
+                    efforts=dict(self.efforts), lam=self.lam.copy())
+
+    def load_query_state(self, st):
+        """Become the quasi-static query twin of :meth:`query_state` ``st``."""
+        self.settings = TwinSettings(mode="quasi_static")
+        self.state = State(st["q"].copy(), np.zeros(self.mech.tree.nv), st["t"])
+        self.u, self.tip_wrench, self.tip_frame = st["u"].copy(), st["tip_wrench"].copy(), st["tip_frame"]
+        self.positions, self.efforts = dict(st["positions"]), dict(st["efforts"])
+        self.lam, self._sim = st["lam"].copy(), None
 
     def statics(self, actuation, wrench, frame="world"):
         """(UpdateInfo, snapshot) of the equilibrium under these inputs,

@@ -74,6 +74,7 @@ from soft_twin import conversions as cv
 from soft_twin import live_view_out, recorder, tf_out
 from soft_twin import twin as tw
 from soft_twin.executor import TwinExecutor
+from soft_twin.query_worker import QueryError
 from soft_twin.shutdown import StopSignals, spin_until_stopped, tear_down
 from soft_twin.config import PARAMETERS, ConfigError, config_from_values, load_robot
 from soft_twin.text import clip, short_list
@@ -129,7 +130,8 @@ class _Stats:
                            wrenches_received=0, wrenches_applied=0, wrenches_lost=0,
                            rejected_actuation=0, rejected_wrench=0, internal_errors=0,
                            rejected_parameter_changes=0, joint_commands_received=0,
-                           joint_commands_applied=0, rejected_joint=0)
+                           joint_commands_applied=0, joint_commands_superseded=0, joint_commands_lost=0,
+                           rejected_joint=0)
         self.last_internal_error = ""
         self.rejected_by_reason = {r: 0 for r in tw.REJECT_REASONS}
         self.last_rejection = ""
@@ -201,6 +203,7 @@ class SoftTwinNode(Node):
         self._command_received = None     # newest applied command: (header, stamp [ns], taken [ns])
         self._command_gaps = tw.SequenceGaps()    # commands lost upstream, from sequence numbers
         self._wrench_gaps = tw.SequenceGaps()
+        self._joint_gaps = tw.SequenceGaps()
         self._last_input_time = -math.inf
         self._reported_internal_errors = 0
         self.stats = _Stats()
@@ -212,6 +215,7 @@ class SoftTwinNode(Node):
         self.twin = self._make_twin(self.robot, self._settings(self.cfg))
         self.get_logger().info(f"mode {self.cfg.mode}; {self.twin.rest_message}")
         self._startup_point()
+        self._query_worker = self._make_query_worker(self.robot)     # articulated IK and plans (issue 25)
         self.get_logger().info("warming up the compiled kernels (about a second from numba's disk cache, "
                                "which `make setup` fills; about a minute compiling when there is none) ...")
         took = self.twin.warm_up()
@@ -323,6 +327,24 @@ class SoftTwinNode(Node):
     def _make_twin(robot, settings):
         return art.ArticulatedTwin(robot.mechanism, settings) if robot.articulated else tw.Twin(robot.model, settings)
 
+    @staticmethod
+    def _make_query_worker(robot):
+        """An articulated robot's IK and plans run in a worker process
+        (:mod:`soft_twin.query_worker`): their Python would hold the GIL
+        against the stepping clock. None for rod robots (their queries are
+        compiled kernels, milliseconds)."""
+        if not robot.articulated:
+            return None
+        from soft_twin.query_worker import QueryWorker
+        return QueryWorker(robot.description)
+
+    def query(self, method, *args, **kwargs):
+        """An articulated twin's query ``method`` (inverse_kinematics, plan)
+        on a copy of its state, in the worker process."""
+        with self._lock:
+            state, worker = self.twin.query_state(), self._query_worker
+        return worker.run(method, state, *args, **kwargs)
+
     def _make_articulated_interfaces(self, qos):
         """Joint states out and joint commands in, one backbone per soft
         member, one wrench topic per constraint and per rigid joint
@@ -359,32 +381,55 @@ class SoftTwinNode(Node):
 
     def _on_joint_command(self, msg, info=None):
         """Every queued JointState command in order: validated
-        (:func:`articulated.parse_joint_command`), counted, and the result
-        applied once (a command naming some joints keeps the others')."""
+        (:func:`articulated.parse_joint_command`) and folded outside the twin
+        lock, counted, and the result applied once (a command naming some
+        joints keeps the others'). As for the actuation: the commands lost
+        upstream are counted from the sequence numbers, and those applied
+        but replaced before a step used them as superseded."""
         batch = self._take_queued(self._sub_joints, (msg, info), JOINT_QUEUE)
-        errors, newest = [], None
+        publishers = self._sub_joints.get_publisher_count()
+        lost = sum(self._joint_gaps.add(self._seq(inf), publishers) for _, inf in batch)
         with self._lock:
             twin = self.twin
-            pos, eff = twin.positions, twin.efforts
-            for m, _ in batch:
-                try:
-                    pos, eff = art.parse_joint_command(twin.mech, m.name, m.position, m.velocity, m.effort,
-                                                       pos, eff)
-                    newest = m
-                except tw.InputError as e:
-                    errors.append(e)
+            start = (twin.positions, twin.efforts)
+        fold = self._fold_joint_commands(twin.mech, batch, *start)
+        with self._lock:
+            twin = self.twin
+            if (twin.positions, twin.efforts) != start:
+                # reset, a plan or another batch meanwhile: fold again onto the new commands
+                fold = self._fold_joint_commands(twin.mech, batch, twin.positions, twin.efforts)
+            pos, eff, newest, n_applied, errors = fold
             s = self.stats
+            s.input_batches.append(len(batch))
             s.totals["joint_commands_received"] += len(batch)
+            s.totals["joint_commands_lost"] += lost
+            s.lost += lost
             for e in errors:
                 s.reject("joint", e)
             if newest is not None:
-                s.totals["joint_commands_applied"] += len(batch) - len(errors)
+                s.totals["joint_commands_applied"] += n_applied
+                s.totals["joint_commands_superseded"] += n_applied - 1 + int(twin.joint_command_pending)
                 twin.set_joint_commands(pos, eff, stamp=newest.header)
         if errors:
-            self.get_logger().warn(f"joint command rejected ({errors[-1].reason}): {clip(errors[-1], 400)}",
+            self.get_logger().warn(f"joint command rejected ({errors[-1].reason}): {clip(errors[-1], 400)}"
+                                   + (f" (and {len(errors) - 1} more)" if len(errors) > 1 else ""),
                                    throttle_duration_sec=1.0)
         if newest is not None:
             self._react_to_input(batch)
+
+    @staticmethod
+    def _fold_joint_commands(mech, batch, pos, eff):
+        """(positions, efforts after the valid commands of batch in order, the
+        newest valid one, how many were valid, the InputErrors of the others)."""
+        newest, n_applied, errors = None, 0, []
+        for m, _ in batch:
+            try:
+                pos, eff = art.parse_joint_command(mech, m.name, m.position, m.velocity, m.effort, pos, eff)
+            except tw.InputError as e:
+                errors.append(e)
+            else:
+                newest, n_applied = m, n_applied + 1
+        return pos, eff, newest, n_applied, errors
 
     def _publish_articulated(self, snap, header):
         if self.listened(self._pub_joints):
@@ -529,6 +574,9 @@ class SoftTwinNode(Node):
                 self.robot = robot
             if twin is not None:
                 self.twin = twin
+                old_worker, self._query_worker = self._query_worker, self._make_query_worker(robot)
+                if old_worker is not None:
+                    old_worker.close()
             else:
                 self.twin.change_settings(self._settings(cfg))
         if twin is not None:
@@ -814,6 +862,8 @@ class SoftTwinNode(Node):
                 if kind == "actuation":
                     s.totals["commands_applied"] -= 1
                     self._command_received = None
+                elif kind == "joint":
+                    s.totals["joint_commands_applied"] -= 1
                 else:
                     s.totals["wrenches_applied"] -= 1
                 s.reject(kind, err)
@@ -875,7 +925,7 @@ class SoftTwinNode(Node):
             self.stats.node_latencies.append(1e-9 * (stamp.nanoseconds - received[2]))
         now = time.monotonic()
         if (cfg.marker_rate_hz > 0 and now - self._last_marker_time >= 1.0 / cfg.marker_rate_hz
-                and self._pub_markers.get_subscription_count() > 0):
+                and self.listened(self._pub_markers)):
             self._last_marker_time = now
             self._pub_markers.publish(self._markers(snap, robot, header))
         self.stats.publish_times.append(time.perf_counter() - t0)
@@ -884,11 +934,11 @@ class SoftTwinNode(Node):
 
     def _publish_wrenches(self, snap, robot, header, now):
         """Tip and base wrenches of a published state (same stamp), computed
-        outside the locks, only when someone listens, by one thread at a time
-        (another thread already at it: skipped)."""
-        if (self._pub_tip_wrench.get_subscription_count() == 0
-                and self._pub_base_wrench.get_subscription_count() == 0
-                and not any(p.get_subscription_count() for p in self._pub_constraints.values())):
+        outside the locks, only when someone listens (a subscriber or the
+        recording: every documented topic is recorded), by one thread at a
+        time (another thread already at it: skipped)."""
+        if not (self.listened(self._pub_tip_wrench) or self.listened(self._pub_base_wrench)
+                or any(self.listened(p) for p in self._pub_constraints.values())):
             return
         if not self._wrench_lock.acquire(blocking=False):
             return
@@ -1075,6 +1125,9 @@ class SoftTwinNode(Node):
         last published state."""
         out = {"joint_commands_received_total": str(s.totals["joint_commands_received"]),
                "joint_commands_applied_total": str(s.totals["joint_commands_applied"]),
+               "joint_commands_superseded_total": str(s.totals["joint_commands_superseded"]),
+               "joint_commands_lost_total": str(s.totals["joint_commands_lost"]) if self._joint_gaps.supported
+               else "n/a",
                "rejected_joint_total": str(s.totals["rejected_joint"])}
         snap = getattr(self, "_last_articulated", None)
         if snap is not None:
@@ -1187,11 +1240,9 @@ class SoftTwinNode(Node):
             resp.success, resp.message = False, ("inverse_kinematics: an articulated robot's IK reaches tip "
                                                  "positions only (set position_only: true)")
             return resp
-        with self._lock:
-            query = self.twin.query_copy()
         try:
-            r = query.inverse_kinematics(target[:3, 3], tol)
-        except (PlanError, StaticsError, ModelError, ValueError, np.linalg.LinAlgError) as e:
+            r = self.query("inverse_kinematics", target[:3, 3], tol)
+        except (PlanError, StaticsError, ModelError, ValueError, np.linalg.LinAlgError, QueryError) as e:
             resp.success, resp.message = False, clip(f"IK failed: {e}", 400)
             return resp
         resp.success = r.reached
@@ -1256,6 +1307,8 @@ class SoftTwinNode(Node):
             recorder_.close()
         if getattr(self, "_live_view", None) is not None:
             self._live_view.close()
+        if getattr(self, "_query_worker", None) is not None:
+            self._query_worker.close()
         return super().destroy_node()
 
 

@@ -21,6 +21,7 @@ from soft_twin_core.model import ModelError
 from soft_twin_core.statics import StaticsError
 
 from soft_twin import twin as tw
+from soft_twin.query_worker import QueryError
 from soft_twin.text import clip
 
 # the first command goes out this long after the answer is ready, so a
@@ -28,7 +29,8 @@ from soft_twin.text import clip
 START_DELAY_S = 0.2
 
 
-_PLAN_ERRORS = (pth.PathError, pl.PlanError, ModelError, ValueError, StaticsError, np.linalg.LinAlgError)
+_PLAN_ERRORS = (pth.PathError, pl.PlanError, ModelError, ValueError, StaticsError, np.linalg.LinAlgError,
+                QueryError)
 
 
 def plan_request(req, plan):
@@ -254,9 +256,8 @@ def handle(node, runner, req, resp, actuation_type, joint_type):
     """The ~/plan_path callback body (node: the TwinNode)."""
     model, q, u, w, frame, cfg, _ = node._copy_state()
     if node.robot.articulated:
-        with node._lock:
-            query = node.twin.query_copy()
-        plan, err = plan_request(req, query.plan)
+        # in the node's query worker process (soft_twin.query_worker)
+        plan, err = plan_request(req, lambda path, **options: node.query("plan", path, **options))
     else:
         try:
             loads = tw.make_loads(model, w, frame)

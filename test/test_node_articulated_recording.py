@@ -53,6 +53,12 @@ def _read_mcap(path):
     return header, meta, msgs
 
 
+def client_topics_unsubscribed(msgs, ns):
+    """The wrench and marker topics were recorded more than once (they come
+    at their own rates, not with every state)."""
+    return all(len(msgs[f"{ns}/{t}"]) > 1 for t in ("tip_wrench", "base_wrench", "markers", "joint_wrenches/pan"))
+
+
 def test_recording_of_an_articulated_twin(tmp_path):
     from PIL import Image
     from soft_twin_core import cli
@@ -60,8 +66,9 @@ def test_recording_of_an_articulated_twin(tmp_path):
     from soft_twin_core.mechanism_recording import articulated_run_from_messages, read_articulated_run
     from soft_twin_core.mechanism_scene import run_snapshots
     from soft_twin_core.plots import _save, shapes_figure
+    # no subscriber of the wrenches or markers: the recording holds them all the same (issue 25, item 4)
     proc, client = start_twin(NODE, ["-p", "robot_description_file:=pan_tilt_arm", "-p", "tf_rate_hz:=50.0"],
-                              tmp_path / "node.log", TwinClient.TOPICS + ("joint_states",), 120.0,
+                              tmp_path / "node.log", TwinClient.STATE_TOPICS + ("joint_states",), 120.0,
                               ready=lambda c: c.pub_joints.get_subscription_count() > 0)
     live = defaultdict(list)
     lock = threading.Lock()
@@ -101,7 +108,14 @@ def test_recording_of_an_articulated_twin(tmp_path):
     expected = {f"{ns}/joint_states": "sensor_msgs/msg/JointState", f"{ns}/backbones/arm": "geometry_msgs/msg/PoseArray",
                 "/tf": "tf2_msgs/msg/TFMessage", f"{ns}/joint_commands": "sensor_msgs/msg/JointState",
                 f"{ns}/actuation": "soft_twin/msg/ActuationCommand", f"{ns}/backbone": "geometry_msgs/msg/PoseArray",
-                f"{ns}/strains": "soft_twin/msg/Strains", f"{ns}/tip_pose": "geometry_msgs/msg/PoseStamped"}
+                f"{ns}/strains": "soft_twin/msg/Strains", f"{ns}/tip_pose": "geometry_msgs/msg/PoseStamped",
+                f"{ns}/tip_wrench": "geometry_msgs/msg/WrenchStamped",
+                f"{ns}/base_wrench": "geometry_msgs/msg/WrenchStamped",
+                f"{ns}/joint_wrenches/pan": "geometry_msgs/msg/WrenchStamped",
+                f"{ns}/joint_wrenches/tilt": "geometry_msgs/msg/WrenchStamped",
+                f"{ns}/internal_wrenches/arm": "std_msgs/msg/Float64MultiArray",
+                f"{ns}/markers": "visualization_msgs/msg/MarkerArray"}
+    assert client_topics_unsubscribed(msgs, ns)
     for topic, type_name in expected.items():
         assert topic in msgs, (topic, sorted(msgs))
         assert {s for s, _, _ in msgs[topic]} == {type_name}, topic
