@@ -15,7 +15,8 @@ commands are the filter's inputs), ``frame_id`` (default ``base_link``),
 ``record_file`` (an MCAP file, ROS 2 bag format, that records every
 message the node receives -- measurements and commands -- for
 ``soft-twin-sim calibrate --data FILE.mcap``; closed when the node stops;
-``recorded_inputs`` in the diagnostics counts them).
+``recorded_inputs`` in the diagnostics counts them), ``max_reading_age_s``
+(default 1.0: a reading stamped further from the node's clock is rejected).
 
 A tree robot file (soft articulated robot, e.g. ``pan_tilt_arm``) runs the
 tree filter instead, with joint-state measurements: see
@@ -28,7 +29,11 @@ sensor of the sensors file, in its order), ``~/measurements/pose``
 ``~/measurements/position`` (geometry_msgs/PointStamped, ``frame_id`` = a
 marker's name), and the actuation topic (soft_twin/ActuationCommand).
 Malformed readings (NaN, an unknown sensor name, a PoseArray of the wrong
-length) are rejected and counted; the filter gates outliers.
+length) are rejected and counted; so are readings with a stamp too old, in
+the future, or older than the sensor's last one (a zero stamp: taken at
+arrival); the filter gates outliers. Every topic's messages are counted as
+received and lost (sequence gaps); readings of one sensor arriving within
+one filter step are merged into one (:mod:`soft_twin.readings`).
 
 Publications: ``~/estimate/tip_pose`` (geometry_msgs/PoseWithCovarianceStamped:
 the tip position covariance in the position block, m^2; the rotation block
@@ -53,13 +58,14 @@ from std_srvs.srv import Trigger
 
 from soft_twin.msg import ActuationCommand
 from soft_twin import conversions as cv
+from soft_twin.readings import STAMP_REJECTIONS, InputLedger, accept_reading
 from soft_twin.shutdown import StopSignals, spin_until_stopped, tear_down
 from soft_twin_core import estimation as es
 from soft_twin_core import sensors as sn
 from soft_twin_core.model import load_model
 
 NODE_NAME = "soft_twin_estimator"
-_REJECTION_KINDS = ("non_finite", "malformed", "wrong_length", "unknown_sensor", "actuation")
+_REJECTION_KINDS = ("non_finite", "malformed", "wrong_length", "unknown_sensor", "actuation") + STAMP_REJECTIONS
 _WRENCH = {"none": None, "payload": "payload", "force": "force", "wrench": "wrench"}
 
 
@@ -76,6 +82,7 @@ class EstimatorNode(Node):
             "frame_id": ("base_link", "frame of the published estimates"),
             "joint_command_topic": ("/soft_twin/joint_commands", "the twin's joint commands (tree robots)"),
             "record_file": ("", "MCAP file recording every measurement and command received ('' : none)"),
+            "max_reading_age_s": (1.0, "readings stamped further than this from the node's clock are rejected [s]"),
         }
         for name, (value, doc) in p.items():
             self.declare_parameter(name, value, ParameterDescriptor(description=doc))
@@ -87,6 +94,10 @@ class EstimatorNode(Node):
         rate = float(get("rate_hz"))
         if not (math.isfinite(rate) and rate > 0):
             raise ValueError(f"rate_hz: expected a positive rate, got {rate!r}")
+        max_age = float(get("max_reading_age_s"))
+        if not (math.isfinite(max_age) and max_age > 0):
+            raise ValueError(f"max_reading_age_s: expected a positive age in s, got {max_age!r}")
+        self.ledger = InputLedger(max_age)        # every input topic and reading counted (soft_twin.readings)
         # --- recording of the inputs (MCAP, for soft-twin-sim calibrate --data FILE.mcap) ---
         from soft_twin import recorder
         self._recorder = recorder.Recorder(self, [])     # started at the end (nothing is received before)
@@ -109,7 +120,6 @@ class EstimatorNode(Node):
         self.pose_sensors = [s for s in self.sensors if isinstance(s, sn.PoseSensor)]
         self.frame_id = get("frame_id")
         self.ekf = es.StrainEKF(self.model, self.sensors, 1.0 / rate, wrench=_WRENCH[get("wrench")])
-        self.pending = {}
         self.rejections = dict.fromkeys(_REJECTION_KINDS, 0)
         self.last_rejection = ""
         self.pub_tip = self.create_publisher(PoseWithCovarianceStamped, "~/estimate/tip_pose", 10)
@@ -130,13 +140,17 @@ class EstimatorNode(Node):
             raise ValueError(f"record_file: cannot record to {path!r}")
 
     def create_subscription(self, msg_type, topic, callback, qos_profile, **kwargs):
-        """Every subscription's messages are recorded (``record_file``) before they are handled."""
+        """Every subscription's messages are counted (received, lost: the
+        ledger) and recorded (``record_file``) before they are handled."""
         holder = []
 
-        def recorded(msg):
-            rec = getattr(self, "_recorder", None)
-            if rec is not None and holder:
-                rec.received(holder[0], [(msg, None)])
+        def recorded(msg, info):
+            if holder:
+                sub = holder[0]
+                self.ledger.message(sub.topic_name, info, sub.get_publisher_count())
+                rec = getattr(self, "_recorder", None)
+                if rec is not None:
+                    rec.received(sub, [(msg, info)])
             return callback(msg)
         sub = super().create_subscription(msg_type, topic, recorded, qos_profile, **kwargs)
         holder.append(sub)
@@ -160,14 +174,11 @@ class EstimatorNode(Node):
         self.last_rejection = reason
         self.get_logger().warn(f"measurement rejected: {reason}", throttle_duration_sec=1.0)
 
-    def _accept(self, sensor, reading):
-        """Validate ``reading()`` (a message converted to an array) for the sensor."""
-        try:
-            self.pending[sensor.name] = sn.measurement_vector(sensor, reading())
-        except ValueError as e:
-            text = str(e)
-            self._reject("non_finite" if ("NaN" in text or "finite" in text) else "malformed",
-                         f"sensor {sensor.name!r}: {text}")
+    def _accept(self, sensor, reading, stamp):
+        """Validate ``reading()`` (a message converted to an array) for the
+        sensor and its stamp; an accepted one waits for the next filter step."""
+        accept_reading(self.ledger, self._reject, sensor.name, lambda: sn.measurement_vector(sensor, reading()),
+                       stamp, self.get_clock().now().nanoseconds)
 
     def _on_poses(self, msg):
         if len(msg.poses) != len(self.pose_sensors):
@@ -175,7 +186,7 @@ class EstimatorNode(Node):
                          f"{[s.name for s in self.pose_sensors]}), got {len(msg.poses)}")
             return
         for s, pose in zip(self.pose_sensors, msg.poses):
-            self._accept(s, lambda pose=pose: cv.matrix_from_pose(pose))
+            self._accept(s, lambda pose=pose: cv.matrix_from_pose(pose), msg.header.stamp)
 
     def _on_pose(self, msg):
         s = self.ekf.by_name.get(msg.header.frame_id)
@@ -183,14 +194,14 @@ class EstimatorNode(Node):
             self._reject("unknown_sensor", f"pose: unknown pose sensor {msg.header.frame_id!r}; "
                          f"configured: {[x.name for x in self.pose_sensors]}")
             return
-        self._accept(s, lambda: cv.matrix_from_pose(msg.pose))
+        self._accept(s, lambda: cv.matrix_from_pose(msg.pose), msg.header.stamp)
 
     def _on_position(self, msg):
         s = self.ekf.by_name.get(msg.header.frame_id)
         if not isinstance(s, sn.PositionMarker):
             self._reject("unknown_sensor", f"position: unknown marker {msg.header.frame_id!r}")
             return
-        self._accept(s, lambda: np.array([msg.point.x, msg.point.y, msg.point.z]))
+        self._accept(s, lambda: np.array([msg.point.x, msg.point.y, msg.point.z]), msg.header.stamp)
 
     def _on_actuation(self, msg):
         names = list(self.model.actuator_names)
@@ -207,12 +218,12 @@ class EstimatorNode(Node):
         self.ekf.u = u
 
     def _on_reset(self, req, resp):
+        self.ledger.reset()
         if self.tree is not None:
             self.tree.reset()
             resp.success, resp.message = True, "estimate reset to the initial state"
             return resp
         self.ekf.reset()
-        self.pending.clear()
         self.rejections = dict.fromkeys(_REJECTION_KINDS, 0)
         self.last_rejection = ""
         resp.success = True
@@ -222,8 +233,7 @@ class EstimatorNode(Node):
     # ----------------------------------------------------------------- filter
     def _on_timer(self):
         self.ekf.predict()
-        meas, self.pending = self.pending, {}
-        self.ekf.update(meas)
+        self.ekf.update(self.ledger.take())
         stamp = self.get_clock().now().to_msg()
         T = self.ekf.tip_pose()
         msg = PoseWithCovarianceStamped()
@@ -246,7 +256,8 @@ class EstimatorNode(Node):
             st = DiagnosticStatus(name="soft_twin_estimator", hardware_id=self.model.name)
             st.level = DiagnosticStatus.OK if h.integrator_failures == 0 else DiagnosticStatus.WARN
             st.message = "tracking" if h.accepted else "no measurement yet"
-            values = {**self.tree.diagnostics(), "recorded_inputs": self.recorded_inputs()}
+            values = {**self.tree.diagnostics(), **self.ledger.diagnostics(),
+                      "recorded_inputs": self.recorded_inputs()}
             st.values = [KeyValue(key=k, value=str(v)) for k, v in values.items()]
             arr = DiagnosticArray()
             arr.header.stamp = self.get_clock().now().to_msg()
@@ -266,7 +277,7 @@ class EstimatorNode(Node):
                   "mean_nis_per_dof": f"{h.mean_nis_per_dof:.3f}", "integrator_failures": h.integrator_failures,
                   "tip_position_std_m": f"{float(np.sqrt(np.trace(self.ekf.tip_position_cov()))):.6g}",
                   "payload_mass_kg": f"{mass:.6g}", "payload_mass_std_kg": f"{mass_std:.6g}",
-                  "recorded_inputs": self.recorded_inputs()}
+                  **self.ledger.diagnostics(), "recorded_inputs": self.recorded_inputs()}
         st.values = [KeyValue(key=k, value=str(v)) for k, v in values.items()]
         arr = DiagnosticArray()
         arr.header.stamp = self.get_clock().now().to_msg()

@@ -39,12 +39,13 @@ from sensor_msgs.msg import JointState
 from soft_twin import conversions as cv
 from soft_twin.articulated import parse_joint_command, tip_frame_of
 from soft_twin.msg import ActuationCommand
+from soft_twin.readings import STAMP_REJECTIONS, accept_reading
 from soft_twin.twin import InputError
 from soft_twin_core import tree_estimation as te
 from soft_twin_core import tree_sensors as ts
 
 REJECTION_KINDS = ("non_finite", "malformed", "wrong_length", "unknown_sensor", "unknown_joint", "actuation",
-                   "joint_command")
+                   "joint_command") + STAMP_REJECTIONS
 
 
 class TreeEstimation:
@@ -58,7 +59,6 @@ class TreeEstimation:
         self.wrench_sensors = [s for s in self.sensors if isinstance(s, ts.BaseWrenchSensor)]
         self.ekf = te.TreeEKF(mech, self.sensors, 1.0 / rate)
         self.tip = tip_frame_of(mech)
-        self.pending = {}
         self.rejections = dict.fromkeys(REJECTION_KINDS, 0)
         self.last_rejection = ""
         self.cmd_pos, self.cmd_eff = {}, {}
@@ -81,13 +81,11 @@ class TreeEstimation:
         self.last_rejection = reason
         self.node.get_logger().warn(f"measurement rejected: {reason}", throttle_duration_sec=1.0)
 
-    def accept(self, sensor, reading):
-        try:
-            self.pending[sensor.name] = ts.measurement_vector(sensor, reading())
-        except ValueError as e:
-            text = str(e)
-            self.reject("non_finite" if ("NaN" in text or "finite" in text) else "malformed",
-                        f"sensor {sensor.name!r}: {text}")
+    def accept(self, sensor, reading, stamp):
+        """Validate ``reading()`` for the sensor and its stamp (the node's ledger,
+        :mod:`soft_twin.readings`); an accepted one waits for the next filter step."""
+        accept_reading(self.node.ledger, self.reject, sensor.name, lambda: ts.measurement_vector(sensor, reading()),
+                       stamp, self.node.get_clock().now().nanoseconds)
 
     def on_joint_states(self, msg):
         names, pos = list(msg.name), list(msg.position)
@@ -102,7 +100,7 @@ class TreeEstimation:
         value = dict(zip(names, pos))
         for s in self.joint_sensors:
             if all(j in value for j in s.joints):
-                self.accept(s, lambda s=s: np.array([value[j] for j in s.joints], dtype=float))
+                self.accept(s, lambda s=s: np.array([value[j] for j in s.joints], dtype=float), msg.header.stamp)
 
     def on_poses(self, msg):
         if len(msg.poses) != len(self.pose_sensors):
@@ -110,7 +108,7 @@ class TreeEstimation:
                                         f"{[s.name for s in self.pose_sensors]}), got {len(msg.poses)}")
             return
         for s, pose in zip(self.pose_sensors, msg.poses):
-            self.accept(s, lambda pose=pose: cv.matrix_from_pose(pose))
+            self.accept(s, lambda pose=pose: cv.matrix_from_pose(pose), msg.header.stamp)
 
     def on_pose(self, msg):
         s = self.ekf.by_name.get(msg.header.frame_id)
@@ -118,21 +116,22 @@ class TreeEstimation:
             self.reject("unknown_sensor", f"pose: unknown pose sensor {msg.header.frame_id!r}; "
                                           f"configured: {[x.name for x in self.pose_sensors]}")
             return
-        self.accept(s, lambda: cv.matrix_from_pose(msg.pose))
+        self.accept(s, lambda: cv.matrix_from_pose(msg.pose), msg.header.stamp)
 
     def on_position(self, msg):
         s = self.ekf.by_name.get(msg.header.frame_id)
         if not (isinstance(s, ts.FramePoseSensor) and s.position_only):
             self.reject("unknown_sensor", f"position: unknown marker {msg.header.frame_id!r}")
             return
-        self.accept(s, lambda: np.array([msg.point.x, msg.point.y, msg.point.z]))
+        self.accept(s, lambda: np.array([msg.point.x, msg.point.y, msg.point.z]), msg.header.stamp)
 
     def on_base_wrench(self, msg):
         if not self.wrench_sensors:
             self.reject("unknown_sensor", "base_wrench: no base_wrench sensor in the sensors file")
             return
         f, t = msg.wrench.force, msg.wrench.torque
-        self.accept(self.wrench_sensors[0], lambda: np.array([f.x, f.y, f.z, t.x, t.y, t.z], dtype=float))
+        self.accept(self.wrench_sensors[0], lambda: np.array([f.x, f.y, f.z, t.x, t.y, t.z], dtype=float),
+                    msg.header.stamp)
 
     def on_actuation(self, msg):
         names = list(self.mech.actuator_names)
@@ -159,7 +158,6 @@ class TreeEstimation:
 
     def reset(self):
         self.ekf.reset()
-        self.pending.clear()
         self.cmd_pos, self.cmd_eff = {}, {}
         self.rejections = dict.fromkeys(REJECTION_KINDS, 0)
         self.last_rejection = ""
@@ -167,8 +165,7 @@ class TreeEstimation:
     # ----------------------------------------------------------------- filter
     def on_timer(self):
         self.ekf.predict()
-        meas, self.pending = self.pending, {}
-        self.ekf.update(meas)
+        self.ekf.update(self.node.ledger.take())
         stamp = self.node.get_clock().now().to_msg()
         msg = PoseWithCovarianceStamped()
         msg.header.stamp, msg.header.frame_id = stamp, self.frame_id
