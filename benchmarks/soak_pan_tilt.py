@@ -67,11 +67,16 @@ def call_services(client, stop, results):
         k += 1
 
 
-def flood(client, rate_hz, duration, invalid, rng):
-    """Joint commands at rate_hz for duration s: (n_sent, n_invalid, t_start, t_end)."""
+def flood(client, rate_hz, duration, invalid, rng, loads):
+    """Joint commands at rate_hz for duration s: (n_sent, n_invalid, t_start,
+    t_end); the 1-minute load average appended to ``loads`` every minute."""
     n_sent = n_invalid = 0
     t_start = next_t = time.monotonic()
+    next_load = t_start + 60.0
     while time.monotonic() - t_start < duration:
+        if time.monotonic() >= next_load:
+            loads.append(round(os.getloadavg()[0], 2))
+            next_load += 60.0
         bad = rng.random() < invalid
         tilt = 2.0 if bad else rng.uniform(-0.3, 0.3)       # the tilt joint's limits: [-1.5, 1.5] rad
         client.send_joint_command(["pan", "tilt"], [rng.uniform(-0.5, 0.5), tilt])
@@ -91,7 +96,7 @@ def soak(duration, rate_hz, services=True, invalid=0.3, log_dir=None, extra_args
     proc, c = start_twin(NODE, ["-p", "robot_description_file:=pan_tilt_arm", "-p", "mode:=dynamic",
                                 "-p", "diagnostics_rate_hz:=1.0", *extra_args], log_dir / "node.log",
                          ready=lambda c: c.pub_joints.get_subscription_count() > 0)
-    stop, results = threading.Event(), []
+    stop, results, loads = threading.Event(), [], []
     try:
         # one command first: the node knows this publisher's sequence numbers from then on
         c.send_joint_command(["pan", "tilt"], [0.0, 0.0])
@@ -100,7 +105,8 @@ def soak(duration, rate_hz, services=True, invalid=0.3, log_dir=None, extra_args
         worker = threading.Thread(target=call_services, args=(c, stop, results))
         if services:
             worker.start()
-        n_sent, n_invalid, t_start, t_end = flood(c, rate_hz, duration, invalid, np.random.default_rng(0))
+        n_sent, n_invalid, t_start, t_end = flood(c, rate_hz, duration, invalid, np.random.default_rng(0),
+                                                    loads)
         stop.set()
         if services:
             worker.join(timeout=150.0)
@@ -123,11 +129,13 @@ def soak(duration, rate_hz, services=True, invalid=0.3, log_dir=None, extra_args
     superseded = int(d["joint_commands_superseded_total"])
     times = {n: [r[2] for r in results if r[0] == n] for n in ("inverse_kinematics", "plan_path")}
     return {
-        "machine": machine(), "load_start": load0, "load_end": os.getloadavg(), "node_alive": alive,
+        "machine": machine(), "load_start": load0, "load_end": os.getloadavg(), "load_per_minute": loads,
+        "node_alive": alive,
         "duration_s": t_end - t_start, "sent": sent, "sent_rate_hz": n_sent / (t_end - t_start),
         "sent_invalid": n_invalid, "received": received, "applied": applied, "superseded": superseded,
         "rejected": rejected, "lost": lost, "unaccounted": sent - (applied + rejected + lost),
         "step_rate_mean_hz": float(rates.mean()) if rates.size else float("nan"),
+        "step_rate_per_minute_hz": [round(float(r.mean()), 2) for r in np.array_split(rates, max(1, rates.size // 60))],
         "step_rate_min_hz": float(rates.min()) if rates.size else float("nan"),
         "periods": int(rates.size), "periods_below_190_hz": int(np.sum(rates < 190.0)),
         "step_time_max_ms": max((float(w["step_time_max_ms"]) for w in windows), default=float("nan")),

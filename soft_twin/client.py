@@ -43,14 +43,15 @@ class NodeProcess:
     """The node in a child process: ``python -m soft_twin.node --ros-args ...``.
 
     ros_args: extra arguments after ``--ros-args`` (e.g. ``["-p", "mode:=dynamic"]``);
-    node_name: remaps the node name (topics and services follow: ``/<name>/...``).
+    node_name: remaps the node name (topics and services follow: ``/<name>/...``);
+    module: the node's module (``soft_twin.estimator`` for the estimator).
     Run from the repository root when this module is in a checkout (the
     node then runs from the sources), else from the current directory. Output goes to ``log_path`` (default: a pipe
     read by :meth:`output`)."""
 
-    def __init__(self, ros_args=(), node_name="soft_twin", log_path=None, cwd=None, env=None):
+    def __init__(self, ros_args=(), node_name="soft_twin", log_path=None, cwd=None, env=None, module="soft_twin.node"):
         self.node_name = node_name
-        args = [sys.executable, "-m", "soft_twin.node", "--ros-args", "-r", f"__node:={node_name}", *ros_args]
+        args = [sys.executable, "-m", module, "--ros-args", "-r", f"__node:={node_name}", *ros_args]
         self.log_path = log_path
         cwd = cwd or (REPO_ROOT if (REPO_ROOT / "package.xml").is_file() else None)
         self._log = open(log_path, "w") if log_path else subprocess.PIPE

@@ -8,13 +8,8 @@ future and out of order, over real rclpy: sent = received + lost, and
 accepted = used + merged + pending. Every wait is for a condition with a
 timeout."""
 
-import os
-import signal
-import subprocess
-import sys
 import threading
 import time
-from pathlib import Path
 from types import SimpleNamespace
 
 import numpy as np
@@ -23,8 +18,6 @@ import yaml
 from scipy.spatial.transform import Rotation
 
 from soft_twin.readings import InputLedger, accept_reading, merge_readings
-
-ROOT = Path(__file__).resolve().parents[1]
 
 
 def _stamp(ns):
@@ -111,17 +104,15 @@ def test_estimator_flood_is_accounted_for(tmp_path):
     from diagnostic_msgs.msg import DiagnosticArray
     from geometry_msgs.msg import PoseStamped
     from rclpy.executors import SingleThreadedExecutor
+    from soft_twin.client import NodeProcess
     from soft_twin.conversions import pose_msg
     from soft_twin_core import kinematics as kin
     from soft_twin_core.model import load_model
 
     sensors = [{"name": "tip", "type": "pose", "s": 0.40, "sigma_position": 1.0e-3, "sigma_rotation": 0.01}]
     (tmp_path / "sensors.yaml").write_text(yaml.safe_dump({"sensors": sensors}))
-    log = open(tmp_path / "node.log", "w")
-    proc = subprocess.Popen([sys.executable, "-m", "soft_twin.estimator", "--ros-args", "-r", "__node:=est_flood",
-                             "-p", "robot_description_file:=tracked_arm",
-                             "-p", f"sensors_file:={tmp_path / 'sensors.yaml'}", "-p", "rate_hz:=100.0"],
-                            cwd=ROOT, env=os.environ.copy(), stdout=log, stderr=subprocess.STDOUT, text=True)
+    proc = NodeProcess(["-p", "robot_description_file:=tracked_arm", "-p", f"sensors_file:={tmp_path / 'sensors.yaml'}",
+                        "-p", "rate_hz:=100.0"], "est_flood", tmp_path / "node.log", module="soft_twin.estimator")
     ctx = rclpy.Context()
     rclpy.init(context=ctx)
     node = rclpy.create_node("est_flood_client", context=ctx)
@@ -153,7 +144,7 @@ def test_estimator_flood_is_accounted_for(tmp_path):
     try:
         with cond:
             assert cond.wait_for(lambda: pub.get_subscription_count() > 0 and "readings_used" in diag, 120.0), \
-                (tmp_path / "node.log").read_text()[-3000:]
+                proc.output()[-3000:]
         now = lambda: node.get_clock().now().nanoseconds  # noqa: E731
         send(now())                                    # the node learns this publisher's numbers
         with cond:
@@ -186,14 +177,7 @@ def test_estimator_flood_is_accounted_for(tmp_path):
         ex.shutdown()
         node.destroy_node()
         rclpy.try_shutdown(context=ctx)
-        if proc.poll() is None:
-            proc.send_signal(signal.SIGINT)
-            try:
-                proc.wait(timeout=20)
-            except subprocess.TimeoutExpired:
-                proc.kill()
-                proc.wait()
-        log.close()
+        proc.stop()
     received = int(d["est_flood_measurements_pose_received"])
     rejected = {k: int(d[f"rejected_{k}"]) for k in ("stale_stamp", "future_stamp", "out_of_order")}
     accepted, used, merged = (int(d[k]) for k in ("readings_accepted", "readings_used", "readings_merged"))
