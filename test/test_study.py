@@ -413,6 +413,14 @@ def test_an_interrupted_study_resumes_computing_only_the_missing_cases(client, t
         run_study(_study(), tmp_path / "o", serial=True, log=lambda m: None)
 
 
+def _sigint_default():
+    """In the child: SIGINT at its default, as under a terminal. A suite run
+    as a background job of a non-interactive shell (``make test &``) starts
+    with SIGINT ignored; Python then installs no KeyboardInterrupt handler,
+    and the study ran to its end through the signal (seen once)."""
+    signal.signal(signal.SIGINT, signal.SIG_DFL)
+
+
 def test_command_interrupted_by_sigint_resumes(tmp_path):
     """The command on a local cluster, Ctrl-C in the middle (SIGINT to its
     whole process group, workers included, as a terminal sends it): exit
@@ -429,7 +437,7 @@ def test_command_interrupted_by_sigint_resumes(tmp_path):
     cmd = [sys.executable, "-m", "soft_twin_core.cli", "study", str(f), "-o", str(out)]
     env = {**os.environ, "PYTHONPATH": str(ROOT)}
     p = subprocess.Popen(cmd + ["--workers", "2", "--flush-seconds", "0", "--chunk-size", "1"], stderr=subprocess.PIPE, text=True, env=env, cwd=tmp_path,
-                         start_new_session=True)
+                         start_new_session=True, preexec_fn=_sigint_default)
     try:
         deadline = time.monotonic() + 120
         while time.monotonic() < deadline and len(list((out / "parts").glob("part-*"))) < 5:
