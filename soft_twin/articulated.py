@@ -363,7 +363,10 @@ class ArticulatedTwin:
         self.state.q = eq.q.copy()
         self.state.qdot = np.zeros(self.mech.tree.nv)
         self.lam = eq.lam.copy()
-        return UpdateInfo(1, eq.iterations, True, "")
+        return UpdateInfo(1, eq.iterations, True, "" if eq.stable else
+                          f"only an unstable equilibrium was found (smallest reduced stiffness eigenvalue "
+                          f"{eq.min_stiffness_eigenvalue:.3g}): the robot buckles or snaps through under these "
+                          f"inputs", stable=eq.stable)
 
     # --- queries (never touch this twin) ------------------------------------
     def query_copy(self):

@@ -182,7 +182,8 @@ class ArticulatedTipSolver:
         o = self.options
         return cs.solve_equilibrium(self.mech, actuation=u if self.n_u else None, efforts=o.efforts,
                                     positions=qc if self.n_j else None, loads=self.loads,
-                                    point_loads=tuple(o.point_loads), q_init=q_init)
+                                    point_loads=tuple(o.point_loads), q_init=q_init,
+                                    check_stability=False)   # per iteration: 0.2-0.9 ms saved
 
     def frame_pose(self, q):
         return alg.point_poses(self.mech.tree, self.ws, q, [self.ref.joint], [self.ref.x])[0]

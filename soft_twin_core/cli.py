@@ -259,6 +259,16 @@ def _csv(out):
     return buf.getvalue()
 
 
+def unstable_message(r, angle=None):
+    """The warning for a statics result flagged unstable."""
+    ev = r.get("min_stiffness_eigenvalue")
+    why = f" (smallest eigenvalue of the tangent stiffness {ev:.3g} < 0)" if ev is not None and ev == ev else ""
+    at = f" at angle {angle:g} deg" if angle is not None else ""
+    return (f"soft-twin-sim: warning: statics{at}: only an unstable equilibrium was found{why}: under these "
+            f"loads the structure buckles or snaps through; the shape returned (\"stable\": false) is one it "
+            f"cannot hold")
+
+
 def show_plausibility_warnings(prog="soft-twin-sim"):
     """Print the plausibility warnings of the input files (a likely unit
     slip: soft_twin_core.plausibility) as one plain line each on stderr,
@@ -332,6 +342,8 @@ def main(argv=None):
                         print(f"soft-twin-sim: statics: {note}", file=sys.stderr)
                     note = note or ""
                 r = run_statics(sc, args.points_per_section, args.time)
+                if r.get("stable") is False:
+                    print(unstable_message(r, a), file=sys.stderr)
                 if a is not None:
                     r = {"angle_deg": float(a), **r}
                     print(f"soft-twin-sim: angle {a:g} deg solved ({r['iterations']} iterations)",

@@ -338,6 +338,44 @@ class Equilibrium:
     constraint_error: float
     load_steps: int = 1
     inputs: Inputs = None
+    stable: bool = True                 # see equilibrium_stability
+    min_stiffness_eigenvalue: float = float("nan")
+
+
+def constraint_null_space(G, rtol=1e-10):
+    """An orthonormal basis Z (nv, k) of the motions the constraints allow
+    to first order (G Z = 0), from the SVD of G (redundant rows allowed)."""
+    nv = G.shape[1]
+    if G.shape[0] == 0:
+        return np.eye(nv)
+    _, sv, Vt = np.linalg.svd(G)
+    rank = int(np.sum(sv > rtol * sv.max())) if sv.size and sv.max() > 0 else 0
+    return Vt[rank:].T
+
+
+def reduced_stiffness(Kt, Z):
+    """Z^T Kt Z: the tangent stiffness dR/dq at fixed multipliers (the
+    Hessian of the Lagrangian, the constraint forces' geometric stiffness
+    included) on the constraints' allowed motions Z."""
+    return Z.T @ Kt @ Z
+
+
+def equilibrium_stability(Kt, G):
+    """(stable, smallest eigenvalue) of a constrained equilibrium: stable
+    when the reduced stiffness has no eigenvalue with a negative real part
+    (second-order condition of the constrained energy minimum; a follower
+    load's unsymmetric tangent: no divergence mode), to a round-off margin.
+    The eigenvalue is in the generalised units of the allowed motions."""
+    H = reduced_stiffness(Kt, constraint_null_space(G))
+    if H.size == 0:
+        return True, float("inf")
+    scale = max(np.abs(H).max(), 1e-300)
+    if np.abs(H - H.T).max() <= 1e-10 * scale:
+        ev = np.linalg.eigvalsh(0.5 * (H + H.T))
+    else:
+        ev = np.linalg.eigvals(H).real
+    lo = float(ev.min())
+    return bool(lo > -1e-9 * scale), lo
 
 
 def independent_rows(G, rtol=1e-10):
@@ -389,7 +427,19 @@ def solve_kkt(A, G_force, G_cons, R, phi, rows=None):
     return solve_factored(factor_kkt(A, G_force, G_cons, rows), R, phi)
 
 
-def _check_statics_model(tree):
+def _check_statics_model(mech):
+    """ValueError, in the robot file's words, for what statics cannot hold:
+    a prescribed or floating base, spherical or free joints."""
+    tree = mech.tree
+    motion = getattr(mech, "base_motion", "fixed")
+    if motion == "prescribed":
+        raise ValueError("statics: the base is prescribed (base.motion: prescribed: it follows a trajectory, "
+                         "held by the constraint 'base'), and statics has no moving base: set base.motion: "
+                         "fixed with the base pose to solve for (base.position, base.rpy), or run the dynamics")
+    if motion == "floating":
+        raise ValueError("statics: the base is floating (base.motion: floating): a free body has no static "
+                         "equilibrium under gravity unless held; clamp it (base.motion: fixed) or run the "
+                         "dynamics to let it settle")
     for j in tree.joints:
         if j.kind in (SPHERICAL, FREE):
             raise ValueError(f"statics: joint {j.name!r} is {'spherical' if j.kind == SPHERICAL else 'free'}; "
@@ -402,16 +452,27 @@ def _length_scale(mech):
     return max(L, 1e-3)
 
 
+def gap_force_scale(k_max, phi, length):
+    """The generalised force it takes to close the constraint violation
+    ``phi`` [m, rad] of a chain of length ``length``: the largest stiffness
+    times the strain the gap implies, ``k_max |phi|_max / length``. A scale
+    for the residuals that is not zero when nothing is loaded but a chain is
+    open (an unloaded closed chain with a 1 mm gap had a scale of 1e-300 and
+    its merit function overflowed)."""
+    return k_max * np.abs(phi).max(initial=0) / length
+
+
 def _kkt_newton(pb, q, lam, tol, max_iterations):
     """Newton with backtracking on the KKT system; (q, lam, it, ok, R, phi)."""
     nv = pb.tree.nv
     Ls = _length_scale(pb.mech)
     R, phi, G = pb.residual(q, lam)
     Kq = pb.K @ (q - pb.tree.q0)
+    k_max = np.abs(pb.K).max(initial=0)
 
     def scale_of(R):
         return max(np.abs(Kq).max(initial=0), np.abs(R).max(initial=0), np.abs(pb.inp.effort).max(initial=0),
-                   np.abs(lam).max(initial=0) * Ls, 1e-300)
+                   np.abs(lam).max(initial=0) * Ls, gap_force_scale(k_max, phi, Ls), 1e-300)
 
     def merit(R, phi, sc):
         return np.sqrt(np.sum((R / sc) ** 2) + np.sum((phi / Ls) ** 2))
@@ -443,15 +504,20 @@ def _kkt_newton(pb, q, lam, tol, max_iterations):
 
 
 def solve_equilibrium(mech, actuation=None, efforts=None, positions=None, loads=None, point_loads=(),
-                      q_init=None, *, targets=None, tol=1e-10, max_iterations=50, max_load_steps=64):
+                      q_init=None, *, targets=None, tol=1e-10, max_iterations=50, max_load_steps=64,
+                      check_stability=True):
     """Static equilibrium of a mechanism under actuation (tendon tensions N,
     chamber pressures Pa), joint efforts {joint: N m or N} of effort-controlled
     joints, positions {joint: rad or m} of position-controlled joints (default
     their reference), loads (:class:`loads.Loads` on the first path, gravity
     switch) and point_loads (FrameLoad on named frames); constraints hold.
     If Newton fails from q_init, the inputs are applied in increasing
-    fractions (continuation). Raises StaticsError if it cannot converge."""
-    _check_statics_model(mech.tree)
+    fractions (continuation). Raises StaticsError if it cannot converge.
+    ``check_stability``: judge the equilibrium found (``stable``,
+    ``min_stiffness_eigenvalue``: :func:`equilibrium_stability`); an
+    unstable one is returned, flagged (a column past its buckling load
+    still has its straight equilibrium)."""
+    _check_statics_model(mech)
     inp = make_inputs(mech, actuation, efforts, positions, None, loads, point_loads)
     tree = mech.tree
     q = tree.q0.copy() if q_init is None else tree.check_q(np.array(q_init, dtype=float), "q_init").copy()
@@ -464,9 +530,14 @@ def solve_equilibrium(mech, actuation=None, efforts=None, positions=None, loads=
         if not ok:
             q1, lam1, total, steps, R, phi, sc = _continuation(mech, inp, targets, q, lam, tol, max_iterations,
                                                                max_load_steps, total)
+        stable, lo = True, float("nan")
+        if check_stability:
+            pb = _Equilibrium(mech, inp, targets)
+            _, _, G = pb.residual(q1, lam1)
+            stable, lo = equilibrium_stability(pb.tangent(q1, lam1), G)
     return Equilibrium(q1.copy(), lam1.copy(), _efforts_out(mech, lam1, inp), constraint_wrenches(mech, lam1),
                        total, float(np.abs(R).max(initial=0) / sc), float(np.abs(phi).max(initial=0)), steps,
-                       inp)
+                       inp, stable, lo)
 
 
 def _scaled_inputs(mech, inp, t, q_start):

@@ -300,7 +300,8 @@ def run_mechanism_statics(sc, t=0.0):
     transmitted_wrenches (the wrench through every joint, world axes, about
     its input origin); members: per soft member at its section boundaries
     s [m], positions, orientations (quaternions x, y, z, w), internal_wrench (body axes), strains,
-    normal_stress and shear_stress [Pa] (null without geometry); iterations, residual."""
+    normal_stress and shear_stress [Pa] (null without geometry); iterations, residual; stable and
+    min_stiffness_eigenvalue (constrained.equilibrium_stability)."""
     from .outputs import state_outputs
     from .loads import Loads
     u, eff, pos, pls = sc.inputs_at(t)
@@ -308,7 +309,8 @@ def run_mechanism_statics(sc, t=0.0):
                            targets=_targets(sc, t))
     out = state_outputs(sc.mech, eq.q, eq.lam, eq.inputs)
     d = _outputs_dict(sc, out)
-    d.update(iterations=eq.iterations, residual=eq.residual, constraint_error=eq.constraint_error)
+    d.update(iterations=eq.iterations, residual=eq.residual, constraint_error=eq.constraint_error,
+             stable=eq.stable, min_stiffness_eigenvalue=eq.min_stiffness_eigenvalue)
     return d
 
 
@@ -403,7 +405,7 @@ def run_mechanism_dynamics(sc, duration, dt, theta=0.5, progress=None, record_ev
             sim.step(inputs=inp, targets=_targets(sc, t1))
         except (StepError, ValueError, ArithmeticError, np.linalg.LinAlgError) as e:
             out["error"] = (f"step {k} of {n_steps} (t = {time_of(k - 1):.6g} -> {t1:.6g} s) failed: {e}; "
-                            f"the history ends at t = {time_of(k - 1):.6g} s")
+                            f"the history ends at t = {time_of(k - 1):.6g} s" + failure_context(sc, out, time_of(k - 1), t1))
             break
         if k % record_every == 0 or k == n_steps or (backbone_every and k % backbone_every == 0):
             record(k, inp, sim.iterations)
@@ -412,6 +414,46 @@ def run_mechanism_dynamics(sc, duration, dt, theta=0.5, progress=None, record_ev
             last = _time.monotonic()
     out["dt"] = float(dt)
     return out
+
+
+def failure_context(sc, out, t0, t1):
+    """A failed dynamics step (t0 -> t1) in physical terms: how far a
+    prescribed base was asked to go (from its start, and within the step),
+    and at the last recorded state the members' largest peak normal stress
+    (with the multiple of the Young's modulus it is) and the constraint
+    error. '' when there is nothing to say."""
+    mech, asked, state = sc.mech, [], []
+    g0, ga, gb = sc.base_pose_at(0.0), sc.base_pose_at(t0), sc.base_pose_at(t1)
+    if g0 is not None:
+        asked.append(f"the step asked the prescribed base to be {np.linalg.norm(gb[:3, 3] - g0[:3, 3]):.3g} m from "
+                     f"its start, {np.linalg.norm(gb[:3, 3] - ga[:3, 3]):.3g} m in one step")
+    stress = np.asarray(out["peak_normal_stress"][-1], dtype=float) if out.get("peak_normal_stress") else []
+    if len(stress) and np.nanmax(stress) > 0:
+        k = int(np.nanargmax(stress))
+        E = member_youngs_modulus(mech, k)
+        ratio = f" ({stress[k] / E:.3g} times its Young's modulus {E:.3g} Pa)" if E else ""
+        state.append(f"member {mech.members[k].name!r} was at a peak normal stress of {stress[k]:.3g} Pa{ratio}")
+    if out.get("constraint_error"):
+        state.append(f"the constraints were off by up to {np.nanmax(out['constraint_error'][-1]):.3g} m or rad")
+    if not (asked or state):
+        return ""
+    text = "; " + "; ".join(asked)
+    if state:
+        text += f"; at the last good state (t = {out['time'][-1]:.6g} s) " + " and ".join(state)
+    return text + (": the motion asked for is larger or faster than the structure can follow by deforming "
+                   "(a smaller dt or a slower motion may pass; a real structure would break, or its clamps "
+                   "and joints slip)")
+
+
+def member_youngs_modulus(mech, k):
+    """Young's modulus [Pa] of soft member k's first section: its axial
+    stiffness EA (the section's stiffness, strain order [nu; kappa]) over
+    its area (None without geometry)."""
+    m = mech.members[k]
+    g = m.geometry[0] if m.geometry else None
+    if g is None or not g.A:
+        return None
+    return float(mech.tree.joints[m.joints[0]].section.K[0, 0] / g.A)
 
 
 def sample_energies(sim):
