@@ -188,8 +188,17 @@ def test_live_view_snapshot_of_an_articulated_robot():
     assert np.allclose(shot.joints, [[0, 0, 0.3]]) and np.allclose(np.diff(shot.joint_axes[0], axis=0), [[0, 0, 0.03]])
 
 
+def _set_tensions(c, tensions):
+    """Every tendon's tension set here (the module's node is shared: a test
+    must not rely on what an earlier one left, whatever the order)."""
+    names = ["tendon_y_pos", "tendon_y_neg", "tendon_z_pos", "tendon_z_neg"]
+    stamp = c.send_actuation(names, [tensions.get(n, 0.0) for n in names])
+    assert c.wait_until(lambda: c.state_after(stamp), 10.0), "actuation not applied"
+
+
 def test_joint_wrench_topics_carry_the_transmitted_wrenches(pan_tilt_qs):
     c = pan_tilt_qs
+    _set_tensions(c, {"tendon_z_pos": 2.0})
     got = c.subscribe(WrenchStamped, "/twin_art_qs/joint_wrenches/pan")
     stamp = c.send_joint_command(["pan", "tilt"], positions=[0.1, -0.2])
     assert c.wait_until(lambda: c.state_after(stamp), 10.0)
@@ -206,6 +215,7 @@ def test_joint_wrench_topics_carry_the_transmitted_wrenches(pan_tilt_qs):
 def test_internal_wrench_topic_along_the_member(pan_tilt_qs):
     from std_msgs.msg import Float64MultiArray
     c = pan_tilt_qs
+    _set_tensions(c, {"tendon_z_pos": 2.0})
     got = c.subscribe(Float64MultiArray, "/twin_art_qs/internal_wrenches/arm")
     stamp = c.send_joint_command(["pan", "tilt"], positions=[0.2, 0.1])
     assert c.wait_until(lambda: c.state_after(stamp), 10.0)

@@ -2,6 +2,7 @@
 test process as its client over real rclpy (soft_twin.client). Every wait is
 for a condition (a matched topic, a service, a message) with a timeout."""
 import math
+import os
 import threading
 import time
 
@@ -762,9 +763,14 @@ def test_signals_stop_the_node_cleanly(tmp_path):
 
 @pytest.mark.slow
 @pytest.mark.timeout(3600)
-def test_signals_stop_the_node_cleanly_100_each(tmp_path):
-    """The issue's criterion: 100 of 100 SIGINTs and 100 of 100 SIGTERMs."""
-    _signal_storm(100, 4, 2, tmp_path)
+def test_signals_stop_the_node_cleanly_30_more_each(tmp_path):
+    """30 more SIGINTs and 30 more SIGTERMs at other random moments (seed 2):
+    with the 20 each above, 100 signals a suite run. (Issue 9's criterion was
+    100 of each, once: this test ran it in every suite run, 215 s of a suite
+    that must stay under 15 minutes; the full storm again:
+    SOFT_TWIN_SIGNALS=100 pytest test/test_node_e2e.py -k 30_more_each.)"""
+    _signal_storm(int(os.environ.get("SOFT_TWIN_SIGNALS", "30")), 4, 2, tmp_path)
+
 
 
 STUCK_TEARDOWN = """\
