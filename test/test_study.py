@@ -421,6 +421,81 @@ def _sigint_default():
     signal.signal(signal.SIGINT, signal.SIG_DFL)
 
 
+def _sync_interrupted_before_the_loop_starts(loop):
+    """Ctrl-C in ``distributed.utils.sync`` while the event loop is busy (so
+    the awaited call has not started): the condition of distributed's
+    ``cancel`` bug. True when the interrupt came inside ``sync`` (it can come
+    just before, on a stalled machine: then the caller tries again)."""
+    import asyncio
+    import threading
+    from distributed.utils import sync
+    started, release = threading.Event(), threading.Event()
+    loop.add_callback(lambda: (started.set(), release.wait(30)))      # the loop is busy until released
+    assert started.wait(30)
+    main = threading.get_ident()
+    threading.Timer(0.05, signal.pthread_kill, (main, signal.SIGINT)).start()
+    inside = False
+    try:
+        sync(loop, asyncio.sleep, 30.0)
+    except KeyboardInterrupt as e:
+        inside = any(f.f_code.co_name == "wait" for f, _ in __import__("traceback").walk_tb(e.__traceback__))
+    finally:
+        release.set()
+    sync(loop, asyncio.sleep, 0.0)        # the loop runs its callbacks in order: the cancel has run now
+    return inside
+
+
+def test_the_distributed_cancel_bug_traceback_is_dropped_and_nothing_else():
+    """distributed 2026.8.0's ``sync`` logs a NameError traceback (through
+    tornado) when Ctrl-C comes before the loop started the call; CI saw it
+    in an interrupted study's stderr. Reproduced here with a real loop: the
+    record exists without the filter, is dropped with it; another error
+    logged on the same logger still passes."""
+    import logging
+    from distributed.utils import LoopRunner
+    from soft_twin_core.study_dask import _SyncCancelBug, install_sync_cancel_filter
+
+    class Keep(logging.Handler):
+        def __init__(self):
+            super().__init__()
+            self.records = []
+
+        def emit(self, record):
+            self.records.append(record)
+    logger = logging.getLogger("tornado.application")
+    saved_filters = list(logger.filters)
+    for f in saved_filters:
+        logger.removeFilter(f)
+    keep = Keep()
+    logger.addHandler(keep)
+    runner = LoopRunner(asynchronous=False)
+    runner.start()
+    try:
+        def bug_records():
+            for _ in range(5):
+                keep.records.clear()
+                if _sync_interrupted_before_the_loop_starts(runner.loop):
+                    return [r for r in keep.records if r.exc_info and isinstance(r.exc_info[1], NameError)]
+            raise AssertionError("the interrupt never came inside sync() in 5 tries")
+        assert len(bug_records()) == 1                  # the bug is real in the pinned version
+        install_sync_cancel_filter()
+        install_sync_cancel_filter()                    # once per process
+        assert sum(isinstance(f, _SyncCancelBug) for f in logger.filters) == 1
+        assert bug_records() == []
+        try:
+            raise NameError("cannot access free variable 'future' where it is not associated with a value")
+        except NameError:
+            logger.error("another callback failed", exc_info=True)      # same text, not distributed's cancel
+        assert len(keep.records) == 1
+    finally:
+        runner.stop()
+        logger.removeHandler(keep)
+        for f in list(logger.filters):
+            logger.removeFilter(f)
+        for f in saved_filters:
+            logger.addFilter(f)
+
+
 def test_command_interrupted_by_sigint_resumes(tmp_path):
     """The command on a local cluster, Ctrl-C in the middle (SIGINT to its
     whole process group, workers included, as a terminal sends it): exit
