@@ -125,7 +125,7 @@ def _parser():
     v.add_argument("--radius", type=float, default=0.01, help="tube radius [m] (default 0.01)")
     v.add_argument("--seconds", type=float, help="stop after this many seconds (default: Ctrl-C)")
     # issue 14: calibration from recorded data (soft_twin_core.calibration)
-    from .calibration import add_cli_parser
+    from .calibration_cli import add_cli_parser
     add_cli_parser(sub)
     return p
 
@@ -304,7 +304,7 @@ def main(argv=None):
     if args.command == "plan":
         return _run_plan(args)
     if args.command == "calibrate":              # issue 14
-        from .calibration import cli_main
+        from .calibration_cli import cli_main
         return cli_main(args)
     failed = None
     for name in ("sections", "backbone_every", "record_every", "points_per_section"):

@@ -42,6 +42,7 @@ from .loads import Loads
 from .multibody import FREE, PRISMATIC, REVOLUTE, SPHERICAL
 from .statics import StaticsError, actuation_vector
 from .workspace import Workspace
+from .errors import StepError
 
 FrameLoad = namedtuple("FrameLoad", ["frame", "wrench", "axes"])
 FrameLoad.__doc__ = """A point wrench [fx, fy, fz, mx, my, mz] (N, N m) on a named frame of a
@@ -571,10 +572,6 @@ def _continuation(mech, inp, targets, q, lam, tol, max_iterations, max_load_step
 # ----------------------------------------------------------------------------
 # Dynamics
 # ----------------------------------------------------------------------------
-
-class StepError(RuntimeError):
-    """A constrained step did not converge; the state is left unchanged."""
-
 
 class MechanismSimulator:
     """Time integration of a mechanism with joint control and constraints:

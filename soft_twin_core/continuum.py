@@ -67,13 +67,10 @@ from scipy.integrate import solve_ivp
 from scipy.linalg import expm
 from scipy.optimize import brentq
 from scipy.special import ellipe, ellipeinc, ellipkinc, ellipkm1
+from .errors import ContinuumConvergenceError
 
 __all__ = ["ContinuumSolution", "solve_cosserat_statics", "elastica_cantilever_tip",
            "elastica_cantilever_tip_angle", "ContinuumConvergenceError"]
-
-
-class ContinuumConvergenceError(RuntimeError):
-    """The shooting/continuation did not converge."""
 
 
 @dataclass

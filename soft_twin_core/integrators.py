@@ -37,9 +37,7 @@ import numpy as np
 from .forces import actuation_pass
 from .kernels import passes
 from .kernels.spatial import FALSE, _exp_into, _jit, _jit_inner, _jit_inline
-from .multibody import FREE, SPHERICAL
-
-SOFT_, FREE_, SPHERICAL_ = 5, 4, 3
+from .joint_kinds import FREE, SPHERICAL
 
 
 @_jit_inner
@@ -66,14 +64,14 @@ def integrate_pass(m, q, v, h, out):
     E = np.empty((4, 4))
     for i in range(n):
         iq, iv, kind = m.iq[i], m.iv[i], m.kind[i]
-        if kind == SPHERICAL_ or kind == FREE_:
-            o = 3 if kind == FREE_ else 0
-            wv = 3 if kind == FREE_ else 0
+        if kind == SPHERICAL or kind == FREE:
+            o = 3 if kind == FREE else 0
+            wv = 3 if kind == FREE else 0
             w0, w1, w2 = h * v[iv + wv], h * v[iv + wv + 1], h * v[iv + wv + 2]
             t = np.sqrt(w0 * w0 + w1 * w1 + w2 * w2)
             s = 0.5 - t * t / 48.0 if t < 1e-6 else np.sin(0.5 * t) / t
             dq[0], dq[1], dq[2], dq[3] = s * w0, s * w1, s * w2, np.cos(0.5 * t)
-            if kind == FREE_:
+            if kind == FREE:
                 # translation: p + R (T_so3(w)^T h v_lin), from exp_se3 of the body twist
                 for a in range(6):
                     x6[a] = h * v[iv + a]

@@ -33,11 +33,11 @@ from .model import (ModelError, _check_keys, _num, _vec, model_from_dict, pose_f
                     robot_mapping)
 from .multibody import FIXED, FREE, PRISMATIC, REVOLUTE, SOFT, SPHERICAL, ModelBuilder, SoftSection, \
     spatial_inertia
+from .joint_kinds import RIGID_JOINT_TYPES
 from .stress import SectionGeometry, section_geometry  # noqa: F401  (SectionGeometry: re-exported)
 
 CONSTRAINT_TYPES = {"clamped": 6, "pinned": 3, "line": 2, "plane": 1}
-JOINT_TYPES = {"fixed": FIXED, "revolute": REVOLUTE, "prismatic": PRISMATIC, "spherical": SPHERICAL,
-               "free": FREE}
+JOINT_TYPES = RIGID_JOINT_TYPES
 CONTROL_MODES = ("effort", "position", "passive")
 
 

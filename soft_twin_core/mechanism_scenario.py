@@ -30,12 +30,11 @@ import numpy as np
 
 from .constrained import FrameLoad, MechanismSimulator, StepError, make_inputs, solve_equilibrium
 from .mechanism import check_joint_position, load_mechanism, mechanism_from_dict
+from .errors import ScenarioError
 from .model import ModelError, parse_number, parse_numbers
+from .timeline import check_output_size, check_scenario_input, count, n_steps_for, parse_profile, step_times
 
 
-def _error():
-    from .scenario import ScenarioError
-    return ScenarioError
 
 
 @dataclass
@@ -100,7 +99,7 @@ class _Spline:
             self.value = y[0]
             return
         if np.any(np.diff(a[:, 0]) <= 0):
-            raise _error()(f"{where}: times must increase strictly, got {a[:, 0].tolist()}")
+            raise ScenarioError(f"{where}: times must increase strictly, got {a[:, 0].tolist()}")
         self.sp = CubicSpline(a[:, 0], y, bc_type="clamped")
         self.dsp = self.sp.derivative()
 
@@ -119,20 +118,10 @@ def _spline(a, where):
     return _Spline(a, where)
 
 
-def _profile(v, where):
-    from .scenario import _profile as prof
-    return prof(v, where)
-
-
-def check_scenario_input(act, values, where, error):
-    from .scenario import check_scenario_input as check
-    return check(act, values, where, error)
-
-
 def mechanism_scenario_from_dict(d, base_dir, source):
     """A MechanismScenario from a parsed scenario mapping whose robot is a
     tree robot file; ScenarioError naming the field."""
-    Err = _error()
+    Err = ScenarioError
     allowed = {"robot", "actuation", "actuation_profile", "joint_positions", "joint_trajectories",
                "joint_efforts", "joint_effort_profile", "base_trajectory", "gravity", "loads", "description"}
     unknown = set(d) - allowed
@@ -170,7 +159,7 @@ def mechanism_scenario_from_dict(d, base_dir, source):
     for k, v in mapping("actuation_profile").items():
         if k not in names:
             raise Err(f"scenario.actuation_profile: unknown actuator {k!r}; the robot has {list(names)}")
-        aprof[names.index(k)] = _profile(v, f"scenario.actuation_profile.{k}")
+        aprof[names.index(k)] = parse_profile(v, f"scenario.actuation_profile.{k}")
         check_scenario_input(mech.actuators[names.index(k)], aprof[names.index(k)][1],
                              f"scenario.actuation_profile.{k}", Err)
     pos_names = [mech.tree.joints[i].name for i in mech.joints_with("position")]
@@ -201,7 +190,7 @@ def mechanism_scenario_from_dict(d, base_dir, source):
         trajectories[k] = _spline(a, f"scenario.joint_trajectories.{k}")
     efforts = {k: parse_number(v, f"scenario.joint_efforts.{k}", Err)
                for k, v in joints("joint_efforts", eff_names, "effort").items()}
-    eprof = {k: _profile(v, f"scenario.joint_effort_profile.{k}")
+    eprof = {k: parse_profile(v, f"scenario.joint_effort_profile.{k}")
              for k, v in joints("joint_effort_profile", eff_names, "effort").items()}
     base = None
     if d.get("base_trajectory") is not None:
@@ -228,7 +217,7 @@ def mechanism_scenario_from_dict(d, base_dir, source):
             raise Err(f"{where}.axes: expected 'world' or 'body', got {axes!r}")
         w = np.concatenate([parse_numbers(ld.get("force", [0, 0, 0]), (3,), where + ".force", Err),
                             parse_numbers(ld.get("moment", [0, 0, 0]), (3,), where + ".moment", Err)])
-        prof = _profile(ld["profile"], where + ".profile") if "profile" in ld else None
+        prof = parse_profile(ld["profile"], where + ".profile") if "profile" in ld else None
         loads.append((FrameLoad(ld["frame"], w, axes), prof))
     grav = d.get("gravity", True)
     if not isinstance(grav, bool):
@@ -344,10 +333,9 @@ def run_mechanism_dynamics(sc, duration, dt, theta=0.5, progress=None, record_ev
     step fails (the history ends at the last converged step)."""
     import time as _time
     from .outputs import section_strains, state_outputs
-    from .scenario import _count, check_output_size, n_steps_for, step_times
     mech = sc.mech
     n_steps = n_steps_for(duration, dt)
-    check_output_size(n_steps, _count(record_every, "record_every", 1), _count(backbone_every, "backbone_every", 0),
+    check_output_size(n_steps, count(record_every, "record_every", 1), count(backbone_every, "backbone_every", 0),
                       mech.tree.n_joints + len(mech.frames) + 1)
     time_of = step_times(dt)
     sim = MechanismSimulator(mech, float(dt), theta)

@@ -31,6 +31,7 @@ import numpy as np
 from .lie import exp_so3, se3_from_rp
 from . import plausibility
 from .limits import MAX_SECTIONS_PER_SEGMENT, MAX_SECTIONS_TOTAL, check_limit
+from .errors import ModelError
 
 STRAIN_NAMES = ("axial", "shear_y", "shear_z", "torsion", "bending_y", "bending_z")
 _MODE_GROUPS = {
@@ -39,10 +40,6 @@ _MODE_GROUPS = {
     "bending_torsion": ("torsion", "bending_y", "bending_z"),
     "shear": ("shear_y", "shear_z"),
 }
-
-
-class ModelError(ValueError):
-    """A robot description is invalid; the message names the field and value."""
 
 
 # ----------------------------------------------------------------------------

@@ -49,12 +49,9 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from .model import ModelError
-
-JOINT_KINDS = ("fixed", "revolute", "prismatic", "spherical", "free", "soft")
-FIXED, REVOLUTE, PRISMATIC, SPHERICAL, FREE, SOFT = range(6)
-_NQ = {FIXED: 0, REVOLUTE: 1, PRISMATIC: 1, SPHERICAL: 4, FREE: 7}
-_NV = {FIXED: 0, REVOLUTE: 1, PRISMATIC: 1, SPHERICAL: 3, FREE: 6}
+from .errors import ModelError
+from .joint_kinds import FIXED, FREE, JOINT_KINDS, PRISMATIC, REVOLUTE, SOFT, SPHERICAL  # noqa: F401 (re-exported)
+from .joint_kinds import NQ as _NQ, NV as _NV
 
 
 @dataclass(frozen=True, eq=False)

@@ -15,10 +15,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from . import lie
-
-
-class PathError(ValueError):
-    """A bad path field; the message names it."""
+from .errors import PathError
 
 
 @dataclass(frozen=True, eq=False)

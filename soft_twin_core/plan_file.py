@@ -43,10 +43,7 @@ from . import planner as pl
 from .loads import Loads
 from .limits import MAX_PATH_SAMPLES, MAX_TIME_STEPS, check_limit
 from .model import config_dirs, find_file, load_model, model_from_dict, read_yaml_file, robot_mapping
-
-
-class PlanFileError(ValueError):
-    """A bad plan file field; the message names it."""
+from .errors import PlanFileError
 
 
 _TOP = {"robot", "path", "tracking", "actuation", "gravity", "dynamics", "description", "joints"}

@@ -58,10 +58,7 @@ from ._blas import one_blas_thread
 from .loads import Loads
 from .kernels.tip_error import error_jacobian, tip_error
 from .paths import TipPath
-
-
-class PlanError(ValueError):
-    """A bad planner option; the message names it."""
+from .errors import PlanError
 
 
 # ----------------------------------------------------------------------------

@@ -27,19 +27,16 @@ Numbers may be written as the robot files accept them (``1e6``, ``1.0e6``,
 import math
 import os
 from dataclasses import dataclass
-from decimal import Decimal
 
 import numpy as np
 
 from . import kinematics as kin
 from .loads import DistributedLoad, Loads, PointLoad
-from .limits import MAX_BACKBONE_POINTS, MAX_RECORDED_ROWS, MAX_TIME_STEPS
+from .timeline import (check_output_size, check_scenario_input, count, n_steps_for, parse_profile,  # noqa: F401
+                       step_times)  # (check_output_size, n_steps_for: the runner's API)
 from .model import (ModelError, find_file, load_model, model_from_dict, parse_number,
                     parse_numbers, read_yaml_file)
-
-
-class ScenarioError(ValueError):
-    """A scenario file is invalid; the message names the field."""
+from .errors import ScenarioError
 
 
 @dataclass
@@ -87,18 +84,6 @@ def _vec3(d, key, where):
         raise ScenarioError(f"{where}.{key}: expected 3 finite numbers, got {v!r}") from None
 
 
-def _profile(v, where):
-    try:
-        a = parse_numbers(v, (None, 2), where, ScenarioError)
-    except ScenarioError:
-        raise ScenarioError(f"{where}: expected a list of [t, value] pairs, got {v!r}") from None
-    if len(a) < 1:
-        raise ScenarioError(f"{where}: expected a list of [t, value] pairs, got {v!r}")
-    if np.any(np.diff(a[:, 0]) <= 0):
-        raise ScenarioError(f"{where}: times must increase strictly, got {a[:, 0].tolist()}")
-    return a[:, 0], a[:, 1]
-
-
 def _number(v, where):
     return parse_number(v, where, ScenarioError)
 
@@ -140,7 +125,7 @@ def _load(d, i, model, angle_override):
         a = np.radians(a)
         force = force + P * np.array([0.0, np.cos(a), np.sin(a)])
     wrench = tuple(np.concatenate([force, moment]))
-    prof = _profile(d["profile"], where + ".profile") if "profile" in d else None
+    prof = parse_profile(d["profile"], where + ".profile") if "profile" in d else None
     if d.get("distributed", False):
         start = _number(d.get("start", 0.0), where + ".start")
         end = _number(d.get("end", model.total_length), where + ".end")
@@ -187,19 +172,6 @@ def _is_tree_robot(robot, base_dir):
         return is_tree_file(robot_mapping(read_yaml_file(p), p))
     except ModelError:
         return False
-
-
-def check_scenario_input(act, values, where, error):
-    """Refuse (``error`` naming ``where``) any of ``values`` outside the
-    actuator's declared range: the node's rule
-    (:func:`model.check_actuator_input`), so a scenario cannot run offline
-    with an input the node would reject. A profile is piecewise linear, so
-    checking its points bounds every interpolated value."""
-    from .model import check_actuator_input
-    for v in np.atleast_1d(np.asarray(values, dtype=float)):
-        bad = check_actuator_input(act, v)
-        if bad is not None:
-            raise error(f"{where}: {bad[1]} [{bad[0]}]")
 
 
 def scenario_from_dict(d, base_dir=".", sections=None, angle_deg=None, source="<dict>"):
@@ -254,7 +226,7 @@ def scenario_from_dict(d, base_dir=".", sections=None, angle_deg=None, source="<
     for k, v in profiles.items():
         if k not in names:
             raise ScenarioError(f"scenario.actuation_profile: unknown actuator {k!r}; the robot has {list(names)}")
-        ts, vs = _profile(v, f"scenario.actuation_profile.{k}")
+        ts, vs = parse_profile(v, f"scenario.actuation_profile.{k}")
         check_scenario_input(model.actuators[names.index(k)], vs, f"scenario.actuation_profile.{k}",
                              ScenarioError)
         prof[names.index(k)] = (ts, vs)
@@ -402,59 +374,6 @@ BACKBONE_FIELDS = ("backbone_time", "backbone_s", "backbone", "backbone_velocity
                    "internal_wrenches")
 
 
-def _positive_time(v, name):
-    if isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v) or v <= 0:
-        raise ScenarioError(f"{name}: expected a positive, finite time in s, got {v!r}")
-    return float(v)
-
-
-def _count(v, name, low):
-    if isinstance(v, bool) or not isinstance(v, (int, np.integer)) or v < low:
-        raise ScenarioError(f"{name}: expected an integer >= {low}, got {v!r}")
-    return int(v)
-
-
-def check_output_size(n_steps, record_every, backbone_every, backbone_points):
-    """Refuse a run whose recorded rows or backbone samples would exceed
-    the limits of soft_twin_core.limits (before the run allocates them)."""
-    rows = n_steps // record_every + 2
-    if rows > MAX_RECORDED_ROWS:
-        raise ScenarioError(f"record_every: {record_every} gives {rows} recorded rows over {n_steps} steps, "
-                            f"which exceeds the limit of {MAX_RECORDED_ROWS} rows (soft_twin_core.limits); "
-                            f"record every {-(-n_steps // MAX_RECORDED_ROWS)} steps or more")
-    if backbone_every:
-        points = (n_steps // backbone_every + 1) * backbone_points
-        if points > MAX_BACKBONE_POINTS:
-            raise ScenarioError(f"backbone_every: {backbone_every} gives {points} backbone points ("
-                                f"{n_steps // backbone_every + 1} samples of {backbone_points} points), "
-                                f"which exceeds the limit of {MAX_BACKBONE_POINTS} (soft_twin_core.limits)")
-
-
-def n_steps_for(duration, dt):
-    """Steps of size ``dt`` that cover ``duration`` (the last recorded time
-    is ``n dt >= duration``, within 1e-9 relative); ScenarioError naming
-    the argument if either is not a positive finite time or the duration
-    is shorter than one step."""
-    dt = _positive_time(dt, "dt")
-    duration = _positive_time(duration, "duration")
-    if duration < dt * (1.0 - 1e-9):
-        raise ScenarioError(f"duration: {duration!r} s is shorter than one time step (dt = {dt!r} s): "
-                            f"nothing to simulate")
-    steps = duration / dt
-    if steps > MAX_TIME_STEPS:          # a resource bound, before any allocation (soft_twin_core.limits)
-        raise ScenarioError(f"duration / dt: {duration:g} s / {dt:g} s = {steps:.4g} time steps exceeds the "
-                            f"limit of {MAX_TIME_STEPS} steps (soft_twin_core.limits)")
-    return max(1, int(math.ceil(steps - 1e-9)))
-
-
-def step_times(dt):
-    """t(k): the time of step k, ``k * dt`` computed exactly in decimal from
-    the shortest spelling of ``dt`` and rounded once (``0.1`` gives ``0.7``
-    at k = 7, not 0.7000000000000001; no accumulation, so no drift)."""
-    d = Decimal(repr(float(dt)))
-    return lambda k: float(d * k)
-
-
 def run_dynamics(sc, duration, dt, backbone_every=0, theta=0.5, progress=None,
                  points_per_section=10, record_every=1, progress_every=1.0):
     """Integrate the scenario for ``duration`` s with step ``dt`` s
@@ -492,9 +411,9 @@ def run_dynamics(sc, duration, dt, backbone_every=0, theta=0.5, progress=None,
     n_steps = n_steps_for(duration, dt)
     dt = float(dt)
     time_of = step_times(dt)
-    backbone_every = _count(backbone_every, "backbone_every", 0)
-    record_every = _count(record_every, "record_every", 1)
-    points_per_section = _count(points_per_section, "points_per_section", 1)
+    backbone_every = count(backbone_every, "backbone_every", 0)
+    record_every = count(record_every, "record_every", 1)
+    points_per_section = count(points_per_section, "points_per_section", 1)
     check_output_size(n_steps, record_every, backbone_every, m.n_sections * points_per_section + 1)
     state = State.rest(m)
     if sc.initial_strains is not None:

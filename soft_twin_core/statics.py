@@ -20,10 +20,7 @@ from ._blas import one_blas_thread
 from . import lie
 from .loads import (Loads, actuation_force, actuator_point_loads, generalized_external_force, load_points,
                     validate_loads)
-
-
-class StaticsError(RuntimeError):
-    """The equilibrium solver did not converge; the message says why."""
+from .errors import StaticsError
 
 
 def actuation_vector(model, actuation):

@@ -68,24 +68,7 @@ import numpy as np
 
 from .limits import MAX_STUDY_SAMPLES, check_limit
 from .model import ModelError, find_file, parse_number, read_yaml_file, robot_mapping
-
-
-class StudyError(ValueError):
-    """A study file is invalid; the message names the field."""
-
-
-class CaseValidationError(StudyError):
-    """Some cases of a study are invalid: ``errors`` is a list of
-    (case index, message) pairs, the message naming the field."""
-
-    def __init__(self, errors, n_cases):
-        self.errors = list(errors)
-        self.n_cases = n_cases
-        lines = [f"case {i}: {msg}" for i, msg in self.errors[:20]]
-        if len(self.errors) > 20:
-            lines.append(f"... and {len(self.errors) - 20} more")
-        super().__init__(f"{len(self.errors)} of {n_cases} cases are invalid (nothing was run):\n  "
-                         + "\n  ".join(lines))
+from .errors import StudyError, CaseValidationError
 
 
 FORMAT_VERSION = 1

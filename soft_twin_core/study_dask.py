@@ -41,13 +41,9 @@ from pathlib import Path
 import numpy as np
 
 from .study import StudyError, make_cases, validate_cases
+from .errors import StudyInterrupted
 
 META_COLUMNS = ("compute_time_s", "started_unix_s", "worker")
-
-
-class StudyInterrupted(RuntimeError):
-    """The study stopped before every case was computed (Ctrl-C); the rows
-    computed so far are saved and a rerun resumes."""
 
 
 def _stderr(msg):

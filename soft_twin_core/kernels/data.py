@@ -18,7 +18,7 @@ from numba.core import types
 from numba.experimental import structref
 
 from ..lie import Ad, se3_inv
-from ..multibody import SOFT
+from ..joint_kinds import SOFT
 
 ModelArrays = namedtuple("ModelArrays", [
     "parent",      # (n,) int: parent joint, -1 = world

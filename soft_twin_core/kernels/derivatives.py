@@ -28,7 +28,7 @@ import numpy as np
 
 from .spatial import _T_d2_into, _T_dot_into, _ad_vec, _jit, _jit_inner
 
-SOFT = 5
+from ..joint_kinds import SOFT
 
 
 @_jit_inner

@@ -25,8 +25,7 @@ import numpy as np
 
 from .spatial import (TRUE, _Ad_into, _ad_t, _ad_vec, _exp_into, _jit, _jit_inner, _jit_inline, _map_into,
                       _T_dot_along, _tangent_dot_into, _tangent_into)
-
-SOFT, FREE, SPHERICAL, PRISMATIC, REVOLUTE, FIXED = 5, 4, 3, 2, 1, 0
+from ..joint_kinds import FIXED, FREE, PRISMATIC, REVOLUTE, SOFT, SPHERICAL  # noqa: F401
 
 
 @_jit_inner

@@ -31,7 +31,7 @@ import numpy as np
 
 from .spatial import FALSE, _Ad_into, _T_cay_dot_into, _betas_dbetas, _jit, _jit_inner, _map_into, _tangent_into
 
-SOFT = 5
+from ..joint_kinds import SOFT
 
 
 @_jit_inner

@@ -1,0 +1,124 @@
+"""The code's shape, checked: no import circle (imports inside functions
+included), every exception type in ``errors``, every joint kind defined
+once. A short ``ast`` walk of the sources; no module is imported."""
+
+import ast
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[2]
+PACKAGES = ("soft_twin_core", "soft_twin")
+
+
+def _modules():
+    out = {}
+    for pkg in PACKAGES:
+        for f in sorted((ROOT / pkg).rglob("*.py")):
+            name = ".".join(f.relative_to(ROOT).with_suffix("").parts)
+            out[name[:-len(".__init__")] if name.endswith(".__init__") else name] = f
+    return out
+
+
+def _imported(name, path, node, known):
+    """The package modules an Import/ImportFrom node names."""
+    if isinstance(node, ast.Import):
+        return {a.name for a in node.names if a.name in known}
+    base = node.module or ""
+    if node.level:
+        parts = name.split(".")
+        keep = len(parts) - node.level + (1 if path.name == "__init__.py" else 0)
+        base = ".".join(parts[:keep] + ([node.module] if node.module else []))
+    cands = {base} | {f"{base}.{a.name}" for a in node.names}
+    return {c for c in cands if c in known and c != name}
+
+
+def import_graph():
+    mods = _modules()
+    graph = {}
+    for name, path in mods.items():
+        tree = ast.parse(path.read_text(encoding="utf-8"), str(path))
+        graph[name] = set()
+        for node in ast.walk(tree):
+            if isinstance(node, (ast.Import, ast.ImportFrom)):
+                graph[name] |= _imported(name, path, node, mods)
+    return graph
+
+
+def cycles(graph):
+    """The strongly connected components with more than one module (Tarjan)."""
+    index, low, stack, on, out = {}, {}, [], set(), []
+
+    def visit(v):
+        index[v] = low[v] = len(index)
+        stack.append(v)
+        on.add(v)
+        for w in sorted(graph[v]):
+            if w not in index:
+                visit(w)
+                low[v] = min(low[v], low[w])
+            elif w in on:
+                low[v] = min(low[v], index[w])
+        if low[v] == index[v]:
+            comp = []
+            while True:
+                w = stack.pop()
+                on.discard(w)
+                comp.append(w)
+                if w == v:
+                    break
+            if len(comp) > 1:
+                out.append(sorted(comp))
+    for v in sorted(graph):
+        if v not in index:
+            visit(v)
+    return out
+
+
+def test_the_cycle_finder_finds_a_cycle():
+    assert cycles({"a": {"b"}, "b": {"c"}, "c": {"a"}, "d": {"a"}}) == [["a", "b", "c"]]
+    assert cycles({"a": {"b"}, "b": set()}) == []
+
+
+def test_no_import_circle_even_through_imports_inside_functions():
+    graph = import_graph()
+    assert len(graph) > 50 and graph["soft_twin_core.constrained"]          # the walk sees the code
+    assert cycles(graph) == []
+
+
+def test_the_core_imports_nothing_of_ros_or_the_node():
+    for name, path in _modules().items():
+        if not name.startswith("soft_twin_core"):
+            continue
+        for node in ast.walk(ast.parse(path.read_text(encoding="utf-8"))):
+            if isinstance(node, ast.Import):
+                roots = [a.name.split(".")[0] for a in node.names]
+            elif isinstance(node, ast.ImportFrom) and not node.level:
+                roots = [(node.module or "").split(".")[0]]
+            else:
+                continue
+            assert not {"rclpy", "soft_twin", "rosbag2_py"} & set(roots), (name, ast.unparse(node))
+
+
+def test_every_exception_type_of_the_core_is_defined_in_errors():
+    """Public ones: a module's private control-flow exception stays with it."""
+    where = {}
+    for name, path in _modules().items():
+        if not name.startswith("soft_twin_core"):
+            continue
+        for node in ast.parse(path.read_text(encoding="utf-8")).body:
+            if isinstance(node, ast.ClassDef) and not node.name.startswith("_") and any(
+                    isinstance(b, ast.Name) and (b.id.endswith(("Error", "Exception")) or b.id in ("ValueError",
+                                                 "RuntimeError")) for b in node.bases):
+                where[node.name] = name
+    assert where and all(m == "soft_twin_core.errors" for m in where.values()), where
+
+
+def test_joint_kinds_are_defined_once():
+    kinds = {"FIXED", "REVOLUTE", "PRISMATIC", "SPHERICAL", "FREE", "SOFT"}
+    owners = set()
+    for name, path in _modules().items():
+        for node in ast.parse(path.read_text(encoding="utf-8")).body:
+            if isinstance(node, ast.Assign):
+                names = {t.id for tg in node.targets for t in ast.walk(tg) if isinstance(t, ast.Name)}
+                if names & kinds and isinstance(node.value, (ast.Constant, ast.Tuple, ast.Call)):
+                    owners.add(name)
+    assert owners == {"soft_twin_core.joint_kinds"}, owners
