@@ -24,10 +24,12 @@ demo: setup
 test: setup
 	$(PY) -m pytest $(PYTEST_ARGS)
 
-# The inner loop: the tests that start no ROS entity and are not marked slow
-# (the physics, the files, the CLI; a few minutes on 2 cores).
+# The inner loop: test/unit (the physics, the files, the twin's logic; no ROS
+# entity, no other process but a few CLI runs; a few minutes on 2 cores).
+# The tiers: test/unit, test/integration (command lines, Dask clusters,
+# packaging, reference solvers), test/ros (nodes, clients, recordings).
 test-quick: setup
-	$(PY) -m pytest -m "not ros and not slow" $(PYTEST_ARGS)
+	$(PY) -m pytest test/unit $(PYTEST_ARGS)
 
 # The whole suite in a random order across modules (pytest-random-order; the
 # seed is printed: rerun one order with PYTEST_ARGS=--random-order-seed=N).

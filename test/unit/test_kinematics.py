@@ -195,7 +195,7 @@ def test_config_files_load():
     import glob
     import os
     here = os.path.dirname(__file__)
-    files = glob.glob(os.path.join(here, "..", "config", "robots", "*.yaml"))
+    files = glob.glob(os.path.join(here, "..", "..", "config", "robots", "*.yaml"))
     assert files, "config/robots/*.yaml should exist"
     from soft_twin_core.mechanism import is_tree_file, load_mechanism
     from soft_twin_core.model import read_yaml_file
@@ -291,7 +291,7 @@ def test_actuation_ik_recovers_tensions_of_a_reachable_target():
     import os
     from soft_twin_core import statics as st
     from soft_twin_core.model import load_model
-    m = load_model(os.path.join(os.path.dirname(__file__), "..", "config", "robots", "tendon_arm.yaml"))
+    m = load_model(os.path.join(os.path.dirname(__file__), "..", "..", "config", "robots", "tendon_arm.yaml"))
     u_true = np.array([1.5, 0.0, 0.0, 0.8])
     r = st.solve_statics(m, u_true)
     res = ik.solve_actuation_ik(m, r.tip_pose[:3, 3], position_only=True, tol_position=1e-9)

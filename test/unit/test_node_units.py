@@ -16,7 +16,7 @@ from soft_twin_core import loads as ld
 from soft_twin_core import statics as st
 from soft_twin_core.model import load_model
 
-ROOT = Path(__file__).resolve().parents[1]
+ROOT = Path(__file__).resolve().parents[2]
 ROBOT = ROOT / "config" / "robots" / "tendon_arm.yaml"
 NAMES = ["tendon_y_pos", "tendon_y_neg", "tendon_z_pos", "tendon_z_neg"]
 

@@ -12,7 +12,7 @@ from soft_twin_core import loads as ld
 from soft_twin_core import statics as st
 from soft_twin_core.model import State, load_model
 
-ROBOTS = os.path.join(os.path.dirname(os.path.abspath(__file__)), "..", "config", "robots")
+ROBOTS = os.path.join(os.path.dirname(os.path.abspath(__file__)), "..", "..", "config", "robots")
 
 
 def modal_damping(model, n_modes=2):

@@ -768,7 +768,7 @@ def test_signals_stop_the_node_cleanly_30_more_each(tmp_path):
     with the 20 each above, 100 signals a suite run. (Issue 9's criterion was
     100 of each, once: this test ran it in every suite run, 215 s of a suite
     that must stay under 15 minutes; the full storm again:
-    SOFT_TWIN_SIGNALS=100 pytest test/test_node_e2e.py -k 30_more_each.)"""
+    SOFT_TWIN_SIGNALS=100 pytest test/ros/test_node_e2e.py -k 30_more_each.)"""
     _signal_storm(int(os.environ.get("SOFT_TWIN_SIGNALS", "30")), 4, 2, tmp_path)
 
 

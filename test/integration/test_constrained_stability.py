@@ -21,7 +21,7 @@ import yaml
 from soft_twin_core import constrained as cs
 from soft_twin_core.mechanism import load_mechanism, mechanism_from_dict
 
-ROOT = Path(__file__).resolve().parents[1]
+ROOT = Path(__file__).resolve().parents[2]
 E, R_BAR = 2.0e6, 0.01
 
 

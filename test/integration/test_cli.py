@@ -14,7 +14,7 @@ from soft_twin_core.model import load_model
 from soft_twin_core.scenario import ScenarioError, load_scenario
 
 HERE = os.path.dirname(os.path.abspath(__file__))
-CONFIG = os.path.join(HERE, "..", "config")
+CONFIG = os.path.join(HERE, "..", "..", "config")
 
 
 def run_cli(args, capsys):
@@ -135,7 +135,7 @@ def test_console_script_progress_on_stderr(tmp_path, scenario):
     test ran 12 s of simulation and expected a line after a wall second; on
     a quiet machine the run now takes 0.95 s and printed none)."""
     path = os.path.join(CONFIG, "scenarios", f"{scenario}.yaml")
-    env = dict(os.environ, PYTHONPATH=os.path.join(HERE, ".."))
+    env = dict(os.environ, PYTHONPATH=os.path.join(HERE, "..", ".."))
     p = subprocess.run([sys.executable, "-m", "soft_twin_core.cli", "dynamics", path, "--duration", "0.02",
                         "--dt", "0.001", "--record-every", "10", "--progress-every", "0",
                         "-o", str(tmp_path / "o.json")],
@@ -148,7 +148,7 @@ def test_console_script_progress_on_stderr(tmp_path, scenario):
 
 
 def test_console_script_progress_every_is_validated():
-    env = dict(os.environ, PYTHONPATH=os.path.join(HERE, ".."))
+    env = dict(os.environ, PYTHONPATH=os.path.join(HERE, "..", ".."))
     path = os.path.join(CONFIG, "scenarios", "tendon_arm_dynamics.yaml")
     for bad in ("-1", "nan", "x"):
         p = subprocess.run([sys.executable, "-m", "soft_twin_core.cli", "dynamics", path, "--duration", "0.01",

@@ -18,7 +18,7 @@ from soft_twin_core.multibody import ModelBuilder, SoftSection, from_robot_model
 from soft_twin_core.workspace import Workspace
 
 TOL = 1e-10
-TENDON_ARM = str(Path(__file__).resolve().parents[1] / "config" / "robots" / "tendon_arm.yaml")
+TENDON_ARM = str(Path(__file__).resolve().parents[2] / "config" / "robots" / "tendon_arm.yaml")
 
 
 def _section(length, radius=0.01, free=(True,) * 6, f0=(1, 0, 0, 0, 0, 0), E=2e6, visc=0.0, kmap="exponential"):

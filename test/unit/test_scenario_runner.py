@@ -19,7 +19,7 @@ from soft_twin_core.model import ModelError, model_from_dict, benchmark_cantilev
 from soft_twin_core.scenario import ScenarioError, load_scenario, run_dynamics, scenario_from_dict
 
 HERE = os.path.dirname(os.path.abspath(__file__))
-CONFIG = os.path.join(HERE, "..", "config")
+CONFIG = os.path.join(HERE, "..", "..", "config")
 DYN = os.path.join(CONFIG, "scenarios", "tendon_arm_dynamics.yaml")
 ARM = os.path.join(CONFIG, "robots", "tendon_arm.yaml")
 

@@ -228,7 +228,7 @@ def test_bad_inputs_named():
 def test_actuation_for_shape_recovers_tensions():
     from soft_twin_core.model import load_model
     import os
-    m = load_model(os.path.join(os.path.dirname(__file__), "..", "config", "robots", "tendon_arm.yaml"))
+    m = load_model(os.path.join(os.path.dirname(__file__), "..", "..", "config", "robots", "tendon_arm.yaml"))
     u_true = {"tendon_y_pos": 2.0, "tendon_z_neg": 1.0}
     r = st.solve_statics(m, u_true)
     u, res = st.actuation_for_shape(m, r.q)

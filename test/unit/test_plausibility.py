@@ -19,7 +19,7 @@ from soft_twin_core.mechanism import mechanism_from_dict
 from soft_twin_core.model import ModelError, example_files, model_from_dict
 
 HERE = os.path.dirname(os.path.abspath(__file__))
-ROOT = os.path.dirname(HERE)
+ROOT = os.path.dirname(os.path.dirname(HERE))
 ROBOTS = os.path.join(ROOT, "config", "robots")
 
 

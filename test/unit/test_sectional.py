@@ -9,7 +9,7 @@ import pytest
 
 from soft_twin_core.model import ModelError, load_model, model_from_dict
 
-ROOT = os.path.join(os.path.dirname(__file__), "..")
+ROOT = os.path.join(os.path.dirname(__file__), "..", "..")
 ROBOT = os.path.join(ROOT, "config", "robots", "simo_frame.yaml")
 SCENARIO = os.path.join(ROOT, "config", "scenarios", "simo_frame_dynamics.yaml")
 

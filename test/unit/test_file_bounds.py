@@ -18,7 +18,7 @@ from soft_twin_core import limits
 from soft_twin_core.model import ModelError, load_model, model_from_dict, read_yaml_file
 
 HERE = os.path.dirname(os.path.abspath(__file__))
-ROOT = os.path.dirname(HERE)
+ROOT = os.path.dirname(os.path.dirname(HERE))
 ROBOTS = os.path.join(ROOT, "config", "robots")
 
 

@@ -42,7 +42,7 @@ from soft_twin_core.workspace import Workspace  # noqa: E402
 
 pytestmark = pytest.mark.ros
 
-ROOT = Path(__file__).resolve().parents[1]
+ROOT = Path(__file__).resolve().parents[2]
 NS = "/tree_est_test"
 NAMES = ["tendon_y_pos", "tendon_y_neg", "tendon_z_pos", "tendon_z_neg"]
 U = [6.0, 0.0, 3.0, 0.0]

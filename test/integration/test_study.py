@@ -18,7 +18,7 @@ from soft_twin_core.study import (CaseValidationError, StudyError, build_scenari
                                   format_path, get_path, make_cases, parse_path, study_from_dict, validate_cases)
 from soft_twin_core.study_dask import StudyInterrupted, read_rows, run_study
 
-ROOT = Path(__file__).resolve().parents[1]
+ROOT = Path(__file__).resolve().parents[2]
 META = {"compute_time_s", "started_unix_s", "worker"}
 
 

@@ -15,7 +15,7 @@ from soft_twin_core import cli, scene
 from soft_twin_core.model import load_model
 
 HERE = os.path.dirname(os.path.abspath(__file__))
-CONFIG = os.path.join(HERE, "..", "config")
+CONFIG = os.path.join(HERE, "..", "..", "config")
 FIGURES = ("backbone_shapes", "internal_wrenches", "tip", "strains", "energies")
 
 
@@ -301,7 +301,7 @@ def test_dynamics_run_as_mcap_renders_like_the_run(tmp_path, capsys):
 
 def test_rviz_config_shows_the_node_topics_and_frames():
     import yaml
-    root = os.path.join(HERE, "..")
+    root = os.path.join(HERE, "..", "..")
     cfg = yaml.safe_load(open(os.path.join(root, "config", "soft_twin.rviz")))
     vm = cfg["Visualization Manager"]
     params = yaml.safe_load(open(os.path.join(root, "config", "params.yaml")))["soft_twin"]["ros__parameters"]

@@ -35,7 +35,7 @@ from soft_twin_core.model import find_file, model_from_dict, read_yaml_file  # n
 
 pytestmark = pytest.mark.ros
 
-ROOT = Path(__file__).resolve().parents[1]
+ROOT = Path(__file__).resolve().parents[2]
 NS = "/est_rec_test"
 NAMES = ["tendon_y_pos", "tendon_y_neg", "tendon_z_pos", "tendon_z_neg"]
 SENSORS = [{"name": f"em{i}", "type": "pose", "s": s, "sigma_position": 1.0e-3, "sigma_rotation": 0.01}

@@ -19,7 +19,7 @@ import pytest
 pytest.importorskip("rclpy", reason="needs ROS 2: the venv of `make setup`")
 pytestmark = [pytest.mark.ros, pytest.mark.slow]
 
-BENCH = Path(__file__).resolve().parents[1] / "benchmarks"
+BENCH = Path(__file__).resolve().parents[2] / "benchmarks"
 
 
 def _soak_module():

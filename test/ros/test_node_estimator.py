@@ -32,7 +32,7 @@ from soft_twin_core.model import find_file, load_model, model_from_dict, read_ya
 
 pytestmark = pytest.mark.ros
 
-ROOT = Path(__file__).resolve().parents[1]
+ROOT = Path(__file__).resolve().parents[2]
 NAMES = ["tendon_y_pos", "tendon_y_neg", "tendon_z_pos", "tendon_z_neg"]
 U = [14.0, 0.0, 8.0, 0.0]
 SENSORS = [{"name": f"em{i}", "type": "pose", "s": s, "sigma_position": 1.0e-3, "sigma_rotation": 0.01}

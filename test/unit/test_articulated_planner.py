@@ -26,7 +26,7 @@ from soft_twin_core.mechanism import load_mechanism
 from soft_twin_core.planner import PlanError
 from soft_twin_core.workspace import Workspace
 
-ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
+ROOT = os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 
 
 @pytest.fixture(scope="module")
