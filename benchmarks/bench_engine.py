@@ -413,12 +413,12 @@ def item4(args):
             r = st.solve_statics(m)
             ws.append(time.perf_counter() - t0)
             cs.append(time.process_time() - c0)
-        pb = st._Problem(m, u, loads)
+        pb = st.problem(m, u, loads)
         q = r.q
         t_tan = per_call(lambda: pb.tangent(q))
         t_res = per_call(lambda: pb.residual(q))
-        w_tan = per_call(lambda: st._fast_tangent(m, q, u, loads))
-        w_res = per_call(lambda: st._residual_fast(m, q, u, loads))
+        w_tan = per_call(lambda: st.problem(m, u, loads).tangent(q))
+        w_res = per_call(lambda: st.problem(m, u, loads).residual(q))
         nv = m.tree.nv
         print(f"{n:>8} {m.n_dof:>4} {fmt(np.median(ws)):>10} {fmt(min(ws)):>10} {fmt(np.median(cs)):>10} "
               f"{r.iterations:>3d} {r.load_steps:>5d} | {fmt(t_tan):>10} {fmt(t_res):>10} {t_tan / t_res:>7.1f} "
@@ -428,9 +428,9 @@ def item4(args):
     print(f"  10 sections: median {fmt(goal10[0]).strip()} wall, {fmt(goal10[1]).strip()} CPU   goal <= 3 ms "
           f"(old engine 30 ms)")
     print(f"  ({args.repeat_statics} solves per n, 40 sections {max(3, args.repeat_statics // 3)}; it: Newton "
-          f"iterations; steps: load steps; tangent / residual: statics._Problem.tangent / .residual at the "
+          f"iterations; steps: load steps; tangent / residual: equilibrium.Problem.tangent / .residual at the "
           f"equilibrium, best per call; 2 nv res: a central-difference tangent's cost; wrapped: "
-          f"statics._fast_tangent / _residual_fast, which also build the problem and its workspace)")
+          f"statics.problem(...).tangent / .residual, which also build the problem and its workspace)")
     print(f"[{load()}]")
 
 

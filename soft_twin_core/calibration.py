@@ -332,7 +332,7 @@ class Problem:
         from . import algorithms as alg
         from .forces import actuator_arrays
         from .kernels import passes
-        from .statics import _Problem, solve_statics
+        from .statics import problem, solve_statics
         from .workspace import Workspace
         theta = np.asarray(theta, dtype=float)
         model, sensors, mass = self.model(theta)
@@ -349,7 +349,7 @@ class Problem:
             q = sol.q
             self._q[r] = q
             if jacobian:
-                Kt = _Problem(model, u, loads).tangent(q)
+                Kt = problem(model, u, loads).tangent(q)
                 dR = np.zeros((model.n_dof, len(self.params)))
                 passes.forward_pass(ws.m, ws.w, np.ascontiguousarray(q), ws.zeros_v, ws.zeros_v, 0)
                 for j, p in enumerate(self.params):

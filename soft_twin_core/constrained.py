@@ -40,7 +40,10 @@ from .kernels.tangent import static_tangent_pass
 from .lie import log_so3
 from .loads import Loads
 from .multibody import FREE, PRISMATIC, REVOLUTE, SPHERICAL
-from .statics import StaticsError, actuation_vector
+from .equilibrium import constraint_null_space, equilibrium_stability, reduced_stiffness  # noqa: F401
+from . import equilibrium as eq
+from .errors import StaticsError
+from .statics import actuation_vector
 from .workspace import Workspace
 from .errors import StepError
 
@@ -341,42 +344,7 @@ class Equilibrium:
     inputs: Inputs = None
     stable: bool = True                 # see equilibrium_stability
     min_stiffness_eigenvalue: float = float("nan")
-
-
-def constraint_null_space(G, rtol=1e-10):
-    """An orthonormal basis Z (nv, k) of the motions the constraints allow
-    to first order (G Z = 0), from the SVD of G (redundant rows allowed)."""
-    nv = G.shape[1]
-    if G.shape[0] == 0:
-        return np.eye(nv)
-    _, sv, Vt = np.linalg.svd(G)
-    rank = int(np.sum(sv > rtol * sv.max())) if sv.size and sv.max() > 0 else 0
-    return Vt[rank:].T
-
-
-def reduced_stiffness(Kt, Z):
-    """Z^T Kt Z: the tangent stiffness dR/dq at fixed multipliers (the
-    Hessian of the Lagrangian, the constraint forces' geometric stiffness
-    included) on the constraints' allowed motions Z."""
-    return Z.T @ Kt @ Z
-
-
-def equilibrium_stability(Kt, G):
-    """(stable, smallest eigenvalue) of a constrained equilibrium: stable
-    when the reduced stiffness has no eigenvalue with a negative real part
-    (second-order condition of the constrained energy minimum; a follower
-    load's unsymmetric tangent: no divergence mode), to a round-off margin.
-    The eigenvalue is in the generalised units of the allowed motions."""
-    H = reduced_stiffness(Kt, constraint_null_space(G))
-    if H.size == 0:
-        return True, float("inf")
-    scale = max(np.abs(H).max(), 1e-300)
-    if np.abs(H - H.T).max() <= 1e-10 * scale:
-        ev = np.linalg.eigvalsh(0.5 * (H + H.T))
-    else:
-        ev = np.linalg.eigvals(H).real
-    lo = float(ev.min())
-    return bool(lo > -1e-9 * scale), lo
+    tangent: object = None              # without constraints: the last Newton tangent (a tangent_hint)
 
 
 def independent_rows(G, rtol=1e-10):
@@ -506,7 +474,7 @@ def _kkt_newton(pb, q, lam, tol, max_iterations):
 
 def solve_equilibrium(mech, actuation=None, efforts=None, positions=None, loads=None, point_loads=(),
                       q_init=None, *, targets=None, tol=1e-10, max_iterations=50, max_load_steps=64,
-                      check_stability=True):
+                      check_stability=True, tangent_hint=None):
     """Static equilibrium of a mechanism under actuation (tendon tensions N,
     chamber pressures Pa), joint efforts {joint: N m or N} of effort-controlled
     joints, positions {joint: rad or m} of position-controlled joints (default
@@ -517,13 +485,20 @@ def solve_equilibrium(mech, actuation=None, efforts=None, positions=None, loads=
     ``check_stability``: judge the equilibrium found (``stable``,
     ``min_stiffness_eigenvalue``: :func:`equilibrium_stability`); an
     unstable one is returned, flagged (a column past its buckling load
-    still has its straight equilibrium)."""
+    still has its straight equilibrium). A mechanism without constraint
+    rows or position-controlled joints (a classic rod, a tree of soft
+    members and effort-controlled or passive joints) is solved by
+    :func:`equilibrium.solve`: compiled Newton, the loaded path preferred
+    to an unstable equilibrium, and ``tangent_hint`` (a previous result's
+    ``tangent``) to skip the first tangents."""
     _check_statics_model(mech)
     inp = make_inputs(mech, actuation, efforts, positions, None, loads, point_loads)
     tree = mech.tree
     q = tree.q0.copy() if q_init is None else tree.check_q(np.array(q_init, dtype=float), "q_init").copy()
     m = mech.n_constraint_rows + len(mech.joints_with("position"))
     lam = np.zeros(m)
+    if m == 0:
+        return _free_equilibrium(mech, inp, q, tol, max_iterations, max_load_steps, check_stability, tangent_hint)
     with one_blas_thread():
         pb = _Equilibrium(mech, inp, targets)
         q1, lam1, it, ok, R, phi, sc = _kkt_newton(pb, q, lam, tol, max_iterations)
@@ -539,6 +514,22 @@ def solve_equilibrium(mech, actuation=None, efforts=None, positions=None, loads=
     return Equilibrium(q1.copy(), lam1.copy(), _efforts_out(mech, lam1, inp), constraint_wrenches(mech, lam1),
                        total, float(np.abs(R).max(initial=0) / sc), float(np.abs(phi).max(initial=0)), steps,
                        inp, stable, lo)
+
+
+def _free_equilibrium(mech, inp, q, tol, max_iterations, max_load_steps, check_stability, tangent_hint):
+    """:func:`solve_equilibrium` without multipliers: :func:`equilibrium.solve`."""
+    tree = mech.tree
+    act = _cached(mech, "_act_arrays", lambda: actuator_arrays(tree))
+    K, _ = _cached(mech, "_dense_KD", lambda: _dense_blocks(tree))
+    coef = np.ascontiguousarray(act.unit @ inp.u) if inp.u.size else np.zeros(len(act.joint))
+    with one_blas_thread():
+        pb = eq.Problem(tree, act, K, inp.loads, inp.gravity, coef, inp.effort)
+        sol = eq.solve(pb, q, tol=tol, max_iterations=max_iterations, max_load_steps=max_load_steps,
+                       check_stability=check_stability, tangent_hint=tangent_hint, eigenvalue=check_stability)
+    lam = np.zeros(0)
+    return Equilibrium(sol.q.copy(), lam, _efforts_out(mech, lam, inp), {}, sol.iterations,
+                       float(np.abs(sol.R).max(initial=0) / eq.force_scale(pb, sol.q, sol.R)), 0.0, sol.load_steps,
+                       inp, sol.stable, sol.min_stiffness_eigenvalue, sol.tangent)
 
 
 def _scaled_inputs(mech, inp, t, q_start):

@@ -261,7 +261,7 @@ def solve_actuation_ik(model, target, u_init=None, q_init=None, *, loads=None, p
         q, g = data
         ch = kin.chain(model, q)
         B = np.stack([actuation_force(model, ch, ek) for ek in np.eye(n_act)], axis=1)
-        dq_du = np.linalg.solve(st._fast_tangent(model, q, u, loads), B)
+        dq_du = np.linalg.solve(st.problem(model, u, loads).tangent(q), B)
         return _error_jacobian(g, e, kin.tip_jacobian(model, q), position_only) @ dq_du
 
     def done(data):

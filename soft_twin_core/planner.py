@@ -53,6 +53,7 @@ import numpy as np
 
 from . import kinematics as kin
 from . import lie
+from . import equilibrium as eq
 from . import statics as st
 from ._blas import one_blas_thread
 from .loads import Loads
@@ -112,7 +113,7 @@ class _Equilibrium:
 
     def __init__(self, model, loads):
         self.model, self.loads = model, loads
-        self.pb = st._Problem(model, np.zeros(len(model.actuators)), loads)
+        self.pb = st.problem(model, np.zeros(len(model.actuators)), loads)
         self.point_moment = any(a.tendon_model == "point_moment" for a in model.actuators)
 
     def _set(self, u):
@@ -158,9 +159,9 @@ class _Equilibrium:
     def newton(self, q, u, hint=None, tol=1e-12):
         """(q, converged and stable, last tangent): Newton from q under u."""
         pb = self._set(np.asarray(u, dtype=float))
-        q1, _, _, ok, Kt = st._newton(self.model, pb, q, tol, 30, hint)
+        q1, _, _, ok, Kt = eq.newton(pb, q, tol, 30, hint)
         if ok and Kt is not None and Kt is not hint:
-            ok = st.is_stable(self.model, q1, u, self.loads, Kt)
+            ok = eq.is_stable(Kt)
         elif ok:
             Kt = None
         return q1, ok, Kt

@@ -16,7 +16,7 @@ The small dense algebra is written out (the tangent's solve by Gaussian
 elimination with partial pivoting, O(n^3/3) for n free strains), so the
 kernel needs no BLAS/LAPACK and loads without scipy at start-up.
 
-It is :func:`soft_twin_core.statics._newton` moved into one compiled call:
+It is :func:`soft_twin_core.equilibrium.newton_numpy` in one compiled call:
 the Python loop around the kernels cost 0.44 of a warm solve's 0.68 ms
 (the actuation IK's statics, default robot). The tests check it against
 that Python loop (same iterates and iteration counts).
@@ -31,8 +31,8 @@ from .tangent import static_tangent_pass
 
 
 @_jit_inline
-def _residual(m, w, act, ld, g, coef, zeros, q, out):
-    residual_pass(m, w, act, ld, g, coef, zeros, q, zeros, zeros, out, TRUE)
+def _residual(m, w, act, ld, g, coef, effort, zeros, q, out):
+    residual_pass(m, w, act, ld, g, coef, effort, q, zeros, zeros, out, TRUE)
 
 
 @_jit_inline
@@ -47,10 +47,11 @@ def _tangent(m, w, act, ld, g, coef, K, Kt):
 
 
 @_jit_inner
-def _scale(K, q, q0, R):
-    """max(|K (q - q0)|, |K (q - q0) - R|): the elastic and the applied force."""
+def _scale(K, q, q0, R, floor):
+    """max(|K (q - q0)|, |K (q - q0) - R|, floor): the elastic and the applied
+    force, at least ``floor`` (:func:`soft_twin_core.equilibrium.load_scale`)."""
     n = q.shape[0]
-    s = 1e-300
+    s = max(floor, 1e-300)
     for i in range(n):
         kq = 0.0
         for j in range(n):
@@ -134,18 +135,20 @@ def _solve(A, b, out):
 
 
 @_jit
-def static_newton(m, w, act, ld, g, coef, K, absK, q0, q, tol, max_it, Kt_hint, use_hint, Kt, R):
+def static_newton(m, w, act, ld, g, coef, effort, K, absK, q0, q, tol, floor, max_it, Kt_hint, use_hint, Kt, R):
     """Newton from q (updated in place) to tolerance ``tol``; R receives the
     residual at the returned q, Kt the last fresh tangent. Returns
     (iterations, converged, which, tangents computed); which tangent was the
-    last used: 0 none, 1 the hint, 2 the fresh one in Kt."""
+    last used: 0 none, 1 the hint, 2 the fresh one in Kt. ``effort``: the
+    joint efforts (nv,) [N m or N] of effort-controlled joints (zeros for a rod);
+    ``floor``: the smallest force scale of the relative residual."""
     n = q.shape[0]
     zeros = np.zeros(n)
     dq = np.empty(n)
     q_try = np.empty(n)
     R_try = np.empty(n)
-    _residual(m, w, act, ld, g, coef, zeros, q, R)
-    scale = _scale(K, q, q0, R)
+    _residual(m, w, act, ld, g, coef, effort, zeros, q, R)
+    scale = _scale(K, q, q0, R, floor)
     which = 0
     n_tan = 0
     at_q = True                # the workspace holds the passes of the residual at q
@@ -158,7 +161,7 @@ def static_newton(m, w, act, ld, g, coef, K, absK, q0, q, tol, max_it, Kt_hint, 
                 if _solve(Kt_hint if which == 1 else Kt, -R, dq):
                     for i in range(n):
                         q_try[i] = q[i] + dq[i]
-                    _residual(m, w, act, ld, g, coef, zeros, q_try, R_try)
+                    _residual(m, w, act, ld, g, coef, effort, zeros, q_try, R_try)
                     if _finite(R_try) and _norm(R_try) < _norm(R):
                         _copy(q_try, q)
                         _copy(R_try, R)
@@ -168,7 +171,7 @@ def static_newton(m, w, act, ld, g, coef, K, absK, q0, q, tol, max_it, Kt_hint, 
             ok = _solve(Kt_hint, -R, dq)
         else:
             if not at_q:
-                _residual(m, w, act, ld, g, coef, zeros, q, R_try)
+                _residual(m, w, act, ld, g, coef, effort, zeros, q, R_try)
             _tangent(m, w, act, ld, g, coef, K, Kt)
             n_tan += 1
             which = 2
@@ -186,7 +189,7 @@ def static_newton(m, w, act, ld, g, coef, K, absK, q0, q, tol, max_it, Kt_hint, 
         for _ in range(20):
             for i in range(n):
                 q_try[i] = q[i] + step * dq[i]
-            _residual(m, w, act, ld, g, coef, zeros, q_try, R_try)
+            _residual(m, w, act, ld, g, coef, effort, zeros, q_try, R_try)
             if _finite(R_try):
                 r_try = _norm(R_try)
                 if r_try < (1 - 1e-4 * step) * r0:
@@ -204,5 +207,5 @@ def static_newton(m, w, act, ld, g, coef, K, absK, q0, q, tol, max_it, Kt_hint, 
         _copy(q_try, q)
         _copy(R_try, R)
         at_q = True
-        scale = max(scale, _scale(K, q, q0, R))
+        scale = max(scale, _scale(K, q, q0, R, floor))
     return it, _converged(absK, q, q0, R, scale, tol), which, n_tan

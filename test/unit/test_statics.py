@@ -5,6 +5,7 @@ import pytest
 
 from soft_twin_core import kinematics as kin
 from soft_twin_core import loads as ld
+from soft_twin_core import equilibrium as eq
 from soft_twin_core import statics as st
 from soft_twin_core.model import benchmark_cantilever_dict, model_from_dict
 
@@ -94,7 +95,7 @@ def test_point_moment_tendon_model_matches_distributed_in_plane(end):
     q = ra.q + 0.1
     for u in ([0.4, 0.0], [0.0, 0.4]):
         ref = ld.actuation_force(m, kin.chain(m, q), np.array(u))
-        assert np.abs(st._residual_fast(m, q, np.array(u), ld.Loads(gravity=False))
+        assert np.abs(st.problem(m, np.array(u), ld.Loads(gravity=False)).residual(q)
                       - st.residual(m, q, np.array(u), ld.Loads(gravity=False))).max() < 1e-12 * np.abs(ref).max()
 
 
@@ -250,9 +251,9 @@ def test_compiled_residual_and_tangent_match_reference():
     loads = ld.Loads(point=(ld.tip_load(m, force=(0.01, 0.02, -0.03), moment=(0.001, 0, 0.002)),))
     u = np.array([0.4])
     R0 = st.residual(m, q, u, loads)
-    assert np.abs(st._residual_fast(m, q, u, loads) - R0).max() < 1e-12 * np.abs(R0).max()
+    assert np.abs(st.problem(m, u, loads).residual(q) - R0).max() < 1e-12 * np.abs(R0).max()
     K0 = st.tangent(m, q, u, loads)
-    assert np.abs(st._fast_tangent(m, q, u, loads) - K0).max() < 1e-7 * np.abs(K0).max()
+    assert np.abs(st.problem(m, u, loads).tangent(q) - K0).max() < 1e-7 * np.abs(K0).max()
 
 
 def planar_cantilever_under_gravity(EA, GA, EI, rhoA, g, L):
@@ -304,12 +305,12 @@ def test_tangent_hint_gives_the_same_equilibrium_with_fewer_tangents(monkeypatch
     assert r0.tangent is not None
     loads2 = ld.Loads(point=(ld.tip_load(m, (0.0, 0.021, -0.01)),))
     problems = []
-    real = st._Problem.__init__
+    real = eq.Problem.__init__
 
     def init(self, *a):
         real(self, *a)
         problems.append(self)
-    monkeypatch.setattr(st._Problem, "__init__", init)
+    monkeypatch.setattr(eq.Problem, "__init__", init)
 
     def tangents():
         n = sum(p.n_tangents for p in problems)
@@ -324,14 +325,13 @@ def test_tangent_hint_gives_the_same_equilibrium_with_fewer_tangents(monkeypatch
 
 
 def _compiled_newton(model, pb, q, tol, max_iterations, hint):
-    """st._newton forced onto the compiled kernel whatever the size."""
-    import soft_twin_core.statics as stm
-    old = stm.COMPILED_NEWTON_MAX_DOF
-    stm.COMPILED_NEWTON_MAX_DOF = 10 ** 9
+    """eq.newton forced onto the compiled kernel whatever the size."""
+    old = eq.COMPILED_NEWTON_MAX_DOF
+    eq.COMPILED_NEWTON_MAX_DOF = 10 ** 9
     try:
-        return stm._newton(model, pb, q, tol, max_iterations, hint)
+        return eq.newton(pb, q, tol, max_iterations, hint)
     finally:
-        stm.COMPILED_NEWTON_MAX_DOF = old
+        eq.COMPILED_NEWTON_MAX_DOF = old
 
 
 def test_compiled_newton_takes_the_reference_iterates():
@@ -351,21 +351,21 @@ def test_compiled_newton_takes_the_reference_iterates():
     cases.append((bench, np.zeros(0), ld.Loads()))
     cases.append((bench, np.zeros(0), ld.Loads(point=(ld.tip_load(bench, (0.0, 0.01, 0.0)),))))
     big = model_from_dict(benchmark_cantilever_dict(20, "all"))       # 120 unknowns: the numpy path in use
-    assert big.n_dof > st.COMPILED_NEWTON_MAX_DOF >= bench.n_dof
+    assert big.n_dof > eq.COMPILED_NEWTON_MAX_DOF >= bench.n_dof
     cases.append((big, np.zeros(0), ld.Loads()))
     n_hint_kept = 0
     for model, u, loads in cases:
-        pb = st._Problem(model, u, loads)
+        pb = st.problem(model, u, loads)
         for q_start, hint in ((model.q0.copy(), None),
                               (st.solve_statics(model, 0.9 * u if u.size else None).q, None)):
-            ref = st._newton_numpy(model, pb, q_start.copy(), 1e-10, 50, hint)
+            ref = eq.newton_numpy(pb, q_start.copy(), 1e-10, 50, hint)
             got = _compiled_newton(model, pb, q_start.copy(), 1e-10, 50, hint)
             assert got[2] == ref[2] and got[3] == ref[3]
             assert np.abs(got[0] - ref[0]).max() <= 1e-9 * max(1.0, np.abs(ref[0]).max())
             assert (got[4] is None) == (ref[4] is None)
             # hinted from the same start with the cold solve's first tangent
             hint = pb.tangent(q_start)
-            ref = st._newton_numpy(model, pb, q_start.copy(), 1e-10, 50, hint)
+            ref = eq.newton_numpy(pb, q_start.copy(), 1e-10, 50, hint)
             got = _compiled_newton(model, pb, q_start.copy(), 1e-10, 50, hint)
             assert got[2] == ref[2] and got[3] == ref[3]
             assert np.abs(got[0] - ref[0]).max() <= 1e-9 * max(1.0, np.abs(ref[0]).max())
