@@ -33,7 +33,7 @@ import numpy as np
 from . import algorithms as alg
 from ._blas import one_blas_thread
 from .forces import actuation_pass, actuation_tangent_pass, actuator_arrays, gravity_of, load_arrays
-from .integrators import integrate_pass, residual_pass
+from .integrators import ThetaIntegrator, integrate_pass, residual_pass
 from .kernels import passes
 from .kernels.data import LoadArrays
 from .kernels.tangent import static_tangent_pass
@@ -564,6 +564,14 @@ def _continuation(mech, inp, targets, q, lam, tol, max_iterations, max_load_step
 # Dynamics
 # ----------------------------------------------------------------------------
 
+class _FreeState:
+    """The plain state ThetaIntegrator advances (q, qdot, t)."""
+    __slots__ = ("q", "qdot", "t")
+
+    def __init__(self, q, qdot, t):
+        self.q, self.qdot, self.t = q, qdot, t
+
+
 class MechanismSimulator:
     """Time integration of a mechanism with joint control and constraints:
     the theta-method step of :mod:`integrators` (theta = 1/2: implicit
@@ -597,6 +605,12 @@ class MechanismSimulator:
         self.iterations = 0
         self.inputs = make_inputs(mech)
         self.Ls = _length_scale(mech)
+        # no multipliers (a rod, a tree of soft members and effort-controlled or passive joints): the
+        # engine's compiled O(n) integrator, the rod's (integrators.ThetaIntegrator)
+        self._theta_integrator = None
+        if self.lam.size == 0:
+            self._theta_integrator = ThetaIntegrator(tree, self.ws, self.act, lambda t: self._held, self.dt, self.theta,
+                                                     tol=tol, max_iterations=max_iterations)
 
     def step(self, actuation=None, efforts=None, positions=None, loads=None, point_loads=(), targets=None,
              n=1, inputs=None):
@@ -608,9 +622,27 @@ class MechanismSimulator:
                                                             loads, point_loads)
         self.inputs = inp
         with one_blas_thread():
-            for _ in range(int(n)):
-                self._step(inp, targets)
+            if self._theta_integrator is not None:
+                self._run_free(inp, int(n))
+            else:
+                for _ in range(int(n)):
+                    self._step(inp, targets)
         return self
+
+    def _run_free(self, inp, n):
+        """n steps of :class:`integrators.ThetaIntegrator` (no multipliers)."""
+        coef = np.ascontiguousarray(self.act.unit @ inp.u) if inp.u.size else np.zeros(len(self.act.joint))
+        self._held = (inp.loads, inp.gravity, coef, inp.effort)
+        integ = self._theta_integrator
+        integ.last_a = self.a
+        state = _FreeState(self.q, self.v, self.t)
+        it0 = integ.iterations
+        info = integ.run(state, n)          # the converged steps in one compiled call
+        self.q, self.v, self.t, self.a = state.q, state.qdot, state.t, integ.last_a
+        self.iterations = (integ.iterations - it0) // max(n, 1)
+        if not info.converged:
+            raise StepError(f"step at t = {state.t:.6g} s: Newton did not converge in {integ.max_iterations} "
+                            f"iterations, in sub-steps either")
 
     def _newton_matrix(self, inp, coef, ld, qt, q1, targets):
         """Factors of the step's Newton matrix at (q_t, lambda):
