@@ -28,7 +28,7 @@ from soft_twin_core import constrained as cs
 from soft_twin_core.loads import Loads
 from soft_twin_core.mechanism import check_joint_position, shape_command
 from soft_twin_core.model import State
-from soft_twin_core.outputs import section_strains, state_outputs
+from soft_twin_core.outputs import q_from_section_strains, section_strains, state_outputs
 
 from soft_twin.text import clip, short_list
 from soft_twin.twin import STEP_ERRORS, InputError, TwinSettings, UpdateInfo
@@ -402,6 +402,27 @@ class ArticulatedTwin:
         self.set_tip_wrench(wrench, frame)
         info = self._solve()
         return info, (self.outputs() if info.converged else None)
+
+    def forward_kinematics(self, strains=(), actuation=None):
+        """(message, snapshot) of a shape, the twin untouched (on a
+        :meth:`query_copy`): the given section strains ((n_soft_sections x 6)
+        values in tree order, the joints where they are now), or the
+        equilibrium under ``actuation`` (inputs vector; gravity, the current
+        joint commands, no tip wrench), or (neither) the current state.
+        Raises ValueError (ModelError) naming a bad input, StaticsError."""
+        strains = np.asarray(list(strains), dtype=float)
+        if strains.size and actuation is not None:
+            raise ValueError("give strains or an actuation, not both")
+        if strains.size:
+            self.state.q = q_from_section_strains(self.mech, strains, self.state.q)
+            return "ok: shape of the given strains (joints at their current positions)", self.outputs()
+        if actuation is not None:
+            info, snap = self.statics(actuation, np.zeros(6))
+            if not info.converged:
+                raise cs.StaticsError(info.message)
+            return "ok: static shape under the actuation, the joint commands and gravity" + (
+                "" if info.stable else " (unstable equilibrium)"), snap
+        return "ok: the twin's current shape", self.outputs()
 
     def held_loads(self):
         """The tip wrench as the core's point loads (empty without one)."""

@@ -1152,11 +1152,6 @@ class SoftTwinNode(Node):
         resp.strains = res.strains.ravel().tolist()
 
     def _srv_fk(self, req, resp):
-        if self.robot.articulated:
-            resp.success, resp.message = False, ("forward_kinematics: not available for articulated robots; "
-                                                 "use statics_query (equilibrium with the current joint "
-                                                 "commands) or the published states")
-            return resp
         model, q, u, _, _, cfg, order = self._copy_state()
         actuation = None
         try:
@@ -1165,6 +1160,8 @@ class SoftTwinNode(Node):
         except tw.InputError as e:
             resp.success, resp.message = False, clip(f"actuation rejected ({e.reason}): {e}", 400)
             return resp
+        if self.robot.articulated:
+            return self._articulated_fk(resp, req.strains, actuation, cfg)
         res = tw.forward_kinematics(model, q, cfg.backbone_points_per_section, req.strains, actuation)
         resp.success, resp.message = res.success, clip(res.message, 400)
         if res.success:
@@ -1258,6 +1255,23 @@ class SoftTwinNode(Node):
         # as the rod robots' position-only answer: |log(R_achieved^T R_target)| (informative only)
         resp.orientation_error = float(np.linalg.norm(lie.log_so3(r.achieved_pose[:3, :3].T @ target[:3, :3])))
         resp.iterations = int(r.iterations)
+        return resp
+
+    def _articulated_fk(self, resp, strains, actuation, cfg):
+        """FK of an articulated robot: the main member's backbone and the tip
+        frame for given section strains (joints where they are), the
+        equilibrium under an actuation, or the current state (the twin untouched)."""
+        with self._lock:
+            query = self.twin.query_copy()
+        try:
+            message, snap = query.forward_kinematics(strains, actuation)
+        except (ValueError, StaticsError) as e:
+            resp.success, resp.message = False, clip(str(e), 400)
+            return resp
+        resp.success, resp.message = True, clip(message, 400)
+        resp.backbone = cv.pose_array(snap.backbone, self._header(cfg.base_frame))
+        resp.tip_pose = cv.pose_msg(snap.tip_pose)
+        resp.strains = snap.strains.ravel().tolist()
         return resp
 
     def _articulated_statics(self, resp, actuation, w, frame, cfg):

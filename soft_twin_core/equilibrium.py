@@ -17,6 +17,8 @@ rejected in favour of the loaded path from the start point (continuation
 in a load factor, also used when a full solve fails).
 """
 
+import math
+
 import numpy as np
 
 from .errors import StaticsError
@@ -84,12 +86,12 @@ def load_scale(tree, loads, g, effort):
     held upright by a spring has no elastic force and no gravity torque at
     its equilibrium (the weight is carried by the structure), and relative
     to their round-off its residual would never converge."""
-    a = tree.arrays
-    mass = float(np.sum(a.inertia[:, 0, 0] * a.rigid_mass) + np.sum(a.mc[:, 0] * a.pw.sum(axis=1)))
-    size = float(np.sum(a.length) + np.sum(np.linalg.norm(a.placement[:, :3, 3], axis=1)))
+    mass, size = tree.mass_and_size
     w = loads.wrench
-    return (np.linalg.norm(g) * mass * size + np.abs(w[:, :3]).sum() * size + np.abs(w[:, 3:]).sum()
-            + np.abs(effort).max(initial=0.0))
+    scale = math.sqrt(g[0] * g[0] + g[1] * g[1] + g[2] * g[2]) * mass * size
+    if w.shape[0]:
+        scale += np.abs(w[:, :3]).sum() * size + np.abs(w[:, 3:]).sum()
+    return scale + np.abs(effort).max(initial=0.0)
 
 
 # ----------------------------------------------------------------------------

@@ -46,6 +46,7 @@ Units SI; twists, strains and wrenches ``[linear; angular]`` in body frames
 """
 
 from dataclasses import dataclass, field
+from functools import cached_property
 
 import numpy as np
 
@@ -187,25 +188,28 @@ class Model:
     def n_joints(self):
         return len(self.joints)
 
-    @property
+    # derived data made on first use and kept (functools.cached_property: the
+    # frozen dataclass's __dict__, no __setattr__); the model never changes
+    @cached_property
     def arrays(self):
-        """The packed arrays of the compiled passes (:class:`kernels.data.ModelArrays`), built once."""
-        a = self.__dict__.get("_arrays")
-        if a is None:
-            from .kernels.data import pack_model
-            a = pack_model(self)
-            object.__setattr__(self, "_arrays", a)
-        return a
+        """The packed arrays of the compiled passes (:class:`kernels.data.ModelArrays`)."""
+        from .kernels.data import pack_model          # numba: only when a pass is run
+        return pack_model(self)
 
-    @property
+    @cached_property
     def kernel_arrays(self):
         """:attr:`arrays` as the compiled passes take them (a structref of the same arrays)."""
-        a = self.__dict__.get("_kernel_arrays")
-        if a is None:
-            from .kernels.data import kernel_struct
-            a = kernel_struct(self.arrays)
-            object.__setattr__(self, "_kernel_arrays", a)
-        return a
+        from .kernels.data import kernel_struct
+        return kernel_struct(self.arrays)
+
+    @cached_property
+    def mass_and_size(self):
+        """(total mass [kg], size [m]): the rigid bodies' and soft sections'
+        mass; the soft paths' lengths plus the joints' placement offsets."""
+        a = self.arrays
+        mass = float(np.sum(a.inertia[:, 0, 0] * a.rigid_mass) + np.sum(a.mc[:, 0] * a.pw.sum(axis=1)))
+        size = float(np.sum(a.length) + np.sum(np.linalg.norm(a.placement[:, :3, 3], axis=1)))
+        return mass, size
 
     def joint_index(self, name):
         for i, j in enumerate(self.joints):

@@ -22,6 +22,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from .errors import ModelError
 from .kernels import passes
 from .stress import peak_stresses
 
@@ -127,6 +128,34 @@ def section_strains(mech, q):
         f[sec.modes] = q[iq:iq + len(sec.modes)]
         out.append(f)
     return np.array(out, dtype=float).reshape(-1, 6)
+
+
+def q_from_section_strains(mech, strains, q):
+    """``q`` with every soft section's free modes taken from ``strains``
+    ((n_soft_sections, 6) or as many values row-major, the order of
+    :func:`section_strains`); rigid joints as in q. ModelError naming the
+    bad value: a wrong count, NaN or inf, or a mode that is not free set
+    away from the reference strain (the inverse of :func:`section_strains`)."""
+    tree = mech.tree
+    n = len(tree.soft_joints)
+    xi = np.asarray(strains, dtype=float).reshape(-1)
+    if xi.size != 6 * n:
+        raise ModelError(f"strains: expected {6 * n} values ({n} soft sections x 6, in tree order), got {xi.size}")
+    if not np.all(np.isfinite(xi)):
+        raise ModelError("strains: contain NaN or inf")
+    xi = xi.reshape(n, 6)
+    out = np.array(q, dtype=float)
+    for k, i in enumerate(tree.soft_joints):
+        sec = tree.joints[i].section
+        fixed = np.setdiff1d(np.arange(6), sec.modes)
+        bad = fixed[np.abs(xi[k, fixed] - sec.f0[fixed]) > 1e-12]
+        if bad.size:
+            raise ModelError(f"strains: section {k} ({tree.joints[i].name}) sets mode(s) {bad.tolist()}, which are "
+                             f"not free in this robot, to {xi[k, bad].tolist()}; they must stay at the reference "
+                             f"strain {sec.f0[bad].tolist()}")
+        iq = tree.idx_q[i]
+        out[iq:iq + len(sec.modes)] = xi[k, sec.modes]
+    return out
 
 
 def joint_wrenches(mech, ws):

@@ -225,3 +225,32 @@ def test_internal_wrench_topic_along_the_member(pan_tilt_qs):
     assert c.wait_until(lambda: got and np.allclose(np.reshape(got[-1].data, (-1, 6)), want, rtol=0, atol=1e-9),
                         10.0), "internal wrenches differ from the core's"
     assert [d.size for d in got[-1].layout.dim] == [5, 6]
+
+
+def test_forward_kinematics_service_answers_for_a_tree_robot(pan_tilt_qs):
+    """~/forward_kinematics of an articulated robot (was refused): the
+    current state, the strains of an equilibrium of the core (its tool pose
+    back), an actuation (the core's equilibrium with the current joint
+    commands), and a wrong strain count named in the answer."""
+    from soft_twin.srv import ForwardKinematics
+    from soft_twin_core.outputs import section_strains
+    c = pan_tilt_qs
+    mech = load_mechanism(find_file("pan_tilt_arm", "robots"))
+    stamp = c.send_actuation(["tendon_z_pos"], [0.0])
+    assert c.wait_until(lambda: c.state_after(stamp), 10.0)
+    stamp = c.send_joint_command(["pan", "tilt"], positions=[-0.2, 0.25])
+    assert c.wait_until(lambda: c.state_after(stamp), 10.0)
+    ref = solve_equilibrium(mech, {"tendon_y_neg": 1.5}, None, {"pan": -0.2, "tilt": 0.25})
+    tool = state_outputs(mech, ref.q, ref.lam, ref.inputs).frames["tool"]
+    r = c.call("forward_kinematics", ForwardKinematics.Request(strains=section_strains(mech, ref.q).ravel().tolist()))
+    assert r.success, r.message
+    np.testing.assert_allclose(matrix_from_pose(r.tip_pose), tool, rtol=0, atol=1e-9)
+    assert len(r.backbone.poses) == 5 and r.backbone.header.frame_id == "base_link"
+    r = c.call("forward_kinematics", ForwardKinematics.Request(actuator_names=["tendon_y_neg"],
+                                                               actuator_values=[1.5]))
+    assert r.success, r.message
+    np.testing.assert_allclose(matrix_from_pose(r.tip_pose), tool, rtol=0, atol=1e-8)
+    r = c.call("forward_kinematics", ForwardKinematics.Request())
+    assert r.success and "current" in r.message
+    r = c.call("forward_kinematics", ForwardKinematics.Request(strains=[0.0] * 6))
+    assert not r.success and "expected 24 values" in r.message

@@ -508,3 +508,39 @@ def test_params_file_lists_every_parameter_with_its_default():
         assert values[name] == default, (name, values[name], default)
     assert set(values) <= set(PARAMETERS)
     config_from_values(values)
+
+
+def test_forward_kinematics_of_an_articulated_twin():
+    """FK of a tree robot (issue 26): the strains of an equilibrium give
+    back its tip pose (joints where they are); the current state; the
+    equilibrium under an actuation equals the core's; bad strains are
+    named; the twin is untouched."""
+    from soft_twin.articulated import ArticulatedTwin
+    from soft_twin_core.constrained import solve_equilibrium
+    from soft_twin_core.mechanism import load_mechanism
+    from soft_twin_core.model import ModelError, find_file
+    from soft_twin_core.outputs import q_from_section_strains, section_strains, state_outputs
+    mech = load_mechanism(find_file("pan_tilt_arm", "robots"))
+    twin = ArticulatedTwin(mech, tw.TwinSettings(mode="quasi_static"))
+    twin.set_joint_commands({"pan": 0.3, "tilt": -0.2}, {})
+    twin.step()
+    q_before = twin.state.q.copy()
+    ref = solve_equilibrium(mech, {"tendon_y_pos": 2.0}, None, {"pan": 0.3, "tilt": -0.2})
+    out = state_outputs(mech, ref.q, ref.lam, ref.inputs)
+    # the strains of that equilibrium, the joints at the twin's (same commands): its tip pose
+    msg, snap = twin.query_copy().forward_kinematics(section_strains(mech, ref.q).ravel())
+    assert msg.startswith("ok") and np.abs(snap.tip_pose - out.frames["tool"]).max() < 1e-12
+    msg, snap = twin.query_copy().forward_kinematics((), np.array([2.0, 0.0, 0.0, 0.0]))
+    assert np.abs(snap.tip_pose - out.frames["tool"]).max() < 1e-9
+    msg, snap = twin.query_copy().forward_kinematics()
+    assert "current" in msg and np.abs(snap.tip_pose - twin.outputs().tip_pose).max() == 0.0
+    with pytest.raises(ModelError, match="expected 24 values"):
+        twin.query_copy().forward_kinematics(np.zeros(6))
+    bad = section_strains(mech, ref.q)
+    bad[1, 0] = 1.1                                            # axial: not free in this arm
+    with pytest.raises(ModelError, match=r"section 1 .* mode\(s\) \[0\]"):
+        q_from_section_strains(mech, bad, ref.q)
+    with pytest.raises(ValueError, match="not both"):
+        twin.query_copy().forward_kinematics(np.zeros(24), np.zeros(4))
+    assert np.array_equal(twin.state.q, q_before)
+    np.testing.assert_array_equal(q_from_section_strains(mech, section_strains(mech, ref.q), q_before), ref.q)
