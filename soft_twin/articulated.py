@@ -25,13 +25,19 @@ import numpy as np
 
 from soft_twin_core import articulated_planner as ap
 from soft_twin_core import constrained as cs
-from soft_twin_core.loads import Loads
 from soft_twin_core.mechanism import check_joint_position, shape_command
 from soft_twin_core.model import State
 from soft_twin_core.outputs import q_from_section_strains, section_strains, state_outputs
 
 from soft_twin.text import clip, short_list
 from soft_twin.twin import STEP_ERRORS, InputError, TwinSettings, UpdateInfo
+
+
+def _same_inputs(a, b):
+    """Two input tuples of :meth:`ArticulatedTwin._inputs_tuple` alike (the
+    stamps by identity)."""
+    return (np.array_equal(a[0], b[0]) and np.array_equal(a[1], b[1]) and a[2] == b[2] and a[3] == b[3]
+            and a[4] == b[4] and all(x is y for x, y in zip(a[5:], b[5:])))
 
 
 def tip_frame_of(mech):
@@ -173,31 +179,39 @@ class ArticulatedTwin:
         self.joint_stamp = None          # the newest joint command's header
         self.actuation_stamp = None      # the newest actuation command's header
         self._dirty = True
+        self._tangent = None             # the last equilibrium's tangent (robots without multipliers): a hint
         self.rest_q, self.rest_message = self._rest()
         self.lam = np.zeros(mech.n_constraint_rows + len(mech.joints_with("position")))
-        self._keep_good()
+        self._keep_good(reset=True)
         self.reset(solve=False)
 
     # --- inputs -------------------------------------------------------------
-    def _keep_good(self):
+    def _keep_good(self, reset=False):
         """The current inputs are those of a good state (a step or solve
-        succeeded with them): what a failed one falls back to."""
-        self._good = self._inputs_tuple()
+        succeeded with them): what a failed one falls back to; the good
+        inputs before them are kept as the fallback of a late failure."""
+        now = self._inputs_tuple()
+        if reset:
+            self._fallback = None
+        elif not _same_inputs(now, self._good):
+            self._fallback = self._good
+        self._stuck = False
+        self._good = now
         self._good_joint_stamp = self.joint_stamp
         self._good_actuation_stamp = self.actuation_stamp
 
     def _inputs_tuple(self):
         return (self.u.copy(), self.tip_wrench.copy(), self.tip_frame, dict(self.positions), dict(self.efforts),
-                self.command_stamp)
+                self.command_stamp, self.joint_stamp, self.actuation_stamp)
 
     def core_inputs(self, positions=None, velocities=None):
-        """The checked core Inputs of the current commands (``positions``,
+        """The core Inputs of the current commands (``positions``,
         ``velocities``: instead of the commanded ones, e.g. the shaped
-        references)."""
-        pl = [cs.FrameLoad(self.tip, self.tip_wrench, "world" if self.tip_frame == "world" else "body")] \
-            if np.any(self.tip_wrench) else []
-        return cs.make_inputs(self.mech, self.u, self.efforts, self.positions if positions is None else positions,
-                              velocities, Loads(), pl)
+        references), assembled without a second check: the node checked
+        every command at the door (:func:`parse_joint_command`,
+        :func:`soft_twin.twin.parse_actuation`, :func:`soft_twin.twin.parse_tip_wrench`)."""
+        return cs.assemble_inputs(self.mech, self.u, self.efforts,
+                                  self.positions if positions is None else positions, velocities, self.held_loads())
 
     def _shaped(self, h):
         """The position references after one step h towards the commands
@@ -262,7 +276,7 @@ class ArticulatedTwin:
         self.positions = {mech.tree.joints[i].name: mech.tree.joints[i].q_ref for i in mech.joints_with("position")}
         self.efforts = {mech.tree.joints[i].name: 0.0 for i in mech.joints_with("effort")}
         self.command_stamp = self.joint_stamp = self.actuation_stamp = None
-        self._keep_good()
+        self._keep_good(reset=True)
         self.state = State(self.rest_q.copy(), np.zeros(mech.tree.nv), 0.0)
         self._ref = {n: (float(v), 0.0) for n, v in self.positions.items()}
         self.lam = np.zeros_like(self.lam)
@@ -328,17 +342,32 @@ class ArticulatedTwin:
         return info
 
     def _drop(self):
-        """Back to the inputs of the last good state; what changed is dropped."""
-        now, good = self._inputs_tuple(), self._good
+        """After a failed step or solve, the rod twin's policy
+        (:meth:`soft_twin.twin.Twin._drop_failed_inputs`): back to the inputs
+        of the last good state if they changed since (those failed), else,
+        once, to the inputs before the state's own; with nothing left to
+        drop, new inputs are not blamed: they are kept and tried at every
+        step (until one converges, or a reset). Returns what was dropped."""
+        now = self._inputs_tuple()
+        if self._stuck:
+            return ()
+        if not _same_inputs(now, self._good):
+            target = self._good
+        elif self._fallback is not None and not _same_inputs(now, self._fallback):
+            target = self._good = self._fallback
+            self._fallback = None
+        else:
+            self._stuck = True
+            return ()
         dropped = []
-        if not np.array_equal(now[0], good[0]):
+        if not np.array_equal(now[0], target[0]) or now[7] is not target[7]:
             dropped.append("actuation")
-        if now[3] != good[3] or now[4] != good[4]:
+        if now[3] != target[3] or now[4] != target[4] or now[6] is not target[6]:
             dropped.append("joint")
-        if not np.array_equal(now[1], good[1]) or now[2] != good[2]:
+        if not np.array_equal(now[1], target[1]) or now[2] != target[2]:
             dropped.append("wrench")
-        (u, w, frame, pos, eff, self.command_stamp) = good
-        self.joint_stamp, self.actuation_stamp = self._good_joint_stamp, self._good_actuation_stamp
+        (u, w, frame, pos, eff, self.command_stamp, self.joint_stamp, self.actuation_stamp) = target
+        self._good_joint_stamp, self._good_actuation_stamp = self.joint_stamp, self.actuation_stamp
         self.u, self.tip_wrench, self.tip_frame = u.copy(), w.copy(), frame
         self.positions, self.efforts = dict(pos), dict(eff)
         # the simulator's state is unchanged by a failed step
@@ -349,16 +378,14 @@ class ArticulatedTwin:
             return UpdateInfo()
         self._dirty = False
         try:
-            inp = self.core_inputs()
-            pl = [cs.FrameLoad(self.tip, self.tip_wrench, "world" if self.tip_frame == "world" else "body")] \
-                if np.any(self.tip_wrench) else []
-            eq = cs.solve_equilibrium(self.mech, inp.u, self.efforts, self.positions, Loads(), pl,
-                                      q_init=self.state.q)
+            eq = cs.solve_equilibrium(self.mech, q_init=self.state.q, inputs=self.core_inputs(),
+                                      tangent_hint=self._tangent)
         except (ValueError, cs.StaticsError) + STEP_ERRORS as e:
             dropped = self._drop()
             return UpdateInfo(0, 0, False, f"statics failed for the last input (dropped): {clip(e, 300)}; "
                                            f"state kept", dropped=dropped)
         self._keep_good()
+        self._tangent = eq.tangent
         self._ref = {n: (float(v), 0.0) for n, v in self.positions.items()}
         self.state.q = eq.q.copy()
         self.state.qdot = np.zeros(self.mech.tree.nv)
@@ -467,13 +494,13 @@ class ArticulatedTwin:
     # --- outputs ------------------------------------------------------------
     def outputs(self):
         mech, tree = self.mech, self.mech.tree
-        u, w, frame, pos, eff, stamp = self._good
+        u, w, frame, pos, eff, stamp = self._good[:6]
         dynamic = self.settings.mode == "dynamic" and self._sim is not None
         q = self.state.q.copy()
         v = self.state.qdot.copy() if dynamic else None
         a = self._sim.a.copy() if dynamic else None
         pl = [cs.FrameLoad(self.tip, w, "world" if frame == "world" else "body")] if np.any(w) else []
-        inp = cs.make_inputs(mech, u, eff, pos, None, Loads(), pl)
+        inp = cs.assemble_inputs(mech, u, eff, pos, None, pl)         # the good state's inputs: checked
         out = state_outputs(mech, q, self.lam, inp, v, a)
         names = mech.joint_names
         backbones = {m.name: (m.poses, m.s) for m in out.members}

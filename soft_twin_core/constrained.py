@@ -156,6 +156,31 @@ def make_inputs(mech, actuation=None, efforts=None, positions=None, velocities=N
     return Inputs(u, effort, q_cmd, v_cmd, ld, gravity_of(tree, loads))
 
 
+def assemble_inputs(mech, u, efforts, positions, velocities=None, point_loads=()):
+    """:class:`Inputs` of values checked at the door (the node's parse
+    functions, :func:`make_inputs`), without checking them again: ``u``
+    (n_actuators,), ``efforts`` and ``positions`` {joint: value} of the
+    effort- and position-controlled joints (the others at 0 and at their
+    reference), ``velocities`` {joint: value} or None, ``point_loads``
+    (FrameLoad on existing frames). Gravity on, no path loads."""
+    tree = mech.tree
+    effort = np.zeros(tree.nv)
+    for i in mech.joints_with("effort"):
+        effort[tree.idx_v[i]] = efforts.get(tree.joints[i].name, 0.0)
+    pos = mech.joints_with("position")
+    q_cmd = np.array([positions.get(tree.joints[i].name, tree.joints[i].q_ref) for i in pos], dtype=float)
+    v_cmd = None if velocities is None else np.array([velocities.get(tree.joints[i].name, 0.0) for i in pos],
+                                                     dtype=float)
+    return Inputs(np.asarray(u, dtype=float), effort, q_cmd, v_cmd, _checked_frame_loads(mech, point_loads),
+                  np.asarray(tree.gravity, dtype=float))
+
+
+def _checked_frame_loads(mech, point_loads):
+    if not point_loads:
+        return LoadArrays(np.zeros(0, np.int64), np.zeros(0), np.zeros((0, 6)), np.zeros(0, np.bool_))
+    return frame_loads(mech, point_loads)
+
+
 # ----------------------------------------------------------------------------
 # Constraint rows
 # ----------------------------------------------------------------------------
@@ -474,7 +499,7 @@ def _kkt_newton(pb, q, lam, tol, max_iterations):
 
 def solve_equilibrium(mech, actuation=None, efforts=None, positions=None, loads=None, point_loads=(),
                       q_init=None, *, targets=None, tol=1e-10, max_iterations=50, max_load_steps=64,
-                      check_stability=True, tangent_hint=None):
+                      check_stability=True, tangent_hint=None, inputs=None):
     """Static equilibrium of a mechanism under actuation (tendon tensions N,
     chamber pressures Pa), joint efforts {joint: N m or N} of effort-controlled
     joints, positions {joint: rad or m} of position-controlled joints (default
@@ -490,9 +515,11 @@ def solve_equilibrium(mech, actuation=None, efforts=None, positions=None, loads=
     members and effort-controlled or passive joints) is solved by
     :func:`equilibrium.solve`: compiled Newton, the loaded path preferred
     to an unstable equilibrium, and ``tangent_hint`` (a previous result's
-    ``tangent``) to skip the first tangents."""
+    ``tangent``) to skip the first tangents. ``inputs``: :class:`Inputs`
+    already checked (:func:`make_inputs`, :func:`assemble_inputs`) instead
+    of the input arguments."""
     _check_statics_model(mech)
-    inp = make_inputs(mech, actuation, efforts, positions, None, loads, point_loads)
+    inp = inputs if inputs is not None else make_inputs(mech, actuation, efforts, positions, None, loads, point_loads)
     tree = mech.tree
     q = tree.q0.copy() if q_init is None else tree.check_q(np.array(q_init, dtype=float), "q_init").copy()
     m = mech.n_constraint_rows + len(mech.joints_with("position"))

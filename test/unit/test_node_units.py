@@ -544,3 +544,75 @@ def test_forward_kinematics_of_an_articulated_twin():
         twin.query_copy().forward_kinematics(np.zeros(24), np.zeros(4))
     assert np.array_equal(twin.state.q, q_before)
     np.testing.assert_array_equal(q_from_section_strains(mech, section_strains(mech, ref.q), q_before), ref.q)
+
+
+def test_a_tree_twin_checks_its_inputs_at_the_door_only():
+    """Validate once (issue 26): the node's parse functions check a command;
+    the twin assembles the core's Inputs without checking again, on every
+    step and publish (make_inputs ran on each before). The assembled Inputs
+    equal make_inputs' for the same valid commands."""
+    from soft_twin.articulated import ArticulatedTwin
+    from soft_twin_core import constrained as cs
+    from soft_twin_core.mechanism import load_mechanism
+    from soft_twin_core.model import find_file
+    mech = load_mechanism(find_file("pan_tilt_arm", "robots"))
+    pl = [cs.FrameLoad("tool", np.array([0.1, 0.0, -0.2, 0.0, 0.01, 0.0]), "world")]
+    a = cs.assemble_inputs(mech, np.array([1.0, 0, 0.5, 0]), {}, {"pan": 0.2}, {"pan": 0.1}, pl)
+    b = cs.make_inputs(mech, np.array([1.0, 0, 0.5, 0]), None, {"pan": 0.2}, {"pan": 0.1, "tilt": 0.0},
+                       point_loads=pl)
+    for f in ("u", "effort", "q_cmd", "v_cmd", "gravity"):
+        np.testing.assert_array_equal(getattr(a, f), getattr(b, f))
+    for f in ("joint", "x", "wrench", "world"):
+        np.testing.assert_array_equal(getattr(a.loads, f), getattr(b.loads, f))
+    calls = []
+    real = cs.make_inputs
+    cs.make_inputs = lambda *a, **k: calls.append(1) or real(*a, **k)
+    try:
+        twin = ArticulatedTwin(mech, tw.TwinSettings(mode="dynamic", dt=0.005))
+        twin.set_joint_commands({"pan": 0.3, "tilt": -0.2}, {})
+        twin.set_actuation(np.array([0.0, 0.0, 1.0, 0.0]))
+        n0 = len(calls)
+        for _ in range(20):
+            assert twin.step().converged
+            twin.outputs()
+        assert len(calls) == n0                    # none per step or publish
+    finally:
+        cs.make_inputs = real
+    pan = mech.tree.idx_q[mech.tree.joint_index("pan")]
+    assert 0.0 < twin.state.q[pan] < 0.3          # on its way (the shaped reference)
+
+
+def test_a_tree_twin_drops_failed_inputs_as_the_rod_twin_does():
+    """One input-drop policy (issue 26): the pan-tilt twin, like the rod's
+    (test_a_late_failure_drops_the_state_inputs_once): a new input that
+    fails is dropped; inputs that stepped well and then fail give way to
+    the inputs before them, once; with nothing left to drop, new inputs are
+    kept and tried at every step."""
+    from soft_twin.articulated import ArticulatedTwin
+    from soft_twin_core import constrained as cs
+    from soft_twin_core.mechanism import load_mechanism
+    from soft_twin_core.model import find_file
+    twin = ArticulatedTwin(load_mechanism(find_file("pan_tilt_arm", "robots")), _settings("dynamic"))
+    twin.set_actuation(np.array([0.1, 0, 0, 0]), stamp="a")
+    assert twin.step(2).converged
+    twin.set_joint_commands({"pan": 0.1, "tilt": 0.0}, {}, stamp="b")
+    assert twin.step(2).converged
+    good_step = twin._sim.step
+
+    def failing(*a, **k):
+        raise cs.StepError("forced")
+    twin._sim.step = failing
+    info = twin.step()                      # "b" (the state's own inputs) fails: back to "a", once
+    assert info.dropped == ("joint",) and twin.positions["pan"] == 0.0 and twin.command_stamp == "a"
+    info = twin.step()                      # "a" fails too: nothing left to drop
+    assert not info.converged and info.dropped == () and twin.command_stamp == "a"
+    twin.set_actuation(np.array([0.05, 0, 0, 0]), stamp="c")
+    info = twin.step()
+    assert info.dropped == () and twin.command_stamp == "c" and twin.u[0] == 0.05   # kept, tried again
+    twin._sim.step = good_step
+    assert twin.step().converged and twin.outputs().u[0] == 0.05
+    # a fresh input that fails at once is dropped (back to the good state's)
+    twin._sim.step = failing
+    twin.set_actuation(np.array([9.0, 0, 0, 0]), stamp="d")
+    info = twin.step()
+    assert info.dropped == ("actuation",) and twin.u[0] == 0.05 and twin.command_stamp == "c"
