@@ -427,3 +427,51 @@ def check_articulated_plan(plan, rtol=1e-12):
 
 __all__ = ["ArticulatedPlanOptions", "ArticulatedTipSolver", "ArticulatedPlan", "plan_articulated_path",
            "check_articulated_plan", "default_frame"]
+
+
+def simulate_articulated_plan(mech, plan, options=None, path_positions=None, dt=0.005, theta=0.5, hold=0.0):
+    """Execute an articulated ``plan`` with the dynamics
+    (:class:`constrained.MechanismSimulator`) from the static equilibrium of
+    its first sample: the position-controlled joints reach the commands
+    linear between samples at the end of each step, the actuator inputs
+    linear between samples, the options' efforts and loads held, the last
+    commands held ``hold`` [s] after the end. The frame the plan follows is
+    compared with ``path_positions`` (N, 3) (default the plan's targets),
+    linear between samples. Returns :class:`planner.Tracking`; a step that
+    fails ends the run (``converged`` False)."""
+    from .planner import Tracking
+    o = options or ArticulatedPlanOptions()
+    P = plan.target if path_positions is None else np.asarray(path_positions, dtype=float)
+    sw = np.sqrt(np.asarray(o.position_weights, dtype=float))
+    ref = mech.frame(plan.frame)
+    times = np.asarray(plan.times, dtype=float)
+    X = np.concatenate([np.asarray(plan.joints, float).reshape(len(times), -1), np.asarray(plan.u, float)], axis=1)
+    nj = len(plan.joint_names)
+
+    def commands(t):
+        x = np.array([np.interp(t, times, X[:, k]) for k in range(X.shape[1])])
+        return dict(zip(plan.joint_names, x[:nj])), x[nj:]
+    pos, u = commands(times[0])
+    eq0 = cs.solve_equilibrium(mech, u, o.efforts, pos, o.loads, o.point_loads)
+    sim = cs.MechanismSimulator(mech, dt, theta, q=eq0.q)
+    ws = Workspace(mech.tree)
+
+    def frame_position(q):
+        return alg.point_poses(mech.tree, ws, q, [ref.joint], [ref.x])[0][:3, 3].copy()
+    ts, tips, ok = [times[0]], [frame_position(sim.q)], True
+    n = int(round((times[-1] - times[0] + hold) / dt))
+    for k in range(1, n + 1):
+        t1 = times[0] + k * dt
+        pos, _ = commands(t1)                                  # the joints reach them at the end of the step
+        _, u = commands(t1 - (1.0 - theta) * dt)               # the inputs at the step's theta point
+        try:
+            sim.step(u, o.efforts, pos, o.loads, o.point_loads)
+        except (cs.StepError, StaticsError, ValueError, np.linalg.LinAlgError):
+            ok = False
+            break
+        ts.append(t1)
+        tips.append(frame_position(sim.q))
+    ts, tips = np.array(ts), np.array(tips)
+    tgt = np.stack([np.interp(ts, times, P[:, k]) for k in range(3)], axis=-1)
+    d = tgt - tips
+    return Tracking(ts, tips, tgt, np.linalg.norm(d * sw, axis=1), np.linalg.norm(d, axis=1), ok)

@@ -161,10 +161,11 @@ def _run_plan(args):
           f"{s['unreachable']} unreachable {s['statuses']}", file=sys.stderr)
     if "dynamics" in out:
         d = out["dynamics"]
+        comp = d.get("compensated")
         print(f"soft-twin-sim: dynamics: rms tracking error {1e3 * d['uncompensated']['rms_error_m']:.3g} mm "
-              f"(max {1e3 * d['uncompensated']['max_error_m']:.3g} mm); with lag compensation "
-              f"{1e3 * d['compensated']['rms_error_m']:.3g} mm (max {1e3 * d['compensated']['max_error_m']:.3g} mm)",
-              file=sys.stderr)
+              f"(max {1e3 * d['uncompensated']['max_error_m']:.3g} mm)"
+              + (f"; with lag compensation {1e3 * comp['rms_error_m']:.3g} mm "
+                 f"(max {1e3 * comp['max_error_m']:.3g} mm)" if comp else ""), file=sys.stderr)
     print(f"soft-twin-sim: wrote {prefix}.csv and {prefix}.json", file=sys.stderr)
     if args.plot:
         from .plan_plots import plot_plan

@@ -27,8 +27,12 @@ gives the position-controlled joints' commands and the actuators' inputs
 frame that follows the path (default ``tip``, else the last soft member's
 end), ``joints.limits_margin`` [rad or m] keeps the commands inside the
 joint limits, and the joints' ``max_velocity``/``max_acceleration`` from the
-robot file are the rate limits; ``dynamics`` and orientations are not
-available for them. The CSV then has one ``q_<joint>`` column per joint.
+robot file are the rate limits; ``dynamics`` ({dt}) executes the plan in the
+dynamics (:func:`articulated_planner.simulate_articulated_plan`: the
+simulated frame positions and their error per sample, in the JSON, the CSV
+and the figures), without the lag compensation of classic robots;
+orientations are not available for them. The CSV then has one
+``q_<joint>`` column per joint.
 """
 
 import csv
@@ -186,9 +190,15 @@ def _articulated_from_dict(d, robot, base_dir):
     else:
         p = robot if os.path.isabs(robot) else os.path.join(base_dir, robot)
         mech = load_mechanism(p if os.path.isfile(p) else robot)
-    if d.get("dynamics") is not None:
-        raise PlanFileError("plan.dynamics: the dynamic verification is not available for articulated robots "
-                            "(remove it: the plan is quasi-static)")
+    dyn = _keys(d.get("dynamics"), _DYN, "dynamics") if d.get("dynamics") is not None else None
+    if dyn is not None:
+        dt = dyn.get("dt", 0.005)
+        if isinstance(dt, bool) or not isinstance(dt, (int, float)) or not 0 < dt <= 0.1:
+            raise PlanFileError(f"dynamics.dt: expected a time step in (0, 0.1] s, got {dt!r}")
+        for k in sorted(set(dyn) - {"dt"}):
+            if not (k == "compensation_iterations" and dyn[k] == 0):
+                raise PlanFileError(f"dynamics.{k}: the lag compensation is for classic robots; an articulated "
+                                    f"plan is verified in the dynamics (dynamics.dt) but not compensated")
     path = pth.path_from_dict(d["path"], "path")
     if path.orientations is not None:
         raise PlanFileError("path.orientations: articulated robots are planned for positions only")
@@ -215,11 +225,13 @@ def _articulated_from_dict(d, robot, base_dir):
                 raise PlanFileError(f"joints.initial.{k}: not a position-controlled joint; those are "
                                     f"{list(solver.joint_names)}")
             start[solver.joint_names.index(k)] = pl._number(v, f"joints.initial.{k}", False)
-    return mech, path, opts, start, None
+    return mech, path, opts, start, dyn
 
 
-def run_articulated_plan(mech, path, options, start=None):
-    """Plan an articulated robot's joint commands and inputs -> result dict."""
+def run_articulated_plan(mech, path, options, start=None, dynamics=None):
+    """Plan an articulated robot's joint commands and inputs -> result dict;
+    with ``dynamics`` ({dt}), the plan executed by the dynamics too
+    (:func:`articulated_planner.simulate_articulated_plan`)."""
     from . import articulated_planner as ap
     plan = ap.plan_articulated_path(mech, path, options, start)
     units = {}
@@ -228,7 +240,7 @@ def run_articulated_plan(mech, path, options, start=None):
     from .multibody import PRISMATIC
     junits = {mech.tree.joints[i].name: ("m" if mech.tree.joints[i].kind == PRISMATIC else "rad")
               for i in mech.joints_with("position")}
-    return {"robot": mech.name, "articulated": True, "frame_followed": plan.frame,
+    out = {"robot": mech.name, "articulated": True, "frame_followed": plan.frame,
             "actuator_names": list(plan.actuator_names), "joint_names": list(plan.joint_names),
             "frame": "world", "units": {"time": "s", "inputs": units, "joints": junits, "positions": "m"},
             "position_weights": list(options.position_weights),
@@ -241,13 +253,21 @@ def run_articulated_plan(mech, path, options, start=None):
             "error_m": plan.weighted_error.tolist(), "distance_m": plan.position_error.tolist(),
             "orientation_error_rad": plan.orientation_error.tolist(),
             "reached": plan.reached.tolist(), "status": list(plan.status)}
+    if dynamics is not None:
+        dt = dynamics.get("dt", 0.005)
+        tr = ap.simulate_articulated_plan(mech, plan, options, plan.target, dt)
+        tip = np.stack([np.interp(plan.times, tr.time, tr.tip[:, k]) for k in range(3)], -1)
+        w = np.sqrt(np.asarray(options.position_weights, float))
+        out["dynamics"] = {"dt": dt, "uncompensated": tr.summary(), "simulated_tip": tip.tolist(),
+                           "simulated_error_m": np.linalg.norm((plan.target - tip) * w, axis=1).tolist()}
+    return out
 
 
 def run_plan(model, path, options, u_start=None, dynamics=None):
     """Plan (and, with ``dynamics``, verify and compensate) -> result dict."""
     from .mechanism import Mechanism
     if isinstance(model, Mechanism):
-        return run_articulated_plan(model, path, options, u_start)
+        return run_articulated_plan(model, path, options, u_start, dynamics)
     plan = pl.plan_path(model, path, options, u_start=u_start)
     out = {"robot": model.name, "actuator_names": list(model.actuator_names),
            "frame": "world (the base frame for an identity base pose)",
@@ -290,8 +310,9 @@ def plan_csv(out):
         + [f"tip_{c}_m" for c in "xyz"] + ["error_m", "distance_m", "orientation_error_rad", "reached", "status"]
     dyn = out.get("dynamics")
     if dyn:
-        cols += [f"sim_tip_{c}_m" for c in "xyz"] + ["sim_error_m"] + [f"u_ff_{n}" for n in names] \
-            + [f"ff_tip_{c}_m" for c in "xyz"] + ["ff_error_m"]
+        cols += [f"sim_tip_{c}_m" for c in "xyz"] + ["sim_error_m"]
+        if "compensated_tip" in dyn:
+            cols += [f"u_ff_{n}" for n in names] + [f"ff_tip_{c}_m" for c in "xyz"] + ["ff_error_m"]
     buf = io.StringIO()
     wr = csv.writer(buf, lineterminator="\n")
     wr.writerow(cols)
@@ -302,9 +323,10 @@ def plan_csv(out):
             + [repr(out["error_m"][i]), repr(out["distance_m"][i]), repr(out["orientation_error_rad"][i]),
                int(out["reached"][i]), out["status"][i]]
         if dyn:
-            row += [repr(v) for v in dyn["simulated_tip"][i]] + [repr(dyn["simulated_error_m"][i])] \
-                + [repr(v) for v in dyn["compensated_actuation"][i]] + [repr(v) for v in dyn["compensated_tip"][i]] \
-                + [repr(dyn["compensated_error_m"][i])]
+            row += [repr(v) for v in dyn["simulated_tip"][i]] + [repr(dyn["simulated_error_m"][i])]
+            if "compensated_tip" in dyn:
+                row += [repr(v) for v in dyn["compensated_actuation"][i]] \
+                    + [repr(v) for v in dyn["compensated_tip"][i]] + [repr(dyn["compensated_error_m"][i])]
         wr.writerow(row)
     return buf.getvalue()
 

@@ -33,7 +33,8 @@ def plot_plan_path(out, folder, title=None):
               ("achieved (statics)", tip, dict(color="C0", lw=1.2))]
     if dyn:
         curves.append(("simulated", np.asarray(dyn["simulated_tip"]), dict(color="C3", lw=1.0)))
-        curves.append(("simulated, compensated", np.asarray(dyn["compensated_tip"]), dict(color="C2", lw=1.0)))
+        if "compensated_tip" in dyn:
+            curves.append(("simulated, compensated", np.asarray(dyn["compensated_tip"]), dict(color="C2", lw=1.0)))
     fig = plt.figure(figsize=(12, 7.5))
     allp = np.vstack([c[1] for c in curves])
     lo, hi = allp.min(axis=0), allp.max(axis=0)
@@ -58,7 +59,8 @@ def plot_plan_path(out, folder, title=None):
     ax.plot(t, 1e3 * np.asarray(out["error_m"]), color="C0", label="statics (planned inputs)")
     if dyn:
         ax.plot(t, 1e3 * np.asarray(dyn["simulated_error_m"]), color="C3", label="dynamics")
-        ax.plot(t, 1e3 * np.asarray(dyn["compensated_error_m"]), color="C2", label="dynamics, compensated")
+        if "compensated_error_m" in dyn:
+            ax.plot(t, 1e3 * np.asarray(dyn["compensated_error_m"]), color="C2", label="dynamics, compensated")
     if np.any(~reached):
         ax.plot(t[~reached], 1e3 * np.asarray(out["error_m"])[~reached], "rx", ms=4, label="unreachable")
     ax.set_xlabel("time [s]")
@@ -87,7 +89,7 @@ def plot_plan_actuation(out, folder, title=None):
         for i, n in enumerate(names):
             ax.plot(t, u[:, i], color=f"C{i}", label=f"{n} [{units[n]}]")
         dyn = out.get("dynamics")
-        if dyn:
+        if dyn and "compensated_actuation" in dyn:
             uf = np.asarray(dyn["compensated_actuation"]).reshape(len(t), len(names))
             for i, n in enumerate(names):
                 ax.plot(t, uf[:, i], "--", color=f"C{i}", lw=0.9, label=f"{n}, compensated")
