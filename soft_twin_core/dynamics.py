@@ -160,6 +160,16 @@ def _profile(value, model, kind):
     return f
 
 
+def held(u):
+    """A constant input profile of an inputs vector checked already (at the
+    node's door, :func:`soft_twin.twin.parse_actuation`): for
+    :meth:`Simulator.set_actuation` without a second check."""
+    u = np.array(u, dtype=float)
+    f = lambda t: u  # noqa: E731
+    f.constant = True
+    return f
+
+
 class Simulator:
     """Fixed-step implicit integrator (theta-method) of a robot description,
     for the node and the scenario runner: the multibody engine's

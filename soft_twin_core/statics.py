@@ -154,10 +154,17 @@ def solve_statics(model, actuation=None, loads=None, q_init=None, *, tol=1e-10,
     validate_loads(model, loads)
     u = actuation_vector(model, actuation)
     q = model.q0.copy() if q_init is None else model.check_q(np.array(q_init, dtype=float), "q_init").copy()
+    return solve_checked(model, u, loads, q, tol=tol, max_iterations=max_iterations, max_load_steps=max_load_steps,
+                         check_stability=check_stability, tangent_hint=tangent_hint)
+
+
+def solve_checked(model, u, loads, q, **options):
+    """:func:`solve_statics` of inputs checked already (u (n_actuators,),
+    Loads, q (n_dof,)), e.g. at the node's door: no second check. The
+    options are :func:`solve_statics`' (all of them given)."""
     with one_blas_thread():
         pb = problem(model, u, loads)
-        sol = eq.solve(pb, q, tol=tol, max_iterations=max_iterations, max_load_steps=max_load_steps,
-                       check_stability=check_stability, tangent_hint=tangent_hint)
+        sol = eq.solve(pb, q, **options)
         return _result(model, pb, u, loads, sol)
 
 

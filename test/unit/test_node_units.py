@@ -354,7 +354,7 @@ def test_failed_solve_keeps_the_state(model, monkeypatch):
 
     def fail(*a, **k):
         raise st.StaticsError("no")
-    monkeypatch.setattr(st, "solve_statics", fail)
+    monkeypatch.setattr(st, "solve_checked", fail)
     twin.set_actuation([1.0, 0, 0, 0], stamp="bad")
     info = twin.step()
     assert not info.converged and "state kept" in info.message
