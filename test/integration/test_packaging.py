@@ -85,26 +85,36 @@ def test_readme_snippets_use_no_checkout_paths():
 
 
 def test_readme_links_stay_in_the_repository():
-    """Every README link is an anchor or a file of the repository; nothing
-    points outside it (no ../ paths, no URLs); the conventions document is
-    the repository's own and the model's literature is cited."""
-    text = (ROOT / "README.md").read_text(encoding="utf-8")
-    assert not re.search(r"https?://|www\.", text)
-    assert "shared/" not in text and "slides" not in text.lower() and "DESIGN.md" not in text
-    targets = re.findall(r"\]\(([^)\s]+)\)", text)
-    assert targets
-    for t in targets:
-        if t.startswith("#"):
-            continue
-        path = (ROOT / t.split("#")[0]).resolve()
-        assert path.is_relative_to(ROOT) and path.exists(), t
-    assert "(docs/CONVENTIONS.md)" in text
+    """Every link of the README and the docs pages is an anchor of its page
+    or a file (and heading) of the repository; nothing points outside it
+    (no URLs, no shared/ material); the conventions document is the
+    repository's own and the model's literature is cited."""
+    pages = [ROOT / "README.md"] + sorted((ROOT / "docs").glob("*.md"))
+    assert len(pages) >= 10
+
+    def anchors(p):
+        return {re.sub(r"[^\w\- ]", "", h.strip().lower()).replace(" ", "-")
+                for h in re.findall(r"^#+ (.*)$", p.read_text(encoding="utf-8"), re.M)}
+    everything = ""
+    for page in pages:
+        text = page.read_text(encoding="utf-8")
+        everything += text
+        assert not re.search(r"https?://|www\.", text), page
+        assert "shared/" not in text and "slides" not in text.lower() and "DESIGN.md" not in text, page
+        for t in re.findall(r"\]\(([^)\s]+)\)", text):
+            file, _, anchor = t.partition("#")
+            path = (page.parent / file).resolve() if file else page
+            assert path.is_relative_to(ROOT) and path.exists(), (page.name, t)
+            if anchor and path.suffix == ".md":
+                assert anchor in anchors(path), (page.name, t)
+    readme = (ROOT / "README.md").read_text(encoding="utf-8")
+    assert "(docs/CONVENTIONS.md)" in readme and len(readme.splitlines()) <= 300
     conventions = (ROOT / "docs" / "CONVENTIONS.md").read_text(encoding="utf-8")
     assert "shared/" not in conventions and "[linear; angular]" in conventions
     for cite in ("Grazioso, Di Gironimo & Siciliano", "Renda et al. 2018", "Simo & Vu-Quoc",
                  "Bisshopp & Drucker 1945", "Mattiasson 1981", "Dowell & Traybar 1975",
                  "Featherstone", "Carpentier", "Soft Robotics", "IEEE Transactions on Robotics"):
-        assert cite in " ".join(text.split()), cite
+        assert cite in " ".join(everything.split()), cite
 
 
 def test_example_files_found_by_name_from_any_directory(tmp_path):

@@ -596,7 +596,7 @@ def test_command_on_an_existing_scheduler(tmp_path):
                 p.wait()
 
 
-def test_example_studies_and_the_readme_study_are_valid():
+def test_example_studies_and_the_documented_study_are_valid():
     import re
 
     import yaml
@@ -606,8 +606,8 @@ def test_example_studies_and_the_readme_study_are_valid():
     for f in files:
         st = load_study(f)
         validate_cases(st, make_cases(st))
-    text = (ROOT / "README.md").read_text()
-    sec = text[text.index("## Design studies"):]
+    text = (ROOT / "docs" / "studies.md").read_text()
+    sec = text[text.index("# Design studies"):]
     block = re.search(r"```yaml\n(.*?)```", sec, re.S).group(1)
     st = study_from_dict(yaml.safe_load(block), str(ROOT / "config" / "studies"))
     assert st.parameter_names == load_study(ROOT / "config" / "studies" / "tendon_arm_offsets.yaml").parameter_names
