@@ -107,12 +107,15 @@ class StrainEKF:
     (strain units, per s); sigma_wrench0 (N, N m); process_noise_q,
     process_noise_v: white-noise spectral densities on q and v (per
     sqrt(s)); wrench_walk (N, N m per sqrt(s)); input_sigma: noise of
-    inputs without a tension sensor (default 0).
+    inputs without a tension sensor (default 0); max_gated_run: consecutive
+    gated readings of a sensor after which the next is taken (the filter
+    has drifted, not the sensor: :func:`gate_reading`).
     """
 
     def __init__(self, model, sensors, dt=0.01, *, theta=1.0, wrench="force", actuation=None, q_init=None,
                  sigma_q0=0.5, sigma_v0=1.0, sigma_wrench0=(1.0, 0.1), process_noise_q=0.2,
-                 process_noise_v=10.0, wrench_walk=(0.05, 0.005), gate_probability=0.999, input_sigma=0.0):
+                 process_noise_v=10.0, wrench_walk=(0.05, 0.005), gate_probability=0.999, input_sigma=0.0,
+                 max_gated_run=10):
         from scipy.stats import chi2
         from .statics import actuation_vector, solve_statics
         from .workspace import Workspace
@@ -152,6 +155,8 @@ class StrainEKF:
                 self._tension_index[s.name] = a
         self.sigma_u = sig_u
         self.gate = {m: float(chi2.ppf(gate_probability, m)) for m in (3, 6)}
+        self.max_gated_run = int(max_gated_run)
+        self._gated_run = {s.name: 0 for s in self.sensors}
         self.tree = model.tree
         self.ws = Workspace(self.tree)
         from .forces import actuator_arrays
@@ -361,14 +366,9 @@ class StrainEKF:
             H = np.zeros((len(e), N))
             H[:, :n] = Hq
             Rm = sen.noise_covariance()
-            Sm = H @ self.P @ H.T + Rm
-            nis = float(e @ np.linalg.solve(Sm, e))
-            rep.innovations[sen.name] = -e
-            rep.nis[sen.name] = nis
-            if not np.isfinite(nis) or nis > self.gate[len(e)]:
-                rep.gated.append(sen.name)
+            if not gate_reading(rep, sen.name, e, H, Rm, self.P, self.gate[len(e)], self._gated_run,
+                                self.max_gated_run):
                 continue
-            rep.accepted.append(sen.name)
             es.append(e)
             Hs.append(H)
             Rs.append(Rm)
@@ -382,6 +382,27 @@ class StrainEKF:
         """predict(u) then update(measurements); returns the UpdateReport."""
         self.predict(u)
         return self.update(measurements)
+
+
+def gate_reading(rep, name, e, H, Rm, P, gate, runs, max_run):
+    """The gate of one reading, shared by the filters: its normalised
+    innovation squared ``NIS = e^T (H P H^T + R)^-1 e`` (e = h(x) - z) against
+    the chi-square quantile ``gate`` of its dimension -- unless the same
+    sensor was gated ``max_run`` times in a row (``runs``: {name: count}):
+    then the filter, not the sensor, has drifted and the reading is taken
+    (lock-out protection). A non-finite NIS is always gated. Records the
+    innovation, the NIS and the verdict in ``rep``; True: use the reading."""
+    Sm = H @ P @ H.T + Rm
+    nis = float(e @ np.linalg.solve(Sm, e))
+    rep.innovations[name] = -e
+    rep.nis[name] = nis
+    if not np.isfinite(nis) or (nis > gate and runs[name] < max_run):
+        rep.gated.append(name)
+        runs[name] += 1
+        return False
+    runs[name] = 0
+    rep.accepted.append(name)
+    return True
 
 
 def kalman_update(x, P, es, Hs, Rs):

@@ -48,7 +48,7 @@ one joint Joseph-form update. Outputs: :attr:`q`, :attr:`v`, :meth:`joint_positi
 
 import numpy as np
 
-from .estimation import FilterHealth, UpdateReport, kalman_update, tally_update
+from .estimation import FilterHealth, UpdateReport, gate_reading, kalman_update, tally_update
 from .multibody import FIXED, PRISMATIC, REVOLUTE, SOFT
 from . import tree_sensors as ts
 
@@ -340,16 +340,9 @@ class TreeEKF:
             H = np.zeros((len(e), N))
             H[:, :n] = Hq
             Rm = sen.noise_covariance()
-            Sm = H @ self.P @ H.T + Rm
-            nis = float(e @ np.linalg.solve(Sm, e))
-            rep.innovations[sen.name] = -e
-            rep.nis[sen.name] = nis
-            if not np.isfinite(nis) or (nis > self._gate(len(e)) and self._gated_run[sen.name] < self.max_gated_run):
-                rep.gated.append(sen.name)
-                self._gated_run[sen.name] += 1
+            if not gate_reading(rep, sen.name, e, H, Rm, self.P, self._gate(len(e)), self._gated_run,
+                                self.max_gated_run):
                 continue
-            self._gated_run[sen.name] = 0
-            rep.accepted.append(sen.name)
             es.append(e)
             Hs.append(H)
             Rs.append(Rm)

@@ -266,3 +266,31 @@ def test_unsupported_models_are_refused(sensors):
     d["actuators"] = [{"name": "t", "offset": [0.005, 0.0], "model": "point_moment"}]
     with pytest.raises(ValueError, match="point-moment"):
         es.StrainEKF(model_from_dict(d), [sn.PositionMarker("m", 0.5, 1e-3)], DT)
+
+
+def test_one_gate_with_lock_out_protection_for_both_filters(coarse, fine, sensors):
+    """The gate both filters share (estimation.gate_reading): the NIS is
+    e^T (H P H^T + R)^-1 e (checked by hand on a 2-D case); a sensor that
+    stays far off is gated max_gated_run times in a row, then its next
+    reading is taken (the filter, not the sensor, has drifted), and the
+    run starts again."""
+    rep = es.UpdateReport()
+    runs = {"s": 0}
+    e, H, R, P = np.array([1.0, 2.0]), np.eye(2), np.diag([1.0, 3.0]), np.diag([1.0, 1.0])
+    assert es.gate_reading(rep, "s", e, H, R, P, 10.0, runs, 3) and rep.nis["s"] == pytest.approx(0.5 + 1.0)
+    assert not es.gate_reading(rep, "s", 10 * e, H, R, P, 10.0, runs, 3) and runs["s"] == 1
+    u = np.array([8.0, 0.0, 0.0, 0.0])
+    truth = st.solve_statics(fine, u)
+    T = [sn.sensor_pose(fine, truth.q, s) for s in sensors]
+    rng = np.random.default_rng(13)
+    ekf = es.StrainEKF(coarse, sensors, DT, actuation=u, max_gated_run=4)
+    for _ in range(30):
+        ekf.step({s.name: sn.simulate_measurement(Ts, s, rng) for s, Ts in zip(sensors, T)}, u)
+    verdicts = []
+    for _ in range(6):
+        meas = {s.name: sn.simulate_measurement(Ts, s, rng) for s, Ts in zip(sensors, T)}
+        meas["em1"] = meas["em1"].copy()
+        meas["em1"][:3, 3] += [0.0, 0.05, 0.0]                # 5 cm off from now on
+        rep = ekf.step(meas, u)
+        verdicts.append("em1" in rep.accepted)
+    assert verdicts[:5] == [False, False, False, False, True]
