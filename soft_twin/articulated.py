@@ -30,7 +30,7 @@ from soft_twin_core.model import State
 from soft_twin_core.outputs import q_from_section_strains, section_strains, state_outputs
 
 from soft_twin.text import clip, short_list
-from soft_twin.twin import STEP_ERRORS, InputError, TwinSettings, UpdateInfo
+from soft_twin.twin import STEP_ERRORS, DropPolicy, InputError, TwinSettings, UpdateInfo
 
 
 def _same_inputs(a, b):
@@ -192,10 +192,9 @@ class ArticulatedTwin:
         inputs before them are kept as the fallback of a late failure."""
         now = self._inputs_tuple()
         if reset:
-            self._fallback = None
-        elif not _same_inputs(now, self._good):
-            self._fallback = self._good
-        self._stuck = False
+            self._policy = DropPolicy(_same_inputs, now)
+        else:
+            self._policy.succeeded(now)
         self._good = now
         self._good_joint_stamp = self.joint_stamp
         self._good_actuation_stamp = self.actuation_stamp
@@ -342,23 +341,13 @@ class ArticulatedTwin:
         return info
 
     def _drop(self):
-        """After a failed step or solve, the rod twin's policy
-        (:meth:`soft_twin.twin.Twin._drop_failed_inputs`): back to the inputs
-        of the last good state if they changed since (those failed), else,
-        once, to the inputs before the state's own; with nothing left to
-        drop, new inputs are not blamed: they are kept and tried at every
-        step (until one converges, or a reset). Returns what was dropped."""
+        """After a failed step or solve: :class:`soft_twin.twin.DropPolicy`
+        (the rod twin's too) says what to go back to. Returns what was dropped."""
         now = self._inputs_tuple()
-        if self._stuck:
+        target = self._policy.target(now)
+        if target is None:
             return ()
-        if not _same_inputs(now, self._good):
-            target = self._good
-        elif self._fallback is not None and not _same_inputs(now, self._fallback):
-            target = self._good = self._fallback
-            self._fallback = None
-        else:
-            self._stuck = True
-            return ()
+        self._good = target
         dropped = []
         if not np.array_equal(now[0], target[0]) or now[7] is not target[7]:
             dropped.append("actuation")

@@ -338,6 +338,41 @@ def _same_inputs(a, b):
             and a[3] is b[3])
 
 
+class DropPolicy:
+    """What a twin falls back to after a failed step or solve, for every
+    robot: back to the inputs of the last good state if they changed since
+    (those failed); else, once, to the inputs before the state's own (a
+    late failure: the state's inputs stepped well for a while); with
+    nothing left to drop, new inputs are not blamed: they are kept and tried
+    at every step until one converges (or a reset). ``same(a, b)``: two
+    input records alike."""
+
+    def __init__(self, same, inputs):
+        self.same = same
+        self.reset(inputs)
+
+    def reset(self, inputs):
+        self.good, self.fallback, self.stuck = inputs, None, False
+
+    def succeeded(self, inputs):
+        """A step or solve succeeded with ``inputs``: they are the good ones."""
+        if not self.same(inputs, self.good):
+            self.fallback = self.good
+        self.good, self.stuck = inputs, False
+
+    def target(self, now):
+        """The inputs to go back to after a failure with ``now`` (None: keep them)."""
+        if self.stuck:
+            return None
+        if not self.same(now, self.good):
+            return self.good
+        if self.fallback is not None and not self.same(now, self.fallback):
+            self.good, self.fallback = self.fallback, None
+            return self.good
+        self.stuck = True
+        return None
+
+
 class Twin:
     """One robot model, its state and inputs. See the module docstring."""
 
@@ -351,9 +386,7 @@ class Twin:
         self.tip_frame = "world"
         self.command_stamp = None
         self._state_inputs = self._inputs()   # the inputs the current state reflects
-        self._good_inputs = self._state_inputs   # the inputs a failing step goes back to
-        self._fallback_inputs = None  # the good inputs before those (for a late failure)
-        self._stuck = False           # failing with nothing left to drop: keep new inputs
+        self._policy = DropPolicy(_same_inputs, self._state_inputs)   # what a failing step goes back to
         self._dirty = True            # inputs changed since the last quasi-static solve
         self._base_wrench_qs = None   # from the last statics solve
         self._sim = None
@@ -475,10 +508,8 @@ class Twin:
     def _used_inputs(self):
         """A good step ran with the current inputs: they are the state's."""
         now = self._inputs()
-        if not _same_inputs(now, self._good_inputs):
-            self._fallback_inputs = self._good_inputs
-        self._stuck = False
-        self._state_inputs = self._good_inputs = now
+        self._policy.succeeded(now)
+        self._state_inputs = now
 
     def _drop_failed_inputs(self):
         """After a failed dynamic step: back to the inputs of the last good
@@ -488,15 +519,8 @@ class Twin:
         nothing left to drop), new inputs are not blamed: they are kept and
         tried at every step until one converges (or a reset)."""
         now = self._inputs()
-        if self._stuck:
-            return ()
-        if not _same_inputs(now, self._good_inputs):
-            target = self._good_inputs
-        elif self._fallback_inputs is not None and not _same_inputs(now, self._fallback_inputs):
-            target = self._good_inputs = self._fallback_inputs
-            self._fallback_inputs = None
-        else:
-            self._stuck = True
+        target = self._policy.target(now)
+        if target is None:
             return ()
         dropped = tuple(kind for kind, changed in (
             ("actuation", not np.array_equal(now[0], target[0]) or now[3] is not target[3]),
@@ -526,7 +550,8 @@ class Twin:
             self.u, self.tip_wrench, self.tip_frame = u.copy(), w.copy(), frame
             return UpdateInfo(0, 0, False, f"statics failed for the last input (dropped): {clip(e)}; "
                                            f"state kept", dropped=dropped)
-        self._state_inputs = self._good_inputs = self._inputs()
+        self._state_inputs = self._inputs()
+        self._policy.succeeded(self._state_inputs)
         self._tangent = res.tangent
         self.state.q = res.q.copy()
         self.state.qdot = np.zeros(self.model.n_dof)
@@ -540,8 +565,8 @@ class Twin:
         self.u = np.zeros(len(self.model.actuators))
         self.tip_wrench, self.tip_frame = np.zeros(6), "world"
         self.command_stamp = None
-        self._state_inputs = self._good_inputs = self._inputs()
-        self._fallback_inputs, self._stuck = None, False
+        self._state_inputs = self._inputs()
+        self._policy.reset(self._state_inputs)
         self.state = State(self.rest_q.copy(), np.zeros(self.model.n_dof), 0.0)
         self._dirty = False
         self._base_wrench_qs = None
