@@ -431,7 +431,15 @@ class ArticulatedTwin:
             raise ValueError("give strains or an actuation, not both")
         if strains.size:
             self.state.q = q_from_section_strains(self.mech, strains, self.state.q)
-            return "ok: shape of the given strains (joints at their current positions)", self.outputs()
+            message = "ok: shape of the given strains (joints at their current positions)"
+            if self.mech.n_constraint_rows:
+                # a closed chain: strains alone need not close it (the passive joints follow from the closure)
+                from soft_twin_core.workspace import Workspace
+                phi, _ = cs.constraint_rows(self.mech, Workspace(self.mech.tree), self.state.q)
+                gap = float(np.abs(phi[:self.mech.n_constraint_rows]).max(initial=0.0))
+                message += f"; the constraints are violated by up to {gap:.3g} m or rad with them" if gap > 1e-9 \
+                    else "; the constraints hold"
+            return message, self.outputs()
         if actuation is not None:
             info, snap = self.statics(actuation, np.zeros(6))
             if not info.converged:

@@ -616,3 +616,23 @@ def test_a_tree_twin_drops_failed_inputs_as_the_rod_twin_does():
     twin.set_actuation(np.array([9.0, 0, 0, 0]), stamp="d")
     info = twin.step()
     assert info.dropped == ("actuation",) and twin.u[0] == 0.05 and twin.command_stamp == "c"
+
+
+def test_forward_kinematics_of_a_closed_chain_says_whether_the_strains_close_it():
+    """A closed chain (the planar parallel robot): the strains of one of its
+    equilibria close it; other strains leave a gap, named in metres."""
+    from soft_twin.articulated import ArticulatedTwin
+    from soft_twin_core.constrained import solve_equilibrium
+    from soft_twin_core.mechanism import load_mechanism
+    from soft_twin_core.model import find_file
+    from soft_twin_core.outputs import section_strains
+    mech = load_mechanism(find_file("planar_parallel_robot", "robots"))
+    twin = ArticulatedTwin(mech, tw.TwinSettings(mode="quasi_static"))
+    twin.step()
+    ref = solve_equilibrium(mech)
+    msg, _ = twin.query_copy().forward_kinematics(section_strains(mech, twin.state.q).ravel())
+    assert msg.endswith("the constraints hold"), msg
+    bent = section_strains(mech, ref.q)
+    bent[:3, 5] += 0.5                       # 0.5 rad/m more bending at the first sections of one leg only
+    msg, _ = twin.query_copy().forward_kinematics(bent.ravel())
+    assert "violated by up to" in msg, msg
