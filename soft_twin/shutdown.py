@@ -40,6 +40,48 @@ import traceback
 import rclpy
 
 TEARDOWN_TIMEOUT_S = 10.0     # after a stop signal: the longest wait for a node's teardown
+HARD_EXIT_DELAY_S = 5.0       # after the watchdog's time: the exit that needs no Python at all
+
+
+def arm_hard_exit(delay_s, message):
+    """A last resort below the watchdog: after ``delay_s`` a thread of the C
+    library (a POSIX timer, SIGEV_THREAD) writes ``message`` to stderr
+    (perror) and a second one calls ``_exit(0)``. It runs without the GIL:
+    the Python watchdog cannot run while the main thread holds the GIL in a
+    stuck call (seen once in 16 SIGINTs of the estimator's signal test: no
+    watchdog line and no exit for 30 s after "shutting down"). Linux and
+    glibc only; returns False (nothing armed) elsewhere."""
+    import ctypes
+    try:
+        libc = ctypes.CDLL(None, use_errno=True)
+        create, settime = libc.timer_create, libc.timer_settime
+    except (OSError, AttributeError):
+        return False
+
+    class SigEvent(ctypes.Structure):      # glibc's struct sigevent (64 bytes), SIGEV_THREAD member
+        _fields_ = [("value", ctypes.c_void_p), ("signo", ctypes.c_int), ("notify", ctypes.c_int),
+                    ("function", ctypes.c_void_p), ("attribute", ctypes.c_void_p), ("pad", ctypes.c_int * 8)]
+
+    class TimeSpec(ctypes.Structure):
+        _fields_ = [("sec", ctypes.c_long), ("nsec", ctypes.c_long)]
+
+    class ITimerSpec(ctypes.Structure):
+        _fields_ = [("interval", TimeSpec), ("value", TimeSpec)]
+    text = ctypes.create_string_buffer(message.encode())
+    _HARD_EXIT_KEEP.append(text)                 # the C string must outlive this call
+    for function, value, at in ((libc.perror, ctypes.addressof(text), delay_s), (libc._exit, 0, delay_s + 0.2)):
+        sev = SigEvent(value, 0, 2, ctypes.cast(function, ctypes.c_void_p).value, None)   # 2: SIGEV_THREAD
+        timer = ctypes.c_void_p()
+        if create(1, ctypes.byref(sev), ctypes.byref(timer)) != 0:                      # 1: CLOCK_MONOTONIC
+            return False
+        its = ITimerSpec(TimeSpec(0, 0), TimeSpec(int(at), int((at % 1) * 1e9)))
+        if settime(timer, 0, ctypes.byref(its), None) != 0:
+            return False
+        _HARD_EXIT_KEEP.append(timer)
+    return True
+
+
+_HARD_EXIT_KEEP = []
 
 
 class StopSignals:
@@ -90,6 +132,10 @@ class StopSignals:
             self._watchdog = threading.Thread(target=self._watch, args=(threading.main_thread().ident,),
                                               name="teardown_watchdog", daemon=True)
             self._watchdog.start()
+            arm_hard_exit(self.teardown_timeout_s + HARD_EXIT_DELAY_S,
+                          f"[{self.logger_name}] {self.name or 'stop'}: the teardown and its watchdog did not end "
+                          f"within {self.teardown_timeout_s + HARD_EXIT_DELAY_S:.0f} s (the GIL held by a stuck "
+                          f"call); exiting")
 
     def end_teardown(self):
         self._torn_down.set()
