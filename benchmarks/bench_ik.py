@@ -5,7 +5,7 @@ random least-tension actuations, 0..3 N) and for unreachable ones.
 
 Run: .venv/bin/python benchmarks/bench_ik.py [--node]
 
-Without --node: the service's body (soft_twin.twin.inverse_kinematics) in
+Without --node: the service's body (soft_twin_core.twin.inverse_kinematics) in
 this process. With --node: the real service round trip to a node in a
 second process (dynamic mode, 200 Hz stepping in that process), this
 process a real rclpy client subscribed to the strains only (``--all-topics``:
@@ -48,7 +48,7 @@ def report(label, times, ok, cpu=None):
 
 
 def in_process(model, poses):
-    from soft_twin import twin as tw
+    from soft_twin_core import twin as tw
     q0 = st.solve_statics(model).q
     tw.inverse_kinematics(model, q0, 10, poses[0], position_only=True, u_current=np.zeros(4))  # warm-up
     res = {}

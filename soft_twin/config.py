@@ -8,6 +8,7 @@ user can act on.
 """
 
 from dataclasses import dataclass
+import difflib
 import math
 import os
 from pathlib import Path
@@ -17,7 +18,7 @@ import warnings
 from soft_twin_core.limits import MAX_FILE_BYTES, PlausibilityWarning, load_yaml_text, read_text
 from soft_twin_core.model import ModelError, model_from_dict, robot_mapping
 
-from soft_twin.text import clip, short_list
+from soft_twin_core.text import clip, short_list
 
 DEFAULT_ROBOT = "tendon_arm.yaml"
 MODES = ("dynamic", "quasi_static")
@@ -402,3 +403,26 @@ def load_robot(cfg):
         raise ConfigError(f"actuator_names {short_list(cfg.actuator_names)} do not match the actuators of "
                           f"{source}: {short_list(model.actuator_names)}")
     return Robot(model, d, source, cfg.sections_per_segment, mech, found)
+
+
+# parameters rclpy declares itself (not ours, not unknown)
+ROS_PARAMETERS = ("use_sim_time", "start_type_description_service")
+
+
+def coerced(name, value):
+    """An integer given for one of our float parameters, as that float."""
+    default = PARAMETERS[name][0] if name in PARAMETERS else None
+    if isinstance(default, float) and isinstance(value, int) and not isinstance(value, bool):
+        return float(value)
+    return value
+
+
+def unknown_parameters_message(names):
+    hints = []
+    for n in names[:5]:
+        near = difflib.get_close_matches(n, list(PARAMETERS) + list(ROS_PARAMETERS), n=1)
+        if near:
+            hints.append(f"{clip(n, 60)!r} -> {near[0]!r}?")
+    return (f"unknown parameter(s) {short_list(names)}: this node has no such parameter"
+            + (f" (did you mean {', '.join(hints)})" if hints else "")
+            + f"; its parameters: {', '.join(PARAMETERS)}")

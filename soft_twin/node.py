@@ -1,8 +1,13 @@
 """The soft_twin ROS 2 node: a real-time digital twin of a soft continuum arm.
 
 Thin by design: everything it computes comes from ``soft_twin_core``
-(through :mod:`soft_twin.twin`); the node converts messages, owns the clock
-and the state, and never blocks the stepping clock.
+(through the twin, :mod:`soft_twin_core.twin` or
+:mod:`soft_twin_core.articulated_twin`); the node wires parameters, topics,
+services and threads, owns the clock and the state, and never blocks the
+stepping clock. Its collaborators: :mod:`soft_twin.inputs` (message batches
+to checked inputs), :mod:`soft_twin.schedule` (which steps are due),
+:mod:`soft_twin.diagnostics`, :mod:`soft_twin.markers`,
+:mod:`soft_twin.services` and :mod:`soft_twin.plan_service`.
 
 Threads: the stepping clock (:class:`soft_twin.stepper.Stepper`, a thread of
 its own, not an rclpy timer: each timer tick cost the Python executor a
@@ -34,7 +39,6 @@ service computes. A second lock keeps the published states in step order.
 Topics, services and parameters: see README.md ("Interfaces").
 """
 
-import difflib
 import math
 import os
 import sys
@@ -44,8 +48,8 @@ import traceback
 
 import numpy as np
 import rclpy
-from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
-from geometry_msgs.msg import PoseArray, PoseStamped, Vector3, WrenchStamped
+from diagnostic_msgs.msg import DiagnosticArray
+from geometry_msgs.msg import PoseArray, PoseStamped, WrenchStamped
 from sensor_msgs.msg import JointState
 from rcl_interfaces.msg import ParameterDescriptor, SetParametersResult
 from rclpy.callback_groups import MutuallyExclusiveCallbackGroup, ReentrantCallbackGroup
@@ -56,28 +60,24 @@ from rclpy.node import Node
 from rclpy.parameter import Parameter
 from rclpy.qos import QoSProfile, ReliabilityPolicy, HistoryPolicy
 from rclpy.signals import SignalHandlerOptions
-from std_msgs.msg import ColorRGBA, Float64MultiArray, Header, MultiArrayDimension
+from std_msgs.msg import Float64MultiArray, Header, MultiArrayDimension
 from std_srvs.srv import Trigger
-from visualization_msgs.msg import Marker, MarkerArray
-
-from soft_twin_core import lie
-from soft_twin_core.model import ModelError
-from soft_twin_core.planner import PlanError
-from soft_twin_core.statics import StaticsError
+from visualization_msgs.msg import MarkerArray
 
 from soft_twin.msg import ActuationCommand, Strains
 from soft_twin.stepper import Stepper
 from soft_twin.srv import ForwardKinematics, InverseKinematics, StaticsQuery
 
-from soft_twin import articulated as art
+from soft_twin_core import articulated_twin as art
 from soft_twin import conversions as cv
+from soft_twin import diagnostics, inputs, markers, schedule, services
 from soft_twin import live_view_out, recorder, tf_out
-from soft_twin import twin as tw
+from soft_twin_core import twin as tw
 from soft_twin.executor import TwinExecutor
-from soft_twin.query_worker import QueryError
 from soft_twin.shutdown import StopSignals, spin_until_stopped, tear_down
-from soft_twin.config import PARAMETERS, ConfigError, config_from_values, load_robot
-from soft_twin.text import clip, short_list
+from soft_twin.config import (PARAMETERS, ConfigError, coerced, config_from_values, load_robot,
+                              unknown_parameters_message)
+from soft_twin_core.text import clip
 
 NODE_NAME = "soft_twin"
 # benchmark hook: SOFT_TWIN_SERVICE_TIMING=1 logs the IK service body's wall and thread CPU time
@@ -85,18 +85,6 @@ _SERVICE_TIMING = bool(os.environ.get("SOFT_TWIN_SERVICE_TIMING"))
 ACTUATION_QUEUE = 100       # subscription depths (keep last)
 WRENCH_QUEUE = 10
 JOINT_QUEUE = 100
-# parameters rclpy declares itself (not ours, not unknown)
-ROS_PARAMETERS = ("use_sim_time", "start_type_description_service")
-
-
-def _coerced(name, value):
-    """An integer given for one of our float parameters, as that float."""
-    default = PARAMETERS[name][0] if name in PARAMETERS else None
-    if isinstance(default, float) and isinstance(value, int) and not isinstance(value, bool):
-        return float(value)
-    return value
-
-
 class StartupInterrupted(Exception):
     """The start-up was abandoned on request (a stop signal, see main)."""
 
@@ -107,60 +95,6 @@ class UnknownParameterError(ParameterNotDeclaredException):
 
     def __init__(self, names):
         Exception.__init__(self, unknown_parameters_message(names))
-
-
-def unknown_parameters_message(names):
-    hints = []
-    for n in names[:5]:
-        near = difflib.get_close_matches(n, list(PARAMETERS) + list(ROS_PARAMETERS), n=1)
-        if near:
-            hints.append(f"{clip(n, 60)!r} -> {near[0]!r}?")
-    return (f"unknown parameter(s) {short_list(names)}: this node has no such parameter"
-            + (f" (did you mean {', '.join(hints)})" if hints else "")
-            + f"; its parameters: {', '.join(PARAMETERS)}")
-
-
-class _Stats:
-    """Counters over one diagnostics period and since start."""
-
-    def __init__(self):
-        self.reset_window(time.monotonic())
-        self.totals = dict(steps=0, solver_failures=0, dropped_steps=0, commands_received=0,
-                           commands_applied=0, commands_superseded=0, commands_lost=0,
-                           wrenches_received=0, wrenches_applied=0, wrenches_lost=0,
-                           rejected_actuation=0, rejected_wrench=0, internal_errors=0,
-                           rejected_parameter_changes=0, joint_commands_received=0,
-                           joint_commands_applied=0, joint_commands_superseded=0, joint_commands_lost=0,
-                           rejected_joint=0)
-        self.last_internal_error = ""
-        self.rejected_by_reason = {r: 0 for r in tw.REJECT_REASONS}
-        self.last_rejection = ""
-        self.last_parameter_rejection = ""
-        self.last_solver_message = ""
-        self.consecutive_failures = 0
-        self.unstable = False
-
-    def reset_window(self, now):
-        self.window_start = now
-        self.steps = 0
-        self.ticks = 0
-        self.sim_time = 0.0
-        self.compute_times = []
-        self.iterations = []
-        self.publish_times = []
-        self.command_latencies = []       # [s], command header.stamp -> first state with it
-        self.node_latencies = []          # [s], command taken by the node -> first state with it
-        self.input_batches = []           # commands taken per actuation callback
-        self.rejected = 0
-        self.lost = 0                     # inputs lost before the node took them
-        self.failures = 0                 # failed steps or solves
-        self.publishes = 0                # states published
-
-    def reject(self, kind, err):
-        self.totals[f"rejected_{kind}"] += 1
-        self.rejected_by_reason[err.reason] += 1
-        self.rejected += 1
-        self.last_rejection = clip(f"{kind} ({err.reason}): {err}", 400)
 
 
 class SoftTwinNode(Node):
@@ -180,7 +114,7 @@ class SoftTwinNode(Node):
         for name, (default, description) in PARAMETERS.items():
             value = default
             if name in overrides:
-                value = _coerced(name, overrides[name].value)
+                value = coerced(name, overrides[name].value)
             self.declare_parameter(name, value, ParameterDescriptor(
                 name=name, description=description, dynamic_typing=True), ignore_override=True)
         self._values = {name: self._declared_value(name) for name in PARAMETERS}
@@ -206,7 +140,8 @@ class SoftTwinNode(Node):
         self._joint_gaps = tw.SequenceGaps()
         self._last_input_time = -math.inf
         self._reported_internal_errors = 0
-        self.stats = _Stats()
+        self.stats = diagnostics.Stats()
+        self._markers = markers.Markers()
         self.get_logger().info(f"robot {self.robot.model.name!r} from {self.robot.source}: "
                                f"{self._describe_robot(self.robot)}")
         for w in self.robot.warnings:            # implausible values: a likely unit slip (issue 25)
@@ -388,16 +323,16 @@ class SoftTwinNode(Node):
         but replaced before a step used them as superseded."""
         batch = self._take_queued(self._sub_joints, (msg, info), JOINT_QUEUE)
         publishers = self._sub_joints.get_publisher_count()
-        lost = sum(self._joint_gaps.add(self._seq(inf), publishers) for _, inf in batch)
+        lost = sum(self._joint_gaps.add(inputs.sequence_number(inf), publishers) for _, inf in batch)
         with self._lock:
             twin = self.twin
             start = (twin.positions, twin.efforts)
-        fold = self._fold_joint_commands(twin.mech, batch, *start)
+        fold = inputs.fold_joint_commands(twin.mech, batch, *start)
         with self._lock:
             twin = self.twin
             if (twin.positions, twin.efforts) != start:
                 # reset, a plan or another batch meanwhile: fold again onto the new commands
-                fold = self._fold_joint_commands(twin.mech, batch, twin.positions, twin.efforts)
+                fold = inputs.fold_joint_commands(twin.mech, batch, twin.positions, twin.efforts)
             pos, eff, newest, n_applied, errors = fold
             s = self.stats
             s.input_batches.append(len(batch))
@@ -411,25 +346,9 @@ class SoftTwinNode(Node):
                 s.totals["joint_commands_superseded"] += n_applied - 1 + int(twin.joint_command_pending)
                 twin.set_joint_commands(pos, eff, stamp=newest.header)
         if errors:
-            self.get_logger().warn(f"joint command rejected ({errors[-1].reason}): {clip(errors[-1], 400)}"
-                                   + (f" (and {len(errors) - 1} more)" if len(errors) > 1 else ""),
-                                   throttle_duration_sec=1.0)
+            self.get_logger().warn(inputs.rejection_warning("joint command", errors), throttle_duration_sec=1.0)
         if newest is not None:
             self._react_to_input(batch)
-
-    @staticmethod
-    def _fold_joint_commands(mech, batch, pos, eff):
-        """(positions, efforts after the valid commands of batch in order, the
-        newest valid one, how many were valid, the InputErrors of the others)."""
-        newest, n_applied, errors = None, 0, []
-        for m, _ in batch:
-            try:
-                pos, eff = art.parse_joint_command(mech, m.name, m.position, m.velocity, m.effort, pos, eff)
-            except tw.InputError as e:
-                errors.append(e)
-            else:
-                newest, n_applied = m, n_applied + 1
-        return pos, eff, newest, n_applied, errors
 
     def _publish_articulated(self, snap, header):
         if self.listened(self._pub_joints):
@@ -523,7 +442,7 @@ class SoftTwinNode(Node):
         if unknown:
             self._count_parameter_rejection(unknown_parameters_message(unknown))
             raise UnknownParameterError(unknown)
-        return [Parameter(p.name, value=_coerced(p.name, p.value)) if p.name in PARAMETERS else p
+        return [Parameter(p.name, value=coerced(p.name, p.value)) if p.name in PARAMETERS else p
                 for p in params]
 
     def _count_parameter_rejection(self, reason):
@@ -617,10 +536,6 @@ class SoftTwinNode(Node):
         self._recorder.received(sub, batch)            # issue 12: recording of the inputs
         return batch
 
-    @staticmethod
-    def _seq(info):
-        return info.get("publication_sequence_number") if isinstance(info, dict) else None
-
     def _on_actuation(self, msg, info=None):
         """Every queued command in order: counted, validated and folded into
         the actuation (a partial command keeps the other actuators); the
@@ -632,16 +547,16 @@ class SoftTwinNode(Node):
         batch = self._take_queued(self._actuation_sub, (msg, info), ACTUATION_QUEUE)
         publishers = self._actuation_sub.get_publisher_count()
         taken_ns = self.get_clock().now().nanoseconds
-        lost = sum(self._command_gaps.add(self._seq(inf), publishers) for _, inf in batch)
+        lost = sum(self._command_gaps.add(inputs.sequence_number(inf), publishers) for _, inf in batch)
         with self._lock:
             twin, cfg = self.twin, self.cfg
             u0 = twin.u
-        fold = self._fold_commands(twin.model, batch, u0, cfg.actuator_names)
+        fold = inputs.fold_commands(twin.model, batch, u0, cfg.actuator_names)
         with self._lock:
             twin = self.twin
             if twin.u is not u0 or self.cfg is not cfg:
                 # reset or reconfigured meanwhile: fold again onto the new actuation
-                fold = self._fold_commands(twin.model, batch, twin.u, self.cfg.actuator_names)
+                fold = inputs.fold_commands(twin.model, batch, twin.u, self.cfg.actuator_names)
             u, newest, n_applied, errors = fold
             s = self.stats
             s.input_batches.append(len(batch))
@@ -658,25 +573,9 @@ class SoftTwinNode(Node):
                 # latency from the command's stamp (a zero stamp: from its arrival here)
                 self._command_received = (newest.header, stamp_ns if stamp_ns > 0 else taken_ns, taken_ns)
         if errors:
-            self.get_logger().warn(f"actuation command rejected ({errors[-1].reason}): {clip(errors[-1], 400)}"
-                                   + (f" (and {len(errors) - 1} more)" if len(errors) > 1 else ""),
-                                   throttle_duration_sec=1.0)
+            self.get_logger().warn(inputs.rejection_warning("actuation command", errors), throttle_duration_sec=1.0)
         if newest is not None:
             self._react_to_input(batch)
-
-    @staticmethod
-    def _fold_commands(model, batch, u, order):
-        """(actuation after the valid commands of batch in order, the newest
-        valid one, how many were valid, the InputErrors of the others)."""
-        newest, n_applied, errors = None, 0, []
-        for m, _ in batch:
-            try:
-                u = tw.parse_actuation(model, m.names, m.values, u, order)
-            except tw.InputError as e:
-                errors.append(e)
-            else:
-                newest, n_applied = m, n_applied + 1
-        return u, newest, n_applied, errors
 
     def _on_tip_wrench(self, msg, info=None):
         """Every queued wrench in order, counted and validated (outside the
@@ -684,12 +583,12 @@ class SoftTwinNode(Node):
         one before)."""
         batch = self._take_queued(self._wrench_sub, (msg, info), WRENCH_QUEUE)
         publishers = self._wrench_sub.get_publisher_count()
-        lost = sum(self._wrench_gaps.add(self._seq(inf), publishers) for _, inf in batch)
+        lost = sum(self._wrench_gaps.add(inputs.sequence_number(inf), publishers) for _, inf in batch)
         cfg = self.cfg
-        newest, errors = self._parse_wrenches(batch, cfg)
+        newest, errors = inputs.parse_wrenches(batch, cfg)
         with self._lock:
             if self.cfg is not cfg:     # reconfigured meanwhile (frames)
-                newest, errors = self._parse_wrenches(batch, self.cfg)
+                newest, errors = inputs.parse_wrenches(batch, self.cfg)
             s = self.stats
             s.totals["wrenches_received"] += len(batch)
             s.totals["wrenches_applied"] += len(batch) - len(errors)
@@ -700,24 +599,9 @@ class SoftTwinNode(Node):
             if newest is not None:
                 self.twin.set_tip_wrench(*newest)
         if errors:
-            self.get_logger().warn(f"tip wrench rejected ({errors[-1].reason}): {clip(errors[-1], 400)}"
-                                   + (f" (and {len(errors) - 1} more)" if len(errors) > 1 else ""),
-                                   throttle_duration_sec=1.0)
+            self.get_logger().warn(inputs.rejection_warning("tip wrench", errors), throttle_duration_sec=1.0)
         if newest is not None:
             self._react_to_input(batch)
-
-    @staticmethod
-    def _parse_wrenches(batch, cfg):
-        """(the newest valid (wrench, core frame) of batch or None, the InputErrors)."""
-        newest, errors = None, []
-        for m, _ in batch:
-            force, torque = cv.wrench_parts(m.wrench)
-            try:
-                newest = tw.parse_tip_wrench(force, torque, m.header.frame_id, cfg.base_frame, cfg.tip_frame,
-                                             cfg.max_tip_force_n, cfg.max_tip_torque_nm)
-            except tw.InputError as e:
-                errors.append(e)
-        return newest, errors
 
     def _react_to_input(self, batch):
         """Quasi-static: have the step group solve at once. Dynamic with
@@ -745,9 +629,7 @@ class SoftTwinNode(Node):
         """Dynamic mode: is the next step more than a period past its tick?
         (A hint read without the lock, like _early_step_allowed.)"""
         cfg = self.cfg
-        if cfg.mode != "dynamic" or self._anchor is None:
-            return False
-        return (time.monotonic() - self._anchor) / cfg.dt - self._steps_done > 2.0
+        return cfg.mode == "dynamic" and schedule.clock_late(time.monotonic(), self._anchor, cfg.dt, self._steps_done)
 
     # ------------------------------------------------------------------------
     # stepping
@@ -769,9 +651,8 @@ class SoftTwinNode(Node):
         more than one step, so the step rate is kept). A hint read without
         the lock; _step_dynamic decides under it."""
         cfg = self.cfg
-        if cfg.mode != "dynamic" or not cfg.step_on_command or self._anchor is None:
-            return False
-        return int((time.monotonic() - self._anchor) / cfg.dt) + 1 > self._steps_done
+        return (cfg.mode == "dynamic" and cfg.step_on_command
+                and schedule.may_step_early(time.monotonic(), self._anchor, cfg.dt, self._steps_done))
 
     def _step_dynamic(self, early=False, wait=True):
         """The steps due by the wall clock: twin step k is due at anchor + k dt.
@@ -788,17 +669,12 @@ class SoftTwinNode(Node):
             now = time.monotonic()
             if self._anchor is None:
                 self._anchor = now - cfg.dt
-            if early:
-                due = int((now - self._anchor) / cfg.dt) + 1 - self._steps_done
-            else:
-                due = int(round((now - self._anchor) / cfg.dt)) - self._steps_done
+            due = schedule.steps_due(now, self._anchor, cfg.dt, self._steps_done, early)
             if due <= 0:
                 return
-            if due > cfg.max_catchup_steps:
-                # too far behind: drop the backlog so twin time does not race to catch up
-                self.stats.totals["dropped_steps"] += due - cfg.max_catchup_steps
-                self._steps_done += due - cfg.max_catchup_steps
-                due = cfg.max_catchup_steps
+            due, dropped = schedule.catch_up(due, cfg.max_catchup_steps)
+            self.stats.totals["dropped_steps"] += dropped
+            self._steps_done += dropped
             twin, robot = self.twin, self.robot
             info = twin.step(due)
             # a failed step (its input dropped) is taken again at the next tick, as a catch-up step
@@ -837,36 +713,11 @@ class SoftTwinNode(Node):
         self._publish_wrenches(snap, robot, header, time.monotonic())
 
     def _record(self, info, sim_dt):
-        """Statistics of one step call or solve (under the lock); a failed
-        one's dropped inputs are taken back from the applied counts and
-        counted as rejected (reason solver_failed)."""
-        s = self.stats
-        s.ticks += 1
-        s.steps += info.steps
-        s.totals["steps"] += info.steps
-        s.sim_time += sim_dt
-        s.compute_times.append(info.compute_time)
-        s.iterations.append(info.iterations)
-        s.unstable = not info.stable
-        if info.converged:
-            s.consecutive_failures = 0
-            if info.message:
-                s.last_solver_message = info.message
-        else:
-            s.consecutive_failures += 1
-            s.failures += 1
-            s.totals["solver_failures"] += 1
-            s.last_solver_message = info.message
-            for kind in info.dropped:
-                err = tw.InputError("solver_failed", info.message)
-                if kind == "actuation":
-                    s.totals["commands_applied"] -= 1
-                    self._command_received = None
-                elif kind == "joint":
-                    s.totals["joint_commands_applied"] -= 1
-                else:
-                    s.totals["wrenches_applied"] -= 1
-                s.reject(kind, err)
+        """Statistics of one step call or solve (under the lock)."""
+        dropped = self.stats.record(info, sim_dt)
+        if "actuation" in dropped:
+            self._command_received = None
+        if not info.converged:
             self.get_logger().error(info.message, throttle_duration_sec=1.0)
 
     # ------------------------------------------------------------------------
@@ -958,337 +809,36 @@ class SoftTwinNode(Node):
         finally:
             self._wrench_lock.release()
 
-    def _markers(self, snap, robot, header):
-        """A tube of cylinders along the backbone (one per sample interval,
-        diameter of the section) and a sphere at the tip; articulated robots:
-        every member's tube and the rigid links' shapes."""
-        if robot.articulated:
-            return self._articulated_markers(snap, robot, header)
-        T = snap.backbone
-        p = T[:, :3, 3]
-        mid = 0.5 * (p[1:] + p[:-1])
-        length = np.linalg.norm(p[1:] - p[:-1], axis=1)
-        quat = cv.cylinder_orientation(T[:-1]).tolist()
-        sec, _ = robot.model.locate(0.5 * (snap.s[1:] + snap.s[:-1]))
-        radii = np.asarray(robot.section_radii())[sec]
-        color = ColorRGBA(r=0.85, g=0.45, b=0.2, a=0.9)
-        out = MarkerArray()
-        for i, (c, L, q, r) in enumerate(zip(mid.tolist(), length.tolist(), quat, radii.tolist())):
-            m = Marker(header=header, ns="tube", id=i, type=Marker.CYLINDER, action=Marker.ADD, color=color)
-            m.pose.position = cv.point(c)
-            m.pose.orientation = cv.quaternion(q)
-            m.scale = Vector3(x=2 * r, y=2 * r, z=max(L * 1.05, 1e-6))
-            out.markers.append(m)
-        tip = Marker(header=header, ns="tip", id=0, type=Marker.SPHERE, action=Marker.ADD,
-                     color=ColorRGBA(r=0.2, g=0.4, b=0.9, a=1.0))
-        tip.pose = cv.pose_msg(T[-1])
-        d = 2.4 * float(radii[-1])
-        tip.scale = Vector3(x=d, y=d, z=d)
-        out.markers.append(tip)
-        # a robot with fewer samples than before: delete the extra cylinders
-        for i in range(len(mid), getattr(self, "_n_markers", 0)):
-            out.markers.append(Marker(header=header, ns="tube", id=i, action=Marker.DELETE))
-        self._n_markers = len(mid)
-        return out
-
-    def _articulated_markers(self, snap, robot, header):
-        mech = robot.mechanism
-        out = MarkerArray()
-        tube = ColorRGBA(r=0.85, g=0.45, b=0.2, a=0.9)
-        n = 0
-        for mem in mech.members:
-            T = snap.backbones[mem.name][0]
-            p = T[:, :3, 3]
-            mid = 0.5 * (p[1:] + p[:-1])
-            length = np.linalg.norm(p[1:] - p[:-1], axis=1)
-            quat = cv.cylinder_orientation(T[:-1]).tolist()
-            for k, (c, L, q) in enumerate(zip(mid.tolist(), length.tolist(), quat)):
-                g = mem.geometry[min(k, len(mem.geometry) - 1)]
-                r = max(g.cy, g.cz) if g is not None else 0.005
-                m = Marker(header=header, ns="tube", id=n, type=Marker.CYLINDER, action=Marker.ADD, color=tube)
-                m.pose.position = cv.point(c)
-                m.pose.orientation = cv.quaternion(q)
-                m.scale = Vector3(x=2 * r, y=2 * r, z=max(L * 1.05, 1e-6))
-                out.markers.append(m)
-                n += 1
-        for i in range(n, getattr(self, "_n_markers", 0)):
-            out.markers.append(Marker(header=header, ns="tube", id=i, action=Marker.DELETE))
-        self._n_markers = n
-        link = ColorRGBA(r=0.6, g=0.6, b=0.65, a=1.0)
-        for k, lk in enumerate(mech.links):
-            vis = lk.visual or {"shape": "sphere", "radius": 0.01}
-            kind = {"box": Marker.CUBE, "cylinder": Marker.CYLINDER, "sphere": Marker.SPHERE}[vis["shape"]]
-            m = Marker(header=header, ns="links", id=k, type=kind, action=Marker.ADD, color=link)
-            m.pose = cv.pose_msg(snap.frames[lk.name])
-            if vis["shape"] == "box":
-                m.scale = Vector3(x=float(vis["size"][0]), y=float(vis["size"][1]), z=float(vis["size"][2]))
-            elif vis["shape"] == "cylinder":
-                d = 2 * float(vis["radius"])
-                m.scale = Vector3(x=d, y=d, z=float(vis["length"]))
-            else:
-                d = 2 * float(vis["radius"])
-                m.scale = Vector3(x=d, y=d, z=d)
-            out.markers.append(m)
-        tip = Marker(header=header, ns="tip", id=0, type=Marker.SPHERE, action=Marker.ADD,
-                     color=ColorRGBA(r=0.2, g=0.4, b=0.9, a=1.0))
-        tip.pose = cv.pose_msg(snap.tip_pose)
-        tip.scale = Vector3(x=0.015, y=0.015, z=0.015)
-        out.markers.append(tip)
-        return out
-
     def _publish_diagnostics(self):
+        """The /diagnostics status of the period since the last one (:mod:`soft_twin.diagnostics`)."""
         now = time.monotonic()
         with self._lock:
             s, cfg, twin = self.stats, self.cfg, self.twin
-            wall = max(now - s.window_start, 1e-9)
-            ct = np.array(s.compute_times) if s.compute_times else np.zeros(1)
-            its = np.array(s.iterations) if s.iterations else np.zeros(1)
-            pt = np.array(s.publish_times) if s.publish_times else np.zeros(1)
-            cl = np.array(s.command_latencies) if s.command_latencies else np.full(1, np.nan)
-            nl = np.array(s.node_latencies) if s.node_latencies else np.full(1, np.nan)
-            rate = s.steps / wall
-            rtf = s.sim_time / wall
-            values = {
-                "mode": cfg.mode,
-                "robot": (f"{twin.model.name} (articulated: {twin.mech.tree.n_joints} joints, {twin.mech.tree.nv} dof)"
-                          if self.robot.articulated else
-                          f"{twin.model.name} ({twin.model.n_sections} sections, {twin.model.n_dof} dof)"),
-                "twin_time_s": f"{twin.state.t:.4f}",
-                "step_rate_target_hz": f"{cfg.step_rate_hz:.3f}" if cfg.mode == "dynamic" else "on input",
-                "step_rate_hz": f"{rate:.3f}",
-                "publish_rate_hz": f"{s.publishes / wall:.3f}",
-                "real_time_factor": f"{rtf:.4f}" if cfg.mode == "dynamic" else "n/a",
-                "step_time_mean_ms": f"{1e3 * ct.mean():.4f}",
-                "step_time_max_ms": f"{1e3 * ct.max():.4f}",
-                "publish_time_mean_ms": f"{1e3 * pt.mean():.4f}",
-                "command_to_publish_mean_ms": f"{1e3 * cl.mean():.4f}",
-                "command_to_publish_max_ms": f"{1e3 * cl.max():.4f}",
-                "command_in_node_mean_ms": f"{1e3 * nl.mean():.4f}",
-                "solver_iterations_mean": f"{its.mean():.2f}",
-                "solver_iterations_max": str(int(its.max())),
-                "solver_failures_total": str(s.totals["solver_failures"]),
-                "solver_consecutive_failures": str(s.consecutive_failures),
-                "solver_last_message": clip(s.last_solver_message, 400),
-                "steps_total": str(s.totals["steps"]),
-                "dropped_steps_total": str(s.totals["dropped_steps"]),
-                "commands_received_total": str(s.totals["commands_received"]),
-                "commands_applied_total": str(s.totals["commands_applied"]),
-                "commands_superseded_total": str(s.totals["commands_superseded"]),
-                "commands_lost_total": str(s.totals["commands_lost"]) if self._command_gaps.supported
-                else "n/a",
-                "command_queue_max": str(max(s.input_batches, default=0)),
-                "wrenches_received_total": str(s.totals["wrenches_received"]),
-                "wrenches_applied_total": str(s.totals["wrenches_applied"]),
-                "wrenches_lost_total": str(s.totals["wrenches_lost"]) if self._wrench_gaps.supported
-                else "n/a",
-                "rejected_inputs_total": str(s.totals["rejected_actuation"] + s.totals["rejected_wrench"]
-                                             + s.totals["rejected_joint"]),
-                "rejected_actuation_total": str(s.totals["rejected_actuation"]),
-                "rejected_wrench_total": str(s.totals["rejected_wrench"]),
-                **{f"rejected_{r}_total": str(n) for r, n in s.rejected_by_reason.items()},
-                "last_rejection": s.last_rejection,
-                "rejected_parameter_changes_total": str(s.totals["rejected_parameter_changes"]),
-                "last_parameter_rejection": s.last_parameter_rejection,
-                "internal_errors_total": str(s.totals["internal_errors"]),
-                "last_internal_error": s.last_internal_error,
-            }
+            gaps = {"actuation": self._command_gaps, "wrench": self._wrench_gaps, "joint": self._joint_gaps}
+            values, rate = diagnostics.values(s, cfg, twin, self.robot.articulated, gaps, now)
             if self.robot.articulated:
-                values.update(self._articulated_diagnostics(s))
-            level, message = DiagnosticStatus.OK, "ok"
-            if s.consecutive_failures:
-                level, message = DiagnosticStatus.ERROR, f"solver failing, state kept: {values['solver_last_message']}"
-            elif s.failures:
-                level, message = DiagnosticStatus.WARN, (f"{s.failures} step(s) or solve(s) failed, the "
-                                                         f"state kept and the input dropped: "
-                                                         f"{values['solver_last_message']}")
-            elif s.totals["internal_errors"] > self._reported_internal_errors:
-                level, message = DiagnosticStatus.ERROR, f"internal error: {s.last_internal_error}"
+                values.update(diagnostics.joint_values(s, gaps, getattr(self, "_last_articulated", None)))
+            new_error = s.totals["internal_errors"] > self._reported_internal_errors
+            level, message = diagnostics.level(s, cfg, rate, new_error)
+            if new_error and message.startswith("internal error"):
                 self._reported_internal_errors = s.totals["internal_errors"]
-            elif cfg.mode == "dynamic" and s.steps and rate < 0.95 * cfg.step_rate_hz:
-                level, message = DiagnosticStatus.WARN, (f"behind real time: {rate:.1f} of "
-                                                         f"{cfg.step_rate_hz:g} steps/s")
-            elif s.lost:
-                level, message = DiagnosticStatus.WARN, (f"{s.lost} input(s) lost before the node took "
-                                                         f"them (queue overflow or transport)")
-            elif s.unstable:
-                level, message = DiagnosticStatus.WARN, "only an unstable equilibrium was found"
-            elif s.rejected:
-                level, message = DiagnosticStatus.WARN, f"{s.rejected} input(s) rejected: {s.last_rejection}"
             s.reset_window(now)
-        status = DiagnosticStatus(level=level, name=f"{self.get_name()}: twin", message=message,
-                                  hardware_id=twin.model.name,
-                                  values=[KeyValue(key=k, value=v) for k, v in values.items()])
-        self._pub_diag.publish(DiagnosticArray(header=self._header(cfg.base_frame), status=[status]))
-
-    def _articulated_diagnostics(self, s):
-        """Joint command counters and the members' peak stresses [Pa] of the
-        last published state."""
-        out = {"joint_commands_received_total": str(s.totals["joint_commands_received"]),
-               "joint_commands_applied_total": str(s.totals["joint_commands_applied"]),
-               "joint_commands_superseded_total": str(s.totals["joint_commands_superseded"]),
-               "joint_commands_lost_total": str(s.totals["joint_commands_lost"]) if self._joint_gaps.supported
-               else "n/a",
-               "rejected_joint_total": str(s.totals["rejected_joint"])}
-        snap = getattr(self, "_last_articulated", None)
-        if snap is not None:
-            for name, (normal, shear) in snap.stresses.items():
-                out[f"peak_normal_stress_{name}_pa"] = f"{normal:.6g}"
-                out[f"peak_shear_stress_{name}_pa"] = f"{shear:.6g}"
-        return out
+        self._pub_diag.publish(diagnostics.diagnostic_array(self._header(cfg.base_frame), f"{self.get_name()}: twin",
+                                                            twin.model.name, level, message, values))
 
     # ------------------------------------------------------------------------
     # services
     # ------------------------------------------------------------------------
-    def _copy_state(self):
-        """What a query needs, copied under the lock (microseconds)."""
-        with self._lock:
-            t = self.twin
-            return (t.model, t.state.q.copy(), t.u.copy(), t.tip_wrench.copy(), t.tip_frame,
-                    self.cfg, self.cfg.actuator_names)
-
-    def _fill_shape(self, resp, res, cfg):
-        header = self._header(cfg.base_frame)
-        resp.backbone = cv.pose_array(res.backbone, header)
-        resp.strains = res.strains.ravel().tolist()
-
+    # the handlers: soft_twin.services
     def _srv_fk(self, req, resp):
-        model, q, u, _, _, cfg, order = self._copy_state()
-        actuation = None
-        try:
-            if len(req.actuator_names) or len(req.actuator_values):
-                actuation = tw.parse_actuation(model, req.actuator_names, req.actuator_values, u, order)
-        except tw.InputError as e:
-            resp.success, resp.message = False, clip(f"actuation rejected ({e.reason}): {e}", 400)
-            return resp
-        if self.robot.articulated:
-            return self._articulated_fk(resp, req.strains, actuation, cfg)
-        res = tw.forward_kinematics(model, q, cfg.backbone_points_per_section, req.strains, actuation)
-        resp.success, resp.message = res.success, clip(res.message, 400)
-        if res.success:
-            self._fill_shape(resp, res, cfg)
-            resp.tip_pose = cv.pose_msg(res.tip_pose)
-        return resp
+        return services.forward_kinematics(self, req, resp)
 
     def _srv_statics(self, req, resp):
-        model, q, u, _, _, cfg, order = self._copy_state()
-        try:
-            actuation = tw.parse_actuation(model, req.actuator_names, req.actuator_values, u, order) \
-                if (len(req.actuator_names) or len(req.actuator_values)) else u
-            force, torque = cv.wrench_parts(req.tip_wrench)
-            w, frame = tw.parse_tip_wrench(force, torque, cfg.base_frame, cfg.base_frame, cfg.tip_frame,
-                                           cfg.max_tip_force_n, cfg.max_tip_torque_nm)
-        except tw.InputError as e:
-            resp.success, resp.message = False, clip(f"input rejected ({e.reason}): {e}", 400)
-            return resp
-        if self.robot.articulated:
-            return self._articulated_statics(resp, actuation, w, frame, cfg)
-        res = tw.statics_query(model, q, cfg.backbone_points_per_section, actuation, w, frame)
-        resp.success, resp.message = res.success, clip(res.message, 400)
-        if res.success:
-            self._fill_shape(resp, res, cfg)
-            resp.tip_pose = cv.pose_msg(res.tip_pose)
-            resp.base_wrench = cv.wrench_msg(res.base_wrench)
-            resp.iterations, resp.residual = int(res.iterations), float(res.residual)
-        return resp
+        return services.statics_query(self, req, resp)
 
     def _srv_ik(self, req, resp):
-        if _SERVICE_TIMING:
-            w0, c0 = time.perf_counter(), time.thread_time()
-            try:
-                return self._srv_ik_body(req, resp)
-            finally:
-                self.get_logger().info(f"timing inverse_kinematics: wall {1e3 * (time.perf_counter() - w0):.2f} ms "
-                                       f"thread CPU {1e3 * (time.thread_time() - c0):.2f} ms")
-        return self._srv_ik_body(req, resp)
+        return services.inverse_kinematics(self, req, resp, _SERVICE_TIMING)
 
-    def _srv_ik_body(self, req, resp):
-        tol = req.tolerance
-        if not math.isfinite(tol) or tol < 0:
-            resp.success, resp.message = False, f"tolerance must be >= 0 (0 = default 1e-6), got {tol}"
-            return resp
-        try:
-            target = cv.matrix_from_pose(req.target)
-        except ValueError as e:
-            resp.success, resp.message = False, clip(f"target rejected: {e}", 400)
-            return resp
-        if self.robot.articulated:
-            return self._articulated_ik(req, resp, target, tol or 1e-6)
-        model, q, u, w, frame, cfg, order = self._copy_state()
-        res = tw.inverse_kinematics(model, q, cfg.backbone_points_per_section, target, req.position_only,
-                                    tol or 1e-6, tw.make_loads(model, w, frame), u_current=u)
-        resp.success, resp.message = res.success, clip(res.message, 400)
-        if res.q is not None:
-            resp.strains = res.strains.ravel().tolist()
-            x = res.extra
-            resp.actuation_found = x["actuation_found"]
-            resp.actuator_names = list(model.actuator_names)
-            resp.actuator_values = [float(v) for v in x["u"]]
-            resp.achieved = cv.pose_msg(x["achieved_pose"])
-            resp.position_error = float(x["position_error"])
-            resp.orientation_error = float(x["orientation_error"])
-            resp.iterations = int(res.iterations)
-        return resp
-
-    def _articulated_ik(self, req, resp, target, tol):
-        """IK of an articulated robot's tip position (:meth:`articulated.ArticulatedTwin.inverse_kinematics`):
-        ``actuator_names``/``actuator_values`` its position-controlled joints
-        (rad or m) first, then its actuators (N or Pa)."""
-        if not req.position_only:
-            resp.success, resp.message = False, ("inverse_kinematics: an articulated robot's IK reaches tip "
-                                                 "positions only (set position_only: true)")
-            return resp
-        try:
-            r = self.query("inverse_kinematics", target[:3, 3], tol)
-        except (PlanError, StaticsError, ModelError, ValueError, np.linalg.LinAlgError, QueryError) as e:
-            resp.success, resp.message = False, clip(f"IK failed: {e}", 400)
-            return resp
-        resp.success = r.reached
-        resp.message = ("converged: reached by joint commands and actuation (static equilibrium)" if r.reached else
-                        f"target not reached ({tw._IK_STATUS.get(r.status, r.status)}): the closest position "
-                        f"the joints and actuators can hold, position error {r.position_error:.3g} m")
-        resp.strains = r.strains.ravel().tolist()
-        resp.actuation_found = True
-        resp.actuator_names = list(r.names)
-        resp.actuator_values = [float(v) for v in r.values]
-        resp.achieved = cv.pose_msg(r.achieved_pose)
-        resp.position_error = float(r.position_error)
-        # as the rod robots' position-only answer: |log(R_achieved^T R_target)| (informative only)
-        resp.orientation_error = float(np.linalg.norm(lie.log_so3(r.achieved_pose[:3, :3].T @ target[:3, :3])))
-        resp.iterations = int(r.iterations)
-        return resp
-
-    def _articulated_fk(self, resp, strains, actuation, cfg):
-        """FK of an articulated robot: the main member's backbone and the tip
-        frame for given section strains (joints where they are), the
-        equilibrium under an actuation, or the current state (the twin untouched)."""
-        with self._lock:
-            query = self.twin.query_copy()
-        try:
-            message, snap = query.forward_kinematics(strains, actuation)
-        except (ValueError, StaticsError) as e:
-            resp.success, resp.message = False, clip(str(e), 400)
-            return resp
-        resp.success, resp.message = True, clip(message, 400)
-        resp.backbone = cv.pose_array(snap.backbone, self._header(cfg.base_frame))
-        resp.tip_pose = cv.pose_msg(snap.tip_pose)
-        resp.strains = snap.strains.ravel().tolist()
-        return resp
-
-    def _articulated_statics(self, resp, actuation, w, frame, cfg):
-        """Equilibrium of an articulated robot under the actuation, the tip
-        wrench and the twin's current joint commands (the twin untouched)."""
-        with self._lock:
-            query = self.twin.query_copy()
-        info, snap = query.statics(actuation, w, frame)
-        resp.success, resp.message = info.converged, clip(info.message or "ok", 400)
-        if info.converged:
-            header = self._header(cfg.base_frame)
-            resp.backbone = cv.pose_array(snap.backbone, header)
-            resp.strains = snap.strains.ravel().tolist()
-            resp.tip_pose = cv.pose_msg(snap.tip_pose)
-            resp.base_wrench = cv.wrench_msg(snap.base_wrench)
-            resp.iterations = int(info.iterations)
-        return resp
     def _srv_plan_path(self, req, resp):
         from soft_twin import plan_service
         return plan_service.handle(self, self._plan_runner, req, resp, ActuationCommand, JointState)
@@ -1298,16 +848,7 @@ class SoftTwinNode(Node):
         return plan_service.handle_cancel(self, self._plan_runner, resp)
 
     def _srv_reset(self, req, resp):
-        with self._lock:
-            self.twin.reset()
-            self._anchor, self._steps_done = None, 0
-            mode = self.cfg.mode
-        resp.success = True
-        resp.message = f"twin reset: no actuation, no tip load, {self.twin.rest_message}, t = 0"
-        if mode == "quasi_static":
-            self._solve_trigger.trigger()
-        self.get_logger().info(resp.message)
-        return resp
+        return services.reset(self, req, resp)
 
     # --- the plan execution stops, the MCAP recording closes with the node ----
     def destroy_node(self):

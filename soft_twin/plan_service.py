@@ -20,9 +20,10 @@ from soft_twin_core import planner as pl
 from soft_twin_core.model import ModelError
 from soft_twin_core.statics import StaticsError
 
-from soft_twin import twin as tw
+from soft_twin import services
+from soft_twin_core import twin as tw
 from soft_twin.query_worker import QueryError
-from soft_twin.text import clip
+from soft_twin_core.text import clip
 
 # the first command goes out this long after the answer is ready, so a
 # client can be listening when it does (s)
@@ -254,7 +255,7 @@ def channels(plan, cfg, actuation_type, joint_type):
 
 def handle(node, runner, req, resp, actuation_type, joint_type):
     """The ~/plan_path callback body (node: the TwinNode)."""
-    model, q, u, w, frame, cfg, _ = node._copy_state()
+    model, q, u, w, frame, cfg, _ = services.copy_state(node)
     if node.robot.articulated:
         # in the node's query worker process (soft_twin.query_worker)
         plan, err = plan_request(req, lambda path, **options: node.query("plan", path, **options))

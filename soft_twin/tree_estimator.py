@@ -24,7 +24,7 @@ position of a measured joint (``non_finite``); poses as in the classic
 node.
 
 Publications: ``~/estimate/tip_pose`` (PoseWithCovarianceStamped of the
-tip frame, ``soft_twin.articulated.tip_frame_of``: position covariance,
+tip frame, ``soft_twin_core.articulated_twin.tip_frame_of``: position covariance,
 m^2), ``~/estimate/joint_states`` (JointState: positions and velocities
 of the rigid joints), ``~/estimate/backbone/<member>`` (PoseArray per soft
 member), the filter's health on ``/diagnostics``.
@@ -37,10 +37,10 @@ from geometry_msgs.msg import PointStamped, PoseArray, PoseStamped, PoseWithCova
 from sensor_msgs.msg import JointState
 
 from soft_twin import conversions as cv
-from soft_twin.articulated import parse_joint_command, tip_frame_of
+from soft_twin_core.articulated_twin import parse_joint_command, tip_frame_of
 from soft_twin.msg import ActuationCommand
 from soft_twin.readings import STAMP_REJECTIONS, accept_reading
-from soft_twin.twin import InputError
+from soft_twin_core.twin import InputError
 from soft_twin_core import tree_estimation as te
 from soft_twin_core import tree_sensors as ts
 

@@ -14,6 +14,15 @@ class ModelError(ValueError):
     """A robot description is invalid; the message names the field and value."""
 
 
+class InputError(ValueError):
+    """A rejected input of the twin (a command, a wrench, a query). ``reason``
+    is one of :data:`soft_twin_core.twin.REJECT_REASONS`."""
+
+    def __init__(self, reason, message):
+        super().__init__(message)
+        self.reason = reason
+
+
 class ScenarioError(ValueError):
     """A scenario file is invalid; the message names the field."""
 

@@ -106,7 +106,7 @@ def test_check_actuator_input_reasons():
 
 
 def test_the_node_uses_the_same_rule():
-    from soft_twin import twin as tw
+    from soft_twin_core import twin as tw
     d = _with_suction(_pneumatic_dict())
     d["actuators"][0].update(limit=6.0e4, min=0.0)
     d["actuators"][1].update(max=5.0e4)
@@ -130,8 +130,8 @@ def test_the_node_uses_the_same_rule():
 
 
 def test_the_articulated_node_uses_the_core_joint_rule():
-    from soft_twin import articulated as ar
-    from soft_twin import twin as tw
+    from soft_twin_core import articulated_twin as ar
+    from soft_twin_core import twin as tw
     from soft_twin_core.mechanism import check_joint_position, load_mechanism
     mech = load_mechanism(PAN_TILT)
     tilt = next(j for j in mech.tree.joints if j.name == "tilt")

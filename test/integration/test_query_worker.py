@@ -10,9 +10,9 @@ import time
 import numpy as np
 import pytest
 
-from soft_twin.articulated import ArticulatedTwin
+from soft_twin_core.articulated_twin import ArticulatedTwin
 from soft_twin.query_worker import QueryError, QueryWorker
-from soft_twin.twin import TwinSettings
+from soft_twin_core.twin import TwinSettings
 from soft_twin_core.mechanism import mechanism_from_dict
 from soft_twin_core.model import find_file, read_yaml_file
 from soft_twin_core import paths as pth

@@ -7,7 +7,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from soft_twin import twin as tw
+from soft_twin_core import twin as tw
 from soft_twin.config import (PARAMETERS, ConfigError, config_from_values, load_robot,
                               resolve_robot_file, validate)
 from soft_twin_core import dynamics as dy
@@ -324,7 +324,7 @@ def test_messages_from_huge_inputs_are_bounded(model):
     """A command with 10,000 names made an 89,077-character log line: every
     message built from user input is cut (~200 characters a piece) and says
     how much was left out."""
-    from soft_twin.text import clip, short_list
+    from soft_twin_core.text import clip, short_list
     cases = [
         (["x%d" % i for i in range(10000)], [0.1] * 10000, "unknown_name", "(9"),
         (["tendon_y_pos"] * 10000, [0.1] * 10000, "duplicate_name", "repeated"),
@@ -515,7 +515,7 @@ def test_forward_kinematics_of_an_articulated_twin():
     back its tip pose (joints where they are); the current state; the
     equilibrium under an actuation equals the core's; bad strains are
     named; the twin is untouched."""
-    from soft_twin.articulated import ArticulatedTwin
+    from soft_twin_core.articulated_twin import ArticulatedTwin
     from soft_twin_core.constrained import solve_equilibrium
     from soft_twin_core.mechanism import load_mechanism
     from soft_twin_core.model import ModelError, find_file
@@ -551,7 +551,7 @@ def test_a_tree_twin_checks_its_inputs_at_the_door_only():
     the twin assembles the core's Inputs without checking again, on every
     step and publish (make_inputs ran on each before). The assembled Inputs
     equal make_inputs' for the same valid commands."""
-    from soft_twin.articulated import ArticulatedTwin
+    from soft_twin_core.articulated_twin import ArticulatedTwin
     from soft_twin_core import constrained as cs
     from soft_twin_core.mechanism import load_mechanism
     from soft_twin_core.model import find_file
@@ -588,7 +588,7 @@ def test_a_tree_twin_drops_failed_inputs_as_the_rod_twin_does():
     fails is dropped; inputs that stepped well and then fail give way to
     the inputs before them, once; with nothing left to drop, new inputs are
     kept and tried at every step."""
-    from soft_twin.articulated import ArticulatedTwin
+    from soft_twin_core.articulated_twin import ArticulatedTwin
     from soft_twin_core import constrained as cs
     from soft_twin_core.mechanism import load_mechanism
     from soft_twin_core.model import find_file
@@ -621,7 +621,7 @@ def test_a_tree_twin_drops_failed_inputs_as_the_rod_twin_does():
 def test_forward_kinematics_of_a_closed_chain_says_whether_the_strains_close_it():
     """A closed chain (the planar parallel robot): the strains of one of its
     equilibria close it; other strains leave a gap, named in metres."""
-    from soft_twin.articulated import ArticulatedTwin
+    from soft_twin_core.articulated_twin import ArticulatedTwin
     from soft_twin_core.constrained import solve_equilibrium
     from soft_twin_core.mechanism import load_mechanism
     from soft_twin_core.model import find_file

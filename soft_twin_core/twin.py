@@ -34,14 +34,15 @@ import time
 
 import numpy as np
 
-from soft_twin_core import dynamics as dy
-from soft_twin_core import ik as core_ik
-from soft_twin_core import kinematics as kin
-from soft_twin_core import loads as ld
-from soft_twin_core import statics as st
-from soft_twin_core.model import ModelError, State, check_actuator_input
+from . import dynamics as dy
+from . import ik as core_ik
+from . import kinematics as kin
+from . import loads as ld
+from . import statics as st
+from .model import ModelError, State, check_actuator_input
 
-from soft_twin.text import clip, short_list
+from .errors import InputError  # noqa: F401  (the twin's API: tw.InputError)
+from .text import clip, short_list
 
 MODES = ("dynamic", "quasi_static")
 
@@ -54,14 +55,6 @@ REJECT_REASONS = ("non_finite", "wrong_length", "unknown_name", "duplicate_name"
 
 # what a failing step may raise on absurd (finite) numbers: a failure, not a bug
 STEP_ERRORS = (ArithmeticError, ValueError, np.linalg.LinAlgError, st.StaticsError)
-
-
-class InputError(ValueError):
-    """A rejected input. ``reason`` is one of :data:`REJECT_REASONS`."""
-
-    def __init__(self, reason, message):
-        super().__init__(message)
-        self.reason = reason
 
 
 # ----------------------------------------------------------------------------

@@ -1,6 +1,6 @@
 """The twin of a soft articulated robot (a tree robot file), free of ROS.
 
-:class:`ArticulatedTwin` has the interface of :class:`soft_twin.twin.Twin`
+:class:`ArticulatedTwin` has the interface of :class:`soft_twin_core.twin.Twin`
 that the node drives (inputs, ``step``, ``outputs``, ``reset``,
 ``change_settings``, ``warm_up``) on the multibody engine with joints and
 constraints (:mod:`soft_twin_core.constrained`): ``dynamic`` mode steps a
@@ -23,14 +23,14 @@ import time
 
 import numpy as np
 
-from soft_twin_core import articulated_planner as ap
-from soft_twin_core import constrained as cs
-from soft_twin_core.mechanism import check_joint_position, shape_command
-from soft_twin_core.model import State
-from soft_twin_core.outputs import q_from_section_strains, section_strains, state_outputs
+from . import articulated_planner as ap
+from . import constrained as cs
+from .mechanism import check_joint_position, shape_command
+from .model import State
+from .outputs import q_from_section_strains, section_strains, state_outputs
 
-from soft_twin.text import clip, short_list
-from soft_twin.twin import STEP_ERRORS, DropPolicy, InputError, TwinSettings, UpdateInfo
+from .text import clip, short_list
+from .twin import STEP_ERRORS, DropPolicy, InputError, TwinSettings, UpdateInfo
 
 
 def _same_inputs(a, b):
@@ -208,7 +208,7 @@ class ArticulatedTwin:
         ``velocities``: instead of the commanded ones, e.g. the shaped
         references), assembled without a second check: the node checked
         every command at the door (:func:`parse_joint_command`,
-        :func:`soft_twin.twin.parse_actuation`, :func:`soft_twin.twin.parse_tip_wrench`)."""
+        :func:`soft_twin_core.twin.parse_actuation`, :func:`soft_twin_core.twin.parse_tip_wrench`)."""
         return cs.assemble_inputs(self.mech, self.u, self.efforts,
                                   self.positions if positions is None else positions, velocities, self.held_loads())
 
@@ -341,7 +341,7 @@ class ArticulatedTwin:
         return info
 
     def _drop(self):
-        """After a failed step or solve: :class:`soft_twin.twin.DropPolicy`
+        """After a failed step or solve: :class:`soft_twin_core.twin.DropPolicy`
         (the rod twin's too) says what to go back to. Returns what was dropped."""
         now = self._inputs_tuple()
         target = self._policy.target(now)

@@ -1,0 +1,75 @@
+"""The node's inputs, message batch to checked values (pure: no rclpy).
+
+Each subscription callback of :mod:`soft_twin.node` takes every message
+queued on its topic and folds the batch here, outside the twin lock: the
+door's parse functions (:func:`soft_twin_core.twin.parse_actuation`,
+:func:`soft_twin_core.twin.parse_tip_wrench`,
+:func:`soft_twin_core.articulated_twin.parse_joint_command`) validate each message once;
+the valid ones are applied in order (a partial command keeps the other
+actuators or joints), the invalid ones come back as
+:class:`soft_twin_core.twin.InputError` for the counters. Nothing downstream checks
+them again.
+"""
+
+from soft_twin_core import articulated_twin as art
+from soft_twin import conversions as cv
+from soft_twin_core import twin as tw
+from soft_twin_core.text import clip
+
+
+def sequence_number(info):
+    """The publisher's sequence number of a message (None when the
+    middleware gives none)."""
+    return info.get("publication_sequence_number") if isinstance(info, dict) else None
+
+
+def fold_commands(model, batch, u, order):
+    """(actuation after the valid ActuationCommands of ``batch`` [(msg,
+    info)] in order, the newest valid one, how many were valid, the
+    InputErrors of the others); ``u`` the actuation before, ``order`` the
+    configured actuator order of unnamed commands."""
+    newest, n_applied, errors = None, 0, []
+    for m, _ in batch:
+        try:
+            u = tw.parse_actuation(model, m.names, m.values, u, order)
+        except tw.InputError as e:
+            errors.append(e)
+        else:
+            newest, n_applied = m, n_applied + 1
+    return u, newest, n_applied, errors
+
+
+def fold_joint_commands(mech, batch, pos, eff):
+    """(positions, efforts after the valid JointState commands of ``batch``
+    in order, the newest valid one, how many were valid, the InputErrors of
+    the others)."""
+    newest, n_applied, errors = None, 0, []
+    for m, _ in batch:
+        try:
+            pos, eff = art.parse_joint_command(mech, m.name, m.position, m.velocity, m.effort, pos, eff)
+        except tw.InputError as e:
+            errors.append(e)
+        else:
+            newest, n_applied = m, n_applied + 1
+    return pos, eff, newest, n_applied, errors
+
+
+def parse_wrenches(batch, cfg):
+    """(the newest valid (wrench, core frame) of a batch of WrenchStamped
+    tip-wrench commands, or None; the InputErrors of the invalid ones)."""
+    newest, errors = None, []
+    for m, _ in batch:
+        force, torque = cv.wrench_parts(m.wrench)
+        try:
+            newest = tw.parse_tip_wrench(force, torque, m.header.frame_id, cfg.base_frame, cfg.tip_frame,
+                                         cfg.max_tip_force_n, cfg.max_tip_torque_nm)
+        except tw.InputError as e:
+            errors.append(e)
+    return newest, errors
+
+
+def rejection_warning(kind, errors):
+    """The log line for a batch's rejected inputs (the newest reason, and how many more)."""
+    e = errors[-1]
+    return (f"{kind} rejected ({e.reason}): {clip(e, 400)}"
+            + (f" (and {len(errors) - 1} more)" if len(errors) > 1 else ""))

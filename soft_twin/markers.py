@@ -1,0 +1,95 @@
+"""RViz markers of a published state (``~/markers``): a tube of cylinders
+along every soft member (one per sample interval, the diameter of its
+section), the rigid links' visual shapes (a small sphere for a link without
+one) and a sphere at the tip.
+
+:class:`Markers` remembers how many tube cylinders it drew last, so that a
+robot with fewer samples than before deletes the extra ones.
+"""
+
+import numpy as np
+from geometry_msgs.msg import Vector3
+from std_msgs.msg import ColorRGBA
+from visualization_msgs.msg import Marker, MarkerArray
+
+from soft_twin import conversions as cv
+
+TUBE = ColorRGBA(r=0.85, g=0.45, b=0.2, a=0.9)
+LINK = ColorRGBA(r=0.6, g=0.6, b=0.65, a=1.0)
+TIP = ColorRGBA(r=0.2, g=0.4, b=0.9, a=1.0)
+DEFAULT_RADIUS = 0.005      # m, a member section without geometry
+
+
+def tube(T, radii, header, first_id):
+    """Cylinder markers between consecutive poses T (P, 4, 4) of a member's
+    backbone, radii (P - 1,) [m], ids from ``first_id``."""
+    p = T[:, :3, 3]
+    mid = 0.5 * (p[1:] + p[:-1])
+    length = np.linalg.norm(p[1:] - p[:-1], axis=1)
+    quat = cv.cylinder_orientation(T[:-1]).tolist()
+    out = []
+    for i, (c, L, q, r) in enumerate(zip(mid.tolist(), length.tolist(), quat, np.asarray(radii).tolist())):
+        m = Marker(header=header, ns="tube", id=first_id + i, type=Marker.CYLINDER, action=Marker.ADD, color=TUBE)
+        m.pose.position = cv.point(c)
+        m.pose.orientation = cv.quaternion(q)
+        m.scale = Vector3(x=2 * r, y=2 * r, z=max(L * 1.05, 1e-6))
+        out.append(m)
+    return out
+
+
+def link_marker(visual, pose, header, k):
+    """The marker of a rigid link's visual shape (box, cylinder, sphere) at its frame's pose."""
+    vis = visual or {"shape": "sphere", "radius": 0.01}
+    kind = {"box": Marker.CUBE, "cylinder": Marker.CYLINDER, "sphere": Marker.SPHERE}[vis["shape"]]
+    m = Marker(header=header, ns="links", id=k, type=kind, action=Marker.ADD, color=LINK)
+    m.pose = cv.pose_msg(pose)
+    if vis["shape"] == "box":
+        m.scale = Vector3(x=float(vis["size"][0]), y=float(vis["size"][1]), z=float(vis["size"][2]))
+    elif vis["shape"] == "cylinder":
+        d = 2 * float(vis["radius"])
+        m.scale = Vector3(x=d, y=d, z=float(vis["length"]))
+    else:
+        d = 2 * float(vis["radius"])
+        m.scale = Vector3(x=d, y=d, z=d)
+    return m
+
+
+def tip_marker(pose, diameter, header):
+    m = Marker(header=header, ns="tip", id=0, type=Marker.SPHERE, action=Marker.ADD, color=TIP)
+    m.pose = cv.pose_msg(pose)
+    m.scale = Vector3(x=diameter, y=diameter, z=diameter)
+    return m
+
+
+class Markers:
+    """The MarkerArray of a state, for either kind of robot."""
+
+    def __init__(self):
+        self.n_tube = 0
+
+    def __call__(self, snap, robot, header):
+        out = MarkerArray()
+        if robot.articulated:
+            mech = robot.mechanism
+            for mem in mech.members:
+                T = snap.backbones[mem.name][0]
+                radii = [self._radius(mem.geometry[min(k, len(mem.geometry) - 1)]) for k in range(len(T) - 1)]
+                out.markers += tube(T, radii, header, len(out.markers))
+            n = len(out.markers)
+            out.markers += [link_marker(lk.visual, snap.frames[lk.name], header, k) for k, lk in enumerate(mech.links)]
+            tip = tip_marker(snap.tip_pose, 0.015, header)
+        else:
+            sec, _ = robot.model.locate(0.5 * (snap.s[1:] + snap.s[:-1]))
+            radii = np.asarray(robot.section_radii())[sec]
+            out.markers += tube(snap.backbone, radii, header, 0)
+            n = len(out.markers)
+            tip = tip_marker(snap.backbone[-1], 2.4 * float(radii[-1]), header)
+        out.markers.append(tip)
+        # fewer samples than before: delete the extra cylinders
+        out.markers += [Marker(header=header, ns="tube", id=i, action=Marker.DELETE) for i in range(n, self.n_tube)]
+        self.n_tube = n
+        return out
+
+    @staticmethod
+    def _radius(g):
+        return max(g.cy, g.cz) if g is not None else DEFAULT_RADIUS

@@ -1,0 +1,193 @@
+"""The node's query services: forward kinematics, statics, inverse
+kinematics and reset (``~/forward_kinematics``, ``~/statics_query``,
+``~/inverse_kinematics``, ``~/reset``; the plan services are in
+:mod:`soft_twin.plan_service`).
+
+Each handler takes the node, the request and the response. It copies what it
+needs from the twin under the node's lock (microseconds), checks the request
+at the door (the same parse functions as the topics) and computes outside
+the lock: on the rod's compiled kernels in the node's process, or, for an
+articulated robot's IK, in the query worker process (its Python would hold
+the GIL against the stepping clock). A request that cannot be answered gets
+``success: false`` and a message naming the reason; the twin is never
+changed by a query.
+"""
+
+import math
+import time
+
+import numpy as np
+
+from soft_twin_core import lie
+from soft_twin_core.model import ModelError
+from soft_twin_core.planner import PlanError
+from soft_twin_core.statics import StaticsError
+
+from soft_twin import conversions as cv
+from soft_twin_core import twin as tw
+from soft_twin.query_worker import QueryError
+from soft_twin_core.text import clip
+
+
+def copy_state(node):
+    """(model, q, u, tip wrench, its frame, cfg, actuator order): what a query
+    needs, copied under the node's lock."""
+    with node._lock:
+        t = node.twin
+        return (t.model, t.state.q.copy(), t.u.copy(), t.tip_wrench.copy(), t.tip_frame,
+                node.cfg, node.cfg.actuator_names)
+
+
+def _requested_actuation(req, model, u, order):
+    """The request's actuation (names/values over the current ``u``), or None when it gives none."""
+    if len(req.actuator_names) or len(req.actuator_values):
+        return tw.parse_actuation(model, req.actuator_names, req.actuator_values, u, order)
+    return None
+
+
+def forward_kinematics(node, req, resp):
+    """The backbone and tip pose for given strains, for the equilibrium under
+    a given actuation, or of the current state."""
+    model, q, u, _, _, cfg, order = copy_state(node)
+    try:
+        actuation = _requested_actuation(req, model, u, order)
+    except tw.InputError as e:
+        resp.success, resp.message = False, clip(f"actuation rejected ({e.reason}): {e}", 400)
+        return resp
+    if node.robot.articulated:
+        with node._lock:
+            query = node.twin.query_copy()
+        try:
+            message, res = query.forward_kinematics(req.strains, actuation)
+        except (ValueError, StaticsError) as e:
+            resp.success, resp.message = False, clip(str(e), 400)
+            return resp
+        success = True
+    else:
+        res = tw.forward_kinematics(model, q, cfg.backbone_points_per_section, req.strains, actuation)
+        success, message = res.success, res.message
+    resp.success, resp.message = success, clip(message, 400)
+    if success:
+        resp.backbone = cv.pose_array(res.backbone, node._header(cfg.base_frame))
+        resp.strains = res.strains.ravel().tolist()
+        resp.tip_pose = cv.pose_msg(res.tip_pose)
+    return resp
+
+
+def statics_query(node, req, resp):
+    """The equilibrium under an actuation (default: the current one) and a
+    tip wrench (base frame), from the current state; the twin untouched."""
+    model, q, u, _, _, cfg, order = copy_state(node)
+    try:
+        actuation = _requested_actuation(req, model, u, order)
+        actuation = u if actuation is None else actuation
+        force, torque = cv.wrench_parts(req.tip_wrench)
+        w, frame = tw.parse_tip_wrench(force, torque, cfg.base_frame, cfg.base_frame, cfg.tip_frame,
+                                       cfg.max_tip_force_n, cfg.max_tip_torque_nm)
+    except tw.InputError as e:
+        resp.success, resp.message = False, clip(f"input rejected ({e.reason}): {e}", 400)
+        return resp
+    if node.robot.articulated:
+        with node._lock:
+            query = node.twin.query_copy()
+        info, res = query.statics(actuation, w, frame)       # joints at the twin's current commands
+        success, message, iterations, residual = info.converged, info.message or "ok", info.iterations, None
+    else:
+        res = tw.statics_query(model, q, cfg.backbone_points_per_section, actuation, w, frame)
+        success, message, iterations, residual = res.success, res.message, res.iterations, res.residual
+    resp.success, resp.message = success, clip(message, 400)
+    if success:
+        resp.backbone = cv.pose_array(res.backbone, node._header(cfg.base_frame))
+        resp.strains = res.strains.ravel().tolist()
+        resp.tip_pose = cv.pose_msg(res.tip_pose)
+        resp.base_wrench = cv.wrench_msg(res.base_wrench)
+        resp.iterations = int(iterations)
+        if residual is not None:
+            resp.residual = float(residual)
+    return resp
+
+
+def inverse_kinematics(node, req, resp, timing=False):
+    """Actuation (and joint commands) reaching a tip target; ``timing``: log
+    the handler's wall and thread CPU time (the benchmarks' hook)."""
+    if not timing:
+        return _inverse_kinematics(node, req, resp)
+    w0, c0 = time.perf_counter(), time.thread_time()
+    try:
+        return _inverse_kinematics(node, req, resp)
+    finally:
+        node.get_logger().info(f"timing inverse_kinematics: wall {1e3 * (time.perf_counter() - w0):.2f} ms "
+                               f"thread CPU {1e3 * (time.thread_time() - c0):.2f} ms")
+
+
+def _inverse_kinematics(node, req, resp):
+    tol = req.tolerance
+    if not math.isfinite(tol) or tol < 0:
+        resp.success, resp.message = False, f"tolerance must be >= 0 (0 = default 1e-6), got {tol}"
+        return resp
+    try:
+        target = cv.matrix_from_pose(req.target)
+    except ValueError as e:
+        resp.success, resp.message = False, clip(f"target rejected: {e}", 400)
+        return resp
+    if node.robot.articulated:
+        return _articulated_ik(node, req, resp, target, tol or 1e-6)
+    model, q, u, w, frame, cfg, order = copy_state(node)
+    res = tw.inverse_kinematics(model, q, cfg.backbone_points_per_section, target, req.position_only,
+                                tol or 1e-6, tw.make_loads(model, w, frame), u_current=u)
+    resp.success, resp.message = res.success, clip(res.message, 400)
+    if res.q is not None:
+        resp.strains = res.strains.ravel().tolist()
+        x = res.extra
+        resp.actuation_found = x["actuation_found"]
+        resp.actuator_names = list(model.actuator_names)
+        resp.actuator_values = [float(v) for v in x["u"]]
+        resp.achieved = cv.pose_msg(x["achieved_pose"])
+        resp.position_error = float(x["position_error"])
+        resp.orientation_error = float(x["orientation_error"])
+        resp.iterations = int(res.iterations)
+    return resp
+
+
+def _articulated_ik(node, req, resp, target, tol):
+    """IK of an articulated robot's tip position
+    (:meth:`articulated.ArticulatedTwin.inverse_kinematics`, in the query
+    worker): ``actuator_names``/``actuator_values`` its position-controlled
+    joints (rad or m) first, then its actuators (N or Pa)."""
+    if not req.position_only:
+        resp.success, resp.message = False, ("inverse_kinematics: an articulated robot's IK reaches tip "
+                                             "positions only (set position_only: true)")
+        return resp
+    try:
+        r = node.query("inverse_kinematics", target[:3, 3], tol)
+    except (PlanError, StaticsError, ModelError, ValueError, np.linalg.LinAlgError, QueryError) as e:
+        resp.success, resp.message = False, clip(f"IK failed: {e}", 400)
+        return resp
+    resp.success = r.reached
+    resp.message = ("converged: reached by joint commands and actuation (static equilibrium)" if r.reached else
+                    f"target not reached ({tw._IK_STATUS.get(r.status, r.status)}): the closest position "
+                    f"the joints and actuators can hold, position error {r.position_error:.3g} m")
+    resp.strains = r.strains.ravel().tolist()
+    resp.actuation_found = True
+    resp.actuator_names = list(r.names)
+    resp.actuator_values = [float(v) for v in r.values]
+    resp.achieved = cv.pose_msg(r.achieved_pose)
+    resp.position_error = float(r.position_error)
+    # as the rod robots' position-only answer: |log(R_achieved^T R_target)| (informative only)
+    resp.orientation_error = float(np.linalg.norm(lie.log_so3(r.achieved_pose[:3, :3].T @ target[:3, :3])))
+    resp.iterations = int(r.iterations)
+    return resp
+
+
+def reset(node, req, resp):
+    """The twin back to rest: no actuation, no tip load, t = 0, its schedule restarted."""
+    with node._lock:
+        node.twin.reset()
+        node._anchor, node._steps_done = None, 0
+        mode = node.cfg.mode
+    resp.success = True
+    resp.message = f"twin reset: no actuation, no tip load, {node.twin.rest_message}, t = 0"
+    if mode == "quasi_static":
+        node._solve_trigger.trigger()
+    node.get_logger().info(resp.message)
+    return resp

@@ -1,0 +1,148 @@
+"""The node's collaborators without a node: the step schedule's arithmetic,
+the folding of input batches (real message objects), the statistics and the
+diagnostics level, the markers of both kinds of robot."""
+from types import SimpleNamespace
+
+import numpy as np
+import pytest
+
+from soft_twin import schedule
+from soft_twin_core import twin as tw
+
+msgs = pytest.importorskip("soft_twin.msg", reason="needs the ROS message packages: the venv of `make setup`")
+
+
+# ------------------------------------------------------------------ schedule
+
+def test_steps_due_at_the_tick_and_early():
+    # anchor 0, dt 10 ms: at 25 ms two steps are due (rounding), early allows the third
+    assert schedule.steps_due(0.025, 0.0, 0.01, 0) == 2
+    assert schedule.steps_due(0.025, 0.0, 0.01, 2) == 0
+    assert schedule.steps_due(0.025, 0.0, 0.01, 2, early=True) == 1
+    assert schedule.steps_due(0.025, 0.0, 0.01, 3, early=True) == 0     # never more than one step ahead
+
+
+def test_clock_late_and_early_step_need_an_anchor():
+    assert not schedule.clock_late(5.0, None, 0.01, 0)
+    assert not schedule.may_step_early(5.0, None, 0.01, 0)
+    assert schedule.clock_late(0.0301, 0.0, 0.01, 1)          # 3.01 periods in, 1 done: > 2 late
+    assert not schedule.clock_late(0.0299, 0.0, 0.01, 1)
+    assert schedule.may_step_early(0.0101, 0.0, 0.01, 1) and not schedule.may_step_early(0.0101, 0.0, 0.01, 2)
+
+
+def test_catch_up_drops_the_backlog_beyond_the_bound():
+    assert schedule.catch_up(3, 5) == (3, 0)
+    assert schedule.catch_up(12, 5) == (5, 7)
+
+
+# ------------------------------------------------------------------ inputs
+
+@pytest.fixture(scope="module")
+def model():
+    from soft_twin_core.model import load_model
+    return load_model("tendon_arm")
+
+
+def _cmd(names, values, sec=0):
+    m = msgs.ActuationCommand(names=names, values=values)
+    m.header.stamp.sec = sec
+    return m, {"publication_sequence_number": sec}
+
+
+def test_fold_commands_applies_the_valid_in_order_and_returns_the_errors(model):
+    from soft_twin import inputs
+    batch = [_cmd(["tendon_y_pos"], [1.0], 1), _cmd(["nope"], [2.0], 2), _cmd(["tendon_z_pos"], [3.0], 3),
+             _cmd(["tendon_y_pos"], [float("nan")], 4)]
+    u, newest, n, errors = inputs.fold_commands(model, batch, np.zeros(4), None)
+    assert u.tolist() == [1.0, 0.0, 3.0, 0.0]                 # partial commands keep the others
+    assert newest is batch[2][0] and n == 2
+    assert [e.reason for e in errors] == ["unknown_name", "non_finite"]
+    assert inputs.sequence_number(batch[1][1]) == 2 and inputs.sequence_number(None) is None
+    assert "(and 1 more)" in inputs.rejection_warning("actuation command", errors)
+
+
+def test_fold_joint_commands_on_a_tree_robot():
+    from sensor_msgs.msg import JointState
+    from soft_twin import inputs
+    from soft_twin_core.mechanism import load_mechanism
+    mech = load_mechanism("pan_tilt_arm")
+    good = JointState(name=["pan"], position=[0.2])
+    bad = JointState(name=["elbow_that_is_not"], position=[0.1])
+    pos, eff, newest, n, errors = inputs.fold_joint_commands(mech, [(good, None), (bad, None)], {}, {})
+    assert pos["pan"] == pytest.approx(0.2) and newest is good and n == 1
+    assert len(errors) == 1 and errors[0].reason == "unknown_name"
+
+
+def test_parse_wrenches_keeps_the_newest_valid():
+    from geometry_msgs.msg import WrenchStamped
+    from soft_twin import inputs
+    cfg = SimpleNamespace(base_frame="base", tip_frame="tip", max_tip_force_n=10.0, max_tip_torque_nm=1.0)
+    a = WrenchStamped()
+    a.header.frame_id = "base"
+    a.wrench.force.z = -1.0
+    b = WrenchStamped()
+    b.header.frame_id = "base"
+    b.wrench.force.z = -50.0                    # over max_tip_force_n
+    newest, errors = inputs.parse_wrenches([(a, None), (b, None)], cfg)
+    assert newest[0][2] == -1.0 and len(errors) == 1 and errors[0].reason == "over_limit"
+
+
+# ------------------------------------------------------------------ diagnostics
+
+def test_stats_record_takes_a_dropped_input_back_and_the_level_says_so():
+    from diagnostic_msgs.msg import DiagnosticStatus
+    from soft_twin import diagnostics
+    s = diagnostics.Stats()
+    s.totals["commands_applied"] = 3
+    s.totals["joint_commands_applied"] = 1
+    assert s.record(tw.UpdateInfo(steps=2, iterations=3), 0.02) == ()
+    failed = tw.UpdateInfo(steps=0, iterations=9, converged=False, message="Newton failed",
+                           dropped=("actuation", "joint"))
+    assert s.record(failed, 0.0) == ("actuation", "joint")
+    assert s.totals["commands_applied"] == 2 and s.totals["joint_commands_applied"] == 0
+    assert s.rejected_by_reason["solver_failed"] == 2 and s.totals["steps"] == 2
+    cfg = SimpleNamespace(mode="dynamic", step_rate_hz=100.0)
+    assert diagnostics.level(s, cfg, 100.0, False)[0] == DiagnosticStatus.ERROR     # failing now
+    s.record(tw.UpdateInfo(steps=1), 0.01)
+    level, message = diagnostics.level(s, cfg, 100.0, False)
+    assert level == DiagnosticStatus.WARN and "failed" in message                    # failed in this period
+    s.reset_window(0.0)
+    assert diagnostics.level(s, cfg, 100.0, False) == (DiagnosticStatus.OK, "ok")
+    s.steps = 10
+    assert "behind real time" in diagnostics.level(s, cfg, 50.0, False)[1]
+
+
+# ------------------------------------------------------------------ markers
+
+def test_markers_of_a_rod_and_fewer_samples_delete_the_rest(model):
+    from std_msgs.msg import Header
+    from visualization_msgs.msg import Marker
+    from soft_twin import markers
+    from soft_twin_core import kinematics as kin
+    robot = SimpleNamespace(articulated=False, model=model,
+                            section_radii=lambda: [0.01] * model.n_sections)
+    mk = markers.Markers()
+    q = np.zeros(model.n_dof)
+    s, T = kin.backbone(model, q, 4)
+    out = mk(SimpleNamespace(s=s, backbone=T), robot, Header())
+    tubes = [m for m in out.markers if m.ns == "tube"]
+    assert len(tubes) == len(s) - 1 and all(m.action == Marker.ADD for m in tubes)
+    L = sum(m.scale.z for m in tubes) / 1.05
+    assert L == pytest.approx(model.total_length, rel=1e-9)                          # a straight rod
+    tip = [m for m in out.markers if m.ns == "tip"][0]
+    assert tip.pose.position.x == pytest.approx(T[-1, 0, 3])
+    s2, T2 = kin.backbone(model, q, 2)
+    out2 = mk(SimpleNamespace(s=s2, backbone=T2), robot, Header())
+    deleted = [m.id for m in out2.markers if m.action == Marker.DELETE]
+    assert deleted == list(range(len(s2) - 1, len(s) - 1))
+
+
+# ------------------------------------------------------------------ parameters
+
+def test_parameter_coercion_and_the_unknown_name_hint():
+    from soft_twin.config import PARAMETERS, coerced, unknown_parameters_message
+    assert coerced("step_rate_hz", 200) == 200.0 and isinstance(coerced("step_rate_hz", 200), float)
+    assert coerced("step_rate_hz", True) is True              # a bool is not a number here
+    assert coerced("not_ours", 3) == 3
+    text = unknown_parameters_message(["step_rate"])
+    assert "'step_rate' -> 'step_rate_hz'?" in text and all(p in text for p in PARAMETERS)
