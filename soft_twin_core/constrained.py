@@ -32,7 +32,8 @@ import numpy as np
 
 from . import algorithms as alg
 from ._blas import one_blas_thread
-from .forces import actuation_pass, actuation_tangent_pass, actuator_arrays, gravity_of, load_arrays
+from .forces import (actuation_pass, actuation_tangent_pass, actuator_arrays, check_member_loads, gravity_of,
+                     load_arrays)
 from .integrators import ThetaIntegrator, integrate_pass, residual_pass
 from .kernels import passes
 from .kernels.data import LoadArrays
@@ -151,6 +152,7 @@ def make_inputs(mech, actuation=None, efforts=None, positions=None, velocities=N
         if v_cmd.shape != q_cmd.shape or not np.all(np.isfinite(v_cmd)):
             raise ValueError(f"velocities: expected {len(q_cmd)} finite values (the position-controlled joints)")
     loads = Loads() if loads is None else loads
+    check_member_loads(tree, loads)
     ld = _concat_loads(load_arrays(tree, loads, None, path) if tree.paths else
                        frame_loads(mech, ()), frame_loads(mech, point_loads))
     return Inputs(u, effort, q_cmd, v_cmd, ld, gravity_of(tree, loads))

@@ -19,6 +19,7 @@ path, gravity, tendons and chambers.
 """
 
 from collections import namedtuple
+from dataclasses import replace
 
 import numpy as np
 
@@ -75,30 +76,78 @@ def actuator_arrays(model):
                           np.ascontiguousarray(np.concatenate(DD)), np.ascontiguousarray(np.concatenate(U)))
 
 
+def check_member_loads(model, loads, where="loads"):
+    """ValueError naming the bad field of member loads (:class:`loads.Loads`
+    point and distributed loads on the soft members, i.e. the paths, of
+    ``model``): an unknown member, an arc length outside it, a wrench that
+    is not 6 finite numbers, axes other than world/body, an empty span."""
+    names = [p.name for p in model.paths]
+    for kind, items in (("point", loads.point), ("distributed", loads.distributed)):
+        for i, ld in enumerate(items):
+            at = f"{where}.{kind}[{i}]"
+            if ld.member is not None and ld.member not in names:
+                raise ValueError(f"{at}.member: {ld.member!r} is not a soft member of the robot; members: {names}")
+            if not names:
+                raise ValueError(f"{at}: the robot has no soft member to load (use a load on a frame)")
+            path = model.path(ld.member) if ld.member is not None else model.paths[0]
+            w = np.asarray(ld.wrench, dtype=float)
+            if w.shape != (6,) or not np.all(np.isfinite(w)):
+                raise ValueError(f"{at}.wrench: expected 6 finite numbers [f; m], got {ld.wrench!r}")
+            if ld.frame not in ("world", "body"):
+                raise ValueError(f"{at}.frame: expected 'world' or 'body', got {ld.frame!r}")
+            if kind == "point" and not -1e-12 <= ld.s <= path.length + 1e-12:
+                raise ValueError(f"{at}.s: must lie in [0, {path.length:g}] m (member {path.name!r}), got {ld.s}")
+            if kind == "distributed":
+                end = path.length if ld.end is None else ld.end
+                if not 0.0 <= ld.start < end <= path.length + 1e-12:
+                    raise ValueError(f"{at}: need 0 <= start < end <= {path.length:g} m (member {path.name!r}), "
+                                     f"got {ld.start}, {end}")
+
+
 def load_arrays(model, loads=None, u=None, path_name=None):
-    """LoadArrays of ``loads`` (on the path ``path_name``, default the first)
-    plus the follower moments of point-moment tendons at inputs u."""
+    """LoadArrays of ``loads`` (each on its ``member``; a load without one
+    on the path ``path_name``, default the first) plus the follower moments
+    of point-moment tendons (on their own paths) at inputs u."""
     loads = Loads() if loads is None else loads
-    path = model.path(path_name) if path_name else (model.paths[0] if model.paths else None)
+    default = model.path(path_name) if path_name else (model.paths[0] if model.paths else None)
+
+    def path_of(ld):
+        return model.path(ld.member) if ld.member is not None else default
+
     J, X, W, F = [], [], [], []
     for d in loads.distributed:
-        j, x, _, w = _gauss_on_path(model, path, d.start, d.end)
+        path = path_of(d)
+        j, x, _, w = _gauss_on_path(model, path, d.start, path.length if d.end is None else d.end)
         J.append(j)
         X.append(x)
         W.append(w[:, None] * np.asarray(d.wrench, float)[None, :])
         F.append(np.full(len(j), d.frame == "world"))
-    points = tuple(loads.point) + (actuator_point_loads(model, u) if u is not None and model.actuators else ())
-    if points:
-        s = np.clip(np.array([p.s for p in points], float), 0.0, path.length)
-        j, x = path.locate(s)
+    points = tuple(loads.point) + (_point_moment_loads(model, u) if u is not None and model.actuators else ())
+    for p in points:
+        path = path_of(p)
+        j, x = path.locate(np.array([min(max(float(p.s), 0.0), path.length)]))
         J.append(j)
         X.append(x)
-        W.append(np.array([p.wrench for p in points], float).reshape(-1, 6))
-        F.append(np.array([p.frame == "world" for p in points]))
+        W.append(np.asarray(p.wrench, float).reshape(1, 6))
+        F.append(np.array([p.frame == "world"]))
     if not J:
         return LoadArrays(np.zeros(0, np.int64), np.zeros(0), np.zeros((0, 6)), np.zeros(0, np.bool_))
     return LoadArrays(np.concatenate(J).astype(np.int64), np.ascontiguousarray(np.concatenate(X)),
                       np.ascontiguousarray(np.concatenate(W)), np.concatenate(F).astype(np.bool_))
+
+
+def _point_moment_loads(model, u):
+    """The follower moments of point-moment tendons (:func:`loads.actuator_point_loads`),
+    each on its actuator's own path."""
+    out = []
+    for k, a in enumerate(model.actuators):
+        if a.tendon_model != "point_moment" or u[k] == 0.0:
+            continue
+        one = np.zeros(len(u))
+        one[k] = u[k]
+        (p,) = actuator_point_loads(model, one)
+        out.append(replace(p, member=model.path_of_actuator(k).name))
+    return tuple(out)
 
 
 def gravity_of(model, loads=None):

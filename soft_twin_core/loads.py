@@ -28,21 +28,26 @@ from . import lie
 
 @dataclass(frozen=True)
 class PointLoad:
-    """A wrench [fx, fy, fz, mx, my, mz] (N, N m) applied at arc length s [m].
-    frame: "world" (dead load) or "body" (follower load)."""
+    """A wrench [fx, fy, fz, mx, my, mz] (N, N m) applied at arc length s [m]
+    of a soft member. frame: "world" (dead load) or "body" (follower load).
+    member: the member's name (None: the robot's first member, a classic
+    rod's backbone)."""
     s: float
     wrench: tuple
     frame: str = "world"
+    member: str = None
 
 
 @dataclass(frozen=True)
 class DistributedLoad:
-    """A uniform wrench per unit length [N/m, N m/m] over [start, end] m
-    (end None = tip). frame: "world" or "body"."""
+    """A uniform wrench per unit length [N/m, N m/m] over [start, end] m of
+    a soft member (end None = its distal end). frame: "world" or "body";
+    member as for :class:`PointLoad`."""
     wrench: tuple
     frame: str = "world"
     start: float = 0.0
     end: float = None
+    member: str = None
 
 
 @dataclass(frozen=True)
@@ -65,12 +70,12 @@ class _ScaledLoads:
 
     @property
     def point(self):
-        return tuple(PointLoad(p.s, tuple(self.factor * np.asarray(p.wrench)), p.frame)
+        return tuple(PointLoad(p.s, tuple(self.factor * np.asarray(p.wrench)), p.frame, p.member)
                      for p in self.base.point)
 
     @property
     def distributed(self):
-        return tuple(DistributedLoad(tuple(self.factor * np.asarray(d.wrench)), d.frame, d.start, d.end)
+        return tuple(DistributedLoad(tuple(self.factor * np.asarray(d.wrench)), d.frame, d.start, d.end, d.member)
                      for d in self.base.distributed)
 
     @property
