@@ -378,7 +378,7 @@ def main(argv=None):
             if "error" in out:
                 failed = f"dynamics failed: {out['error']}"
             name = os.path.splitext(os.path.basename(sc.source))[0]
-            if hasattr(sc, "mech"):                  # an articulated robot (tree robot file)
+            if sc.model is None:                     # a tree robot: joints, frames and members
                 render.render_mechanism_dynamics(out, args, sc.mech, name)
             else:
                 render.render_dynamics(out, args, sc.model, sc.gravity, name)

@@ -206,6 +206,28 @@ def is_tree_file(d):
     return isinstance(d, dict) and "bodies" in d
 
 
+def is_tree_robot(robot, base_dir="."):
+    """True if ``robot`` (a path relative to ``base_dir``, an example
+    robot's name, or a mapping) is a tree robot file; False for anything
+    else, unreadable files included (their loader reports them)."""
+    import os
+    from .model import find_file
+    if isinstance(robot, dict):
+        return is_tree_file(robot)
+    if not isinstance(robot, str):
+        return False
+    p = robot if os.path.isabs(robot) else os.path.join(base_dir, robot)
+    if not os.path.isfile(p) and os.path.basename(robot) == robot:
+        try:
+            p = find_file(robot, "robots")
+        except ModelError:
+            return False
+    try:
+        return is_tree_file(robot_mapping(read_yaml_file(p), p))
+    except ModelError:
+        return False
+
+
 def load_mechanism(path):
     """A :class:`Mechanism` from a robot file of either schema; ``path`` may
     also name an example robot (``load_mechanism("pan_tilt_arm")``)."""

@@ -1,239 +1,25 @@
-"""Scenario files for soft articulated robots (tree robot files): statics and
-dynamics runs with joint commands, frame loads and a prescribed base, for
-``soft-twin-sim`` (:mod:`scenario` hands a scenario over here when its robot
-file has ``bodies``).
-
-Schema (YAML; SI units, angles in rad)::
-
-    robot: ../robots/pan_tilt_arm.yaml
-    actuation: {tendon_z_pos: 2.0}               # N (tendons), Pa (chambers)
-    actuation_profile: {tendon_z_pos: [[0, 0], [1, 4]]}     # piecewise linear [t, value]
-    joint_positions: {pan: 0.5}                  # position-controlled joints (default: reference)
-    joint_trajectories: {tilt: [[0, 0], [1, 0.6]]}   # [t, position]: a C2 cubic spline through the
-                                                 # points, at rest at both ends
-    joint_efforts: {wrist: 0.1}                  # effort-controlled joints [N m or N]
-    joint_effort_profile: {wrist: [[0, 0], [1, 0.2]]}
-    base_trajectory: [[t, x, y, z, roll, pitch, yaw], ...]   # base motion "prescribed": the base
-                                                 # pose (cubic spline per coordinate, at rest at both ends)
-    gravity: true
-    loads:
-      - {frame: tool, force: [0, 0, -1], moment: [0, 0, 0], axes: world, profile: [[0, 0], [1, 1]]}
+"""Runs of a tree robot's scenario (:mod:`scenario` parses every scenario;
+its runners hand a tree robot's over here): statics and dynamics with joint
+commands, loads on members and frames and a prescribed base, and outputs of
+joints, frames, constraints and members.
 
 Outputs (JSON; the CSV has the same time histories): see
 :func:`run_mechanism_statics` and :func:`run_mechanism_dynamics`.
 """
 
-import os
-from dataclasses import dataclass
-
 import numpy as np
 
-from .constrained import FrameLoad, MechanismSimulator, StepError, make_inputs, solve_equilibrium
-from .mechanism import check_joint_position, load_mechanism, mechanism_from_dict
-from .errors import ScenarioError
-from .model import ModelError, parse_number, parse_numbers
-from .timeline import check_output_size, check_scenario_input, count, n_steps_for, parse_profile, step_times
+from .constrained import MechanismSimulator, StepError, make_inputs, solve_equilibrium
+from .timeline import check_output_size, count, n_steps_for, step_times
 
 
-
-
-@dataclass
-class MechanismScenario:
-    """A checked scenario of a mechanism (see the module)."""
-    mech: object
-    actuation: np.ndarray
-    actuation_profile: dict        # actuator index -> (t, values)
-    positions: dict                # joint -> value
-    trajectories: dict             # joint -> CubicSpline
-    efforts: dict
-    effort_profile: dict           # joint -> (t, values)
-    base_trajectory: object        # CubicSpline of [x, y, z, roll, pitch, yaw] or None
-    loads: list                    # (FrameLoad, profile or None)
-    gravity: bool
-    source: str
-
-    def velocities_at(self, t):
-        """{joint: commanded velocity} of the position-controlled joints at t
-        (trajectories: the spline's derivative; constant positions: 0)."""
-        out = {j: 0.0 for j in self.positions}
-        for j, sp in self.trajectories.items():
-            out[j] = float(sp.velocity(t))
-        pos_names = [self.mech.tree.joints[i].name for i in self.mech.joints_with("position")]
-        return [out.get(j, 0.0) for j in pos_names]
-
-    def inputs_at(self, t, sim=None):
-        """(actuation, efforts, positions, point loads) at time t [s]."""
-        u = self.actuation.copy()
-        for i, (ts, vs) in self.actuation_profile.items():
-            u[i] = float(np.interp(t, ts, vs))
-        eff = dict(self.efforts)
-        for j, (ts, vs) in self.effort_profile.items():
-            eff[j] = float(np.interp(t, ts, vs))
-        pos = dict(self.positions)
-        for j, sp in self.trajectories.items():
-            pos[j] = float(sp(t))
-        pls = []
-        for fl, prof in self.loads:
-            k = 1.0 if prof is None else float(np.interp(t, prof[0], prof[1]))
-            pls.append(FrameLoad(fl.frame, k * np.asarray(fl.wrench), fl.axes))
-        return u, eff, pos, pls
-
-    def base_pose_at(self, t):
-        if self.base_trajectory is None:
-            return None
-        from .model import pose_from_dict
-        x = self.base_trajectory(t)
-        return pose_from_dict({"position": x[:3].tolist(), "rpy": x[3:].tolist()}, "base_trajectory")
-
-
-class _Spline:
-    """A clamped cubic spline through [t, values...] rows (at rest at both
-    ends), held constant outside its time span; ``velocity(t)`` its derivative."""
-
-    def __init__(self, a, where):
-        from scipy.interpolate import CubicSpline
-        self.t0, self.t1 = a[0, 0], a[-1, 0]
-        y = a[:, 1:] if a.shape[1] > 2 else a[:, 1]
-        if len(a) == 1:
-            self.sp = None
-            self.value = y[0]
-            return
-        if np.any(np.diff(a[:, 0]) <= 0):
-            raise ScenarioError(f"{where}: times must increase strictly, got {a[:, 0].tolist()}")
-        self.sp = CubicSpline(a[:, 0], y, bc_type="clamped")
-        self.dsp = self.sp.derivative()
-
-    def __call__(self, t):
-        if self.sp is None:
-            return np.copy(self.value)
-        return self.sp(min(max(t, self.t0), self.t1))
-
-    def velocity(self, t):
-        if self.sp is None or not self.t0 <= t <= self.t1:
-            return 0.0 * np.asarray(self(t))
-        return self.dsp(t)
-
-
-def _spline(a, where):
-    return _Spline(a, where)
-
-
-def mechanism_scenario_from_dict(d, base_dir, source):
-    """A MechanismScenario from a parsed scenario mapping whose robot is a
-    tree robot file; ScenarioError naming the field."""
-    Err = ScenarioError
-    allowed = {"robot", "actuation", "actuation_profile", "joint_positions", "joint_trajectories",
-               "joint_efforts", "joint_effort_profile", "base_trajectory", "gravity", "loads", "description"}
-    unknown = set(d) - allowed
-    if unknown:
-        raise Err(f"scenario: unknown field(s) {sorted(unknown)} for an articulated robot; allowed: "
-                  f"{sorted(allowed)}")
-    robot = d["robot"]
-    try:
-        if isinstance(robot, str):
-            p = robot if os.path.isabs(robot) else os.path.join(base_dir, robot)
-            if not os.path.isfile(p) and os.path.basename(robot) == robot:
-                from .model import find_file
-                p = find_file(robot, "robots")
-            mech = load_mechanism(p)
-        else:
-            mech = mechanism_from_dict(robot)
-    except ModelError as e:
-        raise Err(f"scenario.robot: {e}") from None
-    names = mech.actuator_names
-    u = np.zeros(len(names))
-
-    def mapping(key):
-        v = d.get(key) or {}
-        if not isinstance(v, dict):
-            raise Err(f"scenario.{key}: expected a mapping name -> value, got {v!r}")
-        return v
-
-    for k, v in mapping("actuation").items():
-        if k not in names:
-            raise Err(f"scenario.actuation: unknown actuator {k!r}; the robot has {list(names)}")
-        u[names.index(k)] = parse_number(v, f"scenario.actuation.{k}", Err)
-        # the node's rule for the actuator's declared range (tension >= 0, limit, min/max)
-        check_scenario_input(mech.actuators[names.index(k)], [u[names.index(k)]], f"scenario.actuation.{k}", Err)
-    aprof = {}
-    for k, v in mapping("actuation_profile").items():
-        if k not in names:
-            raise Err(f"scenario.actuation_profile: unknown actuator {k!r}; the robot has {list(names)}")
-        aprof[names.index(k)] = parse_profile(v, f"scenario.actuation_profile.{k}")
-        check_scenario_input(mech.actuators[names.index(k)], aprof[names.index(k)][1],
-                             f"scenario.actuation_profile.{k}", Err)
-    pos_names = [mech.tree.joints[i].name for i in mech.joints_with("position")]
-    eff_names = [mech.tree.joints[i].name for i in mech.joints_with("effort")]
-
-    def joints(key, allowed_names, kind):
-        out = {}
-        for k, v in mapping(key).items():
-            if k not in allowed_names:
-                raise Err(f"scenario.{key}: {k!r} is not a {kind}-controlled joint; those are {allowed_names}")
-            out[k] = v
-        return out
-
-    positions = {k: parse_number(v, f"scenario.joint_positions.{k}", Err)
-                 for k, v in joints("joint_positions", pos_names, "position").items()}
-    jointof = {j.name: j for j in mech.tree.joints}
-    for k, v in positions.items():              # the node's rule (over_limit)
-        bad = check_joint_position(jointof[k], v)
-        if bad is not None:
-            raise Err(f"scenario.joint_positions.{k}: {bad[1]} [{bad[0]}]")
-    trajectories = {}
-    for k, v in joints("joint_trajectories", pos_names, "position").items():
-        a = parse_numbers(v, (None, 2), f"scenario.joint_trajectories.{k}", Err)
-        for t, x in a:
-            bad = check_joint_position(jointof[k], float(x))
-            if bad is not None:
-                raise Err(f"scenario.joint_trajectories.{k}: at t = {t:g} s, {bad[1]} [{bad[0]}]")
-        trajectories[k] = _spline(a, f"scenario.joint_trajectories.{k}")
-    efforts = {k: parse_number(v, f"scenario.joint_efforts.{k}", Err)
-               for k, v in joints("joint_efforts", eff_names, "effort").items()}
-    eprof = {k: parse_profile(v, f"scenario.joint_effort_profile.{k}")
-             for k, v in joints("joint_effort_profile", eff_names, "effort").items()}
-    base = None
-    if d.get("base_trajectory") is not None:
-        if mech.base_motion != "prescribed":
-            raise Err(f"scenario.base_trajectory: the robot's base motion is {mech.base_motion!r}; "
-                      f"give base: {{motion: prescribed}} in the robot file")
-        a = parse_numbers(d["base_trajectory"], (None, 7), "scenario.base_trajectory", Err)
-        base = _spline(a, "scenario.base_trajectory")
-    loads = []
-    raw = d.get("loads") or []
-    if not isinstance(raw, list):
-        raise Err(f"scenario.loads: expected a list, got {raw!r}")
-    for i, ld in enumerate(raw):
-        where = f"scenario.loads[{i}]"
-        if not isinstance(ld, dict):
-            raise Err(f"{where}: expected a mapping, got {ld!r}")
-        extra = set(ld) - {"frame", "force", "moment", "axes", "profile"}
-        if extra:
-            raise Err(f"{where}: unknown field(s) {sorted(extra)}; allowed: axes, force, frame, moment, profile")
-        if ld.get("frame") not in mech.frames:
-            raise Err(f"{where}.frame: {ld.get('frame')!r} is not a frame of the robot; frames: {sorted(mech.frames)}")
-        axes = ld.get("axes", "world")
-        if axes not in ("world", "body"):
-            raise Err(f"{where}.axes: expected 'world' or 'body', got {axes!r}")
-        w = np.concatenate([parse_numbers(ld.get("force", [0, 0, 0]), (3,), where + ".force", Err),
-                            parse_numbers(ld.get("moment", [0, 0, 0]), (3,), where + ".moment", Err)])
-        prof = parse_profile(ld["profile"], where + ".profile") if "profile" in ld else None
-        loads.append((FrameLoad(ld["frame"], w, axes), prof))
-    grav = d.get("gravity", True)
-    if not isinstance(grav, bool):
-        raise Err(f"scenario.gravity: expected true or false, got {grav!r}")
-    sc = MechanismScenario(mech, u, aprof, positions, trajectories, efforts, eprof, base, loads, grav, source)
-    try:                                   # every input checked once, at t = 0
-        _inputs(sc, 0.0)
-    except ValueError as e:
-        raise Err(f"scenario: {e}") from None
-    return sc
-
-
-def _inputs(sc, t):
-    from .loads import Loads
-    u, eff, pos, pls = sc.inputs_at(t)
-    return make_inputs(sc.mech, u, eff, pos, sc.velocities_at(t), Loads(gravity=sc.gravity), pls)
+def _inputs(sc, t, factor=1.0):
+    """The checked :class:`constrained.Inputs` of the scenario at time t [s];
+    ``factor`` scales the actuation, the efforts and the loads (gravity
+    stays whole: load stepping)."""
+    eff = {j: factor * v for j, v in sc.efforts_at(t).items()}
+    return make_inputs(sc.mech, factor * sc.actuation_at(t), eff, sc.positions_at(t), sc.velocities_at(t),
+                       sc.loads_at(t, factor), sc.frame_loads_at(t, factor))
 
 
 def _targets(sc, t):
@@ -291,14 +77,17 @@ def run_mechanism_statics(sc, t=0.0):
     s [m], positions, orientations (quaternions x, y, z, w), internal_wrench (body axes), strains,
     normal_stress and shear_stress [Pa] (null without geometry); iterations, residual; stable and
     min_stiffness_eigenvalue (constrained.equilibrium_stability)."""
-    from .outputs import state_outputs
-    from .loads import Loads
-    u, eff, pos, pls = sc.inputs_at(t)
-    eq = solve_equilibrium(sc.mech, u, eff, pos, loads=Loads(gravity=sc.gravity), point_loads=pls,
-                           targets=_targets(sc, t))
+    from .outputs import section_strains, state_outputs
+    q, iterations = None, 0
+    for k in range(1, sc.load_steps + 1):     # load_steps increments, each warm-started
+        eq = solve_equilibrium(sc.mech, q_init=q, targets=_targets(sc, t), inputs=_inputs(sc, t, k / sc.load_steps))
+        q, iterations = eq.q, iterations + eq.iterations
     out = state_outputs(sc.mech, eq.q, eq.lam, eq.inputs)
     d = _outputs_dict(sc, out)
-    d.update(iterations=eq.iterations, residual=eq.residual, constraint_error=eq.constraint_error,
+    tree = sc.mech.tree
+    d.update(section_names=[tree.joints[i].name for i in tree.soft_joints],
+             strains=section_strains(sc.mech, eq.q).tolist())
+    d.update(iterations=iterations, residual=eq.residual, constraint_error=eq.constraint_error,
              stable=eq.stable, min_stiffness_eigenvalue=eq.min_stiffness_eigenvalue)
     return d
 
@@ -340,6 +129,8 @@ def run_mechanism_dynamics(sc, duration, dt, theta=0.5, progress=None, record_ev
     time_of = step_times(dt)
     sim = MechanismSimulator(mech, float(dt), theta)
     inp0 = _inputs(sc, 0.0)
+    if sc.initial_q is not None:
+        sim.q[:] = sc.initial_q
     # start where the commanded joints are at t = 0
     for k, i in enumerate(mech.joints_with("position")):
         sim.q[mech.tree.idx_q[i]] = inp0.q_cmd[k]

@@ -45,6 +45,7 @@ import numpy as np
 from . import paths as pth
 from . import planner as pl
 from .loads import Loads
+from .mechanism import is_tree_robot
 from .limits import MAX_PATH_SAMPLES, MAX_TIME_STEPS, check_limit
 from .model import config_dirs, find_file, load_model, model_from_dict, read_yaml_file, robot_mapping
 from .errors import PlanFileError
@@ -133,7 +134,7 @@ def plan_from_dict(d, base_dir="."):
     if "path" not in d:
         raise PlanFileError("plan.path: missing (a path mapping with a type)")
     robot = d["robot"]
-    if _is_tree_robot(robot, base_dir):
+    if is_tree_robot(robot, base_dir):
         return _articulated_from_dict(d, robot, base_dir)
     if "joints" in d:
         raise PlanFileError("plan.joints: only for articulated robots (a tree robot file)")
@@ -170,11 +171,6 @@ def plan_from_dict(d, base_dir="."):
         if isinstance(it, bool) or not isinstance(it, int) or not 0 <= it <= 20:
             raise PlanFileError(f"dynamics.compensation_iterations: expected an integer in 0..20, got {it!r}")
     return model, path, opts, u0, dyn
-
-
-def _is_tree_robot(robot, base_dir):
-    from .scenario import _is_tree_robot as is_tree
-    return is_tree(robot, base_dir)
 
 
 _TRACK_ART = {"position_weights", "tolerance", "max_iterations", "frame"}

@@ -146,7 +146,7 @@ def render_mechanism_statics(results, args, mech, name="statics"):
 
 
 def render_statics(results, args, sc, sweep, name="statics"):
-    if hasattr(sc, "mech"):                     # an articulated robot (tree robot file)
+    if sc.model is None:                        # a tree robot: joints, frames and members
         return render_mechanism_statics(results, args, sc.mech, name)
     from .plots import plot_statics, plot_sweep
     if args.plot:
@@ -231,7 +231,7 @@ def articulated_robot_of(args):
         raise ValueError(f"{args.command}: give --scenario or --robot, not both")
     if getattr(args, "scenario", None):
         sc = load_scenario(args.scenario, args.sections)
-        return getattr(sc, "mech", None)
+        return sc.mech if sc.model is None else None
     if getattr(args, "robot", None):
         p = find_file(args.robot, "robots")
         if is_tree_file(robot_mapping(read_yaml_file(p, what="robot file"), str(p))):

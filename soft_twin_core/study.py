@@ -602,12 +602,16 @@ def build_scenario(study, values):
     from .scenario import ScenarioError, scenario_from_dict
     _, scen = case_documents(study, values)
     try:
-        return scenario_from_dict(scen, study.base_dir, source=f"{study.source} case")
+        sc = scenario_from_dict(scen, study.base_dir, source=f"{study.source} case")
     except ScenarioError as e:
         msg = str(e)
         if msg.startswith("scenario.robot: "):
             msg = msg[len("scenario.robot: "):]
         raise ScenarioError(msg) from None
+    if sc.model is None:
+        raise ScenarioError(f"scenario.robot: {sc.mech.name!r} is a tree robot (bodies); design studies run on "
+                            f"segments robots for now (their outputs are a single backbone's)")
+    return sc
 
 
 def validate_cases(study, cases):

@@ -89,3 +89,33 @@ def step_times(dt):
     at k = 7, not 0.7000000000000001; no accumulation, so no drift)."""
     d = Decimal(repr(float(dt)))
     return lambda k: float(d * k)
+
+
+class Spline:
+    """A clamped cubic spline through [t, values...] rows (at rest at both
+    ends), held constant outside its time span; ``velocity(t)`` its derivative."""
+
+    def __init__(self, a, where):
+        from scipy.interpolate import CubicSpline     # here: ~0.2 s of import, for trajectories only
+        if len(a) < 1:
+            raise ScenarioError(f"{where}: expected at least one [t, value...] row, got none")
+        self.t0, self.t1 = a[0, 0], a[-1, 0]
+        y = a[:, 1:] if a.shape[1] > 2 else a[:, 1]
+        if len(a) == 1:
+            self.sp = None
+            self.value = y[0]
+            return
+        if np.any(np.diff(a[:, 0]) <= 0):
+            raise ScenarioError(f"{where}: times must increase strictly, got {a[:, 0].tolist()}")
+        self.sp = CubicSpline(a[:, 0], y, bc_type="clamped")
+        self.dsp = self.sp.derivative()
+
+    def __call__(self, t):
+        if self.sp is None:
+            return np.copy(self.value)
+        return self.sp(min(max(t, self.t0), self.t1))
+
+    def velocity(self, t):
+        if self.sp is None or not self.t0 <= t <= self.t1:
+            return 0.0 * np.asarray(self(t))
+        return self.dsp(t)

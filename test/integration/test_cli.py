@@ -156,17 +156,28 @@ def test_console_script_progress_every_is_validated():
         assert p.returncode == 2 and "--progress-every" in p.stderr, (bad, p.stderr)
 
 
-def test_scenario_fuzz_only_scenario_errors():
+ROD_SCENARIO = {"robot": os.path.join(CONFIG, "robots", "tendon_arm.yaml"), "actuation": {"tendon_y_pos": 1.0},
+                "actuation_profile": {"tendon_z_pos": [[0, 0], [1, 1]]}, "gravity": True, "load_steps": 1,
+                "loads": [{"s": "tip", "force": [0, 0, -0.1], "frame": "world"},
+                          {"s": 0.2, "in_plane_force": {"magnitude": 1, "angle_deg": 30}},
+                          {"distributed": True, "force": [0, 0.1, 0], "start": 0.0, "end": 0.3},
+                          {"s": "tip", "force": [0, 1, 0], "profile": [[0, 0], [1, 1]]},
+                          {"frame": "tip", "force": [0, 0, 0.1], "axes": "body"}]}
+TREE_SCENARIO = {"robot": os.path.join(CONFIG, "robots", "soft_gripper.yaml"), "actuation": {"close_0": 1.0},
+                 "joint_positions": {"wrist": 0.2}, "joint_trajectories": {"wrist": [[0, 0], [1, 0.5]]},
+                 "load_steps": 2, "initial_strains": [[1, 0, 0, 0, 0, 0]] * 9,
+                 "loads": [{"member": "finger_1", "s": 0.02, "force": [0, 0, -0.1], "axes": "world"},
+                           {"member": "finger_2", "distributed": True, "force": [0, 0.1, 0], "start": 0.01},
+                           {"frame": "palm", "force": [0, 0, -1], "profile": [[0, 0], [1, 1]]}]}
+
+
+@pytest.mark.parametrize("base", [ROD_SCENARIO, TREE_SCENARIO], ids=["rod", "tree"])
+def test_scenario_fuzz_only_scenario_errors(base):
     """Any single corrupted field of a scenario gives a ScenarioError/ModelError."""
     from conftest import single_field_corruptions
     from soft_twin_core.model import ModelError
     from soft_twin_core.scenario import scenario_from_dict
-    base = {"robot": os.path.join(CONFIG, "robots", "tendon_arm.yaml"), "actuation": {"tendon_y_pos": 1.0},
-            "actuation_profile": {"tendon_z_pos": [[0, 0], [1, 1]]}, "gravity": True, "load_steps": 1,
-            "loads": [{"s": "tip", "force": [0, 0, -0.1], "frame": "world"},
-                      {"s": 0.2, "in_plane_force": {"magnitude": 1, "angle_deg": 30}},
-                      {"distributed": True, "force": [0, 0.1, 0], "start": 0.0, "end": 0.3},
-                      {"s": "tip", "force": [0, 1, 0], "profile": [[0, 0], [1, 1]]}]}
+    scenario_from_dict(base)                   # the uncorrupted one is valid
     values = [None, -1, 0, 1e300, float("nan"), "x", [], {}, [1, 2], True, "tip", [[0, 1], [0, 2]], {"a": 1}, 3]
     for d in single_field_corruptions(base, values, 600, seed=1, skip=(("robot",),)):
         try:

@@ -206,10 +206,9 @@ def test_a_base_driven_against_a_clamp_fails_in_physical_terms(tmp_path):
     clamped to the wall: the run stops, and the error says how far the base
     was asked to go (in all, in the step), the stress reached as a multiple
     of the material's modulus, the constraint error, and what it means."""
-    from soft_twin_core.mechanism_scenario import mechanism_scenario_from_dict, run_mechanism_dynamics
+    from soft_twin_core.scenario import load_scenario, run_dynamics
     _, scenario = _prescribed_bar_file(tmp_path, clamp_tip=True)
-    sc = mechanism_scenario_from_dict(yaml.safe_load(scenario.read_text()), str(tmp_path), str(scenario))
-    out = run_mechanism_dynamics(sc, 0.1, 0.005)
+    out = run_dynamics(load_scenario(str(scenario)), 0.1, 0.005)
     err = out.get("error", "")
     print(f"\n{err}")
     assert "failed" in err and "asked the prescribed base to be" in err and "m in one step" in err, err

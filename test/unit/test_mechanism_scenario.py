@@ -156,3 +156,59 @@ def test_member_samples_in_json_and_csv_alike(tmp_path):
         assert float(row["member_internal_wrenches_arm_0_my"]) == r["members"][k]["arm"]["internal_wrench"][0][4]
         assert float(row["member_positions_arm_4_z"]) == r["members"][k]["arm"]["positions"][4][2]
     assert rows[1]["member_positions_arm_4_z"] == ""          # not a sample time
+
+
+# ------------------------------------------------------------------ one schema for every robot (issue 26)
+
+def _scenario(d):
+    from soft_twin_core.scenario import scenario_from_dict
+    return scenario_from_dict(d, ".")
+
+
+def test_a_tree_robot_takes_loads_on_members_load_steps_and_initial_strains():
+    from soft_twin_core.scenario import run_dynamics, run_statics
+    w = [0.0, 0.05, -0.1]
+    base = {"robot": "soft_gripper", "actuation": {"close_1": 1.0}, "gravity": False}
+    on_member = run_statics(_scenario({**base, "loads": [{"member": "finger_1", "s": "tip", "force": w}]}))
+    on_frame = run_statics(_scenario({**base, "loads": [{"frame": "finger_1_tip", "force": w}]}))
+    stepped = run_statics(_scenario({**base, "load_steps": 4,
+                                     "loads": [{"member": "finger_1", "s": "tip", "force": w}]}))
+    for r in (on_frame, stepped):
+        assert np.allclose(r["strains"], on_member["strains"], atol=1e-9)
+    assert stepped["iterations"] > on_member["iterations"]            # four warm-started solves
+    # a distributed load on one finger bends that finger only
+    dist = run_statics(_scenario({**base, "actuation": {}, "loads": [
+        {"member": "finger_2", "distributed": True, "force": [0.5, 0.5, 0], "start": 0.02}]}))   # N/m, across it
+    rest = run_statics(_scenario({**base, "actuation": {}}))
+    moved = {m: np.abs(np.array(dist["members"][m]["strains"]) - rest["members"][m]["strains"]).max()
+             for m in ("finger_0", "finger_1", "finger_2")}
+    assert moved["finger_2"] > 1e-3 and moved["finger_0"] < 1e-12 and moved["finger_1"] < 1e-12
+    # dynamics starts from the given strains (tree order; here finger_0's first section bent)
+    sc = _scenario({**base, "actuation": {}, "initial_strains": [[1, 0, 0, 0, 0, 5.0]] + [[1, 0, 0, 0, 0, 0]] * 8})
+    start = np.array(run_dynamics(sc, 0.002, 0.001)["strains"][0])
+    assert start[0, 5] == pytest.approx(5.0) and np.abs(start[1:, 1:]).max() < 1e-12
+
+
+def test_a_rod_takes_a_load_on_its_tip_frame_as_on_its_tip():
+    from soft_twin_core.scenario import run_statics
+    base = {"robot": "tendon_arm", "actuation": {"tendon_y_pos": 1.0}}
+    a = run_statics(_scenario({**base, "loads": [{"s": "tip", "force": [0.1, 0, -0.2]}]}))
+    b = run_statics(_scenario({**base, "loads": [{"frame": "tip", "force": [0.1, 0, -0.2]}]}))
+    assert np.allclose(a["tip_position"], b["tip_position"], atol=1e-12)
+    assert _scenario(base).mech.members[0].name == "backbone"
+
+
+@pytest.mark.parametrize("load, text", [
+    ({"member": "thumb", "s": 0.01, "force": [0, 0, 1]}, "scenario.loads[0].member: 'thumb' is not a soft member"),
+    ({"frame": "nose", "force": [0, 0, 1]}, "scenario.loads[0].frame: 'nose' is not a frame"),
+    ({"s": 0.01, "frame": "world", "axes": "body"}, "give the axes once"),
+    ({"member": "finger_0", "s": 0.5}, "scenario.loads[0].s: must lie in [0, 0.08] m"),
+    ({"force": [0, 0, 1]}, "give s (an arc length on a member), distributed: true, or frame"),
+    ({"frame": "palm", "distributed": False, "force": [0, 0, 1]}, "to load the frame 'palm', give no s"),
+    ({"member": "finger_0", "force": [0, 0, 1]}, "scenario.loads[0].s: missing"),
+])
+def test_load_errors_name_the_field(load, text):
+    from soft_twin_core.scenario import ScenarioError
+    with pytest.raises(ScenarioError) as e:
+        _scenario({"robot": "soft_gripper", "loads": [load]})
+    assert text in str(e.value)

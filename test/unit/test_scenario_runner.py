@@ -261,8 +261,9 @@ def test_scenarios_and_robots_by_name(tmp_path, monkeypatch, capsys):
     assert set(model_mod.example_files("scenarios")) >= {"tendon_arm_dynamics", "tendon_arm_statics"}
     for name in model_mod.example_files("scenarios"):
         sc = load_scenario(name)
-        # classic robots have sections; articulated ones (tree files) a multibody tree
-        assert (sc.model.n_sections if hasattr(sc, "model") else len(sc.mech.tree.soft_joints)) >= 1
+        # every robot is a mechanism; a segments robot also has its model
+        assert len(sc.mech.tree.soft_joints) >= 1
+        assert sc.model is None or sc.model.n_sections == len(sc.mech.tree.soft_joints)
     assert {"pan_tilt_arm_dynamics", "fixed_fixed_beam"} <= set(model_mod.example_files("scenarios"))
     sc = scenario_from_dict({"robot": "tendon_arm"}, str(tmp_path))
     assert sc.model.name == "tendon_arm"
