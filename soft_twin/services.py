@@ -38,6 +38,12 @@ def copy_state(node):
                 node.cfg, node.cfg.actuator_names)
 
 
+def _twin_copy(node):
+    """An articulated twin's quasi-static copy for a query, taken under the node's lock."""
+    with node._lock:
+        return node.twin.query_copy()
+
+
 def _requested_actuation(req, model, u, order):
     """The request's actuation (names/values over the current ``u``), or None when it gives none."""
     if len(req.actuator_names) or len(req.actuator_values):
@@ -55,10 +61,8 @@ def forward_kinematics(node, req, resp):
         resp.success, resp.message = False, clip(f"actuation rejected ({e.reason}): {e}", 400)
         return resp
     if node.robot.articulated:
-        with node._lock:
-            query = node.twin.query_copy()
         try:
-            message, res = query.forward_kinematics(req.strains, actuation)
+            message, res = _twin_copy(node).forward_kinematics(req.strains, actuation)
         except (ValueError, StaticsError) as e:
             resp.success, resp.message = False, clip(str(e), 400)
             return resp
@@ -88,9 +92,7 @@ def statics_query(node, req, resp):
         resp.success, resp.message = False, clip(f"input rejected ({e.reason}): {e}", 400)
         return resp
     if node.robot.articulated:
-        with node._lock:
-            query = node.twin.query_copy()
-        info, res = query.statics(actuation, w, frame)       # joints at the twin's current commands
+        info, res = _twin_copy(node).statics(actuation, w, frame)       # joints at the twin's current commands
         success, message, iterations, residual = info.converged, info.message or "ok", info.iterations, None
     else:
         res = tw.statics_query(model, q, cfg.backbone_points_per_section, actuation, w, frame)
@@ -150,16 +152,12 @@ def _inverse_kinematics(node, req, resp):
 
 
 def _articulated_ik(node, req, resp, target, tol):
-    """IK of an articulated robot's tip position
-    (:meth:`articulated.ArticulatedTwin.inverse_kinematics`, in the query
-    worker): ``actuator_names``/``actuator_values`` its position-controlled
-    joints (rad or m) first, then its actuators (N or Pa)."""
-    if not req.position_only:
-        resp.success, resp.message = False, ("inverse_kinematics: an articulated robot's IK reaches tip "
-                                             "positions only (set position_only: true)")
-        return resp
+    """IK of an articulated robot's tip pose, or position with
+    ``position_only`` (:meth:`soft_twin_core.articulated_twin.ArticulatedTwin.inverse_kinematics`,
+    in the query worker): ``actuator_names``/``actuator_values`` its
+    position-controlled joints (rad or m) first, then its actuators (N or Pa)."""
     try:
-        r = node.query("inverse_kinematics", target[:3, 3], tol)
+        r = node.query("inverse_kinematics", target[:3, 3] if req.position_only else target, tol)
     except (PlanError, StaticsError, ModelError, ValueError, np.linalg.LinAlgError, QueryError) as e:
         resp.success, resp.message = False, clip(f"IK failed: {e}", 400)
         return resp
@@ -173,8 +171,9 @@ def _articulated_ik(node, req, resp, target, tol):
     resp.actuator_values = [float(v) for v in r.values]
     resp.achieved = cv.pose_msg(r.achieved_pose)
     resp.position_error = float(r.position_error)
-    # as the rod robots' position-only answer: |log(R_achieved^T R_target)| (informative only)
-    resp.orientation_error = float(np.linalg.norm(lie.log_so3(r.achieved_pose[:3, :3].T @ target[:3, :3])))
+    # position only: |log(R_achieved^T R_target)|, informative, as the rod robots' answer
+    resp.orientation_error = (float(np.linalg.norm(lie.log_so3(r.achieved_pose[:3, :3].T @ target[:3, :3])))
+                              if req.position_only else float(r.orientation_error))
     resp.iterations = int(r.iterations)
     return resp
 

@@ -24,7 +24,7 @@ position of a measured joint (``non_finite``); poses as in the classic
 node.
 
 Publications: ``~/estimate/tip_pose`` (PoseWithCovarianceStamped of the
-tip frame, ``soft_twin_core.articulated_twin.tip_frame_of``: position covariance,
+tip frame, ``soft_twin_core.mechanism.tip_frame``: position covariance,
 m^2), ``~/estimate/joint_states`` (JointState: positions and velocities
 of the rigid joints), ``~/estimate/backbone/<member>`` (PoseArray per soft
 member), the filter's health on ``/diagnostics``.
@@ -37,7 +37,8 @@ from geometry_msgs.msg import PointStamped, PoseArray, PoseStamped, PoseWithCova
 from sensor_msgs.msg import JointState
 
 from soft_twin import conversions as cv
-from soft_twin_core.articulated_twin import parse_joint_command, tip_frame_of
+from soft_twin_core.articulated_twin import parse_joint_command
+from soft_twin_core.mechanism import tip_frame
 from soft_twin.msg import ActuationCommand
 from soft_twin.readings import STAMP_REJECTIONS, accept_reading
 from soft_twin_core.twin import InputError
@@ -58,7 +59,7 @@ class TreeEstimation:
         self.joint_sensors = [s for s in self.sensors if isinstance(s, ts.JointStateSensor)]
         self.wrench_sensors = [s for s in self.sensors if isinstance(s, ts.BaseWrenchSensor)]
         self.ekf = te.TreeEKF(mech, self.sensors, 1.0 / rate)
-        self.tip = tip_frame_of(mech)
+        self.tip = tip_frame(mech)
         self.rejections = dict.fromkeys(REJECTION_KINDS, 0)
         self.last_rejection = ""
         self.cmd_pos, self.cmd_eff = {}, {}

@@ -47,6 +47,8 @@ import numpy as np
 
 from . import algorithms as alg
 from . import constrained as cs
+from . import lie
+from .mechanism import tip_frame
 from .planner import Plan, PlanError, _number, bounded_gauss_newton_step, rate_bounds, warm_start
 from .statics import StaticsError
 from .workspace import Workspace
@@ -54,10 +56,11 @@ from .workspace import Workspace
 
 @dataclass
 class ArticulatedPlanOptions:
-    """frame: the frame that follows the path (default ``tip`` if the robot
-    has one, else the end of its last soft member ``<member>_tip``);
-    position_weights (3,) per world axis; tolerance [m] on the weighted
-    position error; pretension [N], max_tension [N], max_pressure [Pa],
+    """frame: the frame that follows the path (default the robot's tip,
+    :func:`mechanism.tip_frame`);
+    position_weights (3,) per world axis; orientation_weight [m/rad] (when
+    the targets have orientations); tolerance [m] on the weighted position
+    error, tolerance_rad [rad] on the orientation error; pretension [N], max_tension [N], max_pressure [Pa],
     max_rate [N/s or Pa/s] of the actuators (scalar or {name: value});
     joint_limits_margin [rad or m] kept inside the joint limits;
     max_iterations per sample; loads (:class:`loads.Loads`, default
@@ -67,7 +70,9 @@ class ArticulatedPlanOptions:
     efforts and tip wrench)."""
     frame: str = None
     position_weights: tuple = (1.0, 1.0, 1.0)
+    orientation_weight: float = 0.1
     tolerance: float = 1e-6
+    tolerance_rad: float = 1e-5
     pretension: object = 0.0
     max_tension: object = None
     max_pressure: object = None
@@ -77,16 +82,6 @@ class ArticulatedPlanOptions:
     loads: object = None
     efforts: object = None
     point_loads: tuple = ()
-
-
-def default_frame(mech):
-    if "tip" in mech.frames:
-        return "tip"
-    if mech.members:
-        name = f"{mech.members[-1].name}_tip"
-        if name in mech.frames:
-            return name
-    raise PlanError(f"frame: this robot has no 'tip' frame and no soft member; name one of {sorted(mech.frames)}")
 
 
 def _per(names, value, what, default):
@@ -124,7 +119,7 @@ class ArticulatedTipSolver:
         self.n_j, self.n_u = len(self.pos), len(self.actuator_names)
         if self.n_j + self.n_u == 0:
             raise PlanError("this robot has no position-controlled joints and no actuators: nothing to plan")
-        self.frame = o.frame or default_frame(mech)
+        self.frame = o.frame or tip_frame(mech)
         try:
             self.ref = mech.frame(self.frame)
         except KeyError as e:
@@ -134,8 +129,14 @@ class ArticulatedTipSolver:
             raise PlanError(f"position_weights: expected 3 non-negative numbers, not all 0, got "
                             f"{o.position_weights!r}")
         self.sw = np.sqrt(w)
+        wo = _number(o.orientation_weight, "orientation_weight", False)
+        if wo < 0:
+            raise PlanError(f"orientation_weight: expected a number >= 0 (m/rad), got {wo}")
+        self.swo = np.sqrt(wo)
         if _number(o.tolerance, "tolerance", False) <= 0:
             raise PlanError(f"tolerance: expected a number > 0 (m), got {o.tolerance}")
+        if _number(o.tolerance_rad, "tolerance_rad", False) <= 0:
+            raise PlanError(f"tolerance_rad: expected a number > 0 (rad), got {o.tolerance_rad}")
         margin = _number(o.joint_limits_margin, "joint_limits_margin", False)
         if margin < 0:
             raise PlanError(f"joint_limits_margin: expected a number >= 0, got {margin}")
@@ -189,7 +190,9 @@ class ArticulatedTipSolver:
         return alg.point_poses(self.mech.tree, self.ws, q, [self.ref.joint], [self.ref.x])[0]
 
     def sensitivity(self, eq):
-        """(frame pose 4x4, d(frame position, world)/dx (3, n_j + n_u)) at an equilibrium."""
+        """(frame pose 4x4, d(frame motion)/dx (6, n_j + n_u): the velocity of
+        its origin and its angular velocity, world axes, per unit of each
+        input) at an equilibrium."""
         mech, tree = self.mech, self.mech.tree
         pb = cs._Equilibrium(mech, eq.inputs)
         q, lam = eq.q, eq.lam
@@ -214,16 +217,47 @@ class ArticulatedTipSolver:
         for k in range(n_x):
             dq[:, k] = cs.solve_factored(fac, dR[:, k], dphi[:, k])[0]
         g, J = alg.point_jacobian(tree, self.ws, q, self.ref.joint, self.ref.x, frame="world")
-        return g, J[:3] @ dq
+        return g, J @ dq
 
     # -- one sample ----------------------------------------------------------
+    @staticmethod
+    def _with_rot(target):
+        return np.shape(target) == (4, 4)
+
     def _error(self, g, target):
-        return self.sw * (target - g[:3, 3])
+        """Weighted error: position sw (p_target - p); with a pose target also
+        the rotation swo log(R_target R^T) (world axes, rad)."""
+        if not self._with_rot(target):
+            return self.sw * (target - g[:3, 3])
+        return np.concatenate([self.sw * (target[:3, 3] - g[:3, 3]),
+                               self.swo * lie.log_so3(target[:3, :3] @ g[:3, :3].T)])
+
+    def _error_jacobian(self, S, target):
+        """d(error)/dx: to first order the error falls by the frame's motion
+        (for the rotation, exactly so as the error vanishes)."""
+        if not self._with_rot(target):
+            return -(self.sw[:, None] * S[:3])
+        return -np.vstack([self.sw[:, None] * S[:3], self.swo * S[3:]])
+
+    def errors(self, g, target):
+        """(position distance [m], weighted position error [m], orientation error [rad] or 0)."""
+        p = target[:3, 3] if self._with_rot(target) else target
+        d = p - g[:3, 3]
+        oe = float(np.linalg.norm(lie.log_so3(g[:3, :3].T @ target[:3, :3]))) if self._with_rot(target) else 0.0
+        return float(np.linalg.norm(d)), float(np.linalg.norm(self.sw * d)), oe
+
+    def reached(self, g, target):
+        _, we, oe = self.errors(g, target)
+        o = self.options
+        return we <= o.tolerance and (not self._with_rot(target) or self.swo == 0 or oe <= o.tolerance_rad)
 
     def solve(self, target, x_init, q_init, lo, hi, x_ref, rate_box=None):
         """x within [lo, hi] whose equilibrium puts the frame at ``target``
-        (world position, m); ``x_ref``: the reference of the redundancy
-        resolution (previous joint commands, lower input bounds)."""
+        (world position (3,) [m], or world pose 4x4: then its orientation
+        too); ``x_ref``: the reference of the redundancy resolution (previous
+        joint commands, lower input bounds). Returns (x, equilibrium, frame
+        pose, position distance, weighted position error, orientation error,
+        reached, status, iterations)."""
         x = np.clip(np.asarray(x_init, float), lo, hi)
         try:
             eq = self.equilibrium(x, q_init)
@@ -236,11 +270,10 @@ class ArticulatedTipSolver:
         for eps in (self.EPS_REDUNDANCY, 0.0):
             x, eq, g, e, it, scale = self._gauss_newton(x, eq, g, e, target, lo, hi, eps, x_ref, scale)
             it_total += it
-        d = target - g[:3, 3]
-        we = float(np.linalg.norm(self.sw * d))
-        reached = we <= self.options.tolerance
-        status = "reached" if reached else self._blocking(x, eq, e, lo, hi, rate_box)
-        return x, eq, g, float(np.linalg.norm(d)), we, reached, status, it_total
+        pe, we, oe = self.errors(g, target)
+        reached = self.reached(g, target)
+        status = "reached" if reached else self._blocking(x, eq, e, target, lo, hi, rate_box)
+        return x, eq, g, pe, we, oe, reached, status, it_total
 
     def _gauss_newton(self, x, eq, g, e, target, lo, hi, eps, x_ref, scale):
         tol = self.options.tolerance
@@ -255,13 +288,13 @@ class ArticulatedTipSolver:
             return c
 
         for it in range(1, self.options.max_iterations + 1):
-            if eps == 0.0 and np.linalg.norm(e) <= tol:
+            if eps == 0.0 and self.reached(g, target):
                 return x, eq, g, e, it - 1, scale
             try:
                 _, S = self.sensitivity(eq)
             except (np.linalg.LinAlgError, ValueError):
                 return x, eq, g, e, it, scale
-            Je = -(self.sw[:, None] * S)
+            Je = self._error_jacobian(S, target)
             if scale is None:
                 scale = np.maximum(np.linalg.norm(Je, axis=0), 1e-12 * max(np.linalg.norm(Je), 1e-300))
             c0 = cost(x, e)
@@ -290,12 +323,12 @@ class ArticulatedTipSolver:
                 break
         return x, eq, g, e, it, scale
 
-    def _blocking(self, x, eq, e, lo, hi, rate_box):
+    def _blocking(self, x, eq, e, target, lo, hi, rate_box):
         try:
             _, S = self.sensitivity(eq)
         except (np.linalg.LinAlgError, ValueError):
             return "statics_failed"
-        grad = -(self.sw[:, None] * S).T @ e
+        grad = self._error_jacobian(S, target).T @ e
         sc = np.abs(grad).max(initial=0.0)
         atol = 1e-9 * np.maximum(1.0, np.abs(x))
         press_lo = (x <= lo + atol) & (grad > 1e-6 * sc)
@@ -341,15 +374,13 @@ def _rate_box(solver, x_prev, d_prev, dt):
 
 def plan_articulated_path(mech, path, options=None, start=None):
     """Plan joint commands and actuator inputs for a :class:`paths.TipPath`
-    (positions in the world frame of the mechanism; orientations are not
-    tracked). ``start``: x = [joint commands, inputs] to warm-start the
+    (the world frame of the mechanism; with orientations, the frame's
+    orientation is tracked too, weighted by ``orientation_weight``). ``start``: x = [joint commands, inputs] to warm-start the
     first sample from (default: the joint references, inputs at their lower
     bounds)."""
     from .paths import TipPath
     if not isinstance(path, TipPath):
         raise PlanError(f"path: expected a TipPath, got {type(path).__name__}")
-    if path.orientations is not None:
-        raise PlanError("path: orientations are not planned for articulated robots (positions only)")
     solver = ArticulatedTipSolver(mech, options)
     tree = mech.tree
     nj = solver.n_j
@@ -364,8 +395,8 @@ def plan_articulated_path(mech, path, options=None, start=None):
     x = np.clip(x, solver.lower, solver.upper)
     q = solver.equilibrium(x, None).q
     N = len(path)
-    targets = path.positions
-    out = {k: [] for k in ("x", "q", "tip", "pe", "we", "reached", "status", "it")}
+    targets = path.positions if path.orientations is None else path.world_targets(np.eye(4))
+    out = {k: [] for k in ("x", "q", "tip", "R", "pe", "we", "oe", "reached", "status", "it")}
     x_ref_lo = np.where(np.isfinite(solver.lower[nj:]), solver.lower[nj:], 0.0)
     d_prev = np.zeros(nj)
     hist = []
@@ -377,8 +408,8 @@ def plan_articulated_path(mech, path, options=None, start=None):
             box = (rlo, rhi)
         x0, q0 = warm_start(hist, (x, q))
         x_ref = np.concatenate([x[:nj], x_ref_lo])
-        x_new, eq, g, pe, we, reached, status, it = solver.solve(targets[i], np.clip(x0, lo, hi), q0, lo, hi,
-                                                                 x_ref, box)
+        x_new, eq, g, pe, we, oe, reached, status, it = solver.solve(targets[i], np.clip(x0, lo, hi), q0, lo, hi,
+                                                                     x_ref, box)
         if i > 0:
             d_prev = x_new[:nj] - x[:nj]
         x = x_new
@@ -386,17 +417,19 @@ def plan_articulated_path(mech, path, options=None, start=None):
         out["x"].append(x)
         out["q"].append(eq.q)
         out["tip"].append(g[:3, 3])
+        out["R"].append(g[:3, :3])
         out["pe"].append(pe)
         out["we"].append(we)
+        out["oe"].append(oe)
         out["reached"].append(reached)
         out["status"].append(status)
         out["it"].append(it)
     X = np.array(out["x"]).reshape(N, -1)
     return ArticulatedPlan(
-        path.times.copy(), X[:, nj:].copy(), np.array(out["q"]), np.array(out["tip"]), targets.copy(),
-        np.array(out["pe"]), np.array(out["we"]), np.zeros(N), np.array(out["reached"], bool), out["status"],
+        path.times.copy(), X[:, nj:].copy(), np.array(out["q"]), np.array(out["tip"]), path.positions.copy(),
+        np.array(out["pe"]), np.array(out["we"]), np.array(out["oe"]), np.array(out["reached"], bool), out["status"],
         solver.lower[nj:].copy(), solver.upper[nj:].copy(), solver.rate.copy(), solver.actuator_names,
-        np.array(out["it"]), None, solver.joint_names, X[:, :nj].copy(), solver.lower[:nj].copy(),
+        np.array(out["it"]), None if path.orientations is None else np.array(out["R"]), solver.joint_names, X[:, :nj].copy(), solver.lower[:nj].copy(),
         solver.upper[:nj].copy(), solver.max_velocity.copy(), solver.max_acceleration.copy(), solver.frame)
 
 
@@ -426,7 +459,7 @@ def check_articulated_plan(plan, rtol=1e-12):
 
 
 __all__ = ["ArticulatedPlanOptions", "ArticulatedTipSolver", "ArticulatedPlan", "plan_articulated_path",
-           "check_articulated_plan", "default_frame"]
+           "check_articulated_plan"]
 
 
 def simulate_articulated_plan(mech, plan, options=None, path_positions=None, dt=0.005, theta=0.5, hold=0.0):

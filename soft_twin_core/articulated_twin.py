@@ -25,7 +25,7 @@ import numpy as np
 
 from . import articulated_planner as ap
 from . import constrained as cs
-from .mechanism import check_joint_position, shape_command
+from .mechanism import check_joint_position, shape_command, tip_frame
 from .model import State
 from .outputs import q_from_section_strains, section_strains, state_outputs
 
@@ -38,16 +38,6 @@ def _same_inputs(a, b):
     stamps by identity)."""
     return (np.array_equal(a[0], b[0]) and np.array_equal(a[1], b[1]) and a[2] == b[2] and a[3] == b[3]
             and a[4] == b[4] and all(x is y for x, y in zip(a[5:], b[5:])))
-
-
-def tip_frame_of(mech):
-    """The frame the node calls the tip: ``tool`` if the robot has one,
-    else the last member's tip."""
-    if "tool" in mech.frames:
-        return "tool"
-    if mech.members:
-        return f"{mech.members[-1].name}_tip"
-    return list(mech.frames)[-1]
 
 
 def parse_joint_command(mech, names, positions, velocities, efforts, current_pos, current_eff):
@@ -111,7 +101,8 @@ class ArticulatedIK:
     joints, then its actuators; ``values`` their commands (rad or m, then N
     or Pa) whose equilibrium ``q`` puts the tip at ``achieved_pose`` (4x4,
     base frame); ``status`` as the planner's (``reached``, ``at_limit``,
-    ``rate_limit``, ``out_of_workspace``); ``strains`` (n_soft_sections, 6)."""
+    ``rate_limit``, ``out_of_workspace``); ``strains`` (n_soft_sections, 6);
+    ``orientation_error`` [rad] (0 for a position target)."""
     reached: bool
     status: str
     names: tuple
@@ -121,6 +112,7 @@ class ArticulatedIK:
     achieved_pose: np.ndarray
     position_error: float
     iterations: int
+    orientation_error: float = 0.0
 
 
 @dataclass(frozen=True)
@@ -169,7 +161,7 @@ class ArticulatedTwin:
         self.mech = mech
         self.model = mech            # what the node reads: name, actuators, actuator_names
         self.settings = settings or TwinSettings()
-        self.tip = tip_frame_of(mech)
+        self.tip = tip_frame(mech)
         self.u = np.zeros(len(mech.actuators))
         self.tip_wrench = np.zeros(6)
         self.tip_frame = "world"
@@ -465,20 +457,22 @@ class ArticulatedTwin:
 
     def inverse_kinematics(self, target, tolerance=1e-6):
         """Joint commands and actuator inputs putting the tip at ``target``
-        (base-frame position, m), from the current commands and shape (the
+        (base-frame position (3,) [m], or pose 4x4: then with the tip's
+        orientation, weighted 0.1 m/rad; ``tolerance`` in m and rad), from
+        the current commands and shape (the
         planner's sample solve, :class:`soft_twin_core.articulated_planner.ArticulatedTipSolver`:
         joint limits, tensions in [0, limit], least change of the joint
         commands and least tension among redundant inputs; the current joint
         efforts and tip wrench held). Raises PlanError, StaticsError or
         ValueError."""
-        solver = ap.ArticulatedTipSolver(self.mech, self.plan_options(tolerance=tolerance))
+        solver = ap.ArticulatedTipSolver(self.mech, self.plan_options(tolerance=tolerance, tolerance_rad=tolerance))
         x0 = np.clip(self.command_vector(solver), solver.lower, solver.upper)
         nj = solver.n_j
         x_ref = np.concatenate([x0[:nj], np.where(np.isfinite(solver.lower[nj:]), solver.lower[nj:], 0.0)])
-        x, eq, g, pe, we, reached, status, it = solver.solve(np.asarray(target, float), x0, self.state.q,
-                                                             solver.lower, solver.upper, x_ref)
+        x, eq, g, pe, we, oe, reached, status, it = solver.solve(np.asarray(target, float), x0, self.state.q,
+                                                                 solver.lower, solver.upper, x_ref)
         return ArticulatedIK(bool(reached), status, solver.joint_names + solver.actuator_names, x, eq.q.copy(),
-                             section_strains(self.mech, eq.q), g, pe, int(it))
+                             section_strains(self.mech, eq.q), g, pe, int(it), oe)
 
     def plan(self, path, **options):
         """:func:`soft_twin_core.articulated_planner.plan_articulated_path`

@@ -201,6 +201,17 @@ def check_joint_position(joint, value):
     return None
 
 
+def tip_frame(mech):
+    """The frame that is the robot's tip (the node's ``~/tip_pose``, the
+    default of the planner and of the workspace map): ``tip`` if the robot
+    has one (every classic rod has), else ``tool``, else the last soft
+    member's end (``<member>_tip``), else its last frame."""
+    for name in ("tip", "tool") + ((f"{mech.members[-1].name}_tip",) if mech.members else ()):
+        if name in mech.frames:
+            return name
+    return list(mech.frames)[-1]
+
+
 def is_tree_file(d):
     """True for a robot mapping of the tree schema (a ``bodies`` list)."""
     return isinstance(d, dict) and "bodies" in d

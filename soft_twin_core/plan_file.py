@@ -24,15 +24,16 @@ See :mod:`soft_twin_core.planner` for the method.
 Articulated robots (a tree robot file, e.g. ``robot: pan_tilt_arm``): the plan
 gives the position-controlled joints' commands and the actuators' inputs
 (:mod:`soft_twin_core.articulated_planner`); ``tracking.frame`` names the
-frame that follows the path (default ``tip``, else the last soft member's
-end), ``joints.limits_margin`` [rad or m] keeps the commands inside the
+frame that follows the path (default the robot's tip,
+:func:`mechanism.tip_frame`), ``joints.limits_margin`` [rad or m] keeps the commands inside the
 joint limits, and the joints' ``max_velocity``/``max_acceleration`` from the
 robot file are the rate limits; ``dynamics`` ({dt}) executes the plan in the
 dynamics (:func:`articulated_planner.simulate_articulated_plan`: the
 simulated frame positions and their error per sample, in the JSON, the CSV
-and the figures), without the lag compensation of classic robots;
-orientations are not available for them. The CSV then has one
-``q_<joint>`` column per joint.
+and the figures), without the lag compensation of classic robots; a path
+with orientations has the frame's orientation tracked too
+(``tracking.orientation_weight`` [m/rad], ``tracking.tolerance_rad``).
+The CSV then has one ``q_<joint>`` column per joint.
 """
 
 import csv
@@ -173,7 +174,7 @@ def plan_from_dict(d, base_dir="."):
     return model, path, opts, u0, dyn
 
 
-_TRACK_ART = {"position_weights", "tolerance", "max_iterations", "frame"}
+_TRACK_ART = {"position_weights", "orientation_weight", "tolerance", "tolerance_rad", "max_iterations", "frame"}
 _JOINTS = {"limits_margin", "initial"}
 
 
@@ -196,8 +197,6 @@ def _articulated_from_dict(d, robot, base_dir):
                 raise PlanFileError(f"dynamics.{k}: the lag compensation is for classic robots; an articulated "
                                     f"plan is verified in the dynamics (dynamics.dt) but not compensated")
     path = pth.path_from_dict(d["path"], "path")
-    if path.orientations is not None:
-        raise PlanFileError("path.orientations: articulated robots are planned for positions only")
     tr = _keys(d.get("tracking"), _TRACK_ART, "tracking")
     ac = _keys(d.get("actuation"), _ACT - {"initial"}, "actuation")
     jn = _keys(d.get("joints"), _JOINTS, "joints")

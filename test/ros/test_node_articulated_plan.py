@@ -1,8 +1,8 @@
 """End to end (issue 13, articulated robots): the node's ~/inverse_kinematics
 and ~/plan_path on the pan-tilt arm. The IK answers joint commands and
 tendon tensions whose equilibrium, solved independently by the core from
-scratch, puts the tool at the target; a full pose is refused, an
-unreachable target answered with the closest position the joints and
+scratch, puts the tool at the target (a position, or a full pose with its
+orientation); an unreachable target answered with the closest position the joints and
 tendons hold. A planned line executed through the service publishes one
 JointState (positions) and one ActuationCommand per sample at its time with
 the planned values, and the twin follows them. The node runs in a second
@@ -91,10 +91,20 @@ def test_ik_reaches_positions_with_joints_and_tendons(twin, mech):
     assert angle > 1e-3 and resp.orientation_error == pytest.approx(angle, rel=1e-9)
 
 
-def test_ik_refuses_full_poses_and_flags_unreachable_targets(twin, mech):
+def test_ik_reaches_full_poses_and_flags_unreachable_targets(twin, mech):
+    from soft_twin.conversions import pose_msg
+    from soft_twin_core import lie
     c = twin
-    full = c.call("inverse_kinematics", InverseKinematics.Request(target=_pose([0.3, 0.0, 0.0])))
-    assert not full.success and "position_only" in full.message
+    x_true = np.array([0.3, -0.25, 0.8, 0.0, 0.4, 0.0])
+    eq = cs.solve_equilibrium(mech, actuation=x_true[2:], positions=x_true[:2])
+    ref = mech.frame("tool")
+    pose = alg.point_poses(mech.tree, Workspace(mech.tree), eq.q, [ref.joint], [ref.x])[0]
+    full = c.call("inverse_kinematics", InverseKinematics.Request(target=pose_msg(pose), tolerance=1e-7))
+    assert full.success, full.message
+    assert full.position_error <= 1e-7 and full.orientation_error <= 1e-5
+    got = matrix_from_pose(full.achieved)
+    assert np.linalg.norm(lie.log_so3(got[:3, :3].T @ pose[:3, :3])) <= 2e-5
+    np.testing.assert_allclose(tool_position(mech, np.array(full.actuator_values)), pose[:3, 3], rtol=0, atol=1e-6)
     far = c.call("inverse_kinematics", InverseKinematics.Request(target=_pose([1.5, 0.0, 0.0]),
                                                                 position_only=True))
     assert not far.success and "not reached" in far.message and far.actuation_found, far.message

@@ -21,6 +21,7 @@ from hypothesis import strategies as hst
 from soft_twin_core import algorithms as alg
 from soft_twin_core import articulated_planner as ap
 from soft_twin_core import constrained as cs
+from soft_twin_core import lie
 from soft_twin_core import paths
 from soft_twin_core.mechanism import load_mechanism
 from soft_twin_core.planner import PlanError
@@ -34,12 +35,16 @@ def mech():
     return load_mechanism("pan_tilt_arm")
 
 
-def frame_position(mech, name, x):
-    """The frame's world position at the equilibrium of x = [pan, tilt,
+def frame_pose(mech, name, x):
+    """The frame's world pose at the equilibrium of x = [pan, tilt,
     tensions], solved from the reference configuration (no warm start)."""
     eq = cs.solve_equilibrium(mech, actuation=x[2:], positions=x[:2])
     ref = mech.frame(name)
-    return alg.point_poses(mech.tree, Workspace(mech.tree), eq.q, [ref.joint], [ref.x])[0][:3, 3]
+    return alg.point_poses(mech.tree, Workspace(mech.tree), eq.q, [ref.joint], [ref.x])[0]
+
+
+def frame_position(mech, name, x):
+    return frame_pose(mech, name, x)[:3, 3]
 
 
 def test_sensitivity_matches_finite_differences(mech):
@@ -55,11 +60,15 @@ def test_sensitivity_matches_finite_differences(mech):
         xp, xm = x.copy(), x.copy()
         xp[k] += h
         xm[k] -= h
-        fd[:, k] = (frame_position(mech, "tool", xp) - frame_position(mech, "tool", xm)) / (2 * h)
-    assert np.abs(S - fd).max() <= 1e-6 * np.abs(fd).max()
+        gp, gm = frame_pose(mech, "tool", xp), frame_pose(mech, "tool", xm)
+        fd[:3, k] = (gp[:3, 3] - gm[:3, 3]) / (2 * h)
+        fd[3:, k] = lie.log_so3(gp[:3, :3] @ gm[:3, :3].T) / (2 * h)      # world angular rate
+    assert np.abs(S[:3] - fd[:3]).max() <= 1e-6 * np.abs(fd[:3]).max()
+    assert np.abs(S[3:] - fd[3:]).max() <= 1e-6 * np.abs(fd[3:]).max()
     # pan turns the tool about the world z axis: d(tool)/d(pan) = z x p
     p = g[:3, 3]
-    assert np.allclose(S[:, 0], np.cross([0, 0, 1.0], p), atol=1e-9)
+    assert np.allclose(S[:3, 0], np.cross([0, 0, 1.0], p), atol=1e-9)
+    assert np.allclose(S[3:, 0], [0, 0, 1.0], atol=1e-9)                   # at the pan's rate about z
 
 
 def test_held_loads_enter_the_equilibrium_and_its_sensitivity(mech):
@@ -78,7 +87,7 @@ def test_held_loads_enter_the_equilibrium_and_its_sensitivity(mech):
     unloaded = ap.ArticulatedTipSolver(mech, ap.ArticulatedPlanOptions(frame="tool")).equilibrium(x, None)
     assert np.abs(s.frame_pose(eq.q)[:3, 3] - s.frame_pose(unloaded.q)[:3, 3]).max() > 1e-3   # the load matters
     target = s.frame_pose(eq.q)[:3, 3] + np.array([0.0, 0.01, 0.01])
-    x1, eq1, g1, pe, we, reached, status, it = s.solve(target, x, eq.q, s.lower, s.upper, x)
+    x1, eq1, g1, pe, we, oe, reached, status, it = s.solve(target, x, eq.q, s.lower, s.upper, x)
     assert reached and pe <= 1e-6
     ref = cs.solve_equilibrium(mech, actuation=x1[2:], positions=x1[:2], point_loads=(load,), q_init=eq1.q)
     np.testing.assert_allclose(s.frame_pose(ref.q)[:3, 3], target, atol=2e-6)
@@ -86,7 +95,40 @@ def test_held_loads_enter_the_equilibrium_and_its_sensitivity(mech):
     h = 1e-6
     pos = lambda xx: s.frame_pose(s.equilibrium(xx, eq.q).q)[:3, 3]  # noqa: E731
     fd = np.column_stack([(pos(x + h * e) - pos(x - h * e)) / (2 * h) for e in np.eye(x.size)])
-    assert np.abs(S - fd).max() <= 1e-6 * np.abs(fd).max()
+    assert np.abs(S[:3] - fd).max() <= 1e-6 * np.abs(fd).max()
+
+
+def test_a_pose_target_is_reached_in_position_and_orientation(mech):
+    """A reachable tool pose (the equilibrium pose of other commands) is
+    reached from the reference commands to 1e-6 m and 1e-5 rad, checked by
+    an independent equilibrium solve of the answer; the position-only answer
+    from the same start ends at another orientation (the rotation is what
+    the pose target adds)."""
+    s = ap.ArticulatedTipSolver(mech, ap.ArticulatedPlanOptions(frame="tool"))
+    x_true = np.array([0.4, -0.3, 0.6, 0.0, 0.3, 0.0])
+    target = frame_pose(mech, "tool", x_true)
+    x0 = np.clip(np.array([0.0, 0.0, 0.1, 0.1, 0.1, 0.1]), s.lower, s.upper)
+    eq0 = s.equilibrium(x0, None)
+    x, eq, g, pe, we, oe, reached, status, it = s.solve(target, x0, eq0.q, s.lower, s.upper, x0)
+    assert reached and status == "reached" and pe <= 1e-6 and oe <= 1e-5, (pe, oe, status)
+    check = frame_pose(mech, "tool", x)
+    assert np.linalg.norm(check[:3, 3] - target[:3, 3]) < 2e-6
+    assert np.linalg.norm(lie.log_so3(check[:3, :3].T @ target[:3, :3])) < 2e-5
+    *_, g_p, _, _, oe_p, reached_p, _, _ = s.solve(target[:3, 3], x0, eq0.q, s.lower, s.upper, x0)
+    assert reached_p and oe_p == 0.0
+    assert np.linalg.norm(lie.log_so3(g_p[:3, :3].T @ target[:3, :3])) > 1e-3
+
+
+def test_a_path_with_orientations_is_tracked(mech):
+    """A short path of reachable poses (equilibrium poses of a command ramp):
+    every sample reached in position and orientation, within the limits."""
+    xs = [np.array([0.1 * k, -0.05 * k, 0.3, 0.0, 0.1 * k, 0.0]) for k in range(4)]
+    poses = np.array([frame_pose(mech, "tool", x) for x in xs])
+    path = paths.TipPath(np.arange(4) * 0.5, poses[:, :3, 3], poses[:, :3, :3])
+    plan = ap.plan_articulated_path(mech, path, ap.ArticulatedPlanOptions(frame="tool"))
+    assert plan.reached.all(), plan.status
+    assert plan.orientation_error.max() <= 1e-5 and plan.position_error.max() <= 1e-6
+    assert plan.tip_rotation.shape == (4, 3, 3) and ap.check_articulated_plan(plan) == []
 
 
 def test_circle_tracked_within_1_mm_and_within_limits(mech):
