@@ -66,15 +66,15 @@ def _nan_none(a):
     return [None if not np.isfinite(x) else float(x) for x in a]
 
 
-def run_mechanism_statics(sc, t=0.0):
+def run_mechanism_statics(sc, t=0.0, points_per_section=1):
     """Equilibrium of the scenario's inputs at time ``t`` [s] (default 0;
     :func:`scenario.run_statics` picks the end of the profiles). JSON-ready dict: joint_names and
     joint_positions/efforts [rad or m, N m or N]; frame_names and
     frame_positions (world, m) and frame_poses (4x4, world); constraint_names and constraint_wrenches
     (world [f; m] on the constraint's frame, N, N m); transmitted_names and
     transmitted_wrenches (the wrench through every joint, world axes, about
-    its input origin); members: per soft member at its section boundaries
-    s [m], positions, orientations (quaternions x, y, z, w), internal_wrench (body axes), strains,
+    its input origin); members: per soft member at its sample points
+    (``points_per_section`` per section and its end) s [m], positions, orientations (quaternions x, y, z, w), internal_wrench (body axes), strains,
     normal_stress and shear_stress [Pa] (null without geometry); iterations, residual; stable and
     min_stiffness_eigenvalue (constrained.equilibrium_stability)."""
     from .outputs import section_strains, state_outputs
@@ -82,7 +82,7 @@ def run_mechanism_statics(sc, t=0.0):
     for k in range(1, sc.load_steps + 1):     # load_steps increments, each warm-started
         eq = solve_equilibrium(sc.mech, q_init=q, targets=_targets(sc, t), inputs=_inputs(sc, t, k / sc.load_steps))
         q, iterations = eq.q, iterations + eq.iterations
-    out = state_outputs(sc.mech, eq.q, eq.lam, eq.inputs)
+    out = state_outputs(sc.mech, eq.q, eq.lam, eq.inputs, points_per_section=points_per_section)
     d = _outputs_dict(sc, out)
     tree = sc.mech.tree
     d.update(section_names=[tree.joints[i].name for i in tree.soft_joints],
@@ -99,7 +99,7 @@ HISTORY_FIELDS = ("time", "joint_positions", "joint_velocities", "joint_accelera
 
 
 def run_mechanism_dynamics(sc, duration, dt, theta=0.5, progress=None, record_every=1, backbone_every=0,
-                           progress_every=1.0):
+                           progress_every=1.0, points_per_section=1):
     """Integrate the scenario (``n = ceil(duration / dt)`` steps). Returns the
     time histories, one row per recorded step: time [s]; joint_positions,
     velocities, accelerations, efforts (N, n_joints) in the order of
@@ -114,14 +114,15 @@ def run_mechanism_dynamics(sc, duration, dt, theta=0.5, progress=None, record_ev
     every K steps the full member outputs under ``members_time`` and
     ``members`` (as in statics), and the same samples flat for the CSV:
     ``member_positions`` (B, P, 3) [m] and ``member_internal_wrenches``
-    (B, P, 6) [N, N m] at every member's section boundaries
-    (``member_point_names``: ``<member>_<k>``); JSON only, at the same samples:
+    (B, P, 6) [N, N m] at every member's sample points
+    (``points_per_section`` per section and its end;
+    ``member_point_names``: ``<member>_<k>``); JSON only, at the same samples:
     ``frame_poses`` (B, n_frames, 4, 4) world poses of the frames of
     ``frame_names`` and ``energies`` (B, 3) [J]: kinetic, elastic (members and
     joint springs), gravitational (:func:`sample_energies`). ``error`` when a
     step fails (the history ends at the last converged step)."""
     import time as _time
-    from .outputs import section_strains, state_outputs
+    from .outputs import member_samples, section_strains, state_outputs
     mech = sc.mech
     n_steps = n_steps_for(duration, dt)
     check_output_size(n_steps, count(record_every, "record_every", 1), count(backbone_every, "backbone_every", 0),
@@ -144,11 +145,11 @@ def run_mechanism_dynamics(sc, duration, dt, theta=0.5, progress=None, record_ev
     if backbone_every:
         out.update(members_time=[], members=[], member_positions=[], member_internal_wrenches=[],
                    member_point_names=[f"{m.name}_{k}" for m in mech.members
-                                       for k in range(len(mech.tree.paths[m.path].joints) + 1)],
+                                       for k in range(len(member_samples(mech, m, points_per_section)[0]))],
                    sample_fields=["member_positions", "member_internal_wrenches"], frame_poses=[], energies=[])
 
     def record(k, inp, iterations):
-        o = state_outputs(mech, sim.q, sim.lam, inp, sim.v, sim.a, sim.ws)
+        o = state_outputs(mech, sim.q, sim.lam, inp, sim.v, sim.a, sim.ws, member_motion=False)
         out["time"].append(time_of(k))
         out["joint_positions"].append([o.positions[n] for n in mech.joint_names])
         out["joint_velocities"].append([o.velocities[n] for n in mech.joint_names])
@@ -163,9 +164,10 @@ def run_mechanism_dynamics(sc, duration, dt, theta=0.5, progress=None, record_ev
         out["peak_shear_stress"].append([float(np.nanmax(m.shear_stress, initial=0)) for m in o.members])
         out["newton_iterations"].append(int(iterations))
         if backbone_every and k % backbone_every == 0:
+            o = state_outputs(mech, sim.q, sim.lam, inp, sim.v, sim.a, sim.ws, points_per_section)
             out["members_time"].append(time_of(k))
             out["members"].append(_outputs_dict(sc, o)["members"])
-            # the same samples flat (every member's section boundaries in order), for the CSV
+            # the same samples flat (every member's sample points in order), for the CSV
             out["member_positions"].append(np.concatenate([m.poses[:, :3, 3] for m in o.members]).tolist())
             out["member_internal_wrenches"].append(np.concatenate([m.internal_wrench for m in o.members]).tolist())
             # issue 12 (figures): every frame's pose and the energies at the samples

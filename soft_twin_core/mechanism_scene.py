@@ -106,14 +106,23 @@ def snapshot(mech, members, frame_poses, time=None, caption=""):
                     joints=np.array(joints).reshape(-1, 3), joint_axes=axes, shapes=shapes)
 
 
-def member_radii(mech, default=0.005):
-    """[radii (P,) [m] at each member's section boundaries]: the outer
-    extent max(cy, cz) of each section's cross-section (``default`` without
-    geometry), the last section's at the tip."""
+def member_radii(mech, n_points=None, default=0.005):
+    """[radii (P,) [m] along each member]: the outer extent max(cy, cz) of
+    the cross-section of the section holding each point (``default``
+    without geometry), at the member's section boundaries (the last
+    section's at the tip), or at the points of a run sampled with
+    {member: P} points (P = n_sections * points_per_section + 1:
+    :func:`outputs.member_samples`)."""
+    from .outputs import member_samples
     out = []
     for mem in mech.members:
-        r = [max(g.cy, g.cz) if g is not None else default for g in mem.geometry]
-        out.append(np.asarray(r + r[-1:], dtype=float))
+        r = np.array([max(g.cy, g.cz) if g is not None else default for g in mem.geometry] or [default], float)
+        n_sec = len(mech.tree.paths[mem.path].joints)
+        n = n_sec + 1 if n_points is None else int(n_points[mem.name])
+        if (n - 1) % n_sec:
+            raise ValueError(f"member {mem.name}: {n} points are not {n_sec} sections sampled evenly")
+        J, _, _ = member_samples(mech, mem, (n - 1) // n_sec)
+        out.append(r[[list(mech.tree.paths[mem.path].joints).index(j) for j in J]])
     return out or [default]
 
 

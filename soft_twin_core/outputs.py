@@ -29,8 +29,9 @@ from .stress import peak_stresses
 
 @dataclass
 class MemberOutput:
-    """Along one soft member, at its section boundaries (n_sections + 1
-    points, base to tip): arc length s [m], cross-section poses (world),
+    """Along one soft member, at its sample points (base to tip: evenly
+    spaced points in every section and the member's end; by default its
+    n_sections + 1 section boundaries): arc length s [m], cross-section poses (world),
     internal wrench (body axes, see the module), strains of the section at
     or after each point (the last: the last section's), peak normal and shear
     stress [Pa]; ``velocities`` and ``accelerations`` (world, m/s and m/s^2)
@@ -79,40 +80,108 @@ def _end_loads(ws, loads, j, L):
     return out
 
 
-def member_outputs(mech, ws, u=None, loads=None):
+def member_samples(mech, member, points_per_section=1):
+    """(joint, x, s) of a member's sample points: ``points_per_section``
+    evenly spaced points per section from its start, and the member's end
+    (n_sections * points_per_section + 1 points, base to tip)."""
+    path = mech.tree.paths[member.path]
+    J, X, S = [], [], []
+    for k, j in enumerate(path.joints):
+        x = path.lengths[k] * np.arange(points_per_section) / points_per_section
+        J += [j] * points_per_section
+        X.append(x)
+        S.append(path.s_starts[k] + x)
+    J.append(path.joints[-1])
+    X.append([path.lengths[-1]])
+    S.append([path.length])
+    return np.array(J, np.int64), np.concatenate(X).astype(float), np.concatenate(S).astype(float)
+
+
+def cut_wrenches(ws, loads, joint, xs, poses):
+    """The wrenches [f; m] the distal part exerts on the proximal part
+    through the cross-sections at abscissae ``xs`` of soft joint ``joint``
+    (world poses ``poses`` (P, 4, 4)), each in its cross-section's axes, from
+    the workspace's last forward and RNEA passes with LoadArrays ``loads``
+    (tendons' pull on the cut not included).
+
+    The distal part of a cut at x is what lies beyond the section's end
+    (the RNEA's wrench there) and the section's own quadrature points and
+    load points at x or beyond (a load exactly at x counts as distal): the
+    engine's own discretisation of the section's gravity, inertia and
+    loads, so that the cut at x = 0 is the section's input wrench and the
+    cut at its end the next section's."""
+    from .lie import Ad_inv
+    w, m = ws.work, ws.arrays                 # the arrays themselves (ws.m: their structref, for the kernels)
+    j = int(joint)
+    g_in = w.g_in[j]
+    beyond = w.Ad_J_inv[j].T @ w.f[j]                      # the parent-side wrench of what lies past the end
+    npt = m.npt[j]
+    point = np.einsum("pji,pj->pi", w.Ad_p_inv[j, :npt], w.fp[j, :npt])     # each quadrature point's, input frame
+    px = m.px[j, :npt]
+    lx, lw = [], []
+    g_in_inv = np.linalg.inv(g_in)
+    if loads is not None:
+        on = np.flatnonzero((loads.joint == j) & (loads.x >= 0.0))
+        if on.size:
+            from .kernels.frames import point_poses
+            G = np.empty((on.size, 4, 4))
+            point_poses(ws.m, ws.w, loads.joint[on], np.ascontiguousarray(loads.x[on]), G)
+            for k, gl in zip(on, G):
+                W = loads.wrench[k]
+                Wb = np.concatenate([gl[:3, :3].T @ W[:3], gl[:3, :3].T @ W[3:]]) if loads.world[k] else W
+                lw.append(Ad_inv(g_in_inv @ gl).T @ Wb)     # into the input frame, as the RNEA adds it
+                lx.append(loads.x[k])
+    lx, lw = np.array(lx), np.array(lw).reshape(-1, 6)
+    out = np.empty((len(xs), 6))
+    for k, (x, g) in enumerate(zip(xs, poses)):
+        f = beyond + point[px >= x].sum(axis=0) - lw[lx >= x].sum(axis=0)
+        out[k] = -Ad_inv(np.linalg.inv(g_in_inv @ g)).T @ f   # Ad(g_in->x)^T: into the cut's axes
+    return out
+
+
+def member_outputs(mech, ws, u=None, loads=None, points_per_section=1, v=None, a=None):
     """MemberOutput of every soft member from the workspace's last forward
-    and RNEA passes; ``u``: the actuation (for the tendons' pull), ``loads``:
-    the LoadArrays of the passes (a load at a member's very end counts as
-    distal to its last cut, as at any other cut)."""
+    and RNEA passes, at ``points_per_section`` points per section and the
+    member's end (1: its section boundaries); ``u``: the actuation (for the
+    tendons' pull), ``loads``: the LoadArrays of the passes; ``v``, ``a``:
+    the state's velocity and acceleration (None: at rest) for the points'
+    velocities and accelerations (world, from their spatial Jacobian and its
+    derivative)."""
+    from .kernels.frames import point_poses, spatial_jacobian, spatial_jacobian_dot
     w = ws.work
     out = []
     for mem in mech.members:
-        path = mech.tree.paths[mem.path]
-        js = list(path.joints)
-        s = np.concatenate([path.s_starts, [path.length]])
-        poses = np.concatenate([w.g_in[js], w.g_out[js[-1:]]])
-        # the cut at a section's start: -f_in (the parent side acts on the distal part with f_in)
-        wr = np.concatenate([-w.f_in[js], -w.f[js[-1:]]])
-        wr[-1] += _end_loads(ws, loads, js[-1], path.lengths[-1])
-        strains = np.concatenate([w.strain[js], w.strain[js[-1:]]])
+        J, X, s = member_samples(mech, mem, points_per_section)
+        P = np.empty((len(J), 4, 4))
+        point_poses(ws.m, ws.w, J, X, P)
+        wr = np.empty((len(J), 6))
+        for j in np.unique(J):
+            at = np.flatnonzero(J == j)
+            wr[at] = cut_wrenches(ws, loads, j, X[at], P[at])
+        strains = w.strain[J].copy()
         wr = wr + _tendon_pull(mech, mem, s, strains, u)
-        geo = list(mem.geometry) + [mem.geometry[-1]]
+        sec = [list(mech.tree.paths[mem.path].joints).index(j) for j in J]      # section index along the member
+        geo = [mem.geometry[k] for k in sec]
         normal = np.empty(len(s))
         shear = np.empty(len(s))
         for g in {id(x): x for x in geo}.values():          # each cross-section once, vectorised
             idx = [k for k, x in enumerate(geo) if x is g]
             normal[idx], shear[idx] = peak_stresses(g, wr[idx])
-        # body twists and accelerations of the cross-sections -> world point velocity and acceleration
-        V = np.concatenate([w.Vin[js], w.V[js[-1:]]])
-        A = np.concatenate([w.Ain[js], w.A[js[-1:]]])
-        R = poses[:, :3, :3]
-        vel = np.einsum("nij,nj->ni", R, V[:, :3])
-        wv = V[:, 3:]
-        vv = V[:, :3]
-        wxv = np.stack([wv[:, 1] * vv[:, 2] - wv[:, 2] * vv[:, 1], wv[:, 2] * vv[:, 0] - wv[:, 0] * vv[:, 2],
-                        wv[:, 0] * vv[:, 1] - wv[:, 1] * vv[:, 0]], axis=1)
-        acc = np.einsum("nij,nj->ni", R, A[:, :3] + wxv)
-        out.append(MemberOutput(mem.name, s, poses.copy(), wr, strains.copy(), normal, shear, vel, acc))
+        vel, acc = np.zeros((len(s), 3)), np.zeros((len(s), 3))
+        if v is not None:
+            g = np.empty((4, 4))
+            Js, Jd = np.empty((6, mech.tree.nv)), np.empty((6, mech.tree.nv))
+            vv = np.ascontiguousarray(v, dtype=float)
+            for k, (j, x) in enumerate(zip(J, X)):
+                spatial_jacobian(ws.m, ws.w, int(j), float(x), g, Js)
+                spatial_jacobian_dot(ws.m, ws.w, int(j), float(x), vv, Jd)
+                tw = Js @ vv                                  # spatial twist [v_s; omega]
+                dtw = Js @ a + Jd @ vv if a is not None else Jd @ vv
+                p = P[k, :3, 3]
+                pdot = tw[:3] + np.cross(tw[3:], p)
+                vel[k] = pdot
+                acc[k] = dtw[:3] + np.cross(dtw[3:], p) + np.cross(tw[3:], pdot)
+        out.append(MemberOutput(mem.name, s, P, wr, strains, normal, shear, vel, acc))
     return out
 
 
@@ -198,9 +267,12 @@ class MechanismOutputs:
     members: list
 
 
-def state_outputs(mech, q, lam, inputs, v=None, a=None, ws=None):
+def state_outputs(mech, q, lam, inputs, v=None, a=None, ws=None, points_per_section=1, member_motion=True):
     """MechanismOutputs at (q, v, a) with multipliers lam under ``inputs``
-    (:class:`constrained.Inputs`); v = a = None: statics."""
+    (:class:`constrained.Inputs`); v = a = None: statics. The members are
+    sampled at ``points_per_section`` points per section (1: their section
+    boundaries) and their ends; ``member_motion`` False leaves their points'
+    velocities and accelerations at zero (they cost two Jacobians a point)."""
     from .constrained import _concat_loads, _efforts_out, constraint_loads, constraint_wrenches
     from .kernels.frames import point_poses
     from .workspace import Workspace
@@ -220,11 +292,7 @@ def state_outputs(mech, q, lam, inputs, v=None, a=None, ws=None):
     if refs:
         point_poses(ws.m, ws.w, np.array([r.joint for r in refs], np.int64), np.array([r.x for r in refs]), P)
     jw = joint_wrenches(mech, ws)
-    members = member_outputs(mech, ws, inputs.u, loads)
-    if v is None:                    # statics: the pass computed no motion (its arrays may hold old values)
-        for mo in members:
-            mo.velocities[:] = 0.0
-            mo.accelerations[:] = 0.0
+    members = member_outputs(mech, ws, inputs.u, loads, points_per_section, *((v, a) if member_motion else ()))
     return MechanismOutputs(
         positions={n: float(q[k]) for n, k in zip(names, iq)},
         velocities={n: float(v_[k]) for n, k in zip(names, iv)},

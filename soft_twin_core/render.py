@@ -266,7 +266,8 @@ def view_main(args, stop=None):
     if mech is not None:
         from .mechanism_scene import member_radii, run_snapshots
         snaps = run_snapshots(load_articulated_run(args, mech), mech)
-        radii = member_radii(mech)
+        # the run's own samples: a node recording's at the section boundaries, a run's at its points per section
+        radii = member_radii(mech, {m.name: len(P) for m, P in zip(mech.members, snaps[0].members)})
     else:
         if args.scenario:
             model = load_scenario(args.scenario, args.sections).model

@@ -473,7 +473,7 @@ def run_statics(sc, points_per_section=10, time=None):
     t, note = statics_time(sc, time)
     if sc.model is None:                  # a tree robot: outputs of joints, frames and members
         from .mechanism_scenario import run_mechanism_statics
-        out = run_mechanism_statics(sc, t)
+        out = run_mechanism_statics(sc, t, points_per_section)
         if note is not None:
             out.update(time=t, time_note=note)
         return out
@@ -543,7 +543,7 @@ def run_dynamics(sc, duration, dt, backbone_every=0, theta=0.5, progress=None,
     if sc.model is None:                  # a tree robot: outputs of joints, frames and members
         from .mechanism_scenario import run_mechanism_dynamics
         return run_mechanism_dynamics(sc, duration, dt, theta, progress, record_every, backbone_every,
-                                      progress_every)
+                                      progress_every, points_per_section)
     from .dynamics import Simulator, base_reaction_dynamic, internal_wrenches_dynamic
     from .model import State
     m = sc.model

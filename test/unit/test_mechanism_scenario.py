@@ -30,7 +30,8 @@ def test_fixed_fixed_beam_statics_json_balances(tmp_path):
     assert abs(clamp[2] + base[2] - 50.0 - weight) < 1e-9 * 50
     # moments about the base: the mid load, the clamp and the distributed weight (its centroid, ~mid-span)
     assert r["members"]["beam"]["normal_stress"][0] > 1e6          # Pa, at the clamped root
-    assert len(r["members"]["beam"]["s"]) == 9 and r["members"]["beam"]["s"][-1] == pytest.approx(1.0)
+    # 8 sections sampled at the CLI's 10 points each and the end
+    assert len(r["members"]["beam"]["s"]) == 81 and r["members"]["beam"]["s"][-1] == pytest.approx(1.0)
     assert mid[2] < 0 and abs(tip[2]) < 1e-12
 
 
@@ -144,13 +145,14 @@ def test_gripper_and_parallel_robot_scenarios(tmp_path):
 
 
 def test_member_samples_in_json_and_csv_alike(tmp_path):
-    args = ("dynamics", "pan_tilt_arm_dynamics", "--duration", "0.04", "--dt", "0.01", "--backbone-every", "2")
+    args = ("dynamics", "pan_tilt_arm_dynamics", "--duration", "0.04", "--dt", "0.01", "--backbone-every", "2",
+            "--points-per-section", "2")
     rc, js = _run(tmp_path, *args)
     rc2, cs = _run(tmp_path, *args, "--format", "csv")
     assert rc == rc2 == 0
     r = json.loads(js)
     rows = list(csv.DictReader(cs.splitlines()))
-    assert r["members_time"] == [0.0, 0.02, 0.04] and r["member_point_names"][-1] == "arm_4"
+    assert r["members_time"] == [0.0, 0.02, 0.04] and r["member_point_names"][-1] == "arm_8"   # 4 sections x 2 + 1
     for k, t in enumerate(r["members_time"]):
         row = rows[r["time"].index(t)]
         assert float(row["member_internal_wrenches_arm_0_my"]) == r["members"][k]["arm"]["internal_wrench"][0][4]
