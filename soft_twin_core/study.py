@@ -608,9 +608,11 @@ def build_scenario(study, values):
         if msg.startswith("scenario.robot: "):
             msg = msg[len("scenario.robot: "):]
         raise ScenarioError(msg) from None
-    if sc.model is None:
-        raise ScenarioError(f"scenario.robot: {sc.mech.name!r} is a tree robot (bodies); design studies run on "
-                            f"segments robots for now (their outputs are a single backbone's)")
+    rod_only = sorted(set(study.compute) & {"statics", "dynamics"})
+    if sc.model is None and rod_only:
+        raise ScenarioError(f"scenario.robot: {sc.mech.name!r} is a tree robot (bodies); a study's {rod_only[0]} "
+                            f"runs on segments robots for now (its outputs are a single backbone's); its "
+                            f"workspace runs on any robot")
     return sc
 
 
@@ -632,7 +634,7 @@ def validate_cases(study, cases):
                 sc = build_scenario(study, c.values)
                 if "workspace" in study.compute:
                     from .workspace_map import actuation_ranges
-                    actuation_ranges(sc.model, study.compute["workspace"], StudyError)
+                    actuation_ranges(sc.mech, study.compute["workspace"], StudyError)
         except (ScenarioError, ModelError, StudyError) as e:
             errors.append((c.index, (f"({vals}) " if vals else "") + str(e)))
             continue

@@ -156,7 +156,7 @@ def _workspace(study, sc, robot, opts, out):
     w = workspace_of(sc, opts)
     for k, v in summary_columns(w["hull"], len(w["failed"])).items():
         out["workspace." + k] = v
-    names = sc.model.actuator_names
+    names = sc.mech.actuator_names
     pts = {"sample": np.arange(len(w["U"])).tolist(), "corner": w["corner"].tolist()}
     for j, nm in enumerate(names):
         pts[nm] = w["U"][:, j].tolist()

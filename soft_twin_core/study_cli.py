@@ -138,14 +138,14 @@ def main_workspace(args):
         sc = build_scenario(study, {})
         opts = study.compute["workspace"]
         from .workspace_map import actuation_ranges
-        idx, lo, hi = actuation_ranges(sc.model, opts, StudyError)
+        idx, lo, hi = actuation_ranges(sc.mech, opts, StudyError)
     except (StudyError, ScenarioError, ModelError) as e:
         _say(str(e))
         return 2
     out = Path(args.output or os.path.join("out", f"workspace_{study.name}"))
     out.mkdir(parents=True, exist_ok=True)
-    names = sc.model.actuator_names
-    _say(f"workspace of {sc.model.name}: {', '.join(f'{names[i]} in [{a:g}, {b:g}]' for i, a, b in zip(idx, lo, hi))}"
+    names = sc.mech.actuator_names
+    _say(f"workspace of {sc.mech.name}: {', '.join(f'{names[i]} in [{a:g}, {b:g}]' for i, a, b in zip(idx, lo, hi))}"
          f"; {opts['samples']} {opts['design']} samples" + (f" + {2 ** len(idx)} corners" if opts["corners"] else ""))
     t0 = time.monotonic()
     w = workspace_of(sc, opts)
@@ -160,7 +160,7 @@ def main_workspace(args):
     table = rows_to_table(rows)
     _write_parquet(table, out / "points.parquet")
     write_csv(table, out / "points.csv")
-    summary = {"robot": sc.model.name, "samples": len(rows), "failed": [list(f) for f in w["failed"]],
+    summary = {"robot": sc.mech.name, "samples": len(rows), "failed": [list(f) for f in w["failed"]],
                "ranges": {names[i]: [float(a), float(b)] for i, a, b in zip(idx, lo, hi)},
                "method": hs["method"], "dimension": hs["dimension"], "volume_m3": hs["volume_m3"],
                "hull_area_m2": hs["area_m2"], "length_m": hs["length_m"],
@@ -168,7 +168,7 @@ def main_workspace(args):
                "boundary_samples": hs["boundary"].tolist(), "seconds": dt}
     (out / "workspace.json").write_text(json.dumps(summary, indent=1))
     color = w["U"][:, idx[0]] if len(idx) else None
-    plot_workspace(w["points"], hs, out / "workspace.png", f"{sc.model.name} workspace",
+    plot_workspace(w["points"], hs, out / "workspace.png", f"{sc.mech.name} workspace",
                    color=color, color_label=names[idx[0]] if len(idx) else None, mark=w["corner"])
     ext = np.array(summary["extent_max_m"]) - np.array(summary["extent_min_m"])
     _say(f"{len(rows) - len(w['failed'])} of {len(rows)} samples solved in {dt:.1f} s; hull volume "

@@ -7,8 +7,10 @@ sampled within their limits -- every corner of the actuation box plus a
 Latin-hypercube, random or grid design inside it -- and the static
 equilibrium is solved for each, cold-started from the rest shape (so every
 sample is independent of the others and of the order it is solved in,
-which is what lets a study split them over workers). The tip positions
-form the point cloud; its volume estimate is the **convex hull**'s
+which is what lets a study split them over workers). The positions of the
+robot's tip frame (:func:`mechanism.tip_frame`) form the point cloud; any
+robot (a classic rod, a tree with joint commands, a closed chain) goes
+through the same equilibrium solver; its volume estimate is the **convex hull**'s
 (:func:`hull_summary`, Qhull through ``scipy.spatial.ConvexHull``), which
 over-estimates a non-convex workspace (no alpha shape: its radius would be
 one more tuning knob; the hull's vertices are the boundary reported).
@@ -160,20 +162,37 @@ def sample_actuations(model, opts, base=None):
 
 
 def tip_positions(scenario, U):
-    """Tip positions (n, 3) [m, world] of the static equilibria under the
-    scenario's loads and gravity with the inputs ``U`` (n, n_actuators),
-    each cold-started from the rest shape; a sample whose solve fails gives
-    NaN and its reason in the returned list of (row, message)."""
-    from .statics import StaticsError, solve_statics
-    loads = scenario.loads_at(None)
+    """Positions (n, 3) [m, world] of the robot's tip frame
+    (:func:`mechanism.tip_frame`) at the static equilibria under the
+    scenario's loads, joint commands and gravity with the actuator inputs
+    ``U`` (n, n_actuators), each cold-started from the reference shape; a
+    sample whose solve fails gives NaN and its reason in the returned list
+    of (row, message). Any robot: a classic rod, a tree, a closed chain."""
+    from . import algorithms as alg
+    from .constrained import make_inputs, solve_equilibrium
+    from .errors import StaticsError
+    from .mechanism import tip_frame
+    from .workspace import Workspace
+    mech = scenario.mech
+    ref = mech.frame(tip_frame(mech))
+    ws = Workspace(mech.tree)
+    loads, frame_loads = scenario.loads_at(None), scenario.frame_loads_at(None)
     P = np.full((len(U), 3), np.nan)
     failed = []
     for i, u in enumerate(U):
         try:
-            P[i] = solve_statics(scenario.model, u, loads).tip_pose[:3, 3]
+            inp = make_inputs(mech, u, scenario.efforts, scenario.positions, None, loads, frame_loads)
+            eq = solve_equilibrium(mech, inputs=inp, targets=_base_targets(scenario))
+            P[i] = alg.point_poses(mech.tree, ws, eq.q, [ref.joint], [ref.x])[0][:3, 3]
         except (StaticsError, ValueError, ArithmeticError, np.linalg.LinAlgError) as e:
             failed.append((i, f"{type(e).__name__}: {e}"))
     return P, failed
+
+
+def _base_targets(scenario):
+    """A prescribed base at its pose at t = 0 (None: no prescribed base)."""
+    g = scenario.base_pose_at(0.0)
+    return None if g is None else [g if c.name == "base" else None for c in scenario.mech.constraints]
 
 
 def hull_summary(points):
@@ -234,7 +253,7 @@ def workspace_of(scenario, opts):
     """Sample, solve and summarise one robot's workspace: a dict with
     ``U`` (inputs), ``corner`` (mask), ``points`` (n, 3), ``failed``
     [(row, reason)], ``hull`` (:func:`hull_summary`)."""
-    U, corner = sample_actuations(scenario.model, opts, scenario.actuation)
+    U, corner = sample_actuations(scenario.mech, opts, scenario.actuation)
     P, failed = tip_positions(scenario, U)
     return {"U": U, "corner": corner, "points": P, "failed": failed, "hull": hull_summary(P)}
 

@@ -113,3 +113,27 @@ def test_workspace_per_case_in_a_study(tmp_path):
         assert r["workspace.y_max_m"] == max(ys)
     assert (tmp_path / "o" / "plots" / "workspace_clouds.png").exists()
     assert (tmp_path / "o" / "plots" / "workspace_case_1.png").exists()
+
+
+def test_a_tree_robots_workspace_turns_with_its_pan_joint(tmp_path, capsys):
+    """The pan-tilt arm's workspace over two tendons, its joints held by the
+    scenario: the tool's cloud with the pan joint at 0.5 rad is the cloud
+    at 0 turned by 0.5 rad about the world z axis (gravity along z: the pan
+    turns the whole problem), and the command line maps a tree robot too."""
+    from soft_twin_core.cli import main
+    opts = parse_workspace_options({"samples": 8, "limit": 3.0, "seed": 1,
+                                    "actuators": ["tendon_y_pos", "tendon_z_pos"]}, "w")
+    clouds = {}
+    for pan in (0.0, 0.5):
+        sc = scenario_from_dict({"robot": "pan_tilt_arm", "joint_positions": {"pan": pan, "tilt": -0.3}})
+        w = workspace_of(sc, opts)
+        assert not w["failed"] and len(w["points"]) == 12
+        clouds[pan] = w["points"]
+    c, s = math.cos(0.5), math.sin(0.5)
+    Rz = np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
+    assert np.abs(clouds[0.5] - clouds[0.0] @ Rz.T).max() < 1e-9
+    assert np.ptp(clouds[0.0], axis=0).max() > 0.01                 # the tendons move the tool
+    out = tmp_path / "ws"
+    assert main(["workspace", "pan_tilt_arm", "--limit", "2", "--samples", "4", "--actuators",
+                 "tendon_y_pos", "-o", str(out)]) == 0
+    assert json.loads((out / "workspace.json").read_text())["samples"] == 6
