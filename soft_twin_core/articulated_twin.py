@@ -27,7 +27,7 @@ from . import articulated_planner as ap
 from . import constrained as cs
 from .mechanism import check_joint_position, shape_command, tip_frame
 from .model import State
-from .outputs import q_from_section_strains, section_strains, state_outputs
+from .outputs import base_reaction, main_member, q_from_section_strains, section_strains, state_outputs
 
 from .text import clip, short_list
 from .twin import STEP_ERRORS, DropPolicy, InputError, TwinSettings, UpdateInfo
@@ -496,8 +496,7 @@ class ArticulatedTwin:
         names = mech.joint_names
         backbones = {m.name: (m.poses, m.s) for m in out.members}
         tip_pose = out.frames[self.tip]
-        main = next((m.name for m in mech.members if self.tip.startswith(m.name)), None) \
-            or (mech.members[-1].name if mech.members else "")
+        main = getattr(main_member(mech, self.tip), "name", "")
         bb, s = backbones.get(main, (tip_pose[None], np.zeros(1)))
         soft = tree.soft_joints
         strains = section_strains(mech, q)
@@ -506,13 +505,7 @@ class ArticulatedTwin:
             for k, i in enumerate(soft):
                 modes = tree.joints[i].section.modes
                 rates[k, modes] = v[tree.idx_v[i]:tree.idx_v[i] + len(modes)]
-        # the support's reaction: every root joint's transmitted wrench, about the base origin
-        base = np.zeros(6)
-        for i, j in enumerate(tree.joints):
-            if j.parent == -1:
-                wr = out.joint_wrenches[j.name]
-                p = j.placement[:3, 3]
-                base += np.concatenate([wr[:3], wr[3:] + np.cross(p, wr[:3])])
+        base = base_reaction(mech, out.joint_wrenches)
         R = tip_pose[:3, :3]
         tip_w = np.concatenate([R.T @ w[:3], R.T @ w[3:]]) if frame == "world" else w.copy()
         return ArticulatedSnapshot(

@@ -55,6 +55,28 @@ def _outputs_dict(sc, out, prefix=""):
     return d
 
 
+def _backbone_view(mech, out):
+    """The fields every robot's statics result has beside its joints,
+    frames and members: ``tip_position`` [m] and ``tip_rotation`` (3x3
+    row-major) of the tip frame (:func:`mechanism.tip_frame`),
+    ``base_wrench`` (:func:`outputs.base_reaction`), and the main member's
+    samples (:func:`outputs.main_member`): ``backbone_s`` [m],
+    ``backbone_positions`` [m] and ``internal_wrenches`` (its cross-sections'
+    axes)."""
+    from .mechanism import tip_frame
+    from .outputs import base_reaction, main_member
+    tip = tip_frame(mech)
+    g = np.asarray(out.frames[tip], dtype=float)
+    d = {"tip_position": g[:3, 3].tolist(), "tip_rotation": g[:3, :3].ravel().tolist(),
+         "base_wrench": base_reaction(mech, out.joint_wrenches).tolist()}
+    main = main_member(mech, tip)
+    m = next((x for x in out.members if main is not None and x.name == main.name), None)
+    if m is not None:
+        d.update(backbone_s=m.s.tolist(), backbone_positions=m.poses[:, :3, 3].tolist(),
+                 internal_wrenches=m.internal_wrench.tolist())
+    return d
+
+
 def _quaternions(T):
     """[x, y, z, w] (w >= 0) of the rotations of poses (N, 4, 4)."""
     from scipy.spatial.transform import Rotation
@@ -80,13 +102,15 @@ def run_mechanism_statics(sc, t=0.0, points_per_section=1):
     from .outputs import section_strains, state_outputs
     q, iterations = None, 0
     for k in range(1, sc.load_steps + 1):     # load_steps increments, each warm-started
-        eq = solve_equilibrium(sc.mech, q_init=q, targets=_targets(sc, t), inputs=_inputs(sc, t, k / sc.load_steps))
+        eq = solve_equilibrium(sc.mech, q_init=q, targets=_targets(sc, t), inputs=_inputs(sc, t, k / sc.load_steps),
+                               check_stability=k == sc.load_steps)      # the final equilibrium's is the one to judge
         q, iterations = eq.q, iterations + eq.iterations
     out = state_outputs(sc.mech, eq.q, eq.lam, eq.inputs, points_per_section=points_per_section)
     d = _outputs_dict(sc, out)
     tree = sc.mech.tree
     d.update(section_names=[tree.joints[i].name for i in tree.soft_joints],
-             strains=section_strains(sc.mech, eq.q).tolist())
+             strains=section_strains(sc.mech, eq.q).tolist(), n_sections=len(tree.soft_joints))
+    d.update(_backbone_view(sc.mech, out))
     d.update(iterations=iterations, residual=eq.residual, constraint_error=eq.constraint_error,
              stable=eq.stable, min_stiffness_eigenvalue=eq.min_stiffness_eigenvalue)
     return d

@@ -110,33 +110,29 @@ def cut_wrenches(ws, loads, joint, xs, poses):
     engine's own discretisation of the section's gravity, inertia and
     loads, so that the cut at x = 0 is the section's input wrench and the
     cut at its end the next section's."""
-    from .lie import Ad_inv
+    from .lie import Ad, Ad_inv, se3_inv
     w, m = ws.work, ws.arrays                 # the arrays themselves (ws.m: their structref, for the kernels)
     j = int(joint)
-    g_in = w.g_in[j]
+    g_in_inv = se3_inv(w.g_in[j])
     beyond = w.Ad_J_inv[j].T @ w.f[j]                      # the parent-side wrench of what lies past the end
     npt = m.npt[j]
     point = np.einsum("pji,pj->pi", w.Ad_p_inv[j, :npt], w.fp[j, :npt])     # each quadrature point's, input frame
-    px = m.px[j, :npt]
-    lx, lw = [], []
-    g_in_inv = np.linalg.inv(g_in)
+    xs = np.asarray(xs, dtype=float)
+    f = beyond + (m.px[j, :npt][None, :] >= xs[:, None]).astype(float) @ point
     if loads is not None:
         on = np.flatnonzero((loads.joint == j) & (loads.x >= 0.0))
         if on.size:
             from .kernels.frames import point_poses
             G = np.empty((on.size, 4, 4))
             point_poses(ws.m, ws.w, loads.joint[on], np.ascontiguousarray(loads.x[on]), G)
-            for k, gl in zip(on, G):
-                W = loads.wrench[k]
-                Wb = np.concatenate([gl[:3, :3].T @ W[:3], gl[:3, :3].T @ W[3:]]) if loads.world[k] else W
-                lw.append(Ad_inv(g_in_inv @ gl).T @ Wb)     # into the input frame, as the RNEA adds it
-                lx.append(loads.x[k])
-    lx, lw = np.array(lx), np.array(lw).reshape(-1, 6)
-    out = np.empty((len(xs), 6))
-    for k, (x, g) in enumerate(zip(xs, poses)):
-        f = beyond + point[px >= x].sum(axis=0) - lw[lx >= x].sum(axis=0)
-        out[k] = -Ad_inv(np.linalg.inv(g_in_inv @ g)).T @ f   # Ad(g_in->x)^T: into the cut's axes
-    return out
+            W = loads.wrench[on]
+            R = G[:, :3, :3]
+            Wb = np.where(loads.world[on][:, None], np.concatenate(
+                [np.einsum("pji,pj->pi", R, W[:, :3]), np.einsum("pji,pj->pi", R, W[:, 3:])], axis=1), W)
+            lw = np.einsum("pji,pj->pi", Ad_inv(g_in_inv @ G), Wb)        # into the input frame, as the RNEA adds it
+            f = f - (loads.x[on][None, :] >= xs[:, None]).astype(float) @ lw
+    # Ad(g_in^-1 g_x)^T: from the input frame into each cut's axes
+    return -np.einsum("pji,pj->pi", Ad(g_in_inv @ np.asarray(poses, dtype=float)), f)
 
 
 def member_outputs(mech, ws, u=None, loads=None, points_per_section=1, v=None, a=None):
@@ -183,6 +179,27 @@ def member_outputs(mech, ws, u=None, loads=None, points_per_section=1, v=None, a
                 acc[k] = dtw[:3] + np.cross(dtw[3:], p) + np.cross(tw[3:], pdot)
         out.append(MemberOutput(mem.name, s, P, wr, strains, normal, shear, vel, acc))
     return out
+
+
+def main_member(mech, tip):
+    """The member that is the robot's backbone (published on ``~/backbone``,
+    a run's ``backbone_*`` fields): the one whose name begins the tip
+    frame's (``arm`` of ``arm_tip``), else the last one; None without members."""
+    return next((m for m in mech.members if tip.startswith(m.name)), None) or (
+        mech.members[-1] if mech.members else None)
+
+
+def base_reaction(mech, joint_wrenches):
+    """The support's reaction on the robot (6,) [f; m]: the wrench through
+    every root joint (``joint_wrenches`` {joint: world [f; m] about its
+    input origin}), world axes, moment about the base origin (a constraint
+    to the world reacts on its own: ``constraint_wrenches``)."""
+    base = np.zeros(6)
+    for j in mech.tree.joints:
+        if j.parent == -1:
+            wr = np.asarray(joint_wrenches[j.name], dtype=float)
+            base += np.concatenate([wr[:3], wr[3:] + np.cross(j.placement[:3, 3], wr[:3])])
+    return base
 
 
 def section_strains(mech, q):

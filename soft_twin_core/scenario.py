@@ -96,15 +96,17 @@ class Scenario:
                 k *= float(np.interp(t, prof[0], prof[1]))
             yield ld, k
 
-    def loads_at(self, t=None, factor=1.0):
+    def loads_at(self, t=None, factor=1.0, frames_on_backbone=False):
         """The member loads at time t (profiles applied; None: ignored),
-        times ``factor``, and the gravity switch, as :class:`loads.Loads`.
-        For a segments robot, loads on its frames (all on the backbone) are
+        times ``factor``, and the gravity switch, as :class:`loads.Loads`
+        (the loads on frames: :meth:`frame_loads_at`). ``frames_on_backbone``:
+        a segments robot's loads for its own engine (``model``), which takes
+        loads at arc lengths only: its frames' loads (all on its backbone)
         included as point loads at their arc length."""
         pts, dist = [], []
         for ld, k in self._scaled(t, factor):
             if isinstance(ld, FrameLoad):
-                if self.model is None:
+                if not frames_on_backbone:
                     continue
                 ref = self.mech.frames[ld.frame]
                 path = self.mech.tree.paths[0]
@@ -462,47 +464,29 @@ def _positive_or_zero_time(v, name):
 
 
 def run_statics(sc, points_per_section=10, time=None):
-    """Solve the scenario's equilibrium (loads applied in load_steps
-    increments, each warm-started). Returns a JSON-ready dict, including the
-    internal wrenches [N, N m] (body frame, the distal part acting on the
-    proximal part) at the backbone sample points ``backbone_s`` [m].
+    """Solve the scenario's equilibrium, for any robot, through the one
+    equilibrium solver (:func:`constrained.solve_equilibrium`: the compiled
+    Newton without constraint rows, KKT with them; the stability judged),
+    the inputs and loads applied in ``load_steps`` warm-started increments.
+    Returns a JSON-ready dict (:func:`mechanism_scenario.run_mechanism_statics`):
+    joints, frames, constraint and transmitted wrenches, every member's
+    samples (``points_per_section`` per section: positions, orientations,
+    internal wrenches, strains, stresses), ``strains`` of every soft
+    section, and for every robot ``tip_position``, ``tip_rotation``,
+    ``base_wrench`` [N, N m] (the support's reaction, world axes, about the
+    base origin), the main member's ``backbone_s``, ``backbone_positions``
+    and ``internal_wrenches`` [N, N m] (body frame, the distal part acting
+    on the proximal part), ``iterations``, ``residual``, ``stable``.
 
     Time-varying inputs (profiles, trajectories) are evaluated at ``time``
     [s], by default at the end of the last profile (:func:`statics_time`);
     the result then holds ``time`` and ``time_note``."""
+    from .mechanism_scenario import run_mechanism_statics
     t, note = statics_time(sc, time)
-    if sc.model is None:                  # a tree robot: outputs of joints, frames and members
-        from .mechanism_scenario import run_mechanism_statics
-        out = run_mechanism_statics(sc, t, points_per_section)
-        if note is not None:
-            out.update(time=t, time_note=note)
-        return out
-    from .statics import solve_statics
-    q, iters, res = None, 0, None
-    u = sc.actuation_at(t)
-    for k in range(1, sc.load_steps + 1):
-        f = k / sc.load_steps
-        loads = sc.loads_at(t, f)
-        res = solve_statics(sc.model, f * u, loads, q_init=q)
-        q, iters = res.q, iters + res.iterations
-    s_bb, P = kin.backbone(sc.model, q, points_per_section)
-    from .statics import internal_wrenches
-    W = internal_wrenches(sc.model, q, s_bb, u, sc.loads_at(t))
-    extra = {} if note is None else {"time": t, "time_note": note}
-    return {
-        "tip_position": res.tip_pose[:3, 3].tolist(),
-        "tip_rotation": res.tip_pose[:3, :3].ravel().tolist(),
-        "backbone_positions": P[:, :3, 3].tolist(),
-        "base_wrench": res.base_wrench_world.tolist(),
-        "strains": res.strains.tolist(),
-        "internal_wrenches": W.tolist(),
-        "backbone_s": s_bb.tolist(),
-        "iterations": int(iters),
-        "residual": res.residual,
-        "stable": res.stable,
-        "n_sections": sc.model.n_sections,
-        **extra,
-    }
+    out = run_mechanism_statics(sc, t, points_per_section)
+    if note is not None:
+        out.update(time=t, time_note=note)
+    return out
 
 
 # Time-history fields of :func:`run_dynamics`: one row per recorded time
@@ -558,9 +542,9 @@ def run_dynamics(sc, duration, dt, backbone_every=0, theta=0.5, progress=None,
     if sc.initial_strains is not None:
         state.q = sc.initial_strains.copy()
     if sc.time_varying:
-        inputs = dict(actuation=sc.actuation_at, loads=sc.loads_at)
+        inputs = dict(actuation=sc.actuation_at, loads=lambda t: sc.loads_at(t, frames_on_backbone=True))
     else:
-        inputs = dict(actuation=sc.actuation, loads=sc.loads_at(None))
+        inputs = dict(actuation=sc.actuation, loads=sc.loads_at(None, frames_on_backbone=True))
     sim = Simulator(m, dt, state=state, theta=theta, **inputs)
     # accelerations at recorded states come from a second simulator: its own
     # workspace, so the integrator's kept factorisation is never disturbed

@@ -132,7 +132,7 @@ def _dynamics(study, sc, robot, opts, out):
             out[f"{P}base_wrench_{a}"] = float(v)
     if "settling_time" in rec:
         T = r["time"][-1]
-        eq = solve_statics(m, sc.actuation_at(T), sc.loads_at(T))
+        eq = solve_statics(m, sc.actuation_at(T), sc.loads_at(T, frames_on_backbone=True))
         ts = settling_time(r["time"], r["tip_position"], eq.tip_pose[:3, 3], opts["settling_band"])
         out[P + "settling_time_s"] = ts
         out[P + "settled"] = bool(np.isfinite(ts))

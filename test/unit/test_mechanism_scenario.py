@@ -214,3 +214,27 @@ def test_load_errors_name_the_field(load, text):
     with pytest.raises(ScenarioError) as e:
         _scenario({"robot": "soft_gripper", "loads": [load]})
     assert text in str(e.value)
+
+
+def test_one_statics_runner_for_every_robot():
+    """A rod's statics through the one runner equals the rod's own statics
+    (tip, strains, support reaction); a tree robot's result has the same
+    fields, its support reaction carries the robot's weight (gravity only)."""
+    from soft_twin_core import statics as st
+    from soft_twin_core.loads import Loads, PointLoad
+    from soft_twin_core.scenario import run_statics
+    sc = _scenario({"robot": "tendon_arm", "actuation": {"tendon_y_pos": 2.0},
+                    "loads": [{"s": 0.3, "force": [0, 0.1, -0.1]}]})
+    r = run_statics(sc, 4)
+    ref = st.solve_statics(sc.model, sc.actuation, Loads(point=(PointLoad(0.3, (0, 0.1, -0.1, 0, 0, 0)),)))
+    assert np.abs(np.array(r["tip_position"]) - ref.tip_pose[:3, 3]).max() < 1e-9
+    assert np.abs(np.array(r["strains"]) - ref.strains).max() < 1e-7
+    assert np.abs(np.array(r["base_wrench"]) - ref.base_wrench_world).max() < 1e-7
+    assert r["stable"] and len(r["backbone_s"]) == 4 * sc.model.n_sections + 1
+    tree = run_statics(_scenario({"robot": "soft_gripper"}), 2)
+    for key in ("tip_position", "tip_rotation", "base_wrench", "backbone_s", "backbone_positions",
+                "internal_wrenches", "strains", "members", "frame_names", "stable"):
+        assert key in tree
+    mass = _scenario({"robot": "soft_gripper"}).mech.tree.mass_and_size[0]
+    assert tree["base_wrench"][2] == pytest.approx(9.81 * mass, rel=1e-9)
+    assert np.allclose(tree["base_wrench"][:2], 0.0, atol=1e-9 * mass)
