@@ -166,14 +166,3 @@ def plot_mechanism_dynamics(out, folder, mech, name="run"):
         if out.get("energies"):
             paths += plot_energies(out, folder, f"{name}: energies")
     return paths
-
-
-def plot_mechanism_statics(result, snap, folder, name="statics"):
-    """An articulated robot's equilibrium (``soft-twin-sim statics``): its
-    shape (members, links, joints) and the internal wrench along every member."""
-    paths = _save(shapes_figure([snap], f"{name}: equilibrium"), folder, "backbone_shapes")
-    for m, d in result["members"].items():
-        fig = wrench_figure([d["s"]], [d["internal_wrench"]], ["equilibrium"],
-                            f"{name}: internal wrench along member {m}")
-        paths += _save(fig, folder, f"internal_wrenches_{m}")
-    return paths

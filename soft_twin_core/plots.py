@@ -272,21 +272,22 @@ def plot_dynamics(out, folder, model=None, gravity=True, name="run"):
     return paths
 
 
-def plot_statics(result, folder, model=None, name="statics"):
-    """Backbone shape and internal wrench of one statics result."""
-    from .scene import statics_snapshot
-    snap = statics_snapshot(result, model, "equilibrium")
-    paths = plot_shapes([snap], folder, f"{name}: equilibrium shape")
-    fig = wrench_figure([result["backbone_s"]], [result["internal_wrenches"]], ["equilibrium"],
-                        f"{name}: internal wrench")
-    return paths + _save(fig, folder, "internal_wrenches")
+def plot_statics(result, snap, folder, name="statics"):
+    """One equilibrium (``soft-twin-sim statics``) of any robot: its shape
+    (``snap``, :func:`mechanism_scene.statics_snapshot`) and the internal
+    wrench along every member (``internal_wrenches_<member>``)."""
+    paths = _save(shapes_figure([snap], f"{name}: equilibrium"), folder, "backbone_shapes")
+    for m, d in result["members"].items():
+        fig = wrench_figure([d["s"]], [d["internal_wrench"]], ["equilibrium"],
+                            f"{name}: internal wrench along member {m}")
+        paths += _save(fig, folder, f"internal_wrenches_{m}")
+    return paths
 
 
-def plot_sweep(results, folder, reference=None, model=None, name="sweep"):
-    """A statics sweep over the load angle: the tip displacement components
-    [m] against the angle [deg], with the scenario's reference values (if
-    any) as markers; and the shapes of every angle."""
-    from .scene import statics_snapshot
+def plot_sweep(results, snaps, folder, reference=None, name="sweep"):
+    """A statics sweep over the load angle (any robot): its tip frame's
+    position [m] against the angle [deg], with the scenario's reference
+    values (if any) as markers; and the shapes of every angle (``snaps``)."""
     plt = _plt()
     a = np.array([r["angle_deg"] for r in results])
     p = np.array([r["tip_position"] for r in results])
@@ -305,5 +306,4 @@ def plot_sweep(results, folder, reference=None, model=None, name="sweep"):
     fig.suptitle(f"{name}: tip position (world) against the load angle")
     fig.tight_layout()
     paths = _save(fig, folder, "sweep_tip")
-    snaps = [statics_snapshot(r, model, f"{r['angle_deg']:g} deg") for r in results]
     return paths + plot_shapes(snaps, folder, f"{name}: equilibrium shapes", "sweep_shapes")

@@ -128,38 +128,20 @@ def render_dynamics(out, args, model=None, gravity=True, name="run"):
         animate_dynamics(out, args.animate, args.fps or DEFAULT_FPS, model, name)
 
 
-def render_mechanism_statics(results, args, mech, name="statics"):
-    """--plot and --animate of an articulated robot's equilibria (one frame
-    each): the members, links and joints, and the internal wrench along
-    every member."""
-    from .mechanism_scene import statics_snapshot
-    snaps = [statics_snapshot(r, mech, "equilibrium") for r in results]
-    if args.plot:
-        from .mechanism_plots import plot_mechanism_statics
-        paths = plot_mechanism_statics(results[-1], snaps[-1], args.plot, name)
-        say(f"wrote {len(paths)} figures into {args.plot}: " + ", ".join(os.path.basename(p) for p in paths))
-    if args.animate:
-        from .animate import write_animation
-        fps = args.fps or DEFAULT_SWEEP_FPS
-        n, seconds = write_animation(snaps, args.animate, fps, name)
-        say(f"wrote {args.animate} ({n} frames at {fps:g} fps, {seconds:.2f} s)")
-
-
 def render_statics(results, args, sc, sweep, name="statics"):
-    if sc.model is None:                        # a tree robot: joints, frames and members
-        return render_mechanism_statics(results, args, sc.mech, name)
+    """--plot and --animate of a statics solve or sweep of any robot (one
+    frame an equilibrium): its members, links and joints, the internal
+    wrench along every member, and for a sweep the tip against the angle."""
+    from .mechanism_scene import statics_snapshot
     from .plots import plot_statics, plot_sweep
+    snaps = [statics_snapshot(r, sc.mech, f"load angle {r['angle_deg']:g} deg" if sweep else "equilibrium")
+             for r in results]
     if args.plot:
-        if sweep:
-            paths = plot_sweep(results, args.plot, sc.reference, sc.model, name)
-        else:
-            paths = plot_statics(results[0], args.plot, sc.model, name)
+        paths = (plot_sweep(results, snaps, args.plot, sc.reference, name) if sweep
+                 else plot_statics(results[-1], snaps[-1], args.plot, name))
         say(f"wrote {len(paths)} figures into {args.plot}: " + ", ".join(os.path.basename(p) for p in paths))
     if args.animate:
         from .animate import write_animation
-        from .scene import statics_snapshot
-        snaps = [statics_snapshot(r, sc.model, f"load angle {r['angle_deg']:g} deg" if sweep else "equilibrium")
-                 for r in results]
         fps = args.fps or DEFAULT_SWEEP_FPS
         n, seconds = write_animation(snaps, args.animate, fps, name)
         say(f"wrote {args.animate} ({n} frames at {fps:g} fps, {seconds:.2f} s)")

@@ -134,13 +134,6 @@ def dynamics_snapshots(out, model=None):
     return snaps
 
 
-def statics_snapshot(result, model=None, caption=""):
-    """A snapshot of a statics result (:func:`scenario.run_statics`)."""
-    P, s = result["backbone_positions"], result["backbone_s"]
-    members, links = split_members(P, s, segment_ends(model)) if model is not None else ([P], [])
-    return Snapshot(members, links, caption=caption)
-
-
 def sample_times(times, fps):
     """Indices into increasing ``times`` [s] of the frames of an animation
     playing in real time at ``fps`` frames/s: for each frame time k / fps the

@@ -373,3 +373,20 @@ def test_view_plays_an_articulated_run(pan_tilt_run):
         # 0.4 s of run sampled every 0.04 s (11 states), looped for 1.5 s: about 3.5 loops (38 states);
         # at least one whole loop on a loaded machine, never faster than real time
         assert 11 <= result["updates"] <= 42, (run, result)
+
+
+def test_a_tree_robots_statics_sweep_plots_its_tip(tmp_path):
+    """One statics renderer for every robot: a sweep of an in-plane force on
+    a gripper finger draws its tip frame against the angle and the shapes,
+    and the tip moves with the load's direction."""
+    scen = tmp_path / "sweep.yaml"
+    scen.write_text("robot: soft_gripper\ngravity: false\n"
+                    "loads: [{member: finger_2, s: tip, in_plane_force: {magnitude: 0.3, angle_deg: 0}}]\n")
+    code, _, err = run_cli(["statics", str(scen), "--sweep-angle", "0:90:45", "--plot", str(tmp_path / "fig"),
+                            "-o", str(tmp_path / "r.json")])
+    assert code == 0, err
+    for stem in ("sweep_tip", "sweep_shapes"):
+        check_png(tmp_path / "fig" / f"{stem}.png")
+    r = json.loads((tmp_path / "r.json").read_text())
+    tips = np.array([x["tip_position"] for x in r])
+    assert [x["angle_deg"] for x in r] == [0.0, 45.0, 90.0] and np.ptp(tips[:, 1]) > 1e-4

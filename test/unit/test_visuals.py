@@ -203,7 +203,7 @@ def test_statics_plot_without_sweep(tmp_path, capsys):
     code, _, err = run_cli(["statics", "tendon_arm_statics", "--plot", str(tmp_path)], capsys)
     assert code == 0, err
     check_png(tmp_path / "backbone_shapes.png")
-    check_png(tmp_path / "internal_wrenches.png")
+    check_png(tmp_path / "internal_wrenches_backbone.png")          # one figure per member (a rod has one)
 
 
 @pytest.mark.parametrize("args,msg", [
