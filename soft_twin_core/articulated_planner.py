@@ -49,58 +49,28 @@ from . import algorithms as alg
 from . import constrained as cs
 from . import lie
 from .mechanism import tip_frame
-from .planner import Plan, PlanError, _number, bounded_gauss_newton_step, rate_bounds, warm_start
+from .planner import (Plan, PlanError, PlanOptions, _number, actuator_bounds, bounded_gauss_newton_step,
+                      rate_bounds, rate_limits, warm_start)
 from .statics import StaticsError
 from .workspace import Workspace
 
 
 @dataclass
-class ArticulatedPlanOptions:
-    """frame: the frame that follows the path (default the robot's tip,
-    :func:`mechanism.tip_frame`);
-    position_weights (3,) per world axis; orientation_weight [m/rad] (when
-    the targets have orientations); tolerance [m] on the weighted position
-    error, tolerance_rad [rad] on the orientation error; pretension [N], max_tension [N], max_pressure [Pa],
-    max_rate [N/s or Pa/s] of the actuators (scalar or {name: value});
-    joint_limits_margin [rad or m] kept inside the joint limits;
-    max_iterations per sample; loads (:class:`loads.Loads`, default
-    gravity); efforts {joint: N m or N} held by the effort-controlled joints
-    (default 0) and point_loads (:class:`constrained.FrameLoad` on named
-    frames), both constant over the path (e.g. the node's current joint
-    efforts and tip wrench)."""
+class ArticulatedPlanOptions(PlanOptions):
+    """The classic planner's options (:class:`planner.PlanOptions`:
+    position_weights, orientation_weight [m/rad], tolerance [m],
+    tolerance_rad, pretension, max_tension, max_pressure, max_rate,
+    max_iterations, loads), plus: frame, the frame that follows the path
+    (default the robot's tip, :func:`mechanism.tip_frame`);
+    joint_limits_margin [rad or m] kept inside the joint limits; efforts
+    {joint: N m or N} held by the effort-controlled joints (default 0) and
+    point_loads (:class:`constrained.FrameLoad` on named frames), both
+    constant over the path (e.g. the node's current joint efforts and tip
+    wrench)."""
     frame: str = None
-    position_weights: tuple = (1.0, 1.0, 1.0)
-    orientation_weight: float = 0.1
-    tolerance: float = 1e-6
-    tolerance_rad: float = 1e-5
-    pretension: object = 0.0
-    max_tension: object = None
-    max_pressure: object = None
-    max_rate: object = None
     joint_limits_margin: float = 0.0
-    max_iterations: int = 40
-    loads: object = None
     efforts: object = None
     point_loads: tuple = ()
-
-
-def _per(names, value, what, default):
-    n = len(names)
-    if value is None:
-        return np.full(n, default, float)
-    if isinstance(value, dict):
-        out = np.full(n, default, float)
-        for k, v in value.items():
-            if k not in names:
-                raise PlanError(f"{what}: unknown actuator {k!r}; this robot has {list(names)}")
-            out[list(names).index(k)] = _number(v, f"{what}.{k}")
-        return out
-    if np.ndim(value) == 0:
-        return np.full(n, _number(value, what))
-    vals = list(value)
-    if len(vals) != n:
-        raise PlanError(f"{what}: expected one value per actuator {list(names)}, got {len(vals)}")
-    return np.array([_number(v, f"{what}[{i}]") for i, v in enumerate(vals)])
 
 
 class ArticulatedTipSolver:
@@ -124,19 +94,7 @@ class ArticulatedTipSolver:
             self.ref = mech.frame(self.frame)
         except KeyError as e:
             raise PlanError(f"frame: {e.args[0]}") from None
-        w = np.asarray(o.position_weights, float)
-        if w.shape != (3,) or not np.all(np.isfinite(w)) or np.any(w < 0) or not np.any(w > 0):
-            raise PlanError(f"position_weights: expected 3 non-negative numbers, not all 0, got "
-                            f"{o.position_weights!r}")
-        self.sw = np.sqrt(w)
-        wo = _number(o.orientation_weight, "orientation_weight", False)
-        if wo < 0:
-            raise PlanError(f"orientation_weight: expected a number >= 0 (m/rad), got {wo}")
-        self.swo = np.sqrt(wo)
-        if _number(o.tolerance, "tolerance", False) <= 0:
-            raise PlanError(f"tolerance: expected a number > 0 (m), got {o.tolerance}")
-        if _number(o.tolerance_rad, "tolerance_rad", False) <= 0:
-            raise PlanError(f"tolerance_rad: expected a number > 0 (rad), got {o.tolerance_rad}")
+        self.sw, self.swo = o.weights()           # the classic planner's checks (PlanError naming the option)
         margin = _number(o.joint_limits_margin, "joint_limits_margin", False)
         if margin < 0:
             raise PlanError(f"joint_limits_margin: expected a number >= 0, got {margin}")
@@ -153,22 +111,9 @@ class ArticulatedTipSolver:
                     raise PlanError(f"joint_limits_margin: {margin} leaves no range of joint {j.name!r} "
                                     f"(limits {list(j.limits)})")
             vmax[k], amax[k] = mech.motion_limits.get(j.name, (np.inf, np.inf))
-        pre = _per(self.actuator_names, o.pretension, "pretension", 0.0)
-        tmax = _per(self.actuator_names, o.max_tension, "max_tension", np.inf)
-        pmax = _per(self.actuator_names, o.max_pressure, "max_pressure", np.inf)
-        ulo, uhi = np.empty(self.n_u), np.empty(self.n_u)
-        for k, a in enumerate(mech.actuators):
-            if a.kind == "tendon":
-                if pre[k] < 0:
-                    raise PlanError(f"pretension.{a.name}: a tendon's pretension must be >= 0 N, got {pre[k]}")
-                ulo[k], uhi[k] = max(pre[k], a.lower), min(a.upper, tmax[k])
-            else:   # the robot file's range (limit, min, max: Actuator.lower/upper) cut by max_pressure
-                ulo[k], uhi[k] = a.lower, min(a.upper, pmax[k])
-            if not ulo[k] <= uhi[k]:
-                raise PlanError(f"{a.name}: empty input range [{ulo[k]}, {uhi[k]}]")
-        self.rate = _per(self.actuator_names, o.max_rate, "max_rate", np.inf)
-        if np.any(self.rate <= 0):
-            raise PlanError(f"max_rate: expected values > 0 (per second), got {self.rate.tolist()}")
+        # the actuators' ranges and rates: the classic planner's rules, on the mechanism's actuators
+        ulo, uhi = actuator_bounds(mech, o)
+        self.rate = rate_limits(mech, o)
         self.lower, self.upper = np.concatenate([jlo, ulo]), np.concatenate([jhi, uhi])
         self.max_velocity, self.max_acceleration = vmax, amax
         self.ws = Workspace(tree)
