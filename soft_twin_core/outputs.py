@@ -19,6 +19,7 @@ included). Frames and signs (docs/CONVENTIONS.md):
 """
 
 from dataclasses import dataclass
+import math
 
 import numpy as np
 
@@ -200,6 +201,31 @@ def base_reaction(mech, joint_wrenches):
             wr = np.asarray(joint_wrenches[j.name], dtype=float)
             base += np.concatenate([wr[:3], wr[3:] + np.cross(j.placement[:3, 3], wr[:3])])
     return base
+
+
+def max_von_mises(mech, members):
+    """(largest von Mises stress [Pa], its arc length along its member [m])
+    over every member's samples: ``members`` {member: {"s": (P,),
+    "internal_wrench": (P, 6)}} (a statics result's), each sample's
+    cross-section that of the section holding it; (NaN, NaN) if no member
+    has a known fibre distance (:func:`stress.von_mises`)."""
+    from .stress import von_mises
+    best, where = -np.inf, math.nan
+    for mem in mech.members:
+        d = members[mem.name]
+        s, W = np.asarray(d["s"], dtype=float), np.asarray(d["internal_wrench"], dtype=float)
+        path = mech.tree.paths[mem.path]
+        sec = np.clip(np.searchsorted(path.s_starts, s, side="right") - 1, 0, len(mem.geometry) - 1)
+        v = np.full(len(s), np.nan)
+        for k in np.unique(sec):
+            v[sec == k] = von_mises(W[sec == k], mem.geometry[k])
+        # a section's start is also the end of the one before: its cross-section counts too
+        for i in np.flatnonzero((sec > 0) & np.isclose(s, np.asarray(path.s_starts)[sec], rtol=0, atol=1e-12)):
+            v[i] = np.fmax(v[i], von_mises(W[i:i + 1], mem.geometry[sec[i] - 1])[0])
+        if np.any(np.isfinite(v)) and np.nanmax(v) > best:
+            i = int(np.nanargmax(v))
+            best, where = float(v[i]), float(s[i])
+    return (best, where) if np.isfinite(best) else (math.nan, math.nan)
 
 
 def section_strains(mech, q):

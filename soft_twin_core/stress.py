@@ -21,12 +21,11 @@ frame, x along the tangent; :func:`statics.internal_wrenches`):
 * explicit sections and ``sectional`` members have no fibre distance: NaN.
 
 Section properties (A, I2, I3, J) are those of the model's stiffness
-(:func:`model._cross_section`). Stresses in Pa. A sample point on the
-boundary of two members is evaluated with both cross-sections (the larger
-stress counts).
+(:func:`model._cross_section`). Stresses in Pa. The largest von Mises
+stress of a solve (:func:`outputs.max_von_mises`) evaluates a point on the
+boundary of two sections with both cross-sections (the larger counts).
 """
 
-import math
 from dataclasses import dataclass
 
 import numpy as np
@@ -102,26 +101,3 @@ def von_mises(wrench, geometry):
         return np.full(w.shape[:-1], np.nan)
     normal, torsion, _ = _stress_parts(geometry, w)
     return np.sqrt(normal ** 2 + 3 * torsion ** 2)
-
-
-def max_von_mises(robot_doc, s, W):
-    """(largest von Mises stress [Pa], its arc length [m]) over the sample
-    points ``s`` (P,) [m] with internal wrenches ``W`` (P, 6), the members'
-    cross-sections taken from the robot file mapping ``robot_doc``; (NaN,
-    NaN) if no member has a known fibre distance."""
-    from .model import parse_number
-    s = np.asarray(s, dtype=float)
-    best = np.full(len(s), np.nan)
-    start = 0.0
-    for seg in robot_doc["segments"]:
-        L = parse_number(seg["length"], "length")
-        end = start + L
-        inside = (s >= start - 1e-12) & (s <= end + 1e-12)
-        if "cross_section" in seg and np.any(inside):
-            v = von_mises(W[inside], section_geometry(seg["cross_section"]))
-            best[inside] = np.fmax(best[inside], v)
-        start = end
-    if not np.any(np.isfinite(best)):
-        return math.nan, math.nan
-    i = int(np.nanargmax(best))
-    return float(best[i]), float(s[i])

@@ -608,11 +608,10 @@ def build_scenario(study, values):
         if msg.startswith("scenario.robot: "):
             msg = msg[len("scenario.robot: "):]
         raise ScenarioError(msg) from None
-    rod_only = sorted(set(study.compute) & {"statics", "dynamics"})
-    if sc.model is None and rod_only:
-        raise ScenarioError(f"scenario.robot: {sc.mech.name!r} is a tree robot (bodies); a study's {rod_only[0]} "
-                            f"runs on segments robots for now (its outputs are a single backbone's); its "
-                            f"workspace runs on any robot")
+    if sc.model is None and "dynamics" in study.compute:
+        raise ScenarioError(f"scenario.robot: {sc.mech.name!r} is a tree robot (bodies); a study's dynamics runs "
+                            f"on segments robots for now (its histories are a single backbone's); its statics "
+                            f"and workspace run on any robot")
     return sc
 
 

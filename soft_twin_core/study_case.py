@@ -5,14 +5,16 @@ chunk of cases per task); it never raises for a case: a case whose build or
 solve fails comes back with ``status = "failed"`` and the reason in
 ``error``. Outputs (columns, prefixed by the computation):
 
-statics (:func:`scenario.run_statics`, cold start from the rest shape):
+statics (:func:`scenario.run_statics`, any robot, cold start from the rest shape):
   ``tip_pose``: ``tip_position_{x,y,z}`` [m, world] and
   ``tip_quaternion_{x,y,z,w}`` (w >= 0); ``base_wrench``:
   ``base_wrench_{fx,fy,fz,mx,my,mz}`` [N, N m] (the support's reaction,
   world axes, about the base origin); ``max_stress``: ``max_stress_pa``
-  and its arc length ``max_stress_s_m`` (:mod:`stress`, von Mises at the
-  backbone samples); ``iterations``, ``residual``, ``stable``; ``strains``:
-  ``strains_<section>_<mode>``; ``backbone``: ``backbone_s_<i>`` [m] and
+  and its arc length along its member ``max_stress_s_m``
+  (:func:`outputs.max_von_mises`, von Mises at every member's samples);
+  ``iterations``, ``residual``, ``stable``; ``strains``:
+  ``strains_<section>_<mode>``; the main member's (a rod's backbone)
+  ``backbone``: ``backbone_s_<i>`` [m] and
   ``backbone_<i>_{x,y,z}`` [m, world]; ``internal_wrenches``:
   ``internal_wrenches_<i>_{fx,...,mz}`` (body frame, at the backbone samples).
 dynamics (:func:`scenario.run_dynamics` from rest, the scenario's
@@ -81,8 +83,8 @@ def settling_time(t, p, p_ref, band):
 
 
 def _statics(study, sc, robot, opts, out):
+    from .outputs import max_von_mises
     from .scenario import run_statics
-    from .stress import max_von_mises
     r = run_statics(sc, opts["points_per_section"])
     rec = set(study.record)
     P = "statics."
@@ -92,7 +94,7 @@ def _statics(study, sc, robot, opts, out):
         for a, v in zip(_WRENCH, r["base_wrench"]):
             out[f"{P}base_wrench_{a}"] = float(v)
     if "max_stress" in rec:
-        smax, s_at = max_von_mises(robot, np.asarray(r["backbone_s"]), np.asarray(r["internal_wrenches"]))
+        smax, s_at = max_von_mises(sc.mech, r["members"])
         out[P + "max_stress_pa"], out[P + "max_stress_s_m"] = smax, s_at
     if "iterations" in rec:
         out[P + "iterations"] = int(r["iterations"])
