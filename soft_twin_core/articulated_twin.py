@@ -492,7 +492,7 @@ class ArticulatedTwin:
         a = self._sim.a.copy() if dynamic else None
         pl = [cs.FrameLoad(self.tip, w, "world" if frame == "world" else "body")] if np.any(w) else []
         inp = cs.assemble_inputs(mech, u, eff, pos, None, pl)         # the good state's inputs: checked
-        out = state_outputs(mech, q, self.lam, inp, v, a)
+        out = state_outputs(mech, q, self.lam, inp, v, a, member_motion=False)    # the snapshot has no point velocities
         names = mech.joint_names
         backbones = {m.name: (m.poses, m.s) for m in out.members}
         tip_pose = out.frames[self.tip]

@@ -378,6 +378,7 @@ def main(argv=None):
             if "error" in out:
                 failed = f"dynamics failed: {out['error']}"
             name = os.path.splitext(os.path.basename(sc.source))[0]
+            # not a physical difference: the two dynamics schemas are not merged yet (issue 26)
             if sc.model is None:                     # a tree robot: joints, frames and members
                 render.render_mechanism_dynamics(out, args, sc.mech, name)
             else:

@@ -98,12 +98,12 @@ def member_samples(mech, member, points_per_section=1):
     return np.array(J, np.int64), np.concatenate(X).astype(float), np.concatenate(S).astype(float)
 
 
-def cut_wrenches(ws, loads, joint, xs, poses):
+def cut_wrenches(ws, loads, joints, xs, poses):
     """The wrenches [f; m] the distal part exerts on the proximal part
-    through the cross-sections at abscissae ``xs`` of soft joint ``joint``
-    (world poses ``poses`` (P, 4, 4)), each in its cross-section's axes, from
-    the workspace's last forward and RNEA passes with LoadArrays ``loads``
-    (tendons' pull on the cut not included).
+    through the cross-sections at abscissae ``xs`` (P,) of soft joints
+    ``joints`` (P,) (world poses ``poses`` (P, 4, 4)), each in its
+    cross-section's axes, from the workspace's last forward and RNEA passes
+    with LoadArrays ``loads`` (tendons' pull on the cut not included).
 
     The distal part of a cut at x is what lies beyond the section's end
     (the RNEA's wrench there) and the section's own quadrature points and
@@ -113,15 +113,16 @@ def cut_wrenches(ws, loads, joint, xs, poses):
     cut at its end the next section's."""
     from .lie import Ad, Ad_inv, se3_inv
     w, m = ws.work, ws.arrays                 # the arrays themselves (ws.m: their structref, for the kernels)
-    j = int(joint)
-    g_in_inv = se3_inv(w.g_in[j])
-    beyond = w.Ad_J_inv[j].T @ w.f[j]                      # the parent-side wrench of what lies past the end
-    npt = m.npt[j]
-    point = np.einsum("pji,pj->pi", w.Ad_p_inv[j, :npt], w.fp[j, :npt])     # each quadrature point's, input frame
-    xs = np.asarray(xs, dtype=float)
-    f = beyond + (m.px[j, :npt][None, :] >= xs[:, None]).astype(float) @ point
+    J = np.atleast_1d(np.asarray(joints, dtype=np.int64))
+    xs = np.atleast_1d(np.asarray(xs, dtype=float))
+    g_in_inv = se3_inv(w.g_in[J])
+    f = np.einsum("pji,pj->pi", w.Ad_J_inv[J], w.f[J])                   # what lies past each section's end
+    # each quadrature point's wrench in its section's input frame (padding points: zero weight, zero wrench)
+    point = np.einsum("pkji,pkj->pki", w.Ad_p_inv[J], w.fp[J])
+    beyond = (m.px[J] >= xs[:, None]) & (np.arange(m.px.shape[1])[None, :] < m.npt[J][:, None])
+    f = f + np.einsum("pk,pki->pi", beyond.astype(float), point)
     if loads is not None:
-        on = np.flatnonzero((loads.joint == j) & (loads.x >= 0.0))
+        on = np.flatnonzero(np.isin(loads.joint, J) & (loads.x >= 0.0))
         if on.size:
             from .kernels.frames import point_poses
             G = np.empty((on.size, 4, 4))
@@ -130,8 +131,11 @@ def cut_wrenches(ws, loads, joint, xs, poses):
             R = G[:, :3, :3]
             Wb = np.where(loads.world[on][:, None], np.concatenate(
                 [np.einsum("pji,pj->pi", R, W[:, :3]), np.einsum("pji,pj->pi", R, W[:, 3:])], axis=1), W)
-            lw = np.einsum("pji,pj->pi", Ad_inv(g_in_inv @ G), Wb)        # into the input frame, as the RNEA adds it
-            f = f - (loads.x[on][None, :] >= xs[:, None]).astype(float) @ lw
+            for k, l in enumerate(on):                  # few loads: each into its section's input frame
+                at = (J == loads.joint[l]) & (xs <= loads.x[l])
+                if np.any(at):
+                    lw = Ad_inv(se3_inv(w.g_in[loads.joint[l]]) @ G[k]).T @ Wb[k]   # as the RNEA adds it
+                    f[at] -= lw
     # Ad(g_in^-1 g_x)^T: from the input frame into each cut's axes
     return -np.einsum("pji,pj->pi", Ad(g_in_inv @ np.asarray(poses, dtype=float)), f)
 
@@ -151,10 +155,7 @@ def member_outputs(mech, ws, u=None, loads=None, points_per_section=1, v=None, a
         J, X, s = member_samples(mech, mem, points_per_section)
         P = np.empty((len(J), 4, 4))
         point_poses(ws.m, ws.w, J, X, P)
-        wr = np.empty((len(J), 6))
-        for j in np.unique(J):
-            at = np.flatnonzero(J == j)
-            wr[at] = cut_wrenches(ws, loads, j, X[at], P[at])
+        wr = cut_wrenches(ws, loads, J, X, P)
         strains = w.strain[J].copy()
         wr = wr + _tendon_pull(mech, mem, s, strains, u)
         sec = [list(mech.tree.paths[mem.path].joints).index(j) for j in J]      # section index along the member

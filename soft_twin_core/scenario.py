@@ -524,6 +524,8 @@ def run_dynamics(sc, duration, dt, backbone_every=0, theta=0.5, progress=None,
     then at most once per ``progress_every`` wall-clock seconds (0: after
     every step); ``elapsed_s`` counts from the end of the warm-up."""
     import time as _time
+    # not a physical difference: the rod runner keeps its own schema until the dynamics runners
+    # are merged (issue 26: the t = 0 acceleration, the warm-up, inputs at the theta point, messages)
     if sc.model is None:                  # a tree robot: outputs of joints, frames and members
         from .mechanism_scenario import run_mechanism_dynamics
         return run_mechanism_dynamics(sc, duration, dt, theta, progress, record_every, backbone_every,

@@ -81,3 +81,26 @@ def test_one_sample_per_section_gives_the_boundaries_and_the_cut_is_continuous()
         end = cut_wrenches(ws, loads, a, [La], [ws.work.g_out[a]])
         start = cut_wrenches(ws, loads, b, [0.0], [ws.work.g_in[b]])
         assert np.abs(end - start).max() <= 1e-12 * max(np.abs(start).max(), 1e-300)
+
+
+def test_the_largest_stress_counts_both_cross_sections_at_a_section_start():
+    """max_von_mises against the beam formula sigma = M r / I: a rod of a
+    thin proximal segment (r = 5 mm) and a thick distal one (r = 10 mm),
+    bending moments given at its samples, the largest at the segments'
+    joint: there the thin cross-section's stress counts, though the sample
+    belongs to the thick section; without that cut the largest is elsewhere."""
+    import math
+    from soft_twin_core.mechanism import from_robot_model
+    from soft_twin_core.model import model_from_dict
+    from soft_twin_core.outputs import max_von_mises
+    seg = lambda r: {"length": 0.1, "sections": 2, "cross_section": {"shape": "solid_circle", "radius": r},  # noqa
+                     "material": {"youngs_modulus": 1e6, "density": 1000}, "free_modes": "bending_torsion"}
+    d = {"gravity": [0, 0, 0], "segments": [seg(0.005), seg(0.010)]}
+    mech = from_robot_model(model_from_dict(d), d)
+    s = np.array([0.0, 0.05, 0.1, 0.15, 0.2])
+    M = np.array([0.001, 0.002, 0.01, 0.002, 0.0])        # N m about y, largest at the joint s = 0.1
+    W = np.zeros((5, 6))
+    W[:, 4] = M
+    smax, s_at = max_von_mises(mech, {"backbone": {"s": s, "internal_wrench": W}})
+    I_thin = math.pi * 0.005 ** 4 / 4
+    assert s_at == pytest.approx(0.1) and smax == pytest.approx(0.01 * 0.005 / I_thin, rel=1e-9)
