@@ -20,11 +20,12 @@ or a time step failed (the reason on stderr; a dynamics run still writes
 its history up to the last converged step).
 
 The dynamics CSV holds the same time histories as the JSON, one row per
-recorded time: a field of shape (N, a, b) becomes the columns
-``field_<i>_<j>`` (labels: x/y/z for positions and velocities,
-fx..mz for wrenches, the section index and the strain mode for strains),
-and the backbone fields (``--backbone-every``) fill their columns on the
-rows of the sample times, the others being empty.
+recorded time, one column per value: ``<field>_<name>_<component>``, with
+the names of the field's list (``joint_names``, ``frame_names``,
+``section_names``, ``member_point_names`` ...) and its components (x/y/z
+for positions and velocities, fx..mz for wrenches, the strain modes); the
+member samples (``--backbone-every``) fill their columns on the rows of
+the sample times, the others being empty.
 """
 
 import argparse
@@ -177,71 +178,53 @@ def _run_plan(args):
 _VEC3 = ("x", "y", "z")
 _WRENCH = ("fx", "fy", "fz", "mx", "my", "mz")
 # per-row shapes of the history fields when no row was recorded
-_EMPTY_SHAPES = {"tip_position": lambda n: (3,), "tip_velocity": lambda n: (3,),
-                 "base_wrench": lambda n: (6,), "strains": lambda n: (n, 6), "strain_rates": lambda n: (n, 6)}
+_LAST_AXIS = {"tip_position": _VEC3, "tip_velocity": _VEC3, "tip_orientation": ("x", "y", "z", "w"),
+              "base_wrench": _WRENCH, "frame_positions": _VEC3, "member_positions": _VEC3,
+              "member_velocities": _VEC3, "constraint_wrenches": _WRENCH, "transmitted_wrenches": _WRENCH,
+              "member_internal_wrenches": _WRENCH}
+# fields whose rows are one value per name in a name list of the run, and that list
+_NAMED = {"joint_positions": "joint_names", "joint_velocities": "joint_names", "joint_accelerations": "joint_names",
+          "joint_efforts": "joint_names", "peak_normal_stress": "member_names", "peak_shear_stress": "member_names",
+          "frame_positions": "frame_names", "constraint_wrenches": "constraint_names",
+          "transmitted_wrenches": "transmitted_names", "strains": "section_names", "strain_rates": "section_names",
+          "member_positions": "member_point_names", "member_velocities": "member_point_names",
+          "member_internal_wrenches": "member_point_names"}
 
 
-def _labels(field, shape):
-    """Column labels of one row of ``field`` with per-row ``shape``."""
+def _components(field, width):
+    """Names along a field's last axis of ``width`` values (None: a scalar per name)."""
     from .model import STRAIN_NAMES
-    if not shape:
-        return [field]
-    last = {"strains": STRAIN_NAMES, "strain_rates": STRAIN_NAMES, "base_wrench": _WRENCH,
-            "internal_wrenches": _WRENCH, "tip_position": _VEC3, "tip_velocity": _VEC3, "backbone": _VEC3,
-            "backbone_velocity": _VEC3, "backbone_acceleration": _VEC3}.get(field)
-    if last is None or len(last) != shape[-1]:
-        last = [str(j) for j in range(shape[-1])]
-    cols = [""]
-    for n in shape[:-1]:
-        cols = [f"{c}_{i}" for c in cols for i in range(n)]
-    return [f"{field}{c}_{lab}" for c in cols for lab in last]
+    last = _LAST_AXIS.get(field) or (STRAIN_NAMES if field in ("strains", "strain_rates") else None)
+    if width is None:
+        return last or [None]
+    if width == 1 and last is None:
+        return [None]
+    return last if last is not None and len(last) == width else [str(j) for j in range(width)]
 
 
 def csv_columns(out):
     """(header, rows) of the dynamics CSV: the time-history fields of
-    :func:`scenario.run_dynamics` flattened row by row (see the module
-    docstring); values are Python's shortest round-trip repr."""
-    from .scenario import BACKBONE_FIELDS, HISTORY_FIELDS
+    :func:`scenario.run_dynamics` (``history_fields``), then its member
+    samples (``sample_fields``, on the rows of their sample times, empty on
+    the others), one column per value: ``<field>[_<name>][_<component>]``
+    with the names of the field's name list (joints, frames, sections,
+    member points ...) and its components (x/y/z, fx..mz, the strain
+    modes); values are Python's shortest round-trip repr."""
     n = len(out["time"])
-    header, columns = [], []
     row_of = {t: i for i, t in enumerate(out["time"])}
-    fields = HISTORY_FIELDS + BACKBONE_FIELDS
-    named = {}                            # field -> names along its last axis
-    samples = {}                          # articulated runs: sample field -> its rows
-    if "history_fields" in out:           # an articulated robot's run: its own fields, named columns
-        fields = tuple(out["history_fields"]) + tuple(out.get("sample_fields", ()))
-        samples = {f: [row_of[t] for t in out["members_time"]] for f in out.get("sample_fields", ())}
-        named.update(joint_positions=out["joint_names"], joint_velocities=out["joint_names"],
-                      joint_accelerations=out["joint_names"], joint_efforts=out["joint_names"],
-                      peak_normal_stress=out["member_names"], peak_shear_stress=out["member_names"])
-    for field in fields:
-        if field not in out or field == "backbone_time":    # backbone_time: the rows' own time
+    samples = [row_of[t] for t in out.get("members_time", ())]
+    header, columns = [], []
+    for field in list(out["history_fields"]) + list(out.get("sample_fields", ())):
+        rows = samples if field in out.get("sample_fields", ()) else list(range(n))
+        names = out[_NAMED[field]] if field in _NAMED else [None]
+        if not names:                     # nothing per row (a robot without joints or constraints)
             continue
-        a = np.asarray(out[field], dtype=float)
-        if a.ndim > 1 and a.size == 0 and n:       # nothing per row (a robot without constraints)
-            continue
-        if field in samples:
-            rows = samples[field]
-            if not rows:
-                continue
-        elif field in BACKBONE_FIELDS:
-            rows = [row_of[t] for t in out["backbone_time"]]   # a sample time is a recorded time
-        else:
-            rows = list(range(n))
-        shape = a.shape[1:] if a.size else _EMPTY_SHAPES.get(field, lambda m: ())(out.get("n_sections", 0))
-        labels = _labels(field, shape)
-        if field in named and shape == (len(named[field]),):
-            labels = [f"{field}_{nm}" for nm in named[field]]
-        elif field in ("frame_positions", "constraint_wrenches", "transmitted_wrenches", "strains",
-                       "member_positions", "member_internal_wrenches") and len(shape) == 2 and "history_fields" in out:
-            from .model import STRAIN_NAMES
-            names = out[{"frame_positions": "frame_names", "constraint_wrenches": "constraint_names",
-                         "transmitted_wrenches": "transmitted_names", "strains": "section_names",
-                         "member_positions": "member_point_names",
-                         "member_internal_wrenches": "member_point_names"}[field]]
-            last = {"frame_positions": _VEC3, "member_positions": _VEC3, "strains": STRAIN_NAMES}.get(field, _WRENCH)
-            labels = [f"{field}_{nm}_{lab}" for nm in names for lab in last]
-        flat = a.reshape(len(rows), -1) if len(rows) else np.zeros((0, len(labels)))
+        a = np.asarray(out[field], dtype=float).reshape(len(rows), len(names), -1) if rows else None
+        comps = _components(field, a.shape[-1] if a is not None else None)
+        if field in ("time", "constraint_error", "newton_iterations"):
+            comps = [None]
+        labels = ["_".join(str(x) for x in (field, nm, c) if x is not None) for nm in names for c in comps]
+        flat = a.reshape(len(rows), -1) if a is not None else np.zeros((0, len(labels)))
         col = [[""] * n for _ in labels]
         for r, values in zip(rows, flat):
             for c, v in zip(col, values):
@@ -377,13 +360,7 @@ def main(argv=None):
             text = _csv(out) if args.format == "csv" else json.dumps(out)
             if "error" in out:
                 failed = f"dynamics failed: {out['error']}"
-            name = os.path.splitext(os.path.basename(sc.source))[0]
-            # not a physical difference: the two dynamics schemas are not merged yet (issue 26)
-            if sc.model is None:                     # a tree robot: joints, frames and members
-                render.render_mechanism_dynamics(out, args, sc.mech, name)
-            else:
-                render.render_dynamics(out, args, sc.model, sc.gravity, name)
-                render.write_mcap(out, args, sc.model)
+            render.render_dynamics(out, args, sc.mech, os.path.splitext(os.path.basename(sc.source))[0])
     except (ScenarioError, ModelError, ValueError) as e:
         print(f"soft-twin-sim: {e}", file=sys.stderr)
         return 2

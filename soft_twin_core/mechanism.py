@@ -239,16 +239,18 @@ def is_tree_robot(robot, base_dir="."):
         return False
 
 
-def load_mechanism(path):
+def load_mechanism(path, sections=None):
     """A :class:`Mechanism` from a robot file of either schema; ``path`` may
-    also name an example robot (``load_mechanism("pan_tilt_arm")``)."""
+    also name an example robot (``load_mechanism("pan_tilt_arm")``);
+    ``sections``: a segments robot's sections per segment (its file's by
+    default)."""
     import os
     from .model import find_file
     path = find_file(path, "robots")
     d = robot_mapping(read_yaml_file(path, what="robot file"), str(path))
     if is_tree_file(d):
         return mechanism_from_dict(d, os.path.dirname(os.path.abspath(path)))
-    return from_robot_model(model_from_dict(d), d)
+    return from_robot_model(model_from_dict(d, sections), d)
 
 
 def _with_urdf(d, base_dir):

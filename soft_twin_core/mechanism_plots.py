@@ -1,11 +1,11 @@
-"""Figures of a soft articulated robot's dynamics run (PNG and SVG, as
-:mod:`plots`): the shapes of the members and rigid links (side, top, 3D),
+"""Figures of any robot's dynamics run (PNG and SVG, as :mod:`plots`): the
+shapes of the members and rigid links (side, top, 3D), the tip's motion,
 the joint states (positions, velocities, efforts) and the wrenches the
 rigid joints transmit, the frames' positions, the strains of every soft
 section, the internal wrenches along every member, and the energies.
 
-The run is the JSON of ``soft-twin-sim dynamics`` on an articulated
-scenario (:func:`mechanism_scenario.run_mechanism_dynamics`) or a recording
+The run is the JSON of ``soft-twin-sim dynamics``
+(:func:`mechanism_scenario.run_mechanism_dynamics`) or a recording
 read back by :mod:`mechanism_recording`; fields a recording lacks are
 skipped (each figure needs its own fields only).
 """
@@ -96,16 +96,22 @@ def plot_section_strains(out, folder, title="strains of the soft sections"):
     members = list(dict.fromkeys(owner))
     first = {mb: owner.index(mb) for mb in members}
     fig, axs = plt.subplots(2, 3, figsize=(13, 6.5), sharex=True)
+    cmap, n = plt.get_cmap("plasma"), len(names)
     for m, ax in enumerate(axs.ravel()):
         for i, mb in enumerate(owner):
-            ax.plot(t, S[:, i, m], color=f"C{members.index(mb) % 10}", lw=1.0, alpha=0.9,
-                    label=mb if m == 0 and first[mb] == i else None)
+            if len(members) == 1:           # one member: its sections from base (dark) to tip (light)
+                ax.plot(t, S[:, i, m], color=cmap(i / max(1, n - 1) * 0.85), lw=1.2,
+                        label=f"section {i}" if m == 0 and (n <= 8 or i in (0, n - 1)) else None)
+            else:
+                ax.plot(t, S[:, i, m], color=f"C{members.index(mb) % 10}", lw=1.0, alpha=0.9,
+                        label=mb if m == 0 and first[mb] == i else None)
         ax.set_title(STRAIN_NAMES[m])
         ax.set_ylabel("[-]" if m < 3 else "[1/m]")
         ax.grid(alpha=0.3)
     for ax in axs[1]:
         ax.set_xlabel("time [s]")
-    axs[0, 0].legend(fontsize=7, title="member (one line per section)", title_fontsize=7)
+    axs[0, 0].legend(fontsize=7, title=None if len(members) == 1 else "member (one line per section)",
+                     title_fontsize=7)
     fig.suptitle(title)
     fig.tight_layout()
     return _save(fig, folder, "strains")
@@ -144,19 +150,23 @@ def plot_energies(out, folder, title="energies"):
     return _save(fig, folder, "energies")
 
 
-def plot_mechanism_dynamics(out, folder, mech, name="run"):
-    """The whole set of figures of an articulated robot's run; returns the paths."""
+def plot_dynamics(out, folder, mech, name="run"):
+    """The whole set of figures of any robot's run (each when the run has
+    its fields, and the robot what it shows); returns the paths."""
     from .mechanism_scene import run_snapshots
+    from .plots import plot_tip
     paths = []
     if out.get("members_time") and "frame_poses" in out:
         fig = shapes_figure(run_snapshots(out, mech), f"{name}: members and links")
         paths += _save(fig, folder, "backbone_shapes")
     if out.get("time"):
+        if out.get("tip_position"):
+            paths += plot_tip(out, folder, f"{name}: tip motion ({out.get('tip_frame', 'tip')}, world)")
         if out.get("joint_names") and out.get("joint_positions"):
             paths += plot_joint_states(out, folder, f"{name}: joint states")
         if out.get("joint_names") and out.get("transmitted_wrenches"):
             paths += plot_joint_wrenches(out, folder, f"{name}: wrenches through the rigid joints")
-        if out.get("frame_positions"):
+        if len(out.get("frame_names", ())) > 1:
             paths += plot_frames(out, folder, f"{name}: frame positions")
         if out.get("strains") and out.get("section_names"):
             paths += plot_section_strains(out, folder, f"{name}: strains of the soft sections")

@@ -7,6 +7,7 @@ Topics (``/<node>/...`` as the node names them)::
 
     joint_states            sensor_msgs/JointState   positions, velocities, efforts of the rigid joints
     backbones/<member>      geometry_msgs/PoseArray  the member's section-boundary poses
+    backbone                geometry_msgs/PoseArray  the main member's (outputs.main_member)
     tip_pose                geometry_msgs/PoseStamped
     strains                 soft_twin/Strains        every soft section, tree order
     joint_wrenches/<joint>  geometry_msgs/WrenchStamped (the node: only while subscribed)
@@ -75,7 +76,10 @@ def write_articulated_mcap(out, mech, path, node="soft_twin_sim", frame="base_li
     prefix = node.strip("/") + "/"
     fnames = list(out["frame_names"])
     if tip_frame is None:
-        tip_frame = "tool" if "tool" in fnames else f"{mech.members[-1].name}_tip" if mech.members else fnames[-1]
+        from .mechanism import tip_frame as tip_frame_of
+        tip_frame = tip_frame_of(mech)
+    from .outputs import main_member
+    main = main_member(mech, tip_frame)
     tnames = list(out.get("transmitted_names", []))
     with open(path, "wb") as fh:
         w = Writer(fh)
@@ -98,14 +102,18 @@ def write_articulated_mcap(out, mech, path, node="soft_twin_sim", frame="base_li
                  "effort": [float(x) for x in out["joint_efforts"][i]]})
             for name, m in members.items():
                 P, Q = np.asarray(m["positions"], float), np.asarray(m["orientations"], float)
-                put(f"{ns}/backbones/{topic_name(name)}", "geometry_msgs/PoseArray",
-                    {"header": header, "poses": [_pose_dict(_pose_from_quat(p, q)) for p, q in zip(P, Q)]})
+                msg = {"header": header, "poses": [_pose_dict(_pose_from_quat(p, q)) for p, q in zip(P, Q)]}
+                put(f"{ns}/backbones/{topic_name(name)}", "geometry_msgs/PoseArray", msg)
+                if main is not None and name == main.name:
+                    put(f"{ns}/backbone", "geometry_msgs/PoseArray", msg)
             fp = dict(zip(fnames, poses))
             put(f"{ns}/tip_pose", "geometry_msgs/PoseStamped",
                 {"header": header, "pose": _pose_dict(np.asarray(fp[tip_frame], float))})
             S = np.asarray(out["strains"][i], dtype=float)
             put(f"{ns}/strains", "soft_twin/Strains",
-                {"header": header, "n_sections": len(S), "strains": S.ravel().tolist(), "strain_rates": [],
+                {"header": header, "n_sections": len(S), "strains": S.ravel().tolist(),
+                 "strain_rates": np.asarray(out["strain_rates"][i], float).ravel().tolist() if "strain_rates" in out
+                 else [],
                  "last_command": {"stamp": {"sec": 0, "nanosec": 0}, "frame_id": ""}})
             tfs = []
             for name, g in fp.items():
@@ -132,36 +140,45 @@ def articulated_namespaces(messages):
     return sorted(t[: -len("/joint_states")] for t in messages if t.endswith("/joint_states"))
 
 
-def read_articulated_run(path, mech, node=None, tf_prefix=None):
-    """The run of an articulated twin recorded in an MCAP file, in the
-    fields of :func:`mechanism_scenario.run_mechanism_dynamics` (see the
-    module for the states kept): time [s] from the first kept stamp,
-    joint_names/positions/velocities/efforts, frame_names (the robot's
-    frames), frame_positions and frame_poses (from /tf), members_time and
-    members ({member: positions, orientations}), strains and section_names,
-    and transmitted_names/wrenches of the rigid joints when every kept
-    state has them. ``tf_prefix``: the node's (default ``<node>/``)."""
+def read_node_recording(path, mech, node=None, tf_prefix=None):
+    """The run of one twin node recorded in an MCAP file (``node``: its name
+    when the file holds several), in the fields of
+    :func:`mechanism_scenario.run_mechanism_dynamics`: with the joint,
+    member and frame topics (:func:`articulated_run_from_messages`; frames
+    on /tf under ``tf_prefix``, default ``<node>/``) when it has them, else
+    from the backbone, tip pose and strains every twin node publishes
+    (:func:`recording.read_node_run`)."""
+    from .recording import node_namespaces, read_node_run
     msgs = read_messages(path)
-    found = articulated_namespaces(msgs)
+    found = articulated_namespaces(msgs) or node_namespaces(msgs)
     if node is not None:
         ns = "/" + node.strip("/")
         if ns not in found:
-            raise ValueError(f"{path}: no joint states of node {ns!r}; found {found}")
+            raise ValueError(f"{path}: no recorded state of node {ns!r}; found {found}")
     elif len(found) == 1:
         ns = found[0]
     else:
-        raise ValueError(f"{path}: " + (f"several articulated twins recorded {found}: choose one with --node"
-                                        if found else "no joint_states topic of an articulated twin"))
+        raise ValueError(f"{path}: " + (f"several twin nodes recorded {found}: choose one with --node"
+                                        if found else "no twin state topics (joint_states, or backbone, "
+                                                      "tip_pose and strains)"))
     try:
-        return articulated_run_from_messages(msgs, mech, ns, tf_prefix)
+        if f"{ns}/joint_states" in msgs:
+            return articulated_run_from_messages(msgs, mech, ns, tf_prefix)
+        return read_node_run(msgs, ns, mech)
     except ValueError as e:
         raise ValueError(f"{path}: {e}") from None
 
 
 def articulated_run_from_messages(msgs, mech, ns, tf_prefix=None):
-    """:func:`read_articulated_run` of decoded messages {topic: [msg, ...]}
-    (from a recording, or received live by rclpy: read by attribute) of the
-    node ``ns`` (``/soft_twin``)."""
+    """The run of node ``ns`` (``/soft_twin``) in decoded messages {topic:
+    [msg, ...]} (from a recording, or received live by rclpy: read by
+    attribute), from its joint, member and frame topics (see the module for
+    the states kept): time [s] from the first kept stamp,
+    joint_names/positions/velocities/efforts, frame_names (the robot's
+    frames), frame_positions and frame_poses (from /tf), members_time and
+    members ({member: positions, orientations}), strains and section_names,
+    and transmitted_names/wrenches of the rigid joints when every kept
+    state has them. ``tf_prefix``: the node's (default ``<node>/``)."""
     prefix = tf_prefix if tf_prefix is not None else ns.strip("/") + "/"
     if not msgs.get(f"{ns}/joint_states"):
         raise ValueError(f"no {ns}/joint_states")

@@ -1,7 +1,8 @@
-"""Runs of a tree robot's scenario (:mod:`scenario` parses every scenario;
-its runners hand a tree robot's over here): statics and dynamics with joint
-commands, loads on members and frames and a prescribed base, and outputs of
-joints, frames, constraints and members.
+"""Runs of a scenario of any robot (:mod:`scenario` parses every scenario
+and its runners hand over here): statics and dynamics with actuation,
+joint commands, loads on members and frames and a prescribed base, and
+outputs of the tip frame, the support, joints, frames, constraints and
+members.
 
 Outputs (JSON; the CSV has the same time histories): see
 :func:`run_mechanism_statics` and :func:`run_mechanism_dynamics`.
@@ -10,6 +11,10 @@ Outputs (JSON; the CSV has the same time histories): see
 import numpy as np
 
 from .constrained import MechanismSimulator, StepError, make_inputs, solve_equilibrium
+from ._blas import one_blas_thread
+from .loads import Loads
+
+_NO_LOADS = Loads(gravity=False)
 from .timeline import check_output_size, count, n_steps_for, step_times
 
 
@@ -116,109 +121,247 @@ def run_mechanism_statics(sc, t=0.0, points_per_section=1):
     return d
 
 
-# history fields of a dynamics run, in CSV column order
-HISTORY_FIELDS = ("time", "joint_positions", "joint_velocities", "joint_accelerations", "joint_efforts",
-                  "frame_positions", "constraint_wrenches", "constraint_error", "transmitted_wrenches", "strains",
-                  "peak_normal_stress", "peak_shear_stress", "newton_iterations")
+# history fields of a dynamics run, one row per recorded step, in CSV column order
+HISTORY_FIELDS = ("time", "tip_position", "tip_orientation", "tip_velocity", "base_wrench", "joint_positions",
+                  "joint_velocities", "joint_accelerations", "joint_efforts", "frame_positions", "constraint_wrenches",
+                  "constraint_error", "transmitted_wrenches", "strains", "strain_rates", "peak_normal_stress",
+                  "peak_shear_stress", "newton_iterations")
+# fields of the member samples (``backbone_every``), one row per sample, in CSV column order
+SAMPLE_FIELDS = ("member_positions", "member_velocities", "member_internal_wrenches")
 
 
-def run_mechanism_dynamics(sc, duration, dt, theta=0.5, progress=None, record_every=1, backbone_every=0,
-                           progress_every=1.0, points_per_section=1):
-    """Integrate the scenario (``n = ceil(duration / dt)`` steps). Returns the
-    time histories, one row per recorded step: time [s]; joint_positions,
-    velocities, accelerations, efforts (N, n_joints) in the order of
-    ``joint_names``; frame_positions (N, n_frames, 3) world [m] in the order
-    of ``frame_names``; constraint_wrenches (N, n_constraints, 6);
-    constraint_error (N,) [m or rad]; transmitted_wrenches (N, n_joints, 6)
-    (the wrench through every joint, world axes about its input origin, in
-    the order of ``transmitted_names``); strains (N, n_soft_sections, 6) of
-    every soft section in tree order (``section_names``); peak_normal_stress and
-    peak_shear_stress (N, n_members) [Pa], the largest over each member's
-    section boundaries; newton_iterations. With ``backbone_every = K``,
-    every K steps the full member outputs under ``members_time`` and
-    ``members`` (as in statics), and the same samples flat for the CSV:
-    ``member_positions`` (B, P, 3) [m] and ``member_internal_wrenches``
-    (B, P, 6) [N, N m] at every member's sample points
-    (``points_per_section`` per section and its end;
-    ``member_point_names``: ``<member>_<k>``); JSON only, at the same samples:
-    ``frame_poses`` (B, n_frames, 4, 4) world poses of the frames of
-    ``frame_names`` and ``energies`` (B, 3) [J]: kinetic, elastic (members and
-    joint springs), gravitational (:func:`sample_energies`). ``error`` when a
-    step fails (the history ends at the last converged step)."""
-    import time as _time
-    from .outputs import member_samples, section_strains, state_outputs
-    mech = sc.mech
-    n_steps = n_steps_for(duration, dt)
-    check_output_size(n_steps, count(record_every, "record_every", 1), count(backbone_every, "backbone_every", 0),
-                      mech.tree.n_joints + len(mech.frames) + 1)
-    time_of = step_times(dt)
-    sim = MechanismSimulator(mech, float(dt), theta)
-    inp0 = _inputs(sc, 0.0)
-    if sc.initial_q is not None:
-        sim.q[:] = sc.initial_q
-    # start where the commanded joints are at t = 0
-    for k, i in enumerate(mech.joints_with("position")):
-        sim.q[mech.tree.idx_q[i]] = inp0.q_cmd[k]
-    out = {key: [] for key in HISTORY_FIELDS}
-    soft = mech.tree.soft_joints
-    out.update(transmitted_names=[j.name for j in mech.tree.joints],
-               section_names=[mech.tree.joints[i].name for i in soft])
-    out.update(joint_names=list(mech.joint_names), frame_names=list(mech.frames),
-               constraint_names=[c.name for c in mech.constraints], member_names=[m.name for m in mech.members],
-               history_fields=list(HISTORY_FIELDS))
-    if backbone_every:
-        out.update(members_time=[], members=[], member_positions=[], member_internal_wrenches=[],
-                   member_point_names=[f"{m.name}_{k}" for m in mech.members
-                                       for k in range(len(member_samples(mech, m, points_per_section)[0]))],
-                   sample_fields=["member_positions", "member_internal_wrenches"], frame_poses=[], energies=[])
+class StepInputs:
+    """The checked inputs of the steps t0 -> t1 [s] of the theta method:
+    the forces (actuation, efforts, loads) at the step's theta point t0 +
+    theta (t1 - t0), where the method balances them (second order at theta
+    = 1/2); the position commands at t1, where the joints must reach them.
+    The loads are checked and laid out once for each set of their profiles'
+    factors (once for a run whose loads do not vary)."""
 
-    def record(k, inp, iterations):
-        o = state_outputs(mech, sim.q, sim.lam, inp, sim.v, sim.a, sim.ws, member_motion=False)
-        out["time"].append(time_of(k))
+    def __init__(self, sc, theta):
+        self.sc, self.theta = sc, theta
+        self._key, self._loads = None, None
+
+    def __call__(self, t0, t1):
+        from dataclasses import replace
+        sc = self.sc
+        tt = t0 + self.theta * (t1 - t0)
+        key = sc.load_factors(tt)
+        if key != self._key:
+            self._loads = make_inputs(sc.mech, loads=sc.loads_at(tt), point_loads=sc.frame_loads_at(tt))
+            self._key = key
+        inp = make_inputs(sc.mech, sc.actuation_at(tt), sc.efforts_at(tt), sc.positions_at(t1),
+                          sc.velocities_at(t1), _NO_LOADS)
+        return replace(inp, loads=self._loads.loads, gravity=self._loads.gravity)
+
+
+class _Recorder:
+    """The time histories of a dynamics run: :data:`HISTORY_FIELDS` at
+    every recorded step, and the member samples every ``sample_every``
+    steps. Outputs are evaluated in a workspace of their own (the
+    integrator's keeps its state)."""
+
+    def __init__(self, sc, sim, sample_every, points_per_section, inputs):
+        from .mechanism import tip_frame
+        from .outputs import member_samples
+        from .workspace import Workspace
+        mech = sc.mech
+        self.sc, self.sim, self.mech, self.inputs = sc, sim, mech, inputs
+        self.sample_every, self.pps = sample_every, points_per_section
+        self.ws = Workspace(mech.tree)
+        self.probe = MechanismSimulator(mech, sim.dt, sim.theta)      # instantaneous accelerations
+        self.tip = tip_frame(mech)
+        tree = mech.tree
+        self.out = out = {key: [] for key in HISTORY_FIELDS}
+        out.update(tip_frame=self.tip, transmitted_names=[j.name for j in tree.joints],
+                   section_names=[tree.joints[i].name for i in tree.soft_joints], n_sections=len(tree.soft_joints),
+                   joint_names=list(mech.joint_names), frame_names=list(mech.frames),
+                   constraint_names=[c.name for c in mech.constraints], member_names=[m.name for m in mech.members],
+                   history_fields=list(HISTORY_FIELDS), dt=sim.dt)
+        if sample_every:
+            out.update({key: [] for key in SAMPLE_FIELDS}, members_time=[], members=[], frame_poses=[], energies=[],
+                       member_point_names=[f"{m.name}_{k}" for m in mech.members
+                                           for k in range(len(member_samples(mech, m, points_per_section)[0]))],
+                       sample_fields=list(SAMPLE_FIELDS))
+
+    def record(self, k, t, iterations):
+        """Row k (time t [s]) from the simulator's state; a member sample too
+        when k is a multiple of ``sample_every``."""
+        from .outputs import base_reaction, frame_velocity, section_rates, section_strains, state_outputs
+        sc, sim, mech, out = self.sc, self.sim, self.mech, self.out
+        inp = self.inputs(t, t)              # the loads and efforts at the recorded instant
+        sample = bool(self.sample_every) and k % self.sample_every == 0
+        a = sim.a
+        if sim.lam.size == 0 and k > 0:
+            # no multipliers: the acceleration of the equations of motion at (q, v, t), the instant
+            # recorded; with multipliers the step's own (its mean acceleration and reactions, which
+            # balance each other; the instantaneous pair would need the constraints' dG/dt v)
+            self.probe.q, self.probe.v = sim.q.copy(), sim.v.copy()
+            a = self.probe.start_multipliers(inp).a
+        o = state_outputs(mech, sim.q, sim.lam, inp, sim.v, a, self.ws, self.pps if sample else 1,
+                          member_motion=sample)
+        g = np.asarray(o.frames[self.tip], dtype=float)
+        out["time"].append(t)
+        out["tip_position"].append(g[:3, 3].tolist())
+        out["tip_orientation"].append(_quaternions(g[None])[0])
+        out["tip_velocity"].append(frame_velocity(mech, self.ws, sim.v, self.tip)[:3].tolist())
+        out["base_wrench"].append(base_reaction(mech, o.joint_wrenches).tolist())
         out["joint_positions"].append([o.positions[n] for n in mech.joint_names])
         out["joint_velocities"].append([o.velocities[n] for n in mech.joint_names])
         out["joint_accelerations"].append([o.accelerations[n] for n in mech.joint_names])
         out["joint_efforts"].append([o.efforts[n] for n in mech.joint_names])
         out["frame_positions"].append([o.frames[n][:3, 3].tolist() for n in mech.frames])
         out["constraint_wrenches"].append([w.tolist() for w in o.constraint_wrenches.values()])
-        out["constraint_error"].append(sim.constraint_error(_targets(sc, time_of(k))))
+        out["constraint_error"].append(sim.constraint_error(_targets(sc, t)))
         out["transmitted_wrenches"].append([w.tolist() for w in o.joint_wrenches.values()])
         out["strains"].append(section_strains(mech, sim.q).tolist())
+        out["strain_rates"].append(section_rates(mech, sim.v).tolist())
         out["peak_normal_stress"].append([float(np.nanmax(m.normal_stress, initial=0)) for m in o.members])
         out["peak_shear_stress"].append([float(np.nanmax(m.shear_stress, initial=0)) for m in o.members])
         out["newton_iterations"].append(int(iterations))
-        if backbone_every and k % backbone_every == 0:
-            o = state_outputs(mech, sim.q, sim.lam, inp, sim.v, sim.a, sim.ws, points_per_section)
-            out["members_time"].append(time_of(k))
+        if sample:
+            out["members_time"].append(t)
             out["members"].append(_outputs_dict(sc, o)["members"])
             # the same samples flat (every member's sample points in order), for the CSV
             out["member_positions"].append(np.concatenate([m.poses[:, :3, 3] for m in o.members]).tolist())
+            out["member_velocities"].append(np.concatenate([m.velocities for m in o.members]).tolist())
             out["member_internal_wrenches"].append(np.concatenate([m.internal_wrench for m in o.members]).tolist())
-            # issue 12 (figures): every frame's pose and the energies at the samples
             out["frame_poses"].append([np.asarray(o.frames[n], dtype=float).tolist() for n in mech.frames])
             out["energies"].append(_nan_none(sample_energies(sim)))
 
+    def clear(self):
+        for key in HISTORY_FIELDS + ((SAMPLE_FIELDS + ("members_time", "members", "frame_poses", "energies"))
+                                     if self.sample_every else ()):
+            self.out[key].clear()
+
+
+def _start(sc, sim):
+    """Put the simulator at the scenario's start: its initial strains, the
+    position-controlled joints where their commands are at t = 0, and the
+    accelerations and multipliers of that state (t = 0's base reaction
+    includes the inertia of the first motion)."""
+    inp0 = _inputs(sc, 0.0)
+    if sc.initial_q is not None:
+        sim.q[:] = sc.initial_q
+    for k, i in enumerate(sc.mech.joints_with("position")):
+        sim.q[sc.mech.tree.idx_q[i]] = inp0.q_cmd[k]
     sim.start_multipliers(inp0, _targets(sc, 0.0))
-    record(0, inp0, 0)
+
+
+def run_mechanism_dynamics(sc, duration, dt, theta=0.5, progress=None, record_every=1, backbone_every=0,
+                           progress_every=1.0, points_per_section=1):
+    """Integrate the scenario of any robot (``n = ceil(duration / dt)``
+    steps of :class:`constrained.MechanismSimulator`: the compiled O(n)
+    integrator without constraint rows, the KKT step with them), the forces
+    at each step's theta point (:class:`StepInputs`). Returns the time
+    histories, one row per recorded step (every ``record_every`` steps, the
+    first, the last and every sample):
+
+    - ``time`` [s], ``k * dt``;
+    - ``tip_position`` [m], ``tip_orientation`` (quaternion x, y, z, w),
+      ``tip_velocity`` [m/s] of the tip frame (``tip_frame``,
+      :func:`mechanism.tip_frame`), world;
+    - ``base_wrench`` [N, N m]: the support's reaction with inertia, world
+      axes, about the base origin (:func:`outputs.base_reaction`);
+    - ``joint_positions``, ``_velocities``, ``_accelerations``, ``_efforts``
+      (N, n_joints) in the order of ``joint_names``;
+    - ``frame_positions`` (N, n_frames, 3) [m] in the order of ``frame_names``;
+    - ``constraint_wrenches`` (N, n_constraints, 6), ``constraint_error`` (N,)
+      [m or rad];
+    - ``transmitted_wrenches`` (N, n_joints, 6): the wrench through every
+      joint, world axes about its input origin (``transmitted_names``);
+    - ``strains`` and ``strain_rates`` (N, n_sections, 6) of every soft
+      section in tree order (``section_names``; fixed modes: the reference
+      strain and 0);
+    - ``peak_normal_stress``, ``peak_shear_stress`` (N, n_members) [Pa];
+    - ``newton_iterations``.
+
+    Accelerations (and the base wrench's inertia) are those of the equations
+    of motion at the recorded (q, v, t); with constraint or joint-command
+    multipliers, after t = 0, the step's mean acceleration ((v1 - v0) / dt)
+    with the reactions it balances. With ``backbone_every = K > 0``, at t = 0 and every K steps,
+    every member's outputs under ``members_time`` and ``members`` (as in
+    statics: ``points_per_section`` points per section and its end), flat
+    for the CSV as ``member_positions``, ``member_velocities`` (B, P, 3)
+    [m, m/s] and ``member_internal_wrenches`` (B, P, 6) [N, N m]
+    (``member_point_names``: ``<member>_<k>``), and for the JSON
+    ``frame_poses`` (B, n_frames, 4, 4) and ``energies`` (B, 3) [J]:
+    kinetic, elastic, gravitational (:func:`sample_energies`). ``error``
+    when a step fails (the history then ends at the last converged step).
+
+    The kernels are compiled (or loaded from numba's cache) and the inputs
+    checked by a warm-up before the clock starts: ``progress(fraction,
+    elapsed_s)`` is called once with (0.0, 0.0) right after it, then at most
+    once per ``progress_every`` wall-clock seconds (0: after every step)."""
+    import time as _time
+    mech = sc.mech
+    n_steps = n_steps_for(duration, dt)
+    dt = float(dt)
+    record_every = count(record_every, "record_every", 1)
+    backbone_every = count(backbone_every, "backbone_every", 0)
+    points_per_section = count(points_per_section, "points_per_section", 1)
+    check_output_size(n_steps, record_every, backbone_every,
+                      sum(len(m.joints) for m in mech.members) * points_per_section + len(mech.members))
+    time_of = step_times(dt)
+    sim = MechanismSimulator(mech, dt, theta)
+    step_inputs = StepInputs(sc, theta)
+    rec = _Recorder(sc, sim, backbone_every, points_per_section, step_inputs)
+    out = rec.out
+    # warm-up: everything the loop calls runs once (numba compiles or loads its cache) before the
+    # clock starts, the first step on a simulator of its own; the t = 0 row is recorded here
+    try:
+        _start(sc, sim)
+        if not (np.all(np.isfinite(sim.a)) and np.all(np.isfinite(sim.lam))):
+            out["error"] = "the initial acceleration is not finite (inputs too large?); nothing simulated"
+            return out
+        rec.record(0, 0.0, 0)
+        probe = MechanismSimulator(mech, dt, theta, q=sim.q, v=sim.v)
+        probe.step(inputs=step_inputs(0.0, time_of(1)), targets=_targets(sc, time_of(1)))
+    except StepError:
+        pass                 # the run's own first step reports it
+    except (ValueError, ArithmeticError, np.linalg.LinAlgError) as e:
+        rec.clear()
+        out["error"] = f"the initial state cannot be evaluated: {type(e).__name__}: {e}; nothing simulated"
+        return out
     if progress is not None:
         progress(0.0, 0.0)
+    with one_blas_thread():        # once for the run, not once a step
+        _integrate(rec, step_inputs, n_steps, record_every, progress, progress_every)
+    return out
+
+
+def _integrate(rec, step_inputs, n_steps, record_every, progress, progress_every):
+    """The run's steps 1..n_steps of ``rec``'s simulator, recorded into
+    ``rec`` (see :func:`run_mechanism_dynamics`); a failed step ends the
+    history."""
+    import time as _time
+    sc, sim, out, backbone_every = rec.sc, rec.sim, rec.out, rec.sample_every
+    time_of = step_times(sim.dt)
     t0 = last = _time.monotonic()
+    recorded, iterations = 0, 0          # the last recorded step, the last step's Newton iterations
     for k in range(1, n_steps + 1):
-        t1 = time_of(k)
-        inp = _inputs(sc, t1)
+        ta, tb = time_of(k - 1), time_of(k)
+        good = sim.q.copy(), sim.v.copy(), sim.a.copy(), sim.lam.copy()
         try:
-            sim.step(inputs=inp, targets=_targets(sc, t1))
+            sim.step(inputs=step_inputs(ta, tb), targets=_targets(sc, tb))
+            sim.t = tb
+            if not (np.all(np.isfinite(sim.q)) and np.all(np.isfinite(sim.v))):
+                raise StepError("the state became non-finite")
         except (StepError, ValueError, ArithmeticError, np.linalg.LinAlgError) as e:
-            out["error"] = (f"step {k} of {n_steps} (t = {time_of(k - 1):.6g} -> {t1:.6g} s) failed: {e}; "
-                            f"the history ends at t = {time_of(k - 1):.6g} s" + failure_context(sc, out, time_of(k - 1), t1))
+            sim.q, sim.v, sim.a, sim.lam = good        # the last converged state ends the history
+            sim.t = ta
+            if recorded != k - 1:
+                rec.record(k - 1, ta, iterations)
+            out["error"] = (f"step {k} of {n_steps} (t = {ta:.6g} -> {tb:.6g} s) failed: {e}; "
+                            f"the history ends at t = {ta:.6g} s" + failure_context(sc, out, ta, tb))
             break
+        iterations = sim.iterations
         if k % record_every == 0 or k == n_steps or (backbone_every and k % backbone_every == 0):
-            record(k, inp, sim.iterations)
+            rec.record(k, tb, iterations)
+            recorded = k
         if progress is not None and _time.monotonic() - last >= progress_every:
             progress(k / n_steps, _time.monotonic() - t0)
             last = _time.monotonic()
-    out["dt"] = float(dt)
-    return out
 
 
 def failure_context(sc, out, t0, t1):

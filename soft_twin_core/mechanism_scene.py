@@ -129,7 +129,7 @@ def member_radii(mech, n_points=None, default=0.005):
 def run_snapshots(out, mech):
     """Snapshots of an articulated robot's dynamics run (the JSON of
     ``soft-twin-sim dynamics`` with ``--backbone-every K``, or a recording
-    read back by :func:`mechanism_recording.read_articulated_run`): one per
+    read back by :func:`mechanism_recording.read_node_recording`): one per
     member sample, with the frame poses of the same sample."""
     if not out.get("members_time"):
         raise ValueError("the run has no member samples: run dynamics with --backbone-every K (K >= 1)")

@@ -243,6 +243,30 @@ def section_strains(mech, q):
     return np.array(out, dtype=float).reshape(-1, 6)
 
 
+def section_rates(mech, v):
+    """(n_soft_sections, 6) strain rates [1/(m s), 1/s] of every soft section
+    in tree order: the free modes' velocities from v, 0 for the others."""
+    tree = mech.tree
+    out = np.zeros((len(tree.soft_joints), 6))
+    for k, i in enumerate(tree.soft_joints):
+        sec = tree.joints[i].section
+        iv = tree.idx_v[i]
+        out[k, sec.modes] = v[iv:iv + len(sec.modes)]
+    return out
+
+
+def frame_velocity(mech, ws, v, frame):
+    """World velocity [v; omega] (6,) [m/s, rad/s] of a named frame's origin
+    at the workspace's last forward pass (its configuration) and velocity v:
+    the frame's spatial twist ``J_s v`` moved to its origin."""
+    from .kernels.frames import spatial_jacobian
+    ref = mech.frames[frame]
+    g, J = np.empty((4, 4)), np.empty((6, mech.tree.nv))
+    spatial_jacobian(ws.m, ws.w, int(ref.joint), float(ref.x), g, J)
+    tw = J @ np.ascontiguousarray(v, dtype=float)
+    return np.concatenate([tw[:3] + np.cross(tw[3:], g[:3, 3]), tw[3:]])
+
+
 def q_from_section_strains(mech, strains, q):
     """``q`` with every soft section's free modes taken from ``strains``
     ((n_soft_sections, 6) or as many values row-major, the order of

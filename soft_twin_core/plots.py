@@ -1,12 +1,12 @@
-"""Figures of a run (PNG and SVG, matplotlib's Agg backend): backbone shapes
-(side, top and 3D views, equal axes), tip position and velocity, strains,
-internal wrenches along the backbone, energies, and a statics sweep against
-reference values.
+"""Figures (PNG and SVG, matplotlib's Agg backend): robot shapes (side, top
+and 3D views, equal axes), tip position and velocity, internal wrenches
+along a member, a statics solve and a statics sweep against reference
+values (a dynamics run's set: :mod:`mechanism_plots`).
 
 Every ``plot_*`` function writes ``<stem>.png`` and ``<stem>.svg`` into a
-folder and returns the paths written; :func:`plot_dynamics`,
-:func:`plot_statics` and :func:`plot_sweep` write the whole set for a
-``soft-twin-sim`` run. Shapes are drawn from :class:`scene.Snapshot` lists
+folder and returns the paths written; :func:`plot_statics` and
+:func:`plot_sweep` write the whole set for a ``soft-twin-sim`` statics
+run. Shapes are drawn from :class:`scene.Snapshot` lists
 (members, rigid links), so any robot that can be turned into snapshots is
 drawn by the same code.
 """
@@ -167,31 +167,6 @@ def plot_tip(out, folder, title="tip motion"):
     return _save(fig, folder, "tip")
 
 
-def plot_strains(out, folder, title="strains"):
-    """Each strain mode of every section against time: axial and shear
-    (dimensionless stretch/shear, -), torsion and bending (1/m)."""
-    from .model import STRAIN_NAMES
-    plt = _plt()
-    t = np.asarray(out["time"])
-    S = np.asarray(out["strains"]).reshape(len(t), -1, 6)
-    n = S.shape[1]
-    fig, axs = plt.subplots(2, 3, figsize=(13, 6.5), sharex=True)
-    cmap = plt.get_cmap("plasma")
-    for m, ax in enumerate(axs.ravel()):
-        for i in range(n):
-            ax.plot(t, S[:, i, m], color=cmap(i / max(1, n - 1) * 0.85), lw=1.2,
-                    label=f"section {i}" if m == 0 and (n <= 8 or i in (0, n - 1)) else None)
-        ax.set_title(STRAIN_NAMES[m])
-        ax.set_ylabel("[-]" if m < 3 else "[1/m]")
-        ax.grid(alpha=0.3)
-    for ax in axs[1]:
-        ax.set_xlabel("time [s]")
-    axs[0, 0].legend(fontsize=7)
-    fig.suptitle(title)
-    fig.tight_layout()
-    return _save(fig, folder, "strains")
-
-
 def wrench_figure(s_list, W_list, labels, title):
     """Internal wrench components (body frame) along the backbone, one line per sample."""
     plt = _plt()
@@ -212,64 +187,6 @@ def wrench_figure(s_list, W_list, labels, title):
     fig.suptitle(title + " (body frame; the distal part on the proximal part)")
     fig.tight_layout()
     return fig
-
-
-def plot_internal_wrenches(out, folder, title="internal wrench along the backbone", max_lines=6):
-    idx = pick(len(out["backbone_time"]), max_lines)
-    fig = wrench_figure([out["backbone_s"][i] for i in idx], [out["internal_wrenches"][i] for i in idx],
-                        [f"t = {out['backbone_time'][i]:.2f} s" for i in idx], title)
-    return _save(fig, folder, "internal_wrenches")
-
-
-def energies(model, out, gravity=True):
-    """(time, kinetic, elastic, gravitational) [s, J] of a dynamics run,
-    from its strains and strain rates (:func:`dynamics.energy`)."""
-    from .dynamics import energy
-    t = np.asarray(out["time"])
-    S = np.asarray(out["strains"]).reshape(len(t), model.n_sections, 6)
-    R = np.asarray(out["strain_rates"]).reshape(len(t), model.n_sections * 6)
-    E = np.zeros((len(t), 3))
-    for k in range(len(t)):
-        q = model.q_from_strains(S[k])
-        qdot = R[k][model.free_index]
-        E[k] = energy(model, q, qdot, None, gravity)[:3]
-    return t, E[:, 0], E[:, 1], E[:, 2]
-
-
-def plot_energies(model, out, folder, gravity=True, title="energies"):
-    """Kinetic, elastic and gravitational energy [J] and their sum against
-    time; the sum changes by the work of the inputs and damping."""
-    plt = _plt()
-    t, kin, ela, grav = energies(model, out, gravity)
-    fig, ax = plt.subplots(figsize=(8, 4.5))
-    ax.plot(t, kin, label="kinetic")
-    ax.plot(t, ela, label="elastic")
-    if gravity:
-        ax.plot(t, grav, label="gravitational")
-    ax.plot(t, kin + ela + grav, "k--", label="sum")
-    ax.set_xlabel("time [s]")
-    ax.set_ylabel("energy [J]")
-    ax.grid(alpha=0.3)
-    ax.legend(fontsize=8)
-    ax.set_title(title + " (the sum changes by the inputs' work and damping)")
-    fig.tight_layout()
-    return _save(fig, folder, "energies")
-
-
-def plot_dynamics(out, folder, model=None, gravity=True, name="run"):
-    """The whole set of figures of a dynamics run; returns the paths."""
-    from .scene import dynamics_snapshots
-    paths = []
-    if out.get("backbone"):
-        paths += plot_shapes(dynamics_snapshots(out, model), folder, f"{name}: backbone shapes")
-        if out.get("internal_wrenches"):
-            paths += plot_internal_wrenches(out, folder, f"{name}: internal wrench along the backbone")
-    if out.get("time"):
-        paths += plot_tip(out, folder, f"{name}: tip motion (world)")
-        paths += plot_strains(out, folder, f"{name}: strains per section")
-        if model is not None:
-            paths += plot_energies(model, out, folder, gravity, f"{name}: energies")
-    return paths
 
 
 def plot_statics(result, snap, folder, name="statics"):

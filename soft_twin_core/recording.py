@@ -2,7 +2,9 @@
 ``record_file``, ROS 2 bag format) or messages received live, turned into
 the time histories of :func:`scenario.run_dynamics` so that the same
 figures and animations are drawn from them (``soft-twin-sim render
-FILE.mcap``).
+FILE.mcap``), from the topics every twin node publishes (``backbone``,
+``tip_pose``, ``strains``); :mod:`mechanism_recording` reads the joint,
+member and frame topics as well, and writes a run in the node's topics.
 
 Decoding uses the ``mcap`` and ``mcap-ros2-support`` libraries (pure
 Python; no ROS import). Messages are read by attribute (``header.stamp``,
@@ -23,40 +25,67 @@ def _xyz(p):
     return [float(p.x), float(p.y), float(p.z)]
 
 
-def run_from_messages(backbones, tip_poses, strains, model=None):
-    """Time histories (``run_dynamics`` fields) of the states whose
-    backbone, tip pose and strains messages (same header stamp) are all
-    given: ``time`` [s] from the first such stamp, ``tip_position`` (world,
-    the node's base_frame), ``strains``/``strain_rates`` (n_sections, 6),
-    the ``backbone`` (P, 3) of every state with ``backbone_time``, and
-    ``backbone_s`` [m] (the model's sample abscissae when the model is given
-    and fits, else the chord length along the polyline)."""
-    from .kinematics import backbone_abscissae
+def run_from_messages(backbones, tip_poses, strains, mech):
+    """The run (fields of :func:`mechanism_scenario.run_mechanism_dynamics`)
+    of the states whose backbone, tip pose and strains messages (same header
+    stamp) are all given, the topics every twin node publishes: ``time`` [s]
+    from the first such stamp, ``tip_position`` (world, the node's
+    base_frame), ``strains``/``strain_rates`` (n_sections, 6) with
+    ``section_names``, and a member sample per state: the backbone as the
+    robot's main member (:func:`outputs.main_member`), the tip pose as its
+    tip frame (``frame_poses``). A robot with other members or frames needs
+    their topics: :func:`mechanism_recording.articulated_run_from_messages`."""
+    from .mechanism import tip_frame
+    from .outputs import main_member
+    tip = tip_frame(mech)
+    main = main_member(mech, tip)
+    if len(mech.members) != 1 or list(mech.frames) != [tip]:
+        raise ValueError(f"robot {mech.name!r} has members {[m.name for m in mech.members]} and frames "
+                         f"{list(mech.frames)}: the recording has no joint states, member backbones or /tf for "
+                         f"them (is it this robot's?)")
     by = [{_stamp_ns(m.header): m for m in msgs} for msgs in (backbones, tip_poses, strains)]
     stamps = sorted(set(by[0]) & set(by[1]) & set(by[2]))
     if not stamps:
         raise ValueError("no state with a backbone, a tip pose and strains of the same stamp")
+    tree = mech.tree
     t0 = stamps[0]
-    out = {"time": [], "tip_position": [], "strains": [], "strain_rates": [], "backbone_time": [],
-           "backbone_s": [], "backbone": []}
+    out = {"time": [], "tip_position": [], "strains": [], "strain_rates": [], "members_time": [], "members": [],
+           "frame_poses": [], "frame_positions": [], "frame_names": [tip], "member_names": [main.name],
+           "joint_names": [], "section_names": [tree.joints[i].name for i in tree.soft_joints],
+           "n_sections": len(tree.soft_joints)}
     for k in stamps:
-        t = 1e-9 * (k - t0)
+        t = round(1e-9 * (k - t0), 9)        # whole nanoseconds: the nearest float to the decimal time
         b, tp, s = by[0][k], by[1][k], by[2][k]
         n = int(s.n_sections)
+        if n != out["n_sections"]:
+            raise ValueError(f"the recording has {n} sections, robot {mech.name!r} {out['n_sections']}: give "
+                             f"the recorded robot's --sections")
         out["time"].append(t)
         out["tip_position"].append(_xyz(tp.pose.position))
         out["strains"].append(np.asarray(s.strains, dtype=float).reshape(n, 6).tolist())
-        out["strain_rates"].append(np.asarray(s.strain_rates, dtype=float).reshape(n, 6).tolist())
-        P = np.array([_xyz(p.position) for p in b.poses])
-        if model is not None and (len(P) - 1) % model.n_sections == 0 and len(P) > 1:
-            sb = backbone_abscissae(model, (len(P) - 1) // model.n_sections)
-        else:
-            sb = np.concatenate([[0.0], np.cumsum(np.linalg.norm(np.diff(P, axis=0), axis=1))])
-        out["backbone_time"].append(t)
-        out["backbone_s"].append(sb.tolist())
-        out["backbone"].append(P.tolist())
-    out["n_sections"] = n
+        rates = np.asarray(s.strain_rates, dtype=float)
+        out["strain_rates"].append(rates.reshape(n, 6).tolist() if rates.size == 6 * n else
+                                   np.full((n, 6), np.nan).tolist())
+        g = _pose_of(tp.pose)
+        out["frame_poses"].append([g.tolist()])
+        out["frame_positions"].append([g[:3, 3].tolist()])
+        out["members_time"].append(t)
+        out["members"].append({main.name: {"positions": [_xyz(p.position) for p in b.poses],
+                                           "orientations": [_xyzw(p.orientation) for p in b.poses]}})
     return out
+
+
+def _xyzw(q):
+    return [float(q.x), float(q.y), float(q.z), float(q.w)]
+
+
+def _pose_of(pose):
+    """4x4 of a geometry_msgs/Pose (read by attribute)."""
+    from scipy.spatial.transform import Rotation
+    T = np.eye(4)
+    T[:3, :3] = Rotation.from_quat(_xyzw(pose.orientation)).as_matrix()
+    T[:3, 3] = _xyz(pose.position)
+    return T
 
 
 def read_messages(path, topics=None):
@@ -77,22 +106,11 @@ def node_namespaces(messages):
     return sorted(n for n in ns if all(f"{n}/{s}" in messages for s in STATE_TOPICS))
 
 
-def read_node_run(path, node=None, model=None):
-    """The run of one twin node recorded in an MCAP file (see
-    :func:`run_from_messages`); ``node``: its name when the file holds
-    several."""
-    msgs = read_messages(path)
-    found = node_namespaces(msgs)
-    if node is not None:
-        ns = "/" + node.strip("/")
-        if ns not in found:
-            raise ValueError(f"{path}: no recorded state of node {ns!r}; found {found}")
-    elif len(found) == 1:
-        ns = found[0]
-    else:
-        raise ValueError(f"{path}: " + (f"several twin nodes recorded {found}: choose one with --node"
-                                        if found else "no twin state topics (backbone, tip_pose, strains)"))
-    return run_from_messages(*(msgs[f"{ns}/{s}"] for s in STATE_TOPICS), model=model)
+def read_node_run(msgs, ns, mech):
+    """The run of node ``ns`` (``/soft_twin``) in decoded messages {topic:
+    [msg, ...]} from its backbone, tip pose and strains topics (see
+    :func:`run_from_messages`)."""
+    return run_from_messages(*(msgs[f"{ns}/{s}"] for s in STATE_TOPICS), mech)
 
 
 # ----------------------------------------------------------------------------
@@ -134,43 +152,3 @@ def _pose_dict(T):
     p = T[:3, 3]
     return {"position": {"x": float(p[0]), "y": float(p[1]), "z": float(p[2])},
             "orientation": {"x": float(x), "y": float(y), "z": float(z), "w": float(w)}}
-
-
-def write_run_mcap(out, model, path, node="soft_twin_sim", frame="base_link", points_per_section=None):
-    """Write the backbone samples of a dynamics run (:func:`scenario.run_dynamics`
-    with ``backbone_every``) as the twin node would publish them: ``/<node>/backbone``
-    (PoseArray: poses of the cross-sections from the strains, by the model's
-    kinematics), ``/<node>/tip_pose`` and ``/<node>/strains``, stamped with the
-    run's time (t = 0 at stamp 0). Returns the number of states written.
-    ``soft-twin-sim render FILE.mcap`` draws it like a recording of the node."""
-    from mcap_ros2.writer import Writer
-    from .kinematics import backbone as backbone_poses
-    if not out.get("backbone_time"):
-        raise ValueError("the run has no backbone samples: run dynamics with --backbone-every K (K >= 1)")
-    rows = {t: i for i, t in enumerate(out["time"])}
-    n_pts = len(out["backbone"][0])
-    pps = points_per_section or max(1, (n_pts - 1) // model.n_sections)
-    ns = "/" + node.strip("/")
-    with open(path, "wb") as fh:
-        w = Writer(fh)
-        schemas = {name: w.register_msgdef(name.replace("/", "/msg/"), _definition(name))
-                   for name in ("geometry_msgs/PoseArray", "geometry_msgs/PoseStamped", "soft_twin/Strains")}
-        for k, t in enumerate(out["backbone_time"]):
-            i = rows[t]
-            S = np.asarray(out["strains"][i], dtype=float)
-            q = model.q_from_strains(S)
-            _, T = backbone_poses(model, q, pps)
-            stamp_ns = int(round(t * 1e9))
-            header = {"stamp": {"sec": stamp_ns // 1_000_000_000, "nanosec": stamp_ns % 1_000_000_000},
-                      "frame_id": frame}
-            w.write_message(f"{ns}/backbone", schemas["geometry_msgs/PoseArray"],
-                            {"header": header, "poses": [_pose_dict(x) for x in T]}, stamp_ns, stamp_ns, k)
-            w.write_message(f"{ns}/tip_pose", schemas["geometry_msgs/PoseStamped"],
-                            {"header": header, "pose": _pose_dict(T[-1])}, stamp_ns, stamp_ns, k)
-            w.write_message(f"{ns}/strains", schemas["soft_twin/Strains"],
-                            {"header": header, "n_sections": model.n_sections, "strains": S.ravel().tolist(),
-                             "strain_rates": np.asarray(out["strain_rates"][i], float).ravel().tolist(),
-                             "last_command": {"stamp": {"sec": 0, "nanosec": 0}, "frame_id": ""}},
-                            stamp_ns, stamp_ns, k)
-        w.finish()
-    return len(out["backbone_time"])

@@ -52,39 +52,21 @@ def backbone_every_for(args, dt):
     return max(1, int(round(1.0 / (fps * dt))))
 
 
-def write_mcap(out, args, model):
-    """``dynamics --mcap FILE``: the run in the node's topics (ROS 2 bag format)."""
-    if getattr(args, "mcap", None) and out.get("backbone_time"):
-        from .recording import write_run_mcap
-        n = write_run_mcap(out, model, args.mcap, points_per_section=args.points_per_section)
-        say(f"wrote {args.mcap} ({n} states as /soft_twin_sim/backbone, tip_pose, strains)")
-
-
 def say(msg):
     print(f"soft-twin-sim: {msg}", file=sys.stderr, flush=True)
 
 
-def animate_dynamics(out, path, fps, model=None, title=""):
-    """Animation of a dynamics run's backbone samples, real time at ``fps``."""
-    from .animate import write_animation
-    from .scene import dynamics_snapshots, sample_times
-    snaps = dynamics_snapshots(out, model)
-    idx = sample_times([s.time for s in snaps], fps)
-    n, seconds = write_animation([snaps[i] for i in idx], path, fps, title)
-    say(f"wrote {path} ({n} frames at {fps:g} fps, {seconds:.2f} s)")
-    return n, seconds
-
-
-def render_mechanism_dynamics(out, args, mech, name="run"):
-    """--plot, --animate and --mcap of an articulated robot's run: its
-    members, rigid links (visual shapes) and joints (:mod:`mechanism_scene`,
+def render_dynamics(out, args, mech, name="run"):
+    """--plot, --animate and --mcap of any robot's run: its members, rigid
+    links (visual shapes) and joints (:mod:`mechanism_scene`,
     :mod:`mechanism_plots`, :mod:`mechanism_recording`)."""
     if args.plot:
-        from .mechanism_plots import plot_mechanism_dynamics
-        paths = plot_mechanism_dynamics(out, args.plot, mech, name)
+        from .mechanism_plots import plot_dynamics
+        paths = plot_dynamics(out, args.plot, mech, name)
         say(f"wrote {len(paths)} figures into {args.plot}: " + ", ".join(os.path.basename(p) for p in paths))
-        for note in left_out_figures(out, articulated=True):
-            say(f"warning: {note}")
+        if not out.get("members_time"):
+            say("warning: the run has no member samples, so the backbone_shapes, member internal wrench and "
+                "energies figures are left out: run dynamics with --backbone-every K (K >= 1)")
     if args.animate:
         from .animate import write_animation
         from .mechanism_scene import run_snapshots
@@ -98,34 +80,6 @@ def render_mechanism_dynamics(out, args, mech, name="run"):
         from .mechanism_recording import write_articulated_mcap
         n = write_articulated_mcap(out, mech, args.mcap)
         say(f"wrote {args.mcap} ({n} states as /soft_twin_sim/joint_states, backbones/<member>, tip_pose, /tf)")
-
-
-def left_out_figures(out, model=None, articulated=False):
-    """Sentences naming the figures --plot cannot draw from ``out`` and how
-    to get them (said on stderr; the other figures are written)."""
-    notes = []
-    if articulated:
-        if not out.get("members_time"):
-            notes.append("the run has no member samples, so the backbone_shapes, member internal wrench and "
-                         "energies figures are left out: run dynamics with --backbone-every K (K >= 1)")
-        return notes
-    if not out.get("backbone"):
-        notes.append("the run has no backbone samples, so the backbone_shapes and internal_wrenches figures are "
-                     "left out: run dynamics with --backbone-every K (K >= 1)")
-    if model is None and out.get("time"):
-        notes.append("no robot given, so the energies figure is left out: give --scenario or --robot")
-    return notes
-
-
-def render_dynamics(out, args, model=None, gravity=True, name="run"):
-    from .plots import plot_dynamics
-    if args.plot:
-        paths = plot_dynamics(out, args.plot, model, gravity, name)
-        say(f"wrote {len(paths)} figures into {args.plot}: " + ", ".join(os.path.basename(p) for p in paths))
-        for note in left_out_figures(out, model):
-            say(f"warning: {note}")
-    if args.animate:
-        animate_dynamics(out, args.animate, args.fps or DEFAULT_FPS, model, name)
 
 
 def render_statics(results, args, sc, sweep, name="statics"):
@@ -169,69 +123,61 @@ def render_main(args):
     """``soft-twin-sim render RUN [--scenario S [--sections N] | --robot R] [--node NAME]
     --plot DIR --animate FILE``: RUN is the JSON of ``soft-twin-sim dynamics`` or an
     MCAP recording of the twin node (its ``record_file``)."""
-    from .model import load_model
-    from .scenario import load_scenario
     if not (args.plot or args.animate):
         raise ValueError("render: nothing to do; give --plot DIR and/or --animate FILE")
-    if args.scenario and args.robot:
-        raise ValueError("render: give --scenario or --robot, not both")
-    model, gravity, name = None, True, os.path.splitext(os.path.basename(args.run))[0]
-    mech = articulated_robot_of(args)
-    if mech is not None:                      # an articulated robot (tree robot file)
-        out = load_articulated_run(args, mech)
-        if args.scenario:
-            name = os.path.splitext(os.path.basename(args.scenario))[0]
-        render_mechanism_dynamics(out, args, mech, name)     # (render has no --mcap)
-        return
-    if args.scenario:
-        sc = load_scenario(args.scenario, args.sections)
-        model, gravity = sc.model, sc.gravity
-        name = os.path.splitext(os.path.basename(sc.source))[0]
-    elif args.robot:
-        model = load_model(args.robot, args.sections)
-    if args.run.lower().endswith(".mcap"):
-        from .recording import read_node_run
-        out = read_node_run(args.run, args.node, model)
-    else:
-        out = load_run(args.run)
-        if "history_fields" in out:
-            raise ValueError(f"render: {args.run} is a run of an articulated robot; give its --scenario "
-                             f"or --robot (the tree robot file)")
-    if model is not None and out.get("n_sections", model.n_sections) != model.n_sections:
-        raise ValueError(f"render: the run has {out['n_sections']} sections, the model "
-                         f"{model.n_sections}; pass the run's --sections")
-    render_dynamics(out, args, model, gravity, name)
+    out, mech, name = read_run(args)
+    render_dynamics(out, args, mech, name or os.path.splitext(os.path.basename(args.run))[0])
 
 
-def articulated_robot_of(args):
-    """The Mechanism of ``--scenario`` / ``--robot`` when it is a tree robot
-    file (an articulated robot), else None."""
-    from .mechanism import is_tree_file, load_mechanism
-    from .model import find_file, read_yaml_file, robot_mapping
+def _readable(args):
+    """ValueError if the run's file cannot be opened (before the robot is asked for)."""
+    try:
+        open(args.run, "rb").close()
+    except OSError as e:
+        raise ValueError(f"{args.command}: cannot read the run {args.run!r}: {e.strerror or e}") from None
+
+
+def robot_of(args):
+    """(Mechanism, scenario name or None) of ``--scenario`` / ``--robot``, a
+    classic or a tree robot file."""
+    from .mechanism import load_mechanism
+    from .model import find_file
     from .scenario import load_scenario
     if getattr(args, "scenario", None) and getattr(args, "robot", None):
         raise ValueError(f"{args.command}: give --scenario or --robot, not both")
     if getattr(args, "scenario", None):
         sc = load_scenario(args.scenario, args.sections)
-        return sc.mech if sc.model is None else None
+        return sc.mech, os.path.splitext(os.path.basename(sc.source))[0]
     if getattr(args, "robot", None):
-        p = find_file(args.robot, "robots")
-        if is_tree_file(robot_mapping(read_yaml_file(p, what="robot file"), str(p))):
-            return load_mechanism(p)
-    return None
+        return load_mechanism(find_file(args.robot, "robots"), sections=getattr(args, "sections", None)), None
+    raise ValueError(f"{args.command}: give the run's robot: --scenario S or --robot R")
 
 
-def load_articulated_run(args, mech):
-    """An articulated robot's run: the JSON of ``soft-twin-sim dynamics`` or
-    an MCAP recording (:func:`mechanism_recording.read_articulated_run`)."""
-    if args.run.lower().endswith(".mcap"):
-        from .mechanism_recording import read_articulated_run
-        return read_articulated_run(args.run, mech, args.node)
-    out = load_run(args.run)
-    if "history_fields" not in out:
-        raise ValueError(f"{args.run}: not a run of an articulated robot (no joint histories); its robot is "
-                         f"not {mech.name!r}")
-    return out
+def read_run(args):
+    """(run, Mechanism, scenario name or None) of ``render`` and ``view``:
+    RUN is the JSON of ``soft-twin-sim dynamics`` (read first: a bad file
+    is named before the robot is asked for) or an MCAP recording of the
+    twin node (:func:`mechanism_recording.read_node_recording`), of the
+    robot of ``--scenario`` or ``--robot``."""
+    out = None
+    if not args.run.lower().endswith(".mcap"):
+        out = load_run(args.run)
+        if "history_fields" not in out:
+            raise ValueError(f"{args.run}: a run of an older soft-twin-sim (no joint or member histories): run "
+                             f"the scenario again to draw it")
+    else:
+        _readable(args)
+    mech, name = robot_of(args)
+    if out is None:
+        from .mechanism_recording import read_node_recording
+        return read_node_recording(args.run, mech, args.node), mech, name
+    if out.get("member_names", []) != [m.name for m in mech.members] or (
+            out.get("n_sections") is not None and out["n_sections"] != len(mech.tree.soft_joints)):
+        raise ValueError(f"{args.run}: a run of another robot or discretisation (members {out.get('member_names')}, "
+                         f"{out.get('n_sections')} sections) than {mech.name!r} (members "
+                         f"{[m.name for m in mech.members]}, {len(mech.tree.soft_joints)} sections): give the "
+                         f"run's --scenario or --robot and --sections")
+    return out, mech, name
 
 
 def view_main(args, stop=None):
@@ -240,34 +186,17 @@ def view_main(args, stop=None):
     in real time, in a loop, until Ctrl-C (or ``--seconds`` of wall time)."""
     import time as _time
     from .live_view import LiveView
-    from .model import load_model
-    from .scenario import load_scenario
-    from .scene import dynamics_snapshots
-    model, radii = None, args.radius
-    mech = articulated_robot_of(args)
-    if mech is not None:
-        from .mechanism_scene import member_radii, run_snapshots
-        snaps = run_snapshots(load_articulated_run(args, mech), mech)
-        # the run's own samples: a node recording's at the section boundaries, a run's at its points per section
-        radii = member_radii(mech, {m.name: len(P) for m, P in zip(mech.members, snaps[0].members)})
-    else:
-        if args.scenario:
-            model = load_scenario(args.scenario, args.sections).model
-        elif args.robot:
-            model = load_model(args.robot, args.sections)
-        if args.run.lower().endswith(".mcap"):
-            from .recording import read_node_run
-            out = read_node_run(args.run, args.node, model)
-        else:
-            out = load_run(args.run)
-        snaps = dynamics_snapshots(out, model)
+    from .mechanism_scene import member_radii, run_snapshots
+    from .scene import bounds
+    out, mech, _ = read_run(args)
+    snaps = run_snapshots(out, mech)
+    # the run's own samples: a node recording's at the section boundaries, a run's at its points per section
+    radii = args.radius or member_radii(mech, {m.name: len(P) for m, P in zip(mech.members, snaps[0].members)})
     try:
         view = LiveView(port=args.port)
     except OSError as e:
         raise ValueError(f"view: cannot serve on port {args.port}: {e}") from None
-    if mech is not None:                        # an articulated robot: frame its whole motion
-        from .scene import bounds
-        view.frame(*bounds(snaps, pad=0.3))
+    view.frame(*bounds(snaps, pad=0.3))           # one camera framing the whole motion
     say(f"live 3D view of {args.run}: {view.url} ({len(snaps)} states, "
         f"{snaps[-1].time - snaps[0].time:.2f} s, in a loop; Ctrl-C to stop)")
     start = _time.monotonic()

@@ -42,7 +42,6 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from . import kinematics as kin
 from .constrained import FrameLoad
 from .errors import ModelError, ScenarioError
 from .loads import DistributedLoad, Loads, PointLoad
@@ -95,6 +94,10 @@ class Scenario:
             if prof is not None and t is not None:
                 k *= float(np.interp(t, prof[0], prof[1]))
             yield ld, k
+
+    def load_factors(self, t):
+        """The scale of every load at time t [s] (its profile's value; 1 without one)."""
+        return tuple(k for _, k in self._scaled(t, 1.0))
 
     def loads_at(self, t=None, factor=1.0, frames_on_backbone=False):
         """The member loads at time t (profiles applied; None: ignored),
@@ -489,150 +492,17 @@ def run_statics(sc, points_per_section=10, time=None):
     return out
 
 
-# Time-history fields of :func:`run_dynamics`: one row per recorded time
-# (``time``), and one row per backbone sample (``backbone_time``).
-HISTORY_FIELDS = ("time", "tip_position", "tip_velocity", "base_wrench", "strains", "strain_rates",
-                  "newton_iterations")
-BACKBONE_FIELDS = ("backbone_time", "backbone_s", "backbone", "backbone_velocity", "backbone_acceleration",
-                   "internal_wrenches")
-
-
 def run_dynamics(sc, duration, dt, backbone_every=0, theta=0.5, progress=None,
                  points_per_section=10, record_every=1, progress_every=1.0):
-    """Integrate the scenario for ``duration`` s with step ``dt`` s
-    (``n = ceil(duration / dt)`` steps; see :func:`n_steps_for`).
-
-    Returns a dict of time histories, one row per recorded step (every
-    ``record_every`` steps, the first and the last, and every backbone
-    sample): ``time`` (N,) [s], ``k * dt`` (:func:`step_times`); ``tip_position`` (N, 3)
-    [m] and ``tip_velocity`` (N, 3) [m/s], world; ``base_wrench`` (N, 6)
-    [N, N m] (the support's reaction with inertia: world axes, about the
-    base origin); ``strains`` and ``strain_rates`` (N, n_sections, 6) (fixed
-    modes: the reference strain and 0); ``newton_iterations`` (N,). With
-    ``backbone_every = K > 0`` also, at t = 0 and every K steps,
-    ``backbone_time`` (B,), ``backbone_s`` (B, P) [m], ``backbone`` (B, P, 3),
-    ``backbone_velocity`` and ``backbone_acceleration`` (B, P, 3) [m/s,
-    m/s^2] (world), ``internal_wrenches`` (B, P, 6) (body frame; see
-    :func:`dynamics.internal_wrenches_dynamic`). Accelerations are those of
-    the equations of motion at the recorded (q, qdot, t). ``n_sections``,
-    ``dt`` and, when a step fails, ``error`` (the reason; the histories then
-    end at the last converged step) complete the dict.
-
-    The kernels are compiled (or loaded from numba's cache) and the inputs
-    checked by a warm-up before the clock starts: ``progress(fraction,
-    elapsed_s)`` is called once with (0.0, 0.0) right after the warm-up,
-    then at most once per ``progress_every`` wall-clock seconds (0: after
-    every step); ``elapsed_s`` counts from the end of the warm-up."""
-    import time as _time
-    # not a physical difference: the rod runner keeps its own schema until the dynamics runners
-    # are merged (issue 26: the t = 0 acceleration, the warm-up, inputs at the theta point, messages)
-    if sc.model is None:                  # a tree robot: outputs of joints, frames and members
-        from .mechanism_scenario import run_mechanism_dynamics
-        return run_mechanism_dynamics(sc, duration, dt, theta, progress, record_every, backbone_every,
-                                      progress_every, points_per_section)
-    from .dynamics import Simulator, base_reaction_dynamic, internal_wrenches_dynamic
-    from .model import State
-    m = sc.model
-    n_steps = n_steps_for(duration, dt)
-    dt = float(dt)
-    time_of = step_times(dt)
-    backbone_every = count(backbone_every, "backbone_every", 0)
-    record_every = count(record_every, "record_every", 1)
-    points_per_section = count(points_per_section, "points_per_section", 1)
-    check_output_size(n_steps, record_every, backbone_every, m.n_sections * points_per_section + 1)
-    state = State.rest(m)
-    if sc.initial_strains is not None:
-        state.q = sc.initial_strains.copy()
-    if sc.time_varying:
-        inputs = dict(actuation=sc.actuation_at, loads=lambda t: sc.loads_at(t, frames_on_backbone=True))
-    else:
-        inputs = dict(actuation=sc.actuation, loads=sc.loads_at(None, frames_on_backbone=True))
-    sim = Simulator(m, dt, state=state, theta=theta, **inputs)
-    # accelerations at recorded states come from a second simulator: its own
-    # workspace, so the integrator's kept factorisation is never disturbed
-    probe = Simulator(m, dt, state=state, theta=theta, **inputs)
-    out = {key: [] for key in HISTORY_FIELDS + (BACKBONE_FIELDS if backbone_every else ())}
-    fixed_rates = np.zeros(6 * m.n_sections)
-
-    def record(k, q, qdot, qddot, iterations):
-        t = time_of(k)
-        u, loads = sim.actuation_at(t), sim.loads_at(t)
-        out["time"].append(t)
-        out["tip_position"].append(kin.tip_pose(m, q)[:3, 3].tolist())
-        out["tip_velocity"].append((kin.tip_jacobian(m, q, frame="world")[:3] @ qdot).tolist())
-        out["base_wrench"].append(base_reaction_dynamic(m, q, qdot, qddot, u, loads).tolist())
-        out["strains"].append(m.strains(q).tolist())
-        rates = fixed_rates.copy()
-        rates[m.free_index] = qdot
-        out["strain_rates"].append(rates.reshape(m.n_sections, 6).tolist())
-        out["newton_iterations"].append(int(iterations))
-
-    def sample_backbone(k, q, qdot, qddot):
-        t = time_of(k)
-        s_bb, P = kin.backbone(m, q, points_per_section)
-        mot = kin.point_motion(m, q, qdot, qddot, s_bb)
-        out["backbone_time"].append(t)
-        out["backbone_s"].append(s_bb.tolist())
-        out["backbone"].append(P[:, :3, 3].tolist())
-        out["backbone_velocity"].append(mot["v_world"].tolist())
-        out["backbone_acceleration"].append(mot["a_world"].tolist())
-        out["internal_wrenches"].append(internal_wrenches_dynamic(
-            m, q, qdot, qddot, s_bb, sim.actuation_at(t), sim.loads_at(t)).tolist())
-
-    def finish(error=None):
-        if error is not None:
-            out["error"] = error
-        out["n_sections"] = m.n_sections
-        out["dt"] = dt
-        return out
-
-    # warm-up: everything the loop calls runs once (numba compiles or loads
-    # its cache) before the clock starts; the t = 0 row is computed here
-    try:
-        qddot = probe.acceleration(state.q, state.qdot, 0.0)
-        if not np.all(np.isfinite(qddot)):
-            return finish("the initial acceleration is not finite (inputs too large?); nothing simulated")
-        record(0, state.q, state.qdot, qddot, 0)
-        if backbone_every:
-            sample_backbone(0, state.q, state.qdot, qddot)
-        probe.step()           # compiles the step; probe's own state, discarded
-    except (ValueError, ArithmeticError, np.linalg.LinAlgError) as e:
-        for key in out:
-            out[key].clear()
-        return finish(f"the initial state cannot be evaluated: {type(e).__name__}: {e}; nothing simulated")
-    if progress is not None:
-        progress(0.0, 0.0)
-    t0 = last = _time.monotonic()
-    recorded = 0                # the last recorded step
-    iterations = 0              # Newton iterations of the last converged step
-    for k in range(1, n_steps + 1):
-        sim.state.t = time_of(k - 1)
-        try:
-            info = sim.step()
-            failure = None if info.converged else (
-                f"Newton's iteration did not converge ({info.iterations} iterations, "
-                f"relative update {info.update:.3g}, even with sub-steps)")
-        except (ValueError, ArithmeticError, np.linalg.LinAlgError) as e:
-            failure = f"{type(e).__name__}: {e}"
-        if failure is None and not (np.all(np.isfinite(sim.state.q)) and np.all(np.isfinite(sim.state.qdot))):
-            failure = "the state became non-finite"
-        if failure is not None:
-            if recorded != k - 1:       # end the history at the last converged step
-                st = sim.state
-                record(k - 1, st.q, st.qdot, probe.acceleration(st.q, st.qdot, time_of(k - 1)), iterations)
-            return finish(f"step {k} of {n_steps} (t = {time_of(k - 1):.6g} -> {time_of(k):.6g} s) failed: "
-                          f"{failure}; the history ends at t = {time_of(k - 1):.6g} s")
-        st = sim.state
-        st.t = time_of(k)
-        iterations = info.iterations
-        sample = backbone_every and k % backbone_every == 0
-        if k % record_every == 0 or k == n_steps or sample:
-            qddot = probe.acceleration(st.q, st.qdot, st.t)
-            record(k, st.q, st.qdot, qddot, info.iterations)
-            recorded = k
-            if sample:
-                sample_backbone(k, st.q, st.qdot, qddot)
-        if progress is not None and _time.monotonic() - last >= progress_every:
-            progress(k / n_steps, _time.monotonic() - t0)
-            last = _time.monotonic()
-    return finish()
+    """Integrate the scenario of any robot for ``duration`` s with step
+    ``dt`` s (``n = ceil(duration / dt)`` steps; see :func:`n_steps_for`):
+    :func:`mechanism_scenario.run_mechanism_dynamics`, whose docstring lists
+    the time histories (the tip frame, the support's reaction, joints,
+    frames, constraints, section strains and rates, stresses) and, every
+    ``backbone_every`` steps, every member's samples at
+    ``points_per_section`` points per section. ``progress(fraction,
+    elapsed_s)`` is called after the warm-up with (0, 0), then at most once
+    per ``progress_every`` wall-clock seconds."""
+    from .mechanism_scenario import run_mechanism_dynamics
+    return run_mechanism_dynamics(sc, duration, dt, theta, progress, record_every, backbone_every,
+                                  progress_every, points_per_section)

@@ -120,20 +120,6 @@ def segment_ends(model):
     return ends + [float(model.total_length)]
 
 
-def dynamics_snapshots(out, model=None):
-    """Snapshots of a dynamics run (:func:`scenario.run_dynamics` output, or
-    its JSON): one per backbone sample (``--backbone-every``). With the
-    model, the backbone is split into its members."""
-    if not out.get("backbone"):
-        raise ValueError("the run has no backbone samples: run dynamics with --backbone-every K (K >= 1)")
-    ends = segment_ends(model) if model is not None else None
-    snaps = []
-    for t, s, P in zip(out["backbone_time"], out["backbone_s"], out["backbone"]):
-        members, links = split_members(P, s, ends) if ends else ([P], [])
-        snaps.append(Snapshot(members, links, time=float(t)))
-    return snaps
-
-
 def sample_times(times, fps):
     """Indices into increasing ``times`` [s] of the frames of an animation
     playing in real time at ``fps`` frames/s: for each frame time k / fps the

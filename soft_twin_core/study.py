@@ -608,11 +608,6 @@ def build_scenario(study, values):
         if msg.startswith("scenario.robot: "):
             msg = msg[len("scenario.robot: "):]
         raise ScenarioError(msg) from None
-    # not physical: a dynamics case reads the rod's dynamics schema until the runners are merged (issue 26)
-    if sc.model is None and "dynamics" in study.compute:
-        raise ScenarioError(f"scenario.robot: {sc.mech.name!r} is a tree robot (bodies); a study's dynamics runs "
-                            f"on segments robots for now (its histories are a single backbone's); its statics "
-                            f"and workspace run on any robot")
     return sc
 
 

@@ -116,26 +116,22 @@ def _statics(study, sc, robot, opts, out):
 
 
 def _dynamics(study, sc, robot, opts, out):
-    from . import kinematics as kin
-    from .scenario import run_dynamics
-    from .statics import solve_statics
+    from scipy.spatial.transform import Rotation
+    from .scenario import run_dynamics, run_statics
     r = run_dynamics(sc, opts["duration"], opts["dt"], 0, opts["theta"], None, 10, opts["record_every"])
     if "error" in r:
         raise RuntimeError(f"dynamics: {r['error']}")
-    m = sc.model
     rec = set(study.record)
     P = "dynamics."
-    q_end = m.q_from_strains(np.asarray(r["strains"][-1]))
     if "tip_pose" in rec:
-        g = kin.tip_pose(m, q_end)
-        _pose_cols(P, g[:3, 3], g[:3, :3], out)
+        _pose_cols(P, r["tip_position"][-1], Rotation.from_quat(r["tip_orientation"][-1]).as_matrix(), out)
     if "base_wrench" in rec:
         for a, v in zip(_WRENCH, r["base_wrench"][-1]):
             out[f"{P}base_wrench_{a}"] = float(v)
     if "settling_time" in rec:
         T = r["time"][-1]
-        eq = solve_statics(m, sc.actuation_at(T), sc.loads_at(T, frames_on_backbone=True))
-        ts = settling_time(r["time"], r["tip_position"], eq.tip_pose[:3, 3], opts["settling_band"])
+        eq = run_statics(sc, 1, time=T)           # the equilibrium under the final inputs
+        ts = settling_time(r["time"], r["tip_position"], np.asarray(eq["tip_position"]), opts["settling_band"])
         out[P + "settling_time_s"] = ts
         out[P + "settled"] = bool(np.isfinite(ts))
     if "max_tip_speed" in rec:

@@ -110,9 +110,9 @@ def test_dynamics_csv_and_json(tmp_path, capsys):
                               "--backbone-every", "5", "-o", str(f)], capsys)
     assert code == 0, err
     r = json.loads(f.read_text())
-    assert len(r["time"]) == 11 and len(r["backbone"]) == 3 and r["backbone_time"] == [0.0, 0.025, 0.05]
-    assert np.array(r["backbone_velocity"]).shape == np.array(r["backbone"]).shape
-    assert np.array(r["internal_wrenches"]).shape[-1] == 6
+    assert len(r["time"]) == 11 and len(r["member_positions"]) == 3 and r["members_time"] == [0.0, 0.025, 0.05]
+    assert np.array(r["member_velocities"]).shape == np.array(r["member_positions"]).shape
+    assert np.array(r["member_internal_wrenches"]).shape[-1] == 6
     assert np.array(r["base_wrench"]).shape == (11, 6)
     assert r["time"][-1] == 0.05
 

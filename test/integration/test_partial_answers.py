@@ -73,16 +73,18 @@ def test_a_robot_given_as_a_scenario_says_so_and_how_to_use_it():
 def test_render_plot_without_backbone_samples_names_what_it_leaves_out(tmp_path):
     from soft_twin_core.scenario import load_scenario, run_dynamics
     out = run_dynamics(load_scenario("tendon_arm_dynamics"), 0.02, 0.01)
-    assert "backbone" not in out
+    assert "members" not in out
     run = tmp_path / "run.json"
     run.write_text(json.dumps(out))
     p = _cli("render", str(run), "--plot", str(tmp_path / "figs"), "--scenario", "tendon_arm_dynamics")
     assert p.returncode == 0, p.stderr
-    assert ("warning: the run has no backbone samples, so the backbone_shapes and internal_wrenches figures are "
-            "left out: run dynamics with --backbone-every K") in p.stderr
+    assert ("warning: the run has no member samples, so the backbone_shapes, member internal wrench and energies "
+            "figures are left out: run dynamics with --backbone-every K") in p.stderr
     assert (tmp_path / "figs" / "tip.png").exists() and not (tmp_path / "figs" / "backbone_shapes.png").exists()
     p = _cli("render", str(run), "--plot", str(tmp_path / "figs2"))
-    assert "no robot given, so the energies figure is left out" in p.stderr
+    assert p.returncode == 2 and "give the run's robot: --scenario S or --robot R" in p.stderr, p.stderr
+    p = _cli("render", str(run), "--plot", str(tmp_path / "figs3"), "--robot", "pan_tilt_arm")
+    assert p.returncode == 2 and "a run of another robot or discretisation" in p.stderr, p.stderr
 
 
 def test_calibrate_on_a_tree_robot_gives_the_reason(tmp_path):

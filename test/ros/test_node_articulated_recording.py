@@ -63,7 +63,7 @@ def test_recording_of_an_articulated_twin(tmp_path):
     from PIL import Image
     from soft_twin_core import cli
     from soft_twin_core.mechanism_plots import plot_frames, plot_joint_states
-    from soft_twin_core.mechanism_recording import articulated_run_from_messages, read_articulated_run
+    from soft_twin_core.mechanism_recording import articulated_run_from_messages, read_node_recording
     from soft_twin_core.mechanism_scene import run_snapshots
     from soft_twin_core.plots import _save, shapes_figure
     # no subscriber of the wrenches or markers: the recording holds them all the same (issue 25, item 4)
@@ -140,7 +140,7 @@ def test_recording_of_an_articulated_twin(tmp_path):
 
     # figures drawn from the recording equal those drawn from the live messages (the common states)
     mech = load_mechanism(find_file("pan_tilt_arm", "robots"))
-    rec = read_articulated_run(str(path), mech)
+    rec = read_node_recording(str(path), mech)
     def keys(topic, ms):
         return {stamp_key(m.transforms[0].header.stamp) if topic == "/tf" else stamp_key(m.header.stamp) for m in ms}
     common = set.intersection(*(keys(k, v) & keys(k, [d for _, _, d in msgs[k]]) for k, v in live_copy.items()))

@@ -230,9 +230,12 @@ def test_recording_holds_every_topic_and_input(twin, tmp_path):
 
 
     # figures drawn from the recording equal those drawn from the live messages
-    from soft_twin_core import plots, recording
-    from soft_twin_core.scene import dynamics_snapshots
+    from soft_twin_core import recording
+    from soft_twin_core.mechanism import from_robot_model
+    from soft_twin_core.mechanism_plots import plot_dynamics
+    from soft_twin_core.mechanism_scene import run_snapshots
     from PIL import Image
+    mech = from_robot_model(model)
     rec = recording.read_messages(str(path))
     common = (set.intersection(*(set(stamp_key(m.header.stamp) for m in live[k]) for k in live))
               & set(stamp_key(m.header.stamp) for m in rec[f"{ns}/strains"]))
@@ -240,17 +243,17 @@ def test_recording_holds_every_topic_and_input(twin, tmp_path):
 
     def pick(ms):
         return [m for m in ms if stamp_key(m.header.stamp) in common]
-    out_live = recording.run_from_messages(*(pick(live[k]) for k in ("backbone", "tip_pose", "strains")), model)
+    out_live = recording.run_from_messages(*(pick(live[k]) for k in ("backbone", "tip_pose", "strains")), mech)
     out_rec = recording.run_from_messages(*(pick(rec[f"{ns}/{k}"]) for k in ("backbone", "tip_pose", "strains")),
-                                          model)
+                                          mech)
     assert out_live == out_rec
     for name, out in (("live", out_live), ("rec", out_rec)):
-        plots.plot_dynamics(out, str(tmp_path / name), None, True, "twin")   # no model: no energies (time)
+        plot_dynamics(out, str(tmp_path / name), mech, "twin")
     for stem in ("backbone_shapes", "tip", "strains"):
         a = np.asarray(Image.open(tmp_path / "live" / f"{stem}.png"))
         b = np.asarray(Image.open(tmp_path / "rec" / f"{stem}.png"))
         assert np.array_equal(a, b), stem
-    assert len(dynamics_snapshots(out_rec, model)) == len(common)
+    assert len(run_snapshots(out_rec, mech)) == len(common)
     # and soft-twin-sim renders the recording
     from soft_twin_core import cli
     code = cli.main(["render", str(path), "--robot", "tendon_arm", "--plot", str(tmp_path / "cli"),

@@ -18,7 +18,7 @@ from soft_twin_core.mechanism import load_mechanism, mechanism_from_dict
 from soft_twin_core.mechanism_scene import snapshot, solid_outline
 from soft_twin_core.model import find_file
 
-FIGURES = ("backbone_shapes", "joint_states", "joint_wrenches", "frames", "strains", "internal_wrenches_arm",
+FIGURES = ("backbone_shapes", "tip", "joint_states", "joint_wrenches", "frames", "strains", "internal_wrenches_arm",
            "energies")
 
 
@@ -255,7 +255,9 @@ def test_render_from_the_articulated_json_equals_the_live_figures(pan_tilt_run):
 def test_render_of_an_articulated_json_needs_its_robot(pan_tilt_run):
     d, _ = pan_tilt_run
     code, _, err = run_cli(["render", str(d / "run.json"), "--plot", str(d / "x")])
-    assert code == 2 and "articulated robot" in err and "--scenario" in err
+    assert code == 2 and "give the run's robot" in err and "--scenario" in err
+    code, _, err = run_cli(["render", str(d / "run.json"), "--plot", str(d / "x"), "--robot", "tendon_arm"])
+    assert code == 2 and "a run of another robot" in err and "'pan_tilt_arm'" not in err, err
 
 
 # ---------------------------------------------------------------------------
@@ -278,7 +280,7 @@ def test_articulated_mcap_reads_back_with_the_mcap_libraries(pan_tilt_run):
             assert schema.encoding == "ros2msg"
             msgs.setdefault(channel.topic, []).append((message.log_time, decoded))
     ns = "/soft_twin_sim"
-    topics = {f"{ns}/joint_states", f"{ns}/backbones/arm", f"{ns}/tip_pose", f"{ns}/strains", "/tf",
+    topics = {f"{ns}/joint_states", f"{ns}/backbones/arm", f"{ns}/backbone", f"{ns}/tip_pose", f"{ns}/strains", "/tf",
               f"{ns}/joint_wrenches/pan", f"{ns}/joint_wrenches/tilt"}
     assert set(msgs) == topics
     assert {"sensor_msgs/msg/JointState", "tf2_msgs/msg/TFMessage", "geometry_msgs/msg/PoseArray"} <= schemas
@@ -294,6 +296,8 @@ def test_articulated_mcap_reads_back_with_the_mcap_libraries(pan_tilt_run):
     bb = [m for _, m in msgs[f"{ns}/backbones/arm"]]
     assert np.array_equal([[[p.position.x, p.position.y, p.position.z] for p in m.poses] for m in bb],
                           [s["arm"]["positions"] for s in out["members"]])
+    # ~/backbone: the main member's, as the node publishes it
+    assert [list(m.poses) for _, m in msgs[f"{ns}/backbone"]] == [list(m.poses) for m in bb]
     tf = msgs["/tf"][-1][1]
     tilt = next(t for t in tf.transforms if t.child_frame_id == "soft_twin_sim/tilt_link")
     assert tilt.header.frame_id == "base_link"
@@ -303,14 +307,14 @@ def test_articulated_mcap_reads_back_with_the_mcap_libraries(pan_tilt_run):
 def test_plots_from_the_mcap_equal_those_of_the_run(tmp_path):
     """Every sample written (--backbone-every 1): the figures drawn from the
     MCAP read back equal, pixel for pixel, those drawn from the run."""
-    from soft_twin_core.mechanism_recording import read_articulated_run
+    from soft_twin_core.mechanism_recording import read_node_recording
     code, _, err = run_cli(["dynamics", "pan_tilt_arm_dynamics", "--duration", "0.1", "--dt", "0.005",
                             "--backbone-every", "1", "--plot", str(tmp_path / "live"),
                             "--mcap", str(tmp_path / "run.mcap"), "-o", str(tmp_path / "run.json")])
     assert code == 0, err
     mech = load_mechanism(find_file("pan_tilt_arm", "robots"))
     out = json.loads((tmp_path / "run.json").read_text())
-    rec = read_articulated_run(str(tmp_path / "run.mcap"), mech)
+    rec = read_node_recording(str(tmp_path / "run.mcap"), mech)
     assert rec["time"] == pytest.approx(out["time"], abs=1e-9)
     assert np.allclose(rec["frame_poses"], out["frame_poses"], rtol=0, atol=1e-12)
     assert np.array_equal(rec["strains"], out["strains"])

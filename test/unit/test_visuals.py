@@ -16,7 +16,7 @@ from soft_twin_core.model import load_model
 
 HERE = os.path.dirname(os.path.abspath(__file__))
 CONFIG = os.path.join(HERE, "..", "..", "config")
-FIGURES = ("backbone_shapes", "internal_wrenches", "tip", "strains", "energies")
+FIGURES = ("backbone_shapes", "internal_wrenches_backbone", "tip", "strains", "energies")
 
 
 def run_cli(args, capsys):
@@ -88,20 +88,22 @@ def test_members_split_at_rigid_offsets():
 
 
 def test_energies_from_the_run_equal_the_reference(tmp_path):
-    """The energies plotted from a run's strains and strain rates equal the
-    numpy reference's energies of the same state."""
-    from soft_twin_core import plots, reference
+    """The energies a run reports at its samples equal the numpy
+    reference's energies of the state in its strains and strain rates."""
+    from soft_twin_core import reference
+    from soft_twin_core.outputs import q_from_section_strains
     from soft_twin_core.scenario import load_scenario, run_dynamics
     sc = load_scenario("tendon_arm_dynamics")
-    out = run_dynamics(sc, 0.05, 0.005)
-    t, kin_e, ela, grav = plots.energies(sc.model, out)
-    m = sc.model
-    k = len(t) - 1
-    q = m.q_from_strains(np.asarray(out["strains"][k]))
-    v = np.asarray(out["strain_rates"][k]).ravel()[m.free_index]
-    assert kin_e[k] == pytest.approx(reference.kinetic_energy(m.tree, q, v), rel=1e-9)
-    assert kin_e[k] > 0
-    assert ela[k] + grav[k] == pytest.approx(reference.potential_energy(m.tree, q), rel=1e-6)
+    out = run_dynamics(sc, 0.05, 0.005, backbone_every=5)
+    kin_e, ela, grav = np.asarray(out["energies"][-1])
+    tree = sc.mech.tree
+    k = out["time"].index(out["members_time"][-1])
+    q = q_from_section_strains(sc.mech, out["strains"][k], tree.q0)
+    R = np.asarray(out["strain_rates"][k])
+    v = np.concatenate([R[n, tree.joints[i].section.modes] for n, i in enumerate(tree.soft_joints)])
+    assert kin_e == pytest.approx(reference.kinetic_energy(tree, q, v), rel=1e-9)
+    assert kin_e > 0
+    assert ela + grav == pytest.approx(reference.potential_energy(tree, q), rel=1e-6)
 
 
 # ---------------------------------------------------------------------------
@@ -151,7 +153,7 @@ def test_gif_plays_the_run_in_real_time(dynamics_run):
 def test_run_json_has_backbone_samples_at_the_frame_rate(dynamics_run):
     d, _ = dynamics_run
     out = json.loads((d / "run.json").read_text())
-    assert out["backbone_time"] == pytest.approx(np.arange(11) * 0.04, abs=1e-12)
+    assert out["members_time"] == pytest.approx(np.arange(11) * 0.04, abs=1e-12)
 
 
 def test_render_from_the_saved_run_equals_the_live_figures(dynamics_run, capsys):
@@ -222,7 +224,8 @@ def test_render_needs_backbone_samples(tmp_path, capsys):
     run = tmp_path / "r.json"
     code, _, err = run_cli(["dynamics", "tendon_arm_dynamics", "--duration", "0.01", "-o", str(run)], capsys)
     assert code == 0, err
-    code, _, err = run_cli(["render", str(run), "--animate", str(tmp_path / "a.gif")], capsys)
+    code, _, err = run_cli(["render", str(run), "--animate", str(tmp_path / "a.gif"), "--robot", "tendon_arm"],
+                           capsys)
     assert code == 2 and "--backbone-every" in err
 
 
@@ -274,26 +277,33 @@ def test_dynamics_run_as_mcap_renders_like_the_run(tmp_path, capsys):
     orientations are the model's kinematics of the recorded strains."""
     from soft_twin_core import recording
     from soft_twin_core import kinematics as kin
+    from soft_twin_core.mechanism_recording import read_node_recording
     from soft_twin_core.scenario import load_scenario
     path = tmp_path / "run.mcap"
     code, _, err = run_cli(["dynamics", "tendon_arm_dynamics", "--duration", "0.2", "--dt", "0.005",
                             "--backbone-every", "4", "--mcap", str(path), "-o", str(tmp_path / "run.json")], capsys)
     assert code == 0, err
     out = json.loads((tmp_path / "run.json").read_text())
-    model = load_scenario("tendon_arm_dynamics").model
-    run = recording.read_node_run(str(path), model=model)
-    assert run["time"] == pytest.approx(out["backbone_time"], abs=1e-9)
-    assert np.allclose(run["backbone"], out["backbone"], atol=1e-12)
-    rows = [out["time"].index(t) for t in out["backbone_time"]]
-    assert np.allclose(run["tip_position"], np.array(out["tip_position"])[rows], atol=1e-12)
+    sc = load_scenario("tendon_arm_dynamics")
+    model = sc.model
+    run = read_node_recording(str(path), sc.mech)
+    assert run["time"] == pytest.approx(out["members_time"], abs=1e-9)
+    assert np.allclose([m["backbone"]["positions"] for m in run["members"]], out["member_positions"], atol=1e-12)
+    rows = [out["time"].index(t) for t in out["members_time"]]
+    assert np.allclose(run["frame_positions"], np.array(out["tip_position"])[rows][:, None], atol=1e-12)
     assert np.array_equal(np.array(run["strains"]), np.array(out["strains"])[rows])
+    # the topics every twin node publishes read back alike
     msgs = recording.read_messages(str(path))
+    basic = recording.read_node_run(msgs, "/soft_twin_sim", sc.mech)
+    assert np.allclose(basic["tip_position"], np.array(out["tip_position"])[rows], atol=1e-12)
+    assert np.allclose(basic["strain_rates"], np.array(out["strain_rates"])[rows], atol=0)
     b = msgs["/soft_twin_sim/backbone"][-1]
     q = model.q_from_strains(np.array(msgs["/soft_twin_sim/strains"][-1].strains).reshape(-1, 6))
     _, T = kin.backbone(model, q, 10)
     from scipy.spatial.transform import Rotation
     o = b.poses[7].orientation
     assert np.allclose(Rotation.from_quat([o.x, o.y, o.z, o.w]).as_matrix(), T[7, :3, :3], atol=1e-9)
+    assert np.allclose([[p.position.x, p.position.y, p.position.z] for p in b.poses], T[:, :3, 3], atol=1e-12)
     code, _, err = run_cli(["render", str(path), "--robot", "tendon_arm", "--plot", str(tmp_path / "fig")], capsys)
     assert code == 0, err
     check_png(tmp_path / "fig" / "backbone_shapes.png")
