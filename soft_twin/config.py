@@ -344,27 +344,12 @@ class Robot:
     sections_per_segment: int = 0
     mechanism: object = None      # soft_twin_core.mechanism.Mechanism of a tree robot file, else None
     warnings: tuple = ()          # plausibility warnings of the robot file (the node logs them)
+    mech: object = None           # the Mechanism of any robot file (a classic rod: one member, "backbone")
 
     @property
     def articulated(self):
+        """A tree robot file (classic rods keep their closed-form IK and rod planner)."""
         return self.mechanism is not None
-
-    def section_radii(self):
-        """Outer radius [m] of each section, for the RViz tube."""
-        out = []
-        for seg in self.description["segments"]:
-            cs = seg.get("cross_section", {})
-            shape = cs.get("shape", "solid_circle")
-            if shape == "solid_circle":
-                r = cs.get("radius", 0.01)
-            elif shape == "hollow_tube":
-                r = cs.get("outer_radius", 0.01)
-            elif shape == "rectangle":
-                r = 0.5 * max(cs.get("width", 0.02), cs.get("height", 0.02))
-            else:
-                r = math.sqrt(cs.get("area", 3e-4) / math.pi)
-            out += [float(r)] * (self.sections_per_segment or seg.get("sections", 1))
-        return out[: self.model.n_sections] + [out[-1]] * max(0, self.model.n_sections - len(out))
 
 
 def load_robot(cfg):
@@ -402,7 +387,12 @@ def load_robot(cfg):
     if cfg.actuator_names and set(cfg.actuator_names) != set(model.actuator_names):
         raise ConfigError(f"actuator_names {short_list(cfg.actuator_names)} do not match the actuators of "
                           f"{source}: {short_list(model.actuator_names)}")
-    return Robot(model, d, source, cfg.sections_per_segment, mech, found)
+    if mech is None:
+        from soft_twin_core.mechanism import from_robot_model
+        one = from_robot_model(model, mapping)
+    else:
+        one = mech
+    return Robot(model, d, source, cfg.sections_per_segment, mech, found, one)
 
 
 # parameters rclpy declares itself (not ours, not unknown)

@@ -91,7 +91,7 @@ def _lost(total, gaps):
     return str(total) if gaps.supported else "n/a"
 
 
-def values(s, cfg, twin, articulated, gaps, now):
+def values(s, cfg, twin, gaps, now):
     """(key/values of the period ending at monotonic time ``now`` [s], the
     step rate [Hz]); ``gaps``: the SequenceGaps of the actuation, wrench and
     joint topics."""
@@ -105,8 +105,8 @@ def values(s, cfg, twin, articulated, gaps, now):
     t = s.totals
     out = {
         "mode": cfg.mode,
-        "robot": (f"{twin.model.name} (articulated: {twin.mech.tree.n_joints} joints, {twin.mech.tree.nv} dof)"
-                  if articulated else f"{twin.model.name} ({twin.model.n_sections} sections, {twin.model.n_dof} dof)"),
+        "robot": (f"{twin.mech.name} ({len(twin.mech.joint_names)} joints, {len(twin.mech.tree.soft_joints)} "
+                  f"sections, {twin.mech.tree.nv} dof)"),
         "twin_time_s": f"{twin.state.t:.4f}",
         "step_rate_target_hz": f"{cfg.step_rate_hz:.3f}" if cfg.mode == "dynamic" else "on input",
         "step_rate_hz": f"{rate:.3f}",
@@ -148,7 +148,7 @@ def values(s, cfg, twin, articulated, gaps, now):
 
 def joint_values(s, gaps, snap):
     """Joint command counters and the members' peak stresses [Pa] of the
-    last published state ``snap`` (None: none yet) of an articulated robot."""
+    last published state ``snap`` (None: none yet)."""
     t = s.totals
     out = {"joint_commands_received_total": str(t["joint_commands_received"]),
            "joint_commands_applied_total": str(t["joint_commands_applied"]),

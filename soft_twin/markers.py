@@ -62,28 +62,25 @@ def tip_marker(pose, diameter, header):
 
 
 class Markers:
-    """The MarkerArray of a state, for either kind of robot."""
+    """The MarkerArray of a state: a tube per soft member (its sections'
+    radii), the links' shapes, a sphere at the tip."""
 
     def __init__(self):
         self.n_tube = 0
 
     def __call__(self, snap, robot, header):
         out = MarkerArray()
-        if robot.articulated:
-            mech = robot.mechanism
-            for mem in mech.members:
-                T = snap.backbones[mem.name][0]
-                radii = [self._radius(mem.geometry[min(k, len(mem.geometry) - 1)]) for k in range(len(T) - 1)]
-                out.markers += tube(T, radii, header, len(out.markers))
-            n = len(out.markers)
-            out.markers += [link_marker(lk.visual, snap.frames[lk.name], header, k) for k, lk in enumerate(mech.links)]
-            tip = tip_marker(snap.tip_pose, 0.015, header)
-        else:
-            sec, _ = robot.model.locate(0.5 * (snap.s[1:] + snap.s[:-1]))
-            radii = np.asarray(robot.section_radii())[sec]
-            out.markers += tube(snap.backbone, radii, header, 0)
-            n = len(out.markers)
-            tip = tip_marker(snap.backbone[-1], 2.4 * float(radii[-1]), header)
+        mech = robot.mech
+        pps = snap.points_per_section
+        for mem in mech.members:
+            T = snap.backbones[mem.name][0]
+            radii = [self._radius(mem.geometry[min(i // pps, len(mem.geometry) - 1)]) for i in range(len(T) - 1)]
+            out.markers += tube(T, radii, header, len(out.markers))
+        n = len(out.markers)
+        out.markers += [link_marker(lk.visual, snap.frames[lk.name], header, k) for k, lk in enumerate(mech.links)]
+        main = next((m for m in mech.members if m.name == snap.main_member), None)
+        diameter = 2.4 * self._radius(main.geometry[-1]) if main is not None and main.geometry else 0.015
+        tip = tip_marker(snap.tip_pose, diameter, header)
         out.markers.append(tip)
         # fewer samples than before: delete the extra cylinders
         out.markers += [Marker(header=header, ns="tube", id=i, action=Marker.DELETE) for i in range(n, self.n_tube)]

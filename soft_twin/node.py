@@ -1,8 +1,9 @@
-"""The soft_twin ROS 2 node: a real-time digital twin of a soft continuum arm.
+"""The soft_twin ROS 2 node: a real-time digital twin of a soft robot.
 
 Thin by design: everything it computes comes from ``soft_twin_core``
-(through the twin, :mod:`soft_twin_core.twin` or
-:mod:`soft_twin_core.articulated_twin`); the node wires parameters, topics,
+(through the one twin of every robot file,
+:class:`soft_twin_core.articulated_twin.ArticulatedTwin`; the checks at the
+door: :mod:`soft_twin_core.twin`); the node wires parameters, topics,
 services and threads, owns the clock and the state, and never blocks the
 stepping clock. Its collaborators: :mod:`soft_twin.inputs` (message batches
 to checked inputs), :mod:`soft_twin.schedule` (which steps are due),
@@ -199,7 +200,7 @@ class SoftTwinNode(Node):
         from soft_twin.srv import PlanPath
         self._plan_runner = plan_service.PlanRunner(self)
         self._plan_runner.prepare(ActuationCommand, self.cfg.plan_output_topic, "~/actuation")
-        if self.robot.articulated:
+        if self.robot.mech.joint_names:
             self._plan_runner.prepare(JointState, self.cfg.plan_joint_output_topic, "~/joint_commands")
         self.create_service(PlanPath, "~/plan_path", self._guarded(self._srv_plan_path),
                             callback_group=self._service_group)
@@ -247,20 +248,18 @@ class SoftTwinNode(Node):
             self._stepper.start()
 
     # ------------------------------------------------------------------------
-    # articulated robots (tree robot files): joints, members, constraints
+    # the robot: joints, members, constraints (a classic rod: one member, no joints)
     # ------------------------------------------------------------------------
     @staticmethod
     def _describe_robot(robot):
-        m = robot.model
-        if not robot.articulated:
-            return f"{m.n_sections} sections, {m.n_dof} free strains, actuators {list(m.actuator_names)}"
-        return (f"articulated: joints {list(m.joint_names)}, soft members {[x.name for x in m.members]}, "
-                f"constraints {[c.name for c in m.constraints]}, {m.tree.nv} dof, "
-                f"actuators {list(m.actuator_names)}")
+        m = robot.mech
+        return (f"joints {list(m.joint_names)}, soft members {[x.name for x in m.members]} "
+                f"({len(m.tree.soft_joints)} sections), constraints {[c.name for c in m.constraints]}, "
+                f"{m.tree.nv} dof, actuators {list(m.actuator_names)}")
 
     @staticmethod
     def _make_twin(robot, settings):
-        return art.ArticulatedTwin(robot.mechanism, settings) if robot.articulated else tw.Twin(robot.model, settings)
+        return art.ArticulatedTwin(robot.mech, settings)
 
     @staticmethod
     def _make_query_worker(robot):
@@ -283,13 +282,10 @@ class SoftTwinNode(Node):
     def _make_articulated_interfaces(self, qos):
         """Joint states out and joint commands in, one backbone per soft
         member, one wrench topic per constraint and per rigid joint
-        (``_pub_constraints`` keys: constraint names, ("joint", name));
-        articulated robots only."""
-        self._pub_joints = self._sub_joints = None
+        (``_pub_constraints`` keys: constraint names, ("joint", name)):
+        every robot's (a classic rod: no joints, one member)."""
         self._pub_members, self._pub_constraints = {}, {}
-        if not self.robot.articulated:
-            return
-        mech = self.robot.mechanism
+        mech = self.robot.mech
         self._pub_joints = self.create_publisher(JointState, "~/joint_states", qos)
         self._pub_internal = {}
         for m in mech.members:
@@ -308,9 +304,7 @@ class SoftTwinNode(Node):
             callback_group=self._input_group)
 
     def _articulated_publishers(self):
-        """Every publisher of an articulated robot's topics (recorded too; issue 12)."""
-        if self._pub_joints is None:
-            return []
+        """Every publisher of the joint, member and wrench topics (recorded too; issue 12)."""
         return ([self._pub_joints] + list(self._pub_members.values()) + list(self._pub_internal.values())
                 + list(self._pub_constraints.values()))
 
@@ -469,7 +463,7 @@ class SoftTwinNode(Node):
                                         or cfg.actuator_names != self.cfg.actuator_names) else None
             twin = None
             if robot is not None and cfg.robot_key != self.cfg.robot_key:
-                twin = tw.Twin(robot.model, self._settings(cfg))   # solves the rest shape: fails here, not later
+                twin = self._make_twin(robot, self._settings(cfg))   # solves the rest shape: fails here, not later
         except ConfigError as e:
             reason = clip(e, 400)
             self._count_parameter_rejection(reason)
@@ -762,9 +756,8 @@ class SoftTwinNode(Node):
             if snap.command_stamp is not None:
                 strains.last_command = snap.command_stamp
             self._pub_strains.publish(strains)
-        if self.robot.articulated:
-            self._publish_articulated(snap, header)
-            self._last_articulated = snap
+        self._publish_articulated(snap, header)
+        self._last_articulated = snap
         self._tf.publish(snap, robot, header)          # issue 12: /tf
         self._live_view.publish(snap, robot)           # issue 12: browser view (throttled)
         received = self._command_received
@@ -795,13 +788,10 @@ class SoftTwinNode(Node):
             return
         try:
             self._last_wrench_time = now
-            if robot.articulated:
-                tip, base = snap.tip_wrench, snap.base_wrench
-                for key, pub in self._pub_constraints.items():
-                    w = snap.joint_wrenches[key[1]] if isinstance(key, tuple) else snap.constraint_wrenches[key]
-                    pub.publish(WrenchStamped(header=header, wrench=cv.wrench_msg(w)))
-            else:
-                tip, base = tw.wrenches(robot.model, snap)
+            tip, base = snap.tip_wrench, snap.base_wrench
+            for key, pub in self._pub_constraints.items():
+                w = snap.joint_wrenches[key[1]] if isinstance(key, tuple) else snap.constraint_wrenches[key]
+                pub.publish(WrenchStamped(header=header, wrench=cv.wrench_msg(w)))
             self._pub_tip_wrench.publish(WrenchStamped(header=Header(stamp=header.stamp,
                                                                      frame_id=self.cfg.tip_frame),
                                                        wrench=cv.wrench_msg(tip)))
@@ -815,9 +805,8 @@ class SoftTwinNode(Node):
         with self._lock:
             s, cfg, twin = self.stats, self.cfg, self.twin
             gaps = {"actuation": self._command_gaps, "wrench": self._wrench_gaps, "joint": self._joint_gaps}
-            values, rate = diagnostics.values(s, cfg, twin, self.robot.articulated, gaps, now)
-            if self.robot.articulated:
-                values.update(diagnostics.joint_values(s, gaps, getattr(self, "_last_articulated", None)))
+            values, rate = diagnostics.values(s, cfg, twin, gaps, now)
+            values.update(diagnostics.joint_values(s, gaps, getattr(self, "_last_articulated", None)))
             new_error = s.totals["internal_errors"] > self._reported_internal_errors
             level, message = diagnostics.level(s, cfg, rate, new_error)
             if new_error and message.startswith("internal error"):

@@ -256,6 +256,8 @@ def channels(plan, cfg, actuation_type, joint_type):
 def handle(node, runner, req, resp, actuation_type, joint_type):
     """The ~/plan_path callback body (node: the TwinNode)."""
     model, q, u, w, frame, cfg, _ = services.copy_state(node)
+    # not physical: a classic rod plans with the rod planner (its dynamic check and lag compensation are
+    # not ported to the articulated planner yet: issue 26); tree robots in the node's query worker process
     if node.robot.articulated:
         # in the node's query worker process (soft_twin.query_worker)
         plan, err = plan_request(req, lambda path, **options: node.query("plan", path, **options))

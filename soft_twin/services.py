@@ -34,12 +34,12 @@ def copy_state(node):
     needs, copied under the node's lock."""
     with node._lock:
         t = node.twin
-        return (t.model, t.state.q.copy(), t.u.copy(), t.tip_wrench.copy(), t.tip_frame,
+        return (node.robot.model, t.state.q.copy(), t.u.copy(), t.tip_wrench.copy(), t.tip_frame,
                 node.cfg, node.cfg.actuator_names)
 
 
 def _twin_copy(node):
-    """An articulated twin's quasi-static copy for a query, taken under the node's lock."""
+    """The twin's quasi-static copy for a query, taken under the node's lock."""
     with node._lock:
         return node.twin.query_copy()
 
@@ -60,18 +60,13 @@ def forward_kinematics(node, req, resp):
     except tw.InputError as e:
         resp.success, resp.message = False, clip(f"actuation rejected ({e.reason}): {e}", 400)
         return resp
-    if node.robot.articulated:
-        try:
-            message, res = _twin_copy(node).forward_kinematics(req.strains, actuation)
-        except (ValueError, StaticsError) as e:
-            resp.success, resp.message = False, clip(str(e), 400)
-            return resp
-        success = True
-    else:
-        res = tw.forward_kinematics(model, q, cfg.backbone_points_per_section, req.strains, actuation)
-        success, message = res.success, res.message
-    resp.success, resp.message = success, clip(message, 400)
-    if success:
+    try:
+        message, res = _twin_copy(node).forward_kinematics(req.strains, actuation)
+    except (ValueError, StaticsError) as e:
+        resp.success, resp.message = False, clip(str(e), 400)
+        return resp
+    resp.success, resp.message = True, clip(message, 400)
+    if resp.success:
         resp.backbone = cv.pose_array(res.backbone, node._header(cfg.base_frame))
         resp.strains = res.strains.ravel().tolist()
         resp.tip_pose = cv.pose_msg(res.tip_pose)
@@ -91,21 +86,16 @@ def statics_query(node, req, resp):
     except tw.InputError as e:
         resp.success, resp.message = False, clip(f"input rejected ({e.reason}): {e}", 400)
         return resp
-    if node.robot.articulated:
-        info, res = _twin_copy(node).statics(actuation, w, frame)       # joints at the twin's current commands
-        success, message, iterations, residual = info.converged, info.message or "ok", info.iterations, None
-    else:
-        res = tw.statics_query(model, q, cfg.backbone_points_per_section, actuation, w, frame)
-        success, message, iterations, residual = res.success, res.message, res.iterations, res.residual
-    resp.success, resp.message = success, clip(message, 400)
-    if success:
+    info, res = _twin_copy(node).statics(actuation, w, frame)       # joints at the twin's current commands
+    resp.success, resp.message = info.converged, clip(info.message or "ok", 400)
+    if info.converged:
         resp.backbone = cv.pose_array(res.backbone, node._header(cfg.base_frame))
         resp.strains = res.strains.ravel().tolist()
         resp.tip_pose = cv.pose_msg(res.tip_pose)
         resp.base_wrench = cv.wrench_msg(res.base_wrench)
-        resp.iterations = int(iterations)
-        if residual is not None:
-            resp.residual = float(residual)
+        resp.iterations = int(info.iterations)
+        if info.residual is not None:
+            resp.residual = float(info.residual)
     return resp
 
 
@@ -132,6 +122,8 @@ def _inverse_kinematics(node, req, resp):
     except ValueError as e:
         resp.success, resp.message = False, clip(f"target rejected: {e}", 400)
         return resp
+    # not physical: a classic rod's IK is the rod planner's compiled sample solve (closed form where it
+    # applies, milliseconds in this process); tree robots' runs in the query worker (issue 26: one planner)
     if node.robot.articulated:
         return _articulated_ik(node, req, resp, target, tol or 1e-6)
     model, q, u, w, frame, cfg, order = copy_state(node)

@@ -1,13 +1,16 @@
 """The twin's frames on ``/tf`` (tf2_msgs/TFMessage): with the published
-states, at most ``tf_rate_hz`` (default 50 Hz), the cross-section frames at the robot's base (s = 0), at the start of
-every further section, and at the tip, each as a child of ``base_frame``
-(the robot description's world frame), stamped like the state topics.
+states, at most ``tf_rate_hz`` (default 50 Hz), every named frame of the
+robot, the cross-section frames at every soft member's section boundaries,
+and the tip, each as a child of ``base_frame`` (the robot description's
+world frame), stamped like the state topics.
 
-Frame ids: ``<prefix>base``, ``<prefix>section_<i>`` (i = 1 .. n-1, the
-start of section i) and ``tip_frame`` (the tip pose topic's frame, so
-``lookup_transform(base_frame, tip_frame)`` gives exactly ``~/tip_pose``).
-The prefix is the ``tf_prefix`` parameter, by default the node's name and a
-slash (``soft_twin/section_3``), so several twins share one /tf.
+Frame ids: ``<prefix><frame>`` (links, member tips, user frames; a classic
+rod's ``tip``), ``<prefix><member>_<i>`` (i = 0 at the member's base, i =
+n_sections at its end; a classic rod's member is ``backbone``) and
+``tip_frame`` (the tip pose topic's frame, so ``lookup_transform(base_frame,
+tip_frame)`` gives exactly ``~/tip_pose``). The prefix is the ``tf_prefix``
+parameter, by default the node's name and a slash
+(``soft_twin/backbone_3``), so several twins share one /tf.
 
 tf2_msgs comes from a ROS installation or, in the pinned venv, from the
 set-up's build of interfaces/tf2_msgs (the ROS wheels on PyPI have none).
@@ -31,33 +34,15 @@ def frame_prefix(tf_prefix, node_name):
     return tf_prefix if tf_prefix else f"{node_name}/"
 
 
-def frame_indices(model, s):
-    """Indices into the backbone samples ``s`` [m] of the base (s = 0) and of
-    the start of every section after the first."""
-    idx = np.searchsorted(s, model.s_starts)
-    if not np.allclose(s[idx], model.s_starts, rtol=0, atol=1e-12):
-        raise ValueError("the backbone samples do not include the section starts")
-    return idx
-
-
-def frames(snap, model, prefix, tip_frame, indices=None):
-    """[(child frame id, 4x4 pose in base_frame)] of one state
-    (``indices``: :func:`frame_indices` of its samples, when known)."""
-    idx = frame_indices(model, snap.s) if indices is None else indices
-    out = [(f"{prefix}base", snap.backbone[idx[0]])]
-    out += [(f"{prefix}section_{i}", snap.backbone[k]) for i, k in enumerate(idx[1:], start=1)]
-    out.append((tip_frame, snap.tip_pose))
-    return out
-
-
 def articulated_frames(snap, prefix, tip_frame):
-    """(child frame id, pose) of an articulated robot's state: every named
-    frame of the robot (links, member tips, user frames) as
-    ``<prefix><name>``, every member's section boundaries as
-    ``<prefix><member>_<i>``, and the tip as ``tip_frame``."""
+    """(child frame id, pose) of a state: every named frame of the robot
+    (links, member tips, user frames) as ``<prefix><name>``, every member's
+    section boundaries as ``<prefix><member>_<i>`` (i = 0 at its base), and
+    the tip as ``tip_frame``."""
     out = [(f"{prefix}{name}", g) for name, g in snap.frames.items()]
+    k = snap.points_per_section
     for member, (poses, _) in snap.backbones.items():
-        out += [(f"{prefix}{member}_{i}", g) for i, g in enumerate(poses)]
+        out += [(f"{prefix}{member}_{i}", g) for i, g in enumerate(poses[::k])]
     out.append((tip_frame, snap.tip_pose))
     return out
 
@@ -84,7 +69,6 @@ class TfOutput:
     def __init__(self, node):
         self._node = node
         self.publisher = node.create_publisher(TFMessage, "/tf", TF_QOS)
-        self._indices = (None, None, None)     # (model, number of samples, indices)
         self._last = -float("inf")
 
     def publish(self, snap, robot, header):
@@ -99,11 +83,4 @@ class TfOutput:
             return
         self._last = now
         prefix = frame_prefix(cfg.tf_prefix, self._node.get_name())
-        if getattr(robot, "articulated", False):
-            self.publisher.publish(tf_message(articulated_frames(snap, prefix, cfg.tip_frame), header))
-            return
-        model, n = robot.model, len(snap.s)
-        if self._indices[:2] != (model, n):
-            self._indices = (model, n, frame_indices(model, snap.s))
-        prefix = frame_prefix(cfg.tf_prefix, self._node.get_name())
-        self.publisher.publish(tf_message(frames(snap, model, prefix, cfg.tip_frame, self._indices[2]), header))
+        self.publisher.publish(tf_message(articulated_frames(snap, prefix, cfg.tip_frame), header))

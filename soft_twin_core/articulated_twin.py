@@ -1,9 +1,9 @@
-"""The twin of a soft articulated robot (a tree robot file), free of ROS.
-
-:class:`ArticulatedTwin` has the interface of :class:`soft_twin_core.twin.Twin`
-that the node drives (inputs, ``step``, ``outputs``, ``reset``,
-``change_settings``, ``warm_up``) on the multibody engine with joints and
-constraints (:mod:`soft_twin_core.constrained`): ``dynamic`` mode steps a
+"""The digital twin of any robot (a classic rod is a one-member mechanism),
+free of ROS: the state machine the node drives (inputs, ``step``,
+``outputs``, ``reset``, ``change_settings``, ``warm_up``) on the multibody
+engine with joints and constraints (:mod:`soft_twin_core.constrained`; the
+compiled O(n) integrator and static Newton when the robot has no constraint
+rows): ``dynamic`` mode steps a
 :class:`~soft_twin_core.constrained.MechanismSimulator`, ``quasi_static``
 mode solves the equilibrium on every input change. On top of actuation and
 a tip wrench it takes *joint commands* (:func:`parse_joint_command`):
@@ -17,7 +17,9 @@ one backbone per soft member, frame poses, constraint and base wrenches,
 peak stresses. Frames: the core's world = the node's base frame.
 """
 
-from dataclasses import dataclass
+import contextlib
+from dataclasses import dataclass, field
+from functools import cached_property
 import math
 import time
 
@@ -27,8 +29,11 @@ from . import articulated_planner as ap
 from . import constrained as cs
 from .mechanism import check_joint_position, shape_command, tip_frame
 from .model import State
-from .outputs import base_reaction, main_member, q_from_section_strains, section_strains, state_outputs
+from .outputs import (base_reaction, main_member, q_from_section_strains, section_rates, section_strains,
+                      state_outputs, state_shape)
+from .workspace import Workspace
 
+from ._blas import one_blas_thread
 from .text import clip, short_list
 from .twin import STEP_ERRORS, DropPolicy, InputError, TwinSettings, UpdateInfo
 
@@ -119,16 +124,21 @@ class ArticulatedIK:
 class ArticulatedSnapshot:
     """One state: mode, t [s], u (actuation), joint names and positions,
     velocities, efforts (rad, rad/s, N m or m, m/s, N); backbones {member:
-    (poses (N, 4, 4), s (N,))} at section boundaries; main member name;
-    backbone and s of the main member (the one with the tip), tip_pose;
-    strains and strain_rates (n_soft_sections, 6) in tree order; frames
-    {name: 4x4}; tip_wrench (the load at the tip frame, tip axes) and
-    base_wrench (the support's reaction on the robot: the sum of the root
-    joints' transmitted wrenches, base axes, about the base origin);
-    constraint_wrenches {name: world [f; m] on its frame}; stresses
-    {member: (peak normal, peak shear) Pa}; command_stamp; joint_wrenches
-    {rigid joint: world [f; m] transmitted through it (the parent side on
-    the child side), about the joint's origin}."""
+    (poses (N, 4, 4), s (N,))} at the settings' points per section; main
+    member name; backbone and s of the main member (the one with the tip),
+    tip_pose; strains and strain_rates (n_soft_sections, 6) in tree order;
+    frames {name: 4x4}; tip_wrench (the load at the tip frame, tip axes);
+    command_stamp. These come from one forward pass (the poses), what every
+    published state needs. The loads inside the robot are computed on
+    first use, once (an RNEA pass and the members' cut wrenches; the node
+    asks for them at ``wrench_rate_hz``): ``base_wrench`` (the support's
+    reaction on the robot: the sum of the root joints' transmitted wrenches,
+    base axes, about the base origin), ``constraint_wrenches`` {name: world
+    [f; m] on its frame}, ``joint_wrenches`` {rigid joint: world [f; m]
+    transmitted through it (the parent side on the child side), about the
+    joint's origin}, ``internal_wrenches`` {member: (N, 6) at its backbone
+    points, section axes} and ``stresses`` {member: (peak normal, peak
+    shear) Pa}."""
     mode: str
     t: float
     u: np.ndarray
@@ -145,12 +155,36 @@ class ArticulatedSnapshot:
     strain_rates: np.ndarray
     frames: dict
     tip_wrench: np.ndarray
-    base_wrench: np.ndarray
-    constraint_wrenches: dict
-    stresses: dict
     command_stamp: object = None
-    joint_wrenches: dict = None     # {joint: world [f; m] through it, about its input origin}
-    internal_wrenches: dict = None  # {member: (n_sections + 1, 6) at its section boundaries, section axes}
+    points_per_section: int = 1     # backbone points per section (every member's section boundaries: [::pps])
+    state: tuple = field(default=None, repr=False)    # (mech, q, v, a, lam, inputs): what the loads need
+
+    @cached_property
+    def _loads(self):
+        mech, q, v, a, lam, inp = self.state
+        return state_outputs(mech, q, lam, inp, v, a, points_per_section=self.points_per_section,
+                             member_motion=False)
+
+    @property
+    def base_wrench(self):
+        return base_reaction(self.state[0], self._loads.joint_wrenches)
+
+    @property
+    def constraint_wrenches(self):
+        return self._loads.constraint_wrenches
+
+    @property
+    def joint_wrenches(self):
+        return {n: self._loads.joint_wrenches[n] for n in self.joint_names}
+
+    @property
+    def internal_wrenches(self):
+        return {m.name: m.internal_wrench for m in self._loads.members}
+
+    @property
+    def stresses(self):
+        return {m.name: (float(np.nanmax(m.normal_stress, initial=0.0)), float(np.nanmax(m.shear_stress, initial=0.0)))
+                for m in self._loads.members}
 
 
 class ArticulatedTwin:
@@ -256,9 +290,10 @@ class ArticulatedTwin:
 
     def _new_sim(self, q, v):
         s = self.settings
-        sim = cs.MechanismSimulator(self.mech, s.dt, s.theta, q, v, tol=s.tolerance,
-                                    max_iterations=max(s.max_iterations, 10))
-        return sim
+        # the work a failing step may do is bounded as the settings say (real time: see TwinSettings)
+        return cs.MechanismSimulator(self.mech, s.dt, s.theta, q, v, tol=s.tolerance,
+                                     max_iterations=max(s.max_iterations, 10),
+                                     max_substep_levels=s.max_substep_levels, full_newton=bool(s.full_newton))
 
     def reset(self, solve=True):
         mech = self.mech
@@ -307,30 +342,51 @@ class ArticulatedTwin:
 
     # --- advancing ----------------------------------------------------------
     def step(self, n=1):
+        """Dynamic: up to n steps of dt. Quasi-static: one equilibrium solve
+        for the current inputs (if they changed). On failure the state is
+        kept (the last good one), ``converged`` is False, the remaining
+        steps are not tried, and the input that failed is dropped
+        (:class:`soft_twin_core.twin.DropPolicy`)."""
         t0 = time.perf_counter()
-        if self.settings.mode == "dynamic":
-            info = UpdateInfo()
+        if self.settings.mode != "dynamic":
+            info = self._solve()
+            info.compute_time = time.perf_counter() - t0
+            return info
+        info = UpdateInfo()
+        shaping = bool(self._ref)          # position-controlled joints follow shaped references
+        inp = None if shaping else self.core_inputs()      # else the inputs hold over the n steps
+        with one_blas_thread() if self.lam.size else contextlib.nullcontext():   # dense KKT solves only
             for _ in range(n):
-                ref = self._shaped(self.settings.dt)
-                try:
+                if shaping:
+                    ref = self._shaped(self.settings.dt)
                     inp = self.core_inputs({k: r for k, (r, _) in ref.items()}, {k: v for k, (_, v) in ref.items()})
+                try:
                     self._sim.step(inputs=inp)
                 except (cs.StepError,) + STEP_ERRORS as e:
+                    if info.steps:
+                        self._commit()
                     info.converged = False
                     info.dropped = self._drop()
-                    info.message = (f"dynamics step at t = {self.state.t:.4f} s failed ({clip(e, 300)}); state kept"
-                                    + (", input dropped" if info.dropped else ""))
+                    why = clip(e, 300) if isinstance(e, cs.StepError) else f"{type(e).__name__}: {clip(e, 300)}"
+                    info.message = (f"dynamics step at t = {self.state.t:.4f} s did not converge ({why}); "
+                                    f"state kept at the last good step"
+                                    + (f", input dropped ({' and '.join(info.dropped)})" if info.dropped else ""))
                     break
                 info.steps += 1
-                self._ref = ref
+                if shaping:
+                    self._ref = ref
                 info.iterations += self._sim.iterations
-                self.state = State(self._sim.q.copy(), self._sim.v.copy(), self._sim.t)
-                self.lam = self._sim.lam.copy()
-                self._keep_good()
-        else:
-            info = self._solve()
+            else:
+                if info.steps:
+                    self._commit()
         info.compute_time = time.perf_counter() - t0
         return info
+
+    def _commit(self):
+        """The simulator's state is the twin's, reached with the current inputs."""
+        self.state = State(self._sim.q.copy(), self._sim.v.copy(), self._sim.t)
+        self.lam = self._sim.lam.copy()
+        self._keep_good()
 
     def _drop(self):
         """After a failed step or solve: :class:`soft_twin_core.twin.DropPolicy`
@@ -367,6 +423,7 @@ class ArticulatedTwin:
                                            f"state kept", dropped=dropped)
         self._keep_good()
         self._tangent = eq.tangent
+        residual = eq.residual
         self._ref = {n: (float(v), 0.0) for n, v in self.positions.items()}
         self.state.q = eq.q.copy()
         self.state.qdot = np.zeros(self.mech.tree.nv)
@@ -374,7 +431,7 @@ class ArticulatedTwin:
         return UpdateInfo(1, eq.iterations, True, "" if eq.stable else
                           f"only an unstable equilibrium was found (smallest reduced stiffness eigenvalue "
                           f"{eq.min_stiffness_eigenvalue:.3g}): the robot buckles or snaps through under these "
-                          f"inputs", stable=eq.stable)
+                          f"inputs", stable=eq.stable, residual=float(residual))
 
     # --- queries (never touch this twin) ------------------------------------
     def query_copy(self):
@@ -382,7 +439,7 @@ class ArticulatedTwin:
         the model is shared), for queries run outside the node's lock."""
         import copy
         q = copy.copy(self)
-        q.settings = TwinSettings(mode="quasi_static")
+        q.settings = TwinSettings(mode="quasi_static", points_per_section=self.settings.points_per_section)
         q.state = State(self.state.q.copy(), np.zeros(self.mech.tree.nv), self.state.t)
         q.positions, q.efforts = dict(self.positions), dict(self.efforts)
         q.lam, q._sim = self.lam.copy(), None
@@ -484,6 +541,9 @@ class ArticulatedTwin:
 
     # --- outputs ------------------------------------------------------------
     def outputs(self):
+        """The :class:`ArticulatedSnapshot` of the current state, with the
+        inputs it reflects (after a failed step or solve: those of the last
+        good one): its poses now, the loads inside the robot on first use."""
         mech, tree = self.mech, self.mech.tree
         u, w, frame, pos, eff, stamp = self._good[:6]
         dynamic = self.settings.mode == "dynamic" and self._sim is not None
@@ -492,32 +552,25 @@ class ArticulatedTwin:
         a = self._sim.a.copy() if dynamic else None
         pl = [cs.FrameLoad(self.tip, w, "world" if frame == "world" else "body")] if np.any(w) else []
         inp = cs.assemble_inputs(mech, u, eff, pos, None, pl)         # the good state's inputs: checked
-        out = state_outputs(mech, q, self.lam, inp, v, a, member_motion=False)    # the snapshot has no point velocities
+        ws = self.__dict__.get("_shape_ws")
+        if ws is None:
+            ws = self._shape_ws = Workspace(tree)
+        frames, backbones = state_shape(mech, ws, q, self.settings.points_per_section)
         names = mech.joint_names
-        backbones = {m.name: (m.poses, m.s) for m in out.members}
-        tip_pose = out.frames[self.tip]
+        tip_pose = frames[self.tip]
         main = getattr(main_member(mech, self.tip), "name", "")
         bb, s = backbones.get(main, (tip_pose[None], np.zeros(1)))
-        soft = tree.soft_joints
-        strains = section_strains(mech, q)
-        rates = np.zeros((len(soft), 6))
-        if v is not None:
-            for k, i in enumerate(soft):
-                modes = tree.joints[i].section.modes
-                rates[k, modes] = v[tree.idx_v[i]:tree.idx_v[i] + len(modes)]
-        base = base_reaction(mech, out.joint_wrenches)
+        rates = section_rates(mech, v) if v is not None else np.zeros((len(tree.soft_joints), 6))
         R = tip_pose[:3, :3]
         tip_w = np.concatenate([R.T @ w[:3], R.T @ w[3:]]) if frame == "world" else w.copy()
+        iq = [tree.idx_q[tree.joint_index(n)] for n in names]
+        iv = [tree.idx_v[tree.joint_index(n)] for n in names]
+        efforts = cs._efforts_out(mech, self.lam, inp)
         return ArticulatedSnapshot(
             mode=self.settings.mode, t=float(self.state.t), u=u.copy(), joint_names=names,
-            joint_positions=np.array([out.positions[n] for n in names]),
-            joint_velocities=np.array([out.velocities[n] for n in names]),
-            joint_efforts=np.array([out.efforts[n] for n in names]),
+            joint_positions=q[iq].copy(), joint_velocities=v[iv].copy() if v is not None else np.zeros(len(names)),
+            joint_efforts=np.array([efforts[n] for n in names]),
             backbones=backbones, main_member=main, s=s, backbone=bb, tip_pose=tip_pose,
-            strains=strains, strain_rates=rates, frames=out.frames, tip_wrench=tip_w, base_wrench=base,
-            constraint_wrenches=out.constraint_wrenches,
-            stresses={m.name: (float(np.nanmax(m.normal_stress, initial=0.0)),
-                               float(np.nanmax(m.shear_stress, initial=0.0))) for m in out.members},
-            command_stamp=stamp,
-            joint_wrenches={n: out.joint_wrenches[n] for n in names},
-            internal_wrenches={m.name: m.internal_wrench for m in out.members})
+            strains=section_strains(mech, q), strain_rates=rates, frames=frames, tip_wrench=tip_w,
+            command_stamp=stamp, points_per_section=self.settings.points_per_section,
+            state=(mech, q, v, a, self.lam.copy(), inp))

@@ -608,14 +608,16 @@ class MechanismSimulator:
     position-controlled joints' efforts as multipliers; every constraint
     holds at the end of each step to ``constraint_tol`` (position level: no
     drift). State: ``t`` [s], ``q``, ``v``, ``a`` (the step's mean
-    acceleration), ``lam``.
+    acceleration), ``lam``. Without multipliers a failing step is retried
+    in up to 2**``max_substep_levels`` sub-steps, then (``full_newton``) by
+    the dense Newton fallback (:class:`integrators.ThetaIntegrator`).
 
     >>> sim = MechanismSimulator(mech, dt=2e-3)
     >>> sim.step(positions={"pan": 0.2}, n=100)
     """
 
     def __init__(self, mech, dt, theta=0.5, q=None, v=None, *, tol=1e-10, constraint_tol=1e-12,
-                 max_iterations=40):
+                 max_iterations=40, max_substep_levels=4, full_newton=True):
         if not dt > 0 or not np.isfinite(dt):
             raise ValueError(f"dt: expected a positive time step [s], got {dt}")
         if not 0.5 <= theta <= 1.0:
@@ -639,7 +641,8 @@ class MechanismSimulator:
         self._theta_integrator = None
         if self.lam.size == 0:
             self._theta_integrator = ThetaIntegrator(tree, self.ws, self.act, lambda t: self._held, self.dt, self.theta,
-                                                     tol=tol, max_iterations=max_iterations)
+                                                     tol=tol, max_iterations=max_iterations,
+                                                     max_substep_levels=max_substep_levels, full_newton=full_newton)
 
     def step(self, actuation=None, efforts=None, positions=None, loads=None, point_loads=(), targets=None,
              n=1, inputs=None):
@@ -650,12 +653,12 @@ class MechanismSimulator:
         inp = inputs if inputs is not None else make_inputs(self.mech, actuation, efforts, positions, None,
                                                             loads, point_loads)
         self.inputs = inp
+        if self._theta_integrator is not None:
+            self._run_free(inp, int(n))          # the O(n) passes: no BLAS
+            return self
         with one_blas_thread():
-            if self._theta_integrator is not None:
-                self._run_free(inp, int(n))
-            else:
-                for _ in range(int(n)):
-                    self._step(inp, targets)
+            for _ in range(int(n)):
+                self._step(inp, targets)
         return self
 
     def _run_free(self, inp, n):

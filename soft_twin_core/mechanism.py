@@ -362,11 +362,17 @@ def _joint(b, jd, where, default_name, is_member):
 
 
 def _member_geometry(segments, robot):
-    """Per-section SectionGeometry (None where a segment gives ``sectional``)."""
+    """Per-section SectionGeometry (None where a segment gives ``sectional``),
+    each segment's for as many sections as the model gives it (the file's
+    ``sections``, or the same count for every segment when the model was
+    built with a section-count override)."""
+    counts = [int(sd.get("sections", 1)) for sd in segments]
+    if sum(counts) != robot.n_sections and segments and robot.n_sections % len(segments) == 0:
+        counts = [robot.n_sections // len(segments)] * len(segments)      # model_from_dict's override
     out = []
-    for sd in segments:
+    for sd, n in zip(segments, counts):
         g = section_geometry(sd["cross_section"]) if "cross_section" in sd else None
-        out += [g] * int(sd.get("sections", 1))
+        out += [g] * n
     return out
 
 

@@ -293,7 +293,6 @@ def run_mechanism_dynamics(sc, duration, dt, theta=0.5, progress=None, record_ev
     checked by a warm-up before the clock starts: ``progress(fraction,
     elapsed_s)`` is called once with (0.0, 0.0) right after it, then at most
     once per ``progress_every`` wall-clock seconds (0: after every step)."""
-    import time as _time
     mech = sc.mech
     n_steps = n_steps_for(duration, dt)
     dt = float(dt)

@@ -98,6 +98,39 @@ def member_samples(mech, member, points_per_section=1):
     return np.array(J, np.int64), np.concatenate(X).astype(float), np.concatenate(S).astype(float)
 
 
+def _samples(mech, points_per_section):
+    """[(member, joint, x, s)] of every member's samples (kept on the mechanism)."""
+    key = f"_member_samples_{int(points_per_section)}"
+    out = mech.__dict__.get(key)
+    if out is None:
+        out = [(m,) + member_samples(mech, m, points_per_section) for m in mech.members]
+        object.__setattr__(mech, key, out)
+    return out
+
+
+def state_shape(mech, ws, q, points_per_section=1):
+    """The poses of configuration q, nothing else (one forward pass): (frames
+    {name: world 4x4}, members {member: (poses (P, 4, 4), s (P,))} at
+    ``points_per_section`` points per section and its end)."""
+    from .kernels.frames import point_poses
+    passes.forward_pass(ws.m, ws.w, np.ascontiguousarray(q, float), ws.zeros_v, ws.zeros_v, 0)
+    refs = mech.__dict__.get("_frame_arrays")
+    if refs is None:
+        names = list(mech.frames)
+        refs = (names, np.array([mech.frames[n].joint for n in names], np.int64),
+                np.array([mech.frames[n].x for n in names], float))
+        object.__setattr__(mech, "_frame_arrays", refs)
+    P = np.empty((len(refs[0]), 4, 4))
+    if refs[0]:
+        point_poses(ws.m, ws.w, refs[1], refs[2], P)
+    members = {}
+    for m, J, X, S in _samples(mech, points_per_section):
+        G = np.empty((len(J), 4, 4))
+        point_poses(ws.m, ws.w, J, X, G)
+        members[m.name] = (G, S)
+    return dict(zip(refs[0], P)), members
+
+
 def cut_wrenches(ws, loads, joints, xs, poses):
     """The wrenches [f; m] the distal part exerts on the proximal part
     through the cross-sections at abscissae ``xs`` (P,) of soft joints

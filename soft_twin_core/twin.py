@@ -1,45 +1,36 @@
-"""The digital twin's state machine, free of ROS (the node wraps it).
+"""What the twin takes and how it behaves, free of ROS (the node wraps it):
+the checks at the door, the settings, the drop policy, and the classic
+rod's closed-form-capable IK query. The twin itself, for every robot, is
+:class:`soft_twin_core.articulated_twin.ArticulatedTwin`.
 
-A :class:`Twin` owns one robot model, its current state and the inputs
-applied to it, and advances it with the core: ``dynamic`` mode integrates in
-time (:class:`soft_twin_core.dynamics.Simulator`, one fixed step of ``dt``
-per :meth:`Twin.step`), ``quasi_static`` mode solves the static equilibrium
-for the current inputs, warm-started from the last shape
-(:func:`soft_twin_core.statics.solve_statics`). :meth:`Twin.outputs` gives an
-immutable :class:`Snapshot` of everything the node publishes, and
-:func:`wrenches` the tip and base wrenches of one.
-
-Inputs are validated here (:func:`parse_actuation`, :func:`parse_tip_wrench`):
+Inputs are validated here (:func:`parse_actuation`, :func:`parse_tip_wrench`;
+joint commands: :func:`soft_twin_core.articulated_twin.parse_joint_command`):
 a bad input raises :class:`InputError` carrying a short reason key used for
 the node's rejection counters, and is never applied. Inputs beyond declared
 limits (an actuator's ``limit`` in the robot file, the node's tip force and
 torque bounds) are rejected there too ("over_limit").
 
 A dynamic step that fails (no convergence, or the core raising on absurd
-numbers) keeps the last good state and drops the input that broke it (the
-inputs go back to those of the last good state; :attr:`UpdateInfo.dropped`
-says which), so the next step runs with inputs that worked. The node's
-simulator is configured so that a failing step costs about a millisecond
-(:class:`TwinSettings`: bounded sub-stepping, no dense-Newton fallback).
+numbers) keeps the last good state and drops the input that broke it
+(:class:`DropPolicy`; :attr:`UpdateInfo.dropped` says which), so the next
+step runs with inputs that worked. The twin's simulator is configured so
+that a failing step costs about a millisecond (:class:`TwinSettings`:
+bounded sub-stepping, no dense-Newton fallback).
 
 Frames: "world" of the core model = the node's base frame. Wrenches are
 [force (N); moment (N m)].
-
-Not thread-safe: the node serialises calls (one lock around the state).
 """
 
 from dataclasses import dataclass, field
 import math
-import time
 
 import numpy as np
 
-from . import dynamics as dy
 from . import ik as core_ik
 from . import kinematics as kin
 from . import loads as ld
 from . import statics as st
-from .model import ModelError, State, check_actuator_input
+from .model import ModelError, check_actuator_input
 
 from .errors import InputError  # noqa: F401  (the twin's API: tw.InputError)
 from .text import clip, short_list
@@ -207,77 +198,9 @@ def make_loads(model, tip_wrench=None, frame="world"):
     return ld.Loads(point=(ld.PointLoad(model.total_length, tuple(float(x) for x in tip_wrench), frame),))
 
 
-def wrench_about_origin(model, w_base_point):
-    """A [f; m] whose moment is about the robot's base point (the core's
-    convention) re-expressed about the origin of the world (base) frame."""
-    p0 = model.base_pose[:3, 3]
-    f, m = w_base_point[:3], w_base_point[3:]
-    return np.concatenate([f, m + np.cross(p0, f)])
-
-
-def full_rates(model, qdot):
-    """Strain rates (n_sections, 6) from the free-mode rates (fixed modes 0)."""
-    out = np.zeros(6 * model.n_sections)
-    out[model.free_index] = qdot
-    return out.reshape(model.n_sections, 6)
-
-
 # ----------------------------------------------------------------------------
 # Results
 # ----------------------------------------------------------------------------
-
-@dataclass(frozen=True)
-class Snapshot:
-    """Everything the node publishes about one state (immutable, safe to
-    hand to other threads).
-
-    t: twin time [s]; q, qdot, qddot: free-mode strains and their rates;
-    u: applied inputs (N / Pa, robot order); loads: the core Loads acting
-    (gravity and the tip load); backbone: world (base-frame) poses
-    (N, 4, 4) of cross-sections at arc lengths s (N,) [m]; tip_pose (4, 4);
-    strains, strain_rates (n_sections, 6); static_base_wrench: the support
-    reaction from the last equilibrium solve (quasi-static mode), else None;
-    command_stamp: the stamp of the last command the state reflects
-    (opaque, from the node). :func:`wrenches` computes the tip and base wrenches.
-    """
-    mode: str
-    t: float
-    q: np.ndarray
-    qdot: np.ndarray
-    qddot: np.ndarray
-    u: np.ndarray
-    loads: object
-    s: np.ndarray
-    backbone: np.ndarray
-    tip_pose: np.ndarray
-    strains: np.ndarray
-    strain_rates: np.ndarray
-    static_base_wrench: np.ndarray = None
-    command_stamp: object = None
-
-
-def wrenches(model, snap):
-    """(tip_wrench, base_wrench) of a snapshot, both [f (N); m (N m)] (6,).
-
-    tip_wrench: the internal wrench at the tip cross-section (s = L), i.e.
-    the wrench that whatever is beyond the tip (payload, contact, an end
-    effector) exerts on the arm, along the tip axes, moment about the tip
-    point (no inertia lies distal to the tip face, so this holds in motion
-    too). base_wrench: the reaction the support exerts on the arm at its
-    clamped base, along the base-frame axes, moment about the base-frame
-    origin; in dynamic mode it includes the inertial forces
-    (:func:`soft_twin_core.dynamics.base_reaction_dynamic`)."""
-    tip = st.internal_wrenches(model, snap.q, [model.total_length], snap.u, snap.loads)[0]
-    if snap.mode == "dynamic":
-        base = wrench_about_origin(model, dy.base_reaction_dynamic(model, snap.q, snap.qdot, snap.qddot,
-                                                                    snap.u, snap.loads))
-    elif snap.static_base_wrench is not None:
-        base = snap.static_base_wrench.copy()
-    else:
-        base = wrench_about_origin(model, st.solve_statics(model, snap.u, snap.loads,
-                                                           q_init=snap.q).base_wrench_world)
-    return tip, base
-
 
 @dataclass
 class UpdateInfo:
@@ -293,6 +216,7 @@ class UpdateInfo:
     compute_time: float = 0.0
     stable: bool = True
     dropped: tuple = ()
+    residual: float = None      # quasi-static: the equilibrium's force residual
 
 
 @dataclass
@@ -319,16 +243,6 @@ class TwinSettings:
     max_iterations: int = 10
     max_substep_levels: int = 3
     full_newton: bool = False
-
-
-# ----------------------------------------------------------------------------
-# The twin
-# ----------------------------------------------------------------------------
-
-def _same_inputs(a, b):
-    """Two (u, tip wrench, tip frame, command stamp) tuples alike."""
-    return (np.array_equal(a[0], b[0]) and np.array_equal(a[1], b[1]) and a[2] == b[2]
-            and a[3] is b[3])
 
 
 class DropPolicy:
@@ -366,243 +280,6 @@ class DropPolicy:
         return None
 
 
-class Twin:
-    """One robot model, its state and inputs. See the module docstring."""
-
-    def __init__(self, model, settings=None, state=None):
-        self.model = model
-        self.settings = settings or TwinSettings()
-        if self.settings.mode not in MODES:
-            raise ValueError(f"mode: expected one of {MODES}, got {self.settings.mode!r}")
-        self.u = np.zeros(len(model.actuators))
-        self.tip_wrench = np.zeros(6)
-        self.tip_frame = "world"
-        self.command_stamp = None
-        self._state_inputs = self._inputs()   # the inputs the current state reflects
-        self._policy = DropPolicy(_same_inputs, self._state_inputs)   # what a failing step goes back to
-        self._dirty = True            # inputs changed since the last quasi-static solve
-        self._base_wrench_qs = None   # from the last statics solve
-        self._sim = None
-        self.rest_q, self.rest_message = self._rest_configuration()
-        if state is not None and state.q.shape == (model.n_dof,):
-            self.state = state.copy()
-        else:
-            self.state = State(self.rest_q.copy(), np.zeros(model.n_dof), 0.0)
-        self._make_sim()
-
-    # --- construction ------------------------------------------------------
-    def _rest_configuration(self):
-        """Equilibrium under gravity with no actuation (the twin's initial
-        and reset state); the straight reference if that cannot be solved."""
-        try:
-            res = st.solve_statics(self.model, None, ld.Loads())
-            self._base_wrench_qs = wrench_about_origin(self.model, res.base_wrench_world)
-            return res.q.copy(), "rest: static equilibrium under gravity"
-        except (st.StaticsError, ValueError) as e:
-            return self.model.q0.copy(), f"rest: reference shape (statics failed: {e})"
-
-    def _new_sim(self, state):
-        s = self.settings
-        return dy.Simulator(self.model, dt=s.dt, actuation=self.u, loads=self.loads(), state=state,
-                            theta=s.theta, tol=s.tolerance, max_iterations=s.max_iterations,
-                            max_substep_levels=s.max_substep_levels, full_newton=bool(s.full_newton))
-
-    def _make_sim(self):
-        if self.settings.mode != "dynamic":
-            self._sim = None
-            return
-        self._sim = self._new_sim(self.state)
-        self.state = self._sim.state     # one state object, advanced in place by the simulator
-
-    def warm_up(self):
-        """Run the compiled kernels once on a throw-away copy (numba compiles
-        on first call, ~10 s without its disk cache). Returns seconds taken."""
-        t0 = time.perf_counter()
-        sim = self._new_sim(self.state)
-        sim.step()
-        st.solve_statics(self.model, self.u, self.loads(), q_init=self.state.q)
-        wrenches(self.model, self.outputs())
-        return time.perf_counter() - t0
-
-    # --- inputs ------------------------------------------------------------
-    def loads(self):
-        return make_loads(self.model, self.tip_wrench, self.tip_frame)
-
-    def _inputs(self):
-        return (self.u.copy(), self.tip_wrench.copy(), self.tip_frame, self.command_stamp)
-
-    def set_actuation(self, u, stamp=None):
-        """Apply an inputs vector checked at the door (:func:`parse_actuation`):
-        not checked again."""
-        u = np.array(u, dtype=float)
-        if self._sim is not None:
-            self._sim.set_actuation(dy.held(u))
-        self.u = u.copy()
-        self.command_stamp = stamp
-        self._dirty = True
-
-    def set_tip_wrench(self, wrench, frame="world"):
-        """External tip load (6,) [N, N m] acting at the tip point; frame
-        "world" (base axes, dead load) or "body" (tip axes, follower)."""
-        w = np.asarray(wrench, dtype=float)          # checked at the door (parse_tip_wrench)
-        loads = make_loads(self.model, w, frame)
-        if self._sim is not None:
-            self._sim.set_loads(loads)
-        self.tip_wrench, self.tip_frame = w.copy(), frame
-        self._dirty = True
-
-    @property
-    def command_pending(self):
-        """An actuation command was applied that no step or solve has used
-        yet (a newer one now supersedes it: no state will carry its stamp)."""
-        return self.command_stamp is not None and self.command_stamp is not self._state_inputs[3]
-
-    @property
-    def needs_solve(self):
-        """Quasi-static mode: inputs changed since the last solve."""
-        return self.settings.mode == "quasi_static" and self._dirty
-
-    # --- advancing ---------------------------------------------------------
-    def step(self, n=1):
-        """Dynamic: up to n integration steps of dt. Quasi-static: one
-        equilibrium solve for the current inputs (if they changed). On
-        failure the state is kept (the last good one), ``converged`` is
-        False, the remaining steps are not tried, and the input that failed
-        is dropped (``dropped``): the inputs go back to those of the last
-        good state, or, when the state's own inputs fail after good steps,
-        to the inputs before them (once; after that nothing is dropped and
-        the next call tries again)."""
-        t0 = time.perf_counter()
-        if self.settings.mode == "dynamic":
-            info = UpdateInfo()
-            for _ in range(n):
-                try:
-                    si = self._sim.step()
-                    converged, error = si.converged, ""
-                    info.iterations += si.iterations
-                except STEP_ERRORS as e:      # e.g. LinAlgError on inputs of 1e300: a failure
-                    converged, error = False, f" ({type(e).__name__}: {clip(e)})"
-                if not converged:
-                    info.converged = False
-                    info.dropped = self._drop_failed_inputs()
-                    info.message = (f"dynamics step at t = {self.state.t:.4f} s did not converge{error}; "
-                                    f"state kept at the last good step"
-                                    + (f", input dropped ({' and '.join(info.dropped)})" if info.dropped
-                                       else ""))
-                    break
-                info.steps += 1
-                if info.steps == 1:
-                    self._used_inputs()
-        else:
-            info = self._solve()
-        info.compute_time = time.perf_counter() - t0
-        return info
-
-    def _used_inputs(self):
-        """A good step ran with the current inputs: they are the state's."""
-        now = self._inputs()
-        self._policy.succeeded(now)
-        self._state_inputs = now
-
-    def _drop_failed_inputs(self):
-        """After a failed dynamic step: back to the inputs of the last good
-        state if they changed since (those failed), else, once, to the
-        inputs before the state's own. Returns what was dropped. Once that
-        is exhausted (the state itself cannot be stepped: failures with
-        nothing left to drop), new inputs are not blamed: they are kept and
-        tried at every step until one converges (or a reset)."""
-        now = self._inputs()
-        target = self._policy.target(now)
-        if target is None:
-            return ()
-        dropped = tuple(kind for kind, changed in (
-            ("actuation", not np.array_equal(now[0], target[0]) or now[3] is not target[3]),
-            ("wrench", not np.array_equal(now[1], target[1]) or now[2] != target[2])) if changed)
-        u, w, frame, self.command_stamp = target
-        self.u, self.tip_wrench, self.tip_frame = u.copy(), w.copy(), frame
-        self._sim.set_actuation(dy.held(self.u))
-        self._sim.set_loads(self.loads())
-        return dropped
-
-    def _solve(self):
-        if not self._dirty:
-            return UpdateInfo()
-        self._dirty = False
-        try:
-            # the inputs were checked at the door (parse_actuation, parse_tip_wrench)
-            res = st.solve_checked(self.model, self.u, self.loads(), np.array(self.state.q, dtype=float), tol=1e-10,
-                                   max_iterations=50, max_load_steps=64, check_stability=True,
-                                   tangent_hint=getattr(self, "_tangent", None))
-        except STEP_ERRORS as e:
-            # keep the last good state with the inputs it reflects: the failed input is dropped
-            now, target = self._inputs(), self._state_inputs
-            dropped = tuple(kind for kind, changed in (
-                ("actuation", not np.array_equal(now[0], target[0]) or now[3] is not target[3]),
-                ("wrench", not np.array_equal(now[1], target[1]) or now[2] != target[2])) if changed)
-            u, w, frame, self.command_stamp = target
-            self.u, self.tip_wrench, self.tip_frame = u.copy(), w.copy(), frame
-            return UpdateInfo(0, 0, False, f"statics failed for the last input (dropped): {clip(e)}; "
-                                           f"state kept", dropped=dropped)
-        self._state_inputs = self._inputs()
-        self._policy.succeeded(self._state_inputs)
-        self._tangent = res.tangent
-        self.state.q = res.q.copy()
-        self.state.qdot = np.zeros(self.model.n_dof)
-        self._base_wrench_qs = wrench_about_origin(self.model, res.base_wrench_world)
-        msg = "" if res.stable else "statics: only an unstable equilibrium was found"
-        return UpdateInfo(1, res.iterations, True, msg, stable=res.stable)
-
-    def reset(self):
-        """Back to the initial state: no actuation, no tip load, the rest
-        configuration, t = 0."""
-        self.u = np.zeros(len(self.model.actuators))
-        self.tip_wrench, self.tip_frame = np.zeros(6), "world"
-        self.command_stamp = None
-        self._state_inputs = self._inputs()
-        self._policy.reset(self._state_inputs)
-        self.state = State(self.rest_q.copy(), np.zeros(self.model.n_dof), 0.0)
-        self._dirty = False
-        self._base_wrench_qs = None
-        self._make_sim()
-        if self.settings.mode == "quasi_static":
-            self._dirty = True
-            self._solve()
-
-    def change_settings(self, settings):
-        """New mode / dt / theta / tolerance / sampling; the state is kept
-        (switching to dynamic starts from rest velocity)."""
-        if settings.mode not in MODES:
-            raise ValueError(f"mode: expected one of {MODES}, got {settings.mode!r}")
-        old = self.settings
-        self.settings = settings
-        if (settings.mode, settings.dt, settings.theta, settings.tolerance, settings.max_iterations,
-                settings.max_substep_levels, settings.full_newton) != \
-                (old.mode, old.dt, old.theta, old.tolerance, old.max_iterations, old.max_substep_levels,
-                 old.full_newton):
-            self.state = State(self.state.q.copy(), np.zeros(self.model.n_dof)
-                               if settings.mode != old.mode else self.state.qdot.copy(), self.state.t)
-            self._make_sim()
-            self._dirty = True
-
-    # --- outputs -----------------------------------------------------------
-    def outputs(self):
-        """A :class:`Snapshot` of the current state, with the inputs it
-        reflects (after a failed step or solve: those of the last good one)."""
-        m = self.model
-        u, w, frame, stamp = self._state_inputs
-        q = self.state.q.copy()
-        qdot = self.state.qdot.copy()
-        s, poses = kin.backbone(m, q, self.settings.points_per_section)
-        dynamic = self.settings.mode == "dynamic"
-        qddot = self._sim.last_qddot.copy() if dynamic else np.zeros(m.n_dof)
-        return Snapshot(mode=self.settings.mode, t=float(self.state.t), q=q, qdot=qdot, qddot=qddot,
-                        u=u.copy(), loads=make_loads(m, w, frame), s=s, backbone=poses, tip_pose=poses[-1],
-                        strains=m.strains(q), strain_rates=full_rates(m, qdot),
-                        static_base_wrench=None if dynamic or self._base_wrench_qs is None
-                        else self._base_wrench_qs.copy(),
-                        command_stamp=stamp)
-
-
 # ----------------------------------------------------------------------------
 # Queries (pure: never touch a twin's state)
 # ----------------------------------------------------------------------------
@@ -628,47 +305,6 @@ def _shape(model, q, points_per_section, **kw):
     s, poses = kin.backbone(model, q, points_per_section)
     return QueryResult(True, kw.pop("message", "ok"), q=q, s=s, backbone=poses, tip_pose=poses[-1],
                        strains=model.strains(q), **kw)
-
-
-def forward_kinematics(model, q_current, points_per_section, strains=(), actuation=None):
-    """FK for given strains (n_sections*6, row-major), or for the static
-    shape under ``actuation`` (vector, gravity only, warm-started from
-    q_current), or (neither) for q_current."""
-    strains = np.asarray(list(strains), dtype=float)
-    if strains.size and actuation is not None:
-        return QueryResult(False, "give strains or an actuation, not both")
-    try:
-        if strains.size:
-            if strains.size != 6 * model.n_sections:
-                return QueryResult(False, f"strains: expected {6 * model.n_sections} values "
-                                   f"({model.n_sections} sections x 6), got {strains.size}")
-            if not np.all(np.isfinite(strains)):
-                return QueryResult(False, "strains: contain NaN or inf")
-            q = model.q_from_strains(strains.reshape(model.n_sections, 6))
-            return _shape(model, q, points_per_section, message="ok: shape of the given strains")
-        if actuation is not None:
-            res = st.solve_statics(model, actuation, ld.Loads(), q_init=q_current)
-            return _shape(model, res.q, points_per_section, iterations=res.iterations,
-                          residual=res.residual, base_wrench=wrench_about_origin(model, res.base_wrench_world),
-                          message="ok: static shape under the actuation and gravity"
-                          + ("" if res.stable else " (unstable equilibrium)"))
-        return _shape(model, np.array(q_current, dtype=float), points_per_section,
-                      message="ok: the twin's current shape")
-    except (ModelError, ValueError, st.StaticsError, np.linalg.LinAlgError) as e:
-        return QueryResult(False, str(e))
-
-
-def statics_query(model, q_current, points_per_section, actuation, tip_wrench, tip_frame="world"):
-    """Equilibrium under ``actuation`` (vector) and a tip wrench (6,) plus
-    gravity, warm-started from q_current; the twin is not touched."""
-    try:
-        loads = make_loads(model, tip_wrench, tip_frame)
-        res = st.solve_statics(model, actuation, loads, q_init=q_current)
-        return _shape(model, res.q, points_per_section, iterations=res.iterations, residual=res.residual,
-                      base_wrench=wrench_about_origin(model, res.base_wrench_world),
-                      message="ok" if res.stable else "ok (only an unstable equilibrium was found)")
-    except (ModelError, ValueError, st.StaticsError, np.linalg.LinAlgError) as e:
-        return QueryResult(False, f"statics failed: {e}")
 
 
 def inverse_kinematics(model, q_current, points_per_section, target, position_only=False,

@@ -360,7 +360,7 @@ def test_node_rejects_suction_and_its_ik_stays_positive():
             msg.header.stamp.sec = 1
             node._on_actuation(msg, None)
             assert node.stats.rejected_by_reason["under_limit"] == 1 and not np.any(node.twin.u)
-            m = node.twin.model
+            m = node.robot.model
             p = m.base_pose[:3, :3].T @ (_rest(m).tip_pose[:3, 3] - m.base_pose[:3, 3])
             req = InverseKinematics.Request(position_only=True, tolerance=1e-6)
             req.target = Pose()

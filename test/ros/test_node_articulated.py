@@ -22,6 +22,7 @@ from soft_twin_core.outputs import state_outputs  # noqa: E402
 
 pytestmark = pytest.mark.ros
 START_TIMEOUT = 120.0
+PPS = 10               # backbone_points_per_section's default: every member sampled alike
 TOPICS = TwinClient.TOPICS + ("joint_states",)
 
 
@@ -56,10 +57,10 @@ def test_joint_commands_give_the_core_equilibrium(pan_tilt_qs):
     assert c.wait_until(lambda: c.state_after(stamp), 10.0), "joint command never applied"
     backbone, strains = c.state_after(stamp)
     ref = solve_equilibrium(mech, {"tendon_z_pos": 2.0}, None, {"pan": 0.4, "tilt": -0.3})
-    out = state_outputs(mech, ref.q, ref.lam, ref.inputs)
+    out = state_outputs(mech, ref.q, ref.lam, ref.inputs, points_per_section=PPS)
     got = poses_of(backbone)
     want = out.members[0].poses
-    assert backbone.header.frame_id == "base_link" and len(got) == len(want) == 5
+    assert backbone.header.frame_id == "base_link" and len(got) == len(want) == 4 * PPS + 1
     np.testing.assert_allclose(got[:, :3, 3], want[:, :3, 3], rtol=0, atol=1e-9)
     # joint states of that state (same stamp): positions and the inverse-dynamics efforts
     js = c.wait_until(lambda: next((m for _, m in c.history["joint_states"]
@@ -119,7 +120,7 @@ def test_dynamic_joint_motion_and_constraint_wrenches(tmp_path_factory):
         m = got[-1].wrench
         np.testing.assert_allclose([m.force.x, m.force.y, m.force.z, m.torque.x, m.torque.y, m.torque.z], w,
                                    rtol=0, atol=1e-9)
-        assert len(rods[-1].poses) == 9
+        assert len(rods[-1].poses) == 8 * PPS + 1
     finally:
         _stop(proc, c)
 
@@ -132,7 +133,7 @@ def test_markers_draw_members_and_links(pan_tilt_qs):
     ms = got[-1].markers
     links = {m.id: m for m in ms if m.ns == "links"}
     tubes = [m for m in ms if m.ns == "tube" and m.action == 0]
-    assert len(links) == 2 and len(tubes) == 4                 # pan and tilt links; 4 arm sections
+    assert len(links) == 2 and len(tubes) == 4 * PPS           # pan and tilt links; 4 arm sections
     assert links[0].type == links[0].CYLINDER and links[1].type == links[1].CUBE
     assert abs(links[1].pose.position.z - 0.08) < 1e-12        # the tilt link sits on top of the pan link
     assert abs(tubes[0].scale.x - 0.024) < 1e-12               # the proximal member's diameter
@@ -179,7 +180,7 @@ def test_live_view_snapshot_of_an_articulated_robot():
     twin = ArticulatedTwin(mech)
     snap = twin.outputs()
     shot, radii = articulated_view_snapshot(mech, snap)
-    assert len(shot.members) == 3 and [len(r) for r in radii] == [4, 4, 4]
+    assert len(shot.members) == 3 and [len(r) for r in radii] == [3 * PPS + 1] * 3
     assert np.allclose(radii[0], 0.008)                      # half the 16 mm finger width
     np.testing.assert_allclose(shot.members[1][-1], snap.frames["finger_1_tip"][:3, 3], atol=1e-15)
     # the palm: its visual cylinder (no bar), the wrist joint at the base point with its axis along z
@@ -221,10 +222,10 @@ def test_internal_wrench_topic_along_the_member(pan_tilt_qs):
     assert c.wait_until(lambda: c.state_after(stamp), 10.0)
     mech = load_mechanism(find_file("pan_tilt_arm", "robots"))
     ref = solve_equilibrium(mech, {"tendon_z_pos": 2.0}, None, {"pan": 0.2, "tilt": 0.1})
-    want = state_outputs(mech, ref.q, ref.lam, ref.inputs).members[0].internal_wrench
+    want = state_outputs(mech, ref.q, ref.lam, ref.inputs, points_per_section=PPS).members[0].internal_wrench
     assert c.wait_until(lambda: got and np.allclose(np.reshape(got[-1].data, (-1, 6)), want, rtol=0, atol=1e-9),
                         10.0), "internal wrenches differ from the core's"
-    assert [d.size for d in got[-1].layout.dim] == [5, 6]
+    assert [d.size for d in got[-1].layout.dim] == [4 * PPS + 1, 6]
 
 
 def test_forward_kinematics_service_answers_for_a_tree_robot(pan_tilt_qs):
@@ -245,7 +246,7 @@ def test_forward_kinematics_service_answers_for_a_tree_robot(pan_tilt_qs):
     r = c.call("forward_kinematics", ForwardKinematics.Request(strains=section_strains(mech, ref.q).ravel().tolist()))
     assert r.success, r.message
     np.testing.assert_allclose(matrix_from_pose(r.tip_pose), tool, rtol=0, atol=1e-9)
-    assert len(r.backbone.poses) == 5 and r.backbone.header.frame_id == "base_link"
+    assert len(r.backbone.poses) == 4 * PPS + 1 and r.backbone.header.frame_id == "base_link"
     r = c.call("forward_kinematics", ForwardKinematics.Request(actuator_names=["tendon_y_neg"],
                                                                actuator_values=[1.5]))
     assert r.success, r.message

@@ -116,13 +116,15 @@ def test_tf_tip_equals_the_tip_pose_topic(twin):
         assert np.allclose([p.x, p.y, p.z], [q[0].x, q[0].y, q[0].z], rtol=0, atol=1e-9)
         assert np.allclose([r.x, r.y, r.z, r.w], [q[1].x, q[1].y, q[1].z, q[1].w], rtol=0, atol=1e-9)
         names = [t.child_frame_id for t in tf.transforms]
-        assert names == [f"{NODE}/base"] + [f"{NODE}/section_{i}" for i in range(1, model.n_sections)] + ["tip_link"]
+        # the robot's named frames (a classic rod's: tip), every section boundary of its member, the tip
+        assert names == ([f"{NODE}/tip"] + [f"{NODE}/backbone_{i}" for i in range(model.n_sections + 1)]
+                         + ["tip_link"])
 
 
 def test_tf_section_frames_equal_the_core_kinematics(twin):
-    """The base and section frames equal the core's poses at the section
-    starts for the strains published with the same stamp (independent of
-    the node's backbone sampling)."""
+    """The member's section-boundary frames equal the rod kinematics' poses
+    at the section starts and the tip for the strains published with the
+    same stamp (independent of the node's backbone sampling)."""
     proc, client, listener = twin
     model = load_model(resolve_robot_file(""))
     found = {}
@@ -140,8 +142,10 @@ def test_tf_section_frames_equal_the_core_kinematics(twin):
     assert client.wait_until(pair, 10.0)
     s, tf = found["pair"]
     q = model.q_from_strains(np.array(s.strains).reshape(-1, 6))
-    T_ref = kin.poses(model, q, model.s_starts)
-    for i, t in enumerate(tf.transforms[:model.n_sections]):
+    T_ref = kin.poses(model, q, np.append(model.s_starts, model.total_length))
+    boundaries = [t for t in tf.transforms if t.child_frame_id.startswith(f"{NODE}/backbone_")]
+    assert len(boundaries) == model.n_sections + 1
+    for i, t in enumerate(boundaries):
         assert np.allclose(transform_matrix(t), T_ref[i], atol=1e-9), t.child_frame_id
 
 
@@ -194,7 +198,11 @@ def test_recording_holds_every_topic_and_input(twin, tmp_path):
                 f"{ns}/base_wrench": "geometry_msgs/msg/WrenchStamped", f"{ns}/markers":
                 "visualization_msgs/msg/MarkerArray", "/diagnostics": "diagnostic_msgs/msg/DiagnosticArray",
                 "/tf": "tf2_msgs/msg/TFMessage", f"{ns}/actuation": "soft_twin/msg/ActuationCommand",
-                f"{ns}/tip_wrench_command": "geometry_msgs/msg/WrenchStamped"}
+                f"{ns}/tip_wrench_command": "geometry_msgs/msg/WrenchStamped",
+                # every robot's joint and member topics (a classic rod: no joints, member "backbone")
+                f"{ns}/joint_states": "sensor_msgs/msg/JointState",
+                f"{ns}/backbones/backbone": "geometry_msgs/msg/PoseArray",
+                f"{ns}/internal_wrenches/backbone": "std_msgs/msg/Float64MultiArray"}
     assert set(msgs) == set(expected), sorted(msgs)
     for topic, type_name in expected.items():
         assert {s for s, _, _ in msgs[topic]} == {type_name}, topic
