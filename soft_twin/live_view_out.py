@@ -17,8 +17,8 @@ def articulated_view_snapshot(mech, snap):
     through their backbone points (radii from their cross-sections), its
     links' visual shapes (a bar from the parent link's frame for a link
     without one) and its rigid joints
-    (:func:`soft_twin_core.mechanism_scene.snapshot`)."""
-    from soft_twin_core.mechanism_scene import member_radii, snapshot
+    (:func:`soft_twin_core.scene.snapshot`)."""
+    from soft_twin_core.scene import member_radii, snapshot
     members = {name: poses[:, :3, 3] for name, (poses, _) in snap.backbones.items()}
     return (snapshot(mech, members, snap.frames, time=float(snap.t)),
             member_radii(mech, {name: len(P) for name, P in members.items()}))

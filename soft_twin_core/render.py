@@ -58,10 +58,10 @@ def say(msg):
 
 def render_dynamics(out, args, mech, name="run"):
     """--plot, --animate and --mcap of any robot's run: its members, rigid
-    links (visual shapes) and joints (:mod:`mechanism_scene`,
-    :mod:`mechanism_plots`, :mod:`mechanism_recording`)."""
+    links (visual shapes) and joints (:mod:`scene`,
+    :mod:`plots`, :mod:`recording`)."""
     if args.plot:
-        from .mechanism_plots import plot_dynamics
+        from .plots import plot_dynamics
         paths = plot_dynamics(out, args.plot, mech, name)
         say(f"wrote {len(paths)} figures into {args.plot}: " + ", ".join(os.path.basename(p) for p in paths))
         if not out.get("members_time"):
@@ -69,7 +69,7 @@ def render_dynamics(out, args, mech, name="run"):
                 "energies figures are left out: run dynamics with --backbone-every K (K >= 1)")
     if args.animate:
         from .animate import write_animation
-        from .mechanism_scene import run_snapshots
+        from .scene import run_snapshots
         from .scene import sample_times
         fps = args.fps or DEFAULT_FPS
         snaps = run_snapshots(out, mech)
@@ -77,7 +77,7 @@ def render_dynamics(out, args, mech, name="run"):
         n, seconds = write_animation([snaps[i] for i in idx], args.animate, fps, name)
         say(f"wrote {args.animate} ({n} frames at {fps:g} fps, {seconds:.2f} s)")
     if getattr(args, "mcap", None) and out.get("members_time"):
-        from .mechanism_recording import write_articulated_mcap
+        from .recording import write_articulated_mcap
         n = write_articulated_mcap(out, mech, args.mcap)
         say(f"wrote {args.mcap} ({n} states as /soft_twin_sim/joint_states, backbones/<member>, tip_pose, /tf)")
 
@@ -86,7 +86,7 @@ def render_statics(results, args, sc, sweep, name="statics"):
     """--plot and --animate of a statics solve or sweep of any robot (one
     frame an equilibrium): its members, links and joints, the internal
     wrench along every member, and for a sweep the tip against the angle."""
-    from .mechanism_scene import statics_snapshot
+    from .scene import statics_snapshot
     from .plots import plot_statics, plot_sweep
     snaps = [statics_snapshot(r, sc.mech, f"load angle {r['angle_deg']:g} deg" if sweep else "equilibrium")
              for r in results]
@@ -157,7 +157,7 @@ def read_run(args):
     """(run, Mechanism, scenario name or None) of ``render`` and ``view``:
     RUN is the JSON of ``soft-twin-sim dynamics`` (read first: a bad file
     is named before the robot is asked for) or an MCAP recording of the
-    twin node (:func:`mechanism_recording.read_node_recording`), of the
+    twin node (:func:`recording.read_node_recording`), of the
     robot of ``--scenario`` or ``--robot``."""
     out = None
     if not args.run.lower().endswith(".mcap"):
@@ -169,7 +169,7 @@ def read_run(args):
         _readable(args)
     mech, name = robot_of(args)
     if out is None:
-        from .mechanism_recording import read_node_recording
+        from .recording import read_node_recording
         return read_node_recording(args.run, mech, args.node), mech, name
     if out.get("member_names", []) != [m.name for m in mech.members] or (
             out.get("n_sections") is not None and out["n_sections"] != len(mech.tree.soft_joints)):
@@ -186,7 +186,7 @@ def view_main(args, stop=None):
     in real time, in a loop, until Ctrl-C (or ``--seconds`` of wall time)."""
     import time as _time
     from .live_view import LiveView
-    from .mechanism_scene import member_radii, run_snapshots
+    from .scene import member_radii, run_snapshots
     from .scene import bounds
     out, mech, _ = read_run(args)
     snaps = run_snapshots(out, mech)

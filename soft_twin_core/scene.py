@@ -1,17 +1,25 @@
 """What a picture of the robot shows at one instant: a :class:`Snapshot` of
 soft members (polylines of backbone points, world frame, m), optional rigid
-link segments and frames, and a caption (the time, or the swept value).
+link segments and frames, and a caption (the time, or the swept value); and
+the snapshot of a mechanism (any robot) from its members' points and its
+named frames' poses (:func:`snapshot`): every soft member's backbone, every
+rigid link's visual shape (box, cylinder along its local z axis, sphere;
+the ``visual`` of the robot file, placed by its ``position``/``rpy`` in the
+link frame, as in URDF) as a wire outline, a bar from the parent link (or
+the base) to each link without a visual, and the rigid joints as markers
+with a segment along their axis. Runs (:func:`run_snapshots`: the samples
+of :func:`mechanism_scenario.run_mechanism_dynamics`), statics results
+(:func:`statics_snapshot`) and the node's state become snapshots.
 
 Plots (:mod:`plots`), animations (:mod:`animate`) and the viewers draw
-snapshots only, so a robot of any shape (one rod, several members joined by
-rigid offsets, articulated trees with rigid links) is drawn by the same code
-once it is turned into snapshots. No matplotlib here; no ROS anywhere in the
-core.
+snapshots only. No matplotlib here; no ROS anywhere in the core.
 """
 
 from dataclasses import dataclass, field
 
 import numpy as np
+
+from .multibody import PRISMATIC, REVOLUTE
 
 
 @dataclass
@@ -27,7 +35,7 @@ class Snapshot:
     caption: text shown with the snapshot (default: ``t = ... s``).
     solids: list of (N, 3) arrays [m], world: the outlines of rigid bodies'
         visual shapes (boxes, cylinders, spheres) as polylines, NaN rows
-        separating their edges (:mod:`mechanism_scene`).
+        separating their edges (:mod:`scene`).
     joints: (K, 3) [m], world: the origins of the rigid joints (drawn as
         markers), with ``joint_axes``: (2, 3) segments along their axes.
     shapes: list of (visual dict, 4x4 world pose of the shape's centre,
@@ -91,35 +99,6 @@ def bounds(snapshots, pad=0.05, min_extent=0.02):
     return c - half, c + half
 
 
-def split_members(points, s, member_ends):
-    """Split one backbone polyline sampled at arc lengths ``s`` [m] into the
-    members ending at ``member_ends`` [m] (rigid offsets between members;
-    the last end is the tip). Returns (members, links): the polylines, and
-    the straight segments joining the last sample of one member to the first
-    of the next (the rigid offset, drawn as a link)."""
-    points = np.asarray(points, dtype=float)
-    s = np.asarray(s, dtype=float)
-    if len(points) != len(s):
-        raise ValueError(f"points and s: lengths differ ({len(points)} vs {len(s)})")
-    members, links, start = [], [], 0
-    for end in list(member_ends)[:-1]:
-        k = int(np.searchsorted(s, end - 1e-12))        # first sample at or past the joint
-        if start < k < len(s):
-            members.append(points[start:k])
-            links.append(points[k - 1:k + 1])
-            start = k
-    members.append(points[start:])
-    return members, links
-
-
-def segment_ends(model):
-    """Arc lengths [m] where a model's members end: after each section
-    followed by a rigid offset (``offset_to_next``), and at the tip."""
-    ends = [float(model.s_starts[i] + model.lengths[i]) for i in range(model.n_sections - 1)
-            if np.abs(model.offsets[i] - np.eye(4)).max() > 0]
-    return ends + [float(model.total_length)]
-
-
 def sample_times(times, fps):
     """Indices into increasing ``times`` [s] of the frames of an animation
     playing in real time at ``fps`` frames/s: for each frame time k / fps the
@@ -133,3 +112,135 @@ def sample_times(times, fps):
     n = int(np.floor((times[-1] - times[0]) * fps + 1e-9)) + 1
     frame_t = times[0] + np.arange(n) / fps
     return np.clip(np.searchsorted(times, frame_t + 1e-9, side="right") - 1, 0, len(times) - 1)
+
+
+CIRCLE_POINTS = 24
+JOINT_AXIS_LENGTH = 0.03     # m, the drawn segment along a joint axis (centred on the joint)
+
+
+def visual_placement(visual):
+    """The visual's pose in its link frame (4x4; identity if not given)."""
+    from .model import pose_from_dict
+    v = {k: visual[k] for k in ("position", "rpy") if k in visual}
+    return pose_from_dict(v or None, "visual")
+
+
+def solid_outline(visual, pose):
+    """(N, 3) [m] world polyline of a visual shape's edges at ``pose`` (4x4,
+    the link frame), NaN rows between separate edges: a box's 12 edges; a
+    cylinder's two end circles (normal to its local z axis, centred) and 4
+    generators; a sphere's three great circles."""
+    T = np.asarray(pose, dtype=float) @ visual_placement(visual)
+    shape = visual.get("shape", "box")
+    nan = np.full((1, 3), np.nan)
+    a = np.linspace(0.0, 2 * np.pi, CIRCLE_POINTS + 1)
+    c, s = np.cos(a), np.sin(a)
+    parts = []
+    if shape == "box":
+        h = 0.5 * np.asarray(visual["size"], dtype=float)
+        sq = np.array([[-1, -1], [1, -1], [1, 1], [-1, 1], [-1, -1]], dtype=float)
+        for z in (-1.0, 1.0):                                   # bottom and top faces
+            parts.append(np.c_[sq * h[:2], np.full(5, z * h[2])])
+        for x, y in sq[:4]:                                     # the 4 vertical edges
+            parts.append(np.array([[x * h[0], y * h[1], -h[2]], [x * h[0], y * h[1], h[2]]]))
+    elif shape == "cylinder":
+        r, hl = float(visual["radius"]), 0.5 * float(visual["length"])
+        for z in (-hl, hl):
+            parts.append(np.c_[r * c, r * s, np.full_like(c, z)])
+        for k in range(0, CIRCLE_POINTS, CIRCLE_POINTS // 4):
+            parts.append(np.array([[r * c[k], r * s[k], -hl], [r * c[k], r * s[k], hl]]))
+    elif shape == "sphere":
+        r = float(visual["radius"])
+        z = np.zeros_like(c)
+        parts += [np.c_[r * c, r * s, z], np.c_[r * c, z, r * s], np.c_[z, r * c, r * s]]
+    else:
+        raise ValueError(f"visual.shape: expected box, cylinder or sphere, got {shape!r}")
+    P = np.concatenate([np.vstack([p, nan]) for p in parts])[:-1]
+    out = np.full_like(P, np.nan)
+    ok = np.all(np.isfinite(P), axis=1)
+    out[ok] = P[ok] @ T[:3, :3].T + T[:3, 3]
+    return out
+
+
+def rigid_joints(mech):
+    """[(joint index, the name of the link it moves)] of the 1-dof rigid joints with a link."""
+    links = {lk.joint: lk.name for lk in mech.links}
+    return [(i, links[i]) for i in mech.rigid_joints if i in links]
+
+
+def snapshot(mech, members, frame_poses, time=None, caption=""):
+    """A :class:`scene.Snapshot` of a mechanism: ``members`` {member name:
+    (P, 3) backbone points [m]} (or a list in the order of ``mech.members``),
+    ``frame_poses`` {frame name: 4x4 world pose}."""
+    if isinstance(members, dict):
+        members = [members[m.name] for m in mech.members]
+    members = [np.asarray(P, dtype=float) for P in members]
+    tree = mech.tree
+    names = {lk.joint: lk.name for lk in mech.links}
+    links, solids, shapes = [], [], []
+    for lk in mech.links:
+        T = np.asarray(frame_poses[lk.name], dtype=float)
+        if lk.visual:
+            solids.append(solid_outline(lk.visual, T))
+            shapes.append((dict(lk.visual), T @ visual_placement(lk.visual)))
+            continue
+        par = tree.joints[lk.joint].parent
+        start = np.zeros(3) if par < 0 else (np.asarray(frame_poses[names[par]])[:3, 3] if par in names else None)
+        if start is not None:
+            links.append(np.array([start, T[:3, 3]]))
+    joints, axes = [], []
+    for i, name in rigid_joints(mech):
+        T = np.asarray(frame_poses[name], dtype=float)
+        j = tree.joints[i]
+        p, d = T[:3, 3], T[:3, :3] @ np.asarray(j.axis, dtype=float)
+        joints.append(p)
+        if j.kind in (REVOLUTE, PRISMATIC):
+            axes.append(np.array([p - 0.5 * JOINT_AXIS_LENGTH * d, p + 0.5 * JOINT_AXIS_LENGTH * d]))
+    if not members:                     # a robot of rigid links only: its last frame stands for the tip
+        members = [np.asarray(list(frame_poses.values())[-1], dtype=float)[None, :3, 3]]
+    return Snapshot(members, links, time=time, caption=caption, solids=solids,
+                    joints=np.array(joints).reshape(-1, 3), joint_axes=axes, shapes=shapes)
+
+
+def member_radii(mech, n_points=None, default=0.005):
+    """[radii (P,) [m] along each member]: the outer extent max(cy, cz) of
+    the cross-section of the section holding each point (``default``
+    without geometry), at the member's section boundaries (the last
+    section's at the tip), or at the points of a run sampled with
+    {member: P} points (P = n_sections * points_per_section + 1:
+    :func:`outputs.member_samples`)."""
+    from .outputs import member_samples
+    out = []
+    for mem in mech.members:
+        r = np.array([max(g.cy, g.cz) if g is not None else default for g in mem.geometry] or [default], float)
+        n_sec = len(mech.tree.paths[mem.path].joints)
+        n = n_sec + 1 if n_points is None else int(n_points[mem.name])
+        if (n - 1) % n_sec:
+            raise ValueError(f"member {mem.name}: {n} points are not {n_sec} sections sampled evenly")
+        J, _, _ = member_samples(mech, mem, (n - 1) // n_sec)
+        out.append(r[[list(mech.tree.paths[mem.path].joints).index(j) for j in J]])
+    return out or [default]
+
+
+def run_snapshots(out, mech):
+    """Snapshots of an articulated robot's dynamics run (the JSON of
+    ``soft-twin-sim dynamics`` with ``--backbone-every K``, or a recording
+    read back by :func:`recording.read_node_recording`): one per
+    member sample, with the frame poses of the same sample."""
+    if not out.get("members_time"):
+        raise ValueError("the run has no member samples: run dynamics with --backbone-every K (K >= 1)")
+    if "frame_poses" not in out:
+        raise ValueError("the run has no frame poses at its samples (written by soft-twin-sim since issue 12)")
+    fnames = out["frame_names"]
+    snaps = []
+    for t, members, poses in zip(out["members_time"], out["members"], out["frame_poses"]):
+        fp = dict(zip(fnames, poses))
+        snaps.append(snapshot(mech, {n: m["positions"] for n, m in members.items()}, fp, time=float(t)))
+    return snaps
+
+
+def statics_snapshot(result, mech, caption="equilibrium"):
+    """The snapshot of an articulated statics result (``soft-twin-sim statics``)
+    with ``frame_poses``."""
+    fp = dict(zip(result["frame_names"], result["frame_poses"]))
+    return snapshot(mech, {n: m["positions"] for n, m in result["members"].items()}, fp, caption=caption)

@@ -62,9 +62,9 @@ def client_topics_unsubscribed(msgs, ns):
 def test_recording_of_an_articulated_twin(tmp_path):
     from PIL import Image
     from soft_twin_core import cli
-    from soft_twin_core.mechanism_plots import plot_frames, plot_joint_states
-    from soft_twin_core.mechanism_recording import articulated_run_from_messages, read_node_recording
-    from soft_twin_core.mechanism_scene import run_snapshots
+    from soft_twin_core.plots import plot_frames, plot_joint_states
+    from soft_twin_core.recording import articulated_run_from_messages, read_node_recording
+    from soft_twin_core.scene import run_snapshots
     from soft_twin_core.plots import _save, shapes_figure
     # no subscriber of the wrenches or markers: the recording holds them all the same (issue 25, item 4)
     proc, client = start_twin(NODE, ["-p", "robot_description_file:=pan_tilt_arm", "-p", "tf_rate_hz:=50.0"],

@@ -240,8 +240,8 @@ def test_recording_holds_every_topic_and_input(twin, tmp_path):
     # figures drawn from the recording equal those drawn from the live messages
     from soft_twin_core import recording
     from soft_twin_core.mechanism import from_robot_model
-    from soft_twin_core.mechanism_plots import plot_dynamics
-    from soft_twin_core.mechanism_scene import run_snapshots
+    from soft_twin_core.plots import plot_dynamics
+    from soft_twin_core.scene import run_snapshots
     from PIL import Image
     mech = from_robot_model(model)
     rec = recording.read_messages(str(path))

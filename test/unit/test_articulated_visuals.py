@@ -15,7 +15,7 @@ from PIL import Image
 
 from soft_twin_core import cli
 from soft_twin_core.mechanism import load_mechanism, mechanism_from_dict
-from soft_twin_core.mechanism_scene import snapshot, solid_outline
+from soft_twin_core.scene import snapshot, solid_outline
 from soft_twin_core.model import find_file
 
 FIGURES = ("backbone_shapes", "tip", "joint_states", "joint_wrenches", "frames", "strains", "internal_wrenches_arm",
@@ -307,7 +307,7 @@ def test_articulated_mcap_reads_back_with_the_mcap_libraries(pan_tilt_run):
 def test_plots_from_the_mcap_equal_those_of_the_run(tmp_path):
     """Every sample written (--backbone-every 1): the figures drawn from the
     MCAP read back equal, pixel for pixel, those drawn from the run."""
-    from soft_twin_core.mechanism_recording import read_node_recording
+    from soft_twin_core.recording import read_node_recording
     code, _, err = run_cli(["dynamics", "pan_tilt_arm_dynamics", "--duration", "0.1", "--dt", "0.005",
                             "--backbone-every", "1", "--plot", str(tmp_path / "live"),
                             "--mcap", str(tmp_path / "run.mcap"), "-o", str(tmp_path / "run.json")])

@@ -69,22 +69,26 @@ def test_bounds_hold_every_point_with_margin():
         scene.Snapshot([[[0, 0, 0]]], links=[[[0, 0, 0]]])
 
 
-def test_members_split_at_rigid_offsets():
+def test_a_member_crosses_its_rigid_offsets():
+    """A classic arm with an elbow (a rigid offset between its segments) is
+    one member whose samples jump across the offset: the first sample of
+    the forearm is where the offset puts it (independent: the rod's chained
+    transforms), and the polyline draws the offset as one straight piece."""
     from soft_twin_core import kinematics as kin
+    from soft_twin_core.mechanism import from_robot_model
+    from soft_twin_core.outputs import state_shape
+    from soft_twin_core.workspace import Workspace
     m = load_model(os.path.join(CONFIG, "robots", "elbow_arm.yaml"))
-    ends = scene.segment_ends(m)
-    assert ends == pytest.approx([0.2, 0.4])
+    mech = from_robot_model(m)
     q = m.q0.copy()
-    s, P = kin.backbone(m, q, 5)
-    members, links = scene.split_members(P[:, :3, 3], s, ends)
-    assert len(members) == 2 and len(links) == 1
-    assert sum(len(x) for x in members) == len(s)
-    # the link joins the last sample of the upper member to the first of the forearm
-    assert np.array_equal(links[0][0], members[0][-1]) and np.array_equal(links[0][1], members[1][0])
-    # the forearm starts where the rigid offset puts it (independent: chained transforms)
+    _, members = state_shape(mech, Workspace(mech.tree), q, 5)
+    P, s = members["backbone"]
+    assert len(P) == 5 * m.n_sections + 1
     T_end = kin.poses(m, q, np.array([0.2 - 1e-12]))[0]
     p_joint = (T_end @ m.offsets[3])[:3, 3]
-    assert np.allclose(members[1][0], p_joint, atol=1e-9)
+    k = int(np.flatnonzero(np.isclose(s, 0.2))[-1])           # the forearm's first sample
+    assert np.allclose(P[k, :3, 3], p_joint, atol=1e-9)
+    assert np.allclose(P[k - 1, :3, 3], kin.poses(m, q, np.array([0.2 - 0.2 / 4 / 5]))[0][:3, 3], atol=1e-9)
 
 
 def test_energies_from_the_run_equal_the_reference(tmp_path):
@@ -277,7 +281,7 @@ def test_dynamics_run_as_mcap_renders_like_the_run(tmp_path, capsys):
     orientations are the model's kinematics of the recorded strains."""
     from soft_twin_core import recording
     from soft_twin_core import kinematics as kin
-    from soft_twin_core.mechanism_recording import read_node_recording
+    from soft_twin_core.recording import read_node_recording
     from soft_twin_core.scenario import load_scenario
     path = tmp_path / "run.mcap"
     code, _, err = run_cli(["dynamics", "tendon_arm_dynamics", "--duration", "0.2", "--dt", "0.005",
