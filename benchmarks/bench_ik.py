@@ -5,7 +5,7 @@ random least-tension actuations, 0..3 N) and for unreachable ones.
 
 Run: .venv/bin/python benchmarks/bench_ik.py [--node]
 
-Without --node: the service's body (soft_twin_core.twin.inverse_kinematics) in
+Without --node: the service's body (soft_twin_core.ik.inverse_kinematics) in
 this process. With --node: the real service round trip to a node in a
 second process (dynamic mode, 200 Hz stepping in that process), this
 process a real rclpy client subscribed to the strains only (``--all-topics``:
@@ -49,14 +49,15 @@ def report(label, times, ok, cpu=None):
 
 def in_process(model, poses):
     from soft_twin_core import twin as tw
+    from soft_twin_core import ik as core_ik
     q0 = st.solve_statics(model).q
-    tw.inverse_kinematics(model, q0, 10, poses[0], position_only=True, u_current=np.zeros(4))  # warm-up
+    core_ik.inverse_kinematics(model, q0, 10, poses[0], position_only=True, u_current=np.zeros(4))  # warm-up
     res = {}
     for label, po in (("position only", True), ("full pose", False)):
         ts, cpu, ok = [], [], []
         for T in poses:
             t0, c0 = time.perf_counter(), time.process_time()
-            r = tw.inverse_kinematics(model, q0, 10, T, position_only=po, u_current=np.zeros(4))
+            r = core_ik.inverse_kinematics(model, q0, 10, T, position_only=po, u_current=np.zeros(4))
             ts.append(time.perf_counter() - t0)
             cpu.append(time.process_time() - c0)
             ok.append(r.success)
@@ -66,7 +67,7 @@ def in_process(model, poses):
         T = T.copy()
         T[:3, 3] += [0.0, 0.03, 0.05]           # off the tendons' reachable surface
         t0, c0 = time.perf_counter(), time.process_time()
-        r = tw.inverse_kinematics(model, q0, 10, T, position_only=True, u_current=np.zeros(4))
+        r = core_ik.inverse_kinematics(model, q0, 10, T, position_only=True, u_current=np.zeros(4))
         ts.append(time.perf_counter() - t0)
         cpu.append(time.process_time() - c0)
         ok.append(not r.success)

@@ -13,7 +13,8 @@ import time
 import numpy as np
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus, KeyValue
 
-from soft_twin_core import twin as tw
+
+from soft_twin_core import commands as cmd
 from soft_twin_core.text import clip
 
 
@@ -30,7 +31,7 @@ class Stats:
                            joint_commands_applied=0, joint_commands_superseded=0, joint_commands_lost=0,
                            rejected_joint=0)
         self.last_internal_error = ""
-        self.rejected_by_reason = {r: 0 for r in tw.REJECT_REASONS}
+        self.rejected_by_reason = {r: 0 for r in cmd.REJECT_REASONS}
         self.last_rejection = ""
         self.last_parameter_rejection = ""
         self.last_solver_message = ""
@@ -83,7 +84,7 @@ class Stats:
         applied = {"actuation": "commands_applied", "joint": "joint_commands_applied", "wrench": "wrenches_applied"}
         for kind in info.dropped:
             self.totals[applied[kind]] -= 1
-            self.reject(kind, tw.InputError("solver_failed", info.message))
+            self.reject(kind, cmd.InputError("solver_failed", info.message))
         return tuple(info.dropped)
 
 

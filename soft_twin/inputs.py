@@ -2,18 +2,17 @@
 
 Each subscription callback of :mod:`soft_twin.node` takes every message
 queued on its topic and folds the batch here, outside the twin lock: the
-door's parse functions (:func:`soft_twin_core.twin.parse_actuation`,
-:func:`soft_twin_core.twin.parse_tip_wrench`,
-:func:`soft_twin_core.articulated_twin.parse_joint_command`) validate each message once;
+door's parse functions (:func:`soft_twin_core.commands.parse_actuation`,
+:func:`soft_twin_core.commands.parse_tip_wrench`,
+:func:`soft_twin_core.commands.parse_joint_command`) validate each message once;
 the valid ones are applied in order (a partial command keeps the other
 actuators or joints), the invalid ones come back as
-:class:`soft_twin_core.twin.InputError` for the counters. Nothing downstream checks
+:class:`soft_twin_core.commands.InputError` for the counters. Nothing downstream checks
 them again.
 """
 
-from soft_twin_core import articulated_twin as art
 from soft_twin import conversions as cv
-from soft_twin_core import twin as tw
+from soft_twin_core import commands as cmd
 from soft_twin_core.text import clip
 
 
@@ -31,8 +30,8 @@ def fold_commands(model, batch, u, order):
     newest, n_applied, errors = None, 0, []
     for m, _ in batch:
         try:
-            u = tw.parse_actuation(model, m.names, m.values, u, order)
-        except tw.InputError as e:
+            u = cmd.parse_actuation(model, m.names, m.values, u, order)
+        except cmd.InputError as e:
             errors.append(e)
         else:
             newest, n_applied = m, n_applied + 1
@@ -46,8 +45,8 @@ def fold_joint_commands(mech, batch, pos, eff):
     newest, n_applied, errors = None, 0, []
     for m, _ in batch:
         try:
-            pos, eff = art.parse_joint_command(mech, m.name, m.position, m.velocity, m.effort, pos, eff)
-        except tw.InputError as e:
+            pos, eff = cmd.parse_joint_command(mech, m.name, m.position, m.velocity, m.effort, pos, eff)
+        except cmd.InputError as e:
             errors.append(e)
         else:
             newest, n_applied = m, n_applied + 1
@@ -61,9 +60,9 @@ def parse_wrenches(batch, cfg):
     for m, _ in batch:
         force, torque = cv.wrench_parts(m.wrench)
         try:
-            newest = tw.parse_tip_wrench(force, torque, m.header.frame_id, cfg.base_frame, cfg.tip_frame,
+            newest = cmd.parse_tip_wrench(force, torque, m.header.frame_id, cfg.base_frame, cfg.tip_frame,
                                          cfg.max_tip_force_n, cfg.max_tip_torque_nm)
-        except tw.InputError as e:
+        except cmd.InputError as e:
             errors.append(e)
     return newest, errors
 

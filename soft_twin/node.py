@@ -2,7 +2,7 @@
 
 Thin by design: everything it computes comes from ``soft_twin_core``
 (through the one twin of every robot file,
-:class:`soft_twin_core.articulated_twin.ArticulatedTwin`; the checks at the
+:class:`soft_twin_core.twin.Twin`; the checks at the
 door: :mod:`soft_twin_core.twin`); the node wires parameters, topics,
 services and threads, owns the clock and the state, and never blocks the
 stepping clock. Its collaborators: :mod:`soft_twin.inputs` (message batches
@@ -69,11 +69,11 @@ from soft_twin.msg import ActuationCommand, Strains
 from soft_twin.stepper import Stepper
 from soft_twin.srv import ForwardKinematics, InverseKinematics, StaticsQuery
 
-from soft_twin_core import articulated_twin as art
 from soft_twin import conversions as cv
 from soft_twin import diagnostics, inputs, markers, schedule, services
 from soft_twin import live_view_out, recorder, tf_out
 from soft_twin_core import twin as tw
+from soft_twin_core import commands as cmd
 from soft_twin.executor import TwinExecutor
 from soft_twin.shutdown import StopSignals, spin_until_stopped, tear_down
 from soft_twin.config import (PARAMETERS, ConfigError, coerced, config_from_values, load_robot,
@@ -136,9 +136,9 @@ class SoftTwinNode(Node):
         self._stats_lock = threading.Lock()      # internal error counts (taken without the others)
         self._staged = None
         self._command_received = None     # newest applied command: (header, stamp [ns], taken [ns])
-        self._command_gaps = tw.SequenceGaps()    # commands lost upstream, from sequence numbers
-        self._wrench_gaps = tw.SequenceGaps()
-        self._joint_gaps = tw.SequenceGaps()
+        self._command_gaps = cmd.SequenceGaps()    # commands lost upstream, from sequence numbers
+        self._wrench_gaps = cmd.SequenceGaps()
+        self._joint_gaps = cmd.SequenceGaps()
         self._last_input_time = -math.inf
         self._reported_internal_errors = 0
         self.stats = diagnostics.Stats()
@@ -259,7 +259,7 @@ class SoftTwinNode(Node):
 
     @staticmethod
     def _make_twin(robot, settings):
-        return art.ArticulatedTwin(robot.mech, settings)
+        return tw.Twin(robot.mech, settings)
 
     @staticmethod
     def _make_query_worker(robot):

@@ -21,7 +21,7 @@ from soft_twin_core.model import ModelError
 from soft_twin_core.statics import StaticsError
 
 from soft_twin import services
-from soft_twin_core import twin as tw
+from soft_twin_core import commands as cmd
 from soft_twin.query_worker import QueryError
 from soft_twin_core.text import clip
 
@@ -38,7 +38,7 @@ def plan_request(req, plan):
     """(a plan, None) or (None, message) for a PlanPath request: the path
     parsed and the numbers checked at the door, then ``plan(path,
     position_weights=, tolerance=, pretension=, max_rate=)`` (the robot's
-    planner: :func:`rod_planner`, :meth:`articulated.ArticulatedTwin.plan`)."""
+    planner: :func:`rod_planner`, :meth:`articulated.Twin.plan`)."""
     try:
         d = yaml.safe_load(req.path_yaml) if req.path_yaml.strip() else None
     except yaml.YAMLError as e:
@@ -263,7 +263,7 @@ def handle(node, runner, req, resp, actuation_type, joint_type):
         plan, err = plan_request(req, lambda path, **options: node.query("plan", path, **options))
     else:
         try:
-            loads = tw.make_loads(model, w, frame)
+            loads = cmd.make_loads(model, w, frame)
         except (ValueError, ModelError) as e:
             resp.success, resp.message = False, clip(f"tip load: {e}", 400)
             return resp

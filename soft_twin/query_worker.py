@@ -11,7 +11,7 @@ only wait for its answer (the wait releases the GIL).
 
 The worker builds its own copy of the mechanism from the robot
 description (a plain dict) once, at start; each query carries the twin's
-plain state (:meth:`soft_twin_core.articulated_twin.ArticulatedTwin.query_state`)
+plain state (:meth:`soft_twin_core.twin.Twin.query_state`)
 and runs on the worker's twin, so the answer is the one the node would
 have computed itself. Exceptions (PlanError, StaticsError, ...) come back
 as they were raised. A worker that died (killed, out of memory) is
@@ -36,11 +36,11 @@ def _start_worker(description):
     signal.signal(signal.SIGINT, signal.SIG_IGN)
     threading.Thread(target=_exit_with_parent, args=(os.getppid(),), daemon=True).start()
     global _twin
-    from soft_twin_core.articulated_twin import ArticulatedTwin
+    from soft_twin_core.twin import Twin
     from soft_twin_core.twin import TwinSettings
     from soft_twin_core.mechanism import mechanism_from_dict
     from soft_twin_core.model import robot_mapping
-    _twin = ArticulatedTwin(mechanism_from_dict(robot_mapping(description, "robot description")),
+    _twin = Twin(mechanism_from_dict(robot_mapping(description, "robot description")),
                             TwinSettings(mode="quasi_static"))
     try:      # warm-up: the solver's kernels load now, not during the first query
         _twin.inverse_kinematics(_twin.outputs().tip_pose[:3, 3])

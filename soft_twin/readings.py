@@ -3,7 +3,7 @@ and every sensor reading is counted once, in exactly one place.
 
 Per input topic: the messages ``received`` and those ``lost`` before the
 node took them (gaps in the publishers' sequence numbers,
-:class:`soft_twin_core.twin.SequenceGaps`). Per sensor reading, after the
+:class:`soft_twin_core.commands.SequenceGaps`). Per sensor reading, after the
 node's own checks (shape, finiteness, sensor name: counted by the node as
 rejected by reason), the stamp is checked here:
 
@@ -28,7 +28,7 @@ readings are forgotten; the sequence numbers are still followed).
 
 import numpy as np
 
-from soft_twin_core.twin import SequenceGaps
+from soft_twin_core.commands import SequenceGaps
 
 STAMP_REJECTIONS = ("stale_stamp", "future_stamp", "out_of_order")
 

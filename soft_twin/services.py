@@ -24,7 +24,8 @@ from soft_twin_core.planner import PlanError
 from soft_twin_core.statics import StaticsError
 
 from soft_twin import conversions as cv
-from soft_twin_core import twin as tw
+from soft_twin_core import ik as core_ik
+from soft_twin_core import commands as cmd
 from soft_twin.query_worker import QueryError
 from soft_twin_core.text import clip
 
@@ -47,7 +48,7 @@ def _twin_copy(node):
 def _requested_actuation(req, model, u, order):
     """The request's actuation (names/values over the current ``u``), or None when it gives none."""
     if len(req.actuator_names) or len(req.actuator_values):
-        return tw.parse_actuation(model, req.actuator_names, req.actuator_values, u, order)
+        return cmd.parse_actuation(model, req.actuator_names, req.actuator_values, u, order)
     return None
 
 
@@ -57,7 +58,7 @@ def forward_kinematics(node, req, resp):
     model, q, u, _, _, cfg, order = copy_state(node)
     try:
         actuation = _requested_actuation(req, model, u, order)
-    except tw.InputError as e:
+    except cmd.InputError as e:
         resp.success, resp.message = False, clip(f"actuation rejected ({e.reason}): {e}", 400)
         return resp
     try:
@@ -81,9 +82,9 @@ def statics_query(node, req, resp):
         actuation = _requested_actuation(req, model, u, order)
         actuation = u if actuation is None else actuation
         force, torque = cv.wrench_parts(req.tip_wrench)
-        w, frame = tw.parse_tip_wrench(force, torque, cfg.base_frame, cfg.base_frame, cfg.tip_frame,
+        w, frame = cmd.parse_tip_wrench(force, torque, cfg.base_frame, cfg.base_frame, cfg.tip_frame,
                                        cfg.max_tip_force_n, cfg.max_tip_torque_nm)
-    except tw.InputError as e:
+    except cmd.InputError as e:
         resp.success, resp.message = False, clip(f"input rejected ({e.reason}): {e}", 400)
         return resp
     info, res = _twin_copy(node).statics(actuation, w, frame)       # joints at the twin's current commands
@@ -127,8 +128,8 @@ def _inverse_kinematics(node, req, resp):
     if node.robot.articulated:
         return _articulated_ik(node, req, resp, target, tol or 1e-6)
     model, q, u, w, frame, cfg, order = copy_state(node)
-    res = tw.inverse_kinematics(model, q, cfg.backbone_points_per_section, target, req.position_only,
-                                tol or 1e-6, tw.make_loads(model, w, frame), u_current=u)
+    res = core_ik.inverse_kinematics(model, q, cfg.backbone_points_per_section, target, req.position_only,
+                                tol or 1e-6, cmd.make_loads(model, w, frame), u_current=u)
     resp.success, resp.message = res.success, clip(res.message, 400)
     if res.q is not None:
         resp.strains = res.strains.ravel().tolist()
@@ -145,7 +146,7 @@ def _inverse_kinematics(node, req, resp):
 
 def _articulated_ik(node, req, resp, target, tol):
     """IK of an articulated robot's tip pose, or position with
-    ``position_only`` (:meth:`soft_twin_core.articulated_twin.ArticulatedTwin.inverse_kinematics`,
+    ``position_only`` (:meth:`soft_twin_core.twin.Twin.inverse_kinematics`,
     in the query worker): ``actuator_names``/``actuator_values`` its
     position-controlled joints (rad or m) first, then its actuators (N or Pa)."""
     try:
@@ -155,7 +156,7 @@ def _articulated_ik(node, req, resp, target, tol):
         return resp
     resp.success = r.reached
     resp.message = ("converged: reached by joint commands and actuation (static equilibrium)" if r.reached else
-                    f"target not reached ({tw._IK_STATUS.get(r.status, r.status)}): the closest position "
+                    f"target not reached ({core_ik._IK_STATUS.get(r.status, r.status)}): the closest position "
                     f"the joints and actuators can hold, position error {r.position_error:.3g} m")
     resp.strains = r.strains.ravel().tolist()
     resp.actuation_found = True

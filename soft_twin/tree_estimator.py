@@ -37,11 +37,11 @@ from geometry_msgs.msg import PointStamped, PoseArray, PoseStamped, PoseWithCova
 from sensor_msgs.msg import JointState
 
 from soft_twin import conversions as cv
-from soft_twin_core.articulated_twin import parse_joint_command
+from soft_twin_core.commands import parse_joint_command
 from soft_twin_core.mechanism import tip_frame
 from soft_twin.msg import ActuationCommand
 from soft_twin.readings import STAMP_REJECTIONS, accept_reading
-from soft_twin_core.twin import InputError
+from soft_twin_core.commands import InputError
 from soft_twin_core import tree_estimation as te
 from soft_twin_core import tree_sensors as ts
 

@@ -162,7 +162,7 @@ def _profile(value, model, kind):
 
 def held(u):
     """A constant input profile of an inputs vector checked already (at the
-    node's door, :func:`soft_twin_core.twin.parse_actuation`): for
+    node's door, :func:`soft_twin_core.commands.parse_actuation`): for
     :meth:`Simulator.set_actuation` without a second check."""
     u = np.array(u, dtype=float)
     f = lambda t: u  # noqa: E731

@@ -16,7 +16,7 @@ class ModelError(ValueError):
 
 class InputError(ValueError):
     """A rejected input of the twin (a command, a wrench, a query). ``reason``
-    is one of :data:`soft_twin_core.twin.REJECT_REASONS`."""
+    is one of :data:`soft_twin_core.commands.REJECT_REASONS`."""
 
     def __init__(self, reason, message):
         super().__init__(message)

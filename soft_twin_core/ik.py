@@ -4,12 +4,13 @@ strain modes (slides part B "Inverse kinematics", part C "Soft continuum arm
 with constant curvature").
 """
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 
 from . import kinematics as kin
 from . import lie
+from .errors import ModelError, StaticsError
 from ._blas import one_blas_thread
 
 
@@ -277,3 +278,102 @@ def solve_actuation_ik(model, target, u_init=None, q_init=None, *, loads=None, p
                    + (f" within the bounds; at a bound: {at})" if at else ")"))
     pe, oe = _errors(g, target)
     return ActuationIKResult(u, q, message == "converged", pe, oe, it, g, message)
+
+
+# ----------------------------------------------------------------------------
+# The node's IK query of a classic rod (tree robots: twin.Twin.inverse_kinematics)
+# ----------------------------------------------------------------------------
+
+@dataclass
+class QueryResult:
+    """success, message; q; backbone poses (N, 4, 4); tip_pose (4, 4);
+    strains (n, 6); base_wrench (6,) or None; iterations; residual."""
+    success: bool
+    message: str
+    q: np.ndarray = None
+    s: np.ndarray = None
+    backbone: np.ndarray = None
+    tip_pose: np.ndarray = None
+    strains: np.ndarray = None
+    base_wrench: np.ndarray = None
+    iterations: int = 0
+    residual: float = 0.0
+    extra: dict = field(default_factory=dict)
+
+
+def _shape(model, q, points_per_section, **kw):
+    s, poses = kin.backbone(model, q, points_per_section)
+    return QueryResult(True, kw.pop("message", "ok"), q=q, s=s, backbone=poses, tip_pose=poses[-1],
+                       strains=model.strains(q), **kw)
+
+
+def inverse_kinematics(model, q_current, points_per_section, target, position_only=False,
+                       tolerance=1e-6, loads=None, u_current=None):
+    """Tip IK (target 4x4 in the base frame), warm-started from the twin's
+    state (inputs ``u_current``, shape ``q_current``).
+
+    A robot with actuators: over the actuator inputs through statics
+    (:class:`soft_twin_core.planner.TipSolver`: exact sensitivities
+    J Kt^-1 B, tensions >= 0 and each actuator's ``limit``, least tension
+    among redundant inputs). ``success`` only when the equilibrium reaches
+    the target within ``tolerance`` (m and rad); otherwise ``success`` False
+    and the closest pose the actuators can actually hold (the returned
+    inputs hold the returned shape: ``actuation_found`` True), the message
+    saying why (an actuator bound, out of the workspace). Full poses weigh
+    the orientation error at 0.1 m/rad. A robot without actuators: over the
+    strains (the shape reaching the target), ``actuation_found`` False.
+    ``extra``: u, actuation_residual, actuation_found, position_error,
+    orientation_error, achieved_pose."""
+    try:
+        tgt = np.asarray(target, dtype=float)
+        if not np.all(np.isfinite(tgt)):
+            return QueryResult(False, "target: contains NaN or inf")
+        if model.actuators:
+            return _actuated_ik(model, q_current, points_per_section, tgt, position_only, tolerance, loads,
+                                u_current)
+        r = solve_ik(model, tgt[:3, 3] if position_only else tgt, q_init=q_current,
+                             position_only=position_only, tol_position=tolerance,
+                             tol_orientation=tolerance)
+        out = _shape(model, r.q, points_per_section, iterations=r.iterations,
+                     message=("converged: shape reaching the target (this robot has no actuators)" if r.success
+                              else f"IK did not reach the target: {r.message}"))
+        out.success = bool(r.success)
+        out.residual = r.position_error
+        out.extra = dict(u=np.zeros(0), actuation_residual=0.0, actuation_found=False,
+                         position_error=r.position_error, orientation_error=r.orientation_error,
+                         achieved_pose=r.achieved_pose)
+        return out
+    except (ModelError, ValueError, StaticsError, np.linalg.LinAlgError) as e:
+        return QueryResult(False, f"IK failed: {e}")
+
+
+_IK_STATUS = {"at_limit": "an actuator is at its bound (tension 0 or its limit)",
+              "rate_limit": "a rate limit", "out_of_workspace": "outside the actuated workspace",
+              "statics_failed": "no equilibrium found"}
+
+
+def _actuated_ik(model, q_current, points_per_section, tgt, position_only, tolerance, loads, u_current):
+    from soft_twin_core import lie, planner as pl
+    opts = pl.PlanOptions(tolerance=tolerance, tolerance_rad=tolerance, loads=loads,
+                          orientation_weight=0.0 if position_only else 0.1, max_iterations=30)
+    solver = pl.TipSolver(model, opts)
+    solver._with_rot = not position_only
+    u0 = np.zeros(len(model.actuators)) if u_current is None else np.asarray(u_current, dtype=float)
+    q0 = None if q_current is None else np.asarray(q_current, dtype=float)
+    target = tgt.copy()
+    if position_only:
+        target[:3, :3] = np.eye(3)
+    r = solver.solve(target, u0, q0)
+    oe = r.orientation_error if not position_only else float(
+        np.linalg.norm(lie.log_so3(r.tip_pose[:3, :3].T @ tgt[:3, :3])))
+    if r.reached:
+        msg = "converged: reached by actuation (static equilibrium)"
+    else:
+        msg = (f"target not reached by actuation ({_IK_STATUS.get(r.status, r.status)}): the closest pose "
+               f"the actuators can hold, position error {r.position_error:.3g} m"
+               + ("" if position_only else f", orientation error {oe:.3g} rad"))
+    out = _shape(model, r.q, points_per_section, iterations=r.iterations, message=msg)
+    out.success, out.residual = bool(r.reached), r.position_error
+    out.extra = dict(u=r.u, actuation_residual=0.0, actuation_found=True, position_error=r.position_error,
+                     orientation_error=oe, achieved_pose=r.tip_pose, status=r.status)
+    return out

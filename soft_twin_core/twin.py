@@ -1,206 +1,53 @@
-"""What the twin takes and how it behaves, free of ROS (the node wraps it):
-the checks at the door, the settings, the drop policy, and the classic
-rod's closed-form-capable IK query. The twin itself, for every robot, is
-:class:`soft_twin_core.articulated_twin.ArticulatedTwin`.
+"""The digital twin of any robot, free of ROS (the node wraps it): a
+classic rod is a one-member mechanism. :class:`Twin` is the state machine
+the node drives (inputs, :meth:`Twin.step`, :meth:`Twin.outputs`,
+``reset``, ``change_settings``, ``warm_up``) on the multibody engine with
+joints and constraints (:mod:`soft_twin_core.constrained`; the compiled O(n)
+integrator and static Newton when the robot has no constraint rows):
+``dynamic`` mode steps a
+:class:`~soft_twin_core.constrained.MechanismSimulator`, ``quasi_static``
+mode solves the equilibrium on every input change, warm-started from the
+last shape. It takes actuation, a tip wrench and joint commands (positions
+of position-controlled joints, whose efforts are outputs, and efforts of
+effort-controlled joints), checked at the door (:mod:`soft_twin_core.commands`).
 
-Inputs are validated here (:func:`parse_actuation`, :func:`parse_tip_wrench`;
-joint commands: :func:`soft_twin_core.articulated_twin.parse_joint_command`):
-a bad input raises :class:`InputError` carrying a short reason key used for
-the node's rejection counters, and is never applied. Inputs beyond declared
-limits (an actuator's ``limit`` in the robot file, the node's tip force and
-torque bounds) are rejected there too ("over_limit").
+Its :class:`Snapshot` carries everything the node publishes: the poses of
+one forward pass at once, the loads inside the robot on first use.
 
-A dynamic step that fails (no convergence, or the core raising on absurd
-numbers) keeps the last good state and drops the input that broke it
+A step that fails (no convergence, or the core raising on absurd numbers)
+keeps the last good state and drops the input that broke it
 (:class:`DropPolicy`; :attr:`UpdateInfo.dropped` says which), so the next
-step runs with inputs that worked. The twin's simulator is configured so
-that a failing step costs about a millisecond (:class:`TwinSettings`:
-bounded sub-stepping, no dense-Newton fallback).
+step runs with inputs that worked. The simulator is configured so that a
+failing step costs about a millisecond (:class:`TwinSettings`: bounded
+sub-stepping, no dense-Newton fallback).
 
 Frames: "world" of the core model = the node's base frame. Wrenches are
-[force (N); moment (N m)].
+[force (N); moment (N m)]. Not thread-safe: the node serialises calls.
 """
 
+import contextlib
 from dataclasses import dataclass, field
-import math
+from functools import cached_property
+import time
 
 import numpy as np
 
-from . import ik as core_ik
-from . import kinematics as kin
-from . import loads as ld
+from . import articulated_planner as ap
+from . import constrained as cs
 from . import statics as st
-from .model import ModelError, check_actuator_input
-
-from .errors import InputError  # noqa: F401  (the twin's API: tw.InputError)
-from .text import clip, short_list
+from ._blas import one_blas_thread
+from .mechanism import shape_command, tip_frame
+from .model import State
+from .outputs import (base_reaction, main_member, q_from_section_strains, section_rates, section_strains,
+                      state_outputs, state_shape)
+from .text import clip
+from .workspace import Workspace
 
 MODES = ("dynamic", "quasi_static")
-
-# reason keys of rejected inputs (diagnostics counters): the first ones at the
-# door (validation), "solver_failed" for an input dropped because the step or
-# solve it caused failed
-REJECT_REASONS = ("non_finite", "wrong_length", "unknown_name", "duplicate_name",
-                  "negative_tension", "over_limit", "under_limit", "bad_frame", "wrong_mode",
-                  "solver_failed")
 
 # what a failing step may raise on absurd (finite) numbers: a failure, not a bug
 STEP_ERRORS = (ArithmeticError, ValueError, np.linalg.LinAlgError, st.StaticsError)
 
-
-# ----------------------------------------------------------------------------
-# Input validation
-# ----------------------------------------------------------------------------
-
-def parse_actuation(model, names, values, current, order=None):
-    """Inputs vector (n_actuators,) after applying a command to ``current``.
-
-    names/values: the command. With names, each named actuator takes its
-    value and the others keep theirs (from ``current``). With names empty,
-    values must hold one value per actuator in ``order`` (actuator names;
-    default the robot's order). Tendon tensions in N (>= 0), chamber
-    pressures in Pa; each at most the actuator's declared ``limit`` (tension,
-    or |pressure|; none declared: ``math.inf``). Raises :class:`InputError`
-    (never partially applies); its message is bounded in length.
-    """
-    names = list(names)
-    values = np.asarray(list(values), dtype=float)
-    robot_names = list(model.actuator_names)
-    order = robot_names if not order else list(order)
-    if not names:
-        if values.size != len(order):
-            raise InputError("wrong_length", f"actuation without names needs {len(order)} values "
-                             f"(one per actuator {short_list(order)}), got {values.size}")
-        names = order
-    elif len(names) != values.size:
-        raise InputError("wrong_length", f"actuation has {len(names)} names but {values.size} values")
-    if len(set(names)) != len(names):
-        seen, dup = set(), {}
-        for n in names:
-            if n in seen:
-                dup[n] = None
-            seen.add(n)
-        raise InputError("duplicate_name", f"actuation names repeated: {short_list(dup)}")
-    known = set(robot_names)
-    unknown = [n for n in names if n not in known]
-    if unknown:
-        raise InputError("unknown_name", f"unknown actuator(s) {short_list(unknown)}; this robot has "
-                                         f"{short_list(robot_names)}")
-    bad = [n for n, v in zip(names, values) if not math.isfinite(v)]
-    if bad:
-        raise InputError("non_finite", f"actuation values not finite for {short_list(bad)}")
-    u = np.array(current, dtype=float, copy=True)
-    index = {n: k for k, n in enumerate(robot_names)}
-    for n, v in zip(names, values):
-        k = index[n]
-        act = model.actuators[k]
-        bad = check_actuator_input(act, v)      # the core's rule (robot file's limit/min/max)
-        if bad is not None:
-            raise InputError(*bad)
-        u[k] = v
-    # the core's own check (same rules): the single source of truth
-    try:
-        return st.actuation_vector(model, u)
-    except ValueError as e:
-        raise InputError("non_finite", str(e)) from None
-
-
-def parse_tip_wrench(force, moment, frame_id, base_frame, tip_frame, max_force=math.inf,
-                     max_torque=math.inf):
-    """External tip wrench from a WrenchStamped's parts.
-
-    frame_id == base_frame: a dead load, components along the base axes;
-    frame_id == tip_frame: a follower load, components along the tip axes.
-    Either way the force acts at the tip point and the moment is about it.
-    |force| <= max_force [N] and |moment| <= max_torque [N m] (else
-    "over_limit"). Returns (wrench (6,), core frame "world" | "body").
-    """
-    w = np.array(list(force) + list(moment), dtype=float)
-    if frame_id == base_frame:
-        frame = "world"
-    elif frame_id == tip_frame:
-        frame = "body"
-    else:
-        raise InputError("bad_frame", f"tip wrench frame_id {clip(repr(frame_id))}: expected the base "
-                         f"frame {base_frame!r} or the tip frame {tip_frame!r}")
-    if not np.all(np.isfinite(w)):
-        raise InputError("non_finite", f"tip wrench not finite: {w.tolist()}")
-    f, m = math.hypot(*w[:3]), math.hypot(*w[3:])        # no overflow on 1e300
-    if f > max_force:
-        raise InputError("over_limit", f"tip force |f| = {f:g} N exceeds max_tip_force_n = {max_force:g} N")
-    if m > max_torque:
-        raise InputError("over_limit", f"tip torque |m| = {m:g} N m exceeds max_tip_torque_nm = "
-                                       f"{max_torque:g} N m")
-    return w, frame
-
-
-class SequenceGaps:
-    """Counts the inputs lost before the node took them (a full subscription
-    queue, a publisher's own queue overflowing, a lossy link) from the
-    publication sequence number the middleware gives each sample: one count
-    per publisher, up by one per message it publishes, so a jump of k + 1
-    between two samples of a publisher means k samples lost.
-
-    rclpy does not say which publisher a sample came from, so samples are
-    sorted into streams: a sample continues the stream whose last number is
-    the closest below its own. While fewer streams are known than
-    publishers are matched, a sample that does not continue a stream
-    exactly (last + 1) starts a new one (a publisher that just joined); a
-    sample no stream can continue (a restarted publisher) starts one too.
-    A new stream counts nothing lost before its first sample. Streams
-    beyond the matched publisher count are forgotten, least recently used
-    first. Exact for one publisher; with several an estimate (their numbers
-    may interleave). ``supported`` turns False if the middleware gives no
-    numbers (then nothing can be counted)."""
-
-    UNSUPPORTED = 2 ** 64 - 1          # RMW_MESSAGE_INFO_SEQUENCE_NUMBER_UNSUPPORTED
-
-    def __init__(self, max_streams=16):
-        self.max_streams = max_streams
-        self.lost = 0
-        self.supported = True
-        self._streams = []             # [last number, last use] per stream
-        self._uses = 0
-
-    def add(self, seq, publishers=None):
-        """One received sample's publication sequence number (None or
-        ``UNSUPPORTED`` if the middleware has none) and the number of
-        publishers matched now (None: unknown). Returns how many samples
-        were lost just before it (0 for the first sample of a stream)."""
-        if seq is None or seq <= 0 or seq >= self.UNSUPPORTED:
-            self.supported = False
-            return 0
-        self._uses += 1
-        limit = self.max_streams if not publishers else max(1, min(publishers, self.max_streams))
-        while len(self._streams) > limit:
-            self._streams.remove(min(self._streams, key=lambda s: s[1]))
-        best = None
-        for s in self._streams:
-            if s[0] < seq and (best is None or s[0] > best[0]):
-                best = s
-        if best is not None and best[0] + 1 != seq and len(self._streams) < limit and publishers:
-            best = None                # a publisher that joined, not a gap in a known one
-        if best is None:
-            if len(self._streams) >= limit:
-                self._streams.remove(min(self._streams, key=lambda s: s[1]))
-            self._streams.append([seq, self._uses])
-            return 0
-        gap = seq - best[0] - 1
-        best[0], best[1] = seq, self._uses
-        self.lost += gap
-        return gap
-
-
-def make_loads(model, tip_wrench=None, frame="world"):
-    """Gravity plus an optional tip point load (6,) in the given core frame."""
-    if tip_wrench is None or not np.any(tip_wrench):
-        return ld.Loads()
-    return ld.Loads(point=(ld.PointLoad(model.total_length, tuple(float(x) for x in tip_wrench), frame),))
-
-
-# ----------------------------------------------------------------------------
-# Results
-# ----------------------------------------------------------------------------
 
 @dataclass
 class UpdateInfo:
@@ -280,100 +127,484 @@ class DropPolicy:
         return None
 
 
-# ----------------------------------------------------------------------------
-# Queries (pure: never touch a twin's state)
-# ----------------------------------------------------------------------------
+def _same_inputs(a, b):
+    """Two input tuples of :meth:`Twin._inputs_tuple` alike (the
+    stamps by identity)."""
+    return (np.array_equal(a[0], b[0]) and np.array_equal(a[1], b[1]) and a[2] == b[2] and a[3] == b[3]
+            and a[4] == b[4] and all(x is y for x, y in zip(a[5:], b[5:])))
+
 
 @dataclass
-class QueryResult:
-    """success, message; q; backbone poses (N, 4, 4); tip_pose (4, 4);
-    strains (n, 6); base_wrench (6,) or None; iterations; residual."""
-    success: bool
-    message: str
-    q: np.ndarray = None
-    s: np.ndarray = None
-    backbone: np.ndarray = None
-    tip_pose: np.ndarray = None
-    strains: np.ndarray = None
-    base_wrench: np.ndarray = None
-    iterations: int = 0
-    residual: float = 0.0
-    extra: dict = field(default_factory=dict)
+class TwinIK:
+    """An IK answer of an articulated robot: ``names`` its position-controlled
+    joints, then its actuators; ``values`` their commands (rad or m, then N
+    or Pa) whose equilibrium ``q`` puts the tip at ``achieved_pose`` (4x4,
+    base frame); ``status`` as the planner's (``reached``, ``at_limit``,
+    ``rate_limit``, ``out_of_workspace``); ``strains`` (n_soft_sections, 6);
+    ``orientation_error`` [rad] (0 for a position target)."""
+    reached: bool
+    status: str
+    names: tuple
+    values: np.ndarray
+    q: np.ndarray
+    strains: np.ndarray
+    achieved_pose: np.ndarray
+    position_error: float
+    iterations: int
+    orientation_error: float = 0.0
 
 
-def _shape(model, q, points_per_section, **kw):
-    s, poses = kin.backbone(model, q, points_per_section)
-    return QueryResult(True, kw.pop("message", "ok"), q=q, s=s, backbone=poses, tip_pose=poses[-1],
-                       strains=model.strains(q), **kw)
+@dataclass(frozen=True)
+class Snapshot:
+    """One state: mode, t [s], u (actuation), joint names and positions,
+    velocities, efforts (rad, rad/s, N m or m, m/s, N); backbones {member:
+    (poses (N, 4, 4), s (N,))} at the settings' points per section; main
+    member name; backbone and s of the main member (the one with the tip),
+    tip_pose; strains and strain_rates (n_soft_sections, 6) in tree order;
+    frames {name: 4x4}; tip_wrench (the load at the tip frame, tip axes);
+    command_stamp. These come from one forward pass (the poses), what every
+    published state needs. The loads inside the robot are computed on
+    first use, once (an RNEA pass and the members' cut wrenches; the node
+    asks for them at ``wrench_rate_hz``): ``base_wrench`` (the support's
+    reaction on the robot: the sum of the root joints' transmitted wrenches,
+    base axes, about the base origin), ``constraint_wrenches`` {name: world
+    [f; m] on its frame}, ``joint_wrenches`` {rigid joint: world [f; m]
+    transmitted through it (the parent side on the child side), about the
+    joint's origin}, ``internal_wrenches`` {member: (N, 6) at its backbone
+    points, section axes} and ``stresses`` {member: (peak normal, peak
+    shear) Pa}."""
+    mode: str
+    t: float
+    u: np.ndarray
+    joint_names: tuple
+    joint_positions: np.ndarray
+    joint_velocities: np.ndarray
+    joint_efforts: np.ndarray
+    backbones: dict
+    main_member: str
+    s: np.ndarray
+    backbone: np.ndarray
+    tip_pose: np.ndarray
+    strains: np.ndarray
+    strain_rates: np.ndarray
+    frames: dict
+    tip_wrench: np.ndarray
+    command_stamp: object = None
+    points_per_section: int = 1     # backbone points per section (every member's section boundaries: [::pps])
+    state: tuple = field(default=None, repr=False)    # (mech, q, v, a, lam, inputs): what the loads need
+
+    @cached_property
+    def _loads(self):
+        mech, q, v, a, lam, inp = self.state
+        return state_outputs(mech, q, lam, inp, v, a, points_per_section=self.points_per_section,
+                             member_motion=False)
+
+    @property
+    def base_wrench(self):
+        return base_reaction(self.state[0], self._loads.joint_wrenches)
+
+    @property
+    def constraint_wrenches(self):
+        return self._loads.constraint_wrenches
+
+    @property
+    def joint_wrenches(self):
+        return {n: self._loads.joint_wrenches[n] for n in self.joint_names}
+
+    @property
+    def internal_wrenches(self):
+        return {m.name: m.internal_wrench for m in self._loads.members}
+
+    @property
+    def stresses(self):
+        return {m.name: (float(np.nanmax(m.normal_stress, initial=0.0)), float(np.nanmax(m.shear_stress, initial=0.0)))
+                for m in self._loads.members}
 
 
-def inverse_kinematics(model, q_current, points_per_section, target, position_only=False,
-                       tolerance=1e-6, loads=None, u_current=None):
-    """Tip IK (target 4x4 in the base frame), warm-started from the twin's
-    state (inputs ``u_current``, shape ``q_current``).
+class Twin:
+    """A mechanism, its state and inputs (see the module docstring). Not
+    thread-safe: the node serialises calls."""
 
-    A robot with actuators: over the actuator inputs through statics
-    (:class:`soft_twin_core.planner.TipSolver`: exact sensitivities
-    J Kt^-1 B, tensions >= 0 and each actuator's ``limit``, least tension
-    among redundant inputs). ``success`` only when the equilibrium reaches
-    the target within ``tolerance`` (m and rad); otherwise ``success`` False
-    and the closest pose the actuators can actually hold (the returned
-    inputs hold the returned shape: ``actuation_found`` True), the message
-    saying why (an actuator bound, out of the workspace). Full poses weigh
-    the orientation error at 0.1 m/rad. A robot without actuators: over the
-    strains (the shape reaching the target), ``actuation_found`` False.
-    ``extra``: u, actuation_residual, actuation_found, position_error,
-    orientation_error, achieved_pose."""
-    try:
-        tgt = np.asarray(target, dtype=float)
-        if not np.all(np.isfinite(tgt)):
-            return QueryResult(False, "target: contains NaN or inf")
-        if model.actuators:
-            return _actuated_ik(model, q_current, points_per_section, tgt, position_only, tolerance, loads,
-                                u_current)
-        r = core_ik.solve_ik(model, tgt[:3, 3] if position_only else tgt, q_init=q_current,
-                             position_only=position_only, tol_position=tolerance,
-                             tol_orientation=tolerance)
-        out = _shape(model, r.q, points_per_section, iterations=r.iterations,
-                     message=("converged: shape reaching the target (this robot has no actuators)" if r.success
-                              else f"IK did not reach the target: {r.message}"))
-        out.success = bool(r.success)
-        out.residual = r.position_error
-        out.extra = dict(u=np.zeros(0), actuation_residual=0.0, actuation_found=False,
-                         position_error=r.position_error, orientation_error=r.orientation_error,
-                         achieved_pose=r.achieved_pose)
+    def __init__(self, mech, settings=None):
+        self.mech = mech
+        self.model = mech            # what the node reads: name, actuators, actuator_names
+        self.settings = settings or TwinSettings()
+        self.tip = tip_frame(mech)
+        self.u = np.zeros(len(mech.actuators))
+        self.tip_wrench = np.zeros(6)
+        self.tip_frame = "world"
+        self.positions = {mech.tree.joints[i].name: mech.tree.joints[i].q_ref for i in mech.joints_with("position")}
+        self.efforts = {mech.tree.joints[i].name: 0.0 for i in mech.joints_with("effort")}
+        self.command_stamp = None
+        self.joint_stamp = None          # the newest joint command's header
+        self.actuation_stamp = None      # the newest actuation command's header
+        self._dirty = True
+        self._tangent = None             # the last equilibrium's tangent (robots without multipliers): a hint
+        self.rest_q, self.rest_message = self._rest()
+        self.lam = np.zeros(mech.n_constraint_rows + len(mech.joints_with("position")))
+        self._keep_good(reset=True)
+        self.reset(solve=False)
+
+    # --- inputs -------------------------------------------------------------
+    def _keep_good(self, reset=False):
+        """The current inputs are those of a good state (a step or solve
+        succeeded with them): what a failed one falls back to; the good
+        inputs before them are kept as the fallback of a late failure."""
+        now = self._inputs_tuple()
+        if reset:
+            self._policy = DropPolicy(_same_inputs, now)
+        else:
+            self._policy.succeeded(now)
+        self._good = now
+        self._good_joint_stamp = self.joint_stamp
+        self._good_actuation_stamp = self.actuation_stamp
+
+    def _inputs_tuple(self):
+        return (self.u.copy(), self.tip_wrench.copy(), self.tip_frame, dict(self.positions), dict(self.efforts),
+                self.command_stamp, self.joint_stamp, self.actuation_stamp)
+
+    def core_inputs(self, positions=None, velocities=None):
+        """The core Inputs of the current commands (``positions``,
+        ``velocities``: instead of the commanded ones, e.g. the shaped
+        references), assembled without a second check: the node checked
+        every command at the door (:func:`parse_joint_command`,
+        :func:`soft_twin_core.commands.parse_actuation`, :func:`soft_twin_core.commands.parse_tip_wrench`)."""
+        return cs.assemble_inputs(self.mech, self.u, self.efforts,
+                                  self.positions if positions is None else positions, velocities, self.held_loads())
+
+    def _shaped(self, h):
+        """The position references after one step h towards the commands
+        (:func:`mechanism.shape_command`, the joints' max_velocity and
+        max_acceleration): new {joint: (r, v)}."""
+        out = {}
+        for name, (r, v) in self._ref.items():
+            vmax, amax = self.mech.motion_limits.get(name, (np.inf, np.inf))
+            out[name] = shape_command(r, v, self.positions[name], vmax, amax, h)
         return out
-    except (ModelError, ValueError, st.StaticsError, np.linalg.LinAlgError) as e:
-        return QueryResult(False, f"IK failed: {e}")
 
+    def set_actuation(self, u, stamp=None):
+        self.u = np.array(u, dtype=float)
+        self.command_stamp = self.actuation_stamp = stamp
+        self._dirty = True
 
-_IK_STATUS = {"at_limit": "an actuator is at its bound (tension 0 or its limit)",
-              "rate_limit": "a rate limit", "out_of_workspace": "outside the actuated workspace",
-              "statics_failed": "no equilibrium found"}
+    def set_tip_wrench(self, wrench, frame="world"):
+        self.tip_wrench, self.tip_frame = np.array(wrench, dtype=float), frame
+        self._dirty = True
 
+    def set_joint_commands(self, positions, efforts, stamp=None):
+        self.positions, self.efforts = dict(positions), dict(efforts)
+        self.command_stamp = stamp if stamp is not None else self.command_stamp
+        self.joint_stamp = stamp
+        self._dirty = True
 
-def _actuated_ik(model, q_current, points_per_section, tgt, position_only, tolerance, loads, u_current):
-    from soft_twin_core import lie, planner as pl
-    opts = pl.PlanOptions(tolerance=tolerance, tolerance_rad=tolerance, loads=loads,
-                          orientation_weight=0.0 if position_only else 0.1, max_iterations=30)
-    solver = pl.TipSolver(model, opts)
-    solver._with_rot = not position_only
-    u0 = np.zeros(len(model.actuators)) if u_current is None else np.asarray(u_current, dtype=float)
-    q0 = None if q_current is None else np.asarray(q_current, dtype=float)
-    target = tgt.copy()
-    if position_only:
-        target[:3, :3] = np.eye(3)
-    r = solver.solve(target, u0, q0)
-    oe = r.orientation_error if not position_only else float(
-        np.linalg.norm(lie.log_so3(r.tip_pose[:3, :3].T @ tgt[:3, :3])))
-    if r.reached:
-        msg = "converged: reached by actuation (static equilibrium)"
-    else:
-        msg = (f"target not reached by actuation ({_IK_STATUS.get(r.status, r.status)}): the closest pose "
-               f"the actuators can hold, position error {r.position_error:.3g} m"
-               + ("" if position_only else f", orientation error {oe:.3g} rad"))
-    out = _shape(model, r.q, points_per_section, iterations=r.iterations, message=msg)
-    out.success, out.residual = bool(r.reached), r.position_error
-    out.extra = dict(u=r.u, actuation_residual=0.0, actuation_found=True, position_error=r.position_error,
-                     orientation_error=oe, achieved_pose=r.tip_pose, status=r.status)
-    return out
+    @property
+    def joint_command_pending(self):
+        """A joint command applied that no step or solve has used yet."""
+        return self.joint_stamp is not None and self.joint_stamp is not self._good_joint_stamp
+
+    @property
+    def command_pending(self):
+        """An actuation command applied that no step or solve has used yet."""
+        return self.actuation_stamp is not None and self.actuation_stamp is not self._good_actuation_stamp
+
+    @property
+    def needs_solve(self):
+        return self.settings.mode == "quasi_static" and self._dirty
+
+    # --- state --------------------------------------------------------------
+    def _rest(self):
+        """Equilibrium under gravity with the joints at their references
+        (statics; a robot with a floating base or spherical joints starts
+        from its reference configuration)."""
+        try:
+            eq = cs.solve_equilibrium(self.mech)
+            return eq.q.copy(), "rest: static equilibrium under gravity"
+        except (ValueError, cs.StaticsError) as e:
+            return self.mech.tree.q0.copy(), f"rest: reference configuration ({clip(e, 200)})"
+
+    def _new_sim(self, q, v):
+        s = self.settings
+        # the work a failing step may do is bounded as the settings say (real time: see TwinSettings)
+        return cs.MechanismSimulator(self.mech, s.dt, s.theta, q, v, tol=s.tolerance,
+                                     max_iterations=max(s.max_iterations, 10),
+                                     max_substep_levels=s.max_substep_levels, full_newton=bool(s.full_newton))
+
+    def reset(self, solve=True):
+        mech = self.mech
+        self.u = np.zeros(len(mech.actuators))
+        self.tip_wrench, self.tip_frame = np.zeros(6), "world"
+        self.positions = {mech.tree.joints[i].name: mech.tree.joints[i].q_ref for i in mech.joints_with("position")}
+        self.efforts = {mech.tree.joints[i].name: 0.0 for i in mech.joints_with("effort")}
+        self.command_stamp = self.joint_stamp = self.actuation_stamp = None
+        self._keep_good(reset=True)
+        self.state = State(self.rest_q.copy(), np.zeros(mech.tree.nv), 0.0)
+        self._ref = {n: (float(v), 0.0) for n, v in self.positions.items()}
+        self.lam = np.zeros_like(self.lam)
+        self._sim = self._new_sim(self.state.q, self.state.qdot) if self.settings.mode == "dynamic" else None
+        if self._sim is not None:
+            self._sim.start_multipliers(self.core_inputs())
+            self.lam = self._sim.lam.copy()
+        self._dirty = self.settings.mode == "quasi_static"
+        if solve and self._dirty:
+            self._solve()
+
+    def change_settings(self, settings):
+        if settings.mode not in ("dynamic", "quasi_static"):
+            raise ValueError(f"mode: expected dynamic or quasi_static, got {settings.mode!r}")
+        old, self.settings = self.settings, settings
+        if (settings.mode, settings.dt, settings.theta, settings.tolerance) != \
+                (old.mode, old.dt, old.theta, old.tolerance):
+            v = self.state.qdot if settings.mode == old.mode else np.zeros(self.mech.tree.nv)
+            self.state = State(self.state.q.copy(), v.copy(), self.state.t)
+            self._sim = self._new_sim(self.state.q, self.state.qdot) if settings.mode == "dynamic" else None
+            if self._sim is not None:
+                self._sim.t = self.state.t
+            tree = self.mech.tree
+            self._ref = {n: (float(self.state.q[tree.idx_q[tree.joint_index(n)]]), 0.0) for n in self.positions}
+            self._dirty = True
+
+    def warm_up(self):
+        """One throw-away step and solve (numba's kernels load or compile)."""
+        t0 = time.perf_counter()
+        sim = self._new_sim(self.state.q, self.state.qdot)
+        try:
+            sim.step(inputs=self.core_inputs())
+        except (cs.StepError,) + STEP_ERRORS:
+            pass            # the kernels ran; the twin's own first step reports a failure itself
+        self.outputs()
+        return time.perf_counter() - t0
+
+    # --- advancing ----------------------------------------------------------
+    def step(self, n=1):
+        """Dynamic: up to n steps of dt. Quasi-static: one equilibrium solve
+        for the current inputs (if they changed). On failure the state is
+        kept (the last good one), ``converged`` is False, the remaining
+        steps are not tried, and the input that failed is dropped
+        (:class:`soft_twin_core.twin.DropPolicy`)."""
+        t0 = time.perf_counter()
+        if self.settings.mode != "dynamic":
+            info = self._solve()
+            info.compute_time = time.perf_counter() - t0
+            return info
+        info = UpdateInfo()
+        shaping = bool(self._ref)          # position-controlled joints follow shaped references
+        inp = None if shaping else self.core_inputs()      # else the inputs hold over the n steps
+        with one_blas_thread() if self.lam.size else contextlib.nullcontext():   # dense KKT solves only
+            for _ in range(n):
+                if shaping:
+                    ref = self._shaped(self.settings.dt)
+                    inp = self.core_inputs({k: r for k, (r, _) in ref.items()}, {k: v for k, (_, v) in ref.items()})
+                try:
+                    self._sim.step(inputs=inp)
+                except (cs.StepError,) + STEP_ERRORS as e:
+                    if info.steps:
+                        self._commit()
+                    info.converged = False
+                    info.dropped = self._drop()
+                    why = clip(e, 300) if isinstance(e, cs.StepError) else f"{type(e).__name__}: {clip(e, 300)}"
+                    info.message = (f"dynamics step at t = {self.state.t:.4f} s did not converge ({why}); "
+                                    f"state kept at the last good step"
+                                    + (f", input dropped ({' and '.join(info.dropped)})" if info.dropped else ""))
+                    break
+                info.steps += 1
+                if shaping:
+                    self._ref = ref
+                info.iterations += self._sim.iterations
+            else:
+                if info.steps:
+                    self._commit()
+        info.compute_time = time.perf_counter() - t0
+        return info
+
+    def _commit(self):
+        """The simulator's state is the twin's, reached with the current inputs."""
+        self.state = State(self._sim.q.copy(), self._sim.v.copy(), self._sim.t)
+        self.lam = self._sim.lam.copy()
+        self._keep_good()
+
+    def _drop(self):
+        """After a failed step or solve: :class:`soft_twin_core.twin.DropPolicy`
+        (the rod twin's too) says what to go back to. Returns what was dropped."""
+        now = self._inputs_tuple()
+        target = self._policy.target(now)
+        if target is None:
+            return ()
+        self._good = target
+        dropped = []
+        if not np.array_equal(now[0], target[0]) or now[7] is not target[7]:
+            dropped.append("actuation")
+        if now[3] != target[3] or now[4] != target[4] or now[6] is not target[6]:
+            dropped.append("joint")
+        if not np.array_equal(now[1], target[1]) or now[2] != target[2]:
+            dropped.append("wrench")
+        (u, w, frame, pos, eff, self.command_stamp, self.joint_stamp, self.actuation_stamp) = target
+        self._good_joint_stamp, self._good_actuation_stamp = self.joint_stamp, self.actuation_stamp
+        self.u, self.tip_wrench, self.tip_frame = u.copy(), w.copy(), frame
+        self.positions, self.efforts = dict(pos), dict(eff)
+        # the simulator's state is unchanged by a failed step
+        return tuple(dropped)
+
+    def _solve(self):
+        if not self._dirty:
+            return UpdateInfo()
+        self._dirty = False
+        try:
+            eq = cs.solve_equilibrium(self.mech, q_init=self.state.q, inputs=self.core_inputs(),
+                                      tangent_hint=self._tangent)
+        except (ValueError, cs.StaticsError) + STEP_ERRORS as e:
+            dropped = self._drop()
+            return UpdateInfo(0, 0, False, f"statics failed for the last input (dropped): {clip(e, 300)}; "
+                                           f"state kept", dropped=dropped)
+        self._keep_good()
+        self._tangent = eq.tangent
+        residual = eq.residual
+        self._ref = {n: (float(v), 0.0) for n, v in self.positions.items()}
+        self.state.q = eq.q.copy()
+        self.state.qdot = np.zeros(self.mech.tree.nv)
+        self.lam = eq.lam.copy()
+        return UpdateInfo(1, eq.iterations, True, "" if eq.stable else
+                          f"only an unstable equilibrium was found (smallest reduced stiffness eigenvalue "
+                          f"{eq.min_stiffness_eigenvalue:.3g}): the robot buckles or snaps through under these "
+                          f"inputs", stable=eq.stable, residual=float(residual))
+
+    # --- queries (never touch this twin) ------------------------------------
+    def query_copy(self):
+        """A quasi-static copy with this twin's commands and shape (cheap:
+        the model is shared), for queries run outside the node's lock."""
+        import copy
+        q = copy.copy(self)
+        q.settings = TwinSettings(mode="quasi_static", points_per_section=self.settings.points_per_section)
+        q.state = State(self.state.q.copy(), np.zeros(self.mech.tree.nv), self.state.t)
+        q.positions, q.efforts = dict(self.positions), dict(self.efforts)
+        q.lam, q._sim = self.lam.copy(), None
+        return q
+
+    def query_state(self):
+        """What a query needs of this twin, as plain data (for a query run
+        in another process: :mod:`soft_twin.query_worker`)."""
+        return dict(q=self.state.q.copy(), t=float(self.state.t), u=self.u.copy(),
+                    tip_wrench=self.tip_wrench.copy(), tip_frame=self.tip_frame, positions=dict(self.positions),
+                    efforts=dict(self.efforts), lam=self.lam.copy())
+
+    def load_query_state(self, st):
+        """Become the quasi-static query twin of :meth:`query_state` ``st``."""
+        self.settings = TwinSettings(mode="quasi_static")
+        self.state = State(st["q"].copy(), np.zeros(self.mech.tree.nv), st["t"])
+        self.u, self.tip_wrench, self.tip_frame = st["u"].copy(), st["tip_wrench"].copy(), st["tip_frame"]
+        self.positions, self.efforts = dict(st["positions"]), dict(st["efforts"])
+        self.lam, self._sim = st["lam"].copy(), None
+
+    def statics(self, actuation, wrench, frame="world"):
+        """(UpdateInfo, snapshot) of the equilibrium under these inputs,
+        warm-started from the current shape (on a :meth:`query_copy`)."""
+        self.set_actuation(actuation)
+        self.set_tip_wrench(wrench, frame)
+        info = self._solve()
+        return info, (self.outputs() if info.converged else None)
+
+    def forward_kinematics(self, strains=(), actuation=None):
+        """(message, snapshot) of a shape, the twin untouched (on a
+        :meth:`query_copy`): the given section strains ((n_soft_sections x 6)
+        values in tree order, the joints where they are now), or the
+        equilibrium under ``actuation`` (inputs vector; gravity, the current
+        joint commands, no tip wrench), or (neither) the current state.
+        Raises ValueError (ModelError) naming a bad input, StaticsError."""
+        strains = np.asarray(list(strains), dtype=float)
+        if strains.size and actuation is not None:
+            raise ValueError("give strains or an actuation, not both")
+        if strains.size:
+            self.state.q = q_from_section_strains(self.mech, strains, self.state.q)
+            message = "ok: shape of the given strains (joints at their current positions)"
+            if self.mech.n_constraint_rows:
+                # a closed chain: strains alone need not close it (the passive joints follow from the closure)
+                from soft_twin_core.workspace import Workspace
+                phi, _ = cs.constraint_rows(self.mech, Workspace(self.mech.tree), self.state.q)
+                gap = float(np.abs(phi[:self.mech.n_constraint_rows]).max(initial=0.0))
+                message += f"; the constraints are violated by up to {gap:.3g} m or rad with them" if gap > 1e-9 \
+                    else "; the constraints hold"
+            return message, self.outputs()
+        if actuation is not None:
+            info, snap = self.statics(actuation, np.zeros(6))
+            if not info.converged:
+                raise cs.StaticsError(info.message)
+            return "ok: static shape under the actuation, the joint commands and gravity" + (
+                "" if info.stable else " (unstable equilibrium)"), snap
+        return "ok: the twin's current shape", self.outputs()
+
+    def held_loads(self):
+        """The tip wrench as the core's point loads (empty without one)."""
+        return [cs.FrameLoad(self.tip, self.tip_wrench, "world" if self.tip_frame == "world" else "body")] \
+            if np.any(self.tip_wrench) else []
+
+    def plan_options(self, **kw):
+        """Planner options for this twin's tip frame, with its current joint
+        efforts and tip wrench held (``kw``: the other options)."""
+        return ap.ArticulatedPlanOptions(frame=self.tip, efforts=dict(self.efforts),
+                                         point_loads=tuple(self.held_loads()), **kw)
+
+    def command_vector(self, solver):
+        """x = [position commands of ``solver.joint_names``, actuator inputs] now."""
+        return np.concatenate([[self.positions[n] for n in solver.joint_names], self.u])
+
+    def inverse_kinematics(self, target, tolerance=1e-6):
+        """Joint commands and actuator inputs putting the tip at ``target``
+        (base-frame position (3,) [m], or pose 4x4: then with the tip's
+        orientation, weighted 0.1 m/rad; ``tolerance`` in m and rad), from
+        the current commands and shape (the
+        planner's sample solve, :class:`soft_twin_core.articulated_planner.ArticulatedTipSolver`:
+        joint limits, tensions in [0, limit], least change of the joint
+        commands and least tension among redundant inputs; the current joint
+        efforts and tip wrench held). Raises PlanError, StaticsError or
+        ValueError."""
+        solver = ap.ArticulatedTipSolver(self.mech, self.plan_options(tolerance=tolerance, tolerance_rad=tolerance))
+        x0 = np.clip(self.command_vector(solver), solver.lower, solver.upper)
+        nj = solver.n_j
+        x_ref = np.concatenate([x0[:nj], np.where(np.isfinite(solver.lower[nj:]), solver.lower[nj:], 0.0)])
+        x, eq, g, pe, we, oe, reached, status, it = solver.solve(np.asarray(target, float), x0, self.state.q,
+                                                                 solver.lower, solver.upper, x_ref)
+        return TwinIK(bool(reached), status, solver.joint_names + solver.actuator_names, x, eq.q.copy(),
+                             section_strains(self.mech, eq.q), g, pe, int(it), oe)
+
+    def plan(self, path, **options):
+        """:func:`soft_twin_core.articulated_planner.plan_articulated_path`
+        from the current commands, the tip frame following ``path`` (base
+        frame), the current joint efforts and tip wrench held."""
+        o = self.plan_options(**options)
+        solver = ap.ArticulatedTipSolver(self.mech, o)
+        return ap.plan_articulated_path(self.mech, path, o, start=self.command_vector(solver))
+
+    # --- outputs ------------------------------------------------------------
+    def outputs(self):
+        """The :class:`Snapshot` of the current state, with the
+        inputs it reflects (after a failed step or solve: those of the last
+        good one): its poses now, the loads inside the robot on first use."""
+        mech, tree = self.mech, self.mech.tree
+        u, w, frame, pos, eff, stamp = self._good[:6]
+        dynamic = self.settings.mode == "dynamic" and self._sim is not None
+        q = self.state.q.copy()
+        v = self.state.qdot.copy() if dynamic else None
+        a = self._sim.a.copy() if dynamic else None
+        pl = [cs.FrameLoad(self.tip, w, "world" if frame == "world" else "body")] if np.any(w) else []
+        inp = cs.assemble_inputs(mech, u, eff, pos, None, pl)         # the good state's inputs: checked
+        ws = self.__dict__.get("_shape_ws")
+        if ws is None:
+            ws = self._shape_ws = Workspace(tree)
+        frames, backbones = state_shape(mech, ws, q, self.settings.points_per_section)
+        names = mech.joint_names
+        tip_pose = frames[self.tip]
+        main = getattr(main_member(mech, self.tip), "name", "")
+        bb, s = backbones.get(main, (tip_pose[None], np.zeros(1)))
+        rates = section_rates(mech, v) if v is not None else np.zeros((len(tree.soft_joints), 6))
+        R = tip_pose[:3, :3]
+        tip_w = np.concatenate([R.T @ w[:3], R.T @ w[3:]]) if frame == "world" else w.copy()
+        iq = [tree.idx_q[tree.joint_index(n)] for n in names]
+        iv = [tree.idx_v[tree.joint_index(n)] for n in names]
+        efforts = cs._efforts_out(mech, self.lam, inp)
+        return Snapshot(
+            mode=self.settings.mode, t=float(self.state.t), u=u.copy(), joint_names=names,
+            joint_positions=q[iq].copy(), joint_velocities=v[iv].copy() if v is not None else np.zeros(len(names)),
+            joint_efforts=np.array([efforts[n] for n in names]),
+            backbones=backbones, main_member=main, s=s, backbone=bb, tip_pose=tip_pose,
+            strains=section_strains(mech, q), strain_rates=rates, frames=frames, tip_wrench=tip_w,
+            command_stamp=stamp, points_per_section=self.settings.points_per_section,
+            state=(mech, q, v, a, self.lam.copy(), inp))

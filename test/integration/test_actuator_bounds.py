@@ -106,32 +106,31 @@ def test_check_actuator_input_reasons():
 
 
 def test_the_node_uses_the_same_rule():
-    from soft_twin_core import twin as tw
+    from soft_twin_core import commands as cmd
     d = _with_suction(_pneumatic_dict())
     d["actuators"][0].update(limit=6.0e4, min=0.0)
     d["actuators"][1].update(max=5.0e4)
     m = model_from_dict(d)
     u0 = np.zeros(len(m.actuators))
-    assert "under_limit" in tw.REJECT_REASONS
+    assert "under_limit" in cmd.REJECT_REASONS
     for k in (0, 1, 2):
         a = m.actuators[k]
         for v in (-7.0e4, -1.0, 0.0, 3.0e4, 5.0e4, 5.5e4, 6.0e4, 6.5e4, 1e300):
             expected = check_actuator_input(a, v)
             if expected is None:
-                assert tw.parse_actuation(m, [a.name], [v], u0)[k] == v
+                assert cmd.parse_actuation(m, [a.name], [v], u0)[k] == v
             else:
-                with pytest.raises(tw.InputError) as exc:
-                    tw.parse_actuation(m, [a.name], [v], u0)
+                with pytest.raises(cmd.InputError) as exc:
+                    cmd.parse_actuation(m, [a.name], [v], u0)
                 assert (exc.value.reason, str(exc.value)) == expected
     # the shipped pneumatic arm: suction is refused at the door
-    with pytest.raises(tw.InputError) as exc:
-        tw.parse_actuation(model_from_dict(_pneumatic_dict()), ["chamber_2"], [-29477.0], u0)
+    with pytest.raises(cmd.InputError) as exc:
+        cmd.parse_actuation(model_from_dict(_pneumatic_dict()), ["chamber_2"], [-29477.0], u0)
     assert exc.value.reason == "under_limit" and "-29477" in str(exc.value)
 
 
 def test_the_articulated_node_uses_the_core_joint_rule():
-    from soft_twin_core import articulated_twin as ar
-    from soft_twin_core import twin as tw
+    from soft_twin_core import commands as cmd
     from soft_twin_core.mechanism import check_joint_position, load_mechanism
     mech = load_mechanism(PAN_TILT)
     tilt = next(j for j in mech.tree.joints if j.name == "tilt")
@@ -139,10 +138,10 @@ def test_the_articulated_node_uses_the_core_joint_rule():
         bad = check_joint_position(tilt, v)
         assert (bad is None) == (-1.5 <= v <= 1.5)
         if bad is None:
-            assert ar.parse_joint_command(mech, ["tilt"], [v], [], [], {}, {})[0]["tilt"] == v
+            assert cmd.parse_joint_command(mech, ["tilt"], [v], [], [], {}, {})[0]["tilt"] == v
         else:
-            with pytest.raises(tw.InputError) as exc:
-                ar.parse_joint_command(mech, ["tilt"], [v], [], [], {}, {})
+            with pytest.raises(cmd.InputError) as exc:
+                cmd.parse_joint_command(mech, ["tilt"], [v], [], [], {}, {})
             assert (exc.value.reason, str(exc.value)) == bad
 
 

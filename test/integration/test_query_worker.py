@@ -10,7 +10,7 @@ import time
 import numpy as np
 import pytest
 
-from soft_twin_core.articulated_twin import ArticulatedTwin
+from soft_twin_core.twin import Twin
 from soft_twin.query_worker import QueryError, QueryWorker
 from soft_twin_core.twin import TwinSettings
 from soft_twin_core.mechanism import mechanism_from_dict
@@ -21,7 +21,7 @@ from soft_twin_core import paths as pth
 @pytest.fixture(scope="module")
 def setup():
     desc = read_yaml_file(find_file("pan_tilt_arm", "robots"))
-    twin = ArticulatedTwin(mechanism_from_dict(desc), TwinSettings(mode="dynamic"))
+    twin = Twin(mechanism_from_dict(desc), TwinSettings(mode="dynamic"))
     # a twin somewhere else than its rest: commands moved, a few steps taken
     twin.set_joint_commands({"pan": 0.2, "tilt": -0.1}, {})
     twin.set_actuation([1.0, 0.0, 0.5, 0.0])

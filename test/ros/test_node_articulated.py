@@ -174,10 +174,10 @@ def test_tf_carries_the_articulated_frames(pan_tilt_qs):
 
 
 def test_live_view_snapshot_of_an_articulated_robot():
-    from soft_twin_core.articulated_twin import ArticulatedTwin
+    from soft_twin_core.twin import Twin
     from soft_twin.live_view_out import articulated_view_snapshot
     mech = load_mechanism(find_file("soft_gripper", "robots"))
-    twin = ArticulatedTwin(mech)
+    twin = Twin(mech)
     snap = twin.outputs()
     shot, radii = articulated_view_snapshot(mech, snap)
     assert len(shot.members) == 3 and [len(r) for r in radii] == [3 * PPS + 1] * 3

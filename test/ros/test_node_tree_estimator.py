@@ -34,6 +34,7 @@ from std_srvs.srv import Trigger  # noqa: E402
 from soft_twin.conversions import matrix_from_pose, pose_array, pose_msg  # noqa: E402
 from soft_twin.msg import ActuationCommand  # noqa: E402
 from soft_twin_core import algorithms as alg  # noqa: E402
+from soft_twin_core import commands as cmd
 from soft_twin_core import tree_sensors as ts  # noqa: E402
 from soft_twin_core.constrained import solve_equilibrium  # noqa: E402
 from soft_twin_core.mechanism import load_mechanism, mechanism_from_dict  # noqa: E402

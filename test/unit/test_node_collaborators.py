@@ -121,13 +121,13 @@ def test_markers_of_a_rod_and_fewer_samples_delete_the_rest(model):
     from std_msgs.msg import Header
     from visualization_msgs.msg import Marker
     from soft_twin import markers
-    from soft_twin_core.articulated_twin import ArticulatedTwin
+    from soft_twin_core.twin import Twin
     from soft_twin_core.mechanism import from_robot_model
     from soft_twin_core.twin import TwinSettings
     mech = from_robot_model(model)
     robot = SimpleNamespace(mech=mech)
     mk = markers.Markers()
-    snap = ArticulatedTwin(mech, TwinSettings(mode="quasi_static", points_per_section=4)).outputs()
+    snap = Twin(mech, TwinSettings(mode="quasi_static", points_per_section=4)).outputs()
     out = mk(snap, robot, Header())
     tubes = [m for m in out.markers if m.ns == "tube"]
     assert len(tubes) == len(snap.s) - 1 == 4 * model.n_sections and all(m.action == Marker.ADD for m in tubes)
@@ -136,7 +136,7 @@ def test_markers_of_a_rod_and_fewer_samples_delete_the_rest(model):
     assert L == pytest.approx(model.total_length, rel=2e-3)
     tip = [m for m in out.markers if m.ns == "tip"][0]
     assert tip.pose.position.x == pytest.approx(snap.tip_pose[0, 3])
-    snap2 = ArticulatedTwin(mech, TwinSettings(mode="quasi_static", points_per_section=2)).outputs()
+    snap2 = Twin(mech, TwinSettings(mode="quasi_static", points_per_section=2)).outputs()
     out2 = mk(snap2, robot, Header())
     deleted = [m.id for m in out2.markers if m.action == Marker.DELETE]
     assert deleted == list(range(len(snap2.s) - 1, len(snap.s) - 1))

@@ -8,6 +8,10 @@ import numpy as np
 import pytest
 
 from soft_twin_core import twin as tw
+
+from soft_twin_core import ik as core_ik
+
+from soft_twin_core import commands as cmd
 from soft_twin.config import (PARAMETERS, ConfigError, config_from_values, load_robot,
                               resolve_robot_file, validate)
 from soft_twin_core import constrained as cs
@@ -30,14 +34,14 @@ def model():
 # ------------------------------------------------------------------ inputs
 
 def test_parse_actuation_named_keeps_the_others(model):
-    u = tw.parse_actuation(model, ["tendon_z_pos"], [0.5], [0.1, 0.2, 0.3, 0.4])
+    u = cmd.parse_actuation(model, ["tendon_z_pos"], [0.5], [0.1, 0.2, 0.3, 0.4])
     assert u.tolist() == [0.1, 0.2, 0.5, 0.4]
 
 
 def test_parse_actuation_positional_in_given_order(model):
-    assert tw.parse_actuation(model, [], [1, 2, 3, 4], np.zeros(4)).tolist() == [1, 2, 3, 4]
+    assert cmd.parse_actuation(model, [], [1, 2, 3, 4], np.zeros(4)).tolist() == [1, 2, 3, 4]
     order = ["tendon_z_neg", "tendon_z_pos", "tendon_y_neg", "tendon_y_pos"]
-    assert tw.parse_actuation(model, [], [1, 2, 3, 4], np.zeros(4), order).tolist() == [4, 3, 2, 1]
+    assert cmd.parse_actuation(model, [], [1, 2, 3, 4], np.zeros(4), order).tolist() == [4, 3, 2, 1]
 
 
 @pytest.mark.parametrize("names, values, reason", [
@@ -55,29 +59,29 @@ def test_parse_actuation_positional_in_given_order(model):
 ])
 def test_parse_actuation_rejects(model, names, values, reason):
     current = np.array([0.1, 0.2, 0.3, 0.4])
-    with pytest.raises(tw.InputError) as exc:
-        tw.parse_actuation(model, names, values, current)
+    with pytest.raises(cmd.InputError) as exc:
+        cmd.parse_actuation(model, names, values, current)
     assert exc.value.reason == reason
     assert current.tolist() == [0.1, 0.2, 0.3, 0.4]      # never partially applied
 
 
 def test_parse_tip_wrench_frames():
-    w, frame = tw.parse_tip_wrench([1, 2, 3], [4, 5, 6], "base", "base", "tip")
+    w, frame = cmd.parse_tip_wrench([1, 2, 3], [4, 5, 6], "base", "base", "tip")
     assert frame == "world" and w.tolist() == [1, 2, 3, 4, 5, 6]
-    assert tw.parse_tip_wrench([0, 0, 1], [0, 0, 0], "tip", "base", "tip")[1] == "body"
+    assert cmd.parse_tip_wrench([0, 0, 1], [0, 0, 0], "tip", "base", "tip")[1] == "body"
     for frame_id in ("", "map", "Base"):
-        with pytest.raises(tw.InputError) as exc:
-            tw.parse_tip_wrench([0, 0, 0], [0, 0, 0], frame_id, "base", "tip")
+        with pytest.raises(cmd.InputError) as exc:
+            cmd.parse_tip_wrench([0, 0, 0], [0, 0, 0], frame_id, "base", "tip")
         assert exc.value.reason == "bad_frame"
-    with pytest.raises(tw.InputError) as exc:
-        tw.parse_tip_wrench([0, math.nan, 0], [0, 0, 0], "base", "base", "tip")
+    with pytest.raises(cmd.InputError) as exc:
+        cmd.parse_tip_wrench([0, math.nan, 0], [0, 0, 0], "base", "base", "tip")
     assert exc.value.reason == "non_finite"
 
 
 # ------------------------------------------------------------------ lost inputs
 
 def test_sequence_gaps_one_publisher_is_exact():
-    g = tw.SequenceGaps()
+    g = cmd.SequenceGaps()
     assert [g.add(n, publishers=1) for n in (5, 6, 7, 10, 11, 200)] == [0, 0, 0, 2, 0, 188]
     assert g.lost == 190 and g.supported
     # the publisher restarted (numbers start again): a new stream, nothing lost
@@ -86,7 +90,7 @@ def test_sequence_gaps_one_publisher_is_exact():
 
 
 def test_sequence_gaps_several_publishers():
-    g = tw.SequenceGaps()
+    g = cmd.SequenceGaps()
     # A publishes 1..100, B joins at 5000 (it published before matching): not a gap
     lost = [g.add(n, publishers=1) for n in range(1, 51)]
     lost += [g.add(5000, publishers=2)]
@@ -103,8 +107,8 @@ def test_sequence_gaps_several_publishers():
 
 
 def test_sequence_gaps_without_numbers():
-    g = tw.SequenceGaps()
-    for n in (None, tw.SequenceGaps.UNSUPPORTED):
+    g = cmd.SequenceGaps()
+    for n in (None, cmd.SequenceGaps.UNSUPPORTED):
         assert g.add(n) == 0
     assert not g.supported and g.lost == 0
 
@@ -116,9 +120,9 @@ def _settings(mode, **kw):
 
 
 def _twin(model, settings, d=None):
-    from soft_twin_core.articulated_twin import ArticulatedTwin
+    from soft_twin_core.twin import Twin
     from soft_twin_core.mechanism import from_robot_model
-    return ArticulatedTwin(from_robot_model(model, d), settings)
+    return Twin(from_robot_model(model, d), settings)
 
 
 def _fail_steps(twin):
@@ -308,13 +312,13 @@ def test_actuator_limits_from_the_robot_file():
     d["actuators"][0]["limit"] = 40.0
     model = model_from_dict(d)
     assert model.actuators[0].limit == 40.0 and model.actuators[1].limit == math.inf
-    assert tw.parse_actuation(model, ["tendon_y_pos"], [40.0], np.zeros(4))[0] == 40.0
+    assert cmd.parse_actuation(model, ["tendon_y_pos"], [40.0], np.zeros(4))[0] == 40.0
     for v in (40.000001, 1e6, 1e300):
-        with pytest.raises(tw.InputError) as exc:
-            tw.parse_actuation(model, ["tendon_y_pos"], [v], np.zeros(4))
+        with pytest.raises(cmd.InputError) as exc:
+            cmd.parse_actuation(model, ["tendon_y_pos"], [v], np.zeros(4))
         assert exc.value.reason == "over_limit" and "40 N" in str(exc.value)
     # no limit declared: any finite tension passes the door
-    assert tw.parse_actuation(model, ["tendon_y_neg"], [1e300], np.zeros(4))[1] == 1e300
+    assert cmd.parse_actuation(model, ["tendon_y_neg"], [1e300], np.zeros(4))[1] == 1e300
 
 
 def test_chamber_limits_bound_the_pressure_magnitude():
@@ -326,19 +330,19 @@ def test_chamber_limits_bound_the_pressure_magnitude():
     model = model_from_dict(d)
     name = model.actuator_names[0]
     u0 = np.zeros(len(model.actuators))
-    assert tw.parse_actuation(model, [name], [-1.0e5], u0)[0] == -1.0e5
+    assert cmd.parse_actuation(model, [name], [-1.0e5], u0)[0] == -1.0e5
     for v in (1.5e5, -1.5e5):
-        with pytest.raises(tw.InputError) as exc:
-            tw.parse_actuation(model, [name], [v], u0)
+        with pytest.raises(cmd.InputError) as exc:
+            cmd.parse_actuation(model, [name], [v], u0)
         assert exc.value.reason == "over_limit" and "Pa" in str(exc.value)
 
 
 def test_tip_wrench_limits():
-    assert tw.parse_tip_wrench([0, 0, 999.0], [0, 0, 0], "b", "b", "t", 1e3, 1e2)[1] == "world"
+    assert cmd.parse_tip_wrench([0, 0, 999.0], [0, 0, 0], "b", "b", "t", 1e3, 1e2)[1] == "world"
     for force, torque in (([0, 0, 1001.0], [0, 0, 0]), ([1e300, 1e300, 0], [0, 0, 0]),
                           ([0, 0, 0], [0, 60.0, 80.01])):
-        with pytest.raises(tw.InputError) as exc:
-            tw.parse_tip_wrench(force, torque, "b", "b", "t", 1e3, 1e2)
+        with pytest.raises(cmd.InputError) as exc:
+            cmd.parse_tip_wrench(force, torque, "b", "b", "t", 1e3, 1e2)
         assert exc.value.reason == "over_limit"
 
 
@@ -356,12 +360,12 @@ def test_messages_from_huge_inputs_are_bounded(model):
         (["n" * 100000], [0.1], "unknown_name", "more characters"),
     ]
     for names, values, reason, hint in cases:
-        with pytest.raises(tw.InputError) as exc:
-            tw.parse_actuation(model, names, values, np.zeros(4))
+        with pytest.raises(cmd.InputError) as exc:
+            cmd.parse_actuation(model, names, values, np.zeros(4))
         assert exc.value.reason == reason and hint in str(exc.value)
         assert len(str(exc.value)) <= 600, (reason, len(str(exc.value)))
-    with pytest.raises(tw.InputError) as exc:
-        tw.parse_tip_wrench([0, 0, 0], [0, 0, 0], "f" * 100000, "base", "tip")
+    with pytest.raises(cmd.InputError) as exc:
+        cmd.parse_tip_wrench([0, 0, 0], [0, 0, 0], "f" * 100000, "base", "tip")
     assert len(str(exc.value)) <= 400 and "more characters" in str(exc.value)
     assert short_list(range(10000)).endswith("more)") and len(short_list(range(10000))) < 260
     assert clip("a" * 1000) == "a" * 200 + "... (800 more characters)"
@@ -428,7 +432,7 @@ def test_queries_leave_the_twin_alone(model):
     assert info.converged and info.residual is not None
     msg, fk = twin.query_copy().forward_kinematics(strains=res.strains.ravel())
     np.testing.assert_allclose(fk.tip_pose, res.tip_pose, atol=1e-12)
-    ik = tw.inverse_kinematics(model, q, 10, res.tip_pose, tolerance=1e-8)
+    ik = core_ik.inverse_kinematics(model, q, 10, res.tip_pose, tolerance=1e-8)
     assert ik.success, ik.message
     assert ik.extra["position_error"] <= 1e-8
     # the target came from an actuation: IK through statics finds one that holds it
@@ -542,13 +546,13 @@ def test_forward_kinematics_of_an_articulated_twin():
     back its tip pose (joints where they are); the current state; the
     equilibrium under an actuation equals the core's; bad strains are
     named; the twin is untouched."""
-    from soft_twin_core.articulated_twin import ArticulatedTwin
+    from soft_twin_core.twin import Twin
     from soft_twin_core.constrained import solve_equilibrium
     from soft_twin_core.mechanism import load_mechanism
     from soft_twin_core.model import ModelError, find_file
     from soft_twin_core.outputs import q_from_section_strains, section_strains, state_outputs
     mech = load_mechanism(find_file("pan_tilt_arm", "robots"))
-    twin = ArticulatedTwin(mech, tw.TwinSettings(mode="quasi_static"))
+    twin = Twin(mech, tw.TwinSettings(mode="quasi_static"))
     twin.set_joint_commands({"pan": 0.3, "tilt": -0.2}, {})
     twin.step()
     q_before = twin.state.q.copy()
@@ -578,7 +582,7 @@ def test_a_tree_twin_checks_its_inputs_at_the_door_only():
     the twin assembles the core's Inputs without checking again, on every
     step and publish (make_inputs ran on each before). The assembled Inputs
     equal make_inputs' for the same valid commands."""
-    from soft_twin_core.articulated_twin import ArticulatedTwin
+    from soft_twin_core.twin import Twin
     from soft_twin_core import constrained as cs
     from soft_twin_core.mechanism import load_mechanism
     from soft_twin_core.model import find_file
@@ -595,7 +599,7 @@ def test_a_tree_twin_checks_its_inputs_at_the_door_only():
     real = cs.make_inputs
     cs.make_inputs = lambda *a, **k: calls.append(1) or real(*a, **k)
     try:
-        twin = ArticulatedTwin(mech, tw.TwinSettings(mode="dynamic", dt=0.005))
+        twin = Twin(mech, tw.TwinSettings(mode="dynamic", dt=0.005))
         twin.set_joint_commands({"pan": 0.3, "tilt": -0.2}, {})
         twin.set_actuation(np.array([0.0, 0.0, 1.0, 0.0]))
         n0 = len(calls)
@@ -615,11 +619,11 @@ def test_a_tree_twin_drops_failed_inputs_as_the_rod_twin_does():
     fails is dropped; inputs that stepped well and then fail give way to
     the inputs before them, once; with nothing left to drop, new inputs are
     kept and tried at every step."""
-    from soft_twin_core.articulated_twin import ArticulatedTwin
+    from soft_twin_core.twin import Twin
     from soft_twin_core import constrained as cs
     from soft_twin_core.mechanism import load_mechanism
     from soft_twin_core.model import find_file
-    twin = ArticulatedTwin(load_mechanism(find_file("pan_tilt_arm", "robots")), _settings("dynamic"))
+    twin = Twin(load_mechanism(find_file("pan_tilt_arm", "robots")), _settings("dynamic"))
     twin.set_actuation(np.array([0.1, 0, 0, 0]), stamp="a")
     assert twin.step(2).converged
     twin.set_joint_commands({"pan": 0.1, "tilt": 0.0}, {}, stamp="b")
@@ -648,13 +652,13 @@ def test_a_tree_twin_drops_failed_inputs_as_the_rod_twin_does():
 def test_forward_kinematics_of_a_closed_chain_says_whether_the_strains_close_it():
     """A closed chain (the planar parallel robot): the strains of one of its
     equilibria close it; other strains leave a gap, named in metres."""
-    from soft_twin_core.articulated_twin import ArticulatedTwin
+    from soft_twin_core.twin import Twin
     from soft_twin_core.constrained import solve_equilibrium
     from soft_twin_core.mechanism import load_mechanism
     from soft_twin_core.model import find_file
     from soft_twin_core.outputs import section_strains
     mech = load_mechanism(find_file("planar_parallel_robot", "robots"))
-    twin = ArticulatedTwin(mech, tw.TwinSettings(mode="quasi_static"))
+    twin = Twin(mech, tw.TwinSettings(mode="quasi_static"))
     twin.step()
     ref = solve_equilibrium(mech)
     msg, _ = twin.query_copy().forward_kinematics(section_strains(mech, twin.state.q).ravel())
