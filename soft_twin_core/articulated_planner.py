@@ -302,15 +302,32 @@ class ArticulatedPlan(Plan):
     frame: str = ""
 
 
+def braking_step(distance, astep):
+    """The largest increment per step towards a joint limit ``distance``
+    away (>= 0) from which the joint still stops before it, decelerating by
+    at most ``astep`` per step (the increments d, d - astep, ... sum to at
+    most d + d^2 / (2 astep) <= distance): astep (sqrt(1 + 2 distance /
+    astep) - 1); inf without an acceleration limit."""
+    with np.errstate(divide="ignore", invalid="ignore"):
+        out = astep * (np.sqrt(1.0 + 2.0 * np.maximum(distance, 0.0) / astep) - 1.0)
+    return np.where(np.isfinite(astep), out, np.inf)
+
+
 def _rate_box(solver, x_prev, d_prev, dt):
     """(lo, hi) of x from the rate limits: joints by velocity and
-    acceleration (d_prev: previous joint increment), inputs by max_rate."""
+    acceleration (d_prev: previous joint increment) and by what still lets
+    them stop before their limits (:func:`braking_step`), inputs by
+    max_rate."""
     nj = solver.n_j
     lo, hi = np.full(x_prev.size, -np.inf), np.full(x_prev.size, np.inf)
     vstep = solver.max_velocity * dt
     astep = solver.max_acceleration * dt * dt
     dlo = np.maximum(-vstep, d_prev - astep)
     dhi = np.minimum(vstep, d_prev + astep)
+    # towards a limit no faster than the joint can brake in time; a joint already faster than that
+    # (it cannot be, from a start at rest) brakes as hard as allowed
+    dhi = np.maximum(np.minimum(dhi, braking_step(solver.upper[:nj] - x_prev[:nj], astep)), dlo)
+    dlo = np.minimum(np.maximum(dlo, -braking_step(x_prev[:nj] - solver.lower[:nj], astep)), dhi)
     lo[:nj], hi[:nj] = x_prev[:nj] + dlo, x_prev[:nj] + dhi
     ustep = solver.rate * dt
     lo[nj:], hi[nj:] = x_prev[nj:] - ustep, x_prev[nj:] + ustep

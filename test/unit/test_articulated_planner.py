@@ -304,3 +304,34 @@ def test_dynamic_check_of_an_articulated_plan(mech):
     lag_fast = ap.simulate_articulated_plan(mech, fast, o, fast.tip, dt=0.002)
     lag_slow = ap.simulate_articulated_plan(mech, slow, o, slow.tip, dt=0.005)
     assert lag_fast.converged and lag_fast.summary()["rms_error_m"] > 3 * lag_slow.summary()["rms_error_m"]
+
+
+def test_a_joint_brakes_in_time_before_its_limit(mech):
+    """Found by the property test: a tall line with the tilt limits narrowed
+    (margin 1) drove the joint at its limit faster than it could stop, and
+    the limit then demanded 15 rad/s^2 of a 10 rad/s^2 joint. The increments
+    towards a limit are now bounded by what still stops in time."""
+    c = (0.25, 0.0, -0.125)
+    path = paths.line(c, np.add(c, [0.0, 0.125, -0.125]), 0.5, sample_period=0.5 / 8)
+    opts = ap.ArticulatedPlanOptions(frame="tool", joint_limits_margin=1.0, max_tension=4.0,
+                                     max_rate=40.0, tolerance=1e-5, max_iterations=15)
+    plan = ap.plan_articulated_path(mech, path, opts)
+    assert ap.check_articulated_plan(plan) == []
+
+
+@pytest.mark.parametrize("distance, astep", [(0.0, 0.01), (0.003, 0.01), (0.1, 0.01), (2.0, 0.004)])
+def test_braking_step_stops_before_the_limit(distance, astep):
+    """Simulated braking from the bound: increments d, d - a, d - 2a, ...
+    (each step slows by at most a) never carry the joint past the limit,
+    and one more step of acceleration would (the bound is not loose by more
+    than that)."""
+    d = float(ap.braking_step(np.array(distance), np.array(astep)))
+
+    def travel(d0):
+        x, v = 0.0, d0
+        while v > 0:
+            x += v
+            v -= astep
+        return x
+    assert d >= 0 and travel(d) <= distance + 1e-15
+    assert travel(d + astep) > distance
