@@ -114,6 +114,18 @@ def state_shape(mech, ws, q, points_per_section=1):
     ``points_per_section`` points per section and its end)."""
     from .kernels.frames import point_poses
     passes.forward_pass(ws.m, ws.w, np.ascontiguousarray(q, float), ws.zeros_v, ws.zeros_v, 0)
+    members = {}
+    for m, J, X, S in _samples(mech, points_per_section):
+        G = np.empty((len(J), 4, 4))
+        point_poses(ws.m, ws.w, J, X, G)
+        members[m.name] = (G, S)
+    return frame_poses(mech, ws), members
+
+
+def frame_poses(mech, ws):
+    """{frame name: world 4x4} of every named frame at the workspace's last
+    forward pass (the frames' points kept on the mechanism)."""
+    from .kernels.frames import point_poses
     refs = mech.__dict__.get("_frame_arrays")
     if refs is None:
         names = list(mech.frames)
@@ -123,12 +135,7 @@ def state_shape(mech, ws, q, points_per_section=1):
     P = np.empty((len(refs[0]), 4, 4))
     if refs[0]:
         point_poses(ws.m, ws.w, refs[1], refs[2], P)
-    members = {}
-    for m, J, X, S in _samples(mech, points_per_section):
-        G = np.empty((len(J), 4, 4))
-        point_poses(ws.m, ws.w, J, X, G)
-        members[m.name] = (G, S)
-    return dict(zip(refs[0], P)), members
+    return dict(zip(refs[0], P))
 
 
 def cut_wrenches(ws, loads, joints, xs, poses):
@@ -375,7 +382,6 @@ def state_outputs(mech, q, lam, inputs, v=None, a=None, ws=None, points_per_sect
     boundaries) and their ends; ``member_motion`` False leaves their points'
     velocities and accelerations at zero (they cost two Jacobians a point)."""
     from .constrained import _concat_loads, _efforts_out, constraint_loads, constraint_wrenches
-    from .kernels.frames import point_poses
     from .workspace import Workspace
     tree = mech.tree
     ws = Workspace(tree) if ws is None else ws
@@ -387,11 +393,7 @@ def state_outputs(mech, q, lam, inputs, v=None, a=None, ws=None, points_per_sect
     z = np.zeros(tree.nv)
     v_ = z if v is None else v
     a_ = z if a is None else a
-    fnames = list(mech.frames)
-    refs = [mech.frames[n] for n in fnames]
-    P = np.empty((len(refs), 4, 4))
-    if refs:
-        point_poses(ws.m, ws.w, np.array([r.joint for r in refs], np.int64), np.array([r.x for r in refs]), P)
+    frames = frame_poses(mech, ws)
     jw = joint_wrenches(mech, ws)
     members = member_outputs(mech, ws, inputs.u, loads, points_per_section, *((v, a) if member_motion else ()))
     return MechanismOutputs(
@@ -401,5 +403,5 @@ def state_outputs(mech, q, lam, inputs, v=None, a=None, ws=None, points_per_sect
         efforts=_efforts_out(mech, lam, inputs),
         joint_wrenches={j.name: jw[i] for i, j in enumerate(tree.joints)},
         constraint_wrenches=constraint_wrenches(mech, lam),
-        frames=dict(zip(fnames, P)),
+        frames=frames,
         members=members)

@@ -48,8 +48,8 @@ from .loads import DistributedLoad, Loads, PointLoad
 from .mechanism import check_joint_position, from_robot_model, is_tree_file, mechanism_from_dict
 from .model import (find_file, model_from_dict, parse_number, parse_numbers, pose_from_dict, read_yaml_file,
                     robot_mapping)
-from .timeline import (Spline, check_output_size, check_scenario_input, count, n_steps_for,  # noqa: F401
-                       parse_profile, step_times)  # (check_output_size, n_steps_for: the runner's API)
+from .timeline import (Spline, check_output_size, check_scenario_input, n_steps_for,  # noqa: F401
+                       parse_profile)  # (check_output_size, n_steps_for: the runner's API)
 
 
 @dataclass
@@ -99,23 +99,15 @@ class Scenario:
         """The scale of every load at time t [s] (its profile's value; 1 without one)."""
         return tuple(k for _, k in self._scaled(t, 1.0))
 
-    def loads_at(self, t=None, factor=1.0, frames_on_backbone=False):
+    def loads_at(self, t=None, factor=1.0):
         """The member loads at time t (profiles applied; None: ignored),
         times ``factor``, and the gravity switch, as :class:`loads.Loads`
-        (the loads on frames: :meth:`frame_loads_at`). ``frames_on_backbone``:
-        a segments robot's loads for its own engine (``model``), which takes
-        loads at arc lengths only: its frames' loads (all on its backbone)
-        included as point loads at their arc length."""
+        (the loads on frames: :meth:`frame_loads_at`)."""
         pts, dist = [], []
         for ld, k in self._scaled(t, factor):
             if isinstance(ld, FrameLoad):
-                if not frames_on_backbone:
-                    continue
-                ref = self.mech.frames[ld.frame]
-                path = self.mech.tree.paths[0]
-                s = float(path.s_starts[list(path.joints).index(ref.joint)] + ref.x)
-                pts.append(PointLoad(s, tuple(k * np.asarray(ld.wrench, dtype=float)), ld.axes))
-            elif isinstance(ld, PointLoad):
+                continue
+            if isinstance(ld, PointLoad):
                 pts.append(PointLoad(ld.s, tuple(k * np.asarray(ld.wrench, dtype=float)), ld.frame, ld.member))
             else:
                 dist.append(DistributedLoad(tuple(k * np.asarray(ld.wrench, dtype=float)), ld.frame, ld.start,
