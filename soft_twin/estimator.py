@@ -1,45 +1,56 @@
 """soft_twin_estimator: a ROS 2 node that tracks the real robot from its
 sensors with the core's extended Kalman filter
-(:class:`soft_twin_core.estimation.StrainEKF`), next to the open-loop twin
-(``soft_twin.node``), which it leaves untouched.
+(:class:`soft_twin_core.estimation.EKF`), next to the open-loop twin
+(``soft_twin.node``), which it leaves untouched. One node for every robot
+file: a classic rod, a tree of members, a soft articulated arm.
 
     python -m soft_twin.estimator --ros-args -p robot_description_file:=tracked_arm \\
         -p sensors_file:=sensors.yaml -p rate_hz:=100.0 -p wrench:=payload
 
 Parameters: ``robot_description_file`` (path or example name),
 ``sensors_file`` (YAML, :func:`soft_twin_core.sensors.load_sensors`),
-``rate_hz`` (filter rate, default 100), ``wrench`` (none, payload, force,
-wrench), ``actuation_topic`` (default ``/soft_twin/actuation``: the twin's
-commands are the filter's inputs), ``frame_id`` (default ``base_link``),
-``joint_command_topic`` (tree robots, default ``/soft_twin/joint_commands``),
-``record_file`` (an MCAP file, ROS 2 bag format, that records every
-message the node receives -- measurements and commands -- for
-``soft-twin-sim calibrate --data FILE.mcap``; closed when the node stops;
-``recorded_inputs`` in the diagnostics counts them), ``max_reading_age_s``
-(default 1.0: a reading stamped further from the node's clock is rejected).
+``rate_hz`` (filter rate, default 100), ``wrench`` (the estimated load at
+the tip frame: none, payload, force, wrench), ``actuation_topic`` (default
+``/soft_twin/actuation``: the twin's commands are the filter's inputs),
+``joint_command_topic`` (default ``/soft_twin/joint_commands``: positions
+of position-controlled joints and efforts of effort-controlled ones),
+``frame_id`` (default ``base_link``), ``record_file`` (an MCAP file, ROS 2
+bag format, that records every message the node receives -- measurements
+and commands -- for ``soft-twin-sim calibrate --data FILE.mcap``; closed
+when the node stops; ``recorded_inputs`` in the diagnostics counts them),
+``max_reading_age_s`` (default 1.0: a reading stamped further from the
+node's clock is rejected).
 
-A tree robot file (soft articulated robot, e.g. ``pan_tilt_arm``) runs the
-tree filter instead, with joint-state measurements: see
-:mod:`soft_twin.tree_estimator` for its topics.
-
-Subscriptions (the pose of each sensor frame in the base frame):
-``~/measurements/poses`` (geometry_msgs/PoseArray: one pose per pose
-sensor of the sensors file, in its order), ``~/measurements/pose``
+Subscriptions: ``~/measurements/poses`` (geometry_msgs/PoseArray: one pose
+per pose sensor of the sensors file, in its order), ``~/measurements/pose``
 (geometry_msgs/PoseStamped, ``header.frame_id`` = the sensor's name),
 ``~/measurements/position`` (geometry_msgs/PointStamped, ``frame_id`` = a
-marker's name), and the actuation topic (soft_twin/ActuationCommand).
-Malformed readings (NaN, an unknown sensor name, a PoseArray of the wrong
-length) are rejected and counted; so are readings with a stamp too old, in
-the future, or older than the sensor's last one (a zero stamp: taken at
-arrival); the filter gates outliers. Every topic's messages are counted as
-received and lost (sequence gaps); readings of one sensor arriving within
-one filter step are merged into one (:mod:`soft_twin.readings`).
+marker's name), ``~/measurements/joint_states`` (sensor_msgs/JointState:
+the positions of the joints of the ``joint_state`` sensors; a sensor takes
+a reading when the message names all its joints),
+``~/measurements/base_wrench`` (geometry_msgs/WrenchStamped: the
+``base_wrench`` sensor's reading, the support's wrench on the robot in
+world axes about the base origin), the actuation topic
+(soft_twin/ActuationCommand) and the joint command topic
+(sensor_msgs/JointState). Poses are those of the sensor frames in the base
+frame. Malformed readings (NaN, an unknown sensor or joint name, a
+message of the wrong length) are rejected and counted
+(``rejected_<kind>`` in the diagnostics); so are readings with a stamp too
+old, in the future, or older than the sensor's last one (a zero stamp:
+taken at arrival); the filter gates outliers. Every topic's messages are
+counted as received and lost (sequence gaps); readings of one sensor
+arriving within one filter step are merged into one
+(:mod:`soft_twin.readings`).
 
-Publications: ``~/estimate/tip_pose`` (geometry_msgs/PoseWithCovarianceStamped:
-the tip position covariance in the position block, m^2; the rotation block
-is left 0), ``~/estimate/backbone`` (PoseArray), ``~/estimate/tip_wrench``
-(WrenchStamped, world axes: the estimated external tip load) and the
-filter's health on ``/diagnostics`` (name ``soft_twin_estimator``). Service
+Publications: ``~/estimate/tip_pose`` (geometry_msgs/PoseWithCovarianceStamped
+of the tip frame, :func:`soft_twin_core.mechanism.tip_frame`: the position
+covariance in the position block, m^2; the rotation block is left 0),
+``~/estimate/backbone`` (PoseArray of the main member, as the twin's
+``~/backbone``), ``~/estimate/backbones/<member>`` (one per soft member),
+``~/estimate/joint_states`` (JointState: positions and velocities of the
+rigid joints), ``~/estimate/tip_wrench`` (WrenchStamped, world axes: the
+estimated external tip load, zero with ``wrench:=none``) and the filter's
+health on ``/diagnostics`` (name ``soft_twin_estimator``). Service
 ``~/estimate/reset`` (std_srvs/Trigger).
 """
 
@@ -54,6 +65,7 @@ from rcl_interfaces.msg import ParameterDescriptor
 from rclpy.executors import SingleThreadedExecutor
 from rclpy.node import Node
 from rclpy.signals import SignalHandlerOptions
+from sensor_msgs.msg import JointState
 from std_srvs.srv import Trigger
 
 from soft_twin.msg import ActuationCommand
@@ -62,10 +74,13 @@ from soft_twin.readings import STAMP_REJECTIONS, InputLedger, accept_reading
 from soft_twin.shutdown import StopSignals, spin_until_stopped, tear_down
 from soft_twin_core import estimation as es
 from soft_twin_core import sensors as sn
-from soft_twin_core.model import load_model
+from soft_twin_core.commands import InputError, parse_joint_command
+from soft_twin_core.mechanism import load_mechanism
+from soft_twin_core.outputs import main_member
 
 NODE_NAME = "soft_twin_estimator"
-_REJECTION_KINDS = ("non_finite", "malformed", "wrong_length", "unknown_sensor", "actuation") + STAMP_REJECTIONS
+REJECTION_KINDS = ("non_finite", "malformed", "wrong_length", "unknown_sensor", "unknown_joint", "actuation",
+                   "joint_command") + STAMP_REJECTIONS
 _WRENCH = {"none": None, "payload": "payload", "force": "force", "wrench": "wrench"}
 
 
@@ -80,7 +95,7 @@ class EstimatorNode(Node):
             "wrench": ("none", "estimated tip load: none, payload, force or wrench"),
             "actuation_topic": ("/soft_twin/actuation", "the twin's actuation commands (the inputs)"),
             "frame_id": ("base_link", "frame of the published estimates"),
-            "joint_command_topic": ("/soft_twin/joint_commands", "the twin's joint commands (tree robots)"),
+            "joint_command_topic": ("/soft_twin/joint_commands", "the twin's joint commands"),
             "record_file": ("", "MCAP file recording every measurement and command received ('' : none)"),
             "max_reading_age_s": (1.0, "readings stamped further than this from the node's clock are rejected [s]"),
         }
@@ -98,44 +113,40 @@ class EstimatorNode(Node):
         if not (math.isfinite(max_age) and max_age > 0):
             raise ValueError(f"max_reading_age_s: expected a positive age in s, got {max_age!r}")
         self.ledger = InputLedger(max_age)        # every input topic and reading counted (soft_twin.readings)
-        # --- recording of the inputs (MCAP, for soft-twin-sim calibrate --data FILE.mcap) ---
         from soft_twin import recorder
         self._recorder = recorder.Recorder(self, [])     # started at the end (nothing is received before)
-        # --- soft articulated robots (tree robot files): soft_twin.tree_estimator ---
-        self.tree = None
-        mech = _tree_robot(get("robot_description_file"))
-        if mech is not None:
-            from soft_twin import tree_estimator
-            self.tree = tree_estimator.TreeEstimation(self, mech, get("sensors_file"), rate, get("frame_id"),
-                                                      get("actuation_topic"), get("joint_command_topic"))
-            self.model = mech
-            self.pub_diag = self.create_publisher(DiagnosticArray, "/diagnostics", 10)
-            self.create_service(Trigger, "~/estimate/reset", self._on_reset)
-            self.create_timer(1.0 / rate, self.tree.on_timer)
-            self.create_timer(0.2, self._publish_diagnostics)
-            self._start_recording(get("record_file"))
-            return
-        self.model = load_model(get("robot_description_file"))
-        self.sensors = sn.load_sensors(get("sensors_file"), self.model)
-        self.pose_sensors = [s for s in self.sensors if isinstance(s, sn.PoseSensor)]
+        # --- the robot, its sensors and the filter ---
+        self.mech = mech = load_mechanism(get("robot_description_file"))
+        self.sensors = sn.load_sensors(get("sensors_file"), mech)
+        self.ekf = es.EKF(mech, self.sensors, 1.0 / rate, wrench=_WRENCH[get("wrench")])
         self.frame_id = get("frame_id")
-        self.ekf = es.StrainEKF(self.model, self.sensors, 1.0 / rate, wrench=_WRENCH[get("wrench")])
-        self.rejections = dict.fromkeys(_REJECTION_KINDS, 0)
+        self.pose_sensors = [s for s in self.sensors if isinstance(s, sn.PoseSensor) and not s.position_only]
+        self.joint_sensors = [s for s in self.sensors if isinstance(s, sn.JointStateSensor)]
+        self.wrench_sensors = [s for s in self.sensors if isinstance(s, sn.BaseWrenchSensor)]
+        self.main = getattr(main_member(mech, self.ekf.tip), "name", None)
+        self.rejections = dict.fromkeys(REJECTION_KINDS, 0)
         self.last_rejection = ""
+        self.cmd_pos, self.cmd_eff = {}, {}
+        # --- publications ---
         self.pub_tip = self.create_publisher(PoseWithCovarianceStamped, "~/estimate/tip_pose", 10)
         self.pub_backbone = self.create_publisher(PoseArray, "~/estimate/backbone", 10)
+        self.pub_backbones = {m.name: self.create_publisher(PoseArray, f"~/estimate/backbones/{m.name}", 10)
+                              for m in mech.members}
+        self.pub_joints = self.create_publisher(JointState, "~/estimate/joint_states", 10)
         self.pub_wrench = self.create_publisher(WrenchStamped, "~/estimate/tip_wrench", 10)
         self.pub_diag = self.create_publisher(DiagnosticArray, "/diagnostics", 10)
+        # --- subscriptions ---
         self.create_subscription(PoseArray, "~/measurements/poses", self._on_poses, 50)
         self.create_subscription(PoseStamped, "~/measurements/pose", self._on_pose, 50)
         self.create_subscription(PointStamped, "~/measurements/position", self._on_position, 50)
+        self.create_subscription(JointState, "~/measurements/joint_states", self._on_joint_states, 50)
+        self.create_subscription(WrenchStamped, "~/measurements/base_wrench", self._on_base_wrench, 50)
         self.create_subscription(ActuationCommand, get("actuation_topic"), self._on_actuation, 50)
+        self.create_subscription(JointState, get("joint_command_topic"), self._on_joint_command, 50)
         self.create_service(Trigger, "~/estimate/reset", self._on_reset)
         self.create_timer(1.0 / rate, self._on_timer)
         self.create_timer(0.2, self._publish_diagnostics)
-        self._start_recording(get("record_file"))
-
-    def _start_recording(self, path):
+        path = get("record_file")
         if path and not self._recorder.follow(path):
             raise ValueError(f"record_file: cannot record to {path!r}")
 
@@ -190,7 +201,7 @@ class EstimatorNode(Node):
 
     def _on_pose(self, msg):
         s = self.ekf.by_name.get(msg.header.frame_id)
-        if not isinstance(s, sn.PoseSensor):
+        if not (isinstance(s, sn.PoseSensor) and not s.position_only):
             self._reject("unknown_sensor", f"pose: unknown pose sensor {msg.header.frame_id!r}; "
                          f"configured: {[x.name for x in self.pose_sensors]}")
             return
@@ -198,100 +209,121 @@ class EstimatorNode(Node):
 
     def _on_position(self, msg):
         s = self.ekf.by_name.get(msg.header.frame_id)
-        if not isinstance(s, sn.PositionMarker):
+        if not (isinstance(s, sn.PoseSensor) and s.position_only):
             self._reject("unknown_sensor", f"position: unknown marker {msg.header.frame_id!r}")
             return
         self._accept(s, lambda: np.array([msg.point.x, msg.point.y, msg.point.z]), msg.header.stamp)
 
+    def _on_joint_states(self, msg):
+        names, pos = list(msg.name), list(msg.position)
+        if len(names) != len(pos):
+            self._reject("wrong_length", f"joint_states: {len(names)} names but {len(pos)} positions")
+            return
+        unknown = [x for x in names if x not in self.mech.joint_names]
+        if unknown:
+            self._reject("unknown_joint", f"joint_states: unknown joint(s) {unknown}; this robot has "
+                                          f"{list(self.mech.joint_names)}")
+            return
+        value = dict(zip(names, pos))
+        for s in self.joint_sensors:
+            if all(j in value for j in s.joints):
+                self._accept(s, lambda s=s: np.array([value[j] for j in s.joints], dtype=float), msg.header.stamp)
+
+    def _on_base_wrench(self, msg):
+        if not self.wrench_sensors:
+            self._reject("unknown_sensor", "base_wrench: no base_wrench sensor in the sensors file")
+            return
+        f, t = msg.wrench.force, msg.wrench.torque
+        self._accept(self.wrench_sensors[0], lambda: np.array([f.x, f.y, f.z, t.x, t.y, t.z], dtype=float),
+                     msg.header.stamp)
+
     def _on_actuation(self, msg):
-        names = list(self.model.actuator_names)
+        names = list(self.mech.actuator_names)
         u = self.ekf.u.copy()
         if len(msg.names) != len(msg.values):
             self._reject("actuation", f"actuation: {len(msg.names)} names but {len(msg.values)} values")
             return
         for n, v in zip(msg.names, msg.values):
-            if n not in names or not math.isfinite(v) or (v < 0 and self.model.actuators[names.index(n)].kind
+            if n not in names or not math.isfinite(v) or (v < 0 and self.mech.actuators[names.index(n)].kind
                                                            == "tendon"):
                 self._reject("actuation", f"actuation: bad entry {n!r} = {v!r}")
                 return
             u[names.index(n)] = v
         self.ekf.u = u
 
+    def _on_joint_command(self, msg):
+        try:
+            pos, eff = parse_joint_command(self.mech, msg.name, msg.position, msg.velocity, msg.effort,
+                                           self.cmd_pos, self.cmd_eff)
+            self.ekf.set_inputs(positions=pos or None, efforts=eff or None)
+        except (InputError, ValueError) as e:
+            self._reject("joint_command", f"joint command: {e}")
+            return
+        self.cmd_pos, self.cmd_eff = pos, eff
+
     def _on_reset(self, req, resp):
         self.ledger.reset()
-        if self.tree is not None:
-            self.tree.reset()
-            resp.success, resp.message = True, "estimate reset to the initial state"
-            return resp
         self.ekf.reset()
-        self.rejections = dict.fromkeys(_REJECTION_KINDS, 0)
+        self.cmd_pos, self.cmd_eff = {}, {}
+        self.rejections = dict.fromkeys(REJECTION_KINDS, 0)
         self.last_rejection = ""
-        resp.success = True
-        resp.message = "estimate reset to the initial state"
+        resp.success, resp.message = True, "estimate reset to the initial state"
         return resp
 
     # ----------------------------------------------------------------- filter
     def _on_timer(self):
-        self.ekf.predict()
-        self.ekf.update(self.ledger.take())
-        stamp = self.get_clock().now().to_msg()
-        T = self.ekf.tip_pose()
-        msg = PoseWithCovarianceStamped()
-        msg.header.stamp, msg.header.frame_id = stamp, self.frame_id
-        msg.pose.pose = cv.pose_msg(T)
+        ekf = self.ekf
+        ekf.predict()
+        ekf.update(self.ledger.take())
+        header = _header(self.get_clock().now().to_msg(), self.frame_id)
+        msg = PoseWithCovarianceStamped(header=header)
+        msg.pose.pose = cv.pose_msg(ekf.tip_pose())
         cov = np.zeros((6, 6))
-        cov[:3, :3] = self.ekf.tip_position_cov()
+        cov[:3, :3] = ekf.tip_position_cov()
         msg.pose.covariance = [float(x) for x in cov.ravel()]
         self.pub_tip.publish(msg)
-        _, P = self.ekf.backbone(4)
-        self.pub_backbone.publish(cv.pose_array(P, _header(stamp, self.frame_id)))
-        w = WrenchStamped()
-        w.header = _header(stamp, self.frame_id)
-        w.wrench = cv.wrench_msg(self.ekf.wrench())
+        for name, pub in self.pub_backbones.items():
+            arr = cv.pose_array(ekf.member_backbone(name), header)
+            pub.publish(arr)
+            if name == self.main:
+                self.pub_backbone.publish(arr)
+        if self.mech.rigid_joints:
+            idx = [self.mech.tree.idx_v[i] for i in self.mech.rigid_joints]
+            js = JointState(header=header, name=list(self.mech.joint_names))
+            js.position = [float(ekf.q[k]) for k in idx]
+            js.velocity = [float(ekf.v[k]) for k in idx]
+            self.pub_joints.publish(js)
+        w = WrenchStamped(header=header)
+        w.wrench = cv.wrench_msg(ekf.wrench())
         self.pub_wrench.publish(w)
 
-    def _publish_diagnostics(self):
-        if self.tree is not None:
-            h = self.tree.ekf.health
-            st = DiagnosticStatus(name="soft_twin_estimator", hardware_id=self.model.name)
-            st.level = DiagnosticStatus.OK if h.integrator_failures == 0 else DiagnosticStatus.WARN
-            st.message = "tracking" if h.accepted else "no measurement yet"
-            values = {**self.tree.diagnostics(), **self.ledger.diagnostics(),
-                      "recorded_inputs": self.recorded_inputs()}
-            st.values = [KeyValue(key=k, value=str(v)) for k, v in values.items()]
-            arr = DiagnosticArray()
-            arr.header.stamp = self.get_clock().now().to_msg()
-            arr.status = [st]
-            self.pub_diag.publish(arr)
-            return
-        h = self.ekf.health
-        st = DiagnosticStatus(name="soft_twin_estimator", hardware_id=self.model.name)
-        ok = h.integrator_failures == 0
-        st.level = DiagnosticStatus.OK if ok else DiagnosticStatus.WARN
-        st.message = "tracking" if h.accepted else "no measurement yet"
-        mass, mass_std = self.ekf.payload_mass_kg()
+    def diagnostics(self):
+        """{key: value} of the filter's health for /diagnostics."""
+        h, ekf = self.ekf.health, self.ekf
         values = {"predictions": h.predictions, "measurements_accepted": h.accepted, "measurements_gated": h.gated,
                   "measurements_dropped": h.dropped,
                   "measurements_rejected": h.rejected + sum(self.rejections.values()),
                   **{f"rejected_{k}": n for k, n in self.rejections.items()}, "last_rejection": self.last_rejection,
                   "mean_nis_per_dof": f"{h.mean_nis_per_dof:.3f}", "integrator_failures": h.integrator_failures,
-                  "tip_position_std_m": f"{float(np.sqrt(np.trace(self.ekf.tip_position_cov()))):.6g}",
-                  "payload_mass_kg": f"{mass:.6g}", "payload_mass_std_kg": f"{mass_std:.6g}",
-                  **self.ledger.diagnostics(), "recorded_inputs": self.recorded_inputs()}
+                  "tip_frame": ekf.tip,
+                  "tip_position_std_m": f"{float(np.sqrt(np.trace(ekf.tip_position_cov()))):.6g}",
+                  **{f"joint_{n}_std": f"{s:.6g}" for n, (_, s) in ekf.joint_positions().items()}}
+        if ekf.k:
+            mass, mass_std = ekf.payload_mass_kg()
+            values.update(payload_mass_kg=f"{mass:.6g}", payload_mass_std_kg=f"{mass_std:.6g}")
+        return values
+
+    def _publish_diagnostics(self):
+        h = self.ekf.health
+        st = DiagnosticStatus(name=NODE_NAME, hardware_id=self.mech.name)
+        st.level = DiagnosticStatus.OK if h.integrator_failures == 0 else DiagnosticStatus.WARN
+        st.message = "tracking" if h.accepted else "no measurement yet"
+        values = {**self.diagnostics(), **self.ledger.diagnostics(), "recorded_inputs": self.recorded_inputs()}
         st.values = [KeyValue(key=k, value=str(v)) for k, v in values.items()]
         arr = DiagnosticArray()
         arr.header.stamp = self.get_clock().now().to_msg()
         arr.status = [st]
         self.pub_diag.publish(arr)
-
-
-def _tree_robot(name):
-    """The Mechanism of a tree robot file (``bodies``), else None (a classic robot)."""
-    from soft_twin_core.mechanism import is_tree_file, load_mechanism
-    from soft_twin_core.model import ModelError, find_file, read_yaml_file, robot_mapping
-    path = find_file(name, "robots")
-    d = robot_mapping(read_yaml_file(path, ModelError, "robot file"), f"robot file {path}")
-    return load_mechanism(path) if is_tree_file(d) else None
 
 
 def _header(stamp, frame):
@@ -312,9 +344,8 @@ def main(args=None):
         node = EstimatorNode()        # a signal during it: the start-up ends, then the node stops
         logger = node.get_logger()
         stop.add_last_act(node._recorder.close_now)
-        logger.info(f"estimator running: robot {getattr(node.model, 'name', '?')!r}, "
-                    f"{'tree filter' if node.tree is not None else 'strain EKF'} at "
-                    f"{node.get_parameter('rate_hz').value:g} Hz")
+        logger.info(f"estimator running: robot {node.mech.name!r}, {node.ekf.n} joint coordinates, "
+                    f"{len(node.sensors)} sensors, at {node.get_parameter('rate_hz').value:g} Hz")
         executor = SingleThreadedExecutor()
         executor.add_node(node)
         spin_until_stopped(executor, stop)

@@ -44,6 +44,7 @@ are left out of the fit and report the error before and after.
 
 import copy
 import csv
+import dataclasses
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -51,6 +52,22 @@ import numpy as np
 from . import sensors as sn
 from .loads import Loads, PointLoad
 from .errors import CalibrationError, CalibrationFailed
+
+
+def _marker(s):
+    return isinstance(s, sn.PoseSensor) and s.position_only
+
+
+def _measuring(mech, sensors):
+    """(the pose sensors and markers, {name: where}) of a sensor list
+    checked against the robot (:func:`sensors.check_sensors`); tension
+    sensors are left out (the recording's inputs are the tensions), other
+    kinds refused by name."""
+    sensors, where = sn.check_sensors(mech, sensors)
+    other = [s.name for s in sensors if not isinstance(s, (sn.PoseSensor, sn.TensionSensor))]
+    if other:
+        raise CalibrationError(f"sensors {other}: calibration reads pose sensors and markers only")
+    return [s for s in sensors if isinstance(s, sn.PoseSensor)], where
 
 
 @dataclass
@@ -83,7 +100,7 @@ def csv_header(model, sensors):
     ``<name>.x .y .z`` and per pose sensor also ``.qx .qy .qz .qw``."""
     cols = ["t"] + list(model.actuator_names)
     for s in sensors:
-        if isinstance(s, sn.PositionMarker):
+        if _marker(s):
             cols += [f"{s.name}.{c}" for c in _POSE_COLS[:3]]
         elif isinstance(s, sn.PoseSensor):
             cols += [f"{s.name}.{c}" for c in _POSE_COLS]
@@ -100,7 +117,7 @@ def write_csv(path, model, sensors, rec):
             row = [repr(float(t[r]))] + [repr(float(x)) for x in rec.inputs[r]]
             for s in sensors:
                 z = rec.readings.get(s.name)
-                if isinstance(s, sn.PositionMarker):
+                if _marker(s):
                     row += [repr(float(x)) for x in z[r]]
                 elif isinstance(s, sn.PoseSensor):
                     row += [repr(float(x)) for x in z[r][:3, 3]]
@@ -140,7 +157,7 @@ def read_csv(path, model, sensors):
         raise CalibrationError(f"data file {path}: the actuator inputs must be finite numbers in every row")
     readings = {}
     for s in sensors:
-        if isinstance(s, sn.PositionMarker):
+        if _marker(s):
             readings[s.name] = np.stack([col[f"{s.name}.{c}"] for c in "xyz"], axis=1)
         elif isinstance(s, sn.PoseSensor):
             v = np.stack([col[f"{s.name}.{c}"] for c in _POSE_COLS], axis=1)
@@ -176,15 +193,19 @@ def record_static_sweep(model, sensors, inputs, rng, loads=None):
     """Simulated recording: the equilibria of ``model`` under each row of
     ``inputs`` (and ``loads``), read by the sensors with their noise. The
     inputs must lie in the actuators' declared ranges."""
+    from .mechanism import from_robot_model
     from .statics import solve_statics
+    from .workspace import Workspace
     check_recording_inputs(model, inputs, "inputs")
+    sensors, where = _measuring(from_robot_model(model), sensors)
+    ws = Workspace(model.tree)
     q = None
-    readings = {s.name: [] for s in sensors if not isinstance(s, sn.TensionSensor)}
+    readings = {s.name: [] for s in sensors}
     for u in np.asarray(inputs, dtype=float):
         q = solve_statics(model, u, loads, q_init=q).q
+        truth = sn.predict_readings(ws, q, sensors, where)
         for s in sensors:
-            if s.name in readings:
-                readings[s.name].append(sn.simulate_measurement(model, s, rng, q))
+            readings[s.name].append(sn.simulate_measurement(s, truth[s.name], rng))
     return Recording(np.asarray(inputs, dtype=float), {k: np.array(v) for k, v in readings.items()})
 
 
@@ -227,7 +248,7 @@ def _params(names, robot_dict, model, sensors):
         elif kind == "sensor_offset":
             sname, _, ax = rest.partition(":")
             s = by_name.get(sname)
-            if s is None or isinstance(s, sn.TensionSensor) or ax not in ("x", "y", "z"):
+            if not isinstance(s, sn.PoseSensor) or ax not in ("x", "y", "z"):
                 raise CalibrationError(f"parameter {name!r}: expected sensor_offset:<marker or pose sensor>:<x|y|z> "
                                        f"(sensors: {list(by_name)})")
             i = "xyz".index(ax)
@@ -246,7 +267,7 @@ def apply_parameters(robot_dict, sensors, params, theta):
     segs = {str(s.get("name", f"segment{k}")): s for k, s in enumerate(d["segments"])}
     acts = {a["name"]: a for a in d.get("actuators", []) or []}
     placements = {s.name: np.array(s.placement, dtype=float) for s in sensors
-                  if not isinstance(s, sn.TensionSensor)}
+                  if isinstance(s, sn.PoseSensor)}
     mass = 0.0
     for p, v in zip(params, theta):
         if p.kind == "youngs_modulus":
@@ -258,14 +279,7 @@ def apply_parameters(robot_dict, sensors, params, theta):
             mass = float(v)
         else:
             placements[p.target][p.axis, 3] = v
-    new = []
-    for s in sensors:
-        if isinstance(s, sn.PositionMarker):
-            new.append(sn.PositionMarker(s.name, s.s, s.sigma_position_m, placements[s.name][:3, 3].copy()))
-        elif isinstance(s, sn.PoseSensor):
-            new.append(sn.PoseSensor(s.name, s.s, s.sigma_position_m, s.sigma_rotation_rad, placements[s.name]))
-        else:
-            new.append(s)
+    new = [dataclasses.replace(s, placement=placements[s.name]) if s.name in placements else s for s in sensors]
     return d, new, mass
 
 
@@ -307,11 +321,12 @@ class Problem:
     the parameter values theta (SI)."""
 
     def __init__(self, robot_dict, sensors, recording, names, n_sections=None):
+        from .mechanism import from_robot_model
         from .model import model_from_dict
         self.robot_dict = robot_dict
         self.n_sections = n_sections
         model = model_from_dict(robot_dict, n_sections)
-        self.sensors = [s for s in sn.check_sensors(model, sensors) if not isinstance(s, sn.TensionSensor)]
+        self.sensors, self.where = _measuring(from_robot_model(model), sensors)   # the points stay with theta
         if not self.sensors:
             raise CalibrationError("sensors: calibration needs at least one pose sensor or marker")
         check_recording_inputs(model, recording.inputs)      # the declared actuator ranges
@@ -371,7 +386,7 @@ class Problem:
                 z = self.rec.readings[s.name][r]
                 if not np.all(np.isfinite(z)):
                     continue
-                e, H = sn.residual_and_jacobian(model, q, s, z, ws, kinematics_done=True)
+                e, H = sn.residual_and_jacobian(ws, q, s, self.where[s.name], z)
                 sig = np.full(len(e), s.sigma_position_m)
                 if len(e) == 6:
                     sig[3:] = s.sigma_rotation_rad
@@ -380,11 +395,10 @@ class Problem:
                     J = H @ dq
                     for j, p in enumerate(self.params):
                         if p.kind == "sensor_offset" and p.target == s.name:
-                            T = sn.sensor_pose(model, q, s, ws)
+                            T, _ = sn.point_pose_and_body_jacobian(ws, *self.where[s.name], np.asarray(s.placement))
                             # p_sensor = p_section + R_section t: d/dt = R_section = R_sensor P_R^T
                             R_sec = T[:3, :3] @ np.asarray(s.placement)[:3, :3].T
                             J[:3, j] += R_sec[:, p.axis]
-                            passes.forward_pass(ws.m, ws.w, np.ascontiguousarray(q), ws.zeros_v, ws.zeros_v, 0)
                     jac.append(J / sig[:, None])
         r = np.concatenate(res)
         return r, (np.vstack(jac) if jacobian else None)
@@ -424,15 +438,17 @@ def tip_errors(problem, theta, rows, truth_tips=None):
     """(RMS, max) [m] over ``rows`` of the distance between the model's
     prediction of the sensor nearest the tip and its reading (or the given
     true positions (R, 3))."""
+    from .mechanism import from_robot_model
     from .statics import solve_statics
     model, sensors, mass = problem.model(theta)
+    mech = from_robot_model(model)
     loads = _payload_loads(model, mass)
     tip = max(sensors, key=lambda s: s.s)
     d = []
     q = None
     for k, r in enumerate(rows):
         q = solve_statics(model, problem.rec.inputs[r], loads, q_init=q).q
-        p = sn.sensor_pose(model, q, tip)[:3, 3]
+        p = sn.sensor_pose(mech, q, tip)[:3, 3]
         z = problem.rec.readings[tip.name][r] if truth_tips is None else truth_tips[k]
         z = z[:3, 3] if np.shape(z) == (4, 4) else z
         d.append(np.linalg.norm(p - z))
@@ -503,8 +519,12 @@ def simulate_readings(model, sensors, times, inputs, dt, theta=0.5):
     Raises CalibrationFailed if a step fails, CalibrationError if the times
     do not increase."""
     from .dynamics import Simulator
+    from .mechanism import from_robot_model
     from .model import State
     from .statics import solve_statics
+    from .workspace import Workspace
+    sensors, where = _measuring(from_robot_model(model), sensors)
+    ws = Workspace(model.tree)
     times = np.asarray(times, dtype=float)
     if np.any(np.diff(times) <= 0):
         raise CalibrationError("t: the times of a dynamic recording must increase")
@@ -522,8 +542,8 @@ def simulate_readings(model, sensors, times, inputs, dt, theta=0.5):
             info = sim.step(n)
             if not info.converged:
                 raise CalibrationFailed(f"row {r}: the simulation failed at t = {sim.state.t:.4g} s")
-        for s in sensors:
-            out[s.name].append(sn.predict_measurement(model, sim.state.q, s))
+        for name, z in sn.predict_readings(ws, sim.state.q, sensors, where).items():
+            out[name].append(z)
     return {k: np.array(v) for k, v in out.items()}
 
 
@@ -536,19 +556,9 @@ def _resized(sim, dt):
 def record_dynamic(model, sensors, times, inputs, rng, dt=1e-3):
     """Simulated noisy recording of a time series (see :func:`simulate_readings`)."""
     clean = simulate_readings(model, sensors, times, inputs, dt)
-    readings = {}
-    for s in sensors:
-        readings[s.name] = np.array([sn.simulate_measurement(
-            _as_pose(z), s, rng) for z in clean[s.name]])
+    by_name = {s.name: s for s in sensors}
+    readings = {k: np.array([sn.simulate_measurement(by_name[k], z, rng) for z in v]) for k, v in clean.items()}
     return Recording(np.asarray(inputs, dtype=float), readings, np.asarray(times, dtype=float))
-
-
-def _as_pose(z):
-    if np.shape(z) == (3,):
-        T = np.eye(4)
-        T[:3, 3] = z
-        return T
-    return z
 
 
 def calibrate_damping(robot_dict, sensors, recording, members=None, *, dt=5e-3, n_sections=None, verbose=0):
@@ -562,6 +572,7 @@ def calibrate_damping(robot_dict, sensors, recording, members=None, *, dt=5e-3, 
     implemented). Returns a :class:`CalibrationResult` (no held-out rows)."""
     from scipy.optimize import least_squares
     from scipy.stats import t as student_t
+    from .mechanism import from_robot_model
     from .model import model_from_dict
     if recording.time is None:
         raise CalibrationError("damping: the recording needs a time column t")
@@ -578,7 +589,7 @@ def calibrate_damping(robot_dict, sensors, recording, members=None, *, dt=5e-3, 
         raise CalibrationError("damping: the starting viscosities must be > 0 (set them in the robot file)")
     model0 = model_from_dict(robot_dict, n_sections)
     check_recording_inputs(model0, recording.inputs)         # the declared actuator ranges
-    sensors = [s for s in sn.check_sensors(model0, sensors) if not isinstance(s, sn.TensionSensor)]
+    sensors = _measuring(from_robot_model(model0), sensors)[0]
 
     def with_visc(x):
         d = copy.deepcopy(robot_dict)
@@ -596,7 +607,7 @@ def calibrate_damping(robot_dict, sensors, recording, members=None, *, dt=5e-3, 
                 z = recording.readings[s.name][r]
                 if not np.all(np.isfinite(z)):
                     continue
-                if isinstance(s, sn.PositionMarker):
+                if s.position_only:
                     res.append((pred[s.name][r] - z) / s.sigma_position_m)
                 else:
                     e_p = (pred[s.name][r][:3, 3] - z[:3, 3]) / s.sigma_position_m

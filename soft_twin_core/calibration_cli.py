@@ -14,6 +14,7 @@ from . import sensors as sn
 from .calibration import _expand, calibrate, calibrate_damping, read_csv, write_robot_file
 from .errors import CalibrationError, CalibrationFailed, ModelError, StaticsError
 from .model import find_file, model_from_dict, read_yaml_file, robot_mapping
+from .mechanism import from_robot_model
 
 
 def add_cli_parser(sub):
@@ -69,7 +70,7 @@ def cli_main(args):
             raise CalibrationError(f"calibration supports classic single-chain robots (segments); robot file {path} "
                                    f"is a tree robot (bodies/frames), which it cannot calibrate yet")
         model = model_from_dict(robot_dict, args.sections)
-        sensors = sn.load_sensors(args.sensors, model)
+        sensors = sn.load_sensors(args.sensors, from_robot_model(model, robot_dict))
         mcap_report = None
         if cm.is_mcap(args.data):                      # an MCAP recording of the node
             rec, mcap_report = _read_mcap(args, model, sensors)

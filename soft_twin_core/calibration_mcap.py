@@ -90,7 +90,7 @@ def _reading(sensor, msg):
     TransformStamped or PointStamped message (ValueError when unusable)."""
     if hasattr(msg, "point"):
         z = np.array([msg.point.x, msg.point.y, msg.point.z], dtype=float)
-        if isinstance(sensor, sn.PoseSensor):
+        if not sensor.position_only:
             raise ValueError(f"a point for pose sensor {sensor.name!r}")
         return sn.measurement_vector(sensor, z)
     if hasattr(msg, "transform"):
@@ -99,7 +99,7 @@ def _reading(sensor, msg):
     else:
         pose = msg.pose.pose if hasattr(msg.pose, "pose") else msg.pose
         T = _pose_of(pose)
-    return sn.measurement_vector(sensor, T[:3, 3] if isinstance(sensor, sn.PositionMarker) else T)
+    return sn.measurement_vector(sensor, T[:3, 3] if sensor.position_only else T)
 
 
 def read_events(path, model, sensors, *, actuation_topic=DEFAULT_ACTUATION_TOPIC,
@@ -108,7 +108,7 @@ def read_events(path, model, sensors, *, actuation_topic=DEFAULT_ACTUATION_TOPIC
     with the full input after each command, readings {sensor: [(t_ns,
     reading)]}, skipped {reason: count}). Raises CalibrationError naming a
     bad topic mapping or an empty recording."""
-    sensors = [s for s in sensors if not isinstance(s, sn.TensionSensor)]
+    sensors = [s for s in sensors if isinstance(s, sn.PoseSensor)]
     by_name = {s.name: s for s in sensors}
     topics = dict(topics or {})
     for name in topics:
@@ -118,7 +118,7 @@ def read_events(path, model, sensors, *, actuation_topic=DEFAULT_ACTUATION_TOPIC
     t_poses, t_pose, t_pos = f"{ns}/measurements/poses", f"{ns}/measurements/pose", f"{ns}/measurements/position"
     own = {topic: name for name, topic in topics.items()}
     events = _iter(path, {actuation_topic, t_poses, t_pose, t_pos, *own})
-    pose_sensors = [s for s in sensors if isinstance(s, sn.PoseSensor)]
+    pose_sensors = [s for s in sensors if not s.position_only]
     names = list(model.actuator_names)
     u = np.zeros(len(names))
     commands, readings = [], {s.name: [] for s in sensors}
@@ -157,8 +157,7 @@ def read_events(path, model, sensors, *, actuation_topic=DEFAULT_ACTUATION_TOPIC
                 take(s, t, type("M", (), {"pose": p}))
         else:
             s = by_name.get(msg.header.frame_id)
-            want = sn.PoseSensor if topic == t_pose else sn.PositionMarker
-            if not isinstance(s, want):
+            if s is None or s.position_only != (topic == t_pos):
                 skip("unknown_sensor")
                 continue
             take(s, t, msg)
@@ -199,7 +198,7 @@ def read_static_sweep(path, model, sensors, *, settle_s=None, **topic_args):
     """A :class:`Recording` of a static sweep (module docstring) and a report
     dict (holds, rows, readings averaged, skipped messages)."""
     commands, readings, skipped = read_events(path, model, sensors, **topic_args)
-    sensors = [s for s in sensors if not isinstance(s, sn.TensionSensor)]
+    sensors = [s for s in sensors if isinstance(s, sn.PoseSensor)]
     if settle_s is not None and not (np.isfinite(settle_s) and settle_s >= 0):
         raise CalibrationError(f"--settle must be >= 0 s, got {settle_s}")
     t_first = min(t for r in readings.values() for t, _ in r)
@@ -217,7 +216,7 @@ def read_static_sweep(path, model, sensors, *, settle_s=None, **topic_args):
         times.append(1e-9 * (start - holds[0][0]))
         for s in sensors:
             z = got[s.name]
-            nan = np.full((4, 4) if isinstance(s, sn.PoseSensor) else 3, np.nan)
+            nan = np.full(3 if s.position_only else (4, 4), np.nan)
             rows[s.name].append(_mean_reading(z) if z else nan)
         averaged.append(sum(len(z) for z in got.values()))
     if not inputs:
@@ -231,7 +230,7 @@ def read_static_sweep(path, model, sensors, *, settle_s=None, **topic_args):
 def read_time_series(path, model, sensors, *, tolerance_s=None, **topic_args):
     """A :class:`Recording` of a time series (module docstring) and a report."""
     commands, readings, skipped = read_events(path, model, sensors, **topic_args)
-    sensors = [s for s in sensors if not isinstance(s, sn.TensionSensor)]
+    sensors = [s for s in sensors if isinstance(s, sn.PoseSensor)]
     lead = next(s for s in sensors if readings[s.name])
     times = np.array([t for t, _ in readings[lead.name]], dtype=np.int64)
     if len(times) > 1 and np.any(np.diff(times) <= 0):
@@ -253,7 +252,7 @@ def read_time_series(path, model, sensors, *, tolerance_s=None, **topic_args):
         zs = [z for _, z in readings[s.name]]
         out = []
         for t in times:
-            nan = np.full((4, 4) if isinstance(s, sn.PoseSensor) else 3, np.nan)
+            nan = np.full(3 if s.position_only else (4, 4), np.nan)
             if len(st) == 0:
                 out.append(nan)
                 continue

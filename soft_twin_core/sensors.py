@@ -1,44 +1,54 @@
-"""Measurement models of the sensors a soft arm carries, with analytic
-Jacobians (for the estimator, :mod:`soft_twin_core.estimation`, and the
-calibration, :mod:`soft_twin_core.calibration`).
+"""Sensors of a robot (any :class:`mechanism.Mechanism`: a classic rod, a
+tree, a soft articulated arm), with analytic measurement Jacobians, for the
+estimator (:mod:`soft_twin_core.estimation`) and the calibration
+(:mod:`soft_twin_core.calibration`).
 
-Sensors sit on the classic robot's backbone (a :class:`model.RobotModel`)
-at arc length ``s`` [m]; their frame is the cross-section frame ``g(s)``
-followed by a fixed ``placement`` (4x4, in the cross-section frame):
+- :class:`PoseSensor` (an electromagnetic tracker; with
+  ``sigma_rotation_rad`` None a position-only *marker*, motion capture):
+  the pose of a frame on the robot, named by a frame of the robot file
+  (``frame: tool``) or by arc length on a member (``member: arm, s:
+  0.15``; ``member`` may be left out on a robot with one member, e.g. a
+  classic rod), followed by a fixed ``placement`` (4x4, in that frame)::
 
-    T_world_sensor(q) = g(s; q) @ placement
+      T_world_sensor(q) = g(point; q) @ placement
 
-- :class:`PoseSensor` (an electromagnetic tracker): measures the position
-  p [m] and rotation R of its frame, noise ``sigma_position_m`` on each
-  position axis and ``sigma_rotation_rad`` on each axis of the rotation
-  error vector.
-- :class:`PositionMarker` (motion capture): the position only, of the point
-  ``offset_m`` (3,) in the cross-section frame.
+  Residuals in the tangent space (zero when the model explains the reading
+  z exactly) and their Jacobians from the body Jacobian ``J`` of the
+  sensor frame (the point's, :func:`kernels.frames.spatial_jacobian`,
+  through every rigid and soft joint on its path, then ``Ad(T)^-1``):
 
-Every sensor gives a *residual* ``e(q) = h(q) [-] z`` in its tangent space
-(zero when the model explains the measurement z exactly):
+      e_p = p(q) - p_meas          de_p/dq = R J[:3]            (world axes, m)
+      e_R = log(R_meas^T R(q))     de_R/dq = Jr(e_R)^-1 J[3:]   (rad, sensor axes)
 
-    position:  e_p = p(q) - p_meas                       (world axes, m)
-    rotation:  e_R = log(R_meas^T R(q))                  (rad, sensor axes)
+  (Jr: the right Jacobian of SO(3), :func:`lie.T_so3`; right perturbation
+  ``R(q + dq) = R(q) exp(hat(J[3:] dq))``.) A Kalman filter's innovation
+  is ``-e`` with ``H = de/dq``. Noise covariance ``diag(sigma_position^2
+  I3, sigma_rotation^2 I3)`` (rotation noise ``R_meas = R_true
+  exp(hat(n))``, so ``e_R = -n`` at the truth).
+- :class:`JointStateSensor` (encoders, ``sensor_msgs/JointState``
+  positions): the positions [rad or m] of named 1-dof rigid joints, noise
+  ``sigma`` per joint. ``e = q_j - z``, Jacobian: rows of the identity at
+  the joints' velocity indices (the joints are additive).
+- :class:`BaseWrenchSensor` (a force/torque sensor under the base,
+  ``geometry_msgs/WrenchStamped``): the wrench the support exerts on the
+  robot [N; N m], world axes, about the base origin, in the quasi-static
+  approximation (inertial forces neglected: a robot at rest or moving
+  slowly): ``h(q) = [-m g; hat(g) c(q)]`` with m the total mass and
+  ``c = sum_k m_k p_k`` the first mass moment, computed as the root joints'
+  transmitted wrench of inverse dynamics at rest; Jacobian ``[0; hat(g)
+  S]`` with ``S = dc/dq = sum_k m_k Jp_k = -[tau_x, tau_y, tau_z]^T``, the
+  columns being the generalised gravity forces of inverse dynamics under a
+  unit gravity along x, y, z (the gravity potential ``-m_k g . p_k``
+  differentiated). Noise ``sigma_force_n``, ``sigma_moment_nm`` per axis.
+- :class:`TensionSensor`: a measured tendon tension [N] (or chamber
+  pressure [Pa]) is an *input* of the twin, not a function of q; the
+  estimator feeds it to the process model and turns its noise into process
+  noise through the actuation matrix ``B(q) = d tau_act / d u``
+  (:func:`actuation_matrix`, exact: the actuation force is linear in u).
 
-and its analytic Jacobian ``de/dq`` from the body Jacobian of the sensor
-frame ``J_sensor = Ad(placement)^-1 J_body(s)``
-(:func:`algorithms.point_jacobian`):
-
-    de_p/dq = R_sensor J_sensor[:3]
-    de_R/dq = Jr(e_R)^-1 J_sensor[3:]
-
-(Jr: the right Jacobian of SO(3), :func:`lie.T_so3`; right perturbation
-``R(q + dq) = R(q) exp(hat(J_sensor[3:] dq))``.) A Kalman filter's
-innovation is ``-e`` with ``H = de/dq``. The measurement noise covariance
-of the residual is ``diag(sigma_position^2 I3, sigma_rotation^2 I3)`` (for
-rotation noise ``R_meas = R_true exp(hat(n))``, ``e_R = -n`` at the truth).
-
-:class:`TensionSensor`: a measured tendon tension [N] (or chamber pressure
-[Pa]) is an *input* of the twin, not a function of q; the estimator feeds
-it to the process model and turns its noise into process noise through the
-actuation matrix ``B(q) = d tau_act / d u`` (:func:`actuation_matrix`,
-exact: the actuation force is linear in the inputs).
+:func:`check_sensors` validates a list against the robot once and returns
+where each sensor sits (``where``: a point (joint, abscissa), or the
+joints' velocity indices); the measurement functions take it.
 
 Units SI; conventions of docs/CONVENTIONS.md.
 """
@@ -52,36 +62,64 @@ from . import lie
 
 @dataclass(frozen=True, eq=False)
 class PoseSensor:
-    """A 6-dof pose sensor at arc length ``s`` [m] (see the module docstring)."""
+    """A pose sensor (or a marker: ``sigma_rotation_rad`` None) on the frame
+    ``frame`` of the robot, or at arc length ``s`` [m] of member ``member``
+    (module docstring); ``placement`` (4x4) in that frame."""
     name: str
-    s: float
     sigma_position_m: float
-    sigma_rotation_rad: float
+    sigma_rotation_rad: float = None
+    frame: str = None
+    member: str = None
+    s: float = 0.0
     placement: np.ndarray = field(default_factory=lambda: np.eye(4))
-    size = 6
+
+    @property
+    def position_only(self):
+        return self.sigma_rotation_rad is None
+
+    @property
+    def size(self):
+        return 3 if self.position_only else 6
 
     def noise_covariance(self):
+        if self.position_only:
+            return self.sigma_position_m ** 2 * np.eye(3)
         return np.diag([self.sigma_position_m ** 2] * 3 + [self.sigma_rotation_rad ** 2] * 3)
 
 
+def marker(name, sigma_position_m, offset_m=(0.0, 0.0, 0.0), **where):
+    """A position-only :class:`PoseSensor` at ``offset_m`` (3,) [m] from its
+    point, in the point's frame (``where``: frame=, or member= and s=)."""
+    P = np.eye(4)
+    P[:3, 3] = np.asarray(offset_m, dtype=float)
+    return PoseSensor(name, sigma_position_m, None, placement=P, **where)
+
+
 @dataclass(frozen=True, eq=False)
-class PositionMarker:
-    """A position-only marker at arc length ``s`` [m], ``offset_m`` (3,) from
-    the centre line in the cross-section frame."""
+class JointStateSensor:
+    """Positions of the joints ``joints`` (names), noise ``sigma`` (one per joint) [rad or m]."""
     name: str
-    s: float
-    sigma_position_m: float
-    offset_m: np.ndarray = field(default_factory=lambda: np.zeros(3))
-    size = 3
+    joints: tuple
+    sigma: np.ndarray
 
     @property
-    def placement(self):
-        P = np.eye(4)
-        P[:3, 3] = self.offset_m
-        return P
+    def size(self):
+        return len(self.joints)
 
     def noise_covariance(self):
-        return self.sigma_position_m ** 2 * np.eye(3)
+        return np.diag(np.asarray(self.sigma, dtype=float) ** 2)
+
+
+@dataclass(frozen=True, eq=False)
+class BaseWrenchSensor:
+    """A base force/torque sensor (module docstring), noise per axis [N], [N m]."""
+    name: str
+    sigma_force_n: float
+    sigma_moment_nm: float
+    size = 6
+
+    def noise_covariance(self):
+        return np.diag([self.sigma_force_n ** 2] * 3 + [self.sigma_moment_nm ** 2] * 3)
 
 
 @dataclass(frozen=True, eq=False)
@@ -94,96 +132,132 @@ class TensionSensor:
     size = 0
 
 
-def check_sensors(model, sensors):
-    """Validate a list of sensors against a robot model; returns it as a
-    tuple. Raises ValueError naming the bad sensor and field."""
-    names = set()
+SENSOR_TYPES = (PoseSensor, JointStateSensor, BaseWrenchSensor, TensionSensor)
+
+
+# ----------------------------------------------------------------------------
+# Validation (once, at the door)
+# ----------------------------------------------------------------------------
+
+def locate(mech, sensor):
+    """(joint, abscissa) of a PoseSensor's point (ValueError naming the field)."""
+    if sensor.frame is not None:
+        try:
+            ref = mech.frame(sensor.frame)
+        except KeyError as e:
+            raise ValueError(f"sensor {sensor.name!r}.frame: {e.args[0]}") from None
+        return int(ref.joint), float(ref.x)
+    member = sensor.member
+    if member is None:
+        if len(mech.members) != 1:
+            raise ValueError(f"sensor {sensor.name!r}: give frame, or member and s (this robot has the members "
+                             f"{[m.name for m in mech.members]})")
+        member = mech.members[0].name
+    try:
+        m = mech.member(member)
+    except KeyError as e:
+        raise ValueError(f"sensor {sensor.name!r}.member: {e.args[0]}") from None
+    path = mech.tree.paths[m.path]
+    s = float(sensor.s)
+    if not (np.isfinite(s) and -1e-12 <= s <= path.length + 1e-12):
+        raise ValueError(f"sensor {sensor.name!r}.s: expected an arc length in [0, {path.length:g}] m on member "
+                         f"{member!r}, got {sensor.s!r}")
+    j, x = path.locate(np.array([min(max(s, 0.0), path.length)]))
+    return int(j[0]), float(x[0])
+
+
+def joint_velocity_indices(mech, joints, where="joints"):
+    """Velocity indices of named 1-dof rigid joints (ValueError naming an unknown one)."""
+    names = mech.joint_names
     out = []
-    for k, sen in enumerate(sensors):
-        where = f"sensors[{k}] ({getattr(sen, 'name', '?')!r})"
-        if not isinstance(sen, (PoseSensor, PositionMarker, TensionSensor)):
-            raise ValueError(f"{where}: expected a PoseSensor, PositionMarker or TensionSensor, got {type(sen)}")
-        if not isinstance(sen.name, str) or not sen.name:
-            raise ValueError(f"{where}.name: expected a non-empty string")
-        if sen.name in names:
-            raise ValueError(f"{where}.name: duplicate sensor name {sen.name!r}")
-        names.add(sen.name)
-        if isinstance(sen, TensionSensor):
-            if sen.actuator not in model.actuator_names:
-                raise ValueError(f"{where}.actuator: unknown actuator {sen.actuator!r}; "
-                                 f"this robot has {list(model.actuator_names)}")
-            if not (np.isfinite(sen.sigma) and sen.sigma > 0):
-                raise ValueError(f"{where}.sigma: expected a positive noise level, got {sen.sigma!r}")
+    for n in joints:
+        if n not in names:
+            raise ValueError(f"{where}: unknown joint {n!r}; the rigid joints are {list(names)}")
+        out.append(int(mech.tree.idx_v[mech.rigid_joints[names.index(n)]]))
+    return np.array(out, dtype=np.int64)
+
+
+def _positive(values):
+    return all(isinstance(x, (int, float, np.floating)) and np.isfinite(x) and x > 0 for x in values)
+
+
+def check_sensors(mech, sensors):
+    """Validate the sensors against the robot; returns (sensors tuple,
+    {name: where}): a PoseSensor's point (joint, abscissa), a
+    JointStateSensor's velocity indices, the actuator index of a
+    TensionSensor, None for a base wrench sensor. ValueError naming the
+    bad sensor and field."""
+    names, where_of = set(), {}
+    for k, s in enumerate(sensors):
+        w = f"sensors[{k}] ({getattr(s, 'name', '?')!r})"
+        if not isinstance(s, SENSOR_TYPES):
+            raise ValueError(f"{w}: expected one of {[c.__name__ for c in SENSOR_TYPES]}, got {type(s).__name__}")
+        if not isinstance(s.name, str) or not s.name:
+            raise ValueError(f"{w}.name: expected a non-empty string")
+        if s.name in names:
+            raise ValueError(f"{w}.name: duplicate sensor name {s.name!r}")
+        names.add(s.name)
+        if isinstance(s, JointStateSensor):
+            if not s.joints or len(set(s.joints)) != len(s.joints):
+                raise ValueError(f"{w}.joints: expected distinct joint names, got {list(s.joints)}")
+            sig = np.asarray(s.sigma, dtype=float)
+            if sig.shape != (len(s.joints),) or not np.all(np.isfinite(sig) & (sig > 0)):
+                raise ValueError(f"{w}.sigma_position: expected {len(s.joints)} positive values, got {s.sigma!r}")
+            where_of[s.name] = joint_velocity_indices(mech, s.joints, f"{w}.joints")
+        elif isinstance(s, BaseWrenchSensor):
+            if not _positive((s.sigma_force_n, s.sigma_moment_nm)):
+                raise ValueError(f"{w}: noise standard deviations must be positive")
+            if mech.base_motion != "fixed":
+                raise ValueError(f"{w}: a base wrench sensor needs a fixed base")
+            where_of[s.name] = None
+        elif isinstance(s, TensionSensor):
+            if s.actuator not in mech.actuator_names:
+                raise ValueError(f"{w}.actuator: unknown actuator {s.actuator!r}; "
+                                 f"this robot has {list(mech.actuator_names)}")
+            if not _positive((s.sigma,)):
+                raise ValueError(f"{w}.sigma: expected a positive noise level, got {s.sigma!r}")
+            where_of[s.name] = list(mech.actuator_names).index(s.actuator)
         else:
-            if not (np.isfinite(sen.s) and -1e-12 <= sen.s <= model.total_length + 1e-12):
-                raise ValueError(f"{where}.s: expected an arc length in [0, {model.total_length}] m, got {sen.s!r}")
-            sig = [sen.sigma_position_m] + ([sen.sigma_rotation_rad] if isinstance(sen, PoseSensor) else [])
-            if not all(np.isfinite(x) and x > 0 for x in sig):
-                raise ValueError(f"{where}: noise standard deviations must be positive, got {sig}")
-            P = np.asarray(sen.placement, dtype=float)
+            if s.frame is not None and s.member is not None:
+                raise ValueError(f"{w}: give either frame or member (with s), not both")
+            sig = [s.sigma_position_m] + ([] if s.position_only else [s.sigma_rotation_rad])
+            if not _positive(sig):
+                raise ValueError(f"{w}: noise standard deviations must be positive, got {sig}")
+            P = np.asarray(s.placement, dtype=float)
             if P.shape != (4, 4) or not np.all(np.isfinite(P)):
-                raise ValueError(f"{where}.placement: expected a finite 4x4 transform")
-        out.append(sen)
-    return tuple(out)
-
-
-def sensor_pose(model, q, sensor, ws=None):
-    """World pose (4x4) of the sensor frame at configuration q."""
-    return pose_and_jacobian(model, q, sensor, ws)[0]
-
-
-def _located(model, sensor):
-    """(joint, abscissa) of the sensor's arc length on the backbone, cached."""
-    cache = model.__dict__.get("_sensor_locations")
-    if cache is None:
-        cache = {}
-        object.__setattr__(model, "_sensor_locations", cache)
-    key = float(sensor.s)
-    loc = cache.get(key)
-    if loc is None:
-        joint, x = model.tree.path("backbone").locate(np.array([key]))
-        loc = cache[key] = (int(joint[0]), float(x[0]))
-    return loc
-
-
-def pose_and_jacobian(model, q, sensor, ws=None, kinematics_done=False):
-    """(T_world_sensor 4x4, body Jacobian of the sensor frame 6 x n_dof).
-    ``kinematics_done``: the forward pass of ``ws`` is already at q (several
-    sensors share one pass)."""
-    from .kernels import passes
-    from .kernels.frames import spatial_jacobian
-    from .workspace import thread_workspace
-    tree = model.tree
-    ws = thread_workspace(tree) if ws is None else ws
-    if not kinematics_done:
-        q = np.ascontiguousarray(model.check_q(q), dtype=float)
-        passes.forward_pass(ws.m, ws.w, q, ws.zeros_v, ws.zeros_v, 0)
-    joint, x = _located(model, sensor)
-    g = np.empty((4, 4))
-    Js = np.empty((6, tree.nv))
-    spatial_jacobian(ws.m, ws.w, joint, x, g, Js)
-    T = g @ np.asarray(sensor.placement, dtype=float)
-    return T, lie.Ad_inv(T) @ Js
+                raise ValueError(f"{w}.placement: expected a finite 4x4 transform")
+            try:
+                where_of[s.name] = locate(mech, s)
+            except ValueError as e:
+                raise ValueError(f"{w}: {e}") from None
+    return tuple(sensors), where_of
 
 
 def measurement_vector(sensor, z):
-    """A measurement as an array: a pose sensor takes a 4x4 pose or
-    (position (3,), quaternion [x, y, z, w]) as 7 numbers; a marker a
-    position (3,). Raises ValueError for a wrong shape or non-finite values
-    (the estimator counts those as rejected)."""
+    """A reading as an array: a pose (4x4, or position + quaternion x y z w
+    as 7 numbers), a position (3,), joint positions (size,), a wrench (6,),
+    a tension (one number). ValueError for a wrong shape or non-finite
+    values (the estimator counts those as rejected)."""
     z = np.asarray(z, dtype=float)
-    if isinstance(sensor, PoseSensor):
+    if isinstance(sensor, BaseWrenchSensor):
+        if z.shape != (6,):
+            raise ValueError(f"sensor {sensor.name!r}: expected a wrench of 6 numbers [f; m], got shape {z.shape}")
+    elif isinstance(sensor, JointStateSensor):
+        if z.shape != (sensor.size,):
+            raise ValueError(f"sensor {sensor.name!r}: expected {sensor.size} joint positions "
+                             f"{list(sensor.joints)}, got shape {z.shape}")
+    elif isinstance(sensor, TensionSensor):
+        if z.shape not in ((), (1,)):
+            raise ValueError(f"sensor {sensor.name!r}: expected one number, got shape {z.shape}")
+    elif sensor.position_only:
+        if z.shape != (3,):
+            raise ValueError(f"sensor {sensor.name!r}: expected a position of 3 numbers, got shape {z.shape}")
+    else:
         if z.shape == (7,):
             z = pose_from_position_quaternion(z[:3], z[3:])
         if z.shape != (4, 4):
             raise ValueError(f"sensor {sensor.name!r}: expected a 4x4 pose or 7 numbers "
                              f"(position, quaternion x y z w), got shape {z.shape}")
-    elif isinstance(sensor, PositionMarker):
-        if z.shape != (3,):
-            raise ValueError(f"sensor {sensor.name!r}: expected a position of 3 numbers, got shape {z.shape}")
-    else:
-        if z.shape not in ((), (1,)):
-            raise ValueError(f"sensor {sensor.name!r}: expected one number, got shape {z.shape}")
     if not np.all(np.isfinite(z)):
         raise ValueError(f"sensor {sensor.name!r}: measurement contains NaN or inf")
     return z
@@ -200,63 +274,132 @@ def pose_from_position_quaternion(p, quat_xyzw):
     return T
 
 
-def residual(model, q, sensor, z, ws=None):
-    """Residual ``e(q) = h(q) [-] z`` of one measurement (see the module
-    docstring): (6,) for a pose sensor, (3,) for a marker."""
-    return residual_and_jacobian(model, q, sensor, z, ws)[0]
+# ----------------------------------------------------------------------------
+# Measurement models (the forward pass of ``ws`` done at q)
+# ----------------------------------------------------------------------------
+
+def point_pose_and_body_jacobian(ws, joint, x, placement):
+    """(T_world 4x4, body Jacobian 6 x nv) of the point (joint, x) followed by
+    ``placement``, at the forward pass already done in ``ws``."""
+    from .kernels.frames import spatial_jacobian
+    g = np.empty((4, 4))
+    Js = np.empty((6, ws.zeros_v.shape[0]))
+    spatial_jacobian(ws.m, ws.w, joint, x, g, Js)
+    T = g @ placement
+    return T, lie.Ad_inv(T) @ Js
 
 
-def residual_and_jacobian(model, q, sensor, z, ws=None, kinematics_done=False):
-    """(e (m,), de/dq (m, n_dof)) of one pose sensor or marker measurement z
-    (a 4x4 pose / a position (3,)), analytic (module docstring)."""
-    T, J = pose_and_jacobian(model, q, sensor, ws, kinematics_done)
+def base_wrench_and_jacobian(tree, ws, q, jacobian=True):
+    """(W (6,) the support's wrench on the robot at rest, world axes about
+    the base origin; dW/dq (6, nv) or None), module docstring."""
+    from . import algorithms as alg
+    q = np.ascontiguousarray(q, dtype=float)
+    z = np.zeros(tree.nv)
+    g = np.asarray(tree.gravity, dtype=float)
+    alg.rnea(tree, ws, q, z, z, None, g, elastic=False)
+    W = np.zeros(6)
+    for i in np.flatnonzero(tree.parents < 0):
+        G = ws.work.g_in[i]
+        R, p = G[:3, :3], G[:3, 3]
+        f, m = R @ ws.work.f_in[i, :3], R @ ws.work.f_in[i, 3:]
+        W += np.concatenate([f, m + np.cross(p, f)])
+    if not jacobian:
+        return W, None
+    S = np.empty((3, tree.nv))
+    for a in range(3):
+        S[a] = -alg.rnea(tree, ws, q, z, z, None, np.eye(3)[a], elastic=False)
+    H = np.zeros((6, tree.nv))
+    H[3:] = lie.hat(g) @ S
+    return W, H
+
+
+def residual_and_jacobian(ws, q, sensor, where, z):
+    """(e (m,), de/dq (m, nv)) of one reading z (:func:`measurement_vector`)
+    at q, the forward pass of ``ws`` done at q; ``where``: the sensor's
+    entry of :func:`check_sensors`. Module docstring."""
+    nv = ws.zeros_v.shape[0]
+    if isinstance(sensor, BaseWrenchSensor):
+        W, H = base_wrench_and_jacobian(ws.model, ws, q)
+        return W - z, H
+    if isinstance(sensor, JointStateSensor):
+        H = np.zeros((sensor.size, nv))
+        H[np.arange(sensor.size), where] = 1.0
+        return q[where] - z, H
+    T, J = point_pose_and_body_jacobian(ws, where[0], where[1], np.asarray(sensor.placement, dtype=float))
     R = T[:3, :3]
     Hp = R @ J[:3]
-    if isinstance(sensor, PositionMarker):
+    if sensor.position_only:
         return T[:3, 3] - z, Hp
     e_rot = lie.log_so3(z[:3, :3].T @ R)
-    Hr = lie.T_so3_inv(e_rot) @ J[3:]
-    return np.concatenate([T[:3, 3] - z[:3, 3], e_rot]), np.vstack([Hp, Hr])
+    return np.concatenate([T[:3, 3] - z[:3, 3], e_rot]), np.vstack([Hp, lie.T_so3_inv(e_rot) @ J[3:]])
 
 
-def predict_measurement(model, q, sensor, ws=None):
-    """What the sensor would read at q (no noise): a 4x4 pose, or a position (3,)."""
-    T = sensor_pose(model, q, sensor, ws)
-    return T[:3, 3].copy() if isinstance(sensor, PositionMarker) else T
+def predict_measurement(ws, q, sensor, where):
+    """Noise-free reading at q (the forward pass of ``ws`` done at q): a 4x4
+    pose, a position (3,), joint positions, a wrench (6,)."""
+    if isinstance(sensor, BaseWrenchSensor):
+        return base_wrench_and_jacobian(ws.model, ws, q, jacobian=False)[0]
+    if isinstance(sensor, JointStateSensor):
+        return q[where].copy()
+    T, _ = point_pose_and_body_jacobian(ws, where[0], where[1], np.asarray(sensor.placement, dtype=float))
+    return T[:3, 3].copy() if sensor.position_only else T
 
 
-def simulate_measurement(model_or_pose, sensor, rng, q=None):
-    """A noisy reading of ``sensor``: from a model at q, or from a given
-    true sensor pose (4x4). Position noise N(0, sigma_p^2 I); rotation noise
-    ``R_true exp(hat(n))``, n ~ N(0, sigma_r^2 I)."""
-    T = model_or_pose if q is None else sensor_pose(model_or_pose, q, sensor)
-    if isinstance(sensor, PositionMarker):
-        return T[:3, 3] + sensor.sigma_position_m * rng.standard_normal(3)
-    out = T.copy()
+def forward(ws, q):
+    """The forward pass of ``ws`` at q (the measurement models' precondition);
+    returns q as a contiguous array."""
+    from .kernels import passes
+    q = np.ascontiguousarray(q, dtype=float)
+    passes.forward_pass(ws.m, ws.w, q, ws.zeros_v, ws.zeros_v, 0)
+    return q
+
+
+def sensor_pose(mech, q, sensor, ws=None):
+    """World pose (4x4) of a PoseSensor's frame at q (one forward pass;
+    ``ws``: a workspace of the robot's tree, else the thread's)."""
+    from .workspace import thread_workspace
+    ws = thread_workspace(mech.tree) if ws is None else ws
+    j, x = locate(mech, sensor)
+    forward(ws, q)
+    return point_pose_and_body_jacobian(ws, j, x, np.asarray(sensor.placement, dtype=float))[0]
+
+
+def predict_readings(ws, q, sensors, where):
+    """{name: noise-free reading} of the measuring sensors (not the tension
+    sensors) at q, one forward pass."""
+    q = forward(ws, q)
+    return {s.name: predict_measurement(ws, q, s, where[s.name]) for s in sensors
+            if not isinstance(s, TensionSensor)}
+
+
+def simulate_measurement(sensor, truth, rng):
+    """A noisy reading from the noise-free one ``truth``: position noise
+    N(0, sigma_p^2 I), rotation noise ``R_true exp(hat(n))``, n ~ N(0,
+    sigma_r^2 I), joint and wrench noise per axis."""
+    if isinstance(sensor, BaseWrenchSensor):
+        return truth + np.repeat([sensor.sigma_force_n, sensor.sigma_moment_nm], 3) * rng.standard_normal(6)
+    if isinstance(sensor, JointStateSensor):
+        return truth + np.asarray(sensor.sigma) * rng.standard_normal(sensor.size)
+    if isinstance(sensor, TensionSensor):
+        return float(truth) + sensor.sigma * rng.standard_normal()
+    if sensor.position_only:
+        return truth + sensor.sigma_position_m * rng.standard_normal(3)
+    out = np.array(truth, dtype=float)
     out[:3, 3] += sensor.sigma_position_m * rng.standard_normal(3)
-    out[:3, :3] = T[:3, :3] @ lie.exp_so3(sensor.sigma_rotation_rad * rng.standard_normal(3))
+    out[:3, :3] = out[:3, :3] @ lie.exp_so3(sensor.sigma_rotation_rad * rng.standard_normal(3))
     return out
 
 
-def actuation_matrix(model, q, ws=None):
-    """B(q) = d tau_act / d u (n_dof, n_actuators): the generalised actuation
+def actuation_matrix(tree, ws, act, q):
+    """B(q) = d tau_act / d u (nv, n_actuators): the generalised actuation
     force per unit input at q, exact (the actuation force is linear in u:
-    column k is the engine's actuation force for the unit input e_k)."""
+    column k is the engine's actuation force for the unit input e_k).
+    ``act``: the tree's :func:`forces.actuator_arrays`."""
     from .forces import actuation_pass
-    from .kernels import passes
-    from .statics import _actuators
-    from .workspace import thread_workspace
-    if any(a.tendon_model == "point_moment" for a in model.actuators):
-        raise NotImplementedError("actuation_matrix: point-moment tendons are not supported "
-                                  "(use the distributed tendon model)")
-    tree = model.tree
-    ws = thread_workspace(tree) if ws is None else ws
-    act = _actuators(model)
-    q = np.ascontiguousarray(model.check_q(q), dtype=float)
-    z = np.zeros(tree.nv)
-    passes.forward_pass(ws.m, ws.w, q, z, z, 0)
-    B = np.zeros((tree.nv, len(model.actuators)))
-    for k in range(len(model.actuators)):
+    forward(ws, q)
+    na = len(tree.actuators)
+    B = np.zeros((tree.nv, na))
+    for k in range(na):
         out = np.zeros(tree.nv)
         actuation_pass(ws.m, ws.w, act, np.ascontiguousarray(act.unit[:, k]), out)
         B[:, k] = out
@@ -267,15 +410,28 @@ def actuation_matrix(model, q, ws=None):
 # Sensor files
 # ----------------------------------------------------------------------------
 
-def sensors_from_list(items, model, where="sensors"):
+_FIELDS = {"pose": {"name", "type", "frame", "member", "s", "sigma_position", "sigma_rotation", "offset", "rpy"},
+           "marker": {"name", "type", "frame", "member", "s", "sigma_position", "offset"},
+           "joint_state": {"name", "type", "joints", "sigma_position"},
+           "base_wrench": {"name", "type", "sigma_force", "sigma_moment"},
+           "tension": {"name", "type", "actuator", "sigma"}}
+
+
+def sensors_from_list(items, mech, where="sensors"):
     """Sensors from plain dicts (the YAML schema of a sensors file)::
 
         - {name: em0, type: pose, s: 0.16, sigma_position: 1.0e-3, sigma_rotation: 0.01,
-           offset: [0, 0, 0], rpy: [0, 0, 0]}            # placement in the cross-section frame
-        - {name: tip, type: marker, s: 0.40, sigma_position: 5.0e-4, offset: [0, 0, 0]}
+           offset: [0, 0, 0], rpy: [0, 0, 0]}            # a robot with one member
+        - {name: em_mid, type: pose, member: arm, s: 0.15, sigma_position: 1.0e-3, sigma_rotation: 0.01}
+        - {name: em_tool, type: pose, frame: tool, sigma_position: 1.0e-3, sigma_rotation: 0.01}
+        - {name: mk, type: marker, s: 0.40, sigma_position: 5.0e-4, offset: [0, 0, 0.01]}
+        - {name: encoders, type: joint_state, joints: [pan, tilt], sigma_position: [1.0e-3, 1.0e-3]}
+        - {name: ft, type: base_wrench, sigma_force: 0.05, sigma_moment: 0.005}
         - {name: t_y, type: tension, actuator: tendon_y_pos, sigma: 0.2}
 
-    (m, rad, N). Raises ValueError naming the bad entry and field."""
+    (m, rad, N, Pa; ``offset``/``rpy``: the placement in the point's frame;
+    ``sigma_position`` of a joint_state: one value or one per joint, rad or
+    m). Returns the checked tuple; ValueError naming the bad entry and field."""
     from .model import ModelError, parse_number, pose_from_dict
     if not isinstance(items, list) or not items:
         raise ValueError(f"{where}: expected a non-empty list of sensors")
@@ -285,12 +441,9 @@ def sensors_from_list(items, model, where="sensors"):
         if not isinstance(d, dict):
             raise ValueError(f"{w}: expected a mapping")
         kind = d.get("type")
-        allowed = {"pose": {"name", "type", "s", "sigma_position", "sigma_rotation", "offset", "rpy"},
-                   "marker": {"name", "type", "s", "sigma_position", "offset"},
-                   "tension": {"name", "type", "actuator", "sigma"}}
-        if kind not in allowed:
-            raise ValueError(f"{w}.type: expected pose, marker or tension, got {kind!r}")
-        extra = set(d) - allowed[kind]
+        if kind not in _FIELDS:
+            raise ValueError(f"{w}.type: expected one of {list(_FIELDS)}, got {kind!r}")
+        extra = set(d) - _FIELDS[kind]
         if extra:
             raise ValueError(f"{w}: unknown field(s) {sorted(extra)} for a {kind} sensor")
         name = d.get("name")
@@ -309,44 +462,68 @@ def sensors_from_list(items, model, where="sensors"):
         try:
             if kind == "tension":
                 out.append(TensionSensor(name, str(d.get("actuator")), num("sigma")))
-            elif kind == "marker":
-                off = np.asarray(d.get("offset", [0.0, 0.0, 0.0]), dtype=float)
-                if off.shape != (3,):
-                    raise ValueError(f"{w}.offset: expected 3 numbers [m], got {d.get('offset')!r}")
-                out.append(PositionMarker(name, num("s"), num("sigma_position"), off))
+            elif kind == "base_wrench":
+                out.append(BaseWrenchSensor(name, num("sigma_force"), num("sigma_moment")))
+            elif kind == "joint_state":
+                joints = d.get("joints")
+                if not isinstance(joints, list) or not all(isinstance(j, str) for j in joints):
+                    raise ValueError(f"{w}.joints: expected a list of joint names, got {joints!r}")
+                sig = d.get("sigma_position")
+                sig = [sig] * len(joints) if not isinstance(sig, list) else sig
+                sig = [parse_number(x, f"{w}.sigma_position") for x in sig]
+                out.append(JointStateSensor(name, tuple(joints), np.array(sig, dtype=float)))
             else:
-                P = pose_from_dict({"position": d.get("offset", [0.0, 0.0, 0.0]), "rpy": d.get("rpy", [0.0, 0.0, 0.0])},
-                                   f"{w}")
-                out.append(PoseSensor(name, num("s"), num("sigma_position"), num("sigma_rotation"), P))
+                for key in ("frame", "member"):
+                    if key in d and not isinstance(d[key], str):
+                        raise ValueError(f"{w}.{key}: expected a name, got {d[key]!r}")
+                off = d.get("offset", [0.0, 0.0, 0.0])
+                if not (isinstance(off, list) and len(off) == 3):
+                    raise ValueError(f"{w}.offset: expected 3 numbers [m], got {off!r}")
+                P = pose_from_dict({"position": off, "rpy": d.get("rpy", [0.0, 0.0, 0.0])}, w)
+                rot = num("sigma_rotation") if kind == "pose" else None
+                s = num("s") if "frame" not in d else 0.0
+                out.append(PoseSensor(name, num("sigma_position"), rot, d.get("frame"), d.get("member"), s, P))
         except ModelError as e:
             raise ValueError(str(e)) from None
-        except TypeError as e:
-            raise ValueError(f"{w}: {e}") from None
-    return check_sensors(model, out)
+    return check_sensors(mech, out)[0]
 
 
-def load_sensors(path, model):
+def load_sensors(path, mech):
     """Sensors of a YAML file (a list, or a mapping with a ``sensors:`` list)."""
     from .model import read_yaml_file
     d = read_yaml_file(path, ValueError, "sensors file")
     if isinstance(d, dict):
         d = d.get("sensors")
-    return sensors_from_list(d, model, f"sensors file {path}")
+    return sensors_from_list(d, mech, f"sensors file {path}")
 
 
 def sensors_to_list(sensors):
     """The plain-dict form of sensors (inverse of :func:`sensors_from_list`)."""
+    from scipy.spatial.transform import Rotation
     out = []
     for s in sensors:
         if isinstance(s, TensionSensor):
             out.append({"name": s.name, "type": "tension", "actuator": s.actuator, "sigma": float(s.sigma)})
-        elif isinstance(s, PositionMarker):
-            out.append({"name": s.name, "type": "marker", "s": float(s.s), "sigma_position": float(s.sigma_position_m),
-                        "offset": [float(x) for x in s.offset_m]})
+        elif isinstance(s, BaseWrenchSensor):
+            out.append({"name": s.name, "type": "base_wrench", "sigma_force": float(s.sigma_force_n),
+                        "sigma_moment": float(s.sigma_moment_nm)})
+        elif isinstance(s, JointStateSensor):
+            out.append({"name": s.name, "type": "joint_state", "joints": list(s.joints),
+                        "sigma_position": [float(x) for x in s.sigma]})
         else:
-            from scipy.spatial.transform import Rotation
-            rpy = Rotation.from_matrix(s.placement[:3, :3]).as_euler("xyz")
-            out.append({"name": s.name, "type": "pose", "s": float(s.s), "sigma_position": float(s.sigma_position_m),
-                        "sigma_rotation": float(s.sigma_rotation_rad),
-                        "offset": [float(x) for x in s.placement[:3, 3]], "rpy": [float(x) for x in rpy]})
+            d = {"name": s.name, "type": "marker" if s.position_only else "pose"}
+            if s.frame is not None:
+                d["frame"] = s.frame
+            else:
+                if s.member is not None:
+                    d["member"] = s.member
+                d["s"] = float(s.s)
+            d["sigma_position"] = float(s.sigma_position_m)
+            if not s.position_only:
+                d["sigma_rotation"] = float(s.sigma_rotation_rad)
+            P = np.asarray(s.placement, dtype=float)
+            d["offset"] = [float(x) for x in P[:3, 3]]
+            if not s.position_only:
+                d["rpy"] = [float(x) for x in Rotation.from_matrix(P[:3, :3]).as_euler("xyz")]
+            out.append(d)
     return out

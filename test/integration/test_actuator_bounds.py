@@ -312,7 +312,7 @@ def test_calibration_refuses_recorded_inputs_outside_the_bounds(tmp_path):
     from soft_twin_core import sensors as sn
     d = _pneumatic_dict()
     m = model_from_dict(d)
-    sensors = [sn.PositionMarker("tip", m.total_length, 1e-4)]
+    sensors = [sn.marker("tip", 1e-4, s=m.total_length)]
     inputs = np.array([[1e4, 0, 0, 0, 0, 0], [0, 2e4, 0, 0, 0, 0], [0, 0, -3e4, 0, 0, 0.0]])
     with pytest.raises(cal.CalibrationError) as exc:
         cal.record_static_sweep(m, sensors, inputs, np.random.default_rng(0))

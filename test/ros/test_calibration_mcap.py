@@ -33,8 +33,8 @@ pytestmark = pytest.mark.ros
 NAMES = ["tendon_y_pos", "tendon_y_neg", "tendon_z_pos", "tendon_z_neg"]
 T0 = 1_700_000_000                    # s: stamps of a real clock
 HOLD_S, READ_EVERY_S = 1.0, 0.1
-SENSORS = [sn.PositionMarker("mk0", 0.16, 3e-4), sn.PoseSensor("em1", 0.28, 5e-4, 0.01),
-           sn.PoseSensor("tip", 0.40, 5e-4, 0.01)]
+SENSORS = [sn.marker("mk0", 3e-4, s=0.16), sn.PoseSensor("em1", 5e-4, 0.01, s=0.28),
+           sn.PoseSensor("tip", 5e-4, 0.01, s=0.40)]
 
 
 def _nominal():
@@ -110,7 +110,12 @@ def _record(path, truth, U, rng):
 
 
 def _readings(rec, truth, q, t, rng):
-    z = {s.name: sn.simulate_measurement(truth, s, rng, q) for s in SENSORS}
+    from soft_twin_core.mechanism import from_robot_model
+    from soft_twin_core.workspace import Workspace
+    mech = from_robot_model(truth)
+    _, where = sn.check_sensors(mech, SENSORS)
+    clean = sn.predict_readings(Workspace(mech.tree), q, SENSORS, where)
+    z = {s.name: sn.simulate_measurement(s, clean[s.name], rng) for s in SENSORS}
     rec.write("/soft_twin_estimator/measurements/position", _point("mk0", z["mk0"], t))
     rec.write("/soft_twin_estimator/measurements/pose", _pose("em1", z["em1"], t + 0.001))
     rec.write("/tracker/tip", _pose("", z["tip"], t + 0.002))       # a tracker of its own

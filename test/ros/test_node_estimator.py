@@ -27,6 +27,7 @@ from std_srvs.srv import Trigger  # noqa: E402
 from soft_twin.conversions import matrix_from_pose, pose_array, pose_msg  # noqa: E402
 from soft_twin.msg import ActuationCommand  # noqa: E402
 from soft_twin_core import sensors as sn  # noqa: E402
+from soft_twin_core.mechanism import from_robot_model  # noqa: E402
 from soft_twin_core import statics as st  # noqa: E402
 from soft_twin_core.model import find_file, load_model, model_from_dict, read_yaml_file  # noqa: E402
 
@@ -133,8 +134,8 @@ def test_estimate_follows_the_real_robot_and_bad_readings_are_counted(running):
     client, proc, tmp = running
     real = _real_robot()
     truth = st.solve_statics(real, U)
-    sensors = sn.sensors_from_list(SENSORS, real)
-    T = [sn.sensor_pose(real, truth.q, s) for s in sensors]
+    sensors = sn.sensors_from_list(SENSORS, from_robot_model(real))
+    T = [sn.sensor_pose(from_robot_model(real), truth.q, s) for s in sensors]
     tip_true = truth.tip_pose[:3, 3]
     twin = load_model("tracked_arm")
     open_loop = st.solve_statics(twin, U).tip_pose[:3, 3]
@@ -154,7 +155,7 @@ def test_estimate_follows_the_real_robot_and_bad_readings_are_counted(running):
     def stream():
         k = 0
         while not stop.is_set():
-            z = [sn.simulate_measurement(Ti, s, rng) for Ti, s in zip(T, sensors)]
+            z = [sn.simulate_measurement(s, Ti, rng) for Ti, s in zip(T, sensors)]
             client.pub_poses.publish(pose_array(np.array(z)))
             if k % 10 == 0:
                 client.pub_act.publish(msg)           # the twin's commands are re-sent, as a controller does

@@ -29,6 +29,7 @@ from rclpy.executors import SingleThreadedExecutor  # noqa: E402
 from soft_twin.conversions import pose_array  # noqa: E402
 from soft_twin.msg import ActuationCommand  # noqa: E402
 from soft_twin_core import sensors as sn  # noqa: E402
+from soft_twin_core.mechanism import from_robot_model  # noqa: E402
 from soft_twin_core import statics as st  # noqa: E402
 from soft_twin_core.cli import main as cli_main  # noqa: E402
 from soft_twin_core.model import find_file, model_from_dict, read_yaml_file  # noqa: E402
@@ -104,17 +105,18 @@ def test_estimator_node_records_a_sweep_that_calibrates(tmp_path, capsys):
         for seg in d["segments"]:
             seg["material"]["youngs_modulus"] = 1.3 * float(seg["material"]["youngs_modulus"])
         real = model_from_dict(d)
-        sensors = sn.sensors_from_list(SENSORS, real)
+        real_mech = from_robot_model(real)
+        sensors = sn.sensors_from_list(SENSORS, real_mech)
         rng = np.random.default_rng(8)
         sent, q = 0, None
         for k, u in enumerate(_sweep()):
             q = st.solve_statics(real, u, q_init=q).q
-            T = [sn.sensor_pose(real, q, s) for s in sensors]
+            T = [sn.sensor_pose(real_mech, q, s) for s in sensors]
             tc = T0 + k * HOLD_S
             pub_act.publish(_stamp(ActuationCommand(names=NAMES, values=[float(x) for x in u]), tc))
             sent += 1
             for j in range(READINGS):
-                z = np.array([sn.simulate_measurement(Ti, s, rng) for Ti, s in zip(T, sensors)])
+                z = np.array([sn.simulate_measurement(s, Ti, rng) for Ti, s in zip(T, sensors)])
                 pub_poses.publish(_stamp(pose_array(z), tc + (j + 0.5) * HOLD_S / READINGS))
                 sent += 1
                 time.sleep(0.004)         # the publishing rate (250 Hz), not a wait for ROS

@@ -35,7 +35,7 @@ from soft_twin.conversions import matrix_from_pose, pose_array, pose_msg  # noqa
 from soft_twin.msg import ActuationCommand  # noqa: E402
 from soft_twin_core import algorithms as alg  # noqa: E402
 from soft_twin_core import commands as cmd
-from soft_twin_core import tree_sensors as ts  # noqa: E402
+from soft_twin_core import sensors as ts  # noqa: E402
 from soft_twin_core.constrained import solve_equilibrium  # noqa: E402
 from soft_twin_core.mechanism import load_mechanism, mechanism_from_dict  # noqa: E402
 from soft_twin_core.model import find_file, read_yaml_file  # noqa: E402
@@ -75,6 +75,9 @@ class Client:
         self.tips = []                                   # every estimated tool position received
         n.create_subscription(PoseWithCovarianceStamped, f"{NS}/estimate/tip_pose", self._on_tip, 10)
         n.create_subscription(JointState, f"{NS}/estimate/joint_states", self._on_joints, 10)
+        self.backbones = {}                              # the last PoseArray of each backbone topic
+        for topic, key in ((f"{NS}/estimate/backbones/arm", "arm"), (f"{NS}/estimate/backbone", "main")):
+            n.create_subscription(PoseArray, topic, lambda msg, key=key: self.backbones.__setitem__(key, msg), 10)
         n.create_subscription(DiagnosticArray, "/diagnostics", self._on_diag, 10)
         self.reset = n.create_client(Trigger, f"{NS}/estimate/reset")
         self.executor = SingleThreadedExecutor(context=self.context)
@@ -180,8 +183,8 @@ def test_tree_estimate_follows_the_real_robot_and_bad_joint_states_are_counted(r
     client, proc, tmp = running
     real = _real_robot()
     truth = solve_equilibrium(real, U, positions=REAL)
-    sensors = ts.tree_sensors_from_list(SENSORS, real)
-    _, where = ts.check_tree_sensors(real, sensors)
+    sensors = ts.sensors_from_list(SENSORS, real)
+    _, where = ts.check_sensors(real, sensors)
     ws = Workspace(real.tree)
     alg.forward_kinematics(real.tree, ws, truth.q)
     z_true = {s.name: ts.predict_measurement(ws, truth.q, s, where[s.name]) for s in sensors}
@@ -241,6 +244,9 @@ def test_tree_estimate_follows_the_real_robot_and_bad_joint_states_are_counted(r
         # on a loaded machine: 1.5-5 mm measured)
         assert 0 < np.sqrt(np.trace(cov)) < np.linalg.norm(open_loop - tool_true)
         assert client.diag["tip_frame"] == "tool"
+        # the member's backbone (4 points per section), also on ~/estimate/backbone (the main member)
+        assert client.wait_until(lambda: {"arm", "main"} <= set(client.backbones), 20.0), list(client.backbones)
+        assert len(client.backbones["arm"].poses) == len(client.backbones["main"].poses) == 4 * 4 + 1     # 4 sections
         before = int(client.diag["measurements_rejected"])
         client.pub_joints.publish(_joint_state(["pan", "tilt"], [float("nan"), -0.2]))     # NaN
         client.pub_joints.publish(_joint_state(["pan", "elbow"], [0.3, 0.1]))              # unknown joint

@@ -36,7 +36,7 @@ def _true_dict():
 
 
 def _markers():
-    return [sn.PositionMarker(f"mk{i}", s, 3e-4) for i, s in enumerate([0.16, 0.28, 0.40])]
+    return [sn.marker(f"mk{i}", 3e-4, s=s) for i, s in enumerate([0.16, 0.28, 0.40])]
 
 
 def _sweep():
@@ -72,7 +72,7 @@ def test_sensitivities_match_finite_differences():
     model = model_from_dict(d)
     P = np.eye(4)
     P[:3, 3] = [0.0, 0.0, 0.01]
-    sensors = _markers() + [sn.PoseSensor("em", 0.2, 1e-3, 0.01, P)]
+    sensors = _markers() + [sn.PoseSensor("em", 1e-3, 0.01, s=0.2, placement=P)]
     rng = np.random.default_rng(1)
     U = np.array([[12.0, 0.0, 6.0, 0.0], [0.0, 9.0, 0.0, 14.0], [5.0, 0.0, 0.0, 7.0]])
     rec = cal.record_static_sweep(model, sensors, U, rng)
@@ -114,7 +114,7 @@ def test_calibration_recovers_moduli_and_tendon_offsets_from_a_finer_model(recor
 def test_csv_round_trip_and_errors(tmp_path, recording):
     model = load_model("tracked_arm")
     P = np.eye(4)
-    sensors = _markers() + [sn.PoseSensor("em", 0.2, 1e-3, 0.01, P)]
+    sensors = _markers() + [sn.PoseSensor("em", 1e-3, 0.01, s=0.2, placement=P)]
     rec = cal.record_static_sweep(model, sensors, _sweep()[:4], np.random.default_rng(2))
     path = tmp_path / "sweep.csv"
     cal.write_csv(path, model, sensors, rec)
@@ -165,7 +165,8 @@ def test_cli_calibrate_writes_a_calibrated_robot_file(tmp_path, capsys):
 
 
 def test_sensor_files_round_trip():
-    model = load_model("tracked_arm")
+    from soft_twin_core.mechanism import from_robot_model
+    model = from_robot_model(load_model("tracked_arm"))
     items = [{"name": "em", "type": "pose", "s": 0.2, "sigma_position": 1e-3, "sigma_rotation": 0.01,
               "offset": [0, 0, 0.01], "rpy": [0.1, 0.2, 0.3]},
              {"name": "mk", "type": "marker", "s": 0.4, "sigma_position": 5e-4},
