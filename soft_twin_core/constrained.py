@@ -33,7 +33,7 @@ import numpy as np
 from . import algorithms as alg
 from ._blas import one_blas_thread
 from .forces import (actuation_pass, actuation_tangent_pass, actuator_arrays, check_member_loads, gravity_of,
-                     load_arrays)
+                     load_arrays, point_moment_arrays)
 from .integrators import ThetaIntegrator, integrate_pass, residual_pass
 from .kernels import passes
 from .kernels.data import LoadArrays
@@ -130,6 +130,8 @@ def _concat_loads(*lds):
     lds = [ld for ld in lds if ld.joint.shape[0]]
     if not lds:
         return LoadArrays(np.zeros(0, np.int64), np.zeros(0), np.zeros((0, 6)), np.zeros(0, np.bool_))
+    if len(lds) == 1:
+        return lds[0]
     return LoadArrays(np.concatenate([ld.joint for ld in lds]), np.ascontiguousarray(np.concatenate([ld.x for ld in lds])),
                       np.ascontiguousarray(np.concatenate([ld.wrench for ld in lds])),
                       np.concatenate([ld.world for ld in lds]))
@@ -153,7 +155,7 @@ def make_inputs(mech, actuation=None, efforts=None, positions=None, velocities=N
             raise ValueError(f"velocities: expected {len(q_cmd)} finite values (the position-controlled joints)")
     loads = Loads() if loads is None else loads
     check_member_loads(tree, loads)
-    ld = _concat_loads(load_arrays(tree, loads, None, path) if tree.paths else
+    ld = _concat_loads(load_arrays(tree, loads, u, path) if tree.paths else   # with point-moment tendons at u
                        frame_loads(mech, ()), frame_loads(mech, point_loads))
     return Inputs(u, effort, q_cmd, v_cmd, ld, gravity_of(tree, loads))
 
@@ -164,7 +166,8 @@ def assemble_inputs(mech, u, efforts, positions, velocities=None, point_loads=()
     (n_actuators,), ``efforts`` and ``positions`` {joint: value} of the
     effort- and position-controlled joints (the others at 0 and at their
     reference), ``velocities`` {joint: value} or None, ``point_loads``
-    (FrameLoad on existing frames). Gravity on, no path loads."""
+    (FrameLoad on existing frames), the point-moment tendons' follower
+    moments at u. Gravity on, no path loads."""
     tree = mech.tree
     effort = np.zeros(tree.nv)
     for i in mech.joints_with("effort"):
@@ -173,7 +176,9 @@ def assemble_inputs(mech, u, efforts, positions, velocities=None, point_loads=()
     q_cmd = np.array([positions.get(tree.joints[i].name, tree.joints[i].q_ref) for i in pos], dtype=float)
     v_cmd = None if velocities is None else np.array([velocities.get(tree.joints[i].name, 0.0) for i in pos],
                                                      dtype=float)
-    return Inputs(np.asarray(u, dtype=float), effort, q_cmd, v_cmd, _checked_frame_loads(mech, point_loads),
+    u = np.asarray(u, dtype=float)
+    return Inputs(u, effort, q_cmd, v_cmd, _concat_loads(_checked_frame_loads(mech, point_loads),
+                                                         point_moment_arrays(tree, u)),
                   np.asarray(tree.gravity, dtype=float))
 
 

@@ -136,6 +136,21 @@ def load_arrays(model, loads=None, u=None, path_name=None):
                       np.ascontiguousarray(np.concatenate(W)), np.concatenate(F).astype(np.bool_))
 
 
+def point_moment_arrays(model, u):
+    """LoadArrays of the follower moments of the point-moment tendons at
+    inputs u (empty when the robot has none), each on its actuator's path."""
+    has = model.__dict__.get("_has_point_moments")
+    if has is None:
+        has = any(a.tendon_model == "point_moment" for a in model.actuators)
+        object.__setattr__(model, "_has_point_moments", has)
+    if not has:
+        return _NO_LOAD_ARRAYS
+    return load_arrays(model, None, np.asarray(u, dtype=float))
+
+
+_NO_LOAD_ARRAYS = LoadArrays(np.zeros(0, np.int64), np.zeros(0), np.zeros((0, 6)), np.zeros(0, np.bool_))
+
+
 def _point_moment_loads(model, u):
     """The follower moments of point-moment tendons (:func:`loads.actuator_point_loads`),
     each on its actuator's own path."""

@@ -537,3 +537,37 @@ def test_examples_step_from_rest_in_few_iterations(name):
     sim.step(n=3)
     assert sim.iterations <= 3
     assert np.abs(sim.v).max() < 1e-6
+
+
+def test_point_moment_tendons_on_the_mechanism_path():
+    """A classic rod with a point-moment tendon (and a distributed one), run
+    as a one-member mechanism: the follower moment is an input of every
+    mechanism path (the statics, the dynamics' accelerations, the node's
+    twin), equal to the rod's own statics and equations of motion (found
+    missing: the mechanism's inputs dropped point-moment tendons)."""
+    from soft_twin_core import constrained as cs
+    from soft_twin_core import dynamics as dy
+    from soft_twin_core import statics as st
+    from soft_twin_core.mechanism import from_robot_model
+    from soft_twin_core.model import benchmark_cantilever_dict, model_from_dict
+    from soft_twin_core.twin import Twin, TwinSettings
+    d = benchmark_cantilever_dict(4, "all")
+    d["actuators"] = [{"name": "p", "offset": [0.005, 0.003], "model": "point_moment", "end": 0.35},
+                      {"name": "a", "offset": [-0.004, 0.002]}]
+    m = model_from_dict(d)
+    mech = from_robot_model(m)
+    u = np.array([6.0, 2.0])
+    ref = st.solve_statics(m, u).q
+    assert np.abs(ref - st.solve_statics(m, [0.0, 2.0]).q).max() > 0.1          # the point moment matters
+    assert np.allclose(cs.solve_equilibrium(mech, u).q, ref, atol=1e-10)
+    rng = np.random.default_rng(4)
+    q, v = m.q0 + 0.2 * rng.standard_normal(m.n_dof), rng.standard_normal(m.n_dof)
+    a_ref = dy.Simulator(m, 1e-3, actuation=u).acceleration(q, v, 0.0)
+    sim = cs.MechanismSimulator(mech, 1e-3, 0.5, q=q)
+    sim.v = v
+    a = sim.start_multipliers(cs.make_inputs(mech, u)).a
+    assert np.allclose(a, a_ref, rtol=1e-9, atol=1e-9 * np.abs(a_ref).max())
+    twin = Twin(mech, TwinSettings(mode="quasi_static"))
+    twin.set_actuation(u)
+    twin.step()
+    assert np.allclose(twin.state.q, ref, atol=1e-8)
