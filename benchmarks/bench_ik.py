@@ -5,8 +5,8 @@ random least-tension actuations, 0..3 N) and for unreachable ones.
 
 Run: .venv/bin/python benchmarks/bench_ik.py [--node]
 
-Without --node: the service's body (soft_twin_core.ik.inverse_kinematics) in
-this process. With --node: the real service round trip to a node in a
+Without --node: the service's body in
+this process (the twin's IK, soft_twin_core.twin.Twin.inverse_kinematics, on a copy of the twin). With --node: the real service round trip to a node in a
 second process (dynamic mode, 200 Hz stepping in that process), this
 process a real rclpy client subscribed to the strains only (``--all-topics``:
 every state topic, as before). The node computes in its service thread.
@@ -48,29 +48,35 @@ def report(label, times, ok, cpu=None):
 
 
 def in_process(model, poses):
+    """The service's body: the twin's IK (Twin.inverse_kinematics) on a copy
+    of the twin at rest, as the node runs it for a classic rod."""
     from soft_twin_core import twin as tw
-    from soft_twin_core import ik as core_ik
-    q0 = st.solve_statics(model).q
-    core_ik.inverse_kinematics(model, q0, 10, poses[0], position_only=True, u_current=np.zeros(4))  # warm-up
+    from soft_twin_core.mechanism import load_mechanism
+    twin = tw.Twin(load_mechanism("tendon_arm"), tw.TwinSettings(mode="quasi_static"))   # the default robot
+    twin.step()
+
+    def ik(T, position_only):
+        return twin.query_copy().inverse_kinematics(T[:3, 3] if position_only else T, 1e-6)
+    ik(poses[0], True)                                               # warm-up
     res = {}
     for label, po in (("position only", True), ("full pose", False)):
         ts, cpu, ok = [], [], []
         for T in poses:
             t0, c0 = time.perf_counter(), time.process_time()
-            r = core_ik.inverse_kinematics(model, q0, 10, T, position_only=po, u_current=np.zeros(4))
+            r = ik(T, po)
             ts.append(time.perf_counter() - t0)
             cpu.append(time.process_time() - c0)
-            ok.append(r.success)
+            ok.append(r.reached)
         res[label] = report(f"in process, {label}", ts, ok, cpu)
     ts, cpu, ok = [], [], []
     for T in poses[:10]:
         T = T.copy()
         T[:3, 3] += [0.0, 0.03, 0.05]           # off the tendons' reachable surface
         t0, c0 = time.perf_counter(), time.process_time()
-        r = core_ik.inverse_kinematics(model, q0, 10, T, position_only=True, u_current=np.zeros(4))
+        r = ik(T, True)
         ts.append(time.perf_counter() - t0)
         cpu.append(time.process_time() - c0)
-        ok.append(not r.success)
+        ok.append(not r.reached)
     report("in process, unreachable (flagged)", ts, ok, cpu)
     return res
 

@@ -1,6 +1,5 @@
 """The node's ~/plan_path service: plan a tip path through statics
-(:mod:`soft_twin_core.planner`; an articulated robot:
-:mod:`soft_twin_core.articulated_planner`) from the twin's current state
+(:mod:`soft_twin_core.planner`, :meth:`soft_twin_core.twin.Twin.plan`) from the twin's current state
 and, on request, execute it: one ActuationCommand per sample, stamped and
 published at its planned time on the ``plan_output_topic`` (for the real
 robot), and on the twin's own ``~/actuation`` so that the twin follows the
@@ -21,7 +20,6 @@ from soft_twin_core.model import ModelError
 from soft_twin_core.statics import StaticsError
 
 from soft_twin import services
-from soft_twin_core import commands as cmd
 from soft_twin.query_worker import QueryError
 from soft_twin_core.text import clip
 
@@ -37,8 +35,8 @@ _PLAN_ERRORS = (pth.PathError, pl.PlanError, ModelError, ValueError, StaticsErro
 def plan_request(req, plan):
     """(a plan, None) or (None, message) for a PlanPath request: the path
     parsed and the numbers checked at the door, then ``plan(path,
-    position_weights=, tolerance=, pretension=, max_rate=)`` (the robot's
-    planner: :func:`rod_planner`, :meth:`articulated.Twin.plan`)."""
+    position_weights=, tolerance=, pretension=, max_rate=)`` (the twin's
+    planner, :meth:`soft_twin_core.twin.Twin.plan`)."""
     try:
         d = yaml.safe_load(req.path_yaml) if req.path_yaml.strip() else None
     except yaml.YAMLError as e:
@@ -56,23 +54,10 @@ def plan_request(req, plan):
         return None, clip(str(e), 400)
 
 
-def rod_planner(model, q, u, loads):
-    """The planner of a rod robot from the twin's shape q and inputs u, under
-    ``loads``; with a rate limit the first sample is rate-limited from u."""
-    def plan(path, **options):
-        opts = pl.PlanOptions(loads=loads, **options)
-        u_start = np.maximum(u, pl.actuator_bounds(model, opts)[0]) if opts.max_rate is not None else None
-        return pl.plan_path(model, path, opts, u_start=u_start, q_start=q)
-    return plan
-
-
 def plan_columns(plan):
-    """(names, values (N, k)): an articulated plan's joint commands first,
-    then the actuator inputs; a rod plan's inputs."""
-    joints = tuple(getattr(plan, "joint_names", ()))
-    if joints:
-        return joints + tuple(plan.actuator_names), np.hstack([plan.joints, plan.u])
-    return tuple(plan.actuator_names), plan.u
+    """(names, values (N, k)): the plan's joint commands first, then the
+    actuator inputs."""
+    return tuple(plan.joint_names) + tuple(plan.actuator_names), np.hstack([plan.joints, plan.u])
 
 
 def fill_response(resp, plan):
@@ -244,7 +229,7 @@ def channels(plan, cfg, actuation_type, joint_type):
     robot, the joint position commands (JointState on
     ``plan_joint_output_topic`` and ``~/joint_commands``)."""
     out = []
-    joints = tuple(getattr(plan, "joint_names", ()))
+    joints = tuple(plan.joint_names)
     if joints:
         out.append(Channel(joint_type, joints, plan.joints, cfg.plan_joint_output_topic, "~/joint_commands"))
     if len(plan.actuator_names):
@@ -255,22 +240,13 @@ def channels(plan, cfg, actuation_type, joint_type):
 
 def handle(node, runner, req, resp, actuation_type, joint_type):
     """The ~/plan_path callback body (node: the TwinNode)."""
-    model, q, u, w, frame, cfg, _ = services.copy_state(node)
-    # not physical: a classic rod plans with the rod planner (its dynamic check and lag compensation are
-    # not ported to the articulated planner yet: issue 26); tree robots in the node's query worker process
+    cfg = node.cfg
+    # the twin's planner on a copy of its state (services.ik_query: a tree robot in the query worker process)
     if node.robot.articulated:
-        # in the node's query worker process (soft_twin.query_worker)
         plan, err = plan_request(req, lambda path, **options: node.query("plan", path, **options))
     else:
-        try:
-            loads = cmd.make_loads(model, w, frame)
-        except (ValueError, ModelError) as e:
-            resp.success, resp.message = False, clip(f"tip load: {e}", 400)
-            return resp
-        if not model.actuators:
-            resp.success, resp.message = False, "this robot has no actuators: there is nothing to plan"
-            return resp
-        plan, err = plan_request(req, rod_planner(model, q, u, loads))
+        twin = services._twin_copy(node)
+        plan, err = plan_request(req, twin.plan)
     if plan is None:
         resp.success, resp.message = False, f"plan rejected: {err}"
         return resp

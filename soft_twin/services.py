@@ -6,9 +6,10 @@ kinematics and reset (``~/forward_kinematics``, ``~/statics_query``,
 Each handler takes the node, the request and the response. It copies what it
 needs from the twin under the node's lock (microseconds), checks the request
 at the door (the same parse functions as the topics) and computes outside
-the lock: on the rod's compiled kernels in the node's process, or, for an
-articulated robot's IK, in the query worker process (its Python would hold
-the GIL against the stepping clock). A request that cannot be answered gets
+the lock, on a copy of the twin: in the node's process for a robot without
+multipliers (a classic rod: the compiled statics), in the query worker
+process for a tree robot (its Python would hold the GIL against the
+stepping clock). A request that cannot be answered gets
 ``success: false`` and a message naming the reason; the twin is never
 changed by a query.
 """
@@ -113,7 +114,23 @@ def inverse_kinematics(node, req, resp, timing=False):
                                f"thread CPU {1e3 * (time.thread_time() - c0):.2f} ms")
 
 
+def ik_query(node, target, tol):
+    """The twin's IK (:meth:`soft_twin_core.twin.Twin.inverse_kinematics`)
+    on a copy of its state: a tree robot's in the query worker process
+    (hundreds of milliseconds of Python that would hold the GIL against the
+    stepping clock), a robot without multipliers (a classic rod) on its
+    compiled statics in this process (milliseconds)."""
+    if node.robot.articulated:
+        return node.query("inverse_kinematics", target, tol)
+    return _twin_copy(node).inverse_kinematics(target, tol)
+
+
 def _inverse_kinematics(node, req, resp):
+    """Joint commands and actuator inputs putting the tip at the target pose,
+    or position with ``position_only``: ``actuator_names``/``actuator_values``
+    the position-controlled joints (rad or m) first, then the actuators (N
+    or Pa); a robot without inputs answers with the shape that reaches the
+    target (``actuation_found`` False)."""
     tol = req.tolerance
     if not math.isfinite(tol) or tol < 0:
         resp.success, resp.message = False, f"tolerance must be >= 0 (0 = default 1e-6), got {tol}"
@@ -123,48 +140,29 @@ def _inverse_kinematics(node, req, resp):
     except ValueError as e:
         resp.success, resp.message = False, clip(f"target rejected: {e}", 400)
         return resp
-    # not physical: a classic rod's IK is the rod planner's compiled sample solve (closed form where it
-    # applies, milliseconds in this process); tree robots' runs in the query worker (issue 26: one planner)
-    if node.robot.articulated:
-        return _articulated_ik(node, req, resp, target, tol or 1e-6)
-    model, q, u, w, frame, cfg, order = copy_state(node)
-    res = core_ik.inverse_kinematics(model, q, cfg.backbone_points_per_section, target, req.position_only,
-                                tol or 1e-6, cmd.make_loads(model, w, frame), u_current=u)
-    resp.success, resp.message = res.success, clip(res.message, 400)
-    if res.q is not None:
-        resp.strains = res.strains.ravel().tolist()
-        x = res.extra
-        resp.actuation_found = x["actuation_found"]
-        resp.actuator_names = list(model.actuator_names)
-        resp.actuator_values = [float(v) for v in x["u"]]
-        resp.achieved = cv.pose_msg(x["achieved_pose"])
-        resp.position_error = float(x["position_error"])
-        resp.orientation_error = float(x["orientation_error"])
-        resp.iterations = int(res.iterations)
-    return resp
-
-
-def _articulated_ik(node, req, resp, target, tol):
-    """IK of an articulated robot's tip pose, or position with
-    ``position_only`` (:meth:`soft_twin_core.twin.Twin.inverse_kinematics`,
-    in the query worker): ``actuator_names``/``actuator_values`` its
-    position-controlled joints (rad or m) first, then its actuators (N or Pa)."""
     try:
-        r = node.query("inverse_kinematics", target[:3, 3] if req.position_only else target, tol)
+        r = ik_query(node, target[:3, 3] if req.position_only else target, tol or 1e-6)
     except (PlanError, StaticsError, ModelError, ValueError, np.linalg.LinAlgError, QueryError) as e:
         resp.success, resp.message = False, clip(f"IK failed: {e}", 400)
         return resp
     resp.success = r.reached
-    resp.message = ("converged: reached by joint commands and actuation (static equilibrium)" if r.reached else
-                    f"target not reached ({core_ik._IK_STATUS.get(r.status, r.status)}): the closest position "
-                    f"the joints and actuators can hold, position error {r.position_error:.3g} m")
+    by = "joint commands and actuation" if node.twin.mech.joints_with("position") else "actuation"
+    if not r.actuation_found:
+        resp.message = ("converged: shape reaching the target (this robot has no actuators)" if r.reached else
+                        f"IK did not reach the target: position error {r.position_error:.3g} m (a shape only: "
+                        f"this robot has no actuators)")
+    elif r.reached:
+        resp.message = f"converged: reached by {by} (static equilibrium)"
+    else:
+        resp.message = (f"target not reached by {by} ({core_ik.IK_STATUS.get(r.status, r.status)}): the closest "
+                        f"pose the inputs can hold, position error {r.position_error:.3g} m")
     resp.strains = r.strains.ravel().tolist()
-    resp.actuation_found = True
+    resp.actuation_found = bool(r.actuation_found)
     resp.actuator_names = list(r.names)
     resp.actuator_values = [float(v) for v in r.values]
     resp.achieved = cv.pose_msg(r.achieved_pose)
     resp.position_error = float(r.position_error)
-    # position only: |log(R_achieved^T R_target)|, informative, as the rod robots' answer
+    # position only: |log(R_achieved^T R_target)|, informative
     resp.orientation_error = (float(np.linalg.norm(lie.log_so3(r.achieved_pose[:3, :3].T @ target[:3, :3])))
                               if req.position_only else float(r.orientation_error))
     resp.iterations = int(r.iterations)

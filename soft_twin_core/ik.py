@@ -4,13 +4,12 @@ strain modes (slides part B "Inverse kinematics", part C "Soft continuum arm
 with constant curvature").
 """
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 
 import numpy as np
 
 from . import kinematics as kin
 from . import lie
-from .errors import ModelError, StaticsError
 from ._blas import one_blas_thread
 
 
@@ -44,11 +43,6 @@ def constant_curvature_from_tip(p_base):
     arc = rho * angle
     w = kappa * np.array([0.0, -np.sin(phi), np.cos(phi)])
     return float(kappa), float(phi), float(arc), w
-
-
-def _fast_tip(model):
-    """The tip pose + spatial Jacobian on the multibody engine."""
-    return kin.tip_and_spatial_jacobian
 
 
 @dataclass
@@ -170,44 +164,20 @@ def _levenberg_marquardt(x, lo, hi, evaluate, jacobian, done, w, max_iterations,
 def solve_ik(model, target, q_init=None, *, position_only=False, weights=None,
              lower=None, upper=None, tol_position=1e-8, tol_orientation=1e-8,
              max_iterations=200, initial_damping=1e-3):
-    """Tip inverse kinematics by Levenberg-Marquardt on the SE(3) log error.
+    """Tip inverse kinematics of a classic robot (:class:`model.RobotModel`)
+    over its strains: :func:`frame_ik` of its tip.
 
     target: world pose (4x4) of the tip, or a 3-vector position with
-    ``position_only``. Full pose error ``e = log(g^-1 g_target)`` (tip body
-    frame) with Jacobian ``-T_se3_inv(-e) J_body``; position error
-    ``p_target - p`` with ``-R J_v``. weights: 6 (or 3) non-negative weights
-    of the error components. lower/upper: bounds on q (projected). Never
-    raises for unreachable targets: returns the best pose, success False.
-    """
-    target = _target_pose(target, position_only)
-    w = _weights(weights, position_only)
-    q = model.q0.copy() if q_init is None else model.check_q(np.array(q_init, dtype=float), "q_init")
-    lo = -np.inf if lower is None else np.asarray(lower, dtype=float)
-    hi = np.inf if upper is None else np.asarray(upper, dtype=float)
-    fast = _fast_tip(model)
-
-    def evaluate(q, _previous):
-        if fast is not None:
-            g, Js = fast(model, q)
-        else:
-            ch = kin.chain(model, q)
-            g = ch.g_tip
-            Js = np.swapaxes(ch.W, -3, -2).reshape(6, 6 * model.n_sections)[:, model.free_index]
-        return (g, Js), _tip_error(g, target, position_only)
-
-    def jacobian(q, data, e):
-        g, Js = data
-        return _error_jacobian(g, e, lie.Ad_inv(g) @ Js, position_only)
-
-    def done(data):
-        pe, oe = _errors(data[0], target)
-        return pe <= tol_position and (position_only or oe <= tol_orientation)
-
-    with one_blas_thread():
-        q, (g, _), it, message = _levenberg_marquardt(np.clip(q, lo, hi), lo, hi, evaluate, jacobian,
-                                                      done, w, max_iterations, initial_damping)
-    pe, oe = _errors(g, target)
-    return IKResult(q, message == "converged", pe, oe, it, g, message)
+    ``position_only``. Never raises for unreachable targets: returns the
+    best pose, success False."""
+    from .mechanism import from_robot_model
+    mech = model.__dict__.get("_ik_mechanism")
+    if mech is None:
+        mech = from_robot_model(model)
+        object.__setattr__(model, "_ik_mechanism", mech)
+    return frame_ik(mech, "tip", target, q_init, position_only=position_only, weights=weights, lower=lower,
+                    upper=upper, tol_position=tol_position, tol_orientation=tol_orientation,
+                    max_iterations=max_iterations, initial_damping=initial_damping)
 
 
 @dataclass
@@ -281,99 +251,57 @@ def solve_actuation_ik(model, target, u_init=None, q_init=None, *, loads=None, p
 
 
 # ----------------------------------------------------------------------------
-# The node's IK query of a classic rod (tree robots: twin.Twin.inverse_kinematics)
+# Shape IK of a frame of any robot (the node's answer for a robot without inputs)
 # ----------------------------------------------------------------------------
 
-@dataclass
-class QueryResult:
-    """success, message; q; backbone poses (N, 4, 4); tip_pose (4, 4);
-    strains (n, 6); base_wrench (6,) or None; iterations; residual."""
-    success: bool
-    message: str
-    q: np.ndarray = None
-    s: np.ndarray = None
-    backbone: np.ndarray = None
-    tip_pose: np.ndarray = None
-    strains: np.ndarray = None
-    base_wrench: np.ndarray = None
-    iterations: int = 0
-    residual: float = 0.0
-    extra: dict = field(default_factory=dict)
+IK_STATUS = {"at_limit": "a bound blocks (a tension at 0 or its limit, a joint at its limit)",
+             "rate_limit": "a rate limit", "out_of_workspace": "outside the workspace of the inputs",
+             "statics_failed": "no equilibrium found"}
 
 
-def _shape(model, q, points_per_section, **kw):
-    s, poses = kin.backbone(model, q, points_per_section)
-    return QueryResult(True, kw.pop("message", "ok"), q=q, s=s, backbone=poses, tip_pose=poses[-1],
-                       strains=model.strains(q), **kw)
+def frame_ik(mech, frame, target, q_init=None, *, position_only=False, weights=None, lower=None, upper=None,
+             tol_position=1e-8, tol_orientation=1e-8, max_iterations=200, initial_damping=1e-3):
+    """The shape (every joint coordinate of the robot: strains, joint angles)
+    that puts ``frame`` at ``target`` (world pose 4x4, or a position (3,)
+    with ``position_only``), by Levenberg-Marquardt on the error: the full
+    pose error ``e = log(g^-1 g_target)`` (frame body axes) with Jacobian
+    ``-T_se3_inv(-e) J_body``, the position error ``p_target - p`` with
+    ``-R J_v`` (J: the frame's Jacobian through every joint on its path).
+    weights: 6 (or 3) non-negative weights of the error components;
+    lower/upper: bounds on q (projected). Not physical (no statics: it says
+    where the robot would have to be, e.g. for a robot without actuators).
+    Never raises for unreachable targets: returns the best pose, success
+    False (:class:`IKResult`)."""
+    from .kernels import passes
+    from .kernels.frames import spatial_jacobian
+    from .workspace import Workspace
+    tree = mech.tree
+    if tree.nq != tree.nv:
+        raise ValueError("frame_ik: only robots whose coordinates add (no spherical or free joint)")
+    ref = mech.frame(frame)
+    target = _target_pose(target, position_only)
+    w = _weights(weights, position_only)
+    q = tree.q0.copy() if q_init is None else tree.check_q(np.array(q_init, dtype=float), "q_init")
+    lo = -np.inf if lower is None else np.asarray(lower, dtype=float)
+    hi = np.inf if upper is None else np.asarray(upper, dtype=float)
+    ws = Workspace(tree)
 
+    def evaluate(q, _previous):
+        passes.forward_pass(ws.m, ws.w, np.ascontiguousarray(q), ws.zeros_v, ws.zeros_v, 0)
+        g, Js = np.empty((4, 4)), np.empty((6, tree.nv))
+        spatial_jacobian(ws.m, ws.w, ref.joint, ref.x, g, Js)
+        return (g, Js), _tip_error(g, target, position_only)
 
-def inverse_kinematics(model, q_current, points_per_section, target, position_only=False,
-                       tolerance=1e-6, loads=None, u_current=None):
-    """Tip IK (target 4x4 in the base frame), warm-started from the twin's
-    state (inputs ``u_current``, shape ``q_current``).
+    def jacobian(q, data, e):
+        g, Js = data
+        return _error_jacobian(g, e, lie.Ad_inv(g) @ Js, position_only)
 
-    A robot with actuators: over the actuator inputs through statics
-    (:class:`soft_twin_core.planner.TipSolver`: exact sensitivities
-    J Kt^-1 B, tensions >= 0 and each actuator's ``limit``, least tension
-    among redundant inputs). ``success`` only when the equilibrium reaches
-    the target within ``tolerance`` (m and rad); otherwise ``success`` False
-    and the closest pose the actuators can actually hold (the returned
-    inputs hold the returned shape: ``actuation_found`` True), the message
-    saying why (an actuator bound, out of the workspace). Full poses weigh
-    the orientation error at 0.1 m/rad. A robot without actuators: over the
-    strains (the shape reaching the target), ``actuation_found`` False.
-    ``extra``: u, actuation_residual, actuation_found, position_error,
-    orientation_error, achieved_pose."""
-    try:
-        tgt = np.asarray(target, dtype=float)
-        if not np.all(np.isfinite(tgt)):
-            return QueryResult(False, "target: contains NaN or inf")
-        if model.actuators:
-            return _actuated_ik(model, q_current, points_per_section, tgt, position_only, tolerance, loads,
-                                u_current)
-        r = solve_ik(model, tgt[:3, 3] if position_only else tgt, q_init=q_current,
-                             position_only=position_only, tol_position=tolerance,
-                             tol_orientation=tolerance)
-        out = _shape(model, r.q, points_per_section, iterations=r.iterations,
-                     message=("converged: shape reaching the target (this robot has no actuators)" if r.success
-                              else f"IK did not reach the target: {r.message}"))
-        out.success = bool(r.success)
-        out.residual = r.position_error
-        out.extra = dict(u=np.zeros(0), actuation_residual=0.0, actuation_found=False,
-                         position_error=r.position_error, orientation_error=r.orientation_error,
-                         achieved_pose=r.achieved_pose)
-        return out
-    except (ModelError, ValueError, StaticsError, np.linalg.LinAlgError) as e:
-        return QueryResult(False, f"IK failed: {e}")
+    def done(data):
+        pe, oe = _errors(data[0], target)
+        return pe <= tol_position and (position_only or oe <= tol_orientation)
 
-
-_IK_STATUS = {"at_limit": "an actuator is at its bound (tension 0 or its limit)",
-              "rate_limit": "a rate limit", "out_of_workspace": "outside the actuated workspace",
-              "statics_failed": "no equilibrium found"}
-
-
-def _actuated_ik(model, q_current, points_per_section, tgt, position_only, tolerance, loads, u_current):
-    from soft_twin_core import lie, planner as pl
-    opts = pl.PlanOptions(tolerance=tolerance, tolerance_rad=tolerance, loads=loads,
-                          orientation_weight=0.0 if position_only else 0.1, max_iterations=30)
-    solver = pl.TipSolver(model, opts)
-    solver._with_rot = not position_only
-    u0 = np.zeros(len(model.actuators)) if u_current is None else np.asarray(u_current, dtype=float)
-    q0 = None if q_current is None else np.asarray(q_current, dtype=float)
-    target = tgt.copy()
-    if position_only:
-        target[:3, :3] = np.eye(3)
-    r = solver.solve(target, u0, q0)
-    oe = r.orientation_error if not position_only else float(
-        np.linalg.norm(lie.log_so3(r.tip_pose[:3, :3].T @ tgt[:3, :3])))
-    if r.reached:
-        msg = "converged: reached by actuation (static equilibrium)"
-    else:
-        msg = (f"target not reached by actuation ({_IK_STATUS.get(r.status, r.status)}): the closest pose "
-               f"the actuators can hold, position error {r.position_error:.3g} m"
-               + ("" if position_only else f", orientation error {oe:.3g} rad"))
-    out = _shape(model, r.q, points_per_section, iterations=r.iterations, message=msg)
-    out.success, out.residual = bool(r.reached), r.position_error
-    out.extra = dict(u=r.u, actuation_residual=0.0, actuation_found=True, position_error=r.position_error,
-                     orientation_error=oe, achieved_pose=r.tip_pose, status=r.status)
-    return out
+    with one_blas_thread():
+        q, (g, _), it, message = _levenberg_marquardt(np.clip(q, lo, hi), lo, hi, evaluate, jacobian, done, w,
+                                                      max_iterations, initial_damping)
+    pe, oe = _errors(g, target)
+    return IKResult(q, message == "converged", pe, oe, it, g, message)

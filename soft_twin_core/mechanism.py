@@ -132,6 +132,7 @@ class Mechanism:
     frames: dict = field(default_factory=dict)   # name -> PointRef
     base_motion: str = "fixed"     # fixed, floating or prescribed
     motion_limits: dict = field(default_factory=dict)   # position-controlled joint -> (max vel, max acc)
+    base_pose: np.ndarray = field(default_factory=lambda: np.eye(4))   # world <- base (the file's base)
 
     @property
     def actuators(self):
@@ -585,7 +586,7 @@ def mechanism_from_dict(d, base_dir=None):
             raise ModelError("robot.constraints: the name 'base' is taken by the prescribed base motion")
         constraints.insert(0, Constraint("base", "clamped", frames["base"], PointRef(-1), base_pose.copy()))
     mech = Mechanism(tree.name, tree, tuple(control), tuple(constraints), tuple(members), tuple(links),
-                     frames, motion, motion_limits)
+                     frames, motion, motion_limits, np.array(base_pose, dtype=float))
     return mech
 
 
@@ -661,7 +662,8 @@ def from_robot_model(robot, d=None):
     p = tree.paths[0]
     member = Member("backbone", 0, p.joints, tuple(geo))
     frames = {"tip": PointRef(p.joints[-1], tree.joints[p.joints[-1]].section.length)}
-    return Mechanism(tree.name, tree, ("",) * tree.n_joints, (), (member,), (), frames, "fixed")
+    return Mechanism(tree.name, tree, ("",) * tree.n_joints, (), (member,), (), frames, "fixed",
+                     base_pose=np.array(robot.base_pose, dtype=float))
 
 
 def shape_command(r, v, target, vmax, amax, h):

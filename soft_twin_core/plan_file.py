@@ -19,21 +19,23 @@ and the planner's options; the result as a JSON-ready dict and CSV text.
       dt: 0.005                     # s
       compensation_iterations: 3    # 0: verification only
 
-See :mod:`soft_twin_core.planner` for the method.
-
-Articulated robots (a tree robot file, e.g. ``robot: pan_tilt_arm``): the plan
-gives the position-controlled joints' commands and the actuators' inputs
-(:mod:`soft_twin_core.articulated_planner`); ``tracking.frame`` names the
-frame that follows the path (default the robot's tip,
-:func:`mechanism.tip_frame`), ``joints.limits_margin`` [rad or m] keeps the commands inside the
-joint limits, and the joints' ``max_velocity``/``max_acceleration`` from the
-robot file are the rate limits; ``dynamics`` ({dt}) executes the plan in the
-dynamics (:func:`articulated_planner.simulate_articulated_plan`: the
-simulated frame positions and their error per sample, in the JSON, the CSV
-and the figures), without the lag compensation of classic robots; a path
-with orientations has the frame's orientation tracked too
-(``tracking.orientation_weight`` [m/rad], ``tracking.tolerance_rad``).
-The CSV then has one ``q_<joint>`` column per joint.
+See :mod:`soft_twin_core.planner` for the method. One schema for every
+robot file (a classic rod, a tree robot, e.g. ``robot: pan_tilt_arm``): the
+plan gives the position-controlled joints' commands and the actuators'
+inputs; ``tracking.frame`` names the frame that follows the path (default
+the robot's tip, :func:`mechanism.tip_frame`), ``joints.limits_margin``
+[rad or m] keeps the commands inside the joint limits and
+``joints.initial`` ({joint: position}) gives the joints' commands before
+the path (with ``actuation.initial``: the rate limits hold from them); the
+joints' ``max_velocity``/``max_acceleration`` from the robot file are their
+rate limits. ``dynamics`` executes the plan in the dynamics
+(:func:`planner.simulate_plan`: the simulated frame positions and their
+error per sample, in the JSON, the CSV and the figures) and compensates
+the lag (``compensation_iterations``, ``gain``, ``filter_s`` [s]:
+:func:`planner.compensate_lag`). A path with orientations has the frame's
+orientation tracked too (``tracking.orientation_weight`` [m/rad],
+``tracking.tolerance_rad``). The CSV has one ``q_<joint>`` column per
+position-controlled joint.
 """
 
 import csv
@@ -46,14 +48,14 @@ import numpy as np
 from . import paths as pth
 from . import planner as pl
 from .loads import Loads
-from .mechanism import is_tree_robot
 from .limits import MAX_PATH_SAMPLES, MAX_TIME_STEPS, check_limit
-from .model import config_dirs, find_file, load_model, model_from_dict, read_yaml_file, robot_mapping
+from .model import config_dirs, model_from_dict, read_yaml_file, robot_mapping
 from .errors import PlanFileError
 
 
 _TOP = {"robot", "path", "tracking", "actuation", "gravity", "dynamics", "description", "joints"}
-_TRACK = {"position_weights", "orientation_weight", "tolerance", "tolerance_rad", "max_iterations"}
+_TRACK = {"position_weights", "orientation_weight", "tolerance", "tolerance_rad", "max_iterations", "frame"}
+_JOINTS = {"limits_margin", "initial"}
 _ACT = {"pretension", "max_tension", "max_pressure", "max_rate", "initial"}
 _DYN = {"dt", "compensation_iterations", "gain", "filter_s"}
 
@@ -83,7 +85,7 @@ def _keys(d, allowed, where):
 
 
 def load_plan_file(path):
-    """(model, TipPath, PlanOptions, u_start, dynamics dict) of a plan file."""
+    """(Mechanism, TipPath, PlanOptions, start x or None, dynamics dict or None) of a plan file."""
     path = find_plan_file(path)
     d = read_yaml_file(path, PlanFileError, "plan file")
     return plan_from_dict(d, os.path.dirname(os.path.abspath(path)))
@@ -127,43 +129,57 @@ def check_plan_size(d):
             check_limit("path.duration / dynamics.dt: time steps", duration / dt, MAX_TIME_STEPS, PlanFileError)
 
 
+def _robot(robot, base_dir):
+    """The mechanism of ``plan.robot``: an example name, a robot file
+    (relative to the plan file) or an inline mapping, of either schema."""
+    from .mechanism import from_robot_model, is_tree_file, load_mechanism, mechanism_from_dict
+    if isinstance(robot, dict):
+        d = robot_mapping(robot, "plan.robot")
+        return mechanism_from_dict(d, base_dir) if is_tree_file(d) else from_robot_model(model_from_dict(d), d)
+    if isinstance(robot, str):
+        p = robot if os.path.isabs(robot) else os.path.join(base_dir, robot)
+        return load_mechanism(p if os.path.isfile(p) else robot)
+    raise PlanFileError(f"plan.robot: expected a name, a file or a mapping, got {robot!r}")
+
+
 def plan_from_dict(d, base_dir="."):
+    """(Mechanism, TipPath, PlanOptions, start x or None, dynamics dict or
+    None) of a plan file's mapping; PlanFileError or PlanError naming the
+    bad field."""
     d = _keys(d, _TOP, "plan")
     check_plan_size(d)
     if "robot" not in d:
         raise PlanFileError("plan.robot: missing (an example name, a robot file or a mapping)")
     if "path" not in d:
         raise PlanFileError("plan.path: missing (a path mapping with a type)")
-    robot = d["robot"]
-    if is_tree_robot(robot, base_dir):
-        return _articulated_from_dict(d, robot, base_dir)
-    if "joints" in d:
-        raise PlanFileError("plan.joints: only for articulated robots (a tree robot file)")
-    if isinstance(robot, dict):
-        model = model_from_dict(robot_mapping(robot, "plan.robot"))
-    elif isinstance(robot, str):
-        p = robot if os.path.isabs(robot) else os.path.join(base_dir, robot)
-        model = load_model(p if os.path.isfile(p) else find_file(robot, "robots"))
-    else:
-        raise PlanFileError(f"plan.robot: expected a name, a file or a mapping, got {robot!r}")
+    mech = _robot(d["robot"], base_dir)
     path = pth.path_from_dict(d["path"], "path")
     tr = _keys(d.get("tracking"), _TRACK, "tracking")
     ac = _keys(d.get("actuation"), _ACT, "actuation")
+    jn = _keys(d.get("joints"), _JOINTS, "joints")
     grav = d.get("gravity", True)
     if not isinstance(grav, bool):
         raise PlanFileError(f"plan.gravity: expected true or false, got {grav!r}")
-    opts = pl.PlanOptions(loads=Loads(gravity=grav),
+    opts = pl.PlanOptions(loads=Loads(gravity=grav), joint_limits_margin=jn.get("limits_margin", 0.0),
                           **{k: (tuple(v) if k == "position_weights" and isinstance(v, list) else v)
                              for k, v in tr.items()},
                           **{k: v for k, v in ac.items() if k != "initial"})
-    opts.weights()
-    pl.actuator_bounds(model, opts)
-    pl.rate_limits(model, opts)
-    u0 = ac.get("initial")
-    if u0 is not None:
-        from .statics import actuation_vector
-        u0 = actuation_vector(model, u0)
-    dyn = _keys(d.get("dynamics"), _DYN, "dynamics") if "dynamics" in d else None
+    solver = pl.TipSolver(mech, opts)        # checks every option (PlanError naming it)
+    start = None
+    if ac.get("initial") is not None or jn.get("initial") is not None:
+        ini = jn.get("initial") or {}
+        if not isinstance(ini, dict):
+            raise PlanFileError(f"joints.initial: expected a mapping {{joint: position}}, got {ini!r}")
+        for k, v in ini.items():
+            if k not in solver.joint_names:
+                raise PlanFileError(f"joints.initial.{k}: not a position-controlled joint; those are "
+                                    f"{list(solver.joint_names)}")
+            pl._number(v, f"joints.initial.{k}", False)
+        try:
+            start = pl.start_vector(mech, solver, ac.get("initial"), ini)
+        except ValueError as e:
+            raise PlanFileError(f"actuation.initial: {e}") from None
+    dyn = _keys(d.get("dynamics"), _DYN, "dynamics") if d.get("dynamics") is not None else None
     if dyn is not None:
         dt = dyn.get("dt", 0.005)
         if isinstance(dt, bool) or not isinstance(dt, (int, float)) or not 0 < dt <= 0.1:
@@ -171,123 +187,53 @@ def plan_from_dict(d, base_dir="."):
         it = dyn.get("compensation_iterations", 3)
         if isinstance(it, bool) or not isinstance(it, int) or not 0 <= it <= 20:
             raise PlanFileError(f"dynamics.compensation_iterations: expected an integer in 0..20, got {it!r}")
-    return model, path, opts, u0, dyn
-
-
-_TRACK_ART = {"position_weights", "orientation_weight", "tolerance", "tolerance_rad", "max_iterations", "frame"}
-_JOINTS = {"limits_margin", "initial"}
-
-
-def _articulated_from_dict(d, robot, base_dir):
-    """(Mechanism, TipPath, ArticulatedPlanOptions, start x or None, None)."""
-    from . import articulated_planner as ap
-    from .mechanism import load_mechanism, mechanism_from_dict
-    if isinstance(robot, dict):
-        mech = mechanism_from_dict(robot_mapping(robot, "plan.robot"), base_dir)
-    else:
-        p = robot if os.path.isabs(robot) else os.path.join(base_dir, robot)
-        mech = load_mechanism(p if os.path.isfile(p) else robot)
-    dyn = _keys(d.get("dynamics"), _DYN, "dynamics") if d.get("dynamics") is not None else None
-    if dyn is not None:
-        dt = dyn.get("dt", 0.005)
-        if isinstance(dt, bool) or not isinstance(dt, (int, float)) or not 0 < dt <= 0.1:
-            raise PlanFileError(f"dynamics.dt: expected a time step in (0, 0.1] s, got {dt!r}")
-        for k in sorted(set(dyn) - {"dt"}):
-            if not (k == "compensation_iterations" and dyn[k] == 0):
-                raise PlanFileError(f"dynamics.{k}: the lag compensation is for classic robots; an articulated "
-                                    f"plan is verified in the dynamics (dynamics.dt) but not compensated")
-    path = pth.path_from_dict(d["path"], "path")
-    tr = _keys(d.get("tracking"), _TRACK_ART, "tracking")
-    ac = _keys(d.get("actuation"), _ACT - {"initial"}, "actuation")
-    jn = _keys(d.get("joints"), _JOINTS, "joints")
-    grav = d.get("gravity", True)
-    if not isinstance(grav, bool):
-        raise PlanFileError(f"plan.gravity: expected true or false, got {grav!r}")
-    opts = ap.ArticulatedPlanOptions(
-        loads=Loads(gravity=grav), joint_limits_margin=jn.get("limits_margin", 0.0),
-        **{k: (tuple(v) if k == "position_weights" and isinstance(v, list) else v) for k, v in tr.items()},
-        **ac)
-    solver = ap.ArticulatedTipSolver(mech, opts)        # checks every option (PlanError naming it)
-    start = None
-    if jn.get("initial") is not None:
-        ini = jn["initial"]
-        if not isinstance(ini, dict):
-            raise PlanFileError(f"joints.initial: expected a mapping {{joint: position}}, got {ini!r}")
-        start = np.concatenate([[mech.tree.joints[i].q_ref for i in solver.pos],
-                                np.where(np.isfinite(solver.lower[solver.n_j:]), solver.lower[solver.n_j:], 0.0)])
-        for k, v in ini.items():
-            if k not in solver.joint_names:
-                raise PlanFileError(f"joints.initial.{k}: not a position-controlled joint; those are "
-                                    f"{list(solver.joint_names)}")
-            start[solver.joint_names.index(k)] = pl._number(v, f"joints.initial.{k}", False)
     return mech, path, opts, start, dyn
 
 
-def run_articulated_plan(mech, path, options, start=None, dynamics=None):
-    """Plan an articulated robot's joint commands and inputs -> result dict;
-    with ``dynamics`` ({dt}), the plan executed by the dynamics too
-    (:func:`articulated_planner.simulate_articulated_plan`)."""
-    from . import articulated_planner as ap
-    plan = ap.plan_articulated_path(mech, path, options, start)
-    units = {}
-    for a in mech.actuators:
-        units[a.name] = "N" if a.kind == "tendon" else "Pa"
+def run_plan(mech, path, options, start=None, dynamics=None):
+    """Plan the joint commands and inputs of a path -> result dict; with
+    ``dynamics`` ({dt, compensation_iterations, gain, filter_s}) the plan is
+    executed in the dynamics (:func:`planner.simulate_plan`) and, with
+    compensation iterations, compensated for the lag
+    (:func:`planner.compensate_lag`). ``start``: x before the path (the
+    rate limits hold from it)."""
     from .multibody import PRISMATIC
+    plan = pl.plan_path(mech, path, options, start=start, from_start=start is not None)
     junits = {mech.tree.joints[i].name: ("m" if mech.tree.joints[i].kind == PRISMATIC else "rad")
               for i in mech.joints_with("position")}
-    out = {"robot": mech.name, "articulated": True, "frame_followed": plan.frame,
-            "actuator_names": list(plan.actuator_names), "joint_names": list(plan.joint_names),
-            "frame": "world", "units": {"time": "s", "inputs": units, "joints": junits, "positions": "m"},
-            "position_weights": list(options.position_weights),
-            "lower": plan.lower.tolist(), "upper": _finite(plan.upper), "max_rate": _finite(plan.max_rate),
-            "joint_lower": _finite(plan.joint_lower), "joint_upper": _finite(plan.joint_upper),
-            "max_velocity": _finite(plan.max_velocity), "max_acceleration": _finite(plan.max_acceleration),
-            "summary": plan.summary(), "violations": ap.check_articulated_plan(plan),
-            "time": plan.times.tolist(), "joints": plan.joints.tolist(), "actuation": plan.u.tolist(),
-            "target": plan.target.tolist(), "predicted_tip": plan.tip.tolist(),
-            "error_m": plan.weighted_error.tolist(), "distance_m": plan.position_error.tolist(),
-            "orientation_error_rad": plan.orientation_error.tolist(),
-            "reached": plan.reached.tolist(), "status": list(plan.status)}
-    if dynamics is not None:
-        dt = dynamics.get("dt", 0.005)
-        tr = ap.simulate_articulated_plan(mech, plan, options, plan.target, dt)
-        tip = np.stack([np.interp(plan.times, tr.time, tr.tip[:, k]) for k in range(3)], -1)
-        w = np.sqrt(np.asarray(options.position_weights, float))
-        out["dynamics"] = {"dt": dt, "uncompensated": tr.summary(), "simulated_tip": tip.tolist(),
-                           "simulated_error_m": np.linalg.norm((plan.target - tip) * w, axis=1).tolist()}
-    return out
-
-
-def run_plan(model, path, options, u_start=None, dynamics=None):
-    """Plan (and, with ``dynamics``, verify and compensate) -> result dict."""
-    from .mechanism import Mechanism
-    if isinstance(model, Mechanism):
-        return run_articulated_plan(model, path, options, u_start, dynamics)
-    plan = pl.plan_path(model, path, options, u_start=u_start)
-    out = {"robot": model.name, "actuator_names": list(model.actuator_names),
-           "frame": "world (the base frame for an identity base pose)",
-           "units": {"time": "s", "inputs": {a.name: ("N" if a.kind == "tendon" else "Pa")
-                                             for a in model.actuators}, "positions": "m"},
+    out = {"robot": mech.name, "frame_followed": plan.frame,
+           "actuator_names": list(plan.actuator_names), "joint_names": list(plan.joint_names),
+           "frame": "world (the robot file's base pose applied to the path)",
+           "units": {"time": "s", "inputs": {a.name: ("N" if a.kind == "tendon" else "Pa") for a in mech.actuators},
+                     "joints": junits, "positions": "m"},
            "position_weights": list(options.position_weights),
            "lower": plan.lower.tolist(), "upper": _finite(plan.upper), "max_rate": _finite(plan.max_rate),
-           "summary": plan.summary(), "time": plan.times.tolist(), "actuation": plan.u.tolist(),
+           "joint_lower": _finite(plan.joint_lower), "joint_upper": _finite(plan.joint_upper),
+           "max_velocity": _finite(plan.max_velocity), "max_acceleration": _finite(plan.max_acceleration),
+           "summary": plan.summary(), "violations": pl.check_plan(plan),
+           "time": plan.times.tolist(), "joints": plan.joints.tolist(), "actuation": plan.u.tolist(),
            "target": plan.target.tolist(), "predicted_tip": plan.tip.tolist(),
            "error_m": plan.weighted_error.tolist(), "distance_m": plan.position_error.tolist(),
            "orientation_error_rad": plan.orientation_error.tolist(),
            "reached": plan.reached.tolist(), "status": list(plan.status)}
-    if dynamics is not None:
-        w = np.asarray(options.position_weights, float)
-        best, tr, hist = pl.compensate_lag(model, path, options, dynamics.get("compensation_iterations", 3),
-                                           dynamics.get("gain", 0.5), dynamics.get("dt", 0.005), u_start,
-                                           dynamics.get("filter_s", 0.25))
-        tr0 = pl.simulate_plan(model, plan, plan.target, dynamics.get("dt", 0.005), options.loads, w)
-        at = lambda tr_: np.stack([np.interp(plan.times, tr_.time, tr_.tip[:, k]) for k in range(3)], -1)  # noqa
-        out["dynamics"] = {
-            "dt": dynamics.get("dt", 0.005), "uncompensated": tr0.summary(), "compensated": tr.summary(),
-            "iterations": hist, "simulated_tip": at(tr0).tolist(),
-            "simulated_error_m": (np.linalg.norm((plan.target - at(tr0)) * np.sqrt(w), axis=1)).tolist(),
-            "compensated_actuation": best.u.tolist(), "compensated_tip": at(tr).tolist(),
-            "compensated_error_m": (np.linalg.norm((plan.target - at(tr)) * np.sqrt(w), axis=1)).tolist()}
+    if dynamics is None:
+        return out
+    dt = dynamics.get("dt", 0.005)
+    w = np.sqrt(np.asarray(options.position_weights, float))
+
+    def at(tr_):
+        return np.stack([np.interp(plan.times, tr_.time, tr_.tip[:, k]) for k in range(3)], -1)
+    tr0 = pl.simulate_plan(mech, plan, options, plan.target, dt)
+    out["dynamics"] = {"dt": dt, "uncompensated": tr0.summary(), "simulated_tip": at(tr0).tolist(),
+                       "simulated_error_m": np.linalg.norm((plan.target - at(tr0)) * w, axis=1).tolist()}
+    iterations = dynamics.get("compensation_iterations", 3)
+    if iterations:
+        best, tr, hist = pl.compensate_lag(mech, path, options, iterations, dynamics.get("gain", 0.5), dt, start,
+                                           dynamics.get("filter_s", 0.25), from_start=start is not None)
+        out["dynamics"].update({
+            "compensated": tr.summary(), "iterations": hist, "compensated_actuation": best.u.tolist(),
+            "compensated_joints": best.joints.tolist(), "compensated_tip": at(tr).tolist(),
+            "compensated_error_m": np.linalg.norm((plan.target - at(tr)) * w, axis=1).tolist()})
     return out
 
 
@@ -326,4 +272,4 @@ def plan_csv(out):
     return buf.getvalue()
 
 
-__all__ = ["PlanFileError", "load_plan_file", "plan_from_dict", "run_plan", "run_articulated_plan", "plan_csv"]
+__all__ = ["PlanFileError", "load_plan_file", "plan_from_dict", "run_plan", "plan_csv"]

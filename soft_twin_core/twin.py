@@ -32,7 +32,7 @@ import time
 
 import numpy as np
 
-from . import articulated_planner as ap
+from . import planner as pl
 from . import constrained as cs
 from . import statics as st
 from ._blas import one_blas_thread
@@ -136,12 +136,14 @@ def _same_inputs(a, b):
 
 @dataclass
 class TwinIK:
-    """An IK answer of an articulated robot: ``names`` its position-controlled
-    joints, then its actuators; ``values`` their commands (rad or m, then N
-    or Pa) whose equilibrium ``q`` puts the tip at ``achieved_pose`` (4x4,
-    base frame); ``status`` as the planner's (``reached``, ``at_limit``,
-    ``rate_limit``, ``out_of_workspace``); ``strains`` (n_soft_sections, 6);
-    ``orientation_error`` [rad] (0 for a position target)."""
+    """An IK answer: ``names`` the robot's position-controlled joints, then
+    its actuators; ``values`` their commands (rad or m, then N or Pa) whose
+    equilibrium ``q`` puts the tip at ``achieved_pose`` (4x4, world);
+    ``status`` as the planner's (``reached``, ``at_limit``, ``rate_limit``,
+    ``out_of_workspace``, ``statics_failed``; ``shape_only``: a robot without
+    inputs, ``q`` the shape reaching the target, ``actuation_found``
+    False); ``strains`` (n_soft_sections, 6); ``orientation_error`` [rad]
+    (0 for a position target)."""
     reached: bool
     status: str
     names: tuple
@@ -152,6 +154,7 @@ class TwinIK:
     position_error: float
     iterations: int
     orientation_error: float = 0.0
+    actuation_found: bool = True          # False: a shape only (a robot without inputs)
 
 
 @dataclass(frozen=True)
@@ -539,7 +542,7 @@ class Twin:
     def plan_options(self, **kw):
         """Planner options for this twin's tip frame, with its current joint
         efforts and tip wrench held (``kw``: the other options)."""
-        return ap.ArticulatedPlanOptions(frame=self.tip, efforts=dict(self.efforts),
+        return pl.PlanOptions(frame=self.tip, efforts=dict(self.efforts),
                                          point_loads=tuple(self.held_loads()), **kw)
 
     def command_vector(self, solver):
@@ -551,27 +554,38 @@ class Twin:
         (base-frame position (3,) [m], or pose 4x4: then with the tip's
         orientation, weighted 0.1 m/rad; ``tolerance`` in m and rad), from
         the current commands and shape (the
-        planner's sample solve, :class:`soft_twin_core.articulated_planner.ArticulatedTipSolver`:
+        planner's sample solve, :class:`soft_twin_core.planner.TipSolver`:
         joint limits, tensions in [0, limit], least change of the joint
         commands and least tension among redundant inputs; the current joint
         efforts and tip wrench held). Raises PlanError, StaticsError or
         ValueError."""
-        solver = ap.ArticulatedTipSolver(self.mech, self.plan_options(tolerance=tolerance, tolerance_rad=tolerance))
+        target = np.asarray(target, float)
+        if not (self.mech.actuators or self.mech.joints_with("position")):
+            # nothing drives this robot: the shape that would reach the target (not an equilibrium)
+            from .ik import frame_ik
+            r = frame_ik(self.mech, self.tip, target, self.state.q, position_only=target.shape == (3,),
+                         tol_position=tolerance, tol_orientation=tolerance)
+            return TwinIK(bool(r.success), "reached" if r.success else "shape_only", (), np.zeros(0), r.q.copy(),
+                          section_strains(self.mech, r.q), r.achieved_pose, r.position_error, int(r.iterations),
+                          0.0 if target.shape == (3,) else r.orientation_error, actuation_found=False)
+        solver = pl.TipSolver(self.mech, self.plan_options(tolerance=tolerance, tolerance_rad=tolerance))
+        solver.with_rot = target.shape == (4, 4)
         x0 = np.clip(self.command_vector(solver), solver.lower, solver.upper)
-        nj = solver.n_j
-        x_ref = np.concatenate([x0[:nj], np.where(np.isfinite(solver.lower[nj:]), solver.lower[nj:], 0.0)])
-        x, eq, g, pe, we, oe, reached, status, it = solver.solve(np.asarray(target, float), x0, self.state.q,
-                                                                 solver.lower, solver.upper, x_ref)
-        return TwinIK(bool(reached), status, solver.joint_names + solver.actuator_names, x, eq.q.copy(),
-                             section_strains(self.mech, eq.q), g, pe, int(it), oe)
+        r = solver.solve(target, x0, self.state.q)
+        return TwinIK(bool(r.reached), r.status, solver.joint_names + solver.actuator_names, r.x, r.q.copy(),
+                      section_strains(self.mech, r.q), r.pose, r.position_error, int(r.iterations),
+                      r.orientation_error)
 
     def plan(self, path, **options):
-        """:func:`soft_twin_core.articulated_planner.plan_articulated_path`
-        from the current commands, the tip frame following ``path`` (base
-        frame), the current joint efforts and tip wrench held."""
+        """:func:`soft_twin_core.planner.plan_path` from the current
+        commands and shape, the tip frame following ``path`` (base frame),
+        the current joint efforts and tip wrench held; with ``max_rate``,
+        the rate limits hold from the current commands."""
         o = self.plan_options(**options)
-        solver = ap.ArticulatedTipSolver(self.mech, o)
-        return ap.plan_articulated_path(self.mech, path, o, start=self.command_vector(solver))
+        solver = pl.TipSolver(self.mech, o)
+        # with a rate limit the plan starts from the current inputs (it cannot jump away from them)
+        return pl.plan_path(self.mech, path, o, start=self.command_vector(solver), q_start=self.state.q,
+                            solver=solver, from_start=o.max_rate is not None)
 
     # --- outputs ------------------------------------------------------------
     def outputs(self):

@@ -65,11 +65,12 @@ def run():
     # the actuation IK (node's ~/inverse_kinematics, the planner): its tip
     # error, sensitivities and bounded least squares, position and full pose
     from . import planner as pl
+    from .mechanism import from_robot_model
     robot = tiny_models()[0]
-    solver = pl.TipSolver(robot)
+    solver = pl.TipSolver(from_robot_model(robot))
     target = st.solve_statics(robot, {"t": 0.3}).tip_pose
     for with_rot in (False, True):
-        solver._with_rot = with_rot
+        solver.with_rot = with_rot
         solver.solve(target, np.zeros(1), None)
     pl.box_lstsq(np.eye(3, 2), np.ones(3), np.zeros(2), np.array([np.inf, 0.5]))
     tiny_mechanism_run()

@@ -3,7 +3,7 @@
 A robot file's actuator takes an optional ``min``/``max`` on top of its
 ``limit`` (|u| <= limit; a tendon's range is [0, limit]); one core rule,
 :func:`soft_twin_core.model.check_actuator_input`, is used by the node, the
-offline runners (rod and tree), and the bounds of IK, both planners and
+offline runners (rod and tree), and the bounds of IK, the planner and
 calibration. The shipped pneumatic arm's chambers are positive-only
 (``min: 0``): before, a 1 cm move asked for tens of kPa of suction.
 """
@@ -18,6 +18,7 @@ import yaml
 from soft_twin_core import ik
 from soft_twin_core import planner as pl
 from soft_twin_core import statics as st
+from soft_twin_core.mechanism import from_robot_model
 from soft_twin_core.model import ModelError, check_actuator_input, find_file, model_from_dict
 
 PNEUMATIC = find_file("pneumatic_arm", "robots")
@@ -218,15 +219,15 @@ def test_pneumatic_ik_stays_positive_and_reports_unreachable():
     tgt = r0.tip_pose.copy()
     tgt[:3, 3] += [0.01, 0.0, 0.0]
     opts = pl.PlanOptions(tolerance=1e-5, orientation_weight=0.0)
-    a = pl.TipSolver(old, opts).solve(tgt, np.zeros(6), r0.q)
-    assert a.reached and a.u.min() < -1e4                 # the old answer: tens of kPa of suction
-    b = pl.TipSolver(new, opts).solve(tgt, np.zeros(6), r0.q)
-    assert np.all(b.u >= 0.0) and not b.reached and b.status == "at_limit"
+    a = pl.TipSolver(from_robot_model(old), opts).solve(tgt, np.zeros(6), r0.q)
+    assert a.reached and a.x.min() < -1e4                 # the old answer: tens of kPa of suction
+    b = pl.TipSolver(from_robot_model(new), opts).solve(tgt, np.zeros(6), r0.q)
+    assert np.all(b.x >= 0.0) and not b.reached and b.status == "at_limit"
     # the rod IK of the core too
     c = ik.solve_actuation_ik(new, tgt[:3, 3], position_only=True, tol_position=1e-7)
     assert np.all(c.u >= 0.0) and not c.success and "within the bounds" in c.message
     # independent check: forward statics at the answers, and scipy's bounded least squares
-    for u, err in ((b.u, b.position_error), (c.u, c.position_error)):
+    for u, err in ((b.x, b.position_error), (c.u, c.position_error)):
         p = st.solve_statics(new, u).tip_pose[:3, 3]
         assert abs(np.linalg.norm(p - tgt[:3, 3]) - err) < 1e-9
 
@@ -246,11 +247,11 @@ def test_pneumatic_ik_reaches_a_target_reachable_with_positive_pressures():
     tgt = st.solve_statics(new, u_true).tip_pose
     r0 = _rest(new)
     opts = pl.PlanOptions(tolerance=1e-7, orientation_weight=0.0)
-    a = pl.TipSolver(old, opts).solve(tgt, np.zeros(6), r0.q)
-    assert a.reached and a.u.min() < -100.0             # unbounded: the least-norm answer sucks
-    b = pl.TipSolver(new, opts).solve(tgt, np.zeros(6), r0.q)
+    a = pl.TipSolver(from_robot_model(old), opts).solve(tgt, np.zeros(6), r0.q)
+    assert a.reached and a.x.min() < -100.0             # unbounded: the least-norm answer sucks
+    b = pl.TipSolver(from_robot_model(new), opts).solve(tgt, np.zeros(6), r0.q)
     c = ik.solve_actuation_ik(new, tgt[:3, 3], position_only=True, tol_position=1e-8)
-    for u, ok in ((b.u, b.reached), (c.u, c.success)):
+    for u, ok in ((b.x, b.reached), (c.u, c.success)):
         assert ok and np.all(u >= 0.0)
         # independent forward statics from rest (not the solver's warm start)
         p = st.solve_statics(new, u).tip_pose[:3, 3]
@@ -268,20 +269,19 @@ def test_planned_path_respects_min_and_max():
     # base frame: down the arm is the base's +x; sideways the base's y
     path = TipPath(np.array([0.0, 0.5, 1.0, 1.5]),
                    p0 + np.array([[0, 0, 0], [0.003, 0.004, 0], [0.0, 0.008, 0], [0.0, 0.0, 0.008]]))
-    plan = pl.plan_path(m, path, pl.PlanOptions(tolerance=1e-6, orientation_weight=0.0))
+    plan = pl.plan_path(from_robot_model(m), path, pl.PlanOptions(tolerance=1e-6, orientation_weight=0.0))
     assert plan.lower.tolist() == [0.0] * 6 and plan.upper.tolist() == [4.0e4] * 6
     assert np.all(plan.u >= 0.0) and np.all(plan.u <= 4.0e4)
     assert pl.check_plan(plan) == []
     # sideways at the rest height needs suction (or more than max): flagged, not faked
     assert plan.reached[0] and not plan.reached[1:].any()
     assert set(plan.status[1:]) == {"at_limit"} and plan.u[1].max() == 4.0e4
-    old = pl.plan_path(model_from_dict(_with_suction(_pneumatic_dict())), path,
+    old = pl.plan_path(from_robot_model(model_from_dict(_with_suction(_pneumatic_dict()))), path,
                        pl.PlanOptions(tolerance=1e-6, orientation_weight=0.0))
     assert old.u.min() < 0.0                            # the same path asked for suction before
 
 
 def test_articulated_planner_bounds_come_from_the_robot_file():
-    from soft_twin_core import articulated_planner as ap
     from soft_twin_core.mechanism import mechanism_from_dict
     d = yaml.safe_load(open(PAN_TILT).read())
     for b in d["bodies"]:
@@ -290,18 +290,18 @@ def test_articulated_planner_bounds_come_from_the_robot_file():
             if a["name"] == "tendon_y_neg":
                 a["min"] = 0.25
     mech = mechanism_from_dict(d)
-    solver = ap.ArticulatedTipSolver(mech, ap.ArticulatedPlanOptions())
+    solver = pl.TipSolver(mech, pl.PlanOptions())
     nj = solver.n_j
     assert solver.upper[nj:].tolist() == [1.0] * 4
     assert solver.lower[nj:].tolist() == [0.0, 0.25, 0.0, 0.0]
     # a target that asks 4 N of one tendon: the answer stays within [min, max]
     u_true = np.array([4.0, 0.0, 0.0, 0.0])
     x_true = np.concatenate([np.zeros(nj), u_true])
-    eq = solver.equilibrium(x_true, None)
-    tgt = solver.frame_pose(eq.q)[:3, 3]
+    eq = solver.statics.solve(x_true, None)
+    tgt = eq.pose[:3, 3]
     x0 = np.clip(np.zeros(nj + 4), solver.lower, solver.upper)
     x_ref = np.concatenate([x0[:nj], solver.lower[nj:]])
-    x, *_ = solver.solve(tgt, x0, None, solver.lower, solver.upper, x_ref)
+    x = solver.solve(tgt, x0, None, x_ref=x_ref).x
     assert np.all(x >= solver.lower) and np.all(x <= solver.upper)
 
 

@@ -41,7 +41,7 @@ def test_plan_cli_writes_csv_and_json(tmp_path, capsys):
     assert max(float(r["error_m"]) for r in rows) <= 1e-6
     # the same plan from the core
     model, path, opts, u0, _ = load_plan_file(f)
-    plan = pl.plan_path(model, path, opts, u_start=u0)
+    plan = pl.plan_path(model, path, opts, start=u0, from_start=u0 is not None)
     assert np.allclose(plan.u, u, rtol=1e-9, atol=1e-9)
     assert u0 is None
     assert np.all(u >= 0.2) and np.all(np.abs(np.diff(u, axis=0)) <= 40.0 * 0.1 * (1 + 1e-12))
@@ -83,7 +83,7 @@ def test_shipped_example_circle_within_1mm():
     assert path.duration == 4.0
     r = np.linalg.norm(path.positions - path.positions[:-1].mean(axis=0), axis=1)
     assert np.allclose(r, 0.05)                                # a 10 cm circle
-    plan = pl.plan_path(model, path, opts, u_start=u0)
+    plan = pl.plan_path(model, path, opts, start=u0, from_start=u0 is not None)
     assert plan.reached.all() and plan.weighted_error.max() < 1e-3
     assert pl.check_plan(plan) == []
     assert dyn == {"dt": 0.005, "compensation_iterations": 3}

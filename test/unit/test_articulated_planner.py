@@ -1,4 +1,4 @@
-"""Planner for soft articulated robots (soft_twin_core.articulated_planner):
+"""The planner (soft_twin_core.planner) on a soft articulated robot:
 the sensitivity of the frame to joint commands and tendon tensions against
 finite differences of full equilibrium solves, the pan-tilt arm's circle
 tracked within 1 mm (checked by independent equilibrium solves of the
@@ -19,7 +19,7 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as hst
 
 from soft_twin_core import algorithms as alg
-from soft_twin_core import articulated_planner as ap
+from soft_twin_core import planner as pl
 from soft_twin_core import constrained as cs
 from soft_twin_core import lie
 from soft_twin_core import paths
@@ -48,11 +48,11 @@ def frame_position(mech, name, x):
 
 
 def test_sensitivity_matches_finite_differences(mech):
-    s = ap.ArticulatedTipSolver(mech, ap.ArticulatedPlanOptions(frame="tool"))
+    s = pl.TipSolver(mech, pl.PlanOptions(frame="tool"))
     assert s.joint_names == ("pan", "tilt") and len(s.actuator_names) == 4
     x = np.array([0.3, -0.2, 0.5, 0.1, 0.2, 0.05])
-    eq = s.equilibrium(x, None)
-    g, S = s.sensitivity(eq)
+    eq = s.statics.solve(x, None)
+    g, S = s.frame_motion(eq, x)
     assert np.allclose(g[:3, 3], frame_position(mech, "tool", x), atol=1e-9)
     h = 1e-6
     fd = np.empty_like(S)
@@ -77,23 +77,23 @@ def test_held_loads_enter_the_equilibrium_and_its_sensitivity(mech):
     equilibrium solved independently with that load, and the sensitivity
     still matches finite differences under it."""
     load = cs.FrameLoad("tool", np.array([0.0, 0.3, -0.5, 0.0, 0.0, 0.0]), "world")
-    o = ap.ArticulatedPlanOptions(frame="tool", point_loads=(load,))
-    s = ap.ArticulatedTipSolver(mech, o)
+    o = pl.PlanOptions(frame="tool", point_loads=(load,))
+    s = pl.TipSolver(mech, o)
     x = np.array([0.2, -0.1, 0.4, 0.05, 0.1, 0.05])
-    free = s.equilibrium(x, None)
-    eq = s.equilibrium(x, free.q)
+    free = s.statics.solve(x, None)
+    eq = s.statics.solve(x, free.q)
     loaded = cs.solve_equilibrium(mech, actuation=x[2:], positions=x[:2], point_loads=(load,))
     np.testing.assert_allclose(eq.q, loaded.q, atol=1e-9)
-    unloaded = ap.ArticulatedTipSolver(mech, ap.ArticulatedPlanOptions(frame="tool")).equilibrium(x, None)
-    assert np.abs(s.frame_pose(eq.q)[:3, 3] - s.frame_pose(unloaded.q)[:3, 3]).max() > 1e-3   # the load matters
-    target = s.frame_pose(eq.q)[:3, 3] + np.array([0.0, 0.01, 0.01])
-    x1, eq1, g1, pe, we, oe, reached, status, it = s.solve(target, x, eq.q, s.lower, s.upper, x)
-    assert reached and pe <= 1e-6
-    ref = cs.solve_equilibrium(mech, actuation=x1[2:], positions=x1[:2], point_loads=(load,), q_init=eq1.q)
-    np.testing.assert_allclose(s.frame_pose(ref.q)[:3, 3], target, atol=2e-6)
-    g, S = s.sensitivity(eq)
+    unloaded = pl.TipSolver(mech, pl.PlanOptions(frame="tool")).statics.solve(x, None)
+    assert np.abs(s.statics.pose(eq.q)[:3, 3] - s.statics.pose(unloaded.q)[:3, 3]).max() > 1e-3   # the load matters
+    target = s.statics.pose(eq.q)[:3, 3] + np.array([0.0, 0.01, 0.01])
+    r = s.solve(target, x, eq.q, x_ref=x)
+    assert r.reached and r.position_error <= 1e-6
+    ref = cs.solve_equilibrium(mech, actuation=r.x[2:], positions=r.x[:2], point_loads=(load,), q_init=r.q)
+    np.testing.assert_allclose(s.statics.pose(ref.q)[:3, 3], target, atol=2e-6)
+    g, S = s.frame_motion(eq, x)
     h = 1e-6
-    pos = lambda xx: s.frame_pose(s.equilibrium(xx, eq.q).q)[:3, 3]  # noqa: E731
+    pos = lambda xx: s.statics.pose(s.statics.solve(xx, eq.q).q)[:3, 3]  # noqa: E731
     fd = np.column_stack([(pos(x + h * e) - pos(x - h * e)) / (2 * h) for e in np.eye(x.size)])
     assert np.abs(S[:3] - fd).max() <= 1e-6 * np.abs(fd).max()
 
@@ -104,18 +104,21 @@ def test_a_pose_target_is_reached_in_position_and_orientation(mech):
     an independent equilibrium solve of the answer; the position-only answer
     from the same start ends at another orientation (the rotation is what
     the pose target adds)."""
-    s = ap.ArticulatedTipSolver(mech, ap.ArticulatedPlanOptions(frame="tool"))
+    s = pl.TipSolver(mech, pl.PlanOptions(frame="tool"))
     x_true = np.array([0.4, -0.3, 0.6, 0.0, 0.3, 0.0])
     target = frame_pose(mech, "tool", x_true)
     x0 = np.clip(np.array([0.0, 0.0, 0.1, 0.1, 0.1, 0.1]), s.lower, s.upper)
-    eq0 = s.equilibrium(x0, None)
-    x, eq, g, pe, we, oe, reached, status, it = s.solve(target, x0, eq0.q, s.lower, s.upper, x0)
-    assert reached and status == "reached" and pe <= 1e-6 and oe <= 1e-5, (pe, oe, status)
-    check = frame_pose(mech, "tool", x)
+    eq0 = s.statics.solve(x0, None)
+    s.with_rot = True
+    r = s.solve(target, x0, eq0.q, x_ref=x0)
+    pe, oe = r.position_error, r.orientation_error
+    assert r.reached and r.status == "reached" and pe <= 1e-6 and oe <= 1e-5, (pe, oe, r.status)
+    check = frame_pose(mech, "tool", r.x)
     assert np.linalg.norm(check[:3, 3] - target[:3, 3]) < 2e-6
     assert np.linalg.norm(lie.log_so3(check[:3, :3].T @ target[:3, :3])) < 2e-5
-    *_, g_p, _, _, oe_p, reached_p, _, _ = s.solve(target[:3, 3], x0, eq0.q, s.lower, s.upper, x0)
-    assert reached_p and oe_p == 0.0
+    rp = s.solve(target[:3, 3], x0, eq0.q, x_ref=x0)
+    g_p = rp.pose
+    assert rp.reached and rp.orientation_error == 0.0
     assert np.linalg.norm(lie.log_so3(g_p[:3, :3].T @ target[:3, :3])) > 1e-3
 
 
@@ -125,18 +128,18 @@ def test_a_path_with_orientations_is_tracked(mech):
     xs = [np.array([0.1 * k, -0.05 * k, 0.3, 0.0, 0.1 * k, 0.0]) for k in range(4)]
     poses = np.array([frame_pose(mech, "tool", x) for x in xs])
     path = paths.TipPath(np.arange(4) * 0.5, poses[:, :3, 3], poses[:, :3, :3])
-    plan = ap.plan_articulated_path(mech, path, ap.ArticulatedPlanOptions(frame="tool"))
+    plan = pl.plan_path(mech, path, pl.PlanOptions(frame="tool"))
     assert plan.reached.all(), plan.status
     assert plan.orientation_error.max() <= 1e-5 and plan.position_error.max() <= 1e-6
-    assert plan.tip_rotation.shape == (4, 3, 3) and ap.check_articulated_plan(plan) == []
+    assert plan.tip_rotation.shape == (4, 3, 3) and pl.check_plan(plan) == []
 
 
 def test_circle_tracked_within_1_mm_and_within_limits(mech):
     path = paths.circle([0.33, 0.0, 0.0], 0.05, 8.0, normal=(1, 0, 0), sample_period=0.08)
-    plan = ap.plan_articulated_path(mech, path, ap.ArticulatedPlanOptions(frame="tool"))
+    plan = pl.plan_path(mech, path, pl.PlanOptions(frame="tool"))
     assert plan.reached.all(), plan.summary()
     assert plan.joint_names == ("pan", "tilt") and plan.joints.shape == (len(path), 2)
-    assert ap.check_articulated_plan(plan) == []
+    assert pl.check_plan(plan) == []
     # independent check: the planned commands, solved from scratch, put the tool on the circle
     for i in range(0, len(path), 10):
         x = np.concatenate([plan.joints[i], plan.u[i]])
@@ -150,7 +153,7 @@ def test_circle_tracked_within_1_mm_and_within_limits(mech):
 def test_unreachable_samples_are_flagged(mech):
     # 0.6 m from the base: beyond the arm (0.36 m from the tilt axis)
     path = paths.line([0.33, 0.0, 0.0], [0.6, 0.0, 0.0], 1.0, sample_period=0.1)
-    plan = ap.plan_articulated_path(mech, path, ap.ArticulatedPlanOptions(frame="tool", tolerance=1e-4))
+    plan = pl.plan_path(mech, path, pl.PlanOptions(frame="tool", tolerance=1e-4))
     far = np.linalg.norm(path.positions - [0, 0, 0.08], axis=1) > 0.40
     assert far.any()
     assert not plan.reached[far].any()
@@ -159,19 +162,19 @@ def test_unreachable_samples_are_flagged(mech):
         assert plan.position_error[i] > 1e-4
     # reached exactly when within the tolerance
     assert np.array_equal(plan.reached, plan.weighted_error <= 1e-4)
-    assert ap.check_articulated_plan(plan) == []
+    assert pl.check_plan(plan) == []
 
 
 def test_joint_limits_hold_when_the_path_asks_beyond_them(mech):
     # the tilt joint limited to +-0.1 rad by the margin: a tall line needs more
     path = paths.line([0.33, 0.0, -0.10], [0.33, 0.0, 0.12], 2.0, sample_period=0.1)
-    opts = ap.ArticulatedPlanOptions(frame="tool", joint_limits_margin=1.4, max_tension=0.5, tolerance=1e-4)
-    plan = ap.plan_articulated_path(mech, path, opts)
+    opts = pl.PlanOptions(frame="tool", joint_limits_margin=1.4, max_tension=0.5, tolerance=1e-4)
+    plan = pl.plan_path(mech, path, opts)
     assert np.all(np.abs(plan.joints[:, 1]) <= 0.1 + 1e-12)
     assert np.all(plan.u <= 0.5 + 1e-12)
     assert not plan.reached.all()
     assert {plan.status[i] for i in np.flatnonzero(~plan.reached)} <= {"at_limit", "rate_limit"}
-    assert ap.check_articulated_plan(plan) == []
+    assert pl.check_plan(plan) == []
 
 
 @settings(max_examples=6, deadline=None, suppress_health_check=[HealthCheck.too_slow,
@@ -184,10 +187,10 @@ def test_property_limits_never_violated(mech, kind, c, r, duration, margin):
         path = paths.line(c, np.add(c, [0.0, r, -r]), duration, sample_period=duration / 8)
     else:
         path = paths.circle(c, r, duration, normal=(1, 0, 0), sample_period=duration / 8)
-    opts = ap.ArticulatedPlanOptions(frame="tool", joint_limits_margin=margin, max_tension=4.0,
+    opts = pl.PlanOptions(frame="tool", joint_limits_margin=margin, max_tension=4.0,
                                      max_rate=40.0, tolerance=1e-5, max_iterations=15)
-    plan = ap.plan_articulated_path(mech, path, opts)
-    assert ap.check_articulated_plan(plan) == []
+    plan = pl.plan_path(mech, path, opts)
+    assert pl.check_plan(plan) == []
     assert np.array_equal(plan.reached, plan.weighted_error <= 1e-5)
     assert all(s == "reached" for s, ok in zip(plan.status, plan.reached) if ok)
     assert all(s != "reached" for s, ok in zip(plan.status, plan.reached) if not ok)
@@ -195,21 +198,21 @@ def test_property_limits_never_violated(mech, kind, c, r, duration, margin):
 
 def test_check_catches_violations(mech):
     path = paths.line([0.33, 0.0, 0.0], [0.33, 0.02, 0.0], 0.4, sample_period=0.1)
-    plan = ap.plan_articulated_path(mech, path, ap.ArticulatedPlanOptions(frame="tool"))
+    plan = pl.plan_path(mech, path, pl.PlanOptions(frame="tool"))
     bad = plan.joints.copy()
     bad[2, 0] += 0.5                       # a jump: 5 rad/s against max_velocity 1 rad/s
     plan.joints = bad
-    msgs = ap.check_articulated_plan(plan)
+    msgs = pl.check_plan(plan)
     assert any("pan: speed" in m for m in msgs) and any("pan: acceleration" in m for m in msgs)
 
 
 def test_bad_options_name_the_field(mech):
     with pytest.raises(PlanError, match="frame: no frame named 'nose'"):
-        ap.ArticulatedTipSolver(mech, ap.ArticulatedPlanOptions(frame="nose"))
+        pl.TipSolver(mech, pl.PlanOptions(frame="nose"))
     with pytest.raises(PlanError, match="joint_limits_margin"):
-        ap.ArticulatedTipSolver(mech, ap.ArticulatedPlanOptions(joint_limits_margin=2.0))
+        pl.TipSolver(mech, pl.PlanOptions(joint_limits_margin=2.0))
     with pytest.raises(PlanError, match="max_rate"):
-        ap.ArticulatedTipSolver(mech, ap.ArticulatedPlanOptions(max_rate=0.0))
+        pl.TipSolver(mech, pl.PlanOptions(max_rate=0.0))
 
 
 def _cli(*args, cwd):
@@ -225,7 +228,7 @@ def test_cli_plan_articulated_writes_joint_columns_and_plots(tmp_path):
         "path: {type: circle, center: [0.33, 0.0, 0.0], radius: 0.05, normal: [1, 0, 0],\n"
         "       duration: 4.0, sample_period: 0.2}\n"
         "tracking: {frame: tool}\n"
-        "dynamics: {dt: 0.01}\n")
+        "dynamics: {dt: 0.01, compensation_iterations: 0}\n")    # the dynamic check alone
     r = _cli("plan", str(plan_file), "-o", "out", "--plot", "figs", cwd=tmp_path)
     assert r.returncode == 0, r.stderr
     assert "dynamics: rms tracking error" in r.stderr
@@ -259,12 +262,22 @@ def check_pngs(folder):
         assert (folder / f"{stem}.svg").stat().st_size > 10_000
 
 
-def test_cli_plan_articulated_refuses_lag_compensation(tmp_path):
+def test_cli_plan_articulated_compensates_the_lag(tmp_path):
+    """The lag compensation of the plan file's dynamics, for a tree robot
+    too (it was classic only): the compensated commands lower the simulated
+    rms error, and the CSV carries their columns."""
     plan_file = tmp_path / "p.yaml"
-    plan_file.write_text("robot: pan_tilt_arm\npath: {type: line, start: [0.3, 0, 0], end: [0.3, 0.01, 0], "
-                         "duration: 1}\ndynamics: {dt: 0.01, compensation_iterations: 2}\n")
+    plan_file.write_text("robot: pan_tilt_arm\npath: {type: circle, center: [0.33, 0, 0], radius: 0.02, "
+                         "normal: [1, 0, 0], duration: 2.0, sample_period: 0.05}\n"
+                         "dynamics: {dt: 0.01, compensation_iterations: 2}\n")
     r = _cli("plan", str(plan_file), "-o", "out", cwd=tmp_path)
-    assert r.returncode == 2 and "dynamics.compensation_iterations" in r.stderr and "classic" in r.stderr
+    assert r.returncode == 0, r.stderr
+    out = json.loads((tmp_path / "out.json").read_text())
+    dyn = out["dynamics"]
+    assert len(dyn["iterations"]) == 3 and dyn["compensated"]["converged"]
+    assert dyn["compensated"]["rms_error_m"] < 0.9 * dyn["uncompensated"]["rms_error_m"], dyn["iterations"]
+    header = (tmp_path / "out.csv").read_text().splitlines()[0].split(",")
+    assert "u_ff_tendon_y_pos" in header and "ff_error_m" in header
 
 
 def test_cli_plan_articulated_bad_field(tmp_path):
@@ -287,11 +300,11 @@ def test_dynamic_check_of_an_articulated_plan(mech):
     leave a first-order error in dt); after the start transient (the first commands move fast) the
     slow circle is tracked within a few mm and settles on the last sample;
     the same circle ten times faster lags far more (inertia and damping)."""
-    o = ap.ArticulatedPlanOptions(frame="tool")
-    slow = ap.plan_articulated_path(mech, paths.circle([0.33, 0.0, 0.0], 0.05, 8.0, normal=(1, 0, 0),
+    o = pl.PlanOptions(frame="tool")
+    slow = pl.plan_path(mech, paths.circle([0.33, 0.0, 0.0], 0.05, 8.0, normal=(1, 0, 0),
                                                       sample_period=0.08), o)
-    tr = ap.simulate_articulated_plan(mech, slow, o, dt=0.005, hold=0.5)
-    half = ap.simulate_articulated_plan(mech, slow, o, dt=0.0025, hold=0.5)
+    tr = pl.simulate_plan(mech, slow, o, dt=0.005, hold=0.5)
+    half = pl.simulate_plan(mech, slow, o, dt=0.0025, hold=0.5)
     assert tr.converged and half.converged
     assert tr.error[0] < 1e-6                                      # starts on the plan's first equilibrium
     assert np.abs(np.interp(tr.time, half.time, half.error) - tr.error).max() < 1e-3
@@ -299,10 +312,10 @@ def test_dynamic_check_of_an_articulated_plan(mech):
     late = tr.time > 1.0
     assert np.sqrt(np.mean(tr.error[late] ** 2)) < 3e-3 and tr.error[-1] < 1e-3
     # against the plan's own quasi-static prediction: dynamics alone; ten times faster lags far more
-    fast = ap.plan_articulated_path(mech, paths.circle([0.33, 0.0, 0.0], 0.05, 0.8, normal=(1, 0, 0),
+    fast = pl.plan_path(mech, paths.circle([0.33, 0.0, 0.0], 0.05, 0.8, normal=(1, 0, 0),
                                                       sample_period=0.008), o)
-    lag_fast = ap.simulate_articulated_plan(mech, fast, o, fast.tip, dt=0.002)
-    lag_slow = ap.simulate_articulated_plan(mech, slow, o, slow.tip, dt=0.005)
+    lag_fast = pl.simulate_plan(mech, fast, o, fast.tip, dt=0.002)
+    lag_slow = pl.simulate_plan(mech, slow, o, slow.tip, dt=0.005)
     assert lag_fast.converged and lag_fast.summary()["rms_error_m"] > 3 * lag_slow.summary()["rms_error_m"]
 
 
@@ -313,10 +326,10 @@ def test_a_joint_brakes_in_time_before_its_limit(mech):
     towards a limit are now bounded by what still stops in time."""
     c = (0.25, 0.0, -0.125)
     path = paths.line(c, np.add(c, [0.0, 0.125, -0.125]), 0.5, sample_period=0.5 / 8)
-    opts = ap.ArticulatedPlanOptions(frame="tool", joint_limits_margin=1.0, max_tension=4.0,
+    opts = pl.PlanOptions(frame="tool", joint_limits_margin=1.0, max_tension=4.0,
                                      max_rate=40.0, tolerance=1e-5, max_iterations=15)
-    plan = ap.plan_articulated_path(mech, path, opts)
-    assert ap.check_articulated_plan(plan) == []
+    plan = pl.plan_path(mech, path, opts)
+    assert pl.check_plan(plan) == []
 
 
 @pytest.mark.parametrize("distance, astep", [(0.0, 0.01), (0.003, 0.01), (0.1, 0.01), (2.0, 0.004)])
@@ -325,7 +338,7 @@ def test_braking_step_stops_before_the_limit(distance, astep):
     (each step slows by at most a) never carry the joint past the limit,
     and one more step of acceleration would (the bound is not loose by more
     than that)."""
-    d = float(ap.braking_step(np.array(distance), np.array(astep)))
+    d = float(pl.braking_step(np.array(distance), np.array(astep)))
 
     def travel(d0):
         x, v = 0.0, d0

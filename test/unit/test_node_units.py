@@ -9,7 +9,6 @@ import pytest
 
 from soft_twin_core import twin as tw
 
-from soft_twin_core import ik as core_ik
 
 from soft_twin_core import commands as cmd
 from soft_twin.config import (PARAMETERS, ConfigError, config_from_values, load_robot,
@@ -432,12 +431,12 @@ def test_queries_leave_the_twin_alone(model):
     assert info.converged and info.residual is not None
     msg, fk = twin.query_copy().forward_kinematics(strains=res.strains.ravel())
     np.testing.assert_allclose(fk.tip_pose, res.tip_pose, atol=1e-12)
-    ik = core_ik.inverse_kinematics(model, q, 10, res.tip_pose, tolerance=1e-8)
-    assert ik.success, ik.message
-    assert ik.extra["position_error"] <= 1e-8
+    ik = twin.query_copy().inverse_kinematics(res.tip_pose, tolerance=1e-8)
+    assert ik.reached, ik.status
+    assert ik.position_error <= 1e-8
     # the target came from an actuation: IK through statics finds one that holds it
-    assert ik.extra["actuation_found"], ik.message
-    eq = st.solve_statics(model, ik.extra["u"], q_init=ik.q)
+    assert ik.actuation_found and ik.names == tuple(model.actuator_names)
+    eq = st.solve_statics(model, ik.values, q_init=ik.q)
     np.testing.assert_allclose(eq.tip_pose[:3, 3], res.tip_pose[:3, 3], atol=1e-7)
     np.testing.assert_array_equal(twin.state.q, q)
     with pytest.raises(ValueError, match="expected 36"):

@@ -1,4 +1,5 @@
-"""Planner (soft_twin_core.planner, soft_twin_core.paths): exact
+"""Planner (soft_twin_core.planner, soft_twin_core.paths) on classic rods
+(one-member mechanisms; the pan-tilt arm's: test_articulated_planner.py): exact
 sensitivities against finite differences of full statics solves, the
 slides' constant-curvature arm against its closed form, the default robot's
 circle, redundancy resolution against a linear programme, bounds and rate
@@ -17,12 +18,18 @@ from soft_twin_core import paths
 from soft_twin_core import planner as pl
 from soft_twin_core import statics as st
 from soft_twin_core.loads import actuation_force
+from soft_twin_core.mechanism import from_robot_model, load_mechanism
 from soft_twin_core.model import load_model, model_from_dict
+from soft_twin_core.workspace import Workspace
 
 EI, D_OFFSET, L = 1.0, 0.02, 1.0
 
 
 def slides_arm(n_sections=4, tendon_model="point_moment"):
+    return from_robot_model(slides_model(n_sections, tendon_model))
+
+
+def slides_model(n_sections=4, tendon_model="point_moment"):
     """The slides' planar arm (part C): L = 1 m, EI = 1 N m^2, inextensible,
     unshearable, bending in the x-y plane only (free mode bending_z), no
     gravity, one tendon at offset d = 2 cm along +y (point-moment model:
@@ -47,6 +54,11 @@ def slides_tip(kappa):
 
 @pytest.fixture(scope="module")
 def arm():
+    return load_mechanism("tendon_arm")
+
+
+@pytest.fixture(scope="module")
+def arm_model():
     return load_model("tendon_arm")
 
 
@@ -59,32 +71,33 @@ def test_actuation_matrix_matches_reference(name):
     m = load_model(name)
     u = np.array([3.0 if a.kind == "tendon" else 2e4 for a in m.actuators])
     q = st.solve_statics(m, u).q
-    B = pl.actuation_matrix(m, q)
+    B = pl.actuation_matrix(from_robot_model(m), Workspace(m.tree), q)
     ch = kin.chain(m, q)
     ref = np.stack([actuation_force(m, ch, e) for e in np.eye(len(m.actuators))], axis=1)
     assert np.abs(B - ref).max() <= 1e-12 * np.abs(ref).max()
 
 
 def test_actuation_matrix_point_moment():
-    m = slides_arm()
+    m = slides_model()
     q = np.array([0.3, 0.3, 0.3, 0.3])
     ch = kin.chain(m, q)
     ref = actuation_force(m, ch, np.array([1.0]))
-    assert np.allclose(pl.actuation_matrix(m, q)[:, 0], ref, rtol=1e-12, atol=1e-15)
+    mech = from_robot_model(m)
+    assert np.allclose(pl.actuation_matrix(mech, Workspace(mech.tree), q)[:, 0], ref, rtol=1e-12, atol=1e-15)
 
 
-def test_tip_sensitivity_matches_finite_differences(arm):
+def test_tip_sensitivity_matches_finite_differences(arm, arm_model):
     u = np.array([2.0, 0.5, 6.0, 1.0])
-    r = st.solve_statics(arm, u)
-    S = pl.tip_position_sensitivity(arm, r.q, u)
+    r = st.solve_statics(arm_model, u)
+    S = pl.frame_sensitivity(arm, r.q, u)
     h = 1e-4
     fd = np.empty((3, 4))
     for k in range(4):
         up, um = u.copy(), u.copy()
         up[k] += h
         um[k] -= h
-        pp = st.solve_statics(arm, up, q_init=r.q, tol=1e-13).tip_pose[:3, 3]
-        pm = st.solve_statics(arm, um, q_init=r.q, tol=1e-13).tip_pose[:3, 3]
+        pp = st.solve_statics(arm_model, up, q_init=r.q, tol=1e-13).tip_pose[:3, 3]
+        pm = st.solve_statics(arm_model, um, q_init=r.q, tol=1e-13).tip_pose[:3, 3]
         fd[:, k] = (pp - pm) / (2 * h)
     assert np.abs(S - fd).max() <= 1e-6 * np.abs(S).max()
 
@@ -144,7 +157,7 @@ def test_redundancy_minimum_total_tension(arm):
     for u, q in zip(plan.u, plan.q):
         assert min(u[0], u[1]) == pytest.approx(pre, abs=1e-9)
         assert min(u[2], u[3]) == pytest.approx(pre, abs=1e-9)
-        S = pl.tip_position_sensitivity(arm, q, u)[1:]           # tracked rows y, z
+        S = pl.frame_sensitivity(arm, q, u)[1:]                  # tracked rows y, z
         res = linprog(np.ones(4), A_eq=S, b_eq=S @ u, bounds=[(pre, None)] * 4, method="highs")
         assert res.status == 0
         assert u.sum() <= res.fun + 1e-6 * u.sum()
@@ -169,7 +182,7 @@ def test_unreachable_samples_flagged_and_closest_followed(arm):
 def test_rate_limit_flags_and_holds(arm):
     path = paths.circle(**CIRCLE, sample_period=0.1)
     o = pl.PlanOptions(position_weights=(0, 1, 1), max_rate=2.0)        # N/s: too slow for this circle
-    plan = pl.plan_path(arm, path, o, u_start=np.zeros(4))
+    plan = pl.plan_path(arm, path, o, start=np.zeros(4), from_start=True)
     assert pl.check_plan(plan) == []
     assert "rate_limit" in plan.status
     rates = np.abs(np.diff(np.vstack([np.zeros(4), plan.u]), axis=0)) / 0.1
@@ -180,7 +193,7 @@ def test_robot_without_actuators_refused():
     m = model_from_dict({"segments": [{"length": 0.3, "cross_section": {"shape": "solid_circle", "radius": 0.01},
                                        "material": {"youngs_modulus": 1e6, "density": 1000}}]})
     with pytest.raises(pl.PlanError, match="no actuators"):
-        pl.TipSolver(m)
+        pl.TipSolver(from_robot_model(m))
 
 
 def test_bad_options_name_the_field(arm):
@@ -211,7 +224,7 @@ def test_property_bounds_rates_flags(arm, cy, cz, r, kind, cap, rate, pre):
         path = paths.figure_eight(c, r, 1.0, sample_period=0.25)
     o = pl.PlanOptions(position_weights=(0, 1, 1), max_tension=cap, max_rate=rate, pretension=pre,
                        max_iterations=15)
-    plan = pl.plan_path(arm, path, o, u_start=np.full(4, pre))
+    plan = pl.plan_path(arm, path, o, start=np.full(4, pre), from_start=True)
     assert pl.check_plan(plan) == []
     assert np.all(plan.u >= pre) and (cap is None or np.all(plan.u <= cap))
     if rate is not None:
@@ -345,18 +358,20 @@ def test_tip_error_kernels_match_their_definitions(arm):
     # the Jacobian: e(q(u)) with q(u) linear along dq/du, through the engine's tip pose
     solver = pl.TipSolver(arm)
     u = np.array([1.0, 0.0, 0.5, 0.0])
-    q = st.solve_statics(arm, u).q
-    g, Js, dq_du = solver.eq.sensitivity(np.ascontiguousarray(q), u)
+    e_eq = solver.statics.solve(u, None)
+    q = e_eq.q
+    g, Js, dq_du = solver.statics.sensitivity(e_eq, u)
     target = np.eye(4)
     target[:3, :3], target[:3, 3] = lie.exp_so3([0.3, -0.2, 0.5]), g[:3, 3] + [0.01, -0.02, 0.03]
     solver.sw, solver.swo = sw, swo
     for with_rot in (False, True):
-        e = solver._error(g, target, with_rot)
+        solver.with_rot = with_rot
+        e = solver._error(g, target)
         Je = np.empty((e.size, 4))
         error_jacobian(g, Js, dq_du, e, sw, swo, with_rot, Je)
         h = 1e-6
-        fd = np.column_stack([(solver._error(solver.eq.tip_pose(q + h * dq_du[:, k]), target, with_rot)
-                               - solver._error(solver.eq.tip_pose(q - h * dq_du[:, k]), target, with_rot)) / (2 * h)
+        fd = np.column_stack([(solver._error(solver.statics.pose(q + h * dq_du[:, k]), target)
+                               - solver._error(solver.statics.pose(q - h * dq_du[:, k]), target)) / (2 * h)
                               for k in range(4)])
         np.testing.assert_allclose(Je, fd, rtol=1e-6, atol=1e-9 * np.abs(fd).max())
 
