@@ -139,7 +139,9 @@ class EKF:
     standard deviations; process_noise_joint ((rad, rad/s) per sqrt(s)):
     white-noise densities on the rigid joints' positions (the servo's
     tracking error) and velocities; process_noise_q, process_noise_v: on
-    the strains and their rates; wrench_walk ((N, N m) per sqrt(s)); servo_hz,
+    the strains and their rates (process_noise_q: default 1.0 on a robot
+    with position-controlled joints, whose tracking errors drive the
+    members, else 0.2); wrench_walk ((N, N m) per sqrt(s)); servo_hz,
     servo_damping: the position servo model (None: the twin's tracking);
     sigma_offset0 [rad or m], offset_walk (per sqrt(s)): the joints'
     tracking offsets; input_sigma: noise of the inputs without a tension
@@ -149,7 +151,7 @@ class EKF:
 
     def __init__(self, mech, sensors, dt=0.01, *, theta=1.0, wrench=None, actuation=None, positions=None,
                  efforts=None, q_init=None, sigma_joint0=0.05, sigma_q0=0.5, sigma_v0=1.0,
-                 sigma_wrench0=(1.0, 0.1), process_noise_joint=(0.05, 2.0), process_noise_q=1.0,
+                 sigma_wrench0=(1.0, 0.1), process_noise_joint=(0.05, 2.0), process_noise_q=None,
                  process_noise_v=10.0, wrench_walk=(0.05, 0.005), servo_hz=None, servo_damping=1.0,
                  sigma_offset0=0.05, offset_walk=0.01, input_sigma=0.0, gate_probability=0.999,
                  max_gated_run=10):
@@ -220,6 +222,8 @@ class EKF:
         self.nb = nb = len(self._pos_v)
         k = self.k
         pj_q, pj_v = process_noise_joint
+        if process_noise_q is None:          # servoed joints drive the members with their tracking errors
+            process_noise_q = 1.0 if nb else 0.2
         walk = np.array([wrench_walk[0]] * 3 + [wrench_walk[1]] * 3)[:k]
         w0 = np.array([sigma_wrench0[0]] * 3 + [sigma_wrench0[1]] * 3)[:k]
         if wrench == "payload":                            # in kg: the force levels over |g|
