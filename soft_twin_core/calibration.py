@@ -1,28 +1,35 @@
-"""Calibration of a classic robot's parameters from a recorded static sweep
-by nonlinear least squares (scipy.optimize.least_squares, trust region
-reflective) with analytic sensitivities.
+"""Calibration of a robot's parameters from a recorded static sweep by
+nonlinear least squares (scipy.optimize.least_squares, trust region
+reflective) with analytic sensitivities, for every robot file (a classic
+rod, a tree robot: one :class:`mechanism.Mechanism` path).
 
-Data: a :class:`Recording` -- per row the actuator inputs u (N or Pa) and
-the readings of pose sensors and position markers (:mod:`sensors`) at the
-equilibrium those inputs reach (a static sweep; CSV format in
-:func:`read_csv`).
+Data: a :class:`Recording` -- per row the actuator inputs u (N or Pa), the
+position commands of the position-controlled joints (rad or m; default
+their references) and the readings of pose sensors and position markers
+(:mod:`sensors`) at the equilibrium those commands reach (a static sweep;
+CSV format in :func:`read_csv`).
 
 Parameters (names as given to :func:`calibrate`, SI units):
 
-- ``youngs_modulus:<segment>`` [Pa] of a member (its shear modulus follows
-  at the fixed Poisson ratio; the stiffness is linear in E);
+- ``youngs_modulus:<segment>`` [Pa] of a segment (its shear modulus
+  follows at the fixed Poisson ratio; the stiffness is linear in E); a
+  segment name used by two members of a tree is ``<member>/<segment>``;
 - ``tendon_offset:<actuator>`` [m]: the distance of a straight tendon from
   the centre line, along its nominal direction;
-- ``payload_mass`` [kg]: a point mass at the tip (its weight; starts at 0);
+- ``payload_mass`` [kg]: a point mass at the tip frame (its weight, a dead
+  load; starts at 0; :func:`mechanism.tip_frame`);
 - ``sensor_offset:<sensor>:<x|y|z>`` [m]: the position of a marker or pose
   sensor in its cross-section frame.
 
 Residual of row r and sensor i: ``e_ri(theta) / sigma_i`` (the sensor's
 residual, :func:`sensors.residual_and_jacobian`, at the equilibrium
-``q_r(theta)`` of the model with parameters theta). Sensitivities by the
-implicit function theorem at each equilibrium ``R(q, theta) = 0``:
+``q_r(theta)`` of the robot with parameters theta,
+:func:`constrained.solve_equilibrium`). Sensitivities by the implicit
+function theorem at each equilibrium ``R(q, lam, theta) = 0``, ``Phi(q) =
+0`` (constraint rows and the position-controlled joints' rows, which do
+not depend on theta):
 
-    dq/dtheta = -K_t^-1 dR/dtheta,   de/dtheta = H dq/dtheta + de/dtheta|_q
+    [[K_t, -G^T], [G, 0]] [dq; dlam] = -[dR/dtheta; 0],   de/dtheta = H dq/dtheta + de/dtheta|_q
 
 with K_t the statics tangent and, analytically,
 ``dR/dE_j = K_j (q - q0) / E_j`` (K_j: the stiffness rows of member j),
@@ -34,7 +41,7 @@ offset, ``de_p/dt = R_section``.
 Damping (``viscosity:<member>`` [Pa s]) needs a dynamic recording (a
 time series from rest): :func:`calibrate_damping` fits it by simulating the
 recording, with central-difference sensitivities of the simulated
-trajectory.
+trajectory (classic robots).
 
 Confidence intervals: ``cov = s^2 (J^T J)^-1`` with the residual variance
 ``s^2 = |r|^2 / (N - p)`` (J: the weighted Jacobian at the solution), 95 %
@@ -50,7 +57,6 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from . import sensors as sn
-from .loads import Loads, PointLoad
 from .errors import CalibrationError, CalibrationFailed
 
 
@@ -72,12 +78,14 @@ def _measuring(mech, sensors):
 
 @dataclass
 class Recording:
-    """A static sweep: inputs (N, n_actuators) and per sensor name an array
-    of readings (N, 4, 4) for pose sensors or (N, 3) for markers (NaN rows:
-    not seen)."""
+    """A static sweep: inputs (N, n_actuators), per sensor name an array of
+    readings (N, 4, 4) for pose sensors or (N, 3) for markers (NaN rows: not
+    seen), times (N,) [s] or None and the position commands (N, n_joints)
+    [rad or m] of the position-controlled joints (None: their references)."""
     inputs: np.ndarray
     readings: dict
     time: np.ndarray = None
+    joints: np.ndarray = None
 
     def __len__(self):
         return len(self.inputs)
@@ -85,7 +93,83 @@ class Recording:
     def rows(self, idx):
         idx = np.asarray(idx)
         return Recording(self.inputs[idx], {k: v[idx] for k, v in self.readings.items()},
-                         None if self.time is None else self.time[idx])
+                         None if self.time is None else self.time[idx],
+                         None if self.joints is None else self.joints[idx])
+
+
+def position_joints(robot):
+    """Names of the position-controlled joints of a mechanism (() for a
+    classic model)."""
+    if not hasattr(robot, "joints_with"):
+        return ()
+    return tuple(robot.tree.joints[i].name for i in robot.joints_with("position"))
+
+
+def mechanism_of(robot_dict, n_sections=None, base_dir=None):
+    """The mechanism of a robot mapping of either schema; ``n_sections``
+    (classic robots only) replaces every segment's section count."""
+    from .mechanism import from_robot_model, is_tree_file, mechanism_from_dict
+    from .model import model_from_dict
+    if is_tree_file(robot_dict):
+        if n_sections is not None:
+            raise CalibrationError("sections: a tree robot's sections come from its file (--sections is for "
+                                   "classic robots)")
+        return mechanism_from_dict(robot_dict, base_dir)
+    return from_robot_model(model_from_dict(robot_dict, n_sections), robot_dict)
+
+
+def _as_mechanism(robot):
+    """A mechanism from a mechanism or a classic model."""
+    from .mechanism import from_robot_model
+    return robot if hasattr(robot, "joints_with") else from_robot_model(robot)
+
+
+def _segments_of(d):
+    """{segment key: its mapping} of a robot mapping of either schema, and
+    {segment key: member name} (a segment name that two members use is keyed
+    ``<member>/<segment>``)."""
+    if "bodies" not in d:
+        return {str(s.get("name", f"segment{k}")): s for k, s in enumerate(d.get("segments") or [])}, \
+            {str(s.get("name", f"segment{k}")): "backbone" for k, s in enumerate(d.get("segments") or [])}
+    pairs = [(str(b.get("name")), str(s.get("name", f"segment{k}")), s) for b in d.get("bodies") or []
+             if b.get("type") == "member" for k, s in enumerate(b.get("segments") or [])]
+    counts = {}
+    for _, n, _ in pairs:
+        counts[n] = counts.get(n, 0) + 1
+    segs, member = {}, {}
+    for m, n, sd in pairs:
+        key = n if counts[n] == 1 else f"{m}/{n}"
+        segs[key], member[key] = sd, m
+    return segs, member
+
+
+def _actuators_of(d):
+    """{actuator name: its mapping} of a robot mapping of either schema."""
+    lists = [d.get("actuators") or []] + [b.get("actuators") or [] for b in d.get("bodies") or []]
+    return {a["name"]: a for lst in lists for a in lst if isinstance(a, dict) and "name" in a}
+
+
+def _segment_rows(mech, d):
+    """{segment key: boolean mask (nv,) of its sections' strain
+    coordinates}: each member's joints shared out over its segments by
+    their section counts (an equal split when a count override applied)."""
+    from .workspace import Workspace
+    segs, member_of = _segments_of(d)
+    arrays = Workspace(mech.tree).arrays
+    out = {}
+    for m in mech.members:
+        keys = [k for k in segs if member_of[k] == m.name]
+        counts = [int(segs[k].get("sections", 1)) for k in keys]
+        if sum(counts) != len(m.joints) and keys and len(m.joints) % len(keys) == 0:
+            counts = [len(m.joints) // len(keys)] * len(keys)
+        j = 0
+        for k, n in zip(keys, counts):
+            mask = np.zeros(mech.tree.nv, dtype=bool)
+            for i in m.joints[j:j + n]:
+                mask[arrays.iv[i]:arrays.iv[i] + arrays.nv[i]] = True
+            out[k] = mask
+            j += n
+    return out
 
 
 # ----------------------------------------------------------------------------
@@ -96,9 +180,10 @@ _POSE_COLS = ("x", "y", "z", "qx", "qy", "qz", "qw")
 
 
 def csv_header(model, sensors):
-    """Columns: ``t``, one per actuator (its name), then per marker
+    """Columns: ``t``, one per actuator (its name), one per
+    position-controlled joint (its name, rad or m), then per marker
     ``<name>.x .y .z`` and per pose sensor also ``.qx .qy .qz .qw``."""
-    cols = ["t"] + list(model.actuator_names)
+    cols = ["t"] + list(model.actuator_names) + list(position_joints(model))
     for s in sensors:
         if _marker(s):
             cols += [f"{s.name}.{c}" for c in _POSE_COLS[:3]]
@@ -115,6 +200,8 @@ def write_csv(path, model, sensors, rec):
         t = np.arange(len(rec)) if rec.time is None else rec.time
         for r in range(len(rec)):
             row = [repr(float(t[r]))] + [repr(float(x)) for x in rec.inputs[r]]
+            if position_joints(model):
+                row += [repr(float(x)) for x in _joint_rows(model, rec)[r]]
             for s in sensors:
                 z = rec.readings.get(s.name)
                 if _marker(s):
@@ -155,6 +242,11 @@ def read_csv(path, model, sensors):
     u = np.stack([col[a] for a in model.actuator_names], axis=1) if model.actuators else np.zeros((len(data), 0))
     if not np.all(np.isfinite(u)):
         raise CalibrationError(f"data file {path}: the actuator inputs must be finite numbers in every row")
+    joints = None
+    if position_joints(model):
+        joints = np.stack([col[n] for n in position_joints(model)], axis=1)
+        if not np.all(np.isfinite(joints)):
+            raise CalibrationError(f"data file {path}: the joint positions must be finite numbers in every row")
     readings = {}
     for s in sensors:
         if _marker(s):
@@ -166,7 +258,17 @@ def read_csv(path, model, sensors):
                 if np.all(np.isfinite(v[r])):
                     T[r] = sn.pose_from_position_quaternion(v[r, :3], v[r, 3:])
             readings[s.name] = T
-    return Recording(u, readings, col.get("t"))
+    return Recording(u, readings, col.get("t"), joints)
+
+
+def _joint_rows(mech, rec):
+    """(N, n_joints) position commands of a recording (the joints'
+    references where it has none)."""
+    names = position_joints(mech)
+    if rec.joints is not None:
+        return np.asarray(rec.joints, dtype=float).reshape(len(rec), len(names))
+    ref = [mech.tree.joints[i].q_ref for i in mech.joints_with("position")] if names else []
+    return np.tile(np.asarray(ref, dtype=float), (len(rec), 1))
 
 
 def check_recording_inputs(model, inputs, source="recording"):
@@ -189,24 +291,32 @@ def check_recording_inputs(model, inputs, source="recording"):
                 raise CalibrationError(f"{source}, row {i + 1}, actuator {a.name}: {bad[1]} [{bad[0]}]")
 
 
-def record_static_sweep(model, sensors, inputs, rng, loads=None):
-    """Simulated recording: the equilibria of ``model`` under each row of
-    ``inputs`` (and ``loads``), read by the sensors with their noise. The
+def record_static_sweep(robot, sensors, inputs, rng, loads=None, joints=None, point_loads=()):
+    """Simulated recording: the equilibria of ``robot`` (a mechanism or a
+    classic model) under each row of ``inputs`` and ``joints`` (position
+    commands, rad or m; default the references), ``loads`` and
+    ``point_loads`` (FrameLoad), read by the sensors with their noise. The
     inputs must lie in the actuators' declared ranges."""
-    from .mechanism import from_robot_model
-    from .statics import solve_statics
+    from .constrained import solve_equilibrium
     from .workspace import Workspace
-    check_recording_inputs(model, inputs, "inputs")
-    sensors, where = _measuring(from_robot_model(model), sensors)
-    ws = Workspace(model.tree)
+    mech = _as_mechanism(robot)
+    check_recording_inputs(mech, inputs, "inputs")
+    sensors, where = _measuring(mech, sensors)
+    ws = Workspace(mech.tree)
+    names = position_joints(mech)
+    inputs = np.asarray(inputs, dtype=float)
+    rec = Recording(inputs, {}, None, None if joints is None else np.asarray(joints, dtype=float))
+    jrows = _joint_rows(mech, rec)
     q = None
     readings = {s.name: [] for s in sensors}
-    for u in np.asarray(inputs, dtype=float):
-        q = solve_statics(model, u, loads, q_init=q).q
+    for r, u in enumerate(inputs):
+        q = solve_equilibrium(mech, u, None, dict(zip(names, jrows[r])) if names else None, loads, point_loads,
+                              q_init=q).q
         truth = sn.predict_readings(ws, q, sensors, where)
         for s in sensors:
             readings[s.name].append(sn.simulate_measurement(s, truth[s.name], rng))
-    return Recording(np.asarray(inputs, dtype=float), {k: np.array(v) for k, v in readings.items()})
+    rec.readings = {k: np.array(v) for k, v in readings.items()}
+    return rec
 
 
 # ----------------------------------------------------------------------------
@@ -223,9 +333,9 @@ class _Param:
     scale: float = 1.0
 
 
-def _params(names, robot_dict, model, sensors):
-    segs = {str(s.get("name", f"segment{k}")): s for k, s in enumerate(robot_dict["segments"])}
-    acts = {a["name"]: a for a in robot_dict.get("actuators", []) or []}
+def _params(names, robot_dict, sensors):
+    segs = _segments_of(robot_dict)[0]
+    acts = _actuators_of(robot_dict)
     by_name = {s.name: s for s in sensors}
     out = []
     for name in names:
@@ -233,8 +343,8 @@ def _params(names, robot_dict, model, sensors):
         if kind == "youngs_modulus":
             seg = segs.get(rest)
             if seg is None or "material" not in seg:
-                raise CalibrationError(f"parameter {name!r}: no member {rest!r} with a material "
-                                       f"(members: {list(segs)})")
+                raise CalibrationError(f"parameter {name!r}: no segment {rest!r} with a material "
+                                       f"(segments: {list(segs)})")
             E = float(seg["material"]["youngs_modulus"])
             out.append(_Param(name, kind, rest, 0, E, E))
         elif kind == "tendon_offset":
@@ -264,8 +374,8 @@ def _params(names, robot_dict, model, sensors):
 def apply_parameters(robot_dict, sensors, params, theta):
     """(robot dict, sensors, payload mass [kg]) with the parameter values theta."""
     d = copy.deepcopy(robot_dict)
-    segs = {str(s.get("name", f"segment{k}")): s for k, s in enumerate(d["segments"])}
-    acts = {a["name"]: a for a in d.get("actuators", []) or []}
+    segs = _segments_of(d)[0]
+    acts = _actuators_of(d)
     placements = {s.name: np.array(s.placement, dtype=float) for s in sensors
                   if isinstance(s, sn.PoseSensor)}
     mass = 0.0
@@ -283,11 +393,14 @@ def apply_parameters(robot_dict, sensors, params, theta):
     return d, new, mass
 
 
-def _payload_loads(model, mass):
+def _payload(mech, mass):
+    """The payload's weight as a dead load on the tip frame (FrameLoads)."""
+    from .constrained import FrameLoad
+    from .mechanism import tip_frame
     if mass == 0.0:
-        return Loads()
-    g = np.asarray(model.gravity, dtype=float)
-    return Loads(point=(PointLoad(model.total_length, tuple(mass * g) + (0.0, 0.0, 0.0)),))
+        return ()
+    return (FrameLoad(tip_frame(mech), np.concatenate([mass * np.asarray(mech.tree.gravity, float), np.zeros(3)]),
+                      "world"),)
 
 
 def _tendon_offset_derivative(model, ws, act, k, u_k, out):
@@ -318,75 +431,91 @@ def _tendon_offset_derivative(model, ws, act, k, u_k, out):
 
 class Problem:
     """Residuals and their analytic Jacobian of a recording, as functions of
-    the parameter values theta (SI)."""
+    the parameter values theta (SI), for a robot mapping of either schema."""
 
-    def __init__(self, robot_dict, sensors, recording, names, n_sections=None):
-        from .mechanism import from_robot_model
-        from .model import model_from_dict
-        self.robot_dict = robot_dict
-        self.n_sections = n_sections
-        model = model_from_dict(robot_dict, n_sections)
-        self.sensors, self.where = _measuring(from_robot_model(model), sensors)   # the points stay with theta
+    def __init__(self, robot_dict, sensors, recording, names, n_sections=None, base_dir=None):
+        self.robot_dict, self.n_sections, self.base_dir = robot_dict, n_sections, base_dir
+        mech = mechanism_of(robot_dict, n_sections, base_dir)
+        self.sensors, self.where = _measuring(mech, sensors)     # the points stay with theta
         if not self.sensors:
             raise CalibrationError("sensors: calibration needs at least one pose sensor or marker")
-        check_recording_inputs(model, recording.inputs)      # the declared actuator ranges
+        check_recording_inputs(mech, recording.inputs)      # the declared actuator ranges
+        names_j = position_joints(mech)
+        if recording.joints is not None and np.shape(recording.joints) != (len(recording), len(names_j)):
+            raise CalibrationError(f"recording.joints: expected {len(recording)} rows of the position-controlled "
+                                   f"joints {list(names_j)}, got shape {np.shape(recording.joints)}")
         self.rec = recording
-        self.params = _params(names, robot_dict, model, self.sensors)
+        self.params = _params(names, robot_dict, self.sensors)
+        self.rows_of = _segment_rows(mech, robot_dict) if any(p.kind == "youngs_modulus" for p in self.params) \
+            else {}
         self.theta0 = np.array([p.nominal for p in self.params])
         self.scale = np.array([p.scale for p in self.params])
         self._q = [None] * len(recording)
-        self._cache = None
+        self._joints = _joint_rows(mech, recording)
+        self._names_j = names_j
 
     def model(self, theta):
-        from .model import model_from_dict
+        """(mechanism, sensors, payload mass [kg]) with the parameter values theta."""
         d, sensors, mass = apply_parameters(self.robot_dict, self.sensors, self.params, theta)
-        return model_from_dict(d, self.n_sections), sensors, mass
+        return mechanism_of(d, self.n_sections, self.base_dir), sensors, mass
+
+    def equilibrium(self, mech, r, mass):
+        """The equilibrium of row r (warm-started from the last one found)."""
+        from .constrained import solve_equilibrium
+        pos = dict(zip(self._names_j, self._joints[r])) if self._names_j else None
+        eq = solve_equilibrium(mech, self.rec.inputs[r], None, pos, None, _payload(mech, mass), q_init=self._q[r],
+                               check_stability=False)
+        self._q[r] = eq.q
+        return eq
 
     def evaluate(self, theta, jacobian=True, rows=None):
         """(weighted residuals (M,), Jacobian (M, p) d r / d theta, or None)."""
         from . import algorithms as alg
-        from .forces import actuator_arrays
-        from .kernels import passes
-        from .statics import problem, solve_statics
+        from . import constrained as cs
         from .workspace import Workspace
         theta = np.asarray(theta, dtype=float)
-        model, sensors, mass = self.model(theta)
-        loads = _payload_loads(model, mass)
-        tree = model.tree
+        mech, sensors, mass = self.model(theta)
+        tree = mech.tree
         ws = Workspace(tree)
-        act = actuator_arrays(tree) if model.actuators else None
+        act = cs.actuator_arrays(tree) if mech.actuators else None
+        K = cs._dense_blocks(tree)[0] if self.rows_of else None
         rows = range(len(self.rec)) if rows is None else rows
         res, jac = [], []
-        seg_of_dof = np.array([model.sections[i].segment for i in model.free_index // 6])
         for r in rows:
             u = self.rec.inputs[r]
-            sol = solve_statics(model, u, loads, q_init=self._q[r])
-            q = sol.q
-            self._q[r] = q
+            eq = self.equilibrium(mech, r, mass)
+            q = eq.q
             if jacobian:
-                Kt = problem(model, u, loads).tangent(q)
-                dR = np.zeros((model.n_dof, len(self.params)))
-                passes.forward_pass(ws.m, ws.w, np.ascontiguousarray(q), ws.zeros_v, ws.zeros_v, 0)
+                pb = cs._Equilibrium(mech, eq.inputs)
+                Kt = pb.tangent(q, eq.lam)
+                _, phi, G = pb.residual(q, eq.lam)
+                fac = cs.factor_kkt(Kt, G, G)
+                dR = np.zeros((tree.nv, len(self.params)))
+                sn.forward(ws, q)
                 for j, p in enumerate(self.params):
                     if p.kind == "youngs_modulus":
-                        rows_j = seg_of_dof == p.target
-                        dR[rows_j, j] = (model.K_q @ (q - model.q0))[rows_j] / theta[j]
+                        rows_j = self.rows_of[p.target]
+                        dR[rows_j, j] = (K @ (q - tree.q0))[rows_j] / theta[j]
                     elif p.kind == "tendon_offset":
-                        k = model.actuator_names.index(p.target)
-                        col = np.zeros(model.n_dof)
-                        _tendon_offset_derivative(model, ws, act, k, u[k], col)
+                        k = list(mech.actuator_names).index(p.target)
+                        col = np.zeros(tree.nv)
+                        _tendon_offset_derivative(mech, ws, act, k, u[k], col)
                         dR[:, j] = -col
                     elif p.kind == "payload_mass":
-                        _, Jw = alg.point_jacobian(tree, ws, q, tree.n_joints - 1, -1.0, "world")
-                        dR[:, j] = -Jw.T @ np.concatenate([model.gravity, np.zeros(3)])
-                        passes.forward_pass(ws.m, ws.w, np.ascontiguousarray(q), ws.zeros_v, ws.zeros_v, 0)
-                dq = -np.linalg.solve(Kt, dR)
-            passes.forward_pass(ws.m, ws.w, np.ascontiguousarray(q), ws.zeros_v, ws.zeros_v, 0)
+                        from .mechanism import tip_frame
+                        ref = mech.frame(tip_frame(mech))
+                        _, Jw = alg.point_jacobian(tree, ws, q, ref.joint, ref.x, "world")
+                        dR[:, j] = -Jw.T @ np.concatenate([tree.gravity, np.zeros(3)])
+                        sn.forward(ws, q)
+                zero = np.zeros(len(phi))
+                dq = np.column_stack([cs.solve_factored(fac, dR[:, j], zero)[0] for j in range(len(self.params))]) \
+                    if self.params else np.zeros((tree.nv, 0))
+            qc = sn.forward(ws, q)
             for s in sensors:
                 z = self.rec.readings[s.name][r]
                 if not np.all(np.isfinite(z)):
                     continue
-                e, H = sn.residual_and_jacobian(ws, q, s, self.where[s.name], z)
+                e, H = sn.residual_and_jacobian(ws, qc, s, self.where[s.name], z)
                 sig = np.full(len(e), s.sigma_position_m)
                 if len(e) == 6:
                     sig[3:] = s.sigma_rotation_rad
@@ -434,21 +563,31 @@ class CalibrationResult:
         return "\n".join(lines)
 
 
+def _tip_sensor(mech, sensors):
+    """The sensor nearest the tip: one on the tip frame, else the farthest
+    along the main member, else the last."""
+    from .mechanism import tip_frame
+    tip = tip_frame(mech)
+    on_tip = [s for s in sensors if s.frame == tip]
+    if on_tip:
+        return on_tip[0]
+    along = [s for s in sensors if s.frame is None]
+    return max(along, key=lambda s: s.s) if along else sensors[-1]
+
+
 def tip_errors(problem, theta, rows, truth_tips=None):
     """(RMS, max) [m] over ``rows`` of the distance between the model's
     prediction of the sensor nearest the tip and its reading (or the given
     true positions (R, 3))."""
-    from .mechanism import from_robot_model
-    from .statics import solve_statics
-    model, sensors, mass = problem.model(theta)
-    mech = from_robot_model(model)
-    loads = _payload_loads(model, mass)
-    tip = max(sensors, key=lambda s: s.s)
+    from .workspace import Workspace
+    mech, sensors, mass = problem.model(theta)
+    tip = _tip_sensor(mech, sensors)
+    ws = Workspace(mech.tree)
     d = []
-    q = None
     for k, r in enumerate(rows):
-        q = solve_statics(model, problem.rec.inputs[r], loads, q_init=q).q
-        p = sn.sensor_pose(mech, q, tip)[:3, 3]
+        q = problem.equilibrium(mech, r, mass).q
+        T = sn.predict_readings(ws, q, [tip], problem.where)[tip.name]
+        p = T[:3, 3] if np.shape(T) == (4, 4) else T
         z = problem.rec.readings[tip.name][r] if truth_tips is None else truth_tips[k]
         z = z[:3, 3] if np.shape(z) == (4, 4) else z
         d.append(np.linalg.norm(p - z))
@@ -456,16 +595,19 @@ def tip_errors(problem, theta, rows, truth_tips=None):
     return float(np.sqrt(np.mean(d ** 2))), float(d.max())
 
 
-def calibrate(robot_dict, sensors, recording, names, *, holdout_every=4, n_sections=None, verbose=0):
-    """Fit the parameters ``names`` (module docstring) to the recording;
-    every ``holdout_every``-th row (0: none) is held out and reports the
-    tip-sensor error before and after. Returns a :class:`CalibrationResult`."""
+def calibrate(robot_dict, sensors, recording, names, *, holdout_every=4, n_sections=None, verbose=0,
+              base_dir=None):
+    """Fit the parameters ``names`` (module docstring) to the recording of a
+    robot (a mapping of either schema; ``base_dir``: where its relative
+    files are); every ``holdout_every``-th row (0: none) is held out and
+    reports the tip-sensor error before and after. Returns a
+    :class:`CalibrationResult`."""
     from scipy.optimize import least_squares
     from scipy.stats import t as student_t
     n = len(recording)
     held = np.arange(n)[holdout_every - 1::holdout_every] if holdout_every else np.zeros(0, int)
     fit_rows = np.setdiff1d(np.arange(n), held)
-    pb = Problem(robot_dict, sensors, recording.rows(fit_rows), names, n_sections)
+    pb = Problem(robot_dict, sensors, recording.rows(fit_rows), names, n_sections, base_dir)
     s = pb.scale
 
     def fun(x):
@@ -490,7 +632,7 @@ def calibrate(robot_dict, sensors, recording, names, *, holdout_every=4, n_secti
                             residual_sigma=float(np.sqrt(s2)), n_residuals=m, iterations=int(sol.nfev),
                             robot_dict=d, sensors=new_sensors, payload_mass=mass)
     if len(held):
-        hp = Problem(robot_dict, sensors, recording.rows(held), names, n_sections)
+        hp = Problem(robot_dict, sensors, recording.rows(held), names, n_sections, base_dir)
         before = tip_errors(hp, hp.theta0, range(len(held)))
         after = tip_errors(hp, theta, range(len(held)))
         out.heldout = {"rows": len(held), "tip_rms_before_m": before[0], "tip_max_before_m": before[1],
@@ -644,10 +786,9 @@ def _expand(names, robot_dict):
     out = []
     for n in names:
         if n == "youngs_modulus":
-            out += [f"youngs_modulus:{s.get('name', f'segment{k}')}" for k, s in enumerate(robot_dict["segments"])
-                    if "material" in s]
+            out += [f"youngs_modulus:{k}" for k, s in _segments_of(robot_dict)[0].items() if "material" in s]
         elif n == "tendon_offset":
-            out += [f"tendon_offset:{a['name']}" for a in robot_dict.get("actuators", []) or []
+            out += [f"tendon_offset:{name}" for name, a in _actuators_of(robot_dict).items()
                     if a.get("type", "tendon") == "tendon" and a.get("routing", "straight") == "straight"]
         else:
             out.append(n)

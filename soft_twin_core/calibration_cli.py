@@ -4,6 +4,7 @@ fitting so that :mod:`calibration_mcap` (which builds the fit's records)
 and the fit import each other in one direction only."""
 
 import json
+import os
 import sys
 
 import numpy as np
@@ -11,10 +12,10 @@ import yaml
 
 from . import calibration_mcap as cm
 from . import sensors as sn
-from .calibration import _expand, calibrate, calibrate_damping, read_csv, write_robot_file
+from .calibration import (_expand, calibrate, calibrate_damping, mechanism_of, position_joints, read_csv,
+                          write_robot_file)
 from .errors import CalibrationError, CalibrationFailed, ModelError, StaticsError
-from .model import find_file, model_from_dict, read_yaml_file, robot_mapping
-from .mechanism import from_robot_model
+from .model import find_file, read_yaml_file, robot_mapping
 
 
 def add_cli_parser(sub):
@@ -23,15 +24,17 @@ def add_cli_parser(sub):
     c.add_argument("robot", help="robot file or example name")
     c.add_argument("--sensors", required=True, help="sensors file (YAML list of pose/marker sensors)")
     c.add_argument("--data", required=True,
-                   help="CSV (t, one column per actuator, <sensor>.x/.y/.z[/.qx..qw]) or an MCAP recording "
+                   help="CSV (t, one column per actuator and per position-controlled joint, "
+                        "<sensor>.x/.y/.z[/.qx..qw]) or an MCAP recording "
                         "(ROS 2 bag: commands and sensor topics, see --actuation-topic, --topic)")
     c.add_argument("--fit", required=True,
-                   help="comma-separated parameters: youngs_modulus:<member>, tendon_offset:<tendon>, "
+                   help="comma-separated parameters: youngs_modulus:<segment>, tendon_offset:<tendon>, "
                         "payload_mass, sensor_offset:<sensor>:<x|y|z>; 'youngs_modulus' or 'tendon_offset' "
-                        "alone mean all members / all straight tendons")
+                        "alone mean all segments / all straight tendons")
     c.add_argument("--holdout-every", type=int, default=4, metavar="K",
                    help="hold out every K-th row to report the error before/after (0: none; default 4)")
-    c.add_argument("--sections", type=int, help="sections per member for the fit (default: the robot file's)")
+    c.add_argument("--sections", type=int,
+                   help="sections per segment for the fit, classic robots (default: the robot file's)")
     c.add_argument("--dynamic", action="store_true",
                    help="the rows are a time series from rest (column t): fit viscosity:<member> (or "
                         "'viscosity' for all members) by simulating it")
@@ -66,16 +69,22 @@ def cli_main(args):
             raise CalibrationError(f"--holdout-every must be >= 0, got {args.holdout_every}")
         path = find_file(args.robot, "robots")
         robot_dict = robot_mapping(read_yaml_file(path, ModelError, "robot file"), f"robot file {path}")
-        if "bodies" in robot_dict:
-            raise CalibrationError(f"calibration supports classic single-chain robots (segments); robot file {path} "
-                                   f"is a tree robot (bodies/frames), which it cannot calibrate yet")
-        model = model_from_dict(robot_dict, args.sections)
-        sensors = sn.load_sensors(args.sensors, from_robot_model(model, robot_dict))
+        base_dir = os.path.dirname(os.path.abspath(path))
+        mech = mechanism_of(robot_dict, args.sections, base_dir)
+        tree = "bodies" in robot_dict
+        if tree and args.dynamic:
+            raise CalibrationError(f"--dynamic: the damping fit takes classic robots (segments); robot file {path} "
+                                   f"is a tree robot")
+        sensors = sn.load_sensors(args.sensors, mech)
         mcap_report = None
         if cm.is_mcap(args.data):                      # an MCAP recording of the node
-            rec, mcap_report = _read_mcap(args, model, sensors)
+            if position_joints(mech):
+                raise CalibrationError(f"--data {args.data}: an MCAP recording carries no joint commands yet; give "
+                                       f"the sweep of a robot with position-controlled joints "
+                                       f"{list(position_joints(mech))} as CSV (one column per joint)")
+            rec, mcap_report = _read_mcap(args, mech, sensors)
         else:
-            rec = read_csv(args.data, model, sensors)
+            rec = read_csv(args.data, mech, sensors)
         names = [n.strip() for n in args.fit.split(",") if n.strip()]
         if not names:
             raise CalibrationError("--fit: no parameter given")
@@ -90,7 +99,7 @@ def cli_main(args):
         else:
             names = _expand(names, robot_dict)
             res = calibrate(robot_dict, sensors, rec, names, holdout_every=args.holdout_every,
-                            n_sections=args.sections)
+                            n_sections=args.sections, base_dir=base_dir)
     except (CalibrationError, ModelError, ValueError) as e:
         print(f"soft-twin-sim calibrate: {e}", file=sys.stderr)
         return 2

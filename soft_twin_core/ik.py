@@ -278,6 +278,9 @@ def frame_ik(mech, frame, target, q_init=None, *, position_only=False, weights=N
     tree = mech.tree
     if tree.nq != tree.nv:
         raise ValueError("frame_ik: only robots whose coordinates add (no spherical or free joint)")
+    if mech.n_constraint_rows:
+        raise ValueError("no shape IK for a closed chain: its constraints fix the shape (and it has no inputs "
+                         "to drive it)")
     ref = mech.frame(frame)
     target = _target_pose(target, position_only)
     w = _weights(weights, position_only)
