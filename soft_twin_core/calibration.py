@@ -617,7 +617,9 @@ def calibrate(robot_dict, sensors, recording, names, *, holdout_every=4, n_secti
         return pb.evaluate(x * s)[1] * s
 
     x0 = pb.theta0 / s
-    sol = least_squares(fun, x0, jac=jac, method="trf", x_scale=1.0, verbose=verbose)
+    # a modulus stays positive (a trust-region step of a poorly seen one could otherwise cross 0)
+    lower = np.array([1e-3 * p.nominal / p.scale if p.kind == "youngs_modulus" else -np.inf for p in pb.params])
+    sol = least_squares(fun, x0, jac=jac, method="trf", x_scale=1.0, verbose=verbose, bounds=(lower, np.inf))
     theta = sol.x * s
     r, J = pb.evaluate(theta)
     m, p = len(r), len(theta)

@@ -88,11 +88,18 @@ def test_render_plot_without_backbone_samples_names_what_it_leaves_out(tmp_path)
 
 
 def test_calibrate_on_a_tree_robot_gives_the_reason(tmp_path):
+    """A tree robot calibrates (it was refused, then it read the file as a
+    classic one: "unknown field(s) ['bodies', 'frames']"); a missing file
+    is named, without a traceback; the damping fit is refused by name."""
     p = _cli("calibrate", "pan_tilt_arm", "--sensors", str(tmp_path / "s.yaml"), "--data", str(tmp_path / "d.csv"),
              "--fit", "youngs_modulus")
     assert p.returncode == 2 and "Traceback" not in p.stderr, p.stderr
-    assert "calibration supports classic single-chain robots (segments)" in p.stderr
-    assert "is a tree robot (bodies/frames)" in p.stderr and "unknown field" not in p.stderr
+    assert f"sensors file {tmp_path / 's.yaml'}: No such file" in p.stderr and "unknown field" not in p.stderr
+    (tmp_path / "s.yaml").write_text("sensors: [{name: t, type: pose, frame: tool, sigma_position: 0.001, "
+                                     "sigma_rotation: 0.01}]\n")
+    p = _cli("calibrate", "pan_tilt_arm", "--sensors", str(tmp_path / "s.yaml"), "--data", str(tmp_path / "d.csv"),
+             "--fit", "viscosity", "--dynamic")
+    assert p.returncode == 2 and "--dynamic: the damping fit takes classic robots" in p.stderr, p.stderr
 
 
 def test_a_killed_dask_worker_is_named_in_the_study_output(tmp_path):

@@ -82,14 +82,15 @@ def test_sensitivities_match_finite_differences():
                          1e-6)
 
 
-def assert_sensitivities(pb, theta, rtol):
+def assert_sensitivities(pb, theta, rtol, step=1e-5):
     """The Problem's analytic Jacobian at theta against central differences
-    of its residuals, column by column (steps 1e-5 of each parameter's scale)."""
+    of its residuals, column by column (steps ``step`` times each
+    parameter's scale)."""
     names = [p.name for p in pb.params]
     r, J = pb.evaluate(theta)
     assert J.shape == (len(r), len(names))
     for j in range(len(names)):
-        h = 1e-5 * pb.scale[j]
+        h = step * pb.scale[j]
         tp, tm = theta.copy(), theta.copy()
         tp[j] += h
         tm[j] -= h
