@@ -1,14 +1,16 @@
-"""Inverse kinematics: closed forms (one section, constant curvature) and a
-general damped least-squares (Levenberg-Marquardt) solver over the free
-strain modes (slides part B "Inverse kinematics", part C "Soft continuum arm
-with constant curvature").
+"""Inverse kinematics of shapes: closed forms (one section, constant
+curvature) and a general damped least-squares (Levenberg-Marquardt) solver
+over a robot's joint coordinates for any frame (:func:`frame_ik`; the
+classic robot's tip: :func:`solve_ik`) (slides part B "Inverse
+kinematics", part C "Soft continuum arm with constant curvature"). The IK
+through statics, over the actuator inputs and joint commands, is the
+planner's sample solve (:class:`planner.TipSolver`).
 """
 
 from dataclasses import dataclass
 
 import numpy as np
 
-from . import kinematics as kin
 from . import lie
 from ._blas import one_blas_thread
 
@@ -178,76 +180,6 @@ def solve_ik(model, target, q_init=None, *, position_only=False, weights=None,
     return frame_ik(mech, "tip", target, q_init, position_only=position_only, weights=weights, lower=lower,
                     upper=upper, tol_position=tol_position, tol_orientation=tol_orientation,
                     max_iterations=max_iterations, initial_damping=initial_damping)
-
-
-@dataclass
-class ActuationIKResult:
-    """u: actuator inputs found (N / Pa); q: the equilibrium they produce;
-    success, position_error [m], orientation_error [rad], iterations,
-    achieved_pose, message (as IKResult)."""
-    u: np.ndarray
-    q: np.ndarray
-    success: bool
-    position_error: float
-    orientation_error: float
-    iterations: int
-    achieved_pose: np.ndarray
-    message: str
-
-
-def solve_actuation_ik(model, target, u_init=None, q_init=None, *, loads=None, position_only=False,
-                       weights=None, u_max=None, tol_position=1e-8, tol_orientation=1e-8,
-                       max_iterations=50):
-    """Inverse kinematics over the actuator inputs, through statics: find
-    u (tendon tensions >= 0, chamber pressures) whose static equilibrium
-    under ``loads`` (default gravity) puts the tip at ``target``, within
-    each actuator's declared range ([Actuator.lower, Actuator.upper]: the
-    robot file's limit, min, max) cut by ``u_max``.
-
-    Levenberg-Marquardt on the tip error e(q(u)) with the sensitivity of the
-    equilibrium ``dq/du = Kt^-1 B`` (Kt: statics tangent, B = d tau / d u,
-    exact since tau is linear in u). Each evaluation is a warm-started
-    statics solve. Targets the actuators cannot reach return the closest
-    equilibrium found with success False.
-    """
-    from . import statics as st
-    from .loads import Loads, actuation_force
-    loads = Loads() if loads is None else loads
-    n_act = len(model.actuators)
-    if n_act == 0:
-        raise ValueError("solve_actuation_ik: this robot has no actuators")
-    target = _target_pose(target, position_only)
-    w = _weights(weights, position_only)
-    lo = np.array([a.lower for a in model.actuators], dtype=float)
-    hi = np.array([a.upper for a in model.actuators], dtype=float)
-    if u_max is not None:
-        hi = np.minimum(hi, np.broadcast_to(np.asarray(u_max, float), (n_act,)))
-    u = np.zeros(n_act) if u_init is None else st.actuation_vector(model, u_init).copy()
-
-    def evaluate(u, previous):
-        r = st.solve_statics(model, u, loads, q_init=q_init if previous is None else previous[0])
-        return (r.q, r.tip_pose), _tip_error(r.tip_pose, target, position_only)
-
-    def jacobian(u, data, e):
-        q, g = data
-        ch = kin.chain(model, q)
-        B = np.stack([actuation_force(model, ch, ek) for ek in np.eye(n_act)], axis=1)
-        dq_du = np.linalg.solve(st.problem(model, u, loads).tangent(q), B)
-        return _error_jacobian(g, e, kin.tip_jacobian(model, q), position_only) @ dq_du
-
-    def done(data):
-        pe, oe = _errors(data[1], target)
-        return pe <= tol_position and (position_only or oe <= tol_orientation)
-
-    with one_blas_thread():
-        u, (q, g), it, message = _levenberg_marquardt(np.clip(u, lo, hi), lo, hi, evaluate, jacobian, done,
-                                                      w, max_iterations)
-    if message.startswith("stalled"):
-        at = [a.name for a, v, l, h in zip(model.actuators, u, lo, hi) if v <= l or v >= h]
-        message = ("stalled: the actuators cannot bring the tip closer (target not reachable by actuation"
-                   + (f" within the bounds; at a bound: {at})" if at else ")"))
-    pe, oe = _errors(g, target)
-    return ActuationIKResult(u, q, message == "converged", pe, oe, it, g, message)
 
 
 # ----------------------------------------------------------------------------

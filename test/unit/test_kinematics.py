@@ -288,21 +288,26 @@ def test_engine_backbone_matches_reference():
 
 
 def test_actuation_ik_recovers_tensions_of_a_reachable_target():
-    import os
+    """The actuation IK (the planner's sample solve, planner.TipSolver):
+    tensions whose equilibrium reaches a reachable target, checked by an
+    independent statics solve; an unreachable target flagged, no exception."""
+    from soft_twin_core import planner as pl
     from soft_twin_core import statics as st
+    from soft_twin_core.mechanism import from_robot_model
     from soft_twin_core.model import load_model
-    m = load_model(os.path.join(os.path.dirname(__file__), "..", "..", "config", "robots", "tendon_arm.yaml"))
+    m = load_model("tendon_arm")
+    solver = pl.TipSolver(from_robot_model(m), pl.PlanOptions(tolerance=1e-9))
     u_true = np.array([1.5, 0.0, 0.0, 0.8])
     r = st.solve_statics(m, u_true)
-    res = ik.solve_actuation_ik(m, r.tip_pose[:3, 3], position_only=True, tol_position=1e-9)
-    assert res.success and res.position_error < 1e-9
-    assert np.all(res.u >= 0)
+    res = solver.solve(r.tip_pose[:3, 3], np.zeros(4), None)
+    assert res.reached and res.position_error < 1e-9
+    assert np.all(res.x >= 0)
     # its equilibrium really reaches the target
-    r2 = st.solve_statics(m, res.u, q_init=res.q)
+    r2 = st.solve_statics(m, res.x, q_init=res.q)
     assert np.linalg.norm(r2.tip_pose[:3, 3] - r.tip_pose[:3, 3]) < 1e-8
-    # an unreachable target: best effort, no exception
-    far = ik.solve_actuation_ik(m, np.array([0.0, 0.0, 0.5]), position_only=True, max_iterations=15)
-    assert not far.success and np.all(np.isfinite(far.u)) and np.all(far.u >= 0)
+    # an unreachable target: best effort, flagged, no exception
+    far = solver.solve(np.array([0.0, 0.0, 0.5]), np.zeros(4), None)
+    assert not far.reached and far.status != "reached" and np.all(np.isfinite(far.x)) and np.all(far.x >= 0)
 
 
 def test_engine_tip_jacobian_matches_reference():
