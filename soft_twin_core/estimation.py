@@ -44,7 +44,7 @@ tip load and the tendons (analytic: :func:`algorithms.rnea_derivatives`,
 :func:`forces.actuation_tangent_pass`), ``d effort_j/dq = dtau_j(q, v,
 0)/dq - m_j w^2 e_j`` (m_j held), ``F_b = d effort/db = m_j w^2`` on the
 joint's row, likewise in v, and ``B = d tau_act/du``
-(:func:`sensors.actuation_matrix`); i.e. ``xdot = A x + G_u du``,
+(:func:`forces.actuation_matrix`); i.e. ``xdot = A x + G_u du``,
 discretised by the same theta method as the integrator:
 
     Phi = (I - theta dt A)^-1 (I + (1 - theta) dt A),
@@ -80,6 +80,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from . import sensors as sn
+from .forces import actuation_matrix
 from .multibody import FIXED, PRISMATIC, REVOLUTE, SOFT
 
 WRENCH_DIMS = {None: 0, "payload": 1, "force": 3, "wrench": 6}
@@ -406,7 +407,7 @@ class EKF:
         if k:
             _, Js = alg.point_jacobian(tree, ws, q, *self._tip_point, "world")
             cols.append(Js.T @ self.S)                                  # generalised force per unit w
-        B = sn.actuation_matrix(tree, ws, self._act, q) if len(self.u) else np.zeros((n, 0))
+        B = actuation_matrix(tree, ws, self._act, q) if len(self.u) else np.zeros((n, 0))
         cols.append(B)
         X = np.linalg.solve(M, np.hstack(cols))
         N = 2 * n + nb + k

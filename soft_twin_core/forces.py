@@ -23,6 +23,8 @@ from dataclasses import replace
 
 import numpy as np
 
+from .algorithms import point_jacobian
+from .kernels import passes
 from .kernels.data import LoadArrays
 from .kernels.spatial import _jit, _jit_inline
 from .loads import Loads, actuator_point_loads
@@ -193,6 +195,31 @@ def actuation_pass(m, w, act, coef, out):
         iv = m.iv[i]
         for a in range(m.nv[i]):
             out[iv + a] += wr[m.modes[i, a]]
+
+
+def actuation_matrix(tree, ws, act, q, posed=False):
+    """B(q) = d tau_act / d u (nv, n_actuators): the generalised actuation
+    force per unit input at q, exact (the actuation force is linear in u),
+    on ``ws`` (``posed``: its forward pass is at q already). Distributed
+    actuators: column k is :func:`actuation_pass` of the unit input e_k;
+    a point-moment tendon's column is ``J_body(end)^T [0; d(end) x (-c
+    e_x)]``, its follower moment's generalised force. ``act``: the tree's
+    :func:`actuator_arrays`."""
+    q = np.ascontiguousarray(q, dtype=float)
+    if not posed:
+        passes.forward_pass(ws.m, ws.w, q, ws.zeros_v, ws.zeros_v, 0)
+    B = np.zeros((tree.nv, len(tree.actuators)))
+    moments = [k for k, a in enumerate(tree.actuators) if a.tendon_model == "point_moment"]
+    for k in range(len(tree.actuators)):
+        if k not in moments:
+            actuation_pass(ws.m, ws.w, act, np.ascontiguousarray(act.unit[:, k]), B[:, k])
+    for k in moments:                 # (point_jacobian runs its own forward pass: after the others)
+        a = tree.actuators[k]
+        j, x = tree.path_of_actuator(k).locate(np.array([a.end]))
+        _, J = point_jacobian(tree, ws, q, int(j[0]), float(x[0]), "body")
+        d, _ = a.offset_at(np.array([a.end]))
+        B[:, k] = J[3:].T @ np.cross(d[0], -a.force_per_unit_input * np.array([1.0, 0.0, 0.0]))
+    return B
 
 
 @_jit

@@ -15,7 +15,7 @@ the path, given in the robot's base frame (``mech.base_pose``).
   ``[[Kt, -G^T], [G, 0]] [dq; dlam] = -[dR/dx; dPhi/dx] dx`` with Kt the
   engine's analytic tangent, ``dPhi/dq_cmd = -E`` and ``dR/du = -B(q)``,
   the actuation force per unit input (exact: ``tau_act = B(q) u`` is
-  linear in u; :func:`actuation_matrix`, point-moment tendons included).
+  linear in u; :func:`forces.actuation_matrix`, point-moment tendons included).
   Without multipliers (no constraint, no position-controlled joint: a
   classic rod, a tree of members on passive or effort-controlled joints)
   this is ``dq/du = Kt^-1 B`` on the compiled statics (:class:`_FreeStatics`:
@@ -76,6 +76,7 @@ from . import constrained as cs
 from . import equilibrium as eq
 from ._blas import one_blas_thread
 from .errors import PlanError, StaticsError
+from .forces import actuation_matrix
 from .kernels.tip_error import error_jacobian, tip_error
 from .loads import Loads
 from .mechanism import tip_frame
@@ -236,29 +237,9 @@ def rate_limits(mech, options):
 # The statics of a sample and its exact sensitivity
 # ----------------------------------------------------------------------------
 
-def actuation_matrix(mech, ws, q, posed=False):
-    """B(q) (nv, n_actuators) with ``tau_act(q, u) = B(q) u`` exactly, on
-    ``ws`` at q (``posed``: its forward pass is at q already): distributed
-    actuators by the compiled actuation pass with unit inputs, point-moment
-    tendons as ``J_body(end)^T [0; d(end) x (-c e_x)]``."""
-    from .forces import actuation_pass
-    from .kernels import passes
-    tree = mech.tree
-    q = np.ascontiguousarray(q, dtype=float)
-    if not posed:
-        passes.forward_pass(ws.m, ws.w, q, ws.zeros_v, ws.zeros_v, 0)
-    act = cs._cached(mech, "_act_arrays", lambda: cs.actuator_arrays(tree))
-    B = np.zeros((tree.nv, len(mech.actuators)))
-    for k, a in enumerate(mech.actuators):
-        if a.tendon_model != "point_moment":
-            actuation_pass(ws.m, ws.w, act, np.ascontiguousarray(act.unit[:, k]), B[:, k])
-    for k, a in enumerate(mech.actuators):
-        if a.tendon_model == "point_moment":             # (its own forward pass: after the others)
-            j, x = tree.path_of_actuator(k).locate(np.array([a.end]))
-            _, J = alg.point_jacobian(tree, ws, q, int(j[0]), float(x[0]), "body")
-            d, _ = a.offset_at(np.array([a.end]))
-            B[:, k] = J[3:].T @ np.cross(d[0], -a.force_per_unit_input * np.array([1.0, 0.0, 0.0]))
-    return B
+def _actuators(mech):
+    """The mechanism's :func:`forces.actuator_arrays`, made once."""
+    return cs._cached(mech, "_act_arrays", lambda: cs.actuator_arrays(mech.tree))
 
 
 @dataclass
@@ -318,7 +299,7 @@ class _Statics:
         for k in range(nj):                              # rows q_j - q_cmd,j: d/dq_cmd = -1
             dphi[len(phi) - nj + k, k] = -1.0
         if n_x > nj:
-            dR[:, nj:] = -actuation_matrix(mech, self.ws, q)
+            dR[:, nj:] = -actuation_matrix(mech.tree, self.ws, _actuators(mech), q)
         fac = cs.factor_kkt(Kt, G, G)
         dq = np.empty((tree.nv, n_x))
         for k in range(n_x):
@@ -350,7 +331,7 @@ class _FreeStatics(_Statics):
         inp = cs.make_inputs(mech, None, options.efforts, None, None, loads, tuple(options.point_loads))
         self._base_loads, self._pm = inp.loads, point_moment_arrays
         self.point_moment = any(a.tendon_model == "point_moment" for a in mech.actuators)
-        act = cs._cached(mech, "_act_arrays", lambda: cs.actuator_arrays(tree))
+        act = _actuators(mech)
         K, _ = cs._cached(mech, "_dense_KD", lambda: cs._dense_blocks(tree))
         self.pb = eq.Problem(tree, act, K, inp.loads, inp.gravity, np.zeros(len(act.joint)), inp.effort)
         self.ws = self.pb.ws
@@ -389,7 +370,7 @@ class _FreeStatics(_Statics):
         if Kt is None:
             Kt = self._set(np.asarray(x, dtype=float)).tangent(e.q)
         g, Js = self._jacobian(e.q)                       # the forward pass at q, then B on it
-        B = actuation_matrix(self.mech, self.ws, e.q, posed=True)
+        B = actuation_matrix(self.mech.tree, self.ws, _actuators(self.mech), e.q, posed=True)
         return g, Js, np.linalg.solve(Kt, B)
 
 
@@ -996,6 +977,6 @@ def compensate_lag(mech, path, options=None, iterations=4, gain=0.5, dt=0.005, s
 
 
 __all__ = ["PlanOptions", "TipSolver", "SampleResult", "Plan", "Tracking", "plan_path", "check_plan",
-           "simulate_plan", "compensate_lag", "actuator_bounds", "rate_limits", "actuation_matrix",
+           "simulate_plan", "compensate_lag", "actuator_bounds", "rate_limits",
            "frame_sensitivity", "box_lstsq", "bounded_gauss_newton_step", "braking_step", "start_vector",
            "PlanError"]

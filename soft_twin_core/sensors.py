@@ -44,7 +44,7 @@ estimator (:mod:`soft_twin_core.estimation`) and the calibration
   pressure [Pa]) is an *input* of the twin, not a function of q; the
   estimator feeds it to the process model and turns its noise into process
   noise through the actuation matrix ``B(q) = d tau_act / d u``
-  (:func:`actuation_matrix`, exact: the actuation force is linear in u).
+  (:func:`forces.actuation_matrix`, exact: the actuation force is linear in u).
 
 :func:`check_sensors` validates a list against the robot once and returns
 where each sensor sits (``where``: a point (joint, abscissa), or the
@@ -388,22 +388,6 @@ def simulate_measurement(sensor, truth, rng):
     out[:3, 3] += sensor.sigma_position_m * rng.standard_normal(3)
     out[:3, :3] = out[:3, :3] @ lie.exp_so3(sensor.sigma_rotation_rad * rng.standard_normal(3))
     return out
-
-
-def actuation_matrix(tree, ws, act, q):
-    """B(q) = d tau_act / d u (nv, n_actuators): the generalised actuation
-    force per unit input at q, exact (the actuation force is linear in u:
-    column k is the engine's actuation force for the unit input e_k).
-    ``act``: the tree's :func:`forces.actuator_arrays`."""
-    from .forces import actuation_pass
-    forward(ws, q)
-    na = len(tree.actuators)
-    B = np.zeros((tree.nv, na))
-    for k in range(na):
-        out = np.zeros(tree.nv)
-        actuation_pass(ws.m, ws.w, act, np.ascontiguousarray(act.unit[:, k]), out)
-        B[:, k] = out
-    return B
 
 
 # ----------------------------------------------------------------------------

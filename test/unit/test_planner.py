@@ -17,6 +17,7 @@ from soft_twin_core import kinematics as kin
 from soft_twin_core import paths
 from soft_twin_core import planner as pl
 from soft_twin_core import statics as st
+from soft_twin_core.forces import actuation_matrix, actuator_arrays
 from soft_twin_core.loads import actuation_force
 from soft_twin_core.mechanism import from_robot_model, load_mechanism
 from soft_twin_core.model import load_model, model_from_dict
@@ -71,7 +72,7 @@ def test_actuation_matrix_matches_reference(name):
     m = load_model(name)
     u = np.array([3.0 if a.kind == "tendon" else 2e4 for a in m.actuators])
     q = st.solve_statics(m, u).q
-    B = pl.actuation_matrix(from_robot_model(m), Workspace(m.tree), q)
+    B = actuation_matrix(m.tree, Workspace(m.tree), actuator_arrays(m.tree), q)
     ch = kin.chain(m, q)
     ref = np.stack([actuation_force(m, ch, e) for e in np.eye(len(m.actuators))], axis=1)
     assert np.abs(B - ref).max() <= 1e-12 * np.abs(ref).max()
@@ -83,7 +84,7 @@ def test_actuation_matrix_point_moment():
     ch = kin.chain(m, q)
     ref = actuation_force(m, ch, np.array([1.0]))
     mech = from_robot_model(m)
-    assert np.allclose(pl.actuation_matrix(mech, Workspace(mech.tree), q)[:, 0], ref, rtol=1e-12, atol=1e-15)
+    assert np.allclose(actuation_matrix(mech.tree, Workspace(mech.tree), actuator_arrays(mech.tree), q)[:, 0], ref, rtol=1e-12, atol=1e-15)
 
 
 def test_tip_sensitivity_matches_finite_differences(arm, arm_model):

@@ -13,7 +13,7 @@ from soft_twin_core import kinematics as kin
 from soft_twin_core import lie
 from soft_twin_core import sensors as sn
 from soft_twin_core import statics as st
-from soft_twin_core.forces import actuator_arrays
+from soft_twin_core.forces import actuation_matrix, actuator_arrays
 from soft_twin_core.loads import Loads
 from soft_twin_core.mechanism import from_robot_model
 from soft_twin_core.model import load_model, model_from_dict, benchmark_cantilever_dict
@@ -135,7 +135,7 @@ def test_actuation_matrix_matches_reference_residual(arm):
     - tau_act(q, u) is linear in u, so column k is R(u=0) - R(u=e_k)."""
     model, mech = arm
     q = _q(model, 6, 0.5)
-    B = sn.actuation_matrix(mech.tree, Workspace(mech.tree), actuator_arrays(mech.tree), q)
+    B = actuation_matrix(mech.tree, Workspace(mech.tree), actuator_arrays(mech.tree), q)
     loads = Loads(gravity=False)
     R0 = st.residual(model, q, np.zeros(4), loads)
     ref = np.stack([R0 - st.residual(model, q, e, loads) for e in np.eye(4)], axis=1)
