@@ -655,96 +655,107 @@ def write_robot_file(path, robot_dict, header=""):
 # Damping from a dynamic recording
 # ----------------------------------------------------------------------------
 
-def simulate_readings(model, sensors, times, inputs, dt, theta=0.5):
-    """Noise-free readings {sensor: (N, ...)} of a time series: the arm
-    starts at rest in equilibrium under ``inputs[0]`` at ``times[0]``; each
-    row's inputs are held until the next row's time (zero-order hold);
-    integrator steps of about ``dt`` [s] (:class:`dynamics.Simulator`).
-    Raises CalibrationFailed if a step fails, CalibrationError if the times
-    do not increase."""
-    from .dynamics import Simulator
-    from .mechanism import from_robot_model
-    from .model import State
-    from .statics import solve_statics
+def simulate_readings(robot, sensors, times, inputs, dt, theta=0.5, joints=None):
+    """Noise-free readings {sensor: (N, ...)} of a time series of any robot
+    (a mechanism or a classic model): it starts at rest in equilibrium
+    under ``inputs[0]`` (and ``joints[0]``, the position commands of the
+    position-controlled joints, rad or m; None: their references) at
+    ``times[0]``; each row's actuator inputs are held until the next row's
+    time (zero-order hold), the joints move linearly from one row's command
+    to the next (as a servo tracking the recorded commands does: a held
+    command would jump the joint within one integrator step, at a speed
+    set by the step); integrator steps of about ``dt`` [s]
+    (:class:`constrained.MechanismSimulator`). Raises CalibrationFailed if
+    a step fails, CalibrationError if the times do not increase."""
+    from .constrained import MechanismSimulator, StepError, solve_equilibrium
     from .workspace import Workspace
-    sensors, where = _measuring(from_robot_model(model), sensors)
-    ws = Workspace(model.tree)
+    mech = _as_mechanism(robot)
+    sensors, where = _measuring(mech, sensors)
+    ws = Workspace(mech.tree)
     times = np.asarray(times, dtype=float)
     if np.any(np.diff(times) <= 0):
         raise CalibrationError("t: the times of a dynamic recording must increase")
-    q0 = solve_statics(model, inputs[0]).q
-    sim = Simulator(model, dt, actuation=inputs[0], state=State(q0, np.zeros(model.n_dof), times[0]),
-                    theta=theta, full_newton=False)
+    names = position_joints(mech)
+
+    def positions(r):
+        return None if joints is None else dict(zip(names, joints[r]))
+
+    q0 = solve_equilibrium(mech, inputs[0], positions=positions(0)).q
+    sim = MechanismSimulator(mech, dt, theta, q=q0, full_newton=False)
+    sim.t = float(times[0])
     out = {s.name: [] for s in sensors}
     for r in range(len(times)):
         if r > 0:
             span = times[r] - times[r - 1]
             n = max(1, int(round(span / dt)))
-            if n * dt != span:
-                sim = _resized(sim, span / n)
-            sim.set_actuation(inputs[r - 1])
-            info = sim.step(n)
-            if not info.converged:
-                raise CalibrationFailed(f"row {r}: the simulation failed at t = {sim.state.t:.4g} s")
-        for name, z in sn.predict_readings(ws, sim.state.q, sensors, where).items():
+            if n * sim.dt != span:                # the rows' spacing in whole steps
+                t, q, v = sim.t, sim.q, sim.v
+                sim = MechanismSimulator(mech, span / n, theta, q=q, v=v, full_newton=False)
+                sim.t = t
+            try:
+                if joints is None:
+                    sim.step(inputs[r - 1], n=n)
+                for k in range(1, n + 1 if joints is not None else 1):     # the joints' commands: linear
+                    c = joints[r - 1] + (k / n) * (np.asarray(joints[r]) - joints[r - 1])
+                    sim.step(inputs[r - 1], positions=dict(zip(names, c)))
+            except StepError as e:
+                raise CalibrationFailed(f"row {r}: the simulation failed ({e})") from None
+        for name, z in sn.predict_readings(ws, sim.q, sensors, where).items():
             out[name].append(z)
     return {k: np.array(v) for k, v in out.items()}
 
 
-def _resized(sim, dt):
-    from .dynamics import Simulator
-    return Simulator(sim.model, dt, actuation=sim.actuation_at(sim.state.t), state=sim.state,
-                     theta=sim.theta, full_newton=False)
-
-
-def record_dynamic(model, sensors, times, inputs, rng, dt=1e-3):
-    """Simulated noisy recording of a time series (see :func:`simulate_readings`)."""
-    clean = simulate_readings(model, sensors, times, inputs, dt)
+def record_dynamic(robot, sensors, times, inputs, rng, dt=1e-3, joints=None):
+    """Simulated noisy recording of a time series of any robot (see
+    :func:`simulate_readings`)."""
+    clean = simulate_readings(robot, sensors, times, inputs, dt, joints=joints)
     by_name = {s.name: s for s in sensors}
     readings = {k: np.array([sn.simulate_measurement(by_name[k], z, rng) for z in v]) for k, v in clean.items()}
-    return Recording(np.asarray(inputs, dtype=float), readings, np.asarray(times, dtype=float))
+    return Recording(np.asarray(inputs, dtype=float), readings, np.asarray(times, dtype=float),
+                     None if joints is None else np.asarray(joints, dtype=float))
 
 
-def calibrate_damping(robot_dict, sensors, recording, members=None, *, dt=5e-3, n_sections=None, verbose=0):
-    """Fit the viscosity [Pa s] of ``members`` (default: every member with a
-    material) to a dynamic recording (rows at increasing times ``t``, the arm
-    at rest at the first row; :func:`simulate_readings`), the other
-    parameters as in the robot dict (calibrate them first from a static
-    sweep). Sensitivities: central differences of the simulated trajectory
+def calibrate_damping(robot_dict, sensors, recording, members=None, *, dt=5e-3, n_sections=None, verbose=0,
+                      base_dir=None):
+    """Fit the viscosity [Pa s] of the segments ``members`` (keys as in
+    the static fit: a segment's name, ``<member>/<segment>`` where names
+    repeat; default: every segment with a material) of a robot of either
+    schema to a dynamic recording (rows at increasing times ``t``, the
+    robot at rest at the first row, its joint commands in
+    ``recording.joints``; :func:`simulate_readings`), the other parameters
+    as in the robot dict (calibrate them first from a static sweep).
+    Sensitivities: central differences of the simulated trajectory
     (``least_squares(jac="3-point")``; a static sweep carries no damping
     information, and no analytic sensitivity through the integrator is
     implemented). Returns a :class:`CalibrationResult` (no held-out rows)."""
     from scipy.optimize import least_squares
     from scipy.stats import t as student_t
-    from .mechanism import from_robot_model
-    from .model import model_from_dict
     if recording.time is None:
         raise CalibrationError("damping: the recording needs a time column t")
-    segs = [(str(sd.get("name", f"segment{k}")), sd) for k, sd in enumerate(robot_dict["segments"])]
+    segs = _segments_of(robot_dict)[0]
     if members is None:
-        members = [n for n, sd in segs if "material" in sd]
-    lookup = dict(segs)
+        members = [k for k, sd in segs.items() if "material" in sd]
     for m in members:
-        if m not in lookup or "material" not in lookup[m]:
-            raise CalibrationError(f"parameter 'viscosity:{m}': no member {m!r} with a material "
-                                   f"(members: {[n for n, _ in segs]})")
-    nominal = np.array([float(lookup[m]["material"].get("viscosity", 0.0)) for m in members])
+        if m not in segs or "material" not in segs[m]:
+            raise CalibrationError(f"parameter 'viscosity:{m}': no segment {m!r} with a material "
+                                   f"(segments: {list(segs)})")
+    nominal = np.array([float(segs[m]["material"].get("viscosity", 0.0)) for m in members])
     if np.any(nominal <= 0):
         raise CalibrationError("damping: the starting viscosities must be > 0 (set them in the robot file)")
-    model0 = model_from_dict(robot_dict, n_sections)
-    check_recording_inputs(model0, recording.inputs)         # the declared actuator ranges
-    sensors = _measuring(from_robot_model(model0), sensors)[0]
+    mech0 = mechanism_of(robot_dict, n_sections, base_dir)
+    check_recording_inputs(mech0, recording.inputs)         # the declared actuator ranges
+    sensors = _measuring(mech0, sensors)[0]
 
     def with_visc(x):
         d = copy.deepcopy(robot_dict)
-        dd = {str(sd.get("name", f"segment{k}")): sd for k, sd in enumerate(d["segments"])}
+        dd = _segments_of(d)[0]
         for m, v in zip(members, x):
             dd[m]["material"]["viscosity"] = float(v)
         return d
 
     def fun(x):
-        model = model_from_dict(with_visc(x * nominal), n_sections)
-        pred = simulate_readings(model, sensors, recording.time, recording.inputs, dt)
+        mech = mechanism_of(with_visc(x * nominal), n_sections, base_dir)
+        pred = simulate_readings(mech, sensors, recording.time, recording.inputs, dt, joints=recording.joints)
         res = []
         for s in sensors:
             for r in range(len(recording)):

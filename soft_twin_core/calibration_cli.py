@@ -71,10 +71,6 @@ def cli_main(args):
         robot_dict = robot_mapping(read_yaml_file(path, ModelError, "robot file"), f"robot file {path}")
         base_dir = os.path.dirname(os.path.abspath(path))
         mech = mechanism_of(robot_dict, args.sections, base_dir)
-        tree = "bodies" in robot_dict
-        if tree and args.dynamic:
-            raise CalibrationError(f"--dynamic: the damping fit takes classic robots (segments); robot file {path} "
-                                   f"is a tree robot")
         sensors = sn.load_sensors(args.sensors, mech)
         mcap_report = None
         if cm.is_mcap(args.data):                      # an MCAP recording of the node
@@ -95,7 +91,8 @@ def cli_main(args):
             if not (np.isfinite(args.dt) and args.dt > 0):
                 raise CalibrationError(f"--dt must be a positive step in s, got {args.dt}")
             members = None if "viscosity" in names else [n.split(":", 1)[1] for n in names]
-            res = calibrate_damping(robot_dict, sensors, rec, members, dt=args.dt, n_sections=args.sections)
+            res = calibrate_damping(robot_dict, sensors, rec, members, dt=args.dt, n_sections=args.sections,
+                                    base_dir=base_dir)
         else:
             names = _expand(names, robot_dict)
             res = calibrate(robot_dict, sensors, rec, names, holdout_every=args.holdout_every,

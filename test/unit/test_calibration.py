@@ -13,6 +13,7 @@ import pytest
 from soft_twin_core import calibration as cal
 from soft_twin_core import sensors as sn
 from soft_twin_core.cli import main as cli_main
+from soft_twin_core.mechanism import from_robot_model
 from soft_twin_core.model import find_file, load_model, model_from_dict, read_yaml_file
 
 LENGTH = 0.4
@@ -80,6 +81,20 @@ def test_sensitivities_match_finite_differences():
     pb = cal.Problem(d, sensors, rec, names)
     assert_sensitivities(pb, pb.theta0 + np.array([3e6, -2e6, 4e-4, -3e-4, 2e-4, 5e-4, 0.02, 2e-3, 1e-3, -1e-3]),
                          1e-6)
+
+
+def damping_cli(tmp_path, capsys, robot, mech, sensors, rec, dt):
+    """The JSON report's parameters of ``soft-twin-sim calibrate --dynamic
+    --fit viscosity`` on the recording written as CSV (tmp_path/step.csv;
+    the robot file written to tmp_path/damped.yaml)."""
+    import yaml
+    cal.write_csv(tmp_path / "step.csv", mech, sensors, rec)
+    (tmp_path / "s.yaml").write_text(yaml.safe_dump({"sensors": sn.sensors_to_list(sensors)}))
+    code = cli_main(["calibrate", robot, "--sensors", str(tmp_path / "s.yaml"), "--data", str(tmp_path / "step.csv"),
+                     "--fit", "viscosity", "--dynamic", "--dt", str(dt), "-o", str(tmp_path / "damped.yaml")])
+    cap = capsys.readouterr()
+    assert code == 0, cap.err
+    return json.loads(cap.out)["parameters"]
 
 
 def assert_sensitivities(pb, theta, rtol, step=1e-5):
@@ -173,7 +188,6 @@ def test_cli_calibrate_writes_a_calibrated_robot_file(tmp_path, capsys):
 
 
 def test_sensor_files_round_trip():
-    from soft_twin_core.mechanism import from_robot_model
     model = from_robot_model(load_model("tracked_arm"))
     items = [{"name": "em", "type": "pose", "s": 0.2, "sigma_position": 1e-3, "sigma_rotation": 0.01,
               "offset": [0, 0, 0.01], "rpy": [0.1, 0.2, 0.3]},
@@ -208,15 +222,7 @@ def test_damping_fitted_to_a_step_response(tmp_path, capsys):
     inputs[times >= 0.6, 3] = 12.0
     rec = cal.record_dynamic(model_from_dict(true), _markers(), times, inputs, np.random.default_rng(4), dt=2e-3)
     model = load_model("tracked_arm")
-    cal.write_csv(tmp_path / "step.csv", model, _markers(), rec)
-    import yaml
-    (tmp_path / "s.yaml").write_text(yaml.safe_dump({"sensors": sn.sensors_to_list(_markers())}))
-    code = cli_main(["calibrate", "tracked_arm", "--sensors", str(tmp_path / "s.yaml"), "--data",
-                     str(tmp_path / "step.csv"), "--fit", "viscosity", "--dynamic", "--dt", "0.01",
-                     "-o", str(tmp_path / "damped.yaml")])
-    cap = capsys.readouterr()
-    assert code == 0, cap.err
-    rep = json.loads(cap.out)["parameters"]
+    rep = damping_cli(tmp_path, capsys, "tracked_arm", from_robot_model(model), _markers(), rec, 0.01)
     prox, dist = rep["viscosity:proximal"], rep["viscosity:distal"]
     assert abs(prox["fitted"] / 8.0e4 - 1) < 0.03, rep
     assert abs(dist["fitted"] - 8.0e4) < 2 * dist["ci95"], rep
