@@ -69,11 +69,11 @@ def _backbone_view(mech, out):
     ``backbone_positions`` [m] and ``internal_wrenches`` (its cross-sections'
     axes)."""
     from .mechanism import tip_frame
-    from .outputs import base_reaction, main_member
+    from .outputs import main_member
     tip = tip_frame(mech)
     g = np.asarray(out.frames[tip], dtype=float)
     d = {"tip_position": g[:3, 3].tolist(), "tip_rotation": g[:3, :3].ravel().tolist(),
-         "base_wrench": base_reaction(mech, out.joint_wrenches).tolist()}
+         "base_wrench": out.base_wrench.tolist()}
     main = main_member(mech, tip)
     m = next((x for x in out.members if main is not None and x.name == main.name), None)
     if m is not None:
@@ -187,7 +187,7 @@ class _Recorder:
     def record(self, k, t, iterations):
         """Row k (time t [s]) from the simulator's state; a member sample too
         when k is a multiple of ``sample_every``."""
-        from .outputs import base_reaction, frame_velocity, section_rates, section_strains, state_outputs
+        from .outputs import frame_velocity, section_rates, section_strains, state_outputs
         sc, sim, mech, out = self.sc, self.sim, self.mech, self.out
         inp = self.inputs(t, t)              # the loads and efforts at the recorded instant
         sample = bool(self.sample_every) and k % self.sample_every == 0
@@ -205,7 +205,7 @@ class _Recorder:
         out["tip_position"].append(g[:3, 3].tolist())
         out["tip_orientation"].append(_quaternions(g[None])[0])
         out["tip_velocity"].append(frame_velocity(mech, self.ws, sim.v, self.tip)[:3].tolist())
-        out["base_wrench"].append(base_reaction(mech, o.joint_wrenches).tolist())
+        out["base_wrench"].append(o.base_wrench.tolist())
         out["joint_positions"].append([o.positions[n] for n in mech.joint_names])
         out["joint_velocities"].append([o.velocities[n] for n in mech.joint_names])
         out["joint_accelerations"].append([o.accelerations[n] for n in mech.joint_names])

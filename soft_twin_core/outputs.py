@@ -24,7 +24,9 @@ import math
 import numpy as np
 
 from .errors import ModelError
+from .forces import point_moment_arrays
 from .kernels import passes
+from .kernels.frames import point_poses
 from .stress import peak_stresses
 
 
@@ -231,17 +233,35 @@ def main_member(mech, tip):
         mech.members[-1] if mech.members else None)
 
 
-def base_reaction(mech, joint_wrenches):
+def base_reaction(mech, joint_wrenches, ws=None, u=None):
     """The support's reaction on the robot (6,) [f; m]: the wrench through
     every root joint (``joint_wrenches`` {joint: world [f; m] about its
     input origin}), world axes, moment about the base origin (a constraint
-    to the world reacts on its own: ``constraint_wrenches``)."""
+    to the world reacts on its own: ``constraint_wrenches``). With the
+    workspace ``ws`` of those wrenches and the inputs ``u``, the follower
+    moments of point-moment tendons are taken for internal (their motor
+    sits on the support, which takes the opposite couple): the loads the
+    root joints transmit, less those moments in world axes."""
     base = np.zeros(6)
     for j in mech.tree.joints:
         if j.parent == -1:
             wr = np.asarray(joint_wrenches[j.name], dtype=float)
             base += np.concatenate([wr[:3], wr[3:] + np.cross(j.placement[:3, 3], wr[:3])])
+    if u is not None and len(u):
+        base[3:] += tendon_couple(mech, ws, u)
     return base
+
+
+def tendon_couple(mech, ws, u):
+    """The sum (3,) [N m] of the point-moment tendons' follower moments at
+    inputs u, in world axes, at the workspace's last forward pass (zero
+    without such tendons)."""
+    pm = point_moment_arrays(mech.tree, u)
+    if not len(pm.joint):
+        return np.zeros(3)
+    G = np.empty((len(pm.joint), 4, 4))
+    point_poses(ws.m, ws.w, pm.joint, np.ascontiguousarray(pm.x), G)
+    return np.einsum("pij,pj->i", G[:, :3, :3], pm.wrench[:, 3:])
 
 
 def max_von_mises(mech, members):
@@ -364,7 +384,8 @@ class MechanismOutputs:
     m/s, m/s^2, N), ``joint_wrenches`` {joint: world [f; m] (6,)} for every
     joint (soft sections included), ``constraint_wrenches`` {constraint:
     world [f; m] on its frame a}, ``frames`` {name: world pose 4x4},
-    ``members`` (MemberOutput list)."""
+    ``members`` (MemberOutput list), ``base_wrench`` (6,) the support's
+    reaction (:func:`base_reaction`)."""
     positions: dict
     velocities: dict
     accelerations: dict
@@ -373,6 +394,7 @@ class MechanismOutputs:
     constraint_wrenches: dict
     frames: dict
     members: list
+    base_wrench: np.ndarray
 
 
 def state_outputs(mech, q, lam, inputs, v=None, a=None, ws=None, points_per_section=1, member_motion=True):
@@ -404,4 +426,5 @@ def state_outputs(mech, q, lam, inputs, v=None, a=None, ws=None, points_per_sect
         joint_wrenches={j.name: jw[i] for i, j in enumerate(tree.joints)},
         constraint_wrenches=constraint_wrenches(mech, lam),
         frames=frames,
-        members=members)
+        members=members,
+        base_wrench=base_reaction(mech, {j.name: jw[i] for i, j in enumerate(tree.joints)}, ws, inputs.u))

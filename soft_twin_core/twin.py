@@ -38,7 +38,7 @@ from . import statics as st
 from ._blas import one_blas_thread
 from .mechanism import shape_command, tip_frame
 from .model import State
-from .outputs import (base_reaction, main_member, q_from_section_strains, section_rates, section_strains,
+from .outputs import (main_member, q_from_section_strains, section_rates, section_strains,
                       state_outputs, state_shape)
 from .text import clip
 from .workspace import Workspace
@@ -204,7 +204,7 @@ class Snapshot:
 
     @property
     def base_wrench(self):
-        return base_reaction(self.state[0], self._loads.joint_wrenches)
+        return self._loads.base_wrench
 
     @property
     def constraint_wrenches(self):
