@@ -6,7 +6,7 @@ shared/DESIGN.md "Performance": L = 0.5 m, r = 0.01 m, E = 1 MPa, Poisson 0.5,
 straight rest shape, 1 s simulated. Five items, each printed as a table with
 the machine load (1-min load average, as ``uptime``) and the issue's goal:
 
-  1. per-step cost of ``dynamics.Simulator`` vs sections (5-40), Newton
+  1. per-step cost of ``MechanismSimulator`` vs sections (5-40), Newton
      iterations, factorisations, log-log scaling exponent; the compiled
      kernels' cost per call (residual pass, factorisation, solve) beside it;
   2. the largest dt whose tip trajectory stays within 1 mm of the dt -> 0
@@ -46,8 +46,10 @@ import timeit
 import numpy as np
 
 from _timing import fmt, machine
-from soft_twin_core import dynamics as dy
+import soft_twin_core
 from soft_twin_core import kinematics as kin
+from soft_twin_core.constrained import MechanismSimulator, StepError, free_problem, make_inputs, solve_equilibrium
+from soft_twin_core.mechanism import from_robot_model
 from soft_twin_core.model import benchmark_cantilever_dict, model_from_dict
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
@@ -56,7 +58,7 @@ T_END = 1.0               # simulated time [s]
 # dt ladder [ms], largest first: divisors of the 10 ms sample interval, and 20 ms (compared every 20 ms)
 LADDER_MS = (20.0, 10.0, 5.0, 10 / 3, 2.5, 2.0, 5 / 3, 1.25, 1.0, 0.5, 0.25)
 ACCURACY = 1e-3           # max tip deviation from the dt -> 0 trajectory [m]
-TOL = 1e-4                # Newton tolerance of the timed runs: dynamics.Simulator's default
+TOL = 1e-4                # Newton tolerance of the timed runs: the node's (TwinSettings.tolerance)
 PEERS = (("PyElastica, 100 elements", 0.98, 9.2e-3, 10.0),
          ("PyElastica, 200 elements", 2.5, 3.7e-3, 10.0),
          ("SoRoMoX, 10 segments", 1.9, 11.6e-3, 40.0))
@@ -78,6 +80,16 @@ def tip(m, q):
     return kin.tip_pose(m, q)[:3, 3].copy()
 
 
+def mechanism(m):
+    return from_robot_model(m)          # made once per model
+
+
+def simulator(m, dt, tol=TOL, theta=0.5):
+    """The simulator of every robot on the classic model, with the node's
+    Newton settings (tolerance 1e-4 of the largest strain rate, 10 iterations)."""
+    return MechanismSimulator(mechanism(m), dt, theta, tol=tol, max_iterations=10)
+
+
 def per_call(fn, repeat=5):
     """Best per-call wall time of ``fn()`` (short calls: the min of repeats is robust to load)."""
     number, _ = timeit.Timer(fn).autorange()
@@ -91,12 +103,12 @@ class Run:
     failures."""
 
     def __init__(self, m, dt, T=T_END, tol=TOL, theta=0.5, sample=SAMPLE, record=True):
-        sim = dy.Simulator(m, dt, tol=tol, theta=theta)
+        sim = simulator(m, dt, tol, theta)
         self.substeps = self.fallbacks = 0
         if record:
             # count the sub-steps taken when a step did not converge (level > 0 of the halving) and the
             # dense full-Newton fallbacks (ThetaIntegrator._newton_full, where the engine has one)
-            integ = sim._integrator
+            integ = sim._theta_integrator
             advance = integ._advance
 
             def counting(q0, v0, t, h, level):
@@ -112,26 +124,28 @@ class Run:
         n_steps = int(round(T / dt))
         every = max(1, int(round(max(sample, dt) / dt)))
         self.dt, self.sample = dt, every * dt
-        self.tips = [tip(m, sim.state.q)] if record else []
+        self.tips = [tip(m, sim.q)] if record else []
         wall, cpu, done, ok = 0.0, 0.0, 0, True
         while done < n_steps:
             # k steps with constant inputs in one call (the compiled multi-step path users get)
             k = min(every, n_steps - done)
             c0, t0 = time.process_time(), time.perf_counter()
-            info = sim.step(k)
-            wall += time.perf_counter() - t0
-            cpu += time.process_time() - c0
-            if not info.converged:
+            try:
+                sim.step(n=k)
+            except StepError:
                 ok = False
                 break
+            finally:
+                wall += time.perf_counter() - t0
+                cpu += time.process_time() - c0
             done += k
             if record:
-                self.tips.append(tip(m, sim.state.q))
+                self.tips.append(tip(m, sim.q))
         self.tips = np.array(self.tips)
         self.wall, self.cpu, self.steps, self.ok = wall, cpu, done, ok
         self.iterations = sim.newton_iterations / max(done, 1)
-        self.factorisations = sim.jacobian_refreshes
-        self.final = tip(m, sim.state.q)
+        self.factorisations = sim.factorisations
+        self.final = tip(m, sim.q)
 
     def deviation(self, ref):
         """Max tip distance to ``ref`` (a Run sampled at a divisor of this
@@ -192,11 +206,12 @@ def kernel_costs(m, dt):
     forward pass), solve."""
     from soft_twin_core.integrators import residual_pass
     from soft_twin_core.kernels import passes
-    sim = dy.Simulator(m, dt)
-    sim.step(int(round(0.2 / dt)))
-    loads, g, coef, effort = sim._inputs(0.0)
-    ws, act = sim.workspace, sim._act
-    q, v, a = sim.state.q, sim.state.qdot, sim.last_qddot
+    sim = simulator(m, dt)
+    sim.step(n=int(round(0.2 / dt)))
+    inp = sim.inputs
+    loads, g, coef, effort = inp.loads, inp.gravity, np.zeros(len(sim.act.joint)), inp.effort
+    ws, act = sim.ws, sim.act
+    q, v, a = sim.q, sim.v, sim.a
     R, x = np.empty(m.tree.nv), np.empty(m.tree.nv)
     th = 0.5 * dt
     t_res = per_call(lambda: residual_pass(ws.m, ws.w, act, loads, g, coef, effort, q, v, a, R, False))
@@ -211,7 +226,7 @@ def kernel_costs(m, dt):
 def kernel_share(m, dt):
     """(compiled steps, rest) per step [s] over 1 s: the time spent in
     ``integrators.run_steps`` (the compiled loop over the steps of a sample
-    interval) against the whole ``Simulator.step(k)``, in one run."""
+    interval) against the whole ``MechanismSimulator.step(n=k)``, in one run."""
     from soft_twin_core import integrators
     orig = integrators.run_steps
     spent = [0.0]
@@ -232,7 +247,7 @@ def kernel_share(m, dt):
 def item1(args, dt2):
     ns = (5, 10, 20, 40)
     for dt in sorted({1e-3, dt2}):
-        header(f"1. Per-step cost of dynamics.Simulator(model, dt={dt * 1e3:g} ms, tol={TOL:g}), 1 s simulated "
+        header(f"1. Per-step cost of MechanismSimulator(model, dt={dt * 1e3:g} ms, tol={TOL:g}), 1 s simulated "
                f"({int(round(T_END / dt))} steps), {args.repeat} runs")
         print(f"{'sections':>8} {'dof':>4} {'wall min':>10} {'median':>10} {'CPU min':>10} {'it/step':>8} "
               f"{'factor.':>8} {'per it':>10} | {'compiled':>9} {'rest':>9} | {'residual':>10} {'factor':>10} "
@@ -258,7 +273,7 @@ def item1(args, dt2):
         print(f"  40 sections: {fmt(cpus[-1]).strip()} CPU, {fmt(walls[-1]).strip()} wall per step   goal <= 0.5 ms")
         print("  (per step: over 1 s, min / median of the runs; per it = CPU per step / iterations; factor. = "
               "factorisations in 1 s; compiled / rest: per step, in integrators.run_steps (the compiled loop over "
-              "the steps of a 10 ms sample) / in the Python layer around it (Simulator.step, ThetaIntegrator.run), "
+              "the steps of a 10 ms sample) / in the Python layer around it (MechanismSimulator.step, ThetaIntegrator.run), "
               "one more run; right: the kernels alone, best per call at t = 0.2 s: residual pass, articulated-body "
               "factorisation, solve)")
     print(f"[{load()}]")
@@ -394,9 +409,8 @@ def item3(args, ref10):
 # ----------------------------------------------------------------------------
 
 def item4(args):
-    from soft_twin_core import statics as st
     from soft_twin_core.loads import Loads
-    header("4. statics.solve_statics(model): equilibrium under gravity from the straight rod, cold "
+    header("4. constrained.solve_equilibrium(mechanism): equilibrium under gravity from the straight rod, cold "
            "(no warm start)")
     print(f"{'sections':>8} {'dof':>4} {'wall med':>10} {'wall min':>10} {'CPU med':>10} {'it':>3} {'steps':>5} "
           f"| {'tangent':>10} {'residual':>10} {'tan/res':>7} {'2 nv res':>10} {'wrapped t / r':>19}")
@@ -405,20 +419,21 @@ def item4(args):
     goal10 = None
     for n in (5, 10, 20, 40):
         m = cantilever(n)
-        r = st.solve_statics(m)
+        mech = mechanism(m)
+        r = solve_equilibrium(mech)
         reps = args.repeat_statics if n <= 20 else max(3, args.repeat_statics // 3)
         ws, cs = [], []
         for _ in range(reps):
             c0, t0 = time.process_time(), time.perf_counter()
-            r = st.solve_statics(m)
+            r = solve_equilibrium(mech)
             ws.append(time.perf_counter() - t0)
             cs.append(time.process_time() - c0)
-        pb = st.problem(m, u, loads)
+        pb = free_problem(mech, make_inputs(mech, u, loads=loads))
         q = r.q
         t_tan = per_call(lambda: pb.tangent(q))
         t_res = per_call(lambda: pb.residual(q))
-        w_tan = per_call(lambda: st.problem(m, u, loads).tangent(q))
-        w_res = per_call(lambda: st.problem(m, u, loads).residual(q))
+        w_tan = per_call(lambda: free_problem(mech, make_inputs(mech, u, loads=loads)).tangent(q))
+        w_res = per_call(lambda: free_problem(mech, make_inputs(mech, u, loads=loads)).residual(q))
         nv = m.tree.nv
         print(f"{n:>8} {m.n_dof:>4} {fmt(np.median(ws)):>10} {fmt(min(ws)):>10} {fmt(np.median(cs)):>10} "
               f"{r.iterations:>3d} {r.load_steps:>5d} | {fmt(t_tan):>10} {fmt(t_res):>10} {t_tan / t_res:>7.1f} "
@@ -430,7 +445,7 @@ def item4(args):
     print(f"  ({args.repeat_statics} solves per n, 40 sections {max(3, args.repeat_statics // 3)}; it: Newton "
           f"iterations; steps: load steps; tangent / residual: equilibrium.Problem.tangent / .residual at the "
           f"equilibrium, best per call; 2 nv res: a central-difference tangent's cost; wrapped: "
-          f"statics.problem(...).tangent / .residual, which also build the problem and its workspace)")
+          f"constrained.free_problem(...).tangent / .residual, which also build the problem and its workspace)")
     print(f"[{load()}]")
 
 
@@ -443,15 +458,16 @@ import json, sys, time
 t_first = time.time()
 t0 = time.perf_counter()
 import numpy as np
-from soft_twin_core import dynamics as dy, statics as st
+from soft_twin_core.constrained import MechanismSimulator, solve_equilibrium
+from soft_twin_core.mechanism import from_robot_model
 from soft_twin_core.model import benchmark_cantilever_dict, model_from_dict
 t1 = time.perf_counter()
-m = model_from_dict(benchmark_cantilever_dict(10, "all"))
-r = st.solve_statics(m)
+m = from_robot_model(model_from_dict(benchmark_cantilever_dict(10, "all")))
+r = solve_equilibrium(m)
 t2 = time.perf_counter()
 dt = float(sys.argv[1])
-sim = dy.Simulator(m, dt)
-assert sim.step(int(round(1.0 / dt))).converged     # constant inputs: one compiled call
+sim = MechanismSimulator(m, dt, tol=1e-4, max_iterations=10)
+sim.step(n=int(round(1.0 / dt)))     # constant inputs: one compiled call
 t3 = time.perf_counter()
 import soft_twin_core
 print(json.dumps({"import": t1 - t0, "statics": t2 - t1, "dynamics": t3 - t2, "file": soft_twin_core.__file__,
@@ -541,7 +557,7 @@ def main():
     # largest dt of the ladder), and the peers are compared with the cheapest run as accurate as they are
     args.n_list = (4, 5, 6, 8, 9, 10, 11, 12, 14, 16, 20)
     print(f"machine: {machine()}, {os.cpu_count()} CPUs; soft_twin_core from "
-          f"{os.path.dirname(dy.__file__)}; {'quick' if q else 'full'} run")
+          f"{os.path.dirname(soft_twin_core.__file__)}; {'quick' if q else 'full'} run")
     print(f"case: benchmark_cantilever_dict(n, 'all') (shared/DESIGN.md), undamped, released straight under "
           f"gravity, {T_END:g} s")
     t_start = time.perf_counter()

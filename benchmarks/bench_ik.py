@@ -22,7 +22,9 @@ import time
 import numpy as np
 
 from _timing import machine
-from soft_twin_core import statics as st
+from soft_twin_core import kinematics as kin
+from soft_twin_core.constrained import solve_equilibrium
+from soft_twin_core.mechanism import from_robot_model
 from soft_twin_core.model import load_model
 
 
@@ -35,7 +37,7 @@ def targets(model, n, seed=0):
         u = np.zeros(4)
         u[rng.integers(0, 2)] = rng.uniform(0, 3)
         u[2 + rng.integers(0, 2)] = rng.uniform(0, 3)
-        out.append(st.solve_statics(model, u).tip_pose)
+        out.append(kin.tip_pose(model, solve_equilibrium(from_robot_model(model), u).q))
     return out
 
 

@@ -9,7 +9,9 @@ import numpy as np
 
 from _timing import fmt, machine
 from soft_twin_core import loads as ld
-from soft_twin_core import statics as st
+from soft_twin_core import kinematics as kin
+from soft_twin_core.constrained import solve_equilibrium
+from soft_twin_core.mechanism import from_robot_model
 from soft_twin_core.model import benchmark_cantilever_dict, model_from_dict
 
 
@@ -33,10 +35,11 @@ def main():
         m = model_from_dict(d)
         loads = ld.Loads(point=(ld.tip_load(m, (0.0, 0.05, -0.02)),))
         u = {"t1": 0.8, "t2": 0.4}
-        st.solve_statics(m, u, loads)                          # compile
-        t_cold, r = timed(lambda: st.solve_statics(m, u, loads))
+        mech = from_robot_model(m)
+        solve_equilibrium(mech, u, loads=loads)               # compile
+        t_cold, r = timed(lambda: solve_equilibrium(mech, u, loads=loads))
         u2 = {"t1": 0.85, "t2": 0.4}                           # a new command, warm-started
-        t_warm, r2 = timed(lambda: st.solve_statics(m, u2, loads, q_init=r.q))
+        t_warm, r2 = timed(lambda: solve_equilibrium(mech, u2, loads=loads, q_init=r.q))
         print(f"10 sections ({free}, {m.n_dof} dof), gravity + tip load + 2 tendons: cold {fmt(t_cold)} "
               f"({r.iterations} it), warm {fmt(t_warm)} ({r2.iterations} it), residual {r2.residual:.1e}")
     # the common benchmark cantilever under gravity: convergence to the continuum BVP
@@ -50,9 +53,10 @@ def main():
     print(f"{'sections':>8} {'time':>10} {'tip error [m]':>14} {'error / L':>10}")
     for n in (2, 4, 8, 16, 32):
         m = model_from_dict(benchmark_cantilever_dict(n))
-        st.solve_statics(m)
-        t, r = timed(lambda: st.solve_statics(m), repeat=3)
-        e = np.linalg.norm(r.tip_pose[:3, 3] - ref)
+        mech = from_robot_model(m)
+        solve_equilibrium(mech)
+        t, r = timed(lambda: solve_equilibrium(mech), repeat=3)
+        e = np.linalg.norm(kin.tip_pose(m, r.q)[:3, 3] - ref)
         print(f"{n:>8} {fmt(t):>10} {e:>14.3e} {e / 0.5:>10.2e}")
 
 

@@ -17,7 +17,7 @@ import yaml
 from soft_twin_core import paths as pth
 from soft_twin_core import planner as pl
 from soft_twin_core.model import ModelError
-from soft_twin_core.statics import StaticsError
+from soft_twin_core.errors import StaticsError
 
 from soft_twin import services
 from soft_twin.query_worker import QueryError

@@ -22,7 +22,7 @@ import numpy as np
 from soft_twin_core import lie
 from soft_twin_core.model import ModelError
 from soft_twin_core.planner import PlanError
-from soft_twin_core.statics import StaticsError
+from soft_twin_core.errors import StaticsError
 
 from soft_twin import conversions as cv
 from soft_twin_core import ik as core_ik

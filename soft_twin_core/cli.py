@@ -139,7 +139,7 @@ def _run_plan(args):
     from .paths import PathError
     from .plan_file import PlanFileError, load_plan_file, plan_csv, run_plan
     from .planner import PlanError
-    from .statics import StaticsError
+    from .errors import StaticsError
     try:
         model, path, opts, u0, dyn = load_plan_file(args.plan_file)
         t0 = time.monotonic()
@@ -278,7 +278,7 @@ def show_plausibility_warnings(prog="soft-twin-sim"):
 def main(argv=None):
     from .model import ModelError
     from .scenario import ScenarioError, load_scenario, n_steps_for, run_dynamics, run_statics
-    from .statics import StaticsError
+    from .errors import StaticsError
     args = _parser().parse_args(argv)
     show_plausibility_warnings()
     # --- design studies and workspaces (issue 16): soft_twin_core/study_cli.py

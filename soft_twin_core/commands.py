@@ -20,7 +20,7 @@ from . import loads as ld
 from .errors import InputError
 from .mechanism import check_joint_position
 from .model import check_actuator_input
-from .statics import actuation_vector
+from .constrained import actuation_vector
 from .text import clip, short_list
 
 # reason keys of rejected inputs (diagnostics counters): the first ones at the

@@ -44,7 +44,6 @@ from .multibody import FREE, PRISMATIC, REVOLUTE, SPHERICAL
 from .equilibrium import constraint_null_space, equilibrium_stability, reduced_stiffness  # noqa: F401
 from . import equilibrium as eq
 from .errors import StaticsError
-from .statics import actuation_vector
 from .workspace import Workspace
 from .errors import StepError
 
@@ -70,6 +69,38 @@ class Inputs:
     v_cmd: np.ndarray
     loads: LoadArrays
     gravity: np.ndarray
+
+
+def actuation_vector(model, actuation):
+    """Inputs (n_actuators,) from a dict {name: value}, a sequence, or None.
+    Tendon tensions must be >= 0 N; every value finite."""
+    n = len(model.actuators)
+    if actuation is None:
+        return np.zeros(n)
+    if isinstance(actuation, dict):
+        u = np.zeros(n)
+        names = model.actuator_names
+        for k, v in actuation.items():
+            if k not in names:
+                raise ValueError(f"actuation: unknown actuator {k!r}; this robot has {list(names)}")
+            try:
+                u[names.index(k)] = float(v)
+            except (TypeError, ValueError):
+                raise ValueError(f"actuation: {k} = {v!r} is not a number") from None
+    else:
+        try:
+            u = np.asarray(actuation, dtype=float)
+        except (TypeError, ValueError):
+            raise ValueError(f"actuation: expected {n} numbers, got {actuation!r}") from None
+        if u.shape != (n,):
+            raise ValueError(f"actuation: expected {n} values (one per actuator {list(model.actuator_names)}), "
+                             f"got shape {u.shape}")
+    for a, val in zip(model.actuators, u):
+        if not np.isfinite(val):
+            raise ValueError(f"actuation: {a.name} = {val} is not finite")
+        if a.kind == "tendon" and val < 0:
+            raise ValueError(f"actuation: tendon {a.name} tension must be >= 0 N, got {val}")
+    return u
 
 
 def joint_vector(mech, values, mode, what, unit):
@@ -364,7 +395,9 @@ class _Equilibrium:
 class Equilibrium:
     """A static equilibrium of a mechanism: q; multipliers lam; joint_efforts
     {name: N m or N}; constraint_wrenches {name: world [f; m] on frame a};
-    iterations; residual (relative); constraint_error (max |Phi|, m or rad)."""
+    iterations; residual (relative); constraint_error (max |Phi|, m or rad);
+    stable and :attr:`min_stiffness_eigenvalue` (see
+    :func:`equilibrium_stability`)."""
     q: np.ndarray
     lam: np.ndarray
     joint_efforts: dict
@@ -375,8 +408,19 @@ class Equilibrium:
     load_steps: int = 1
     inputs: Inputs = None
     stable: bool = True                 # see equilibrium_stability
-    min_stiffness_eigenvalue: float = float("nan")
+    lowest_eigenvalue: float = float("nan")     # when the solve computed it (else: min_stiffness_eigenvalue)
     tangent: object = None              # without constraints: the last Newton tangent (a tangent_hint)
+    stability_tangent: object = None    # the tangent the stability was judged on, if its eigenvalue is not known
+
+    @property
+    def min_stiffness_eigenvalue(self):
+        """The smallest eigenvalue of the (reduced) stiffness, nan when the
+        stability was not judged; without constraints it is computed at
+        first use (an O(n^3) eigen-solve the solve itself does without: a
+        Cholesky factorisation decides the stability)."""
+        if np.isnan(self.lowest_eigenvalue) and self.stability_tangent is not None:
+            self.lowest_eigenvalue = equilibrium_stability(self.stability_tangent)[1]
+        return self.lowest_eigenvalue
 
 
 def independent_rows(G, rtol=1e-10):
@@ -550,20 +594,28 @@ def solve_equilibrium(mech, actuation=None, efforts=None, positions=None, loads=
                        inp, stable, lo)
 
 
-def _free_equilibrium(mech, inp, q, tol, max_iterations, max_load_steps, check_stability, tangent_hint):
-    """:func:`solve_equilibrium` without multipliers: :func:`equilibrium.solve`."""
+def free_problem(mech, inp):
+    """The compiled equilibrium problem (:class:`equilibrium.Problem`:
+    residual, analytic tangent, Newton) of a mechanism without multipliers
+    under checked inputs ``inp`` (:class:`Inputs`)."""
     tree = mech.tree
     act = _cached(mech, "_act_arrays", lambda: actuator_arrays(tree))
     K, _ = _cached(mech, "_dense_KD", lambda: _dense_blocks(tree))
     coef = np.ascontiguousarray(act.unit @ inp.u) if inp.u.size else np.zeros(len(act.joint))
+    return eq.Problem(tree, act, K, inp.loads, inp.gravity, coef, inp.effort)
+
+
+def _free_equilibrium(mech, inp, q, tol, max_iterations, max_load_steps, check_stability, tangent_hint):
+    """:func:`solve_equilibrium` without multipliers: :func:`equilibrium.solve`."""
     with one_blas_thread():
-        pb = eq.Problem(tree, act, K, inp.loads, inp.gravity, coef, inp.effort)
+        pb = free_problem(mech, inp)
         sol = eq.solve(pb, q, tol=tol, max_iterations=max_iterations, max_load_steps=max_load_steps,
-                       check_stability=check_stability, tangent_hint=tangent_hint, eigenvalue=check_stability)
+                       check_stability=check_stability, tangent_hint=tangent_hint)
     lam = np.zeros(0)
     return Equilibrium(sol.q.copy(), lam, _efforts_out(mech, lam, inp), {}, sol.iterations,
                        float(np.abs(sol.R).max(initial=0) / eq.force_scale(pb, sol.q, sol.R)), 0.0, sol.load_steps,
-                       inp, sol.stable, sol.min_stiffness_eigenvalue, sol.tangent)
+                       inp, sol.stable, sol.min_stiffness_eigenvalue, sol.tangent,
+                       sol.tangent if check_stability and sol.stable else None)
 
 
 def _scaled_inputs(mech, inp, t, q_start):
@@ -615,14 +667,18 @@ class MechanismSimulator:
     drift). State: ``t`` [s], ``q``, ``v``, ``a`` (the step's mean
     acceleration), ``lam``. Without multipliers a failing step is retried
     in up to 2**``max_substep_levels`` sub-steps, then (``full_newton``) by
-    the dense Newton fallback (:class:`integrators.ThetaIntegrator`).
+    the dense Newton fallback (:class:`integrators.ThetaIntegrator`;
+    ``reuse_factorisation``: its Newton matrix serves later steps while it
+    contracts the error as a fresh one does). ``iterations``: the last
+    call's Newton iterations a step; ``newton_iterations``: all of them so
+    far; ``factorisations``: the Newton matrices factorised so far.
 
     >>> sim = MechanismSimulator(mech, dt=2e-3)
     >>> sim.step(positions={"pan": 0.2}, n=100)
     """
 
     def __init__(self, mech, dt, theta=0.5, q=None, v=None, *, tol=1e-10, constraint_tol=1e-12,
-                 max_iterations=40, max_substep_levels=4, full_newton=True):
+                 max_iterations=40, max_substep_levels=4, full_newton=True, reuse_factorisation=True):
         if not dt > 0 or not np.isfinite(dt):
             raise ValueError(f"dt: expected a positive time step [s], got {dt}")
         if not 0.5 <= theta <= 1.0:
@@ -638,7 +694,7 @@ class MechanismSimulator:
         self.v = np.zeros(tree.nv) if v is None else tree.check_v(np.array(v, float)).copy()
         self.a = np.zeros(tree.nv)
         self.lam = np.zeros(mech.n_constraint_rows + len(mech.joints_with("position")))
-        self.iterations = 0
+        self.iterations = self.newton_iterations = self._kkt_factorisations = 0
         self.inputs = make_inputs(mech)
         self.Ls = _length_scale(mech)
         # no multipliers (a rod, a tree of soft members and effort-controlled or passive joints): the
@@ -647,7 +703,14 @@ class MechanismSimulator:
         if self.lam.size == 0:
             self._theta_integrator = ThetaIntegrator(tree, self.ws, self.act, lambda t: self._held, self.dt, self.theta,
                                                      tol=tol, max_iterations=max_iterations,
-                                                     max_substep_levels=max_substep_levels, full_newton=full_newton)
+                                                     max_substep_levels=max_substep_levels, full_newton=full_newton,
+                                                     reuse_factorisation=reuse_factorisation)
+
+    @property
+    def factorisations(self):
+        """Newton matrices factorised so far (every step's, with multipliers)."""
+        ti = self._theta_integrator
+        return ti.factorisations if ti is not None else self._kkt_factorisations
 
     def step(self, actuation=None, efforts=None, positions=None, loads=None, point_loads=(), targets=None,
              n=1, inputs=None):
@@ -677,6 +740,7 @@ class MechanismSimulator:
         info = integ.run(state, n)          # the converged steps in one compiled call
         self.q, self.v, self.t, self.a = state.q, state.qdot, state.t, integ.last_a
         self.iterations = (integ.iterations - it0) // max(n, 1)
+        self.newton_iterations += integ.iterations - it0
         if not info.converged:
             raise StepError(f"step at t = {state.t:.6g} s: Newton did not converge in {integ.max_iterations} "
                             f"iterations, in sub-steps either")
@@ -698,6 +762,7 @@ class MechanismSimulator:
         _, Gt = constraint_rows(self.mech, self.ws, qt, targets, inp.q_cmd)
         _, G1 = constraint_rows(self.mech, self.ws, q1, targets, inp.q_cmd)
         A = (Mq + th * h * self.D + (th * h) ** 2 * Kt) / h
+        self._kkt_factorisations += 1
         return factor_kkt(A, Gt, th * h * G1)
 
     def _step(self, inp, targets):
@@ -771,6 +836,7 @@ class MechanismSimulator:
         self.q, self.v, self.lam = q1.copy(), v1, lam
         self.t += h
         self.iterations = it
+        self.newton_iterations += it
 
     def start_multipliers(self, inputs=None, targets=None):
         """Accelerations and multipliers of the current state when the

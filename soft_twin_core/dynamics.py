@@ -14,18 +14,20 @@ the body-frame Newton-Euler bias). D and K are the generalised damping and
 stiffness ``sum_i L_i B_i^T (D_i, K_i) B_i``; Q the external loads (gravity
 included) and tau the actuation of :mod:`soft_twin_core.loads`.
 
-These functions are the readable reference implementation of the chain;
-the time integrators run on the multibody engine (recursive compiled
-passes, tested against these and :mod:`soft_twin_core.reference`).
+These functions are the readable numpy reference of the chain, kept off the
+production paths: every robot's simulator
+(:class:`constrained.MechanismSimulator`) runs on the multibody engine
+(recursive compiled passes), tested against these and
+:mod:`soft_twin_core.reference`.
 """
 
 import numpy as np
 
 from . import kinematics as kin
-from .integrators import StepInfo  # noqa: F401  (re-exported: Simulator.step returns it)
 from . import lie
 from .loads import Loads, actuation_force, gauss_points, generalized_external_force, load_points
-from .statics import actuation_vector, base_reaction
+from .constrained import actuation_vector
+from .statics import base_reaction
 
 
 def _quadrature(model):
@@ -141,188 +143,20 @@ def dynamics_terms(model, q, qdot, u, loads):
     return M, applied_force(model, q, qdot, u, loads) - bias
 
 
-# ----------------------------------------------------------------------------
-# Time integration
-# ----------------------------------------------------------------------------
-
-def _profile(value, model, kind):
-    """A constant or a callable of time t [s]; returns a function of t.
-    kind "actuation": a dict/vector of inputs (validated); "loads": Loads."""
-    if callable(value):
-        return value
-    if kind == "actuation":
-        u = actuation_vector(model, value)
-        f = lambda t: u  # noqa: E731
-    else:
-        loads = Loads() if value is None else value
-        f = lambda t: loads  # noqa: E731
-    f.constant = True          # the same inputs at every t: Simulator.step(n) may run n steps in one call
-    return f
-
-
-def held(u):
-    """A constant input profile of an inputs vector checked already (at the
-    node's door, :func:`soft_twin_core.commands.parse_actuation`): for
-    :meth:`Simulator.set_actuation` without a second check."""
-    u = np.array(u, dtype=float)
-    f = lambda t: u  # noqa: E731
-    f.constant = True
-    return f
-
-
-class Simulator:
-    """Fixed-step implicit integrator (theta-method) of a robot description,
-    for the node and the scenario runner: the multibody engine's
-    :class:`soft_twin_core.integrators.ThetaIntegrator` on the robot's tree
-    (:func:`multibody.from_robot_model`), with the inputs of the description.
-
-    One step of size dt [s] solves, for v1 (strain rates at t + dt),
-        M(qt) (v1 - v0) = dt f(qt, vt, t + theta dt),
-        vt = (1 - theta) v0 + theta v1,  qt = q0 + theta dt vt,  q1 = q0 + dt vt.
-    theta = 1/2 (default) is the implicit midpoint rule: second order,
-    A-stable, no numerical damping (the energy error of the undamped arm stays
-    O(dt^2) without drift). theta = 1 is implicit Euler: first order,
-    L-stable, damps the stiff modes that the midpoint rule lets ring (use it
-    for strongly damped arms or to reach equilibrium). Newton's iteration
-    uses ``M + theta dt D + (theta dt)^2 K`` factorised in O(n) by the
-    articulated-body algorithm, once per step; it stops when the update, or
-    the remaining error estimated from the convergence rate r as r/(1 - r)
-    times the update (Hairer & Wanner), is below ``tol`` relative to the
-    largest strain rate. The default 1e-4 keeps Newton's error two orders
-    below the time-step error: on the benchmark cantilever it moves the tip
-    trajectory of the first second by 0.007 mm against 1e-10 (1e-6: 0.004
-    mm), where the time-step error is 0.7 mm at dt = 2 ms (at 5 ms: 0.04 mm
-    against more than 1 mm), at 2.0 instead of 2.9 iterations a step (1e-6).
-    A step that fails is split into sub-steps (the state is only updated by
-    converged steps).
-
-    actuation: dict/vector, or a callable t -> vector; loads: Loads or a
-    callable t -> Loads. ``full_newton``: when the O(n) iteration fails even
-    in sub-steps, try a dense full Newton (robust, but 25-700 ms a step;
-    real-time users turn it off). ``reuse_factorisation``: Newton's
-    factorisation serves later steps while it contracts the error as a fresh
-    one does (:data:`integrators.REUSE_MAX_RATIO`); False: a fresh one every
-    step (the Newton tolerance's effect on the trajectory is then smaller,
-    the step dearer). The model is never modified;
-    ``state`` holds q, qdot and t.
-    """
-
-    def __init__(self, model, dt=1e-3, actuation=None, loads=None, state=None,
-                 max_iterations=10, tol=1e-4, max_substep_levels=4, theta=0.5, full_newton=True,
-                 reuse_factorisation=True):
-        from .forces import actuator_arrays
-        from .integrators import ThetaIntegrator
-        from .model import State
-        from .workspace import Workspace
-        if isinstance(dt, bool) or not isinstance(dt, (int, float)) or not np.isfinite(dt) or dt <= 0:
-            raise ValueError(f"dt: expected a positive time step in s, got {dt!r}")
-        if not 0.5 <= theta <= 1.0:
-            raise ValueError(f"theta: expected a value in [0.5, 1], got {theta!r}")
-        self.theta = float(theta)
-        self.model = model
-        self.dt = float(dt)
-        self.state = State.rest(model) if state is None else state.copy()
-        self.set_actuation(actuation)
-        self.set_loads(loads)
-        self.tree = model.tree
-        self.workspace = Workspace(self.tree)
-        self._act = actuator_arrays(self.tree)
-        self._effort = np.zeros(self.tree.nv)
-        self._inputs_key = None
-        self._integrator = ThetaIntegrator(self.tree, self.workspace, self._act, self._inputs, self.dt,
-                                           self.theta, tol, max_iterations, max_substep_levels, full_newton,
-                                           reuse_factorisation)
-
-    @property
-    def last_qddot(self):
-        return self._integrator.last_a
-
-    @property
-    def newton_iterations(self):
-        """Newton iterations so far (all steps)."""
-        return self._integrator.iterations
-
-    @property
-    def jacobian_refreshes(self):
-        """Factorisations of Newton's matrix so far."""
-        return self._integrator.factorisations
-
-    def set_actuation(self, actuation):
-        """Constant inputs (dict or vector, validated) or a callable of t."""
-        self._u = _profile(actuation, self.model, "actuation")
-
-    def set_loads(self, loads):
-        self._loads = _profile(loads, self.model, "loads")
-
-    def actuation_at(self, t):
-        return self._u(t)
-
-    def loads_at(self, t):
-        return self._loads(t)
-
-    def _inputs(self, t):
-        """Engine inputs at t, rebuilt only when the loads object or the
-        actuation values change."""
-        from .forces import gravity_of, load_arrays
-        u = np.asarray(self._u(t), dtype=float)
-        loads = self._loads(t)
-        key = self._inputs_key
-        if key is None or key[0] is not loads or not np.array_equal(key[1], u):
-            arrays = (load_arrays(self.tree, loads, u), gravity_of(self.tree, loads),
-                      np.ascontiguousarray(self._act.unit @ u) if u.size else np.zeros(len(self._act.joint)),
-                      self._effort)
-            self._inputs_key = key = (loads, u.copy(), arrays)
-        return key[2]
-
-    def acceleration(self, q, qdot, t):
-        """qddot at (q, qdot, t) under the simulator's inputs: the solve of
-        ``M qddot = -R(q, qdot, 0)`` (R: the integrator's residual) in O(n)."""
-        from . import algorithms as alg
-        from .integrators import residual_pass
-        loads, g, coef, effort = self._inputs(t)
-        q = np.ascontiguousarray(q, dtype=float)
-        v = np.ascontiguousarray(qdot, dtype=float)
-        R = np.empty(self.tree.nv)
-        # a workspace of its own: the integrator keeps its factorisation in self.workspace
-        ws = self.__dict__.get("_acc_ws")
-        if ws is None:
-            from .workspace import Workspace
-            ws = self._acc_ws = Workspace(self.tree)
-        residual_pass(ws.m, ws.w, self._act, loads, g, coef, effort, q, v, np.zeros(self.tree.nv), R, False)
-        alg.factor(self.tree, ws, q)
-        return alg.solve(self.tree, ws, -R)
-
-    def step(self, n=1):
-        """Advance n steps; returns the StepInfo of the last one. A step that
-        cannot converge even with sub-steps leaves the state at the last good
-        step and returns ``converged`` False."""
-        if n > 1 and self._constant_inputs():
-            return self._integrator.run(self.state, n)
-        info = None
-        for _ in range(n):
-            info = self._integrator.step(self.state)
-            if not info.converged:
-                break
-        return info
-
-    def _constant_inputs(self):
-        return getattr(self._u, "constant", False) and getattr(self._loads, "constant", False)
-
-
 def simulate_ivp(model, t_span, state, actuation=None, loads=None, method="Radau",
                  rtol=1e-8, atol=1e-10, t_eval=None):
-    """Adaptive offline integration with scipy.integrate.solve_ivp (Radau or
-    BDF for stiff arms). The Jacobian of the first-order system
-    [qdot; M^-1 f] is [[0, I], [M^-1 df/dq, M^-1 df/dqdot]] with df/dq ~ -K and
-    df/dqdot ~ -D refined by scipy's own finite differences when
-    ``jac=None``; here it is supplied by central finite differences of the
-    exact right-hand side (verified in the tests)."""
+    """Adaptive offline integration of the chain with
+    scipy.integrate.solve_ivp (Radau or BDF for stiff arms), on the numpy
+    equations of motion (:func:`forward_dynamics`): a reference for the
+    engine's theta integrator. ``actuation`` (dict or vector) and ``loads``
+    are held. The Jacobian of the first-order system [qdot; M^-1 f] is
+    supplied by central finite differences of the right-hand side."""
     from scipy.integrate import solve_ivp
-    sim = Simulator(model, dt=1.0, actuation=actuation, loads=loads)
+    u = actuation_vector(model, actuation)
     n = model.n_dof
 
     def rhs(t, y):
-        return np.concatenate([y[n:], sim.acceleration(y[:n], y[n:], t)])
+        return np.concatenate([y[n:], forward_dynamics(model, y[:n], y[n:], u, loads)])
 
     def jac(t, y):
         eps = 1e-7 * np.maximum(1.0, np.abs(y))

@@ -269,7 +269,7 @@ def solve(pb, q, *, tol=1e-10, max_iterations=50, max_load_steps=64, check_stabi
         if Kt is None:
             Kt = pb.tangent(q1)
         if not is_stable(Kt):
-            ok, fallback = False, (q1, R, equilibrium_stability(Kt)[1] if eigenvalue else lo)
+            ok, fallback = False, (q1, R, equilibrium_stability(Kt)[1])     # (rare: its eigenvalue now)
     if not ok:
         t, dt, steps = 0.0, 0.25, 0
         q_c = q.copy()

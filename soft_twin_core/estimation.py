@@ -298,8 +298,8 @@ class EKF:
 
     def set_inputs(self, actuation=None, positions=None, efforts=None):
         """New inputs (each None: kept); ValueError naming a bad one."""
-        from .constrained import joint_vector
-        from .statics import actuation_vector
+        from .constrained import actuation_vector, joint_vector
+
         if actuation is not None:
             self.u = actuation_vector(self.mech, actuation)
         if positions is not None:

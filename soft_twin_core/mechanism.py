@@ -654,11 +654,19 @@ def _with_targets(tree, constraints):
 def from_robot_model(robot, d=None):
     """The mechanism of a classic robot description: the soft chain
     (:func:`multibody.from_robot_model`), one member "backbone", no rigid
-    joints, no constraints. ``d``: its mapping, for the stress geometry."""
+    joints, no constraints. ``d``: its mapping, for the stress geometry.
+    Without ``d`` the mechanism is made once per description (both are
+    immutable) and kept with it."""
+    if d is None:
+        mech = robot.__dict__.get("_mechanism")
+        if mech is None:
+            mech = from_robot_model(robot, {})
+            object.__setattr__(robot, "_mechanism", mech)
+        return mech
     tree = robot.tree
     geo = [None] * len(robot.sections)
-    if d is not None:
-        geo = _member_geometry(d.get("segments", []), robot)
+    if d.get("segments"):
+        geo = _member_geometry(d["segments"], robot)
     p = tree.paths[0]
     member = Member("backbone", 0, p.joints, tuple(geo))
     frames = {"tip": PointRef(p.joints[-1], tree.joints[p.joints[-1]].section.length)}

@@ -327,13 +327,10 @@ class _FreeStatics(_Statics):
     def __init__(self, mech, ref, options, loads, n_j):
         super().__init__(mech, ref, options, loads, n_j)
         from .forces import point_moment_arrays
-        tree = mech.tree
         inp = cs.make_inputs(mech, None, options.efforts, None, None, loads, tuple(options.point_loads))
         self._base_loads, self._pm = inp.loads, point_moment_arrays
         self.point_moment = any(a.tendon_model == "point_moment" for a in mech.actuators)
-        act = _actuators(mech)
-        K, _ = cs._cached(mech, "_dense_KD", lambda: cs._dense_blocks(tree))
-        self.pb = eq.Problem(tree, act, K, inp.loads, inp.gravity, np.zeros(len(act.joint)), inp.effort)
+        self.pb = cs.free_problem(mech, inp)
         self.ws = self.pb.ws
         self._u = None
 
@@ -743,11 +740,10 @@ def start_vector(mech, solver, actuation=None, positions=None):
     """x of the given inputs: position commands ({joint: rad or m}, default
     each joint's reference) and actuator inputs (default their lower
     bounds), clipped to the bounds."""
-    from .statics import actuation_vector
     tree, nj = mech.tree, solver.n_j
     pos = dict(positions or {})
     qc = [float(pos.get(n, tree.joints[i].q_ref)) for n, i in zip(solver.joint_names, solver.pos)]
-    u = actuation_vector(mech, actuation) if actuation is not None else np.where(
+    u = cs.actuation_vector(mech, actuation) if actuation is not None else np.where(
         np.isfinite(solver.lower[nj:]), solver.lower[nj:], 0.0)
     return np.clip(np.concatenate([qc, u]), solver.lower, solver.upper)
 

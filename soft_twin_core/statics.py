@@ -1,60 +1,24 @@
-"""Static equilibrium of the PCS model (slides part B "Statics").
+"""The numpy reference of the classic rod's statics (slides part B
+"Statics"), kept off the production paths: the tests hold the engine's
+equilibrium solver (:func:`constrained.solve_equilibrium`, every robot)
+against it.
 
-Solves ``R(q) = K (q - q0) - Q_ext(q) - tau_act(q, u) = 0`` by Newton's
-method with a backtracking line search. The residual is the multibody
-engine's inverse dynamics at rest and the tangent dR/dq its analytic
-derivative (one O(n^2) pass, :mod:`soft_twin_core.kernels.tangent`), both
-checked in the tests against the numpy reference (:func:`residual`) and its
-exact complex-step tangent (:func:`tangent`). Equilibria with
-an unstable tangent are rejected in favour of the loaded path from the start
-point (continuation in a load factor, also used when a full Newton solve
-fails); a previous solution warm-starts the next call.
+* :func:`residual`: ``R(q) = K (q - q0) - Q_ext(q) - tau_act(q, u)`` from
+  the chain's kinematics and Gauss quadrature, and :func:`tangent`, its
+  exact complex-step derivative (the compiled Newton's residual and
+  analytic tangent are checked against both);
+* :func:`internal_wrenches`: the stress resultants by the strong form (cut
+  at s), and :func:`base_reaction`;
+* :func:`actuation_for_shape`: the inputs that hold a shape, by bounded
+  least squares on ``B(q) u = K (q - q0) - Q_ext``.
 """
-
-from dataclasses import dataclass
 
 import numpy as np
 
 from . import kinematics as kin
-from ._blas import one_blas_thread
 from . import lie
-from .loads import (Loads, actuation_force, actuator_point_loads, generalized_external_force, load_points,
-                    validate_loads)
-from . import equilibrium as eq
-from .errors import StaticsError  # noqa: F401  (re-exported: the statics front end raises it)
-from .forces import gravity_of, load_arrays
-
-
-def actuation_vector(model, actuation):
-    """Inputs (n_actuators,) from a dict {name: value}, a sequence, or None.
-    Tendon tensions must be >= 0 N; every value finite."""
-    n = len(model.actuators)
-    if actuation is None:
-        return np.zeros(n)
-    if isinstance(actuation, dict):
-        u = np.zeros(n)
-        names = model.actuator_names
-        for k, v in actuation.items():
-            if k not in names:
-                raise ValueError(f"actuation: unknown actuator {k!r}; this robot has {list(names)}")
-            try:
-                u[names.index(k)] = float(v)
-            except (TypeError, ValueError):
-                raise ValueError(f"actuation: {k} = {v!r} is not a number") from None
-    else:
-        try:
-            u = np.asarray(actuation, dtype=float)
-        except (TypeError, ValueError):
-            raise ValueError(f"actuation: expected {n} numbers, got {actuation!r}") from None
-        if u.shape != (n,):
-            raise ValueError(f"actuation: expected {n} values (one per actuator {list(model.actuator_names)}), "
-                             f"got shape {u.shape}")
-    for a, val in zip(model.actuators, u):
-        if not np.isfinite(val):
-            raise ValueError(f"actuation: {a.name} = {val} is not finite")
-        if a.kind == "tendon" and val < 0:
-            raise ValueError(f"actuation: tendon {a.name} tension must be >= 0 N, got {val}")
-    return u
+from .constrained import actuation_vector
+from .loads import Loads, actuation_force, actuator_point_loads, generalized_external_force, load_points
 
 
 def residual(model, q, u, loads):
@@ -72,100 +36,6 @@ def tangent(model, q, u, loads, h=1e-30):
     n = model.n_dof
     qc = q[None, :] + 1j * h * np.eye(n)
     return (residual(model, qc, u, loads).imag / h).T
-
-
-def _actuators(model):
-    """The actuator arrays of a robot's tree, made once per model."""
-    a = model.__dict__.get("_actuator_arrays")
-    if a is None:
-        from .forces import actuator_arrays
-        a = actuator_arrays(model.tree)
-        object.__setattr__(model, "_actuator_arrays", a)
-    return a
-
-
-def problem(model, u, loads):
-    """The :class:`equilibrium.Problem` of a classic robot under inputs u
-    and :class:`Loads` (gravity, point and distributed loads by arc length;
-    the point-moment tendons' follower moments)."""
-    tree = model.tree
-    act = _actuators(model)
-    u = np.asarray(u, dtype=float)
-    coef = np.ascontiguousarray(act.unit @ u) if u.size else np.zeros(len(act.joint))
-    return eq.Problem(tree, act, model.K_q, load_arrays(tree, loads, u), gravity_of(tree, loads), coef)
-
-
-@dataclass
-class StaticsResult:
-    """Equilibrium: q; strains (n_sections, 6); tip_pose (4x4, world);
-    base_wrench_world [f; m] (6,) exerted by the support on the robot, world
-    axes, moment about the base origin; iterations; residual (relative,
-    ||R||_inf / force scale; converged means <= tol, or at round-off for very
-    stiff axial/shear modes); residual_abs; converged; load_steps used;
-    stable: False when only an unstable equilibrium (a tangent eigenvalue
-    with negative real part) was found."""
-    q: np.ndarray
-    strains: np.ndarray
-    tip_pose: np.ndarray
-    base_wrench_world: np.ndarray
-    iterations: int
-    residual: float
-    residual_abs: float
-    converged: bool
-    load_steps: int
-    stable: bool = True
-    tangent: object = None       # the last Newton tangent (for tangent_hint)
-
-
-def _result(model, pb, u, loads, sol):
-    """StaticsResult of a solution: the tip pose and the support's reaction
-    (the wrench the root joint transmits, from the RNEA at rest: the
-    point-moment tendons are internal, so their moments are left out)."""
-    q, R = sol.q, sol.R
-    internal = u.size and any(a.tendon_model == "point_moment" for a in model.actuators)
-    pb.residual(q, load_arrays(model.tree, loads) if internal else None)     # poses and RNEA wrenches at rest
-    w = pb.ws.work
-    R_base = w.g_in[0][:3, :3]
-    f_in = w.f_in[0]
-    base = np.concatenate([R_base @ f_in[:3], R_base @ f_in[3:]])
-    return StaticsResult(
-        q=q, strains=model.strains(q), tip_pose=w.g_out[model.tree.n_joints - 1].copy(), base_wrench_world=base,
-        iterations=sol.iterations, residual=float(np.abs(R).max() / eq.force_scale(pb, q, R)),
-        residual_abs=float(np.abs(R).max()), converged=True, load_steps=sol.load_steps, stable=sol.stable,
-        tangent=sol.tangent)
-
-
-def solve_statics(model, actuation=None, loads=None, q_init=None, *, tol=1e-10,
-                  max_iterations=50, max_load_steps=64, check_stability=True, tangent_hint=None):
-    """Static equilibrium under actuation (dict name -> tension N / pressure
-    Pa, or a vector) and loads (:class:`Loads`, default: gravity only), by
-    :func:`equilibrium.solve` (the solver of every robot without
-    constraints).
-
-    q_init warm-starts Newton (default: the rest configuration);
-    ``tangent_hint`` (a previous result's ``tangent``) lets the first Newton
-    steps skip computing the tangent, which halves a warm solve. If a full
-    solve fails or lands on an unstable equilibrium (``check_stability``),
-    the loads and actuation are applied in increasing fractions from q_init
-    (continuation), bisecting a failed increment. Raises StaticsError with
-    the reached load fraction if it cannot converge; never returns NaN.
-    """
-    loads = Loads() if loads is None else loads
-    validate_loads(model, loads)
-    u = actuation_vector(model, actuation)
-    q = model.q0.copy() if q_init is None else model.check_q(np.array(q_init, dtype=float), "q_init").copy()
-    return solve_checked(model, u, loads, q, tol=tol, max_iterations=max_iterations, max_load_steps=max_load_steps,
-                         check_stability=check_stability, tangent_hint=tangent_hint)
-
-
-def solve_checked(model, u, loads, q, **options):
-    """:func:`solve_statics` of inputs checked already (u (n_actuators,),
-    Loads, q (n_dof,)), e.g. at the node's door: no second check. The
-    options are :func:`solve_statics`' (all of them given)."""
-    with one_blas_thread():
-        pb = problem(model, u, loads)
-        sol = eq.solve(pb, q, **options)
-        return _result(model, pb, u, loads, sol)
 
 
 def base_reaction(model, F_total_origin):

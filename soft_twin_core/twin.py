@@ -34,8 +34,8 @@ import numpy as np
 
 from . import planner as pl
 from . import constrained as cs
-from . import statics as st
 from ._blas import one_blas_thread
+from .errors import StaticsError
 from .mechanism import shape_command, tip_frame
 from .model import State
 from .outputs import (main_member, q_from_section_strains, section_rates, section_strains,
@@ -46,7 +46,7 @@ from .workspace import Workspace
 MODES = ("dynamic", "quasi_static")
 
 # what a failing step may raise on absurd (finite) numbers: a failure, not a bug
-STEP_ERRORS = (ArithmeticError, ValueError, np.linalg.LinAlgError, st.StaticsError)
+STEP_ERRORS = (ArithmeticError, ValueError, np.linalg.LinAlgError, StaticsError)
 
 
 @dataclass

@@ -30,16 +30,16 @@ def tiny_models():
 
 def run():
     from . import algorithms as alg
-    from . import dynamics as dy
-    from . import statics as st
+    from .constrained import MechanismSimulator, solve_equilibrium
     from .loads import Loads, PointLoad
+    from .mechanism import from_robot_model
     from .workspace import Workspace
     for robot in tiny_models():
         loads = Loads(point=(PointLoad(0.2, (0, 0, -0.01, 0, 0, 0), "world"),
                              PointLoad(0.1, (0, 0.01, 0, 0, 0, 0), "body")))
-        st.solve_statics(robot, {"t": 0.5}, loads)
-        sim = dy.Simulator(robot, dt=1e-3, actuation={"t": 0.5}, loads=loads)
-        sim.step(2)
+        mech = from_robot_model(robot)
+        solve_equilibrium(mech, {"t": 0.5}, loads=loads)
+        MechanismSimulator(mech, 1e-3).step({"t": 0.5}, loads=loads, n=2)
         tree = robot.tree
         ws = Workspace(tree)
         q, v = tree.q0 + 0.01, np.full(tree.nv, 0.1)
@@ -65,10 +65,11 @@ def run():
     # the actuation IK (node's ~/inverse_kinematics, the planner): its tip
     # error, sensitivities and bounded least squares, position and full pose
     from . import planner as pl
-    from .mechanism import from_robot_model
-    robot = tiny_models()[0]
-    solver = pl.TipSolver(from_robot_model(robot))
-    target = st.solve_statics(robot, {"t": 0.3}).tip_pose
+    from .outputs import state_outputs
+    mech = from_robot_model(tiny_models()[0])
+    solver = pl.TipSolver(mech)
+    eq = solve_equilibrium(mech, {"t": 0.3})
+    target = state_outputs(mech, eq.q, eq.lam, eq.inputs).frames["tip"]
     for with_rot in (False, True):
         solver.with_rot = with_rot
         solver.solve(target, np.zeros(1), None)

@@ -16,9 +16,9 @@ import pytest
 import yaml
 
 from soft_twin_core import planner as pl
-from soft_twin_core import statics as st
 from soft_twin_core.mechanism import from_robot_model
 from soft_twin_core.model import ModelError, check_actuator_input, find_file, model_from_dict
+from rod_statics import solve_statics
 
 PNEUMATIC = find_file("pneumatic_arm", "robots")
 PAN_TILT = find_file("pan_tilt_arm", "robots")
@@ -204,7 +204,7 @@ def test_tree_scenario_over_the_limit_exits_2(tmp_path, capsys):
 # ------------------------------------------------------------------ IK and planners respect the bounds
 
 def _rest(m):
-    return st.solve_statics(m, np.zeros(len(m.actuators)))
+    return solve_statics(m, np.zeros(len(m.actuators)))
 
 
 def test_pneumatic_ik_stays_positive_and_reports_unreachable():
@@ -223,11 +223,11 @@ def test_pneumatic_ik_stays_positive_and_reports_unreachable():
     b = pl.TipSolver(from_robot_model(new), opts).solve(tgt, np.zeros(6), r0.q)
     assert np.all(b.x >= 0.0) and not b.reached and b.status == "at_limit"
     # independent check: forward statics at the answer, and scipy's bounded least squares
-    p = st.solve_statics(new, b.x).tip_pose[:3, 3]
+    p = solve_statics(new, b.x).tip_pose[:3, 3]
     assert abs(np.linalg.norm(p - tgt[:3, 3]) - b.position_error) < 1e-9
 
     def f(x):
-        return (st.solve_statics(new, x * 1e4).tip_pose[:3, 3] - tgt[:3, 3]) * 1e3
+        return (solve_statics(new, x * 1e4).tip_pose[:3, 3] - tgt[:3, 3]) * 1e3
 
     ref = least_squares(f, np.full(6, 2.0), bounds=(0.0, 10.0), diff_step=1e-4, xtol=1e-10, ftol=1e-12)
     best = np.linalg.norm(ref.fun) / 1e3
@@ -239,7 +239,7 @@ def test_pneumatic_ik_reaches_a_target_reachable_with_positive_pressures():
     new = model_from_dict(_pneumatic_dict())
     old = model_from_dict(_with_suction(_pneumatic_dict()))
     u_true = np.array([2.0e4, 0.0, 0.0, 3.0e4, 0.0, 0.0])
-    tgt = st.solve_statics(new, u_true).tip_pose
+    tgt = solve_statics(new, u_true).tip_pose
     r0 = _rest(new)
     opts = pl.PlanOptions(tolerance=1e-7, orientation_weight=0.0)
     a = pl.TipSolver(from_robot_model(old), opts).solve(tgt, np.zeros(6), r0.q)
@@ -247,7 +247,7 @@ def test_pneumatic_ik_reaches_a_target_reachable_with_positive_pressures():
     b = pl.TipSolver(from_robot_model(new), opts).solve(tgt, np.zeros(6), r0.q)
     assert b.reached and np.all(b.x >= 0.0)
     # independent forward statics from rest (not the solver's warm start)
-    p = st.solve_statics(new, b.x).tip_pose[:3, 3]
+    p = solve_statics(new, b.x).tip_pose[:3, 3]
     assert np.linalg.norm(p - tgt[:3, 3]) < 1e-6
 
 

@@ -9,9 +9,9 @@ import numpy as np
 import pytest
 
 from soft_twin_core import cli
-from soft_twin_core import statics as st
 from soft_twin_core.model import load_model
 from soft_twin_core.scenario import ScenarioError, load_scenario
+from rod_statics import solve_statics
 
 HERE = os.path.dirname(os.path.abspath(__file__))
 CONFIG = os.path.join(HERE, "..", "..", "config")
@@ -33,7 +33,7 @@ def test_statics_json_fields_and_values(capsys):
         assert key in r
     m = load_model(os.path.join(CONFIG, "robots", "tendon_arm.yaml"))
     from soft_twin_core import loads as ld
-    ref = st.solve_statics(m, {"tendon_y_pos": 2.0, "tendon_z_neg": 0.5},
+    ref = solve_statics(m, {"tendon_y_pos": 2.0, "tendon_z_neg": 0.5},
                            ld.Loads(point=(ld.tip_load(m, (0, 0, -0.05)),)))
     assert np.allclose(r["tip_position"], ref.tip_pose[:3, 3], atol=1e-12)
     assert np.allclose(np.array(r["tip_rotation"]).reshape(3, 3), ref.tip_pose[:3, :3], atol=1e-12)

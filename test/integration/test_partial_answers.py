@@ -90,7 +90,8 @@ def test_render_plot_without_backbone_samples_names_what_it_leaves_out(tmp_path)
 def test_calibrate_on_a_tree_robot_gives_the_reason(tmp_path):
     """A tree robot calibrates (it was refused, then it read the file as a
     classic one: "unknown field(s) ['bodies', 'frames']"); a missing file
-    is named, without a traceback; the damping fit is refused by name."""
+    is named, without a traceback, for the damping fit too (which takes
+    tree robots now)."""
     p = _cli("calibrate", "pan_tilt_arm", "--sensors", str(tmp_path / "s.yaml"), "--data", str(tmp_path / "d.csv"),
              "--fit", "youngs_modulus")
     assert p.returncode == 2 and "Traceback" not in p.stderr, p.stderr
@@ -99,7 +100,8 @@ def test_calibrate_on_a_tree_robot_gives_the_reason(tmp_path):
                                      "sigma_rotation: 0.01}]\n")
     p = _cli("calibrate", "pan_tilt_arm", "--sensors", str(tmp_path / "s.yaml"), "--data", str(tmp_path / "d.csv"),
              "--fit", "viscosity", "--dynamic")
-    assert p.returncode == 2 and "--dynamic: the damping fit takes classic robots" in p.stderr, p.stderr
+    assert p.returncode == 2 and "Traceback" not in p.stderr, p.stderr
+    assert f"data file {tmp_path / 'd.csv'}: No such file" in p.stderr, p.stderr
 
 
 def test_a_killed_dask_worker_is_named_in_the_study_output(tmp_path):

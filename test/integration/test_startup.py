@@ -24,11 +24,12 @@ def _run(code):
 def test_statics_and_dynamics_start_without_scipy_linalg():
     out = _run("""
         import sys
-        from soft_twin_core import dynamics as dy, statics as st
+        from soft_twin_core.constrained import MechanismSimulator, solve_equilibrium
+        from soft_twin_core.mechanism import from_robot_model
         from soft_twin_core.model import benchmark_cantilever_dict, model_from_dict
-        m = model_from_dict(benchmark_cantilever_dict(2, "all"))
-        st.solve_statics(m)
-        assert dy.Simulator(m, 2e-3).step(5).converged
+        m = from_robot_model(model_from_dict(benchmark_cantilever_dict(2, "all")))
+        solve_equilibrium(m)
+        MechanismSimulator(m, 2e-3).step(n=5)
         import numba.np.arraymath as am, numba.np.linalg as nl
         print(am._HAVE_BLAS, "scipy.linalg" in sys.modules, am.ensure_blas is nl.ensure_blas,
               nl.ensure_blas.__module__)

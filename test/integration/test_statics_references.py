@@ -5,9 +5,10 @@ soft_twin_core.continuum (which shares no code with the PCS solver)."""
 import numpy as np
 
 from soft_twin_core import loads as ld
-from soft_twin_core import statics as st
+from soft_twin_core.constrained import MechanismSimulator
 from soft_twin_core.continuum import elastica_cantilever_tip, solve_cosserat_statics
 from soft_twin_core.model import benchmark_cantilever_dict, model_from_dict
+from rod_statics import mechanism, solve_statics
 
 
 def inextensible_rod(n):
@@ -23,7 +24,7 @@ def elastica_errors(n, alphas=range(1, 11)):
     m = inextensible_rod(n)
     q, errs = None, []
     for a in alphas:                          # P L^2 / EI = a, continuation in the load
-        r = st.solve_statics(m, loads=ld.Loads(point=(ld.tip_load(m, (0, 0, -a)),), gravity=False),
+        r = solve_statics(m, loads=ld.Loads(point=(ld.tip_load(m, (0, 0, -a)),), gravity=False),
                              q_init=q)
         q = r.q
         x, d = elastica_cantilever_tip(a)
@@ -55,7 +56,7 @@ def test_pcs_converges_to_3d_continuum_with_torsion():
     errs = []
     for n in (4, 8, 16):
         m = model_from_dict(benchmark_cantilever_dict(n))
-        r = st.solve_statics(m, loads=ld.Loads(point=(ld.tip_load(m, f_tip, m_tip),)))
+        r = solve_statics(m, loads=ld.Loads(point=(ld.tip_load(m, f_tip, m_tip),)))
         assert np.abs(r.strains[:, 3]).max() > 0.1          # torsion really is involved
         errs.append(np.linalg.norm(r.tip_pose[:3, 3] - H_ref[:3, 3]))
         R_err = np.linalg.norm(r.tip_pose[:3, :3] - H_ref[:3, :3])
@@ -64,7 +65,7 @@ def test_pcs_converges_to_3d_continuum_with_torsion():
     assert 3.0 < errs[1] / errs[2] < 5.0
     assert errs[2] < 2e-3 * 0.5
     # both base reactions balance the same loads
-    r = st.solve_statics(model_from_dict(benchmark_cantilever_dict(16)),
+    r = solve_statics(model_from_dict(benchmark_cantilever_dict(16)),
                          loads=ld.Loads(point=(ld.tip_load(m, f_tip, m_tip),)))
     assert np.allclose(r.base_wrench_world[:3], ref.base_wrench_world[:3], rtol=1e-9, atol=1e-12)
 
@@ -81,7 +82,7 @@ def test_pre_curved_rod_under_follower_load_matches_continuum():
         d["gravity"] = [0, 0, 0]
         d["segments"][0]["reference_strain"] = f0
         m = model_from_dict(d)
-        r = st.solve_statics(m, loads=ld.Loads(point=(ld.tip_load(m, W[:3], W[3:], frame="body"),),
+        r = solve_statics(m, loads=ld.Loads(point=(ld.tip_load(m, W[:3], W[3:], frame="body"),),
                                                gravity=False))
         ref = solve_cosserat_statics(m.sections[0].K, 0.5, f0=f0, tip_wrench_body=W)
         errs.append(np.linalg.norm(r.tip_pose[:3, 3] - ref.tip_pose()[:3, 3]))
@@ -93,7 +94,6 @@ def test_cayley_map_model_converges_to_the_same_continuum():
     """With kinematic_map: cayley each section is a Cayley arc (not a
     constant-strain helix); statics and dynamics run on the numpy path and
     the tip still converges to the continuum solution as sections are added."""
-    from soft_twin_core import dynamics as dy
     m1 = model_from_dict(benchmark_cantilever_dict(1))
     sec = m1.sections[0]
     ref = solve_cosserat_statics(sec.K, 0.5, distributed_force_world=sec.M[0, 0] * m1.gravity)
@@ -101,10 +101,11 @@ def test_cayley_map_model_converges_to_the_same_continuum():
     for n in (4, 8, 16):
         d = benchmark_cantilever_dict(n)
         d["kinematic_map"] = "cayley"
-        r = st.solve_statics(model_from_dict(d))
+        r = solve_statics(model_from_dict(d))
         errs.append(np.linalg.norm(r.tip_pose[:3, 3] - ref.tip_pose()[:3, 3]))
     assert errs[0] > errs[1] > errs[2] and errs[2] < 0.012 * 0.5
     d = benchmark_cantilever_dict(2, "bending_torsion")
     d["kinematic_map"] = "cayley"
-    sim = dy.Simulator(model_from_dict(d), dt=1e-3)
-    assert sim.step(20).converged and np.all(np.isfinite(sim.state.q))
+    sim = MechanismSimulator(mechanism(model_from_dict(d)), 1e-3)
+    sim.step(n=20)                                  # raises StepError if a step fails
+    assert np.all(np.isfinite(sim.q))

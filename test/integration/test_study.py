@@ -17,6 +17,7 @@ import pytest
 from soft_twin_core.study import (CaseValidationError, StudyError, build_scenario, case_documents, design_matrix,
                                   format_path, get_path, make_cases, parse_path, study_from_dict, validate_cases)
 from soft_twin_core.study_dask import StudyInterrupted, read_rows, run_study
+from rod_statics import solve_statics
 
 ROOT = Path(__file__).resolve().parents[2]
 META = {"compute_time_s", "started_unix_s", "worker"}
@@ -173,7 +174,6 @@ def test_failing_case_recorded_with_its_reason_and_the_study_finishes(tmp_path, 
 # ----------------------------------------------------------------------------
 
 def test_rows_equal_direct_statics_and_the_scenario_runner(tmp_path):
-    from soft_twin_core import statics as stt
     from soft_twin_core.model import load_model
     from soft_twin_core.scenario import load_scenario
     st = _study(record=["tip_pose", "base_wrench", "iterations", "strains", "backbone", "internal_wrenches"])
@@ -188,7 +188,7 @@ def test_rows_equal_direct_statics_and_the_scenario_runner(tmp_path):
         m = model_from_dict(d)
         u = sc.actuation.copy()                 # the scenario's tendon_z_neg stays
         u[0] = r["scenario.actuation.tendon_y_pos"]
-        eq = stt.solve_statics(m, u, sc.loads_at(None))
+        eq = solve_statics(m, u, sc.loads_at(None))
         assert [r[f"statics.tip_position_{a}"] for a in "xyz"] == pytest.approx(eq.tip_pose[:3, 3], abs=1e-14)
         assert [r[f"statics.base_wrench_{a}"] for a in ("fx", "fy", "fz", "mx", "my", "mz")] == \
             pytest.approx(eq.base_wrench_world, abs=1e-14)
@@ -257,12 +257,11 @@ def test_dynamics_case_records_settling_against_the_static_equilibrium(tmp_path)
     assert r["dynamics.settled"] and 0.3 < r["dynamics.settling_time_s"] < 4.0
     assert r["dynamics.max_tip_speed_m_s"] > 0.1
     assert abs(r["dynamics.tip_velocity_y"]) < 0.01 and r["dynamics.strain_rates_0_axial"] == 0.0
-    from soft_twin_core import statics as stt
     from soft_twin_core.scenario import load_scenario
     sc = load_scenario("tendon_arm_statics")
     u = sc.actuation.copy()
     u[0] = 2.0
-    eq = stt.solve_statics(sc.model, u, sc.loads_at(None))
+    eq = solve_statics(sc.model, u, sc.loads_at(None))
     band = 0.02 * np.linalg.norm(eq.tip_pose[:3, 3] - [0.45, 0, 0])
     tip = np.array([r[f"dynamics.tip_position_{a}"] for a in "xyz"])
     assert np.linalg.norm(tip - eq.tip_pose[:3, 3]) <= band

@@ -26,7 +26,7 @@ from soft_twin_core import calibration_mcap as cm  # noqa: E402
 from soft_twin_core import sensors as sn  # noqa: E402
 from soft_twin_core.cli import main as cli_main  # noqa: E402
 from soft_twin_core.model import find_file, model_from_dict, read_yaml_file  # noqa: E402
-from soft_twin_core.statics import solve_statics  # noqa: E402
+from rod_statics import solve_statics  # noqa: E402
 
 pytestmark = pytest.mark.ros
 

@@ -28,8 +28,8 @@ from soft_twin.conversions import matrix_from_pose, pose_array, pose_msg  # noqa
 from soft_twin.msg import ActuationCommand  # noqa: E402
 from soft_twin_core import sensors as sn  # noqa: E402
 from soft_twin_core.mechanism import from_robot_model  # noqa: E402
-from soft_twin_core import statics as st  # noqa: E402
 from soft_twin_core.model import find_file, load_model, model_from_dict, read_yaml_file  # noqa: E402
+from rod_statics import solve_statics
 
 pytestmark = pytest.mark.ros
 
@@ -133,12 +133,12 @@ def _real_robot():
 def test_estimate_follows_the_real_robot_and_bad_readings_are_counted(running):
     client, proc, tmp = running
     real = _real_robot()
-    truth = st.solve_statics(real, U)
+    truth = solve_statics(real, U)
     sensors = sn.sensors_from_list(SENSORS, from_robot_model(real))
     T = [sn.sensor_pose(from_robot_model(real), truth.q, s) for s in sensors]
     tip_true = truth.tip_pose[:3, 3]
     twin = load_model("tracked_arm")
-    open_loop = st.solve_statics(twin, U).tip_pose[:3, 3]
+    open_loop = solve_statics(twin, U).tip_pose[:3, 3]
     assert np.linalg.norm(open_loop - tip_true) > 0.004          # 1 % of the 0.4 m arm
     msg = ActuationCommand(names=NAMES, values=U)
     client.pub_act.publish(msg)

@@ -30,9 +30,9 @@ from soft_twin.conversions import pose_array  # noqa: E402
 from soft_twin.msg import ActuationCommand  # noqa: E402
 from soft_twin_core import sensors as sn  # noqa: E402
 from soft_twin_core.mechanism import from_robot_model  # noqa: E402
-from soft_twin_core import statics as st  # noqa: E402
 from soft_twin_core.cli import main as cli_main  # noqa: E402
 from soft_twin_core.model import find_file, model_from_dict, read_yaml_file  # noqa: E402
+from rod_statics import solve_statics
 
 pytestmark = pytest.mark.ros
 
@@ -110,7 +110,7 @@ def test_estimator_node_records_a_sweep_that_calibrates(tmp_path, capsys):
         rng = np.random.default_rng(8)
         sent, q = 0, None
         for k, u in enumerate(_sweep()):
-            q = st.solve_statics(real, u, q_init=q).q
+            q = solve_statics(real, u, q_init=q).q
             T = [sn.sensor_pose(real_mech, q, s) for s in sensors]
             tc = T0 + k * HOLD_S
             pub_act.publish(_stamp(ActuationCommand(names=NAMES, values=[float(x) for x in u]), tc))

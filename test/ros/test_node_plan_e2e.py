@@ -22,8 +22,8 @@ from soft_twin.config import resolve_robot_file  # noqa: E402
 from soft_twin.conversions import matrix_from_pose  # noqa: E402
 from soft_twin.msg import ActuationCommand  # noqa: E402
 from soft_twin.srv import InverseKinematics, PlanPath  # noqa: E402
-from soft_twin_core import statics as st  # noqa: E402
 from soft_twin_core.model import load_model  # noqa: E402
+from rod_statics import solve_statics
 
 pytestmark = pytest.mark.ros
 
@@ -71,12 +71,12 @@ def test_ik_unreachable_target_gives_the_closest_holdable_pose(twin, model):
     assert resp.position_error > 0.01
     # the answer is a pose the tendons actually hold: the statics of those tensions
     q = model.q_from_strains(np.reshape(resp.strains, (-1, 6)))
-    eq = st.solve_statics(model, list(resp.actuator_values), q_init=q)
+    eq = solve_statics(model, list(resp.actuator_values), q_init=q)
     np.testing.assert_allclose(eq.tip_pose, matrix_from_pose(resp.achieved), atol=1e-7)
     a = resp.achieved.position
     assert math.dist((a.x, a.y, a.z), target) == pytest.approx(resp.position_error, rel=1e-9)
     # a reachable one: success, within the tolerance; timing reported
-    p_t = st.solve_statics(model, [0.0, 1.0, 0.6, 0.0]).tip_pose[:3, 3]
+    p_t = solve_statics(model, [0.0, 1.0, 0.6, 0.0]).tip_pose[:3, 3]
     times = []
     for _ in range(5):
         t = time.monotonic()
@@ -215,7 +215,7 @@ def test_ik_without_actuators_speaks_of_shapes_only(tmp_path_factory):
                      tmp_path_factory)
     try:
         m = load_model(str(f))
-        target = st.solve_statics(m, loads=None).tip_pose.copy()
+        target = solve_statics(m, loads=None).tip_pose.copy()
         target[:3, 3] += [0.0, 0.02, 0.03]
         resp = c.call("inverse_kinematics", InverseKinematics.Request(target=_pose(target[:3, 3]),
                                                                        position_only=True))

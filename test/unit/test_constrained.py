@@ -28,6 +28,7 @@ from soft_twin_core.mechanism import load_mechanism, mechanism_from_dict
 from soft_twin_core.model import ModelError, find_file
 from soft_twin_core.outputs import state_outputs
 from soft_twin_core.workspace import Workspace
+from rod_statics import solve_statics
 
 E, NU, RADIUS = 2.0e9, 0.3, 0.01
 G_MOD = E / (2 * (1 + NU))
@@ -547,7 +548,6 @@ def test_point_moment_tendons_on_the_mechanism_path():
     missing: the mechanism's inputs dropped point-moment tendons)."""
     from soft_twin_core import constrained as cs
     from soft_twin_core import dynamics as dy
-    from soft_twin_core import statics as st
     from soft_twin_core.mechanism import from_robot_model
     from soft_twin_core.model import benchmark_cantilever_dict, model_from_dict
     from soft_twin_core.twin import Twin, TwinSettings
@@ -557,12 +557,12 @@ def test_point_moment_tendons_on_the_mechanism_path():
     m = model_from_dict(d)
     mech = from_robot_model(m)
     u = np.array([6.0, 2.0])
-    ref = st.solve_statics(m, u).q
-    assert np.abs(ref - st.solve_statics(m, [0.0, 2.0]).q).max() > 0.1          # the point moment matters
+    ref = solve_statics(m, u).q
+    assert np.abs(ref - solve_statics(m, [0.0, 2.0]).q).max() > 0.1          # the point moment matters
     assert np.allclose(cs.solve_equilibrium(mech, u).q, ref, atol=1e-10)
     rng = np.random.default_rng(4)
     q, v = m.q0 + 0.2 * rng.standard_normal(m.n_dof), rng.standard_normal(m.n_dof)
-    a_ref = dy.Simulator(m, 1e-3, actuation=u).acceleration(q, v, 0.0)
+    a_ref = dy.forward_dynamics(m, q, v, u)                  # the numpy chain's equations of motion
     sim = cs.MechanismSimulator(mech, 1e-3, 0.5, q=q)
     sim.v = v
     a = sim.start_multipliers(cs.make_inputs(mech, u)).a

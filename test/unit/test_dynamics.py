@@ -8,7 +8,9 @@ from soft_twin_core import dynamics as dy
 from soft_twin_core import kinematics as kin
 from soft_twin_core import loads as ld
 from soft_twin_core import statics as st
+from soft_twin_core.constrained import MechanismSimulator, make_inputs
 from soft_twin_core.model import State, benchmark_cantilever_dict, model_from_dict
+from rod_statics import mechanism, solve_statics
 
 RNG = np.random.default_rng(11)
 
@@ -26,6 +28,12 @@ def arm(n=3, free="all", offsets=False, actuators=True, viscosity=0.0):
                            "start": 0.1},
                           {"name": "p", "offset": [0.0, 0.006], "model": "point_moment", "end": 0.4}]
     return model_from_dict(d)
+
+
+def simulator(m, dt=1e-3, theta=0.5, **options):
+    """The simulator of every robot on a classic model, with the node's
+    Newton tolerance (1e-4 of the largest strain rate) unless told."""
+    return MechanismSimulator(mechanism(m), dt, theta, **{"tol": 1e-4, "max_iterations": 10, **options})
 
 
 def random_state(m, scale=0.2):
@@ -87,11 +95,12 @@ def test_engine_matches_reference():
                      distributed=(ld.DistributedLoad((0, 0, 0.01, 0, 0, 0), "world", 0.1, 0.4),))
     u = np.array([0.3, 0.2, 0.25])
     M0, f0 = dy.dynamics_terms(m, q, qd, u, loads)
-    sim = dy.Simulator(m, actuation=u, loads=loads)
-    M1 = alg.crba(sim.tree, sim.workspace, q)
-    ld_, g, coef, effort = sim._inputs(0.0)
+    sim = simulator(m)
+    inp = make_inputs(sim.mech, u, loads=loads)
+    M1 = alg.crba(sim.tree, sim.ws, q)
+    coef = sim.act.unit @ u
     R = np.empty(m.n_dof)
-    residual_pass(sim.workspace.m, sim.workspace.w, sim._act, ld_, g, coef, effort, q, qd, np.zeros(m.n_dof),
+    residual_pass(sim.ws.m, sim.ws.w, sim.act, inp.loads, inp.gravity, coef, inp.effort, q, qd, np.zeros(m.n_dof),
                   R, False)
     assert np.abs(M1 - M0).max() < 1e-12 * np.abs(M0).max()
     assert np.abs(-R - f0).max() < 1e-12 * np.abs(f0).max()
@@ -116,14 +125,13 @@ def test_energy_conserved_by_continuous_model():
 
 
 def midpoint_energy_drift(m, dt, T, u=None):
-    sim = dy.Simulator(m, dt=dt, actuation=u, tol=1e-12, max_iterations=30)
-    E0 = sum(dy.energy(m, sim.state.q, sim.state.qdot, u))
+    sim = simulator(m, dt, tol=1e-12, max_iterations=30)
+    E0 = sum(dy.energy(m, sim.q, sim.v, u))
     scale = None
     drift = 0.0
     for k in range(int(round(T / dt))):
-        info = sim.step()
-        assert info.converged
-        E = dy.energy(m, sim.state.q, sim.state.qdot, u)
+        sim.step(u)
+        E = dy.energy(m, sim.q, sim.v, u)
         scale = max(scale or 0.0, abs(E[0]))
         drift = max(drift, abs(sum(E) - E0))
     return drift / scale
@@ -150,13 +158,13 @@ def test_damped_response_settles_on_statics(theta):
     m = arm(3, "bending_torsion", viscosity=3e5)
     u = {"a": 0.2, "h": 0.1, "p": 0.1}
     loads = ld.Loads(point=(ld.tip_load(m, (0.0, 0.02, 0.0)),))
-    ref = st.solve_statics(m, u, loads)
-    sim = dy.Simulator(m, dt=1e-2, actuation=u, loads=loads, theta=theta)
+    ref = solve_statics(m, u, loads)
+    sim = simulator(m, 1e-2, theta)
     for _ in range(60):
-        assert sim.step(100).converged
-        if np.abs(sim.state.qdot).max() < 1e-10:
+        sim.step(u, loads=loads, n=100)
+        if np.abs(sim.v).max() < 1e-10:
             break
-    assert np.abs(sim.state.q - ref.q).max() < 1e-8
+    assert np.abs(sim.q - ref.q).max() < 1e-8
 
 
 @pytest.mark.parametrize("n", [20])
@@ -192,14 +200,14 @@ def test_adaptive_radau_matches_midpoint():
     m = arm(2, "bending_torsion", actuators=False, viscosity=1e3)
     sol = dy.simulate_ivp(m, (0, 0.2), State.rest(m), method="Radau", rtol=1e-9, atol=1e-11)
     assert sol.success
-    sim = dy.Simulator(m, dt=1e-4)
-    sim.step(2000)
-    assert np.abs(sim.state.q - sol.y[:m.n_dof, -1]).max() < 1e-5
+    sim = simulator(m, 1e-4)
+    sim.step(n=2000)
+    assert np.abs(sim.q - sol.y[:m.n_dof, -1]).max() < 1e-5
 
 
 def test_base_reaction_dynamic_equals_static_at_rest_and_balances_momentum():
     m = arm(3, "all", actuators=False)
-    ref = st.solve_statics(m)
+    ref = solve_statics(m)
     z = np.zeros(m.n_dof)
     R = dy.base_reaction_dynamic(m, ref.q, z, z)
     assert np.abs(R - ref.base_wrench_world).max() < 1e-10 * np.abs(R).max()
@@ -223,15 +231,15 @@ def test_base_reaction_dynamic_equals_static_at_rest_and_balances_momentum():
 def test_simulator_rejects_bad_input_and_keeps_state():
     m = arm(2, "bending")
     with pytest.raises(ValueError, match="dt"):
-        dy.Simulator(m, dt=-1.0)
-    sim = dy.Simulator(m, dt=1e-3, actuation={"a": 0.1})
-    sim.step(5)
-    q = sim.state.q.copy()
+        simulator(m, -1.0)
+    sim = simulator(m)
+    sim.step({"a": 0.1}, n=5)
+    q = sim.q.copy()
     with pytest.raises(ValueError, match="tension must be >= 0"):
-        sim.set_actuation({"a": -1.0})
-    assert np.array_equal(sim.state.q, q)
-    sim.step(1)
-    assert sim.state.t == pytest.approx(6e-3)
+        sim.step({"a": -1.0})
+    assert np.array_equal(sim.q, q)
+    sim.step({"a": 0.1})
+    assert sim.t == pytest.approx(6e-3)
 
 
 def test_dynamic_internal_wrench_at_base_equals_reaction():
@@ -261,20 +269,24 @@ def test_compiled_base_reaction_matches_reference():
     assert np.abs(R - ref).max() < 1e-12 * np.abs(ref).max()
 
 
-def test_acceleration_query_does_not_disturb_the_integrator():
-    """Simulator.acceleration between steps uses a workspace of its own: the
-    steps after it are the same as without it (same factorisations)."""
-    m = arm(3, "bending_torsion")
-    a, b = dy.Simulator(m, dt=2e-3), dy.Simulator(m, dt=2e-3)
-    for _ in range(20):
-        a.step()
-        b.step()
-        a.acceleration(a.state.q, a.state.qdot, a.state.t)
-    assert np.array_equal(a.state.q, b.state.q) and a.jacobian_refreshes == b.jacobian_refreshes
+def test_recorded_accelerations_are_the_chains_forward_dynamics():
+    """The accelerations a run records at a state (the scenario runner's
+    probe: start_multipliers of a simulator at that state, a workspace of
+    its own, so the integrator's steps are untouched) equal the numpy chain's
+    forward dynamics, tendons (a point-moment one too) and loads included."""
+    m = arm(3, "bending_torsion", offsets=True)
+    u = np.array([0.3, 0.2, 0.25])
+    loads = ld.Loads(point=(ld.tip_load(m, (0.01, 0.02, -0.01), (0.001, 0, 0)),))
+    sim = simulator(m, 2e-3)
+    sim.step(u, loads=loads, n=20)
+    probe = simulator(m, 2e-3, q=sim.q, v=sim.v)
+    acc = probe.start_multipliers(sim.inputs).a
+    ref = dy.forward_dynamics(m, sim.q, sim.v, u, loads)
+    assert np.abs(acc - ref).max() < 1e-9 * np.abs(ref).max()
 
 
 def test_default_newton_tolerance_is_far_below_the_time_step_error():
-    """The Simulator's default Newton tolerance (1e-4 of the largest strain
+    """The node's Newton tolerance (TwinSettings.tolerance: 1e-4 of the largest strain
     rate) moves the tip trajectory of the benchmark cantilever (all six
     modes, falling under gravity) by under 20 % of the time-step error at
     the same dt (estimated by Richardson from dt and dt/2, both converged to
@@ -286,11 +298,11 @@ def test_default_newton_tolerance_is_far_below_the_time_step_error():
     m = model_from_dict(benchmark_cantilever_dict(6, "all"))
 
     def tips(dt, **kw):
-        sim = dy.Simulator(m, dt=dt, **kw)
+        sim = simulator(m, dt, **kw)
         out = []
         for _ in range(25):
-            sim.step(int(round(0.02 / dt)))
-            out.append(kin.tip_pose(m, sim.state.q)[:3, 3].copy())
+            sim.step(n=int(round(0.02 / dt)))
+            out.append(kin.tip_pose(m, sim.q)[:3, 3].copy())
         return np.array(out), sim.newton_iterations
     default, it_default = tips(2e-3)
     tight, it_tight = tips(2e-3, tol=1e-11)
@@ -303,26 +315,26 @@ def test_default_newton_tolerance_is_far_below_the_time_step_error():
 
 
 def test_run_reuses_factorisations_across_steps_and_calls():
-    """Simulator.step(k) (the compiled run) and step() one at a time (the
+    """MechanismSimulator.step(n=k) (one compiled run) and step() one at a time (the
     node's path) reuse Newton's factorisation while it contracts the error
     as a fresh one does (integrators.REUSE_MAX_RATIO), also across calls,
     and take the steps of a simulator that factorises at every step
     (``reuse_factorisation=False``) to the Newton tolerance's effect."""
     m = model_from_dict(benchmark_cantilever_dict(6, "all"))
     dt = 2e-3
-    run, single = dy.Simulator(m, dt=dt), dy.Simulator(m, dt=dt)
-    fresh = dy.Simulator(m, dt=dt, reuse_factorisation=False)
+    run, single = simulator(m, dt), simulator(m, dt)
+    fresh = simulator(m, dt, reuse_factorisation=False)
     tips = {"run": [], "single": [], "fresh": []}
     for _ in range(25):                            # 0.5 s of the fall
-        run.step(5)
-        fresh.step(5)
+        run.step(n=5)
+        fresh.step(n=5)
         for _ in range(5):
             single.step()
         for name, sim in (("run", run), ("single", single), ("fresh", fresh)):
-            tips[name].append(kin.tip_pose(m, sim.state.q)[:3, 3].copy())
-    assert fresh.jacobian_refreshes == 125
-    assert run.jacobian_refreshes < 25, run.jacobian_refreshes      # fewer than one per call of 5 steps
-    assert single.jacobian_refreshes < 0.5 * 125, single.jacobian_refreshes
+            tips[name].append(kin.tip_pose(m, sim.q)[:3, 3].copy())
+    assert fresh.factorisations == 125
+    assert run.factorisations < 25, run.factorisations      # fewer than one per call of 5 steps
+    assert single.factorisations < 0.5 * 125, single.factorisations
     ref = np.array(tips["fresh"])
     assert np.abs(np.array(tips["run"]) - ref).max() < 2e-4
     assert np.abs(np.array(tips["single"]) - ref).max() < 2e-4
@@ -339,12 +351,12 @@ def test_an_outside_factorisation_of_the_workspace_is_never_reused():
     # a tight tolerance: every step iterates more than twice and so takes a
     # fresh factorisation, the two runs compute the same (reusing the
     # outside factorisation: 0.55 and 151 /s apart)
-    a, b = dy.Simulator(m, dt=2e-3, tol=1e-8), dy.Simulator(m, dt=2e-3, tol=1e-8)
+    a, b = simulator(m, 2e-3, tol=1e-8), simulator(m, 2e-3, tol=1e-8)
     for sim in (a, b):
-        sim.step(5)
-    alg.factor(m.tree, b.workspace, b.state.q, 1e6, 1e6)
-    assert b.workspace.factor_key is None
+        sim.step(n=5)
+    alg.factor(m.tree, b.ws, b.q, 1e6, 1e6)
+    assert b.ws.factor_key is None
     for sim in (a, b):
-        sim.step(5)
-    assert np.abs(a.state.q - b.state.q).max() < 1e-6
-    assert np.abs(a.state.qdot - b.state.qdot).max() < 1e-3
+        sim.step(n=5)
+    assert np.abs(a.q - b.q).max() < 1e-6
+    assert np.abs(a.v - b.v).max() < 1e-3

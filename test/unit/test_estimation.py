@@ -11,13 +11,13 @@ import numpy as np
 import pytest
 from scipy.stats import chi2
 
-from soft_twin_core import dynamics as dy
 from soft_twin_core import estimation as es
 from soft_twin_core import sensors as sn
-from soft_twin_core import statics as st
 from soft_twin_core.loads import Loads, PointLoad
 from soft_twin_core.mechanism import from_robot_model
-from soft_twin_core.model import State, find_file, model_from_dict, read_yaml_file
+from soft_twin_core.constrained import MechanismSimulator
+from soft_twin_core.model import find_file, model_from_dict, read_yaml_file
+from rod_statics import solve_statics
 
 DT = 0.01
 ONE_PERCENT = 0.004          # m: 1 % of the 0.4 m arm
@@ -46,12 +46,8 @@ def sensors():
 
 
 def _mech(model):
-    """The model's mechanism, one per model."""
-    mech = model.__dict__.get("_test_mech")
-    if mech is None:
-        mech = from_robot_model(model)
-        object.__setattr__(model, "_test_mech", mech)
-    return mech
+    """The model's mechanism (made once per model)."""
+    return from_robot_model(model)
 
 
 def _ekf(model, sensors, **kw):
@@ -87,7 +83,7 @@ def _payload(model, mass):
 
 def _run_static(model_est, truth_model, sensors, u, loads, steps, seed, **kw):
     rng = np.random.default_rng(seed)
-    truth = st.solve_statics(truth_model, u, loads)
+    truth = solve_statics(truth_model, u, loads)
     T = [_pose(truth_model, truth.q, s) for s in sensors]
     ekf = _ekf(model_est, sensors, **kw)
     for _ in range(steps):
@@ -114,7 +110,7 @@ def test_process_jacobian_is_the_integrator_step_linearisation_at_rest(coarse, s
     Phi and Gamma_u equal central differences of the integrator's step."""
     u = np.array([12.0, 2.0, 6.0, 1.0])
     w = np.array([0.3, -0.2, -0.5, 0.01, 0.02, -0.015])
-    eq = st.solve_statics(coarse, u, Loads(point=(PointLoad(coarse.total_length, tuple(w)),)))
+    eq = solve_statics(coarse, u, Loads(point=(PointLoad(coarse.total_length, tuple(w)),)))
     ekf = _ekf(coarse, sensors, theta=theta, wrench="wrench", actuation=u, q_init=eq.q)
     x0 = np.concatenate([eq.q, np.zeros(ekf.n), w])
     ekf.x = x0.copy()
@@ -145,7 +141,7 @@ def test_static_tip_within_one_percent_where_the_open_loop_twin_is_not(coarse, s
     u = np.array([14.0, 0.0, 8.0, 0.0])
     ekf, truth = _run_static(coarse, stiff_fine, sensors, u, Loads(), 150, seed=2, actuation=u)
     tip_true = truth.tip_pose[:3, 3]
-    open_loop = st.solve_statics(coarse, u).tip_pose[:3, 3]
+    open_loop = solve_statics(coarse, u).tip_pose[:3, 3]
     assert np.linalg.norm(open_loop - tip_true) > ONE_PERCENT
     err = _tip_position(ekf) - tip_true
     assert np.linalg.norm(err) < ONE_PERCENT
@@ -174,16 +170,17 @@ def _inputs(t):
 @pytest.fixture(scope="module")
 def manoeuvre(coarse, fine, sensors):
     """Truth (fine model, 2 ms steps) and filter (coarse, 10 ms) over 3 s."""
-    q0 = st.solve_statics(fine).q
-    sim = dy.Simulator(fine, 0.002, actuation=_inputs, state=State(q0, np.zeros(fine.n_dof)), full_newton=False)
+    q0 = solve_statics(fine).q
+    sim = MechanismSimulator(_mech(fine), 0.002, q=q0, tol=1e-4, max_iterations=10, full_newton=False)
     rng = np.random.default_rng(7)
     ekf = _ekf(coarse, sensors)
     errors, nees, std = [], [], []
     for k in range(300):
-        sim.step(5)
+        for _ in range(5):
+            sim.step(_inputs(sim.t + 0.001))              # the inputs at each step's midpoint
         ekf.predict(_inputs((k + 0.5) * DT))
-        ekf.update({s.name: _reading(fine, sim.state.q, s, rng) for s in sensors})
-        e = _tip_position(ekf) - _tip(fine, sim.state.q)
+        ekf.update({s.name: _reading(fine, sim.q, s, rng) for s in sensors})
+        e = _tip_position(ekf) - _tip(fine, sim.q)
         errors.append(np.linalg.norm(e))
         nees.append(es.nees(e, ekf.tip_position_cov()))
         std.append(_tip_std(ekf))
@@ -217,7 +214,7 @@ def test_dynamic_manoeuvre_covariance_is_consistent(manoeuvre):
 
 def test_outliers_are_gated_and_counted(coarse, fine, sensors):
     u = np.array([8.0, 0.0, 0.0, 0.0])
-    truth = st.solve_statics(fine, u)
+    truth = solve_statics(fine, u)
     T = [_pose(fine, truth.q, s) for s in sensors]
     rng = np.random.default_rng(11)
     ekf = _ekf(coarse, sensors, actuation=u)
@@ -237,7 +234,7 @@ def test_outliers_are_gated_and_counted(coarse, fine, sensors):
 
 def test_dropped_and_malformed_measurements(coarse, fine, sensors):
     u = np.array([8.0, 0.0, 0.0, 0.0])
-    truth = st.solve_statics(fine, u)
+    truth = solve_statics(fine, u)
     T = [_pose(fine, truth.q, s) for s in sensors]
     rng = np.random.default_rng(12)
     ekf = _ekf(coarse, sensors, actuation=u)
@@ -283,7 +280,7 @@ def test_motion_capture_markers_alone_track_the_static_tip(coarse, fine):
                for i, s in enumerate([0.16, 0.28, 0.40])]
     u = np.array([0.0, 12.0, 0.0, 9.0])
     rng = np.random.default_rng(21)
-    truth = st.solve_statics(fine, u)
+    truth = solve_statics(fine, u)
     ekf = _ekf(coarse, markers, actuation=np.zeros(4))
     for _ in range(150):
         ekf.step({m.name: _reading(fine, truth.q, m, rng) for m in markers}, actuation=u)
@@ -315,7 +312,7 @@ def test_one_gate_with_lock_out_protection(coarse, fine, sensors):
     assert es.gate_reading(rep, "s", e, H, R, P, 10.0, runs, 3) and rep.nis["s"] == pytest.approx(0.5 + 1.0)
     assert not es.gate_reading(rep, "s", 10 * e, H, R, P, 10.0, runs, 3) and runs["s"] == 1
     u = np.array([8.0, 0.0, 0.0, 0.0])
-    truth = st.solve_statics(fine, u)
+    truth = solve_statics(fine, u)
     T = [_pose(fine, truth.q, s) for s in sensors]
     rng = np.random.default_rng(13)
     ekf = _ekf(coarse, sensors, actuation=u, max_gated_run=4)

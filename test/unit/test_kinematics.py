@@ -6,6 +6,7 @@ import pytest
 from soft_twin_core import ik, kinematics as kin, lie
 from soft_twin_core.model import (ModelError, State, benchmark_cantilever_dict, load_model,
                                   model_from_dict)
+from rod_statics import solve_statics
 
 RNG = np.random.default_rng(7)
 
@@ -292,18 +293,17 @@ def test_actuation_ik_recovers_tensions_of_a_reachable_target():
     tensions whose equilibrium reaches a reachable target, checked by an
     independent statics solve; an unreachable target flagged, no exception."""
     from soft_twin_core import planner as pl
-    from soft_twin_core import statics as st
     from soft_twin_core.mechanism import from_robot_model
     from soft_twin_core.model import load_model
     m = load_model("tendon_arm")
     solver = pl.TipSolver(from_robot_model(m), pl.PlanOptions(tolerance=1e-9))
     u_true = np.array([1.5, 0.0, 0.0, 0.8])
-    r = st.solve_statics(m, u_true)
+    r = solve_statics(m, u_true)
     res = solver.solve(r.tip_pose[:3, 3], np.zeros(4), None)
     assert res.reached and res.position_error < 1e-9
     assert np.all(res.x >= 0)
     # its equilibrium really reaches the target
-    r2 = st.solve_statics(m, res.x, q_init=res.q)
+    r2 = solve_statics(m, res.x, q_init=res.q)
     assert np.linalg.norm(r2.tip_pose[:3, 3] - r.tip_pose[:3, 3]) < 1e-8
     # an unreachable target: best effort, flagged, no exception
     far = solver.solve(np.array([0.0, 0.0, 0.5]), np.zeros(4), None)

@@ -9,6 +9,7 @@ import pytest
 
 from soft_twin_core.cli import main
 from soft_twin_core.model import find_file
+from rod_statics import solve_statics
 
 
 def _run(tmp_path, *args):
@@ -220,13 +221,12 @@ def test_one_statics_runner_for_every_robot():
     """A rod's statics through the one runner equals the rod's own statics
     (tip, strains, support reaction); a tree robot's result has the same
     fields, its support reaction carries the robot's weight (gravity only)."""
-    from soft_twin_core import statics as st
     from soft_twin_core.loads import Loads, PointLoad
     from soft_twin_core.scenario import run_statics
     sc = _scenario({"robot": "tendon_arm", "actuation": {"tendon_y_pos": 2.0},
                     "loads": [{"s": 0.3, "force": [0, 0.1, -0.1]}]})
     r = run_statics(sc, 4)
-    ref = st.solve_statics(sc.model, sc.actuation, Loads(point=(PointLoad(0.3, (0, 0.1, -0.1, 0, 0, 0)),)))
+    ref = solve_statics(sc.model, sc.actuation, Loads(point=(PointLoad(0.3, (0, 0.1, -0.1, 0, 0, 0)),)))
     assert np.abs(np.array(r["tip_position"]) - ref.tip_pose[:3, 3]).max() < 1e-9
     assert np.abs(np.array(r["strains"]) - ref.strains).max() < 1e-7
     assert np.abs(np.array(r["base_wrench"]) - ref.base_wrench_world).max() < 1e-7

@@ -6,11 +6,13 @@ import os
 import numpy as np
 import pytest
 
-from soft_twin_core import dynamics as dy
 from soft_twin_core import kinematics as kin
 from soft_twin_core import loads as ld
 from soft_twin_core import statics as st
-from soft_twin_core.model import State, load_model
+from soft_twin_core import dynamics as dy
+from soft_twin_core.constrained import MechanismSimulator
+from soft_twin_core.model import load_model
+from rod_statics import mechanism, solve_statics
 
 ROBOTS = os.path.join(os.path.dirname(os.path.abspath(__file__)), "..", "..", "config", "robots")
 
@@ -20,7 +22,7 @@ def modal_damping(model, n_modes=2):
     equations of motion linearised at the equilibrium under gravity:
     eigenvalues of [[0, I], [-M^-1 Kt, -M^-1 D]]."""
     loads = ld.Loads()
-    eq = st.solve_statics(model, None, loads)
+    eq = solve_statics(model, None, loads)
     Kt = st.tangent(model, eq.q, np.zeros(len(model.actuators)), loads)
     M = dy.mass_matrix(model, eq.q)
     n = model.n_dof
@@ -49,17 +51,16 @@ def test_default_arm_settles_after_10N_tendon_step(tendon):
     model = load_model(os.path.join(ROBOTS, "tendon_arm.yaml"))
     loads = ld.Loads()
     u = {tendon: 10.0}
-    q0 = st.solve_statics(model, None, loads).q
-    q1 = st.solve_statics(model, u, loads).q
+    q0 = solve_statics(model, None, loads).q
+    q1 = solve_statics(model, u, loads).q
     p0, p1 = kin.tip_pose(model, q0)[:3, 3], kin.tip_pose(model, q1)[:3, 3]
     travel = np.linalg.norm(p1 - p0)
     assert travel > 0.1
-    sim = dy.Simulator(model, dt=0.005, actuation=u, loads=loads,
-                       state=State(q0.copy(), np.zeros(model.n_dof), 0.0), theta=0.5)
+    sim = MechanismSimulator(mechanism(model), 0.005, 0.5, q=q0, tol=1e-4, max_iterations=10)   # the node's
     err = []
     for _ in range(800):
-        assert sim.step().converged
-        err.append(np.linalg.norm(kin.tip_pose(model, sim.state.q)[:3, 3] - p1))
+        sim.step(u, loads=loads)
+        err.append(np.linalg.norm(kin.tip_pose(model, sim.q)[:3, 3] - p1))
     err = np.array(err) / travel
     t = 0.005 * np.arange(1, 801)
     print(tendon, f"travel {travel:.3f} m, after 1 s {err[t >= 1].max():.3f}, 2 s {err[t >= 2].max():.3f}, "

@@ -16,12 +16,13 @@ from hypothesis import strategies as hst
 from soft_twin_core import kinematics as kin
 from soft_twin_core import paths
 from soft_twin_core import planner as pl
-from soft_twin_core import statics as st
+from soft_twin_core.errors import StaticsError
 from soft_twin_core.forces import actuation_matrix, actuator_arrays
 from soft_twin_core.loads import actuation_force
 from soft_twin_core.mechanism import from_robot_model, load_mechanism
 from soft_twin_core.model import load_model, model_from_dict
 from soft_twin_core.workspace import Workspace
+from rod_statics import solve_statics
 
 EI, D_OFFSET, L = 1.0, 0.02, 1.0
 
@@ -71,7 +72,7 @@ def arm_model():
 def test_actuation_matrix_matches_reference(name):
     m = load_model(name)
     u = np.array([3.0 if a.kind == "tendon" else 2e4 for a in m.actuators])
-    q = st.solve_statics(m, u).q
+    q = solve_statics(m, u).q
     B = actuation_matrix(m.tree, Workspace(m.tree), actuator_arrays(m.tree), q)
     ch = kin.chain(m, q)
     ref = np.stack([actuation_force(m, ch, e) for e in np.eye(len(m.actuators))], axis=1)
@@ -89,7 +90,7 @@ def test_actuation_matrix_point_moment():
 
 def test_tip_sensitivity_matches_finite_differences(arm, arm_model):
     u = np.array([2.0, 0.5, 6.0, 1.0])
-    r = st.solve_statics(arm_model, u)
+    r = solve_statics(arm_model, u)
     S = pl.frame_sensitivity(arm, r.q, u)
     h = 1e-4
     fd = np.empty((3, 4))
@@ -97,8 +98,8 @@ def test_tip_sensitivity_matches_finite_differences(arm, arm_model):
         up, um = u.copy(), u.copy()
         up[k] += h
         um[k] -= h
-        pp = st.solve_statics(arm_model, up, q_init=r.q, tol=1e-13).tip_pose[:3, 3]
-        pm = st.solve_statics(arm_model, um, q_init=r.q, tol=1e-13).tip_pose[:3, 3]
+        pp = solve_statics(arm_model, up, q_init=r.q, tol=1e-13).tip_pose[:3, 3]
+        pm = solve_statics(arm_model, um, q_init=r.q, tol=1e-13).tip_pose[:3, 3]
         fd[:, k] = (pp - pm) / (2 * h)
     assert np.abs(S - fd).max() <= 1e-6 * np.abs(S).max()
 
@@ -390,7 +391,7 @@ def test_a_sample_whose_statics_fails_from_every_start_is_held_and_flagged(arm, 
     def failing(target, *a, **k):
         calls["n"] += 1
         if np.allclose(target[:3, 3], path.positions[2]):
-            raise st.StaticsError("forced")
+            raise StaticsError("forced")
         return solve(target, *a, **k)
     monkeypatch.setattr(solver, "solve", failing)
     plan = pl.plan_path(arm, path, o, solver=solver)

@@ -8,6 +8,7 @@ from soft_twin_core import loads as ld
 from soft_twin_core import equilibrium as eq
 from soft_twin_core import statics as st
 from soft_twin_core.model import benchmark_cantilever_dict, model_from_dict
+from rod_statics import problem, solve_statics
 
 NO_GRAVITY = dict(gravity=False)
 
@@ -27,7 +28,7 @@ def test_pure_tip_moment_closes_the_circle(n):
     EI, L = m.sections[0].K[4, 4], m.total_length
     tau = 2 * np.pi * EI / L
     loads = ld.Loads(point=(ld.tip_load(m, moment=(0, tau, 0), frame="body"),), **NO_GRAVITY)
-    r = st.solve_statics(m, loads=loads)
+    r = solve_statics(m, loads=loads)
     assert np.abs(r.strains[:, 4] - tau / EI).max() < 1e-9 * tau / EI
     assert np.abs(r.strains[:, [0, 1, 2, 3, 5]] - [1, 0, 0, 0, 0]).max() < 1e-12
     assert np.linalg.norm(r.tip_pose[:3, 3]) < 1e-9 * L
@@ -42,7 +43,7 @@ def test_constant_tip_moment_slides_shape(tau):
                        "material": {"youngs_modulus": 1.0, "shear_modulus": 0.5, "density": 1.0}}]}
     m = model_from_dict(d)
     loads = ld.Loads(point=(ld.tip_load(m, moment=(0, tau, 0), frame="body"),), **NO_GRAVITY)
-    r = st.solve_statics(m, loads=loads)
+    r = solve_statics(m, loads=loads)
     a = np.linspace(0, 1, 9)
     P = kin.poses(m, r.q, a)[:, :3, 3]
     k = tau
@@ -66,9 +67,9 @@ def test_tendon_equals_point_moment_and_constant_curvature(T):
     d = 0.008
     m = planar_tendon_arm(5, d)
     EI, L = m.sections[0].K[5, 5], m.total_length
-    r_tendon = st.solve_statics(m, {"t1": T})
+    r_tendon = solve_statics(m, {"t1": T})
     moment = ld.Loads(point=(ld.tip_load(m, moment=(0, 0, T * d), frame="body"),), gravity=False)
-    r_moment = st.solve_statics(m, loads=moment)
+    r_moment = solve_statics(m, loads=moment)
     assert np.abs(r_tendon.q - r_moment.q).max() < 1e-9 * T * d / EI
     kappa = T * d / EI
     assert np.abs(r_tendon.strains[:, 5] - kappa).max() < 1e-10 * kappa
@@ -89,19 +90,19 @@ def test_point_moment_tendon_model_matches_distributed_in_plane(end):
     d["actuators"] = [{"name": "a", "offset": [0.008, 0.0], **extra},
                       {"name": "b", "offset": [0.008, 0.0], "model": "point_moment", **extra}]
     m = model_from_dict(d)
-    ra = st.solve_statics(m, {"a": 0.4})
-    rb = st.solve_statics(m, {"b": 0.4})
+    ra = solve_statics(m, {"a": 0.4})
+    rb = solve_statics(m, {"b": 0.4})
     assert np.abs(ra.q - rb.q).max() < 1e-10 * np.abs(ra.q).max()
     q = ra.q + 0.1
     for u in ([0.4, 0.0], [0.0, 0.4]):
         ref = ld.actuation_force(m, kin.chain(m, q), np.array(u))
-        assert np.abs(st.problem(m, np.array(u), ld.Loads(gravity=False)).residual(q)
+        assert np.abs(problem(m, np.array(u), ld.Loads(gravity=False)).residual(q)
                       - st.residual(m, q, np.array(u), ld.Loads(gravity=False))).max() < 1e-12 * np.abs(ref).max()
 
 
 def test_tendon_terminating_mid_arm_bends_only_its_span():
     m = planar_tendon_arm(4, 0.008, end=0.25)
-    r = st.solve_statics(m, {"t1": 0.3})
+    r = solve_statics(m, {"t1": 0.3})
     EI = m.sections[0].K[5, 5]
     assert np.allclose(r.strains[:2, 5], 0.3 * 0.008 / EI, rtol=1e-10)
     assert np.allclose(r.strains[2:, 5], 0.0, atol=1e-12)
@@ -133,11 +134,11 @@ def test_tendon_force_is_minus_tension_times_length_gradient():
 def test_negative_tension_and_unknown_actuator_rejected():
     m = planar_tendon_arm()
     with pytest.raises(ValueError, match=r"tendon t1 tension must be >= 0 N, got -1.0"):
-        st.solve_statics(m, {"t1": -1.0})
+        solve_statics(m, {"t1": -1.0})
     with pytest.raises(ValueError, match=r"unknown actuator 't9'"):
-        st.solve_statics(m, {"t9": 1.0})
+        solve_statics(m, {"t9": 1.0})
     with pytest.raises(ValueError, match="not finite"):
-        st.solve_statics(m, {"t1": float("nan")})
+        solve_statics(m, {"t1": float("nan")})
 
 
 # --- tangent, balance, solver behaviour ------------------------------------
@@ -164,7 +165,7 @@ def test_base_reaction_balances_loads():
     m = model_from_dict(d)
     f_tip, m_tip = np.array([0.02, -0.05, 0.01]), np.array([0.001, 0.002, -0.003])
     loads = ld.Loads(point=(ld.tip_load(m, f_tip, m_tip),))
-    r = st.solve_statics(m, loads=loads)
+    r = solve_statics(m, loads=loads)
     # independent sums: total weight, tip force; moments from FK positions
     s = np.linspace(0, m.total_length, 20001)
     p = kin.poses(m, r.q, s)[:, :3, 3]
@@ -185,7 +186,7 @@ def test_internal_wrench_at_base_equals_reaction_and_tip_equals_load():
     m = model_from_dict(rod(6, "all"))
     f_tip = np.array([0.0, 0.01, -0.02])
     loads = ld.Loads(point=(ld.tip_load(m, f_tip),))
-    r = st.solve_statics(m, loads=loads)
+    r = solve_statics(m, loads=loads)
     Wi = st.internal_wrenches(m, r.q, [0.0, m.total_length], loads=loads)
     R_tip = r.tip_pose[:3, :3]
     assert np.allclose(Wi[1, :3], R_tip.T @ f_tip, atol=1e-15)
@@ -197,7 +198,7 @@ def test_pcs_converges_under_gravity_benchmark():
     """The common benchmark case: tip error falls ~ O(h^2) as sections are added."""
     tips = {}
     for n in (2, 4, 8, 16):
-        tips[n] = st.solve_statics(model_from_dict(benchmark_cantilever_dict(n))).tip_pose[:3, 3]
+        tips[n] = solve_statics(model_from_dict(benchmark_cantilever_dict(n))).tip_pose[:3, 3]
     e = [np.linalg.norm(tips[n] - tips[16]) for n in (2, 4, 8)]
     assert e[0] > e[1] > e[2]
     assert e[1] / e[2] > 3.0
@@ -208,22 +209,22 @@ def test_warm_start_and_load_stepping():
     m = model_from_dict(rod(6, "all"))
     EI = m.sections[0].K[4, 4]
     big = ld.Loads(point=(ld.tip_load(m, force=(0, 0, -12 * EI / m.total_length**2)),))
-    r = st.solve_statics(m, loads=big)
+    r = solve_statics(m, loads=big)
     assert r.residual <= 1e-10 and r.tip_pose[2, 3] < -0.3
-    r2 = st.solve_statics(m, loads=big, q_init=r.q)
+    r2 = solve_statics(m, loads=big, q_init=r.q)
     assert r2.iterations == 0
-    r3 = st.solve_statics(m, loads=big, q_init=r.q * 0.99 + 0.01 * m.q0)
+    r3 = solve_statics(m, loads=big, q_init=r.q * 0.99 + 0.01 * m.q0)
     assert r3.iterations <= 4
 
 
 def test_bad_inputs_named():
     m = model_from_dict(rod(2))
     with pytest.raises(ValueError, match=r"loads.point\[0\].wrench"):
-        st.solve_statics(m, loads=ld.Loads(point=(ld.PointLoad(0.5, (1, 2, 3)),)))
+        solve_statics(m, loads=ld.Loads(point=(ld.PointLoad(0.5, (1, 2, 3)),)))
     with pytest.raises(ValueError, match=r"loads.point\[0\].s: must lie in"):
-        st.solve_statics(m, loads=ld.Loads(point=(ld.PointLoad(2.0, (0,) * 6),)))
+        solve_statics(m, loads=ld.Loads(point=(ld.PointLoad(2.0, (0,) * 6),)))
     with pytest.raises(ValueError, match=r"q_init: expected shape"):
-        st.solve_statics(m, q_init=np.zeros(3))
+        solve_statics(m, q_init=np.zeros(3))
 
 
 def test_actuation_for_shape_recovers_tensions():
@@ -231,7 +232,7 @@ def test_actuation_for_shape_recovers_tensions():
     import os
     m = load_model(os.path.join(os.path.dirname(__file__), "..", "..", "config", "robots", "tendon_arm.yaml"))
     u_true = {"tendon_y_pos": 2.0, "tendon_z_neg": 1.0}
-    r = st.solve_statics(m, u_true)
+    r = solve_statics(m, u_true)
     u, res = st.actuation_for_shape(m, r.q)
     assert res < 1e-9
     assert np.allclose(u, [2.0, 0.0, 0.0, 1.0], atol=1e-8)
@@ -251,9 +252,9 @@ def test_compiled_residual_and_tangent_match_reference():
     loads = ld.Loads(point=(ld.tip_load(m, force=(0.01, 0.02, -0.03), moment=(0.001, 0, 0.002)),))
     u = np.array([0.4])
     R0 = st.residual(m, q, u, loads)
-    assert np.abs(st.problem(m, u, loads).residual(q) - R0).max() < 1e-12 * np.abs(R0).max()
+    assert np.abs(problem(m, u, loads).residual(q) - R0).max() < 1e-12 * np.abs(R0).max()
     K0 = st.tangent(m, q, u, loads)
-    assert np.abs(st.problem(m, u, loads).tangent(q) - K0).max() < 1e-7 * np.abs(K0).max()
+    assert np.abs(problem(m, u, loads).tangent(q) - K0).max() < 1e-7 * np.abs(K0).max()
 
 
 def planar_cantilever_under_gravity(EA, GA, EI, rhoA, g, L):
@@ -291,7 +292,7 @@ def test_pcs_converges_to_planar_continuum_under_gravity():
     ref = planar_cantilever_under_gravity(sec.K[0, 0], sec.K[2, 2], sec.K[4, 4], sec.M[0, 0], 9.81, 0.5)
     errs = []
     for n in (4, 8, 16):
-        tip = st.solve_statics(model_from_dict(benchmark_cantilever_dict(n))).tip_pose[:3, 3]
+        tip = solve_statics(model_from_dict(benchmark_cantilever_dict(n))).tip_pose[:3, 3]
         errs.append(np.linalg.norm(tip - ref))
     assert errs[0] > errs[1] > errs[2]
     assert 3.0 < errs[1] / errs[2] < 5.0          # second order in the section length
@@ -301,7 +302,7 @@ def test_pcs_converges_to_planar_continuum_under_gravity():
 def test_tangent_hint_gives_the_same_equilibrium_with_fewer_tangents(monkeypatch):
     m = model_from_dict(rod(6, "bending_torsion"))
     loads = ld.Loads(point=(ld.tip_load(m, (0.0, 0.02, -0.01)),))
-    r0 = st.solve_statics(m, loads=loads)
+    r0 = solve_statics(m, loads=loads)
     assert r0.tangent is not None
     loads2 = ld.Loads(point=(ld.tip_load(m, (0.0, 0.021, -0.01)),))
     problems = []
@@ -316,9 +317,9 @@ def test_tangent_hint_gives_the_same_equilibrium_with_fewer_tangents(monkeypatch
         n = sum(p.n_tangents for p in problems)
         problems.clear()
         return n
-    cold = st.solve_statics(m, loads=loads2, q_init=r0.q)
+    cold = solve_statics(m, loads=loads2, q_init=r0.q)
     n_cold = tangents()
-    hinted = st.solve_statics(m, loads=loads2, q_init=r0.q, tangent_hint=r0.tangent)
+    hinted = solve_statics(m, loads=loads2, q_init=r0.q, tangent_hint=r0.tangent)
     assert n_cold >= 2 and tangents() < n_cold
     assert np.abs(hinted.q - cold.q).max() < 1e-10 * np.abs(cold.q).max()
     assert hinted.residual <= 1e-10
@@ -355,9 +356,9 @@ def test_compiled_newton_takes_the_reference_iterates():
     cases.append((big, np.zeros(0), ld.Loads()))
     n_hint_kept = 0
     for model, u, loads in cases:
-        pb = st.problem(model, u, loads)
+        pb = problem(model, u, loads)
         for q_start, hint in ((model.q0.copy(), None),
-                              (st.solve_statics(model, 0.9 * u if u.size else None).q, None)):
+                              (solve_statics(model, 0.9 * u if u.size else None).q, None)):
             ref = eq.newton_numpy(pb, q_start.copy(), 1e-10, 50, hint)
             got = _compiled_newton(model, pb, q_start.copy(), 1e-10, 50, hint)
             assert got[2] == ref[2] and got[3] == ref[3]
@@ -384,7 +385,7 @@ def test_default_quadrature_error_is_far_below_the_discretisation_error():
         d = rod(n, "all")
         if qp is not None:
             d["quadrature_points"] = qp
-        return st.solve_statics(model_from_dict(d)).tip_pose[:3, 3]
+        return solve_statics(model_from_dict(d)).tip_pose[:3, 3]
     assert model_from_dict(rod(2)).quadrature_points == 2
     ratios = []
     for n in (2, 4, 8):

@@ -7,10 +7,10 @@ import math
 import numpy as np
 import pytest
 
-from soft_twin_core import statics as st
 from soft_twin_core.scenario import scenario_from_dict
 from soft_twin_core.workspace_map import (actuation_ranges, hull_summary, parse_workspace_options,
                                           sample_actuations, workspace_of)
+from rod_statics import solve_statics
 
 
 def test_hull_volume_area_and_degenerate_clouds():
@@ -68,7 +68,7 @@ def test_default_robot_workspace_extent_is_reached_at_the_actuation_limits():
     w = workspace_of(sc, opts)
     assert not w["failed"]
     P, c = w["points"], w["corner"]
-    direct = np.array([st.solve_statics(sc.model, u).tip_pose[:3, 3]
+    direct = np.array([solve_statics(sc.model, u).tip_pose[:3, 3]
                        for u in ([0, 0, 0, 0], [4, 0, 0, 0], [0, 0, 4, 0], [4, 0, 4, 0])])
     assert P[c] == pytest.approx(direct, abs=1e-12)
     h = w["hull"]
