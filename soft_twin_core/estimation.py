@@ -211,6 +211,7 @@ class EKF:
         else:
             self._w, self._zeta = 2.0 * np.pi * float(servo_hz), float(servo_damping)
         self._step_inputs = None
+        self._point_moments = any(a.tendon_model == "point_moment" for a in mech.actuators)
         self._integrator = ThetaIntegrator(tree, Workspace(tree), self._act, lambda t: self._step_inputs,
                                            self.dt, self.theta, 1e-9, 10, 4, False)
         self.gate = {m: float(chi2.ppf(gate_probability, m)) for m in range(1, 7)}
@@ -358,10 +359,15 @@ class EKF:
 
     # ------------------------------------------------------------- prediction
     def _tip_loads(self):
-        """LoadArrays of the estimated tip wrench (a dead load at the tip frame)."""
+        """LoadArrays of the estimated tip wrench (a dead load at the tip
+        frame) and of the point-moment tendons' follower moments at the
+        inputs (:func:`forces.point_moment_arrays`)."""
         from .algorithms import make_loads
+        from .constrained import _concat_loads
+        from .forces import point_moment_arrays
         j, x = self._tip_point
-        return make_loads(self.tree, [j], [x], [self.wrench() if self.k else np.zeros(6)], [True])
+        tip = make_loads(self.tree, [j], [x], [self.wrench() if self.k else np.zeros(6)], [True])
+        return _concat_loads(tip, point_moment_arrays(self.tree, self.u)) if len(self.u) else tip
 
     def _servo(self, q, v):
         """(effort (nv,), M) of the joints' servo model at (q, v)."""
@@ -386,7 +392,7 @@ class EKF:
         dq, dv = alg.rnea_derivatives(tree, ws, q, v, self.a)          # inertia, gravity, K, D
         dq, dv = dq.copy(), dv.copy()
         passes.forward_pass(ws.m, ws.w, q, ws.zeros_v, ws.zeros_v, 0)
-        if k:                                                           # the tip load's geometric stiffness
+        if k or self._point_moments:        # the geometric stiffness of the tip load and follower moments
             loads = self._tip_loads()
             passes.rnea_pass(ws.m, ws.w, loads, self._zero_g, np.empty(n), True)
             static_tangent_pass(ws.m, ws.w, loads, self._zero_g, dq)
@@ -525,7 +531,7 @@ class EKF:
 def _check_supported(mech):
     """ValueError naming what the filter does not handle: closed chains, a
     moving base, joints other than revolute, prismatic, fixed and soft,
-    other kinematic maps than the exponential, point-moment tendons."""
+    other kinematic maps than the exponential."""
     tree = mech.tree
     if mech.constraints:
         raise ValueError("EKF: robots with constraints (closed chains) are not supported")
@@ -536,8 +542,6 @@ def _check_supported(mech):
     if np.any(tree.arrays.kmap != 0):
         raise ValueError("EKF: only exponential-map sections are supported (the process Jacobian uses "
                          "algorithms.rnea_derivatives)")
-    if any(getattr(a, "tendon_model", "distributed") == "point_moment" for a in mech.actuators):
-        raise ValueError("EKF: point-moment tendons are not supported (use the distributed model)")
 
 
 def _servo_inertia(M, j):

@@ -22,6 +22,7 @@ from soft_twin_core.constrained import MechanismSimulator, solve_equilibrium
 from soft_twin_core.mechanism import mechanism_from_dict
 from soft_twin_core.model import find_file, read_yaml_file
 from soft_twin_core.workspace import Workspace
+from test_estimation import assert_linearisation_at_rest
 
 ARM_LENGTH = 0.30                       # m, the soft member
 DT, SIM_DT, DURATION = 0.01, 0.002, 3.0
@@ -306,15 +307,6 @@ def _sprung_robot():
     return mechanism_from_dict(d)
 
 
-def _step_from(ekf, x, u):
-    ekf.x = np.array(x, dtype=float)
-    ekf.a = np.zeros(ekf.n)
-    ekf._integrator.last_a = np.zeros(ekf.n)
-    ekf._integrator._prev_a = None
-    ekf.predict(actuation=u)
-    return ekf.x.copy()
-
-
 @pytest.mark.parametrize("theta", [1.0, 0.5])
 def test_tree_process_jacobian_with_tip_wrench_and_inputs(theta):
     """At an equilibrium of the sprung pan-tilt arm under tendons, gravity
@@ -329,20 +321,7 @@ def test_tree_process_jacobian_with_tip_wrench_and_inputs(theta):
     ekf = es.EKF(mech, [ts.JointStateSensor("enc", ("pan", "tilt"), np.array([1e-3, 1e-3]))], DT, theta=theta,
                  wrench="wrench", actuation=u, q_init=eq)
     assert ekf.tip == "tool" and ekf.nb == 0 and ekf.k == 6
-    x0 = np.concatenate([eq, np.zeros(ekf.n), w])
-    ekf.x = x0.copy()
-    ekf.a = np.zeros(ekf.n)
-    Phi, Gamma = ekf.linearisation()
-    assert np.abs(_step_from(ekf, x0, u) - x0).max() < 1e-8                # at rest it stays
-    h = 1e-6
-    Phi_fd = np.stack([(_step_from(ekf, x0 + h * e, u) - _step_from(ekf, x0 - h * e, u)) / (2 * h)
-                       for e in np.eye(len(x0))], axis=1)
-    assert np.abs(Phi - Phi_fd).max() <= 1e-5 * np.abs(Phi_fd).max()
-    hu = 1e-4
-    Gamma_fd = np.stack([(_step_from(ekf, x0, u + hu * e) - _step_from(ekf, x0, u - hu * e)) / (2 * hu)
-                         for e in np.eye(4)], axis=1)
-    assert np.abs(Gamma_fd).max() > 1e-6
-    assert np.abs(Gamma - Gamma_fd).max() <= 1e-5 * np.abs(Gamma_fd).max()
+    assert_linearisation_at_rest(ekf, np.concatenate([eq, np.zeros(ekf.n), w]), u)
 
 
 def test_payload_on_the_tool_of_a_tree_robot():
