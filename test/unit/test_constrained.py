@@ -548,6 +548,9 @@ def test_point_moment_tendons_on_the_mechanism_path():
     missing: the mechanism's inputs dropped point-moment tendons)."""
     from soft_twin_core import constrained as cs
     from soft_twin_core import dynamics as dy
+    from soft_twin_core import kinematics as kin
+    from soft_twin_core import loads as ld
+    from soft_twin_core import statics as st
     from soft_twin_core.mechanism import from_robot_model
     from soft_twin_core.model import benchmark_cantilever_dict, model_from_dict
     from soft_twin_core.twin import Twin, TwinSettings
@@ -567,7 +570,20 @@ def test_point_moment_tendons_on_the_mechanism_path():
     sim.v = v
     a = sim.start_multipliers(cs.make_inputs(mech, u)).a
     assert np.allclose(a, a_ref, rtol=1e-9, atol=1e-9 * np.abs(a_ref).max())
+    # independent of the engine: the numpy chain's residual (follower moment and tendon by quadrature)
+    R = st.residual(m, ref, u, ld.Loads())
+    assert np.abs(R).max() < 1e-8 * np.abs(m.K_q @ (ref - m.q0)).max()
     twin = Twin(mech, TwinSettings(mode="quasi_static"))
     twin.set_actuation(u)
     twin.step()
     assert np.allclose(twin.state.q, ref, atol=1e-8)
+    # the support's reaction: the tendons are internal (their motors on the support), so it balances the
+    # weight alone, force and moment about the origin by quadrature (found wrong: the mechanism's outputs
+    # took the follower moment for an external load, 0.03 N m off here)
+    sq, wq, sec = ld.gauss_points(m)
+    weight = np.array([m.sections[i].M[0, 0] for i in sec])[:, None] * wq[:, None] * m.gravity
+    p = kin.poses(m, ref, sq)[:, :3, 3]
+    eq = cs.solve_equilibrium(mech, u)
+    for got in (twin.outputs().base_wrench, state_outputs(mech, eq.q, eq.lam, eq.inputs).base_wrench):
+        np.testing.assert_allclose(got[:3], -weight.sum(axis=0), atol=1e-10)
+        np.testing.assert_allclose(got[3:], -np.cross(p, weight).sum(axis=0), atol=1e-10)
