@@ -38,10 +38,10 @@ wrench ``T [t; d x t]``, ``t = n/|n|``, ``n = nu + kappa x d``, with
 ``d = r_a e_a``), ``dR/dm = -J_tip,world^T [g; 0]`` and, for a sensor
 offset, ``de_p/dt = R_section``.
 
-Damping (``viscosity:<member>`` [Pa s]) needs a dynamic recording (a
+Damping (``viscosity:<segment>`` [Pa s]) needs a dynamic recording (a
 time series from rest): :func:`calibrate_damping` fits it by simulating the
 recording, with central-difference sensitivities of the simulated
-trajectory (classic robots).
+trajectory.
 
 Confidence intervals: ``cov = s^2 (J^T J)^-1`` with the residual variance
 ``s^2 = |r|^2 / (N - p)`` (J: the weighted Jacobian at the solution), 95 %
@@ -695,9 +695,10 @@ def simulate_readings(robot, sensors, times, inputs, dt, theta=0.5, joints=None)
             try:
                 if joints is None:
                     sim.step(inputs[r - 1], n=n)
-                for k in range(1, n + 1 if joints is not None else 1):     # the joints' commands: linear
-                    c = joints[r - 1] + (k / n) * (np.asarray(joints[r]) - joints[r - 1])
-                    sim.step(inputs[r - 1], positions=dict(zip(names, c)))
+                else:                             # the joints' commands: linear from row to row
+                    for k in range(1, n + 1):
+                        c = joints[r - 1] + (k / n) * (np.asarray(joints[r]) - joints[r - 1])
+                        sim.step(inputs[r - 1], positions=dict(zip(names, c)))
             except StepError as e:
                 raise CalibrationFailed(f"row {r}: the simulation failed ({e})") from None
         for name, z in sn.predict_readings(ws, sim.q, sensors, where).items():

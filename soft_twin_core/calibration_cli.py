@@ -36,8 +36,8 @@ def add_cli_parser(sub):
     c.add_argument("--sections", type=int,
                    help="sections per segment for the fit, classic robots (default: the robot file's)")
     c.add_argument("--dynamic", action="store_true",
-                   help="the rows are a time series from rest (column t): fit viscosity:<member> (or "
-                        "'viscosity' for all members) by simulating it")
+                   help="the rows are a time series from rest (column t): fit viscosity:<segment> (or "
+                        "'viscosity' for all segments) by simulating it")
     c.add_argument("--dt", type=float, default=5e-3, help="integrator step for --dynamic [s] (default 0.005)")
     # MCAP recordings (soft_twin_core.calibration_mcap)
     c.add_argument("--actuation-topic", default="/soft_twin/actuation",

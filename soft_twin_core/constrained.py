@@ -32,7 +32,7 @@ import numpy as np
 
 from . import algorithms as alg
 from ._blas import one_blas_thread
-from .forces import (actuation_pass, actuation_tangent_pass, actuator_arrays, check_member_loads, gravity_of,
+from .forces import (actuation_tangent_pass, actuator_arrays, check_member_loads, concat_loads, gravity_of,
                      load_arrays, point_moment_arrays)
 from .integrators import ThetaIntegrator, integrate_pass, residual_pass
 from .kernels import passes
@@ -157,17 +157,6 @@ def frame_loads(mech, point_loads):
                       np.array(F, np.bool_))
 
 
-def _concat_loads(*lds):
-    lds = [ld for ld in lds if ld.joint.shape[0]]
-    if not lds:
-        return LoadArrays(np.zeros(0, np.int64), np.zeros(0), np.zeros((0, 6)), np.zeros(0, np.bool_))
-    if len(lds) == 1:
-        return lds[0]
-    return LoadArrays(np.concatenate([ld.joint for ld in lds]), np.ascontiguousarray(np.concatenate([ld.x for ld in lds])),
-                      np.ascontiguousarray(np.concatenate([ld.wrench for ld in lds])),
-                      np.concatenate([ld.world for ld in lds]))
-
-
 def make_inputs(mech, actuation=None, efforts=None, positions=None, velocities=None, loads=None,
                 point_loads=(), path=None):
     """Check every input of a mechanism once (ValueError naming the bad one)."""
@@ -186,7 +175,7 @@ def make_inputs(mech, actuation=None, efforts=None, positions=None, velocities=N
             raise ValueError(f"velocities: expected {len(q_cmd)} finite values (the position-controlled joints)")
     loads = Loads() if loads is None else loads
     check_member_loads(tree, loads)
-    ld = _concat_loads(load_arrays(tree, loads, u, path) if tree.paths else   # with point-moment tendons at u
+    ld = concat_loads(load_arrays(tree, loads, u, path) if tree.paths else   # with point-moment tendons at u
                        frame_loads(mech, ()), frame_loads(mech, point_loads))
     return Inputs(u, effort, q_cmd, v_cmd, ld, gravity_of(tree, loads))
 
@@ -208,7 +197,7 @@ def assemble_inputs(mech, u, efforts, positions, velocities=None, point_loads=()
     v_cmd = None if velocities is None else np.array([velocities.get(tree.joints[i].name, 0.0) for i in pos],
                                                      dtype=float)
     u = np.asarray(u, dtype=float)
-    return Inputs(u, effort, q_cmd, v_cmd, _concat_loads(_checked_frame_loads(mech, point_loads),
+    return Inputs(u, effort, q_cmd, v_cmd, concat_loads(_checked_frame_loads(mech, point_loads),
                                                          point_moment_arrays(tree, u)),
                   np.asarray(tree.gravity, dtype=float))
 
@@ -364,7 +353,7 @@ class _Equilibrium:
         self.pos_v = np.array([tree.idx_v[i] for i in mech.joints_with("position")], dtype=np.int64)
 
     def loads(self, lam):
-        return _concat_loads(self.inp.loads, constraint_loads(self.mech, lam))
+        return concat_loads(self.inp.loads, constraint_loads(self.mech, lam))
 
     def effort(self, lam):
         e = self.inp.effort.copy()
@@ -786,7 +775,7 @@ class MechanismSimulator:
             acc = (v1 - v0) / h
             integrate_pass(m, q0, vt, th * h, qt)
             integrate_pass(m, q0, vt, h, q1)
-            ld = _concat_loads(inp.loads, constraint_loads(self.mech, lam))
+            ld = concat_loads(inp.loads, constraint_loads(self.mech, lam))
             effort = inp.effort.copy()
             if npos:
                 effort[pos_v] += lam[len(lam) - npos:]
@@ -848,7 +837,7 @@ class MechanismSimulator:
         lam0 = np.zeros_like(self.lam)
         coef = np.ascontiguousarray(self.act.unit @ inp.u) if inp.u.size else np.zeros(len(self.act.joint))
         bias = np.empty(tree.nv)
-        residual_pass(m, w, self.act, _concat_loads(inp.loads, constraint_loads(self.mech, lam0)), inp.gravity,
+        residual_pass(m, w, self.act, concat_loads(inp.loads, constraint_loads(self.mech, lam0)), inp.gravity,
                       coef, inp.effort, np.ascontiguousarray(self.q), self.v, np.zeros(tree.nv), bias, False)
         M = np.zeros((tree.nv, tree.nv))
         passes.forward_pass(m, w, np.ascontiguousarray(self.q), self.ws.zeros_v, self.ws.zeros_v, 0)

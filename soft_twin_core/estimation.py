@@ -80,7 +80,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from . import sensors as sn
-from .forces import actuation_matrix
+from .forces import actuation_matrix, concat_loads, point_moment_arrays
 from .multibody import FIXED, PRISMATIC, REVOLUTE, SOFT
 
 WRENCH_DIMS = {None: 0, "payload": 1, "force": 3, "wrench": 6}
@@ -300,7 +300,6 @@ class EKF:
     def set_inputs(self, actuation=None, positions=None, efforts=None):
         """New inputs (each None: kept); ValueError naming a bad one."""
         from .constrained import actuation_vector, joint_vector
-
         if actuation is not None:
             self.u = actuation_vector(self.mech, actuation)
         if positions is not None:
@@ -363,11 +362,9 @@ class EKF:
         frame) and of the point-moment tendons' follower moments at the
         inputs (:func:`forces.point_moment_arrays`)."""
         from .algorithms import make_loads
-        from .constrained import _concat_loads
-        from .forces import point_moment_arrays
         j, x = self._tip_point
         tip = make_loads(self.tree, [j], [x], [self.wrench() if self.k else np.zeros(6)], [True])
-        return _concat_loads(tip, point_moment_arrays(self.tree, self.u)) if len(self.u) else tip
+        return concat_loads(tip, point_moment_arrays(self.tree, self.u)) if len(self.u) else tip
 
     def _servo(self, q, v):
         """(effort (nv,), M) of the joints' servo model at (q, v)."""

@@ -167,6 +167,18 @@ def _point_moment_loads(model, u):
     return tuple(out)
 
 
+def concat_loads(*lds):
+    """One LoadArrays of several (empty ones left out)."""
+    lds = [ld for ld in lds if ld.joint.shape[0]]
+    if not lds:
+        return LoadArrays(np.zeros(0, np.int64), np.zeros(0), np.zeros((0, 6)), np.zeros(0, np.bool_))
+    if len(lds) == 1:
+        return lds[0]
+    return LoadArrays(np.concatenate([ld.joint for ld in lds]), np.ascontiguousarray(np.concatenate([ld.x for ld in lds])),
+                      np.ascontiguousarray(np.concatenate([ld.wrench for ld in lds])),
+                      np.concatenate([ld.world for ld in lds]))
+
+
 def gravity_of(model, loads=None):
     """Gravity vector [m/s^2] (world) the loads switch on or scale."""
     grav = True if loads is None else loads.gravity

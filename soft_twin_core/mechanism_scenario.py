@@ -10,7 +10,7 @@ Outputs (JSON; the CSV has the same time histories): see
 
 import numpy as np
 
-from .constrained import MechanismSimulator, StepError, _concat_loads, make_inputs, solve_equilibrium
+from .constrained import MechanismSimulator, StepError, concat_loads, make_inputs, solve_equilibrium
 from ._blas import one_blas_thread
 from .loads import Loads
 
@@ -152,7 +152,7 @@ class StepInputs:
             self._key = key
         inp = make_inputs(sc.mech, sc.actuation_at(tt), sc.efforts_at(tt), sc.positions_at(t1),
                           sc.velocities_at(t1), _NO_LOADS)     # its loads: the point-moment tendons' at u
-        return replace(inp, loads=_concat_loads(self._loads.loads, inp.loads), gravity=self._loads.gravity)
+        return replace(inp, loads=concat_loads(self._loads.loads, inp.loads), gravity=self._loads.gravity)
 
 
 class _Recorder:

@@ -24,7 +24,7 @@ import math
 import numpy as np
 
 from .errors import ModelError
-from .forces import point_moment_arrays
+from .forces import concat_loads, point_moment_arrays
 from .kernels import passes
 from .kernels.frames import point_poses
 from .stress import peak_stresses
@@ -233,22 +233,21 @@ def main_member(mech, tip):
         mech.members[-1] if mech.members else None)
 
 
-def base_reaction(mech, joint_wrenches, ws=None, u=None):
+def base_reaction(mech, joint_wrenches, ws, u):
     """The support's reaction on the robot (6,) [f; m]: the wrench through
     every root joint (``joint_wrenches`` {joint: world [f; m] about its
     input origin}), world axes, moment about the base origin (a constraint
-    to the world reacts on its own: ``constraint_wrenches``). With the
-    workspace ``ws`` of those wrenches and the inputs ``u``, the follower
-    moments of point-moment tendons are taken for internal (their motor
-    sits on the support, which takes the opposite couple): the loads the
-    root joints transmit, less those moments in world axes."""
+    to the world reacts on its own: ``constraint_wrenches``), at the
+    workspace ``ws`` of those wrenches and the inputs ``u``: the follower
+    moments of point-moment tendons are internal (their motor sits on the
+    support, which takes the opposite couple), so the loads the root joints
+    transmit, less those moments in world axes."""
     base = np.zeros(6)
     for j in mech.tree.joints:
         if j.parent == -1:
             wr = np.asarray(joint_wrenches[j.name], dtype=float)
             base += np.concatenate([wr[:3], wr[3:] + np.cross(j.placement[:3, 3], wr[:3])])
-    if u is not None and len(u):
-        base[3:] += tendon_couple(mech, ws, u)
+    base[3:] += tendon_couple(mech, ws, u)
     return base
 
 
@@ -403,11 +402,11 @@ def state_outputs(mech, q, lam, inputs, v=None, a=None, ws=None, points_per_sect
     sampled at ``points_per_section`` points per section (1: their section
     boundaries) and their ends; ``member_motion`` False leaves their points'
     velocities and accelerations at zero (they cost two Jacobians a point)."""
-    from .constrained import _concat_loads, _efforts_out, constraint_loads, constraint_wrenches
+    from .constrained import _efforts_out, constraint_loads, constraint_wrenches
     from .workspace import Workspace
     tree = mech.tree
     ws = Workspace(tree) if ws is None else ws
-    loads = _concat_loads(inputs.loads, constraint_loads(mech, lam))
+    loads = concat_loads(inputs.loads, constraint_loads(mech, lam))
     run_passes(mech, ws, q, v, a, loads, inputs.gravity)
     names = [tree.joints[i].name for i in mech.rigid_joints]
     iq = [tree.idx_q[i] for i in mech.rigid_joints]
@@ -417,14 +416,15 @@ def state_outputs(mech, q, lam, inputs, v=None, a=None, ws=None, points_per_sect
     a_ = z if a is None else a
     frames = frame_poses(mech, ws)
     jw = joint_wrenches(mech, ws)
+    by_joint = {j.name: jw[i] for i, j in enumerate(tree.joints)}
     members = member_outputs(mech, ws, inputs.u, loads, points_per_section, *((v, a) if member_motion else ()))
     return MechanismOutputs(
         positions={n: float(q[k]) for n, k in zip(names, iq)},
         velocities={n: float(v_[k]) for n, k in zip(names, iv)},
         accelerations={n: float(a_[k]) for n, k in zip(names, iv)},
         efforts=_efforts_out(mech, lam, inputs),
-        joint_wrenches={j.name: jw[i] for i, j in enumerate(tree.joints)},
+        joint_wrenches=by_joint,
         constraint_wrenches=constraint_wrenches(mech, lam),
         frames=frames,
         members=members,
-        base_wrench=base_reaction(mech, {j.name: jw[i] for i, j in enumerate(tree.joints)}, ws, inputs.u))
+        base_wrench=base_reaction(mech, by_joint, ws, inputs.u))

@@ -340,7 +340,7 @@ class _FreeStatics(_Statics):
             return pb
         pb.coef = np.ascontiguousarray(pb.act.unit @ u) if u.size else pb.coef
         if self.point_moment:
-            pb.loads = cs._concat_loads(self._base_loads, self._pm(self.mech.tree, u))
+            pb.loads = cs.concat_loads(self._base_loads, self._pm(self.mech.tree, u))
         self._u = np.array(u, dtype=float)
         return pb
 

@@ -71,9 +71,9 @@ def test_one_sample_per_section_gives_the_boundaries_and_the_cut_is_continuous()
         assert len(m1.s) == len(m3.s[::3]) and np.allclose(m1.internal_wrench, m3.internal_wrench[::3], atol=1e-12)
         assert np.allclose(m1.poses, m3.poses[::3], atol=1e-15)
     # the cut at a section's end is the cut at the next section's start (no offset between them)
-    from soft_twin_core.constrained import _concat_loads, constraint_loads
+    from soft_twin_core.constrained import concat_loads, constraint_loads
     ws = Workspace(mech.tree)
-    loads = _concat_loads(eq.inputs.loads, constraint_loads(mech, eq.lam))
+    loads = concat_loads(eq.inputs.loads, constraint_loads(mech, eq.lam))
     run_passes(mech, ws, eq.q, None, None, loads, eq.inputs.gravity)
     js = mech.tree.paths[0].joints
     L = mech.tree.paths[0].lengths
