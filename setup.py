@@ -28,7 +28,7 @@ setup(
     packages=find_packages(include=["soft_twin_core", "soft_twin_core.*"]) + ["soft_twin_core.config"],
     # The example robot and scenario files ship as package data: the
     # checkout's config/ becomes soft_twin_core/config/ in the install, where
-    # soft_twin_core.model.config_dirs() finds them (load_model("tendon_arm")).
+    # soft_twin_core.robot.model.config_dirs() finds them (load_model("tendon_arm")).
     package_dir={"soft_twin_core.config": "config"},
     package_data={"soft_twin_core.config": ["robots/*.yaml", "scenarios/*.yaml", "paths/*.yaml"]},
     exclude_package_data={"soft_twin_core.config": ["*.py", "params.yaml"]},

@@ -25,10 +25,10 @@ import time
 import numpy as np
 
 from _timing import fmt, machine
-from soft_twin_core.constrained import MechanismSimulator, make_inputs, solve_equilibrium
-from soft_twin_core.mechanism import load_mechanism
-from soft_twin_core.model import find_file
-from soft_twin_core.outputs import state_outputs
+from soft_twin_core.robot.mechanism import load_mechanism
+from soft_twin_core.robot.model import find_file
+from soft_twin_core.solve.constrained import MechanismSimulator, make_inputs, solve_equilibrium
+from soft_twin_core.solve.outputs import state_outputs
 
 sys.path.insert(0, os.path.join(os.path.dirname(os.path.dirname(os.path.abspath(__file__))), "test"))
 

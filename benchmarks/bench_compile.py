@@ -39,9 +39,9 @@ t0 = time.perf_counter()
 from numba.core import event as ev
 cm_c, cm_l = ev.install_recorder("numba:compile"), ev.install_recorder("numba:llvm_lock")
 rec_c, rec_l = cm_c.__enter__(), cm_l.__enter__()      # (the context managers must stay referenced)
-from soft_twin_core.constrained import MechanismSimulator, solve_equilibrium
-from soft_twin_core.mechanism import from_robot_model
-from soft_twin_core.model import benchmark_cantilever_dict, model_from_dict
+from soft_twin_core.solve.constrained import MechanismSimulator, solve_equilibrium
+from soft_twin_core.robot.mechanism import from_robot_model
+from soft_twin_core.robot.model import benchmark_cantilever_dict, model_from_dict
 t1 = time.perf_counter()
 m = from_robot_model(model_from_dict(benchmark_cantilever_dict(10, "all")))
 solve_equilibrium(m)

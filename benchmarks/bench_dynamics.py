@@ -8,10 +8,10 @@ import time
 import numpy as np
 
 from _timing import fmt, machine
-from soft_twin_core import kinematics as kin
-from soft_twin_core.constrained import MechanismSimulator
-from soft_twin_core.mechanism import from_robot_model
-from soft_twin_core.model import benchmark_cantilever_dict, model_from_dict
+from soft_twin_core.reference import kinematics as kin
+from soft_twin_core.robot.mechanism import from_robot_model
+from soft_twin_core.robot.model import benchmark_cantilever_dict, model_from_dict
+from soft_twin_core.solve.constrained import MechanismSimulator
 
 
 def arm(n, free="bending_torsion", tendons=True):
@@ -51,7 +51,7 @@ def main():
         m = arm(n)
         wall, sim, it = run(m, 0.2, 1e-3, u)
         q, qd = sim.q, sim.v
-        from soft_twin_core import algorithms as alg
+        from soft_twin_core.engine import algorithms as alg
         import timeit
         tk = min(timeit.repeat(lambda: alg.rnea(sim.tree, sim.ws, q, qd, None), number=200, repeat=3)) / 200
         print(f"{n:>8} {m.n_dof:>4} {fmt(wall / 200):>16} {1e-3 / (wall / 200):>12.1f} {fmt(tk):>12}")

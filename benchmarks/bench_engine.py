@@ -47,10 +47,11 @@ import numpy as np
 
 from _timing import fmt, machine
 import soft_twin_core
-from soft_twin_core import kinematics as kin
-from soft_twin_core.constrained import MechanismSimulator, StepError, free_problem, make_inputs, solve_equilibrium
-from soft_twin_core.mechanism import from_robot_model
-from soft_twin_core.model import benchmark_cantilever_dict, model_from_dict
+from soft_twin_core.reference import kinematics as kin
+from soft_twin_core.robot.mechanism import from_robot_model
+from soft_twin_core.robot.model import benchmark_cantilever_dict, model_from_dict
+from soft_twin_core.solve.constrained import (MechanismSimulator, StepError, free_problem, make_inputs,
+                                              solve_equilibrium)
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 SAMPLE = 10e-3            # common sample interval of the tip trajectories [s]
@@ -204,8 +205,8 @@ def kernel_costs(m, dt):
     mid-motion state (t = 0.2 s): residual pass (forward kinematics + RNEA +
     joint forces), articulated-body factorisation (from the poses of a
     forward pass), solve."""
-    from soft_twin_core.integrators import residual_pass
-    from soft_twin_core.kernels import passes
+    from soft_twin_core.engine.integrators import residual_pass
+    from soft_twin_core.engine.kernels import passes
     sim = simulator(m, dt)
     sim.step(n=int(round(0.2 / dt)))
     inp = sim.inputs
@@ -227,7 +228,7 @@ def kernel_share(m, dt):
     """(compiled steps, rest) per step [s] over 1 s: the time spent in
     ``integrators.run_steps`` (the compiled loop over the steps of a sample
     interval) against the whole ``MechanismSimulator.step(n=k)``, in one run."""
-    from soft_twin_core import integrators
+    from soft_twin_core.engine import integrators
     orig = integrators.run_steps
     spent = [0.0]
 
@@ -409,7 +410,7 @@ def item3(args, ref10):
 # ----------------------------------------------------------------------------
 
 def item4(args):
-    from soft_twin_core.loads import Loads
+    from soft_twin_core.engine.loads import Loads
     header("4. constrained.solve_equilibrium(mechanism): equilibrium under gravity from the straight rod, cold "
            "(no warm start)")
     print(f"{'sections':>8} {'dof':>4} {'wall med':>10} {'wall min':>10} {'CPU med':>10} {'it':>3} {'steps':>5} "
@@ -458,9 +459,9 @@ import json, sys, time
 t_first = time.time()
 t0 = time.perf_counter()
 import numpy as np
-from soft_twin_core.constrained import MechanismSimulator, solve_equilibrium
-from soft_twin_core.mechanism import from_robot_model
-from soft_twin_core.model import benchmark_cantilever_dict, model_from_dict
+from soft_twin_core.solve.constrained import MechanismSimulator, solve_equilibrium
+from soft_twin_core.robot.mechanism import from_robot_model
+from soft_twin_core.robot.model import benchmark_cantilever_dict, model_from_dict
 t1 = time.perf_counter()
 m = from_robot_model(model_from_dict(benchmark_cantilever_dict(10, "all")))
 r = solve_equilibrium(m)

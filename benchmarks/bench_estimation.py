@@ -1,5 +1,5 @@
 """Estimation: time of one filter step (predict + update) of
-:class:`soft_twin_core.estimation.EKF` on the 5-section tracked arm (a
+:class:`soft_twin_core.estimation.ekf.EKF` on the 5-section tracked arm (a
 classic rod, three pose sensors) per wrench mode, and on the pan-tilt arm
 (a soft member on two position-controlled joints: encoders and two pose
 sensors); the node needs >= 100 Hz (< 10 ms a step). Prints the machine's
@@ -15,10 +15,10 @@ import time
 import numpy as np
 
 from _timing import fmt, machine
-from soft_twin_core import estimation as es
-from soft_twin_core import sensors as sn
-from soft_twin_core.mechanism import load_mechanism
-from soft_twin_core.workspace import Workspace
+from soft_twin_core.engine.workspace import Workspace
+from soft_twin_core.estimation import ekf as es
+from soft_twin_core.estimation import sensors as sn
+from soft_twin_core.robot.mechanism import load_mechanism
 
 
 def _case(robot):

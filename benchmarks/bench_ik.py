@@ -22,10 +22,10 @@ import time
 import numpy as np
 
 from _timing import machine
-from soft_twin_core import kinematics as kin
-from soft_twin_core.constrained import solve_equilibrium
-from soft_twin_core.mechanism import from_robot_model
-from soft_twin_core.model import load_model
+from soft_twin_core.reference import kinematics as kin
+from soft_twin_core.robot.mechanism import from_robot_model
+from soft_twin_core.robot.model import load_model
+from soft_twin_core.solve.constrained import solve_equilibrium
 
 
 def targets(model, n, seed=0):
@@ -53,7 +53,7 @@ def in_process(model, poses):
     """The service's body: the twin's IK (Twin.inverse_kinematics) on a copy
     of the twin at rest, as the node runs it for a classic rod."""
     from soft_twin_core import twin as tw
-    from soft_twin_core.mechanism import load_mechanism
+    from soft_twin_core.robot.mechanism import load_mechanism
     twin = tw.Twin(load_mechanism("tendon_arm"), tw.TwinSettings(mode="quasi_static"))   # the default robot
     twin.step()
 

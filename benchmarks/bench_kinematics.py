@@ -9,8 +9,9 @@ import time
 import numpy as np
 
 from _timing import fmt, machine, per_call
-from soft_twin_core import ik, kinematics as kin
-from soft_twin_core.model import benchmark_cantilever_dict, model_from_dict
+from soft_twin_core.planning import ik
+from soft_twin_core.reference import kinematics as kin
+from soft_twin_core.robot.model import benchmark_cantilever_dict, model_from_dict
 
 
 def random_targets(m, n, rng):

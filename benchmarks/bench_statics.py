@@ -8,11 +8,11 @@ import time
 import numpy as np
 
 from _timing import fmt, machine
-from soft_twin_core import loads as ld
-from soft_twin_core import kinematics as kin
-from soft_twin_core.constrained import solve_equilibrium
-from soft_twin_core.mechanism import from_robot_model
-from soft_twin_core.model import benchmark_cantilever_dict, model_from_dict
+from soft_twin_core.engine import loads as ld
+from soft_twin_core.reference import kinematics as kin
+from soft_twin_core.robot.mechanism import from_robot_model
+from soft_twin_core.robot.model import benchmark_cantilever_dict, model_from_dict
+from soft_twin_core.solve.constrained import solve_equilibrium
 
 
 def timed(fn, repeat=5):
@@ -43,13 +43,13 @@ def main():
         print(f"10 sections ({free}, {m.n_dof} dof), gravity + tip load + 2 tendons: cold {fmt(t_cold)} "
               f"({r.iterations} it), warm {fmt(t_warm)} ({r2.iterations} it), residual {r2.residual:.1e}")
     # the common benchmark cantilever under gravity: convergence to the continuum BVP
-    from soft_twin_core.continuum import solve_cosserat_statics
+    from soft_twin_core.reference.continuum import solve_cosserat_statics
     m1 = model_from_dict(benchmark_cantilever_dict(1))
     sec = m1.sections[0]
     ref = solve_cosserat_statics(sec.K, 0.5, distributed_force_world=sec.M[0, 0] * m1.gravity)
     ref = ref.tip_pose()[:3, 3]
     print(f"\nbenchmark cantilever under gravity (all modes); reference: the continuum BVP "
-          f"(soft_twin_core.continuum), tip {np.round(ref, 6)} m")
+          f"(soft_twin_core.reference.continuum), tip {np.round(ref, 6)} m")
     print(f"{'sections':>8} {'time':>10} {'tip error [m]':>14} {'error / L':>10}")
     for n in (2, 4, 8, 16, 32):
         m = model_from_dict(benchmark_cantilever_dict(n))

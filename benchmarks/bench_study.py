@@ -20,8 +20,8 @@ import time
 from pathlib import Path
 
 from _timing import machine
-from soft_twin_core.study import study_from_dict
-from soft_twin_core.study_dask import META_COLUMNS, read_rows, run_study, start_local_cluster
+from soft_twin_core.studies.cluster import META_COLUMNS, read_rows, run_study, start_local_cluster
+from soft_twin_core.studies.study import study_from_dict
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -65,7 +65,7 @@ def main():
     quiet = lambda m: None      # noqa: E731
     print(f"machine: {machine()}, {os.cpu_count()} CPUs; {args.cases} statics cases of the default robot")
     try:
-        from soft_twin_core.study_case import _warm
+        from soft_twin_core.studies.case import _warm
         _warm()
         times = {}
         best = float("inf")

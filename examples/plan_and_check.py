@@ -5,9 +5,9 @@ calls plan a classic rod (``load_mechanism("tendon_arm")``).
 
 Run: python examples/plan_and_check.py"""
 
-from soft_twin_core import paths
-from soft_twin_core import planner as pl
-from soft_twin_core.mechanism import load_mechanism
+from soft_twin_core.planning import paths
+from soft_twin_core.planning import planner as pl
+from soft_twin_core.robot.mechanism import load_mechanism
 
 arm = load_mechanism("pan_tilt_arm")
 path = paths.line([0.33, -0.03, 0.0], [0.33, 0.03, 0.02], 2.0, sample_period=0.05)

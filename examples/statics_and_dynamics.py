@@ -6,9 +6,9 @@ calls take a tree robot (examples/tree_robot.py).
 Run: python examples/statics_and_dynamics.py (from the repository, or anywhere
 soft_twin_core is installed)."""
 
-from soft_twin_core.constrained import FrameLoad, MechanismSimulator, solve_equilibrium
-from soft_twin_core.mechanism import load_mechanism
-from soft_twin_core.outputs import state_outputs
+from soft_twin_core.robot.mechanism import load_mechanism
+from soft_twin_core.solve.constrained import FrameLoad, MechanismSimulator, solve_equilibrium
+from soft_twin_core.solve.outputs import state_outputs
 
 arm = load_mechanism("tendon_arm")
 tip_load = FrameLoad("tip", [0.0, 0.0, -0.05, 0.0, 0.0, 0.0], "world")          # 50 mN down, world axes

@@ -5,9 +5,9 @@ dynamics.
 
 Run: python examples/tree_robot.py"""
 
-from soft_twin_core.constrained import MechanismSimulator, solve_equilibrium
-from soft_twin_core.mechanism import load_mechanism
-from soft_twin_core.outputs import state_outputs
+from soft_twin_core.robot.mechanism import load_mechanism
+from soft_twin_core.solve.constrained import MechanismSimulator, solve_equilibrium
+from soft_twin_core.solve.outputs import state_outputs
 
 arm = load_mechanism("pan_tilt_arm")
 eq = solve_equilibrium(arm, {"tendon_z_pos": 2.0}, positions={"pan": 0.4, "tilt": -0.3})

@@ -87,7 +87,7 @@ def xyz(v):
 
 def frame(backbone, t, u):
     """A snapshot of the received backbone (base_link) for the animation."""
-    from soft_twin_core.scene import Snapshot
+    from soft_twin_core.viz.scene import Snapshot
     P = np.array([[p.position.x, p.position.y, p.position.z] for p in backbone.poses])
     return Snapshot([P], time=t, caption=f"t = {t:5.2f} s   T(y+) = {u[0]:5.2f} N   T(z+) = {u[2]:5.2f} N")
 
@@ -217,12 +217,12 @@ def main(argv=None):
     plot(samples, args.out, args.mode)
     say(f"wrote the backbone shapes: {args.out}")
     if args.animation.name:
-        from soft_twin_core.animate import write_animation
+        from soft_twin_core.viz.animate import write_animation
         n, seconds = write_animation(frames, str(args.animation), FRAME_RATE,
                                      f"soft_twin demo: tendon arm ({args.mode} twin), 10 g payload")
         say(f"wrote the animation: {args.animation} ({n} frames, {seconds:.1f} s at {FRAME_RATE:g} fps)")
     if args.record.name and rc == 0:
-        from soft_twin_core.recording import read_messages
+        from soft_twin_core.files.recording import read_messages
         msgs = read_messages(str(args.record))
         say(f"the node recorded {sum(map(len, msgs.values()))} messages on {len(msgs)} topics "
             f"({len(msgs.get('/soft_twin_demo/actuation', []))} of the {sent} commands sent): {args.record}")

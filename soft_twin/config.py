@@ -16,7 +16,7 @@ import sys
 import warnings
 
 from soft_twin_core.limits import MAX_FILE_BYTES, PlausibilityWarning, load_yaml_text, read_text
-from soft_twin_core.model import ModelError, model_from_dict, robot_mapping
+from soft_twin_core.robot.model import ModelError, model_from_dict, robot_mapping
 
 from soft_twin_core.text import clip, short_list
 
@@ -342,7 +342,7 @@ class Robot:
     source: str           # file path or "inline"
 
     sections_per_segment: int = 0
-    mechanism: object = None      # soft_twin_core.mechanism.Mechanism of a tree robot file, else None
+    mechanism: object = None      # soft_twin_core.robot.mechanism.Mechanism of a tree robot file, else None
     warnings: tuple = ()          # plausibility warnings of the robot file (the node logs them)
     mech: object = None           # the Mechanism of any robot file (a classic rod: one member, "backbone")
 
@@ -368,7 +368,7 @@ def load_robot(cfg):
         d = load_yaml_text(text, clip(source), ConfigError)
     except ConfigError as e:
         raise ConfigError(clip(e, 400)) from None
-    from soft_twin_core.mechanism import is_tree_file, mechanism_from_dict
+    from soft_twin_core.robot.mechanism import is_tree_file, mechanism_from_dict
     mech = None
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always", PlausibilityWarning)
@@ -388,7 +388,7 @@ def load_robot(cfg):
         raise ConfigError(f"actuator_names {short_list(cfg.actuator_names)} do not match the actuators of "
                           f"{source}: {short_list(model.actuator_names)}")
     if mech is None:
-        from soft_twin_core.mechanism import from_robot_model
+        from soft_twin_core.robot.mechanism import from_robot_model
         one = from_robot_model(model, mapping)
     else:
         one = mech

@@ -1,6 +1,6 @@
 """soft_twin_estimator: a ROS 2 node that tracks the real robot from its
 sensors with the core's extended Kalman filter
-(:class:`soft_twin_core.estimation.EKF`), next to the open-loop twin
+(:class:`soft_twin_core.estimation.ekf.EKF`), next to the open-loop twin
 (``soft_twin.node``), which it leaves untouched. One node for every robot
 file: a classic rod, a tree of members, a soft articulated arm.
 
@@ -8,7 +8,7 @@ file: a classic rod, a tree of members, a soft articulated arm.
         -p sensors_file:=sensors.yaml -p rate_hz:=100.0 -p wrench:=payload
 
 Parameters: ``robot_description_file`` (path or example name),
-``sensors_file`` (YAML, :func:`soft_twin_core.sensors.load_sensors`),
+``sensors_file`` (YAML, :func:`soft_twin_core.estimation.sensors.load_sensors`),
 ``rate_hz`` (filter rate, default 100), ``wrench`` (the estimated load at
 the tip frame: none, payload, force, wrench), ``actuation_topic`` (default
 ``/soft_twin/actuation``: the twin's commands are the filter's inputs),
@@ -43,7 +43,7 @@ arriving within one filter step are merged into one
 (:mod:`soft_twin.readings`).
 
 Publications: ``~/estimate/tip_pose`` (geometry_msgs/PoseWithCovarianceStamped
-of the tip frame, :func:`soft_twin_core.mechanism.tip_frame`: the position
+of the tip frame, :func:`soft_twin_core.robot.mechanism.tip_frame`: the position
 covariance in the position block, m^2; the rotation block is left 0),
 ``~/estimate/backbone`` (PoseArray of the main member, as the twin's
 ``~/backbone``), ``~/estimate/backbones/<member>`` (one per soft member),
@@ -72,11 +72,11 @@ from soft_twin.msg import ActuationCommand
 from soft_twin import conversions as cv
 from soft_twin.readings import STAMP_REJECTIONS, InputLedger, accept_reading
 from soft_twin.shutdown import StopSignals, spin_until_stopped, tear_down
-from soft_twin_core import estimation as es
-from soft_twin_core import sensors as sn
 from soft_twin_core.commands import InputError, parse_joint_command
-from soft_twin_core.mechanism import load_mechanism
-from soft_twin_core.outputs import main_member
+from soft_twin_core.estimation import ekf as es
+from soft_twin_core.estimation import sensors as sn
+from soft_twin_core.robot.mechanism import load_mechanism
+from soft_twin_core.solve.outputs import main_member
 
 NODE_NAME = "soft_twin_estimator"
 REJECTION_KINDS = ("non_finite", "malformed", "wrong_length", "unknown_sensor", "unknown_joint", "actuation",
@@ -90,7 +90,7 @@ class EstimatorNode(Node):
         super().__init__(node_name, **kwargs)
         p = {
             "robot_description_file": ("tendon_arm", "robot file or example name"),
-            "sensors_file": ("", "YAML list of the sensors (soft_twin_core.sensors.load_sensors)"),
+            "sensors_file": ("", "YAML list of the sensors (soft_twin_core.estimation.sensors.load_sensors)"),
             "rate_hz": (100.0, "filter rate [Hz]"),
             "wrench": ("none", "estimated tip load: none, payload, force or wrench"),
             "actuation_topic": ("/soft_twin/actuation", "the twin's actuation commands (the inputs)"),

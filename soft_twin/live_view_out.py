@@ -1,6 +1,6 @@
 """The node's live 3D view in the browser (parameter ``live_view_port``:
 0 off, else a viser server on http://127.0.0.1:<port>): the published
-states drawn at up to ``RATE_HZ`` by :class:`soft_twin_core.live_view.LiveView`
+states drawn at up to ``RATE_HZ`` by :class:`soft_twin_core.viz.live_view.LiveView`
 (a tube per member with its sections' radii, links and joints, base and
 tip frames, the tip load as an arrow, the actuation values and joint
 positions)."""
@@ -17,8 +17,8 @@ def articulated_view_snapshot(mech, snap):
     through their backbone points (radii from their cross-sections), its
     links' visual shapes (a bar from the parent link's frame for a link
     without one) and its rigid joints
-    (:func:`soft_twin_core.scene.snapshot`)."""
-    from soft_twin_core.scene import member_radii, snapshot
+    (:func:`soft_twin_core.viz.scene.snapshot`)."""
+    from soft_twin_core.viz.scene import member_radii, snapshot
     members = {name: poses[:, :3, 3] for name, (poses, _) in snap.backbones.items()}
     return (snapshot(mech, members, snap.frames, time=float(snap.t)),
             member_radii(mech, {name: len(P) for name, P in members.items()}))
@@ -37,7 +37,7 @@ class LiveViewOutput:
             return
         self.close()
         if port:
-            from soft_twin_core.live_view import LiveView
+            from soft_twin_core.viz.live_view import LiveView
             try:
                 self._view = LiveView(port=port, title=self._node.get_name())
             except OSError as e:
@@ -55,7 +55,7 @@ class LiveViewOutput:
         self._last = now
         shot, radii = articulated_view_snapshot(robot.mech, snap)
         if not self._framed:              # the first state: frame the robot for every new page
-            from soft_twin_core.scene import bounds
+            from soft_twin_core.viz.scene import bounds
             view.frame(*bounds([shot], pad=0.3))
             self._framed = True
         tip_force = snap.tip_pose[:3, :3] @ np.asarray(snap.tip_wrench[:3], dtype=float)      # tip axes -> base

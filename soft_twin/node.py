@@ -72,8 +72,8 @@ from soft_twin.srv import ForwardKinematics, InverseKinematics, StaticsQuery
 from soft_twin import conversions as cv
 from soft_twin import diagnostics, inputs, markers, schedule, services
 from soft_twin import live_view_out, recorder, tf_out
-from soft_twin_core import twin as tw
 from soft_twin_core import commands as cmd
+from soft_twin_core import twin as tw
 from soft_twin.executor import TwinExecutor
 from soft_twin.shutdown import StopSignals, spin_until_stopped, tear_down
 from soft_twin.config import (PARAMETERS, ConfigError, coerced, config_from_values, load_robot,

@@ -1,5 +1,5 @@
 """The node's ~/plan_path service: plan a tip path through statics
-(:mod:`soft_twin_core.planner`, :meth:`soft_twin_core.twin.Twin.plan`) from the twin's current state
+(:mod:`soft_twin_core.planning.planner`, :meth:`soft_twin_core.twin.Twin.plan`) from the twin's current state
 and, on request, execute it: one ActuationCommand per sample, stamped and
 published at its planned time on the ``plan_output_topic`` (for the real
 robot), and on the twin's own ``~/actuation`` so that the twin follows the
@@ -14,10 +14,10 @@ import time
 import numpy as np
 import yaml
 
-from soft_twin_core import paths as pth
-from soft_twin_core import planner as pl
-from soft_twin_core.model import ModelError
 from soft_twin_core.errors import StaticsError
+from soft_twin_core.planning import paths as pth
+from soft_twin_core.planning import planner as pl
+from soft_twin_core.robot.model import ModelError
 
 from soft_twin import services
 from soft_twin.query_worker import QueryError

@@ -36,10 +36,10 @@ def _start_worker(description):
     signal.signal(signal.SIGINT, signal.SIG_IGN)
     threading.Thread(target=_exit_with_parent, args=(os.getppid(),), daemon=True).start()
     global _twin
+    from soft_twin_core.robot.mechanism import mechanism_from_dict
+    from soft_twin_core.robot.model import robot_mapping
     from soft_twin_core.twin import Twin
     from soft_twin_core.twin import TwinSettings
-    from soft_twin_core.mechanism import mechanism_from_dict
-    from soft_twin_core.model import robot_mapping
     _twin = Twin(mechanism_from_dict(robot_mapping(description, "robot description")),
                             TwinSettings(mode="quasi_static"))
     try:      # warm-up: the solver's kernels load now, not during the first query

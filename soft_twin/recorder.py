@@ -15,7 +15,7 @@ written as the metadata record ``soft_twin.counts``.
 Crashes and long runs (issue 25): the file is written in small chunks
 (:data:`CHUNK_SIZE`), each flushed to disk when complete, so a killed node
 leaves a file readable up to its last complete chunk
-(:mod:`soft_twin_core.mcap_salvage`). The ``record_max_bytes`` and
+(:mod:`soft_twin_core.files.mcap_salvage`). The ``record_max_bytes`` and
 ``record_max_duration_s`` parameters (0: no limit) rotate the recording:
 the file is closed (complete, with its summary) and the next one opened,
 named by :func:`rotated_path` (``run.mcap``, ``run_001.mcap``, ...).
@@ -106,7 +106,7 @@ def _stamp_ns(msg):
 
 CHUNK_SIZE = 256 * 1024
 """Bytes of messages per MCAP chunk (before compression): a crash loses at
-most the chunk being filled (:mod:`soft_twin_core.mcap_salvage` reads a
+most the chunk being filled (:mod:`soft_twin_core.files.mcap_salvage` reads a
 killed recording up to its last complete chunk). Measured on the default
 twin (870 kB/s of messages, issue 25): 256 KiB is 0.3 s of its traffic and
 makes the file 17 % larger than 1 MiB chunks (64 KiB: +84 %, zstd compresses

@@ -20,13 +20,13 @@ import time
 import numpy as np
 
 from soft_twin_core import lie
-from soft_twin_core.model import ModelError
-from soft_twin_core.planner import PlanError
 from soft_twin_core.errors import StaticsError
+from soft_twin_core.planning.planner import PlanError
+from soft_twin_core.robot.model import ModelError
 
 from soft_twin import conversions as cv
-from soft_twin_core import ik as core_ik
 from soft_twin_core import commands as cmd
+from soft_twin_core.planning import ik as core_ik
 from soft_twin.query_worker import QueryError
 from soft_twin_core.text import clip
 

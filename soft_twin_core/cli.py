@@ -6,12 +6,12 @@
     soft-twin-sim study STUDY.yaml [-o OUT] [--scheduler ADDRESS | --workers N | --serial]
     soft-twin-sim workspace ROBOT_OR_SCENARIO [-o OUT] [--limit MAX] [--samples N]
     soft-twin-sim plan PLAN_FILE [--output PREFIX] [--no-dynamics] [--plot DIR]
-    ... [--plot DIR] [--animate FILE.gif|FILE.mp4] [--fps HZ]     (statics and dynamics; soft_twin_core.render)
+    ... [--plot DIR] [--animate FILE.gif|FILE.mp4] [--fps HZ]     (statics and dynamics; soft_twin_core.viz.render)
     soft-twin-sim render RUN.json|RUN.mcap [--scenario S | --robot R] [--plot DIR] [--animate FILE] [--fps HZ]
     soft-twin-sim view RUN.json|RUN.mcap [--port 8080]      (live 3D view in the browser, in a loop)
     soft-twin-sim calibrate ROBOT --sensors S.yaml --data D.csv --fit PARAMS [--output R.yaml]
 
-(study and workspace: see soft_twin_core/study_cli.py; plan: soft_twin_core/plan_file.py.)
+(study and workspace: see soft_twin_core/studies/cli.py; plan: soft_twin_core/planning/plan_file.py.)
 
 SCENARIO is a scenario file or the name of an example scenario
 (``tendon_arm_dynamics``). Exit status: 0 success; 2 a bad argument or
@@ -38,7 +38,7 @@ import time
 
 import numpy as np
 
-from . import render
+from soft_twin_core.viz import render
 
 
 def _parse_sweep(text):
@@ -91,8 +91,8 @@ def _parser():
     d.add_argument("--progress-every", type=_non_negative_seconds, default=1.0, metavar="SECONDS",
                    help="a progress line on stderr at most every SECONDS of wall time (default 1; 0: every step)")
     d.add_argument("--output", "-o", help="write to this file instead of stdout")
-    # --- design studies and workspaces (issue 16): soft_twin_core/study_cli.py
-    from .study_cli import add_parsers
+    # --- design studies and workspaces (issue 16): soft_twin_core/studies/cli.py
+    from soft_twin_core.studies.cli import add_parsers
     add_parsers(sub)
     # --- issue 13: tip path planning ---
     pp = sub.add_parser("plan", help="plan the actuation sequence of a tip path (writes CSV and JSON)")
@@ -125,8 +125,8 @@ def _parser():
     v.add_argument("--port", type=int, default=8080, help="http://127.0.0.1:PORT (default 8080)")
     v.add_argument("--radius", type=float, default=0.01, help="tube radius [m] (default 0.01)")
     v.add_argument("--seconds", type=float, help="stop after this many seconds (default: Ctrl-C)")
-    # issue 14: calibration from recorded data (soft_twin_core.calibration)
-    from .calibration_cli import add_cli_parser
+    # issue 14: calibration from recorded data (soft_twin_core.estimation.calibration)
+    from soft_twin_core.estimation.cli import add_cli_parser
     add_cli_parser(sub)
     return p
 
@@ -135,11 +135,11 @@ def _run_plan(args):
     """``soft-twin-sim plan``: exit 0 when every sample is reached, 3 when
     some are not (the files are written either way), 2 on a bad file."""
     import os
-    from .model import ModelError
-    from .paths import PathError
-    from .plan_file import PlanFileError, load_plan_file, plan_csv, run_plan
-    from .planner import PlanError
-    from .errors import StaticsError
+    from soft_twin_core.errors import StaticsError
+    from soft_twin_core.planning.paths import PathError
+    from soft_twin_core.planning.plan_file import PlanFileError, load_plan_file, plan_csv, run_plan
+    from soft_twin_core.planning.planner import PlanError
+    from soft_twin_core.robot.model import ModelError
     try:
         model, path, opts, u0, dyn = load_plan_file(args.plan_file)
         t0 = time.monotonic()
@@ -169,7 +169,7 @@ def _run_plan(args):
                  f"(max {1e3 * comp['max_error_m']:.3g} mm)" if comp else ""), file=sys.stderr)
     print(f"soft-twin-sim: wrote {prefix}.csv and {prefix}.json", file=sys.stderr)
     if args.plot:
-        from .plan_plots import plot_plan
+        from soft_twin_core.viz.plan_plots import plot_plan
         written = plot_plan(out, args.plot)
         print(f"soft-twin-sim: wrote {len(written)} figure files into {args.plot}", file=sys.stderr)
     return 0 if s["unreachable"] == 0 else 3
@@ -193,7 +193,7 @@ _NAMED = {"joint_positions": "joint_names", "joint_velocities": "joint_names", "
 
 def _components(field, width):
     """Names along a field's last axis of ``width`` values (None: a scalar per name)."""
-    from .model import STRAIN_NAMES
+    from soft_twin_core.robot.model import STRAIN_NAMES
     last = _LAST_AXIS.get(field) or (STRAIN_NAMES if field in ("strains", "strain_rates") else None)
     if width is None:
         return last or [None]
@@ -255,11 +255,11 @@ def unstable_message(r, angle=None):
 
 def show_plausibility_warnings(prog="soft-twin-sim"):
     """Print the plausibility warnings of the input files (a likely unit
-    slip: soft_twin_core.plausibility) as one plain line each on stderr,
+    slip: soft_twin_core.robot.plausibility) as one plain line each on stderr,
     ``<prog>: warning: <field>: ...``, each once."""
     import warnings
-    from .limits import PlausibilityWarning
-    from .mcap_salvage import TruncatedRecordingWarning      # a recording read up to its last chunk (issue 25)
+    from soft_twin_core.files.mcap_salvage import TruncatedRecordingWarning      # a recording read up to its last chunk (issue 25)
+    from soft_twin_core.limits import PlausibilityWarning
     previous = warnings.showwarning
     if getattr(previous, "soft_twin_plausibility", False):     # already installed (main called again)
         return
@@ -276,19 +276,20 @@ def show_plausibility_warnings(prog="soft-twin-sim"):
 
 
 def main(argv=None):
-    from .model import ModelError
-    from .scenario import ScenarioError, load_scenario, n_steps_for, run_dynamics, run_statics
-    from .errors import StaticsError
+    from soft_twin_core.errors import StaticsError
+    from soft_twin_core.files.scenario import ScenarioError, load_scenario, run_dynamics, run_statics
+    from soft_twin_core.files.timeline import n_steps_for
+    from soft_twin_core.robot.model import ModelError
     args = _parser().parse_args(argv)
     show_plausibility_warnings()
-    # --- design studies and workspaces (issue 16): soft_twin_core/study_cli.py
+    # --- design studies and workspaces (issue 16): soft_twin_core/studies/cli.py
     if args.command in ("study", "workspace"):
-        from .study_cli import main_study, main_workspace
+        from soft_twin_core.studies.cli import main_study, main_workspace
         return main_study(args) if args.command == "study" else main_workspace(args)
     if args.command == "plan":
         return _run_plan(args)
     if args.command == "calibrate":              # issue 14
-        from .calibration_cli import cli_main
+        from soft_twin_core.estimation.cli import cli_main
         return cli_main(args)
     failed = None
     for name in ("sections", "backbone_every", "record_every", "points_per_section"):
@@ -297,7 +298,7 @@ def main(argv=None):
         if v is not None and v < low:
             print(f"soft-twin-sim: --{name.replace('_', '-')} must be >= {low}, got {v}", file=sys.stderr)
             return 2
-    from .limits import MAX_POINTS_PER_SECTION, over_limit
+    from soft_twin_core.limits import MAX_POINTS_PER_SECTION, over_limit
     if getattr(args, "points_per_section", None) is not None and args.points_per_section > MAX_POINTS_PER_SECTION:
         print(f"soft-twin-sim: {over_limit('--points-per-section', args.points_per_section, MAX_POINTS_PER_SECTION)}",
               file=sys.stderr)
@@ -320,7 +321,7 @@ def main(argv=None):
             for a in angles:
                 sc = load_scenario(args.scenario, args.sections, a)
                 if note is None:
-                    from .scenario import statics_time
+                    from soft_twin_core.files.scenario import statics_time
                     t_solve, note = statics_time(sc, args.time)
                     if note is not None:
                         print(f"soft-twin-sim: statics: {note}", file=sys.stderr)

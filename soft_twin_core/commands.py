@@ -16,12 +16,12 @@ import math
 
 import numpy as np
 
-from . import loads as ld
-from .errors import InputError
-from .mechanism import check_joint_position
-from .model import check_actuator_input
-from .constrained import actuation_vector
-from .text import clip, short_list
+from soft_twin_core.engine import loads as ld
+from soft_twin_core.errors import InputError
+from soft_twin_core.robot.mechanism import check_joint_position
+from soft_twin_core.robot.model import check_actuator_input
+from soft_twin_core.solve.constrained import actuation_vector
+from soft_twin_core.text import clip, short_list
 
 # reason keys of rejected inputs (diagnostics counters): the first ones at the
 # door (validation), "solver_failed" for an input dropped because the step or

@@ -25,7 +25,7 @@ coefficients are generated exactly in :mod:`soft_twin_core._series`.
 
 import numpy as np
 
-from . import _series
+from soft_twin_core import _series
 
 __all__ = [
     "hat", "vee", "hat6", "vee6", "ad", "coad", "Ad", "Ad_inv", "se3_inv",

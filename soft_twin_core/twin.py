@@ -2,10 +2,10 @@
 classic rod is a one-member mechanism. :class:`Twin` is the state machine
 the node drives (inputs, :meth:`Twin.step`, :meth:`Twin.outputs`,
 ``reset``, ``change_settings``, ``warm_up``) on the multibody engine with
-joints and constraints (:mod:`soft_twin_core.constrained`; the compiled O(n)
+joints and constraints (:mod:`soft_twin_core.solve.constrained`; the compiled O(n)
 integrator and static Newton when the robot has no constraint rows):
 ``dynamic`` mode steps a
-:class:`~soft_twin_core.constrained.MechanismSimulator`, ``quasi_static``
+:class:`~soft_twin_core.solve.constrained.MechanismSimulator`, ``quasi_static``
 mode solves the equilibrium on every input change, warm-started from the
 last shape. It takes actuation, a tip wrench and joint commands (positions
 of position-controlled joints, whose efforts are outputs, and efforts of
@@ -32,16 +32,16 @@ import time
 
 import numpy as np
 
-from . import planner as pl
-from . import constrained as cs
-from ._blas import one_blas_thread
-from .errors import StaticsError
-from .mechanism import shape_command, tip_frame
-from .model import State
-from .outputs import (main_member, q_from_section_strains, section_rates, section_strains,
-                      state_outputs, state_shape)
-from .text import clip
-from .workspace import Workspace
+from soft_twin_core._blas import one_blas_thread
+from soft_twin_core.engine.workspace import Workspace
+from soft_twin_core.errors import StaticsError
+from soft_twin_core.planning import planner as pl
+from soft_twin_core.robot.mechanism import shape_command, tip_frame
+from soft_twin_core.robot.model import State
+from soft_twin_core.solve import constrained as cs
+from soft_twin_core.solve.outputs import (main_member, q_from_section_strains, section_rates, section_strains,
+                                          state_outputs, state_shape)
+from soft_twin_core.text import clip
 
 MODES = ("dynamic", "quasi_static")
 
@@ -520,7 +520,7 @@ class Twin:
             message = "ok: shape of the given strains (joints at their current positions)"
             if self.mech.n_constraint_rows:
                 # a closed chain: strains alone need not close it (the passive joints follow from the closure)
-                from soft_twin_core.workspace import Workspace
+                from soft_twin_core.engine.workspace import Workspace
                 phi, _ = cs.constraint_rows(self.mech, Workspace(self.mech.tree), self.state.q)
                 gap = float(np.abs(phi[:self.mech.n_constraint_rows]).max(initial=0.0))
                 message += f"; the constraints are violated by up to {gap:.3g} m or rad with them" if gap > 1e-9 \
@@ -554,7 +554,7 @@ class Twin:
         (base-frame position (3,) [m], or pose 4x4: then with the tip's
         orientation, weighted 0.1 m/rad; ``tolerance`` in m and rad), from
         the current commands and shape (the
-        planner's sample solve, :class:`soft_twin_core.planner.TipSolver`:
+        planner's sample solve, :class:`soft_twin_core.planning.planner.TipSolver`:
         joint limits, tensions in [0, limit], least change of the joint
         commands and least tension among redundant inputs; the current joint
         efforts and tip wrench held). Raises PlanError, StaticsError or
@@ -562,7 +562,7 @@ class Twin:
         target = np.asarray(target, float)
         if not (self.mech.actuators or self.mech.joints_with("position")):
             # nothing drives this robot: the shape that would reach the target (not an equilibrium)
-            from .ik import frame_ik
+            from soft_twin_core.planning.ik import frame_ik
             r = frame_ik(self.mech, self.tip, target, self.state.q, position_only=target.shape == (3,),
                          tol_position=tolerance, tol_orientation=tolerance)
             return TwinIK(bool(r.success), "reached" if r.success else "shape_only", (), np.zeros(0), r.q.copy(),
@@ -577,7 +577,7 @@ class Twin:
                       r.orientation_error)
 
     def plan(self, path, **options):
-        """:func:`soft_twin_core.planner.plan_path` from the current
+        """:func:`soft_twin_core.planning.planner.plan_path` from the current
         commands and shape, the tip frame following ``path`` (base frame),
         the current joint efforts and tip wrench held; with ``max_rate``,
         the rate limits hold from the current commands."""

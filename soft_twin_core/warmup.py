@@ -17,7 +17,7 @@ import numpy as np
 
 def tiny_models():
     """A 2-section tendon arm of each kinematic map (the classic schema)."""
-    from .model import model_from_dict
+    from soft_twin_core.robot.model import model_from_dict
     out = []
     for kmap in ("exponential", "cayley"):
         out.append(model_from_dict({
@@ -29,11 +29,11 @@ def tiny_models():
 
 
 def run():
-    from . import algorithms as alg
-    from .constrained import MechanismSimulator, solve_equilibrium
-    from .loads import Loads, PointLoad
-    from .mechanism import from_robot_model
-    from .workspace import Workspace
+    from soft_twin_core.engine import algorithms as alg
+    from soft_twin_core.engine.loads import Loads, PointLoad
+    from soft_twin_core.engine.workspace import Workspace
+    from soft_twin_core.robot.mechanism import from_robot_model
+    from soft_twin_core.solve.constrained import MechanismSimulator, solve_equilibrium
     for robot in tiny_models():
         loads = Loads(point=(PointLoad(0.2, (0, 0, -0.01, 0, 0, 0), "world"),
                              PointLoad(0.1, (0, 0.01, 0, 0, 0, 0), "body")))
@@ -53,7 +53,7 @@ def run():
             alg.rnea_derivatives(tree, ws, q, v, v)
         # what the scenario runner adds (backbone, internal wrenches, recorded
         # states): the design studies' workers run it for every case
-        from .scenario import run_dynamics, run_statics, scenario_from_dict
+        from soft_twin_core.files.scenario import run_dynamics, run_statics, scenario_from_dict
         sc = scenario_from_dict({"robot": {"segments": [{
             "length": 0.2, "sections": 2, "cross_section": {"shape": "solid_circle", "radius": 0.01},
             "material": {"youngs_modulus": 1e6, "density": 1000, "viscosity": 10.0}}],
@@ -64,8 +64,8 @@ def run():
         run_dynamics(sc, 2e-3, 1e-3, 1, points_per_section=2)
     # the actuation IK (node's ~/inverse_kinematics, the planner): its tip
     # error, sensitivities and bounded least squares, position and full pose
-    from . import planner as pl
-    from .outputs import state_outputs
+    from soft_twin_core.planning import planner as pl
+    from soft_twin_core.solve.outputs import state_outputs
     mech = from_robot_model(tiny_models()[0])
     solver = pl.TipSolver(mech)
     eq = solve_equilibrium(mech, {"t": 0.3})
@@ -81,9 +81,9 @@ def tiny_mechanism_run():
     """A soft member on a position-controlled revolute joint, its tip pinned
     to the world: the articulated robots' passes (constraint frames, KKT
     statics and dynamics, outputs)."""
-    from .constrained import MechanismSimulator, solve_equilibrium
-    from .mechanism import mechanism_from_dict
-    from .outputs import state_outputs
+    from soft_twin_core.robot.mechanism import mechanism_from_dict
+    from soft_twin_core.solve.constrained import MechanismSimulator, solve_equilibrium
+    from soft_twin_core.solve.outputs import state_outputs
     mech = mechanism_from_dict({"name": "warmup_tree", "bodies": [
         {"name": "link", "type": "link", "mass": 0.1, "inertia": [1e-4, 1e-4, 1e-4, 0, 0, 0],
          "joint": {"name": "j", "type": "revolute", "axis": [0, 0, 1], "control": "position"}},

@@ -9,9 +9,9 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from soft_twin_core.constrained import free_problem, make_inputs, solve_equilibrium
-from soft_twin_core.mechanism import from_robot_model
-from soft_twin_core.outputs import state_outputs
+from soft_twin_core.robot.mechanism import from_robot_model
+from soft_twin_core.solve.constrained import free_problem, make_inputs, solve_equilibrium
+from soft_twin_core.solve.outputs import state_outputs
 
 
 @dataclass

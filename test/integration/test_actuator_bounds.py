@@ -2,7 +2,7 @@
 
 A robot file's actuator takes an optional ``min``/``max`` on top of its
 ``limit`` (|u| <= limit; a tendon's range is [0, limit]); one core rule,
-:func:`soft_twin_core.model.check_actuator_input`, is used by the node, the
+:func:`soft_twin_core.robot.model.check_actuator_input`, is used by the node, the
 offline runners (rod and tree), and the bounds of IK, the planner and
 calibration. The shipped pneumatic arm's chambers are positive-only
 (``min: 0``): before, a 1 cm move asked for tens of kPa of suction.
@@ -15,9 +15,9 @@ import numpy as np
 import pytest
 import yaml
 
-from soft_twin_core import planner as pl
-from soft_twin_core.mechanism import from_robot_model
-from soft_twin_core.model import ModelError, check_actuator_input, find_file, model_from_dict
+from soft_twin_core.planning import planner as pl
+from soft_twin_core.robot.mechanism import from_robot_model
+from soft_twin_core.robot.model import ModelError, check_actuator_input, find_file, model_from_dict
 from rod_statics import solve_statics
 
 PNEUMATIC = find_file("pneumatic_arm", "robots")
@@ -131,7 +131,7 @@ def test_the_node_uses_the_same_rule():
 
 def test_the_articulated_node_uses_the_core_joint_rule():
     from soft_twin_core import commands as cmd
-    from soft_twin_core.mechanism import check_joint_position, load_mechanism
+    from soft_twin_core.robot.mechanism import check_joint_position, load_mechanism
     mech = load_mechanism(PAN_TILT)
     tilt = next(j for j in mech.tree.joints if j.name == "tilt")
     for v in (-2.0, -1.5, 0.3, 1.5, 1.6):
@@ -252,7 +252,7 @@ def test_pneumatic_ik_reaches_a_target_reachable_with_positive_pressures():
 
 
 def test_planned_path_respects_min_and_max():
-    from soft_twin_core.paths import TipPath
+    from soft_twin_core.planning.paths import TipPath
     d = _pneumatic_dict()
     for a in d["actuators"]:
         a["max"] = 4.0e4
@@ -275,7 +275,7 @@ def test_planned_path_respects_min_and_max():
 
 
 def test_articulated_planner_bounds_come_from_the_robot_file():
-    from soft_twin_core.mechanism import mechanism_from_dict
+    from soft_twin_core.robot.mechanism import mechanism_from_dict
     d = yaml.safe_load(open(PAN_TILT).read())
     for b in d["bodies"]:
         for a in b.get("actuators", []) or []:
@@ -301,8 +301,8 @@ def test_articulated_planner_bounds_come_from_the_robot_file():
 # ------------------------------------------------------------------ calibration
 
 def test_calibration_refuses_recorded_inputs_outside_the_bounds(tmp_path):
-    from soft_twin_core import calibration as cal
-    from soft_twin_core import sensors as sn
+    from soft_twin_core.estimation import calibration as cal
+    from soft_twin_core.estimation import sensors as sn
     d = _pneumatic_dict()
     m = model_from_dict(d)
     sensors = [sn.marker("tip", 1e-4, s=m.total_length)]
@@ -317,7 +317,7 @@ def test_calibration_refuses_recorded_inputs_outside_the_bounds(tmp_path):
 
 
 def test_workspace_ranges_respect_min_and_max():
-    from soft_twin_core import workspace_map as wm
+    from soft_twin_core.planning import reach as wm
     d = _pneumatic_dict()
     for a in d["actuators"]:
         a["max"] = 5.0e4

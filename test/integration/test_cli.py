@@ -9,8 +9,8 @@ import numpy as np
 import pytest
 
 from soft_twin_core import cli
-from soft_twin_core.model import load_model
-from soft_twin_core.scenario import ScenarioError, load_scenario
+from soft_twin_core.files.scenario import ScenarioError, load_scenario
+from soft_twin_core.robot.model import load_model
 from rod_statics import solve_statics
 
 HERE = os.path.dirname(os.path.abspath(__file__))
@@ -32,7 +32,7 @@ def test_statics_json_fields_and_values(capsys):
                 "iterations", "residual"):
         assert key in r
     m = load_model(os.path.join(CONFIG, "robots", "tendon_arm.yaml"))
-    from soft_twin_core import loads as ld
+    from soft_twin_core.engine import loads as ld
     ref = solve_statics(m, {"tendon_y_pos": 2.0, "tendon_z_neg": 0.5},
                            ld.Loads(point=(ld.tip_load(m, (0, 0, -0.05)),)))
     assert np.allclose(r["tip_position"], ref.tip_pose[:3, 3], atol=1e-12)
@@ -123,7 +123,7 @@ def test_dynamics_profile_and_rigid_offsets(tmp_path):
                   % os.path.join(CONFIG, "robots", "elbow_arm.yaml"))
     s = load_scenario(str(sc))
     assert s.loads_at(0.01).point[0].wrench[2] == pytest.approx(-0.25)
-    from soft_twin_core.scenario import run_dynamics
+    from soft_twin_core.files.scenario import run_dynamics
     out = run_dynamics(s, 0.03, 0.005)
     assert len(out["time"]) == 7 and "error" not in out
 
@@ -175,8 +175,8 @@ TREE_SCENARIO = {"robot": os.path.join(CONFIG, "robots", "soft_gripper.yaml"), "
 def test_scenario_fuzz_only_scenario_errors(base):
     """Any single corrupted field of a scenario gives a ScenarioError/ModelError."""
     from conftest import single_field_corruptions
-    from soft_twin_core.model import ModelError
-    from soft_twin_core.scenario import scenario_from_dict
+    from soft_twin_core.files.scenario import scenario_from_dict
+    from soft_twin_core.robot.model import ModelError
     scenario_from_dict(base)                   # the uncorrupted one is valid
     values = [None, -1, 0, 1e300, float("nan"), "x", [], {}, [1, 2], True, "tip", [[0, 1], [0, 2]], {"a": 1}, 3]
     for d in single_field_corruptions(base, values, 600, seed=1, skip=(("robot",),)):

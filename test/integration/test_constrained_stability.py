@@ -18,8 +18,8 @@ import numpy as np
 import pytest
 import yaml
 
-from soft_twin_core import constrained as cs
-from soft_twin_core.mechanism import load_mechanism, mechanism_from_dict
+from soft_twin_core.robot.mechanism import load_mechanism, mechanism_from_dict
+from soft_twin_core.solve import constrained as cs
 
 ROOT = Path(__file__).resolve().parents[2]
 E, R_BAR = 2.0e6, 0.01
@@ -206,7 +206,7 @@ def test_a_base_driven_against_a_clamp_fails_in_physical_terms(tmp_path):
     clamped to the wall: the run stops, and the error says how far the base
     was asked to go (in all, in the step), the stress reached as a multiple
     of the material's modulus, the constraint error, and what it means."""
-    from soft_twin_core.scenario import load_scenario, run_dynamics
+    from soft_twin_core.files.scenario import load_scenario, run_dynamics
     _, scenario = _prescribed_bar_file(tmp_path, clamp_tip=True)
     out = run_dynamics(load_scenario(str(scenario)), 0.1, 0.005)
     err = out.get("error", "")

@@ -11,8 +11,8 @@ import pytest
 from scipy.integrate import simpson, solve_bvp
 
 from soft_twin_core import lie
-from soft_twin_core.continuum import (elastica_cantilever_tip, elastica_cantilever_tip_angle,
-                                      solve_cosserat_statics)
+from soft_twin_core.reference.continuum import (elastica_cantilever_tip, elastica_cantilever_tip_angle,
+                                                solve_cosserat_statics)
 
 
 def stiffness(E=1e6, G=1e6 / 3, r=0.01, shear_factor=(1.0, 1.0), ratio_I=1.0):

@@ -34,9 +34,11 @@ import pytest
 
 pin = pytest.importorskip("pinocchio")
 
-from soft_twin_core import algorithms, joints as jnt  # noqa: E402
-from soft_twin_core import lie, reference  # noqa: E402
-from soft_twin_core.multibody import ModelBuilder, spatial_inertia  # noqa: E402
+from soft_twin_core import lie
+from soft_twin_core.engine import algorithms
+from soft_twin_core.engine.multibody import ModelBuilder, spatial_inertia  # noqa: E402
+from soft_twin_core.reference import joints as jnt  # noqa: E402
+from soft_twin_core.reference import multibody as reference  # noqa: E402
 
 TOL = 1e-10          # relative: max |diff| / max(1, max |value|)
 FD_TOL = 1e-6        # finite differences of the RNEA
@@ -398,12 +400,12 @@ def check_rnea_derivatives(backend, desc, seed=0, eps=1e-5, tol=FD_TOL):
 # ----------------------------------------------------------------------------
 
 class CompiledBackend(ReferenceBackend):
-    """The compiled recursive passes (soft_twin_core.algorithms): placements,
+    """The compiled recursive passes (soft_twin_core.engine.algorithms): placements,
     CRBA, RNEA, articulated-body forward dynamics; the rest as the reference."""
     name = "compiled"
 
     def _ws(self, model):
-        from soft_twin_core.workspace import Workspace
+        from soft_twin_core.engine.workspace import Workspace
         if getattr(self, "_model", None) is not model:
             self._model, self._work = model, Workspace(model)
         return self._work
@@ -489,9 +491,9 @@ def test_fixed_joint_equals_folded_placement():
 @pytest.mark.parametrize("tree", sorted(TREES))
 @pytest.mark.parametrize("seed", [0, 1, 2])
 def test_analytic_rnea_derivatives_match_pinocchio(tree, seed):
-    """The engine's analytic d tau/d q, d tau/d v (soft_twin_core.algorithms.
+    """The engine's analytic d tau/d q, d tau/d v (soft_twin_core.engine.algorithms.
     rnea_derivatives) equal Pinocchio's computeRNEADerivatives to 1e-10."""
-    from soft_twin_core.workspace import Workspace
+    from soft_twin_core.engine.workspace import Workspace
     desc = TREES[tree]
     model, ptree = build_ours(desc), build_pin(desc)
     q, v, a = sample_state(model, seed)

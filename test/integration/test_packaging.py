@@ -121,9 +121,9 @@ def test_example_files_found_by_name_from_any_directory(tmp_path):
     """From the sources, away from the checkout: every example robot and
     scenario loads by name."""
     code = textwrap.dedent("""
-        from soft_twin_core.mechanism import load_mechanism
-        from soft_twin_core.model import example_files
-        from soft_twin_core.scenario import load_scenario
+        from soft_twin_core.robot.mechanism import load_mechanism
+        from soft_twin_core.robot.model import example_files
+        from soft_twin_core.files.scenario import load_scenario
         robots, scenarios = example_files("robots"), example_files("scenarios")
         for name in robots:
             load_mechanism(name)                 # classic and tree robot files alike
@@ -180,9 +180,9 @@ def test_pip_install_core_in_plain_venv(tmp_path):
     scenarios = sorted(p.stem for p in (ROOT / "config" / "scenarios").glob("*.yaml"))
     code = textwrap.dedent(f"""
         from pathlib import Path
-        from soft_twin_core.mechanism import load_mechanism
-        from soft_twin_core.model import example_files
-        from soft_twin_core.scenario import load_scenario
+        from soft_twin_core.robot.mechanism import load_mechanism
+        from soft_twin_core.robot.model import example_files
+        from soft_twin_core.files.scenario import load_scenario
         assert sorted(example_files("robots")) == {robots!r}, example_files("robots")
         assert sorted(example_files("scenarios")) == {scenarios!r}, example_files("scenarios")
         for name in {robots!r}:

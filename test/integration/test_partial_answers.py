@@ -26,7 +26,7 @@ def _cli(*args, timeout=300):
 def test_statics_of_a_profiled_articulated_scenario_solves_where_the_profiles_end():
     """soft_gripper_grasp: the tendons ramp to 3 N by 0.5 s, the wrist to
     0.6 rad by 1 s. Before: solved at t = 0 (fingers open, wrist 0), no word."""
-    from soft_twin_core.scenario import load_scenario, run_statics
+    from soft_twin_core.files.scenario import load_scenario, run_statics
     sc = load_scenario("soft_gripper_grasp")
     end = run_statics(sc)
     assert end["time"] == 1.0 and "joint_trajectories.wrist" in end["time_note"]
@@ -42,7 +42,7 @@ def test_statics_of_a_profiled_articulated_scenario_solves_where_the_profiles_en
 
 
 def test_statics_of_a_profiled_classic_scenario_and_the_cli_note(tmp_path):
-    from soft_twin_core.scenario import load_scenario, run_statics
+    from soft_twin_core.files.scenario import load_scenario, run_statics
     sc = load_scenario("tendon_arm_dynamics")            # tendon_y_pos: 0 -> 3 N over 0.5 s
     r = run_statics(sc)
     r0 = run_statics(sc, time=0.0)
@@ -71,7 +71,7 @@ def test_a_robot_given_as_a_scenario_says_so_and_how_to_use_it():
 
 
 def test_render_plot_without_backbone_samples_names_what_it_leaves_out(tmp_path):
-    from soft_twin_core.scenario import load_scenario, run_dynamics
+    from soft_twin_core.files.scenario import load_scenario, run_dynamics
     out = run_dynamics(load_scenario("tendon_arm_dynamics"), 0.02, 0.01)
     assert "members" not in out
     run = tmp_path / "run.json"
@@ -107,8 +107,8 @@ def test_calibrate_on_a_tree_robot_gives_the_reason(tmp_path):
 def test_a_killed_dask_worker_is_named_in_the_study_output(tmp_path):
     """Dask re-runs the chunk of a killed worker elsewhere; before, nothing
     in the log, results or summary said that a worker had died."""
-    from soft_twin_core.study import study_from_dict
-    from soft_twin_core.study_dask import run_study, start_local_cluster
+    from soft_twin_core.studies.cluster import run_study, start_local_cluster
+    from soft_twin_core.studies.study import study_from_dict
     st = study_from_dict({"name": "kill", "scenario": "tendon_arm_statics",
                           "parameters": [{"path": "scenario.actuation.tendon_y_pos", "range": [0.0, 4.0]}],
                           "design": {"type": "lhs", "samples": 16, "seed": 3}}, ROOT)

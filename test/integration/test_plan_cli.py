@@ -10,8 +10,8 @@ import pytest
 import yaml
 
 from soft_twin_core import cli
-from soft_twin_core import planner as pl
-from soft_twin_core.plan_file import PlanFileError, load_plan_file, plan_from_dict
+from soft_twin_core.planning import planner as pl
+from soft_twin_core.planning.plan_file import PlanFileError, load_plan_file, plan_from_dict
 
 
 def _write(tmp_path, d, name="p.yaml"):

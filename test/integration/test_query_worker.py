@@ -12,10 +12,10 @@ import pytest
 
 from soft_twin_core.twin import Twin
 from soft_twin.query_worker import QueryError, QueryWorker
+from soft_twin_core.planning import paths as pth
+from soft_twin_core.robot.mechanism import mechanism_from_dict
+from soft_twin_core.robot.model import find_file, read_yaml_file
 from soft_twin_core.twin import TwinSettings
-from soft_twin_core.mechanism import mechanism_from_dict
-from soft_twin_core.model import find_file, read_yaml_file
-from soft_twin_core import paths as pth
 
 
 @pytest.fixture(scope="module")

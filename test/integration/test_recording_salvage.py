@@ -1,7 +1,7 @@
 """Recordings that survive a crash, and rotation (issue 25, item 5).
 
 A killed node's MCAP file, and a clean file truncated, are read back up to
-the last complete chunk with a warning (soft_twin_core.mcap_salvage, used by
+the last complete chunk with a warning (soft_twin_core.files.mcap_salvage, used by
 every reader: render, view, calibrate, the articulated run reader); a size or
 duration limit rotates a recording into numbered files, each complete; a
 file with nothing readable still gives render's exit 2. Real rclpy
@@ -20,9 +20,10 @@ from geometry_msgs.msg import PoseStamped  # noqa: E402
 
 from soft_twin import recorder  # noqa: E402
 from soft_twin.recorder import McapRecording, rotated_path  # noqa: E402
-from soft_twin_core import calibration_mcap, recording  # noqa: E402
-from soft_twin_core.calibration import CalibrationError  # noqa: E402
-from soft_twin_core.mcap_salvage import TruncatedRecordingWarning, read_decoded  # noqa: E402
+from soft_twin_core.estimation import mcap_data as calibration_mcap
+from soft_twin_core.estimation.calibration import CalibrationError  # noqa: E402
+from soft_twin_core.files import recording  # noqa: E402
+from soft_twin_core.files.mcap_salvage import TruncatedRecordingWarning, read_decoded  # noqa: E402
 
 START_TIMEOUT = 120.0      # a fresh clone compiles the numba kernels first
 

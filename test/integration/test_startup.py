@@ -24,9 +24,9 @@ def _run(code):
 def test_statics_and_dynamics_start_without_scipy_linalg():
     out = _run("""
         import sys
-        from soft_twin_core.constrained import MechanismSimulator, solve_equilibrium
-        from soft_twin_core.mechanism import from_robot_model
-        from soft_twin_core.model import benchmark_cantilever_dict, model_from_dict
+        from soft_twin_core.solve.constrained import MechanismSimulator, solve_equilibrium
+        from soft_twin_core.robot.mechanism import from_robot_model
+        from soft_twin_core.robot.model import benchmark_cantilever_dict, model_from_dict
         m = from_robot_model(model_from_dict(benchmark_cantilever_dict(2, "all")))
         solve_equilibrium(m)
         MechanismSimulator(m, 2e-3).step(n=5)
@@ -44,7 +44,7 @@ def test_a_blas_kernel_still_compiles_after_the_skipped_probe():
     out = _run("""
         import sys
         import numba as nb, numpy as np
-        import soft_twin_core.kernels  # noqa: F401  (skips the probe)
+        import soft_twin_core.engine.kernels  # noqa: F401  (skips the probe)
         assert "scipy.linalg" not in sys.modules
 
         @nb.njit
@@ -63,7 +63,7 @@ def test_a_blas_kernel_still_compiles_after_the_skipped_probe():
 def test_probe_is_left_alone_once_numba_has_run():
     out = _run("""
         import numba.np.arraymath  # noqa: F401  (numba's own probe, with scipy.linalg)
-        from soft_twin_core.kernels._blas_probe import skip_probe
+        from soft_twin_core.engine.kernels._blas_probe import skip_probe
         print(skip_probe())
     """)
     assert out.split() == ["False"]
@@ -111,7 +111,7 @@ def test_warm_up_purge_reaches_numba_cache_dir_but_not_another_copy(tmp_path, mo
     # numba's own cache files for each copy's kernel, in a subprocess with that cache dir
     for pkg in copies:
         subprocess.run([sys.executable, "-c", "import sys; sys.path.insert(0, sys.argv[1]); "
-                        "from soft_twin_core.kernels.b import f; f(1)", str(pkg.parent)],
+                        "from soft_twin_core.engine.kernels.b import f; f(1)", str(pkg.parent)],
                        check=True, env=dict(os.environ, NUMBA_CACHE_DIR=str(cache)))
     where = {pkg: cache / _CacheLocator.get_suitable_cache_subpath(str(pkg / "kernels" / "b.py")) for pkg in copies}
     assert all(list(d.glob("*.nbi")) and list(d.glob("*.nbc")) for d in where.values()), list(cache.rglob("*"))

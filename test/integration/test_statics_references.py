@@ -1,13 +1,13 @@
 """PCS statics against independent continuum references (issue 5): the
 elliptic-integral elastica and the 3D Cosserat boundary value problem of
-soft_twin_core.continuum (which shares no code with the PCS solver)."""
+soft_twin_core.reference.continuum (which shares no code with the PCS solver)."""
 
 import numpy as np
 
-from soft_twin_core import loads as ld
-from soft_twin_core.constrained import MechanismSimulator
-from soft_twin_core.continuum import elastica_cantilever_tip, solve_cosserat_statics
-from soft_twin_core.model import benchmark_cantilever_dict, model_from_dict
+from soft_twin_core.engine import loads as ld
+from soft_twin_core.reference.continuum import elastica_cantilever_tip, solve_cosserat_statics
+from soft_twin_core.robot.model import benchmark_cantilever_dict, model_from_dict
+from soft_twin_core.solve.constrained import MechanismSimulator
 from rod_statics import mechanism, solve_statics
 
 

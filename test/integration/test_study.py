@@ -1,4 +1,4 @@
-"""Design studies (soft_twin_core.study, study_case, study_dask, study_report):
+"""Design studies (soft_twin_core.studies.study, study_case, study_dask, study_report):
 paths, designs, validation, failures, Dask against a serial run, a killed
 worker, resuming, the summary; small studies of the default robot."""
 
@@ -14,9 +14,10 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from soft_twin_core.study import (CaseValidationError, StudyError, build_scenario, case_documents, design_matrix,
-                                  format_path, get_path, make_cases, parse_path, study_from_dict, validate_cases)
-from soft_twin_core.study_dask import StudyInterrupted, read_rows, run_study
+from soft_twin_core.studies.cluster import StudyInterrupted, read_rows, run_study
+from soft_twin_core.studies.study import (CaseValidationError, StudyError, build_scenario, case_documents,
+                                          design_matrix, format_path, get_path, make_cases, parse_path,
+                                          study_from_dict, validate_cases)
 from rod_statics import solve_statics
 
 ROOT = Path(__file__).resolve().parents[2]
@@ -174,8 +175,8 @@ def test_failing_case_recorded_with_its_reason_and_the_study_finishes(tmp_path, 
 # ----------------------------------------------------------------------------
 
 def test_rows_equal_direct_statics_and_the_scenario_runner(tmp_path):
-    from soft_twin_core.model import load_model
-    from soft_twin_core.scenario import load_scenario
+    from soft_twin_core.files.scenario import load_scenario
+    from soft_twin_core.robot.model import load_model
     st = _study(record=["tip_pose", "base_wrench", "iterations", "strains", "backbone", "internal_wrenches"])
     run_study(st, tmp_path / "o", serial=True, log=lambda m: None)
     rows = read_rows(tmp_path / "o" / "results.parquet")
@@ -184,7 +185,7 @@ def test_rows_equal_direct_statics_and_the_scenario_runner(tmp_path):
         E = r["segments[0].material.youngs_modulus"]
         d = json.loads(json.dumps(st.robot_doc))
         d["segments"][0]["material"]["youngs_modulus"] = E
-        from soft_twin_core.model import model_from_dict
+        from soft_twin_core.robot.model import model_from_dict
         m = model_from_dict(d)
         u = sc.actuation.copy()                 # the scenario's tendon_z_neg stays
         u[0] = r["scenario.actuation.tendon_y_pos"]
@@ -196,7 +197,7 @@ def test_rows_equal_direct_statics_and_the_scenario_runner(tmp_path):
         q = [r[f"statics.tip_quaternion_{a}"] for a in "xyzw"]
         assert Rotation.from_quat(q).as_matrix() == pytest.approx(eq.tip_pose[:3, :3], abs=1e-12)
         assert r["statics.strains_5_bending_z"] == pytest.approx(eq.strains[5, 5], abs=1e-12)
-        from soft_twin_core.scenario import run_statics
+        from soft_twin_core.files.scenario import run_statics
         sc_case = build_scenario(st, {k: r[k] for k in st.parameter_names})
         ref = run_statics(sc_case, 3)          # the runner's own output, every field
         P = np.array(ref["backbone_positions"])
@@ -211,8 +212,8 @@ def test_max_stress_of_a_cantilever_is_the_beam_formula():
     clamp N = 0, T = 0 and M = F x_tip (the tip's lever arm), so the largest
     stress is sigma = F x_tip r / I, I = pi r^4 / 4 (solid) or
     pi (ro^4 - ri^4) / 4 (tube)."""
-    from soft_twin_core.outputs import max_von_mises
-    from soft_twin_core.scenario import run_statics, scenario_from_dict
+    from soft_twin_core.files.scenario import run_statics, scenario_from_dict
+    from soft_twin_core.solve.outputs import max_von_mises
     F = 0.05
     for cs, r_out, I in (({"shape": "solid_circle", "radius": 0.01}, 0.01, math.pi * 0.01 ** 4 / 4),
                          ({"shape": "hollow_tube", "outer_radius": 0.01, "inner_radius": 0.006}, 0.01,
@@ -226,7 +227,7 @@ def test_max_stress_of_a_cantilever_is_the_beam_formula():
         assert s_at == 0.0
         assert smax == pytest.approx(F * r["tip_position"][0] * r_out / I, rel=1e-9)
     # rectangle: M about y with the stress at z = h/2; sectional members: unknown
-    from soft_twin_core.stress import section_geometry as _geometry, von_mises
+    from soft_twin_core.robot.stress import section_geometry as _geometry, von_mises
     g = _geometry({"shape": "rectangle", "width": 0.02, "height": 0.01})
     W = np.array([[2.0, 0, 0, 0, 0.3, 0.1]])
     expect = 2.0 / 2e-4 + 0.3 * 0.005 / (0.02 * 0.01 ** 3 / 12) + 0.1 * 0.01 / (0.01 * 0.02 ** 3 / 12)
@@ -236,7 +237,7 @@ def test_max_stress_of_a_cantilever_is_the_beam_formula():
 
 def test_settling_time_of_a_first_order_response():
     """p(t) = p_ref (1 - exp(-t / tau)) enters the 2 % band at tau ln 50."""
-    from soft_twin_core.study_case import settling_time
+    from soft_twin_core.studies.case import settling_time
     tau, dt = 0.3, 1e-4
     t = np.arange(0, 3.0, dt)
     p = np.outer(1 - np.exp(-t / tau), [0.1, 0.0, -0.05])
@@ -257,7 +258,7 @@ def test_dynamics_case_records_settling_against_the_static_equilibrium(tmp_path)
     assert r["dynamics.settled"] and 0.3 < r["dynamics.settling_time_s"] < 4.0
     assert r["dynamics.max_tip_speed_m_s"] > 0.1
     assert abs(r["dynamics.tip_velocity_y"]) < 0.01 and r["dynamics.strain_rates_0_axial"] == 0.0
-    from soft_twin_core.scenario import load_scenario
+    from soft_twin_core.files.scenario import load_scenario
     sc = load_scenario("tendon_arm_statics")
     u = sc.actuation.copy()
     u[0] = 2.0
@@ -268,7 +269,7 @@ def test_dynamics_case_records_settling_against_the_static_equilibrium(tmp_path)
 
 
 def test_sensitivity_against_known_functions():
-    from soft_twin_core.study_report import spearman_matrix, src_matrix
+    from soft_twin_core.studies.report import spearman_matrix, src_matrix
     rng = np.random.default_rng(0)
     a, b = np.meshgrid(np.linspace(0, 1, 7), np.linspace(-1, 1, 5), indexing="ij")
     X = np.column_stack([a.ravel(), b.ravel()])
@@ -283,7 +284,7 @@ def test_sensitivity_against_known_functions():
     assert src[0] == pytest.approx([3 * sx[0] / sy, -2 * sx[1] / sy], rel=1e-10)
     assert r2[0] == pytest.approx(1.0, abs=1e-12)
     # round-off columns (a force that is zero up to 1e-16) get no sensitivity
-    from soft_twin_core.study_report import numeric_columns
+    from soft_twin_core.studies.report import numeric_columns
     rows = [{"a": float(i), "f_fx": 1e-16 * (-1) ** i, "f_fz": 1.0 + i, "g": 1e-16 * i} for i in range(5)]
     assert numeric_columns(rows, ["a", "f_fx", "f_fz", "g"]) == ["a", "f_fz", "g"]
 
@@ -294,7 +295,7 @@ def test_sensitivity_against_known_functions():
 
 @pytest.fixture(scope="module")
 def client():
-    from soft_twin_core.study_dask import start_local_cluster
+    from soft_twin_core.studies.cluster import start_local_cluster
     cluster, c = start_local_cluster(2)
     yield c
     c.close()
@@ -353,7 +354,7 @@ def test_a_task_whose_worker_keeps_dying_is_recorded_lost_and_rerun_by_resume(tm
 
     import dask
     import distributed  # noqa: F401  (loads its config first: set() must not replace it)
-    from soft_twin_core.study_dask import start_local_cluster
+    from soft_twin_core.studies.cluster import start_local_cluster
     st = _lhs_study(12)
     with dask.config.set({"distributed.scheduler.allowed-failures": 0}):
         cluster, c = start_local_cluster(1)
@@ -452,7 +453,7 @@ def test_the_distributed_cancel_bug_traceback_is_dropped_and_nothing_else():
     logged on the same logger still passes."""
     import logging
     from distributed.utils import LoopRunner
-    from soft_twin_core.study_dask import _SyncCancelBug, install_sync_cancel_filter
+    from soft_twin_core.studies.cluster import _SyncCancelBug, install_sync_cancel_filter
 
     class Keep(logging.Handler):
         def __init__(self):
@@ -599,7 +600,7 @@ def test_example_studies_and_the_documented_study_are_valid():
     import re
 
     import yaml
-    from soft_twin_core.study import load_study
+    from soft_twin_core.studies.study import load_study
     files = sorted((ROOT / "config" / "studies").glob("*.yaml"))
     assert files
     for f in files:
@@ -617,8 +618,8 @@ def test_a_statics_study_of_a_tree_robot(tmp_path):
     swept, each case's tip (the last finger's end) and largest stress
     recorded; more tension bends the finger more and stresses it more; and
     dynamics studies alike."""
-    from soft_twin_core.study import study_from_dict
-    from soft_twin_core.study_dask import read_rows, run_study
+    from soft_twin_core.studies.cluster import read_rows, run_study
+    from soft_twin_core.studies.study import study_from_dict
     spec = {"name": "grip", "scenario": {"robot": "soft_gripper", "gravity": False, "actuation": {"close_2": 0.0}},
             "parameters": [{"path": "scenario.actuation.close_2", "values": [0.5, 2.0]}],
             "compute": {"statics": {}}, "record": ["tip_pose", "max_stress", "stable"]}

@@ -1,4 +1,4 @@
-"""Calibration from an MCAP recording (soft_twin_core.calibration_mcap,
+"""Calibration from an MCAP recording (soft_twin_core.estimation.mcap_data,
 ``soft-twin-sim calibrate --data FILE.mcap``). The recording is written by
 the node's own recorder (soft_twin.recorder.McapRecording: CDR-encoded
 rclpy messages, ros2msg schemas) with the messages a live system carries:
@@ -21,11 +21,11 @@ from geometry_msgs.msg import PointStamped, PoseArray, PoseStamped  # noqa: E402
 from soft_twin import conversions as cv  # noqa: E402
 from soft_twin.msg import ActuationCommand  # noqa: E402
 from soft_twin.recorder import McapRecording  # noqa: E402
-from soft_twin_core import calibration as cal  # noqa: E402
-from soft_twin_core import calibration_mcap as cm  # noqa: E402
-from soft_twin_core import sensors as sn  # noqa: E402
 from soft_twin_core.cli import main as cli_main  # noqa: E402
-from soft_twin_core.model import find_file, model_from_dict, read_yaml_file  # noqa: E402
+from soft_twin_core.estimation import calibration as cal  # noqa: E402
+from soft_twin_core.estimation import mcap_data as cm  # noqa: E402
+from soft_twin_core.estimation import sensors as sn  # noqa: E402
+from soft_twin_core.robot.model import find_file, model_from_dict, read_yaml_file  # noqa: E402
 from rod_statics import solve_statics  # noqa: E402
 
 pytestmark = pytest.mark.ros
@@ -110,8 +110,8 @@ def _record(path, truth, U, rng):
 
 
 def _readings(rec, truth, q, t, rng):
-    from soft_twin_core.mechanism import from_robot_model
-    from soft_twin_core.workspace import Workspace
+    from soft_twin_core.engine.workspace import Workspace
+    from soft_twin_core.robot.mechanism import from_robot_model
     mech = from_robot_model(truth)
     _, where = sn.check_sensors(mech, SENSORS)
     clean = sn.predict_readings(Workspace(mech.tree), q, SENSORS, where)

@@ -58,8 +58,9 @@ def _trace(fn, stops):
 @pytest.fixture
 def kernels(monkeypatch):
     """The compiled entry points wrapped in a Python function named kernel_entry."""
-    from soft_twin_core import constrained, integrators
-    from soft_twin_core.kernels import static_newton
+    from soft_twin_core.engine import integrators
+    from soft_twin_core.engine.kernels import static_newton
+    from soft_twin_core.solve import constrained
 
     def wrap(module, name):
         real = getattr(module, name)

@@ -39,7 +39,7 @@ def test_demo_writes_png_animation_and_recording(tmp_path):
     assert np.mean(np.any(frames[0] != frames[len(frames) // 2], axis=2)) > 0.002   # the arm moved
     # the recording: every topic, the commands sent, the counts the node wrote
     from mcap.reader import make_reader
-    from soft_twin_core.recording import read_messages
+    from soft_twin_core.files.recording import read_messages
     msgs = read_messages(str(rec))
     ns = "/soft_twin_demo"
     for t in ("backbone", "tip_pose", "strains", "tip_wrench", "base_wrench", "actuation", "tip_wrench_command"):

@@ -106,8 +106,8 @@ def test_estimator_flood_is_accounted_for(tmp_path):
     from rclpy.executors import SingleThreadedExecutor
     from soft_twin.client import NodeProcess
     from soft_twin.conversions import pose_msg
-    from soft_twin_core import kinematics as kin
-    from soft_twin_core.model import load_model
+    from soft_twin_core.reference import kinematics as kin
+    from soft_twin_core.robot.model import load_model
 
     sensors = [{"name": "tip", "type": "pose", "s": 0.40, "sigma_position": 1.0e-3, "sigma_rotation": 0.01}]
     (tmp_path / "sensors.yaml").write_text(yaml.safe_dump({"sensors": sensors}))

@@ -10,7 +10,7 @@ import time
 import numpy as np
 import pytest
 
-from soft_twin_core.live_view import tube_mesh
+from soft_twin_core.viz.live_view import tube_mesh
 
 HERE_NODE = "twin_live_view"
 
@@ -130,7 +130,7 @@ def link_pixels(png):
 
 
 def test_shape_meshes_are_closed_and_have_the_sizes():
-    from soft_twin_core.live_view import shape_mesh
+    from soft_twin_core.viz.live_view import shape_mesh
     T = np.eye(4)
     T[:3, 3] = [0.1, 0.2, 0.3]
     V, F = shape_mesh({"shape": "box", "size": [0.05, 0.04, 0.03]}, T)

@@ -15,10 +15,10 @@ from geometry_msgs.msg import PoseArray, WrenchStamped  # noqa: E402
 
 from soft_twin.client import TwinClient, stamp_key, start_twin, stop_twin  # noqa: E402
 from soft_twin.conversions import matrix_from_pose  # noqa: E402
-from soft_twin_core.constrained import FrameLoad, solve_equilibrium  # noqa: E402
-from soft_twin_core.mechanism import load_mechanism  # noqa: E402
-from soft_twin_core.model import find_file  # noqa: E402
-from soft_twin_core.outputs import state_outputs  # noqa: E402
+from soft_twin_core.robot.mechanism import load_mechanism  # noqa: E402
+from soft_twin_core.robot.model import find_file  # noqa: E402
+from soft_twin_core.solve.constrained import FrameLoad, solve_equilibrium  # noqa: E402
+from soft_twin_core.solve.outputs import state_outputs  # noqa: E402
 
 pytestmark = pytest.mark.ros
 START_TIMEOUT = 120.0
@@ -234,7 +234,7 @@ def test_forward_kinematics_service_answers_for_a_tree_robot(pan_tilt_qs):
     back), an actuation (the core's equilibrium with the current joint
     commands), and a wrong strain count named in the answer."""
     from soft_twin.srv import ForwardKinematics
-    from soft_twin_core.outputs import section_strains
+    from soft_twin_core.solve.outputs import section_strains
     c = pan_tilt_qs
     mech = load_mechanism(find_file("pan_tilt_arm", "robots"))
     stamp = c.send_actuation(["tendon_z_pos"], [0.0])

@@ -24,10 +24,10 @@ from soft_twin.client import TwinClient, start_twin, stop_twin  # noqa: E402
 from soft_twin.conversions import matrix_from_pose  # noqa: E402
 from soft_twin.msg import ActuationCommand  # noqa: E402
 from soft_twin.srv import InverseKinematics, PlanPath  # noqa: E402
-from soft_twin_core import algorithms as alg  # noqa: E402
-from soft_twin_core import constrained as cs  # noqa: E402
-from soft_twin_core.mechanism import load_mechanism  # noqa: E402
-from soft_twin_core.workspace import Workspace  # noqa: E402
+from soft_twin_core.engine import algorithms as alg  # noqa: E402
+from soft_twin_core.engine.workspace import Workspace  # noqa: E402
+from soft_twin_core.robot.mechanism import load_mechanism  # noqa: E402
+from soft_twin_core.solve import constrained as cs  # noqa: E402
 
 pytestmark = pytest.mark.ros
 JOINTS_OUT = "/plan_art/joint_commands"

@@ -21,8 +21,8 @@ from rcl_interfaces.srv import SetParameters  # noqa: E402
 from tf2_msgs.msg import TFMessage  # noqa: E402
 
 from soft_twin.client import TwinClient, stamp_key, start_twin, stop_twin  # noqa: E402
-from soft_twin_core.mechanism import load_mechanism  # noqa: E402
-from soft_twin_core.model import find_file  # noqa: E402
+from soft_twin_core.robot.mechanism import load_mechanism  # noqa: E402
+from soft_twin_core.robot.model import find_file  # noqa: E402
 
 pytestmark = pytest.mark.ros
 NODE = "twin_art_rec"
@@ -62,10 +62,10 @@ def client_topics_unsubscribed(msgs, ns):
 def test_recording_of_an_articulated_twin(tmp_path):
     from PIL import Image
     from soft_twin_core import cli
-    from soft_twin_core.plots import plot_frames, plot_joint_states
-    from soft_twin_core.recording import articulated_run_from_messages, read_node_recording
-    from soft_twin_core.scene import run_snapshots
-    from soft_twin_core.plots import _save, shapes_figure
+    from soft_twin_core.files.recording import articulated_run_from_messages, read_node_recording
+    from soft_twin_core.viz.plots import _save, shapes_figure
+    from soft_twin_core.viz.plots import plot_frames, plot_joint_states
+    from soft_twin_core.viz.scene import run_snapshots
     # no subscriber of the wrenches or markers: the recording holds them all the same (issue 25, item 4)
     proc, client = start_twin(NODE, ["-p", "robot_description_file:=pan_tilt_arm", "-p", "tf_rate_hz:=50.0"],
                               tmp_path / "node.log", TwinClient.STATE_TOPICS + ("joint_states",), 120.0,

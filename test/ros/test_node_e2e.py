@@ -19,10 +19,10 @@ from soft_twin.client import NodeProcess, TwinClient, stamp_key, start_twin, sto
 from soft_twin.config import resolve_robot_file  # noqa: E402
 from soft_twin.conversions import matrix_from_pose, pose_msg  # noqa: E402
 from soft_twin.srv import ForwardKinematics, InverseKinematics, StaticsQuery  # noqa: E402
-from soft_twin_core import kinematics as kin  # noqa: E402
-from soft_twin_core import loads as ld  # noqa: E402
-from soft_twin_core import statics as st  # noqa: E402
-from soft_twin_core.model import load_model  # noqa: E402
+from soft_twin_core.engine import loads as ld  # noqa: E402
+from soft_twin_core.reference import kinematics as kin  # noqa: E402
+from soft_twin_core.reference import statics as st  # noqa: E402
+from soft_twin_core.robot.model import load_model  # noqa: E402
 from rod_statics import solve_statics
 
 pytestmark = pytest.mark.ros

@@ -26,9 +26,9 @@ from std_srvs.srv import Trigger  # noqa: E402
 
 from soft_twin.conversions import matrix_from_pose, pose_array, pose_msg  # noqa: E402
 from soft_twin.msg import ActuationCommand  # noqa: E402
-from soft_twin_core import sensors as sn  # noqa: E402
-from soft_twin_core.mechanism import from_robot_model  # noqa: E402
-from soft_twin_core.model import find_file, load_model, model_from_dict, read_yaml_file  # noqa: E402
+from soft_twin_core.estimation import sensors as sn  # noqa: E402
+from soft_twin_core.robot.mechanism import from_robot_model  # noqa: E402
+from soft_twin_core.robot.model import find_file, load_model, model_from_dict, read_yaml_file  # noqa: E402
 from rod_statics import solve_statics
 
 pytestmark = pytest.mark.ros

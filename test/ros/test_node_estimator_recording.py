@@ -28,10 +28,10 @@ from rclpy.executors import SingleThreadedExecutor  # noqa: E402
 
 from soft_twin.conversions import pose_array  # noqa: E402
 from soft_twin.msg import ActuationCommand  # noqa: E402
-from soft_twin_core import sensors as sn  # noqa: E402
-from soft_twin_core.mechanism import from_robot_model  # noqa: E402
 from soft_twin_core.cli import main as cli_main  # noqa: E402
-from soft_twin_core.model import find_file, model_from_dict, read_yaml_file  # noqa: E402
+from soft_twin_core.estimation import sensors as sn  # noqa: E402
+from soft_twin_core.robot.mechanism import from_robot_model  # noqa: E402
+from soft_twin_core.robot.model import find_file, model_from_dict, read_yaml_file  # noqa: E402
 from rod_statics import solve_statics
 
 pytestmark = pytest.mark.ros

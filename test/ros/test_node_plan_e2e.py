@@ -22,7 +22,7 @@ from soft_twin.config import resolve_robot_file  # noqa: E402
 from soft_twin.conversions import matrix_from_pose  # noqa: E402
 from soft_twin.msg import ActuationCommand  # noqa: E402
 from soft_twin.srv import InverseKinematics, PlanPath  # noqa: E402
-from soft_twin_core.model import load_model  # noqa: E402
+from soft_twin_core.robot.model import load_model  # noqa: E402
 from rod_statics import solve_statics
 
 pytestmark = pytest.mark.ros

@@ -22,8 +22,8 @@ from visualization_msgs.msg import MarkerArray  # noqa: E402
 from soft_twin.client import NodeProcess, TwinClient, stamp_key  # noqa: E402
 from soft_twin.config import resolve_robot_file  # noqa: E402
 from soft_twin.conversions import matrix_from_pose, matrix_from_quaternion  # noqa: E402
-from soft_twin_core import kinematics as kin  # noqa: E402
-from soft_twin_core.model import load_model  # noqa: E402
+from soft_twin_core.reference import kinematics as kin  # noqa: E402
+from soft_twin_core.robot.model import load_model  # noqa: E402
 
 pytestmark = pytest.mark.ros
 
@@ -238,10 +238,10 @@ def test_recording_holds_every_topic_and_input(twin, tmp_path):
 
 
     # figures drawn from the recording equal those drawn from the live messages
-    from soft_twin_core import recording
-    from soft_twin_core.mechanism import from_robot_model
-    from soft_twin_core.plots import plot_dynamics
-    from soft_twin_core.scene import run_snapshots
+    from soft_twin_core.files import recording
+    from soft_twin_core.robot.mechanism import from_robot_model
+    from soft_twin_core.viz.plots import plot_dynamics
+    from soft_twin_core.viz.scene import run_snapshots
     from PIL import Image
     mech = from_robot_model(model)
     rec = recording.read_messages(str(path))

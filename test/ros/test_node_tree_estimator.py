@@ -33,13 +33,13 @@ from std_srvs.srv import Trigger  # noqa: E402
 
 from soft_twin.conversions import matrix_from_pose, pose_array, pose_msg  # noqa: E402
 from soft_twin.msg import ActuationCommand  # noqa: E402
-from soft_twin_core import algorithms as alg  # noqa: E402
 from soft_twin_core import commands as cmd
-from soft_twin_core import sensors as ts  # noqa: E402
-from soft_twin_core.constrained import solve_equilibrium  # noqa: E402
-from soft_twin_core.mechanism import load_mechanism, mechanism_from_dict  # noqa: E402
-from soft_twin_core.model import find_file, read_yaml_file  # noqa: E402
-from soft_twin_core.workspace import Workspace  # noqa: E402
+from soft_twin_core.engine import algorithms as alg  # noqa: E402
+from soft_twin_core.engine.workspace import Workspace  # noqa: E402
+from soft_twin_core.estimation import sensors as ts  # noqa: E402
+from soft_twin_core.robot.mechanism import load_mechanism, mechanism_from_dict  # noqa: E402
+from soft_twin_core.robot.model import find_file, read_yaml_file  # noqa: E402
+from soft_twin_core.solve.constrained import solve_equilibrium  # noqa: E402
 
 pytestmark = pytest.mark.ros
 

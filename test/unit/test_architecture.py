@@ -80,7 +80,7 @@ def test_the_cycle_finder_finds_a_cycle():
 
 def test_no_import_circle_even_through_imports_inside_functions():
     graph = import_graph()
-    assert len(graph) > 50 and graph["soft_twin_core.constrained"]          # the walk sees the code
+    assert len(graph) > 50 and graph["soft_twin_core.solve.constrained"]          # the walk sees the code
     assert cycles(graph) == []
 
 
@@ -121,4 +121,53 @@ def test_joint_kinds_are_defined_once():
                 names = {t.id for tg in node.targets for t in ast.walk(tg) if isinstance(t, ast.Name)}
                 if names & kinds and isinstance(node.value, (ast.Constant, ast.Tuple, ast.Call)):
                     owners.add(name)
-    assert owners == {"soft_twin_core.joint_kinds"}, owners
+    assert owners == {"soft_twin_core.engine.joint_kinds"}, owners
+
+
+# The floors of the core, lowest first: a module imports only from floors
+# below its own (the ground floor's modules are independent of each other's
+# floor number but sit at 0). soft_twin (the node) may import any of them
+# except the references.
+FLOORS = {
+    "ground": 0, "engine": 1, "robot": 2, "solve": 3, "planning": 4, "files": 4, "estimation": 5, "viz": 5,
+    "reference": 5, "warmup": 6, "twin": 6, "commands": 6, "studies": 7, "cli": 8,
+}
+GROUND = {"errors", "lie", "_series", "_blas", "limits", "text"}
+
+
+def _floor(module):
+    parts = module.split(".")
+    if parts[0] != "soft_twin_core" or len(parts) == 1 or parts[1] in GROUND:
+        return "ground" if parts[0] == "soft_twin_core" else None
+    return parts[1]
+
+
+def test_every_core_module_sits_on_a_named_floor():
+    floors = {_floor(m) for m in import_graph() if m.startswith("soft_twin_core")}
+    assert floors <= set(FLOORS), floors - set(FLOORS)
+    assert {"engine", "robot", "solve", "reference", "twin"} <= floors        # the walk sees the folders
+
+
+def upward_imports(graph):
+    """The (importer, imported) pairs across floors that do not point down."""
+    return sorted((a, b) for a, deps in graph.items() for b in deps
+                  if _floor(a) and _floor(b) and _floor(a) != _floor(b) and FLOORS[_floor(b)] >= FLOORS[_floor(a)])
+
+
+def test_the_floor_check_finds_an_upward_import():
+    graph = {"soft_twin_core.engine.forces": {"soft_twin_core.solve.constrained", "soft_twin_core.lie"},
+             "soft_twin_core.files.runs": {"soft_twin_core.planning.planner"},
+             "soft_twin_core.solve.constrained": {"soft_twin_core.engine.forces"}}
+    assert upward_imports(graph) == [("soft_twin_core.engine.forces", "soft_twin_core.solve.constrained"),
+                                     ("soft_twin_core.files.runs", "soft_twin_core.planning.planner")]
+
+
+def test_each_floor_imports_only_the_floors_below():
+    assert upward_imports(import_graph()) == []
+
+
+def test_no_production_module_imports_the_references():
+    graph = import_graph()
+    users = sorted(a for a, deps in graph.items() if not a.startswith("soft_twin_core.reference")
+                   for b in deps if b.startswith("soft_twin_core.reference"))
+    assert users == []

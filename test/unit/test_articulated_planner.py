@@ -1,4 +1,4 @@
-"""The planner (soft_twin_core.planner) on a soft articulated robot:
+"""The planner (soft_twin_core.planning.planner) on a soft articulated robot:
 the sensitivity of the frame to joint commands and tendon tensions against
 finite differences of full equilibrium solves, the pan-tilt arm's circle
 tracked within 1 mm (checked by independent equilibrium solves of the
@@ -18,14 +18,14 @@ import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as hst
 
-from soft_twin_core import algorithms as alg
-from soft_twin_core import planner as pl
-from soft_twin_core import constrained as cs
 from soft_twin_core import lie
-from soft_twin_core import paths
-from soft_twin_core.mechanism import load_mechanism
-from soft_twin_core.planner import PlanError
-from soft_twin_core.workspace import Workspace
+from soft_twin_core.engine import algorithms as alg
+from soft_twin_core.engine.workspace import Workspace
+from soft_twin_core.planning import paths
+from soft_twin_core.planning import planner as pl
+from soft_twin_core.planning.planner import PlanError
+from soft_twin_core.robot.mechanism import load_mechanism
+from soft_twin_core.solve import constrained as cs
 
 ROOT = os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 

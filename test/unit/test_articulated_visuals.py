@@ -14,9 +14,9 @@ import pytest
 from PIL import Image
 
 from soft_twin_core import cli
-from soft_twin_core.mechanism import load_mechanism, mechanism_from_dict
-from soft_twin_core.scene import snapshot, solid_outline
-from soft_twin_core.model import find_file
+from soft_twin_core.robot.mechanism import load_mechanism, mechanism_from_dict
+from soft_twin_core.robot.model import find_file
+from soft_twin_core.viz.scene import snapshot, solid_outline
 
 FIGURES = ("backbone_shapes", "tip", "joint_states", "joint_wrenches", "frames", "strains", "internal_wrenches_arm",
            "energies")
@@ -80,8 +80,8 @@ def test_cylinder_outline_lies_on_the_cylinder():
 
 
 def test_pan_tilt_snapshot_draws_links_joints_and_the_arm():
-    from soft_twin_core.constrained import solve_equilibrium
-    from soft_twin_core.outputs import state_outputs
+    from soft_twin_core.solve.constrained import solve_equilibrium
+    from soft_twin_core.solve.outputs import state_outputs
     mech = load_mechanism(find_file("pan_tilt_arm", "robots"))
     eq = solve_equilibrium(mech, {"tendon_z_pos": 1.0}, None, {"pan": 0.5, "tilt": -0.3})
     o = state_outputs(mech, eq.q, eq.lam, eq.inputs)
@@ -107,9 +107,9 @@ def test_pendulum_energies_equal_the_closed_form():
     """sample_energies of a rigid pendulum (one revolute joint about y, a
     point-like mass on a 0.2 m arm, a joint spring) against 1/2 I w^2,
     1/2 k q^2 and m g z."""
-    from soft_twin_core.constrained import MechanismSimulator, make_inputs
-    from soft_twin_core.loads import Loads
-    from soft_twin_core.mechanism_scenario import sample_energies
+    from soft_twin_core.engine.loads import Loads
+    from soft_twin_core.files.runs import sample_energies
+    from soft_twin_core.solve.constrained import MechanismSimulator, make_inputs
     m, L, k, Ic = 0.5, 0.2, 0.7, 1e-4
     d = {"name": "pendulum", "bodies": [
         {"name": "bob", "type": "link", "joint": {"name": "swing", "type": "revolute", "axis": [0, 1, 0],
@@ -188,10 +188,10 @@ def test_articulated_gif_plays_in_real_time_and_moves(pan_tilt_run):
 def test_animation_frames_draw_the_links_and_joints():
     """A frame with the links' shapes and joints differs from one without
     them where the shapes are, and the shapes are inside the fixed camera."""
-    from soft_twin_core.animate import FrameDrawer
-    from soft_twin_core.constrained import solve_equilibrium
-    from soft_twin_core.outputs import state_outputs
-    from soft_twin_core.scene import Snapshot
+    from soft_twin_core.solve.constrained import solve_equilibrium
+    from soft_twin_core.solve.outputs import state_outputs
+    from soft_twin_core.viz.animate import FrameDrawer
+    from soft_twin_core.viz.scene import Snapshot
     mech = load_mechanism(find_file("pan_tilt_arm", "robots"))
     eq = solve_equilibrium(mech, {}, None, {"pan": 0.3, "tilt": 0.2})
     o = state_outputs(mech, eq.q, eq.lam, eq.inputs)
@@ -307,7 +307,7 @@ def test_articulated_mcap_reads_back_with_the_mcap_libraries(pan_tilt_run):
 def test_plots_from_the_mcap_equal_those_of_the_run(tmp_path):
     """Every sample written (--backbone-every 1): the figures drawn from the
     MCAP read back equal, pixel for pixel, those drawn from the run."""
-    from soft_twin_core.recording import read_node_recording
+    from soft_twin_core.files.recording import read_node_recording
     code, _, err = run_cli(["dynamics", "pan_tilt_arm_dynamics", "--duration", "0.1", "--dt", "0.005",
                             "--backbone-every", "1", "--plot", str(tmp_path / "live"),
                             "--mcap", str(tmp_path / "run.mcap"), "-o", str(tmp_path / "run.json")])
@@ -354,7 +354,7 @@ def test_view_plays_an_articulated_run(pan_tilt_run):
     import threading
     import time
     import urllib.request
-    from soft_twin_core import render
+    from soft_twin_core.viz import render
     d, _ = pan_tilt_run
     for run in ("run.json", "run.mcap"):
         with socket.socket() as s:

@@ -1,4 +1,4 @@
-"""Calibration (soft_twin_core.calibration): analytic sensitivities against
+"""Calibration (soft_twin_core.estimation.calibration): analytic sensitivities against
 finite differences, recovery of parameters from a sweep recorded on a
 DIFFERENT model (the same arm discretised 3.2 times finer, with Young's
 moduli 30 % off nominal and shifted tendons; three markers with 0.3 mm
@@ -10,11 +10,11 @@ import json
 import numpy as np
 import pytest
 
-from soft_twin_core import calibration as cal
-from soft_twin_core import sensors as sn
 from soft_twin_core.cli import main as cli_main
-from soft_twin_core.mechanism import from_robot_model
-from soft_twin_core.model import find_file, load_model, model_from_dict, read_yaml_file
+from soft_twin_core.estimation import calibration as cal
+from soft_twin_core.estimation import sensors as sn
+from soft_twin_core.robot.mechanism import from_robot_model
+from soft_twin_core.robot.model import find_file, load_model, model_from_dict, read_yaml_file
 
 LENGTH = 0.4
 TRUE_OFFSETS = [0.0085, -0.0076, 0.0084, -0.0077]      # m, nominal +-0.008

@@ -10,10 +10,10 @@ import copy
 import numpy as np
 import pytest
 
-from soft_twin_core import constrained as cs
-from soft_twin_core import planner as pl
-from soft_twin_core.mechanism import mechanism_from_dict
-from soft_twin_core.model import find_file, read_yaml_file
+from soft_twin_core.planning import planner as pl
+from soft_twin_core.robot.mechanism import mechanism_from_dict
+from soft_twin_core.robot.model import find_file, read_yaml_file
+from soft_twin_core.solve import constrained as cs
 
 
 E_ROD = 2.0e9          # Pa: polymer rods (the file's steel ones bend too little under a tendon for a fit)
@@ -35,8 +35,8 @@ def robot():
 
 def _platform(mech, u):
     eq = cs.solve_equilibrium(mech, actuation=u)
-    from soft_twin_core import algorithms as alg
-    from soft_twin_core.workspace import Workspace
+    from soft_twin_core.engine import algorithms as alg
+    from soft_twin_core.engine.workspace import Workspace
     ref = mech.frame("platform")
     return alg.point_poses(mech.tree, Workspace(mech.tree), eq.q, [ref.joint], [ref.x])[0][:3, 3]
 
@@ -72,8 +72,8 @@ def test_closed_chain_calibration_sensitivities():
     (A fit is not tested: the tendons of this clamped parallel robot move
     its platform by under a millimetre, too little to tell the two moduli
     apart at 0.1 mm of sensor noise; known loads per row, issue 29, will.)"""
-    from soft_twin_core import calibration as cal
-    from soft_twin_core import sensors as sn
+    from soft_twin_core.estimation import calibration as cal
+    from soft_twin_core.estimation import sensors as sn
     from test_calibration import assert_sensitivities
     sensors = [sn.PoseSensor("platform", 1e-4, 2e-3, frame="platform"), sn.marker("mk", 1e-4, member="rod2", s=0.2)]
     U = np.array([[t1, t2] for t1 in (0.0, 4.0, 10.0) for t2 in (0.0, 3.0, 8.0)])

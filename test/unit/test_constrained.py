@@ -19,15 +19,15 @@ import numpy as np
 import pytest
 from scipy.integrate import solve_ivp
 
-from soft_twin_core import algorithms as alg
-from soft_twin_core.constrained import (FrameLoad, MechanismSimulator, _Equilibrium, make_inputs,
-                                        solve_equilibrium)
-from soft_twin_core.continuum import PlanarRod, solve_planar_rods
-from soft_twin_core.integrators import integrate_pass
-from soft_twin_core.mechanism import load_mechanism, mechanism_from_dict
-from soft_twin_core.model import ModelError, find_file
-from soft_twin_core.outputs import state_outputs
-from soft_twin_core.workspace import Workspace
+from soft_twin_core.engine import algorithms as alg
+from soft_twin_core.engine.integrators import integrate_pass
+from soft_twin_core.engine.workspace import Workspace
+from soft_twin_core.reference.continuum import PlanarRod, solve_planar_rods
+from soft_twin_core.robot.mechanism import load_mechanism, mechanism_from_dict
+from soft_twin_core.robot.model import ModelError, find_file
+from soft_twin_core.solve.constrained import (FrameLoad, MechanismSimulator, _Equilibrium, make_inputs,
+                                              solve_equilibrium)
+from soft_twin_core.solve.outputs import state_outputs
 from rod_statics import solve_statics
 
 E, NU, RADIUS = 2.0e9, 0.3, 0.01
@@ -546,13 +546,14 @@ def test_point_moment_tendons_on_the_mechanism_path():
     mechanism path (the statics, the dynamics' accelerations, the node's
     twin), equal to the rod's own statics and equations of motion (found
     missing: the mechanism's inputs dropped point-moment tendons)."""
-    from soft_twin_core import constrained as cs
-    from soft_twin_core import dynamics as dy
-    from soft_twin_core import kinematics as kin
-    from soft_twin_core import loads as ld
-    from soft_twin_core import statics as st
-    from soft_twin_core.mechanism import from_robot_model
-    from soft_twin_core.model import benchmark_cantilever_dict, model_from_dict
+    from soft_twin_core.engine import loads as ld
+    from soft_twin_core.reference import dynamics as dy
+    from soft_twin_core.reference import kinematics as kin
+    from soft_twin_core.reference import loads as rl
+    from soft_twin_core.reference import statics as st
+    from soft_twin_core.robot.mechanism import from_robot_model
+    from soft_twin_core.robot.model import benchmark_cantilever_dict, model_from_dict
+    from soft_twin_core.solve import constrained as cs
     from soft_twin_core.twin import Twin, TwinSettings
     d = benchmark_cantilever_dict(4, "all")
     d["actuators"] = [{"name": "p", "offset": [0.005, 0.003], "model": "point_moment", "end": 0.35},
@@ -580,7 +581,7 @@ def test_point_moment_tendons_on_the_mechanism_path():
     # the support's reaction: the tendons are internal (their motors on the support), so it balances the
     # weight alone, force and moment about the origin by quadrature (found wrong: the mechanism's outputs
     # took the follower moment for an external load, 0.03 N m off here)
-    sq, wq, sec = ld.gauss_points(m)
+    sq, wq, sec = rl.gauss_points(m)
     weight = np.array([m.sections[i].M[0, 0] for i in sec])[:, None] * wq[:, None] * m.gravity
     p = kin.poses(m, ref, sq)[:, :3, 3]
     eq = cs.solve_equilibrium(mech, u)

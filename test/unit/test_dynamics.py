@@ -4,12 +4,12 @@ import numpy as np
 import pytest
 import scipy.linalg as sla
 
-from soft_twin_core import dynamics as dy
-from soft_twin_core import kinematics as kin
-from soft_twin_core import loads as ld
-from soft_twin_core import statics as st
-from soft_twin_core.constrained import MechanismSimulator, make_inputs
-from soft_twin_core.model import State, benchmark_cantilever_dict, model_from_dict
+from soft_twin_core.engine import loads as ld
+from soft_twin_core.reference import dynamics as dy
+from soft_twin_core.reference import kinematics as kin
+from soft_twin_core.reference import statics as st
+from soft_twin_core.robot.model import State, benchmark_cantilever_dict, model_from_dict
+from soft_twin_core.solve.constrained import MechanismSimulator, make_inputs
 from rod_statics import mechanism, solve_statics
 
 RNG = np.random.default_rng(11)
@@ -59,7 +59,7 @@ def test_kinetic_energy_matches_rigid_section_sum():
     sections' kinetic energies from finite-difference velocities of FK."""
     m = arm(2, "all", actuators=False)
     q, qd = random_state(m)
-    from soft_twin_core.loads import gauss_points
+    from soft_twin_core.reference.loads import gauss_points
     s, w, sec = gauss_points(m)
     h = 1e-6
     gp, gm = kin.poses(m, q + h * qd, s), kin.poses(m, q - h * qd, s)
@@ -86,8 +86,8 @@ def test_lagrange_equations_by_finite_differences():
 def test_engine_matches_reference():
     """The multibody engine's mass matrix and forces (loads of every kind,
     tendons, gravity, damping) equal the numpy chain dynamics."""
-    from soft_twin_core import algorithms as alg
-    from soft_twin_core.integrators import residual_pass
+    from soft_twin_core.engine import algorithms as alg
+    from soft_twin_core.engine.integrators import residual_pass
     m = arm(3, "all", offsets=True)
     q, qd = random_state(m)
     loads = ld.Loads(point=(ld.tip_load(m, (0.01, 0.02, -0.01), (0.001, 0, 0)),
@@ -214,7 +214,7 @@ def test_base_reaction_dynamic_equals_static_at_rest_and_balances_momentum():
     # free motion: reaction force = d/dt(linear momentum) - weight, by FD
     q, qd = random_state(m, 0.1)
     qdd = dy.forward_dynamics(m, q, qd)
-    from soft_twin_core.loads import gauss_points
+    from soft_twin_core.reference.loads import gauss_points
     s, w, sec = gauss_points(m)
     rhoA = m.sections[0].M[0, 0]
 
@@ -346,7 +346,7 @@ def test_an_outside_factorisation_of_the_workspace_is_never_reused():
     tiny Newton updates would pass the convergence test at once) is not
     mistaken for the integrator's: the next steps are those of an untouched
     simulator, to the Newton tolerance."""
-    from soft_twin_core import algorithms as alg
+    from soft_twin_core.engine import algorithms as alg
     m = model_from_dict(benchmark_cantilever_dict(6, "all"))
     # a tight tolerance: every step iterates more than twice and so takes a
     # fresh factorisation, the two runs compute the same (reusing the

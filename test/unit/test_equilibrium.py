@@ -1,5 +1,5 @@
 """One equilibrium solver for every robot without constraint rows
-(soft_twin_core.equilibrium): a classic rod and a tree of soft members with
+(soft_twin_core.solve.equilibrium): a classic rod and a tree of soft members with
 effort-controlled joints take the same compiled Newton, stability check,
 continuation and tangent hint. Checked against the rod front end, the KKT
 path of closed chains, a closed form (a torsion spring against an effort)
@@ -11,10 +11,10 @@ import numpy as np
 import pytest
 import yaml
 
-from soft_twin_core import equilibrium as eq
-from soft_twin_core.constrained import _Equilibrium, _kkt_newton, make_inputs, solve_equilibrium
-from soft_twin_core.mechanism import load_mechanism, mechanism_from_dict
-from soft_twin_core.model import find_file, load_model
+from soft_twin_core.robot.mechanism import load_mechanism, mechanism_from_dict
+from soft_twin_core.robot.model import find_file, load_model
+from soft_twin_core.solve import equilibrium as eq
+from soft_twin_core.solve.constrained import _Equilibrium, _kkt_newton, make_inputs, solve_equilibrium
 from rod_statics import solve_statics
 
 
@@ -155,7 +155,7 @@ def test_a_mechanism_without_multipliers_steps_on_the_rod_integrator():
     effort joints steps too, and its energy balance holds (a spring-held
     arm released from rest under gravity, theta = 1/2, no damping: kinetic
     + potential constant)."""
-    from soft_twin_core.constrained import MechanismSimulator
+    from soft_twin_core.solve.constrained import MechanismSimulator
     mech = load_mechanism(find_file("tendon_arm", "robots"))
     b = MechanismSimulator(mech, 2e-3, 0.5, tol=1e-8, max_iterations=10)
     b.step({"tendon_y_pos": 2.0}, n=150)

@@ -1,4 +1,4 @@
-"""The extended Kalman filter (soft_twin_core.estimation) on a classic rod
+"""The extended Kalman filter (soft_twin_core.estimation.ekf) on a classic rod
 (a one-member mechanism) with synthetic data
 made by a DIFFERENT model: the same rod discretised 3.2 times finer (16
 PCS sections instead of 5; 48 strain modes instead of 15), simulated with
@@ -11,12 +11,12 @@ import numpy as np
 import pytest
 from scipy.stats import chi2
 
-from soft_twin_core import estimation as es
-from soft_twin_core import sensors as sn
-from soft_twin_core.loads import Loads, PointLoad
-from soft_twin_core.mechanism import from_robot_model
-from soft_twin_core.constrained import MechanismSimulator
-from soft_twin_core.model import find_file, model_from_dict, read_yaml_file
+from soft_twin_core.engine.loads import Loads, PointLoad
+from soft_twin_core.estimation import ekf as es
+from soft_twin_core.estimation import sensors as sn
+from soft_twin_core.robot.mechanism import from_robot_model
+from soft_twin_core.robot.model import find_file, model_from_dict, read_yaml_file
+from soft_twin_core.solve.constrained import MechanismSimulator
 from rod_statics import solve_statics
 
 DT = 0.01
@@ -306,7 +306,7 @@ def test_motion_capture_markers_alone_track_the_static_tip(coarse, fine):
 
 
 def test_unsupported_models_are_refused(sensors):
-    from soft_twin_core.model import benchmark_cantilever_dict
+    from soft_twin_core.robot.model import benchmark_cantilever_dict
     d = benchmark_cantilever_dict(3)
     d["kinematic_map"] = "cayley"
     with pytest.raises(ValueError, match="exponential-map"):

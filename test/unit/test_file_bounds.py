@@ -15,7 +15,7 @@ import pytest
 import yaml
 
 from soft_twin_core import limits
-from soft_twin_core.model import ModelError, load_model, model_from_dict, read_yaml_file
+from soft_twin_core.robot.model import ModelError, load_model, model_from_dict, read_yaml_file
 
 HERE = os.path.dirname(os.path.abspath(__file__))
 ROOT = os.path.dirname(os.path.dirname(HERE))
@@ -75,7 +75,7 @@ def test_sections_over_the_limit_name_the_field_value_and_limit():
 
 
 def test_sections_of_a_tree_robot_are_bounded_over_all_members():
-    from soft_twin_core.mechanism import mechanism_from_dict
+    from soft_twin_core.robot.mechanism import mechanism_from_dict
     d = _robot("soft_gripper")
     members = [b for b in d["bodies"] if b.get("type") == "member"]
     assert len(members) >= 3
@@ -159,7 +159,8 @@ def test_node_config_refuses_a_binary_robot_file_naming_it(tmp_path):
 # ----------------------------------------------------------------------------
 
 def test_time_steps_and_recorded_samples_are_bounded():
-    from soft_twin_core.scenario import ScenarioError, check_output_size, n_steps_for
+    from soft_twin_core.files.scenario import ScenarioError
+    from soft_twin_core.files.timeline import check_output_size, n_steps_for
     with pytest.raises(ScenarioError, match=f"duration / dt: 1e[+]?0?9 s / 0.001 s = 1e[+]12 time steps exceeds "
                                             f"the limit of {limits.MAX_TIME_STEPS}"):
         n_steps_for(1e9, 1e-3)
@@ -179,7 +180,7 @@ def test_cli_huge_duration_and_points_exit_2():
 
 
 def test_plan_with_a_huge_duration_is_refused_before_sampling(tmp_path):
-    from soft_twin_core.plan_file import PlanFileError, plan_from_dict
+    from soft_twin_core.planning.plan_file import PlanFileError, plan_from_dict
     with open(os.path.join(ROOT, "config", "paths", "tendon_arm_circle.yaml")) as fh:
         d = yaml.safe_load(fh)
     d["path"]["duration"] = "1.0e9"                  # as YAML reads 1.0e9: a string
@@ -202,7 +203,7 @@ def test_plan_with_a_huge_duration_is_refused_before_sampling(tmp_path):
 # ----------------------------------------------------------------------------
 
 def _study(**kw):
-    from soft_twin_core.study import study_from_dict
+    from soft_twin_core.studies.study import study_from_dict
     d = {"name": "t", "scenario": "tendon_arm_statics",
          "parameters": [{"path": "segments[0].material.youngs_modulus", "range": [1e6, 4e6]}],
          "design": {"type": "lhs", "samples": 10, "seed": 1}}
@@ -211,7 +212,7 @@ def _study(**kw):
 
 
 def test_study_samples_and_grid_size_are_bounded():
-    from soft_twin_core.study import StudyError
+    from soft_twin_core.studies.study import StudyError
     with pytest.raises(StudyError, match=f"study.design.samples: 100000000 exceeds the limit of "
                                          f"{limits.MAX_STUDY_SAMPLES}"):
         _study(design={"type": "lhs", "samples": 100000000, "seed": 1})
@@ -236,7 +237,7 @@ def test_cli_study_of_1e8_samples_exits_2(tmp_path):
 
 
 def test_binary_urdf_and_deep_json_run_are_clear_errors(tmp_path):
-    from soft_twin_core.mechanism import mechanism_from_dict
+    from soft_twin_core.robot.mechanism import mechanism_from_dict
     (tmp_path / "arm.urdf").write_bytes(b"<robot \xff\xfe>")
     with pytest.raises(ModelError, match="robot.urdf: .*arm.urdf: not a text file"):
         mechanism_from_dict({"name": "r", "urdf": "arm.urdf", "bodies": []}, str(tmp_path))
@@ -247,6 +248,6 @@ def test_binary_urdf_and_deep_json_run_are_clear_errors(tmp_path):
 
 
 def test_workspace_samples_are_bounded():
-    from soft_twin_core.workspace_map import parse_workspace_options
+    from soft_twin_core.planning.reach import parse_workspace_options
     with pytest.raises(ValueError, match=r"workspace.samples: 100000000 exceeds the limit of 1000000"):
         parse_workspace_options({"samples": 100000000}, "workspace", ValueError)

@@ -1,4 +1,4 @@
-"""Physics of the implicit theta-method (soft_twin_core.integrators.ThetaIntegrator)
+"""Physics of the implicit theta-method (soft_twin_core.engine.integrators.ThetaIntegrator)
 on hybrid soft-rigid trees:
 
 * the reference potential energy is the potential of the engine's static
@@ -26,14 +26,16 @@ import types
 import numpy as np
 import pytest
 
-from soft_twin_core import algorithms as alg
-from soft_twin_core import joints as jnt
-from soft_twin_core import lie, reference
-from soft_twin_core.forces import actuator_arrays
-from soft_twin_core.integrators import ThetaIntegrator
-from soft_twin_core.kernels.data import empty_loads
-from soft_twin_core.multibody import FREE, SOFT, SPHERICAL, ModelBuilder, spatial_inertia
-from soft_twin_core.workspace import Workspace
+from soft_twin_core import lie
+from soft_twin_core.engine import algorithms as alg
+from soft_twin_core.engine.forces import actuator_arrays
+from soft_twin_core.engine.integrators import ThetaIntegrator
+from soft_twin_core.engine.joint_kinds import FREE, SOFT, SPHERICAL
+from soft_twin_core.engine.kernels.data import empty_loads
+from soft_twin_core.engine.multibody import ModelBuilder, spatial_inertia
+from soft_twin_core.engine.workspace import Workspace
+from soft_twin_core.reference import joints as jnt
+from soft_twin_core.reference import multibody as reference
 
 from test_multibody import _placement, _section, gripper, pan_tilt_arm
 

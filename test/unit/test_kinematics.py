@@ -3,9 +3,11 @@
 import numpy as np
 import pytest
 
-from soft_twin_core import ik, kinematics as kin, lie
-from soft_twin_core.model import (ModelError, State, benchmark_cantilever_dict, load_model,
-                                  model_from_dict)
+from soft_twin_core import lie
+from soft_twin_core.planning import ik
+from soft_twin_core.reference import kinematics as kin
+from soft_twin_core.robot.model import (ModelError, State, benchmark_cantilever_dict, load_model,
+                                        model_from_dict)
 from rod_statics import solve_statics
 
 RNG = np.random.default_rng(7)
@@ -198,8 +200,8 @@ def test_config_files_load():
     here = os.path.dirname(__file__)
     files = glob.glob(os.path.join(here, "..", "..", "config", "robots", "*.yaml"))
     assert files, "config/robots/*.yaml should exist"
-    from soft_twin_core.mechanism import is_tree_file, load_mechanism
-    from soft_twin_core.model import read_yaml_file
+    from soft_twin_core.robot.mechanism import is_tree_file, load_mechanism
+    from soft_twin_core.robot.model import read_yaml_file
     classic = 0
     for f in files:
         if is_tree_file(read_yaml_file(f)):          # articulated robots: test_constrained.py
@@ -212,7 +214,7 @@ def test_config_files_load():
 
 
 def test_cross_sections():
-    from soft_twin_core.model import CrossSection
+    from soft_twin_core.robot.model import CrossSection
     c = CrossSection.solid_circle(0.01)
     assert np.isclose(c.J, np.pi * 0.01**4 / 2)
     t = CrossSection.hollow_tube(0.01, 0.0)
@@ -292,9 +294,9 @@ def test_actuation_ik_recovers_tensions_of_a_reachable_target():
     """The actuation IK (the planner's sample solve, planner.TipSolver):
     tensions whose equilibrium reaches a reachable target, checked by an
     independent statics solve; an unreachable target flagged, no exception."""
-    from soft_twin_core import planner as pl
-    from soft_twin_core.mechanism import from_robot_model
-    from soft_twin_core.model import load_model
+    from soft_twin_core.planning import planner as pl
+    from soft_twin_core.robot.mechanism import from_robot_model
+    from soft_twin_core.robot.model import load_model
     m = load_model("tendon_arm")
     solver = pl.TipSolver(from_robot_model(m), pl.PlanOptions(tolerance=1e-9))
     u_true = np.array([1.5, 0.0, 0.0, 0.8])

@@ -234,7 +234,7 @@ def test_compiled_T_dot_along_a_pcs_point_is_the_derivative_of_T(angle):
     """kernels.spatial._T_dot_along(x, X, Y) = d/dt T_se3(X(t)) Y at
     Xdot = x Y (a PCS point: X = x f, Xdot = x fdot, Y = fdot): against a
     central difference of lie.T_se3 and the general compiled _T_dot_into."""
-    from soft_twin_core.kernels import spatial as sp
+    from soft_twin_core.engine.kernels import spatial as sp
     rng = np.random.default_rng(3)
     x = 0.07
     f = rng.standard_normal(6)

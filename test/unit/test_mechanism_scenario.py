@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from soft_twin_core.cli import main
-from soft_twin_core.model import find_file
+from soft_twin_core.robot.model import find_file
 from rod_statics import solve_statics
 
 
@@ -164,12 +164,12 @@ def test_member_samples_in_json_and_csv_alike(tmp_path):
 # ------------------------------------------------------------------ one schema for every robot (issue 26)
 
 def _scenario(d):
-    from soft_twin_core.scenario import scenario_from_dict
+    from soft_twin_core.files.scenario import scenario_from_dict
     return scenario_from_dict(d, ".")
 
 
 def test_a_tree_robot_takes_loads_on_members_load_steps_and_initial_strains():
-    from soft_twin_core.scenario import run_dynamics, run_statics
+    from soft_twin_core.files.scenario import run_dynamics, run_statics
     w = [0.0, 0.05, -0.1]
     base = {"robot": "soft_gripper", "actuation": {"close_1": 1.0}, "gravity": False}
     on_member = run_statics(_scenario({**base, "loads": [{"member": "finger_1", "s": "tip", "force": w}]}))
@@ -193,7 +193,7 @@ def test_a_tree_robot_takes_loads_on_members_load_steps_and_initial_strains():
 
 
 def test_a_rod_takes_a_load_on_its_tip_frame_as_on_its_tip():
-    from soft_twin_core.scenario import run_statics
+    from soft_twin_core.files.scenario import run_statics
     base = {"robot": "tendon_arm", "actuation": {"tendon_y_pos": 1.0}}
     a = run_statics(_scenario({**base, "loads": [{"s": "tip", "force": [0.1, 0, -0.2]}]}))
     b = run_statics(_scenario({**base, "loads": [{"frame": "tip", "force": [0.1, 0, -0.2]}]}))
@@ -211,7 +211,7 @@ def test_a_rod_takes_a_load_on_its_tip_frame_as_on_its_tip():
     ({"member": "finger_0", "force": [0, 0, 1]}, "scenario.loads[0].s: missing"),
 ])
 def test_load_errors_name_the_field(load, text):
-    from soft_twin_core.scenario import ScenarioError
+    from soft_twin_core.files.scenario import ScenarioError
     with pytest.raises(ScenarioError) as e:
         _scenario({"robot": "soft_gripper", "loads": [load]})
     assert text in str(e.value)
@@ -221,8 +221,8 @@ def test_one_statics_runner_for_every_robot():
     """A rod's statics through the one runner equals the rod's own statics
     (tip, strains, support reaction); a tree robot's result has the same
     fields, its support reaction carries the robot's weight (gravity only)."""
-    from soft_twin_core.loads import Loads, PointLoad
-    from soft_twin_core.scenario import run_statics
+    from soft_twin_core.engine.loads import Loads, PointLoad
+    from soft_twin_core.files.scenario import run_statics
     sc = _scenario({"robot": "tendon_arm", "actuation": {"tendon_y_pos": 2.0},
                     "loads": [{"s": 0.3, "force": [0, 0.1, -0.1]}]})
     r = run_statics(sc, 4)

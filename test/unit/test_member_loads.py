@@ -6,10 +6,10 @@ takes the first; bad loads are refused naming the field."""
 import numpy as np
 import pytest
 
-from soft_twin_core.constrained import FrameLoad, make_inputs, solve_equilibrium
-from soft_twin_core.loads import DistributedLoad, Loads, PointLoad
-from soft_twin_core.mechanism import load_mechanism
-from soft_twin_core.outputs import state_outputs
+from soft_twin_core.engine.loads import DistributedLoad, Loads, PointLoad
+from soft_twin_core.robot.mechanism import load_mechanism
+from soft_twin_core.solve.constrained import FrameLoad, make_inputs, solve_equilibrium
+from soft_twin_core.solve.outputs import state_outputs
 
 
 @pytest.fixture(scope="module")
@@ -37,8 +37,8 @@ def test_the_support_balances_a_distributed_load_on_the_deformed_rod():
     uniform world force w over [a, b] (its moment about the base: the
     integral of p(s) x w over the deformed span, by a 4001-point rule on the
     backbone's exact kinematics)."""
-    from soft_twin_core import kinematics as kin
-    from soft_twin_core.model import load_model
+    from soft_twin_core.reference import kinematics as kin
+    from soft_twin_core.robot.model import load_model
     model = load_model("tendon_arm")
     mech = load_mechanism("tendon_arm")
     a, b, w = 0.05, 0.15, np.array([0.0, 2.0, -1.0])

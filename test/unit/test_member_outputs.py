@@ -7,13 +7,13 @@ gives the section boundaries."""
 import numpy as np
 import pytest
 
-from soft_twin_core import kinematics as kin
-from soft_twin_core.constrained import make_inputs
-from soft_twin_core.loads import DistributedLoad, Loads, PointLoad
-from soft_twin_core.mechanism import load_mechanism
-from soft_twin_core.model import load_model
-from soft_twin_core.outputs import cut_wrenches, run_passes, state_outputs
-from soft_twin_core.workspace import Workspace
+from soft_twin_core.engine.loads import DistributedLoad, Loads, PointLoad
+from soft_twin_core.engine.workspace import Workspace
+from soft_twin_core.reference import kinematics as kin
+from soft_twin_core.robot.mechanism import load_mechanism
+from soft_twin_core.robot.model import load_model
+from soft_twin_core.solve.constrained import make_inputs
+from soft_twin_core.solve.outputs import cut_wrenches, run_passes, state_outputs
 
 U = np.array([1.5, 0.0, 0.7, 0.0])         # N, tendons of the tendon arm
 LOADS = Loads(point=(PointLoad(0.4, (0.05, -0.1, 0.2, 0.0, 0.01, 0.0), "world"),),
@@ -32,7 +32,7 @@ def _state(model, seed):
 
 
 def test_rod_samples_in_statics_equal_the_rods_own_functions(rod):
-    from soft_twin_core.statics import internal_wrenches
+    from soft_twin_core.reference.statics import internal_wrenches
     model, mech = rod
     q, _, _ = _state(model, 1)
     inp = make_inputs(mech, U, loads=LOADS)
@@ -46,7 +46,7 @@ def test_rod_samples_in_statics_equal_the_rods_own_functions(rod):
 
 
 def test_rod_samples_in_motion_equal_the_rods_own_functions(rod):
-    from soft_twin_core.dynamics import internal_wrenches_dynamic
+    from soft_twin_core.reference.dynamics import internal_wrenches_dynamic
     model, mech = rod
     q, v, a = _state(model, 2)
     inp = make_inputs(mech, U, loads=LOADS)
@@ -60,7 +60,7 @@ def test_rod_samples_in_motion_equal_the_rods_own_functions(rod):
 
 
 def test_one_sample_per_section_gives_the_boundaries_and_the_cut_is_continuous():
-    from soft_twin_core.constrained import solve_equilibrium
+    from soft_twin_core.solve.constrained import solve_equilibrium
     mech = load_mechanism("soft_gripper")
     eq = solve_equilibrium(mech, actuation={"close_0": 2.0}, positions={"wrist": 0.3},
                            loads=Loads(distributed=(DistributedLoad((0.4, 0.0, 0.0, 0, 0, 0), "world", 0.01, 0.05,
@@ -71,7 +71,7 @@ def test_one_sample_per_section_gives_the_boundaries_and_the_cut_is_continuous()
         assert len(m1.s) == len(m3.s[::3]) and np.allclose(m1.internal_wrench, m3.internal_wrench[::3], atol=1e-12)
         assert np.allclose(m1.poses, m3.poses[::3], atol=1e-15)
     # the cut at a section's end is the cut at the next section's start (no offset between them)
-    from soft_twin_core.constrained import concat_loads, constraint_loads
+    from soft_twin_core.solve.constrained import concat_loads, constraint_loads
     ws = Workspace(mech.tree)
     loads = concat_loads(eq.inputs.loads, constraint_loads(mech, eq.lam))
     run_passes(mech, ws, eq.q, None, None, loads, eq.inputs.gravity)
@@ -90,9 +90,9 @@ def test_the_largest_stress_counts_both_cross_sections_at_a_section_start():
     joint: there the thin cross-section's stress counts, though the sample
     belongs to the thick section; without that cut the largest is elsewhere."""
     import math
-    from soft_twin_core.mechanism import from_robot_model
-    from soft_twin_core.model import model_from_dict
-    from soft_twin_core.outputs import max_von_mises
+    from soft_twin_core.robot.mechanism import from_robot_model
+    from soft_twin_core.robot.model import model_from_dict
+    from soft_twin_core.solve.outputs import max_von_mises
     seg = lambda r: {"length": 0.1, "sections": 2, "cross_section": {"shape": "solid_circle", "radius": r},  # noqa
                      "material": {"youngs_modulus": 1e6, "density": 1000}, "free_modes": "bending_torsion"}
     d = {"gravity": [0, 0, 0], "segments": [seg(0.005), seg(0.010)]}

@@ -6,12 +6,12 @@ import os
 import numpy as np
 import pytest
 
-from soft_twin_core import kinematics as kin
-from soft_twin_core import loads as ld
-from soft_twin_core import statics as st
-from soft_twin_core import dynamics as dy
-from soft_twin_core.constrained import MechanismSimulator
-from soft_twin_core.model import load_model
+from soft_twin_core.engine import loads as ld
+from soft_twin_core.reference import dynamics as dy
+from soft_twin_core.reference import kinematics as kin
+from soft_twin_core.reference import statics as st
+from soft_twin_core.robot.model import load_model
+from soft_twin_core.solve.constrained import MechanismSimulator
 from rod_statics import mechanism, solve_statics
 
 ROBOTS = os.path.join(os.path.dirname(os.path.abspath(__file__)), "..", "..", "config", "robots")

@@ -5,7 +5,7 @@ import math
 
 import pytest
 
-from soft_twin_core.model import ModelError, model_from_dict, benchmark_cantilever_dict
+from soft_twin_core.robot.model import ModelError, model_from_dict, benchmark_cantilever_dict
 
 
 def _robot(**act):

@@ -1,5 +1,5 @@
 """The multibody engine on hybrid soft-rigid trees: the compiled recursive
-passes against the explicit-Jacobian reference (soft_twin_core.reference),
+passes against the explicit-Jacobian reference (soft_twin_core.reference.multibody),
 the old chain dynamics, the Newton-Euler balance and passivity. Rigid-only
 trees are checked against Pinocchio in test_multibody_pinocchio.py."""
 
@@ -8,14 +8,15 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from soft_twin_core import algorithms as alg
-from soft_twin_core import dynamics as dy
-from soft_twin_core import joints as jnt
-from soft_twin_core import lie, reference
-from soft_twin_core.loads import Loads
-from soft_twin_core.model import load_model, model_from_dict, section_matrices, CrossSection, Material
-from soft_twin_core.multibody import ModelBuilder, SoftSection, from_robot_model, spatial_inertia
-from soft_twin_core.workspace import Workspace
+from soft_twin_core import lie
+from soft_twin_core.engine import algorithms as alg
+from soft_twin_core.engine.loads import Loads
+from soft_twin_core.engine.multibody import ModelBuilder, SoftSection, from_robot_model, spatial_inertia
+from soft_twin_core.engine.workspace import Workspace
+from soft_twin_core.reference import dynamics as dy
+from soft_twin_core.reference import joints as jnt
+from soft_twin_core.reference import multibody as reference
+from soft_twin_core.robot.model import load_model, model_from_dict, section_matrices, CrossSection, Material
 
 TOL = 1e-10
 TENDON_ARM = str(Path(__file__).resolve().parents[2] / "config" / "robots" / "tendon_arm.yaml")
@@ -189,7 +190,7 @@ def test_passivity_mdot_minus_2c(name):
 
 def test_soft_chain_equals_the_chain_dynamics():
     """The default robot as a tree: M and the forces equal the (tested) chain
-    dynamics of soft_twin_core.dynamics."""
+    dynamics of soft_twin_core.reference.dynamics."""
     robot = load_model(TENDON_ARM)
     model = from_robot_model(robot)
     ws = Workspace(model)
@@ -254,10 +255,10 @@ def test_rnea_derivatives_hybrid(name):
 
 
 def _static_residual_and_tangent(model, ld, act, coef):
-    from soft_twin_core.forces import actuation_tangent_pass
-    from soft_twin_core.integrators import residual_pass
-    from soft_twin_core.kernels import passes
-    from soft_twin_core.kernels.tangent import static_tangent_pass
+    from soft_twin_core.engine.forces import actuation_tangent_pass
+    from soft_twin_core.engine.integrators import residual_pass
+    from soft_twin_core.engine.kernels import passes
+    from soft_twin_core.engine.kernels.tangent import static_tangent_pass
     ws = Workspace(model)
     z = np.zeros(model.nv)
     g = model.gravity.copy()
@@ -286,7 +287,7 @@ def test_static_tangent_is_the_derivative_of_the_static_residual(name):
     differences of the static residual, with dead and follower loads inside
     a section and at output frames (rigid and soft), gravity; and on the
     tendon arm with tendons pulling."""
-    from soft_twin_core.forces import actuator_arrays
+    from soft_twin_core.engine.forces import actuator_arrays
     model = HYBRID[name]()
     js = model.soft_joints[-1]
     L = model.joints[js].section.length
@@ -301,7 +302,7 @@ def test_static_tangent_is_the_derivative_of_the_static_residual(name):
 
 
 def test_static_tangent_with_tendons():
-    from soft_twin_core.forces import actuator_arrays
+    from soft_twin_core.engine.forces import actuator_arrays
     robot = load_model(TENDON_ARM)
     model = from_robot_model(robot)
     act = actuator_arrays(model)

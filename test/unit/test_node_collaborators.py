@@ -39,7 +39,7 @@ def test_catch_up_drops_the_backlog_beyond_the_bound():
 
 @pytest.fixture(scope="module")
 def model():
-    from soft_twin_core.model import load_model
+    from soft_twin_core.robot.model import load_model
     return load_model("tendon_arm")
 
 
@@ -64,7 +64,7 @@ def test_fold_commands_applies_the_valid_in_order_and_returns_the_errors(model):
 def test_fold_joint_commands_on_a_tree_robot():
     from sensor_msgs.msg import JointState
     from soft_twin import inputs
-    from soft_twin_core.mechanism import load_mechanism
+    from soft_twin_core.robot.mechanism import load_mechanism
     mech = load_mechanism("pan_tilt_arm")
     good = JointState(name=["pan"], position=[0.2])
     bad = JointState(name=["elbow_that_is_not"], position=[0.1])
@@ -121,8 +121,8 @@ def test_markers_of_a_rod_and_fewer_samples_delete_the_rest(model):
     from std_msgs.msg import Header
     from visualization_msgs.msg import Marker
     from soft_twin import markers
+    from soft_twin_core.robot.mechanism import from_robot_model
     from soft_twin_core.twin import Twin
-    from soft_twin_core.mechanism import from_robot_model
     from soft_twin_core.twin import TwinSettings
     mech = from_robot_model(model)
     robot = SimpleNamespace(mech=mech)

@@ -13,14 +13,15 @@ from soft_twin_core import twin as tw
 from soft_twin_core import commands as cmd
 from soft_twin.config import (PARAMETERS, ConfigError, config_from_values, load_robot,
                               resolve_robot_file, validate)
-from soft_twin_core import constrained as cs
-from soft_twin_core import dynamics as dy
-from soft_twin_core import kinematics as kin
-from soft_twin_core import loads as ld
-from soft_twin_core import statics as st
-from soft_twin_core.constrained import MechanismSimulator
+from soft_twin_core.engine import loads as ld
 from soft_twin_core.errors import StaticsError
-from soft_twin_core.model import load_model
+from soft_twin_core.reference import dynamics as dy
+from soft_twin_core.reference import kinematics as kin
+from soft_twin_core.reference import loads as rl
+from soft_twin_core.reference import statics as st
+from soft_twin_core.robot.model import load_model
+from soft_twin_core.solve import constrained as cs
+from soft_twin_core.solve.constrained import MechanismSimulator
 from rod_statics import mechanism, solve_statics
 
 ROOT = Path(__file__).resolve().parents[2]
@@ -122,8 +123,8 @@ def _settings(mode, **kw):
 
 
 def _twin(model, settings, d=None):
+    from soft_twin_core.robot.mechanism import from_robot_model
     from soft_twin_core.twin import Twin
-    from soft_twin_core.mechanism import from_robot_model
     return Twin(from_robot_model(model, d), settings)
 
 
@@ -169,12 +170,12 @@ def test_base_wrench_moment_is_about_the_frame_origin(model):
     import yaml
     d = yaml.safe_load(ROBOT.read_text())
     d["base"] = {"position": [0.1, -0.2, 0.3], "rpy": [0.0, 0.0, 0.5]}
-    from soft_twin_core.model import model_from_dict
+    from soft_twin_core.robot.model import model_from_dict
     m = model_from_dict(d)
     base_w = _twin(m, _settings("quasi_static"), d).outputs().base_wrench
     ref = solve_statics(m)
     # balance about the origin: the reaction cancels gravity's force and its moment about the origin
-    sq, wq, sec = ld.gauss_points(m)
+    sq, wq, sec = rl.gauss_points(m)
     weight = np.array([m.sections[i].M[0, 0] for i in sec])[:, None] * wq[:, None] * m.gravity
     p = kin.poses(m, ref.q, sq)[:, :3, 3]
     np.testing.assert_allclose(base_w[:3], -weight.sum(axis=0), atol=1e-10)
@@ -278,7 +279,7 @@ def test_huge_inputs_fail_within_a_step_period_and_are_dropped(kind, magnitude):
     fallback), the state is kept, the input is dropped and the next step
     runs on. The cost is the least of five tries (CPU noise on a shared
     machine only adds)."""
-    from soft_twin_core.model import model_from_dict
+    from soft_twin_core.robot.model import model_from_dict
     d = _unlimited()
     model = model_from_dict(d)
     twin = _twin(model, _settings("dynamic", dt=0.005), d)
@@ -305,7 +306,7 @@ def test_huge_inputs_fail_within_a_step_period_and_are_dropped(kind, magnitude):
 # ------------------------------------------------------------------ limits at the door
 
 def test_actuator_limits_from_the_robot_file():
-    from soft_twin_core.model import model_from_dict
+    from soft_twin_core.robot.model import model_from_dict
     d = _unlimited()
     d["actuators"][0]["limit"] = 40.0
     model = model_from_dict(d)
@@ -321,7 +322,7 @@ def test_actuator_limits_from_the_robot_file():
 
 def test_chamber_limits_bound_the_pressure_magnitude():
     import yaml
-    from soft_twin_core.model import model_from_dict
+    from soft_twin_core.robot.model import model_from_dict
     d = yaml.safe_load((ROBOT.parent / "pneumatic_arm.yaml").read_text())
     d["actuators"][0]["limit"] = 1.0e5
     d["actuators"][0].pop("min", None)      # the shipped chambers are positive-only; this one takes suction
@@ -544,11 +545,11 @@ def test_forward_kinematics_of_an_articulated_twin():
     back its tip pose (joints where they are); the current state; the
     equilibrium under an actuation equals the core's; bad strains are
     named; the twin is untouched."""
+    from soft_twin_core.robot.mechanism import load_mechanism
+    from soft_twin_core.robot.model import ModelError, find_file
+    from soft_twin_core.solve.constrained import solve_equilibrium
+    from soft_twin_core.solve.outputs import q_from_section_strains, section_strains, state_outputs
     from soft_twin_core.twin import Twin
-    from soft_twin_core.constrained import solve_equilibrium
-    from soft_twin_core.mechanism import load_mechanism
-    from soft_twin_core.model import ModelError, find_file
-    from soft_twin_core.outputs import q_from_section_strains, section_strains, state_outputs
     mech = load_mechanism(find_file("pan_tilt_arm", "robots"))
     twin = Twin(mech, tw.TwinSettings(mode="quasi_static"))
     twin.set_joint_commands({"pan": 0.3, "tilt": -0.2}, {})
@@ -580,10 +581,10 @@ def test_a_tree_twin_checks_its_inputs_at_the_door_only():
     the twin assembles the core's Inputs without checking again, on every
     step and publish (make_inputs ran on each before). The assembled Inputs
     equal make_inputs' for the same valid commands."""
+    from soft_twin_core.robot.mechanism import load_mechanism
+    from soft_twin_core.robot.model import find_file
+    from soft_twin_core.solve import constrained as cs
     from soft_twin_core.twin import Twin
-    from soft_twin_core import constrained as cs
-    from soft_twin_core.mechanism import load_mechanism
-    from soft_twin_core.model import find_file
     mech = load_mechanism(find_file("pan_tilt_arm", "robots"))
     pl = [cs.FrameLoad("tool", np.array([0.1, 0.0, -0.2, 0.0, 0.01, 0.0]), "world")]
     a = cs.assemble_inputs(mech, np.array([1.0, 0, 0.5, 0]), {}, {"pan": 0.2}, {"pan": 0.1}, pl)
@@ -617,10 +618,10 @@ def test_a_tree_twin_drops_failed_inputs_as_the_rod_twin_does():
     fails is dropped; inputs that stepped well and then fail give way to
     the inputs before them, once; with nothing left to drop, new inputs are
     kept and tried at every step."""
+    from soft_twin_core.robot.mechanism import load_mechanism
+    from soft_twin_core.robot.model import find_file
+    from soft_twin_core.solve import constrained as cs
     from soft_twin_core.twin import Twin
-    from soft_twin_core import constrained as cs
-    from soft_twin_core.mechanism import load_mechanism
-    from soft_twin_core.model import find_file
     twin = Twin(load_mechanism(find_file("pan_tilt_arm", "robots")), _settings("dynamic"))
     twin.set_actuation(np.array([0.1, 0, 0, 0]), stamp="a")
     assert twin.step(2).converged
@@ -650,11 +651,11 @@ def test_a_tree_twin_drops_failed_inputs_as_the_rod_twin_does():
 def test_forward_kinematics_of_a_closed_chain_says_whether_the_strains_close_it():
     """A closed chain (the planar parallel robot): the strains of one of its
     equilibria close it; other strains leave a gap, named in metres."""
+    from soft_twin_core.robot.mechanism import load_mechanism
+    from soft_twin_core.robot.model import find_file
+    from soft_twin_core.solve.constrained import solve_equilibrium
+    from soft_twin_core.solve.outputs import section_strains
     from soft_twin_core.twin import Twin
-    from soft_twin_core.constrained import solve_equilibrium
-    from soft_twin_core.mechanism import load_mechanism
-    from soft_twin_core.model import find_file
-    from soft_twin_core.outputs import section_strains
     mech = load_mechanism(find_file("planar_parallel_robot", "robots"))
     twin = Twin(mech, tw.TwinSettings(mode="quasi_static"))
     twin.step()

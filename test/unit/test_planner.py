@@ -1,4 +1,4 @@
-"""Planner (soft_twin_core.planner, soft_twin_core.paths) on classic rods
+"""Planner (soft_twin_core.planning.planner, soft_twin_core.planning.paths) on classic rods
 (one-member mechanisms; the pan-tilt arm's: test_articulated_planner.py): exact
 sensitivities against finite differences of full statics solves, the
 slides' constant-curvature arm against its closed form, the default robot's
@@ -13,15 +13,15 @@ import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as hst
 
-from soft_twin_core import kinematics as kin
-from soft_twin_core import paths
-from soft_twin_core import planner as pl
+from soft_twin_core.engine.forces import actuation_matrix, actuator_arrays
+from soft_twin_core.engine.workspace import Workspace
 from soft_twin_core.errors import StaticsError
-from soft_twin_core.forces import actuation_matrix, actuator_arrays
-from soft_twin_core.loads import actuation_force
-from soft_twin_core.mechanism import from_robot_model, load_mechanism
-from soft_twin_core.model import load_model, model_from_dict
-from soft_twin_core.workspace import Workspace
+from soft_twin_core.planning import paths
+from soft_twin_core.planning import planner as pl
+from soft_twin_core.reference import kinematics as kin
+from soft_twin_core.reference.loads import actuation_force
+from soft_twin_core.robot.mechanism import from_robot_model, load_mechanism
+from soft_twin_core.robot.model import load_model, model_from_dict
 from rod_statics import solve_statics
 
 EI, D_OFFSET, L = 1.0, 0.02, 1.0
@@ -339,7 +339,7 @@ def test_tip_error_kernels_match_their_definitions(arm):
     pi); de/du against central differences of e along dq/du of the
     equilibrium (the tip pose of q + h dq/du dv)."""
     from soft_twin_core import lie
-    from soft_twin_core.kernels.tip_error import error_jacobian, tip_error
+    from soft_twin_core.engine.kernels.tip_error import error_jacobian, tip_error
     rng = np.random.default_rng(2)
     sw, swo = np.array([1.0, 0.5, 2.0]), 0.3
     for k in range(300):

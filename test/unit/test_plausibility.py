@@ -15,8 +15,8 @@ import pytest
 import yaml
 
 from soft_twin_core.limits import PlausibilityWarning
-from soft_twin_core.mechanism import mechanism_from_dict
-from soft_twin_core.model import ModelError, example_files, model_from_dict
+from soft_twin_core.robot.mechanism import mechanism_from_dict
+from soft_twin_core.robot.model import ModelError, example_files, model_from_dict
 
 HERE = os.path.dirname(os.path.abspath(__file__))
 ROOT = os.path.dirname(os.path.dirname(HERE))
@@ -36,8 +36,8 @@ def _caught(fn, *args):
 
 
 def test_every_shipped_robot_and_scenario_is_warning_free():
-    from soft_twin_core.mechanism import load_mechanism
-    from soft_twin_core.scenario import load_scenario
+    from soft_twin_core.files.scenario import load_scenario
+    from soft_twin_core.robot.mechanism import load_mechanism
     robots, scenarios = example_files("robots"), example_files("scenarios")
     assert len(robots) >= 10 and len(scenarios) >= 9
     for name, path in robots.items():

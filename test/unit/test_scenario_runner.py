@@ -13,10 +13,13 @@ from decimal import Decimal
 import numpy as np
 import pytest
 
-from soft_twin_core import cli, constrained, mechanism_scenario as runner, model as model_mod, scenario as scenario_mod
-from soft_twin_core import dynamics as dy
-from soft_twin_core.model import ModelError, model_from_dict, benchmark_cantilever_dict
-from soft_twin_core.scenario import ScenarioError, load_scenario, run_dynamics, scenario_from_dict
+from soft_twin_core import cli
+from soft_twin_core.files import runs as runner, scenario as scenario_mod
+from soft_twin_core.files.scenario import ScenarioError, load_scenario, run_dynamics, scenario_from_dict
+from soft_twin_core.reference import dynamics as dy
+from soft_twin_core.robot import model as model_mod
+from soft_twin_core.robot.model import ModelError, model_from_dict, benchmark_cantilever_dict
+from soft_twin_core.solve import constrained
 
 HERE = os.path.dirname(os.path.abspath(__file__))
 CONFIG = os.path.join(HERE, "..", "..", "config")

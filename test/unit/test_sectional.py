@@ -7,7 +7,7 @@ import os
 import numpy as np
 import pytest
 
-from soft_twin_core.model import ModelError, load_model, model_from_dict
+from soft_twin_core.robot.model import ModelError, load_model, model_from_dict
 
 ROOT = os.path.join(os.path.dirname(__file__), "..", "..")
 ROBOT = os.path.join(ROOT, "config", "robots", "simo_frame.yaml")
@@ -195,7 +195,7 @@ def test_simo_frame_robot_loads():
         assert np.array_equal(np.diag(s.K), [1e6, 1e6, 1e6, 1e3, 1e3, 1e3])
         assert np.array_equal(np.diag(s.M), [1.0, 1.0, 1.0, 20.0, 10.0, 10.0])
         assert np.array_equal(s.D, np.zeros((6, 6)))
-    from soft_twin_core import kinematics as kin
+    from soft_twin_core.reference import kinematics as kin
     tip = kin.tip_pose(m, m.q0)
     assert np.allclose(tip[:3, 3], [10.0, 10.0, 0.0], atol=1e-12)     # right angle in the x-y plane
     assert np.allclose(tip[:3, 0], [0.0, 1.0, 0.0], atol=1e-12)       # second member along +y
@@ -204,7 +204,7 @@ def test_simo_frame_robot_loads():
 
 
 def test_simo_frame_scenario_profile_and_short_run():
-    from soft_twin_core.scenario import load_scenario, run_dynamics
+    from soft_twin_core.files.scenario import load_scenario, run_dynamics
     sc = load_scenario(SCENARIO)
     assert sc.gravity is False and sc.model.n_dof == 60
     assert len(sc.loads) == 1

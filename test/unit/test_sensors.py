@@ -1,4 +1,4 @@
-"""Measurement models (soft_twin_core.sensors) on a classic rod (a
+"""Measurement models (soft_twin_core.estimation.sensors) on a classic rod (a
 one-member mechanism): predictions against the numpy kinematics
 reference, analytic Jacobians against central finite differences, the
 actuation matrix against the reference residual, input checks and files.
@@ -9,15 +9,15 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from soft_twin_core import kinematics as kin
 from soft_twin_core import lie
-from soft_twin_core import sensors as sn
-from soft_twin_core import statics as st
-from soft_twin_core.forces import actuation_matrix, actuator_arrays
-from soft_twin_core.loads import Loads
-from soft_twin_core.mechanism import from_robot_model
-from soft_twin_core.model import load_model, model_from_dict, benchmark_cantilever_dict
-from soft_twin_core.workspace import Workspace
+from soft_twin_core.engine.forces import actuation_matrix, actuator_arrays
+from soft_twin_core.engine.loads import Loads
+from soft_twin_core.engine.workspace import Workspace
+from soft_twin_core.estimation import sensors as sn
+from soft_twin_core.reference import kinematics as kin
+from soft_twin_core.reference import statics as st
+from soft_twin_core.robot.mechanism import from_robot_model
+from soft_twin_core.robot.model import load_model, model_from_dict, benchmark_cantilever_dict
 
 
 @pytest.fixture(scope="module")

@@ -3,11 +3,12 @@
 import numpy as np
 import pytest
 
-from soft_twin_core import kinematics as kin
-from soft_twin_core import loads as ld
-from soft_twin_core import equilibrium as eq
-from soft_twin_core import statics as st
-from soft_twin_core.model import benchmark_cantilever_dict, model_from_dict
+from soft_twin_core.engine import loads as ld
+from soft_twin_core.reference import kinematics as kin
+from soft_twin_core.reference import loads as rl
+from soft_twin_core.reference import statics as st
+from soft_twin_core.robot.model import benchmark_cantilever_dict, model_from_dict
+from soft_twin_core.solve import equilibrium as eq
 from rod_statics import problem, solve_statics
 
 NO_GRAVITY = dict(gravity=False)
@@ -95,7 +96,7 @@ def test_point_moment_tendon_model_matches_distributed_in_plane(end):
     assert np.abs(ra.q - rb.q).max() < 1e-10 * np.abs(ra.q).max()
     q = ra.q + 0.1
     for u in ([0.4, 0.0], [0.0, 0.4]):
-        ref = ld.actuation_force(m, kin.chain(m, q), np.array(u))
+        ref = rl.actuation_force(m, kin.chain(m, q), np.array(u))
         assert np.abs(problem(m, np.array(u), ld.Loads(gravity=False)).residual(q)
                       - st.residual(m, q, np.array(u), ld.Loads(gravity=False))).max() < 1e-12 * np.abs(ref).max()
 
@@ -124,9 +125,9 @@ def test_tendon_force_is_minus_tension_times_length_gradient():
     for i, a in enumerate(m.actuators):
         u = np.zeros(4)
         u[i] = 1.0
-        tau = ld.actuation_force(m, kin.chain(m, q), u)
+        tau = rl.actuation_force(m, kin.chain(m, q), u)
         h = 1e-6
-        grad = np.array([(ld.tendon_lengths(m, q + h * e)[i] - ld.tendon_lengths(m, q - h * e)[i]) / (2 * h)
+        grad = np.array([(rl.tendon_lengths(m, q + h * e)[i] - rl.tendon_lengths(m, q - h * e)[i]) / (2 * h)
                          for e in np.eye(m.n_dof)])
         assert np.abs(tau + a.force_per_unit_input * grad).max() < 1e-8, a.name
 
@@ -228,7 +229,7 @@ def test_bad_inputs_named():
 
 
 def test_actuation_for_shape_recovers_tensions():
-    from soft_twin_core.model import load_model
+    from soft_twin_core.robot.model import load_model
     import os
     m = load_model(os.path.join(os.path.dirname(__file__), "..", "..", "config", "robots", "tendon_arm.yaml"))
     u_true = {"tendon_y_pos": 2.0, "tendon_z_neg": 1.0}
@@ -340,7 +341,7 @@ def test_compiled_newton_takes_the_reference_iterates():
     equilibria (to round-off), convergence flag and last tangent (the hint
     object, a fresh one, or none), from cold and hinted starts, on the
     default tendon arm and the benchmark cantilever with all modes free."""
-    from soft_twin_core.model import load_model
+    from soft_twin_core.robot.model import load_model
     arm = load_model("tendon_arm")
     bench = model_from_dict(benchmark_cantilever_dict(10, "all"))
     rng = np.random.default_rng(7)

@@ -1,4 +1,4 @@
-"""Calibration of a tree robot (soft_twin_core.calibration on the
+"""Calibration of a tree robot (soft_twin_core.estimation.calibration on the
 mechanism): the pan-tilt arm, whose recording carries the joint commands
 (pan, tilt) beside the tendon tensions. Analytic sensitivities (segment
 moduli, tendon offset, payload at the tool, sensor offset) against finite
@@ -13,12 +13,12 @@ import json
 import numpy as np
 import pytest
 
-from soft_twin_core import calibration as cal
-from soft_twin_core import sensors as sn
 from soft_twin_core.cli import main as cli_main
-from soft_twin_core.constrained import FrameLoad
-from soft_twin_core.mechanism import mechanism_from_dict
-from soft_twin_core.model import find_file, read_yaml_file
+from soft_twin_core.estimation import calibration as cal
+from soft_twin_core.estimation import sensors as sn
+from soft_twin_core.robot.mechanism import mechanism_from_dict
+from soft_twin_core.robot.model import find_file, read_yaml_file
+from soft_twin_core.solve.constrained import FrameLoad
 from test_calibration import assert_sensitivities, damping_cli
 
 TRUE_SCALE = {"proximal": 1.3, "distal": 0.8}

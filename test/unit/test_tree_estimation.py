@@ -1,4 +1,4 @@
-"""Estimation of a soft articulated robot (soft_twin_core.estimation,
+"""Estimation of a soft articulated robot (soft_twin_core.estimation.ekf,
 sensors): the pan-tilt arm. Synthetic data from a DIFFERENT model:
 the same robot with its member discretised 3 times finer (12 sections
 against the filter's 4), its soft member 20 % stiffer, simulated by the
@@ -16,12 +16,12 @@ import pytest
 from scipy.stats import chi2
 
 from soft_twin_core import lie
-from soft_twin_core import estimation as es
-from soft_twin_core import sensors as ts
-from soft_twin_core.constrained import MechanismSimulator, solve_equilibrium
-from soft_twin_core.mechanism import mechanism_from_dict
-from soft_twin_core.model import find_file, read_yaml_file
-from soft_twin_core.workspace import Workspace
+from soft_twin_core.engine.workspace import Workspace
+from soft_twin_core.estimation import ekf as es
+from soft_twin_core.estimation import sensors as ts
+from soft_twin_core.robot.mechanism import mechanism_from_dict
+from soft_twin_core.robot.model import find_file, read_yaml_file
+from soft_twin_core.solve.constrained import MechanismSimulator, solve_equilibrium
 from test_estimation import assert_linearisation_at_rest
 
 ARM_LENGTH = 0.30                       # m, the soft member
@@ -65,7 +65,7 @@ def simulate_truth():
     sim = MechanismSimulator(mech, SIM_DT, theta=0.5, q=q0)
     ws = Workspace(mech.tree)
     tool = mech.frame("tool")
-    from soft_twin_core import algorithms as alg
+    from soft_twin_core.engine import algorithms as alg
     times, reads, tips = [], {s.name: [] for s in sens}, []
     per = int(round(DT / SIM_DT))
     for k in range(int(round(DURATION / DT))):
@@ -94,7 +94,7 @@ def test_measurement_jacobians_match_finite_differences():
     rng = np.random.default_rng(3)
     q = tree.q0 + 0.3 * rng.standard_normal(tree.nv)
     ws = Workspace(tree)
-    from soft_twin_core.kernels import passes
+    from soft_twin_core.engine.kernels import passes
     z = {}
     q_meas = tree.q0 + 0.3 * rng.standard_normal(tree.nv)
     passes.forward_pass(ws.m, ws.w, np.ascontiguousarray(q_meas), ws.zeros_v, ws.zeros_v, 0)
@@ -220,7 +220,7 @@ def test_joint_tracking_offset_is_estimated():
     sens = _sensors()
     _, where = ts.check_sensors(real, sens)
     ws = Workspace(real.tree)
-    from soft_twin_core import algorithms as alg
+    from soft_twin_core.engine import algorithms as alg
     alg.forward_kinematics(real.tree, ws, truth.q)
     z_true = {s.name: ts.predict_measurement(ws, truth.q, s, where[s.name]) for s in sens}
     tool = real.frame("tool")
@@ -274,7 +274,7 @@ def test_base_wrench_sensor_model_and_jacobian():
     enc = ts.JointStateSensor("encoders", ("pan", "tilt"), np.array([1e-3, 1e-3]))
     truth = solve_equilibrium(mech, [6.0, 0.0, 0.0, 0.0], positions={"pan": 0.0, "tilt": 0.0}).q
     ref = mech.frame("tool")
-    from soft_twin_core import algorithms as alg
+    from soft_twin_core.engine import algorithms as alg
     tip = alg.point_poses(tree, ws, truth, [ref.joint], [ref.x])[0][:3, 3]
     _, where = ts.check_sensors(mech, [enc, ft])
     alg.forward_kinematics(tree, ws, truth)
@@ -313,7 +313,7 @@ def test_tree_process_jacobian_with_tip_wrench_and_inputs(theta):
     and a wrench on the tool (the tip frame), the analytic Phi (rigid
     joints, strains, the 6 wrench states) and Gamma_u equal central
     differences of the filter's own integrator step."""
-    from soft_twin_core.constrained import FrameLoad
+    from soft_twin_core.solve.constrained import FrameLoad
     mech = _sprung_robot()
     u = np.array([5.0, 1.0, 2.0, 0.5])
     w = np.array([0.2, -0.1, -0.3, 0.004, 0.01, -0.006])
@@ -330,8 +330,8 @@ def test_payload_on_the_tool_of_a_tree_robot():
     payload state reads 50 g within 10 % (and within 3 of its standard
     deviations), the tool within 1 % of the member's length and within 3
     of its reported standard deviations."""
-    from soft_twin_core.constrained import FrameLoad
-    from soft_twin_core import algorithms as alg
+    from soft_twin_core.engine import algorithms as alg
+    from soft_twin_core.solve.constrained import FrameLoad
     mech = _robot()
     pos = {"pan": 0.3, "tilt": -0.2}
     u = np.array([4.0, 0.0, 0.0, 0.0])

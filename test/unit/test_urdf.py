@@ -1,15 +1,15 @@
 """URDF export of the rigid part and import of a rigid URDF with soft
-members mounted on it (soft_twin_core.urdf)."""
+members mounted on it (soft_twin_core.robot.urdf)."""
 
 import numpy as np
 import pytest
 import yaml
 
-from soft_twin_core import algorithms as alg
-from soft_twin_core.mechanism import load_mechanism, mechanism_from_dict
-from soft_twin_core.model import ModelError, find_file
-from soft_twin_core.urdf import bodies_from_urdf, to_urdf
-from soft_twin_core.workspace import Workspace
+from soft_twin_core.engine import algorithms as alg
+from soft_twin_core.engine.workspace import Workspace
+from soft_twin_core.robot.mechanism import load_mechanism, mechanism_from_dict
+from soft_twin_core.robot.model import ModelError, find_file
+from soft_twin_core.robot.urdf import bodies_from_urdf, to_urdf
 
 
 def _random_state(tree, rng):

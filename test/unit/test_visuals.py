@@ -11,8 +11,9 @@ import numpy as np
 import pytest
 from PIL import Image
 
-from soft_twin_core import cli, scene
-from soft_twin_core.model import load_model
+from soft_twin_core import cli
+from soft_twin_core.robot.model import load_model
+from soft_twin_core.viz import scene
 
 HERE = os.path.dirname(os.path.abspath(__file__))
 CONFIG = os.path.join(HERE, "..", "..", "config")
@@ -74,10 +75,10 @@ def test_a_member_crosses_its_rigid_offsets():
     one member whose samples jump across the offset: the first sample of
     the forearm is where the offset puts it (independent: the rod's chained
     transforms), and the polyline draws the offset as one straight piece."""
-    from soft_twin_core import kinematics as kin
-    from soft_twin_core.mechanism import from_robot_model
-    from soft_twin_core.outputs import state_shape
-    from soft_twin_core.workspace import Workspace
+    from soft_twin_core.engine.workspace import Workspace
+    from soft_twin_core.reference import kinematics as kin
+    from soft_twin_core.robot.mechanism import from_robot_model
+    from soft_twin_core.solve.outputs import state_shape
     m = load_model(os.path.join(CONFIG, "robots", "elbow_arm.yaml"))
     mech = from_robot_model(m)
     q = m.q0.copy()
@@ -94,9 +95,9 @@ def test_a_member_crosses_its_rigid_offsets():
 def test_energies_from_the_run_equal_the_reference(tmp_path):
     """The energies a run reports at its samples equal the numpy
     reference's energies of the state in its strains and strain rates."""
-    from soft_twin_core import reference
-    from soft_twin_core.outputs import q_from_section_strains
-    from soft_twin_core.scenario import load_scenario, run_dynamics
+    from soft_twin_core.files.scenario import load_scenario, run_dynamics
+    from soft_twin_core.reference import multibody as reference
+    from soft_twin_core.solve.outputs import q_from_section_strains
     sc = load_scenario("tendon_arm_dynamics")
     out = run_dynamics(sc, 0.05, 0.005, backbone_every=5)
     kin_e, ela, grav = np.asarray(out["energies"][-1])
@@ -198,7 +199,7 @@ def test_princeton_sweep_figures_and_animation(tmp_path, capsys):
         assert im.n_frames == 4 and im.info["duration"] == 500       # 2 angles per second
     # the reference drawn is the scenario's (linear beam theory), and the
     # twin's 0 deg tip matches it (small deflection along the stiff axis)
-    from soft_twin_core.scenario import load_scenario
+    from soft_twin_core.files.scenario import load_scenario
     ref = load_scenario("princeton_beam").reference
     assert ref["angle_deg"][0] == 0 and "linear" in ref["label"]
     rs = json.loads(out)
@@ -234,7 +235,7 @@ def test_render_needs_backbone_samples(tmp_path, capsys):
 
 
 def test_bad_reference_is_named(tmp_path):
-    from soft_twin_core.scenario import ScenarioError, scenario_from_dict
+    from soft_twin_core.files.scenario import ScenarioError, scenario_from_dict
     d = {"robot": "princeton_beam", "reference": {"angle_deg": [0, 10], "tip_position": [[0, 0, 0]]}}
     with pytest.raises(ScenarioError, match=r"scenario\.reference\.tip_position"):
         scenario_from_dict(d)
@@ -246,7 +247,7 @@ def test_view_serves_a_saved_run_in_real_time(dynamics_run):
     import socket
     import threading
     import urllib.request
-    from soft_twin_core import render
+    from soft_twin_core.viz import render
     d, _ = dynamics_run
     with socket.socket() as s:
         s.bind(("127.0.0.1", 0))
@@ -279,10 +280,10 @@ def test_dynamics_run_as_mcap_renders_like_the_run(tmp_path, capsys):
     """dynamics --mcap: the node's topics in the ROS 2 bag format; read back,
     its backbone, tip and strains are the run's, and its backbone
     orientations are the model's kinematics of the recorded strains."""
-    from soft_twin_core import recording
-    from soft_twin_core import kinematics as kin
-    from soft_twin_core.recording import read_node_recording
-    from soft_twin_core.scenario import load_scenario
+    from soft_twin_core.files import recording
+    from soft_twin_core.files.recording import read_node_recording
+    from soft_twin_core.files.scenario import load_scenario
+    from soft_twin_core.reference import kinematics as kin
     path = tmp_path / "run.mcap"
     code, _, err = run_cli(["dynamics", "tendon_arm_dynamics", "--duration", "0.2", "--dt", "0.005",
                             "--backbone-every", "4", "--mcap", str(path), "-o", str(tmp_path / "run.json")], capsys)

@@ -1,4 +1,4 @@
-"""Workspaces over the actuation space (soft_twin_core.workspace_map) and
+"""Workspaces over the actuation space (soft_twin_core.planning.reach) and
 the `soft-twin-sim workspace` command."""
 
 import json
@@ -7,9 +7,9 @@ import math
 import numpy as np
 import pytest
 
-from soft_twin_core.scenario import scenario_from_dict
-from soft_twin_core.workspace_map import (actuation_ranges, hull_summary, parse_workspace_options,
-                                          sample_actuations, workspace_of)
+from soft_twin_core.files.scenario import scenario_from_dict
+from soft_twin_core.planning.reach import (actuation_ranges, hull_summary, parse_workspace_options,
+                                           sample_actuations, workspace_of)
 from rod_statics import solve_statics
 
 
@@ -79,7 +79,7 @@ def test_default_robot_workspace_extent_is_reached_at_the_actuation_limits():
 
 def test_workspace_command_writes_points_summary_and_plot(tmp_path, capsys):
     from soft_twin_core.cli import main
-    from soft_twin_core.study_dask import read_rows
+    from soft_twin_core.studies.cluster import read_rows
     out = tmp_path / "ws"
     rc = main(["workspace", "tendon_arm", "--limit", "3", "--samples", "20", "--actuators",
                "tendon_y_pos,tendon_z_neg", "-o", str(out)])
@@ -96,8 +96,8 @@ def test_workspace_command_writes_points_summary_and_plot(tmp_path, capsys):
 
 
 def test_workspace_per_case_in_a_study(tmp_path):
-    from soft_twin_core.study import study_from_dict
-    from soft_twin_core.study_dask import read_rows, run_study
+    from soft_twin_core.studies.cluster import read_rows, run_study
+    from soft_twin_core.studies.study import study_from_dict
     stdy = study_from_dict({"name": "ws", "robot": "tendon_arm", "parameters": [
         {"path": "actuators[0].offset[0]", "values": [0.005, 0.009]}],
         "compute": {"workspace": {"samples": 6, "limit": 3.0, "actuators": ["tendon_y_pos", "tendon_z_pos"]}}})

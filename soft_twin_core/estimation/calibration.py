@@ -1,0 +1,809 @@
+"""Calibration of a robot's parameters from a recorded static sweep by
+nonlinear least squares (scipy.optimize.least_squares, trust region
+reflective) with analytic sensitivities, for every robot file (a classic
+rod, a tree robot: one :class:`mechanism.Mechanism` path).
+
+Data: a :class:`Recording` -- per row the actuator inputs u (N or Pa), the
+position commands of the position-controlled joints (rad or m; default
+their references) and the readings of pose sensors and position markers
+(:mod:`sensors`) at the equilibrium those commands reach (a static sweep;
+CSV format in :func:`read_csv`).
+
+Parameters (names as given to :func:`calibrate`, SI units):
+
+- ``youngs_modulus:<segment>`` [Pa] of a segment (its shear modulus
+  follows at the fixed Poisson ratio; the stiffness is linear in E); a
+  segment name used by two members of a tree is ``<member>/<segment>``;
+- ``tendon_offset:<actuator>`` [m]: the distance of a straight tendon from
+  the centre line, along its nominal direction;
+- ``payload_mass`` [kg]: a point mass at the tip frame (its weight, a dead
+  load; starts at 0; :func:`mechanism.tip_frame`);
+- ``sensor_offset:<sensor>:<x|y|z>`` [m]: the position of a marker or pose
+  sensor in its cross-section frame.
+
+Residual of row r and sensor i: ``e_ri(theta) / sigma_i`` (the sensor's
+residual, :func:`sensors.residual_and_jacobian`, at the equilibrium
+``q_r(theta)`` of the robot with parameters theta,
+:func:`constrained.solve_equilibrium`). Sensitivities by the implicit
+function theorem at each equilibrium ``R(q, lam, theta) = 0``, ``Phi(q) =
+0`` (constraint rows and the position-controlled joints' rows, which do
+not depend on theta):
+
+    [[K_t, -G^T], [G, 0]] [dq; dlam] = -[dR/dtheta; 0],   de/dtheta = H dq/dtheta + de/dtheta|_q
+
+with K_t the statics tangent and, analytically,
+``dR/dE_j = K_j (q - q0) / E_j`` (K_j: the stiffness rows of member j),
+``dR/dr_a = -d tau_act/dr_a`` (the derivative of the tendon's distributed
+wrench ``T [t; d x t]``, ``t = n/|n|``, ``n = nu + kappa x d``, with
+``d = r_a e_a``), ``dR/dm = -J_tip,world^T [g; 0]`` and, for a sensor
+offset, ``de_p/dt = R_section``.
+
+Damping (``viscosity:<segment>`` [Pa s]) needs a dynamic recording (a
+time series from rest): :func:`calibrate_damping` fits it by simulating the
+recording, with central-difference sensitivities of the simulated
+trajectory.
+
+Confidence intervals: ``cov = s^2 (J^T J)^-1`` with the residual variance
+``s^2 = |r|^2 / (N - p)`` (J: the weighted Jacobian at the solution), 95 %
+intervals ``+- t_{0.975, N-p} sqrt(diag cov)``. Held-out rows (every k-th)
+are left out of the fit and report the error before and after.
+"""
+
+import copy
+import csv
+import dataclasses
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from soft_twin_core.errors import CalibrationError, CalibrationFailed
+from soft_twin_core.estimation import sensors as sn
+
+
+def _marker(s):
+    return isinstance(s, sn.PoseSensor) and s.position_only
+
+
+def _measuring(mech, sensors):
+    """(the pose sensors and markers, {name: where}) of a sensor list
+    checked against the robot (:func:`sensors.check_sensors`); tension
+    sensors are left out (the recording's inputs are the tensions), other
+    kinds refused by name."""
+    sensors, where = sn.check_sensors(mech, sensors)
+    other = [s.name for s in sensors if not isinstance(s, (sn.PoseSensor, sn.TensionSensor))]
+    if other:
+        raise CalibrationError(f"sensors {other}: calibration reads pose sensors and markers only")
+    return [s for s in sensors if isinstance(s, sn.PoseSensor)], where
+
+
+@dataclass
+class Recording:
+    """A static sweep: inputs (N, n_actuators), per sensor name an array of
+    readings (N, 4, 4) for pose sensors or (N, 3) for markers (NaN rows: not
+    seen), times (N,) [s] or None and the position commands (N, n_joints)
+    [rad or m] of the position-controlled joints (None: their references)."""
+    inputs: np.ndarray
+    readings: dict
+    time: np.ndarray = None
+    joints: np.ndarray = None
+
+    def __len__(self):
+        return len(self.inputs)
+
+    def rows(self, idx):
+        idx = np.asarray(idx)
+        return Recording(self.inputs[idx], {k: v[idx] for k, v in self.readings.items()},
+                         None if self.time is None else self.time[idx],
+                         None if self.joints is None else self.joints[idx])
+
+
+def position_joints(robot):
+    """Names of the position-controlled joints of a mechanism (() for a
+    classic model)."""
+    if not hasattr(robot, "joints_with"):
+        return ()
+    return tuple(robot.tree.joints[i].name for i in robot.joints_with("position"))
+
+
+def mechanism_of(robot_dict, n_sections=None, base_dir=None):
+    """The mechanism of a robot mapping of either schema; ``n_sections``
+    (classic robots only) replaces every segment's section count."""
+    from soft_twin_core.robot.mechanism import from_robot_model, is_tree_file, mechanism_from_dict
+    from soft_twin_core.robot.model import model_from_dict
+    if is_tree_file(robot_dict):
+        if n_sections is not None:
+            raise CalibrationError("sections: a tree robot's sections come from its file (--sections is for "
+                                   "classic robots)")
+        return mechanism_from_dict(robot_dict, base_dir)
+    return from_robot_model(model_from_dict(robot_dict, n_sections), robot_dict)
+
+
+def _as_mechanism(robot):
+    """A mechanism from a mechanism or a classic model."""
+    from soft_twin_core.robot.mechanism import from_robot_model
+    return robot if hasattr(robot, "joints_with") else from_robot_model(robot)
+
+
+def _segments_of(d):
+    """{segment key: its mapping} of a robot mapping of either schema, and
+    {segment key: member name} (a segment name that two members use is keyed
+    ``<member>/<segment>``)."""
+    if "bodies" not in d:
+        return {str(s.get("name", f"segment{k}")): s for k, s in enumerate(d.get("segments") or [])}, \
+            {str(s.get("name", f"segment{k}")): "backbone" for k, s in enumerate(d.get("segments") or [])}
+    pairs = [(str(b.get("name")), str(s.get("name", f"segment{k}")), s) for b in d.get("bodies") or []
+             if b.get("type") == "member" for k, s in enumerate(b.get("segments") or [])]
+    counts = {}
+    for _, n, _ in pairs:
+        counts[n] = counts.get(n, 0) + 1
+    segs, member = {}, {}
+    for m, n, sd in pairs:
+        key = n if counts[n] == 1 else f"{m}/{n}"
+        segs[key], member[key] = sd, m
+    return segs, member
+
+
+def _actuators_of(d):
+    """{actuator name: its mapping} of a robot mapping of either schema."""
+    lists = [d.get("actuators") or []] + [b.get("actuators") or [] for b in d.get("bodies") or []]
+    return {a["name"]: a for lst in lists for a in lst if isinstance(a, dict) and "name" in a}
+
+
+def _segment_rows(mech, d):
+    """{segment key: boolean mask (nv,) of its sections' strain
+    coordinates}: each member's joints shared out over its segments by
+    their section counts (an equal split when a count override applied)."""
+    from soft_twin_core.engine.workspace import Workspace
+    segs, member_of = _segments_of(d)
+    arrays = Workspace(mech.tree).arrays
+    out = {}
+    for m in mech.members:
+        keys = [k for k in segs if member_of[k] == m.name]
+        counts = [int(segs[k].get("sections", 1)) for k in keys]
+        if sum(counts) != len(m.joints) and keys and len(m.joints) % len(keys) == 0:
+            counts = [len(m.joints) // len(keys)] * len(keys)
+        j = 0
+        for k, n in zip(keys, counts):
+            mask = np.zeros(mech.tree.nv, dtype=bool)
+            for i in m.joints[j:j + n]:
+                mask[arrays.iv[i]:arrays.iv[i] + arrays.nv[i]] = True
+            out[k] = mask
+            j += n
+    return out
+
+
+# ----------------------------------------------------------------------------
+# CSV
+# ----------------------------------------------------------------------------
+
+_POSE_COLS = ("x", "y", "z", "qx", "qy", "qz", "qw")
+
+
+def csv_header(model, sensors):
+    """Columns: ``t``, one per actuator (its name), one per
+    position-controlled joint (its name, rad or m), then per marker
+    ``<name>.x .y .z`` and per pose sensor also ``.qx .qy .qz .qw``."""
+    cols = ["t"] + list(model.actuator_names) + list(position_joints(model))
+    for s in sensors:
+        if _marker(s):
+            cols += [f"{s.name}.{c}" for c in _POSE_COLS[:3]]
+        elif isinstance(s, sn.PoseSensor):
+            cols += [f"{s.name}.{c}" for c in _POSE_COLS]
+    return cols
+
+
+def write_csv(path, model, sensors, rec):
+    from scipy.spatial.transform import Rotation
+    with open(path, "w", newline="") as fh:
+        w = csv.writer(fh)
+        w.writerow(csv_header(model, sensors))
+        t = np.arange(len(rec)) if rec.time is None else rec.time
+        for r in range(len(rec)):
+            row = [repr(float(t[r]))] + [repr(float(x)) for x in rec.inputs[r]]
+            if position_joints(model):
+                row += [repr(float(x)) for x in _joint_rows(model, rec)[r]]
+            for s in sensors:
+                z = rec.readings.get(s.name)
+                if _marker(s):
+                    row += [repr(float(x)) for x in z[r]]
+                elif isinstance(s, sn.PoseSensor):
+                    row += [repr(float(x)) for x in z[r][:3, 3]]
+                    row += [repr(float(x)) for x in Rotation.from_matrix(z[r][:3, :3]).as_quat()]
+            w.writerow(row)
+
+
+def read_csv(path, model, sensors):
+    """A :class:`Recording` from a CSV file of :func:`csv_header`'s columns
+    (any order; extra columns are ignored; ``t`` optional). Raises
+    CalibrationError naming a missing column or a bad value (row, column)."""
+    try:
+        with open(path, newline="") as fh:
+            rows = list(csv.reader(fh))
+    except OSError as e:
+        raise CalibrationError(f"data file {path}: {e.strerror}") from None
+    if not rows:
+        raise CalibrationError(f"data file {path}: empty")
+    header = [h.strip() for h in rows[0]]
+    need = [c for c in csv_header(model, sensors) if c != "t"]
+    missing = [c for c in need if c not in header]
+    if missing:
+        raise CalibrationError(f"data file {path}: missing column(s) {missing}")
+    data = np.empty((len(rows) - 1, len(header)))
+    for i, row in enumerate(rows[1:]):
+        if len(row) != len(header):
+            raise CalibrationError(f"data file {path}, row {i + 2}: expected {len(header)} values, got {len(row)}")
+        for j, v in enumerate(row):
+            try:
+                data[i, j] = float(v) if v.strip() else np.nan
+            except ValueError:
+                raise CalibrationError(f"data file {path}, row {i + 2}, column {header[j]}: "
+                                       f"not a number: {v!r}") from None
+    col = {h: data[:, j] for j, h in enumerate(header)}
+    u = np.stack([col[a] for a in model.actuator_names], axis=1) if model.actuators else np.zeros((len(data), 0))
+    if not np.all(np.isfinite(u)):
+        raise CalibrationError(f"data file {path}: the actuator inputs must be finite numbers in every row")
+    joints = None
+    if position_joints(model):
+        joints = np.stack([col[n] for n in position_joints(model)], axis=1)
+        if not np.all(np.isfinite(joints)):
+            raise CalibrationError(f"data file {path}: the joint positions must be finite numbers in every row")
+    readings = {}
+    for s in sensors:
+        if _marker(s):
+            readings[s.name] = np.stack([col[f"{s.name}.{c}"] for c in "xyz"], axis=1)
+        elif isinstance(s, sn.PoseSensor):
+            v = np.stack([col[f"{s.name}.{c}"] for c in _POSE_COLS], axis=1)
+            T = np.full((len(v), 4, 4), np.nan)
+            for r in range(len(v)):
+                if np.all(np.isfinite(v[r])):
+                    T[r] = sn.pose_from_position_quaternion(v[r, :3], v[r, 3:])
+            readings[s.name] = T
+    return Recording(u, readings, col.get("t"), joints)
+
+
+def _joint_rows(mech, rec):
+    """(N, n_joints) position commands of a recording (the joints'
+    references where it has none)."""
+    names = position_joints(mech)
+    if rec.joints is not None:
+        return np.asarray(rec.joints, dtype=float).reshape(len(rec), len(names))
+    ref = [mech.tree.joints[i].q_ref for i in mech.joints_with("position")] if names else []
+    return np.tile(np.asarray(ref, dtype=float), (len(rec), 1))
+
+
+def check_recording_inputs(model, inputs, source="recording"):
+    """Refuse (CalibrationError naming the row, the actuator, the value and
+    the bound) a recorded input outside the actuator's declared range
+    (:func:`model.check_actuator_input`, the node's rule): such a row cannot
+    come from this robot as declared (wrong units, wrong robot file, or a
+    bound the robot file should not declare), and fitting it would
+    calibrate the model to inputs the twin refuses."""
+    from soft_twin_core.robot.model import check_actuator_input
+    u = np.asarray(inputs, dtype=float)
+    if u.ndim != 2 or u.shape[1] != len(model.actuators):
+        return
+    for k, a in enumerate(model.actuators):
+        if np.all((u[:, k] >= a.lower) & (u[:, k] <= a.upper)):
+            continue
+        for i in range(len(u)):
+            bad = check_actuator_input(a, u[i, k])
+            if bad is not None:
+                raise CalibrationError(f"{source}, row {i + 1}, actuator {a.name}: {bad[1]} [{bad[0]}]")
+
+
+def record_static_sweep(robot, sensors, inputs, rng, loads=None, joints=None, point_loads=()):
+    """Simulated recording: the equilibria of ``robot`` (a mechanism or a
+    classic model) under each row of ``inputs`` and ``joints`` (position
+    commands, rad or m; default the references), ``loads`` and
+    ``point_loads`` (FrameLoad), read by the sensors with their noise. The
+    inputs must lie in the actuators' declared ranges."""
+    from soft_twin_core.engine.workspace import Workspace
+    from soft_twin_core.solve.constrained import solve_equilibrium
+    mech = _as_mechanism(robot)
+    check_recording_inputs(mech, inputs, "inputs")
+    sensors, where = _measuring(mech, sensors)
+    ws = Workspace(mech.tree)
+    names = position_joints(mech)
+    inputs = np.asarray(inputs, dtype=float)
+    rec = Recording(inputs, {}, None, None if joints is None else np.asarray(joints, dtype=float))
+    jrows = _joint_rows(mech, rec)
+    q = None
+    readings = {s.name: [] for s in sensors}
+    for r, u in enumerate(inputs):
+        q = solve_equilibrium(mech, u, None, dict(zip(names, jrows[r])) if names else None, loads, point_loads,
+                              q_init=q).q
+        truth = sn.predict_readings(ws, q, sensors, where)
+        for s in sensors:
+            readings[s.name].append(sn.simulate_measurement(s, truth[s.name], rng))
+    rec.readings = {k: np.array(v) for k, v in readings.items()}
+    return rec
+
+
+# ----------------------------------------------------------------------------
+# Parameters
+# ----------------------------------------------------------------------------
+
+@dataclass
+class _Param:
+    name: str
+    kind: str
+    target: str
+    axis: int = 0
+    nominal: float = 0.0
+    scale: float = 1.0
+
+
+def _params(names, robot_dict, sensors):
+    segs = _segments_of(robot_dict)[0]
+    acts = _actuators_of(robot_dict)
+    by_name = {s.name: s for s in sensors}
+    out = []
+    for name in names:
+        kind, _, rest = name.partition(":")
+        if kind == "youngs_modulus":
+            seg = segs.get(rest)
+            if seg is None or "material" not in seg:
+                raise CalibrationError(f"parameter {name!r}: no segment {rest!r} with a material "
+                                       f"(segments: {list(segs)})")
+            E = float(seg["material"]["youngs_modulus"])
+            out.append(_Param(name, kind, rest, 0, E, E))
+        elif kind == "tendon_offset":
+            a = acts.get(rest)
+            if a is None or a.get("routing", "straight") != "straight":
+                raise CalibrationError(f"parameter {name!r}: no straight tendon {rest!r} "
+                                       f"(actuators: {list(acts)})")
+            out.append(_Param(name, kind, rest, 0, float(np.linalg.norm(np.asarray(a["offset"], float))), 1e-3))
+        elif name == "payload_mass":
+            out.append(_Param(name, "payload_mass", "", 0, 0.0, 0.01))
+        elif kind == "sensor_offset":
+            sname, _, ax = rest.partition(":")
+            s = by_name.get(sname)
+            if not isinstance(s, sn.PoseSensor) or ax not in ("x", "y", "z"):
+                raise CalibrationError(f"parameter {name!r}: expected sensor_offset:<marker or pose sensor>:<x|y|z> "
+                                       f"(sensors: {list(by_name)})")
+            i = "xyz".index(ax)
+            out.append(_Param(name, kind, sname, i, float(np.asarray(s.placement)[i, 3]), 1e-3))
+        else:
+            raise CalibrationError(f"parameter {name!r}: expected youngs_modulus:<member>, "
+                                   f"tendon_offset:<tendon>, payload_mass or sensor_offset:<sensor>:<axis>")
+    if len({p.name for p in out}) != len(out):
+        raise CalibrationError(f"parameters: duplicates in {list(names)}")
+    return out
+
+
+def apply_parameters(robot_dict, sensors, params, theta):
+    """(robot dict, sensors, payload mass [kg]) with the parameter values theta."""
+    d = copy.deepcopy(robot_dict)
+    segs = _segments_of(d)[0]
+    acts = _actuators_of(d)
+    placements = {s.name: np.array(s.placement, dtype=float) for s in sensors
+                  if isinstance(s, sn.PoseSensor)}
+    mass = 0.0
+    for p, v in zip(params, theta):
+        if p.kind == "youngs_modulus":
+            segs[p.target]["material"]["youngs_modulus"] = float(v)
+        elif p.kind == "tendon_offset":
+            off = np.asarray(acts[p.target]["offset"], dtype=float)
+            acts[p.target]["offset"] = [float(x) for x in off / np.linalg.norm(off) * v]
+        elif p.kind == "payload_mass":
+            mass = float(v)
+        else:
+            placements[p.target][p.axis, 3] = v
+    new = [dataclasses.replace(s, placement=placements[s.name]) if s.name in placements else s for s in sensors]
+    return d, new, mass
+
+
+def _payload(mech, mass):
+    """The payload's weight as a dead load on the tip frame (FrameLoads)."""
+    from soft_twin_core.robot.mechanism import tip_frame
+    from soft_twin_core.solve.constrained import FrameLoad
+    if mass == 0.0:
+        return ()
+    return (FrameLoad(tip_frame(mech), np.concatenate([mass * np.asarray(mech.tree.gravity, float), np.zeros(3)]),
+                      "world"),)
+
+
+def _tendon_offset_derivative(model, ws, act, k, u_k, out):
+    """out (nv,) = d tau_act / d r_k for the straight tendon k at the strains
+    of the last forward pass of ws: per quadrature point with coefficient c,
+    ``d/dr c [t; d x t] = c [dt; e x t + d x dt]``, ``dt = (I - t t^T) (kappa x e)/|n|``."""
+    m, w = ws.arrays, ws.work
+    pts = np.flatnonzero(act.unit[:, k])
+    for p in pts:
+        c = act.unit[p, k] * u_k
+        i = act.joint[p]
+        d = act.d[p]
+        e = d / np.linalg.norm(d)
+        xi = w.strain[i]
+        n = xi[:3] + np.cross(xi[3:], d) + act.dd[p]
+        nn = np.linalg.norm(n)
+        t = n / nn
+        dn = np.cross(xi[3:], e)
+        dt = (dn - t * (t @ dn)) / nn
+        dwr = c * np.concatenate([dt, np.cross(e, t) + np.cross(d, dt)])
+        iv, nv = m.iv[i], m.nv[i]
+        out[iv:iv + nv] += dwr[m.modes[i, :nv]]
+
+
+# ----------------------------------------------------------------------------
+# The least-squares problem
+# ----------------------------------------------------------------------------
+
+class Problem:
+    """Residuals and their analytic Jacobian of a recording, as functions of
+    the parameter values theta (SI), for a robot mapping of either schema."""
+
+    def __init__(self, robot_dict, sensors, recording, names, n_sections=None, base_dir=None):
+        self.robot_dict, self.n_sections, self.base_dir = robot_dict, n_sections, base_dir
+        mech = mechanism_of(robot_dict, n_sections, base_dir)
+        self.sensors, self.where = _measuring(mech, sensors)     # the points stay with theta
+        if not self.sensors:
+            raise CalibrationError("sensors: calibration needs at least one pose sensor or marker")
+        check_recording_inputs(mech, recording.inputs)      # the declared actuator ranges
+        names_j = position_joints(mech)
+        if recording.joints is not None and np.shape(recording.joints) != (len(recording), len(names_j)):
+            raise CalibrationError(f"recording.joints: expected {len(recording)} rows of the position-controlled "
+                                   f"joints {list(names_j)}, got shape {np.shape(recording.joints)}")
+        self.rec = recording
+        self.params = _params(names, robot_dict, self.sensors)
+        self.rows_of = _segment_rows(mech, robot_dict) if any(p.kind == "youngs_modulus" for p in self.params) \
+            else {}
+        self.theta0 = np.array([p.nominal for p in self.params])
+        self.scale = np.array([p.scale for p in self.params])
+        self._q = [None] * len(recording)
+        self._joints = _joint_rows(mech, recording)
+        self._names_j = names_j
+
+    def model(self, theta):
+        """(mechanism, sensors, payload mass [kg]) with the parameter values theta."""
+        d, sensors, mass = apply_parameters(self.robot_dict, self.sensors, self.params, theta)
+        return mechanism_of(d, self.n_sections, self.base_dir), sensors, mass
+
+    def equilibrium(self, mech, r, mass):
+        """The equilibrium of row r (warm-started from the last one found)."""
+        from soft_twin_core.solve.constrained import solve_equilibrium
+        pos = dict(zip(self._names_j, self._joints[r])) if self._names_j else None
+        eq = solve_equilibrium(mech, self.rec.inputs[r], None, pos, None, _payload(mech, mass), q_init=self._q[r],
+                               check_stability=False)
+        self._q[r] = eq.q
+        return eq
+
+    def evaluate(self, theta, jacobian=True, rows=None):
+        """(weighted residuals (M,), Jacobian (M, p) d r / d theta, or None)."""
+        from soft_twin_core.engine import algorithms as alg
+        from soft_twin_core.engine.workspace import Workspace
+        from soft_twin_core.solve import constrained as cs
+        theta = np.asarray(theta, dtype=float)
+        mech, sensors, mass = self.model(theta)
+        tree = mech.tree
+        ws = Workspace(tree)
+        act = cs.actuator_arrays(tree) if mech.actuators else None
+        K = cs._dense_blocks(tree)[0] if self.rows_of else None
+        rows = range(len(self.rec)) if rows is None else rows
+        res, jac = [], []
+        for r in rows:
+            u = self.rec.inputs[r]
+            eq = self.equilibrium(mech, r, mass)
+            q = eq.q
+            if jacobian:
+                pb = cs._Equilibrium(mech, eq.inputs)
+                Kt = pb.tangent(q, eq.lam)
+                _, phi, G = pb.residual(q, eq.lam)
+                fac = cs.factor_kkt(Kt, G, G)
+                dR = np.zeros((tree.nv, len(self.params)))
+                sn.forward(ws, q)
+                for j, p in enumerate(self.params):
+                    if p.kind == "youngs_modulus":
+                        rows_j = self.rows_of[p.target]
+                        dR[rows_j, j] = (K @ (q - tree.q0))[rows_j] / theta[j]
+                    elif p.kind == "tendon_offset":
+                        k = list(mech.actuator_names).index(p.target)
+                        col = np.zeros(tree.nv)
+                        _tendon_offset_derivative(mech, ws, act, k, u[k], col)
+                        dR[:, j] = -col
+                    elif p.kind == "payload_mass":
+                        from soft_twin_core.robot.mechanism import tip_frame
+                        ref = mech.frame(tip_frame(mech))
+                        _, Jw = alg.point_jacobian(tree, ws, q, ref.joint, ref.x, "world")
+                        dR[:, j] = -Jw.T @ np.concatenate([tree.gravity, np.zeros(3)])
+                        sn.forward(ws, q)
+                zero = np.zeros(len(phi))
+                dq = np.column_stack([cs.solve_factored(fac, dR[:, j], zero)[0] for j in range(len(self.params))]) \
+                    if self.params else np.zeros((tree.nv, 0))
+            qc = sn.forward(ws, q)
+            for s in sensors:
+                z = self.rec.readings[s.name][r]
+                if not np.all(np.isfinite(z)):
+                    continue
+                e, H = sn.residual_and_jacobian(ws, qc, s, self.where[s.name], z)
+                sig = np.full(len(e), s.sigma_position_m)
+                if len(e) == 6:
+                    sig[3:] = s.sigma_rotation_rad
+                res.append(e / sig)
+                if jacobian:
+                    J = H @ dq
+                    for j, p in enumerate(self.params):
+                        if p.kind == "sensor_offset" and p.target == s.name:
+                            T, _ = sn.point_pose_and_body_jacobian(ws, *self.where[s.name], np.asarray(s.placement))
+                            # p_sensor = p_section + R_section t: d/dt = R_section = R_sensor P_R^T
+                            R_sec = T[:3, :3] @ np.asarray(s.placement)[:3, :3].T
+                            J[:3, j] += R_sec[:, p.axis]
+                    jac.append(J / sig[:, None])
+        r = np.concatenate(res)
+        return r, (np.vstack(jac) if jacobian else None)
+
+
+@dataclass
+class CalibrationResult:
+    """Fitted values (SI), their standard errors and 95 % confidence
+    half-widths, the nominal values, the residual standard deviation (in
+    units of the stated sensor noise: about 1 when the model fits), held-out
+    errors before/after, the calibrated robot dict, sensors and payload."""
+    names: list
+    nominal: np.ndarray
+    values: np.ndarray
+    std: np.ndarray
+    ci95: np.ndarray
+    residual_sigma: float
+    n_residuals: int
+    iterations: int
+    robot_dict: dict
+    sensors: list
+    payload_mass: float
+    heldout: dict = field(default_factory=dict)
+
+    def table(self):
+        lines = [f"{'parameter':32s} {'nominal':>12s} {'fitted':>12s} {'95 % CI':>12s}"]
+        for n, a, b, c in zip(self.names, self.nominal, self.values, self.ci95):
+            lines.append(f"{n:32s} {a:12.6g} {b:12.6g} {'+-':>3s}{c:9.3g}")
+        lines.append(f"residual sigma (in sensor-noise units): {self.residual_sigma:.3f} "
+                     f"over {self.n_residuals} residuals")
+        for k, v in self.heldout.items():
+            lines.append(f"held-out {k}: {v:.6g}")
+        return "\n".join(lines)
+
+
+def _tip_sensor(mech, sensors):
+    """The sensor nearest the tip: one on the tip frame, else the farthest
+    along the main member, else the last."""
+    from soft_twin_core.robot.mechanism import tip_frame
+    tip = tip_frame(mech)
+    on_tip = [s for s in sensors if s.frame == tip]
+    if on_tip:
+        return on_tip[0]
+    along = [s for s in sensors if s.frame is None]
+    return max(along, key=lambda s: s.s) if along else sensors[-1]
+
+
+def tip_errors(problem, theta, rows, truth_tips=None):
+    """(RMS, max) [m] over ``rows`` of the distance between the model's
+    prediction of the sensor nearest the tip and its reading (or the given
+    true positions (R, 3))."""
+    from soft_twin_core.engine.workspace import Workspace
+    mech, sensors, mass = problem.model(theta)
+    tip = _tip_sensor(mech, sensors)
+    ws = Workspace(mech.tree)
+    d = []
+    for k, r in enumerate(rows):
+        q = problem.equilibrium(mech, r, mass).q
+        T = sn.predict_readings(ws, q, [tip], problem.where)[tip.name]
+        p = T[:3, 3] if np.shape(T) == (4, 4) else T
+        z = problem.rec.readings[tip.name][r] if truth_tips is None else truth_tips[k]
+        z = z[:3, 3] if np.shape(z) == (4, 4) else z
+        d.append(np.linalg.norm(p - z))
+    d = np.array(d)
+    return float(np.sqrt(np.mean(d ** 2))), float(d.max())
+
+
+def calibrate(robot_dict, sensors, recording, names, *, holdout_every=4, n_sections=None, verbose=0,
+              base_dir=None):
+    """Fit the parameters ``names`` (module docstring) to the recording of a
+    robot (a mapping of either schema; ``base_dir``: where its relative
+    files are); every ``holdout_every``-th row (0: none) is held out and
+    reports the tip-sensor error before and after. Returns a
+    :class:`CalibrationResult`."""
+    from scipy.optimize import least_squares
+    from scipy.stats import t as student_t
+    n = len(recording)
+    held = np.arange(n)[holdout_every - 1::holdout_every] if holdout_every else np.zeros(0, int)
+    fit_rows = np.setdiff1d(np.arange(n), held)
+    pb = Problem(robot_dict, sensors, recording.rows(fit_rows), names, n_sections, base_dir)
+    s = pb.scale
+
+    def fun(x):
+        return pb.evaluate(x * s, jacobian=False)[0]
+
+    def jac(x):
+        return pb.evaluate(x * s)[1] * s
+
+    x0 = pb.theta0 / s
+    # a modulus stays positive (a trust-region step of a poorly seen one could otherwise cross 0)
+    lower = np.array([1e-3 * p.nominal / p.scale if p.kind == "youngs_modulus" else -np.inf for p in pb.params])
+    sol = least_squares(fun, x0, jac=jac, method="trf", x_scale=1.0, verbose=verbose, bounds=(lower, np.inf))
+    theta = sol.x * s
+    r, J = pb.evaluate(theta)
+    m, p = len(r), len(theta)
+    dof = max(m - p, 1)
+    s2 = float(r @ r) / dof
+    Jx = J * s                                   # in the scaled parameters (well conditioned)
+    cov = s2 * s[:, None] * np.linalg.pinv(Jx.T @ Jx) * s[None, :]
+    std = np.sqrt(np.diag(cov))
+    ci = student_t.ppf(0.975, dof) * std
+    d, new_sensors, mass = apply_parameters(robot_dict, pb.sensors, pb.params, theta)
+    out = CalibrationResult(names=[q.name for q in pb.params], nominal=pb.theta0, values=theta, std=std, ci95=ci,
+                            residual_sigma=float(np.sqrt(s2)), n_residuals=m, iterations=int(sol.nfev),
+                            robot_dict=d, sensors=new_sensors, payload_mass=mass)
+    if len(held):
+        hp = Problem(robot_dict, sensors, recording.rows(held), names, n_sections, base_dir)
+        before = tip_errors(hp, hp.theta0, range(len(held)))
+        after = tip_errors(hp, theta, range(len(held)))
+        out.heldout = {"rows": len(held), "tip_rms_before_m": before[0], "tip_max_before_m": before[1],
+                       "tip_rms_after_m": after[0], "tip_max_after_m": after[1]}
+    return out
+
+
+def write_robot_file(path, robot_dict, header=""):
+    """Write a robot description (YAML) with an optional comment header."""
+    import yaml
+    with open(path, "w") as fh:
+        if header:
+            fh.write("".join(f"# {line}\n" for line in header.splitlines()))
+        yaml.safe_dump(robot_dict, fh, sort_keys=False, default_flow_style=None)
+
+
+# ----------------------------------------------------------------------------
+# Damping from a dynamic recording
+# ----------------------------------------------------------------------------
+
+def simulate_readings(robot, sensors, times, inputs, dt, theta=0.5, joints=None):
+    """Noise-free readings {sensor: (N, ...)} of a time series of any robot
+    (a mechanism or a classic model): it starts at rest in equilibrium
+    under ``inputs[0]`` (and ``joints[0]``, the position commands of the
+    position-controlled joints, rad or m; None: their references) at
+    ``times[0]``; each row's actuator inputs are held until the next row's
+    time (zero-order hold), the joints move linearly from one row's command
+    to the next (as a servo tracking the recorded commands does: a held
+    command would jump the joint within one integrator step, at a speed
+    set by the step); integrator steps of about ``dt`` [s]
+    (:class:`constrained.MechanismSimulator`). Raises CalibrationFailed if
+    a step fails, CalibrationError if the times do not increase."""
+    from soft_twin_core.engine.workspace import Workspace
+    from soft_twin_core.solve.constrained import MechanismSimulator, StepError, solve_equilibrium
+    mech = _as_mechanism(robot)
+    sensors, where = _measuring(mech, sensors)
+    ws = Workspace(mech.tree)
+    times = np.asarray(times, dtype=float)
+    if np.any(np.diff(times) <= 0):
+        raise CalibrationError("t: the times of a dynamic recording must increase")
+    names = position_joints(mech)
+
+    def positions(r):
+        return None if joints is None else dict(zip(names, joints[r]))
+
+    q0 = solve_equilibrium(mech, inputs[0], positions=positions(0)).q
+    sim = MechanismSimulator(mech, dt, theta, q=q0, full_newton=False)
+    sim.t = float(times[0])
+    out = {s.name: [] for s in sensors}
+    for r in range(len(times)):
+        if r > 0:
+            span = times[r] - times[r - 1]
+            n = max(1, int(round(span / dt)))
+            if n * sim.dt != span:                # the rows' spacing in whole steps
+                t, q, v = sim.t, sim.q, sim.v
+                sim = MechanismSimulator(mech, span / n, theta, q=q, v=v, full_newton=False)
+                sim.t = t
+            try:
+                if joints is None:
+                    sim.step(inputs[r - 1], n=n)
+                else:                             # the joints' commands: linear from row to row
+                    for k in range(1, n + 1):
+                        c = joints[r - 1] + (k / n) * (np.asarray(joints[r]) - joints[r - 1])
+                        sim.step(inputs[r - 1], positions=dict(zip(names, c)))
+            except StepError as e:
+                raise CalibrationFailed(f"row {r}: the simulation failed ({e})") from None
+        for name, z in sn.predict_readings(ws, sim.q, sensors, where).items():
+            out[name].append(z)
+    return {k: np.array(v) for k, v in out.items()}
+
+
+def record_dynamic(robot, sensors, times, inputs, rng, dt=1e-3, joints=None):
+    """Simulated noisy recording of a time series of any robot (see
+    :func:`simulate_readings`)."""
+    clean = simulate_readings(robot, sensors, times, inputs, dt, joints=joints)
+    by_name = {s.name: s for s in sensors}
+    readings = {k: np.array([sn.simulate_measurement(by_name[k], z, rng) for z in v]) for k, v in clean.items()}
+    return Recording(np.asarray(inputs, dtype=float), readings, np.asarray(times, dtype=float),
+                     None if joints is None else np.asarray(joints, dtype=float))
+
+
+def calibrate_damping(robot_dict, sensors, recording, members=None, *, dt=5e-3, n_sections=None, verbose=0,
+                      base_dir=None):
+    """Fit the viscosity [Pa s] of the segments ``members`` (keys as in
+    the static fit: a segment's name, ``<member>/<segment>`` where names
+    repeat; default: every segment with a material) of a robot of either
+    schema to a dynamic recording (rows at increasing times ``t``, the
+    robot at rest at the first row, its joint commands in
+    ``recording.joints``; :func:`simulate_readings`), the other parameters
+    as in the robot dict (calibrate them first from a static sweep).
+    Sensitivities: central differences of the simulated trajectory
+    (``least_squares(jac="3-point")``; a static sweep carries no damping
+    information, and no analytic sensitivity through the integrator is
+    implemented). Returns a :class:`CalibrationResult` (no held-out rows)."""
+    from scipy.optimize import least_squares
+    from scipy.stats import t as student_t
+    if recording.time is None:
+        raise CalibrationError("damping: the recording needs a time column t")
+    segs = _segments_of(robot_dict)[0]
+    if members is None:
+        members = [k for k, sd in segs.items() if "material" in sd]
+    for m in members:
+        if m not in segs or "material" not in segs[m]:
+            raise CalibrationError(f"parameter 'viscosity:{m}': no segment {m!r} with a material "
+                                   f"(segments: {list(segs)})")
+    nominal = np.array([float(segs[m]["material"].get("viscosity", 0.0)) for m in members])
+    if np.any(nominal <= 0):
+        raise CalibrationError("damping: the starting viscosities must be > 0 (set them in the robot file)")
+    mech0 = mechanism_of(robot_dict, n_sections, base_dir)
+    check_recording_inputs(mech0, recording.inputs)         # the declared actuator ranges
+    sensors = _measuring(mech0, sensors)[0]
+
+    def with_visc(x):
+        d = copy.deepcopy(robot_dict)
+        dd = _segments_of(d)[0]
+        for m, v in zip(members, x):
+            dd[m]["material"]["viscosity"] = float(v)
+        return d
+
+    def fun(x):
+        mech = mechanism_of(with_visc(x * nominal), n_sections, base_dir)
+        pred = simulate_readings(mech, sensors, recording.time, recording.inputs, dt, joints=recording.joints)
+        res = []
+        for s in sensors:
+            for r in range(len(recording)):
+                z = recording.readings[s.name][r]
+                if not np.all(np.isfinite(z)):
+                    continue
+                if s.position_only:
+                    res.append((pred[s.name][r] - z) / s.sigma_position_m)
+                else:
+                    e_p = (pred[s.name][r][:3, 3] - z[:3, 3]) / s.sigma_position_m
+                    e_r = _log_so3(z[:3, :3].T @ pred[s.name][r][:3, :3]) / s.sigma_rotation_rad
+                    res.append(np.concatenate([e_p, e_r]))
+        return np.concatenate(res)
+
+    sol = least_squares(fun, np.ones(len(members)), jac="3-point", diff_step=1e-3, bounds=(1e-3, 1e3),
+                        verbose=verbose)
+    r = sol.fun
+    J = sol.jac / nominal                                 # d r / d eta
+    dof = max(len(r) - len(members), 1)
+    s2 = float(r @ r) / dof
+    Jx = J * nominal
+    cov = s2 * nominal[:, None] * np.linalg.pinv(Jx.T @ Jx) * nominal[None, :]
+    std = np.sqrt(np.diag(cov))
+    values = sol.x * nominal
+    return CalibrationResult(names=[f"viscosity:{m}" for m in members], nominal=nominal, values=values, std=std,
+                             ci95=student_t.ppf(0.975, dof) * std, residual_sigma=float(np.sqrt(s2)),
+                             n_residuals=len(r), iterations=int(sol.nfev), robot_dict=with_visc(values),
+                             sensors=sensors, payload_mass=0.0)
+
+
+def _log_so3(R):
+    from soft_twin_core.lie import log_so3
+    return log_so3(R)
+
+
+# ----------------------------------------------------------------------------
+# Command line: soft-twin-sim calibrate
+# ----------------------------------------------------------------------------
+
+def _expand(names, robot_dict):
+    out = []
+    for n in names:
+        if n == "youngs_modulus":
+            out += [f"youngs_modulus:{k}" for k, s in _segments_of(robot_dict)[0].items() if "material" in s]
+        elif n == "tendon_offset":
+            out += [f"tendon_offset:{name}" for name, a in _actuators_of(robot_dict).items()
+                    if a.get("type", "tendon") == "tendon" and a.get("routing", "straight") == "straight"]
+        else:
+            out.append(n)
+    return out

@@ -1,0 +1,613 @@
+"""State estimation of a robot from its sensors: an extended Kalman filter
+over the positions and velocities of every joint of the robot (the strains
+of the soft sections and the rigid joints alike), with the twin's dynamics
+as process model, for every :class:`mechanism.Mechanism` with a fixed base
+and no closed chain: a classic rod, a tree of members, a soft articulated
+arm.
+
+State ``x = [q (nv); v (nv); b (n_pos); w (k)]``:
+
+- b: the tracking offsets of the position-controlled joints (a real servo
+  stands off its command: gravity, friction, calibration), random walks of
+  density ``offset_walk``;
+- w: an unknown external wrench [N; N m] at the robot's tip frame
+  (:func:`mechanism.tip_frame`) in world axes, a dead load ``S w`` with a
+  selection S, random walk ``wrench_walk``: ``k = 1`` (``wrench="payload"``:
+  w is a mass [kg] at the tip, force ``w g``), 3 (force only,
+  ``"force"``), 6 (``"wrench"``) or 0 (None, the default).
+
+**Process model.** The twin's dynamics ``M a + tau(q, v) = effort +
+tau_act(q, u) + J_tip^T S w`` (``tau``: inertia, gravity, stiffness and
+damping of the soft sections and the joints) stepped by its theta
+integrator (:class:`integrators.ThetaIntegrator`, implicit Euler by
+default) with the inputs u (tension sensors' readings replace the commands
+of their actuators). A *position-controlled* joint is a servo towards
+``q_cmd + b``: its effort, evaluated at the start of each step, is the bias
+that holds the joint (its row of ``tau(q, v, 0)``: gravity, coupling,
+damping) plus ``m_j (w^2 (q_cmd + b_j - q_j) - 2 zeta w v_j)`` with
+``m_j = 1 / (M^-1)_jj``. With ``servo_hz`` given, ``w = 2 pi servo_hz``
+and ``zeta = servo_damping`` (a servo with lag); by default the twin's own
+position control: ``w = 1/dt``, ``zeta = 1/2`` (one implicit Euler step
+brings a lone joint onto its target), then the efforts are corrected (at
+most 3 times, by ``m_j dq / (theta dt^2)``) until the joints land on their
+targets at the end of the step despite the members' reaction. The joints'
+process noise stands for the servo's transient tracking error. An
+*effort-controlled* joint gets its commanded effort, a passive one none.
+
+The covariance goes through the linearisation of that model,
+
+    M da = -dF/dq dq - dF/dv dv + F_b db + J_tip^T S dw + B du
+
+with ``dF/dq = dtau/dq - d effort/dq`` plus the geometric stiffness of the
+tip load and the tendons (analytic: :func:`algorithms.rnea_derivatives`,
+:func:`kernels.tangent.static_tangent_pass`,
+:func:`forces.actuation_tangent_pass`), ``d effort_j/dq = dtau_j(q, v,
+0)/dq - m_j w^2 e_j`` (m_j held), ``F_b = d effort/db = m_j w^2`` on the
+joint's row, likewise in v, and ``B = d tau_act/du``
+(:func:`forces.actuation_matrix`); i.e. ``xdot = A x + G_u du``,
+discretised by the same theta method as the integrator:
+
+    Phi = (I - theta dt A)^-1 (I + (1 - theta) dt A),
+    Gamma_u = (I - theta dt A)^-1 dt G_u,
+    P <- Phi P Phi^T + Q dt + Gamma_u Sigma_u Gamma_u^T
+
+(at rest this is the exact Jacobian of the integrator's step; elsewhere it
+neglects the change of the linearisation over one step, O(dt)), with white
+process noise Q (separate densities for the rigid joints and the strains)
+and the input noise Sigma_u of the tension sensors.
+
+**Update** with the sensors' residuals and analytic Jacobians
+(:mod:`soft_twin_core.estimation.sensors`: poses and positions of frames and points of
+members, joint encoders, a base force/torque sensor): each reading is
+checked (shape, finite: else *rejected*), absent ones are *dropped*, each
+is gated by its normalised innovation squared ``NIS = e^T S^-1 e`` against
+the chi-square quantile ``gate_probability`` of its dimension (else
+*gated*) -- unless the same sensor was gated ``max_gated_run`` times in a
+row: then the filter, not the sensor, has drifted and the reading is taken
+(lock-out protection); the accepted ones make one joint update in Joseph
+form.
+
+Outputs: :attr:`q`, :attr:`v`, :meth:`joint_positions`, :meth:`frame_pose`
+and :meth:`frame_position_cov` (the tip: :meth:`tip_pose`,
+:meth:`tip_position_cov`), :meth:`member_backbone`, :meth:`wrench`,
+:meth:`payload_mass_kg`, :meth:`joint_offsets`, the innovation statistics
+of the last update (:class:`UpdateReport`) and the counters
+(:attr:`health`).
+"""
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from soft_twin_core.engine.forces import actuation_matrix, concat_loads, point_moment_arrays
+from soft_twin_core.engine.joint_kinds import FIXED, PRISMATIC, REVOLUTE, SOFT
+from soft_twin_core.estimation import sensors as sn
+
+WRENCH_DIMS = {None: 0, "payload": 1, "force": 3, "wrench": 6}
+
+
+@dataclass
+class UpdateReport:
+    """One measurement update: per sensor its innovation (``-e``) and NIS;
+    which were accepted, gated (outliers), dropped (absent) or rejected
+    (malformed: wrong shape, NaN; with the reason)."""
+    innovations: dict = field(default_factory=dict)
+    nis: dict = field(default_factory=dict)
+    accepted: list = field(default_factory=list)
+    gated: list = field(default_factory=list)
+    dropped: list = field(default_factory=list)
+    rejected: dict = field(default_factory=dict)
+
+    @property
+    def total_nis(self):
+        """NIS of the accepted measurements (sum) and its degrees of freedom."""
+        dof = sum(len(self.innovations[k]) for k in self.accepted)
+        return float(sum(self.nis[k] for k in self.accepted)), dof
+
+
+@dataclass
+class FilterHealth:
+    """Counters since the last reset."""
+    predictions: int = 0
+    updates: int = 0
+    accepted: int = 0
+    gated: int = 0
+    dropped: int = 0
+    rejected: int = 0
+    integrator_failures: int = 0
+    nis_sum: float = 0.0
+    nis_dof: int = 0
+
+    @property
+    def mean_nis_per_dof(self):
+        """Average NIS per measured degree of freedom (about 1 when the
+        filter is consistent)."""
+        return self.nis_sum / self.nis_dof if self.nis_dof else float("nan")
+
+
+
+class EKF:
+    """Extended Kalman filter of a robot (module docstring).
+
+    dt [s]: filter step; theta: integrator theta (1: implicit Euler,
+    L-stable: the corrections do not excite stiff modes); wrench: the
+    estimated tip load (None, "payload", "force", "wrench"); actuation
+    (tendon tensions N / pressures Pa, vector or dict), positions ({joint:
+    rad or m} of the position-controlled joints), efforts ({joint: N m or
+    N}): the nominal inputs; q_init: initial q (default: the static
+    equilibrium at the nominal inputs); sigma_joint0 [rad or m], sigma_q0
+    (strain units), sigma_v0 (per s), sigma_wrench0 ((N, N m)): initial
+    standard deviations; process_noise_joint ((rad, rad/s) per sqrt(s)):
+    white-noise densities on the rigid joints' positions (the servo's
+    tracking error) and velocities; process_noise_q, process_noise_v: on
+    the strains and their rates (process_noise_q: default 1.0 on a robot
+    with position-controlled joints, whose tracking errors drive the
+    members, else 0.2); wrench_walk ((N, N m) per sqrt(s)); servo_hz,
+    servo_damping: the position servo model (None: the twin's tracking);
+    sigma_offset0 [rad or m], offset_walk (per sqrt(s)): the joints'
+    tracking offsets; input_sigma: noise of the inputs without a tension
+    sensor (default 0); max_gated_run: consecutive gated readings of a
+    sensor after which the next is taken.
+    """
+
+    def __init__(self, mech, sensors, dt=0.01, *, theta=1.0, wrench=None, actuation=None, positions=None,
+                 efforts=None, q_init=None, sigma_joint0=0.05, sigma_q0=0.5, sigma_v0=1.0,
+                 sigma_wrench0=(1.0, 0.1), process_noise_joint=(0.05, 2.0), process_noise_q=None,
+                 process_noise_v=10.0, wrench_walk=(0.05, 0.005), servo_hz=None, servo_damping=1.0,
+                 sigma_offset0=0.05, offset_walk=0.01, input_sigma=0.0, gate_probability=0.999,
+                 max_gated_run=10):
+        from scipy.stats import chi2
+        from soft_twin_core.engine.forces import actuator_arrays
+        from soft_twin_core.engine.integrators import ThetaIntegrator
+        from soft_twin_core.engine.workspace import Workspace
+        from soft_twin_core.robot.mechanism import tip_frame
+        from soft_twin_core.solve.constrained import make_inputs, solve_equilibrium
+        tree = mech.tree
+        if not (isinstance(dt, (int, float)) and np.isfinite(dt) and dt > 0):
+            raise ValueError(f"dt: expected a positive step in s, got {dt!r}")
+        if not 0.0 < gate_probability < 1.0:
+            raise ValueError(f"gate_probability: expected a value in (0, 1), got {gate_probability!r}")
+        if wrench not in WRENCH_DIMS:
+            raise ValueError(f"wrench: expected None, 'payload', 'force' or 'wrench', got {wrench!r}")
+        _check_supported(mech)
+        if servo_hz is not None and not (servo_hz > 0 and servo_damping > 0):
+            raise ValueError("servo_hz and servo_damping must be > 0 (or servo_hz None: the twin's tracking)")
+        self.mech, self.tree = mech, tree
+        self.sensors, self._where = sn.check_sensors(mech, sensors)
+        self.by_name = {s.name: s for s in self.sensors}
+        self.dt, self.theta = float(dt), float(theta)
+        self.n = n = tree.nv
+        self.ws = Workspace(tree)
+        self._act = actuator_arrays(tree)
+        self._g = np.asarray(tree.gravity, dtype=float)
+        self._zero_g = np.zeros(3)
+        # --- the tip load: w, its selection S and where it acts ---
+        self.wrench_mode, self.k = wrench, WRENCH_DIMS[wrench]
+        self.tip = tip_frame(mech)
+        ref = mech.frame(self.tip)
+        self._tip_point = (int(ref.joint), float(ref.x))
+        if wrench == "payload":
+            if not np.linalg.norm(self._g) > 0:
+                raise ValueError("wrench: 'payload' needs gravity (the robot's gravity is zero)")
+            self.S = np.concatenate([self._g, np.zeros(3)])[:, None]    # w = mass [kg]: tip force m g
+        else:
+            self.S = np.eye(6)[:, :self.k]
+        # --- inputs ---
+        inp = make_inputs(mech, actuation, efforts, positions)
+        self.u_nominal = inp.u.copy()
+        self._effort_nominal = inp.effort.copy()
+        self._pos_joints = mech.joints_with("position")
+        self._pos_v = np.array([tree.idx_v[i] for i in self._pos_joints], dtype=np.int64)
+        self._q_cmd_nominal = inp.q_cmd.copy()
+        self._tendon = np.array([a.kind == "tendon" for a in mech.actuators], dtype=bool)
+        sig_u = np.full(len(mech.actuators), float(input_sigma))
+        for s in self.sensors:
+            if isinstance(s, sn.TensionSensor):
+                sig_u[self._where[s.name]] = s.sigma
+        self.sigma_u = sig_u
+        self._tracking = servo_hz is None
+        if servo_hz is None:               # deadbeat: the command is reached at the end of the step
+            self._w, self._zeta = 1.0 / self.dt, 0.5
+        else:
+            self._w, self._zeta = 2.0 * np.pi * float(servo_hz), float(servo_damping)
+        self._step_inputs = None
+        self._point_moments = any(a.tendon_model == "point_moment" for a in mech.actuators)
+        self._integrator = ThetaIntegrator(tree, Workspace(tree), self._act, lambda t: self._step_inputs,
+                                           self.dt, self.theta, 1e-9, 10, 4, False)
+        self.gate = {m: float(chi2.ppf(gate_probability, m)) for m in range(1, 7)}
+        self._gate_probability = gate_probability
+        self.max_gated_run = int(max_gated_run)
+        # --- noise ---
+        rigid = np.zeros(n, dtype=bool)
+        rigid[[tree.idx_v[i] for i in mech.rigid_joints]] = True
+        self.rigid = rigid
+        self.nb = nb = len(self._pos_v)
+        k = self.k
+        pj_q, pj_v = process_noise_joint
+        if process_noise_q is None:          # servoed joints drive the members with their tracking errors
+            process_noise_q = 1.0 if nb else 0.2
+        walk = np.array([wrench_walk[0]] * 3 + [wrench_walk[1]] * 3)[:k]
+        w0 = np.array([sigma_wrench0[0]] * 3 + [sigma_wrench0[1]] * 3)[:k]
+        if wrench == "payload":                            # in kg: the force levels over |g|
+            walk, w0 = walk / np.linalg.norm(self._g), w0 / np.linalg.norm(self._g)
+        self.Q = np.diag(np.concatenate([np.where(rigid, pj_q ** 2, process_noise_q ** 2),
+                                         np.where(rigid, pj_v ** 2, process_noise_v ** 2),
+                                         np.full(nb, offset_walk ** 2), walk ** 2]))
+        self._P0 = np.diag(np.concatenate([np.where(rigid, sigma_joint0 ** 2, sigma_q0 ** 2),
+                                           np.full(n, sigma_v0 ** 2), np.full(nb, sigma_offset0 ** 2), w0 ** 2]))
+        if q_init is None:
+            q_init = solve_equilibrium(mech, actuation, efforts, positions).q
+        self._q_init = tree.check_q(np.array(q_init, dtype=float)).copy()
+        self.reset()
+
+    # ------------------------------------------------------------------ state
+    def reset(self, q=None):
+        """Back to the initial estimate (or q), zero velocities, offsets and
+        wrench, the initial covariance and inputs, counters cleared."""
+        n = self.n
+        self.x = np.zeros(2 * n + self.nb + self.k)
+        self.x[:n] = self._q_init if q is None else self.tree.check_q(np.asarray(q, dtype=float))
+        self.P = self._P0.copy()
+        self.t = 0.0
+        self.a = np.zeros(n)
+        self.u = self.u_nominal.copy()
+        self.q_cmd = self._q_cmd_nominal.copy()
+        self.effort_cmd = self._effort_nominal.copy()
+        self.health = FilterHealth()
+        self.last_report = UpdateReport()
+        self._gated_run = {s.name: 0 for s in self.sensors}
+
+    @property
+    def q(self):
+        return self.x[:self.n]
+
+    @property
+    def v(self):
+        return self.x[self.n:2 * self.n]
+
+    @property
+    def offsets(self):
+        """Estimated tracking offsets (position - command) of the
+        position-controlled joints, in the order of ``mech.joints_with("position")``."""
+        return self.x[2 * self.n:2 * self.n + self.nb]
+
+    def joint_offsets(self):
+        """{position-controlled joint: (offset [rad or m], standard deviation)}."""
+        i0 = 2 * self.n
+        return {self.tree.joints[i].name: (float(self.x[i0 + k]), float(np.sqrt(self.P[i0 + k, i0 + k])))
+                for k, i in enumerate(self._pos_joints)}
+
+    def wrench(self):
+        """Estimated tip wrench [f; m] (6,), world axes (zeros where not estimated)."""
+        return self.S @ self.x[2 * self.n + self.nb:]
+
+    def wrench_std(self):
+        """Standard deviations (6,) of :meth:`wrench` (zeros where not estimated)."""
+        return np.abs(self.S) @ np.sqrt(np.diag(self.P)[2 * self.n + self.nb:])
+
+    def payload_mass_kg(self):
+        """Mass [kg] whose weight explains the estimated tip force, and its std."""
+        gn = np.linalg.norm(self._g)
+        if self.k == 0 or gn == 0:
+            return 0.0, float("inf")
+        i = 2 * self.n + self.nb
+        if self.wrench_mode == "payload":
+            return float(self.x[i]), float(np.sqrt(self.P[i, i]))
+        d = self._g / gn
+        Pf = self.P[i:i + 3, i:i + 3]
+        return float(self.wrench()[:3] @ d / gn), float(np.sqrt(d @ Pf @ d) / gn)
+
+    def set_inputs(self, actuation=None, positions=None, efforts=None):
+        """New inputs (each None: kept); ValueError naming a bad one."""
+        from soft_twin_core.solve.constrained import actuation_vector, joint_vector
+        if actuation is not None:
+            self.u = actuation_vector(self.mech, actuation)
+        if positions is not None:
+            cur = dict(zip([self.tree.joints[i].name for i in self._pos_joints], self.q_cmd))
+            if isinstance(positions, dict):
+                cur.update(positions)
+                positions = cur
+            self.q_cmd = joint_vector(self.mech, positions, "position", "position", "rad or m")
+        if efforts is not None:
+            eff = joint_vector(self.mech, efforts, "effort", "effort", "N m or N")
+            for k, i in enumerate(self.mech.joints_with("effort")):
+                self.effort_cmd[self.tree.idx_v[i]] = eff[k]
+
+    def joint_positions(self):
+        """{rigid joint: (position [rad or m], standard deviation)}."""
+        out = {}
+        for i in self.mech.rigid_joints:
+            k = self.tree.idx_v[i]
+            out[self.tree.joints[i].name] = (float(self.q[k]), float(np.sqrt(self.P[k, k])))
+        return out
+
+    def _point(self, frame):
+        ref = self.mech.frame(frame)
+        return int(ref.joint), float(ref.x)
+
+    def frame_pose(self, frame):
+        """World pose (4x4) of a named frame of the robot at the estimate."""
+        from soft_twin_core.engine import algorithms as alg
+        j, x = self._point(frame)
+        return alg.point_poses(self.tree, self.ws, self.q, [j], [x])[0].copy()
+
+    def frame_position_cov(self, frame):
+        """Covariance (3, 3) [m^2] of a frame's position, ``Jp P_qq Jp^T``."""
+        from soft_twin_core.engine import algorithms as alg
+        j, x = self._point(frame)
+        _, Jw = alg.point_jacobian(self.tree, self.ws, self.q, j, x, "world")
+        n = self.n
+        return Jw[:3] @ self.P[:n, :n] @ Jw[:3].T
+
+    def tip_pose(self):
+        """World pose (4x4) of the tip frame (:func:`mechanism.tip_frame`)."""
+        return self.frame_pose(self.tip)
+
+    def tip_position_cov(self):
+        """Covariance (3, 3) [m^2] of the tip frame's position."""
+        return self.frame_position_cov(self.tip)
+
+    def member_backbone(self, member, points_per_section=4):
+        """World poses (P, 4, 4) along a member at the estimate."""
+        from soft_twin_core.engine import algorithms as alg
+        m = self.mech.member(member)
+        path = self.tree.paths[m.path]
+        s = np.linspace(0.0, path.length, points_per_section * len(path.joints) + 1)
+        j, x = path.locate(s)
+        return alg.point_poses(self.tree, self.ws, self.q, j, x)
+
+    # ------------------------------------------------------------- prediction
+    def _tip_loads(self):
+        """LoadArrays of the estimated tip wrench (a dead load at the tip
+        frame) and of the point-moment tendons' follower moments at the
+        inputs (:func:`forces.point_moment_arrays`)."""
+        from soft_twin_core.engine.algorithms import make_loads
+        j, x = self._tip_point
+        tip = make_loads(self.tree, [j], [x], [self.wrench() if self.k else np.zeros(6)], [True])
+        return concat_loads(tip, point_moment_arrays(self.tree, self.u)) if len(self.u) else tip
+
+    def _servo(self, q, v):
+        """(effort (nv,), M) of the joints' servo model at (q, v)."""
+        from soft_twin_core.engine import algorithms as alg
+        effort = self.effort_cmd.copy()
+        M = alg.crba(self.tree, self.ws, q).copy()
+        if len(self._pos_v):
+            bias = alg.rnea(self.tree, self.ws, q, v, np.zeros(self.n)).copy()
+            j = self._pos_v
+            mjj = _servo_inertia(M, j)
+            effort[j] = bias[j] + mjj * (self._w ** 2 * (self.q_cmd + self.offsets - q[j]) - 2 * self._zeta * self._w * v[j])
+        return effort, M
+
+    def linearisation(self):
+        """(Phi, Gamma_u) of one step from the current state (module docstring), analytic."""
+        from soft_twin_core.engine import algorithms as alg
+        from soft_twin_core.engine.forces import actuation_tangent_pass
+        from soft_twin_core.engine.kernels import passes
+        from soft_twin_core.engine.kernels.tangent import static_tangent_pass
+        tree, ws, n, nb, k = self.tree, self.ws, self.n, self.nb, self.k
+        q, v = np.ascontiguousarray(self.q), np.ascontiguousarray(self.v)
+        dq, dv = alg.rnea_derivatives(tree, ws, q, v, self.a)          # inertia, gravity, K, D
+        dq, dv = dq.copy(), dv.copy()
+        passes.forward_pass(ws.m, ws.w, q, ws.zeros_v, ws.zeros_v, 0)
+        if k or self._point_moments:        # the geometric stiffness of the tip load and follower moments
+            loads = self._tip_loads()
+            passes.rnea_pass(ws.m, ws.w, loads, self._zero_g, np.empty(n), True)
+            static_tangent_pass(ws.m, ws.w, loads, self._zero_g, dq)
+        if len(self.u):
+            actuation_tangent_pass(ws.m, ws.w, self._act, np.ascontiguousarray(self._act.unit @ self.u), dq)
+        M = alg.crba(tree, ws, q).copy()
+        j = self._pos_v
+        Fb = np.zeros((n, nb))                                          # d effort / d offset
+        if len(j):
+            dq0, dv0 = alg.rnea_derivatives(tree, ws, q, v, np.zeros(n))
+            mjj = _servo_inertia(M, j)
+            dq[j] -= dq0[j]
+            dv[j] -= dv0[j]
+            dq[j, j] += mjj * self._w ** 2
+            dv[j, j] += mjj * 2 * self._zeta * self._w
+            Fb[j, np.arange(len(j))] = mjj * self._w ** 2
+        cols = [dq, dv, Fb]
+        if k:
+            _, Js = alg.point_jacobian(tree, ws, q, *self._tip_point, "world")
+            cols.append(Js.T @ self.S)                                  # generalised force per unit w
+        B = actuation_matrix(tree, ws, self._act, q) if len(self.u) else np.zeros((n, 0))
+        cols.append(B)
+        X = np.linalg.solve(M, np.hstack(cols))
+        N = 2 * n + nb + k
+        A = np.zeros((N, N))
+        A[:n, n:2 * n] = np.eye(n)
+        A[n:2 * n, :n] = -X[:, :n]
+        A[n:2 * n, n:2 * n] = -X[:, n:2 * n]
+        A[n:2 * n, 2 * n:] = X[:, 2 * n:N]
+        Gu = np.zeros((N, B.shape[1]))
+        Gu[n:2 * n] = X[:, N:]
+        h, th = self.dt, self.theta
+        L = np.eye(N) - th * h * A
+        return np.linalg.solve(L, np.eye(N) + (1.0 - th) * h * A), np.linalg.solve(L, h * Gu)
+
+    def predict(self, actuation=None, positions=None, efforts=None):
+        """Advance the estimate by dt (inputs as :meth:`set_inputs`; None:
+        the last ones). Returns True when the integrator step converged (else
+        the mean stays where it was, the covariance grows and the failure is
+        counted)."""
+        from soft_twin_core.robot.model import State
+        self.set_inputs(actuation, positions, efforts)
+        Phi, Gamma = self.linearisation()
+        n = self.n
+        q, v = self.q.copy(), self.v.copy()
+        effort, M = self._servo(q, v)
+        coef = np.ascontiguousarray(self._act.unit @ self.u) if self.u.size else np.zeros(len(self._act.joint))
+        loads = self._tip_loads()
+        j = self._pos_v
+        for _ in range(4):
+            self._step_inputs = (loads, self._g, coef, effort)
+            state = State(q.copy(), v.copy(), self.t)
+            ok = bool(self._integrator.step(state).converged)
+            if not (ok and len(j) and self._tracking):
+                break
+            # the twin's tracking: correct the efforts until the joints land on their commands
+            # (dq1 = theta h^2 d effort / m_j, the soft members free to bend)
+            err = self.q_cmd + self.offsets - state.q[j]
+            if np.abs(err).max() <= 1e-9:
+                break
+            effort = effort.copy()
+            effort[j] += _servo_inertia(M, j) * err / (self.theta * self.dt ** 2)
+        if ok:
+            self.a = (state.qdot - self.v) / self.dt
+            self.x[:n] = state.q
+            self.x[n:2 * n] = state.qdot
+        else:
+            self.health.integrator_failures += 1
+        self.P = Phi @ self.P @ Phi.T + self.Q * self.dt + (Gamma * self.sigma_u ** 2) @ Gamma.T
+        self.P = 0.5 * (self.P + self.P.T)
+        self.t += self.dt
+        self.health.predictions += 1
+        return ok
+
+    # ----------------------------------------------------------------- update
+    def update(self, measurements):
+        """Measurement update with ``{sensor name: reading}`` (see
+        :func:`sensors.measurement_vector`; None or absent: dropped; a
+        tension sensor's reading becomes the input of its actuator for the
+        next predictions). Unknown names raise ValueError. Returns the
+        :class:`UpdateReport`."""
+        for name in measurements:
+            if name not in self.by_name:
+                raise ValueError(f"measurements: unknown sensor {name!r}; configured: {list(self.by_name)}")
+        rep = UpdateReport()
+        n, N = self.n, len(self.x)
+        q = None
+        es, Hs, Rs = [], [], []
+        for sen in self.sensors:
+            z = measurements.get(sen.name)
+            tension = isinstance(sen, sn.TensionSensor)
+            if z is None:
+                if not tension:
+                    rep.dropped.append(sen.name)
+                continue
+            try:
+                z = sn.measurement_vector(sen, z)
+            except ValueError as err:
+                rep.rejected[sen.name] = str(err)
+                continue
+            if tension:
+                a = self._where[sen.name]
+                self.u[a] = max(float(z), 0.0) if self._tendon[a] else float(z)
+                continue
+            if q is None:
+                q = sn.forward(self.ws, self.q)
+            e, Hq = sn.residual_and_jacobian(self.ws, q, sen, self._where[sen.name], z)
+            H = np.zeros((len(e), N))
+            H[:, :n] = Hq
+            Rm = sen.noise_covariance()
+            if not gate_reading(rep, sen.name, e, H, Rm, self.P, self._gate(len(e)), self._gated_run,
+                                self.max_gated_run):
+                continue
+            es.append(e)
+            Hs.append(H)
+            Rs.append(Rm)
+        if es:
+            self.x, self.P = kalman_update(self.x, self.P, es, Hs, Rs)
+        tally_update(self.health, rep)
+        self.last_report = rep
+        return rep
+
+    def _gate(self, m):
+        g = self.gate.get(m)
+        if g is None:
+            from scipy.stats import chi2
+            g = self.gate[m] = float(chi2.ppf(self._gate_probability, m))
+        return g
+
+    def step(self, measurements, **inputs):
+        """predict(**inputs) then update(measurements); returns the UpdateReport."""
+        self.predict(**inputs)
+        return self.update(measurements)
+
+
+def _check_supported(mech):
+    """ValueError naming what the filter does not handle: closed chains, a
+    moving base, joints other than revolute, prismatic, fixed and soft,
+    other kinematic maps than the exponential."""
+    tree = mech.tree
+    if mech.constraints:
+        raise ValueError("EKF: robots with constraints (closed chains) are not supported")
+    bad = [j.name for j in tree.joints if j.kind not in (FIXED, REVOLUTE, PRISMATIC, SOFT)]
+    if bad or tree.nq != tree.nv or mech.base_motion != "fixed":
+        raise ValueError(f"EKF: only a fixed base with revolute, prismatic, fixed and soft joints is "
+                         f"supported (not {bad or mech.base_motion})")
+    if np.any(tree.arrays.kmap != 0):
+        raise ValueError("EKF: only exponential-map sections are supported (the process Jacobian uses "
+                         "algorithms.rnea_derivatives)")
+
+
+def _servo_inertia(M, j):
+    """The inertia a joint's effort meets at once, ``1 / (M^-1)_jj`` (the soft
+    members free to bend: less than M_jj), so that the servo model
+    accelerates the joint at the rate its gains say."""
+    return 1.0 / np.diag(np.linalg.inv(M))[j]
+
+
+def gate_reading(rep, name, e, H, Rm, P, gate, runs, max_run):
+    """The gate of one reading: its normalised
+    innovation squared ``NIS = e^T (H P H^T + R)^-1 e`` (e = h(x) - z) against
+    the chi-square quantile ``gate`` of its dimension -- unless the same
+    sensor was gated ``max_run`` times in a row (``runs``: {name: count}):
+    then the filter, not the sensor, has drifted and the reading is taken
+    (lock-out protection). A non-finite NIS is always gated. Records the
+    innovation, the NIS and the verdict in ``rep``; True: use the reading."""
+    Sm = H @ P @ H.T + Rm
+    nis = float(e @ np.linalg.solve(Sm, e))
+    rep.innovations[name] = -e
+    rep.nis[name] = nis
+    if not np.isfinite(nis) or (nis > gate and runs[name] < max_run):
+        rep.gated.append(name)
+        runs[name] += 1
+        return False
+    runs[name] = 0
+    rep.accepted.append(name)
+    return True
+
+
+def kalman_update(x, P, es, Hs, Rs):
+    """The EKF measurement update with the accepted sensors' residuals es
+    (e = h(x) - z), Jacobians Hs and noise covariances Rs stacked: gain
+    K = P H^T (H P H^T + R)^-1, x - K e, and the covariance in Joseph form
+    (I - K H) P (I - K H)^T + K R K^T, symmetrised. Returns (x, P)."""
+    e, H, Rm = np.concatenate(es), np.vstack(Hs), _block_diag(Rs)
+    PHt = P @ H.T
+    K = np.linalg.solve(H @ PHt + Rm, PHt.T).T
+    IKH = np.eye(len(x)) - K @ H
+    P = IKH @ P @ IKH.T + K @ Rm @ K.T
+    return x - K @ e, 0.5 * (P + P.T)
+
+
+def tally_update(health, rep):
+    """Add an update's report (NIS of the accepted sensors, counts of
+    accepted, gated, dropped and rejected readings) to the filter's health."""
+    if rep.accepted:
+        nis_sum, dof = rep.total_nis
+        health.nis_sum += nis_sum
+        health.nis_dof += dof
+    health.updates += 1
+    health.accepted += len(rep.accepted)
+    health.gated += len(rep.gated)
+    health.dropped += len(rep.dropped)
+    health.rejected += len(rep.rejected)
+
+
+def _block_diag(blocks):
+    n = sum(b.shape[0] for b in blocks)
+    out = np.zeros((n, n))
+    i = 0
+    for b in blocks:
+        m = b.shape[0]
+        out[i:i + m, i:i + m] = b
+        i += m
+    return out
+
+
+def nees(error, cov):
+    """Normalised estimation error squared ``e^T P^-1 e``."""
+    error = np.asarray(error, dtype=float)
+    return float(error @ np.linalg.solve(cov, error))

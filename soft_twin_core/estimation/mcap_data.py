@@ -1,0 +1,263 @@
+"""Calibration data from an MCAP recording (ROS 2 bag format): the
+actuation commands and the sensor readings of named topics, aligned in
+time, as a :class:`calibration.Recording` (the same fit as from CSV).
+
+Topics (all optional but the commands; decoded with ``mcap`` and
+``mcap-ros2-support``, messages read by attribute, no ROS import):
+
+- the commands, ``actuation_topic`` (default ``/soft_twin/actuation``,
+  soft_twin/ActuationCommand: ``names``, ``values``; a command naming some
+  actuators keeps the others, as the twin does; before the first one every
+  input is 0);
+- the estimator node's measurement topics under ``measurements_ns``
+  (default ``/soft_twin_estimator``): ``<ns>/measurements/poses``
+  (PoseArray, one pose per pose sensor in the sensors file's order),
+  ``<ns>/measurements/pose`` (PoseStamped, ``header.frame_id`` = sensor
+  name), ``<ns>/measurements/position`` (PointStamped, a marker's name);
+- per sensor a topic of its own (``topics={sensor: topic}``, e.g. a tip
+  tracker): PoseStamped, PoseWithCovarianceStamped, TransformStamped or
+  PointStamped (the position only, for a marker).
+
+Time of a message: its ``header.stamp`` (the sensor's clock), or the log
+time when the stamp is zero. Readings that are not finite, of the wrong
+length, or name an unknown sensor are skipped and counted (``skipped``).
+
+**Static sweep** (:func:`read_static_sweep`): the commands cut the time
+into holds of a constant input (a repeated identical command does not);
+each hold with readings gives one row: its input, and per sensor the mean
+of its readings from ``settle_s`` after the hold's start to its end (the
+arm has settled; default: the second half of each hold) -- position the
+arithmetic mean, rotation the mean rotation matrix projected onto SO(3).
+The time before the first command is a hold of zero input.
+
+**Time series** (:func:`read_time_series`, for damping): one row per
+reading time of the first sensor that has readings; the input held at that
+time (zero-order hold) and per sensor the reading nearest in time within
+``tolerance_s`` (else NaN: not seen).
+"""
+
+import numpy as np
+
+from soft_twin_core.estimation import sensors as sn
+from soft_twin_core.estimation.calibration import CalibrationError, Recording
+
+DEFAULT_ACTUATION_TOPIC = "/soft_twin/actuation"
+DEFAULT_MEASUREMENTS_NS = "/soft_twin_estimator"
+
+
+def is_mcap(path):
+    """True when the file starts with the MCAP magic bytes."""
+    try:
+        with open(path, "rb") as fh:
+            return fh.read(8) == b"\x89MCAP0\r\n"
+    except OSError:
+        return False
+
+
+def _time_ns(msg, log_time):
+    h = getattr(msg, "header", None)
+    st = getattr(h, "stamp", None)
+    if st is not None:
+        ns = int(st.sec) * 1_000_000_000 + int(st.nanosec)
+        if ns:
+            return ns
+    return int(log_time)
+
+
+def _iter(path, topics):
+    """(topic, time [ns], decoded message) of the topics, in log-time order."""
+    from soft_twin_core.files.mcap_salvage import read_decoded
+    # a recording cut short is read up to its last complete chunk, with a warning
+    return [(channel.topic, _time_ns(decoded, message.log_time), decoded)
+            for channel, message, decoded in read_decoded(path, list(topics), CalibrationError,
+                                                          what="data file")]
+
+
+def _pose_of(p):
+    """4x4 from a message pose-like (position + orientation), or ValueError."""
+    pos = np.array([p.position.x, p.position.y, p.position.z], dtype=float)
+    o = p.orientation
+    quat = np.array([o.x, o.y, o.z, o.w], dtype=float)
+    if not (np.all(np.isfinite(pos)) and np.all(np.isfinite(quat))):
+        raise ValueError("not finite")
+    if not np.linalg.norm(quat) > 1e-6:
+        raise ValueError("zero quaternion")
+    return sn.pose_from_position_quaternion(pos, quat)
+
+
+def _reading(sensor, msg):
+    """A reading of one sensor from a PoseStamped, PoseWithCovarianceStamped,
+    TransformStamped or PointStamped message (ValueError when unusable)."""
+    if hasattr(msg, "point"):
+        z = np.array([msg.point.x, msg.point.y, msg.point.z], dtype=float)
+        if not sensor.position_only:
+            raise ValueError(f"a point for pose sensor {sensor.name!r}")
+        return sn.measurement_vector(sensor, z)
+    if hasattr(msg, "transform"):
+        t = msg.transform
+        T = _pose_of(type("P", (), {"position": t.translation, "orientation": t.rotation}))
+    else:
+        pose = msg.pose.pose if hasattr(msg.pose, "pose") else msg.pose
+        T = _pose_of(pose)
+    return sn.measurement_vector(sensor, T[:3, 3] if sensor.position_only else T)
+
+
+def read_events(path, model, sensors, *, actuation_topic=DEFAULT_ACTUATION_TOPIC,
+                measurements_ns=DEFAULT_MEASUREMENTS_NS, topics=None):
+    """The commands and readings of a recording: (commands [(t_ns, u (n_act,))]
+    with the full input after each command, readings {sensor: [(t_ns,
+    reading)]}, skipped {reason: count}). Raises CalibrationError naming a
+    bad topic mapping or an empty recording."""
+    sensors = [s for s in sensors if isinstance(s, sn.PoseSensor)]
+    by_name = {s.name: s for s in sensors}
+    topics = dict(topics or {})
+    for name in topics:
+        if name not in by_name:
+            raise CalibrationError(f"--topic {name}=...: unknown sensor {name!r}; sensors: {list(by_name)}")
+    ns = "/" + measurements_ns.strip("/") if measurements_ns.strip("/") else ""
+    t_poses, t_pose, t_pos = f"{ns}/measurements/poses", f"{ns}/measurements/pose", f"{ns}/measurements/position"
+    own = {topic: name for name, topic in topics.items()}
+    events = _iter(path, {actuation_topic, t_poses, t_pose, t_pos, *own})
+    pose_sensors = [s for s in sensors if not s.position_only]
+    names = list(model.actuator_names)
+    u = np.zeros(len(names))
+    commands, readings = [], {s.name: [] for s in sensors}
+    skipped = {}
+
+    def skip(reason):
+        skipped[reason] = skipped.get(reason, 0) + 1
+
+    def take(sensor, t, msg):
+        try:
+            readings[sensor.name].append((t, _reading(sensor, msg)))
+        except (ValueError, AttributeError):
+            skip("bad_reading")
+
+    for topic, t, msg in events:
+        if topic == actuation_topic:
+            new = u.copy()
+            ok = len(msg.names) == len(msg.values)
+            for n, v in zip(msg.names, msg.values) if ok else ():
+                if n not in names or not np.isfinite(v):
+                    ok = False
+                    break
+                new[names.index(n)] = v
+            if not ok:
+                skip("bad_command")
+                continue
+            u = new
+            commands.append((t, u.copy()))
+        elif topic in own:
+            take(by_name[own[topic]], t, msg)
+        elif topic == t_poses:
+            if len(msg.poses) != len(pose_sensors):
+                skip("wrong_length")
+                continue
+            for s, p in zip(pose_sensors, msg.poses):
+                take(s, t, type("M", (), {"pose": p}))
+        else:
+            s = by_name.get(msg.header.frame_id)
+            if s is None or s.position_only != (topic == t_pos):
+                skip("unknown_sensor")
+                continue
+            take(s, t, msg)
+    if not commands:
+        raise CalibrationError(f"data file {path}: no actuation command on {actuation_topic!r}")
+    if not any(readings.values()):
+        raise CalibrationError(f"data file {path}: no sensor reading on {sorted({t_poses, t_pose, t_pos, *own})}")
+    return commands, readings, skipped
+
+
+def _mean_reading(zs):
+    zs = np.asarray(zs)
+    if zs.ndim == 2:                                  # positions (k, 3)
+        return zs.mean(axis=0)
+    T = np.eye(4)
+    T[:3, 3] = zs[:, :3, 3].mean(axis=0)
+    U, _, Vt = np.linalg.svd(zs[:, :3, :3].mean(axis=0))
+    T[:3, :3] = U @ np.diag([1.0, 1.0, np.linalg.det(U @ Vt)]) @ Vt
+    return T
+
+
+def _holds(commands, t_first):
+    """[(t_start, t_end, u)] of constant inputs (the first from t_first at u = 0)."""
+    out = []
+    u0 = np.zeros_like(commands[0][1])
+    start, u = min(t_first, commands[0][0]), u0
+    for t, v in commands:
+        if np.array_equal(v, u):
+            continue
+        if t > start:
+            out.append((start, t, u))
+        start, u = t, v
+    out.append((start, None, u))
+    return out
+
+
+def read_static_sweep(path, model, sensors, *, settle_s=None, **topic_args):
+    """A :class:`Recording` of a static sweep (module docstring) and a report
+    dict (holds, rows, readings averaged, skipped messages)."""
+    commands, readings, skipped = read_events(path, model, sensors, **topic_args)
+    sensors = [s for s in sensors if isinstance(s, sn.PoseSensor)]
+    if settle_s is not None and not (np.isfinite(settle_s) and settle_s >= 0):
+        raise CalibrationError(f"--settle must be >= 0 s, got {settle_s}")
+    t_first = min(t for r in readings.values() for t, _ in r)
+    t_last = max(t for r in readings.values() for t, _ in r)
+    holds = _holds(commands, t_first)
+    inputs, rows, times, averaged = [], {s.name: [] for s in sensors}, [], []
+    for start, end, u in holds:
+        end = t_last + 1 if end is None else end
+        settle = 0.5 * (end - start) if settle_s is None else settle_s * 1e9
+        lo = start + settle
+        got = {s.name: [z for t, z in readings[s.name] if lo <= t < end] for s in sensors}
+        if not any(got.values()):
+            continue
+        inputs.append(u)
+        times.append(1e-9 * (start - holds[0][0]))
+        for s in sensors:
+            z = got[s.name]
+            nan = np.full(3 if s.position_only else (4, 4), np.nan)
+            rows[s.name].append(_mean_reading(z) if z else nan)
+        averaged.append(sum(len(z) for z in got.values()))
+    if not inputs:
+        raise CalibrationError(f"data file {path}: no hold of the commands has readings after settling")
+    rec = Recording(np.array(inputs), {k: np.array(v) for k, v in rows.items()}, np.array(times))
+    report = {"holds": len(holds), "rows": len(inputs), "readings_averaged": int(sum(averaged)),
+              "skipped": skipped}
+    return rec, report
+
+
+def read_time_series(path, model, sensors, *, tolerance_s=None, **topic_args):
+    """A :class:`Recording` of a time series (module docstring) and a report."""
+    commands, readings, skipped = read_events(path, model, sensors, **topic_args)
+    sensors = [s for s in sensors if isinstance(s, sn.PoseSensor)]
+    lead = next(s for s in sensors if readings[s.name])
+    times = np.array([t for t, _ in readings[lead.name]], dtype=np.int64)
+    if len(times) > 1 and np.any(np.diff(times) <= 0):
+        keep = np.concatenate([[True], np.diff(times) > 0])
+        times = times[keep]
+    if tolerance_s is not None:
+        tol = tolerance_s * 1e9
+    else:                                          # half the lead sensor's sample period
+        tol = 0.5 * float(np.median(np.diff(times))) if len(times) > 1 else 0.0
+    ct = np.array([t for t, _ in commands], dtype=np.int64)
+    cu = np.array([u for _, u in commands])
+    inputs = []
+    for t in times:
+        k = np.searchsorted(ct, t, side="right") - 1
+        inputs.append(cu[k] if k >= 0 else np.zeros(cu.shape[1]))
+    rows = {}
+    for s in sensors:
+        st = np.array([t for t, _ in readings[s.name]], dtype=np.int64)
+        zs = [z for _, z in readings[s.name]]
+        out = []
+        for t in times:
+            nan = np.full(3 if s.position_only else (4, 4), np.nan)
+            if len(st) == 0:
+                out.append(nan)
+                continue
+            k = int(np.argmin(np.abs(st - t)))
+            out.append(zs[k] if abs(st[k] - t) <= tol else nan)
+        rows[s.name] = np.array(out)
+    rec = Recording(np.array(inputs), rows, 1e-9 * (times - times[0]))
+    return rec, {"rows": len(times), "commands": len(commands), "skipped": skipped}

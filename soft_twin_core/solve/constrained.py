@@ -1,0 +1,888 @@
+"""Statics and dynamics of soft articulated robots with joint control and
+constraints (closed chains, boundary conditions), on the multibody engine.
+
+Unknowns: the configuration q (statics) or the end-of-step velocity v1
+(dynamics), and the multipliers lambda: one per constraint row
+(:class:`mechanism.Constraint`) and one per position-controlled joint.
+
+* A constraint's multipliers are its reaction: the world wrench
+  ``W = C^T lambda`` on frame a at a's origin, and -W on frame b. They enter
+  the equations as dead point loads, so the engine's RNEA gives their
+  generalised force ``G^T lambda`` (G = C (J_a - J_b), J the world-axes point
+  Jacobians) and its static tangent includes d(G^T lambda)/dq at fixed W.
+* A position-controlled joint j has the row ``q_j - q_cmd = 0``; its
+  multiplier is the joint's effort (inverse dynamics, N m or N).
+
+Statics solves ``R(q) - G^T lambda = 0, Phi(q) = 0`` by Newton on the KKT
+system ``[[Kt, -G^T], [G, 0]]`` (Kt: the engine's analytic tangent). Dynamics
+takes the integrator's theta-method step (:mod:`integrators`) with the
+constraint forces at the intermediate state and ``Phi(q1) = 0`` at the end
+of the step (position level, no drift beyond the Newton tolerance); the
+Newton matrix is ``[[ (M + th h D + (th h)^2 Kt)/h, -G_t^T ], [th h G_1, 0]]``,
+dense (these mechanisms have tens to hundreds of dof).
+
+Rotation rows of a clamp use ``log(R_a R_b^T)`` whose derivative is
+``w_a - w_b`` at zero error: Newton's matrix is exact at the solution.
+"""
+
+from collections import namedtuple
+from dataclasses import dataclass
+
+import numpy as np
+
+from soft_twin_core._blas import one_blas_thread
+from soft_twin_core.engine.forces import (actuation_tangent_pass, actuator_arrays, check_member_loads,
+                                          concat_loads, gravity_of, load_arrays, point_moment_arrays)
+from soft_twin_core.engine.integrators import ThetaIntegrator, integrate_pass, residual_pass
+from soft_twin_core.engine.joint_kinds import FREE, PRISMATIC, REVOLUTE, SPHERICAL
+from soft_twin_core.engine.kernels import passes
+from soft_twin_core.engine.kernels.data import LoadArrays
+from soft_twin_core.engine.kernels.tangent import static_tangent_pass
+from soft_twin_core.engine.loads import Loads
+from soft_twin_core.engine.workspace import Workspace
+from soft_twin_core.errors import StaticsError
+from soft_twin_core.errors import StepError
+from soft_twin_core.lie import log_so3
+from soft_twin_core.solve import equilibrium as eq
+from soft_twin_core.solve.equilibrium import equilibrium_stability
+
+FrameLoad = namedtuple("FrameLoad", ["frame", "wrench", "axes"])
+FrameLoad.__doc__ = """A point wrench [fx, fy, fz, mx, my, mz] (N, N m) on a named frame of a
+mechanism, in ``axes`` "world" (dead load) or "body" (follower)."""
+FrameLoad.__new__.__defaults__ = ("world",)
+
+
+# ----------------------------------------------------------------------------
+# Inputs, checked once
+# ----------------------------------------------------------------------------
+
+@dataclass
+class Inputs:
+    """Checked inputs of a mechanism: actuation u (n_actuators,), efforts of
+    effort-controlled joints (nv,) [N m or N], position commands of the
+    position-controlled joints (n_pos,) [rad or m] (with velocity and
+    acceleration for dynamics; ``v_cmd`` None: not given), loads on paths and frames."""
+    u: np.ndarray
+    effort: np.ndarray
+    q_cmd: np.ndarray
+    v_cmd: np.ndarray
+    loads: LoadArrays
+    gravity: np.ndarray
+
+
+def actuation_vector(model, actuation):
+    """Inputs (n_actuators,) from a dict {name: value}, a sequence, or None.
+    Tendon tensions must be >= 0 N; every value finite."""
+    n = len(model.actuators)
+    if actuation is None:
+        return np.zeros(n)
+    if isinstance(actuation, dict):
+        u = np.zeros(n)
+        names = model.actuator_names
+        for k, v in actuation.items():
+            if k not in names:
+                raise ValueError(f"actuation: unknown actuator {k!r}; this robot has {list(names)}")
+            try:
+                u[names.index(k)] = float(v)
+            except (TypeError, ValueError):
+                raise ValueError(f"actuation: {k} = {v!r} is not a number") from None
+    else:
+        try:
+            u = np.asarray(actuation, dtype=float)
+        except (TypeError, ValueError):
+            raise ValueError(f"actuation: expected {n} numbers, got {actuation!r}") from None
+        if u.shape != (n,):
+            raise ValueError(f"actuation: expected {n} values (one per actuator {list(model.actuator_names)}), "
+                             f"got shape {u.shape}")
+    for a, val in zip(model.actuators, u):
+        if not np.isfinite(val):
+            raise ValueError(f"actuation: {a.name} = {val} is not finite")
+        if a.kind == "tendon" and val < 0:
+            raise ValueError(f"actuation: tendon {a.name} tension must be >= 0 N, got {val}")
+    return u
+
+
+def joint_vector(mech, values, mode, what, unit):
+    """Values (by joint name) of the joints of control ``mode`` -> array in the
+    order of ``mech.joints_with(mode)``; unknown names, NaN and positions
+    outside the limits raise ValueError naming the joint."""
+    idx = mech.joints_with(mode)
+    names = [mech.tree.joints[i].name for i in idx]
+    out = np.array([mech.tree.joints[i].q_ref for i in idx]) if what == "position" else np.zeros(len(idx))
+    if values is None:
+        return out
+    if not isinstance(values, dict):
+        v = np.asarray(values, dtype=float)
+        if v.shape != (len(idx),):
+            raise ValueError(f"{what}: expected {len(idx)} values (joints {names}), got shape {v.shape}")
+        values = dict(zip(names, v))
+    for k, v in values.items():
+        if k not in names:
+            allj = [j.name for j in mech.tree.joints if j.kind in (REVOLUTE, PRISMATIC)]
+            why = (f"joint {k!r} is not {mode}-controlled" if k in allj else f"unknown joint {k!r}")
+            raise ValueError(f"{what}: {why}; the {mode}-controlled joints are {names}")
+        try:
+            v = float(v)
+        except (TypeError, ValueError):
+            raise ValueError(f"{what}: {k} = {v!r} is not a number") from None
+        if not np.isfinite(v):
+            raise ValueError(f"{what}: {k} = {v} is not finite")
+        j = mech.tree.joints[idx[names.index(k)]]
+        if what == "position" and j.limits is not None and not j.limits[0] <= v <= j.limits[1]:
+            raise ValueError(f"{what}: {k} = {v} {unit} lies outside the joint limits {list(j.limits)}")
+        out[names.index(k)] = v
+    return out
+
+
+def frame_loads(mech, point_loads):
+    """LoadArrays of FrameLoads (ValueError naming an unknown frame or a bad wrench)."""
+    J, X, W, F = [], [], [], []
+    for k, pl in enumerate(point_loads):
+        fl = pl if isinstance(pl, FrameLoad) else FrameLoad(*pl)
+        try:
+            ref = mech.frame(fl.frame)
+        except KeyError as e:
+            raise ValueError(f"point_loads[{k}].frame: {e.args[0]}") from None
+        w = np.asarray(fl.wrench, dtype=float)
+        if w.shape != (6,) or not np.all(np.isfinite(w)):
+            raise ValueError(f"point_loads[{k}].wrench: expected 6 finite numbers [f; m], got {fl.wrench!r}")
+        if fl.axes not in ("world", "body"):
+            raise ValueError(f"point_loads[{k}].axes: expected 'world' or 'body', got {fl.axes!r}")
+        J.append(ref.joint)
+        X.append(ref.x)
+        W.append(w)
+        F.append(fl.axes == "world")
+    return LoadArrays(np.array(J, np.int64), np.array(X, float), np.array(W, float).reshape(-1, 6),
+                      np.array(F, np.bool_))
+
+
+def make_inputs(mech, actuation=None, efforts=None, positions=None, velocities=None, loads=None,
+                point_loads=(), path=None):
+    """Check every input of a mechanism once (ValueError naming the bad one)."""
+    tree = mech.tree
+    u = actuation_vector(mech, actuation)
+    eff = joint_vector(mech, efforts, "effort", "effort", "N m or N")
+    effort = np.zeros(tree.nv)
+    for k, i in enumerate(mech.joints_with("effort")):
+        effort[tree.idx_v[i]] = eff[k]
+    q_cmd = joint_vector(mech, positions, "position", "position", "rad or m")
+    v_cmd = None
+    if velocities is not None:
+        v_cmd = joint_vector(mech, velocities, "position", "velocity", "rad/s or m/s") if isinstance(
+            velocities, dict) else np.asarray(velocities, float)
+        if v_cmd.shape != q_cmd.shape or not np.all(np.isfinite(v_cmd)):
+            raise ValueError(f"velocities: expected {len(q_cmd)} finite values (the position-controlled joints)")
+    loads = Loads() if loads is None else loads
+    check_member_loads(tree, loads)
+    ld = concat_loads(load_arrays(tree, loads, u, path) if tree.paths else   # with point-moment tendons at u
+                       frame_loads(mech, ()), frame_loads(mech, point_loads))
+    return Inputs(u, effort, q_cmd, v_cmd, ld, gravity_of(tree, loads))
+
+
+def assemble_inputs(mech, u, efforts, positions, velocities=None, point_loads=()):
+    """:class:`Inputs` of values checked at the door (the node's parse
+    functions, :func:`make_inputs`), without checking them again: ``u``
+    (n_actuators,), ``efforts`` and ``positions`` {joint: value} of the
+    effort- and position-controlled joints (the others at 0 and at their
+    reference), ``velocities`` {joint: value} or None, ``point_loads``
+    (FrameLoad on existing frames), the point-moment tendons' follower
+    moments at u. Gravity on, no path loads."""
+    tree = mech.tree
+    effort = np.zeros(tree.nv)
+    for i in mech.joints_with("effort"):
+        effort[tree.idx_v[i]] = efforts.get(tree.joints[i].name, 0.0)
+    pos = mech.joints_with("position")
+    q_cmd = np.array([positions.get(tree.joints[i].name, tree.joints[i].q_ref) for i in pos], dtype=float)
+    v_cmd = None if velocities is None else np.array([velocities.get(tree.joints[i].name, 0.0) for i in pos],
+                                                     dtype=float)
+    u = np.asarray(u, dtype=float)
+    return Inputs(u, effort, q_cmd, v_cmd, concat_loads(_checked_frame_loads(mech, point_loads),
+                                                         point_moment_arrays(tree, u)),
+                  np.asarray(tree.gravity, dtype=float))
+
+
+def _checked_frame_loads(mech, point_loads):
+    if not point_loads:
+        return LoadArrays(np.zeros(0, np.int64), np.zeros(0), np.zeros((0, 6)), np.zeros(0, np.bool_))
+    return frame_loads(mech, point_loads)
+
+
+# ----------------------------------------------------------------------------
+# Constraint rows
+# ----------------------------------------------------------------------------
+
+def _constraint_points(mech):
+    """(joint, x) arrays of the constraints' frames a and b, in order (cached)."""
+    pts = mech.__dict__.get("_constraint_points")
+    if pts is None:
+        refs = [r for c in mech.constraints for r in (c.a, c.b)]
+        pts = (np.array([r.joint for r in refs], np.int64), np.array([r.x for r in refs], float))
+        object.__setattr__(mech, "_constraint_points", pts)
+    return pts
+
+
+def constraint_rows(mech, ws, q, targets=None, q_cmd=None):
+    """(Phi (m,), G (m, nv)) of all constraints and motion rows at q:
+    constraint values in world axes [m, rad] and their Jacobian (exact for
+    positions, and for rotations at zero error). ``targets``: world target
+    poses of the constraints to the world (default their own)."""
+    from soft_twin_core.engine.kernels.frames import world_point_jacobians
+    tree = mech.tree
+    blocks_phi, blocks_G = [], []
+    if mech.constraints:
+        joint, x = _constraint_points(mech)
+        g = np.empty((len(joint), 4, 4))
+        J = np.empty((len(joint), 6, tree.nv))
+        passes.forward_pass(ws.m, ws.w, np.ascontiguousarray(q, float), ws.zeros_v, ws.zeros_v, 0)
+        world_point_jacobians(ws.m, ws.w, joint, x, g, J)
+    for k, c in enumerate(mech.constraints):
+        ga, Ja = g[2 * k], J[2 * k]
+        if c.b.joint < 0:
+            gb = c.target if targets is None or targets[k] is None else targets[k]
+            Jb = J[2 * k + 1]                  # zeros
+        else:
+            gb, Jb = g[2 * k + 1], J[2 * k + 1]
+        dp = ga[:3, 3] - gb[:3, 3]
+        Jd = Ja - Jb
+        C = c.rows()
+        if c.kind == "clamped":
+            blocks_phi.append(np.concatenate([dp, log_so3(ga[:3, :3] @ gb[:3, :3].T)]))
+            blocks_G.append(Jd)
+        else:
+            blocks_phi.append(C[:, :3] @ dp)
+            blocks_G.append(C @ Jd)
+    pos = mech.joints_with("position")
+    if pos:
+        E = np.zeros((len(pos), tree.nv))
+        phi = np.zeros(len(pos))
+        for k, i in enumerate(pos):
+            E[k, tree.idx_v[i]] = 1.0
+            phi[k] = q[tree.idx_q[i]] - (q_cmd[k] if q_cmd is not None else tree.joints[i].q_ref)
+        blocks_phi.append(phi)
+        blocks_G.append(E)
+    if not blocks_phi:
+        return np.zeros(0), np.zeros((0, tree.nv))
+    return np.concatenate(blocks_phi), np.vstack(blocks_G)
+
+
+def constraint_loads(mech, lam):
+    """LoadArrays of the constraint reactions: C^T lambda on a, its opposite on b
+    (dead world wrenches at the frames' origins)."""
+    J, X, W = [], [], []
+    r = 0
+    for c in mech.constraints:
+        w = c.rows().T @ lam[r:r + c.size]
+        r += c.size
+        J.append(c.a.joint)
+        X.append(c.a.x)
+        W.append(w)
+        if c.b.joint >= 0:
+            J.append(c.b.joint)
+            X.append(c.b.x)
+            W.append(-w)
+    return LoadArrays(np.array(J, np.int64), np.array(X, float), np.array(W, float).reshape(-1, 6),
+                      np.ones(len(J), np.bool_))
+
+
+def constraint_wrenches(mech, lam):
+    """{name: world wrench [f; m] (6,) the constraint exerts on its frame a, at a's origin}."""
+    out, r = {}, 0
+    for c in mech.constraints:
+        out[c.name] = c.rows().T @ lam[r:r + c.size]
+        r += c.size
+    return out
+
+
+def _efforts_out(mech, lam, inp):
+    """{joint name: effort} of the 1-dof rigid joints: inputs of the
+    effort-controlled, multipliers of the position-controlled, 0 passive."""
+    tree = mech.tree
+    out = {}
+    npos = len(mech.joints_with("position"))
+    lam_pos = lam[len(lam) - npos:] if npos else np.zeros(0)
+    pos = mech.joints_with("position")
+    for i in mech.rigid_joints:
+        j = tree.joints[i]
+        if i in pos:
+            out[j.name] = float(lam_pos[pos.index(i)])
+        else:
+            out[j.name] = float(inp.effort[tree.idx_v[i]])
+    return out
+
+
+# ----------------------------------------------------------------------------
+# The equilibrium problem
+# ----------------------------------------------------------------------------
+
+def _dense_blocks(tree):
+    """Joint-space stiffness and damping matrices (nv, nv) of the tree."""
+    K = np.zeros((tree.nv, tree.nv))
+    D = np.zeros((tree.nv, tree.nv))
+    a = tree.arrays
+    for i in range(tree.n_joints):
+        n, iv = a.nv[i], a.iv[i]
+        K[iv:iv + n, iv:iv + n] = a.Kb[i, :n, :n]
+        D[iv:iv + n, iv:iv + n] = a.Db[i, :n, :n]
+    return K, D
+
+
+def _cached(mech, key, make):
+    v = mech.__dict__.get(key)
+    if v is None:
+        v = make()
+        object.__setattr__(mech, key, v)
+    return v
+
+
+class _Equilibrium:
+    """R(q, lambda) and Phi(q) of a mechanism under fixed inputs, with the
+    analytic Newton matrix."""
+
+    def __init__(self, mech, inp, targets=None):
+        self.mech, self.inp, self.targets = mech, inp, targets
+        tree = mech.tree
+        self.tree = tree
+        self.ws = Workspace(tree)
+        self.act = _cached(mech, "_act_arrays", lambda: actuator_arrays(tree))
+        self.K, _ = _cached(mech, "_dense_KD", lambda: _dense_blocks(tree))
+        self.coef = (np.ascontiguousarray(self.act.unit @ inp.u) if inp.u.size
+                     else np.zeros(len(self.act.joint)))
+        self.zeros = np.zeros(tree.nv)
+        self.npos = len(mech.joints_with("position"))
+        self.pos_v = np.array([tree.idx_v[i] for i in mech.joints_with("position")], dtype=np.int64)
+
+    def loads(self, lam):
+        return concat_loads(self.inp.loads, constraint_loads(self.mech, lam))
+
+    def effort(self, lam):
+        e = self.inp.effort.copy()
+        if self.npos:
+            e[self.pos_v] += lam[len(lam) - self.npos:]
+        return e
+
+    def residual(self, q, lam):
+        out = np.empty(self.tree.nv)
+        residual_pass(self.ws.m, self.ws.w, self.act, self.loads(lam), self.inp.gravity, self.coef,
+                      self.effort(lam), np.ascontiguousarray(q, float), self.zeros, self.zeros, out, True)
+        phi, G = constraint_rows(self.mech, self.ws, q, self.targets, self.inp.q_cmd)
+        return out, phi, G
+
+    def tangent(self, q, lam):
+        m, w = self.ws.m, self.ws.w
+        q = np.ascontiguousarray(q, float)
+        ld = self.loads(lam)
+        passes.forward_pass(m, w, q, self.zeros, self.zeros, 0)
+        passes.rnea_pass(m, w, ld, self.inp.gravity, np.empty(self.tree.nv), True)
+        Kt = self.K.copy()
+        static_tangent_pass(m, w, ld, self.inp.gravity, Kt)
+        actuation_tangent_pass(m, w, self.act, self.coef, Kt)
+        return Kt
+
+
+@dataclass
+class Equilibrium:
+    """A static equilibrium of a mechanism: q; multipliers lam; joint_efforts
+    {name: N m or N}; constraint_wrenches {name: world [f; m] on frame a};
+    iterations; residual (relative); constraint_error (max |Phi|, m or rad);
+    stable and :attr:`min_stiffness_eigenvalue` (see
+    :func:`equilibrium_stability`)."""
+    q: np.ndarray
+    lam: np.ndarray
+    joint_efforts: dict
+    constraint_wrenches: dict
+    iterations: int
+    residual: float
+    constraint_error: float
+    load_steps: int = 1
+    inputs: Inputs = None
+    stable: bool = True                 # see equilibrium_stability
+    lowest_eigenvalue: float = float("nan")     # when the solve computed it (else: min_stiffness_eigenvalue)
+    tangent: object = None              # without constraints: the last Newton tangent (a tangent_hint)
+    stability_tangent: object = None    # the tangent the stability was judged on, if its eigenvalue is not known
+
+    @property
+    def min_stiffness_eigenvalue(self):
+        """The smallest eigenvalue of the (reduced) stiffness, nan when the
+        stability was not judged; without constraints it is computed at
+        first use (an O(n^3) eigen-solve the solve itself does without: a
+        Cholesky factorisation decides the stability)."""
+        if np.isnan(self.lowest_eigenvalue) and self.stability_tangent is not None:
+            self.lowest_eigenvalue = equilibrium_stability(self.stability_tangent)[1]
+        return self.lowest_eigenvalue
+
+
+def independent_rows(G, rtol=1e-10):
+    """Indices of a maximal set of linearly independent rows of G (QR with
+    column pivoting of G^T): redundant constraints (a planar loop closed by
+    a 3-D pin) are left out; their multipliers stay as they are."""
+    from scipy.linalg import qr
+    if G.shape[0] == 0:
+        return np.zeros(0, dtype=np.int64)
+    Gs = G / np.maximum(np.abs(G).max(axis=1, keepdims=True), 1e-300)
+    _, Rq, piv = qr(Gs.T, mode="economic", pivoting=True)
+    d = np.abs(np.diag(Rq))
+    r = int(np.sum(d > rtol * max(d.max(initial=0.0), 1e-300)))
+    return np.sort(piv[:r])
+
+
+def factor_kkt(A, G_force, G_cons, rows=None):
+    """LU factors of ``[[A, -G_force^T], [G_cons, 0]]`` over the independent
+    rows of G_cons (``rows``: those rows if known), for :func:`solve_factored`."""
+    from scipy.linalg import lu_factor
+    n = A.shape[0]
+    rows = independent_rows(G_cons) if rows is None else rows
+    m = len(rows)
+    K = np.zeros((n + m, n + m))
+    K[:n, :n] = A
+    K[:n, n:] = -G_force[rows].T
+    K[n:, :n] = G_cons[rows]
+    lu = lu_factor(K, check_finite=False)
+    if not np.all(np.isfinite(lu[0])) or np.min(np.abs(np.diag(lu[0])), initial=np.inf) == 0.0:
+        raise np.linalg.LinAlgError("singular Newton matrix")
+    return lu, rows, n, G_cons.shape[0]
+
+
+def solve_factored(fac, R, phi):
+    """(dx, dlam) of the system of :func:`factor_kkt` for the right-hand side
+    [-R; -phi] (dlam = 0 on redundant rows)."""
+    from scipy.linalg import lu_solve
+    lu, rows, n, mall = fac
+    x = lu_solve(lu, -np.concatenate([R, phi[rows]]), check_finite=False)
+    dl = np.zeros(mall)
+    dl[rows] = x[n:]
+    return x[:n], dl
+
+
+def solve_kkt(A, G_force, G_cons, R, phi, rows=None):
+    """(dx, dlam) of ``[[A, -G_force^T], [G_cons, 0]] [dx; dlam] = [-R; -phi]``
+    over the independent rows of G_cons (dlam = 0 on the redundant ones;
+    ``rows``: those rows if known)."""
+    return solve_factored(factor_kkt(A, G_force, G_cons, rows), R, phi)
+
+
+def _check_statics_model(mech):
+    """ValueError, in the robot file's words, for what statics cannot hold:
+    a prescribed or floating base, spherical or free joints."""
+    tree = mech.tree
+    motion = getattr(mech, "base_motion", "fixed")
+    if motion == "prescribed":
+        raise ValueError("statics: the base is prescribed (base.motion: prescribed: it follows a trajectory, "
+                         "held by the constraint 'base'), and statics has no moving base: set base.motion: "
+                         "fixed with the base pose to solve for (base.position, base.rpy), or run the dynamics")
+    if motion == "floating":
+        raise ValueError("statics: the base is floating (base.motion: floating): a free body has no static "
+                         "equilibrium under gravity unless held; clamp it (base.motion: fixed) or run the "
+                         "dynamics to let it settle")
+    for j in tree.joints:
+        if j.kind in (SPHERICAL, FREE):
+            raise ValueError(f"statics: joint {j.name!r} is {'spherical' if j.kind == SPHERICAL else 'free'}; "
+                             f"statics needs joints with nq = nv (soft, revolute, prismatic, fixed): "
+                             f"use the dynamics to let it settle")
+
+
+def _length_scale(mech):
+    L = sum(p.length for p in mech.tree.paths)
+    return max(L, 1e-3)
+
+
+def gap_force_scale(k_max, phi, length):
+    """The generalised force it takes to close the constraint violation
+    ``phi`` [m, rad] of a chain of length ``length``: the largest stiffness
+    times the strain the gap implies, ``k_max |phi|_max / length``. A scale
+    for the residuals that is not zero when nothing is loaded but a chain is
+    open (an unloaded closed chain with a 1 mm gap had a scale of 1e-300 and
+    its merit function overflowed)."""
+    return k_max * np.abs(phi).max(initial=0) / length
+
+
+def _kkt_newton(pb, q, lam, tol, max_iterations):
+    """Newton with backtracking on the KKT system; (q, lam, it, ok, R, phi)."""
+    nv = pb.tree.nv
+    Ls = _length_scale(pb.mech)
+    R, phi, G = pb.residual(q, lam)
+    Kq = pb.K @ (q - pb.tree.q0)
+    k_max = np.abs(pb.K).max(initial=0)
+
+    def scale_of(R):
+        return max(np.abs(Kq).max(initial=0), np.abs(R).max(initial=0), np.abs(pb.inp.effort).max(initial=0),
+                   np.abs(lam).max(initial=0) * Ls, gap_force_scale(k_max, phi, Ls), 1e-300)
+
+    def merit(R, phi, sc):
+        return np.sqrt(np.sum((R / sc) ** 2) + np.sum((phi / Ls) ** 2))
+
+    sc = scale_of(R)
+    for it in range(1, max_iterations + 1):
+        r_ok = np.abs(R).max(initial=0) <= tol * sc + 64 * np.finfo(float).eps * np.abs(Kq).max(initial=0)
+        if r_ok and np.abs(phi).max(initial=0) <= tol * Ls:
+            return q, lam, it - 1, True, R, phi, sc
+        Kt = pb.tangent(q, lam)
+        try:
+            dq, dl = solve_kkt(Kt, G, G, R, phi)
+        except np.linalg.LinAlgError:
+            return q, lam, it, False, R, phi, sc
+        f0 = merit(R, phi, sc)
+        step = 1.0
+        for _ in range(30):
+            q_t, l_t = q + step * dq, lam + step * dl
+            R_t, phi_t, G_t = pb.residual(q_t, l_t)
+            if np.all(np.isfinite(R_t)) and merit(R_t, phi_t, sc) < (1 - 1e-4 * step) * f0:
+                break
+            step *= 0.5
+        else:
+            return q, lam, it, False, R, phi, sc
+        q, lam, R, phi, G = q_t, l_t, R_t, phi_t, G_t
+        Kq = pb.K @ (q - pb.tree.q0)
+        sc = max(sc, scale_of(R))
+    return q, lam, max_iterations, False, R, phi, sc
+
+
+def solve_equilibrium(mech, actuation=None, efforts=None, positions=None, loads=None, point_loads=(),
+                      q_init=None, *, targets=None, tol=1e-10, max_iterations=50, max_load_steps=64,
+                      check_stability=True, tangent_hint=None, inputs=None):
+    """Static equilibrium of a mechanism under actuation (tendon tensions N,
+    chamber pressures Pa), joint efforts {joint: N m or N} of effort-controlled
+    joints, positions {joint: rad or m} of position-controlled joints (default
+    their reference), loads (:class:`loads.Loads` on the first path, gravity
+    switch) and point_loads (FrameLoad on named frames); constraints hold.
+    If Newton fails from q_init, the inputs are applied in increasing
+    fractions (continuation). Raises StaticsError if it cannot converge.
+    ``check_stability``: judge the equilibrium found (``stable``,
+    ``min_stiffness_eigenvalue``: :func:`equilibrium_stability`); an
+    unstable one is returned, flagged (a column past its buckling load
+    still has its straight equilibrium). A mechanism without constraint
+    rows or position-controlled joints (a classic rod, a tree of soft
+    members and effort-controlled or passive joints) is solved by
+    :func:`equilibrium.solve`: compiled Newton, the loaded path preferred
+    to an unstable equilibrium, and ``tangent_hint`` (a previous result's
+    ``tangent``) to skip the first tangents. ``inputs``: :class:`Inputs`
+    already checked (:func:`make_inputs`, :func:`assemble_inputs`) instead
+    of the input arguments."""
+    _check_statics_model(mech)
+    inp = inputs if inputs is not None else make_inputs(mech, actuation, efforts, positions, None, loads, point_loads)
+    tree = mech.tree
+    q = tree.q0.copy() if q_init is None else tree.check_q(np.array(q_init, dtype=float), "q_init").copy()
+    m = mech.n_constraint_rows + len(mech.joints_with("position"))
+    lam = np.zeros(m)
+    if m == 0:
+        return _free_equilibrium(mech, inp, q, tol, max_iterations, max_load_steps, check_stability, tangent_hint)
+    with one_blas_thread():
+        pb = _Equilibrium(mech, inp, targets)
+        q1, lam1, it, ok, R, phi, sc = _kkt_newton(pb, q, lam, tol, max_iterations)
+        steps, total = 1, it
+        if not ok:
+            q1, lam1, total, steps, R, phi, sc = _continuation(mech, inp, targets, q, lam, tol, max_iterations,
+                                                               max_load_steps, total)
+        stable, lo = True, float("nan")
+        if check_stability:
+            pb = _Equilibrium(mech, inp, targets)
+            _, _, G = pb.residual(q1, lam1)
+            stable, lo = equilibrium_stability(pb.tangent(q1, lam1), G)
+    return Equilibrium(q1.copy(), lam1.copy(), _efforts_out(mech, lam1, inp), constraint_wrenches(mech, lam1),
+                       total, float(np.abs(R).max(initial=0) / sc), float(np.abs(phi).max(initial=0)), steps,
+                       inp, stable, lo)
+
+
+def free_problem(mech, inp):
+    """The compiled equilibrium problem (:class:`equilibrium.Problem`:
+    residual, analytic tangent, Newton) of a mechanism without multipliers
+    under checked inputs ``inp`` (:class:`Inputs`)."""
+    tree = mech.tree
+    act = _cached(mech, "_act_arrays", lambda: actuator_arrays(tree))
+    K, _ = _cached(mech, "_dense_KD", lambda: _dense_blocks(tree))
+    coef = np.ascontiguousarray(act.unit @ inp.u) if inp.u.size else np.zeros(len(act.joint))
+    return eq.Problem(tree, act, K, inp.loads, inp.gravity, coef, inp.effort)
+
+
+def _free_equilibrium(mech, inp, q, tol, max_iterations, max_load_steps, check_stability, tangent_hint):
+    """:func:`solve_equilibrium` without multipliers: :func:`equilibrium.solve`."""
+    with one_blas_thread():
+        pb = free_problem(mech, inp)
+        sol = eq.solve(pb, q, tol=tol, max_iterations=max_iterations, max_load_steps=max_load_steps,
+                       check_stability=check_stability, tangent_hint=tangent_hint)
+    lam = np.zeros(0)
+    return Equilibrium(sol.q.copy(), lam, _efforts_out(mech, lam, inp), {}, sol.iterations,
+                       float(np.abs(sol.R).max(initial=0) / eq.force_scale(pb, sol.q, sol.R)), 0.0, sol.load_steps,
+                       inp, sol.stable, sol.min_stiffness_eigenvalue, sol.tangent,
+                       sol.tangent if check_stability and sol.stable else None)
+
+
+def _scaled_inputs(mech, inp, t, q_start):
+    pos = mech.joints_with("position")
+    q_from = np.array([q_start[mech.tree.idx_q[i]] for i in pos])
+    ld = inp.loads
+    return Inputs(t * inp.u, t * inp.effort, q_from + t * (inp.q_cmd - q_from), inp.v_cmd,
+                  LoadArrays(ld.joint, ld.x, t * ld.wrench, ld.world), t * inp.gravity)
+
+
+def _continuation(mech, inp, targets, q, lam, tol, max_iterations, max_load_steps, total):
+    t, dt, steps = 0.0, 0.25, 0
+    q_c, l_c = q.copy(), lam.copy()
+    while t < 1.0:
+        target = min(1.0, t + dt)
+        pb = _Equilibrium(mech, _scaled_inputs(mech, inp, target, q), targets)
+        q_t, l_t, it, ok, R, phi, sc = _kkt_newton(pb, q_c, l_c, tol, max_iterations)
+        total += it
+        steps += 1
+        if ok:
+            t, q_c, l_c = target, q_t, l_t
+            dt = min(2 * dt, 1.0)
+        else:
+            dt *= 0.5
+            if dt < 1.0 / max_load_steps / 64 or steps > 4 * max_load_steps:
+                raise StaticsError(f"statics did not converge: reached load fraction {t:.4f}; the loads, "
+                                   f"commands or constraints may be incompatible")
+    return q_c, l_c, total, steps, R, phi, sc
+
+
+# ----------------------------------------------------------------------------
+# Dynamics
+# ----------------------------------------------------------------------------
+
+class _FreeState:
+    """The plain state ThetaIntegrator advances (q, qdot, t)."""
+    __slots__ = ("q", "qdot", "t")
+
+    def __init__(self, q, qdot, t):
+        self.q, self.qdot, self.t = q, qdot, t
+
+
+class MechanismSimulator:
+    """Time integration of a mechanism with joint control and constraints:
+    the theta-method step of :mod:`integrators` (theta = 1/2: implicit
+    midpoint, 1: implicit Euler) with the constraint reactions and the
+    position-controlled joints' efforts as multipliers; every constraint
+    holds at the end of each step to ``constraint_tol`` (position level: no
+    drift). State: ``t`` [s], ``q``, ``v``, ``a`` (the step's mean
+    acceleration), ``lam``. Without multipliers a failing step is retried
+    in up to 2**``max_substep_levels`` sub-steps, then (``full_newton``) by
+    the dense Newton fallback (:class:`integrators.ThetaIntegrator`;
+    ``reuse_factorisation``: its Newton matrix serves later steps while it
+    contracts the error as a fresh one does). ``iterations``: the last
+    call's Newton iterations a step; ``newton_iterations``: all of them so
+    far; ``factorisations``: the Newton matrices factorised so far.
+
+    >>> sim = MechanismSimulator(mech, dt=2e-3)
+    >>> sim.step(positions={"pan": 0.2}, n=100)
+    """
+
+    def __init__(self, mech, dt, theta=0.5, q=None, v=None, *, tol=1e-10, constraint_tol=1e-12,
+                 max_iterations=40, max_substep_levels=4, full_newton=True, reuse_factorisation=True):
+        if not dt > 0 or not np.isfinite(dt):
+            raise ValueError(f"dt: expected a positive time step [s], got {dt}")
+        if not 0.5 <= theta <= 1.0:
+            raise ValueError(f"theta: expected a value in [0.5, 1], got {theta}")
+        tree = mech.tree
+        self.mech, self.tree, self.dt, self.theta = mech, tree, float(dt), float(theta)
+        self.tol, self.constraint_tol, self.max_iterations = tol, constraint_tol, max_iterations
+        self.ws = Workspace(tree)
+        self.act = _cached(mech, "_act_arrays", lambda: actuator_arrays(tree))
+        self.K, self.D = _cached(mech, "_dense_KD", lambda: _dense_blocks(tree))
+        self.t = 0.0
+        self.q = tree.q0.copy() if q is None else tree.check_q(np.array(q, float)).copy()
+        self.v = np.zeros(tree.nv) if v is None else tree.check_v(np.array(v, float)).copy()
+        self.a = np.zeros(tree.nv)
+        self.lam = np.zeros(mech.n_constraint_rows + len(mech.joints_with("position")))
+        self.iterations = self.newton_iterations = self._kkt_factorisations = 0
+        self.inputs = make_inputs(mech)
+        self.Ls = _length_scale(mech)
+        # no multipliers (a rod, a tree of soft members and effort-controlled or passive joints): the
+        # engine's compiled O(n) integrator, the rod's (integrators.ThetaIntegrator)
+        self._theta_integrator = None
+        if self.lam.size == 0:
+            self._theta_integrator = ThetaIntegrator(tree, self.ws, self.act, lambda t: self._held, self.dt, self.theta,
+                                                     tol=tol, max_iterations=max_iterations,
+                                                     max_substep_levels=max_substep_levels, full_newton=full_newton,
+                                                     reuse_factorisation=reuse_factorisation)
+
+    @property
+    def factorisations(self):
+        """Newton matrices factorised so far (every step's, with multipliers)."""
+        ti = self._theta_integrator
+        return ti.factorisations if ti is not None else self._kkt_factorisations
+
+    def step(self, actuation=None, efforts=None, positions=None, loads=None, point_loads=(), targets=None,
+             n=1, inputs=None):
+        """Advance n steps with these inputs held (positions: the commands the
+        position-controlled joints reach at the end of each step; targets:
+        world poses of constraints to the world, default their own). Raises
+        StepError (state unchanged) if a step fails."""
+        inp = inputs if inputs is not None else make_inputs(self.mech, actuation, efforts, positions, None,
+                                                            loads, point_loads)
+        self.inputs = inp
+        if self._theta_integrator is not None:
+            self._run_free(inp, int(n))          # the O(n) passes: no BLAS
+            return self
+        with one_blas_thread():
+            for _ in range(int(n)):
+                self._step(inp, targets)
+        return self
+
+    def _run_free(self, inp, n):
+        """n steps of :class:`integrators.ThetaIntegrator` (no multipliers)."""
+        coef = np.ascontiguousarray(self.act.unit @ inp.u) if inp.u.size else np.zeros(len(self.act.joint))
+        self._held = (inp.loads, inp.gravity, coef, inp.effort)
+        integ = self._theta_integrator
+        integ.last_a = self.a
+        state = _FreeState(self.q, self.v, self.t)
+        it0 = integ.iterations
+        info = integ.run(state, n)          # the converged steps in one compiled call
+        self.q, self.v, self.t, self.a = state.q, state.qdot, state.t, integ.last_a
+        self.iterations = (integ.iterations - it0) // max(n, 1)
+        self.newton_iterations += integ.iterations - it0
+        if not info.converged:
+            raise StepError(f"step at t = {state.t:.6g} s: Newton did not converge in {integ.max_iterations} "
+                            f"iterations, in sub-steps either")
+
+    def _newton_matrix(self, inp, coef, ld, qt, q1, targets):
+        """Factors of the step's Newton matrix at (q_t, lambda):
+        ``[[(M + th h D + (th h)^2 Kt)/h, -G_t^T], [th h G_1, 0]]`` with Kt
+        the static tangent of the elastic forces, loads and tendons."""
+        tree, m, w = self.tree, self.ws.m, self.ws.w
+        h, th = self.dt, self.theta
+        z = self.ws.zeros_v
+        passes.forward_pass(m, w, qt, z, z, 0)
+        Mq = np.zeros((tree.nv, tree.nv))
+        passes.crba_pass(m, w, Mq)
+        passes.rnea_pass(m, w, ld, inp.gravity, np.empty(tree.nv), True)
+        Kt = self.K.copy()
+        static_tangent_pass(m, w, ld, inp.gravity, Kt)
+        actuation_tangent_pass(m, w, self.act, coef, Kt)
+        _, Gt = constraint_rows(self.mech, self.ws, qt, targets, inp.q_cmd)
+        _, G1 = constraint_rows(self.mech, self.ws, q1, targets, inp.q_cmd)
+        A = (Mq + th * h * self.D + (th * h) ** 2 * Kt) / h
+        self._kkt_factorisations += 1
+        return factor_kkt(A, Gt, th * h * G1)
+
+    def _step(self, inp, targets):
+        """One theta step by modified Newton: the Newton matrix is factorised
+        at the first iteration and again only when the iteration slows down
+        (update shrinking less than fourfold)."""
+        tree, m, w = self.tree, self.ws.m, self.ws.w
+        h, th = self.dt, self.theta
+        q0, v0 = self.q, self.v
+        v1 = v0.copy()
+        lam = self.lam.copy()
+        coef = np.ascontiguousarray(self.act.unit @ inp.u) if inp.u.size else np.zeros(len(self.act.joint))
+        npos = len(self.mech.joints_with("position"))
+        pos_v = np.array([tree.idx_v[i] for i in self.mech.joints_with("position")], dtype=np.int64)
+        qt = np.empty(tree.nq)
+        q1 = np.empty(tree.nq)
+        R = np.empty(tree.nv)
+        fac, refactor, prev, first, Rs = None, True, np.inf, 0.0, 1e-300
+        for it in range(1, self.max_iterations + 1):
+            vt = (1 - th) * v0 + th * v1
+            acc = (v1 - v0) / h
+            integrate_pass(m, q0, vt, th * h, qt)
+            integrate_pass(m, q0, vt, h, q1)
+            ld = concat_loads(inp.loads, constraint_loads(self.mech, lam))
+            effort = inp.effort.copy()
+            if npos:
+                effort[pos_v] += lam[len(lam) - npos:]
+            if refactor:
+                try:
+                    fac = self._newton_matrix(inp, coef, ld, qt, q1, targets)
+                except np.linalg.LinAlgError:
+                    raise StepError(f"step at t = {self.t:.6g} s: singular Newton matrix") from None
+                refactor = False
+            residual_pass(m, w, self.act, ld, inp.gravity, coef, effort, qt, vt, acc, R, False)
+            phi1, _ = constraint_rows(self.mech, self.ws, q1, targets, inp.q_cmd)
+            if not (np.all(np.isfinite(R)) and np.all(np.isfinite(phi1))):
+                raise StepError(f"step at t = {self.t:.6g} s: non-finite residual")
+            nR = np.abs(R).max(initial=0)
+            phi_ok = np.abs(phi1).max(initial=0) <= self.constraint_tol * max(self.Ls, 1.0)
+            if it == 1:
+                Rs = max(nR, np.abs(lam).max(initial=0) * max(self.Ls, 1.0), 1e-300)
+            elif phi_ok and nR <= self.tol * Rs:
+                break              # balanced: forces to tol of their scale, constraints held
+            dv, dl = solve_factored(fac, R, phi1)
+            v1 += dv
+            lam += dl
+            ndv = np.abs(dv).max(initial=0)
+            if it == 1:
+                first = ndv
+            vs = max(np.abs(v1).max(initial=0), np.abs(v0).max(initial=0), first, 1e-300)
+            # below this an update is round-off for any motion of the robot (a length scale per step)
+            floor = 1e-14 * max(self.Ls, 1.0) / h
+            if phi_ok and (ndv <= max(self.tol * vs, floor)
+                           or (it > 2 and ndv <= 1e-6 * vs and ndv >= 0.5 * prev)):
+                break              # converged, or stalled at round-off
+            refactor = it > 1 and ndv > 0.25 * prev
+            prev = ndv
+        else:
+            raise StepError(f"step at t = {self.t:.6g} s: Newton did not converge in {self.max_iterations} "
+                            f"iterations (constraint error {np.abs(phi1).max(initial=0):.3g})")
+        vt = (1 - th) * v0 + th * v1
+        integrate_pass(m, q0, vt, h, q1)
+        self.a = (v1 - v0) / h              # the step's mean acceleration (its forces' state)
+        if npos:
+            # a position-controlled joint moves at its commanded velocity (given) or, without one, at
+            # its position change over the step: not at the midpoint rule's v1 = 2 dq/h - v0, which
+            # would alternate in sign for ever after a change of the commanded acceleration
+            iq = np.array([tree.idx_q[i] for i in self.mech.joints_with("position")], dtype=np.int64)
+            v1 = v1.copy()
+            v1[pos_v] = inp.v_cmd if inp.v_cmd is not None else (q1[iq] - q0[iq]) / h
+        self.q, self.v, self.lam = q1.copy(), v1, lam
+        self.t += h
+        self.iterations = it
+        self.newton_iterations += it
+
+    def start_multipliers(self, inputs=None, targets=None):
+        """Accelerations and multipliers of the current state when the
+        constraint rows' accelerations vanish (``G a = -dG/dt v``, evaluated
+        at rest: the t = 0 state of a run that starts at rest): the efforts
+        and reactions a run reports before its first step."""
+        inp = self.inputs if inputs is None else inputs
+        tree, m, w = self.tree, self.ws.m, self.ws.w
+        lam0 = np.zeros_like(self.lam)
+        coef = np.ascontiguousarray(self.act.unit @ inp.u) if inp.u.size else np.zeros(len(self.act.joint))
+        bias = np.empty(tree.nv)
+        residual_pass(m, w, self.act, concat_loads(inp.loads, constraint_loads(self.mech, lam0)), inp.gravity,
+                      coef, inp.effort, np.ascontiguousarray(self.q), self.v, np.zeros(tree.nv), bias, False)
+        M = np.zeros((tree.nv, tree.nv))
+        passes.forward_pass(m, w, np.ascontiguousarray(self.q), self.ws.zeros_v, self.ws.zeros_v, 0)
+        passes.crba_pass(m, w, M)
+        phi, G = constraint_rows(self.mech, self.ws, self.q, targets, inp.q_cmd)
+        a, lam = solve_kkt(M, G, G, bias, np.zeros(len(phi)))
+        self.a, self.lam, self.inputs = a, lam, inp
+        return self
+
+    # --- outputs ---------------------------------------------------------------
+    def joint_efforts(self):
+        """{joint: effort} (N m or N) of the last step (inputs or multipliers)."""
+        return _efforts_out(self.mech, self.lam, self.inputs)
+
+    def constraint_wrenches(self):
+        return constraint_wrenches(self.mech, self.lam)
+
+    def constraint_error(self, targets=None):
+        """max |Phi| [m, rad] of the constraints (not the motion rows) now."""
+        phi, _ = constraint_rows(self.mech, self.ws, self.q, targets, self.inputs.q_cmd)
+        nc = self.mech.n_constraint_rows
+        return float(np.abs(phi[:nc]).max(initial=0))
+
+    def energy(self):
+        """(kinetic, potential) [J]: 1/2 v^T M v and the elastic plus gravity
+        potential (rigid bodies and soft points) at the current state."""
+        from soft_twin_core.engine.algorithms import crba, point_poses
+        tree = self.tree
+        M = crba(tree, self.ws, self.q)
+        T = 0.5 * self.v @ M @ self.v
+        qd = self.q - tree.q0
+        V = 0.5 * qd @ self.K @ qd if tree.nq == tree.nv else 0.0
+        g = self.inputs.gravity
+        a = tree.arrays
+        alg_ws = self.ws
+        from soft_twin_core.engine.algorithms import forward_kinematics
+        forward_kinematics(tree, alg_ws, self.q)
+        for i, j in enumerate(tree.joints):
+            if a.rigid_mass[i]:
+                mass = j.inertia[0, 0]
+                c = np.array([j.inertia[5, 1], j.inertia[3, 2], j.inertia[4, 0]]) / mass
+                gout = alg_ws.work.g_out[i]
+                V -= mass * g @ (gout[:3, :3] @ c + gout[:3, 3])
+            if j.kind == 5:
+                npt = a.npt[i]
+                P = point_poses(tree, alg_ws, self.q, [i] * npt, a.px[i, :npt])
+                V -= np.sum(a.pw[i, :npt] * a.mc[i, 0] * (P[:, :3, 3] @ g))
+        return float(T), float(V)
+

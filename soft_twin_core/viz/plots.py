@@ -1,0 +1,393 @@
+"""Figures (PNG and SVG, matplotlib's Agg backend) of any robot: its shapes
+(side, top and 3D views, equal axes), the tip's motion, the joint states
+(positions, velocities, efforts) and the wrenches the rigid joints
+transmit, the frames' positions, the strains of every soft section, the
+internal wrenches along every member, the energies, a statics solve, and a
+statics sweep against reference values.
+
+Every ``plot_*`` function writes ``<stem>.png`` and ``<stem>.svg`` into a
+folder and returns the paths written; :func:`plot_dynamics`,
+:func:`plot_statics` and :func:`plot_sweep` write the whole set for a
+``soft-twin-sim`` run. A run is the JSON of ``soft-twin-sim dynamics``
+(:func:`mechanism_scenario.run_mechanism_dynamics`) or a recording read back
+by :mod:`recording`; fields a recording lacks are skipped (each figure needs
+its own fields only). Shapes are drawn from :class:`scene.Snapshot` lists.
+"""
+
+import os
+
+import numpy as np
+
+from soft_twin_core.viz.scene import bounds
+
+
+FORMATS = ("png", "svg")
+DPI = 110
+_VIEWS = (("side", 0, 2, "side view (x-z)"), ("top", 0, 1, "top view (x-y)"))
+_WRENCH = (("f_x", "N"), ("f_y", "N"), ("f_z", "N"), ("m_x", "N m"), ("m_y", "N m"), ("m_z", "N m"))
+
+
+def _plt():
+    import matplotlib
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    return plt
+
+
+def _save(fig, folder, stem):
+    os.makedirs(folder, exist_ok=True)
+    paths = []
+    for ext in FORMATS:
+        p = os.path.join(folder, f"{stem}.{ext}")
+        fig.savefig(p, dpi=DPI)
+        paths.append(p)
+    _plt().close(fig)
+    return paths
+
+
+def equal_limits(ax, lo, hi, i, j):
+    """Set the 2D axes limits to the box (lo, hi) on axes i, j, equal scale."""
+    ax.set_xlim(lo[i], hi[i])
+    ax.set_ylim(lo[j], hi[j])
+    ax.set_aspect("equal", adjustable="box")
+
+
+def equal_limits_3d(ax, lo, hi):
+    """3D limits: the cube around the box (lo, hi), one scale on all axes."""
+    c, half = 0.5 * (lo + hi), 0.5 * float(np.max(hi - lo))
+    ax.set_xlim(c[0] - half, c[0] + half)
+    ax.set_ylim(c[1] - half, c[1] + half)
+    ax.set_zlim(c[2] - half, c[2] + half)
+    ax.set_box_aspect((1.0, 1.0, 1.0))
+
+
+def pick(n, k):
+    """Up to k indices spread evenly over range(n), first and last included."""
+    if n <= k:
+        return list(range(n))
+    return sorted(set(np.round(np.linspace(0, n - 1, k)).astype(int).tolist()))
+
+
+def draw_snapshot(axes, snap, color, label=None, lw=2.0):
+    """Draw one snapshot on a dict of axes {'side', 'top', '3d'} (any subset)."""
+    for name, ax in axes.items():
+        for k, P in enumerate(snap.members):
+            lab = label if k == 0 else None
+            if name == "3d":
+                ax.plot(P[:, 0], P[:, 1], P[:, 2], color=color, lw=lw, label=lab)
+            else:
+                i, j = {"side": (0, 2), "top": (0, 1)}[name]
+                ax.plot(P[:, i], P[:, j], color=color, lw=lw, label=lab)
+        for seg in snap.links:
+            if name == "3d":
+                ax.plot(seg[:, 0], seg[:, 1], seg[:, 2], color="0.25", lw=lw + 1.5, solid_capstyle="round")
+            else:
+                i, j = {"side": (0, 2), "top": (0, 1)}[name]
+                ax.plot(seg[:, i], seg[:, j], color="0.25", lw=lw + 1.5, solid_capstyle="round")
+        rigid = [(P, 1.4, "0.3") for P in snap.solids] + [(P, 1.0, "k") for P in snap.joint_axes]
+        for P, lw_s, col in rigid:                     # rigid links' shapes and joint axes
+            if name == "3d":
+                ax.plot(P[:, 0], P[:, 1], P[:, 2], color=col, lw=lw_s)
+            else:
+                i, j = {"side": (0, 2), "top": (0, 1)}[name]
+                ax.plot(P[:, i], P[:, j], color=col, lw=lw_s)
+        if len(snap.joints):
+            J = snap.joints
+            if name == "3d":
+                ax.plot(J[:, 0], J[:, 1], J[:, 2], "o", mfc="w", mec="k", ms=5)
+            else:
+                i, j = {"side": (0, 2), "top": (0, 1)}[name]
+                ax.plot(J[:, i], J[:, j], "o", mfc="w", mec="k", ms=5)
+        tip = snap.tip
+        if name == "3d":
+            ax.plot([tip[0]], [tip[1]], [tip[2]], "o", color=color, ms=4)
+        else:
+            i, j = {"side": (0, 2), "top": (0, 1)}[name]
+            ax.plot([tip[i]], [tip[j]], "o", color=color, ms=4)
+
+
+def shapes_figure(snapshots, title, max_shapes=8):
+    """Figure with side, top and 3D views of up to ``max_shapes`` snapshots
+    (colour = order), equal axes in m, legend with the captions."""
+    plt = _plt()
+    fig = plt.figure(figsize=(14, 4.8))
+    side = fig.add_subplot(1, 3, 1)
+    top = fig.add_subplot(1, 3, 2)
+    ax3 = fig.add_subplot(1, 3, 3, projection="3d")
+    axes = {"side": side, "top": top, "3d": ax3}
+    chosen = [snapshots[i] for i in pick(len(snapshots), max_shapes)]
+    cmap = plt.get_cmap("viridis")
+    for k, s in enumerate(chosen):
+        draw_snapshot(axes, s, cmap(k / max(1, len(chosen) - 1)), s.caption or None)
+    lo, hi = bounds(snapshots)
+    for name, i, j, t in _VIEWS:
+        ax = axes[name]
+        ax.plot([0], [0], "ks", ms=7, label="base origin" if name == "side" else None)
+        equal_limits(ax, lo, hi, i, j)
+        ax.set_xlabel(f"{'xyz'[i]} [m]")
+        ax.set_ylabel(f"{'xyz'[j]} [m]")
+        ax.set_title(t)
+        ax.grid(alpha=0.3)
+    equal_limits_3d(ax3, lo, hi)
+    ax3.set_xlabel("x [m]")
+    ax3.set_ylabel("y [m]")
+    ax3.set_zlabel("z [m]")
+    ax3.set_title("3D view")
+    side.legend(fontsize=7, loc="best")
+    fig.suptitle(title)
+    fig.tight_layout()
+    return fig
+
+
+def plot_shapes(snapshots, folder, title="backbone shapes", stem="backbone_shapes"):
+    return _save(shapes_figure(snapshots, title), folder, stem)
+
+
+def plot_tip(out, folder, title="tip motion"):
+    """Tip position [m] and, when the run has it, velocity [m/s] (world)
+    against time [s]."""
+    plt = _plt()
+    t = np.asarray(out["time"])
+    p = np.asarray(out["tip_position"]).reshape(len(t), 3)
+    has_v = "tip_velocity" in out
+    fig, axs = plt.subplots(2 if has_v else 1, 1, figsize=(8, 6.5 if has_v else 3.8), sharex=True, squeeze=False)
+    a = axs[0, 0]
+    for k, c in enumerate("xyz"):
+        a.plot(t, p[:, k], label=f"{c}")
+    a.set_ylabel("tip position [m]")
+    if has_v:
+        b = axs[1, 0]
+        v = np.asarray(out["tip_velocity"]).reshape(len(t), 3)
+        for k, c in enumerate("xyz"):
+            b.plot(t, v[:, k], label=f"v_{c}")
+        b.plot(t, np.linalg.norm(v, axis=1), "k--", lw=1, label="|v|")
+        b.set_ylabel("tip velocity [m/s]")
+    axs[-1, 0].set_xlabel("time [s]")
+    for ax in axs[:, 0]:
+        ax.grid(alpha=0.3)
+        ax.legend(fontsize=8)
+    fig.suptitle(title)
+    fig.tight_layout()
+    return _save(fig, folder, "tip")
+
+
+def wrench_figure(s_list, W_list, labels, title):
+    """Internal wrench components (body frame) along the backbone, one line per sample."""
+    plt = _plt()
+    fig, axs = plt.subplots(2, 3, figsize=(13, 6.5), sharex=True)
+    cmap = plt.get_cmap("viridis")
+    for k, (s, W, lab) in enumerate(zip(s_list, W_list, labels)):
+        W = np.asarray(W)
+        for m, ax in enumerate(axs.ravel()):
+            ax.plot(s, W[:, m], color=cmap(k / max(1, len(s_list) - 1)), label=lab if m == 0 else None)
+    for m, ax in enumerate(axs.ravel()):
+        name, unit = _WRENCH[m]
+        ax.set_title(name)
+        ax.set_ylabel(f"[{unit}]")
+        ax.grid(alpha=0.3)
+    for ax in axs[1]:
+        ax.set_xlabel("arc length s [m]")
+    axs[0, 0].legend(fontsize=7)
+    fig.suptitle(title + " (body frame; the distal part on the proximal part)")
+    fig.tight_layout()
+    return fig
+
+
+def plot_statics(result, snap, folder, name="statics"):
+    """One equilibrium (``soft-twin-sim statics``) of any robot: its shape
+    (``snap``, :func:`scene.statics_snapshot`) and the internal
+    wrench along every member (``internal_wrenches_<member>``)."""
+    paths = _save(shapes_figure([snap], f"{name}: equilibrium"), folder, "backbone_shapes")
+    for m, d in result["members"].items():
+        fig = wrench_figure([d["s"]], [d["internal_wrench"]], ["equilibrium"],
+                            f"{name}: internal wrench along member {m}")
+        paths += _save(fig, folder, f"internal_wrenches_{m}")
+    return paths
+
+
+def plot_sweep(results, snaps, folder, reference=None, name="sweep"):
+    """A statics sweep over the load angle (any robot): its tip frame's
+    position [m] against the angle [deg], with the scenario's reference
+    values (if any) as markers; and the shapes of every angle (``snaps``)."""
+    plt = _plt()
+    a = np.array([r["angle_deg"] for r in results])
+    p = np.array([r["tip_position"] for r in results])
+    fig, axs = plt.subplots(1, 3, figsize=(14, 4.6))
+    for k, (c, ax) in enumerate(zip("xyz", axs)):
+        ax.plot(a, 1e3 * p[:, k], "-", marker=".", color=f"C{k}", label="soft_twin")
+        if reference:
+            ra = np.asarray(reference["angle_deg"], dtype=float)
+            rp = np.asarray(reference["tip_position"], dtype=float)
+            ax.plot(ra, 1e3 * rp[:, k], "o", mfc="none", color="k", label=reference.get("label", "reference"))
+        ax.set_xlabel("load angle [deg]")
+        ax.set_ylabel(f"tip {c} [mm]")
+        ax.set_title(f"tip {c}")
+        ax.grid(alpha=0.3)
+        ax.legend(fontsize=7)
+    fig.suptitle(f"{name}: tip position (world) against the load angle")
+    fig.tight_layout()
+    paths = _save(fig, folder, "sweep_tip")
+    return paths + plot_shapes(snaps, folder, f"{name}: equilibrium shapes", "sweep_shapes")
+
+
+_XYZ = "xyz"
+
+
+def plot_joint_states(out, folder, title="joint states"):
+    """Position [rad or m], velocity [rad/s or m/s] and effort [N m or N] of
+    every rigid joint against time [s]."""
+    plt = _plt()
+    t = np.asarray(out["time"], dtype=float)
+    names = out["joint_names"]
+    fig, axs = plt.subplots(3, 1, figsize=(8.5, 8), sharex=True)
+    for ax, key, lab in zip(axs, ("joint_positions", "joint_velocities", "joint_efforts"),
+                            ("position [rad | m]", "velocity [rad/s | m/s]", "effort [N m | N]")):
+        a = np.asarray(out[key], dtype=float).reshape(len(t), len(names))
+        for k, n in enumerate(names):
+            ax.plot(t, a[:, k], label=n)
+        ax.set_ylabel(lab)
+        ax.grid(alpha=0.3)
+        ax.legend(fontsize=8)
+    axs[-1].set_xlabel("time [s]")
+    fig.suptitle(title + " (rotations in rad, N m; translations in m, N)")
+    fig.tight_layout()
+    return _save(fig, folder, "joint_states")
+
+
+def plot_joint_wrenches(out, folder, title="wrenches through the rigid joints"):
+    """The wrench each rigid joint transmits (world axes, about its input
+    origin): force [N] and moment [N m] components against time."""
+    plt = _plt()
+    t = np.asarray(out["time"], dtype=float)
+    tn = list(out["transmitted_names"])
+    names = [n for n in out["joint_names"] if n in tn]
+    W = np.asarray(out["transmitted_wrenches"], dtype=float).reshape(len(t), len(tn), 6)
+    fig, axs = plt.subplots(len(names), 2, figsize=(12, 2.8 * len(names) + 0.8), sharex=True, squeeze=False)
+    for r, n in enumerate(names):
+        w = W[:, tn.index(n)]
+        for c, (lo, unit, what) in enumerate(((0, "N", "force"), (3, "N m", "moment"))):
+            ax = axs[r, c]
+            for k in range(3):
+                ax.plot(t, w[:, lo + k], label=f"{what[0]}_{_XYZ[k]}")
+            ax.set_ylabel(f"{n}: {what} [{unit}]")
+            ax.grid(alpha=0.3)
+            ax.legend(fontsize=7, ncol=3)
+    for ax in axs[-1]:
+        ax.set_xlabel("time [s]")
+    fig.suptitle(title + " (world axes, about the joint's input origin)")
+    fig.tight_layout()
+    return _save(fig, folder, "joint_wrenches")
+
+
+def plot_frames(out, folder, title="frame positions", frames=None):
+    """x, y, z [m] (world) of the robot's frames (default: every frame but
+    the member section boundaries) against time [s]."""
+    plt = _plt()
+    t = np.asarray(out["time"], dtype=float)
+    fn = list(out["frame_names"])
+    names = [n for n in (frames or fn) if n in fn]
+    P = np.asarray(out["frame_positions"], dtype=float).reshape(len(t), len(fn), 3)
+    fig, axs = plt.subplots(3, 1, figsize=(8.5, 8), sharex=True)
+    for k, ax in enumerate(axs):
+        for n in names:
+            ax.plot(t, P[:, fn.index(n), k], label=n)
+        ax.set_ylabel(f"{_XYZ[k]} [m]")
+        ax.grid(alpha=0.3)
+    axs[0].legend(fontsize=7, ncol=2)
+    axs[-1].set_xlabel("time [s]")
+    fig.suptitle(title + " (world)")
+    fig.tight_layout()
+    return _save(fig, folder, "frames")
+
+
+def plot_section_strains(out, folder, title="strains of the soft sections"):
+    """Each strain mode of every soft section (``section_names``) against
+    time: stretch and shears [-], torsion and bending [1/m]."""
+    from soft_twin_core.robot.model import STRAIN_NAMES
+    plt = _plt()
+    t = np.asarray(out["time"], dtype=float)
+    names = out["section_names"]
+    S = np.asarray(out["strains"], dtype=float).reshape(len(t), len(names), 6)
+    owner = [n.rsplit("_", 1)[0] for n in names]          # soft joints are named <member>_<k>
+    members = list(dict.fromkeys(owner))
+    first = {mb: owner.index(mb) for mb in members}
+    fig, axs = plt.subplots(2, 3, figsize=(13, 6.5), sharex=True)
+    cmap, n = plt.get_cmap("plasma"), len(names)
+    for m, ax in enumerate(axs.ravel()):
+        for i, mb in enumerate(owner):
+            if len(members) == 1:           # one member: its sections from base (dark) to tip (light)
+                ax.plot(t, S[:, i, m], color=cmap(i / max(1, n - 1) * 0.85), lw=1.2,
+                        label=f"section {i}" if m == 0 and (n <= 8 or i in (0, n - 1)) else None)
+            else:
+                ax.plot(t, S[:, i, m], color=f"C{members.index(mb) % 10}", lw=1.0, alpha=0.9,
+                        label=mb if m == 0 and first[mb] == i else None)
+        ax.set_title(STRAIN_NAMES[m])
+        ax.set_ylabel("[-]" if m < 3 else "[1/m]")
+        ax.grid(alpha=0.3)
+    for ax in axs[1]:
+        ax.set_xlabel("time [s]")
+    axs[0, 0].legend(fontsize=7, title=None if len(members) == 1 else "member (one line per section)",
+                     title_fontsize=7)
+    fig.suptitle(title)
+    fig.tight_layout()
+    return _save(fig, folder, "strains")
+
+
+def plot_member_wrenches(out, folder, name="run", max_lines=6):
+    """Internal wrench (body axes) along every member at up to ``max_lines``
+    sample times; one figure ``internal_wrenches_<member>`` per member."""
+    paths = []
+    idx = pick(len(out["members_time"]), max_lines)
+    for m in out["members"][0]:
+        s = [out["members"][i][m]["s"] for i in idx]
+        W = [out["members"][i][m]["internal_wrench"] for i in idx]
+        labels = [f"t = {out['members_time'][i]:.2f} s" for i in idx]
+        fig = wrench_figure(s, W, labels, f"{name}: internal wrench along member {m}")
+        paths += _save(fig, folder, f"internal_wrenches_{m}")
+    return paths
+
+
+def plot_energies(out, folder, title="energies"):
+    """Kinetic, elastic and gravitational energy [J] and their sum at the
+    member samples (``energies`` of the run)."""
+    plt = _plt()
+    t = np.asarray(out["members_time"], dtype=float)
+    E = np.asarray(out["energies"], dtype=float).reshape(len(t), 3)
+    fig, ax = plt.subplots(figsize=(8, 4.5))
+    for k, lab in enumerate(("kinetic", "elastic (members, joint springs)", "gravitational")):
+        ax.plot(t, E[:, k], label=lab)
+    ax.plot(t, E.sum(axis=1), "k--", label="sum")
+    ax.set_xlabel("time [s]")
+    ax.set_ylabel("energy [J]")
+    ax.grid(alpha=0.3)
+    ax.legend(fontsize=8)
+    ax.set_title(title + " (the sum changes by the inputs' work and damping)")
+    fig.tight_layout()
+    return _save(fig, folder, "energies")
+
+
+def plot_dynamics(out, folder, mech, name="run"):
+    """The whole set of figures of any robot's run (each when the run has
+    its fields, and the robot what it shows); returns the paths."""
+    from soft_twin_core.viz.scene import run_snapshots
+    paths = []
+    if out.get("members_time") and "frame_poses" in out:
+        fig = shapes_figure(run_snapshots(out, mech), f"{name}: members and links")
+        paths += _save(fig, folder, "backbone_shapes")
+    if out.get("time"):
+        if out.get("tip_position"):
+            paths += plot_tip(out, folder, f"{name}: tip motion ({out.get('tip_frame', 'tip')}, world)")
+        if out.get("joint_names") and out.get("joint_positions"):
+            paths += plot_joint_states(out, folder, f"{name}: joint states")
+        if out.get("joint_names") and out.get("transmitted_wrenches"):
+            paths += plot_joint_wrenches(out, folder, f"{name}: wrenches through the rigid joints")
+        if len(out.get("frame_names", ())) > 1:
+            paths += plot_frames(out, folder, f"{name}: frame positions")
+        if out.get("strains") and out.get("section_names"):
+            paths += plot_section_strains(out, folder, f"{name}: strains of the soft sections")
+    if out.get("members_time"):
+        if all("internal_wrench" in m for m in out["members"][0].values()):
+            paths += plot_member_wrenches(out, folder, name)
+        if out.get("energies"):
+            paths += plot_energies(out, folder, f"{name}: energies")
+    return paths
