@@ -1,9 +1,8 @@
 """State estimation of a robot from its sensors: an extended Kalman filter
 over the positions and velocities of every joint of the robot (the strains
 of the soft sections and the rigid joints alike), with the twin's dynamics
-as process model, for every :class:`mechanism.Mechanism` with a fixed base
-and no closed chain: a classic rod, a tree of members, a soft articulated
-arm.
+as process model, for every :class:`mechanism.Mechanism` with a fixed base:
+a classic rod, a tree of members, a soft articulated arm, closed chains.
 
 State ``x = [q (nv); v (nv); b (n_pos); w (k)]``:
 
@@ -51,10 +50,21 @@ discretised by the same theta method as the integrator:
     Gamma_u = (I - theta dt A)^-1 dt G_u,
     P <- Phi P Phi^T + Q dt + Gamma_u Sigma_u Gamma_u^T
 
-(at rest this is the exact Jacobian of the integrator's step; elsewhere it
+(:func:`theta_step_jacobian`; at rest this is the exact Jacobian of the
+integrator's step; elsewhere it
 neglects the change of the linearisation over one step, O(dt)), with white
 process noise Q (separate densities for the rigid joints and the strains)
 and the input noise Sigma_u of the tension sensors.
+
+**Closed chains.** The loops' reactions are multipliers of the step
+(:class:`constrained.MechanismSimulator`, the position-controlled joints
+driven by the servo's efforts), and the linearised step is the KKT system
+of the linearised dynamics with ``G dq = 0`` at its end, the reactions'
+geometric stiffness in ``dF/dq`` (:func:`theta_step_jacobian`). After each
+prediction the covariance is conditioned on the loops holding (a perfect
+measurement of ``G dq = 0``, ``G dv = 0``: :func:`constrained_covariance`),
+and after each update the mean is put back onto them (the update moves
+along their tangent, with a second-order gap).
 
 **Update** with the sensors' residuals and analytic Jacobians
 (:mod:`soft_twin_core.estimation.sensors`: poses and positions of frames and points of
@@ -75,13 +85,23 @@ of the last update (:class:`UpdateReport`) and the counters
 (:attr:`health`).
 """
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 
-from soft_twin_core.engine.forces import actuation_matrix, concat_loads, point_moment_arrays
+from soft_twin_core.engine import algorithms as alg
+from soft_twin_core.engine.forces import (actuation_matrix, actuation_tangent_pass, actuator_arrays, concat_loads,
+                                          point_moment_arrays)
 from soft_twin_core.engine.joint_kinds import FIXED, PRISMATIC, REVOLUTE, SOFT
+from soft_twin_core.engine.kernels import passes
+from soft_twin_core.engine.kernels.tangent import static_tangent_pass
+from soft_twin_core.engine.workspace import Workspace
+from soft_twin_core.errors import StepError
 from soft_twin_core.estimation import sensors as sn
+from soft_twin_core.robot.mechanism import tip_frame
+from soft_twin_core.solve.constrained import (Inputs, MechanismSimulator, actuation_vector, constraint_loads,
+                                              constraint_rows, factor_kkt, joint_vector, make_inputs,
+                                              solve_equilibrium, solve_factored)
 
 WRENCH_DIMS = {None: 0, "payload": 1, "force": 3, "wrench": 6}
 
@@ -156,12 +176,7 @@ class EKF:
                  process_noise_v=10.0, wrench_walk=(0.05, 0.005), servo_hz=None, servo_damping=1.0,
                  sigma_offset0=0.05, offset_walk=0.01, input_sigma=0.0, gate_probability=0.999,
                  max_gated_run=10):
-        from scipy.stats import chi2
-        from soft_twin_core.engine.forces import actuator_arrays
-        from soft_twin_core.engine.integrators import ThetaIntegrator
-        from soft_twin_core.engine.workspace import Workspace
-        from soft_twin_core.robot.mechanism import tip_frame
-        from soft_twin_core.solve.constrained import make_inputs, solve_equilibrium
+        from scipy.stats import chi2            # here: scipy.stats takes 0.3 s to import
         tree = mech.tree
         if not (isinstance(dt, (int, float)) and np.isfinite(dt) and dt > 0):
             raise ValueError(f"dt: expected a positive step in s, got {dt!r}")
@@ -210,10 +225,13 @@ class EKF:
             self._w, self._zeta = 1.0 / self.dt, 0.5
         else:
             self._w, self._zeta = 2.0 * np.pi * float(servo_hz), float(servo_damping)
-        self._step_inputs = None
         self._point_moments = any(a.tendon_model == "point_moment" for a in mech.actuators)
-        self._integrator = ThetaIntegrator(tree, Workspace(tree), self._act, lambda t: self._step_inputs,
-                                           self.dt, self.theta, 1e-9, 10, 4, False)
+        # the process model steps the robot with its position-controlled joints driven by the servo's
+        # efforts; its multipliers are the closed chains' reactions (none: the compiled O(n) integrator)
+        self._servo_mech = replace(mech, control=tuple("effort" if c == "position" else c for c in mech.control))
+        self._sim = MechanismSimulator(self._servo_mech, self.dt, self.theta, tol=1e-9, max_iterations=10,
+                                       max_substep_levels=4, full_newton=False)
+        self._no_cmd = np.zeros(0)
         self.gate = {m: float(chi2.ppf(gate_probability, m)) for m in range(1, 7)}
         self._gate_probability = gate_probability
         self.max_gated_run = int(max_gated_run)
@@ -256,6 +274,18 @@ class EKF:
         self.health = FilterHealth()
         self.last_report = UpdateReport()
         self._gated_run = {s.name: 0 for s in self.sensors}
+        self.lam = self._rest_multipliers()
+
+    def _rest_multipliers(self):
+        """The closed chains' reactions at the current q at rest (empty
+        without constraints): the warm start of the first step."""
+        sim = self._sim
+        if sim.lam.size == 0:
+            return sim.lam.copy()
+        sim.q, sim.v = self.q.copy(), np.zeros(self.n)
+        effort, _ = self._servo(self.q, sim.v)
+        sim.start_multipliers(self._inputs(effort, self._tip_loads()))
+        return sim.lam.copy()
 
     @property
     def q(self):
@@ -299,7 +329,6 @@ class EKF:
 
     def set_inputs(self, actuation=None, positions=None, efforts=None):
         """New inputs (each None: kept); ValueError naming a bad one."""
-        from soft_twin_core.solve.constrained import actuation_vector, joint_vector
         if actuation is not None:
             self.u = actuation_vector(self.mech, actuation)
         if positions is not None:
@@ -327,13 +356,11 @@ class EKF:
 
     def frame_pose(self, frame):
         """World pose (4x4) of a named frame of the robot at the estimate."""
-        from soft_twin_core.engine import algorithms as alg
         j, x = self._point(frame)
         return alg.point_poses(self.tree, self.ws, self.q, [j], [x])[0].copy()
 
     def frame_position_cov(self, frame):
         """Covariance (3, 3) [m^2] of a frame's position, ``Jp P_qq Jp^T``."""
-        from soft_twin_core.engine import algorithms as alg
         j, x = self._point(frame)
         _, Jw = alg.point_jacobian(self.tree, self.ws, self.q, j, x, "world")
         n = self.n
@@ -349,7 +376,6 @@ class EKF:
 
     def member_backbone(self, member, points_per_section=4):
         """World poses (P, 4, 4) along a member at the estimate."""
-        from soft_twin_core.engine import algorithms as alg
         m = self.mech.member(member)
         path = self.tree.paths[m.path]
         s = np.linspace(0.0, path.length, points_per_section * len(path.joints) + 1)
@@ -361,14 +387,12 @@ class EKF:
         """LoadArrays of the estimated tip wrench (a dead load at the tip
         frame) and of the point-moment tendons' follower moments at the
         inputs (:func:`forces.point_moment_arrays`)."""
-        from soft_twin_core.engine.algorithms import make_loads
         j, x = self._tip_point
-        tip = make_loads(self.tree, [j], [x], [self.wrench() if self.k else np.zeros(6)], [True])
+        tip = alg.make_loads(self.tree, [j], [x], [self.wrench() if self.k else np.zeros(6)], [True])
         return concat_loads(tip, point_moment_arrays(self.tree, self.u)) if len(self.u) else tip
 
     def _servo(self, q, v):
         """(effort (nv,), M) of the joints' servo model at (q, v)."""
-        from soft_twin_core.engine import algorithms as alg
         effort = self.effort_cmd.copy()
         M = alg.crba(self.tree, self.ws, q).copy()
         if len(self._pos_v):
@@ -379,18 +403,36 @@ class EKF:
         return effort, M
 
     def linearisation(self):
-        """(Phi, Gamma_u) of one step from the current state (module docstring), analytic."""
-        from soft_twin_core.engine import algorithms as alg
-        from soft_twin_core.engine.forces import actuation_tangent_pass
-        from soft_twin_core.engine.kernels import passes
-        from soft_twin_core.engine.kernels.tangent import static_tangent_pass
+        """(Phi, Gamma_u) of one step from the current state (module
+        docstring), analytic: :func:`theta_step_jacobian` of the forces'
+        Jacobians; the offsets and the tip wrench are random walks."""
+        M, dq, dv, F, G = self._force_jacobians()
+        N, n_ext = len(self.x), self.nb + self.k
+        J = theta_step_jacobian(M, dq, dv, F, G, self.dt, self.theta)
+        Phi = np.zeros((N, N))
+        Phi[:2 * self.n] = J[:, :N]
+        Phi[2 * self.n:, 2 * self.n:] = np.eye(n_ext)
+        Gamma = np.zeros((N, F.shape[1] - n_ext))
+        Gamma[:2 * self.n] = J[:, N:]
+        return Phi, Gamma
+
+    def _force_jacobians(self):
+        """(M, dF/dq, dF/dv, F_x, G) at the current state: the mass matrix,
+        the derivatives of the forces ``F = tau - effort - applied`` (the
+        servo's effort, the geometric stiffness of the tip load, the
+        follower moments, the tendons and the closed chains' reactions
+        included), the generalised forces per unit offset, tip wrench and
+        input ``F_x = [F_b, J_tip^T S, B]``, and the closed chains'
+        constraint Jacobian G (m, nv)."""
         tree, ws, n, nb, k = self.tree, self.ws, self.n, self.nb, self.k
         q, v = np.ascontiguousarray(self.q), np.ascontiguousarray(self.v)
         dq, dv = alg.rnea_derivatives(tree, ws, q, v, self.a)          # inertia, gravity, K, D
         dq, dv = dq.copy(), dv.copy()
         passes.forward_pass(ws.m, ws.w, q, ws.zeros_v, ws.zeros_v, 0)
-        if k or self._point_moments:        # the geometric stiffness of the tip load and follower moments
+        if k or self._point_moments or self.lam.size:  # geometric stiffness: tip load, follower moments, reactions
             loads = self._tip_loads()
+            if self.lam.size:
+                loads = concat_loads(loads, constraint_loads(self._servo_mech, self.lam))
             passes.rnea_pass(ws.m, ws.w, loads, self._zero_g, np.empty(n), True)
             static_tangent_pass(ws.m, ws.w, loads, self._zero_g, dq)
         if len(self.u):
@@ -406,63 +448,65 @@ class EKF:
             dq[j, j] += mjj * self._w ** 2
             dv[j, j] += mjj * 2 * self._zeta * self._w
             Fb[j, np.arange(len(j))] = mjj * self._w ** 2
-        cols = [dq, dv, Fb]
+        cols = [Fb]
         if k:
             _, Js = alg.point_jacobian(tree, ws, q, *self._tip_point, "world")
             cols.append(Js.T @ self.S)                                  # generalised force per unit w
-        B = actuation_matrix(tree, ws, self._act, q) if len(self.u) else np.zeros((n, 0))
-        cols.append(B)
-        X = np.linalg.solve(M, np.hstack(cols))
-        N = 2 * n + nb + k
-        A = np.zeros((N, N))
-        A[:n, n:2 * n] = np.eye(n)
-        A[n:2 * n, :n] = -X[:, :n]
-        A[n:2 * n, n:2 * n] = -X[:, n:2 * n]
-        A[n:2 * n, 2 * n:] = X[:, 2 * n:N]
-        Gu = np.zeros((N, B.shape[1]))
-        Gu[n:2 * n] = X[:, N:]
-        h, th = self.dt, self.theta
-        L = np.eye(N) - th * h * A
-        return np.linalg.solve(L, np.eye(N) + (1.0 - th) * h * A), np.linalg.solve(L, h * Gu)
+        cols.append(actuation_matrix(tree, ws, self._act, q) if len(self.u) else np.zeros((n, 0)))
+        G = constraint_rows(self._servo_mech, ws, q)[1]
+        return M, dq, dv, np.hstack(cols), G
+
+    def _inputs(self, effort, loads):
+        return Inputs(self.u, effort, self._no_cmd, None, loads, self._g)
+
+    def _mean_step(self, q, v, effort, loads):
+        """(q1, v1, lam1) of one step of the process model from (q, v) with
+        these efforts and loads, or None when the step fails."""
+        sim = self._sim
+        sim.q, sim.v, sim.t, sim.a, sim.lam = q.copy(), v.copy(), self.t, self.a.copy(), self.lam.copy()
+        try:
+            sim.step(inputs=self._inputs(effort, loads))
+        except StepError:
+            return None
+        return sim.q, sim.v, sim.lam
 
     def predict(self, actuation=None, positions=None, efforts=None):
         """Advance the estimate by dt (inputs as :meth:`set_inputs`; None:
         the last ones). Returns True when the integrator step converged (else
         the mean stays where it was, the covariance grows and the failure is
         counted)."""
-        from soft_twin_core.robot.model import State
         self.set_inputs(actuation, positions, efforts)
         Phi, Gamma = self.linearisation()
         n = self.n
         q, v = self.q.copy(), self.v.copy()
         effort, M = self._servo(q, v)
-        coef = np.ascontiguousarray(self._act.unit @ self.u) if self.u.size else np.zeros(len(self._act.joint))
         loads = self._tip_loads()
         j = self._pos_v
         for _ in range(4):
-            self._step_inputs = (loads, self._g, coef, effort)
-            state = State(q.copy(), v.copy(), self.t)
-            ok = bool(self._integrator.step(state).converged)
-            if not (ok and len(j) and self._tracking):
+            stepped = self._mean_step(q, v, effort, loads)
+            if stepped is None or not (len(j) and self._tracking):
                 break
             # the twin's tracking: correct the efforts until the joints land on their commands
             # (dq1 = theta h^2 d effort / m_j, the soft members free to bend)
-            err = self.q_cmd + self.offsets - state.q[j]
+            err = self.q_cmd + self.offsets - stepped[0][j]
             if np.abs(err).max() <= 1e-9:
                 break
             effort = effort.copy()
             effort[j] += _servo_inertia(M, j) * err / (self.theta * self.dt ** 2)
-        if ok:
-            self.a = (state.qdot - self.v) / self.dt
-            self.x[:n] = state.q
-            self.x[n:2 * n] = state.qdot
+        if stepped is not None:
+            q1, v1, self.lam = stepped
+            self.a = (v1 - self.v) / self.dt
+            self.x[:n] = q1
+            self.x[n:2 * n] = v1
         else:
             self.health.integrator_failures += 1
         self.P = Phi @ self.P @ Phi.T + self.Q * self.dt + (Gamma * self.sigma_u ** 2) @ Gamma.T
+        if self.lam.size:
+            self.P = constrained_covariance(self.P, constraint_rows(self._servo_mech, self.ws, self.q)[1])
         self.P = 0.5 * (self.P + self.P.T)
         self.t += self.dt
         self.health.predictions += 1
-        return ok
+        return stepped is not None
 
     # ----------------------------------------------------------------- update
     def update(self, measurements):
@@ -508,9 +552,24 @@ class EKF:
             Rs.append(Rm)
         if es:
             self.x, self.P = kalman_update(self.x, self.P, es, Hs, Rs)
+            if self.lam.size:
+                self._onto_the_loops()
         tally_update(self.health, rep)
         self.last_report = rep
         return rep
+
+    def _onto_the_loops(self, iterations=3):
+        """Back onto the closed chains after an update, which moves along
+        their tangent but leaves a second-order gap: the least change of q
+        with Phi(q) = 0 (Gauss-Newton), then of v with G v = 0."""
+        n = self.n
+        for _ in range(iterations):
+            phi, G = constraint_rows(self._servo_mech, self.ws, self.q)
+            if np.abs(phi).max(initial=0.0) <= 1e-13:
+                break
+            self.x[:n] -= np.linalg.lstsq(G, phi, rcond=None)[0]
+        G = constraint_rows(self._servo_mech, self.ws, self.q)[1]
+        self.x[n:2 * n] -= np.linalg.lstsq(G, G @ self.v, rcond=None)[0]
 
     def _gate(self, m):
         g = self.gate.get(m)
@@ -526,12 +585,9 @@ class EKF:
 
 
 def _check_supported(mech):
-    """ValueError naming what the filter does not handle: closed chains, a
-    moving base, joints other than revolute, prismatic, fixed and soft,
+    """ValueError naming what the filter does not handle: a moving base, joints other than revolute, prismatic, fixed and soft,
     other kinematic maps than the exponential."""
     tree = mech.tree
-    if mech.constraints:
-        raise ValueError("EKF: robots with constraints (closed chains) are not supported")
     bad = [j.name for j in tree.joints if j.kind not in (FIXED, REVOLUTE, PRISMATIC, SOFT)]
     if bad or tree.nq != tree.nv or mech.base_motion != "fixed":
         raise ValueError(f"EKF: only a fixed base with revolute, prismatic, fixed and soft joints is "
@@ -539,6 +595,56 @@ def _check_supported(mech):
     if np.any(tree.arrays.kmap != 0):
         raise ValueError("EKF: only exponential-map sections are supported (the process Jacobian uses "
                          "algorithms.rnea_derivatives)")
+
+
+def theta_step_jacobian(M, dq, dv, F, G, h, theta):
+    """d(q1, v1) / d(q0, v0, e): the Jacobian (2n, 2n + n_e) of one theta
+    step of the linearised dynamics with holonomic constraints,
+
+        M da + dF/dq dq + dF/dv dv - G^T dlam = F de,
+
+    by the integrator's own rule: ``dq1 = dq0 + h dvt``, ``dvt = (1 -
+    theta) dv0 + theta dv1``, the forces at ``dqt = dq0 + theta h dvt``
+    and the constraints at the end of the step, ``G dq1 = 0``. With the
+    step's Newton matrix ``A_h = M / h + theta^2 h dF/dq + theta dF/dv``
+    each column solves
+
+        [[A_h, -G^T], [theta h G, 0]] [dv1; dlam] =
+            [-dF/dq dq0 + (M/h - theta (1 - theta) h dF/dq - (1 - theta) dF/dv) dv0 + F de;
+             -G dq0 - (1 - theta) h G dv0].
+
+    Without constraints (G with no row) this is the theta discretisation
+    of ``xdot = A x + b e``: ``(I - theta h A)^-1 [I + (1 - theta) h A,
+    h b]``."""
+    n, ne = M.shape[0], F.shape[1]
+    rhs = np.zeros((n, 2 * n + ne))
+    rhs[:, :n] = -dq
+    rhs[:, n:2 * n] = M / h - theta * (1.0 - theta) * h * dq - (1.0 - theta) * dv
+    rhs[:, 2 * n:] = F
+    cons = np.zeros((G.shape[0], 2 * n + ne))
+    cons[:, :n] = -G
+    cons[:, n:2 * n] = -(1.0 - theta) * h * G
+    A_h = M / h + theta ** 2 * h * dq + theta * dv
+    if G.shape[0]:
+        dv1, _ = solve_factored(factor_kkt(A_h, G, theta * h * G), -rhs, -cons)
+    else:
+        dv1 = np.linalg.solve(A_h, rhs)
+    dq1 = theta * h * dv1
+    dq1[:, :n] += np.eye(n)
+    dq1[:, n:2 * n] += (1.0 - theta) * h * np.eye(n)
+    return np.vstack([dq1, dv1])
+
+
+def constrained_covariance(P, G):
+    """P conditioned on the constraints holding exactly, to first order:
+    the Kalman update with the perfect measurements ``G dq = 0`` and ``G dv
+    = 0`` (the state's first 2 nv entries), ``P - P H^T (H P H^T)^+ H P``."""
+    n = G.shape[1]
+    H = np.zeros((2 * G.shape[0], P.shape[0]))
+    H[:G.shape[0], :n] = G
+    H[G.shape[0]:, n:2 * n] = G
+    PH = P @ H.T
+    return P - PH @ np.linalg.pinv(H @ PH, rcond=1e-12, hermitian=True) @ PH.T
 
 
 def _servo_inertia(M, j):

@@ -444,11 +444,12 @@ def factor_kkt(A, G_force, G_cons, rows=None):
 
 def solve_factored(fac, R, phi):
     """(dx, dlam) of the system of :func:`factor_kkt` for the right-hand side
-    [-R; -phi] (dlam = 0 on redundant rows)."""
+    [-R; -phi] (dlam = 0 on redundant rows); R and phi may be matrices (one
+    right-hand side a column)."""
     from scipy.linalg import lu_solve
     lu, rows, n, mall = fac
     x = lu_solve(lu, -np.concatenate([R, phi[rows]]), check_finite=False)
-    dl = np.zeros(mall)
+    dl = np.zeros((mall,) + x.shape[1:])
     dl[rows] = x[n:]
     return x[:n], dl
 

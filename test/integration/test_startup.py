@@ -111,7 +111,7 @@ def test_warm_up_purge_reaches_numba_cache_dir_but_not_another_copy(tmp_path, mo
     # numba's own cache files for each copy's kernel, in a subprocess with that cache dir
     for pkg in copies:
         subprocess.run([sys.executable, "-c", "import sys; sys.path.insert(0, sys.argv[1]); "
-                        "from soft_twin_core.engine.kernels.b import f; f(1)", str(pkg.parent)],
+                        "from soft_twin_core.kernels.b import f; f(1)", str(pkg.parent)],
                        check=True, env=dict(os.environ, NUMBA_CACHE_DIR=str(cache)))
     where = {pkg: cache / _CacheLocator.get_suitable_cache_subpath(str(pkg / "kernels" / "b.py")) for pkg in copies}
     assert all(list(d.glob("*.nbi")) and list(d.glob("*.nbc")) for d in where.values()), list(cache.rglob("*"))

@@ -94,12 +94,13 @@ def _run_static(model_est, truth_model, sensors, u, loads, steps, seed, **kw):
 
 # ---------------------------------------------------------------- process model
 
-def _integrator_step(ekf, x, u):
+def _integrator_step(ekf, x, u, lam0=None):
     """The filter's mean prediction from the augmented state x."""
     ekf.x = np.array(x, dtype=float)
     ekf.a = np.zeros(ekf.n)
-    ekf._integrator.last_a = np.zeros(ekf.n)
-    ekf._integrator._prev_a = None
+    ekf.lam = lam0.copy() if lam0 is not None else ekf.lam
+    if ekf._sim._theta_integrator is not None:          # no extrapolation from earlier steps
+        ekf._sim._theta_integrator._prev_a = None
     ekf.predict(u)
     return ekf.x.copy()
 
@@ -107,15 +108,16 @@ def _integrator_step(ekf, x, u):
 def assert_linearisation_at_rest(ekf, x0, u, h=1e-6, hu=1e-4):
     """At the rest state x0 under inputs u: the filter's step keeps x0, and
     its analytic Phi and Gamma_u equal central differences of that step."""
-    ekf.x = x0.copy()
-    ekf.a = np.zeros(ekf.n)
-    Phi, Gamma = ekf.linearisation()
     assert np.abs(_integrator_step(ekf, x0, u) - x0).max() < 1e-8        # at rest it stays
-    Phi_fd = np.stack([(_integrator_step(ekf, x0 + h * e, u) - _integrator_step(ekf, x0 - h * e, u)) / (2 * h)
-                       for e in np.eye(len(x0))], axis=1)
+    lam0 = ekf.lam.copy()                  # and its multipliers are the loop's reactions at rest
+    ekf.x = x0.copy()
+    Phi, Gamma = ekf.linearisation()
+
+    def step(x, u):
+        return _integrator_step(ekf, x, u, lam0)
+    Phi_fd = np.stack([(step(x0 + h * e, u) - step(x0 - h * e, u)) / (2 * h) for e in np.eye(len(x0))], axis=1)
     assert np.abs(Phi - Phi_fd).max() <= 1e-5 * np.abs(Phi_fd).max()
-    Gamma_fd = np.stack([(_integrator_step(ekf, x0, u + hu * e) - _integrator_step(ekf, x0, u - hu * e)) / (2 * hu)
-                         for e in np.eye(len(u))], axis=1)
+    Gamma_fd = np.stack([(step(x0, u + hu * e) - step(x0, u - hu * e)) / (2 * hu) for e in np.eye(len(u))], axis=1)
     assert np.abs(Gamma_fd).max() > 1e-6
     assert np.abs(Gamma - Gamma_fd).max() <= 1e-5 * np.abs(Gamma_fd).max()
 
