@@ -14,7 +14,7 @@ from soft_twin_core.errors import CalibrationError, CalibrationFailed, ModelErro
 from soft_twin_core.estimation import mcap_data as cm
 from soft_twin_core.estimation import sensors as sn
 from soft_twin_core.estimation.calibration import (_expand, calibrate, calibrate_damping, mechanism_of,
-                                                   position_joints, read_csv, write_robot_file)
+                                                   read_csv, write_robot_file)
 from soft_twin_core.robot.model import find_file, read_yaml_file, robot_mapping
 
 
@@ -42,6 +42,9 @@ def add_cli_parser(sub):
     # MCAP recordings (soft_twin_core.estimation.mcap_data)
     c.add_argument("--actuation-topic", default="/soft_twin/actuation",
                    help="MCAP: topic of the actuation commands (default /soft_twin/actuation)")
+    c.add_argument("--joint-command-topic", default="/soft_twin/joint_commands",
+                   help="MCAP: topic of the position commands of the position-controlled joints "
+                        "(sensor_msgs/JointState; default /soft_twin/joint_commands)")
     c.add_argument("--measurements-ns", default="/soft_twin_estimator",
                    help="MCAP: namespace of the estimator's measurement topics <ns>/measurements/poses, "
                         "/pose, /position (default /soft_twin_estimator)")
@@ -74,10 +77,6 @@ def cli_main(args):
         sensors = sn.load_sensors(args.sensors, mech)
         mcap_report = None
         if cm.is_mcap(args.data):                      # an MCAP recording of the node
-            if position_joints(mech):
-                raise CalibrationError(f"--data {args.data}: an MCAP recording carries no joint commands yet; give "
-                                       f"the sweep of a robot with position-controlled joints "
-                                       f"{list(position_joints(mech))} as CSV (one column per joint)")
             rec, mcap_report = _read_mcap(args, mech, sensors)
         else:
             rec = read_csv(args.data, mech, sensors)
@@ -136,7 +135,8 @@ def _read_mcap(args, model, sensors):
         if not sep or not name or not topic.startswith("/"):
             raise CalibrationError(f"--topic: expected SENSOR=/topic, got {item!r}")
         topics[name] = topic
-    kw = dict(actuation_topic=args.actuation_topic, measurements_ns=args.measurements_ns, topics=topics)
+    kw = dict(actuation_topic=args.actuation_topic, joint_command_topic=args.joint_command_topic,
+              measurements_ns=args.measurements_ns, topics=topics)
     if args.dynamic:
         return cm.read_time_series(args.data, model, sensors, **kw)
     return cm.read_static_sweep(args.data, model, sensors, settle_s=args.settle, **kw)

@@ -9,6 +9,12 @@ Topics (all optional but the commands; decoded with ``mcap`` and
   soft_twin/ActuationCommand: ``names``, ``values``; a command naming some
   actuators keeps the others, as the twin does; before the first one every
   input is 0);
+- the joint commands of a robot with position-controlled joints,
+  ``joint_command_topic`` (default ``/soft_twin/joint_commands``,
+  sensor_msgs/JointState: ``name``, ``position``, as the twin's node takes
+  and records them; a command naming some joints keeps the others; before
+  the first one each joint is at its reference; the efforts of
+  effort-controlled joints are not read);
 - the estimator node's measurement topics under ``measurements_ns``
   (default ``/soft_twin_estimator``): ``<ns>/measurements/poses``
   (PoseArray, one pose per pose sensor in the sensors file's order),
@@ -39,9 +45,10 @@ time (zero-order hold) and per sensor the reading nearest in time within
 import numpy as np
 
 from soft_twin_core.estimation import sensors as sn
-from soft_twin_core.estimation.calibration import CalibrationError, Recording
+from soft_twin_core.estimation.calibration import CalibrationError, Recording, position_joints
 
 DEFAULT_ACTUATION_TOPIC = "/soft_twin/actuation"
+DEFAULT_JOINT_COMMAND_TOPIC = "/soft_twin/joint_commands"
 DEFAULT_MEASUREMENTS_NS = "/soft_twin_estimator"
 
 
@@ -102,10 +109,19 @@ def _reading(sensor, msg):
     return sn.measurement_vector(sensor, T[:3, 3] if sensor.position_only else T)
 
 
+def _joint_references(model, joints):
+    tree = model.tree
+    return np.array([next(j.q_ref for j in tree.joints if j.name == name) for name in joints], dtype=float)
+
+
 def read_events(path, model, sensors, *, actuation_topic=DEFAULT_ACTUATION_TOPIC,
-                measurements_ns=DEFAULT_MEASUREMENTS_NS, topics=None):
-    """The commands and readings of a recording: (commands [(t_ns, u (n_act,))]
-    with the full input after each command, readings {sensor: [(t_ns,
+                joint_command_topic=DEFAULT_JOINT_COMMAND_TOPIC, measurements_ns=DEFAULT_MEASUREMENTS_NS,
+                topics=None):
+    """The commands and readings of a recording: (commands [(t_ns, input)]
+    with the full input after each command -- the actuation u (n_act,)
+    followed by the position commands of the position-controlled joints
+    (:func:`calibration.position_joints`) --, the first entry ``(None,
+    input)`` the input before any command; readings {sensor: [(t_ns,
     reading)]}, skipped {reason: count}). Raises CalibrationError naming a
     bad topic mapping or an empty recording."""
     sensors = [s for s in sensors if isinstance(s, sn.PoseSensor)]
@@ -117,11 +133,12 @@ def read_events(path, model, sensors, *, actuation_topic=DEFAULT_ACTUATION_TOPIC
     ns = "/" + measurements_ns.strip("/") if measurements_ns.strip("/") else ""
     t_poses, t_pose, t_pos = f"{ns}/measurements/poses", f"{ns}/measurements/pose", f"{ns}/measurements/position"
     own = {topic: name for name, topic in topics.items()}
-    events = _iter(path, {actuation_topic, t_poses, t_pose, t_pos, *own})
+    joints = list(position_joints(model))
+    events = _iter(path, {actuation_topic, t_poses, t_pose, t_pos, *own} | ({joint_command_topic} if joints else set()))
     pose_sensors = [s for s in sensors if not s.position_only]
     names = list(model.actuator_names)
-    u = np.zeros(len(names))
-    commands, readings = [], {s.name: [] for s in sensors}
+    u = np.concatenate([np.zeros(len(names)), _joint_references(model, joints) if joints else []])
+    commands, readings = [(None, u.copy())], {s.name: [] for s in sensors}
     skipped = {}
 
     def skip(reason):
@@ -147,6 +164,14 @@ def read_events(path, model, sensors, *, actuation_topic=DEFAULT_ACTUATION_TOPIC
                 continue
             u = new
             commands.append((t, u.copy()))
+        elif topic == joint_command_topic:
+            new = _joint_command(u, msg, joints, len(names))
+            if new is None:
+                skip("bad_joint_command")
+                continue
+            if len(msg.position):
+                u = new
+                commands.append((t, u.copy()))
         elif topic in own:
             take(by_name[own[topic]], t, msg)
         elif topic == t_poses:
@@ -161,11 +186,36 @@ def read_events(path, model, sensors, *, actuation_topic=DEFAULT_ACTUATION_TOPIC
                 skip("unknown_sensor")
                 continue
             take(s, t, msg)
-    if not commands:
-        raise CalibrationError(f"data file {path}: no actuation command on {actuation_topic!r}")
+    if len(commands) == 1:
+        where = repr(actuation_topic) + (f" or {joint_command_topic!r}" if joints else "")
+        raise CalibrationError(f"data file {path}: no actuation command on {where}")
     if not any(readings.values()):
         raise CalibrationError(f"data file {path}: no sensor reading on {sorted({t_poses, t_pose, t_pos, *own})}")
     return commands, readings, skipped
+
+
+def _joint_command(u, msg, joints, n_act):
+    """The input u with the positions of a JointState command (None: a name
+    that is not a joint of the robot, a position that is not finite, or
+    positions not one per name; efforts of effort-controlled joints are
+    left to the twin)."""
+    names, pos = list(msg.name), list(msg.position)
+    if pos and len(pos) != len(names):
+        return None
+    new = u.copy()
+    for n, v in zip(names, pos):
+        if n not in joints or not np.isfinite(v):
+            return None
+        new[n_act + joints.index(n)] = v
+    return new
+
+
+def _recording(model, inputs, rows, times):
+    """A :class:`calibration.Recording` of input rows [u; joint positions]."""
+    inputs = np.array(inputs)
+    n_act = len(model.actuator_names)
+    joints = inputs[:, n_act:] if inputs.shape[1] > n_act else None
+    return Recording(inputs[:, :n_act], {k: np.array(v) for k, v in rows.items()}, times, joints)
 
 
 def _mean_reading(zs):
@@ -180,10 +230,11 @@ def _mean_reading(zs):
 
 
 def _holds(commands, t_first):
-    """[(t_start, t_end, u)] of constant inputs (the first from t_first at u = 0)."""
+    """[(t_start, t_end, u)] of constant inputs (the first from t_first at
+    the input before any command, ``commands[0]``)."""
     out = []
-    u0 = np.zeros_like(commands[0][1])
-    start, u = min(t_first, commands[0][0]), u0
+    (_, u), commands = commands[0], commands[1:]
+    start = min(t_first, commands[0][0])
     for t, v in commands:
         if np.array_equal(v, u):
             continue
@@ -221,7 +272,7 @@ def read_static_sweep(path, model, sensors, *, settle_s=None, **topic_args):
         averaged.append(sum(len(z) for z in got.values()))
     if not inputs:
         raise CalibrationError(f"data file {path}: no hold of the commands has readings after settling")
-    rec = Recording(np.array(inputs), {k: np.array(v) for k, v in rows.items()}, np.array(times))
+    rec = _recording(model, inputs, rows, np.array(times))
     report = {"holds": len(holds), "rows": len(inputs), "readings_averaged": int(sum(averaged)),
               "skipped": skipped}
     return rec, report
@@ -240,12 +291,13 @@ def read_time_series(path, model, sensors, *, tolerance_s=None, **topic_args):
         tol = tolerance_s * 1e9
     else:                                          # half the lead sensor's sample period
         tol = 0.5 * float(np.median(np.diff(times))) if len(times) > 1 else 0.0
-    ct = np.array([t for t, _ in commands], dtype=np.int64)
-    cu = np.array([u for _, u in commands])
+    u0 = commands[0][1]                                   # the input before the first command
+    ct = np.array([t for t, _ in commands[1:]], dtype=np.int64)
+    cu = np.array([u for _, u in commands[1:]])
     inputs = []
     for t in times:
         k = np.searchsorted(ct, t, side="right") - 1
-        inputs.append(cu[k] if k >= 0 else np.zeros(cu.shape[1]))
+        inputs.append(cu[k] if k >= 0 else u0)
     rows = {}
     for s in sensors:
         st = np.array([t for t, _ in readings[s.name]], dtype=np.int64)
@@ -259,5 +311,5 @@ def read_time_series(path, model, sensors, *, tolerance_s=None, **topic_args):
             k = int(np.argmin(np.abs(st - t)))
             out.append(zs[k] if abs(st[k] - t) <= tol else nan)
         rows[s.name] = np.array(out)
-    rec = Recording(np.array(inputs), rows, 1e-9 * (times - times[0]))
-    return rec, {"rows": len(times), "commands": len(commands), "skipped": skipped}
+    rec = _recording(model, inputs, rows, 1e-9 * (times - times[0]))
+    return rec, {"rows": len(times), "commands": len(commands) - 1, "skipped": skipped}

@@ -193,3 +193,93 @@ def test_time_series_rows_hold_the_commands(recording):
     assert np.array_equal(rec.inputs[5 + 3 * n + 2], U[3])    # zero-order hold
     # em1 and tip are stamped 1-2 ms after mk0: matched within half a period
     assert np.all(np.isfinite(rec.readings["tip"][:, 0, 0]))
+
+
+# ------------------------------------------- a tree robot: joint commands too
+
+PT_NAMES = ["tendon_y_pos", "tendon_y_neg", "tendon_z_pos", "tendon_z_neg"]
+PT_SENSORS = [sn.PoseSensor("em_tool", 3e-4, 5e-3, frame="tool"),
+              sn.marker("mk_mid", 3e-4, [0.0, 0.0, 0.012], member="arm", s=0.15)]
+PT_SCALE = {"proximal": 1.3, "distal": 0.8}
+
+
+def _pan_tilt(scale=None):
+    d = read_yaml_file(find_file("pan_tilt_arm", "robots"))
+    for b in d["bodies"]:
+        for s in b.get("segments", ()) if b.get("type") == "member" else ():
+            s["material"]["youngs_modulus"] = float(s["material"]["youngs_modulus"]) * (scale or {}).get(s["name"], 1)
+    return d
+
+
+def _pan_tilt_sweep():
+    """Each tendon alone at two levels, at three pan/tilt poses (27 rows)."""
+    U = [np.zeros(4)] + [np.eye(4)[k] * T for k in range(4) for T in (3.0, 7.0)]
+    poses = [(0.0, 0.0), (0.4, -0.3), (0.4, 0.25)]
+    return np.vstack([U] * len(poses)), np.repeat(np.array(poses), len(U), axis=0)
+
+
+@pytest.fixture(scope="module")
+def tree_recording(tmp_path_factory):
+    """The pan-tilt arm's sweep (moduli 30 % / 20 % off) as the twin's node
+    records it: per hold an actuation command, and a joint command naming
+    only the joints that change (the others keep their positions), then the
+    settled readings in the hold's second half; one joint command naming a
+    joint the robot does not have."""
+    from sensor_msgs.msg import JointState
+    from soft_twin_core.robot.mechanism import mechanism_from_dict
+    U, J = _pan_tilt_sweep()
+    truth = cal.record_static_sweep(mechanism_from_dict(_pan_tilt(PT_SCALE)), PT_SENSORS, U,
+                                    np.random.default_rng(5), joints=J)
+    path = tmp_path_factory.mktemp("mcap") / "pan_tilt.mcap"
+    rec = McapRecording(path)
+    for k in range(len(U)):
+        tc = T0 + k * HOLD_S
+        rec.write("/soft_twin/actuation", _stamp(ActuationCommand(names=PT_NAMES, values=[float(x) for x in U[k]]), tc))
+        changed = [i for i in range(2) if J[k, i] != (J[k - 1, i] if k else 0.0)]
+        if changed:
+            cmd = JointState(name=[("pan", "tilt")[i] for i in changed], position=[float(J[k, i]) for i in changed])
+            rec.write("/soft_twin/joint_commands", _stamp(cmd, tc + 0.01))
+        for j in range(5, 10):
+            t = tc + j * READ_EVERY_S
+            rec.write("/soft_twin_estimator/measurements/pose", _pose("em_tool", truth.readings["em_tool"][k], t))
+            rec.write("/soft_twin_estimator/measurements/position", _point("mk_mid", truth.readings["mk_mid"][k], t))
+    rec.write("/soft_twin/joint_commands", _stamp(JointState(name=["elbow"], position=[0.1]), T0 + 2.5))
+    rec.close()
+    return path, truth
+
+
+def test_joint_commands_of_a_tree_robot_read_from_mcap(tree_recording):
+    """Each hold's row carries the joints' commanded positions beside the
+    tensions, the mean of its settled readings, and the bad command is
+    skipped and counted (the reader refused these robots before)."""
+    from soft_twin_core.robot.mechanism import mechanism_from_dict
+    path, truth = tree_recording
+    mech = mechanism_from_dict(_pan_tilt())
+    rec, rep = cm.read_static_sweep(path, mech, PT_SENSORS)
+    U, J = _pan_tilt_sweep()
+    assert len(rec) == len(U) and rep["skipped"] == {"bad_joint_command": 1}
+    np.testing.assert_array_equal(rec.inputs, U)
+    np.testing.assert_array_equal(rec.joints, J)
+    for name in truth.readings:
+        np.testing.assert_allclose(rec.readings[name], truth.readings[name], atol=1e-12)
+    series, _ = cm.read_time_series(path, mech, PT_SENSORS)
+    assert series.joints.shape == (len(series), 2) and np.array_equal(series.joints[-1], J[-1])
+    with pytest.raises(cal.CalibrationError, match="no actuation command on '/a' or '/j'"):
+        cm.read_static_sweep(path, mech, PT_SENSORS, actuation_topic="/a", joint_command_topic="/j")
+
+
+def test_cli_calibrates_a_tree_robot_from_an_mcap_recording(tree_recording, tmp_path, capsys):
+    """Both moduli of the pan-tilt arm within 3 % from the node's recording."""
+    import yaml
+    path, _ = tree_recording
+    (tmp_path / "s.yaml").write_text(yaml.safe_dump({"sensors": sn.sensors_to_list(PT_SENSORS)}))
+    code = cli_main(["calibrate", "pan_tilt_arm", "--sensors", str(tmp_path / "s.yaml"), "--data", str(path),
+                     "--fit", "youngs_modulus"])
+    cap = capsys.readouterr()
+    assert code == 0, cap.err
+    rep = json.loads(cap.out)
+    nominal = {s["name"]: float(s["material"]["youngs_modulus"]) for b in _pan_tilt()["bodies"]
+               if b.get("type") == "member" for s in b["segments"]}
+    for seg, k in PT_SCALE.items():
+        assert rep["parameters"][f"youngs_modulus:{seg}"]["fitted"] == pytest.approx(k * nominal[seg], rel=0.03), rep
+    assert rep["recording"]["rows"] == len(_pan_tilt_sweep()[0])
