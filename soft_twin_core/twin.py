@@ -36,6 +36,7 @@ from soft_twin_core._blas import one_blas_thread
 from soft_twin_core.engine.workspace import Workspace
 from soft_twin_core.errors import StaticsError
 from soft_twin_core.planning import planner as pl
+from soft_twin_core.planning.ik import frame_ik
 from soft_twin_core.robot.mechanism import shape_command, tip_frame
 from soft_twin_core.robot.model import State
 from soft_twin_core.solve import constrained as cs
@@ -520,7 +521,6 @@ class Twin:
             message = "ok: shape of the given strains (joints at their current positions)"
             if self.mech.n_constraint_rows:
                 # a closed chain: strains alone need not close it (the passive joints follow from the closure)
-                from soft_twin_core.engine.workspace import Workspace
                 phi, _ = cs.constraint_rows(self.mech, Workspace(self.mech.tree), self.state.q)
                 gap = float(np.abs(phi[:self.mech.n_constraint_rows]).max(initial=0.0))
                 message += f"; the constraints are violated by up to {gap:.3g} m or rad with them" if gap > 1e-9 \
@@ -562,7 +562,6 @@ class Twin:
         target = np.asarray(target, float)
         if not (self.mech.actuators or self.mech.joints_with("position")):
             # nothing drives this robot: the shape that would reach the target (not an equilibrium)
-            from soft_twin_core.planning.ik import frame_ik
             r = frame_ik(self.mech, self.tip, target, self.state.q, position_only=target.shape == (3,),
                          tol_position=tolerance, tol_orientation=tolerance)
             return TwinIK(bool(r.success), "reached" if r.success else "shape_only", (), np.zeros(0), r.q.copy(),

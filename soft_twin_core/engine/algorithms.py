@@ -10,6 +10,9 @@ import numpy as np
 
 from soft_twin_core.engine.kernels import passes
 from soft_twin_core.engine.kernels.data import LoadArrays, empty_loads
+from soft_twin_core.engine.kernels.derivatives import rnea_derivatives_pass
+from soft_twin_core.engine.kernels.frames import point_poses as _poses, spatial_jacobian, spatial_jacobian_dot
+from soft_twin_core.lie import Ad_inv, ad
 
 _NO_LOADS = empty_loads()
 
@@ -100,7 +103,6 @@ def make_loads(model, joint, x, wrench, world):
 def point_poses(model, ws, q, joint, x):
     """World poses (P, 4, 4) of points (joint[p], x[p]) (x: abscissa [m] in a
     soft section; -1: the joint's output frame)."""
-    from soft_twin_core.engine.kernels.frames import point_poses as _poses
     forward_kinematics(model, ws, q)
     joint = np.ascontiguousarray(joint, dtype=np.int64).reshape(-1)
     x = np.ascontiguousarray(x, dtype=float).reshape(-1)
@@ -113,14 +115,12 @@ def point_jacobian(model, ws, q, joint, x=-1.0, frame="body"):
     """(pose 4x4, Jacobian 6 x nv) of the point (joint, x): frame "body" (its
     own axes), "world" (velocity of the point and angular velocity in world
     axes) or "spatial" (twist through the world origin)."""
-    from soft_twin_core.engine.kernels.frames import spatial_jacobian
     forward_kinematics(model, ws, q)
     g = np.empty((4, 4))
     Js = np.empty((6, model.nv))
     spatial_jacobian(ws.m, ws.w, int(joint), float(x), g, Js)
     if frame == "spatial":
         return g, Js
-    from soft_twin_core.lie import Ad_inv
     J = Ad_inv(g) @ Js
     if frame == "body":
         return g, J
@@ -136,7 +136,6 @@ def rnea_derivatives(model, ws, q, v, a, gravity=None):
     loads), q moving on each joint's group (right-trivialised, as Pinocchio's
     computeRNEADerivatives); d tau/d a is M (:func:`crba`). Exponential-map
     sections only. See :mod:`kernels.derivatives`."""
-    from soft_twin_core.engine.kernels.derivatives import rnea_derivatives_pass
     if np.any(ws.arrays.kmap != 0):
         raise NotImplementedError("rnea_derivatives: Cayley-map sections are not supported")
     q, v, a = _enter(model, ws, q, v, a)
@@ -152,8 +151,6 @@ def point_jacobian_dot(model, ws, q, v, joint, x=-1.0, frame="body"):
     """Time derivative (6, nv) of :func:`point_jacobian` along (q, v), same
     frames: "spatial" ``d/dt Js``; "body" ``d/dt (Ad(g)^-1 Js) = Ad(g)^-1 (Jsdot
     - ad(Vs) Js)`` (Vs = Js v); "world" ``d/dt (blockdiag(R, R) J_body)``."""
-    from soft_twin_core.engine.kernels.frames import spatial_jacobian, spatial_jacobian_dot
-    from soft_twin_core.lie import Ad_inv, ad
     forward_kinematics(model, ws, q, v)
     v = np.ascontiguousarray(model.check_v(v), dtype=float)
     g = np.empty((4, 4))

@@ -34,6 +34,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from soft_twin_core.engine import algorithms as alg
 from soft_twin_core.engine.forces import actuation_pass
 from soft_twin_core.engine.joint_kinds import FREE, SPHERICAL
 from soft_twin_core.engine.kernels import passes
@@ -335,7 +336,6 @@ class ThetaIntegrator:
         dense matrix ``M + theta h dtau/dv + (theta h)^2 dtau/dq`` from the
         analytic derivatives of inverse dynamics (loads' and tendons'
         geometric terms left out), refreshed every iteration."""
-        from soft_twin_core.engine import algorithms as alg
         loads, g, coef, effort = inputs
         model, ws, th = self.model, self.ws, self.theta * h
         if np.any(ws.arrays.kmap != 0):

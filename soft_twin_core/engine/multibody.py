@@ -50,9 +50,11 @@ from functools import cached_property
 
 import numpy as np
 
-from soft_twin_core.engine.joint_kinds import FREE, JOINT_KINDS, PRISMATIC, REVOLUTE, SOFT, SPHERICAL
-from soft_twin_core.engine.joint_kinds import NQ as _NQ, NV as _NV
+from soft_twin_core.engine.joint_kinds import (FREE, JOINT_KINDS, NQ as _NQ, NV as _NV, PRISMATIC, REVOLUTE,
+                                               SOFT, SPHERICAL)
+from soft_twin_core.engine.kernels.data import kernel_struct, pack_model
 from soft_twin_core.errors import ModelError
+from soft_twin_core.lie import hat
 
 
 @dataclass(frozen=True, eq=False)
@@ -193,13 +195,11 @@ class Model:
     @cached_property
     def arrays(self):
         """The packed arrays of the compiled passes (:class:`kernels.data.ModelArrays`)."""
-        from soft_twin_core.engine.kernels.data import pack_model          # numba: only when a pass is run
         return pack_model(self)
 
     @cached_property
     def kernel_arrays(self):
         """:attr:`arrays` as the compiled passes take them (a structref of the same arrays)."""
-        from soft_twin_core.engine.kernels.data import kernel_struct
         return kernel_struct(self.arrays)
 
     @cached_property
@@ -300,7 +300,6 @@ def spatial_inertia(mass, com=(0.0, 0.0, 0.0), inertia_com=None):
     """6x6 spatial inertia about a body frame, [linear; angular] order:
     ``[[m I, -m hat(c)], [m hat(c), Ic - m hat(c)^2]]``; ``inertia_com`` is the
     3x3 rotational inertia about the centre of mass c (body axes) [kg m^2]."""
-    from soft_twin_core.lie import hat
     c = np.asarray(com, dtype=float)
     Ic = np.zeros((3, 3)) if inertia_com is None else np.asarray(inertia_com, dtype=float)
     C = hat(c)

@@ -56,8 +56,15 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from soft_twin_core.engine import algorithms as alg
+from soft_twin_core.engine.workspace import Workspace
 from soft_twin_core.errors import CalibrationError, CalibrationFailed
 from soft_twin_core.estimation import sensors as sn
+from soft_twin_core.lie import log_so3
+from soft_twin_core.robot.mechanism import from_robot_model, is_tree_file, mechanism_from_dict, tip_frame
+from soft_twin_core.robot.model import check_actuator_input, model_from_dict
+from soft_twin_core.solve import constrained as cs
+from soft_twin_core.solve.constrained import FrameLoad, MechanismSimulator, StepError, solve_equilibrium
 
 
 def _marker(s):
@@ -108,8 +115,6 @@ def position_joints(robot):
 def mechanism_of(robot_dict, n_sections=None, base_dir=None):
     """The mechanism of a robot mapping of either schema; ``n_sections``
     (classic robots only) replaces every segment's section count."""
-    from soft_twin_core.robot.mechanism import from_robot_model, is_tree_file, mechanism_from_dict
-    from soft_twin_core.robot.model import model_from_dict
     if is_tree_file(robot_dict):
         if n_sections is not None:
             raise CalibrationError("sections: a tree robot's sections come from its file (--sections is for "
@@ -120,7 +125,6 @@ def mechanism_of(robot_dict, n_sections=None, base_dir=None):
 
 def _as_mechanism(robot):
     """A mechanism from a mechanism or a classic model."""
-    from soft_twin_core.robot.mechanism import from_robot_model
     return robot if hasattr(robot, "joints_with") else from_robot_model(robot)
 
 
@@ -153,7 +157,6 @@ def _segment_rows(mech, d):
     """{segment key: boolean mask (nv,) of its sections' strain
     coordinates}: each member's joints shared out over its segments by
     their section counts (an equal split when a count override applied)."""
-    from soft_twin_core.engine.workspace import Workspace
     segs, member_of = _segments_of(d)
     arrays = Workspace(mech.tree).arrays
     out = {}
@@ -278,7 +281,6 @@ def check_recording_inputs(model, inputs, source="recording"):
     come from this robot as declared (wrong units, wrong robot file, or a
     bound the robot file should not declare), and fitting it would
     calibrate the model to inputs the twin refuses."""
-    from soft_twin_core.robot.model import check_actuator_input
     u = np.asarray(inputs, dtype=float)
     if u.ndim != 2 or u.shape[1] != len(model.actuators):
         return
@@ -297,8 +299,6 @@ def record_static_sweep(robot, sensors, inputs, rng, loads=None, joints=None, po
     commands, rad or m; default the references), ``loads`` and
     ``point_loads`` (FrameLoad), read by the sensors with their noise. The
     inputs must lie in the actuators' declared ranges."""
-    from soft_twin_core.engine.workspace import Workspace
-    from soft_twin_core.solve.constrained import solve_equilibrium
     mech = _as_mechanism(robot)
     check_recording_inputs(mech, inputs, "inputs")
     sensors, where = _measuring(mech, sensors)
@@ -395,8 +395,6 @@ def apply_parameters(robot_dict, sensors, params, theta):
 
 def _payload(mech, mass):
     """The payload's weight as a dead load on the tip frame (FrameLoads)."""
-    from soft_twin_core.robot.mechanism import tip_frame
-    from soft_twin_core.solve.constrained import FrameLoad
     if mass == 0.0:
         return ()
     return (FrameLoad(tip_frame(mech), np.concatenate([mass * np.asarray(mech.tree.gravity, float), np.zeros(3)]),
@@ -461,7 +459,6 @@ class Problem:
 
     def equilibrium(self, mech, r, mass):
         """The equilibrium of row r (warm-started from the last one found)."""
-        from soft_twin_core.solve.constrained import solve_equilibrium
         pos = dict(zip(self._names_j, self._joints[r])) if self._names_j else None
         eq = solve_equilibrium(mech, self.rec.inputs[r], None, pos, None, _payload(mech, mass), q_init=self._q[r],
                                check_stability=False)
@@ -470,9 +467,6 @@ class Problem:
 
     def evaluate(self, theta, jacobian=True, rows=None):
         """(weighted residuals (M,), Jacobian (M, p) d r / d theta, or None)."""
-        from soft_twin_core.engine import algorithms as alg
-        from soft_twin_core.engine.workspace import Workspace
-        from soft_twin_core.solve import constrained as cs
         theta = np.asarray(theta, dtype=float)
         mech, sensors, mass = self.model(theta)
         tree = mech.tree
@@ -502,7 +496,6 @@ class Problem:
                         _tendon_offset_derivative(mech, ws, act, k, u[k], col)
                         dR[:, j] = -col
                     elif p.kind == "payload_mass":
-                        from soft_twin_core.robot.mechanism import tip_frame
                         ref = mech.frame(tip_frame(mech))
                         _, Jw = alg.point_jacobian(tree, ws, q, ref.joint, ref.x, "world")
                         dR[:, j] = -Jw.T @ np.concatenate([tree.gravity, np.zeros(3)])
@@ -566,7 +559,6 @@ class CalibrationResult:
 def _tip_sensor(mech, sensors):
     """The sensor nearest the tip: one on the tip frame, else the farthest
     along the main member, else the last."""
-    from soft_twin_core.robot.mechanism import tip_frame
     tip = tip_frame(mech)
     on_tip = [s for s in sensors if s.frame == tip]
     if on_tip:
@@ -579,7 +571,6 @@ def tip_errors(problem, theta, rows, truth_tips=None):
     """(RMS, max) [m] over ``rows`` of the distance between the model's
     prediction of the sensor nearest the tip and its reading (or the given
     true positions (R, 3))."""
-    from soft_twin_core.engine.workspace import Workspace
     mech, sensors, mass = problem.model(theta)
     tip = _tip_sensor(mech, sensors)
     ws = Workspace(mech.tree)
@@ -667,8 +658,6 @@ def simulate_readings(robot, sensors, times, inputs, dt, theta=0.5, joints=None)
     set by the step); integrator steps of about ``dt`` [s]
     (:class:`constrained.MechanismSimulator`). Raises CalibrationFailed if
     a step fails, CalibrationError if the times do not increase."""
-    from soft_twin_core.engine.workspace import Workspace
-    from soft_twin_core.solve.constrained import MechanismSimulator, StepError, solve_equilibrium
     mech = _as_mechanism(robot)
     sensors, where = _measuring(mech, sensors)
     ws = Workspace(mech.tree)
@@ -788,7 +777,6 @@ def calibrate_damping(robot_dict, sensors, recording, members=None, *, dt=5e-3, 
 
 
 def _log_so3(R):
-    from soft_twin_core.lie import log_so3
     return log_so3(R)
 
 

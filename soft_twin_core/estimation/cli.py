@@ -11,8 +11,7 @@ import numpy as np
 import yaml
 
 from soft_twin_core.errors import CalibrationError, CalibrationFailed, ModelError, StaticsError
-from soft_twin_core.estimation import mcap_data as cm
-from soft_twin_core.estimation import sensors as sn
+from soft_twin_core.estimation import mcap_data as cm, sensors as sn
 from soft_twin_core.estimation.calibration import (_expand, calibrate, calibrate_damping, mechanism_of,
                                                    read_csv, write_robot_file)
 from soft_twin_core.robot.model import find_file, read_yaml_file, robot_mapping

@@ -46,6 +46,7 @@ import numpy as np
 
 from soft_twin_core.estimation import sensors as sn
 from soft_twin_core.estimation.calibration import CalibrationError, Recording, position_joints
+from soft_twin_core.files.mcap_salvage import read_decoded
 
 DEFAULT_ACTUATION_TOPIC = "/soft_twin/actuation"
 DEFAULT_JOINT_COMMAND_TOPIC = "/soft_twin/joint_commands"
@@ -73,7 +74,6 @@ def _time_ns(msg, log_time):
 
 def _iter(path, topics):
     """(topic, time [ns], decoded message) of the topics, in log-time order."""
-    from soft_twin_core.files.mcap_salvage import read_decoded
     # a recording cut short is read up to its last complete chunk, with a warning
     return [(channel.topic, _time_ns(decoded, message.log_time), decoded)
             for channel, message, decoded in read_decoded(path, list(topics), CalibrationError,

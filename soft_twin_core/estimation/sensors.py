@@ -58,6 +58,11 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from soft_twin_core import lie
+from soft_twin_core.engine import algorithms as alg
+from soft_twin_core.engine.kernels import passes
+from soft_twin_core.engine.kernels.frames import spatial_jacobian
+from soft_twin_core.engine.workspace import thread_workspace
+from soft_twin_core.robot.model import ModelError, parse_number, pose_from_dict, read_yaml_file
 
 
 @dataclass(frozen=True, eq=False)
@@ -281,7 +286,6 @@ def pose_from_position_quaternion(p, quat_xyzw):
 def point_pose_and_body_jacobian(ws, joint, x, placement):
     """(T_world 4x4, body Jacobian 6 x nv) of the point (joint, x) followed by
     ``placement``, at the forward pass already done in ``ws``."""
-    from soft_twin_core.engine.kernels.frames import spatial_jacobian
     g = np.empty((4, 4))
     Js = np.empty((6, ws.zeros_v.shape[0]))
     spatial_jacobian(ws.m, ws.w, joint, x, g, Js)
@@ -292,7 +296,6 @@ def point_pose_and_body_jacobian(ws, joint, x, placement):
 def base_wrench_and_jacobian(tree, ws, q, jacobian=True):
     """(W (6,) the support's wrench on the robot at rest, world axes about
     the base origin; dW/dq (6, nv) or None), module docstring."""
-    from soft_twin_core.engine import algorithms as alg
     q = np.ascontiguousarray(q, dtype=float)
     z = np.zeros(tree.nv)
     g = np.asarray(tree.gravity, dtype=float)
@@ -348,7 +351,6 @@ def predict_measurement(ws, q, sensor, where):
 def forward(ws, q):
     """The forward pass of ``ws`` at q (the measurement models' precondition);
     returns q as a contiguous array."""
-    from soft_twin_core.engine.kernels import passes
     q = np.ascontiguousarray(q, dtype=float)
     passes.forward_pass(ws.m, ws.w, q, ws.zeros_v, ws.zeros_v, 0)
     return q
@@ -357,7 +359,6 @@ def forward(ws, q):
 def sensor_pose(mech, q, sensor, ws=None):
     """World pose (4x4) of a PoseSensor's frame at q (one forward pass;
     ``ws``: a workspace of the robot's tree, else the thread's)."""
-    from soft_twin_core.engine.workspace import thread_workspace
     ws = thread_workspace(mech.tree) if ws is None else ws
     j, x = locate(mech, sensor)
     forward(ws, q)
@@ -416,7 +417,6 @@ def sensors_from_list(items, mech, where="sensors"):
     (m, rad, N, Pa; ``offset``/``rpy``: the placement in the point's frame;
     ``sigma_position`` of a joint_state: one value or one per joint, rad or
     m). Returns the checked tuple; ValueError naming the bad entry and field."""
-    from soft_twin_core.robot.model import ModelError, parse_number, pose_from_dict
     if not isinstance(items, list) or not items:
         raise ValueError(f"{where}: expected a non-empty list of sensors")
     out = []
@@ -474,7 +474,6 @@ def sensors_from_list(items, mech, where="sensors"):
 
 def load_sensors(path, mech):
     """Sensors of a YAML file (a list, or a mapping with a ``sensors:`` list)."""
-    from soft_twin_core.robot.model import read_yaml_file
     d = read_yaml_file(path, ValueError, "sensors file")
     if isinstance(d, dict):
         d = d.get("sensors")

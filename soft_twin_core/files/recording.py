@@ -31,6 +31,10 @@ import re
 
 import numpy as np
 
+from soft_twin_core.files.mcap_salvage import read_decoded
+from soft_twin_core.robot.mechanism import tip_frame, tip_frame as tip_frame_of
+from soft_twin_core.solve.outputs import main_member
+
 
 STATE_TOPICS = ("backbone", "tip_pose", "strains")
 
@@ -53,8 +57,6 @@ def run_from_messages(backbones, tip_poses, strains, mech):
     robot's main member (:func:`outputs.main_member`), the tip pose as its
     tip frame (``frame_poses``). A robot with other members or frames needs
     their topics: :func:`recording.articulated_run_from_messages`."""
-    from soft_twin_core.robot.mechanism import tip_frame
-    from soft_twin_core.solve.outputs import main_member
     tip = tip_frame(mech)
     main = main_member(mech, tip)
     if len(mech.members) != 1 or list(mech.frames) != [tip]:
@@ -109,7 +111,6 @@ def _pose_of(pose):
 def read_messages(path, topics=None):
     """{topic: [decoded message, ...]} of an MCAP file in the ROS 2 format
     (log-time order); ``topics``: keep only these."""
-    from soft_twin_core.files.mcap_salvage import read_decoded
     out = {}
     # a recording cut short (killed node, truncated file) is read up to its last
     # complete chunk, with a warning: soft_twin_core.files.mcap_salvage
@@ -218,9 +219,7 @@ def write_articulated_mcap(out, mech, path, node="soft_twin_sim", frame="base_li
     prefix = node.strip("/") + "/"
     fnames = list(out["frame_names"])
     if tip_frame is None:
-        from soft_twin_core.robot.mechanism import tip_frame as tip_frame_of
         tip_frame = tip_frame_of(mech)
-    from soft_twin_core.solve.outputs import main_member
     main = main_member(mech, tip_frame)
     tnames = list(out.get("transmitted_names", []))
     with open(path, "wb") as fh:

@@ -16,7 +16,11 @@ from soft_twin_core.solve.constrained import (MechanismSimulator, StepError, con
                                               solve_equilibrium)
 
 _NO_LOADS = Loads(gravity=False)
+from soft_twin_core.engine.workspace import Workspace
 from soft_twin_core.files.timeline import check_output_size, count, n_steps_for, step_times
+from soft_twin_core.robot.mechanism import tip_frame
+from soft_twin_core.solve.outputs import (frame_velocity, main_member, member_samples, section_rates,
+                                          section_strains, state_outputs)
 
 
 def _inputs(sc, t, factor=1.0):
@@ -69,8 +73,6 @@ def _backbone_view(mech, out):
     samples (:func:`outputs.main_member`): ``backbone_s`` [m],
     ``backbone_positions`` [m] and ``internal_wrenches`` (its cross-sections'
     axes)."""
-    from soft_twin_core.robot.mechanism import tip_frame
-    from soft_twin_core.solve.outputs import main_member
     tip = tip_frame(mech)
     g = np.asarray(out.frames[tip], dtype=float)
     d = {"tip_position": g[:3, 3].tolist(), "tip_rotation": g[:3, :3].ravel().tolist(),
@@ -105,7 +107,6 @@ def run_mechanism_statics(sc, t=0.0, points_per_section=1):
     (``points_per_section`` per section and its end) s [m], positions, orientations (quaternions x, y, z, w), internal_wrench (body axes), strains,
     normal_stress and shear_stress [Pa] (null without geometry); iterations, residual; stable and
     min_stiffness_eigenvalue (constrained.equilibrium_stability)."""
-    from soft_twin_core.solve.outputs import section_strains, state_outputs
     q, iterations = None, 0
     for k in range(1, sc.load_steps + 1):     # load_steps increments, each warm-started
         eq = solve_equilibrium(sc.mech, q_init=q, targets=_targets(sc, t), inputs=_inputs(sc, t, k / sc.load_steps),
@@ -163,9 +164,6 @@ class _Recorder:
     integrator's keeps its state)."""
 
     def __init__(self, sc, sim, sample_every, points_per_section, inputs):
-        from soft_twin_core.engine.workspace import Workspace
-        from soft_twin_core.robot.mechanism import tip_frame
-        from soft_twin_core.solve.outputs import member_samples
         mech = sc.mech
         self.sc, self.sim, self.mech, self.inputs = sc, sim, mech, inputs
         self.sample_every, self.pps = sample_every, points_per_section
@@ -188,7 +186,6 @@ class _Recorder:
     def record(self, k, t, iterations):
         """Row k (time t [s]) from the simulator's state; a member sample too
         when k is a multiple of ``sample_every``."""
-        from soft_twin_core.solve.outputs import frame_velocity, section_rates, section_strains, state_outputs
         sc, sim, mech, out = self.sc, self.sim, self.mech, self.out
         inp = self.inputs(t, t)              # the loads and efforts at the recorded instant
         sample = bool(self.sample_every) and k % self.sample_every == 0

@@ -44,12 +44,15 @@ import numpy as np
 
 from soft_twin_core.engine.loads import DistributedLoad, Loads, PointLoad
 from soft_twin_core.errors import ModelError, ScenarioError
+from soft_twin_core.files.runs import run_mechanism_dynamics, run_mechanism_statics
 from soft_twin_core.files.timeline import Spline, check_scenario_input, parse_profile
 from soft_twin_core.robot.mechanism import (check_joint_position, from_robot_model, is_tree_file,
                                             mechanism_from_dict)
 from soft_twin_core.robot.model import (find_file, model_from_dict, parse_number, parse_numbers,
-                                        pose_from_dict, read_yaml_file, robot_mapping)
+                                        pose_from_dict, read_yaml_file, robot_mapping,
+                                        robot_not_scenario_hint)
 from soft_twin_core.solve.constrained import FrameLoad
+from soft_twin_core.solve.outputs import q_from_section_strains
 
 
 @dataclass
@@ -161,7 +164,6 @@ def load_scenario(path, sections=None, angle_deg=None):
     path = find_file(path, "scenarios", ScenarioError)
     d = read_yaml_file(path, ScenarioError, "scenario")
     if isinstance(d, dict) and "robot" not in d and ("segments" in d or "bodies" in d):
-        from soft_twin_core.robot.model import robot_not_scenario_hint
         stem = os.path.splitext(os.path.basename(str(path)))[0]
         has = "segments" if "segments" in d else "bodies"
         raise ScenarioError(f"scenario {path}: this is a robot file (it has {has}), not a scenario. "
@@ -233,7 +235,6 @@ def scenario_from_dict(d, base_dir=".", sections=None, angle_deg=None, source="<
         raise Err(f"scenario.gravity: expected true or false, got {grav!r}")
     init = d.get("initial_strains")
     if init is not None:
-        from soft_twin_core.solve.outputs import q_from_section_strains
         init = parse_numbers(init, (len(mech.tree.soft_joints), 6), "scenario.initial_strains", Err)
         try:
             init = q_from_section_strains(mech, init, mech.tree.q0)
@@ -476,7 +477,6 @@ def run_statics(sc, points_per_section=10, time=None):
     Time-varying inputs (profiles, trajectories) are evaluated at ``time``
     [s], by default at the end of the last profile (:func:`statics_time`);
     the result then holds ``time`` and ``time_note``."""
-    from soft_twin_core.files.runs import run_mechanism_statics
     t, note = statics_time(sc, time)
     out = run_mechanism_statics(sc, t, points_per_section)
     if note is not None:
@@ -495,6 +495,5 @@ def run_dynamics(sc, duration, dt, backbone_every=0, theta=0.5, progress=None,
     ``points_per_section`` points per section. ``progress(fraction,
     elapsed_s)`` is called after the warm-up with (0, 0), then at most once
     per ``progress_every`` wall-clock seconds."""
-    from soft_twin_core.files.runs import run_mechanism_dynamics
     return run_mechanism_dynamics(sc, duration, dt, theta, progress, record_every, backbone_every,
                                   progress_every, points_per_section)

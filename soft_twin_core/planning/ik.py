@@ -13,6 +13,11 @@ import numpy as np
 
 from soft_twin_core import lie
 from soft_twin_core._blas import one_blas_thread
+from soft_twin_core.engine.kernels import passes
+from soft_twin_core.engine.kernels.frames import spatial_jacobian
+from soft_twin_core.engine.workspace import Workspace
+from soft_twin_core.planning.planner import bounded_gauss_newton_step
+from soft_twin_core.robot.mechanism import from_robot_model
 
 
 def one_section_strain(H_start, H_end, length):
@@ -120,7 +125,6 @@ def _levenberg_marquardt(x, lo, hi, evaluate, jacobian, done, w, max_iterations,
     hi_b = np.broadcast_to(np.asarray(hi, dtype=float), x.shape)
     boxed = bool(np.any(np.isfinite(lo_b)) or np.any(np.isfinite(hi_b)))
     if boxed:
-        from soft_twin_core.planning.planner import bounded_gauss_newton_step
         sw = np.sqrt(w)
     data, e = evaluate(x, None)
     cost = float(e @ (w * e))
@@ -172,7 +176,6 @@ def solve_ik(model, target, q_init=None, *, position_only=False, weights=None,
     target: world pose (4x4) of the tip, or a 3-vector position with
     ``position_only``. Never raises for unreachable targets: returns the
     best pose, success False."""
-    from soft_twin_core.robot.mechanism import from_robot_model
     mech = model.__dict__.get("_ik_mechanism")
     if mech is None:
         mech = from_robot_model(model)
@@ -204,9 +207,6 @@ def frame_ik(mech, frame, target, q_init=None, *, position_only=False, weights=N
     where the robot would have to be, e.g. for a robot without actuators).
     Never raises for unreachable targets: returns the best pose, success
     False (:class:`IKResult`)."""
-    from soft_twin_core.engine.kernels import passes
-    from soft_twin_core.engine.kernels.frames import spatial_jacobian
-    from soft_twin_core.engine.workspace import Workspace
     tree = mech.tree
     if tree.nq != tree.nv:
         raise ValueError("frame_ik: only robots whose coordinates add (no spherical or free joint)")

@@ -16,6 +16,7 @@ import numpy as np
 
 from soft_twin_core import lie
 from soft_twin_core.errors import PathError
+from soft_twin_core.robot.model import ModelError, pose_from_dict
 
 
 @dataclass(frozen=True, eq=False)
@@ -181,7 +182,6 @@ def waypoints(times, positions, orientations=None, sample_period=None):
 def rotation_from(d, where):
     """A rotation matrix from ``{rpy: [r, p, y]}`` (rad, R = Rz(y) Ry(p) Rx(r))
     or ``{quaternion: [x, y, z, w]}``."""
-    from soft_twin_core.robot.model import ModelError, pose_from_dict
     if not isinstance(d, dict) or len(set(d) & {"rpy", "quaternion"}) != 1 or set(d) - {"rpy", "quaternion"}:
         raise PathError(f"{where}: expected {{rpy: [r, p, y]}} or {{quaternion: [x, y, z, w]}}, got {d!r}")
     try:

@@ -45,12 +45,14 @@ import os
 
 import numpy as np
 
+from soft_twin_core.engine.joint_kinds import PRISMATIC
 from soft_twin_core.engine.loads import Loads
 from soft_twin_core.errors import PlanFileError
 from soft_twin_core.limits import MAX_PATH_SAMPLES, MAX_TIME_STEPS, check_limit
-from soft_twin_core.planning import paths as pth
-from soft_twin_core.planning import planner as pl
-from soft_twin_core.robot.model import config_dirs, model_from_dict, read_yaml_file, robot_mapping
+from soft_twin_core.planning import paths as pth, planner as pl
+from soft_twin_core.robot.mechanism import from_robot_model, is_tree_file, load_mechanism, mechanism_from_dict
+from soft_twin_core.robot.model import (ModelError, config_dirs, model_from_dict, parse_number,
+                                        read_yaml_file, robot_mapping)
 
 
 _TOP = {"robot", "path", "tracking", "actuation", "gravity", "dynamics", "description", "joints"}
@@ -93,7 +95,6 @@ def load_plan_file(path):
 
 def _real(v):
     """v as a finite float (numbers and numeric strings such as YAML's 1.0e9), else None."""
-    from soft_twin_core.robot.model import ModelError, parse_number
     try:
         x = parse_number(v, "")
     except (ModelError, TypeError, ValueError):
@@ -132,8 +133,6 @@ def check_plan_size(d):
 def _robot(robot, base_dir):
     """The mechanism of ``plan.robot``: an example name, a robot file
     (relative to the plan file) or an inline mapping, of either schema."""
-    from soft_twin_core.robot.mechanism import (from_robot_model, is_tree_file, load_mechanism,
-                                                mechanism_from_dict)
     if isinstance(robot, dict):
         d = robot_mapping(robot, "plan.robot")
         return mechanism_from_dict(d, base_dir) if is_tree_file(d) else from_robot_model(model_from_dict(d), d)
@@ -198,7 +197,6 @@ def run_plan(mech, path, options, start=None, dynamics=None):
     compensation iterations, compensated for the lag
     (:func:`planner.compensate_lag`). ``start``: x before the path (the
     rate limits hold from it)."""
-    from soft_twin_core.engine.joint_kinds import PRISMATIC
     plan = pl.plan_path(mech, path, options, start=start, from_start=start is not None)
     junits = {mech.tree.joints[i].name: ("m" if mech.tree.joints[i].kind == PRISMATIC else "rad")
               for i in mech.joints_with("position")}

@@ -73,14 +73,18 @@ import numpy as np
 
 from soft_twin_core._blas import one_blas_thread
 from soft_twin_core.engine import algorithms as alg
-from soft_twin_core.engine.forces import actuation_matrix
+from soft_twin_core.engine.forces import actuation_matrix, point_moment_arrays
+from soft_twin_core.engine.kernels import passes
+from soft_twin_core.engine.kernels.bvls import box_lstsq_kernel, regularised_box_step
+from soft_twin_core.engine.kernels.frames import point_pose, spatial_jacobian
 from soft_twin_core.engine.kernels.tip_error import error_jacobian, tip_error
 from soft_twin_core.engine.loads import Loads
+from soft_twin_core.engine.workspace import Workspace
 from soft_twin_core.errors import PlanError, StaticsError
+from soft_twin_core.lie import hat
 from soft_twin_core.planning.paths import TipPath
 from soft_twin_core.robot.mechanism import tip_frame
-from soft_twin_core.solve import constrained as cs
-from soft_twin_core.solve import equilibrium as eq
+from soft_twin_core.solve import constrained as cs, equilibrium as eq
 
 
 # ----------------------------------------------------------------------------
@@ -93,7 +97,6 @@ def box_lstsq(A, b, lo, hi, max_iterations=None):
     (:func:`soft_twin_core.engine.kernels.bvls.box_lstsq_kernel`; for the few
     columns of an IK step a scipy call costs more than the solve).
     Returns x, always inside the box."""
-    from soft_twin_core.engine.kernels.bvls import box_lstsq_kernel
     A = np.ascontiguousarray(A, dtype=float)
     n = A.shape[1]
     return box_lstsq_kernel(A, np.ascontiguousarray(b, dtype=float), np.ascontiguousarray(lo, dtype=float),
@@ -108,7 +111,6 @@ def bounded_gauss_newton_step(Je, e, x, lo, hi, scale, eps, x_ref, lam):
     resolution of redundancy), by the compiled BVLS
     (:func:`kernels.bvls.regularised_box_step`). Unknowns whose box is empty
     stay put. Returns (dx, all_fixed)."""
-    from soft_twin_core.engine.kernels.bvls import regularised_box_step
     c = np.ascontiguousarray
     dx = np.empty(x.size)
     held = regularised_box_step(c(Je, dtype=float), c(e, dtype=float), c(x, dtype=float), c(lo, dtype=float),
@@ -259,14 +261,11 @@ class _Statics:
     KKT system."""
 
     def __init__(self, mech, ref, options, loads, n_j):
-        from soft_twin_core.engine.workspace import Workspace
         self.mech, self.ref, self.options, self.loads, self.n_j = mech, ref, options, loads, n_j
         self.ws = Workspace(mech.tree)
 
     def pose(self, q):
         """World pose (4x4) of the frame at q."""
-        from soft_twin_core.engine.kernels import passes
-        from soft_twin_core.engine.kernels.frames import point_pose
         ws = self.ws
         passes.forward_pass(ws.m, ws.w, np.ascontiguousarray(q, dtype=float), ws.zeros_v, ws.zeros_v, 0)
         g = np.empty((4, 4))
@@ -307,8 +306,6 @@ class _Statics:
         return self._jacobian(q) + (dq,)
 
     def _jacobian(self, q):
-        from soft_twin_core.engine.kernels import passes
-        from soft_twin_core.engine.kernels.frames import spatial_jacobian
         ws = self.ws
         passes.forward_pass(ws.m, ws.w, np.ascontiguousarray(q, dtype=float), ws.zeros_v, ws.zeros_v, 0)
         g, Js = np.empty((4, 4)), np.empty((6, self.mech.tree.nv))
@@ -326,7 +323,6 @@ class _FreeStatics(_Statics):
 
     def __init__(self, mech, ref, options, loads, n_j):
         super().__init__(mech, ref, options, loads, n_j)
-        from soft_twin_core.engine.forces import point_moment_arrays
         inp = cs.make_inputs(mech, None, options.efforts, None, None, loads, tuple(options.point_loads))
         self._base_loads, self._pm = inp.loads, point_moment_arrays
         self.point_moment = any(a.tendon_model == "point_moment" for a in mech.actuators)
@@ -618,7 +614,6 @@ class TipSolver:
         its angular velocity, world axes, per unit of each x, at the
         equilibrium ``e`` under x: ``[Js_v - hat(p) Js_w; Js_w] dq/dx``
         (Js: the spatial Jacobian of the frame)."""
-        from soft_twin_core.lie import hat
         g, Js, dq_dx = self.statics.sensitivity(e, np.asarray(x, float))
         J = np.vstack([Js[:3] - hat(g[:3, 3]) @ Js[3:], Js[3:]])
         return g, J @ dq_dx
@@ -885,7 +880,6 @@ def simulate_plan(mech, plan, options=None, path_positions=None, dt=0.005, theta
     (N, 3) world (default the plan's targets), linear between samples.
     Returns :class:`Tracking`; a step that fails ends the run
     (``converged`` False)."""
-    from soft_twin_core.engine.workspace import Workspace
     o = options or PlanOptions()
     P = plan.target if path_positions is None else np.asarray(path_positions, dtype=float)
     sw = np.sqrt(np.asarray(o.position_weights, dtype=float))

@@ -38,12 +38,19 @@ import math
 
 import numpy as np
 
+from soft_twin_core.engine import algorithms as alg
+from soft_twin_core.engine.workspace import Workspace
+from soft_twin_core.errors import StaticsError
+from soft_twin_core.limits import MAX_STUDY_SAMPLES, check_limit
+from soft_twin_core.robot.mechanism import tip_frame
+from soft_twin_core.robot.model import parse_number
+from soft_twin_core.solve.constrained import make_inputs, solve_equilibrium
+
 _OPTION_KEYS = {"samples", "design", "seed", "corners", "actuators", "limit", "limits"}
 
 
 def parse_workspace_options(v, where, error=ValueError):
     """Checked options (see the module docstring); ``error`` naming ``where``."""
-    from soft_twin_core.robot.model import parse_number
     if v is None or v is True:
         v = {}
     if not isinstance(v, dict):
@@ -54,7 +61,6 @@ def parse_workspace_options(v, where, error=ValueError):
     n = v.get("samples", 200)
     if isinstance(n, bool) or not isinstance(n, int) or n < 0:
         raise error(f"{where}.samples: expected an integer >= 0, got {n!r}")
-    from soft_twin_core.limits import MAX_STUDY_SAMPLES, check_limit
     check_limit(f"{where}.samples", n, MAX_STUDY_SAMPLES, error)     # before any allocation (issue 25)
     design = v.get("design", "lhs")
     if design not in ("lhs", "random", "grid"):
@@ -147,7 +153,6 @@ def sample_actuations(model, opts, base=None):
             unit.append(np.random.default_rng(opts["seed"]).random((n, k)))
         else:
             import itertools
-            from soft_twin_core.limits import MAX_STUDY_SAMPLES
             if float(n) ** k > MAX_STUDY_SAMPLES:     # before any allocation (issue 25)
                 raise ValueError(f"workspace: a grid of {n} points per actuator over {k} actuators gives "
                                  f"{float(n) ** k:.4g} samples, which exceeds the limit of {MAX_STUDY_SAMPLES} "
@@ -168,11 +173,6 @@ def tip_positions(scenario, U):
     ``U`` (n, n_actuators), each cold-started from the reference shape; a
     sample whose solve fails gives NaN and its reason in the returned list
     of (row, message). Any robot: a classic rod, a tree, a closed chain."""
-    from soft_twin_core.engine import algorithms as alg
-    from soft_twin_core.engine.workspace import Workspace
-    from soft_twin_core.errors import StaticsError
-    from soft_twin_core.robot.mechanism import tip_frame
-    from soft_twin_core.solve.constrained import make_inputs, solve_equilibrium
     mech = scenario.mech
     ref = mech.frame(tip_frame(mech))
     ws = Workspace(mech.tree)

@@ -67,6 +67,7 @@ from scipy.integrate import solve_ivp
 from scipy.linalg import expm
 from scipy.optimize import brentq
 from scipy.special import ellipe, ellipeinc, ellipkinc, ellipkm1
+
 from soft_twin_core.errors import ContinuumConvergenceError
 
 __all__ = ["ContinuumSolution", "solve_cosserat_statics", "elastica_cantilever_tip",

@@ -24,10 +24,14 @@ production paths: every robot's simulator
 import numpy as np
 
 from soft_twin_core import lie
-from soft_twin_core.engine.loads import Loads
+from soft_twin_core.engine import algorithms as alg
+from soft_twin_core.engine.forces import gravity_of, load_arrays
+from soft_twin_core.engine.loads import Loads, PointLoad
+from soft_twin_core.engine.workspace import thread_workspace
 from soft_twin_core.reference import kinematics as kin
-from soft_twin_core.reference.loads import actuation_force, gauss_points, generalized_external_force
-from soft_twin_core.reference.statics import base_reaction
+from soft_twin_core.reference.loads import (actuation_force, gauss_points, generalized_external_force,
+                                            tendon_lengths)
+from soft_twin_core.reference.statics import base_reaction, internal_wrenches
 from soft_twin_core.solve.constrained import actuation_vector
 
 
@@ -84,7 +88,6 @@ def energy(model, q, qdot, u=None, gravity=True):
     Gravitational energy -int rho A g . p ds uses the same quadrature as the
     dynamics; the actuator potential of constant inputs is sum c_a u_a ell_a
     (tendon tension times path length)."""
-    from soft_twin_core.reference.loads import tendon_lengths
     M = mass_matrix(model, q)
     kinetic = 0.5 * qdot @ M @ qdot
     dq = q - model.q0
@@ -108,9 +111,6 @@ def base_reaction_dynamic(model, q, qdot, qddot, u=None, loads=None):
     inverse dynamics at (q, qdot, qddot) under the loads (actuators are
     internal: their forces close through the base).
     :func:`_base_reaction_reference` is the numpy version."""
-    from soft_twin_core.engine import algorithms as alg
-    from soft_twin_core.engine.forces import gravity_of, load_arrays
-    from soft_twin_core.engine.workspace import thread_workspace
     loads = Loads() if loads is None else loads
     tree = model.tree
     ws = thread_workspace(tree)
@@ -177,8 +177,6 @@ def internal_wrenches_dynamic(model, q, qdot, qddot, s, u=None, loads=None):
     in motion: the statics cut (:func:`statics.internal_wrenches`) with the
     d'Alembert inertial wrenches ``-(Mc eta_dot - ad(eta)^T Mc eta)`` of the
     distal quadrature points added as follower loads."""
-    from soft_twin_core.engine.loads import PointLoad
-    from soft_twin_core.reference.statics import internal_wrenches
     loads = Loads() if loads is None else loads
     sq, w, Mc = _quadrature(model)
     _, J, Jdot, eta = kin.jacobian_and_derivative(model, q, qdot, sq)

@@ -25,6 +25,8 @@ from dataclasses import dataclass
 import numpy as np
 
 from soft_twin_core import lie
+from soft_twin_core.engine import algorithms as alg
+from soft_twin_core.engine.workspace import thread_workspace
 
 
 def _maps(model):
@@ -134,8 +136,6 @@ def backbone(model, q, points_per_section=10):
 
 def _engine_poses(model, q, s):
     """World poses at arc lengths s on the multibody engine (one real q)."""
-    from soft_twin_core.engine import algorithms as alg
-    from soft_twin_core.engine.workspace import thread_workspace
     tree = model.tree
     joints, x = tree.path("backbone").locate(s)
     return alg.point_poses(tree, thread_workspace(tree), q, joints, x)
@@ -186,8 +186,6 @@ def tip_and_spatial_jacobian(model, q):
     """(tip pose 4x4, spatial tip Jacobian 6 x n_dof) for one real q, on the
     multibody engine (:func:`algorithms.point_jacobian`); the body Jacobian
     is ``Ad(g_tip)^-1 Js``."""
-    from soft_twin_core.engine import algorithms as alg
-    from soft_twin_core.engine.workspace import thread_workspace
     tree = model.tree
     return alg.point_jacobian(tree, thread_workspace(tree), q, tree.n_joints - 1, -1.0, "spatial")
 

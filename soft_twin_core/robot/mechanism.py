@@ -26,14 +26,18 @@ import warnings
 
 import numpy as np
 
-from soft_twin_core.limits import MAX_BODIES, MAX_SECTIONS_PER_SEGMENT, MAX_SECTIONS_TOTAL, check_limit
+from soft_twin_core.limits import (MAX_BODIES, MAX_SECTIONS_PER_SEGMENT, MAX_SECTIONS_TOTAL, check_limit,
+                                   read_text)
 from soft_twin_core.robot import plausibility
 
+from soft_twin_core.engine import algorithms as alg
 from soft_twin_core.engine.joint_kinds import FIXED, FREE, PRISMATIC, REVOLUTE, RIGID_JOINT_TYPES, SPHERICAL
 from soft_twin_core.engine.multibody import ModelBuilder, SoftSection, spatial_inertia
-from soft_twin_core.robot.model import (ModelError, _check_keys, _num, _vec, model_from_dict, pose_from_dict,
-                                        read_yaml_file, robot_mapping)
+from soft_twin_core.engine.workspace import Workspace
+from soft_twin_core.robot.model import (ModelError, _check_keys, _num, _vec, find_file, model_from_dict,
+                                        pose_from_dict, read_yaml_file, robot_mapping)
 from soft_twin_core.robot.stress import section_geometry
+from soft_twin_core.robot.urdf import bodies_from_urdf
 
 CONSTRAINT_TYPES = {"clamped": 6, "pinned": 3, "line": 2, "plane": 1}
 JOINT_TYPES = RIGID_JOINT_TYPES
@@ -222,7 +226,6 @@ def is_tree_robot(robot, base_dir="."):
     robot's name, or a mapping) is a tree robot file; False for anything
     else, unreadable files included (their loader reports them)."""
     import os
-    from soft_twin_core.robot.model import find_file
     if isinstance(robot, dict):
         return is_tree_file(robot)
     if not isinstance(robot, str):
@@ -245,7 +248,6 @@ def load_mechanism(path, sections=None):
     ``sections``: a segments robot's sections per segment (its file's by
     default)."""
     import os
-    from soft_twin_core.robot.model import find_file
     path = find_file(path, "robots")
     d = robot_mapping(read_yaml_file(path, what="robot file"), str(path))
     if is_tree_file(d):
@@ -257,12 +259,10 @@ def _with_urdf(d, base_dir):
     """The bodies of ``d`` after those of its ``urdf`` file (a path relative
     to ``base_dir``): a rigid robot onto which members are mounted."""
     import os
-    from soft_twin_core.robot.urdf import bodies_from_urdf
     path = d["urdf"]
     if not isinstance(path, str) or not path:
         raise ModelError(f"robot.urdf: expected a file path, got {path!r}")
     full = path if os.path.isabs(path) or base_dir is None else os.path.join(base_dir, path)
-    from soft_twin_core.limits import read_text
     text = read_text(full, ModelError, "robot.urdf:")      # size and encoding checked (a binary file)
     return bodies_from_urdf(text, f"robot.urdf ({path})") + list(d.get("bodies") or [])
 
@@ -637,8 +637,6 @@ def _with_targets(tree, constraints):
     """Constraints to the world without a target pose hold their frame where
     it is in the reference configuration q0."""
     from dataclasses import replace
-    from soft_twin_core.engine import algorithms as alg
-    from soft_twin_core.engine.workspace import Workspace
     ws = None
     out = []
     for c in constraints:

@@ -27,9 +27,11 @@ from pathlib import Path
 
 import numpy as np
 
+from soft_twin_core.engine.multibody import from_robot_model
 from soft_twin_core.errors import ModelError
 from soft_twin_core.lie import exp_so3, se3_from_rp
-from soft_twin_core.limits import MAX_SECTIONS_PER_SEGMENT, MAX_SECTIONS_TOTAL, check_limit
+from soft_twin_core.limits import (MAX_SECTIONS_PER_SEGMENT, MAX_SECTIONS_TOTAL, check_limit, load_yaml_text,
+                                   read_text)
 from soft_twin_core.robot import plausibility
 
 STRAIN_NAMES = ("axial", "shear_y", "shear_z", "torsion", "bending_y", "bending_z")
@@ -355,7 +357,6 @@ class RobotModel:
         :func:`multibody.from_robot_model`), built once."""
         t = self.__dict__.get("_tree")
         if t is None:
-            from soft_twin_core.engine.multibody import from_robot_model
             t = from_robot_model(self)
             object.__setattr__(self, "_tree", t)
         return t
@@ -776,7 +777,6 @@ def read_yaml_file(path, error=None, what="file"):
     """Parsed YAML of ``path``; an unreadable, binary, oversized or too
     deeply nested file or bad YAML raises ``error`` (default ModelError)
     naming the file (limits: soft_twin_core.limits)."""
-    from soft_twin_core.limits import load_yaml_text, read_text
     error = ModelError if error is None else error
     # size, encoding (a binary file) and nesting are checked before parsing
     return load_yaml_text(read_text(path, error, what), f"{what} {path}", error)

@@ -30,6 +30,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from soft_twin_core.robot.model import _cross_section
+
 
 @dataclass(frozen=True, eq=False)
 class SectionGeometry:
@@ -48,7 +50,6 @@ class SectionGeometry:
 def section_geometry(cs):
     """SectionGeometry of a robot file's ``cross_section`` mapping (already
     validated), None for shapes without a fibre distance (explicit)."""
-    from soft_twin_core.robot.model import _cross_section
     shape = cs.get("shape", "solid_circle")
     if shape == "solid_circle":
         cy = cz = float(cs["radius"])

@@ -20,6 +20,7 @@ import xml.etree.ElementTree as ET
 
 import numpy as np
 
+from soft_twin_core.engine.joint_kinds import FIXED, PRISMATIC, REVOLUTE
 from soft_twin_core.robot.model import ModelError, pose_from_dict
 
 
@@ -152,7 +153,6 @@ def to_urdf(mech, base_link="base_link"):
     """URDF text of the mechanism's rigid part (fixed base): every link and
     named frame whose chain to the base crosses no soft member, with its
     joint; mass, centre of mass, inertia and visual of the links."""
-    from soft_twin_core.engine.joint_kinds import FIXED, PRISMATIC, REVOLUTE
     tree = mech.tree
     if mech.base_motion != "fixed":
         raise ValueError("to_urdf: only robots with a fixed base")

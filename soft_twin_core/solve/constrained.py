@@ -31,17 +31,18 @@ from dataclasses import dataclass
 import numpy as np
 
 from soft_twin_core._blas import one_blas_thread
+from soft_twin_core.engine.algorithms import crba, forward_kinematics, point_poses
 from soft_twin_core.engine.forces import (actuation_tangent_pass, actuator_arrays, check_member_loads,
                                           concat_loads, gravity_of, load_arrays, point_moment_arrays)
 from soft_twin_core.engine.integrators import ThetaIntegrator, integrate_pass, residual_pass
 from soft_twin_core.engine.joint_kinds import FREE, PRISMATIC, REVOLUTE, SPHERICAL
 from soft_twin_core.engine.kernels import passes
 from soft_twin_core.engine.kernels.data import LoadArrays
+from soft_twin_core.engine.kernels.frames import world_point_jacobians
 from soft_twin_core.engine.kernels.tangent import static_tangent_pass
 from soft_twin_core.engine.loads import Loads
 from soft_twin_core.engine.workspace import Workspace
-from soft_twin_core.errors import StaticsError
-from soft_twin_core.errors import StepError
+from soft_twin_core.errors import StaticsError, StepError
 from soft_twin_core.lie import log_so3
 from soft_twin_core.solve import equilibrium as eq
 from soft_twin_core.solve.equilibrium import equilibrium_stability
@@ -226,7 +227,6 @@ def constraint_rows(mech, ws, q, targets=None, q_cmd=None):
     constraint values in world axes [m, rad] and their Jacobian (exact for
     positions, and for rotations at zero error). ``targets``: world target
     poses of the constraints to the world (default their own)."""
-    from soft_twin_core.engine.kernels.frames import world_point_jacobians
     tree = mech.tree
     blocks_phi, blocks_G = [], []
     if mech.constraints:
@@ -864,7 +864,6 @@ class MechanismSimulator:
     def energy(self):
         """(kinetic, potential) [J]: 1/2 v^T M v and the elastic plus gravity
         potential (rigid bodies and soft points) at the current state."""
-        from soft_twin_core.engine.algorithms import crba, point_poses
         tree = self.tree
         M = crba(tree, self.ws, self.q)
         T = 0.5 * self.v @ M @ self.v
@@ -873,7 +872,6 @@ class MechanismSimulator:
         g = self.inputs.gravity
         a = tree.arrays
         alg_ws = self.ws
-        from soft_twin_core.engine.algorithms import forward_kinematics
         forward_kinematics(tree, alg_ws, self.q)
         for i, j in enumerate(tree.joints):
             if a.rigid_mass[i]:

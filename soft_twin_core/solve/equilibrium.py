@@ -24,6 +24,7 @@ import numpy as np
 from soft_twin_core.engine.forces import actuation_tangent_pass
 from soft_twin_core.engine.integrators import residual_pass
 from soft_twin_core.engine.kernels.data import LoadArrays
+from soft_twin_core.engine.kernels.static_newton import static_newton
 from soft_twin_core.engine.kernels.tangent import static_tangent_pass
 from soft_twin_core.engine.workspace import Workspace
 from soft_twin_core.errors import StaticsError
@@ -181,7 +182,6 @@ def newton(pb, q, tol, max_iterations, Kt_hint=None):
     n = pb.tree.nv
     if n > COMPILED_NEWTON_MAX_DOF:
         return newton_numpy(pb, np.array(q, dtype=float), tol, max_iterations, Kt_hint)
-    from soft_twin_core.engine.kernels.static_newton import static_newton     # numba's first load: only where a solve is made
     use_hint = Kt_hint is not None and Kt_hint.shape == (n, n)
     q = np.array(q, dtype=float)
     Kt, R = np.empty((n, n)), np.empty(n)

@@ -25,9 +25,12 @@ import numpy as np
 
 from soft_twin_core.engine.forces import concat_loads, point_moment_arrays
 from soft_twin_core.engine.kernels import passes
-from soft_twin_core.engine.kernels.frames import point_poses
+from soft_twin_core.engine.kernels.frames import point_poses, spatial_jacobian, spatial_jacobian_dot
+from soft_twin_core.engine.workspace import Workspace
 from soft_twin_core.errors import ModelError
-from soft_twin_core.robot.stress import peak_stresses
+from soft_twin_core.lie import Ad, Ad_inv, se3_inv
+from soft_twin_core.robot.stress import peak_stresses, von_mises
+from soft_twin_core.solve.constrained import _efforts_out, constraint_loads, constraint_wrenches
 
 
 @dataclass
@@ -114,7 +117,6 @@ def state_shape(mech, ws, q, points_per_section=1):
     """The poses of configuration q, nothing else (one forward pass): (frames
     {name: world 4x4}, members {member: (poses (P, 4, 4), s (P,))} at
     ``points_per_section`` points per section and its end)."""
-    from soft_twin_core.engine.kernels.frames import point_poses
     passes.forward_pass(ws.m, ws.w, np.ascontiguousarray(q, float), ws.zeros_v, ws.zeros_v, 0)
     members = {}
     for m, J, X, S in _samples(mech, points_per_section):
@@ -127,7 +129,6 @@ def state_shape(mech, ws, q, points_per_section=1):
 def frame_poses(mech, ws):
     """{frame name: world 4x4} of every named frame at the workspace's last
     forward pass (the frames' points kept on the mechanism)."""
-    from soft_twin_core.engine.kernels.frames import point_poses
     refs = mech.__dict__.get("_frame_arrays")
     if refs is None:
         names = list(mech.frames)
@@ -153,7 +154,6 @@ def cut_wrenches(ws, loads, joints, xs, poses):
     engine's own discretisation of the section's gravity, inertia and
     loads, so that the cut at x = 0 is the section's input wrench and the
     cut at its end the next section's."""
-    from soft_twin_core.lie import Ad, Ad_inv, se3_inv
     w, m = ws.work, ws.arrays                 # the arrays themselves (ws.m: their structref, for the kernels)
     J = np.atleast_1d(np.asarray(joints, dtype=np.int64))
     xs = np.atleast_1d(np.asarray(xs, dtype=float))
@@ -166,7 +166,6 @@ def cut_wrenches(ws, loads, joints, xs, poses):
     if loads is not None:
         on = np.flatnonzero(np.isin(loads.joint, J) & (loads.x >= 0.0))
         if on.size:
-            from soft_twin_core.engine.kernels.frames import point_poses
             G = np.empty((on.size, 4, 4))
             point_poses(ws.m, ws.w, loads.joint[on], np.ascontiguousarray(loads.x[on]), G)
             W = loads.wrench[on]
@@ -190,7 +189,6 @@ def member_outputs(mech, ws, u=None, loads=None, points_per_section=1, v=None, a
     the state's velocity and acceleration (None: at rest) for the points'
     velocities and accelerations (world, from their spatial Jacobian and its
     derivative)."""
-    from soft_twin_core.engine.kernels.frames import point_poses, spatial_jacobian, spatial_jacobian_dot
     w = ws.work
     out = []
     for mem in mech.members:
@@ -269,7 +267,6 @@ def max_von_mises(mech, members):
     "internal_wrench": (P, 6)}} (a statics result's), each sample's
     cross-section that of the section holding it; (NaN, NaN) if no member
     has a known fibre distance (:func:`stress.von_mises`)."""
-    from soft_twin_core.robot.stress import von_mises
     best, where = -np.inf, math.nan
     for mem in mech.members:
         d = members[mem.name]
@@ -318,7 +315,6 @@ def frame_velocity(mech, ws, v, frame):
     """World velocity [v; omega] (6,) [m/s, rad/s] of a named frame's origin
     at the workspace's last forward pass (its configuration) and velocity v:
     the frame's spatial twist ``J_s v`` moved to its origin."""
-    from soft_twin_core.engine.kernels.frames import spatial_jacobian
     ref = mech.frames[frame]
     g, J = np.empty((4, 4)), np.empty((6, mech.tree.nv))
     spatial_jacobian(ws.m, ws.w, int(ref.joint), float(ref.x), g, J)
@@ -402,8 +398,6 @@ def state_outputs(mech, q, lam, inputs, v=None, a=None, ws=None, points_per_sect
     sampled at ``points_per_section`` points per section (1: their section
     boundaries) and their ends; ``member_motion`` False leaves their points'
     velocities and accelerations at zero (they cost two Jacobians a point)."""
-    from soft_twin_core.engine.workspace import Workspace
-    from soft_twin_core.solve.constrained import _efforts_out, constraint_loads, constraint_wrenches
     tree = mech.tree
     ws = Workspace(tree) if ws is None else ws
     loads = concat_loads(inputs.loads, constraint_loads(mech, lam))

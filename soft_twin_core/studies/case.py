@@ -42,8 +42,13 @@ import warnings
 
 import numpy as np
 
+from soft_twin_core.files.scenario import run_dynamics, run_statics
 from soft_twin_core.limits import PlausibilityWarning
+from soft_twin_core.planning.reach import summary_columns, workspace_of
 from soft_twin_core.robot.model import STRAIN_NAMES
+from soft_twin_core.solve.outputs import max_von_mises
+from soft_twin_core.studies.study import build_scenario, case_documents, parameter_columns
+from soft_twin_core.warmup import run
 
 _VEC3 = ("x", "y", "z")
 _WRENCH = ("fx", "fy", "fz", "mx", "my", "mz")
@@ -83,8 +88,6 @@ def settling_time(t, p, p_ref, band):
 
 
 def _statics(study, sc, robot, opts, out):
-    from soft_twin_core.files.scenario import run_statics
-    from soft_twin_core.solve.outputs import max_von_mises
     r = run_statics(sc, opts["points_per_section"])
     rec = set(study.record)
     P = "statics."
@@ -117,7 +120,6 @@ def _statics(study, sc, robot, opts, out):
 
 def _dynamics(study, sc, robot, opts, out):
     from scipy.spatial.transform import Rotation
-    from soft_twin_core.files.scenario import run_dynamics, run_statics
     r = run_dynamics(sc, opts["duration"], opts["dt"], 0, opts["theta"], None, 10, opts["record_every"])
     if "error" in r:
         raise RuntimeError(f"dynamics: {r['error']}")
@@ -150,7 +152,6 @@ def _dynamics(study, sc, robot, opts, out):
 
 
 def _workspace(study, sc, robot, opts, out):
-    from soft_twin_core.planning.reach import summary_columns, workspace_of
     w = workspace_of(sc, opts)
     for k, v in summary_columns(w["hull"], len(w["failed"])).items():
         out["workspace." + k] = v
@@ -165,7 +166,6 @@ def _workspace(study, sc, robot, opts, out):
 
 def run_case(study, index, values, key):
     """The results row of one case (a dict; see the module docstring)."""
-    from soft_twin_core.studies.study import build_scenario, case_documents, parameter_columns
     t0 = time.perf_counter()
     started = time.time()
     row = {"case": int(index), "case_key": key}
@@ -204,7 +204,6 @@ def _warm():
     the first case does not pay for it; returns the time it took."""
     if not _WARM["done"]:
         t0 = time.perf_counter()
-        from soft_twin_core.warmup import run
         run()
         _quaternion(np.eye(3))            # imports scipy.spatial.transform (~0.5 s) here, not in a case
         _WARM["done"], _WARM["seconds"] = True, time.perf_counter() - t0

@@ -19,6 +19,14 @@ import sys
 import time
 from pathlib import Path
 
+from soft_twin_core.files.scenario import ScenarioError
+from soft_twin_core.planning.reach import actuation_ranges, plot_workspace, workspace_of
+from soft_twin_core.robot.model import ModelError, find_file, read_yaml_file
+from soft_twin_core.studies.cluster import (StudyInterrupted, _write_parquet, rows_to_table, run_study,
+                                            write_csv)
+from soft_twin_core.studies.study import (CaseValidationError, StudyError, build_scenario, load_study,
+                                          study_from_dict)
+
 
 def add_parsers(sub):
     s = sub.add_parser("study", help="run a design study (parameter sweep) on Dask; Parquet + CSV + summary")
@@ -51,10 +59,6 @@ def _say(msg):
 
 
 def main_study(args):
-    from soft_twin_core.files.scenario import ScenarioError
-    from soft_twin_core.robot.model import ModelError
-    from soft_twin_core.studies.cluster import StudyInterrupted, run_study
-    from soft_twin_core.studies.study import CaseValidationError, StudyError, load_study
     for name in ("workers", "chunk_size"):
         v = getattr(args, name)
         if v is not None and v < 1:
@@ -91,7 +95,6 @@ def main_study(args):
 
 def _target_kind(target):
     """'scenario' or 'robot' for a path or an example's name."""
-    from soft_twin_core.robot.model import ModelError, find_file, read_yaml_file
     for kind in ("scenarios", "robots"):
         try:
             p = find_file(target, kind)
@@ -109,11 +112,6 @@ def _target_kind(target):
 
 def main_workspace(args):
     import numpy as np
-    from soft_twin_core.files.scenario import ScenarioError
-    from soft_twin_core.planning.reach import plot_workspace, workspace_of
-    from soft_twin_core.robot.model import ModelError
-    from soft_twin_core.studies.cluster import _write_parquet, rows_to_table, write_csv
-    from soft_twin_core.studies.study import StudyError, build_scenario, study_from_dict
     limits = {}
     for item in args.limits:
         name, _, r = item.partition("=")
@@ -137,7 +135,6 @@ def main_workspace(args):
                                 source=args.target, name=Path(args.target).stem)
         sc = build_scenario(study, {})
         opts = study.compute["workspace"]
-        from soft_twin_core.planning.reach import actuation_ranges
         idx, lo, hi = actuation_ranges(sc.mech, opts, StudyError)
     except (StudyError, ScenarioError, ModelError) as e:
         _say(str(e))

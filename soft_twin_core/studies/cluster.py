@@ -41,7 +41,9 @@ from pathlib import Path
 import numpy as np
 
 from soft_twin_core.errors import StudyInterrupted
-from soft_twin_core.studies.study import StudyError, make_cases, validate_cases
+from soft_twin_core.studies.case import _warm, run_cases
+from soft_twin_core.studies.report import write_summary
+from soft_twin_core.studies.study import StudyError, make_cases, parameter_columns, validate_cases
 
 META_COLUMNS = ("compute_time_s", "started_unix_s", "worker")
 
@@ -292,7 +294,6 @@ def _restore_logs(saved):
 
 
 def _lost_rows(study, chunk, reason):
-    from soft_twin_core.studies.study import parameter_columns
     return [{"case": i, "case_key": k, **parameter_columns(study, v), "status": "lost", "error": reason}
             for i, v, k in chunk]
 
@@ -343,7 +344,6 @@ def run_study(study, out_dir, *, scheduler=None, n_workers=None, serial=False, c
                     where = f"the Dask scheduler at {client.scheduler.address}"
                 timing["cluster_start_s"] = time.monotonic() - t0
                 t0 = time.monotonic()
-                from soft_twin_core.studies.case import _warm
                 # every worker loads the kernels once, in parallel; a worker that
                 # cannot (soft_twin_core missing there) is named, its tasks will fail
                 warm = client.run(_warm, on_error="return")
@@ -382,7 +382,6 @@ def run_study(study, out_dir, *, scheduler=None, n_workers=None, serial=False, c
                     state["last_log"] = now
             try:
                 if serial:
-                    from soft_twin_core.studies.case import run_cases
                     for ch in chunks:
                         take(run_cases(study, ch))
                 else:
@@ -434,7 +433,6 @@ def run_study(study, out_dir, *, scheduler=None, n_workers=None, serial=False, c
               "csv": str(out / "results.csv"), "points": str(out / "points.parquet") if pts else None,
               "worker_losses": worker_losses}
     if summary:
-        from soft_twin_core.studies.report import write_summary
         result["summary"] = write_summary(study, rows, pts, out, result)
     log(f"study {study.name!r}: {n_status['ok']} ok, {n_status['failed']} failed"
         + (f", {n_status['lost']} lost" if n_status["lost"] else "")
@@ -477,7 +475,6 @@ def _run_on_dask(client, study, chunks, take, log, worker_losses=None):
     (KilledWorker) gives ``lost`` rows; other task errors (not raised by a
     case, which records its own failure) give ``lost`` rows with the reason."""
     from distributed import as_completed
-    from soft_twin_core.studies.case import run_cases
     install_sync_cancel_filter()
     futures = {}
     tag = uuid.uuid4().hex[:8]

@@ -24,6 +24,8 @@ from pathlib import Path
 
 import numpy as np
 
+from soft_twin_core.planning.reach import hull_summary, plot_workspace
+
 SKIP = {"case", "case_key", "status", "error", "compute_time_s", "started_unix_s", "worker"}
 
 
@@ -237,7 +239,6 @@ def _plots(study, ok, p_num, o_num, X, Y, rho, points, plots):
         fig.savefig(figs[-1], dpi=100)
         plt.close(fig)
     if points:
-        from soft_twin_core.planning.reach import hull_summary, plot_workspace
         by = {}
         for p in points:
             by.setdefault(p["case"], []).append((p["tip_position_x"], p["tip_position_y"], p["tip_position_z"]))

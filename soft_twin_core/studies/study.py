@@ -67,7 +67,10 @@ from pathlib import Path
 import numpy as np
 
 from soft_twin_core.errors import StudyError, CaseValidationError
-from soft_twin_core.limits import MAX_STUDY_SAMPLES, check_limit
+from soft_twin_core.files.scenario import ScenarioError, scenario_from_dict
+from soft_twin_core.files.timeline import n_steps_for
+from soft_twin_core.limits import MAX_STUDY_SAMPLES, PlausibilityWarning, check_limit
+from soft_twin_core.planning.reach import actuation_ranges, parse_workspace_options
 from soft_twin_core.robot.model import ModelError, find_file, parse_number, read_yaml_file, robot_mapping
 
 
@@ -399,8 +402,6 @@ def _compute(d):
                  "theta": _number(v.get("theta", 0.5), where + ".theta"),
                  "record_every": _int(v.get("record_every", 1), where + ".record_every"),
                  "settling_band": _number(v.get("settling_band", 0.02), where + ".settling_band")}
-            from soft_twin_core.files.scenario import ScenarioError
-            from soft_twin_core.files.timeline import n_steps_for
             try:
                 n_steps_for(o["duration"], o["dt"])
             except ScenarioError as e:
@@ -411,7 +412,6 @@ def _compute(d):
                 raise StudyError(f"{where}.settling_band: expected a fraction in (0, 1), got {o['settling_band']}")
             out[key] = o
         else:
-            from soft_twin_core.planning.reach import parse_workspace_options
             out[key] = parse_workspace_options(v, where, StudyError)
     if not out:
         raise StudyError("study.compute: nothing to compute")
@@ -438,7 +438,6 @@ def study_from_dict(d, base_dir=".", source="<dict>", name=None):
         p = scen if os.path.isabs(scen) else os.path.join(base_dir, scen)
         if not os.path.isfile(p):
             p = scen
-        from soft_twin_core.files.scenario import ScenarioError
         try:
             path = find_file(p, "scenarios", ScenarioError)
         except ScenarioError as e:
@@ -600,7 +599,6 @@ def build_scenario(study, values):
     """The :class:`scenario.Scenario` of a case (its robot model inside);
     ScenarioError naming the field (robot fields by their robot path,
     ``segments[0].length: ...``; scenario fields as ``scenario.<field>``)."""
-    from soft_twin_core.files.scenario import ScenarioError, scenario_from_dict
     _, scen = case_documents(study, values)
     try:
         sc = scenario_from_dict(scen, study.base_dir, source=f"{study.source} case")
@@ -618,8 +616,6 @@ def validate_cases(study, cases):
     ranges); raise :class:`CaseValidationError` listing every bad case by
     index with its parameter values and the field, before anything runs."""
     import warnings
-    from soft_twin_core.files.scenario import ScenarioError
-    from soft_twin_core.limits import PlausibilityWarning
     errors = []
     flagged = {}                  # plausibility warnings by field: [(case index, message)]
     for c in cases:
@@ -629,7 +625,6 @@ def validate_cases(study, cases):
                 warnings.simplefilter("always", PlausibilityWarning)
                 sc = build_scenario(study, c.values)
                 if "workspace" in study.compute:
-                    from soft_twin_core.planning.reach import actuation_ranges
                     actuation_ranges(sc.mech, study.compute["workspace"], StudyError)
         except (ScenarioError, ModelError, StudyError) as e:
             errors.append((c.index, (f"({vals}) " if vals else "") + str(e)))

@@ -14,6 +14,7 @@ import time
 
 import numpy as np
 
+from soft_twin_core.viz.plots import equal_limits, equal_limits_3d
 from soft_twin_core.viz.scene import bounds
 
 SIZE_PX = (1120, 448)          # width, height: multiples of 16 for H.264
@@ -33,7 +34,6 @@ class FrameDrawer:
     RGB image (H, W, 3) uint8 of one snapshot."""
 
     def __init__(self, snapshots, title=""):
-        from soft_twin_core.viz.plots import equal_limits, equal_limits_3d
         plt = _plt()
         w, h = SIZE_PX
         self.fig = plt.figure(figsize=(w / DPI, h / DPI), dpi=DPI)

@@ -18,7 +18,8 @@ import os
 
 import numpy as np
 
-from soft_twin_core.viz.scene import bounds
+from soft_twin_core.robot.model import STRAIN_NAMES
+from soft_twin_core.viz.scene import bounds, run_snapshots
 
 
 FORMATS = ("png", "svg")
@@ -303,7 +304,6 @@ def plot_frames(out, folder, title="frame positions", frames=None):
 def plot_section_strains(out, folder, title="strains of the soft sections"):
     """Each strain mode of every soft section (``section_names``) against
     time: stretch and shears [-], torsion and bending [1/m]."""
-    from soft_twin_core.robot.model import STRAIN_NAMES
     plt = _plt()
     t = np.asarray(out["time"], dtype=float)
     names = out["section_names"]
@@ -369,7 +369,6 @@ def plot_energies(out, folder, title="energies"):
 def plot_dynamics(out, folder, mech, name="run"):
     """The whole set of figures of any robot's run (each when the run has
     its fields, and the robot what it shows); returns the paths."""
-    from soft_twin_core.viz.scene import run_snapshots
     paths = []
     if out.get("members_time") and "frame_poses" in out:
         fig = shapes_figure(run_snapshots(out, mech), f"{name}: members and links")

@@ -20,6 +20,8 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from soft_twin_core.engine.joint_kinds import PRISMATIC, REVOLUTE
+from soft_twin_core.robot.model import pose_from_dict
+from soft_twin_core.solve.outputs import member_samples
 
 
 @dataclass
@@ -120,7 +122,6 @@ JOINT_AXIS_LENGTH = 0.03     # m, the drawn segment along a joint axis (centred 
 
 def visual_placement(visual):
     """The visual's pose in its link frame (4x4; identity if not given)."""
-    from soft_twin_core.robot.model import pose_from_dict
     v = {k: visual[k] for k in ("position", "rpy") if k in visual}
     return pose_from_dict(v or None, "visual")
 
@@ -209,7 +210,6 @@ def member_radii(mech, n_points=None, default=0.005):
     section's at the tip), or at the points of a run sampled with
     {member: P} points (P = n_sections * points_per_section + 1:
     :func:`outputs.member_samples`)."""
-    from soft_twin_core.solve.outputs import member_samples
     out = []
     for mem in mech.members:
         r = np.array([max(g.cy, g.cz) if g is not None else default for g in mem.geometry] or [default], float)

@@ -36,6 +36,7 @@ pin = pytest.importorskip("pinocchio")
 
 from soft_twin_core import lie
 from soft_twin_core.engine import algorithms
+from soft_twin_core.engine.joint_kinds import FIXED, FREE, SPHERICAL  # noqa: E402
 from soft_twin_core.engine.multibody import ModelBuilder, spatial_inertia  # noqa: E402
 from soft_twin_core.reference import joints as jnt  # noqa: E402
 from soft_twin_core.reference import multibody as reference  # noqa: E402
@@ -284,8 +285,8 @@ def _canonical_quats(model, q):
     """q with every quaternion's sign chosen w >= 0 (q and -q are one rotation)."""
     q = np.array(q, dtype=float)
     for i, j in enumerate(model.joints):
-        a = model.idx_q[i] + (3 if j.kind == jnt.FREE else 0)
-        if j.kind in (jnt.FREE, jnt.SPHERICAL) and q[a + 3] < 0:
+        a = model.idx_q[i] + (3 if j.kind == FREE else 0)
+        if j.kind in (FREE, SPHERICAL) and q[a + 3] < 0:
             q[a:a + 4] *= -1
     return q
 
@@ -457,7 +458,7 @@ def test_layouts_match():
     for desc in TREES.values():
         ours, tree = build_ours(desc), build_pin(desc)
         for i, j in enumerate(ours.joints):
-            if j.kind == jnt.FIXED:
+            if j.kind == FIXED:
                 continue
             pj = tree.model.joints[tree.joint_ids[i]]
             assert (pj.idx_q, pj.idx_v, pj.nq, pj.nv) == (ours.idx_q[i], ours.idx_v[i], j.nq, j.nv)

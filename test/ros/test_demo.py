@@ -52,4 +52,4 @@ def test_demo_writes_png_animation_and_recording(tmp_path):
     assert {k: int(v) for k, v in meta["soft_twin.counts"].items()} == {k: len(v) for k, v in msgs.items()}
     stamps = [m.header.stamp.sec * 10**9 + m.header.stamp.nanosec for m in msgs[f"{ns}/tip_pose"]]
     assert all(b > a for a, b in zip(stamps, stamps[1:]))
-    assert len(stamps) > 1000      # states over the ~12 s run (200 Hz nominal; fewer on a loaded machine)
+    assert len(stamps) > 300       # states over the ~12 s run (200 Hz nominal; 898 at a load of 5)

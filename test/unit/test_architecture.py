@@ -171,3 +171,37 @@ def test_no_production_module_imports_the_references():
     users = sorted(a for a, deps in graph.items() if not a.startswith("soft_twin_core.reference")
                    for b in deps if b.startswith("soft_twin_core.reference"))
     assert users == []
+
+
+# Core modules that import inside functions on purpose, and why.
+LAZY_ON_PURPOSE = {
+    "soft_twin_core.cli": "start-up: each subcommand imports only what it runs (--help in milliseconds)",
+    "soft_twin_core.warmup": "it purges stale kernel caches before it imports the kernels",
+}
+
+
+def late_imports():
+    """(module, line) of every import of the package's own modules inside a
+    function of the core, without a '# here:' reason on its line."""
+    out = []
+    for name, path in _modules().items():
+        if not name.startswith("soft_twin_core") or name in LAZY_ON_PURPOSE:
+            continue
+        lines = path.read_text(encoding="utf-8").splitlines()
+        for fn in ast.walk(ast.parse("\n".join(lines))):
+            if not isinstance(fn, (ast.FunctionDef, ast.AsyncFunctionDef)):
+                continue
+            for node in ast.walk(fn):
+                own = (isinstance(node, ast.ImportFrom) and (node.level or (node.module or "").startswith(
+                    "soft_twin")) or isinstance(node, ast.Import) and node.names[0].name.startswith("soft_twin"))
+                if own and "# here:" not in lines[node.lineno - 1]:
+                    out.append((name, node.lineno))
+    return sorted(set(out))
+
+
+def test_an_import_inside_a_function_states_its_reason():
+    """The floors leave no import circle to break by importing late: the
+    core imports its own modules at the top, but where a module says why
+    (LAZY_ON_PURPOSE, or a '# here:' comment on the line)."""
+    assert late_imports() == []
+    assert all(LAZY_ON_PURPOSE.values())
