@@ -1,4 +1,5 @@
-"""Small dense linear algebra on one BLAS thread.
+"""Small dense linear algebra on one BLAS thread, and a block-diagonal
+matrix without scipy.linalg (the statics start without importing it).
 
 The solvers factor matrices of tens to a few hundred rows (statics tangents,
 IK normal equations): OpenBLAS's threads cost more than they save there (a
@@ -11,6 +12,8 @@ untouched outside it.
 
 import contextlib
 import threading
+
+import numpy as np
 
 try:
     from threadpoolctl import ThreadpoolController
@@ -35,3 +38,16 @@ def one_blas_thread():
                 yield
     finally:
         _LOCAL.depth = depth
+
+
+def block_diag(blocks):
+    """The block-diagonal matrix of square blocks (scipy.linalg.block_diag
+    without importing scipy.linalg)."""
+    n = sum(b.shape[0] for b in blocks)
+    out = np.zeros((n, n))
+    i = 0
+    for b in blocks:
+        k = b.shape[0]
+        out[i:i + k, i:i + k] = b
+        i += k
+    return out

@@ -89,6 +89,7 @@ from dataclasses import dataclass, field, replace
 
 import numpy as np
 
+from soft_twin_core._blas import block_diag
 from soft_twin_core.engine import algorithms as alg
 from soft_twin_core.engine.forces import (actuation_matrix, actuation_tangent_pass, actuator_arrays, concat_loads,
                                           point_moment_arrays)
@@ -680,7 +681,7 @@ def kalman_update(x, P, es, Hs, Rs):
     (e = h(x) - z), Jacobians Hs and noise covariances Rs stacked: gain
     K = P H^T (H P H^T + R)^-1, x - K e, and the covariance in Joseph form
     (I - K H) P (I - K H)^T + K R K^T, symmetrised. Returns (x, P)."""
-    e, H, Rm = np.concatenate(es), np.vstack(Hs), _block_diag(Rs)
+    e, H, Rm = np.concatenate(es), np.vstack(Hs), block_diag(Rs)
     PHt = P @ H.T
     K = np.linalg.solve(H @ PHt + Rm, PHt.T).T
     IKH = np.eye(len(x)) - K @ H
@@ -700,17 +701,6 @@ def tally_update(health, rep):
     health.gated += len(rep.gated)
     health.dropped += len(rep.dropped)
     health.rejected += len(rep.rejected)
-
-
-def _block_diag(blocks):
-    n = sum(b.shape[0] for b in blocks)
-    out = np.zeros((n, n))
-    i = 0
-    for b in blocks:
-        m = b.shape[0]
-        out[i:i + m, i:i + m] = b
-        i += m
-    return out
 
 
 def nees(error, cov):

@@ -27,6 +27,7 @@ from pathlib import Path
 
 import numpy as np
 
+from soft_twin_core._blas import block_diag
 from soft_twin_core.engine.multibody import from_robot_model
 from soft_twin_core.errors import ModelError
 from soft_twin_core.lie import exp_so3, se3_from_rp
@@ -289,8 +290,8 @@ class RobotModel:
         f0 = np.array([sec.f0 for sec in self.sections], dtype=float)
         set_(self, "f0", f0)
         set_(self, "q0", f0.ravel()[self.free_index].copy())
-        Kfull = _block_diag([sec.length * sec.K for sec in self.sections])
-        Dfull = _block_diag([sec.length * sec.D for sec in self.sections])
+        Kfull = block_diag([sec.length * sec.K for sec in self.sections])
+        Dfull = block_diag([sec.length * sec.D for sec in self.sections])
         idx = self.free_index
         set_(self, "K_q", Kfull[np.ix_(idx, idx)])
         set_(self, "D_q", Dfull[np.ix_(idx, idx)])
@@ -364,17 +365,6 @@ class RobotModel:
     @property
     def mass(self):
         return float(sum(sec.length * sec.M[0, 0] for sec in self.sections))
-
-
-def _block_diag(blocks):
-    n = sum(b.shape[0] for b in blocks)
-    out = np.zeros((n, n))
-    i = 0
-    for b in blocks:
-        k = b.shape[0]
-        out[i:i + k, i:i + k] = b
-        i += k
-    return out
 
 
 # ----------------------------------------------------------------------------
