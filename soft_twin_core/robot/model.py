@@ -28,7 +28,6 @@ from pathlib import Path
 import numpy as np
 
 from soft_twin_core._blas import block_diag
-from soft_twin_core.engine.multibody import from_robot_model
 from soft_twin_core.errors import ModelError
 from soft_twin_core.lie import exp_so3, se3_from_rp
 from soft_twin_core.limits import (MAX_SECTIONS_PER_SEGMENT, MAX_SECTIONS_TOTAL, check_limit, load_yaml_text,
@@ -358,6 +357,7 @@ class RobotModel:
         :func:`multibody.from_robot_model`), built once."""
         t = self.__dict__.get("_tree")
         if t is None:
+            from soft_twin_core.engine.multibody import from_robot_model  # here: start-up (numba)
             t = from_robot_model(self)
             object.__setattr__(self, "_tree", t)
         return t

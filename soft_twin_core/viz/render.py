@@ -12,15 +12,7 @@ import sys
 
 import numpy as np
 
-from soft_twin_core.files.recording import read_node_recording, write_articulated_mcap
-from soft_twin_core.files.scenario import load_scenario
 from soft_twin_core.limits import MAX_NESTING
-from soft_twin_core.robot.mechanism import load_mechanism
-from soft_twin_core.robot.model import find_file
-from soft_twin_core.viz.animate import write_animation
-from soft_twin_core.viz.live_view import LiveView
-from soft_twin_core.viz.plots import plot_dynamics, plot_statics, plot_sweep
-from soft_twin_core.viz.scene import bounds, member_radii, run_snapshots, sample_times, statics_snapshot
 
 DEFAULT_FPS = 25.0           # dynamics: real time at 25 frames/s (40 ms, exact in GIF)
 DEFAULT_SWEEP_FPS = 2.0      # a statics sweep: two angles per second
@@ -71,18 +63,23 @@ def render_dynamics(out, args, mech, name="run"):
     links (visual shapes) and joints (:mod:`scene`,
     :mod:`plots`, :mod:`recording`)."""
     if args.plot:
+        from soft_twin_core.viz.plots import plot_dynamics  # here: start-up (numba)
         paths = plot_dynamics(out, args.plot, mech, name)
         say(f"wrote {len(paths)} figures into {args.plot}: " + ", ".join(os.path.basename(p) for p in paths))
         if not out.get("members_time"):
             say("warning: the run has no member samples, so the backbone_shapes, member internal wrench and "
                 "energies figures are left out: run dynamics with --backbone-every K (K >= 1)")
     if args.animate:
+        from soft_twin_core.viz.animate import write_animation  # here: start-up (numba)
+        from soft_twin_core.viz.scene import run_snapshots  # here: start-up (numba)
+        from soft_twin_core.viz.scene import sample_times  # here: start-up (numba)
         fps = args.fps or DEFAULT_FPS
         snaps = run_snapshots(out, mech)
         idx = sample_times([s.time for s in snaps], fps)
         n, seconds = write_animation([snaps[i] for i in idx], args.animate, fps, name)
         say(f"wrote {args.animate} ({n} frames at {fps:g} fps, {seconds:.2f} s)")
     if getattr(args, "mcap", None) and out.get("members_time"):
+        from soft_twin_core.files.recording import write_articulated_mcap  # here: start-up (numba)
         n = write_articulated_mcap(out, mech, args.mcap)
         say(f"wrote {args.mcap} ({n} states as /soft_twin_sim/joint_states, backbones/<member>, tip_pose, /tf)")
 
@@ -91,6 +88,8 @@ def render_statics(results, args, sc, sweep, name="statics"):
     """--plot and --animate of a statics solve or sweep of any robot (one
     frame an equilibrium): its members, links and joints, the internal
     wrench along every member, and for a sweep the tip against the angle."""
+    from soft_twin_core.viz.plots import plot_statics, plot_sweep  # here: start-up (numba)
+    from soft_twin_core.viz.scene import statics_snapshot  # here: start-up (numba)
     snaps = [statics_snapshot(r, sc.mech, f"load angle {r['angle_deg']:g} deg" if sweep else "equilibrium")
              for r in results]
     if args.plot:
@@ -98,6 +97,7 @@ def render_statics(results, args, sc, sweep, name="statics"):
                  else plot_statics(results[-1], snaps[-1], args.plot, name))
         say(f"wrote {len(paths)} figures into {args.plot}: " + ", ".join(os.path.basename(p) for p in paths))
     if args.animate:
+        from soft_twin_core.viz.animate import write_animation  # here: start-up (numba)
         fps = args.fps or DEFAULT_SWEEP_FPS
         n, seconds = write_animation(snaps, args.animate, fps, name)
         say(f"wrote {args.animate} ({n} frames at {fps:g} fps, {seconds:.2f} s)")
@@ -141,6 +141,9 @@ def _readable(args):
 def robot_of(args):
     """(Mechanism, scenario name or None) of ``--scenario`` / ``--robot``, a
     classic or a tree robot file."""
+    from soft_twin_core.files.scenario import load_scenario  # here: start-up (numba)
+    from soft_twin_core.robot.mechanism import load_mechanism  # here: start-up (numba)
+    from soft_twin_core.robot.model import find_file  # here: start-up (numba)
     if getattr(args, "scenario", None) and getattr(args, "robot", None):
         raise ValueError(f"{args.command}: give --scenario or --robot, not both")
     if getattr(args, "scenario", None):
@@ -167,6 +170,7 @@ def read_run(args):
         _readable(args)
     mech, name = robot_of(args)
     if out is None:
+        from soft_twin_core.files.recording import read_node_recording  # here: start-up (numba)
         return read_node_recording(args.run, mech, args.node), mech, name
     if out.get("member_names", []) != [m.name for m in mech.members] or (
             out.get("n_sections") is not None and out["n_sections"] != len(mech.tree.soft_joints)):
@@ -182,6 +186,9 @@ def view_main(args, stop=None):
     plays a saved run (JSON or MCAP, as for ``render``) in the live 3D view
     in real time, in a loop, until Ctrl-C (or ``--seconds`` of wall time)."""
     import time as _time
+    from soft_twin_core.viz.live_view import LiveView  # here: start-up (numba)
+    from soft_twin_core.viz.scene import bounds  # here: start-up (numba)
+    from soft_twin_core.viz.scene import member_radii, run_snapshots  # here: start-up (numba)
     out, mech, _ = read_run(args)
     snaps = run_snapshots(out, mech)
     # the run's own samples: a node recording's at the section boundaries, a run's at its points per section
