@@ -243,6 +243,8 @@ class Twin:
         self.joint_stamp = None          # the newest joint command's header
         self.actuation_stamp = None      # the newest actuation command's header
         self._dirty = True
+        self._version = 0                # counts the changes of the inputs (core_inputs' cache, _commit)
+        self._core = (None, None)        # (version, Inputs) of the commands as they are
         self._tangent = None             # the last equilibrium's tangent (robots without multipliers): a hint
         self.rest_q, self.rest_message = self._rest()
         self.lam = np.zeros(mech.n_constraint_rows + len(mech.joints_with("position")))
@@ -260,6 +262,7 @@ class Twin:
         else:
             self._policy.succeeded(now)
         self._good = now
+        self._good_version = self._version
         self._good_joint_stamp = self.joint_stamp
         self._good_actuation_stamp = self.actuation_stamp
 
@@ -272,9 +275,24 @@ class Twin:
         ``velocities``: instead of the commanded ones, e.g. the shaped
         references), assembled without a second check: the node checked
         every command at the door (:func:`parse_joint_command`,
-        :func:`soft_twin_core.commands.parse_actuation`, :func:`soft_twin_core.commands.parse_tip_wrench`)."""
-        return cs.assemble_inputs(self.mech, self.u, self.efforts,
-                                  self.positions if positions is None else positions, velocities, self.held_loads())
+        :func:`soft_twin_core.commands.parse_actuation`, :func:`soft_twin_core.commands.parse_tip_wrench`).
+        The commands' own Inputs are kept until they change (a step at 200 Hz
+        must not assemble the same inputs again)."""
+        if positions is None and velocities is None:
+            version, inp = self._core
+            if version == self._version:
+                return inp
+        inp = cs.assemble_inputs(self.mech, self.u, self.efforts,
+                                 self.positions if positions is None else positions, velocities, self.held_loads())
+        if positions is None and velocities is None:
+            self._core = (self._version, inp)
+        return inp
+
+    def _changed(self):
+        """The inputs changed: a quasi-static twin solves again, the cached
+        Inputs go."""
+        self._version += 1
+        self._dirty = True
 
     def _shaped(self, h):
         """The position references after one step h towards the commands
@@ -289,17 +307,17 @@ class Twin:
     def set_actuation(self, u, stamp=None):
         self.u = np.array(u, dtype=float)
         self.command_stamp = self.actuation_stamp = stamp
-        self._dirty = True
+        self._changed()
 
     def set_tip_wrench(self, wrench, frame="world"):
         self.tip_wrench, self.tip_frame = np.array(wrench, dtype=float), frame
-        self._dirty = True
+        self._changed()
 
     def set_joint_commands(self, positions, efforts, stamp=None):
         self.positions, self.efforts = dict(positions), dict(efforts)
         self.command_stamp = stamp if stamp is not None else self.command_stamp
         self.joint_stamp = stamp
-        self._dirty = True
+        self._changed()
 
     @property
     def joint_command_pending(self):
@@ -340,6 +358,7 @@ class Twin:
         self.positions = {mech.tree.joints[i].name: mech.tree.joints[i].q_ref for i in mech.joints_with("position")}
         self.efforts = {mech.tree.joints[i].name: 0.0 for i in mech.joints_with("effort")}
         self.command_stamp = self.joint_stamp = self.actuation_stamp = None
+        self._version += 1
         self._keep_good(reset=True)
         self.state = State(self.rest_q.copy(), np.zeros(mech.tree.nv), 0.0)
         self._ref = {n: (float(v), 0.0) for n, v in self.positions.items()}
@@ -424,7 +443,10 @@ class Twin:
         """The simulator's state is the twin's, reached with the current inputs."""
         self.state = State(self._sim.q.copy(), self._sim.v.copy(), self._sim.t)
         self.lam = self._sim.lam.copy()
-        self._keep_good()
+        if self._version != self._good_version:
+            self._keep_good()
+        else:                             # the good inputs stepped again (DropPolicy.succeeded, without the compare)
+            self._policy.stuck = False
 
     def _drop(self):
         """After a failed step or solve: :class:`soft_twin_core.twin.DropPolicy`
@@ -445,6 +467,7 @@ class Twin:
         self._good_joint_stamp, self._good_actuation_stamp = self.joint_stamp, self.actuation_stamp
         self.u, self.tip_wrench, self.tip_frame = u.copy(), w.copy(), frame
         self.positions, self.efforts = dict(pos), dict(eff)
+        self._version += 1
         # the simulator's state is unchanged by a failed step
         return tuple(dropped)
 
@@ -497,6 +520,7 @@ class Twin:
         self.u, self.tip_wrench, self.tip_frame = st["u"].copy(), st["tip_wrench"].copy(), st["tip_frame"]
         self.positions, self.efforts = dict(st["positions"]), dict(st["efforts"])
         self.lam, self._sim = st["lam"].copy(), None
+        self._changed()
 
     def statics(self, actuation, wrench, frame="world"):
         """(UpdateInfo, snapshot) of the equilibrium under these inputs,
@@ -597,8 +621,11 @@ class Twin:
         q = self.state.q.copy()
         v = self.state.qdot.copy() if dynamic else None
         a = self._sim.a.copy() if dynamic else None
-        pl = [cs.FrameLoad(self.tip, w, "world" if frame == "world" else "body")] if np.any(w) else []
-        inp = cs.assemble_inputs(mech, u, eff, pos, None, pl)         # the good state's inputs: checked
+        if self._good_version == self._version:          # the good state's inputs are the commands'
+            inp = self.core_inputs()
+        else:                                             # (checked at the door)
+            pl = [cs.FrameLoad(self.tip, w, "world" if frame == "world" else "body")] if np.any(w) else []
+            inp = cs.assemble_inputs(mech, u, eff, pos, None, pl)
         ws = self.__dict__.get("_shape_ws")
         if ws is None:
             ws = self._shape_ws = Workspace(tree)

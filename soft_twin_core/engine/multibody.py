@@ -72,10 +72,12 @@ class SoftSection:
     kinematic_map: str = "exponential"
     quadrature_points: int = 2
 
-    @property
+    @cached_property
     def modes(self):
-        """Indices (0..5) of the free strain modes: the columns of B."""
-        return np.flatnonzero(self.free)
+        """Indices (0..5) of the free strain modes: the columns of B (read-only)."""
+        out = np.flatnonzero(self.free)
+        out.setflags(write=False)
+        return out
 
 
 @dataclass(frozen=True, eq=False)
@@ -229,7 +231,7 @@ class Model:
                 return p
         raise KeyError(f"no path named {name!r}")
 
-    @property
+    @cached_property
     def soft_joints(self):
         return tuple(i for i, j in enumerate(self.joints) if j.kind == SOFT)
 

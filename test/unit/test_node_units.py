@@ -260,6 +260,33 @@ def test_a_late_failure_drops_the_state_inputs_once(model):
     assert twin.step().converged and twin.outputs().command_stamp == "c"
 
 
+def test_the_commands_inputs_are_assembled_once_and_follow_every_change(model):
+    """A twin stepping held commands reuses their core Inputs; every way
+    the commands change (actuation, wrench, a drop, a reset) gives new
+    Inputs equal to a fresh assembly of the new commands."""
+    twin = _twin(model, _settings("dynamic"))
+
+    def fresh():
+        return cs.assemble_inputs(twin.mech, twin.u, twin.efforts, twin.positions, None, twin.held_loads())
+
+    def same(a, b):
+        return (np.array_equal(a.u, b.u) and np.array_equal(a.loads.wrench, b.loads.wrench)
+                and np.array_equal(a.loads.joint, b.loads.joint))
+    twin.set_actuation([0.1, 0, 0, 0], stamp="a")
+    held = twin.core_inputs()
+    assert twin.step(2).converged and twin.core_inputs() is held and same(held, fresh())
+    twin.set_actuation([0.2, 0, 0, 0], stamp="b")
+    assert twin.core_inputs() is not held and same(twin.core_inputs(), fresh()) and twin.core_inputs().u[0] == 0.2
+    twin.set_tip_wrench([0, 0, -0.5, 0, 0, 0])
+    assert same(twin.core_inputs(), fresh()) and twin.core_inputs().loads.wrench.shape[0] == 1
+    _fail_steps(twin)
+    info = twin.step()
+    assert set(info.dropped) == {"actuation", "wrench"}
+    assert twin.core_inputs().u[0] == 0.1 and twin.core_inputs().loads.wrench.shape[0] == 0
+    twin.reset(solve=False)
+    assert not np.any(twin.core_inputs().u) and same(twin.core_inputs(), fresh())
+
+
 def _unlimited(model_path=ROBOT):
     """The default robot's description with any declared actuator limits
     removed (the failure path must be reached, not the door)."""
