@@ -36,6 +36,7 @@ from soft_twin_core.engine.multibody import ModelBuilder, SoftSection, spatial_i
 from soft_twin_core.engine.workspace import Workspace
 from soft_twin_core.robot.model import (ModelError, _check_keys, _num, _vec, find_file, model_from_dict,
                                         pose_from_dict, read_yaml_file, robot_mapping)
+from soft_twin_core.robot.obstacles import contact_spacing, obstacles_from_list
 from soft_twin_core.robot.stress import section_geometry
 from soft_twin_core.robot.urdf import bodies_from_urdf
 
@@ -136,6 +137,8 @@ class Mechanism:
     base_motion: str = "fixed"     # fixed, floating or prescribed
     motion_limits: dict = field(default_factory=dict)   # position-controlled joint -> (max vel, max acc)
     base_pose: np.ndarray = field(default_factory=lambda: np.eye(4))   # world <- base (the file's base)
+    obstacles: tuple = ()          # engine.contact.Obstacle: what the members touch (robot/obstacles.py)
+    contact_spacing: float = None  # [m] between contact points (None: robot.obstacles.contact_points' default)
 
     @property
     def actuators(self):
@@ -415,7 +418,7 @@ def mechanism_from_dict(d, base_dir=None):
     end; each link a frame with its own name. Raises ModelError naming the
     field."""
     _check_keys(d, {"name", "base", "gravity", "kinematic_map", "quadrature_points", "bodies", "frames",
-                    "constraints", "urdf"}, "robot")
+                    "constraints", "urdf", "obstacles", "contact"}, "robot")
     kmap = d.get("kinematic_map", "exponential")
     if kmap not in ("exponential", "cayley"):
         raise ModelError(f"robot.kinematic_map: expected 'exponential' or 'cayley', got {kmap!r}")
@@ -585,7 +588,7 @@ def mechanism_from_dict(d, base_dir=None):
             raise ModelError("robot.constraints: the name 'base' is taken by the prescribed base motion")
         constraints.insert(0, Constraint("base", "clamped", frames["base"], PointRef(-1), base_pose.copy()))
     mech = Mechanism(tree.name, tree, tuple(control), tuple(constraints), tuple(members), tuple(links),
-                     frames, motion, motion_limits, np.array(base_pose, dtype=float))
+                     frames, motion, motion_limits, np.array(base_pose, dtype=float), **_contact_fields(d))
     return mech
 
 
@@ -668,7 +671,12 @@ def from_robot_model(robot, d=None):
     member = Member("backbone", 0, p.joints, tuple(geo))
     frames = {"tip": PointRef(p.joints[-1], tree.joints[p.joints[-1]].section.length)}
     return Mechanism(tree.name, tree, ("",) * tree.n_joints, (), (member,), (), frames, "fixed",
-                     base_pose=np.array(robot.base_pose, dtype=float))
+                     base_pose=np.array(robot.base_pose, dtype=float), **_contact_fields(d))
+
+
+def _contact_fields(d):
+    """The ``obstacles`` and ``contact`` of a robot mapping, checked."""
+    return dict(obstacles=obstacles_from_list(d.get("obstacles")), contact_spacing=contact_spacing(d.get("contact")))
 
 
 def shape_command(r, v, target, vmax, amax, h):

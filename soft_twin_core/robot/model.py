@@ -672,7 +672,7 @@ def model_from_dict(d, n_sections_override=None):
         raise ModelError("robot: an articulated robot (tree schema: bodies/frames), not a classic single-chain "
                          "robot (segments); load it with soft_twin_core.robot.mechanism.mechanism_from_dict")
     _check_keys(d, {"name", "base", "gravity", "kinematic_map", "quadrature_points",
-                    "segments", "actuators"}, "robot")
+                    "segments", "actuators", "obstacles", "contact"}, "robot")
     segs = d.get("segments")
     if not isinstance(segs, list) or not segs:
         raise ModelError("robot.segments: expected a non-empty list of segments")

@@ -39,6 +39,7 @@ from soft_twin_core.engine.joint_kinds import FREE, PRISMATIC, REVOLUTE, SPHERIC
 from soft_twin_core.engine.kernels import passes
 from soft_twin_core.engine.kernels.data import LoadArrays
 from soft_twin_core.engine.kernels.frames import world_point_jacobians
+from soft_twin_core.solve.contact import MemberContact
 from soft_twin_core.engine.kernels.tangent import static_tangent_pass
 from soft_twin_core.engine.loads import Loads
 from soft_twin_core.engine.workspace import Workspace
@@ -338,8 +339,9 @@ class _Equilibrium:
     """R(q, lambda) and Phi(q) of a mechanism under fixed inputs, with the
     analytic Newton matrix."""
 
-    def __init__(self, mech, inp, targets=None):
+    def __init__(self, mech, inp, targets=None, obstacles=None):
         self.mech, self.inp, self.targets = mech, inp, targets
+        self.contact = MemberContact(mech, obstacles)
         tree = mech.tree
         self.tree = tree
         self.ws = Workspace(tree)
@@ -351,8 +353,14 @@ class _Equilibrium:
         self.npos = len(mech.joints_with("position"))
         self.pos_v = np.array([tree.idx_v[i] for i in mech.joints_with("position")], dtype=np.int64)
 
-    def loads(self, lam):
-        return concat_loads(self.inp.loads, constraint_loads(self.mech, lam))
+    def loads(self, lam, contact=None):
+        """The loads at multipliers lam (and contacts ``contact``, a ContactState)."""
+        out = concat_loads(self.inp.loads, constraint_loads(self.mech, lam))
+        return out if contact is None else concat_loads(out, self.contact.loads(contact))
+
+    def contacts(self, q):
+        """The ContactState at q (None without obstacles)."""
+        return self.contact.state(self.ws, q) if self.contact else None
 
     def effort(self, lam):
         e = self.inp.effort.copy()
@@ -362,7 +370,7 @@ class _Equilibrium:
 
     def residual(self, q, lam):
         out = np.empty(self.tree.nv)
-        residual_pass(self.ws.m, self.ws.w, self.act, self.loads(lam), self.inp.gravity, self.coef,
+        residual_pass(self.ws.m, self.ws.w, self.act, self.loads(lam, self.contacts(q)), self.inp.gravity, self.coef,
                       self.effort(lam), np.ascontiguousarray(q, float), self.zeros, self.zeros, out, True)
         phi, G = constraint_rows(self.mech, self.ws, q, self.targets, self.inp.q_cmd)
         return out, phi, G
@@ -370,12 +378,15 @@ class _Equilibrium:
     def tangent(self, q, lam):
         m, w = self.ws.m, self.ws.w
         q = np.ascontiguousarray(q, float)
-        ld = self.loads(lam)
+        st = self.contacts(q)
+        ld = self.loads(lam, st)
         passes.forward_pass(m, w, q, self.zeros, self.zeros, 0)
         passes.rnea_pass(m, w, ld, self.inp.gravity, np.empty(self.tree.nv), True)
         Kt = self.K.copy()
         static_tangent_pass(m, w, ld, self.inp.gravity, Kt)
         actuation_tangent_pass(m, w, self.act, self.coef, Kt)
+        if st is not None:
+            self.contact.add_stiffness(self.ws, st, Kt)
         return Kt
 
 
@@ -399,6 +410,7 @@ class Equilibrium:
     lowest_eigenvalue: float = float("nan")     # when the solve computed it (else: min_stiffness_eigenvalue)
     tangent: object = None              # without constraints: the last Newton tangent (a tangent_hint)
     stability_tangent: object = None    # the tangent the stability was judged on, if its eigenvalue is not known
+    contacts: object = None             # with obstacles: the engine.contact.ContactState at q
 
     @property
     def min_stiffness_eigenvalue(self):
@@ -539,7 +551,7 @@ def _kkt_newton(pb, q, lam, tol, max_iterations):
 
 def solve_equilibrium(mech, actuation=None, efforts=None, positions=None, loads=None, point_loads=(),
                       q_init=None, *, targets=None, tol=1e-10, max_iterations=50, max_load_steps=64,
-                      check_stability=True, tangent_hint=None, inputs=None):
+                      check_stability=True, tangent_hint=None, inputs=None, obstacles=None):
     """Static equilibrium of a mechanism under actuation (tendon tensions N,
     chamber pressures Pa), joint efforts {joint: N m or N} of effort-controlled
     joints, positions {joint: rad or m} of position-controlled joints (default
@@ -557,30 +569,34 @@ def solve_equilibrium(mech, actuation=None, efforts=None, positions=None, loads=
     to an unstable equilibrium, and ``tangent_hint`` (a previous result's
     ``tangent``) to skip the first tangents. ``inputs``: :class:`Inputs`
     already checked (:func:`make_inputs`, :func:`assemble_inputs`) instead
-    of the input arguments."""
+    of the input arguments. ``obstacles`` (default the robot file's): what
+    the soft members touch (:mod:`soft_twin_core.solve.contact`); with
+    any, the contacts found are ``contacts`` (a ContactState) and the
+    solve is the KKT Newton's, with the contacts' stiffness in its matrix."""
     _check_statics_model(mech)
     inp = inputs if inputs is not None else make_inputs(mech, actuation, efforts, positions, None, loads, point_loads)
     tree = mech.tree
     q = tree.q0.copy() if q_init is None else tree.check_q(np.array(q_init, dtype=float), "q_init").copy()
     m = mech.n_constraint_rows + len(mech.joints_with("position"))
     lam = np.zeros(m)
-    if m == 0:
+    obstacles = tuple(mech.obstacles if obstacles is None else obstacles)
+    if m == 0 and not obstacles:
         return _free_equilibrium(mech, inp, q, tol, max_iterations, max_load_steps, check_stability, tangent_hint)
     with one_blas_thread():
-        pb = _Equilibrium(mech, inp, targets)
+        pb = _Equilibrium(mech, inp, targets, obstacles)
         q1, lam1, it, ok, R, phi, sc = _kkt_newton(pb, q, lam, tol, max_iterations)
         steps, total = 1, it
         if not ok:
             q1, lam1, total, steps, R, phi, sc = _continuation(mech, inp, targets, q, lam, tol, max_iterations,
-                                                               max_load_steps, total)
+                                                               max_load_steps, total, obstacles)
         stable, lo = True, float("nan")
+        pb = _Equilibrium(mech, inp, targets, obstacles)
         if check_stability:
-            pb = _Equilibrium(mech, inp, targets)
             _, _, G = pb.residual(q1, lam1)
             stable, lo = equilibrium_stability(pb.tangent(q1, lam1), G)
     return Equilibrium(q1.copy(), lam1.copy(), _efforts_out(mech, lam1, inp), constraint_wrenches(mech, lam1),
                        total, float(np.abs(R).max(initial=0) / sc), float(np.abs(phi).max(initial=0)), steps,
-                       inp, stable, lo)
+                       inp, stable, lo, contacts=pb.contacts(q1))
 
 
 def free_problem(mech, inp):
@@ -615,12 +631,12 @@ def _scaled_inputs(mech, inp, t, q_start):
                   LoadArrays(ld.joint, ld.x, t * ld.wrench, ld.world), t * inp.gravity)
 
 
-def _continuation(mech, inp, targets, q, lam, tol, max_iterations, max_load_steps, total):
+def _continuation(mech, inp, targets, q, lam, tol, max_iterations, max_load_steps, total, obstacles=()):
     t, dt, steps = 0.0, 0.25, 0
     q_c, l_c = q.copy(), lam.copy()
     while t < 1.0:
         target = min(1.0, t + dt)
-        pb = _Equilibrium(mech, _scaled_inputs(mech, inp, target, q), targets)
+        pb = _Equilibrium(mech, _scaled_inputs(mech, inp, target, q), targets, obstacles)
         q_t, l_t, it, ok, R, phi, sc = _kkt_newton(pb, q_c, l_c, tol, max_iterations)
         total += it
         steps += 1
@@ -667,7 +683,8 @@ class MechanismSimulator:
     """
 
     def __init__(self, mech, dt, theta=0.5, q=None, v=None, *, tol=1e-10, constraint_tol=1e-12,
-                 max_iterations=40, max_substep_levels=4, full_newton=True, reuse_factorisation=True):
+                 max_iterations=40, max_substep_levels=4, full_newton=True, reuse_factorisation=True,
+                 obstacles=None):
         if not dt > 0 or not np.isfinite(dt):
             raise ValueError(f"dt: expected a positive time step [s], got {dt}")
         if not 0.5 <= theta <= 1.0:
@@ -675,6 +692,7 @@ class MechanismSimulator:
         tree = mech.tree
         self.mech, self.tree, self.dt, self.theta = mech, tree, float(dt), float(theta)
         self.tol, self.constraint_tol, self.max_iterations = tol, constraint_tol, max_iterations
+        self.max_substep_levels = int(max_substep_levels)
         self.ws = Workspace(tree)
         self.act = _cached(mech, "_act_arrays", lambda: actuator_arrays(tree))
         self.K, self.D = _cached(mech, "_dense_KD", lambda: _dense_blocks(tree))
@@ -687,10 +705,12 @@ class MechanismSimulator:
         self.inputs = make_inputs(mech)
         self._held_of = None              # the Inputs _held was made of
         self.Ls = _length_scale(mech)
+        self.contact = MemberContact(mech, obstacles)      # the robot file's obstacles by default
+        self.contacts = None              # the ContactState of the last step (at its theta point)
         # no multipliers (a rod, a tree of soft members and effort-controlled or passive joints): the
         # engine's compiled O(n) integrator, the rod's (integrators.ThetaIntegrator)
         self._theta_integrator = None
-        if self.lam.size == 0:
+        if self.lam.size == 0 and not self.contact:
             self._theta_integrator = ThetaIntegrator(tree, self.ws, self.act, lambda t: self._held, self.dt, self.theta,
                                                      tol=tol, max_iterations=max_iterations,
                                                      max_substep_levels=max_substep_levels, full_newton=full_newton,
@@ -716,8 +736,27 @@ class MechanismSimulator:
             return self
         with one_blas_thread():
             for _ in range(int(n)):
-                self._step(inp, targets)
+                if self.contact:
+                    self._contact_step(inp, targets, self.dt, 0)
+                else:
+                    self._step(inp, targets)
         return self
+
+    def _contact_step(self, inp, targets, h, level):
+        """One step of h with contacts: if Newton fails (a contact made or
+        lost within the step), two halves, down to ``max_substep_levels``."""
+        try:
+            return self._step(inp, targets, h)
+        except StepError:
+            if level >= self.max_substep_levels:
+                raise
+        state = (self.q.copy(), self.v.copy(), self.lam.copy(), self.t, self.a.copy())
+        try:
+            self._contact_step(inp, targets, 0.5 * h, level + 1)
+            self._contact_step(inp, targets, 0.5 * h, level + 1)
+        except StepError:
+            self.q, self.v, self.lam, self.t, self.a = state
+            raise
 
     def _run_free(self, inp, n):
         """n steps of :class:`integrators.ThetaIntegrator` (no multipliers)."""
@@ -736,12 +775,12 @@ class MechanismSimulator:
             raise StepError(f"step at t = {state.t:.6g} s: Newton did not converge in {integ.max_iterations} "
                             f"iterations, in sub-steps either")
 
-    def _newton_matrix(self, inp, coef, ld, qt, q1, targets):
+    def _newton_matrix(self, inp, coef, ld, qt, q1, targets, contacts=None, h=None):
         """Factors of the step's Newton matrix at (q_t, lambda):
         ``[[(M + th h D + (th h)^2 Kt)/h, -G_t^T], [th h G_1, 0]]`` with Kt
         the static tangent of the elastic forces, loads and tendons."""
         tree, m, w = self.tree, self.ws.m, self.ws.w
-        h, th = self.dt, self.theta
+        h, th = self.dt if h is None else h, self.theta
         z = self.ws.zeros_v
         passes.forward_pass(m, w, qt, z, z, 0)
         Mq = np.zeros((tree.nv, tree.nv))
@@ -750,18 +789,22 @@ class MechanismSimulator:
         Kt = self.K.copy()
         static_tangent_pass(m, w, ld, inp.gravity, Kt)
         actuation_tangent_pass(m, w, self.act, coef, Kt)
+        Dt = self.D
+        if contacts is not None:
+            Dt = self.D.copy()
+            self.contact.add_stiffness(self.ws, contacts, Kt, Dt=Dt)
         _, Gt = constraint_rows(self.mech, self.ws, qt, targets, inp.q_cmd)
         _, G1 = constraint_rows(self.mech, self.ws, q1, targets, inp.q_cmd)
-        A = (Mq + th * h * self.D + (th * h) ** 2 * Kt) / h
+        A = (Mq + th * h * Dt + (th * h) ** 2 * Kt) / h
         self._kkt_factorisations += 1
         return factor_kkt(A, Gt, th * h * G1)
 
-    def _step(self, inp, targets):
+    def _step(self, inp, targets, h=None):
         """One theta step by modified Newton: the Newton matrix is factorised
         at the first iteration and again only when the iteration slows down
         (update shrinking less than fourfold)."""
         tree, m, w = self.tree, self.ws.m, self.ws.w
-        h, th = self.dt, self.theta
+        h, th = self.dt if h is None else h, self.theta
         q0, v0 = self.q, self.v
         v1 = v0.copy()
         lam = self.lam.copy()
@@ -778,12 +821,19 @@ class MechanismSimulator:
             integrate_pass(m, q0, vt, th * h, qt)
             integrate_pass(m, q0, vt, h, q1)
             ld = concat_loads(inp.loads, constraint_loads(self.mech, lam))
+            contacts = None
+            if self.contact:              # the step's mean contact forces (energy-consistent)
+                if it == 1:
+                    p0 = self.contact.positions(self.ws, q0)
+                contacts = self.contact.step_state(self.ws, p0, q1, qt, h, th)
+            if contacts is not None:
+                ld = concat_loads(ld, self.contact.loads(contacts))
             effort = inp.effort.copy()
             if npos:
                 effort[pos_v] += lam[len(lam) - npos:]
             if refactor:
                 try:
-                    fac = self._newton_matrix(inp, coef, ld, qt, q1, targets)
+                    fac = self._newton_matrix(inp, coef, ld, qt, q1, targets, contacts, h)
                 except np.linalg.LinAlgError:
                     raise StepError(f"step at t = {self.t:.6g} s: singular Newton matrix") from None
                 refactor = False
@@ -825,6 +875,7 @@ class MechanismSimulator:
             v1 = v1.copy()
             v1[pos_v] = inp.v_cmd if inp.v_cmd is not None else (q1[iq] - q0[iq]) / h
         self.q, self.v, self.lam = q1.copy(), v1, lam
+        self.contacts = contacts
         self.t += h
         self.iterations = it
         self.newton_iterations += it
@@ -865,7 +916,8 @@ class MechanismSimulator:
 
     def energy(self):
         """(kinetic, potential) [J]: 1/2 v^T M v and the elastic plus gravity
-        potential (rigid bodies and soft points) at the current state."""
+        potential (rigid bodies and soft points), and the contacts' stored
+        energy, at the current state."""
         tree = self.tree
         M = crba(tree, self.ws, self.q)
         T = 0.5 * self.v @ M @ self.v
@@ -885,5 +937,7 @@ class MechanismSimulator:
                 npt = a.npt[i]
                 P = point_poses(tree, alg_ws, self.q, [i] * npt, a.px[i, :npt])
                 V -= np.sum(a.pw[i, :npt] * a.mc[i, 0] * (P[:, :3, 3] @ g))
+        if self.contact:
+            V += self.contact.potential(self.ws, self.q)
         return float(T), float(V)
 

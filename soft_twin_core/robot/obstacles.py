@@ -1,0 +1,110 @@
+"""Obstacles and contact points of a robot file (the ``obstacles`` list and
+the ``contact`` settings, in either schema), checked at the door::
+
+    obstacles:                       # world frame [m]
+      - {name: table, type: plane, point: [0, 0, -0.1], normal: [0, 0, 1]}
+      - {name: ball, type: sphere, center: [0.3, 0, 0], radius: 0.05}
+      - {name: post, type: capsule, from: [0.2, -0.1, 0], to: [0.2, 0.1, 0], radius: 0.01}
+      # each may add: stiffness [N/m^2] (default: the member's Young's modulus),
+      # smoothing [m] (default: a tenth of the member's radius), damping [s/m] (Hunt-Crossley
+      # alpha, default 0), friction (default 0; not used yet)
+    contact:
+      spacing: 0.01                  # [m] between contact points along every member
+                                     # (default: the smaller of 10 mm and a twentieth of the member)
+
+The contact law: :mod:`soft_twin_core.engine.contact`.
+"""
+
+import numpy as np
+
+from soft_twin_core.engine.contact import OBSTACLE_KINDS, ContactPoints, Obstacle, sample_path
+from soft_twin_core.robot.model import ModelError, _check_keys, _num, _vec
+
+_FIELDS = {"plane": ("point", "normal"), "sphere": ("center", "radius"), "capsule": ("from", "to", "radius")}
+_COMMON = {"name", "type", "stiffness", "smoothing", "damping", "friction"}
+
+
+def obstacle_from_dict(d, where):
+    """An :class:`Obstacle` of one ``obstacles`` entry; ModelError naming the
+    bad field (unknown type or key, non-finite or negative sizes, a zero
+    normal, a capsule of zero length)."""
+    _check_keys(d, _COMMON | {"point", "normal", "center", "radius", "from", "to"}, where)
+    kind = d.get("type")
+    if kind not in OBSTACLE_KINDS:
+        raise ModelError(f"{where}.type: expected one of {sorted(OBSTACLE_KINDS)}, got {kind!r}")
+    _check_keys(d, _COMMON | set(_FIELDS[kind]), where)
+    name = d.get("name", where)
+    if not isinstance(name, str) or not name:
+        raise ModelError(f"{where}.name: expected a non-empty string, got {name!r}")
+    common = dict(
+        stiffness=_num(d, "stiffness", where, positive=True) if "stiffness" in d else None,
+        smoothing=_num(d, "smoothing", where, positive=True) if "smoothing" in d else None,
+        damping=_num(d, "damping", where, nonneg=True, default=0.0),
+        friction=_num(d, "friction", where, nonneg=True, default=0.0))
+    if kind == "plane":
+        normal = _vec(d, "normal", 3, where)
+        nn = np.linalg.norm(normal)
+        if not nn > 0:
+            raise ModelError(f"{where}.normal: must not be zero")
+        return Obstacle(name, kind, _vec(d, "point", 3, where), normal / nn, **common)
+    radius = _num(d, "radius", where, positive=True)
+    if kind == "sphere":
+        return Obstacle(name, kind, _vec(d, "center", 3, where), None, radius, **common)
+    a, b = _vec(d, "from", 3, where), _vec(d, "to", 3, where)
+    if not np.linalg.norm(b - a) > 0:
+        raise ModelError(f"{where}: 'from' and 'to' must differ (a capsule of zero length is a sphere)")
+    return Obstacle(name, kind, a, b, radius, **common)
+
+
+def obstacles_from_list(items, where="robot.obstacles"):
+    """Obstacles of a robot file's or scenario's ``obstacles`` list (None: none)."""
+    if items is None:
+        return ()
+    if not isinstance(items, list):
+        raise ModelError(f"{where}: expected a list of obstacles, got {items!r}")
+    out = tuple(obstacle_from_dict(d, f"{where}[{i}]") for i, d in enumerate(items))
+    names = [o.name for o in out]
+    dup = sorted({n for n in names if names.count(n) > 1})
+    if dup:
+        raise ModelError(f"{where}: obstacle names must be unique, repeated: {dup}")
+    return out
+
+
+def contact_spacing(d, where="robot.contact"):
+    """The ``contact`` settings' spacing [m] (None: the default)."""
+    if d is None:
+        return None
+    _check_keys(d, {"spacing"}, where)
+    return _num(d, "spacing", where, positive=True) if "spacing" in d else None
+
+
+def contact_points(mech, spacing=None):
+    """:class:`ContactPoints` of every soft member of ``mech``: points at
+    ``spacing`` [m] (default: the smaller of 10 mm and a twentieth of the
+    member), each with its section's cross-section radius (the larger
+    extreme fibre distance) and Young's modulus (axial stiffness over
+    area). ModelError for a member without a cross-section shape (a
+    ``sectional`` stiffness gives no radius)."""
+    tree = mech.tree
+    J, X, W, R, E, M, S = [], [], [], [], [], [], []
+    for mem in mech.members:
+        path = tree.paths[mem.path]
+        h = spacing if spacing is not None else min(0.01, path.length / 20)
+        j, x, s, w = sample_path(path, h)
+        for k, (jj, xx) in enumerate(zip(j, x)):
+            geo = mem.geometry[list(mem.joints).index(int(jj))]
+            if geo is None:
+                raise ModelError(f"member {mem.name!r}: contact needs its cross_section (shape and size); "
+                                 f"a sectional stiffness gives no radius")
+            R.append(max(geo.cy, geo.cz))
+            E.append(tree.joints[int(jj)].section.K[0, 0] / geo.A)
+        J.append(j)
+        X.append(x)
+        W.append(w)
+        S.append(s)
+        M += [mem.name] * len(j)
+    if not J:
+        return ContactPoints(np.zeros(0, np.int64), np.zeros(0), np.zeros(0), np.zeros(0), np.zeros(0), (),
+                             np.zeros(0))
+    return ContactPoints(np.concatenate(J), np.concatenate(X), np.concatenate(W), np.array(R), np.array(E),
+                         tuple(M), np.concatenate(S))

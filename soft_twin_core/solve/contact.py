@@ -1,0 +1,101 @@
+"""Contact of a mechanism's soft members with its obstacles, on a
+workspace: the contact forces at q as dead point loads for the engine's
+passes, and their stiffness ``-J^T dF/dp J`` for Newton's matrix (the law:
+:mod:`soft_twin_core.engine.contact`)."""
+
+import numpy as np
+
+from soft_twin_core.engine.contact import (contact_forces, normal_potential_density, signed_distance,
+                                           step_contact_forces)
+from soft_twin_core.engine.kernels import passes
+from soft_twin_core.engine.kernels.data import LoadArrays
+from soft_twin_core.engine.kernels.frames import point_poses, world_point_jacobians
+from soft_twin_core.robot.obstacles import contact_points
+
+
+def mechanism_contact_points(mech):
+    """The mechanism's :class:`ContactPoints` (made once, kept with it)."""
+    pts = mech.__dict__.get("_contact_points")
+    if pts is None:
+        pts = contact_points(mech, mech.contact_spacing)
+        object.__setattr__(mech, "_contact_points", pts)
+    return pts
+
+
+class MemberContact:
+    """The contact points of ``mech`` against ``obstacles`` (default the
+    robot file's)."""
+
+    def __init__(self, mech, obstacles=None):
+        self.mech = mech
+        self.obstacles = tuple(mech.obstacles if obstacles is None else obstacles)
+        self.points = mechanism_contact_points(mech) if self.obstacles else None
+
+    def __bool__(self):
+        return bool(self.obstacles) and len(self.points) > 0
+
+    def positions(self, ws, q):
+        """World positions (P, 3) of the contact points at q (a forward pass of ``ws``)."""
+        z = ws.zeros_v
+        passes.forward_pass(ws.m, ws.w, np.ascontiguousarray(q, float), z, z, 0)
+        g = np.empty((len(self.points), 4, 4))
+        point_poses(ws.m, ws.w, self.points.joint, self.points.x, g)
+        return g[:, :3, 3]
+
+    def state(self, ws, q, v=None):
+        """:class:`ContactState` at q and joint velocities v (None: at rest;
+        the points' velocities matter only to damped obstacles)."""
+        if v is None or not any(ob.damping for ob in self.obstacles):
+            return contact_forces(self.points, self.obstacles, self.positions(ws, q))
+        P = len(self.points)
+        g = np.empty((P, 4, 4))
+        J = np.empty((P, 6, len(v)))
+        z = ws.zeros_v
+        passes.forward_pass(ws.m, ws.w, np.ascontiguousarray(q, float), z, z, 0)
+        world_point_jacobians(ws.m, ws.w, self.points.joint, self.points.x, g, J)
+        return contact_forces(self.points, self.obstacles, g[:, :3, 3], J[:, :3, :] @ v)
+
+    def step_state(self, ws, p0, q1, qt, h, theta):
+        """:class:`ContactState` of a time step h from the points' positions
+        p0 to configuration q1, acting at the theta point qt
+        (:func:`engine.contact.step_contact_forces`)."""
+        p1 = self.positions(ws, q1)
+        return step_contact_forces(self.points, self.obstacles, p0, p1, self.positions(ws, qt), h, theta)
+
+    def loads(self, st):
+        """The contact forces of ``st`` as dead point loads (world axes, at the backbone points)."""
+        n = len(st)
+        wr = np.zeros((n, 6))
+        wr[:, :3] = st.force
+        return LoadArrays(np.ascontiguousarray(self.points.joint[st.point]),
+                          np.ascontiguousarray(self.points.x[st.point]), wr, np.ones(n, np.bool_))
+
+    def add_stiffness(self, ws, st, Kt, scale=1.0, Dt=None):
+        """Kt -= scale J^T dF/dp J over the contacts of ``st`` (the
+        workspace posed at their q); J: each point's world velocity
+        Jacobian. ``Dt``: also Dt -= J^T dF/dv J (the contacts' damping)."""
+        n = len(st)
+        if not n:
+            return Kt
+        g = np.empty((n, 4, 4))
+        J = np.empty((n, 6, Kt.shape[0]))
+        world_point_jacobians(ws.m, ws.w, np.ascontiguousarray(self.points.joint[st.point]),
+                              np.ascontiguousarray(self.points.x[st.point]), g, J)
+        Jl = J[:, :3, :]
+        Kt -= scale * np.einsum("pai,pab,pbj->ij", Jl, st.dF_dp, Jl)
+        if Dt is not None:
+            Dt -= np.einsum("pai,pab,pbj->ij", Jl, st.dF_dv, Jl)
+        return Kt
+
+    def potential(self, ws, q):
+        """The energy [J] the contacts store at q: the sum over points and
+        obstacles of ``w Phi(delta)`` (:func:`engine.contact.normal_potential_density`)."""
+        p = self.positions(ws, q)
+        r = self.points.radius
+        out = 0.0
+        for ob in self.obstacles:
+            d, _, _ = signed_distance(ob, p)
+            k = self.points.modulus if ob.stiffness is None else ob.stiffness
+            eps = 0.1 * r if ob.smoothing is None else ob.smoothing
+            out += float(np.sum(self.points.weight * normal_potential_density(r - d, k, eps)))
+        return out

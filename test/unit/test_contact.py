@@ -1,0 +1,259 @@
+"""Contact of soft members with obstacles (soft_twin_core.engine.contact,
+soft_twin_core.solve.contact): the penalty law and the obstacles' distance
+functions against their definitions and finite differences, the statics
+tangent with contacts against a finite difference of the residual, and a
+heavy rod lifted off a plane against its small-deflection closed form."""
+
+import numpy as np
+import pytest
+
+from soft_twin_core.engine.contact import (ContactPoints, Obstacle, contact_forces, normal_force_density,
+                                           signed_distance)
+from soft_twin_core.errors import ModelError
+from soft_twin_core.robot.mechanism import from_robot_model, mechanism_from_dict
+from soft_twin_core.robot.model import model_from_dict
+from soft_twin_core.robot.obstacles import obstacles_from_list
+from soft_twin_core.solve.constrained import MechanismSimulator, _Equilibrium, make_inputs, solve_equilibrium
+
+RNG = np.random.default_rng(7)
+
+
+def test_the_normal_law_is_continuous_with_its_derivative():
+    """f(delta) and f'(delta) continuous at 0 and at eps; f' the
+    derivative of f (central differences); zero force outside."""
+    k, eps = 3.0e6, 2e-4
+    for d0 in (0.0, eps):
+        f_lo, df_lo = normal_force_density(d0 - 1e-12, k, eps)
+        f_hi, df_hi = normal_force_density(d0 + 1e-12, k, eps)
+        assert abs(f_hi - f_lo) < 1e-3 and abs(df_hi - df_lo) < 1e-1
+    delta = np.array([-1e-4, 0.3 * eps, 0.9 * eps, 2 * eps, 10 * eps])
+    f, df = normal_force_density(delta, k, eps)
+    h = 1e-9
+    fd = (normal_force_density(delta + h, k, eps)[0] - normal_force_density(delta - h, k, eps)[0]) / (2 * h)
+    np.testing.assert_allclose(df, fd, rtol=1e-6, atol=1e-3)
+    assert f[0] == 0.0 and f[-1] == pytest.approx(k * (10 * eps - eps / 2))
+
+
+def _obstacles():
+    return [Obstacle("floor", "plane", np.array([0.1, -0.2, -0.05]), np.array([0.3, 0.1, 1.0]) / np.sqrt(1.1)),
+            Obstacle("ball", "sphere", np.array([0.2, 0.1, 0.0]), radius=0.07),
+            Obstacle("post", "capsule", np.array([-0.1, 0.0, 0.1]), np.array([0.2, 0.3, 0.0]), radius=0.02)]
+
+
+def _brute_distance(ob, p):
+    """Distance by definition: to the plane along its normal; to the
+    sphere's centre less its radius; to a dense sampling of the capsule's
+    segment less its radius."""
+    if ob.kind == "plane":
+        return (p - ob.a) @ ob.b
+    if ob.kind == "sphere":
+        return np.linalg.norm(p - ob.a, axis=1) - ob.radius
+    t = np.linspace(0, 1, 200001)
+    seg = ob.a + t[:, None] * (ob.b - ob.a)
+    return np.array([np.min(np.linalg.norm(seg - x, axis=1)) for x in p]) - ob.radius
+
+
+@pytest.mark.parametrize("k", range(3))
+def test_signed_distances_their_gradient_and_hessian(k):
+    ob = _obstacles()[k]
+    p = RNG.uniform(-0.3, 0.4, (12, 3))
+    d, n, H = signed_distance(ob, p)
+    np.testing.assert_allclose(d, _brute_distance(ob, p), atol=1e-9)
+    h = 1e-6
+    for a in range(3):
+        e = np.zeros(3)
+        e[a] = h
+        dp, n_p, _ = signed_distance(ob, p + e)
+        dm, n_m, _ = signed_distance(ob, p - e)
+        np.testing.assert_allclose(n[:, a], (dp - dm) / (2 * h), atol=1e-7)
+        np.testing.assert_allclose(H[:, :, a], (n_p - n_m) / (2 * h), atol=1e-5)
+
+
+def test_contact_forces_and_their_derivative():
+    """F = w f(r - d) grad d on every pressed point, none elsewhere; dF/dp
+    against central differences."""
+    obs = _obstacles()
+    P = 40
+    pts = ContactPoints(np.zeros(P, np.int64), np.zeros(P), RNG.uniform(0.001, 0.003, P),
+                        np.full(P, 0.01), np.full(P, 2e6), ("m",) * P, np.zeros(P))
+    p = RNG.uniform(-0.2, 0.3, (P, 3))
+    st = contact_forces(pts, obs, p)
+    assert len(st) > 3
+    for c in range(len(st)):
+        i, ob = st.point[c], obs[st.obstacle[c]]
+        d, n, _ = signed_distance(ob, p[i:i + 1])
+        f, _ = normal_force_density(0.01 - d, 2e6, 0.001)
+        np.testing.assert_allclose(st.force[c], pts.weight[i] * f[0] * n[0], rtol=1e-12)
+        h = 1e-8
+        for a in range(3):
+            e = np.zeros(3)
+            e[a] = h
+
+            def force(x):
+                s = contact_forces(pts, [ob], x)
+                return s.force[list(s.point).index(i)]
+            fd = (force(p + e) - force(p - e)) / (2 * h)
+            np.testing.assert_allclose(st.dF_dp[c][:, a], fd, rtol=1e-5, atol=1e-6 * np.abs(st.dF_dp[c]).max())
+    # every pair not listed is out of contact
+    for o, ob in enumerate(obs):
+        d, _, _ = signed_distance(ob, p)
+        listed = set(st.point[st.obstacle == o])
+        assert {i for i in range(P) if d[i] < 0.01} == listed
+
+
+# -- the heavy rod ------------------------------------------------------------
+
+E, R_ROD, RHO, G = 5e7, 0.005, 1000.0, 9.81
+A_ROD, I_ROD = np.pi * R_ROD ** 2, np.pi * R_ROD ** 4 / 4
+EI, Q = E * I_ROD, RHO * G * A_ROD          # bending stiffness [N m^2], weight per length [N/m]
+
+
+def _heavy_rod(h, stiffness, length=0.6, sections=60, spacing=0.002):
+    """A horizontal rod clamped at height h above a table (its centreline
+    h above the table's surface less its radius), bending in the vertical
+    plane only."""
+    d = {"name": "heavy_rod", "gravity": [0, 0, -G],
+         "segments": [{"name": "rod", "length": length, "sections": sections,
+                       "cross_section": {"shape": "solid_circle", "radius": R_ROD},
+                       "material": {"youngs_modulus": E, "poisson_ratio": 0.5, "density": RHO},
+                       "free_modes": ["bending_y"]}],
+         "obstacles": [{"name": "table", "type": "plane", "point": [0, 0, -h - R_ROD], "normal": [0, 0, 1],
+                        "stiffness": stiffness}],
+         "contact": {"spacing": spacing}}
+    return from_robot_model(model_from_dict(d), d)
+
+
+def test_the_statics_tangent_with_contacts_is_the_residuals_derivative():
+    mech = _heavy_rod(0.0035, E, length=0.4, sections=12, spacing=0.01)
+    eq = solve_equilibrium(mech)
+    assert len(eq.contacts) > 5
+    pb = _Equilibrium(mech, make_inputs(mech))
+    lam = np.zeros(0)
+    q = eq.q + RNG.normal(0, 1e-6, eq.q.shape)        # (1e-6 /m: microns, as deep as the contacts are)
+    Kt = pb.tangent(q, lam)
+    h = 1e-7
+    fd = np.column_stack([(pb.residual(q + h * e, lam)[0] - pb.residual(q - h * e, lam)[0]) / (2 * h)
+                          for e in np.eye(len(q))])
+    assert np.abs(Kt - pb.K).max() > 0.1 * np.abs(pb.K).max()        # the contacts do stiffen it
+    np.testing.assert_allclose(Kt, fd, atol=1e-6 * np.abs(fd).max())
+
+
+def test_a_heavy_rod_lifted_off_a_plane_matches_the_small_deflection_solution():
+    """A heavy rod (weight q per length, bending stiffness EI) clamped
+    horizontally at height h above a rigid table, long enough to lie on it
+    beyond a lifted span a. Small deflections: EI w'''' = -q on [0, a] with
+    w(0) = w'(0) = 0 (the clamp) and w(a) = -h, w'(a) = 0, w''(a) = 0 (the
+    flat part carries no moment), so w = -q x^4/(24 EI) + q a x^3/(9 EI) -
+    q a^2 x^2/(12 EI), h = q a^4 / (72 EI): a = (72 EI h / q)^(1/4); the
+    clamp carries 2 q a / 3 and the moment q a^2 / 6, the lift-off point
+    q a / 3 (a concentrated reaction), the lifted span nothing (the
+    clamped variant of the classic heavy-elastica lift-off, whose pinned
+    version has a = (24 EI h / q)^(1/4)). Measured from the contact
+    forces: the clamp's force and moment within 0.5 %, for contact
+    stiffnesses from E/10 to 10 E; no contact force over the first 85 % of
+    the lifted span."""
+    a, L = 0.3, 0.6
+    h = Q * a ** 4 / (72 * EI)              # 3.5 mm: slopes of about 1 %, small deflection holds
+    for k in (E / 10, 10 * E):
+        eq = solve_equilibrium(_heavy_rod(h, k))
+        c = eq.contacts
+        assert eq.stable and len(c) > 100
+        F_base = Q * L - c.force[:, 2].sum()
+        M_base = Q * L * L / 2 - np.sum(c.p[:, 0] * c.force[:, 2])      # about the clamp (x = s to 1e-4)
+        assert F_base == pytest.approx(2 * Q * a / 3, rel=5e-3)
+        assert M_base == pytest.approx(Q * a * a / 6, rel=5e-3)
+        assert c.p[:, 0].min() > 0.85 * a
+        assert np.all(c.force[:, :2] == 0) and np.all(c.force[:, 2] > 0)
+        assert -c.gap.min() < 1e-4 * h / 3.5e-3 * 10             # pressed in by microns
+
+
+def test_contact_in_a_tree_robot_file_and_on_a_sphere():
+    """Obstacles in the tree schema; a member resting on a sphere: the
+    contact forces and the clamp hold the member's weight (the base
+    reaction from the member's loads sums to it)."""
+    d = {"name": "on_a_ball", "gravity": [0, 0, -9.81],
+         "bodies": [{"name": "arm", "type": "member", "parent": "base",
+                     "segments": [{"name": "s", "length": 0.3, "sections": 8,
+                                   "cross_section": {"shape": "solid_circle", "radius": 0.005},
+                                   "material": {"youngs_modulus": 2e8, "poisson_ratio": 0.5, "density": 1000},
+                                   "free_modes": "bending"}]}],
+         "obstacles": [{"name": "ball", "type": "sphere", "center": [0.25, 0.0, -0.055], "radius": 0.05}]}
+    mech = mechanism_from_dict(d)
+    eq = solve_equilibrium(mech)
+    c = eq.contacts
+    assert len(c) >= 1 and eq.stable
+    np.testing.assert_allclose(np.linalg.norm(c.p - [0.25, 0, -0.055], axis=1) - 0.05, c.gap + 0.005, atol=1e-12)
+    n = (c.p - [0.25, 0, -0.055]) / np.linalg.norm(c.p - [0.25, 0, -0.055], axis=1)[:, None]
+    np.testing.assert_allclose(c.force / np.linalg.norm(c.force, axis=1)[:, None], n, atol=1e-12)
+    assert 0 < c.force[:, 2].sum() < 1000 * 9.81 * np.pi * 0.005 ** 2 * 0.3
+
+
+@pytest.mark.parametrize("entry, field", [
+    ({"type": "wall"}, "[0].type"),
+    ({"type": "plane", "point": [0, 0, float("nan")], "normal": [0, 0, 1]}, "[0].point"),
+    ({"type": "plane", "point": [0, 0, 0], "normal": [0, 0, 0]}, "[0].normal"),
+    ({"type": "sphere", "center": [0, 0, 0], "radius": -0.1}, "[0].radius"),
+    ({"type": "capsule", "from": [0, 0, 0], "to": [0, 0, 0], "radius": 0.1}, "[0]"),
+    ({"type": "sphere", "center": [0, 0, 0], "radius": 0.1, "normal": [0, 0, 1]}, "[0]: unknown field"),
+    ({"type": "plane", "point": [0, 0, 0], "normal": [0, 0, 1], "stiffness": 0}, "[0].stiffness"),
+    ({"type": "plane", "point": [0, 0, 0], "normal": [0, 0, 1], "friction": -1}, "[0].friction"),
+])
+def test_bad_obstacles_are_rejected_naming_the_field(entry, field):
+    with pytest.raises(ModelError, match=r"robot\.obstacles" + field.replace("[", r"\[").replace("]", r"\]")):
+        obstacles_from_list([entry])
+
+
+def test_obstacle_names_are_unique_and_a_member_needs_a_cross_section():
+    plane = {"type": "plane", "point": [0, 0, 0], "normal": [0, 0, 1]}
+    with pytest.raises(ModelError, match="unique"):
+        obstacles_from_list([dict(plane, name="t"), dict(plane, name="t")])
+    d = {"name": "sectional", "segments": [{"name": "s", "length": 0.2, "sections": 2,
+                                            "sectional": {"stiffness": {"EA": 1e6, "GA2": 1e6, "GA3": 1e6, "GJ": 1e-1,
+                                                                        "EI2": 1e-1, "EI3": 1e-1},
+                                                          "inertia": {"mass_per_length": 0.1, "J1": 1e-6,
+                                                                      "J2": 1e-6, "J3": 1e-6}}}],
+         "obstacles": [dict(plane, name="t")]}
+    with pytest.raises(ModelError, match="cross_section"):
+        solve_equilibrium(from_robot_model(model_from_dict(d), d))
+
+
+def _bouncer(viscosity, damping=0.0, sections=8):
+    d = {"name": "bouncer", "gravity": [0, 0, -9.81],
+         "segments": [{"name": "rod", "length": 0.3, "sections": sections,
+                       "cross_section": {"shape": "solid_circle", "radius": 0.005},
+                       "material": {"youngs_modulus": 5e7, "poisson_ratio": 0.5, "density": 1000,
+                                    "viscosity": viscosity}, "free_modes": ["bending_y"]}],
+         "obstacles": [{"name": "table", "type": "plane", "point": [0, 0, -0.015], "normal": [0, 0, 1],
+                        "damping": damping}],
+         "contact": {"spacing": 0.005}}
+    return from_robot_model(model_from_dict(d), d)
+
+
+def test_a_rod_falling_onto_a_table_comes_to_rest_at_the_static_equilibrium():
+    """A cantilever released straight above a table falls onto it and,
+    with material and contact damping (implicit Euler), comes to rest at
+    the static equilibrium with contact: the dynamics and the statics agree."""
+    mech = _bouncer(2e3, damping=5.0)
+    eq = solve_equilibrium(mech)
+    sim = MechanismSimulator(mech, 2e-3, 1.0, tol=1e-9)
+    sim.step(n=600)
+    assert len(sim.contacts) == len(eq.contacts) >= 1          # resting on its tip
+    np.testing.assert_allclose(sim.q, eq.q, atol=1e-5 * np.abs(eq.q).max())     # (still settling: 1e-6 at 1.2 s)
+
+
+def test_a_bouncing_rod_gains_no_energy():
+    """Without any damping the implicit midpoint step with the contacts'
+    mean (discrete-gradient) force keeps the total energy (kinetic,
+    elastic, gravity, the contacts' stored energy) from growing through
+    repeated bounces: never above its start by 1 % of the peak kinetic
+    energy (with the force at the midpoint it grows without bound)."""
+    sim = MechanismSimulator(_bouncer(0.0), 1e-3, 0.5, tol=1e-9)
+    E0 = sum(sim.energy())
+    growth, T_max, touched = 0.0, 0.0, 0
+    for _ in range(300):
+        sim.step()
+        T, V = sim.energy()
+        growth, T_max = max(growth, T + V - E0), max(T_max, T)
+        touched = max(touched, len(sim.contacts))
+    assert touched > 3 and T_max > 0
+    assert growth < 0.01 * T_max
