@@ -57,7 +57,8 @@ class Obstacle:
     member's Young's modulus); ``smoothing`` [m] the depth eps over which
     the force law turns on (None: a tenth of the member's radius);
     ``damping``: Hunt-Crossley alpha [s/m] (dynamics); ``friction``:
-    Coulomb coefficient (not used yet). Checked at the door
+    Coulomb coefficient mu (dynamics), regularised below ``stiction_velocity``
+    [m/s] (:func:`friction_force`). Checked at the door
     (:func:`soft_twin_core.robot.obstacles.obstacles_from_list`)."""
     name: str
     kind: str
@@ -68,6 +69,7 @@ class Obstacle:
     smoothing: float = None
     damping: float = 0.0
     friction: float = 0.0
+    stiction_velocity: float = 1e-4
 
 
 @dataclass(frozen=True, eq=False)
@@ -187,6 +189,8 @@ class ContactState:
     force: np.ndarray
     dF_dp: np.ndarray
     dF_dv: np.ndarray = None
+    moment: np.ndarray = None        # (n, 3) [N m] about the backbone point (friction at the surface)
+    slip: np.ndarray = None          # (n, 3) [m/s] tangential velocity of the backbone point
 
     def __len__(self):
         return len(self.point)
@@ -233,7 +237,7 @@ def step_contact_forces(points, obstacles, p0, p1, pt, h, theta):
     the normal at pt, with the Hunt-Crossley factor of the step's mean
     penetration rate ``(delta1 - delta0) / h``. dF/dp and dF/dv are taken
     through the end point (``dq1 = dq_t / theta`` in Newton's update)."""
-    idx, obs, ps, ns, gaps, Fs, dFs, dVs = [], [], [], [], [], [], [], []
+    idx, obs, ps, ns, gaps, Fs, dFs, dVs, Ms, Vs = [], [], [], [], [], [], [], [], [], []
     r = points.radius
     for o, ob in enumerate(obstacles):
         d0, _, _ = signed_distance(ob, p0)
@@ -254,18 +258,50 @@ def step_contact_forces(points, obstacles, p0, p1, pt, h, theta):
         ps.append(pt[hit])
         ns.append(n)
         gaps.append(dt_ - r[hit])
-        Fs.append((w * fac * fbar)[:, None] * n)
+        fn = w * fac * fbar
         nn = n[:, :, None] * n[:, None, :]
-        dFs.append((w * fac)[:, None, None] * (-(dfbar / theta)[:, None, None] * nn + fbar[:, None, None] * H))
+        dF = (w * fac)[:, None, None] * (-(dfbar / theta)[:, None, None] * nn + fbar[:, None, None] * H)
         dv = np.where(fac > 0, ob.damping, 0.0)
-        dVs.append(-(w * fbar * dv)[:, None, None] * nn)
-    return _stacked(idx, obs, ps, ns, gaps, Fs, dFs, dVs)
+        dV = -(w * fbar * dv)[:, None, None] * nn
+        vel = (p1[hit] - p0[hit]) / h
+        slip = vel - np.sum(vel * n, axis=1)[:, None] * n
+        F = fn[:, None] * n
+        M = np.zeros((len(hit), 3))
+        if ob.friction > 0:
+            Ft, dFt = friction_force(fn, slip, ob.friction, ob.stiction_velocity)
+            F = F + Ft
+            M = np.cross(-r[hit][:, None] * n, Ft)            # applied at the surface, not the backbone
+            dV = dV + dFt @ (np.eye(3)[None] - nn)           # slip = (I - n n^T) v
+            # friction grows with the normal force: dFt/dp = -mu (slip/s) dfn/dp^T, dfn/dp = -w fac fbar'/theta n
+            unit = Ft / np.maximum(fn, 1e-300)[:, None]       # -mu slip / s
+            dF = dF - unit[:, :, None] * ((w * fac * dfbar / theta)[:, None] * n)[:, None, :]
+        dFs.append(dF)
+        Fs.append(F)
+        dVs.append(dV)
+        Ms.append(M)
+        Vs.append(slip)
+    return _stacked(idx, obs, ps, ns, gaps, Fs, dFs, dVs, Ms, Vs)
 
 
-def _stacked(idx, obs, ps, ns, gaps, Fs, dFs, dVs):
+def friction_force(fn, vt, mu, v_s):
+    """(F (P, 3), dF/dvt (P, 3, 3)): regularised Coulomb friction on points
+    slipping at tangential velocities vt (P, 3) under normal forces fn (P,)
+    [N]: ``F = -mu fn vt / sqrt(|vt|^2 + v_s^2)``. Below the stiction
+    velocity v_s it acts as a steep viscous law: a tangential load T <
+    mu fn is held with a creep ``v = v_s t / sqrt(1 - t^2)``, t = T / (mu
+    fn) (at t = 1/2, 0.58 v_s)."""
+    s = np.sqrt(np.sum(vt * vt, axis=1) + v_s * v_s)
+    c = mu * fn / s
+    F = -c[:, None] * vt
+    dF = -c[:, None, None] * (np.eye(3)[None] - vt[:, :, None] * vt[:, None, :] / (s * s)[:, None, None])
+    return F, dF
+
+
+def _stacked(idx, obs, ps, ns, gaps, Fs, dFs, dVs, Ms=None, Vs=None):
     if not idx:
         z = np.zeros(0)
         return ContactState(np.zeros(0, np.int64), np.zeros(0, np.int64), np.zeros((0, 3)), np.zeros((0, 3)), z,
                             np.zeros((0, 3)), np.zeros((0, 3, 3)), np.zeros((0, 3, 3)))
     return ContactState(np.concatenate(idx), np.concatenate(obs), np.concatenate(ps), np.concatenate(ns),
-                        np.concatenate(gaps), np.concatenate(Fs), np.concatenate(dFs), np.concatenate(dVs))
+                        np.concatenate(gaps), np.concatenate(Fs), np.concatenate(dFs), np.concatenate(dVs),
+                        np.concatenate(Ms) if Ms else None, np.concatenate(Vs) if Vs else None)

@@ -7,7 +7,8 @@ the ``contact`` settings, in either schema), checked at the door::
       - {name: post, type: capsule, from: [0.2, -0.1, 0], to: [0.2, 0.1, 0], radius: 0.01}
       # each may add: stiffness [N/m^2] (default: the member's Young's modulus),
       # smoothing [m] (default: a tenth of the member's radius), damping [s/m] (Hunt-Crossley
-      # alpha, default 0), friction (default 0; not used yet)
+      # alpha, default 0), friction (Coulomb mu, default 0), stiction_velocity [m/s]
+      # (the regularisation: a load held at half the friction limit creeps at 0.58 of it, default 1e-5)
     contact:
       spacing: 0.01                  # [m] between contact points along every member
                                      # (default: the smaller of 10 mm and a twentieth of the member)
@@ -21,7 +22,7 @@ from soft_twin_core.engine.contact import OBSTACLE_KINDS, ContactPoints, Obstacl
 from soft_twin_core.robot.model import ModelError, _check_keys, _num, _vec
 
 _FIELDS = {"plane": ("point", "normal"), "sphere": ("center", "radius"), "capsule": ("from", "to", "radius")}
-_COMMON = {"name", "type", "stiffness", "smoothing", "damping", "friction"}
+_COMMON = {"name", "type", "stiffness", "smoothing", "damping", "friction", "stiction_velocity"}
 
 
 def obstacle_from_dict(d, where):
@@ -40,6 +41,7 @@ def obstacle_from_dict(d, where):
         stiffness=_num(d, "stiffness", where, positive=True) if "stiffness" in d else None,
         smoothing=_num(d, "smoothing", where, positive=True) if "smoothing" in d else None,
         damping=_num(d, "damping", where, nonneg=True, default=0.0),
+        stiction_velocity=_num(d, "stiction_velocity", where, positive=True, default=1e-4),
         friction=_num(d, "friction", where, nonneg=True, default=0.0))
     if kind == "plane":
         normal = _vec(d, "normal", 3, where)

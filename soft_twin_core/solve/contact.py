@@ -67,6 +67,8 @@ class MemberContact:
         n = len(st)
         wr = np.zeros((n, 6))
         wr[:, :3] = st.force
+        if st.moment is not None:
+            wr[:, 3:] = st.moment
         return LoadArrays(np.ascontiguousarray(self.points.joint[st.point]),
                           np.ascontiguousarray(self.points.x[st.point]), wr, np.ones(n, np.bool_))
 
