@@ -109,6 +109,7 @@ def values(s, cfg, twin, gaps, now):
         "robot": (f"{twin.mech.name} ({len(twin.mech.joint_names)} joints, {len(twin.mech.tree.soft_joints)} "
                   f"sections, {twin.mech.tree.nv} dof)"),
         "twin_time_s": f"{twin.state.t:.4f}",
+        "contacts_active": str(len(twin.contacts) if twin.contacts is not None else 0),     # with obstacles
         "step_rate_target_hz": f"{cfg.step_rate_hz:.3f}" if cfg.mode == "dynamic" else "on input",
         "step_rate_hz": f"{rate:.3f}",
         "publish_rate_hz": f"{s.publishes / wall:.3f}",

@@ -181,7 +181,7 @@ _WRENCH = ("fx", "fy", "fz", "mx", "my", "mz")
 _LAST_AXIS = {"tip_position": _VEC3, "tip_velocity": _VEC3, "tip_orientation": ("x", "y", "z", "w"),
               "base_wrench": _WRENCH, "frame_positions": _VEC3, "member_positions": _VEC3,
               "member_velocities": _VEC3, "constraint_wrenches": _WRENCH, "transmitted_wrenches": _WRENCH,
-              "member_internal_wrenches": _WRENCH}
+              "member_internal_wrenches": _WRENCH, "contact_force": _VEC3}
 # fields whose rows are one value per name in a name list of the run, and that list
 _NAMED = {"joint_positions": "joint_names", "joint_velocities": "joint_names", "joint_accelerations": "joint_names",
           "joint_efforts": "joint_names", "peak_normal_stress": "member_names", "peak_shear_stress": "member_names",
@@ -221,7 +221,7 @@ def csv_columns(out):
             continue
         a = np.asarray(out[field], dtype=float).reshape(len(rows), len(names), -1) if rows else None
         comps = _components(field, a.shape[-1] if a is not None else None)
-        if field in ("time", "constraint_error", "newton_iterations"):
+        if field in ("time", "constraint_error", "newton_iterations", "contact_count"):
             comps = [None]
         labels = ["_".join(str(x) for x in (field, nm, c) if x is not None) for nm in names for c in comps]
         flat = a.reshape(len(rows), -1) if a is not None else np.zeros((0, len(labels)))

@@ -195,13 +195,14 @@ class Snapshot:
     tip_wrench: np.ndarray
     command_stamp: object = None
     points_per_section: int = 1     # backbone points per section (every member's section boundaries: [::pps])
+    contacts: object = None         # robots with obstacles: the engine.contact.ContactState of this state
     state: tuple = field(default=None, repr=False)    # (mech, q, v, a, lam, inputs): what the loads need
 
     @cached_property
     def _loads(self):
         mech, q, v, a, lam, inp = self.state
         return state_outputs(mech, q, lam, inp, v, a, points_per_section=self.points_per_section,
-                             member_motion=False)
+                             member_motion=False, contacts=self.contacts)
 
     @property
     def base_wrench(self):
@@ -363,6 +364,7 @@ class Twin:
         self.state = State(self.rest_q.copy(), np.zeros(mech.tree.nv), 0.0)
         self._ref = {n: (float(v), 0.0) for n, v in self.positions.items()}
         self.lam = np.zeros_like(self.lam)
+        self.contacts = None
         self._sim = self._new_sim(self.state.q, self.state.qdot) if self.settings.mode == "dynamic" else None
         if self._sim is not None:
             self._sim.start_multipliers(self.core_inputs())
@@ -443,6 +445,7 @@ class Twin:
         """The simulator's state is the twin's, reached with the current inputs."""
         self.state = State(self._sim.q.copy(), self._sim.v.copy(), self._sim.t)
         self.lam = self._sim.lam.copy()
+        self.contacts = self._sim.contacts
         if self._version != self._good_version:
             self._keep_good()
         else:                             # the good inputs stepped again (DropPolicy.succeeded, without the compare)
@@ -489,6 +492,7 @@ class Twin:
         self.state.q = eq.q.copy()
         self.state.qdot = np.zeros(self.mech.tree.nv)
         self.lam = eq.lam.copy()
+        self.contacts = eq.contacts
         return UpdateInfo(1, eq.iterations, True, "" if eq.stable else
                           f"only an unstable equilibrium was found (smallest reduced stiffness eigenvalue "
                           f"{eq.min_stiffness_eigenvalue:.3g}): the robot buckles or snaps through under these "
@@ -646,5 +650,5 @@ class Twin:
             joint_efforts=np.array([efforts[n] for n in names]),
             backbones=backbones, main_member=main, s=s, backbone=bb, tip_pose=tip_pose,
             strains=section_strains(mech, q), strain_rates=rates, frames=frames, tip_wrench=tip_w,
-            command_stamp=stamp, points_per_section=self.settings.points_per_section,
+            command_stamp=stamp, points_per_section=self.settings.points_per_section, contacts=self.contacts,
             state=(mech, q, v, a, self.lam.copy(), inp))

@@ -19,6 +19,7 @@ _NO_LOADS = Loads(gravity=False)
 from soft_twin_core.engine.workspace import Workspace
 from soft_twin_core.files.timeline import check_output_size, count, n_steps_for, step_times
 from soft_twin_core.robot.mechanism import tip_frame
+from soft_twin_core.solve.contact import contacts_dict
 from soft_twin_core.solve.outputs import (frame_velocity, main_member, member_samples, section_rates,
                                           section_strains, state_outputs)
 
@@ -112,8 +113,10 @@ def run_mechanism_statics(sc, t=0.0, points_per_section=1):
         eq = solve_equilibrium(sc.mech, q_init=q, targets=_targets(sc, t), inputs=_inputs(sc, t, k / sc.load_steps),
                                check_stability=k == sc.load_steps)      # the final equilibrium's is the one to judge
         q, iterations = eq.q, iterations + eq.iterations
-    out = state_outputs(sc.mech, eq.q, eq.lam, eq.inputs, points_per_section=points_per_section)
+    out = state_outputs(sc.mech, eq.q, eq.lam, eq.inputs, points_per_section=points_per_section,
+                        contacts=eq.contacts)
     d = _outputs_dict(sc, out)
+    d.update(contacts=contacts_dict(sc.mech, eq.contacts))
     tree = sc.mech.tree
     d.update(section_names=[tree.joints[i].name for i in tree.soft_joints],
              strains=section_strains(sc.mech, eq.q).tolist(), n_sections=len(tree.soft_joints))
@@ -127,7 +130,7 @@ def run_mechanism_statics(sc, t=0.0, points_per_section=1):
 HISTORY_FIELDS = ("time", "tip_position", "tip_orientation", "tip_velocity", "base_wrench", "joint_positions",
                   "joint_velocities", "joint_accelerations", "joint_efforts", "frame_positions", "constraint_wrenches",
                   "constraint_error", "transmitted_wrenches", "strains", "strain_rates", "peak_normal_stress",
-                  "peak_shear_stress", "newton_iterations")
+                  "peak_shear_stress", "newton_iterations", "contact_count", "contact_force")
 # fields of the member samples (``backbone_every``), one row per sample, in CSV column order
 SAMPLE_FIELDS = ("member_positions", "member_velocities", "member_internal_wrenches")
 
@@ -190,14 +193,15 @@ class _Recorder:
         inp = self.inputs(t, t)              # the loads and efforts at the recorded instant
         sample = bool(self.sample_every) and k % self.sample_every == 0
         a = sim.a
-        if sim.lam.size == 0 and k > 0:
+        if sim.lam.size == 0 and k > 0 and not sim.contact:
             # no multipliers: the acceleration of the equations of motion at (q, v, t), the instant
             # recorded; with multipliers the step's own (its mean acceleration and reactions, which
             # balance each other; the instantaneous pair would need the constraints' dG/dt v)
             self.probe.q, self.probe.v = sim.q.copy(), sim.v.copy()
             a = self.probe.start_multipliers(inp).a
+        contacts = sim.contacts if k > 0 else None      # the step's (its mean acceleration's) contact forces
         o = state_outputs(mech, sim.q, sim.lam, inp, sim.v, a, self.ws, self.pps if sample else 1,
-                          member_motion=sample)
+                          member_motion=sample, contacts=contacts)
         g = np.asarray(o.frames[self.tip], dtype=float)
         out["time"].append(t)
         out["tip_position"].append(g[:3, 3].tolist())
@@ -217,6 +221,9 @@ class _Recorder:
         out["peak_normal_stress"].append([float(np.nanmax(m.normal_stress, initial=0)) for m in o.members])
         out["peak_shear_stress"].append([float(np.nanmax(m.shear_stress, initial=0)) for m in o.members])
         out["newton_iterations"].append(int(iterations))
+        out["contact_count"].append(len(contacts) if contacts is not None else 0)
+        out["contact_force"].append((contacts.force.sum(axis=0) if contacts is not None and len(contacts)
+                                     else np.zeros(3)).tolist())
         if sample:
             out["members_time"].append(t)
             out["members"].append(_outputs_dict(sc, o)["members"])

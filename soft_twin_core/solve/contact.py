@@ -22,6 +22,39 @@ def mechanism_contact_points(mech):
     return pts
 
 
+def contact_loads(mech, st):
+    """The contact forces of a ContactState of ``mech`` (None: none) as dead
+    point loads: world axes, at the backbone points, with the friction's
+    moment about them."""
+    if st is None or not len(st):
+        return LoadArrays(np.zeros(0, np.int64), np.zeros(0), np.zeros((0, 6)), np.zeros(0, np.bool_))
+    return _point_loads(mechanism_contact_points(mech), st)
+
+
+def _point_loads(points, st):
+    n = len(st)
+    wr = np.zeros((n, 6))
+    wr[:, :3] = st.force
+    if st.moment is not None:
+        wr[:, 3:] = st.moment
+    return LoadArrays(np.ascontiguousarray(points.joint[st.point]), np.ascontiguousarray(points.x[st.point]), wr,
+                      np.ones(n, np.bool_))
+
+
+def contacts_dict(mech, st):
+    """JSON-ready contacts of a ContactState (None: none): per contact its
+    member, arc length s [m], obstacle, position [m], normal, gap [m] (< 0:
+    pressed in), force [N] on the member (world), slip velocity [m/s]."""
+    if st is None or not len(st):
+        return []
+    pts = mechanism_contact_points(mech)
+    names = [ob.name for ob in mech.obstacles]
+    return [dict(member=pts.member[i], s=float(pts.s[i]), obstacle=names[o] if o < len(names) else int(o),
+                 position=st.p[c].tolist(), normal=st.normal[c].tolist(), gap=float(st.gap[c]),
+                 force=st.force[c].tolist(), slip=(st.slip[c].tolist() if st.slip is not None else [0.0] * 3))
+            for c, (i, o) in enumerate(zip(st.point, st.obstacle))]
+
+
 class MemberContact:
     """The contact points of ``mech`` against ``obstacles`` (default the
     robot file's)."""
@@ -63,14 +96,8 @@ class MemberContact:
         return step_contact_forces(self.points, self.obstacles, p0, p1, self.positions(ws, qt), h, theta)
 
     def loads(self, st):
-        """The contact forces of ``st`` as dead point loads (world axes, at the backbone points)."""
-        n = len(st)
-        wr = np.zeros((n, 6))
-        wr[:, :3] = st.force
-        if st.moment is not None:
-            wr[:, 3:] = st.moment
-        return LoadArrays(np.ascontiguousarray(self.points.joint[st.point]),
-                          np.ascontiguousarray(self.points.x[st.point]), wr, np.ones(n, np.bool_))
+        """The contact forces of ``st`` as dead point loads (:func:`contact_loads`)."""
+        return _point_loads(self.points, st)
 
     def add_stiffness(self, ws, st, Kt, scale=1.0, Dt=None):
         """Kt -= scale J^T dF/dp J over the contacts of ``st`` (the

@@ -31,6 +31,7 @@ from soft_twin_core.errors import ModelError
 from soft_twin_core.lie import Ad, Ad_inv, se3_inv
 from soft_twin_core.robot.stress import peak_stresses, von_mises
 from soft_twin_core.solve.constrained import _efforts_out, constraint_loads, constraint_wrenches
+from soft_twin_core.solve.contact import contact_loads
 
 
 @dataclass
@@ -380,7 +381,8 @@ class MechanismOutputs:
     joint (soft sections included), ``constraint_wrenches`` {constraint:
     world [f; m] on its frame a}, ``frames`` {name: world pose 4x4},
     ``members`` (MemberOutput list), ``base_wrench`` (6,) the support's
-    reaction (:func:`base_reaction`)."""
+    reaction (:func:`base_reaction`), ``contacts`` (the ContactState the
+    loads include, None without obstacles)."""
     positions: dict
     velocities: dict
     accelerations: dict
@@ -390,17 +392,21 @@ class MechanismOutputs:
     frames: dict
     members: list
     base_wrench: np.ndarray
+    contacts: object = None
 
 
-def state_outputs(mech, q, lam, inputs, v=None, a=None, ws=None, points_per_section=1, member_motion=True):
+def state_outputs(mech, q, lam, inputs, v=None, a=None, ws=None, points_per_section=1, member_motion=True,
+                  contacts=None):
     """MechanismOutputs at (q, v, a) with multipliers lam under ``inputs``
     (:class:`constrained.Inputs`); v = a = None: statics. The members are
     sampled at ``points_per_section`` points per section (1: their section
     boundaries) and their ends; ``member_motion`` False leaves their points'
-    velocities and accelerations at zero (they cost two Jacobians a point)."""
+    velocities and accelerations at zero (they cost two Jacobians a point).
+    ``contacts``: the ContactState whose forces act too (an equilibrium's or
+    a step's)."""
     tree = mech.tree
     ws = Workspace(tree) if ws is None else ws
-    loads = concat_loads(inputs.loads, constraint_loads(mech, lam))
+    loads = concat_loads(inputs.loads, constraint_loads(mech, lam), contact_loads(mech, contacts))
     run_passes(mech, ws, q, v, a, loads, inputs.gravity)
     names = [tree.joints[i].name for i in mech.rigid_joints]
     iq = [tree.idx_q[i] for i in mech.rigid_joints]
@@ -421,4 +427,4 @@ def state_outputs(mech, q, lam, inputs, v=None, a=None, ws=None, points_per_sect
         constraint_wrenches=constraint_wrenches(mech, lam),
         frames=frames,
         members=members,
-        base_wrench=base_reaction(mech, by_joint, ws, inputs.u))
+        base_wrench=base_reaction(mech, by_joint, ws, inputs.u), contacts=contacts)

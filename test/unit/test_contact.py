@@ -339,3 +339,71 @@ def test_a_rod_on_an_incline_slides_at_the_coulomb_acceleration_or_sticks():
             assert creep == pytest.approx(1e-4 * ratio / np.sqrt(1 - ratio ** 2), rel=0.02)
             assert 0 < creep < 1e-4
         assert len(sim.contacts) == 10 and np.all(sim.contacts.force @ [np.sin(th), 0, np.cos(th)] > 0)
+
+
+def _heavy_rod_dict(h=0.0035, length=0.4, sections=12):
+    return {"name": "heavy_rod", "gravity": [0, 0, -G],
+            "segments": [{"name": "rod", "length": length, "sections": sections,
+                          "cross_section": {"shape": "solid_circle", "radius": R_ROD},
+                          "material": {"youngs_modulus": E, "poisson_ratio": 0.5, "density": RHO, "viscosity": 2e3},
+                          "free_modes": ["bending_y"]}],
+            "obstacles": [{"name": "table", "type": "plane", "point": [0, 0, -h - R_ROD], "normal": [0, 0, 1],
+                           "damping": 5.0}],
+            "contact": {"spacing": 0.01}}
+
+
+def test_the_twin_reports_its_contacts_and_its_base_wrench_includes_them():
+    """Quasi-static and dynamic twins of a robot with obstacles: the
+    snapshot lists the contacts, and the base reaction balances the
+    weight less the contact forces (the loads inside the robot include
+    them); the diagnostics count them."""
+    from types import SimpleNamespace
+    from soft_twin import diagnostics
+    from soft_twin_core.twin import Twin, TwinSettings
+    d = _heavy_rod_dict()
+    mech = from_robot_model(model_from_dict(d), d)
+    weight = Q * 0.4
+    for mode in ("quasi_static", "dynamic"):
+        twin = Twin(mech, TwinSettings(mode=mode, dt=0.002, theta=1.0))
+        info = twin.step(400 if mode == "dynamic" else 1)
+        assert info.converged
+        snap = twin.outputs()
+        assert snap.contacts is not None and len(snap.contacts) > 3
+        Fz = snap.contacts.force[:, 2].sum()
+        assert 0.2 * weight < Fz < weight
+        # the support's reaction on the robot (base axes = world here) and the contacts hold the weight
+        assert snap.base_wrench[2] + Fz == pytest.approx(weight, rel=1e-3 if mode == "dynamic" else 1e-8)
+        cfg = SimpleNamespace(mode=mode, step_rate_hz=200.0)
+        stats = diagnostics.Stats()
+        gaps = {k: SimpleNamespace(supported=True) for k in ("actuation", "wrench", "joint")}
+        vals = diagnostics.values(stats, cfg, twin, gaps, stats.window_start + 1.0)[0]
+        assert vals["contacts_active"] == str(len(twin.contacts))
+
+
+def test_scenario_runs_carry_the_contacts(tmp_path):
+    """soft-twin-sim statics lists every contact (member, s, obstacle,
+    position, normal, gap, force, slip); dynamics records the count and
+    the total contact force at every row, in the JSON and the CSV."""
+    import json
+    import yaml
+    from soft_twin_core import cli
+    robot = tmp_path / "rod.yaml"
+    robot.write_text(yaml.safe_dump(_heavy_rod_dict()))
+    scen = tmp_path / "s.yaml"
+    scen.write_text(yaml.safe_dump({"robot": "rod.yaml"}))
+    assert cli.main(["statics", str(scen), "-o", str(tmp_path / "s.json")]) == 0
+    js = json.loads((tmp_path / "s.json").read_text())
+    assert len(js["contacts"]) > 3
+    c = js["contacts"][0]
+    assert set(c) == {"member", "s", "obstacle", "position", "normal", "gap", "force", "slip"}
+    assert c["member"] == "backbone" and c["obstacle"] == "table" and c["gap"] < 0 and c["force"][2] > 0
+    assert cli.main(["dynamics", str(scen), "--duration", "0.2", "--dt", "0.002", "-o",
+                     str(tmp_path / "d.json")]) == 0
+    dj = json.loads((tmp_path / "d.json").read_text())
+    assert dj["contact_count"][0] == 0 and max(dj["contact_count"]) > 3
+    k = int(np.argmax(dj["contact_count"]))
+    assert dj["contact_force"][k][2] > 0
+    assert cli.main(["dynamics", str(scen), "--duration", "0.2", "--dt", "0.002", "--format", "csv", "-o",
+                     str(tmp_path / "d.csv")]) == 0
+    header = (tmp_path / "d.csv").read_text().splitlines()[0].split(",")
+    assert "contact_count" in header and "contact_force_z" in header
