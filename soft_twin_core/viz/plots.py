@@ -99,6 +99,19 @@ def draw_snapshot(axes, snap, color, label=None, lw=2.0):
             else:
                 i, j = {"side": (0, 2), "top": (0, 1)}[name]
                 ax.plot(J[:, i], J[:, j], "o", mfc="w", mec="k", ms=5)
+        for P in snap.obstacles:                       # obstacles: thin grey, dashed
+            if name == "3d":
+                ax.plot(P[:, 0], P[:, 1], P[:, 2], color="0.55", lw=0.9, ls="--")
+            else:
+                i, j = {"side": (0, 2), "top": (0, 1)}[name]
+                ax.plot(P[:, i], P[:, j], color="0.55", lw=0.9, ls="--")
+        if len(snap.contacts):                         # contact points: red crosses
+            C = snap.contacts
+            if name == "3d":
+                ax.plot(C[:, 0], C[:, 1], C[:, 2], "x", color="tab:red", ms=4)
+            else:
+                i, j = {"side": (0, 2), "top": (0, 1)}[name]
+                ax.plot(C[:, i], C[:, j], "x", color="tab:red", ms=4)
         tip = snap.tip
         if name == "3d":
             ax.plot([tip[0]], [tip[1]], [tip[2]], "o", color=color, ms=4)

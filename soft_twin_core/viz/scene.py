@@ -43,6 +43,10 @@ class Snapshot:
     shapes: list of (visual dict, 4x4 world pose of the shape's centre,
         its placement in the link applied): the rigid bodies' shapes
         themselves, for viewers drawing solids (the live view).
+    obstacles: list of (N, 3) polylines [m], world, NaN rows between
+        edges: the outlines of the obstacles (:func:`obstacle_outline`),
+        drawn but not framed (a table is larger than the robot).
+    contacts: (K, 3) [m], world: the contact points pressed into them.
     """
     members: list
     links: list = field(default_factory=list)
@@ -53,6 +57,8 @@ class Snapshot:
     joints: object = None
     joint_axes: list = field(default_factory=list)
     shapes: list = field(default_factory=list)
+    obstacles: list = field(default_factory=list)
+    contacts: object = None
 
     def __post_init__(self):
         ms = []
@@ -74,6 +80,8 @@ class Snapshot:
         self.solids = [np.asarray(a, dtype=float).reshape(-1, 3) for a in self.solids]
         self.joints = np.zeros((0, 3)) if self.joints is None else np.asarray(self.joints, float).reshape(-1, 3)
         self.joint_axes = [np.asarray(a, dtype=float).reshape(2, 3) for a in self.joint_axes]
+        self.obstacles = [np.asarray(a, dtype=float).reshape(-1, 3) for a in self.obstacles]
+        self.contacts = np.zeros((0, 3)) if self.contacts is None else np.asarray(self.contacts, float).reshape(-1, 3)
         if not self.caption and self.time is not None:
             self.caption = f"t = {self.time:.2f} s"
 
@@ -126,6 +134,48 @@ def visual_placement(visual):
     return pose_from_dict(v or None, "visual")
 
 
+def obstacle_outline(ob, centre, extent):
+    """(N, 3) [m] world polyline of an obstacle (engine.contact.Obstacle):
+    a sphere's great circles; a capsule's cylinder and end circles; a
+    plane's square of side 1.2 ``extent`` around the point of the plane
+    nearest ``centre`` (the robot's), with a short stroke along its normal."""
+    nan = np.full((1, 3), np.nan)
+    if ob.kind == "sphere":
+        return solid_outline({"shape": "sphere", "radius": ob.radius}, _translation(ob.a))
+    z = ob.b - ob.a if ob.kind == "capsule" else ob.b
+    T = _translation(ob.a if ob.kind == "plane" else 0.5 * (ob.a + ob.b))
+    T[:3, :3] = _frame_with_z(z / np.linalg.norm(z))
+    if ob.kind == "capsule":
+        parts = [solid_outline({"shape": "cylinder", "radius": ob.radius, "length": float(np.linalg.norm(z))}, T)]
+        for end in (ob.a, ob.b):
+            E = T.copy()
+            E[:3, 3] = end
+            parts.append(solid_outline({"shape": "sphere", "radius": ob.radius}, E)[:CIRCLE_POINTS + 1])
+        return np.concatenate([np.vstack([p, nan]) for p in parts])[:-1]
+    n = ob.b
+    c = np.asarray(centre, float) - ((np.asarray(centre, float) - ob.a) @ n) * n
+    T[:3, 3] = c
+    half = 0.6 * max(float(extent), 1e-3)
+    sq = np.array([[-1, -1, 0], [1, -1, 0], [1, 1, 0], [-1, 1, 0], [-1, -1, 0]], float) * [half, half, 0]
+    stroke = np.array([[0, 0, 0], [0, 0, 0.15 * half]])
+    P = np.vstack([sq, nan, stroke])
+    return np.where(np.isnan(P), np.nan, P @ T[:3, :3].T + T[:3, 3])
+
+
+def _translation(p):
+    T = np.eye(4)
+    T[:3, 3] = p
+    return T
+
+
+def _frame_with_z(z):
+    """A rotation whose third column is the unit vector z."""
+    a = np.array([1.0, 0.0, 0.0]) if abs(z[0]) < 0.9 else np.array([0.0, 1.0, 0.0])
+    x = np.cross(a, z)
+    x /= np.linalg.norm(x)
+    return np.column_stack([x, np.cross(z, x), z])
+
+
 def solid_outline(visual, pose):
     """(N, 3) [m] world polyline of a visual shape's edges at ``pose`` (4x4,
     the link frame), NaN rows between separate edges: a box's 12 edges; a
@@ -169,10 +219,11 @@ def rigid_joints(mech):
     return [(i, links[i]) for i in mech.rigid_joints if i in links]
 
 
-def snapshot(mech, members, frame_poses, time=None, caption=""):
+def snapshot(mech, members, frame_poses, time=None, caption="", contacts=None):
     """A :class:`scene.Snapshot` of a mechanism: ``members`` {member name:
     (P, 3) backbone points [m]} (or a list in the order of ``mech.members``),
-    ``frame_poses`` {frame name: 4x4 world pose}."""
+    ``frame_poses`` {frame name: 4x4 world pose}; the robot file's obstacles
+    outlined around it; ``contacts``: (K, 3) contact points [m]."""
     if isinstance(members, dict):
         members = [members[m.name] for m in mech.members]
     members = [np.asarray(P, dtype=float) for P in members]
@@ -199,8 +250,14 @@ def snapshot(mech, members, frame_poses, time=None, caption=""):
             axes.append(np.array([p - 0.5 * JOINT_AXIS_LENGTH * d, p + 0.5 * JOINT_AXIS_LENGTH * d]))
     if not members:                     # a robot of rigid links only: its last frame stands for the tip
         members = [np.asarray(list(frame_poses.values())[-1], dtype=float)[None, :3, 3]]
+    obstacles = []
+    if mech.obstacles:
+        P = np.concatenate(members)
+        extent = float(np.max(P.max(axis=0) - P.min(axis=0)))
+        obstacles = [obstacle_outline(ob, P.mean(axis=0), extent) for ob in mech.obstacles]
     return Snapshot(members, links, time=time, caption=caption, solids=solids,
-                    joints=np.array(joints).reshape(-1, 3), joint_axes=axes, shapes=shapes)
+                    joints=np.array(joints).reshape(-1, 3), joint_axes=axes, shapes=shapes, obstacles=obstacles,
+                    contacts=contacts)
 
 
 def member_radii(mech, n_points=None, default=0.005):
@@ -243,4 +300,6 @@ def statics_snapshot(result, mech, caption="equilibrium"):
     """The snapshot of an articulated statics result (``soft-twin-sim statics``)
     with ``frame_poses``."""
     fp = dict(zip(result["frame_names"], result["frame_poses"]))
-    return snapshot(mech, {n: m["positions"] for n, m in result["members"].items()}, fp, caption=caption)
+    contacts = [c["position"] for c in result.get("contacts", ())]
+    return snapshot(mech, {n: m["positions"] for n, m in result["members"].items()}, fp, caption=caption,
+                    contacts=contacts)

@@ -407,3 +407,42 @@ def test_scenario_runs_carry_the_contacts(tmp_path):
                      str(tmp_path / "d.csv")]) == 0
     header = (tmp_path / "d.csv").read_text().splitlines()[0].split(",")
     assert "contact_count" in header and "contact_force_z" in header
+
+
+def test_figures_outline_the_obstacles_and_mark_the_contacts():
+    """The scene of a statics result outlines each obstacle (the plane's
+    square lies in the plane, around the robot; a sphere's circles on the
+    sphere; a capsule's outline within its radius of the segment) and
+    marks the contact points; the shapes figure draws them."""
+    from soft_twin_core.engine.contact import Obstacle
+    from soft_twin_core.viz import plots, scene
+    from soft_twin_core.files import runs
+    from soft_twin_core.files.scenario import scenario_from_dict
+    sc = scenario_from_dict({"robot": _heavy_rod_dict()})
+    result = runs.run_mechanism_statics(sc)
+    snap = scene.statics_snapshot(result, sc.mech)
+    assert len(snap.obstacles) == 1 and len(snap.contacts) == len(result["contacts"]) > 3
+    P = snap.obstacles[0][np.all(np.isfinite(snap.obstacles[0]), axis=1)]
+    on_plane = np.abs(P[:, 2] + 0.0035 + R_ROD) < 1e-12
+    assert on_plane.sum() >= 5 and P[on_plane, 0].min() < 0 < 0.4 < P[on_plane, 0].max()
+    ball = Obstacle("b", "sphere", np.array([0.1, 0.2, 0.3]), radius=0.05)
+    Q_ = scene.obstacle_outline(ball, np.zeros(3), 1.0)
+    Q_ = Q_[np.all(np.isfinite(Q_), axis=1)]
+    np.testing.assert_allclose(np.linalg.norm(Q_ - ball.a, axis=1), 0.05, atol=1e-12)
+    cap = Obstacle("c", "capsule", np.array([0.0, 0.0, 0.0]), np.array([0.2, 0.1, 0.0]), radius=0.02)
+    Q_ = scene.obstacle_outline(cap, np.zeros(3), 1.0)
+    Q_ = Q_[np.all(np.isfinite(Q_), axis=1)]
+    d, _, _ = signed_distance(cap, Q_)
+    np.testing.assert_allclose(d, 0.0, atol=1e-12)
+    fig = plots.shapes_figure([snap], "heavy rod")
+    assert any(ln.get_linestyle() == "--" for ln in fig.axes[0].lines)
+    plots._plt().close(fig)
+
+
+def test_the_example_robot_on_a_table_loads_with_its_obstacle():
+    from soft_twin_core.files.scenario import load_scenario
+    from soft_twin_core.robot.mechanism import load_mechanism
+    mech = load_mechanism("tendon_arm_on_table")
+    (table,) = mech.obstacles
+    assert table.kind == "plane" and table.friction == 0.3 and mech.contact_spacing == 0.015
+    assert load_scenario("tendon_arm_on_table").mech.obstacles[0].name == "table"

@@ -1,0 +1,67 @@
+"""Contact's cost: a soft arm lying on a table against the same arm in the air.
+
+The default arm's material and section (0.45 m, r = 10 mm, E = 2 MPa,
+bending and torsion), N sections, clamped horizontally 2 mm above a table
+(plane) so that it lies on it over most of its length (about 10 contact
+points pressed at a 45 mm spacing); dynamics at dt = 2 ms, implicit
+midpoint, after the arm has settled. Reported per step: the same arm
+without obstacles (the compiled O(n) integrator), with the table (the
+dense theta step with the contacts' forces, stiffness and damping), and
+their ratio; and the statics solve from the settled state.
+
+Issue 27's goal: at most 2x the cost without contact at the same dt.
+
+Run: .venv/bin/python benchmarks/bench_contact.py [--sections 5 10 20]
+"""
+
+import argparse
+import os
+import time
+
+import numpy as np
+
+from _timing import fmt, machine, per_call
+from soft_twin_core.robot.mechanism import from_robot_model
+from soft_twin_core.robot.model import model_from_dict
+from soft_twin_core.solve.constrained import MechanismSimulator, solve_equilibrium
+
+
+def arm(n, table):
+    d = {"name": f"arm_{n}", "gravity": [0, 0, -9.81],
+         "segments": [{"name": "arm", "length": 0.45, "sections": n,
+                       "cross_section": {"shape": "solid_circle", "radius": 0.010},
+                       "material": {"youngs_modulus": 2.0e6, "poisson_ratio": 0.5, "density": 1100.0,
+                                    "viscosity": 2.0e3},
+                       "free_modes": "bending_torsion"}]}
+    if table:
+        d["obstacles"] = [{"name": "table", "type": "plane", "point": [0, 0, -0.012], "normal": [0, 0, 1],
+                           "damping": 5.0}]
+        d["contact"] = {"spacing": 0.045}
+    return from_robot_model(model_from_dict(d), d)
+
+
+def main():
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--sections", type=int, nargs="+", default=[5, 10, 20])
+    args = ap.parse_args()
+    print(f"# {machine()}, load {os.getloadavg()[0]:.2f}")
+    print(f"{'sections':>8} {'contacts':>8} {'free step':>12} {'on table':>12} {'ratio':>6} {'statics':>12}")
+    for n in args.sections:
+        times = []
+        for table in (False, True):
+            mech = arm(n, table)
+            sim = MechanismSimulator(mech, 2e-3, 0.5, tol=1e-6)
+            sim.step(n=500)                      # settle (and compile)
+            times.append(per_call(lambda: sim.step(), number=50))
+        mech = arm(n, True)
+        eq = solve_equilibrium(mech)
+        t0 = time.perf_counter()
+        solve_equilibrium(mech, q_init=eq.q)
+        t_static = time.perf_counter() - t0
+        print(f"{n:>8} {len(eq.contacts):>8} {fmt(times[0]):>12} {fmt(times[1]):>12} {times[1] / times[0]:>6.1f} "
+              f"{fmt(t_static):>12}")
+
+
+if __name__ == "__main__":
+    np.seterr(all="ignore")
+    main()
