@@ -1,10 +1,12 @@
 """RViz markers of a published state (``~/markers``): a tube of cylinders
 along every soft member (one per sample interval, the diameter of its
 section), the rigid links' visual shapes (a small sphere for a link without
-one) and a sphere at the tip.
+one), a sphere at the tip, the robot file's obstacles (translucent grey: a
+plane as a thin square around the robot, spheres, capsules) and an arrow per
+contact, along its force on the member (the longest 5 cm, the others to scale).
 
-:class:`Markers` remembers how many tube cylinders it drew last, so that a
-robot with fewer samples than before deletes the extra ones.
+:class:`Markers` remembers how many tube cylinders and contact arrows it drew
+last, so that a state with fewer deletes the extra ones.
 """
 
 import numpy as np
@@ -13,11 +15,15 @@ from std_msgs.msg import ColorRGBA
 from visualization_msgs.msg import Marker, MarkerArray
 
 from soft_twin import conversions as cv
+from soft_twin_core.lie import rotation_with_z
 
 TUBE = ColorRGBA(r=0.85, g=0.45, b=0.2, a=0.9)
 LINK = ColorRGBA(r=0.6, g=0.6, b=0.65, a=1.0)
 TIP = ColorRGBA(r=0.2, g=0.4, b=0.9, a=1.0)
+OBSTACLE = ColorRGBA(r=0.5, g=0.5, b=0.5, a=0.35)
+CONTACT = ColorRGBA(r=0.9, g=0.1, b=0.1, a=1.0)
 DEFAULT_RADIUS = 0.005      # m, a member section without geometry
+ARROW_LENGTH = 0.05         # m, the arrow of the largest contact force
 
 
 def tube(T, radii, header, first_id):
@@ -61,12 +67,58 @@ def tip_marker(pose, diameter, header):
     return m
 
 
+def obstacle_markers(obstacles, centre, extent, header):
+    """Markers of the obstacles (engine.contact.Obstacle): a plane as a
+    1 mm thick square of side 1.2 ``extent`` [m] around the point of it
+    nearest ``centre``, a sphere, a capsule as a cylinder and two spheres."""
+    out = []
+
+    def add(kind, T, sx, sy, sz):
+        m = Marker(header=header, ns="obstacles", id=len(out), type=kind, action=Marker.ADD, color=OBSTACLE)
+        m.pose = cv.pose_msg(T)
+        m.scale = Vector3(x=float(sx), y=float(sy), z=float(sz))
+        out.append(m)
+    for ob in obstacles:
+        T = np.eye(4)
+        if ob.kind == "plane":
+            T[:3, :3] = rotation_with_z(ob.b)
+            c = np.asarray(centre, float)
+            T[:3, 3] = c - ((c - ob.a) @ ob.b) * ob.b - 0.0005 * ob.b
+            add(Marker.CUBE, T, 1.2 * extent, 1.2 * extent, 0.001)
+            continue
+        ends = [ob.a] if ob.kind == "sphere" else [ob.a, ob.b]
+        for p in ends:
+            T[:3, 3] = p
+            add(Marker.SPHERE, T, *(3 * [2 * ob.radius]))
+        if ob.kind == "capsule":
+            axis = ob.b - ob.a
+            T[:3, :3] = rotation_with_z(axis / np.linalg.norm(axis))
+            T[:3, 3] = 0.5 * (ob.a + ob.b)
+            add(Marker.CYLINDER, T, 2 * ob.radius, 2 * ob.radius, np.linalg.norm(axis))
+    return out
+
+
+def contact_arrows(contacts, header):
+    """An arrow per contact (engine.contact.ContactState) from its backbone
+    point along its force, the largest ARROW_LENGTH long."""
+    F = np.asarray(contacts.force, dtype=float)
+    scale = ARROW_LENGTH / max(float(np.max(np.linalg.norm(F, axis=1), initial=0.0)), 1e-300)
+    out = []
+    for k, (p, f) in enumerate(zip(np.asarray(contacts.p, float), F)):
+        m = Marker(header=header, ns="contacts", id=k, type=Marker.ARROW, action=Marker.ADD, color=CONTACT)
+        m.points = [cv.point(p.tolist()), cv.point((p + scale * f).tolist())]
+        m.scale = Vector3(x=0.002, y=0.004, z=0.006)        # shaft and head diameters, head length [m]
+        out.append(m)
+    return out
+
+
 class Markers:
     """The MarkerArray of a state: a tube per soft member (its sections'
     radii), the links' shapes, a sphere at the tip."""
 
     def __init__(self):
         self.n_tube = 0
+        self.n_contacts = 0
 
     def __call__(self, snap, robot, header):
         out = MarkerArray()
@@ -85,6 +137,15 @@ class Markers:
         # fewer samples than before: delete the extra cylinders
         out.markers += [Marker(header=header, ns="tube", id=i, action=Marker.DELETE) for i in range(n, self.n_tube)]
         self.n_tube = n
+        if mech.obstacles:
+            P = np.concatenate([snap.backbones[m.name][0][:, :3, 3] for m in mech.members] + [snap.tip_pose[None, :3, 3]])
+            extent = max(float(np.max(P.max(axis=0) - P.min(axis=0))), 0.05)
+            out.markers += obstacle_markers(mech.obstacles, P.mean(axis=0), extent, header)
+        arrows = contact_arrows(snap.contacts, header) if snap.contacts is not None and len(snap.contacts) else []
+        out.markers += arrows
+        out.markers += [Marker(header=header, ns="contacts", id=i, action=Marker.DELETE)
+                        for i in range(len(arrows), self.n_contacts)]
+        self.n_contacts = len(arrows)
         return out
 
     @staticmethod

@@ -479,3 +479,13 @@ def cayley_coordinates(f):
     p = np.einsum("...ij,...j->...i", V, u)
     zu = p - 0.5 * np.cross(zw, p)
     return np.concatenate([zu, zw], axis=-1)
+
+
+def rotation_with_z(z):
+    """A rotation matrix whose third column is the unit vector z (its x axis
+    normal to z and to world x, or to world y when z is near x)."""
+    z = np.asarray(z, dtype=float)
+    a = np.array([1.0, 0.0, 0.0]) if abs(z[0]) < 0.9 else np.array([0.0, 1.0, 0.0])
+    x = np.cross(a, z)
+    x /= np.linalg.norm(x)
+    return np.column_stack([x, np.cross(z, x), z])

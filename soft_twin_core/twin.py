@@ -247,7 +247,7 @@ class Twin:
         self._version = 0                # counts the changes of the inputs (core_inputs' cache, _commit)
         self._core = (None, None)        # (version, Inputs) of the commands as they are
         self._tangent = None             # the last equilibrium's tangent (robots without multipliers): a hint
-        self.rest_q, self.rest_message = self._rest()
+        self.rest_q, self.rest_message, self.rest_contacts = self._rest()
         self.lam = np.zeros(mech.n_constraint_rows + len(mech.joints_with("position")))
         self._keep_good(reset=True)
         self.reset(solve=False)
@@ -338,12 +338,12 @@ class Twin:
     def _rest(self):
         """Equilibrium under gravity with the joints at their references
         (statics; a robot with a floating base or spherical joints starts
-        from its reference configuration)."""
+        from its reference configuration). Returns (q, message, its contacts)."""
         try:
             eq = cs.solve_equilibrium(self.mech)
-            return eq.q.copy(), "rest: static equilibrium under gravity"
+            return eq.q.copy(), "rest: static equilibrium under gravity", eq.contacts
         except (ValueError, cs.StaticsError) as e:
-            return self.mech.tree.q0.copy(), f"rest: reference configuration ({clip(e, 200)})"
+            return self.mech.tree.q0.copy(), f"rest: reference configuration ({clip(e, 200)})", None
 
     def _new_sim(self, q, v):
         s = self.settings
@@ -364,7 +364,7 @@ class Twin:
         self.state = State(self.rest_q.copy(), np.zeros(mech.tree.nv), 0.0)
         self._ref = {n: (float(v), 0.0) for n, v in self.positions.items()}
         self.lam = np.zeros_like(self.lam)
-        self.contacts = None
+        self.contacts = self.rest_contacts
         self._sim = self._new_sim(self.state.q, self.state.qdot) if self.settings.mode == "dynamic" else None
         if self._sim is not None:
             self._sim.start_multipliers(self.core_inputs())

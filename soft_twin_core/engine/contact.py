@@ -230,13 +230,18 @@ def contact_forces(points, obstacles, p, v=None):
     return _stacked(idx, obs, ps, ns, gaps, Fs, dFs, dVs)
 
 
-def step_contact_forces(points, obstacles, p0, p1, pt, h, theta):
+def step_contact_forces(points, obstacles, p0, p1, pt, h, theta, v0=None):
     """:class:`ContactState` of a time step from positions p0 to p1 (P, 3),
     the forces acting at pt (the step's theta point): the normal force is
     the :func:`discrete_gradient` of the penetrations at the two ends, along
     the normal at pt, with the Hunt-Crossley factor of the step's mean
     penetration rate ``(delta1 - delta0) / h``. dF/dp and dF/dv are taken
-    through the end point (``dq1 = dq_t / theta`` in Newton's update)."""
+    through the end point (``dq1 = dq_t / theta`` in Newton's update).
+    Friction acts against the slip at the end of the step, ``((p1 - p0) / h
+    - (1 - theta) v0) / theta`` (v0: the points' velocities at the step's
+    start; None: at rest), as implicit Euler would: regularised friction is
+    a very stiff damper (mu F_n / v_s), which the midpoint rule would let
+    ring from step to step instead of damping it."""
     idx, obs, ps, ns, gaps, Fs, dFs, dVs, Ms, Vs = [], [], [], [], [], [], [], [], [], []
     r = points.radius
     for o, ob in enumerate(obstacles):
@@ -264,6 +269,8 @@ def step_contact_forces(points, obstacles, p0, p1, pt, h, theta):
         dv = np.where(fac > 0, ob.damping, 0.0)
         dV = -(w * fbar * dv)[:, None, None] * nn
         vel = (p1[hit] - p0[hit]) / h
+        if v0 is not None:
+            vel = (vel - (1.0 - theta) * v0[hit]) / theta          # the end of the step's
         slip = vel - np.sum(vel * n, axis=1)[:, None] * n
         F = fn[:, None] * n
         M = np.zeros((len(hit), 3))
@@ -271,7 +278,7 @@ def step_contact_forces(points, obstacles, p0, p1, pt, h, theta):
             Ft, dFt = friction_force(fn, slip, ob.friction, ob.stiction_velocity)
             F = F + Ft
             M = np.cross(-r[hit][:, None] * n, Ft)            # applied at the surface, not the backbone
-            dV = dV + dFt @ (np.eye(3)[None] - nn)           # slip = (I - n n^T) v
+            dV = dV + dFt @ (np.eye(3)[None] - nn) / theta   # slip = (I - n n^T) v1; Newton's matrix has theta Dt
             # friction grows with the normal force: dFt/dp = -mu (slip/s) dfn/dp^T, dfn/dp = -w fac fbar'/theta n
             unit = Ft / np.maximum(fn, 1e-300)[:, None]       # -mu slip / s
             dF = dF - unit[:, :, None] * ((w * fac * dfbar / theta)[:, None] * n)[:, None, :]

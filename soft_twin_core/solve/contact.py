@@ -88,12 +88,23 @@ class MemberContact:
         world_point_jacobians(ws.m, ws.w, self.points.joint, self.points.x, g, J)
         return contact_forces(self.points, self.obstacles, g[:, :3, 3], J[:, :3, :] @ v)
 
-    def step_state(self, ws, p0, q1, qt, h, theta):
-        """:class:`ContactState` of a time step h from the points' positions
-        p0 to configuration q1, acting at the theta point qt
-        (:func:`engine.contact.step_contact_forces`)."""
+    def step_start(self, ws, q0, v0):
+        """(positions, velocities) (P, 3) of the contact points at a step's start."""
+        P = len(self.points)
+        g = np.empty((P, 4, 4))
+        J = np.empty((P, 6, len(v0)))
+        z = ws.zeros_v
+        passes.forward_pass(ws.m, ws.w, np.ascontiguousarray(q0, float), z, z, 0)
+        world_point_jacobians(ws.m, ws.w, self.points.joint, self.points.x, g, J)
+        return g[:, :3, 3].copy(), J[:, :3, :] @ v0
+
+    def step_state(self, ws, start, q1, qt, h, theta):
+        """:class:`ContactState` of a time step h from the points' ``start``
+        (:meth:`step_start`) to configuration q1, acting at the theta point
+        qt (:func:`engine.contact.step_contact_forces`)."""
+        p0, v0 = start
         p1 = self.positions(ws, q1)
-        return step_contact_forces(self.points, self.obstacles, p0, p1, self.positions(ws, qt), h, theta)
+        return step_contact_forces(self.points, self.obstacles, p0, p1, self.positions(ws, qt), h, theta, v0)
 
     def loads(self, st):
         """The contact forces of ``st`` as dead point loads (:func:`contact_loads`)."""

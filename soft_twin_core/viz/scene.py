@@ -20,6 +20,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from soft_twin_core.engine.joint_kinds import PRISMATIC, REVOLUTE
+from soft_twin_core.lie import rotation_with_z
 from soft_twin_core.robot.model import pose_from_dict
 from soft_twin_core.solve.outputs import member_samples
 
@@ -144,7 +145,7 @@ def obstacle_outline(ob, centre, extent):
         return solid_outline({"shape": "sphere", "radius": ob.radius}, _translation(ob.a))
     z = ob.b - ob.a if ob.kind == "capsule" else ob.b
     T = _translation(ob.a if ob.kind == "plane" else 0.5 * (ob.a + ob.b))
-    T[:3, :3] = _frame_with_z(z / np.linalg.norm(z))
+    T[:3, :3] = rotation_with_z(z / np.linalg.norm(z))
     if ob.kind == "capsule":
         parts = [solid_outline({"shape": "cylinder", "radius": ob.radius, "length": float(np.linalg.norm(z))}, T)]
         for end in (ob.a, ob.b):
@@ -166,14 +167,6 @@ def _translation(p):
     T = np.eye(4)
     T[:3, 3] = p
     return T
-
-
-def _frame_with_z(z):
-    """A rotation whose third column is the unit vector z."""
-    a = np.array([1.0, 0.0, 0.0]) if abs(z[0]) < 0.9 else np.array([0.0, 1.0, 0.0])
-    x = np.cross(a, z)
-    x /= np.linalg.norm(x)
-    return np.column_stack([x, np.cross(z, x), z])
 
 
 def solid_outline(visual, pose):

@@ -446,3 +446,49 @@ def test_the_example_robot_on_a_table_loads_with_its_obstacle():
     (table,) = mech.obstacles
     assert table.kind == "plane" and table.friction == 0.3 and mech.contact_spacing == 0.015
     assert load_scenario("tendon_arm_on_table").mech.obstacles[0].name == "table"
+
+
+def test_the_node_markers_draw_the_obstacles_and_an_arrow_per_contact():
+    """~/markers of a robot with obstacles: the plane as a thin square in
+    the plane, a sphere, a capsule (cylinder and two spheres); an arrow
+    per contact from its point along its force (the largest 5 cm); a state
+    with fewer contacts deletes the extra arrows."""
+    from types import SimpleNamespace
+    from std_msgs.msg import Header
+    from visualization_msgs.msg import Marker
+    from soft_twin import markers
+    from soft_twin_core.lie import rotation_with_z
+    from soft_twin_core.twin import Twin, TwinSettings
+    z = np.array([0.3, -0.2, 0.9]) / np.linalg.norm([0.3, -0.2, 0.9])
+    Rz = rotation_with_z(z)
+    np.testing.assert_allclose(Rz.T @ Rz, np.eye(3), atol=1e-12)
+    assert np.linalg.det(Rz) == pytest.approx(1.0) and np.allclose(Rz[:, 2], z)
+    d = _heavy_rod_dict()
+    d["obstacles"] += [{"name": "ball", "type": "sphere", "center": [0.2, 0.5, 0.0], "radius": 0.05},
+                       {"name": "post", "type": "capsule", "from": [0.0, 0.6, 0.0], "to": [0.0, 0.6, 0.2],
+                        "radius": 0.01}]
+    mech = from_robot_model(model_from_dict(d), d)
+    snap = Twin(mech, TwinSettings(mode="quasi_static")).outputs()
+    mk = markers.Markers()
+    out = mk(snap, SimpleNamespace(mech=mech), Header())
+    obs = [m for m in out.markers if m.ns == "obstacles"]
+    assert [m.type for m in obs] == [Marker.CUBE, Marker.SPHERE, Marker.SPHERE, Marker.SPHERE, Marker.CYLINDER]
+    table = obs[0]
+    assert table.scale.z == 0.001 and abs(table.pose.position.z - (-0.0035 - R_ROD - 0.0005)) < 1e-12
+    assert obs[4].scale.z == pytest.approx(0.2) and obs[4].pose.position.z == pytest.approx(0.1)
+    arrows = [m for m in out.markers if m.ns == "contacts"]
+    assert len(arrows) == len(snap.contacts) > 3
+    lengths = []
+    for a, p, f in zip(arrows, snap.contacts.p, snap.contacts.force):
+        start = np.array([a.points[0].x, a.points[0].y, a.points[0].z])
+        d_ = np.array([a.points[1].x, a.points[1].y, a.points[1].z]) - start
+        np.testing.assert_allclose(start, p, atol=1e-12)
+        assert np.cross(d_, f) == pytest.approx(np.zeros(3), abs=1e-12) and d_ @ f > 0
+        lengths.append(np.linalg.norm(d_))
+    assert max(lengths) == pytest.approx(0.05)
+    fewer = SimpleNamespace(**{k: getattr(snap, k) for k in ("backbones", "points_per_section", "frames",
+                                                               "main_member", "tip_pose")})
+    fewer.contacts = None
+    out2 = mk(fewer, SimpleNamespace(mech=mech), Header())
+    gone = [m.id for m in out2.markers if m.ns == "contacts" and m.action == Marker.DELETE]
+    assert gone == list(range(len(arrows)))
