@@ -80,6 +80,10 @@ def obstacle_markers(obstacles, centre, extent, header):
         out.append(m)
     for ob in obstacles:
         T = np.eye(4)
+        if ob.kind == "box":
+            T[:3, :3], T[:3, 3] = ob.rotation, ob.a
+            add(Marker.CUBE, T, *(2 * ob.half_size))
+            continue
         if ob.kind == "plane":
             T[:3, :3] = rotation_with_z(ob.b)
             c = np.asarray(centre, float)

@@ -43,16 +43,18 @@ from dataclasses import dataclass
 
 import numpy as np
 
-PLANE, SPHERE, CAPSULE = 0, 1, 2
-OBSTACLE_KINDS = {"plane": PLANE, "sphere": SPHERE, "capsule": CAPSULE}
+PLANE, SPHERE, CAPSULE, BOX = 0, 1, 2, 3
+OBSTACLE_KINDS = {"plane": PLANE, "sphere": SPHERE, "capsule": CAPSULE, "box": BOX}
 
 
 @dataclass(frozen=True, eq=False)
 class Obstacle:
-    """A rigid obstacle. ``kind``: "plane", "sphere" or "capsule";
-    ``a``: a point of the plane, the sphere's centre or the capsule's first
-    end [m, world]; ``b``: the plane's outward normal (unit) or the
-    capsule's second end; ``radius`` [m] (sphere, capsule); ``stiffness``
+    """A rigid obstacle. ``kind``: "plane", "sphere", "capsule" or "box";
+    ``a``: a point of the plane, the sphere's centre, the capsule's first
+    end or the box's centre [m, world]; ``b``: the plane's outward normal
+    (unit) or the capsule's second end; ``radius`` [m] (sphere, capsule);
+    ``rotation`` (3x3, world <- box axes) and ``half_size`` (3,) [m] of a
+    box; ``stiffness``
     [N/m^2] per unit length of member and metre of penetration (None: the
     member's Young's modulus); ``smoothing`` [m] the depth eps over which
     the force law turns on (None: a tenth of the member's radius);
@@ -70,6 +72,8 @@ class Obstacle:
     damping: float = 0.0
     friction: float = 0.0
     stiction_velocity: float = 1e-4
+    rotation: np.ndarray = None
+    half_size: np.ndarray = None
 
 
 @dataclass(frozen=True, eq=False)
@@ -152,6 +156,8 @@ def signed_distance(ob, p):
     if ob.kind == "plane":
         n = np.broadcast_to(ob.b, (P, 3)).copy()
         return (p - ob.a) @ ob.b, n, np.zeros((P, 3, 3))
+    if ob.kind == "box":
+        return _box_distance(ob, p)
     if ob.kind == "sphere":
         c = np.broadcast_to(ob.a, (P, 3))
         axis = None
@@ -171,6 +177,32 @@ def signed_distance(ob, p):
     if axis is not None:
         proj = proj - axis[:, :, None] * axis[:, None, :]
     return dist - ob.radius, n, proj / dist_safe[:, None, None]
+
+
+def _box_distance(ob, p):
+    """Signed distance of points from a box, its gradient and Hessian: in
+    the box's axes, with e = |p| - h per axis, outside ``|max(e, 0)|`` (to
+    a face, an edge or a corner: Hessian ``(A - n n^T) / d`` with A the
+    projector on the axes where e > 0), inside ``max(e)`` (to the nearest
+    face: Hessian 0)."""
+    R, h = ob.rotation, ob.half_size
+    loc = (p - ob.a) @ R
+    e = np.abs(loc) - h
+    sgn = np.where(loc < 0, -1.0, 1.0)
+    out_e = np.maximum(e, 0.0)
+    d_out = np.linalg.norm(out_e, axis=1)
+    outside = d_out > 0
+    k = np.argmax(e, axis=1)
+    P = p.shape[0]
+    n_loc = np.zeros((P, 3))
+    n_loc[np.arange(P), k] = sgn[np.arange(P), k]                 # inside: the nearest face's normal
+    safe = np.where(outside, d_out, 1.0)
+    n_loc = np.where(outside[:, None], sgn * out_e / safe[:, None], n_loc)
+    d = np.where(outside, d_out, e[np.arange(P), k])
+    active = (e > 0).astype(float)
+    H_loc = (active[:, :, None] * np.eye(3)[None] - n_loc[:, :, None] * n_loc[:, None, :]) / safe[:, None, None]
+    H_loc = np.where(outside[:, None, None], H_loc, 0.0)
+    return d, n_loc @ R.T, R[None] @ H_loc @ R.T[None]
 
 
 @dataclass

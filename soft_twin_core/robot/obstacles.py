@@ -5,6 +5,7 @@ the ``contact`` settings, in either schema), checked at the door::
       - {name: table, type: plane, point: [0, 0, -0.1], normal: [0, 0, 1]}
       - {name: ball, type: sphere, center: [0.3, 0, 0], radius: 0.05}
       - {name: post, type: capsule, from: [0.2, -0.1, 0], to: [0.2, 0.1, 0], radius: 0.01}
+      - {name: block, type: box, center: [0.3, 0, -0.1], size: [0.1, 0.2, 0.05], rpy: [0, 0, 0.3]}
       # each may add: stiffness [N/m^2] (default: the member's Young's modulus),
       # smoothing [m] (default: a tenth of the member's radius), damping [s/m] (Hunt-Crossley
       # alpha, default 0), friction (Coulomb mu, default 0), stiction_velocity [m/s]
@@ -19,9 +20,10 @@ The contact law: :mod:`soft_twin_core.engine.contact`.
 import numpy as np
 
 from soft_twin_core.engine.contact import OBSTACLE_KINDS, ContactPoints, Obstacle, sample_path
-from soft_twin_core.robot.model import ModelError, _check_keys, _num, _vec
+from soft_twin_core.robot.model import ModelError, _check_keys, _num, _vec, pose_from_dict
 
-_FIELDS = {"plane": ("point", "normal"), "sphere": ("center", "radius"), "capsule": ("from", "to", "radius")}
+_FIELDS = {"plane": ("point", "normal"), "sphere": ("center", "radius"), "capsule": ("from", "to", "radius"),
+           "box": ("center", "size", "rpy", "quaternion")}
 _COMMON = {"name", "type", "stiffness", "smoothing", "damping", "friction", "stiction_velocity"}
 
 
@@ -29,7 +31,7 @@ def obstacle_from_dict(d, where):
     """An :class:`Obstacle` of one ``obstacles`` entry; ModelError naming the
     bad field (unknown type or key, non-finite or negative sizes, a zero
     normal, a capsule of zero length)."""
-    _check_keys(d, _COMMON | {"point", "normal", "center", "radius", "from", "to"}, where)
+    _check_keys(d, _COMMON | {"point", "normal", "center", "radius", "from", "to", "size", "rpy", "quaternion"}, where)
     kind = d.get("type")
     if kind not in OBSTACLE_KINDS:
         raise ModelError(f"{where}.type: expected one of {sorted(OBSTACLE_KINDS)}, got {kind!r}")
@@ -49,6 +51,13 @@ def obstacle_from_dict(d, where):
         if not nn > 0:
             raise ModelError(f"{where}.normal: must not be zero")
         return Obstacle(name, kind, _vec(d, "point", 3, where), normal / nn, **common)
+    if kind == "box":
+        size = _vec(d, "size", 3, where)
+        if not np.all(size > 0):
+            raise ModelError(f"{where}.size: the box's edge lengths must be > 0 m, got {size.tolist()}")
+        T = pose_from_dict({k: d[k] for k in ("rpy", "quaternion") if k in d} or None, where)
+        return Obstacle(name, kind, _vec(d, "center", 3, where), rotation=T[:3, :3].copy(), half_size=0.5 * size,
+                        **common)
     radius = _num(d, "radius", where, positive=True)
     if kind == "sphere":
         return Obstacle(name, kind, _vec(d, "center", 3, where), None, radius, **common)

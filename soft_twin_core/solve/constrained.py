@@ -824,7 +824,7 @@ class MechanismSimulator:
             contacts = None
             if self.contact:              # the step's mean contact forces (energy-consistent)
                 if it == 1:
-                    start = self.contact.step_start(self.ws, q0, v0)
+                    start = self.contact.motion(self.ws, q0, v0)
                 contacts = self.contact.step_state(self.ws, start, q1, qt, h, th)
             if contacts is not None:
                 ld = concat_loads(ld, self.contact.loads(contacts))

@@ -75,32 +75,26 @@ class MemberContact:
         point_poses(ws.m, ws.w, self.points.joint, self.points.x, g)
         return g[:, :3, 3]
 
-    def state(self, ws, q, v=None):
-        """:class:`ContactState` at q and joint velocities v (None: at rest;
-        the points' velocities matter only to damped obstacles)."""
-        if v is None or not any(ob.damping for ob in self.obstacles):
-            return contact_forces(self.points, self.obstacles, self.positions(ws, q))
+    def motion(self, ws, q, v):
+        """(positions, velocities) (P, 3) of the contact points at (q, v)."""
         P = len(self.points)
         g = np.empty((P, 4, 4))
         J = np.empty((P, 6, len(v)))
         z = ws.zeros_v
         passes.forward_pass(ws.m, ws.w, np.ascontiguousarray(q, float), z, z, 0)
         world_point_jacobians(ws.m, ws.w, self.points.joint, self.points.x, g, J)
-        return contact_forces(self.points, self.obstacles, g[:, :3, 3], J[:, :3, :] @ v)
+        return g[:, :3, 3].copy(), J[:, :3, :] @ v
 
-    def step_start(self, ws, q0, v0):
-        """(positions, velocities) (P, 3) of the contact points at a step's start."""
-        P = len(self.points)
-        g = np.empty((P, 4, 4))
-        J = np.empty((P, 6, len(v0)))
-        z = ws.zeros_v
-        passes.forward_pass(ws.m, ws.w, np.ascontiguousarray(q0, float), z, z, 0)
-        world_point_jacobians(ws.m, ws.w, self.points.joint, self.points.x, g, J)
-        return g[:, :3, 3].copy(), J[:, :3, :] @ v0
+    def state(self, ws, q, v=None):
+        """:class:`ContactState` at q and joint velocities v (None: at rest;
+        the points' velocities matter only to damped obstacles)."""
+        if v is None or not any(ob.damping for ob in self.obstacles):
+            return contact_forces(self.points, self.obstacles, self.positions(ws, q))
+        return contact_forces(self.points, self.obstacles, *self.motion(ws, q, v))
 
     def step_state(self, ws, start, q1, qt, h, theta):
         """:class:`ContactState` of a time step h from the points' ``start``
-        (:meth:`step_start`) to configuration q1, acting at the theta point
+        (:meth:`motion` at the step's start) to configuration q1, acting at the theta point
         qt (:func:`engine.contact.step_contact_forces`)."""
         p0, v0 = start
         p1 = self.positions(ws, q1)

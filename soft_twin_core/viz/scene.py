@@ -143,6 +143,10 @@ def obstacle_outline(ob, centre, extent):
     nan = np.full((1, 3), np.nan)
     if ob.kind == "sphere":
         return solid_outline({"shape": "sphere", "radius": ob.radius}, _translation(ob.a))
+    if ob.kind == "box":
+        T = _translation(ob.a)
+        T[:3, :3] = ob.rotation
+        return solid_outline({"shape": "box", "size": (2 * ob.half_size).tolist()}, T)
     z = ob.b - ob.a if ob.kind == "capsule" else ob.b
     T = _translation(ob.a if ob.kind == "plane" else 0.5 * (ob.a + ob.b))
     T[:3, :3] = rotation_with_z(z / np.linalg.norm(z))

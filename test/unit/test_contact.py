@@ -59,20 +59,25 @@ def test_signed_distances_their_gradient_and_hessian(k):
     p = RNG.uniform(-0.3, 0.4, (12, 3))
     d, n, H = signed_distance(ob, p)
     np.testing.assert_allclose(d, _brute_distance(ob, p), atol=1e-9)
-    h = 1e-6
+    _check_derivatives(ob, p, n, H, 1e-6, 1e-7, 1e-5)
+
+
+def _check_derivatives(ob, p, n, H, h, atol_n, atol_H):
+    """The normal and the Hessian of ob's distance at p against central differences of step h."""
     for a in range(3):
         e = np.zeros(3)
         e[a] = h
         dp, n_p, _ = signed_distance(ob, p + e)
         dm, n_m, _ = signed_distance(ob, p - e)
-        np.testing.assert_allclose(n[:, a], (dp - dm) / (2 * h), atol=1e-7)
-        np.testing.assert_allclose(H[:, :, a], (n_p - n_m) / (2 * h), atol=1e-5)
+        np.testing.assert_allclose(n[:, a], (dp - dm) / (2 * h), atol=atol_n)
+        np.testing.assert_allclose(H[:, :, a], (n_p - n_m) / (2 * h), atol=atol_H)
 
 
 def test_contact_forces_and_their_derivative():
     """F = w f(r - d) grad d on every pressed point, none elsewhere; dF/dp
     against central differences."""
-    obs = _obstacles()
+    obs = _obstacles() + list(obstacles_from_list([{"type": "box", "center": [0.0, 0.05, 0.1], "size": [0.3, 0.2, 0.1],
+                                                    "rpy": [0.2, 0.0, 0.4]}]))
     P = 40
     pts = ContactPoints(np.zeros(P, np.int64), np.zeros(P), RNG.uniform(0.001, 0.003, P),
                         np.full(P, 0.01), np.full(P, 2e6), ("m",) * P, np.zeros(P))
@@ -434,6 +439,11 @@ def test_figures_outline_the_obstacles_and_mark_the_contacts():
     Q_ = Q_[np.all(np.isfinite(Q_), axis=1)]
     d, _, _ = signed_distance(cap, Q_)
     np.testing.assert_allclose(d, 0.0, atol=1e-12)
+    box = obstacles_from_list([{"type": "box", "center": [0.1, 0.2, 0.0], "size": [0.2, 0.1, 0.04],
+                                "rpy": [0.1, 0.2, 0.3]}])[0]
+    Q_ = scene.obstacle_outline(box, np.zeros(3), 1.0)
+    Q_ = Q_[np.all(np.isfinite(Q_), axis=1)]
+    np.testing.assert_allclose(signed_distance(box, Q_)[0], 0.0, atol=1e-12)
     fig = plots.shapes_figure([snap], "heavy rod")
     assert any(ln.get_linestyle() == "--" for ln in fig.axes[0].lines)
     plots._plt().close(fig)
@@ -466,13 +476,16 @@ def test_the_node_markers_draw_the_obstacles_and_an_arrow_per_contact():
     d = _heavy_rod_dict()
     d["obstacles"] += [{"name": "ball", "type": "sphere", "center": [0.2, 0.5, 0.0], "radius": 0.05},
                        {"name": "post", "type": "capsule", "from": [0.0, 0.6, 0.0], "to": [0.0, 0.6, 0.2],
-                        "radius": 0.01}]
+                        "radius": 0.01},
+                       {"name": "block", "type": "box", "center": [0.5, 0.5, 0.0], "size": [0.1, 0.2, 0.3]}]
     mech = from_robot_model(model_from_dict(d), d)
     snap = Twin(mech, TwinSettings(mode="quasi_static")).outputs()
     mk = markers.Markers()
     out = mk(snap, SimpleNamespace(mech=mech), Header())
     obs = [m for m in out.markers if m.ns == "obstacles"]
-    assert [m.type for m in obs] == [Marker.CUBE, Marker.SPHERE, Marker.SPHERE, Marker.SPHERE, Marker.CYLINDER]
+    assert [m.type for m in obs] == [Marker.CUBE, Marker.SPHERE, Marker.SPHERE, Marker.SPHERE, Marker.CYLINDER,
+                                     Marker.CUBE]
+    assert (obs[5].scale.x, obs[5].scale.y, obs[5].scale.z) == pytest.approx((0.1, 0.2, 0.3))
     table = obs[0]
     assert table.scale.z == 0.001 and abs(table.pose.position.z - (-0.0035 - R_ROD - 0.0005)) < 1e-12
     assert obs[4].scale.z == pytest.approx(0.2) and obs[4].pose.position.z == pytest.approx(0.1)
@@ -492,3 +505,24 @@ def test_the_node_markers_draw_the_obstacles_and_an_arrow_per_contact():
     out2 = mk(fewer, SimpleNamespace(mech=mech), Header())
     gone = [m.id for m in out2.markers if m.ns == "contacts" and m.action == Marker.DELETE]
     assert gone == list(range(len(arrows)))
+
+
+def test_a_box_its_distance_gradient_and_hessian():
+    """Box obstacles: the distance by definition (outside: to the closest
+    point, the point clamped to the box; inside: minus the distance to the
+    nearest face), its gradient and Hessian against central differences
+    (faces, edges, corners, inside), the robot-file entry checked."""
+    R = obstacles_from_list([{"type": "box", "center": [0.1, -0.2, 0.05], "size": [0.2, 0.1, 0.3],
+                              "rpy": [0.3, -0.2, 0.7]}])[0]
+    assert R.kind == "box" and np.allclose(R.half_size, [0.1, 0.05, 0.15])
+    p = np.vstack([RNG.uniform(-0.4, 0.4, (60, 3)), RNG.uniform(-0.04, 0.04, (6, 3))]) + R.a
+    d, n, H = signed_distance(R, p)
+    loc = (p - R.a) @ R.rotation
+    clamped = np.clip(loc, -R.half_size, R.half_size)
+    inside = np.all(np.abs(loc) <= R.half_size, axis=1)
+    ref = np.where(inside, -np.min(R.half_size - np.abs(loc), axis=1), np.linalg.norm(loc - clamped, axis=1))
+    np.testing.assert_allclose(d, ref, atol=1e-14)
+    assert inside.sum() >= 2 and (~inside).sum() >= 20
+    _check_derivatives(R, p, n, H, 1e-7, 1e-6, 1e-4 * max(1.0, np.abs(H).max()))
+    with pytest.raises(ModelError, match=r"robot\.obstacles\[0\]\.size"):
+        obstacles_from_list([{"type": "box", "center": [0, 0, 0], "size": [0.1, 0.0, 0.1]}])
