@@ -14,6 +14,7 @@ from soft_twin_core.robot.mechanism import from_robot_model, mechanism_from_dict
 from soft_twin_core.robot.model import model_from_dict
 from soft_twin_core.robot.obstacles import obstacles_from_list
 from soft_twin_core.solve.constrained import MechanismSimulator, _Equilibrium, make_inputs, solve_equilibrium
+from soft_twin_core.solve.contact import mechanism_contact_points
 
 RNG = np.random.default_rng(7)
 
@@ -526,3 +527,43 @@ def test_a_box_its_distance_gradient_and_hessian():
     _check_derivatives(R, p, n, H, 1e-7, 1e-6, 1e-4 * max(1.0, np.abs(H).max()))
     with pytest.raises(ModelError, match=r"robot\.obstacles\[0\]\.size"):
         obstacles_from_list([{"type": "box", "center": [0, 0, 0], "size": [0.1, 0.0, 0.1]}])
+
+
+def test_a_heavy_rod_lifted_off_a_plane_by_a_pin_matches_the_classic_solution():
+    """The classic heavy rod lifted off a rigid plane (issue 27): one end
+    held by a pin at height h (zero end moment), the rest lying on the
+    plane. Small deflections: lifted length a = (24 EI h / q)^(1/4), the
+    pin carries q a / 2, a concentrated reaction q a / 2 at the lift-off
+    point, no pressure in the lifted span (EI w'''' = -q on [0, a], w(0) =
+    0, w''(0) = 0, w(a) = -h, w'(a) = w''(a) = 0). The penalty spreads the
+    concentrated reaction over the foundation length (4 EI / k)^(1/4):
+    its resultant (the contact force in excess of the lying weight) sits
+    at a within 1 % from k = E on, converging as k grows (stiffness
+    continuation: each solve starts from the softer one's); the pin's
+    force within 0.2 % at every k; nothing touches before 0.9 a."""
+    a, L = 0.3, 0.6
+    h = Q * a ** 4 / (24 * EI)                  # 10.6 mm: slopes of 3.5 %
+    d = {"name": "pinned", "gravity": [0, 0, -G],
+         "bodies": [{"name": "rod", "type": "member", "parent": "base",
+                     "joint": {"name": "pin", "type": "revolute", "axis": [0, 1, 0], "control": "passive"},
+                     "segments": [{"name": "s", "length": L, "sections": 60,
+                                   "cross_section": {"shape": "solid_circle", "radius": R_ROD},
+                                   "material": {"youngs_modulus": E, "poisson_ratio": 0.5, "density": RHO},
+                                   "free_modes": ["bending_y"]}]}],
+         "obstacles": [{"name": "table", "type": "plane", "point": [0, 0, -h - R_ROD], "normal": [0, 0, 1]}],
+         "contact": {"spacing": 0.002}}
+    q, errors = None, []
+    for k in (E / 10, E, 10 * E, 100 * E):
+        d["obstacles"][0]["stiffness"] = k
+        mech = mechanism_from_dict(d)
+        if q is None:                          # tilted down so that its far end presses on the table
+            q = mech.tree.q0.copy()
+            q[mech.tree.idx_q[mech.tree.joint_index("pin")]] = np.arcsin(1.05 * h / L)
+        eq = solve_equilibrium(mech, q_init=q)
+        q, c = eq.q, eq.contacts
+        assert eq.stable and len(c) > 100
+        assert Q * L - c.force[:, 2].sum() == pytest.approx(Q * a / 2, rel=2e-3)        # the pin's share
+        excess = c.force[:, 2] - Q * mechanism_contact_points(mech).weight[c.point]
+        errors.append(abs(np.sum(c.p[:, 0] * excess) / np.sum(excess) / a - 1))
+        assert c.p[:, 0].min() > 0.9 * a
+    assert errors[1] < 0.01 and errors[1] > errors[2] > errors[3]
