@@ -39,7 +39,7 @@ world at load): plane (a point and its outward normal), sphere (centre,
 radius), capsule (segment end points, radius).
 """
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 
@@ -93,6 +93,12 @@ class ContactPoints:
 
     def __len__(self):
         return len(self.joint)
+
+
+def moved(ob, delta):
+    """The obstacle translated by delta (3,) [m] (a scenario's trajectory)."""
+    delta = np.asarray(delta, dtype=float)
+    return replace(ob, a=ob.a + delta, b=ob.b + delta if ob.kind == "capsule" else ob.b)
 
 
 def sample_path(path, spacing):
@@ -262,7 +268,7 @@ def contact_forces(points, obstacles, p, v=None):
     return _stacked(idx, obs, ps, ns, gaps, Fs, dFs, dVs)
 
 
-def step_contact_forces(points, obstacles, p0, p1, pt, h, theta, v0=None):
+def step_contact_forces(points, obstacles, p0, p1, pt, h, theta, v0=None, obstacles0=None):
     """:class:`ContactState` of a time step from positions p0 to p1 (P, 3),
     the forces acting at pt (the step's theta point): the normal force is
     the :func:`discrete_gradient` of the penetrations at the two ends, along
@@ -273,11 +279,15 @@ def step_contact_forces(points, obstacles, p0, p1, pt, h, theta, v0=None):
     - (1 - theta) v0) / theta`` (v0: the points' velocities at the step's
     start; None: at rest), as implicit Euler would: regularised friction is
     a very stiff damper (mu F_n / v_s), which the midpoint rule would let
-    ring from step to step instead of damping it."""
+    ring from step to step instead of damping it. ``obstacles0``: where
+    the obstacles were at the step's start (moving obstacles: the
+    penetration at the start is against them, the slip relative to their
+    translation over the step; None: they do not move)."""
     idx, obs, ps, ns, gaps, Fs, dFs, dVs, Ms, Vs = [], [], [], [], [], [], [], [], [], []
     r = points.radius
     for o, ob in enumerate(obstacles):
-        d0, _, _ = signed_distance(ob, p0)
+        ob0 = ob if obstacles0 is None else obstacles0[o]
+        d0, _, _ = signed_distance(ob0, p0)
         d1, _, _ = signed_distance(ob, p1)
         hit = np.flatnonzero((r - d0 > 0) | (r - d1 > 0))
         if not len(hit):
@@ -303,6 +313,8 @@ def step_contact_forces(points, obstacles, p0, p1, pt, h, theta, v0=None):
         vel = (p1[hit] - p0[hit]) / h
         if v0 is not None:
             vel = (vel - (1.0 - theta) * v0[hit]) / theta          # the end of the step's
+        if ob0 is not ob:
+            vel = vel - (ob.a - ob0.a) / h                        # relative to the obstacle's surface
         slip = vel - np.sum(vel * n, axis=1)[:, None] * n
         F = fn[:, None] * n
         M = np.zeros((len(hit), 3))

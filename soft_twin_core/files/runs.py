@@ -111,12 +111,13 @@ def run_mechanism_statics(sc, t=0.0, points_per_section=1):
     q, iterations = None, 0
     for k in range(1, sc.load_steps + 1):     # load_steps increments, each warm-started
         eq = solve_equilibrium(sc.mech, q_init=q, targets=_targets(sc, t), inputs=_inputs(sc, t, k / sc.load_steps),
+                               obstacles=sc.obstacles_at(t),
                                check_stability=k == sc.load_steps)      # the final equilibrium's is the one to judge
         q, iterations = eq.q, iterations + eq.iterations
     out = state_outputs(sc.mech, eq.q, eq.lam, eq.inputs, points_per_section=points_per_section,
                         contacts=eq.contacts)
     d = _outputs_dict(sc, out)
-    d.update(contacts=contacts_dict(sc.mech, eq.contacts))
+    d.update(contacts=contacts_dict(sc.mech, eq.contacts, sc.obstacles_at(t)))
     tree = sc.mech.tree
     d.update(section_names=[tree.joints[i].name for i in tree.soft_joints],
              strains=section_strains(sc.mech, eq.q).tolist(), n_sections=len(tree.soft_joints))
@@ -307,7 +308,7 @@ def run_mechanism_dynamics(sc, duration, dt, theta=0.5, progress=None, record_ev
     check_output_size(n_steps, record_every, backbone_every,
                       sum(len(m.joints) for m in mech.members) * points_per_section + len(mech.members))
     time_of = step_times(dt)
-    sim = MechanismSimulator(mech, dt, theta)
+    sim = MechanismSimulator(mech, dt, theta, obstacles=sc.obstacles_at(0.0))
     step_inputs = StepInputs(sc, theta)
     rec = _Recorder(sc, sim, backbone_every, points_per_section, step_inputs)
     out = rec.out
@@ -319,8 +320,9 @@ def run_mechanism_dynamics(sc, duration, dt, theta=0.5, progress=None, record_ev
             out["error"] = "the initial acceleration is not finite (inputs too large?); nothing simulated"
             return out
         rec.record(0, 0.0, 0)
-        probe = MechanismSimulator(mech, dt, theta, q=sim.q, v=sim.v)
-        probe.step(inputs=step_inputs(0.0, time_of(1)), targets=_targets(sc, time_of(1)))
+        probe = MechanismSimulator(mech, dt, theta, q=sim.q, v=sim.v, obstacles=sc.obstacles_at(0.0))
+        probe.step(inputs=step_inputs(0.0, time_of(1)), targets=_targets(sc, time_of(1)),
+                   obstacles=sc.obstacles_at(time_of(1)))
     except StepError:
         pass                 # the run's own first step reports it
     except (ValueError, ArithmeticError, np.linalg.LinAlgError) as e:
@@ -347,7 +349,7 @@ def _integrate(rec, step_inputs, n_steps, record_every, progress, progress_every
         ta, tb = time_of(k - 1), time_of(k)
         good = sim.q.copy(), sim.v.copy(), sim.a.copy(), sim.lam.copy()
         try:
-            sim.step(inputs=step_inputs(ta, tb), targets=_targets(sc, tb))
+            sim.step(inputs=step_inputs(ta, tb), targets=_targets(sc, tb), obstacles=sc.obstacles_at(tb))
             sim.t = tb
             if not (np.all(np.isfinite(sim.q)) and np.all(np.isfinite(sim.v))):
                 raise StepError("the state became non-finite")

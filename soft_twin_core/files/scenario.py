@@ -29,6 +29,10 @@ Schema (YAML; SI units, angles in rad unless named ``_deg``)::
       - {s: tip, force: [0, 1, 0], profile: [[0, 0], [1, 1]]}               # any load: scale vs time
     load_steps: 1                      # statics: apply the loads and inputs in this many increments
     initial_strains: null              # dynamics: the start, (n_soft_sections x 6) in tree order
+    obstacles:                         # more obstacles (the robot file's schema, docs/robot-files.md),
+      - {name: conveyor, type: plane, point: [0, 0, -0.05], normal: [0, 0, 1], friction: 0.5,
+         trajectory: [[0, 0, 0, 0], [2, 0.2, 0, 0]]}   # [t, dx, dy, dz]: a translation [m], piecewise
+                                       # linear in t [s], held outside its span
     reference:                         # optional: values to plot a --sweep-angle against
       {label: text, angle_deg: [0, 45], tip_position: [[x, y, z], [x, y, z]]}   # m, world
 
@@ -42,6 +46,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from soft_twin_core.engine.contact import moved
 from soft_twin_core.engine.loads import DistributedLoad, Loads, PointLoad
 from soft_twin_core.errors import ModelError, ScenarioError
 from soft_twin_core.files.runs import run_mechanism_dynamics, run_mechanism_statics
@@ -51,7 +56,9 @@ from soft_twin_core.robot.mechanism import (check_joint_position, from_robot_mod
 from soft_twin_core.robot.model import (find_file, model_from_dict, parse_number, parse_numbers,
                                         pose_from_dict, read_yaml_file, robot_mapping,
                                         robot_not_scenario_hint)
+from soft_twin_core.robot.obstacles import obstacles_from_list
 from soft_twin_core.solve.constrained import FrameLoad
+from soft_twin_core.solve.contact import mechanism_contact_points
 from soft_twin_core.solve.outputs import q_from_section_strains
 
 
@@ -78,6 +85,21 @@ class Scenario:
     initial_q: object
     source: str
     reference: object = None       # reference values of a sweep (issue 12; see _reference)
+    obstacles: tuple = ()          # the scenario's own: (Obstacle, (times, displacements) or None)
+
+    def obstacles_at(self, t):
+        """Every obstacle (the robot file's, then the scenario's, moved along
+        their trajectories) at time t [s]; None when the scenario adds none
+        (the simulator keeps the robot file's)."""
+        if not self.obstacles:
+            return None
+        out = list(self.mech.obstacles)
+        for ob, traj in self.obstacles:
+            if traj is not None:
+                ts, xs = traj
+                ob = moved(ob, [np.interp(t, ts, xs[:, k]) for k in range(3)])
+            out.append(ob)
+        return tuple(out)
 
     @property
     def initial_strains(self):
@@ -173,7 +195,7 @@ def load_scenario(path, sections=None, angle_deg=None):
 
 _FIELDS = {"robot", "sections", "actuation", "actuation_profile", "joint_positions", "joint_trajectories",
            "joint_efforts", "joint_effort_profile", "base_trajectory", "gravity", "loads", "load_steps",
-           "initial_strains", "description", "reference"}
+           "initial_strains", "description", "reference", "obstacles"}
 
 
 def _robot(robot, base_dir, sections):
@@ -241,7 +263,41 @@ def scenario_from_dict(d, base_dir=".", sections=None, angle_deg=None, source="<
         except ModelError as e:
             raise Err(f"scenario.initial_strains: {e}") from None
     return Scenario(mech, model, u, aprof, positions, trajectories, efforts, eprof, base, loads, grav, steps,
-                    init, source, _reference(d.get("reference")))
+                    init, source, _reference(d.get("reference")), _obstacles(d.get("obstacles"), mech))
+
+
+def _obstacles(items, mech):
+    """The scenario's obstacles with their trajectories (None: fixed)."""
+    if items is None:
+        return ()
+    if not isinstance(items, list):
+        raise ScenarioError(f"scenario.obstacles: expected a list of obstacles, got {items!r}")
+    trajs, plain = [], []
+    for i, it in enumerate(items):
+        it = dict(it) if isinstance(it, dict) else it
+        tr = it.pop("trajectory", None) if isinstance(it, dict) else None
+        if tr is not None:
+            a = parse_numbers(tr, (None, 4), f"scenario.obstacles[{i}].trajectory", ScenarioError)
+            if len(a) < 1 or np.any(np.diff(a[:, 0]) <= 0):
+                raise ScenarioError(f"scenario.obstacles[{i}].trajectory: expected [t, dx, dy, dz] rows with times "
+                                    f"increasing strictly, got {tr!r}")
+            tr = (a[:, 0], a[:, 1:])
+        trajs.append(tr)
+        plain.append(it)
+    try:
+        obs = obstacles_from_list(plain, "scenario.obstacles")
+    except ModelError as e:
+        raise ScenarioError(str(e)) from None
+    names = [o.name for o in mech.obstacles]
+    clash = sorted({o.name for o in obs} & set(names))
+    if clash:
+        raise ScenarioError(f"scenario.obstacles: {clash} already name obstacles of the robot file")
+    try:
+        mech_points = mechanism_contact_points(mech)       # contact needs every member's cross-section
+    except ModelError as e:
+        raise ScenarioError(f"scenario.obstacles: {e}") from None
+    del mech_points
+    return tuple(zip(obs, trajs))
 
 
 def _mapping(d, key):
@@ -433,6 +489,10 @@ def input_profiles(sc):
         if prof is not None:
             ends.append(float(prof[0][-1]))
             names.append(f"loads[{k}].profile")
+    for ob, traj in sc.obstacles:
+        if traj is not None:
+            ends.append(float(traj[0][-1]))
+            names.append(f"obstacles.{ob.name}.trajectory")
     return (max(ends) if ends else 0.0), names
 
 

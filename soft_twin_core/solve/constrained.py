@@ -32,6 +32,7 @@ import numpy as np
 
 from soft_twin_core._blas import one_blas_thread
 from soft_twin_core.engine.algorithms import crba, forward_kinematics, point_poses
+from soft_twin_core.engine.contact import moved
 from soft_twin_core.engine.forces import (actuation_tangent_pass, actuator_arrays, check_member_loads,
                                           concat_loads, gravity_of, load_arrays, point_moment_arrays)
 from soft_twin_core.engine.integrators import ThetaIntegrator, integrate_pass, residual_pass
@@ -706,6 +707,7 @@ class MechanismSimulator:
         self._held_of = None              # the Inputs _held was made of
         self.Ls = _length_scale(mech)
         self.contact = MemberContact(mech, obstacles)      # the robot file's obstacles by default
+        self._obstacles0 = None           # moving obstacles: where they were at the step's start
         self.contacts = None              # the ContactState of the last step (at its theta point)
         # no multipliers (a rod, a tree of soft members and effort-controlled or passive joints): the
         # engine's compiled O(n) integrator, the rod's (integrators.ThetaIntegrator)
@@ -723,11 +725,13 @@ class MechanismSimulator:
         return ti.factorisations if ti is not None else self._kkt_factorisations
 
     def step(self, actuation=None, efforts=None, positions=None, loads=None, point_loads=(), targets=None,
-             n=1, inputs=None):
+             n=1, inputs=None, obstacles=None):
         """Advance n steps with these inputs held (positions: the commands the
         position-controlled joints reach at the end of each step; targets:
-        world poses of constraints to the world, default their own). Raises
-        StepError (state unchanged) if a step fails."""
+        world poses of constraints to the world, default their own;
+        ``obstacles``: where the obstacles are at the end of the step, for
+        obstacles that move: a simulator made with obstacles, the same
+        number and kinds). Raises StepError (state unchanged) if a step fails."""
         inp = inputs if inputs is not None else make_inputs(self.mech, actuation, efforts, positions, None,
                                                             loads, point_loads)
         self.inputs = inp
@@ -737,10 +741,24 @@ class MechanismSimulator:
         with one_blas_thread():
             for _ in range(int(n)):
                 if self.contact:
+                    self._move_obstacles(obstacles)
                     self._contact_step(inp, targets, self.dt, 0)
                 else:
                     self._step(inp, targets)
         return self
+
+    def _move_obstacles(self, obstacles):
+        """The obstacles at the end of the next step (None: where they are)."""
+        self._obstacles0 = None
+        if obstacles is None:
+            return
+        obstacles = tuple(obstacles)
+        if len(obstacles) != len(self.contact.obstacles) or any(
+                a.kind != b.kind for a, b in zip(obstacles, self.contact.obstacles)):
+            raise ValueError("obstacles: a moving obstacle keeps its kind, and the set its size "
+                             f"({len(self.contact.obstacles)} obstacles)")
+        self._obstacles0 = self.contact.obstacles
+        self.contact = self.contact.with_obstacles(obstacles)
 
     def _contact_step(self, inp, targets, h, level):
         """One step of h with contacts: if Newton fails (a contact made or
@@ -751,11 +769,18 @@ class MechanismSimulator:
             if level >= self.max_substep_levels:
                 raise
         state = (self.q.copy(), self.v.copy(), self.lam.copy(), self.t, self.a.copy())
+        start, end = self._obstacles0, self.contact
+        mid = end if start is None else end.with_obstacles(
+            moved(o0, 0.5 * (o1.a - o0.a)) for o0, o1 in zip(start, end.obstacles))   # moving obstacles: halfway
         try:
+            self.contact = mid
             self._contact_step(inp, targets, 0.5 * h, level + 1)
+            self._obstacles0 = None if start is None else mid.obstacles
+            self.contact = end
             self._contact_step(inp, targets, 0.5 * h, level + 1)
         except StepError:
             self.q, self.v, self.lam, self.t, self.a = state
+            self._obstacles0, self.contact = start, end
             raise
 
     def _run_free(self, inp, n):
@@ -825,7 +850,7 @@ class MechanismSimulator:
             if self.contact:              # the step's mean contact forces (energy-consistent)
                 if it == 1:
                     start = self.contact.motion(self.ws, q0, v0)
-                contacts = self.contact.step_state(self.ws, start, q1, qt, h, th)
+                contacts = self.contact.step_state(self.ws, start, q1, qt, h, th, self._obstacles0)
             if contacts is not None:
                 ld = concat_loads(ld, self.contact.loads(contacts))
             effort = inp.effort.copy()

@@ -41,15 +41,16 @@ def _point_loads(points, st):
                       np.ones(n, np.bool_))
 
 
-def contacts_dict(mech, st):
+def contacts_dict(mech, st, obstacles=None):
     """JSON-ready contacts of a ContactState (None: none): per contact its
     member, arc length s [m], obstacle, position [m], normal, gap [m] (< 0:
-    pressed in), force [N] on the member (world), slip velocity [m/s]."""
+    pressed in), force [N] on the member (world), slip velocity [m/s]
+    (``obstacles``: those the contacts index, default the robot file's)."""
     if st is None or not len(st):
         return []
     pts = mechanism_contact_points(mech)
-    names = [ob.name for ob in mech.obstacles]
-    return [dict(member=pts.member[i], s=float(pts.s[i]), obstacle=names[o] if o < len(names) else int(o),
+    names = [ob.name for ob in (mech.obstacles if obstacles is None else obstacles)]
+    return [dict(member=pts.member[i], s=float(pts.s[i]), obstacle=names[o],
                  position=st.p[c].tolist(), normal=st.normal[c].tolist(), gap=float(st.gap[c]),
                  force=st.force[c].tolist(), slip=(st.slip[c].tolist() if st.slip is not None else [0.0] * 3))
             for c, (i, o) in enumerate(zip(st.point, st.obstacle))]
@@ -92,13 +93,21 @@ class MemberContact:
             return contact_forces(self.points, self.obstacles, self.positions(ws, q))
         return contact_forces(self.points, self.obstacles, *self.motion(ws, q, v))
 
-    def step_state(self, ws, start, q1, qt, h, theta):
+    def with_obstacles(self, obstacles):
+        """This contact with ``obstacles`` instead (the same points)."""
+        out = MemberContact.__new__(MemberContact)
+        out.mech, out.obstacles = self.mech, tuple(obstacles)
+        out.points = mechanism_contact_points(self.mech) if out.obstacles else None
+        return out
+
+    def step_state(self, ws, start, q1, qt, h, theta, obstacles0=None):
         """:class:`ContactState` of a time step h from the points' ``start``
         (:meth:`motion` at the step's start) to configuration q1, acting at the theta point
         qt (:func:`engine.contact.step_contact_forces`)."""
         p0, v0 = start
         p1 = self.positions(ws, q1)
-        return step_contact_forces(self.points, self.obstacles, p0, p1, self.positions(ws, qt), h, theta, v0)
+        return step_contact_forces(self.points, self.obstacles, p0, p1, self.positions(ws, qt), h, theta, v0,
+                                   obstacles0)
 
     def loads(self, st):
         """The contact forces of ``st`` as dead point loads (:func:`contact_loads`)."""

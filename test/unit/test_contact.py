@@ -9,7 +9,7 @@ import pytest
 
 from soft_twin_core.engine.contact import (ContactPoints, Obstacle, contact_forces, discrete_gradient, friction_force,
                                            normal_force_density, normal_potential_density, signed_distance)
-from soft_twin_core.errors import ModelError
+from soft_twin_core.errors import ModelError, ScenarioError
 from soft_twin_core.robot.mechanism import from_robot_model, mechanism_from_dict
 from soft_twin_core.robot.model import model_from_dict
 from soft_twin_core.robot.obstacles import obstacles_from_list
@@ -567,3 +567,42 @@ def test_a_heavy_rod_lifted_off_a_plane_by_a_pin_matches_the_classic_solution():
         errors.append(abs(np.sum(c.p[:, 0] * excess) / np.sum(excess) / a - 1))
         assert c.p[:, 0].min() > 0.9 * a
     assert errors[1] < 0.01 and errors[1] > errors[2] > errors[3]
+
+
+def test_a_moving_table_in_a_scenario_and_a_conveyor_dragging_a_rod():
+    """Scenario obstacles with trajectories: the statics at the end of a
+    rising table's trajectory is the equilibrium on a table fixed at its
+    final height. A rod lying on a conveyor (a plane moving along itself at
+    u) is dragged at a = mu g until it moves with the belt (Coulomb: the
+    slip is relative to the moving surface), within 2 %."""
+    from soft_twin_core.engine.contact import moved
+    from soft_twin_core.files import runs
+    from soft_twin_core.files.scenario import scenario_from_dict
+    robot = _heavy_rod_dict()
+    table = robot.pop("obstacles")[0]
+    sc = scenario_from_dict({"robot": robot, "obstacles": [dict(table, trajectory=[[0, 0, 0, 0], [1, 0, 0, 0.002]])]})
+    assert runs.run_mechanism_statics(sc, t=1.0)["contacts"][0]["obstacle"] == "table"
+    moving = solve_equilibrium(sc.mech, obstacles=sc.obstacles_at(1.0))
+    fixed_robot = dict(robot, obstacles=[dict(table, point=[0, 0, table["point"][2] + 0.002])])
+    fixed = solve_equilibrium(from_robot_model(model_from_dict(fixed_robot), fixed_robot))
+    np.testing.assert_allclose(moving.q, fixed.q, atol=1e-9 * np.abs(fixed.q).max())
+    with pytest.raises(ScenarioError, match=r"scenario\.obstacles\[0\]\.trajectory"):
+        scenario_from_dict({"robot": robot, "obstacles": [dict(table, trajectory=[[1, 0, 0, 0], [0, 1, 0, 0]])]})
+    with pytest.raises(ScenarioError, match="already name"):
+        scenario_from_dict({"robot": _heavy_rod_dict(), "obstacles": [table]})
+    # the conveyor
+    mu, u, h = 0.3, 0.2, 1e-3
+    mech = _slider(0.0, mu)
+    belt = mech.obstacles[0]
+    sim = MechanismSimulator(mech, h, 1.0, tol=1e-9)
+    v = []
+    for k in range(1, 151):
+        sim.step(obstacles=(moved(belt, [u * k * h, 0, 0]),))
+        v.append(sim.v[0])                       # the free joint's velocity along the rod (x)
+    v = np.array(v)
+    t = h * np.arange(1, 151)
+    t_catch = u / (mu * 9.81)                    # 68 ms
+    early = (t > 0.01) & (t < 0.8 * t_catch)
+    slope = np.polyfit(t[early], v[early], 1)[0]
+    assert slope == pytest.approx(mu * 9.81, rel=0.02)
+    assert v[-1] == pytest.approx(u, rel=0.02)
