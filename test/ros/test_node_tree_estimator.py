@@ -16,7 +16,6 @@ import signal
 import subprocess
 import sys
 import threading
-import time
 from pathlib import Path
 
 import numpy as np
@@ -25,15 +24,13 @@ import yaml
 
 rclpy = pytest.importorskip("rclpy", reason="needs ROS 2: the venv of `make setup`")
 
-from diagnostic_msgs.msg import DiagnosticArray  # noqa: E402
-from geometry_msgs.msg import PoseArray, PoseStamped, PoseWithCovarianceStamped, WrenchStamped  # noqa: E402
-from rclpy.executors import SingleThreadedExecutor  # noqa: E402
+from geometry_msgs.msg import PoseArray, PoseStamped, WrenchStamped  # noqa: E402
 from sensor_msgs.msg import JointState  # noqa: E402
 from std_srvs.srv import Trigger  # noqa: E402
 
+from estimator_client import Client  # noqa: E402
 from soft_twin.conversions import matrix_from_pose, pose_array, pose_msg  # noqa: E402
 from soft_twin.msg import ActuationCommand  # noqa: E402
-from soft_twin_core import commands as cmd
 from soft_twin_core.engine import algorithms as alg  # noqa: E402
 from soft_twin_core.engine.workspace import Workspace  # noqa: E402
 from soft_twin_core.estimation import sensors as ts  # noqa: E402
@@ -57,69 +54,6 @@ SENSORS = [{"name": "encoders", "type": "joint_state", "joints": ["pan", "tilt"]
            {"name": "ft", "type": "base_wrench", "sigma_force": 0.05, "sigma_moment": 0.005}]
 
 
-class Client:
-    """Publishers of the commands and measurements; the estimate and the
-    diagnostics as they arrive (a private context, spun in a thread)."""
-
-    def __init__(self):
-        self.context = rclpy.Context()
-        rclpy.init(context=self.context)
-        n = self.node = rclpy.create_node("tree_estimator_test_client", context=self.context)
-        self.pub_joints = n.create_publisher(JointState, f"{NS}/measurements/joint_states", 50)
-        self.pub_pose = n.create_publisher(PoseStamped, f"{NS}/measurements/pose", 50)
-        self.pub_poses = n.create_publisher(PoseArray, f"{NS}/measurements/poses", 50)
-        self.pub_ft = n.create_publisher(WrenchStamped, f"{NS}/measurements/base_wrench", 50)
-        self.pub_act = n.create_publisher(ActuationCommand, "/soft_twin/actuation", 10)
-        self.pub_cmd = n.create_publisher(JointState, "/soft_twin/joint_commands", 10)
-        self.tip, self.joints, self.diag, self.tip_count = None, None, None, 0
-        self.tips = []                                   # every estimated tool position received
-        n.create_subscription(PoseWithCovarianceStamped, f"{NS}/estimate/tip_pose", self._on_tip, 10)
-        n.create_subscription(JointState, f"{NS}/estimate/joint_states", self._on_joints, 10)
-        self.backbones = {}                              # the last PoseArray of each backbone topic
-        for topic, key in ((f"{NS}/estimate/backbones/arm", "arm"), (f"{NS}/estimate/backbone", "main")):
-            n.create_subscription(PoseArray, topic, lambda msg, key=key: self.backbones.__setitem__(key, msg), 10)
-        n.create_subscription(DiagnosticArray, "/diagnostics", self._on_diag, 10)
-        self.reset = n.create_client(Trigger, f"{NS}/estimate/reset")
-        self.executor = SingleThreadedExecutor(context=self.context)
-        self.executor.add_node(n)
-        self.thread = threading.Thread(target=self._spin, daemon=True)
-        self.thread.start()
-
-    def _spin(self):
-        try:
-            self.executor.spin()
-        except Exception:          # shutdown
-            pass
-
-    def _on_tip(self, msg):
-        self.tips.append(matrix_from_pose(msg.pose.pose)[:3, 3])
-        self.tip = msg
-        self.tip_count += 1
-
-    def _on_joints(self, msg):
-        self.joints = dict(zip(msg.name, msg.position))
-
-    def _on_diag(self, msg):
-        for s in msg.status:
-            if s.name == "soft_twin_estimator":
-                self.diag = {kv.key: kv.value for kv in s.values}
-
-    @staticmethod
-    def wait_until(pred, timeout):
-        end = time.monotonic() + timeout
-        while time.monotonic() < end:
-            v = pred()
-            if v:
-                return v
-            time.sleep(0.01)
-        return pred()
-
-    def close(self):
-        self.executor.shutdown()
-        self.node.destroy_node()
-        rclpy.shutdown(context=self.context)
-
-
 @pytest.fixture(scope="module")
 def running(tmp_path_factory):
     tmp = tmp_path_factory.mktemp("tree_estimator")
@@ -129,7 +63,7 @@ def running(tmp_path_factory):
                              f"__node:={NS[1:]}", "-p", "robot_description_file:=pan_tilt_arm",
                              "-p", f"sensors_file:={tmp / 'sensors.yaml'}", "-p", "rate_hz:=50.0"],
                             cwd=ROOT, env=os.environ.copy(), stdout=log, stderr=subprocess.STDOUT, text=True)
-    client = Client()
+    client = Client(NS, "tree_estimator_test_client")
     try:
         ok = client.wait_until(lambda: client.tip_count > 0 and client.pub_joints.get_subscription_count() > 0
                                and client.pub_cmd.get_subscription_count() > 0
