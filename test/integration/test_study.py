@@ -445,6 +445,44 @@ def _sync_interrupted_before_the_loop_starts(loop):
     return inside
 
 
+def test_a_workers_heartbeat_after_the_scheduler_closed_is_dropped_and_nothing_else():
+    """After Ctrl-C the study closes the scheduler while its workers still
+    beat; the first beat to find it gone logs "Failed to communicate with
+    scheduler during heartbeat." with a traceback, which CI saw in an
+    interrupted study's stderr. The workers' filter (installed with their
+    SIGINT handling) drops that record, with the text the pinned
+    distributed writes, and passes every other."""
+    import inspect
+    import logging
+    import distributed.worker
+    from soft_twin_core.studies.cluster import _HeartbeatAfterClose
+    text = "Failed to communicate with scheduler during heartbeat."
+    assert text in inspect.getsource(distributed.worker.Worker.heartbeat)
+
+    class Keep(logging.Handler):
+        def __init__(self):
+            super().__init__()
+            self.records = []
+
+        def emit(self, record):
+            self.records.append(record)
+    logger = logging.getLogger("distributed.worker.heartbeat_test")
+    keep = Keep()
+    logger.addHandler(keep)
+    logger.addFilter(_HeartbeatAfterClose())
+    try:
+        try:
+            raise OSError("Stream is closed")
+        except OSError:
+            logger.exception(text)
+            logger.exception("Unexpected exception during heartbeat. Closing worker.")
+        logger.error("Failed to communicate with scheduler")
+        assert [r.msg for r in keep.records] == ["Unexpected exception during heartbeat. Closing worker.",
+                                                 "Failed to communicate with scheduler"]
+    finally:
+        logger.removeHandler(keep)
+
+
 def test_the_distributed_cancel_bug_traceback_is_dropped_and_nothing_else():
     """distributed 2026.8.0's ``sync`` logs a NameError traceback (through
     tornado) when Ctrl-C comes before the loop started the call; CI saw it
