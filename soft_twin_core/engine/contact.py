@@ -234,11 +234,11 @@ class ContactState:
         return len(self.point)
 
 
-def contact_forces(points, obstacles, p, v=None):
+def contact_forces(points, obstacles, p):
     """:class:`ContactState` of the contact points (:class:`ContactPoints`)
-    at world positions p (P, 3) and velocities v (P, 3) (None: at rest)
-    against ``obstacles``: every pair with a positive force (penetration)
-    is listed."""
+    at rest at world positions p (P, 3) against ``obstacles`` (statics; a
+    time step's: :func:`step_contact_forces`): every pair with a positive
+    force (penetration) is listed."""
     idx, obs, ps, ns, gaps, Fs, dFs, dVs = [], [], [], [], [], [], [], []
     for o, ob in enumerate(obstacles):
         d, n, H = signed_distance(ob, p)
@@ -251,12 +251,7 @@ def contact_forces(points, obstacles, p, v=None):
         f, df = normal_force_density(delta[hit], k, eps)
         w = points.weight[hit]
         nh = n[hit]
-        # Hunt-Crossley: factor 1 + alpha d(delta)/dt, never below 0 (a contact does not pull)
-        rate = -np.sum(nh * v[hit], axis=1) if v is not None else np.zeros(len(hit))
-        fac = np.maximum(1.0 + ob.damping * rate, 0.0)
-        dv = np.where(fac > 0, ob.damping, 0.0)
-        dVs.append(-(w * f * dv)[:, None, None] * nh[:, :, None] * nh[:, None, :])
-        w = w * fac
+        dVs.append(np.zeros((len(hit), 3, 3)))
         idx.append(hit)
         obs.append(np.full(len(hit), o))
         ps.append(p[hit])

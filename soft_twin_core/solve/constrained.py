@@ -732,6 +732,9 @@ class MechanismSimulator:
         ``obstacles``: where the obstacles are at the end of the step, for
         obstacles that move: a simulator made with obstacles, the same
         number and kinds). Raises StepError (state unchanged) if a step fails."""
+        if obstacles is not None and not self.contact:
+            raise ValueError("obstacles: this simulator was made without obstacles (or its members have no "
+                             "contact points); give them to MechanismSimulator(..., obstacles=...)")
         inp = inputs if inputs is not None else make_inputs(self.mech, actuation, efforts, positions, None,
                                                             loads, point_loads)
         self.inputs = inp

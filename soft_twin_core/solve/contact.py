@@ -86,19 +86,13 @@ class MemberContact:
         world_point_jacobians(ws.m, ws.w, self.points.joint, self.points.x, g, J)
         return g[:, :3, 3].copy(), J[:, :3, :] @ v
 
-    def state(self, ws, q, v=None):
-        """:class:`ContactState` at q and joint velocities v (None: at rest;
-        the points' velocities matter only to damped obstacles)."""
-        if v is None or not any(ob.damping for ob in self.obstacles):
-            return contact_forces(self.points, self.obstacles, self.positions(ws, q))
-        return contact_forces(self.points, self.obstacles, *self.motion(ws, q, v))
+    def state(self, ws, q):
+        """:class:`ContactState` at rest at q (statics)."""
+        return contact_forces(self.points, self.obstacles, self.positions(ws, q))
 
     def with_obstacles(self, obstacles):
         """This contact with ``obstacles`` instead (the same points)."""
-        out = MemberContact.__new__(MemberContact)
-        out.mech, out.obstacles = self.mech, tuple(obstacles)
-        out.points = mechanism_contact_points(self.mech) if out.obstacles else None
-        return out
+        return MemberContact(self.mech, tuple(obstacles))
 
     def step_state(self, ws, start, q1, qt, h, theta, obstacles0=None):
         """:class:`ContactState` of a time step h from the points' ``start``

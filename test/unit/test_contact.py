@@ -606,3 +606,45 @@ def test_a_moving_table_in_a_scenario_and_a_conveyor_dragging_a_rod():
     slope = np.polyfit(t[early], v[early], 1)[0]
     assert slope == pytest.approx(mu * 9.81, rel=0.02)
     assert v[-1] == pytest.approx(u, rel=0.02)
+
+
+def test_a_closed_chain_leaning_on_an_obstacle_statics_and_dynamics_agree():
+    """The parallel robot (soft rods, both clamped to the platform) with a
+    block pressed 3 mm into rod 1's side at mid-height: statics (the KKT Newton with the
+    loops' rows and the contacts' stiffness) finds a stable equilibrium on
+    the block, and dynamics (the same KKT step, implicit Euler, damped),
+    the block moving in from touching, creeps onto it: one path for rods, trees and closed chains. Giving
+    obstacles to a simulator made without any, or changing their kinds,
+    is refused and leaves its state as it was."""
+    from soft_twin_core.engine.contact import moved
+    from soft_twin_core.robot.model import find_file, read_yaml_file
+    d = read_yaml_file(find_file("planar_parallel_robot", "robots"))
+    for b in d["bodies"]:
+        for seg in b.get("segments", []):
+            seg["material"].update(youngs_modulus=2.0e9)       # polymer: stiff enough to stand
+    base = mechanism_from_dict(d)
+    x_rod = solve_equilibrium(base).q                  # where the rods hang without the post
+    # a block whose face stands 1 mm inside rod 1's axis: 3 mm into the 2 mm rod
+    d["obstacles"] = [{"name": "post", "type": "box", "center": [-0.049 + 0.01, 0.0, 0.2], "size": [0.02, 0.1, 0.1]}]
+    d["contact"] = {"spacing": 0.005}
+    mech = mechanism_from_dict(d)
+    eq = solve_equilibrium(mech, q_init=x_rod)
+    assert eq.stable and len(eq.contacts) > 0 and eq.constraint_error < 1e-9
+    assert np.all(eq.contacts.force[:, 0] < 0)                     # the post pushes rod 1 towards -x
+    assert set(mechanism_contact_points(mech).member[i] for i in eq.contacts.point) == {"rod1"}
+    # dynamics: the block comes in from touching over 0.2 s (a moving obstacle), then holds
+    block = mech.obstacles[0]
+    sim = MechanismSimulator(mech, 2e-3, 1.0, q=x_rod, tol=1e-9, obstacles=(moved(block, [0.003, 0, 0]),))
+    for k in range(1, 1201):
+        sim.step(obstacles=(moved(block, [0.003 * max(0.0, 1 - k / 100), 0, 0]),))
+    # the heavily damped rods creep onto it (2.4 s: 1e-3 of the strains left, the force within 2 %)
+    np.testing.assert_allclose(sim.q, eq.q, atol=1e-3 * np.abs(eq.q).max())
+    assert sim.contacts.force[:, 0].sum() == pytest.approx(eq.contacts.force[:, 0].sum(), rel=0.02)
+    q_before = sim.q.copy()
+    with pytest.raises(ValueError, match="keeps its kind"):
+        sim.step(obstacles=(Obstacle("post", "sphere", np.zeros(3), radius=0.01),))
+    bare = MechanismSimulator(base, 2e-3, 1.0, q=x_rod)
+    with pytest.raises(ValueError, match="made without obstacles"):
+        bare.step(obstacles=(moved(mech.obstacles[0], [0.01, 0, 0]),))
+    np.testing.assert_array_equal(sim.q, q_before)
+    np.testing.assert_array_equal(bare.q, x_rod)
