@@ -3,6 +3,7 @@ paths, designs, validation, failures, Dask against a serial run, a killed
 worker, resuming, the summary; small studies of the default robot."""
 
 import json
+import logging
 import math
 import os
 import signal
@@ -445,6 +446,17 @@ def _sync_interrupted_before_the_loop_starts(loop):
     return inside
 
 
+class _Keep(logging.Handler):
+    """A log handler keeping the records it is given."""
+
+    def __init__(self):
+        super().__init__()
+        self.records = []
+
+    def emit(self, record):
+        self.records.append(record)
+
+
 def test_a_workers_heartbeat_after_the_scheduler_closed_is_dropped_and_nothing_else():
     """After Ctrl-C the study closes the scheduler while its workers still
     beat; the first beat to find it gone logs "Failed to communicate with
@@ -459,15 +471,8 @@ def test_a_workers_heartbeat_after_the_scheduler_closed_is_dropped_and_nothing_e
     text = "Failed to communicate with scheduler during heartbeat."
     assert text in inspect.getsource(distributed.worker.Worker.heartbeat)
 
-    class Keep(logging.Handler):
-        def __init__(self):
-            super().__init__()
-            self.records = []
-
-        def emit(self, record):
-            self.records.append(record)
     logger = logging.getLogger("distributed.worker.heartbeat_test")
-    keep = Keep()
+    keep = _Keep()
     logger.addHandler(keep)
     logger.addFilter(_HeartbeatAfterClose())
     try:
@@ -493,18 +498,11 @@ def test_the_distributed_cancel_bug_traceback_is_dropped_and_nothing_else():
     from distributed.utils import LoopRunner
     from soft_twin_core.studies.cluster import _SyncCancelBug, install_sync_cancel_filter
 
-    class Keep(logging.Handler):
-        def __init__(self):
-            super().__init__()
-            self.records = []
-
-        def emit(self, record):
-            self.records.append(record)
     logger = logging.getLogger("tornado.application")
     saved_filters = list(logger.filters)
     for f in saved_filters:
         logger.removeFilter(f)
-    keep = Keep()
+    keep = _Keep()
     logger.addHandler(keep)
     runner = LoopRunner(asynchronous=False)
     runner.start()

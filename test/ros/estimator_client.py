@@ -2,6 +2,8 @@
 measurements, the estimates and the diagnostics as they arrive (a private
 rclpy context spun in a thread), for the estimator tests of test/ros."""
 
+import signal
+import subprocess
 import threading
 import time
 
@@ -83,3 +85,15 @@ class Client:
         self.executor.shutdown()
         self.node.destroy_node()
         rclpy.shutdown(context=self.context)
+
+
+def stop_estimator(proc):
+    """SIGINT to the estimator's process (Ctrl-C), waited for; killed if it
+    does not stop within 20 s."""
+    if proc.poll() is None:
+        proc.send_signal(signal.SIGINT)
+        try:
+            proc.wait(timeout=20)
+        except subprocess.TimeoutExpired:
+            proc.kill()
+            proc.wait()

@@ -7,7 +7,6 @@ follows the pushed platform that the open-loop twin misses, and estimates
 the push. Every wait is for a condition with a timeout."""
 
 import os
-import signal
 import subprocess
 import sys
 import threading
@@ -21,7 +20,7 @@ rclpy = pytest.importorskip("rclpy", reason="needs ROS 2: the venv of `make setu
 
 from geometry_msgs.msg import PoseStamped  # noqa: E402
 
-from estimator_client import Client  # noqa: E402
+from estimator_client import Client, stop_estimator  # noqa: E402
 from soft_twin.conversions import pose_msg  # noqa: E402
 from soft_twin_core.engine import algorithms as alg  # noqa: E402
 from soft_twin_core.engine.workspace import Workspace  # noqa: E402
@@ -91,13 +90,7 @@ def test_the_filter_follows_a_pushed_parallel_robot_and_estimates_the_push(tmp_p
     finally:
         stop.set()
         client.close()
-        if proc.poll() is None:
-            proc.send_signal(signal.SIGINT)
-            try:
-                proc.wait(timeout=20)
-            except subprocess.TimeoutExpired:
-                proc.kill()
-                proc.wait()
+        stop_estimator(proc)
         log.close()
     out = (tmp_path / "node.log").read_text()
     assert proc.returncode == 0 and "Traceback" not in out, out[-3000:]

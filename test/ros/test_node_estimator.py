@@ -25,6 +25,7 @@ from rclpy.executors import SingleThreadedExecutor  # noqa: E402
 from std_srvs.srv import Trigger  # noqa: E402
 
 from soft_twin.conversions import matrix_from_pose, pose_array, pose_msg  # noqa: E402
+from estimator_client import stop_estimator  # noqa: E402
 from soft_twin.msg import ActuationCommand  # noqa: E402
 from soft_twin_core.estimation import sensors as sn  # noqa: E402
 from soft_twin_core.robot.mechanism import from_robot_model  # noqa: E402
@@ -111,13 +112,7 @@ def running(tmp_path_factory):
         yield client, proc, tmp
     finally:
         client.close()
-        if proc.poll() is None:
-            proc.send_signal(signal.SIGINT)
-            try:
-                proc.wait(timeout=20)
-            except subprocess.TimeoutExpired:
-                proc.kill()
-                proc.wait()
+        stop_estimator(proc)
         log.close()
     out = (tmp / "node.log").read_text()
     assert proc.returncode == 0 and "Traceback" not in out, out[-3000:]

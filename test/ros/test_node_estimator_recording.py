@@ -9,7 +9,6 @@ the modulus within 2 %. Every wait is for a condition with a timeout."""
 
 import json
 import os
-import signal
 import subprocess
 import sys
 import threading
@@ -27,6 +26,7 @@ from geometry_msgs.msg import PoseArray  # noqa: E402
 from rclpy.executors import SingleThreadedExecutor  # noqa: E402
 
 from soft_twin.conversions import pose_array  # noqa: E402
+from estimator_client import stop_estimator  # noqa: E402
 from soft_twin.msg import ActuationCommand  # noqa: E402
 from soft_twin_core.cli import main as cli_main  # noqa: E402
 from soft_twin_core.estimation import sensors as sn  # noqa: E402
@@ -126,13 +126,7 @@ def test_estimator_node_records_a_sweep_that_calibrates(tmp_path, capsys):
         ex.shutdown()
         node.destroy_node()
         rclpy.shutdown(context=ctx)
-        if proc.poll() is None:
-            proc.send_signal(signal.SIGINT)
-            try:
-                proc.wait(timeout=20)
-            except subprocess.TimeoutExpired:
-                proc.kill()
-                proc.wait()
+        stop_estimator(proc)
         log.close()
     out = (tmp_path / "node.log").read_text()
     assert proc.returncode == 0 and "Traceback" not in out, out[-3000:]

@@ -12,7 +12,6 @@ a NaN wrench and bad joint commands are rejected and counted. Every wait is for 
 condition with a timeout."""
 
 import os
-import signal
 import subprocess
 import sys
 import threading
@@ -28,7 +27,7 @@ from geometry_msgs.msg import PoseArray, PoseStamped, WrenchStamped  # noqa: E40
 from sensor_msgs.msg import JointState  # noqa: E402
 from std_srvs.srv import Trigger  # noqa: E402
 
-from estimator_client import Client  # noqa: E402
+from estimator_client import Client, stop_estimator  # noqa: E402
 from soft_twin.conversions import matrix_from_pose, pose_array, pose_msg  # noqa: E402
 from soft_twin.msg import ActuationCommand  # noqa: E402
 from soft_twin_core.engine import algorithms as alg  # noqa: E402
@@ -72,13 +71,7 @@ def running(tmp_path_factory):
         yield client, proc, tmp
     finally:
         client.close()
-        if proc.poll() is None:
-            proc.send_signal(signal.SIGINT)
-            try:
-                proc.wait(timeout=20)
-            except subprocess.TimeoutExpired:
-                proc.kill()
-                proc.wait()
+        stop_estimator(proc)
         log.close()
     out = (tmp / "node.log").read_text()
     assert proc.returncode == 0 and "Traceback" not in out, out[-3000:]
