@@ -16,6 +16,19 @@ path, gravity, tendons and chambers.
   :func:`actuation_pass` the compiled sum. Tendons of the point-moment model
   (slides part C, model (b)) are follower point moments at their
   termination instead.
+* Tendon-sheath friction (a tendon's ``friction`` mu > 0): a tendon pulled
+  in slides along its sheath and the capstan law lowers its tension along
+  the routing, ``T(s) = u exp(-mu theta(s))``, with ``theta(s) = int_start^s
+  |dt_w/ds| ds`` the angle its world tangent t_w has turned (the wrap angle;
+  :func:`wrap_rate` is the integrand). The tendon's force on the body,
+  ``(T t_w)'`` per unit length (normal pressure ``T t_w'`` and sheath friction
+  ``T' t_w``, with |T'| = mu |T t_w'|, Coulomb at slip) plus the pull at the
+  termination, has the generalised force ``-int T(s) (dp'/dq)^T t_w ds``:
+  the frictionless density with u replaced by T(s). theta is integrated
+  between the quadrature points on extra nodes (:class:`ActuatorArrays`
+  ``node_*``); it depends on the strains of every section before s, so the
+  tangent gains a lower-triangular coupling along the tendon
+  (:func:`sheath_tangent_pass`).
 """
 
 from collections import namedtuple
@@ -33,7 +46,15 @@ ActuatorArrays = namedtuple("ActuatorArrays", [
     "joint",      # (P,) soft joint of each tendon quadrature point
     "d", "dd",    # (P, 3) offset d(s) and d'(s) in the cross-section frame [m, -]
     "unit",       # (P, n_actuators): coefficient per unit input (-c w: m per N or m^3 per Pa... see module)
+    "mu",         # (P,) sheath friction coefficient of the point's tendon (0: frictionless)
+    "first",      # (P,) 1 at the first point of each actuator (its wrap angle starts at 0), else 0
+    "node_ptr",   # (P + 1,) the wrap-angle nodes between point p - 1 (or start) and p: node_ptr[p]:node_ptr[p+1]
+    "node_joint",  # (N,) soft joint of each wrap-angle node
+    "node_d", "node_dd", "node_ddd",  # (N, 3) d, d', d'' at the node [m, -, 1/m]
+    "node_w",     # (N,) quadrature weight of the node [m]
 ])
+
+WRAP_NODES = 3     # Gauss points per piece of the wrap-angle integral (exact for straight routings)
 
 
 def _gauss_on_path(model, path, start, end):
@@ -56,15 +77,38 @@ def _gauss_on_path(model, path, start, end):
     return np.array(js, np.int64), np.concatenate(xs), np.concatenate(ss), np.concatenate(ws)
 
 
+def _wrap_nodes(model, act, path, a, b):
+    """(joint, d, d', d'', w) Gauss nodes of the wrap-angle integral over
+    [a, b] on ``path``, split at section ends (the strain is constant on
+    each piece)."""
+    out = [[], [], [], [], []]
+    for k, j in enumerate(path.joints):
+        lo = max(path.s_starts[k], a)
+        hi = min(path.s_starts[k] + path.lengths[k], b)
+        if hi <= lo:
+            continue
+        xg, wg = np.polynomial.legendre.leggauss(WRAP_NODES)
+        s = 0.5 * (lo + hi) + 0.5 * (hi - lo) * xg
+        d, dd = act.offset_at(s)
+        for lst, val in zip(out, ([j] * len(s), d, dd, act.offset_second_derivative(s), 0.5 * (hi - lo) * wg)):
+            lst.append(val)
+    return (np.concatenate(out[0]).astype(np.int64) if out[0] else np.zeros(0, np.int64),
+            *(np.concatenate(x) if x else np.zeros((0, 3)) for x in out[1:4]),
+            np.concatenate(out[4]) if out[4] else np.zeros(0))
+
+
 def actuator_arrays(model):
     """Quadrature geometry of the model's distributed actuators (tendon model
-    "distributed") on their path."""
-    J, D, DD, U = [], [], [], []
+    "distributed") on their path, with the wrap-angle nodes of the tendons
+    with sheath friction."""
+    J, D, DD, U, MU, FIRST, COUNT = [], [], [], [], [], [], []
+    nodes = [[], [], [], [], []]
     na = len(model.actuators)
     for k, a in enumerate(model.actuators):
         if a.tendon_model == "point_moment":
             continue
-        j, _, s, w = _gauss_on_path(model, model.path_of_actuator(k), a.start, a.end)
+        path = model.path_of_actuator(k)
+        j, _, s, w = _gauss_on_path(model, path, a.start, a.end)
         d, dd = a.offset_at(s)
         unit = np.zeros((len(s), na))
         unit[:, k] = -a.force_per_unit_input * w
@@ -72,10 +116,28 @@ def actuator_arrays(model):
         D.append(d)
         DD.append(dd)
         U.append(unit)
+        MU.append(np.full(len(s), float(a.friction)))
+        FIRST.append((np.arange(len(s)) == 0).astype(np.int64))
+        for p in range(len(s)):
+            if a.friction > 0:
+                piece = _wrap_nodes(model, a, path, a.start if p == 0 else s[p - 1], s[p])
+                for lst, val in zip(nodes, piece):
+                    lst.append(val)
+                COUNT.append(len(piece[0]))
+            else:
+                COUNT.append(0)
     if not J:
-        return ActuatorArrays(np.zeros(0, np.int64), np.zeros((0, 3)), np.zeros((0, 3)), np.zeros((0, na)))
+        z3 = np.zeros((0, 3))
+        return ActuatorArrays(np.zeros(0, np.int64), z3, z3, np.zeros((0, na)), np.zeros(0), np.zeros(0, np.int64),
+                              np.zeros(1, np.int64), np.zeros(0, np.int64), z3, z3, z3, np.zeros(0))
+    cat3 = (lambda x: np.ascontiguousarray(np.concatenate(x)) if x else np.zeros((0, 3)))
     return ActuatorArrays(np.concatenate(J), np.ascontiguousarray(np.concatenate(D)),
-                          np.ascontiguousarray(np.concatenate(DD)), np.ascontiguousarray(np.concatenate(U)))
+                          np.ascontiguousarray(np.concatenate(DD)), np.ascontiguousarray(np.concatenate(U)),
+                          np.concatenate(MU), np.concatenate(FIRST),
+                          np.concatenate([[0], np.cumsum(COUNT)]).astype(np.int64),
+                          np.concatenate(nodes[0]).astype(np.int64) if nodes[0] else np.zeros(0, np.int64),
+                          cat3(nodes[1]), cat3(nodes[2]), cat3(nodes[3]),
+                          np.concatenate(nodes[4]) if nodes[4] else np.zeros(0))
 
 
 def check_member_loads(model, loads, where="loads"):
@@ -187,23 +249,146 @@ def gravity_of(model, loads=None):
 
 
 @_jit_inline
+def _wrap_parts(xi, d, dd, ddd):
+    """The pieces of ``dt_w/ds = R a`` for a tendon on a section of constant
+    strain xi = (nu, kappa): n = nu + kappa x d + d' (so that p' = R n),
+    n' = kappa x d' + d'', t = n/|n|, b = n' - t (t . n') and
+    a = kappa x t + b/|n|. Returns (a, t, |n|, b, t . n', n'), 3-arrays."""
+    k = xi[3:6]
+    n = np.empty(3)
+    npr = np.empty(3)
+    n[0] = xi[0] + k[1] * d[2] - k[2] * d[1] + dd[0]
+    n[1] = xi[1] + k[2] * d[0] - k[0] * d[2] + dd[1]
+    n[2] = xi[2] + k[0] * d[1] - k[1] * d[0] + dd[2]
+    npr[0] = k[1] * dd[2] - k[2] * dd[1] + ddd[0]
+    npr[1] = k[2] * dd[0] - k[0] * dd[2] + ddd[1]
+    npr[2] = k[0] * dd[1] - k[1] * dd[0] + ddd[2]
+    nn = np.sqrt(n[0] * n[0] + n[1] * n[1] + n[2] * n[2])
+    t = n / nn
+    tn = t[0] * npr[0] + t[1] * npr[1] + t[2] * npr[2]
+    b = npr - t * tn
+    a = np.cross(k, t) + b / nn
+    return a, t, nn, b, tn, npr
+
+
+@_jit_inline
+def wrap_rate(xi, d, dd, ddd):
+    """|dt_w/ds| [rad/m]: how fast the tendon path's world tangent turns per
+    unit arc length of the backbone, at offset d (d', d'') on a section of
+    strain xi (the tendon point p = r + R d, p' = R n, t_w = R n/|n|)."""
+    a, _, _, _, _, _ = _wrap_parts(xi, d, dd, ddd)
+    return np.sqrt(a[0] * a[0] + a[1] * a[1] + a[2] * a[2])
+
+
+@_jit_inline
+def wrap_rate_gradient(xi, d, dd, ddd, out):
+    """out (6,) = d wrap_rate / d xi (0 where the tendon runs straight, the
+    rate's kink)."""
+    a, t, nn, b, tn, npr = _wrap_parts(xi, d, dd, ddd)
+    om = np.sqrt(a[0] * a[0] + a[1] * a[1] + a[2] * a[2])
+    if om < 1e-12:
+        out[:] = 0.0
+        return
+    k = xi[3:6]
+    for c in range(6):
+        dk = np.zeros(3)
+        dn = np.zeros(3)
+        dnp = np.zeros(3)
+        if c < 3:
+            dn[c] = 1.0
+        else:
+            dk[c - 3] = 1.0
+            dn = np.cross(dk, d)
+            dnp = np.cross(dk, dd)
+        tdn = t[0] * dn[0] + t[1] * dn[1] + t[2] * dn[2]
+        dt = (dn - t * tdn) / nn
+        db = dnp - dt * tn - t * (np.dot(dt, npr) + np.dot(t, dnp))
+        da = np.cross(dk, t) + np.cross(k, dt) + db / nn - b * (tdn / (nn * nn))
+        out[c] = np.dot(a, da) / om
+
+
+@_jit_inline
+def _wrap_increment(w, act, p):
+    """The wrap angle [rad] the tendon turns between point p - 1 (or its
+    start) and point p: its nodes' quadrature of :func:`wrap_rate`."""
+    inc = 0.0
+    for nd in range(act.node_ptr[p], act.node_ptr[p + 1]):
+        inc += act.node_w[nd] * wrap_rate(w.strain[act.node_joint[nd]], act.node_d[nd], act.node_dd[nd],
+                                          act.node_ddd[nd])
+    return inc
+
+
+@_jit
+def tension_factors(w, act):
+    """(P,) T(s_p)/u = exp(-mu theta(s_p)) at every actuator quadrature
+    point, at the strains of the last forward pass (1 without friction)."""
+    out = np.ones(act.joint.shape[0])
+    theta = 0.0
+    for p in range(act.joint.shape[0]):
+        if act.first[p] == 1:
+            theta = 0.0
+        if act.mu[p] > 0.0:
+            theta += _wrap_increment(w, act, p)
+            out[p] = np.exp(-act.mu[p] * theta)
+    return out
+
+
+def tendon_tension(model, ws, k, u, s=None):
+    """Tension T(s) [N] of tendon k pulled with u [N] at arc lengths s of
+    its path (default its termination ``end``), at the strains of ws's last
+    forward pass: ``u exp(-mu theta(s))`` (u without sheath friction)."""
+    a = model.actuators[k]
+    s = np.atleast_1d(np.asarray(a.end if s is None else s, dtype=float))
+    if a.friction == 0.0:
+        return np.full(s.shape, float(u))
+    path = model.path_of_actuator(k)
+    theta = np.empty(s.shape)
+    for n, si in enumerate(s):
+        j, d, dd, ddd, wts = _wrap_nodes(model, a, path, a.start, min(max(si, a.start), a.end))
+        theta[n] = sum(wts[i] * wrap_rate(ws.work.strain[j[i]], d[i], dd[i], ddd[i]) for i in range(len(j)))
+    return u * np.exp(-a.friction * theta)
+
+
+@_jit_inline
+def _tendon_direction(w, act, p):
+    """(t0, t1, t2, |n|): the unit tangent t = n/|n| of the tendon path at
+    quadrature point p in the cross-section frame, n = nu + kappa x d + d'."""
+    d = act.d[p]
+    xi = w.strain[act.joint[p]]
+    n0 = xi[0] + xi[4] * d[2] - xi[5] * d[1] + act.dd[p, 0]
+    n1 = xi[1] + xi[5] * d[0] - xi[3] * d[2] + act.dd[p, 1]
+    n2 = xi[2] + xi[3] * d[1] - xi[4] * d[0] + act.dd[p, 2]
+    nn = np.sqrt(n0 * n0 + n1 * n1 + n2 * n2)
+    return n0 / nn, n1 / nn, n2 / nn, nn
+
+
+@_jit_inline
+def _tendon_wrench(w, act, p, c):
+    """c [t; d x t] at quadrature point p (t the unit tangent of the tendon
+    path in the cross-section frame)."""
+    d = act.d[p]
+    t0, t1, t2, _ = _tendon_direction(w, act, p)
+    return (c * t0, c * t1, c * t2, c * (d[1] * t2 - d[2] * t1), c * (d[2] * t0 - d[0] * t2),
+            c * (d[0] * t1 - d[1] * t0))
+
+
+@_jit_inline
 def actuation_pass(m, w, act, coef, out):
     """out += tau_act: the joint-space forces of the distributed actuators,
-    coef[p] = sum_k unit[p, k] u_k, at the strains of the last forward pass."""
+    coef[p] = sum_k unit[p, k] u_k, at the strains of the last forward pass;
+    a tendon with sheath friction at its tension ``exp(-mu theta) u``."""
+    theta = 0.0
     for p in range(act.joint.shape[0]):
         c = coef[p]
+        if act.first[p] == 1:
+            theta = 0.0
+        if act.mu[p] > 0.0:
+            theta += _wrap_increment(w, act, p)
+            c *= np.exp(-act.mu[p] * theta)
         if c == 0.0:
             continue
+        wr = _tendon_wrench(w, act, p, c)
         i = act.joint[p]
-        d = act.d[p]
-        xi = w.strain[i]
-        t0 = xi[0] + xi[4] * d[2] - xi[5] * d[1] + act.dd[p, 0]
-        t1 = xi[1] + xi[5] * d[0] - xi[3] * d[2] + act.dd[p, 1]
-        t2 = xi[2] + xi[3] * d[1] - xi[4] * d[0] + act.dd[p, 2]
-        nt = np.sqrt(t0 * t0 + t1 * t1 + t2 * t2)
-        t0, t1, t2 = t0 / nt, t1 / nt, t2 / nt
-        wr = (c * t0, c * t1, c * t2, c * (d[1] * t2 - d[2] * t1), c * (d[2] * t0 - d[0] * t2),
-              c * (d[0] * t1 - d[1] * t0))
         iv = m.iv[i]
         for a in range(m.nv[i]):
             out[iv + a] += wr[m.modes[i, a]]
@@ -239,18 +424,15 @@ def actuation_tangent_pass(m, w, act, coef, Kt):
     """Kt -= d tau_act / dq (block diagonal: each section's own strains):
     ``d[t; d x t]/df = [I; hat(d)] (I - t t^T)/|n| [I, -hat(d)]`` per point."""
     blk = np.empty((6, 6))
+    fac = tension_factors(w, act)
     for p in range(act.joint.shape[0]):
-        c = coef[p]
+        c = coef[p] * fac[p]
         if c == 0.0:
             continue
         i = act.joint[p]
         d = act.d[p]
-        xi = w.strain[i]
-        n0 = xi[0] + xi[4] * d[2] - xi[5] * d[1] + act.dd[p, 0]
-        n1 = xi[1] + xi[5] * d[0] - xi[3] * d[2] + act.dd[p, 1]
-        n2 = xi[2] + xi[3] * d[1] - xi[4] * d[0] + act.dd[p, 2]
-        nn = np.sqrt(n0 * n0 + n1 * n1 + n2 * n2)
-        t = (n0 / nn, n1 / nn, n2 / nn)
+        t0, t1, t2, nn = _tendon_direction(w, act, p)
+        t = (t0, t1, t2)
         H = ((0.0, -d[2], d[1]), (d[2], 0.0, -d[0]), (-d[1], d[0], 0.0))
         M3 = np.empty((3, 3))
         for r in range(3):
@@ -281,3 +463,41 @@ def actuation_tangent_pass(m, w, act, coef, Kt):
         for a in range(m.nv[i]):
             for b in range(m.nv[i]):
                 Kt[iv + a, iv + b] -= c * blk[m.modes[i, a], m.modes[i, b]]
+    sheath_tangent_pass(m, w, act, coef, fac, Kt)
+
+
+@_jit_inline
+def sheath_tangent_pass(m, w, act, coef, fac, Kt):
+    """Kt -= the friction part of d tau_act/dq: tau_p = coef_p exp(-mu
+    theta_p) [t; d x t]_p, and theta_p sums w_n wrap_rate over the nodes n
+    before p on its tendon, so ``d tau_p/d xi_n = -mu tau_p (w_n d
+    wrap_rate_n/d xi)^T``: a lower-triangular coupling from every section
+    the tendon crossed before p to p's section. ``fac``: the
+    :func:`tension_factors`."""
+    N = act.node_w.shape[0]
+    if N == 0:
+        return
+    G = np.zeros((N, 6))
+    g = np.empty(6)
+    for nd in range(N):
+        wrap_rate_gradient(w.strain[act.node_joint[nd]], act.node_d[nd], act.node_dd[nd], act.node_ddd[nd], g)
+        for c in range(6):
+            G[nd, c] = act.node_w[nd] * g[c]
+    n0 = 0
+    for p in range(act.joint.shape[0]):
+        if act.first[p] == 1:
+            n0 = act.node_ptr[p]
+        mu = act.mu[p]
+        c = coef[p] * fac[p]
+        if mu == 0.0 or c == 0.0:
+            continue
+        wr = _tendon_wrench(w, act, p, c)
+        i = act.joint[p]
+        iv = m.iv[i]
+        for nd in range(n0, act.node_ptr[p + 1]):
+            j = act.node_joint[nd]
+            jv = m.iv[j]
+            for a in range(m.nv[i]):
+                x = mu * wr[m.modes[i, a]]
+                for b in range(m.nv[j]):
+                    Kt[iv + a, jv + b] += x * G[nd, m.modes[j, b]]

@@ -57,6 +57,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from soft_twin_core.engine import algorithms as alg
+from soft_twin_core.engine.forces import tension_factors
 from soft_twin_core.engine.workspace import Workspace
 from soft_twin_core.errors import CalibrationError, CalibrationFailed
 from soft_twin_core.estimation import sensors as sn
@@ -404,11 +405,15 @@ def _payload(mech, mass):
 def _tendon_offset_derivative(model, ws, act, k, u_k, out):
     """out (nv,) = d tau_act / d r_k for the straight tendon k at the strains
     of the last forward pass of ws: per quadrature point with coefficient c,
-    ``d/dr c [t; d x t] = c [dt; e x t + d x dt]``, ``dt = (I - t t^T) (kappa x e)/|n|``."""
+    ``d/dr c [t; d x t] = c [dt; e x t + d x dt]``, ``dt = (I - t t^T) (kappa x e)/|n|``;
+    with sheath friction c carries the capstan factor exp(-mu theta), whose
+    own change with r is left out (none without torsion and shear: the
+    tendon's tangent is then the backbone's)."""
     m, w = ws.arrays, ws.work
     pts = np.flatnonzero(act.unit[:, k])
+    fac = tension_factors(ws.w, act)
     for p in pts:
-        c = act.unit[p, k] * u_k
+        c = act.unit[p, k] * u_k * fac[p]
         i = act.joint[p]
         d = act.d[p]
         e = d / np.linalg.norm(d)

@@ -147,6 +147,14 @@ class Actuator:
     (a chamber without ``min`` may take any suction). Every consumer (the
     node, the offline runners, IK, the planners, calibration) checks inputs
     with :func:`check_actuator_input`.
+
+    friction: the Coulomb coefficient mu >= 0 [-] between a tendon and its
+    sheath (or guide holes), 0 for a frictionless tendon. The tension decays
+    along the routing by the capstan law ``T(s) = u exp(-mu theta(s))``,
+    theta(s) the angle [rad] the tendon path's tangent has turned between
+    ``start`` and s (:mod:`soft_twin_core.engine.forces`): the branch of a
+    tendon being pulled in (slipping towards the actuator). Distributed
+    tendon model only.
     """
     name: str
     kind: str                  # "tendon" | "chamber"
@@ -163,6 +171,7 @@ class Actuator:
     limit: float = math.inf    # declared maximum input: tension [N] or |pressure| [Pa]
     lower: float = None        # admissible range [lower, upper]; None: from kind and limit
     upper: float = None
+    friction: float = 0.0      # tendon-sheath Coulomb coefficient [-] (capstan decay)
 
     def __post_init__(self):
         lo, hi = actuator_range(self.kind, self.limit)
@@ -194,6 +203,15 @@ class Actuator:
             dd[..., 1] = -self.radius * k * np.sin(ang)
             dd[..., 2] = self.radius * k * np.cos(ang)
         return d, dd
+
+    def offset_second_derivative(self, s):
+        """d''(s) (..., 3) [1/m]: zero for straight and converging routings,
+        ``-k^2 d`` (k = 2 pi turns_per_meter) for a helix."""
+        s = np.asarray(s, dtype=float)
+        if self.routing != "helical":
+            return np.zeros(s.shape + (3,))
+        d, _ = self.offset_at(s)
+        return -(2 * np.pi * self.turns_per_meter) ** 2 * d
 
     @property
     def force_per_unit_input(self):
@@ -606,7 +624,7 @@ def _sectional(d, where):
 def _actuator(d, i, total_length):
     where = f"actuators[{i}]"
     _check_keys(d, {"name", "type", "start", "end", "routing", "offset", "offset_end", "radius",
-                    "phase", "turns_per_meter", "area", "model", "limit", "min", "max"}, where)
+                    "phase", "turns_per_meter", "area", "model", "limit", "min", "max", "friction"}, where)
     name = d.get("name")
     if not isinstance(name, str) or not name:
         raise ModelError(f"{where}.name: expected a non-empty string, got {name!r}")
@@ -640,8 +658,13 @@ def _actuator(d, i, total_length):
     if d.get("limit") is not None:
         limit = _num(d, "limit", where, positive=True)
     lower, upper = _input_bounds(d, where, kind, limit)
+    friction = _num(d, "friction", where, nonneg=True, default=0.0)
+    if friction > 0 and (kind != "tendon" or tmodel != "distributed"):
+        raise ModelError(f"{where}.friction: sheath friction ({friction:g}) applies to a tendon of the "
+                         f"'distributed' model only, not to a {kind}" + (f" of the {tmodel} model" if kind ==
+                                                                          "tendon" else ""))
     return Actuator(name, kind, start, min(end, total_length), routing, offset, offset_end,
-                    radius, phase, turns, area, tmodel, limit, lower, upper)
+                    radius, phase, turns, area, tmodel, limit, lower, upper, friction)
 
 
 def _input_bounds(d, where, kind, limit):

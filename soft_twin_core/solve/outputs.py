@@ -23,7 +23,7 @@ import math
 
 import numpy as np
 
-from soft_twin_core.engine.forces import concat_loads, point_moment_arrays
+from soft_twin_core.engine.forces import concat_loads, point_moment_arrays, tendon_tension
 from soft_twin_core.engine.kernels import passes
 from soft_twin_core.engine.kernels.frames import point_poses, spatial_jacobian, spatial_jacobian_dot
 from soft_twin_core.engine.workspace import Workspace
@@ -54,8 +54,10 @@ class MemberOutput:
     accelerations: np.ndarray = None
 
 
-def _tendon_pull(mech, member, s, strains, u):
-    """Tendon contributions -T [t; d x t] (body axes) at arc lengths s of the member."""
+def _tendon_pull(mech, ws, member, s, strains, u):
+    """Tendon contributions -T(s) [t; d x t] (body axes) at arc lengths s of
+    the member (T(s) with the capstan decay of sheath friction: the tension
+    the tendon carries across the cut)."""
     out = np.zeros((len(s), 6))
     if u is None or not len(u):
         return out
@@ -68,7 +70,9 @@ def _tendon_pull(mech, member, s, strains, u):
         d, dd = a.offset_at(s)
         t = strains[:, :3] + np.cross(strains[:, 3:], d) + dd
         t = t / np.linalg.norm(t, axis=-1, keepdims=True)
-        w = -a.force_per_unit_input * u[k] * np.concatenate([t, np.cross(d, t)], axis=-1)
+        T = np.zeros(len(s))
+        T[inside] = tendon_tension(mech.tree, ws, k, u[k], s[inside])
+        w = -a.force_per_unit_input * T[:, None] * np.concatenate([t, np.cross(d, t)], axis=-1)
         out[inside] += w[inside]
     return out
 
@@ -198,7 +202,7 @@ def member_outputs(mech, ws, u=None, loads=None, points_per_section=1, v=None, a
         point_poses(ws.m, ws.w, J, X, P)
         wr = cut_wrenches(ws, loads, J, X, P)
         strains = w.strain[J].copy()
-        wr = wr + _tendon_pull(mech, mem, s, strains, u)
+        wr = wr + _tendon_pull(mech, ws, mem, s, strains, u)
         sec = [list(mech.tree.paths[mem.path].joints).index(j) for j in J]      # section index along the member
         geo = [mem.geometry[k] for k in sec]
         normal = np.empty(len(s))

@@ -314,6 +314,38 @@ def test_static_tangent_with_tendons():
     assert _rel(Kt(q), K_fd) < 1e-8
 
 
+def test_static_tangent_with_sheath_friction():
+    """The friction's lower-triangular coupling (a tendon's tension at s
+    depends on every strain before s) in the analytic tangent: the tendon
+    arm with sheath friction on straight, converging and helical tendons,
+    against central differences."""
+    import yaml
+    from soft_twin_core.engine.forces import actuator_arrays
+    d = yaml.safe_load(Path(TENDON_ARM).read_text())
+    d["actuators"] += [
+        {"name": "conv", "routing": "converging", "offset": [0.008, 0.002], "offset_end": [0.002, -0.004],
+         "start": 0.05, "end": 0.4},
+        {"name": "helix", "routing": "helical", "radius": 0.006, "turns_per_meter": 3.0, "end": 0.42}]
+    q = None
+    tangents = []
+    for mu in (0.0, 0.35):
+        for a in d["actuators"]:
+            a["friction"] = mu
+        robot = model_from_dict(d)
+        model = from_robot_model(robot)
+        act = actuator_arrays(model)
+        R, Kt = _static_residual_and_tangent(model, alg.make_loads(model, [], [], np.zeros((0, 6)), []), act,
+                                             act.unit @ np.array([3.0, 0.0, 5.0, 1.0, 2.0, 4.0]))
+        if q is None:
+            q = robot.q0 + 0.3 * np.random.default_rng(2).standard_normal(robot.n_dof)
+        h = 1e-6
+        K_fd = np.column_stack([(R(q + h * e) - R(q - h * e)) / (2 * h) for e in np.eye(model.nv)])
+        tangents.append(Kt(q))
+        assert _rel(tangents[-1], K_fd) < 1e-8
+    # the friction's part is there to be checked (also below the diagonal blocks)
+    assert np.abs(np.tril(tangents[1] - tangents[0], -3)).max() > 1e-2 * np.abs(tangents[0]).max()
+
+
 @pytest.mark.parametrize("name", HYBRID)
 def test_point_jacobians_and_their_derivatives(name):
     """Compiled point Jacobians (body, world) and their time derivatives
