@@ -17,6 +17,7 @@ import warnings
 
 from soft_twin_core.limits import MAX_FILE_BYTES, PlausibilityWarning, load_yaml_text, read_text
 from soft_twin_core.robot.model import ModelError, model_from_dict, robot_mapping
+from soft_twin_core.robot.obstacles import check_unique_names, obstacles_from_list
 
 from soft_twin_core.text import clip, short_list
 
@@ -115,6 +116,11 @@ PARAMETERS = {
     "live_view_port": (
         0, "Port of the live 3D view in the browser (http://127.0.0.1:<port>, viser; works offline); "
            "0: off. Integer in 0..65535."),
+    # --- contact (issue 27) ------------------------------------------------------
+    "obstacles_file": (
+        "", "YAML file whose 'obstacles' list (the robot files' schema, base frame) adds obstacles to "
+            "the robot file's; empty: none. Setting it rebuilds the twin (state reset); ~/obstacles "
+            "adds, moves and removes obstacles at run time."),
 }
 
 
@@ -149,6 +155,7 @@ class NodeConfig:
     record_max_bytes: int = 0
     record_max_duration_s: float = 0.0
     live_view_port: int = 0
+    obstacles_file: str = ""
 
     @property
     def dt(self):
@@ -157,7 +164,8 @@ class NodeConfig:
     @property
     def robot_key(self):
         """What identifies the robot: a change rebuilds the twin."""
-        return (self.robot_description_file, self.robot_description, self.sections_per_segment)
+        return (self.robot_description_file, self.robot_description, self.sections_per_segment,
+                self.obstacles_file)
 
 
 # ----------------------------------------------------------------------------
@@ -258,6 +266,7 @@ VALIDATORS = {
     "record_max_bytes": lambda n, v: _integer(n, v, 0),
     "record_max_duration_s": lambda n, v: _number(n, v, 0.0, 1e9),
     "live_view_port": lambda n, v: _integer(n, v, 0, 65535),
+    "obstacles_file": lambda n, v: _string(n, v).strip(),
 }
 
 
@@ -345,6 +354,7 @@ class Robot:
     mechanism: object = None      # soft_twin_core.robot.mechanism.Mechanism of a tree robot file, else None
     warnings: tuple = ()          # plausibility warnings of the robot file (the node logs them)
     mech: object = None           # the Mechanism of any robot file (a classic rod: one member, "backbone")
+    obstacles: tuple = ()         # what the members touch at start: the robot file's, then obstacles_file's
 
     @property
     def articulated(self):
@@ -392,7 +402,30 @@ def load_robot(cfg):
         one = from_robot_model(model, mapping)
     else:
         one = mech
-    return Robot(model, d, source, cfg.sections_per_segment, mech, found, one)
+    try:
+        obstacles = check_unique_names(one.obstacles + load_obstacles(cfg.obstacles_file),
+                                       "obstacles (the robot file's and obstacles_file's)")
+    except ModelError as e:
+        raise ConfigError(clip(e, 400)) from None
+    return Robot(model, d, source, cfg.sections_per_segment, mech, found, one, obstacles)
+
+
+def load_obstacles(name):
+    """The obstacles of an obstacles file (its ``obstacles`` list), () for
+    ''; ConfigError naming the file and the bad field."""
+    if not name:
+        return ()
+    path = Path(os.path.expanduser(name))
+    if not path.is_file():
+        raise ConfigError(f"obstacles_file: {clip(repr(name))} does not exist")
+    d = load_yaml_text(read_text(path, ConfigError, "obstacles_file:"), clip(str(path)), ConfigError)
+    if not isinstance(d, dict) or set(d) - {"obstacles"}:
+        raise ConfigError(f"obstacles_file: {clip(str(path))}: expected a mapping with one key, 'obstacles' "
+                          f"(a list), got {clip(repr(d if not isinstance(d, dict) else sorted(d)))}")
+    try:
+        return obstacles_from_list(d.get("obstacles"), "obstacles")
+    except ModelError as e:
+        raise ConfigError(f"obstacles_file: {clip(str(path))}: {clip(e, 400)}") from None
 
 
 # parameters rclpy declares itself (not ours, not unknown)

@@ -115,3 +115,67 @@ def point(p):
 
 def quaternion(q):
     return Quaternion(x=float(q[0]), y=float(q[1]), z=float(q[2]), w=float(q[3]))
+
+
+# --- contact (issue 27): soft_twin/Obstacle in, soft_twin/Contacts out ---------
+
+_PRIMITIVES = {1: ("box", 3), 2: ("sphere", 1), 3: ("capsule", 2)}    # shape_msgs/SolidPrimitive BOX, SPHERE, CYLINDER
+_LAW = ("stiffness", "smoothing", "damping", "friction", "stiction_velocity")
+
+
+def obstacles_after(msg, obstacles):
+    """The obstacles (a tuple) after one soft_twin/Obstacle message: ADD (or
+    replace), MOVE or REMOVE the obstacle ``msg.name``; InputError (reason
+    bad_obstacle, unknown_name or non_finite) naming the field, the
+    obstacles unchanged."""
+    from soft_twin_core.errors import InputError, ModelError
+    from soft_twin_core.robot.obstacles import obstacle_at, obstacle_placed
+    name, op = msg.name, msg.operation
+    if not name:
+        raise InputError("bad_obstacle", "obstacle: name must not be empty")
+    names = [o.name for o in obstacles]
+    if op not in (0, 1, 2):
+        raise InputError("bad_obstacle", f"obstacle {name!r}: operation {op} is none of ADD (0), MOVE (1), "
+                                         f"REMOVE (2)")
+    if op != 0 and name not in names:
+        raise InputError("unknown_name", f"obstacle {name!r}: no such obstacle to {('move', 'remove')[op - 1]} "
+                                         f"(there are {names})")
+    if op == 2:
+        return tuple(o for o in obstacles if o.name != name)
+    try:
+        T = matrix_from_pose(msg.pose)
+    except ValueError as e:
+        raise InputError("non_finite", f"obstacle {name!r}: pose: {e}") from None
+    try:
+        if op == 1:
+            new = obstacle_placed(obstacles[names.index(name)], T)
+        else:
+            law = {k: float(getattr(msg, k)) for k in _LAW if getattr(msg, k) != 0.0}
+            if msg.plane:
+                kind, dims = "plane", ()
+            elif msg.primitive.type in _PRIMITIVES:
+                kind, dims = _PRIMITIVES[msg.primitive.type][0], list(msg.primitive.dimensions)
+            else:
+                raise InputError("bad_obstacle", f"obstacle {name!r}: primitive.type {msg.primitive.type}: "
+                                                 f"expected BOX (1), SPHERE (2) or CYLINDER (3), or plane = true")
+            new = obstacle_at(name, kind, T, dims, law, where=f"obstacle {name!r}")
+    except ModelError as e:
+        raise InputError("bad_obstacle", str(e)) from None
+    if name in names:
+        return tuple(new if o.name == name else o for o in obstacles)
+    return tuple(obstacles) + (new,)
+
+
+def contacts_msg(mech, contacts, obstacles, header):
+    """soft_twin/Contacts of a ContactState (None: none) of ``mech``
+    against ``obstacles`` (those it indexes)."""
+    from soft_twin.msg import Contact, Contacts
+    from soft_twin_core.solve.contact import contacts_dict
+    out = Contacts(header=header)
+    for c in contacts_dict(mech, contacts, obstacles):
+        f, n = np.asarray(c["force"]), np.asarray(c["normal"])
+        out.contacts.append(Contact(
+            member=c["member"], s=c["s"], obstacle=c["obstacle"], position=Point(**dict(zip("xyz", c["position"]))),
+            normal=Vector3(**dict(zip("xyz", c["normal"]))), gap=c["gap"], force=Vector3(**dict(zip("xyz", c["force"]))),
+            normal_force=float(f @ n), slip_velocity=Vector3(**dict(zip("xyz", c["slip"])))))
+    return out

@@ -29,7 +29,8 @@ class Stats:
                            rejected_actuation=0, rejected_wrench=0, internal_errors=0,
                            rejected_parameter_changes=0, joint_commands_received=0,
                            joint_commands_applied=0, joint_commands_superseded=0, joint_commands_lost=0,
-                           rejected_joint=0)
+                           rejected_joint=0, obstacle_updates_received=0, obstacle_updates_applied=0,
+                           rejected_obstacle=0)
         self.last_internal_error = ""
         self.rejected_by_reason = {r: 0 for r in cmd.REJECT_REASONS}
         self.last_rejection = ""
@@ -81,10 +82,11 @@ class Stats:
         self.failures += 1
         self.totals["solver_failures"] += 1
         self.last_solver_message = info.message
-        applied = {"actuation": "commands_applied", "joint": "joint_commands_applied", "wrench": "wrenches_applied"}
+        applied = {"actuation": "commands_applied", "joint": "joint_commands_applied", "wrench": "wrenches_applied",
+                   "obstacles": "obstacle_updates_applied"}
         for kind in info.dropped:
             self.totals[applied[kind]] -= 1
-            self.reject(kind, cmd.InputError("solver_failed", info.message))
+            self.reject("obstacle" if kind == "obstacles" else kind, cmd.InputError("solver_failed", info.message))
         return tuple(info.dropped)
 
 
@@ -135,9 +137,14 @@ def values(s, cfg, twin, gaps, now):
         "wrenches_received_total": str(t["wrenches_received"]),
         "wrenches_applied_total": str(t["wrenches_applied"]),
         "wrenches_lost_total": _lost(t["wrenches_lost"], gaps["wrench"]),
-        "rejected_inputs_total": str(t["rejected_actuation"] + t["rejected_wrench"] + t["rejected_joint"]),
+        "rejected_inputs_total": str(t["rejected_actuation"] + t["rejected_wrench"] + t["rejected_joint"]
+                                     + t["rejected_obstacle"]),
         "rejected_actuation_total": str(t["rejected_actuation"]),
         "rejected_wrench_total": str(t["rejected_wrench"]),
+        "obstacle_updates_received_total": str(t["obstacle_updates_received"]),      # ~/obstacles (issue 27)
+        "obstacle_updates_applied_total": str(t["obstacle_updates_applied"]),
+        "rejected_obstacle_total": str(t["rejected_obstacle"]),
+        "obstacles": str(len(twin.obstacles)),
         **{f"rejected_{r}_total": str(n) for r, n in s.rejected_by_reason.items()},
         "last_rejection": s.last_rejection,
         "rejected_parameter_changes_total": str(t["rejected_parameter_changes"]),

@@ -67,6 +67,23 @@ def parse_wrenches(batch, cfg):
     return newest, errors
 
 
+def fold_obstacles(batch, obstacles):
+    """(the obstacles after the valid soft_twin/Obstacle messages of
+    ``batch`` in order, how many were valid, the InputErrors of the others);
+    ``obstacles`` the tuple before. ADD checks the shape and law as a robot
+    file's entry (:func:`soft_twin_core.robot.obstacles.obstacle_at`), MOVE
+    and REMOVE need an obstacle of that name."""
+    n_applied, errors = 0, []
+    for m, _ in batch:
+        try:
+            obstacles = cv.obstacles_after(m, obstacles)
+        except cmd.InputError as e:
+            errors.append(e)
+        else:
+            n_applied += 1
+    return obstacles, n_applied, errors
+
+
 def rejection_warning(kind, errors):
     """The log line for a batch's rejected inputs (the newest reason, and how many more)."""
     e = errors[-1]

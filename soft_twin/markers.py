@@ -123,6 +123,7 @@ class Markers:
     def __init__(self):
         self.n_tube = 0
         self.n_contacts = 0
+        self.n_obstacles = 0          # obstacle markers drawn (removed obstacles: deleted)
 
     def __call__(self, snap, robot, header):
         out = MarkerArray()
@@ -141,10 +142,14 @@ class Markers:
         # fewer samples than before: delete the extra cylinders
         out.markers += [Marker(header=header, ns="tube", id=i, action=Marker.DELETE) for i in range(n, self.n_tube)]
         self.n_tube = n
-        if mech.obstacles:
+        if snap.obstacles or self.n_obstacles:
             P = np.concatenate([snap.backbones[m.name][0][:, :3, 3] for m in mech.members] + [snap.tip_pose[None, :3, 3]])
             extent = max(float(np.max(P.max(axis=0) - P.min(axis=0))), 0.05)
-            out.markers += obstacle_markers(mech.obstacles, P.mean(axis=0), extent, header)
+            shapes = obstacle_markers(snap.obstacles, P.mean(axis=0), extent, header)
+            out.markers += shapes
+            out.markers += [Marker(header=header, ns="obstacles", id=i, action=Marker.DELETE)
+                            for i in range(len(shapes), self.n_obstacles)]
+            self.n_obstacles = len(shapes)
         arrows = contact_arrows(snap.contacts, header) if snap.contacts is not None and len(snap.contacts) else []
         out.markers += arrows
         out.markers += [Marker(header=header, ns="contacts", id=i, action=Marker.DELETE)

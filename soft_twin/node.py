@@ -65,7 +65,7 @@ from std_msgs.msg import Float64MultiArray, Header, MultiArrayDimension
 from std_srvs.srv import Trigger
 from visualization_msgs.msg import MarkerArray
 
-from soft_twin.msg import ActuationCommand, Strains
+from soft_twin.msg import ActuationCommand, Contacts, Obstacle, Strains
 from soft_twin.stepper import Stepper
 from soft_twin.srv import ForwardKinematics, InverseKinematics, StaticsQuery
 
@@ -86,6 +86,7 @@ _SERVICE_TIMING = bool(os.environ.get("SOFT_TWIN_SERVICE_TIMING"))
 ACTUATION_QUEUE = 100       # subscription depths (keep last)
 WRENCH_QUEUE = 10
 JOINT_QUEUE = 100
+OBSTACLE_QUEUE = 100
 class StartupInterrupted(Exception):
     """The start-up was abandoned on request (a stop signal, see main)."""
 
@@ -173,6 +174,7 @@ class SoftTwinNode(Node):
         self._pub_base_wrench = self.create_publisher(WrenchStamped, "~/base_wrench", state_qos)
         self._pub_strains = self.create_publisher(Strains, "~/strains", state_qos)
         self._pub_markers = self.create_publisher(MarkerArray, "~/markers", 1)
+        self._pub_contacts = self.create_publisher(Contacts, "~/contacts", state_qos)       # issue 27
         self._pub_diag = self.create_publisher(DiagnosticArray, "/diagnostics", 10)
         self._make_articulated_interfaces(state_qos)
 
@@ -185,6 +187,10 @@ class SoftTwinNode(Node):
             callback_group=self._input_group)
         self._wrench_sub = self.create_subscription(
             WrenchStamped, "~/tip_wrench_command", lambda msg, info: on_wrench(msg, info), WRENCH_QUEUE,
+            callback_group=self._input_group)
+        on_obstacle = self._guarded(self._on_obstacle)
+        self._obstacle_sub = self.create_subscription(
+            Obstacle, "~/obstacles", lambda msg, info: on_obstacle(msg, info), OBSTACLE_QUEUE,
             callback_group=self._input_group)
 
         # --- services --------------------------------------------------------
@@ -211,7 +217,7 @@ class SoftTwinNode(Node):
         self._tf = tf_out.TfOutput(self)
         self._recorder = recorder.Recorder(self, [
             self._pub_backbone, self._pub_tip, self._pub_tip_wrench, self._pub_base_wrench,
-            self._pub_strains, self._pub_markers, self._pub_diag, self._tf.publisher]
+            self._pub_strains, self._pub_markers, self._pub_contacts, self._pub_diag, self._tf.publisher]
             + self._articulated_publishers(), self._publish_lock)
         self._recorder.follow(self.cfg.record_file)
         self._live_view = live_view_out.LiveViewOutput(self)
@@ -259,7 +265,7 @@ class SoftTwinNode(Node):
 
     @staticmethod
     def _make_twin(robot, settings):
-        return tw.Twin(robot.mech, settings)
+        return tw.Twin(robot.mech, settings, robot.obstacles)
 
     @staticmethod
     def _make_query_worker(robot):
@@ -597,6 +603,26 @@ class SoftTwinNode(Node):
         if newest is not None:
             self._react_to_input(batch)
 
+    def _on_obstacle(self, msg, info=None):
+        """Every queued soft_twin/Obstacle in order: checked and applied
+        (:func:`inputs.fold_obstacles`) to the twin's obstacles, counted; a
+        move is taken over the next step (:meth:`Twin.set_obstacles`)."""
+        batch = self._take_queued(self._obstacle_sub, (msg, info), OBSTACLE_QUEUE)
+        with self._lock:
+            twin = self.twin
+            obstacles, n_applied, errors = inputs.fold_obstacles(batch, twin.obstacles)
+            s = self.stats
+            s.totals["obstacle_updates_received"] += len(batch)
+            s.totals["obstacle_updates_applied"] += n_applied
+            for e in errors:
+                s.reject("obstacle", e)
+            if n_applied:
+                twin.set_obstacles(obstacles)
+        if errors:
+            self.get_logger().warn(inputs.rejection_warning("obstacle", errors), throttle_duration_sec=1.0)
+        if n_applied:
+            self._react_to_input(batch)
+
     def _react_to_input(self, batch):
         """Quasi-static: have the step group solve at once. Dynamic with
         step_on_command: take the next step right here (it saves the executor
@@ -757,6 +783,8 @@ class SoftTwinNode(Node):
                 strains.last_command = snap.command_stamp
             self._pub_strains.publish(strains)
         self._publish_articulated(snap, header)
+        if self.listened(self._pub_contacts):
+            self._pub_contacts.publish(cv.contacts_msg(robot.mech, snap.contacts, snap.obstacles, header))
         self._last_articulated = snap
         self._tf.publish(snap, robot, header)          # issue 12: /tf
         self._live_view.publish(snap, robot)           # issue 12: browser view (throttled)

@@ -28,7 +28,7 @@ from soft_twin_core.text import clip, short_list
 # solve it caused failed
 REJECT_REASONS = ("non_finite", "wrong_length", "unknown_name", "duplicate_name",
                   "negative_tension", "over_limit", "under_limit", "bad_frame", "wrong_mode",
-                  "solver_failed")
+                  "solver_failed", "bad_obstacle")
 
 
 def parse_actuation(model, names, values, current, order=None):

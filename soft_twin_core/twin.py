@@ -39,6 +39,7 @@ from soft_twin_core.planning import planner as pl
 from soft_twin_core.planning.ik import frame_ik
 from soft_twin_core.robot.mechanism import shape_command, tip_frame
 from soft_twin_core.robot.model import State
+from soft_twin_core.robot.obstacles import check_unique_names
 from soft_twin_core.solve import constrained as cs
 from soft_twin_core.solve.outputs import (main_member, q_from_section_strains, section_rates, section_strains,
                                           state_outputs, state_shape)
@@ -196,6 +197,7 @@ class Snapshot:
     command_stamp: object = None
     points_per_section: int = 1     # backbone points per section (every member's section boundaries: [::pps])
     contacts: object = None         # robots with obstacles: the engine.contact.ContactState of this state
+    obstacles: tuple = ()           # the obstacles of this state (those ``contacts`` index)
     state: tuple = field(default=None, repr=False)    # (mech, q, v, a, lam, inputs): what the loads need
 
     @cached_property
@@ -230,7 +232,8 @@ class Twin:
     """A mechanism, its state and inputs (see the module docstring). Not
     thread-safe: the node serialises calls."""
 
-    def __init__(self, mech, settings=None):
+    def __init__(self, mech, settings=None, obstacles=None):
+        """``obstacles``: what the members touch (default the robot file's)."""
         self.mech = mech
         self.model = mech            # what the node reads: name, actuators, actuator_names
         self.settings = settings or TwinSettings()
@@ -247,6 +250,10 @@ class Twin:
         self._version = 0                # counts the changes of the inputs (core_inputs' cache, _commit)
         self._core = (None, None)        # (version, Inputs) of the commands as they are
         self._tangent = None             # the last equilibrium's tangent (robots without multipliers): a hint
+        self.obstacles = check_unique_names(tuple(mech.obstacles if obstacles is None else obstacles),
+                                            "obstacles")       # what the members touch now (set_obstacles)
+        self._moved = None               # dynamic: obstacles moved, where the next step takes them
+        self._rest_of = self.obstacles   # the obstacles the rest shape was solved with
         self.rest_q, self.rest_message, self.rest_contacts = self._rest()
         self.lam = np.zeros(mech.n_constraint_rows + len(mech.joints_with("position")))
         self._keep_good(reset=True)
@@ -340,7 +347,7 @@ class Twin:
         (statics; a robot with a floating base or spherical joints starts
         from its reference configuration). Returns (q, message, its contacts)."""
         try:
-            eq = cs.solve_equilibrium(self.mech)
+            eq = cs.solve_equilibrium(self.mech, obstacles=self.obstacles)
             return eq.q.copy(), "rest: static equilibrium under gravity", eq.contacts
         except (ValueError, cs.StaticsError) as e:
             return self.mech.tree.q0.copy(), f"rest: reference configuration ({clip(e, 200)})", None
@@ -350,10 +357,44 @@ class Twin:
         # the work a failing step may do is bounded as the settings say (real time: see TwinSettings)
         return cs.MechanismSimulator(self.mech, s.dt, s.theta, q, v, tol=s.tolerance,
                                      max_iterations=max(s.max_iterations, 10),
-                                     max_substep_levels=s.max_substep_levels, full_newton=bool(s.full_newton))
+                                     max_substep_levels=s.max_substep_levels, full_newton=bool(s.full_newton),
+                                     obstacles=self.obstacles)
+
+    def _sim_at_state(self):
+        """A new simulator at the twin's state (q, v, t, multipliers): after
+        the set of obstacles changed."""
+        sim = self._new_sim(self.state.q, self.state.qdot)
+        sim.t = self.state.t
+        sim.lam = self.lam.copy()
+        return sim
+
+    def set_obstacles(self, obstacles):
+        """What the members touch from now on (engine.contact.Obstacle,
+        each checked at the door: :mod:`soft_twin_core.robot.obstacles`;
+        ModelError for repeated names).
+        The same obstacles (names and kinds, in order) at new poses move
+        there over the next dynamic step: the contacts see their velocity.
+        Any other change takes effect at once (the simulator is remade at the
+        current state). Quasi-static: the next solve has them. A reset
+        solves the rest shape again with them."""
+        obstacles = check_unique_names(tuple(obstacles), "obstacles")
+        same = (len(obstacles) == len(self.obstacles) and all(
+            a.name == b.name and a.kind == b.kind for a, b in zip(obstacles, self.obstacles)))
+        if self._sim is not None and same and obstacles and self._sim.contact:
+            self._moved = obstacles
+            return
+        self.obstacles, self._moved = obstacles, None
+        if self._sim is not None:
+            self._sim = self._sim_at_state()
+        self._dirty = self.settings.mode == "quasi_static"
 
     def reset(self, solve=True):
         mech = self.mech
+        if self._moved is not None:
+            self.obstacles, self._moved = self._moved, None
+        if self._rest_of is not self.obstacles:
+            self._rest_of = self.obstacles
+            self.rest_q, self.rest_message, self.rest_contacts = self._rest()
         self.u = np.zeros(len(mech.actuators))
         self.tip_wrench, self.tip_frame = np.zeros(6), "world"
         self.positions = {mech.tree.joints[i].name: mech.tree.joints[i].q_ref for i in mech.joints_with("position")}
@@ -408,6 +449,9 @@ class Twin:
         (:class:`soft_twin_core.twin.DropPolicy`)."""
         t0 = time.perf_counter()
         if self.settings.mode != "dynamic":
+            if self._moved is not None:
+                self.obstacles, self._moved = self._moved, None
+                self._dirty = True
             info = self._solve()
             info.compute_time = time.perf_counter() - t0
             return info
@@ -420,12 +464,18 @@ class Twin:
                     ref = self._shaped(self.settings.dt)
                     inp = self.core_inputs({k: r for k, (r, _) in ref.items()}, {k: v for k, (_, v) in ref.items()})
                 try:
-                    self._sim.step(inputs=inp)
+                    self._sim.step(inputs=inp, obstacles=self._moved)
+                    if self._moved is not None:
+                        self.obstacles, self._moved = self._moved, None
                 except (cs.StepError,) + STEP_ERRORS as e:
                     if info.steps:
                         self._commit()
                     info.converged = False
                     info.dropped = self._drop()
+                    if self._moved is not None:      # the move is dropped too: the obstacles stay put
+                        self._moved = None
+                        self._sim = self._sim_at_state()
+                        info.dropped += ("obstacles",)
                     why = clip(e, 300) if isinstance(e, cs.StepError) else f"{type(e).__name__}: {clip(e, 300)}"
                     info.message = (f"dynamics step at t = {self.state.t:.4f} s did not converge ({why}); "
                                     f"state kept at the last good step"
@@ -480,7 +530,7 @@ class Twin:
         self._dirty = False
         try:
             eq = cs.solve_equilibrium(self.mech, q_init=self.state.q, inputs=self.core_inputs(),
-                                      tangent_hint=self._tangent)
+                                      tangent_hint=self._tangent, obstacles=self.obstacles)
         except (ValueError, cs.StaticsError) + STEP_ERRORS as e:
             dropped = self._drop()
             return UpdateInfo(0, 0, False, f"statics failed for the last input (dropped): {clip(e, 300)}; "
@@ -651,4 +701,5 @@ class Twin:
             backbones=backbones, main_member=main, s=s, backbone=bb, tip_pose=tip_pose,
             strains=section_strains(mech, q), strain_rates=rates, frames=frames, tip_wrench=tip_w,
             command_stamp=stamp, points_per_section=self.settings.points_per_section, contacts=self.contacts,
+            obstacles=self.obstacles,
             state=(mech, q, v, a, self.lam.copy(), inp))

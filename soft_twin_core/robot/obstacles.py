@@ -17,6 +17,8 @@ the ``contact`` settings, in either schema), checked at the door::
 The contact law: :mod:`soft_twin_core.engine.contact`.
 """
 
+from dataclasses import replace
+
 import numpy as np
 
 from soft_twin_core.engine.contact import OBSTACLE_KINDS, ContactPoints, Obstacle, sample_path
@@ -73,12 +75,61 @@ def obstacles_from_list(items, where="robot.obstacles"):
         return ()
     if not isinstance(items, list):
         raise ModelError(f"{where}: expected a list of obstacles, got {items!r}")
-    out = tuple(obstacle_from_dict(d, f"{where}[{i}]") for i, d in enumerate(items))
-    names = [o.name for o in out]
+    return check_unique_names(tuple(obstacle_from_dict(d, f"{where}[{i}]") for i, d in enumerate(items)), where)
+
+
+def check_unique_names(obstacles, where):
+    """``obstacles`` (a tuple), or ModelError naming the repeated names."""
+    names = [o.name for o in obstacles]
     dup = sorted({n for n in names if names.count(n) > 1})
     if dup:
         raise ModelError(f"{where}: obstacle names must be unique, repeated: {dup}")
-    return out
+    return obstacles
+
+
+def obstacle_at(name, kind, T, dimensions=(), law=None, where="obstacle"):
+    """An obstacle ``name`` of ``kind`` placed at the pose T (4x4, world <-
+    obstacle), checked as a robot file's entry is (ModelError naming
+    ``where``'s field): a plane through T's origin with T's z axis its
+    normal; a sphere (dimensions [radius]) or box (dimensions [x, y, z] edge
+    lengths) centred at it, the box along its axes; a capsule (dimensions
+    [length, radius]) along its z axis, centred. ``law``: the contact-law
+    keys (stiffness, smoothing, damping, friction, stiction_velocity)."""
+    T = np.asarray(T, dtype=float)
+    c, R = T[:3, 3], T[:3, :3]
+    dims = [float(x) for x in dimensions]
+    need = {"plane": 0, "sphere": 1, "box": 3, "capsule": 2}.get(kind, 0)
+    if len(dims) < need:
+        raise ModelError(f"{where}.dimensions: a {kind} needs {need} dimensions, got {dims}")
+    d = {"name": name, "type": kind, **(law or {})}
+    if kind == "plane":
+        d.update(point=c.tolist(), normal=R[:, 2].tolist())
+    elif kind == "sphere":
+        d.update(center=c.tolist(), radius=dims[0])
+    elif kind == "box":
+        d.update(center=c.tolist(), size=dims[:3])
+    elif kind == "capsule":
+        half = 0.5 * dims[0] * R[:, 2]
+        d.update({"from": (c - half).tolist(), "to": (c + half).tolist(), "radius": dims[1]})
+    ob = obstacle_from_dict(d, where)
+    return replace(ob, rotation=R.copy()) if kind == "box" else ob
+
+
+def obstacle_placed(ob, T):
+    """The obstacle ``ob`` moved to the pose T (4x4) in the sense of
+    :func:`obstacle_at` (its shape and contact law kept); ModelError for a
+    pose that is not finite."""
+    T = np.asarray(T, dtype=float)
+    if not np.all(np.isfinite(T)):
+        raise ModelError(f"obstacle {ob.name!r}: the pose must be finite, got {T[:3].tolist()}")
+    if ob.kind == "plane":
+        return replace(ob, a=T[:3, 3].copy(), b=T[:3, 2].copy())
+    if ob.kind == "sphere":
+        return replace(ob, a=T[:3, 3].copy())
+    if ob.kind == "box":
+        return replace(ob, a=T[:3, 3].copy(), rotation=T[:3, :3].copy())
+    half = 0.5 * np.linalg.norm(ob.b - ob.a) * T[:3, 2]
+    return replace(ob, a=T[:3, 3] - half, b=T[:3, 3] + half)
 
 
 def contact_spacing(d, where="robot.contact"):

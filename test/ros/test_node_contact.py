@@ -32,3 +32,47 @@ def test_the_arm_on_a_table_steps_and_shows_its_contacts(tmp_path):
         assert all(a.points[1].z > a.points[0].z for a in arrows)          # the table pushes up
     finally:
         stop_twin(proc, c)
+
+
+def test_obstacles_from_a_file_and_the_obstacles_topic_and_the_contacts_they_make(tmp_path):
+    """The default arm (tip drooping to z = -0.297 m) with a floor from
+    ``obstacles_file`` at z = -0.29 m: it rests on it, ~/contacts says where;
+    REMOVE takes the floor away (no contacts); a sphere ADDed under the tip
+    is touched; a MOVE of an unknown name is rejected and counted."""
+    from geometry_msgs.msg import Pose
+    from shape_msgs.msg import SolidPrimitive
+    from soft_twin.msg import Contacts, Obstacle
+    name = "twin_obstacles"
+    f = tmp_path / "floor.yaml"
+    f.write_text("obstacles:\n  - {name: floor, type: plane, point: [0, 0, -0.29], normal: [0, 0, 1]}\n")
+    proc, c = start_twin(name, ["-p", f"obstacles_file:={f}", "-p", "diagnostics_rate_hz:=5.0"],
+                         tmp_path / "node.log", TwinClient.TOPICS, 120.0)
+    try:
+        got = c.subscribe(Contacts, f"/{name}/contacts", depth=5)
+        pub = c.node.create_publisher(Obstacle, f"/{name}/obstacles", 10)
+        assert c.wait_until(lambda: pub.get_subscription_count() > 0, 20.0)
+        assert c.wait_until(lambda: bool(got and got[-1].contacts), 20.0), "no contact with the floor"
+        cs = got[-1].contacts
+        assert {x.obstacle for x in cs} == {"floor"} and all(x.normal_force > 0 for x in cs)
+        assert got[-1].header.frame_id == "base_link" and all(abs(x.normal.z - 1) < 1e-9 for x in cs)
+
+        pub.publish(Obstacle(name="floor", operation=Obstacle.REMOVE))
+        assert c.wait_diagnostics(lambda d: d["obstacles"] == "0", 20.0) is not None
+        assert c.wait_until(lambda: bool(got) and not got[-1].contacts, 20.0), "the floor's contacts stayed"
+
+        ball = Obstacle(name="ball", operation=Obstacle.ADD, pose=Pose(),
+                        primitive=SolidPrimitive(type=SolidPrimitive.SPHERE, dimensions=[0.03]))
+        tip = c.tip_pose.pose.position
+        ball.pose.position.x, ball.pose.position.z = tip.x, tip.z - 0.008 - 0.03 + 0.002   # 2 mm into the tip
+        ball.pose.orientation.w = 1.0
+        pub.publish(ball)
+        assert c.wait_until(lambda: bool(got and got[-1].contacts)
+                            and {x.obstacle for x in got[-1].contacts} == {"ball"}, 20.0), "the ball is not touched"
+
+        pub.publish(Obstacle(name="ghost", operation=Obstacle.MOVE))
+        d = c.wait_diagnostics(lambda d: d["rejected_obstacle_total"] == "1", 20.0)
+        assert d is not None and d["rejected_unknown_name_total"] == "1" and "ghost" in d["last_rejection"]
+        assert d["obstacle_updates_received_total"] == "3" and d["obstacle_updates_applied_total"] == "2", d
+        assert d["solver_failures_total"] == "0" and d["internal_errors_total"] == "0", d
+    finally:
+        stop_twin(proc, c)

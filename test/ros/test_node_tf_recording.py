@@ -202,7 +202,8 @@ def test_recording_holds_every_topic_and_input(twin, tmp_path):
                 # every robot's joint and member topics (a classic rod: no joints, member "backbone")
                 f"{ns}/joint_states": "sensor_msgs/msg/JointState",
                 f"{ns}/backbones/backbone": "geometry_msgs/msg/PoseArray",
-                f"{ns}/internal_wrenches/backbone": "std_msgs/msg/Float64MultiArray"}
+                f"{ns}/internal_wrenches/backbone": "std_msgs/msg/Float64MultiArray",
+                f"{ns}/contacts": "soft_twin/msg/Contacts"}        # empty: the default arm touches nothing
     assert set(msgs) == set(expected), sorted(msgs)
     for topic, type_name in expected.items():
         assert {s for s, _, _ in msgs[topic]} == {type_name}, topic

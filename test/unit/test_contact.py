@@ -503,9 +503,13 @@ def test_the_node_markers_draw_the_obstacles_and_an_arrow_per_contact():
     fewer = SimpleNamespace(**{k: getattr(snap, k) for k in ("backbones", "points_per_section", "frames",
                                                                "main_member", "tip_pose")})
     fewer.contacts = None
+    fewer.obstacles = snap.obstacles[:2]          # two obstacles removed (~/obstacles): their markers go
     out2 = mk(fewer, SimpleNamespace(mech=mech), Header())
     gone = [m.id for m in out2.markers if m.ns == "contacts" and m.action == Marker.DELETE]
     assert gone == list(range(len(arrows)))
+    shapes = [m for m in out2.markers if m.ns == "obstacles"]
+    assert [m.action for m in shapes] == [Marker.ADD] * 2 + [Marker.DELETE] * 4
+    assert [m.id for m in shapes if m.action == Marker.DELETE] == [2, 3, 4, 5]
 
 
 def test_a_box_its_distance_gradient_and_hessian():
