@@ -75,6 +75,31 @@ def run():
         solver.solve(target, np.zeros(1), None)
     pl.box_lstsq(np.eye(3, 2), np.ones(3), np.zeros(2), np.array([np.inf, 0.5]))
     tiny_mechanism_run()
+    tiny_contact_run()
+
+
+def tiny_contact_run():
+    """A 2-section arm on a table, a ball, a post and a block (issue 27):
+    the contact law's kernels in statics and in dynamics, friction and a
+    moving obstacle included."""
+    from soft_twin_core.engine.contact import moved
+    from soft_twin_core.robot.mechanism import from_robot_model
+    from soft_twin_core.robot.model import model_from_dict
+    from soft_twin_core.solve.constrained import MechanismSimulator, solve_equilibrium
+    d = {"name": "warmup_contact", "segments": [{
+        "length": 0.2, "sections": 2, "cross_section": {"shape": "solid_circle", "radius": 0.01},
+        "material": {"youngs_modulus": 1e6, "density": 1000, "viscosity": 10.0}}],
+        "obstacles": [{"name": "table", "type": "plane", "point": [0, 0, -0.0105], "normal": [0, 0, 1],
+                       "friction": 0.3, "damping": 1.0},
+                      {"name": "ball", "type": "sphere", "center": [0.1, 0, 0.2], "radius": 0.01},
+                      {"name": "post", "type": "capsule", "from": [0.1, 0.2, 0], "to": [0.1, 0.2, 0.1],
+                       "radius": 0.01},
+                      {"name": "block", "type": "box", "center": [0.1, -0.2, 0], "size": [0.1, 0.1, 0.1]}]}
+    mech = from_robot_model(model_from_dict(d), d)
+    solve_equilibrium(mech)
+    sim = MechanismSimulator(mech, 1e-3)
+    sim.step(n=2)
+    sim.step(obstacles=[moved(ob, [0.0, 0.0, 1e-5]) for ob in mech.obstacles])
 
 
 def tiny_mechanism_run():

@@ -43,6 +43,8 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 
+from soft_twin_core.engine.kernels import contact as kc
+
 PLANE, SPHERE, CAPSULE, BOX = 0, 1, 2, 3
 OBSTACLE_KINDS = {"plane": PLANE, "sphere": SPHERE, "capsule": CAPSULE, "box": BOX}
 
@@ -112,20 +114,28 @@ def sample_path(path, spacing):
     return np.asarray(j, np.int64), np.asarray(x, float), s, np.full(n, w)
 
 
+def _flat(*xs):
+    """Broadcast, contiguous 1-D float copies of the arguments, and their shape."""
+    arrs = np.broadcast_arrays(*(np.asarray(x, dtype=float) for x in xs))
+    return [np.ascontiguousarray(x).ravel() for x in arrs], arrs[0].shape
+
+
 def normal_force_density(delta, k, eps):
-    """(f, df/ddelta) of the penalty law (module docstring) [N/m, N/m^2]."""
-    delta = np.asarray(delta, dtype=float)
-    f = np.where(delta <= 0, 0.0, np.where(delta < eps, 0.5 * k * delta ** 2 / eps, k * (delta - 0.5 * eps)))
-    df = np.where(delta <= 0, 0.0, np.where(delta < eps, k * delta / eps, k))
-    return f, df
+    """(f, df/ddelta) of the penalty law (module docstring) [N/m, N/m^2],
+    element-wise (:func:`kernels.contact.penalty`)."""
+    (d, k, e), shape = _flat(delta, k, eps)
+    f, df, phi = np.empty(d.size), np.empty(d.size), np.empty(d.size)
+    kc.penalty_arrays(d, k, e, f, df, phi)
+    return f.reshape(shape), df.reshape(shape)
 
 
 def normal_potential_density(delta, k, eps):
     """Phi(delta) = integral of f from 0 to delta [N]: the penalty's
     stored energy per unit length of member."""
-    delta = np.asarray(delta, dtype=float)
-    return np.where(delta <= 0, 0.0, np.where(delta < eps, k * delta ** 3 / (6 * eps),
-                                               k * (delta ** 2 / 2 - eps * delta / 2 + eps ** 2 / 6)))
+    (d, k, e), shape = _flat(delta, k, eps)
+    f, df, phi = np.empty(d.size), np.empty(d.size), np.empty(d.size)
+    kc.penalty_arrays(d, k, e, f, df, phi)
+    return phi.reshape(shape)
 
 
 def discrete_gradient(delta0, delta1, k, eps):
@@ -137,78 +147,28 @@ def discrete_gradient(delta0, delta1, k, eps):
     stiff and nonlinear). Both ends in one branch of the law: the quotient
     in closed form (no cancellation as delta1 -> delta0): k (d0^2 + d0 d1
     + d1^2) / (6 eps) on the quadratic branch, k ((d0 + d1) - eps) / 2 on
-    the linear one, 0 outside."""
-    d0, d1 = np.broadcast_arrays(np.asarray(delta0, float), np.asarray(delta1, float))
-    k, eps = np.broadcast_to(k, d0.shape), np.broadcast_to(eps, d0.shape)
-    dd = d1 - d0
-    safe = np.where(dd == 0.0, 1.0, dd)
-    f1, _ = normal_force_density(d1, k, eps)
-    quotient = (normal_potential_density(d1, k, eps) - normal_potential_density(d0, k, eps)) / safe
-    quad = (d0 > 0) & (d1 > 0) & (d0 < eps) & (d1 < eps)
-    lin = (d0 >= eps) & (d1 >= eps)
-    out = (d0 <= 0) & (d1 <= 0)
-    fbar = np.where(quad, k * (d0 * d0 + d0 * d1 + d1 * d1) / (6 * eps),
-                    np.where(lin, 0.5 * k * (d0 + d1 - eps), np.where(out, 0.0, quotient)))
-    dfbar = np.where(quad, k * (d0 + 2 * d1) / (6 * eps),
-                     np.where(lin, 0.5 * k, np.where(out, 0.0, (f1 - quotient) / safe)))
-    return fbar, dfbar
+    the linear one, 0 outside (:func:`kernels.contact.mean_force`)."""
+    (d0, d1, k, e), shape = _flat(delta0, delta1, k, eps)
+    fbar, dfbar = np.empty(d0.size), np.empty(d0.size)
+    kc.mean_force_arrays(d0, d1, k, e, fbar, dfbar)
+    return fbar.reshape(shape), dfbar.reshape(shape)
 
 
 def signed_distance(ob, p):
     """(d (P,), n (P, 3), H (P, 3, 3)): signed distance of points p (P, 3)
     from the obstacle's surface (> 0 outside), its gradient (the outward
-    normal) and its Hessian."""
-    P = p.shape[0]
-    if ob.kind == "plane":
-        n = np.broadcast_to(ob.b, (P, 3)).copy()
-        return (p - ob.a) @ ob.b, n, np.zeros((P, 3, 3))
-    if ob.kind == "box":
-        return _box_distance(ob, p)
-    if ob.kind == "sphere":
-        c = np.broadcast_to(ob.a, (P, 3))
-        axis = None
-    elif ob.kind == "capsule":
-        ab = ob.b - ob.a
-        L2 = float(ab @ ab)
-        t = np.clip((p - ob.a) @ ab / L2, 0.0, 1.0)
-        c = ob.a + t[:, None] * ab
-        axis = np.where(((t > 0) & (t < 1))[:, None], ab / np.sqrt(L2), 0.0)
-    else:
-        raise ValueError(f"obstacle {ob.name!r}: unknown kind {ob.kind!r}")
-    r = p - c
-    dist = np.linalg.norm(r, axis=1)
-    dist_safe = np.maximum(dist, 1e-300)
-    n = r / dist_safe[:, None]
-    proj = np.eye(3)[None] - n[:, :, None] * n[:, None, :]
-    if axis is not None:
-        proj = proj - axis[:, :, None] * axis[:, None, :]
-    return dist - ob.radius, n, proj / dist_safe[:, None, None]
-
-
-def _box_distance(ob, p):
-    """Signed distance of points from a box, its gradient and Hessian: in
-    the box's axes, with e = |p| - h per axis, outside ``|max(e, 0)|`` (to
+    normal) and its Hessian (:func:`kernels.contact.distance`: a plane; a
+    sphere or capsule, ``(I - n n^T - t t^T) / |p - c|`` with c the nearest
+    point of the centre or axis and t the axis inside the capsule's span; a
+    box, in its axes with e = |p| - h per axis: outside ``|max(e, 0)|`` (to
     a face, an edge or a corner: Hessian ``(A - n n^T) / d`` with A the
     projector on the axes where e > 0), inside ``max(e)`` (to the nearest
-    face: Hessian 0)."""
-    R, h = ob.rotation, ob.half_size
-    loc = (p - ob.a) @ R
-    e = np.abs(loc) - h
-    sgn = np.where(loc < 0, -1.0, 1.0)
-    out_e = np.maximum(e, 0.0)
-    d_out = np.linalg.norm(out_e, axis=1)
-    outside = d_out > 0
-    k = np.argmax(e, axis=1)
+    face: Hessian 0))."""
+    p = np.ascontiguousarray(p, dtype=float)
     P = p.shape[0]
-    n_loc = np.zeros((P, 3))
-    n_loc[np.arange(P), k] = sgn[np.arange(P), k]                 # inside: the nearest face's normal
-    safe = np.where(outside, d_out, 1.0)
-    n_loc = np.where(outside[:, None], sgn * out_e / safe[:, None], n_loc)
-    d = np.where(outside, d_out, e[np.arange(P), k])
-    active = (e > 0).astype(float)
-    H_loc = (active[:, :, None] * np.eye(3)[None] - n_loc[:, :, None] * n_loc[:, None, :]) / safe[:, None, None]
-    H_loc = np.where(outside[:, None, None], H_loc, 0.0)
-    return d, n_loc @ R.T, R[None] @ H_loc @ R.T[None]
+    d, n, H = np.empty(P), np.empty((P, 3)), np.empty((P, 3, 3))
+    kc.distance_arrays(kc.obstacle_arrays((ob,)), 0, p, d, n, H)
+    return d, n, H
 
 
 @dataclass
@@ -238,29 +198,21 @@ def contact_forces(points, obstacles, p):
     """:class:`ContactState` of the contact points (:class:`ContactPoints`)
     at rest at world positions p (P, 3) against ``obstacles`` (statics; a
     time step's: :func:`step_contact_forces`): every pair with a positive
-    force (penetration) is listed."""
-    idx, obs, ps, ns, gaps, Fs, dFs, dVs = [], [], [], [], [], [], [], []
-    for o, ob in enumerate(obstacles):
-        d, n, H = signed_distance(ob, p)
-        delta = points.radius - d
-        hit = np.flatnonzero(delta > 0)
-        if not len(hit):
-            continue
-        k = points.modulus[hit] if ob.stiffness is None else np.full(len(hit), ob.stiffness)
-        eps = 0.1 * points.radius[hit] if ob.smoothing is None else np.full(len(hit), ob.smoothing)
-        f, df = normal_force_density(delta[hit], k, eps)
-        w = points.weight[hit]
-        nh = n[hit]
-        dVs.append(np.zeros((len(hit), 3, 3)))
-        idx.append(hit)
-        obs.append(np.full(len(hit), o))
-        ps.append(p[hit])
-        ns.append(nh)
-        gaps.append(-delta[hit])
-        Fs.append((w * f)[:, None] * nh)
-        dFs.append(w[:, None, None] * (-df[:, None, None] * nh[:, :, None] * nh[:, None, :]
-                                      + f[:, None, None] * H[hit]))
-    return _stacked(idx, obs, ps, ns, gaps, Fs, dFs, dVs)
+    force (penetration) is listed (:func:`kernels.contact.rest_contacts`)."""
+    p = np.ascontiguousarray(p, dtype=float)
+    m = p.shape[0] * len(obstacles)
+    out = _outputs(m)
+    c = kc.rest_contacts(points.radius, points.modulus, points.weight, kc.obstacle_arrays(obstacles), p,
+                         out["idx"], out["ob"], out["n"], out["gap"], out["F"], out["dF"])
+    i = out["idx"][:c]
+    return ContactState(i.copy(), out["ob"][:c].copy(), p[i], out["n"][:c].copy(), out["gap"][:c].copy(),
+                        out["F"][:c].copy(), out["dF"][:c].copy(), np.zeros((c, 3, 3)))
+
+
+def _outputs(m):
+    return dict(idx=np.empty(m, np.int64), ob=np.empty(m, np.int64), n=np.empty((m, 3)), gap=np.empty(m),
+                F=np.empty((m, 3)), dF=np.empty((m, 3, 3)), dV=np.empty((m, 3, 3)), M=np.empty((m, 3)),
+                slip=np.empty((m, 3)))
 
 
 def step_contact_forces(points, obstacles, p0, p1, pt, h, theta, v0=None, obstacles0=None):
@@ -277,56 +229,22 @@ def step_contact_forces(points, obstacles, p0, p1, pt, h, theta, v0=None, obstac
     ring from step to step instead of damping it. ``obstacles0``: where
     the obstacles were at the step's start (moving obstacles: the
     penetration at the start is against them, the slip relative to their
-    translation over the step; None: they do not move)."""
-    idx, obs, ps, ns, gaps, Fs, dFs, dVs, Ms, Vs = [], [], [], [], [], [], [], [], [], []
-    r = points.radius
-    for o, ob in enumerate(obstacles):
-        ob0 = ob if obstacles0 is None else obstacles0[o]
-        d0, _, _ = signed_distance(ob0, p0)
-        d1, _, _ = signed_distance(ob, p1)
-        hit = np.flatnonzero((r - d0 > 0) | (r - d1 > 0))
-        if not len(hit):
-            continue
-        dt_, n, H = signed_distance(ob, pt[hit])
-        k = points.modulus[hit] if ob.stiffness is None else np.full(len(hit), ob.stiffness)
-        eps = 0.1 * r[hit] if ob.smoothing is None else np.full(len(hit), ob.smoothing)
-        delta0, delta1 = r[hit] - d0[hit], r[hit] - d1[hit]
-        fbar, dfbar = discrete_gradient(delta0, delta1, k, eps)
-        rate = (delta1 - delta0) / h
-        fac = np.maximum(1.0 + ob.damping * rate, 0.0)
-        w = points.weight[hit]
-        idx.append(hit)
-        obs.append(np.full(len(hit), o))
-        ps.append(pt[hit])
-        ns.append(n)
-        gaps.append(dt_ - r[hit])
-        fn = w * fac * fbar
-        nn = n[:, :, None] * n[:, None, :]
-        dF = (w * fac)[:, None, None] * (-(dfbar / theta)[:, None, None] * nn + fbar[:, None, None] * H)
-        dv = np.where(fac > 0, ob.damping, 0.0)
-        dV = -(w * fbar * dv)[:, None, None] * nn
-        vel = (p1[hit] - p0[hit]) / h
-        if v0 is not None:
-            vel = (vel - (1.0 - theta) * v0[hit]) / theta          # the end of the step's
-        if ob0 is not ob:
-            vel = vel - (ob.a - ob0.a) / h                        # relative to the obstacle's surface
-        slip = vel - np.sum(vel * n, axis=1)[:, None] * n
-        F = fn[:, None] * n
-        M = np.zeros((len(hit), 3))
-        if ob.friction > 0:
-            Ft, dFt = friction_force(fn, slip, ob.friction, ob.stiction_velocity)
-            F = F + Ft
-            M = np.cross(-r[hit][:, None] * n, Ft)            # applied at the surface, not the backbone
-            dV = dV + dFt @ (np.eye(3)[None] - nn) / theta   # slip = (I - n n^T) v1; Newton's matrix has theta Dt
-            # friction grows with the normal force: dFt/dp = -mu (slip/s) dfn/dp^T, dfn/dp = -w fac fbar'/theta n
-            unit = Ft / np.maximum(fn, 1e-300)[:, None]       # -mu slip / s
-            dF = dF - unit[:, :, None] * ((w * fac * dfbar / theta)[:, None] * n)[:, None, :]
-        dFs.append(dF)
-        Fs.append(F)
-        dVs.append(dV)
-        Ms.append(M)
-        Vs.append(slip)
-    return _stacked(idx, obs, ps, ns, gaps, Fs, dFs, dVs, Ms, Vs)
+    translation over the step; None: they do not move). The pass:
+    :func:`kernels.contact.step_contacts`."""
+    p0, p1, pt = (np.ascontiguousarray(x, dtype=float) for x in (p0, p1, pt))
+    obs = kc.obstacle_arrays(obstacles)
+    moving = np.zeros(len(obstacles), np.bool_) if obstacles0 is None else np.array(
+        [a is not b for a, b in zip(obstacles0, obstacles)], np.bool_)
+    obs0 = obs if obstacles0 is None else kc.obstacle_arrays(obstacles0)
+    m = p0.shape[0] * len(obstacles)
+    out = _outputs(m)
+    v = np.zeros_like(p0) if v0 is None else np.ascontiguousarray(v0, dtype=float)
+    c = kc.step_contacts(points.radius, points.modulus, points.weight, obs, obs0, moving, p0, p1, pt, float(h),
+                         float(theta), v, v0 is not None, out["idx"], out["ob"], out["n"], out["gap"], out["F"],
+                         out["dF"], out["dV"], out["M"], out["slip"])
+    i = out["idx"][:c]
+    return ContactState(i.copy(), out["ob"][:c].copy(), pt[i], *(out[k][:c].copy() for k in
+                                                                    ("n", "gap", "F", "dF", "dV", "M", "slip")))
 
 
 def friction_force(fn, vt, mu, v_s):
@@ -335,19 +253,9 @@ def friction_force(fn, vt, mu, v_s):
     [N]: ``F = -mu fn vt / sqrt(|vt|^2 + v_s^2)``. Below the stiction
     velocity v_s it acts as a steep viscous law: a tangential load T <
     mu fn is held with a creep ``v = v_s t / sqrt(1 - t^2)``, t = T / (mu
-    fn) (at t = 1/2, 0.58 v_s)."""
-    s = np.sqrt(np.sum(vt * vt, axis=1) + v_s * v_s)
-    c = mu * fn / s
-    F = -c[:, None] * vt
-    dF = -c[:, None, None] * (np.eye(3)[None] - vt[:, :, None] * vt[:, None, :] / (s * s)[:, None, None])
+    fn) (at t = 1/2, 0.58 v_s) (:func:`kernels.contact.friction`)."""
+    fn = np.ascontiguousarray(fn, dtype=float)
+    vt = np.ascontiguousarray(vt, dtype=float)
+    F, dF = np.empty((len(fn), 3)), np.empty((len(fn), 3, 3))
+    kc.friction_arrays(fn, vt, float(mu), float(v_s), F, dF)
     return F, dF
-
-
-def _stacked(idx, obs, ps, ns, gaps, Fs, dFs, dVs, Ms=None, Vs=None):
-    if not idx:
-        z = np.zeros(0)
-        return ContactState(np.zeros(0, np.int64), np.zeros(0, np.int64), np.zeros((0, 3)), np.zeros((0, 3)), z,
-                            np.zeros((0, 3)), np.zeros((0, 3, 3)), np.zeros((0, 3, 3)))
-    return ContactState(np.concatenate(idx), np.concatenate(obs), np.concatenate(ps), np.concatenate(ns),
-                        np.concatenate(gaps), np.concatenate(Fs), np.concatenate(dFs), np.concatenate(dVs),
-                        np.concatenate(Ms) if Ms else None, np.concatenate(Vs) if Vs else None)

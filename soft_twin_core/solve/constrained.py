@@ -708,6 +708,7 @@ class MechanismSimulator:
         self.Ls = _length_scale(mech)
         self.contact = MemberContact(mech, obstacles)      # the robot file's obstacles by default
         self._obstacles0 = None           # moving obstacles: where they were at the step's start
+        self._contact_fac = None          # (key, factors) of the last contact step's Newton matrix
         self.contacts = None              # the ContactState of the last step (at its theta point)
         # no multipliers (a rod, a tree of soft members and effort-controlled or passive joints): the
         # engine's compiled O(n) integrator, the rod's (integrators.ThetaIntegrator)
@@ -843,6 +844,10 @@ class MechanismSimulator:
         q1 = np.empty(tree.nq)
         R = np.empty(tree.nv)
         fac, refactor, prev, first, Rs = None, True, np.inf, 0.0, 1e-300
+        # contact without multipliers: the last step's Newton matrix serves while the same points touch
+        # and it converged in two iterations (modified Newton: a stale one only slows the iteration,
+        # and an update shrinking less than fourfold takes a fresh one)
+        reuse = self._contact_fac if (self.contact and not lam.size) else None
         for it in range(1, self.max_iterations + 1):
             vt = (1 - th) * v0 + th * v1
             acc = (v1 - v0) / h
@@ -860,10 +865,15 @@ class MechanismSimulator:
             if npos:
                 effort[pos_v] += lam[len(lam) - npos:]
             if refactor:
-                try:
-                    fac = self._newton_matrix(inp, coef, ld, qt, q1, targets, contacts, h)
-                except np.linalg.LinAlgError:
-                    raise StepError(f"step at t = {self.t:.6g} s: singular Newton matrix") from None
+                key = (h, tuple(contacts.point), tuple(contacts.obstacle)) if contacts is not None else None
+                if it == 1 and reuse is not None and reuse[0] == key:
+                    fac = reuse[1]
+                else:
+                    try:
+                        fac = self._newton_matrix(inp, coef, ld, qt, q1, targets, contacts, h)
+                    except np.linalg.LinAlgError:
+                        raise StepError(f"step at t = {self.t:.6g} s: singular Newton matrix") from None
+                    reuse = (key, fac)
                 refactor = False
             residual_pass(m, w, self.act, ld, inp.gravity, coef, effort, qt, vt, acc, R, False)
             phi1, _ = constraint_rows(self.mech, self.ws, q1, targets, inp.q_cmd)
@@ -909,6 +919,7 @@ class MechanismSimulator:
             v1[pos_v] = inp.v_cmd if inp.v_cmd is not None else (q1[iq] - q0[iq]) / h
         self.q, self.v, self.lam = q1.copy(), v1, lam
         self.contacts = contacts
+        self._contact_fac = reuse if (reuse is not None and it <= 2) else None
         self.t += h
         self.iterations = it
         self.newton_iterations += it

@@ -118,10 +118,11 @@ class MemberContact:
         J = np.empty((n, 6, Kt.shape[0]))
         world_point_jacobians(ws.m, ws.w, np.ascontiguousarray(self.points.joint[st.point]),
                               np.ascontiguousarray(self.points.x[st.point]), g, J)
-        Jl = J[:, :3, :]
-        Kt -= scale * np.einsum("pai,pab,pbj->ij", Jl, st.dF_dp, Jl)
+        Jl = np.ascontiguousarray(J[:, :3, :])
+        Jf = Jl.reshape(3 * n, -1)                     # the stacked point Jacobians: one GEMM each
+        Kt -= scale * (Jf.T @ np.matmul(st.dF_dp, Jl).reshape(3 * n, -1))
         if Dt is not None:
-            Dt -= np.einsum("pai,pab,pbj->ij", Jl, st.dF_dv, Jl)
+            Dt -= Jf.T @ np.matmul(st.dF_dv, Jl).reshape(3 * n, -1)
         return Kt
 
     def potential(self, ws, q):

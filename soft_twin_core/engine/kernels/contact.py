@@ -1,0 +1,326 @@
+"""Compiled contact law (the formulas: :mod:`soft_twin_core.engine.contact`,
+whose array functions call these): per point, the obstacles' signed
+distance with its gradient and Hessian, the penalty force and its stored
+energy, the step's mean force (discrete gradient), regularised Coulomb
+friction; and the passes that list the contacts of a configuration
+(statics) or of a time step (dynamics) into preallocated arrays.
+
+Obstacles are :class:`ObstacleArrays` (one row per obstacle; NaN stiffness
+or smoothing: the member's default)."""
+
+from collections import namedtuple
+from functools import lru_cache
+
+import numpy as np
+
+from soft_twin_core.engine.kernels.spatial import _jit, _jit_inline
+
+PLANE, SPHERE, CAPSULE, BOX = 0, 1, 2, 3
+KIND_CODES = {"plane": PLANE, "sphere": SPHERE, "capsule": CAPSULE, "box": BOX}
+
+ObstacleArrays = namedtuple("ObstacleArrays", [
+    "kind",        # (O,) PLANE, SPHERE, CAPSULE or BOX
+    "a", "b",      # (O, 3) engine.contact.Obstacle.a and .b (zeros where unused)
+    "radius",      # (O,) [m]
+    "rotation",    # (O, 3, 3) a box's axes (identity otherwise)
+    "half",        # (O, 3) a box's half sizes [m]
+    "stiffness",   # (O,) [N/m^2], NaN: the member's Young's modulus
+    "smoothing",   # (O,) [m], NaN: a tenth of the member's radius
+    "damping",     # (O,) Hunt-Crossley alpha [s/m]
+    "friction",    # (O,) Coulomb mu
+    "stiction",    # (O,) the stiction velocity [m/s]
+])
+
+
+def obstacle_arrays(obstacles):
+    """:class:`ObstacleArrays` of a sequence of engine.contact.Obstacle
+    (immutable, compared by identity: the arrays of the last few tuples
+    are kept)."""
+    return _obstacle_arrays(tuple(obstacles))
+
+
+@lru_cache(maxsize=16)
+def _obstacle_arrays(obstacles):
+    O = len(obstacles)
+    kind = np.array([KIND_CODES[ob.kind] for ob in obstacles], np.int64)
+    a, b, half = np.zeros((O, 3)), np.zeros((O, 3)), np.zeros((O, 3))
+    rot = np.tile(np.eye(3), (O, 1, 1))
+    nan = float("nan")
+    for o, ob in enumerate(obstacles):
+        a[o] = ob.a
+        if ob.b is not None:
+            b[o] = ob.b
+        if ob.kind == "box":
+            rot[o], half[o] = ob.rotation, ob.half_size
+    col = (lambda f: np.array([f(ob) for ob in obstacles], dtype=float))
+    return ObstacleArrays(kind, a, b, col(lambda ob: ob.radius), rot, half,
+                          col(lambda ob: nan if ob.stiffness is None else ob.stiffness),
+                          col(lambda ob: nan if ob.smoothing is None else ob.smoothing),
+                          col(lambda ob: ob.damping), col(lambda ob: ob.friction),
+                          col(lambda ob: ob.stiction_velocity))
+
+
+# --- the law, per point ---------------------------------------------------------
+
+@_jit_inline
+def penalty(delta, k, eps):
+    """(f, df/ddelta) [N/m, N/m^2] at penetration delta: 0 outside,
+    k delta^2 / (2 eps) up to eps, then k (delta - eps/2) (C1)."""
+    if delta <= 0.0:
+        return 0.0, 0.0
+    if delta < eps:
+        return 0.5 * k * delta * delta / eps, k * delta / eps
+    return k * (delta - 0.5 * eps), k
+
+
+@_jit_inline
+def penalty_potential(delta, k, eps):
+    """Phi(delta) = int_0^delta f [N]."""
+    if delta <= 0.0:
+        return 0.0
+    if delta < eps:
+        return k * delta ** 3 / (6.0 * eps)
+    return k * (0.5 * delta * delta - 0.5 * eps * delta + eps * eps / 6.0)
+
+
+@_jit_inline
+def mean_force(d0, d1, k, eps):
+    """(fbar, d fbar/d d1): (Phi(d1) - Phi(d0)) / (d1 - d0), in closed
+    form where both ends share a branch of the law."""
+    if d0 <= 0.0 and d1 <= 0.0:
+        return 0.0, 0.0
+    if 0.0 < d0 < eps and 0.0 < d1 < eps:
+        return k * (d0 * d0 + d0 * d1 + d1 * d1) / (6.0 * eps), k * (d0 + 2.0 * d1) / (6.0 * eps)
+    if d0 >= eps and d1 >= eps:
+        return 0.5 * k * (d0 + d1 - eps), 0.5 * k
+    dd = d1 - d0
+    if dd == 0.0:
+        dd = 1.0
+    q = (penalty_potential(d1, k, eps) - penalty_potential(d0, k, eps)) / dd
+    f1, _ = penalty(d1, k, eps)
+    return q, (f1 - q) / dd
+
+
+@_jit_inline
+def distance(obs, o, p, n, H):
+    """Signed distance [m] of point p from obstacle o's surface (> 0
+    outside); n (3,) receives its gradient (the outward normal), H (3, 3)
+    its Hessian."""
+    kind = obs.kind[o]
+    for r in range(3):
+        for c in range(3):
+            H[r, c] = 0.0
+    if kind == PLANE:
+        d = 0.0
+        for r in range(3):
+            n[r] = obs.b[o, r]
+            d += (p[r] - obs.a[o, r]) * obs.b[o, r]
+        return d
+    if kind == BOX:
+        return _box_distance(obs, o, p, n, H)
+    c = np.empty(3)
+    axis = np.zeros(3)
+    if kind == SPHERE:
+        for r in range(3):
+            c[r] = obs.a[o, r]
+    else:
+        ab = obs.b[o] - obs.a[o]
+        L2 = ab[0] * ab[0] + ab[1] * ab[1] + ab[2] * ab[2]
+        t = ((p[0] - obs.a[o, 0]) * ab[0] + (p[1] - obs.a[o, 1]) * ab[1] + (p[2] - obs.a[o, 2]) * ab[2]) / L2
+        t = min(max(t, 0.0), 1.0)
+        for r in range(3):
+            c[r] = obs.a[o, r] + t * ab[r]
+        if 0.0 < t < 1.0:
+            axis = ab / np.sqrt(L2)
+    v = p - c
+    dist = np.sqrt(v[0] * v[0] + v[1] * v[1] + v[2] * v[2])
+    safe = max(dist, 1e-300)
+    for r in range(3):
+        n[r] = v[r] / safe
+    for r in range(3):
+        for s in range(3):
+            H[r, s] = ((1.0 if r == s else 0.0) - n[r] * n[s] - axis[r] * axis[s]) / safe
+    return dist - obs.radius[o]
+
+
+@_jit_inline
+def _box_distance(obs, o, p, n, H):
+    """A box's signed distance: in its axes, with e = |p| - h per axis,
+    outside ``|max(e, 0)|`` (to a face, an edge or a corner: Hessian
+    ``(A - n n^T) / d``, A the projector on the axes where e > 0), inside
+    ``max(e)`` (to the nearest face: Hessian 0)."""
+    R = obs.rotation[o]
+    loc = np.zeros(3)
+    for c in range(3):
+        for r in range(3):
+            loc[c] += (p[r] - obs.a[o, r]) * R[r, c]
+    e = np.abs(loc) - obs.half[o]
+    sgn = np.where(loc < 0.0, -1.0, 1.0)
+    out_e = np.maximum(e, 0.0)
+    d_out = np.sqrt(out_e[0] * out_e[0] + out_e[1] * out_e[1] + out_e[2] * out_e[2])
+    n_loc = np.zeros(3)
+    if d_out > 0.0:
+        for r in range(3):
+            n_loc[r] = sgn[r] * out_e[r] / d_out
+        d = d_out
+    else:
+        k = int(np.argmax(e))
+        n_loc[k] = sgn[k]
+        d = e[k]
+    for r in range(3):
+        n[r] = R[r, 0] * n_loc[0] + R[r, 1] * n_loc[1] + R[r, 2] * n_loc[2]
+    if d_out > 0.0:          # H = R Hl R^T
+        for r in range(3):
+            for s in range(3):
+                acc = 0.0
+                for a in range(3):
+                    acc += R[r, a] * R[s, a] * (1.0 if e[a] > 0.0 else 0.0)
+                H[r, s] = (acc - n[r] * n[s]) / d_out
+    return d
+
+
+@_jit_inline
+def friction(fn, vt, mu, v_s, F, dF):
+    """Regularised Coulomb friction: F (3,) = -mu fn vt / sqrt(|vt|^2 +
+    v_s^2), dF (3, 3) = dF/dvt."""
+    s2 = vt[0] * vt[0] + vt[1] * vt[1] + vt[2] * vt[2] + v_s * v_s
+    c = mu * fn / np.sqrt(s2)
+    for r in range(3):
+        F[r] = -c * vt[r]
+        for q in range(3):
+            dF[r, q] = -c * ((1.0 if r == q else 0.0) - vt[r] * vt[q] / s2)
+
+
+# --- the passes ---------------------------------------------------------------
+
+@_jit
+def rest_contacts(radius, modulus, weight, obs, p, idx, ob_of, n_out, gap, F, dF):
+    """Statics: every (point, obstacle) pair pressed in at positions p (P,
+    3), obstacle-major; fills the outputs (sized P O) and returns their
+    count: force F = w f n and dF/dp = w (-f' n n^T + f H)."""
+    n = np.empty(3)
+    H = np.empty((3, 3))
+    c = 0
+    for o in range(obs.kind.shape[0]):
+        for i in range(p.shape[0]):
+            d = distance(obs, o, p[i], n, H)
+            delta = radius[i] - d
+            if delta <= 0.0:
+                continue
+            k = modulus[i] if np.isnan(obs.stiffness[o]) else obs.stiffness[o]
+            eps = 0.1 * radius[i] if np.isnan(obs.smoothing[o]) else obs.smoothing[o]
+            f, df = penalty(delta, k, eps)
+            w = weight[i]
+            idx[c], ob_of[c], gap[c] = i, o, -delta
+            for r in range(3):
+                n_out[c, r] = n[r]
+                F[c, r] = w * f * n[r]
+                for s in range(3):
+                    dF[c, r, s] = w * (-df * n[r] * n[s] + f * H[r, s])
+            c += 1
+    return c
+
+
+@_jit
+def step_contacts(radius, modulus, weight, obs, obs0, moving, p0, p1, pt, h, theta, v0, use_v0,
+                  idx, ob_of, n_out, gap, F, dF, dV, M, slip):
+    """A time step from positions p0 to p1 (P, 3), forces at the theta
+    point pt: every pair pressed in at either end, obstacle-major (sizes
+    P O; returns the count). The normal force is the mean force of the
+    penetrations at the ends (against obs0 at the start for a ``moving``
+    obstacle), along the normal at pt, times the Hunt-Crossley factor
+    ``max(1 + alpha (delta1 - delta0)/h, 0)``; friction acts against the
+    slip at the end of the step (v0: the points' start velocities,
+    ``use_v0``), relative to a moving obstacle's translation, at the
+    surface (moment M about the backbone point). dF: through p1 (1/theta),
+    dV: d F/d v1."""
+    n = np.empty(3)
+    H = np.empty((3, 3))
+    n0 = np.empty(3)
+    H0 = np.empty((3, 3))
+    vel = np.empty(3)
+    sl = np.empty(3)
+    Ft = np.empty(3)
+    dFt = np.empty((3, 3))
+    c = 0
+    for o in range(obs.kind.shape[0]):
+        for i in range(p0.shape[0]):
+            r_i = radius[i]
+            src = obs0 if moving[o] else obs
+            d0 = distance(src, o, p0[i], n0, H0)
+            d1 = distance(obs, o, p1[i], n0, H0)
+            if not (r_i - d0 > 0.0 or r_i - d1 > 0.0):
+                continue
+            dt_ = distance(obs, o, pt[i], n, H)
+            k = modulus[i] if np.isnan(obs.stiffness[o]) else obs.stiffness[o]
+            eps = 0.1 * r_i if np.isnan(obs.smoothing[o]) else obs.smoothing[o]
+            fbar, dfbar = mean_force(r_i - d0, r_i - d1, k, eps)
+            fac = max(1.0 + obs.damping[o] * ((d0 - d1) / h), 0.0)
+            w = weight[i]
+            fn = w * fac * fbar
+            dv = obs.damping[o] if fac > 0.0 else 0.0
+            idx[c], ob_of[c], gap[c] = i, o, dt_ - r_i
+            vn = 0.0
+            for r in range(3):
+                vel[r] = (p1[i, r] - p0[i, r]) / h
+                if use_v0:
+                    vel[r] = (vel[r] - (1.0 - theta) * v0[i, r]) / theta
+                if moving[o]:
+                    vel[r] -= (obs.a[o, r] - obs0.a[o, r]) / h
+                vn += vel[r] * n[r]
+            for r in range(3):
+                sl[r] = vel[r] - vn * n[r]
+                n_out[c, r] = n[r]
+                slip[c, r] = sl[r]
+                F[c, r] = fn * n[r]
+                M[c, r] = 0.0
+                for s in range(3):
+                    dF[c, r, s] = w * fac * (-(dfbar / theta) * n[r] * n[s] + fbar * H[r, s])
+                    dV[c, r, s] = -w * fbar * dv * n[r] * n[s]
+            if obs.friction[o] > 0.0:
+                friction(fn, sl, obs.friction[o], obs.stiction[o], Ft, dFt)
+                # at the surface, -r n from the backbone point
+                M[c, 0] = -r_i * (n[1] * Ft[2] - n[2] * Ft[1])
+                M[c, 1] = -r_i * (n[2] * Ft[0] - n[0] * Ft[2])
+                M[c, 2] = -r_i * (n[0] * Ft[1] - n[1] * Ft[0])
+                # slip = (I - n n^T) v1: Newton's matrix has theta Dt; friction grows with the normal
+                # force: dFt/dp = -mu (slip/s) dfn/dp^T, dfn/dp = -w fac fbar'/theta n
+                g = w * fac * dfbar / theta
+                for r in range(3):
+                    F[c, r] += Ft[r]
+                    unit = Ft[r] / max(fn, 1e-300)
+                    for s in range(3):
+                        acc = 0.0
+                        for q in range(3):
+                            acc += dFt[r, q] * ((1.0 if q == s else 0.0) - n[q] * n[s])
+                        dV[c, r, s] += acc / theta
+                        dF[c, r, s] -= unit * g * n[s]
+            c += 1
+    return c
+
+
+# --- element-wise over arrays (engine.contact's array functions) ------------------
+
+@_jit
+def penalty_arrays(delta, k, eps, f, df, phi):
+    for i in range(delta.shape[0]):
+        f[i], df[i] = penalty(delta[i], k[i], eps[i])
+        phi[i] = penalty_potential(delta[i], k[i], eps[i])
+
+
+@_jit
+def mean_force_arrays(d0, d1, k, eps, fbar, dfbar):
+    for i in range(d0.shape[0]):
+        fbar[i], dfbar[i] = mean_force(d0[i], d1[i], k[i], eps[i])
+
+
+@_jit
+def distance_arrays(obs, o, p, d, n, H):
+    for i in range(p.shape[0]):
+        d[i] = distance(obs, o, p[i], n[i], H[i])
+
+
+@_jit
+def friction_arrays(fn, vt, mu, v_s, F, dF):
+    for i in range(fn.shape[0]):
+        friction(fn[i], vt[i], mu, v_s, F[i], dF[i])
