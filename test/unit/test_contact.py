@@ -728,3 +728,64 @@ def test_a_rod_dropped_flat_rebounds_with_the_restitution_of_the_hunt_crossley_l
     closed = 1 - np.sqrt(1 - 4 * alpha * v / 3)
     assert 1 - _restitution_ode(alpha, v) == pytest.approx(closed, rel=0.02)
     assert 1 - _restitution(alpha, v, 2.5e-5) == pytest.approx(closed, rel=0.05)
+
+
+def test_a_column_buckling_between_two_walls_first_touches_at_the_elastica_load():
+    """Constrained Euler buckling (Domokos, Holmes and Royce, J. Nonlinear
+    Sci. 7, 1997: an elastica between two parallel frictionless walls): a
+    clamped-free column (half of their pinned-pinned one) under a dead
+    compressive tip load P buckles onto the elastica branch with tip
+    deflection ``delta = 2 k L / K(k)`` at ``P = K(k)^2 EI / L^2`` (Love;
+    K the complete elliptic integral of the first kind); walls at
+    +-(r + delta_c) are first touched, at the tip, at the load P_c of
+    delta_c. Followed by continuation in P from a bent start (the straight
+    column is an equilibrium too): the branch within 0.2 % of the closed
+    form; no contact at 0.995 P_c; at 1.005 P_c the near wall holds the tip
+    at its surface and the far wall is not touched. (Their later events,
+    the contact spreading and the second wall, are not checked.)"""
+    from scipy.optimize import brentq
+    from scipy.special import ellipk
+    from soft_twin_core.robot.mechanism import tip_frame
+    from soft_twin_core.solve.constrained import FrameLoad
+    from soft_twin_core.solve.outputs import state_outputs
+    L, r, E = 0.4, 0.005, 2e6
+    EI = E * np.pi * r ** 4 / 4
+    P_euler = np.pi ** 2 * EI / (4 * L ** 2)
+
+    def deflection(P):
+        k = brentq(lambda k: ellipk(k * k) ** 2 * EI / L ** 2 - P, 1e-9, 1 - 1e-9)
+        return 2 * k * L / ellipk(k * k)
+
+    def column(gap=None):
+        d = {"name": "column", "gravity": [0, 0, 0], "segments": [{
+            "name": "s", "length": L, "sections": 32, "cross_section": {"shape": "solid_circle", "radius": r},
+            "material": {"youngs_modulus": E, "poisson_ratio": 0.5, "density": 1000.0}, "free_modes": ["bending_z"]}]}
+        if gap is not None:
+            d["obstacles"] = [{"name": "left", "type": "plane", "point": [0, gap, 0], "normal": [0, -1, 0]},
+                              {"name": "right", "type": "plane", "point": [0, -gap, 0], "normal": [0, 1, 0]}]
+            d["contact"] = {"spacing": 0.002}
+        return from_robot_model(model_from_dict(d), d)
+
+    def solve(mech, P, q):
+        eq = solve_equilibrium(mech, point_loads=[FrameLoad(tip_frame(mech), np.array([-P, 0, 0, 0, 0, 0.0]),
+                                                            "world")], q_init=q, max_iterations=100)
+        return eq, state_outputs(mech, eq.q, eq.lam, eq.inputs).frames[tip_frame(mech)][1, 3]
+
+    P_c = 1.15 * P_euler
+    free, q = column(), np.full(32, 1.25)
+    for P in np.linspace(1.06, 0.995 * 1.15, 5) * P_euler:
+        eq, tip = solve(free, P, q)
+        q = eq.q
+        assert tip == pytest.approx(deflection(P), rel=2e-3)
+    gap = r + deflection(P_c)
+    walls = column(gap)
+    eq, tip = solve(walls, 0.995 * P_c, q)
+    assert not len(eq.contacts) and tip < gap - r
+    eq, tip = solve(walls, 1.005 * P_c, eq.q)
+    c = eq.contacts
+    assert len(c) >= 1 and set(c.obstacle.tolist()) == {0}            # the near wall only
+    pts = mechanism_contact_points(walls)
+    assert np.all(pts.s[c.point] > 0.98 * L) and np.all(c.force[:, 1] < 0)
+    # held at the surface: the touching points pressed in by microns; the tip, 1 mm past the
+    # last contact point (the points sit at the middles of 2 mm intervals), by less than that
+    assert np.all((c.gap > -2e-5) & (c.gap < 0)) and 0 < tip - (gap - r) < 0.001
