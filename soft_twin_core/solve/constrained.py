@@ -32,13 +32,15 @@ import numpy as np
 
 from soft_twin_core._blas import one_blas_thread
 from soft_twin_core.engine.algorithms import crba, forward_kinematics, point_poses
-from soft_twin_core.engine.contact import moved
+from soft_twin_core.engine.contact import ContactState, moved
+from soft_twin_core.engine.contact_step import contact_step
 from soft_twin_core.engine.forces import (actuation_tangent_pass, actuator_arrays, check_member_loads,
                                           concat_loads, gravity_of, load_arrays, point_moment_arrays)
 from soft_twin_core.engine.integrators import ThetaIntegrator, integrate_pass, residual_pass
 from soft_twin_core.engine.joint_kinds import FREE, PRISMATIC, REVOLUTE, SPHERICAL
 from soft_twin_core.engine.kernels import passes
 from soft_twin_core.engine.kernels.data import LoadArrays
+from soft_twin_core.engine.kernels.contact import obstacle_arrays
 from soft_twin_core.engine.kernels.frames import world_point_jacobians
 from soft_twin_core.solve.contact import MemberContact
 from soft_twin_core.engine.kernels.tangent import static_tangent_pass
@@ -708,7 +710,7 @@ class MechanismSimulator:
         self.Ls = _length_scale(mech)
         self.contact = MemberContact(mech, obstacles)      # the robot file's obstacles by default
         self._obstacles0 = None           # moving obstacles: where they were at the step's start
-        self._contact_fac = None          # (key, factors) of the last contact step's Newton matrix
+        self._compiled_held = None        # the compiled contact step's buffers and inverse Newton matrix
         self.contacts = None              # the ContactState of the last step (at its theta point)
         # no multipliers (a rod, a tree of soft members and effort-controlled or passive joints): the
         # engine's compiled O(n) integrator, the rod's (integrators.ThetaIntegrator)
@@ -768,6 +770,8 @@ class MechanismSimulator:
         """One step of h with contacts: if Newton fails (a contact made or
         lost within the step), two halves, down to ``max_substep_levels``."""
         try:
+            if not self.lam.size:          # no multipliers: the compiled step
+                return self._compiled_contact_step(inp, h)
             return self._step(inp, targets, h)
         except StepError:
             if level >= self.max_substep_levels:
@@ -786,6 +790,48 @@ class MechanismSimulator:
             self.q, self.v, self.lam, self.t, self.a = state
             self._obstacles0, self.contact = start, end
             raise
+
+    def _compiled_contact_step(self, inp, h):
+        """One step of h with contacts and no multipliers:
+        :func:`engine.contact_step.contact_step` (the Newton iteration of
+        :meth:`_step`, compiled), its inverse Newton matrix kept for the
+        next step while the same points touch."""
+        tree, ws, pts = self.tree, self.ws, self.contact.points
+        obstacles = self.contact.obstacles
+        obs = obstacle_arrays(obstacles)
+        start = self._obstacles0
+        obs0 = obs if start is None else obstacle_arrays(start)
+        moving = np.array([start is not None and a is not b for a, b in zip(start or obstacles, obstacles)],
+                          np.bool_)
+        size = len(pts) * len(obstacles)
+        held = self._compiled_held
+        if held is None or held["size"] != size or held["h"] != h:
+            nv = tree.nv
+            held = self._compiled_held = dict(
+                size=size, h=h, Ainv=np.zeros((nv, nv)), key=np.zeros(size + 1, np.int64), reuse=False,
+                out=[np.empty(size, np.int64), np.empty(size, np.int64), np.empty((size, 3)), np.empty(size),
+                     np.empty((size, 3)), np.empty((size, 3, 3)), np.empty((size, 3, 3)), np.empty((size, 3)),
+                     np.empty((size, 3))])
+        coef = np.ascontiguousarray(self.act.unit @ inp.u) if inp.u.size else np.zeros(len(self.act.joint))
+        v1, q1, pt = self.v.copy(), np.empty(tree.nq), np.empty((len(pts), 3))
+        it, status, c, fresh = contact_step(
+            ws.m, ws.w, self.act, concat_loads(inp.loads), inp.gravity, coef, inp.effort, self.K, self.D, tree.q0,
+            tree.nq == tree.nv, self.q, self.v, h, self.theta, self.tol, 1e-14 * max(self.Ls, 1.0) / h,
+            self.max_iterations, pts.joint, pts.x, pts.radius, pts.modulus, pts.weight, obs, obs0, moving,
+            held["Ainv"], held["key"], held["reuse"], v1, q1, pt, *held["out"])
+        self._kkt_factorisations += fresh
+        held["reuse"] = status == 0 and it <= 2
+        if status:
+            why = {1: f"Newton did not converge in {self.max_iterations} iterations", 3: "non-finite residual",
+                   4: "singular Newton matrix"}[status]
+            raise StepError(f"step at t = {self.t:.6g} s: {why}")
+        idx, ob, n, gap, F, dF, dV, M, slip = (x[:c].copy() for x in held["out"])
+        self.a = (v1 - self.v) / h
+        self.q, self.v = q1, v1
+        self.contacts = ContactState(idx, ob, pt[idx], n, gap, F, dF, dV, M, slip)
+        self.t += h
+        self.iterations = it
+        self.newton_iterations += it
 
     def _run_free(self, inp, n):
         """n steps of :class:`integrators.ThetaIntegrator` (no multipliers)."""
@@ -844,10 +890,6 @@ class MechanismSimulator:
         q1 = np.empty(tree.nq)
         R = np.empty(tree.nv)
         fac, refactor, prev, first, Rs = None, True, np.inf, 0.0, 1e-300
-        # contact without multipliers: the last step's Newton matrix serves while the same points touch
-        # and it converged in two iterations (modified Newton: a stale one only slows the iteration,
-        # and an update shrinking less than fourfold takes a fresh one)
-        reuse = self._contact_fac if (self.contact and not lam.size) else None
         for it in range(1, self.max_iterations + 1):
             vt = (1 - th) * v0 + th * v1
             acc = (v1 - v0) / h
@@ -865,15 +907,10 @@ class MechanismSimulator:
             if npos:
                 effort[pos_v] += lam[len(lam) - npos:]
             if refactor:
-                key = (h, tuple(contacts.point), tuple(contacts.obstacle)) if contacts is not None else None
-                if it == 1 and reuse is not None and reuse[0] == key:
-                    fac = reuse[1]
-                else:
-                    try:
-                        fac = self._newton_matrix(inp, coef, ld, qt, q1, targets, contacts, h)
-                    except np.linalg.LinAlgError:
-                        raise StepError(f"step at t = {self.t:.6g} s: singular Newton matrix") from None
-                    reuse = (key, fac)
+                try:
+                    fac = self._newton_matrix(inp, coef, ld, qt, q1, targets, contacts, h)
+                except np.linalg.LinAlgError:
+                    raise StepError(f"step at t = {self.t:.6g} s: singular Newton matrix") from None
                 refactor = False
             residual_pass(m, w, self.act, ld, inp.gravity, coef, effort, qt, vt, acc, R, False)
             phi1, _ = constraint_rows(self.mech, self.ws, q1, targets, inp.q_cmd)
@@ -919,7 +956,6 @@ class MechanismSimulator:
             v1[pos_v] = inp.v_cmd if inp.v_cmd is not None else (q1[iq] - q0[iq]) / h
         self.q, self.v, self.lam = q1.copy(), v1, lam
         self.contacts = contacts
-        self._contact_fac = reuse if (reuse is not None and it <= 2) else None
         self.t += h
         self.iterations = it
         self.newton_iterations += it

@@ -789,3 +789,37 @@ def test_a_column_buckling_between_two_walls_first_touches_at_the_elastica_load(
     # held at the surface: the touching points pressed in by microns; the tip, 1 mm past the
     # last contact point (the points sit at the middles of 2 mm intervals), by less than that
     assert np.all((c.gap > -2e-5) & (c.gap < 0)) and 0 < tip - (gap - r) < 0.001
+
+
+def test_the_compiled_contact_step_is_the_python_step():
+    """A robot without multipliers steps with contacts through the compiled
+    step (engine.contact_step); the Python step (the one of robots with
+    multipliers, a fresh Newton matrix every step) solves the same step
+    equations: a rod falling onto a ball with
+    friction and damping that slides sideways on a table with friction,
+    stepped by both (sub-steps included) from the same states, agrees to
+    round-off (1e-8 of the strains, the same contacts and forces)."""
+    from soft_twin_core.engine.contact import moved
+    d = _heavy_rod_dict(h=0.001, sections=6)
+    d["segments"][0]["free_modes"] = "bending_torsion"
+    d["obstacles"][0].update(friction=0.4, stiction_velocity=1e-3)
+    d["obstacles"].append({"name": "ball", "type": "sphere", "center": [0.3, 0.0, -0.001 - R_ROD - 0.0085],
+                           "radius": 0.01, "damping": 2.0, "friction": 0.2, "stiction_velocity": 1e-3})
+    mech = from_robot_model(model_from_dict(d), d)
+    sims = [MechanismSimulator(mech, 2e-3, 0.5, tol=1e-12) for _ in range(2)]
+    python = sims[1]
+    python._compiled_contact_step = lambda inp, h: python._step(inp, None, h)     # (halving included)
+    touched = set()
+    for k in range(250):
+        obs = [mech.obstacles[0], moved(mech.obstacles[1], [0.0, 2e-5 * k, 0.0])]
+        for sim in sims:
+            sim.step(obstacles=obs)
+        a, b = sims
+        assert np.abs(a.q - b.q).max() <= 1e-8 * max(np.abs(b.q).max(), 1.0), k
+        assert np.array_equal(a.contacts.point, b.contacts.point) and np.array_equal(a.contacts.obstacle,
+                                                                                     b.contacts.obstacle)
+        np.testing.assert_allclose(a.contacts.force, b.contacts.force, rtol=1e-6, atol=1e-9)
+        np.testing.assert_allclose(a.contacts.slip, b.contacts.slip, rtol=1e-6, atol=1e-9)
+        b.q, b.v, b.a = a.q.copy(), a.v.copy(), a.a.copy()      # from the same state on
+        touched |= {int(o) for o in a.contacts.obstacle}
+    assert touched == {0, 1}
