@@ -10,7 +10,7 @@ last, so that a state with fewer deletes the extra ones.
 """
 
 import numpy as np
-from geometry_msgs.msg import Vector3
+from geometry_msgs.msg import Point, Vector3
 from std_msgs.msg import ColorRGBA
 from visualization_msgs.msg import Marker, MarkerArray
 
@@ -80,6 +80,11 @@ def obstacle_markers(obstacles, centre, extent, header):
         out.append(m)
     for ob in obstacles:
         T = np.eye(4)
+        if ob.kind == "mesh":               # its triangles, in world
+            T[:3, :3], T[:3, 3] = ob.rotation, ob.a
+            add(Marker.TRIANGLE_LIST, T, 1.0, 1.0, 1.0)
+            out[-1].points = [Point(x=float(x), y=float(y), z=float(z)) for x, y, z in ob.triangles.reshape(-1, 3)]
+            continue
         if ob.kind == "box":
             T[:3, :3], T[:3, 3] = ob.rotation, ob.a
             add(Marker.CUBE, T, *(2 * ob.half_size))

@@ -45,18 +45,20 @@ import numpy as np
 
 from soft_twin_core.engine.kernels import contact as kc
 
-PLANE, SPHERE, CAPSULE, BOX = 0, 1, 2, 3
-OBSTACLE_KINDS = {"plane": PLANE, "sphere": SPHERE, "capsule": CAPSULE, "box": BOX}
+PLANE, SPHERE, CAPSULE, BOX, MESH = 0, 1, 2, 3, 4
+OBSTACLE_KINDS = {"plane": PLANE, "sphere": SPHERE, "capsule": CAPSULE, "box": BOX, "mesh": MESH}
 
 
 @dataclass(frozen=True, eq=False)
 class Obstacle:
-    """A rigid obstacle. ``kind``: "plane", "sphere", "capsule" or "box";
-    ``a``: a point of the plane, the sphere's centre, the capsule's first
-    end or the box's centre [m, world]; ``b``: the plane's outward normal
+    """A rigid obstacle. ``kind``: "plane", "sphere", "capsule", "box" or
+    "mesh" (convex); ``a``: a point of the plane, the sphere's centre, the
+    capsule's first end, the box's centre or the mesh's reference point
+    (its vertices' mean) [m, world]; ``b``: the plane's outward normal
     (unit) or the capsule's second end; ``radius`` [m] (sphere, capsule);
-    ``rotation`` (3x3, world <- box axes) and ``half_size`` (3,) [m] of a
-    box; ``stiffness``
+    ``rotation`` (3x3, world <- box or mesh axes), ``half_size`` (3,) [m]
+    of a box, ``triangles`` (T, 3, 3) [m] of a mesh (in its axes about a,
+    counter-clockwise seen from outside); ``stiffness``
     [N/m^2] per unit length of member and metre of penetration (None: the
     member's Young's modulus); ``smoothing`` [m] the depth eps over which
     the force law turns on (None: a tenth of the member's radius);
@@ -76,6 +78,7 @@ class Obstacle:
     stiction_velocity: float = 1e-4
     rotation: np.ndarray = None
     half_size: np.ndarray = None
+    triangles: np.ndarray = None     # a convex mesh: (T, 3, 3) [m] in its axes (rotation) about a, outward
 
 
 @dataclass(frozen=True, eq=False)

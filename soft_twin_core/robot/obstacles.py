@@ -6,6 +6,8 @@ the ``contact`` settings, in either schema), checked at the door::
       - {name: ball, type: sphere, center: [0.3, 0, 0], radius: 0.05}
       - {name: post, type: capsule, from: [0.2, -0.1, 0], to: [0.2, 0.1, 0], radius: 0.01}
       - {name: block, type: box, center: [0.3, 0, -0.1], size: [0.1, 0.2, 0.05], rpy: [0, 0, 0.3]}
+      - {name: wedge, type: mesh, vertices: [[0, 0, 0], [0.1, 0, 0], [0, 0.1, 0], [0, 0, 0.1]],
+         faces: [[0, 2, 1], [0, 1, 3], [0, 3, 2], [1, 2, 3]]}   # closed and convex (faces turned outward)
       # each may add: stiffness [N/m^2] (default: the member's Young's modulus),
       # smoothing [m] (default: a tenth of the member's radius), damping [s/m] (Hunt-Crossley
       # alpha, default 0), friction (Coulomb mu, default 0), stiction_velocity [m/s]
@@ -25,7 +27,7 @@ from soft_twin_core.engine.contact import OBSTACLE_KINDS, ContactPoints, Obstacl
 from soft_twin_core.robot.model import ModelError, _check_keys, _num, _vec, pose_from_dict
 
 _FIELDS = {"plane": ("point", "normal"), "sphere": ("center", "radius"), "capsule": ("from", "to", "radius"),
-           "box": ("center", "size", "rpy", "quaternion")}
+           "box": ("center", "size", "rpy", "quaternion"), "mesh": ("vertices", "faces")}
 _COMMON = {"name", "type", "stiffness", "smoothing", "damping", "friction", "stiction_velocity"}
 
 
@@ -33,7 +35,8 @@ def obstacle_from_dict(d, where):
     """An :class:`Obstacle` of one ``obstacles`` entry; ModelError naming the
     bad field (unknown type or key, non-finite or negative sizes, a zero
     normal, a capsule of zero length)."""
-    _check_keys(d, _COMMON | {"point", "normal", "center", "radius", "from", "to", "size", "rpy", "quaternion"}, where)
+    _check_keys(d, _COMMON | {"point", "normal", "center", "radius", "from", "to", "size", "rpy", "quaternion",
+                              "vertices", "faces"}, where)
     kind = d.get("type")
     if kind not in OBSTACLE_KINDS:
         raise ModelError(f"{where}.type: expected one of {sorted(OBSTACLE_KINDS)}, got {kind!r}")
@@ -60,6 +63,9 @@ def obstacle_from_dict(d, where):
         T = pose_from_dict({k: d[k] for k in ("rpy", "quaternion") if k in d} or None, where)
         return Obstacle(name, kind, _vec(d, "center", 3, where), rotation=T[:3, :3].copy(), half_size=0.5 * size,
                         **common)
+    if kind == "mesh":
+        centre, tri = convex_mesh(d.get("vertices"), d.get("faces"), where)
+        return Obstacle(name, kind, centre, rotation=np.eye(3), triangles=tri, **common)
     radius = _num(d, "radius", where, positive=True)
     if kind == "sphere":
         return Obstacle(name, kind, _vec(d, "center", 3, where), None, radius, **common)
@@ -67,6 +73,55 @@ def obstacle_from_dict(d, where):
     if not np.linalg.norm(b - a) > 0:
         raise ModelError(f"{where}: 'from' and 'to' must differ (a capsule of zero length is a sphere)")
     return Obstacle(name, kind, a, b, radius, **common)
+
+
+def convex_mesh(vertices, faces, where):
+    """(centre, triangles (T, 3, 3) about it, outward) of a closed convex
+    triangle mesh; ModelError naming the field: vertices not finite
+    triples (at least 4), faces not index triples into them (at least 4),
+    a face of zero area, an edge not shared by exactly two faces (not
+    closed), a vertex outside a face's plane (not convex: only convex meshes
+    are supported)."""
+    try:
+        V = np.array(vertices, dtype=float)
+    except (TypeError, ValueError):
+        V = np.zeros((0,))
+    if V.ndim != 2 or V.shape[1:] != (3,) or len(V) < 4 or not np.all(np.isfinite(V)):
+        raise ModelError(f"{where}.vertices: expected at least 4 finite [x, y, z] points [m], got "
+                         f"{str(vertices)[:200]}")
+    try:
+        F = np.array(faces)
+        ok = F.ndim == 2 and F.shape[1:] == (3,) and len(F) >= 4 and np.issubdtype(F.dtype, np.integer)
+    except (TypeError, ValueError):
+        ok = False
+    if not ok or F.min() < 0 or F.max() >= len(V):
+        raise ModelError(f"{where}.faces: expected at least 4 triples of vertex indices in 0..{len(V) - 1}, got "
+                         f"{str(faces)[:200]}")
+    size = float(np.ptp(V, axis=0).max())
+    centre = V.mean(axis=0)
+    tri = V[F] - centre
+    normal = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
+    area = 0.5 * np.linalg.norm(normal, axis=1)
+    if np.any(area <= 1e-12 * size * size):
+        raise ModelError(f"{where}.faces[{int(np.argmin(area))}]: a face of zero area")
+    edges = {}
+    for f in F:
+        for i, j in ((f[0], f[1]), (f[1], f[2]), (f[2], f[0])):
+            edges[(min(i, j), max(i, j))] = edges.get((min(i, j), max(i, j)), 0) + 1
+    bad = next(((e, k) for e, k in edges.items() if k != 2), None)
+    if bad is not None:
+        raise ModelError(f"{where}.faces: the mesh is not closed: edge {list(map(int, bad[0]))} belongs to "
+                         f"{bad[1]} face(s), not 2")
+    inward = np.einsum("ij,ij->i", normal, tri[:, 0]) < 0           # turn every face outward
+    tri[inward] = tri[inward][:, ::-1]
+    normal[inward] *= -1
+    unit = normal / np.linalg.norm(normal, axis=1)[:, None]
+    out = np.einsum("fk,vk->fv", unit, V - centre) - np.einsum("fk,fk->f", unit, tri[:, 0])[:, None]
+    f, v = np.unravel_index(np.argmax(out), out.shape)
+    if out[f, v] > 1e-9 * size:
+        raise ModelError(f"{where}: the mesh is not convex: vertex {int(v)} lies {1e3 * out[f, v]:.3g} mm outside "
+                         f"the plane of faces[{int(f)}] (only convex meshes are supported)")
+    return centre, np.ascontiguousarray(tri)
 
 
 def obstacles_from_list(items, where="robot.obstacles"):
@@ -126,7 +181,7 @@ def obstacle_placed(ob, T):
         return replace(ob, a=T[:3, 3].copy(), b=T[:3, 2].copy())
     if ob.kind == "sphere":
         return replace(ob, a=T[:3, 3].copy())
-    if ob.kind == "box":
+    if ob.kind in ("box", "mesh"):
         return replace(ob, a=T[:3, 3].copy(), rotation=T[:3, :3].copy())
     half = 0.5 * np.linalg.norm(ob.b - ob.a) * T[:3, 2]
     return replace(ob, a=T[:3, 3] - half, b=T[:3, 3] + half)

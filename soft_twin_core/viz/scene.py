@@ -137,10 +137,13 @@ def visual_placement(visual):
 
 def obstacle_outline(ob, centre, extent):
     """(N, 3) [m] world polyline of an obstacle (engine.contact.Obstacle):
-    a sphere's great circles; a capsule's cylinder and end circles; a
+    a mesh's triangles; a sphere's great circles; a capsule's cylinder and end circles; a
     plane's square of side 1.2 ``extent`` around the point of the plane
     nearest ``centre`` (the robot's), with a short stroke along its normal."""
     nan = np.full((1, 3), np.nan)
+    if ob.kind == "mesh":                    # every triangle's edges
+        W = ob.triangles @ ob.rotation.T + ob.a
+        return np.concatenate([np.vstack([t, t[:1], nan]) for t in W])[:-1]
     if ob.kind == "sphere":
         return solid_outline({"shape": "sphere", "radius": ob.radius}, _translation(ob.a))
     if ob.kind == "box":

@@ -823,3 +823,94 @@ def test_the_compiled_contact_step_is_the_python_step():
         b.q, b.v, b.a = a.q.copy(), a.v.copy(), a.a.copy()      # from the same state on
         touched |= {int(o) for o in a.contacts.obstacle}
     assert touched == {0, 1}
+
+
+def _cube_mesh(centre, size):
+    """A box's 8 corners and 12 triangles (some turned inward: the loader
+    turns them out)."""
+    h = 0.5 * np.asarray(size)
+    V = np.array([[x, y, z] for x in (-1, 1) for y in (-1, 1) for z in (-1, 1)]) * h + centre
+    F = []
+    for a, b, c, d in ((0, 1, 3, 2), (4, 6, 7, 5), (0, 4, 5, 1), (2, 3, 7, 6), (0, 2, 6, 4), (1, 5, 7, 3)):
+        F += [[a, b, c], [a, c, d]]
+    F[3] = F[3][::-1]
+    return {"type": "mesh", "vertices": V.tolist(), "faces": F}
+
+
+def test_a_convex_mesh_is_the_box_it_bounds_and_its_derivatives_are_right():
+    """A cube given as a triangle mesh has the box obstacle's signed
+    distance, normal and Hessian everywhere (outside a face, an edge or a
+    corner; inside), also turned by a pose; an irregular convex hull's
+    gradient and Hessian match central differences of its distance."""
+    from scipy.spatial import ConvexHull
+    from soft_twin_core.robot.obstacles import obstacle_from_dict, obstacle_placed
+    centre, size = np.array([0.5, 0.1, -0.2]), [0.2, 0.4, 0.6]
+    mesh = obstacle_from_dict(dict(_cube_mesh(centre, size), name="m"), "m")
+    box = obstacle_from_dict({"name": "b", "type": "box", "center": centre.tolist(), "size": size}, "b")
+    P = RNG.uniform(-0.6, 0.6, (1000, 3)) + centre
+    T = np.eye(4)
+    T[:3, :3] = np.linalg.qr(RNG.standard_normal((3, 3)))[0]
+    T[:3, :3] *= np.sign(np.linalg.det(T[:3, :3]))          # a rotation
+    T[:3, 3] = [0.1, 0.2, 0.3]
+    for m, b in ((mesh, box), (obstacle_placed(mesh, T), obstacle_placed(box, T))):
+        for x, y in zip(signed_distance(m, P), signed_distance(b, P)):
+            np.testing.assert_allclose(x, y, atol=1e-9)
+    hull = ConvexHull(RNG.standard_normal((30, 3)) * [0.1, 0.2, 0.15])
+    ob = obstacle_from_dict({"name": "rock", "type": "mesh", "vertices": hull.points.tolist(),
+                             "faces": hull.simplices.tolist()}, "rock")
+    h = 1e-7
+    for p in RNG.standard_normal((60, 3)) * 0.3:
+        d, n, H = signed_distance(ob, p[None])
+        e = np.eye(3) * h
+        grad = [(signed_distance(ob, (p + e[k])[None])[0][0] - signed_distance(ob, (p - e[k])[None])[0][0]) / (2 * h)
+                for k in range(3)]
+        hess = np.column_stack([(signed_distance(ob, (p + e[k])[None])[1][0]
+                                 - signed_distance(ob, (p - e[k])[None])[1][0]) / (2 * h) for k in range(3)])
+        np.testing.assert_allclose(n[0], grad, atol=1e-6)
+        np.testing.assert_allclose(H[0], hess, atol=1e-4 * max(1.0, np.abs(hess).max()))
+
+
+@pytest.mark.parametrize("change, message", [
+    (lambda m: m.update(faces=m["faces"][:-1]), "faces: the mesh is not closed: edge"),
+    (lambda m: m["vertices"][7].__setitem__(0, -0.05), r"the mesh is not convex: vertex \d lies [\d.]+ mm outside"),
+    (lambda m: m["vertices"][0].__setitem__(1, float("nan")), "vertices: expected at least 4 finite"),
+    (lambda m: m["faces"][0].__setitem__(2, 8), "faces: expected at least 4 triples of vertex indices in 0..7"),
+    (lambda m: m.update(vertices=m["vertices"][:3]), "vertices: expected at least 4 finite"),
+])
+def test_a_mesh_that_is_not_closed_or_not_convex_is_refused_naming_the_field(change, message):
+    from soft_twin_core.robot.obstacles import obstacle_from_dict
+    m = dict(_cube_mesh(np.zeros(3), [0.2, 0.2, 0.2]), name="m")
+    change(m)
+    with pytest.raises(ModelError, match=message):
+        obstacle_from_dict(m, "robot.obstacles[0]")
+
+
+def test_a_rod_on_a_mesh_table_rests_as_on_the_box():
+    """The heavy rod lying on a table that is a cube mesh: the statics and
+    a dynamic settle equal the box table's, and the markers draw it as
+    triangles."""
+    from types import SimpleNamespace
+    from std_msgs.msg import Header
+    from visualization_msgs.msg import Marker
+    from soft_twin import markers
+    from soft_twin_core.twin import Twin, TwinSettings
+    from soft_twin_core.viz.scene import obstacle_outline
+    top = -0.0035 - R_ROD
+    results = []
+    for table in ({"type": "box", "center": [0.2, 0, top - 0.05], "size": [0.6, 0.2, 0.1]},
+                  _cube_mesh(np.array([0.2, 0, top - 0.05]), [0.6, 0.2, 0.1])):
+        d = _heavy_rod_dict()
+        d["obstacles"] = [dict(table, name="table")]
+        mech = from_robot_model(model_from_dict(d), d)
+        eq = solve_equilibrium(mech)
+        sim = MechanismSimulator(mech, 2e-3, 1.0)
+        sim.step(n=50)
+        results.append((eq.q, len(eq.contacts), sim.q))
+    np.testing.assert_allclose(results[1][0], results[0][0], rtol=1e-9, atol=1e-12)
+    assert results[1][1] == results[0][1] > 3
+    np.testing.assert_allclose(results[1][2], results[0][2], rtol=1e-7, atol=1e-10)
+    snap = Twin(mech, TwinSettings(mode="quasi_static")).outputs()
+    shapes = [m for m in markers.Markers()(snap, SimpleNamespace(mech=mech), Header()).markers if m.ns == "obstacles"]
+    assert len(shapes) == 1 and shapes[0].type == Marker.TRIANGLE_LIST and len(shapes[0].points) == 36
+    outline = obstacle_outline(mech.obstacles[0], np.zeros(3), 1.0)
+    assert outline.shape == (12 * 5 - 1, 3) and np.nanmax(outline[:, 2]) == pytest.approx(top)

@@ -15,20 +15,22 @@ import numpy as np
 
 from soft_twin_core.engine.kernels.spatial import _jit, _jit_inline
 
-PLANE, SPHERE, CAPSULE, BOX = 0, 1, 2, 3
-KIND_CODES = {"plane": PLANE, "sphere": SPHERE, "capsule": CAPSULE, "box": BOX}
+PLANE, SPHERE, CAPSULE, BOX, MESH = 0, 1, 2, 3, 4
+KIND_CODES = {"plane": PLANE, "sphere": SPHERE, "capsule": CAPSULE, "box": BOX, "mesh": MESH}
 
 ObstacleArrays = namedtuple("ObstacleArrays", [
     "kind",        # (O,) PLANE, SPHERE, CAPSULE or BOX
     "a", "b",      # (O, 3) engine.contact.Obstacle.a and .b (zeros where unused)
     "radius",      # (O,) [m]
-    "rotation",    # (O, 3, 3) a box's axes (identity otherwise)
+    "rotation",    # (O, 3, 3) a box's or mesh's axes (identity otherwise)
     "half",        # (O, 3) a box's half sizes [m]
     "stiffness",   # (O,) [N/m^2], NaN: the member's Young's modulus
     "smoothing",   # (O,) [m], NaN: a tenth of the member's radius
     "damping",     # (O,) Hunt-Crossley alpha [s/m]
     "friction",    # (O,) Coulomb mu
     "stiction",    # (O,) the stiction velocity [m/s]
+    "tri",         # (T, 3, 3) every mesh's triangles, in its axes about its a, outward (counter-clockwise)
+    "tri_start",   # (O + 1,) obstacle o's triangles: tri[tri_start[o]:tri_start[o + 1]]
 ])
 
 
@@ -46,18 +48,24 @@ def _obstacle_arrays(obstacles):
     a, b, half = np.zeros((O, 3)), np.zeros((O, 3)), np.zeros((O, 3))
     rot = np.tile(np.eye(3), (O, 1, 1))
     nan = float("nan")
+    tris, start = [np.zeros((0, 3, 3))], np.zeros(O + 1, np.int64)
     for o, ob in enumerate(obstacles):
         a[o] = ob.a
         if ob.b is not None:
             b[o] = ob.b
+        if ob.kind in ("box", "mesh"):
+            rot[o] = ob.rotation
         if ob.kind == "box":
-            rot[o], half[o] = ob.rotation, ob.half_size
+            half[o] = ob.half_size
+        if ob.kind == "mesh":
+            tris.append(ob.triangles)
+        start[o + 1] = start[o] + (len(ob.triangles) if ob.kind == "mesh" else 0)
     col = (lambda f: np.array([f(ob) for ob in obstacles], dtype=float))
     return ObstacleArrays(kind, a, b, col(lambda ob: ob.radius), rot, half,
                           col(lambda ob: nan if ob.stiffness is None else ob.stiffness),
                           col(lambda ob: nan if ob.smoothing is None else ob.smoothing),
                           col(lambda ob: ob.damping), col(lambda ob: ob.friction),
-                          col(lambda ob: ob.stiction_velocity))
+                          col(lambda ob: ob.stiction_velocity), np.ascontiguousarray(np.concatenate(tris)), start)
 
 
 # --- the law, per point ---------------------------------------------------------
@@ -118,6 +126,8 @@ def distance(obs, o, p, n, H):
         return d
     if kind == BOX:
         return _box_distance(obs, o, p, n, H)
+    if kind == MESH:
+        return _mesh_distance(obs, o, p, n, H)
     c = np.empty(3)
     axis = np.zeros(3)
     if kind == SPHERE:
@@ -176,6 +186,101 @@ def _box_distance(obs, o, p, n, H):
                 for a in range(3):
                     acc += R[r, a] * R[s, a] * (1.0 if e[a] > 0.0 else 0.0)
                 H[r, s] = (acc - n[r] * n[s]) / d_out
+    return d
+
+
+@_jit_inline
+def closest_on_triangle(p, A, B, C, out):
+    """The point of triangle ABC nearest p into ``out`` (3,); returns the
+    feature it lies on: 0 the face, 1-3 an edge (AB, AC, BC), 4 a vertex
+    (Ericson, Real-Time Collision Detection, 2005, section 5.1.5: the
+    Voronoi regions of the vertices, then the edges, else the face)."""
+    ab, ac, ap = B - A, C - A, p - A
+    d1, d2 = np.dot(ab, ap), np.dot(ac, ap)
+    if d1 <= 0.0 and d2 <= 0.0:
+        out[:] = A
+        return 4
+    bp = p - B
+    d3, d4 = np.dot(ab, bp), np.dot(ac, bp)
+    if d3 >= 0.0 and d4 <= d3:
+        out[:] = B
+        return 4
+    vc = d1 * d4 - d3 * d2
+    if vc <= 0.0 and d1 >= 0.0 and d3 <= 0.0:
+        out[:] = A + d1 / (d1 - d3) * ab
+        return 1
+    cp = p - C
+    d5, d6 = np.dot(ab, cp), np.dot(ac, cp)
+    if d6 >= 0.0 and d5 <= d6:
+        out[:] = C
+        return 4
+    vb = d5 * d2 - d1 * d6
+    if vb <= 0.0 and d2 >= 0.0 and d6 <= 0.0:
+        out[:] = A + d2 / (d2 - d6) * ac
+        return 2
+    va = d3 * d6 - d5 * d4
+    if va <= 0.0 and (d4 - d3) >= 0.0 and (d5 - d6) >= 0.0:
+        out[:] = B + (d4 - d3) / ((d4 - d3) + (d5 - d6)) * (C - B)
+        return 3
+    den = 1.0 / (va + vb + vc)
+    out[:] = A + ab * (vb * den) + ac * (vc * den)
+    return 0
+
+
+@_jit_inline
+def _mesh_distance(obs, o, p, n, H):
+    """A convex mesh's signed distance (its triangles outward): inside, the
+    largest of the face planes' distances (to the nearest face: Hessian 0);
+    outside, the distance to the nearest triangle: along a face's normal
+    (Hessian 0), or from an edge, ``(I - n n^T - e e^T) / d`` (e along the
+    edge), or a vertex, ``(I - n n^T) / d``. In the mesh's axes about a."""
+    R = obs.rotation[o]
+    loc = np.zeros(3)
+    for c in range(3):
+        for r in range(3):
+            loc[c] += (p[r] - obs.a[o, r]) * R[r, c]
+    best, face = -np.inf, obs.tri_start[o]
+    nf = np.zeros(3)
+    for t in range(obs.tri_start[o], obs.tri_start[o + 1]):
+        T = obs.tri[t]
+        nt = np.cross(T[1] - T[0], T[2] - T[0])
+        nt /= np.sqrt(np.dot(nt, nt))
+        dp = np.dot(loc - T[0], nt)
+        if dp > best:
+            best, face, nf = dp, t, nt
+    n_loc = nf.copy()
+    Hl = np.zeros((3, 3))
+    d = best
+    if best > 0.0:                      # outside: the nearest triangle
+        c, q = np.empty(3), np.empty(3)
+        d2, feat, tbest = np.inf, 0, face
+        for t in range(obs.tri_start[o], obs.tri_start[o + 1]):
+            T = obs.tri[t]
+            f = closest_on_triangle(loc, T[0], T[1], T[2], q)
+            v = loc - q
+            dd = np.dot(v, v)
+            if dd < d2:
+                d2, feat, tbest = dd, f, t
+                c[:] = q
+        d = np.sqrt(d2)
+        n_loc = (loc - c) / d
+        if feat != 0:
+            e = np.zeros(3)
+            if feat < 4:
+                T = obs.tri[tbest]
+                e = (T[1] - T[0]) if feat == 1 else ((T[2] - T[0]) if feat == 2 else (T[2] - T[1]))
+                e /= np.sqrt(np.dot(e, e))
+            for r in range(3):
+                for s in range(3):
+                    Hl[r, s] = ((1.0 if r == s else 0.0) - n_loc[r] * n_loc[s] - e[r] * e[s]) / d
+    for r in range(3):
+        n[r] = R[r, 0] * n_loc[0] + R[r, 1] * n_loc[1] + R[r, 2] * n_loc[2]
+        for s in range(3):
+            acc = 0.0
+            for a in range(3):
+                for b in range(3):
+                    acc += R[r, a] * Hl[a, b] * R[s, b]
+            H[r, s] = acc
     return d
 
 
