@@ -151,14 +151,20 @@ def obstacles_after(msg, obstacles):
             new = obstacle_placed(obstacles[names.index(name)], T)
         else:
             law = {k: float(getattr(msg, k)) for k in _LAW if getattr(msg, k) != 0.0}
+            mesh = None
             if msg.plane:
                 kind, dims = "plane", ()
             elif msg.primitive.type in _PRIMITIVES:
                 kind, dims = _PRIMITIVES[msg.primitive.type][0], list(msg.primitive.dimensions)
+            elif msg.primitive.type == 0 and len(msg.mesh.triangles):
+                kind, dims = "mesh", ()
+                mesh = ([[v.x, v.y, v.z] for v in msg.mesh.vertices],
+                        [[int(i) for i in t.vertex_indices] for t in msg.mesh.triangles])
             else:
                 raise InputError("bad_obstacle", f"obstacle {name!r}: primitive.type {msg.primitive.type}: "
-                                                 f"expected BOX (1), SPHERE (2) or CYLINDER (3), or plane = true")
-            new = obstacle_at(name, kind, T, dims, law, where=f"obstacle {name!r}")
+                                                 f"expected BOX (1), SPHERE (2) or CYLINDER (3), a mesh with "
+                                                 f"triangles, or plane = true")
+            new = obstacle_at(name, kind, T, dims, law, where=f"obstacle {name!r}", mesh=mesh)
     except ModelError as e:
         raise InputError("bad_obstacle", str(e)) from None
     if name in names:

@@ -44,12 +44,7 @@ def obstacle_from_dict(d, where):
     name = d.get("name", where)
     if not isinstance(name, str) or not name:
         raise ModelError(f"{where}.name: expected a non-empty string, got {name!r}")
-    common = dict(
-        stiffness=_num(d, "stiffness", where, positive=True) if "stiffness" in d else None,
-        smoothing=_num(d, "smoothing", where, positive=True) if "smoothing" in d else None,
-        damping=_num(d, "damping", where, nonneg=True, default=0.0),
-        stiction_velocity=_num(d, "stiction_velocity", where, positive=True, default=1e-4),
-        friction=_num(d, "friction", where, nonneg=True, default=0.0))
+    common = contact_law(d, where)
     if kind == "plane":
         normal = _vec(d, "normal", 3, where)
         nn = np.linalg.norm(normal)
@@ -124,6 +119,16 @@ def convex_mesh(vertices, faces, where):
     return centre, np.ascontiguousarray(tri)
 
 
+def contact_law(d, where):
+    """The contact-law fields of an obstacle entry (Obstacle keywords), checked."""
+    return dict(
+        stiffness=_num(d, "stiffness", where, positive=True) if "stiffness" in d else None,
+        smoothing=_num(d, "smoothing", where, positive=True) if "smoothing" in d else None,
+        damping=_num(d, "damping", where, nonneg=True, default=0.0),
+        stiction_velocity=_num(d, "stiction_velocity", where, positive=True, default=1e-4),
+        friction=_num(d, "friction", where, nonneg=True, default=0.0))
+
+
 def obstacles_from_list(items, where="robot.obstacles"):
     """Obstacles of a robot file's or scenario's ``obstacles`` list (None: none)."""
     if items is None:
@@ -142,18 +147,25 @@ def check_unique_names(obstacles, where):
     return obstacles
 
 
-def obstacle_at(name, kind, T, dimensions=(), law=None, where="obstacle"):
+def obstacle_at(name, kind, T, dimensions=(), law=None, where="obstacle", mesh=None):
     """An obstacle ``name`` of ``kind`` placed at the pose T (4x4, world <-
     obstacle), checked as a robot file's entry is (ModelError naming
     ``where``'s field): a plane through T's origin with T's z axis its
     normal; a sphere (dimensions [radius]) or box (dimensions [x, y, z] edge
     lengths) centred at it, the box along its axes; a capsule (dimensions
-    [length, radius]) along its z axis, centred. ``law``: the contact-law
-    keys (stiffness, smoothing, damping, friction, stiction_velocity)."""
+    [length, radius]) along its z axis, centred; a convex mesh (``mesh``:
+    (vertices (V, 3) [m] in T's frame, faces (F, 3))) with T's frame as its
+    own (a MOVE places that frame). ``law``: the contact-law keys
+    (stiffness, smoothing, damping, friction, stiction_velocity)."""
     T = np.asarray(T, dtype=float)
+    if kind == "mesh":
+        centre, tri = convex_mesh(*(mesh if mesh is not None else (None, None)), where)
+        _check_keys(law or {}, _COMMON - {"name", "type"}, where)
+        return Obstacle(name, "mesh", T[:3, 3].copy(), rotation=T[:3, :3].copy(),
+                        triangles=np.ascontiguousarray(tri + centre), **contact_law(law or {}, where))
     c, R = T[:3, 3], T[:3, :3]
     dims = [float(x) for x in dimensions]
-    need = {"plane": 0, "sphere": 1, "box": 3, "capsule": 2}.get(kind, 0)
+    need = {"plane": 0, "sphere": 1, "box": 3, "capsule": 2}.get(kind, 0)     # (a mesh: above)
     if len(dims) < need:
         raise ModelError(f"{where}.dimensions: a {kind} needs {need} dimensions, got {dims}")
     d = {"name": name, "type": kind, **(law or {})}
@@ -172,7 +184,8 @@ def obstacle_at(name, kind, T, dimensions=(), law=None, where="obstacle"):
 
 def obstacle_placed(ob, T):
     """The obstacle ``ob`` moved to the pose T (4x4) in the sense of
-    :func:`obstacle_at` (its shape and contact law kept); ModelError for a
+    :func:`obstacle_at` (its shape and contact law kept; a robot file's mesh:
+    its vertices' mean and the world axes are its frame); ModelError for a
     pose that is not finite."""
     T = np.asarray(T, dtype=float)
     if not np.all(np.isfinite(T)):

@@ -188,3 +188,29 @@ def test_a_bad_obstacles_file_is_refused_naming_the_file_and_the_field(tmp_path)
         load_obstacles(str(f))
     f.write_text("obstacles:\n  - {name: a, type: sphere, center: [0, 0, 0], radius: 0.1}\n")
     assert [o.name for o in load_obstacles(str(f))] == ["a"]
+
+
+def test_a_mesh_obstacle_message_is_a_convex_mesh_in_its_pose_frame():
+    """ADD with a shape_msgs/Mesh (primitive type 0): the vertices in the
+    pose's frame; a MOVE places that frame; a mesh that is not closed is
+    rejected (bad_obstacle), naming the edge."""
+    pytest.importorskip("shape_msgs", reason="needs the ROS message packages")
+    from geometry_msgs.msg import Point
+    from shape_msgs.msg import MeshTriangle
+    from soft_twin import inputs
+    V = [[0, 0, 0], [0.1, 0, 0], [0, 0.1, 0], [0, 0, 0.1]]
+    F = [[0, 1, 2], [0, 1, 3], [0, 2, 3], [1, 2, 3]]                  # (any orientation)
+    m = _msg("wedge", 0, z=1.0)
+    m.mesh.vertices = [Point(x=float(x), y=float(y), z=float(z)) for x, y, z in V]
+    m.mesh.triangles = [MeshTriangle(vertex_indices=f) for f in F]
+    (ob,), n, errors = inputs.fold_obstacles([(m, None)], ())
+    assert n == 1 and not errors and ob.kind == "mesh"
+    # the face x + y + z = 0.1 of the wedge, lifted by 1 m: a point 0.05 m outside it along its normal
+    p = np.array([[0.1 / 3, 0.1 / 3, 1.0 + 0.1 / 3]]) + 0.05 / math.sqrt(3)
+    assert signed_distance(ob, p)[0][0] == pytest.approx(0.05)
+    assert signed_distance(ob, np.array([[0.01, 0.01, 0.9]]))[0][0] == pytest.approx(0.1)    # below its base
+    moved, n, _ = inputs.fold_obstacles([(_msg("wedge", 1, z=2.0), None)], (ob,))
+    assert signed_distance(moved[0], p + [0, 0, 1.0])[0][0] == pytest.approx(0.05)
+    m.mesh.triangles = m.mesh.triangles[:3] + [MeshTriangle(vertex_indices=F[0])]     # a face twice, one missing
+    _, n, errors = inputs.fold_obstacles([(m, None)], ())
+    assert n == 0 and errors[0].reason == "bad_obstacle" and "the mesh is not closed: edge" in str(errors[0])
