@@ -17,7 +17,7 @@ twin runs (up to ~100 dof) costs less than the glue it replaces."""
 import numpy as np
 
 from soft_twin_core.engine.forces import actuation_tangent_pass
-from soft_twin_core.engine.integrators import integrate_pass, residual_pass
+from soft_twin_core.engine.integrators import integrate_pass, residual_after_forward
 from soft_twin_core.engine.kernels import passes
 from soft_twin_core.engine.kernels.contact import step_contacts
 from soft_twin_core.engine.kernels.data import LoadArrays
@@ -48,8 +48,9 @@ def _with_contact_loads(ld, pj, px, idx, F, M, c):
 
 
 @_jit_inline
-def _positions(m, w, q, zeros, pj, px, G, out):
-    passes.forward_pass(m, w, q, zeros, zeros, 0)
+def _positions(m, w, q, v, a, level, pj, px, G, out):
+    """The points' positions at q (a forward pass to ``level``: v and a too)."""
+    passes.forward_pass(m, w, q, v, a, level)
     point_poses(m, w, pj, px, G)
     for p in range(pj.shape[0]):
         for r in range(3):
@@ -140,8 +141,8 @@ def contact_step(m, w, act, ld, g, coef, effort, K, D, q_ref, elastic_noise, q0,
             acc[k] = (v1[k] - v0[k]) / h
         integrate_pass(m, q0, vt, th, qt)
         integrate_pass(m, q0, vt, h, q1)
-        _positions(m, w, q1, zeros, pj, px, G, p1)
-        _positions(m, w, qt, zeros, pj, px, G, pt)
+        _positions(m, w, q1, zeros, zeros, 0, pj, px, G, p1)
+        _positions(m, w, qt, vt, acc, 2, pj, px, G, pt)          # (the residual's forward pass too)
         c = step_contacts(prad, pmod, pw, obs, obs0, moving, p0, p1, pt, h, theta, pv0, True,
                           idx, ob_of, n_out, gap, F, dF, dV, M, slip)
         ldc = _with_contact_loads(ld, pj, px, idx, F, M, c)
@@ -155,12 +156,13 @@ def contact_step(m, w, act, ld, g, coef, effort, K, D, q_ref, elastic_noise, q0,
                 if not _newton_inverse(m, w, act, ldc, g, coef, K, D, qt, h, theta, pj, px, idx, dF, dV, c,
                                        zeros, Ainv):
                     return it, 4, c, factorised
+                passes.forward_pass(m, w, qt, vt, acc, 2)             # (it posed the workspace at rest)
                 factorised += 1
                 key[0] = c
                 for k in range(c):
                     key[1 + k] = ob_of[k] * P + idx[k]
             refactor = False
-        residual_pass(m, w, act, ldc, g, coef, effort, qt, vt, acc, R, False)
+        residual_after_forward(m, w, act, ldc, g, coef, effort, qt, vt, R, False)
         nR = 0.0
         for k in range(nv):
             if not np.isfinite(R[k]):

@@ -104,6 +104,13 @@ def residual_pass(m, w, act, ld, g, coef, effort, q, v, a, out, at_rest):
     """out = ID(q, v, a) + K (q - q0) + D v - tau_act - effort (``at_rest``:
     v = a = 0, only the poses are computed)."""
     passes.forward_pass(m, w, q, v, a, 0 if at_rest else 2)
+    residual_after_forward(m, w, act, ld, g, coef, effort, q, v, out, at_rest)
+
+
+@_jit_inline
+def residual_after_forward(m, w, act, ld, g, coef, effort, q, v, out, at_rest):
+    """:func:`residual_pass` after its forward pass (the workspace's last,
+    at (q, v, a))."""
     passes.rnea_pass(m, w, ld, g, out, at_rest)
     passes.joint_forces(m, q, v, out)
     for k in range(out.shape[0]):

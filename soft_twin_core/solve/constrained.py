@@ -710,7 +710,7 @@ class MechanismSimulator:
         self.Ls = _length_scale(mech)
         self.contact = MemberContact(mech, obstacles)      # the robot file's obstacles by default
         self._obstacles0 = None           # moving obstacles: where they were at the step's start
-        self._compiled_held = None        # the compiled contact step's buffers and inverse Newton matrix
+        self._compiled_held = None        # the compiled contact step's inverse Newton matrix and inputs
         self.contacts = None              # the ContactState of the last step (at its theta point)
         # no multipliers (a rod, a tree of soft members and effort-controlled or passive joints): the
         # engine's compiled O(n) integrator, the rod's (integrators.ThetaIntegrator)
@@ -801,34 +801,36 @@ class MechanismSimulator:
         obs = obstacle_arrays(obstacles)
         start = self._obstacles0
         obs0 = obs if start is None else obstacle_arrays(start)
-        moving = np.array([start is not None and a is not b for a, b in zip(start or obstacles, obstacles)],
-                          np.bool_)
-        size = len(pts) * len(obstacles)
         held = self._compiled_held
-        if held is None or held["size"] != size or held["h"] != h:
+        if held is None or held["h"] != h or held["obstacles"] != len(obstacles):
             nv = tree.nv
-            held = self._compiled_held = dict(
-                size=size, h=h, Ainv=np.zeros((nv, nv)), key=np.zeros(size + 1, np.int64), reuse=False,
-                out=[np.empty(size, np.int64), np.empty(size, np.int64), np.empty((size, 3)), np.empty(size),
-                     np.empty((size, 3)), np.empty((size, 3, 3)), np.empty((size, 3, 3)), np.empty((size, 3)),
-                     np.empty((size, 3))])
-        coef = np.ascontiguousarray(self.act.unit @ inp.u) if inp.u.size else np.zeros(len(self.act.joint))
+            held = self._compiled_held = dict(h=h, obstacles=len(obstacles), Ainv=np.zeros((nv, nv)),
+                                              key=np.zeros(len(pts) * len(obstacles) + 1, np.int64), reuse=False,
+                                              still=np.zeros(len(obstacles), np.bool_))
+        moving = held["still"] if start is None else np.array([a is not b for a, b in zip(start, obstacles)])
+        if held.get("inputs") is not inp:        # the inputs' arrays, once per Inputs
+            coef = np.ascontiguousarray(self.act.unit @ inp.u) if inp.u.size else np.zeros(len(self.act.joint))
+            held.update(inputs=inp, coef=coef, loads=concat_loads(inp.loads))
+        size = len(pts) * len(obstacles)
+        out = (np.empty(size, np.int64), np.empty(size, np.int64), np.empty((size, 3)), np.empty(size),
+               np.empty((size, 3)), np.empty((size, 3, 3)), np.empty((size, 3, 3)), np.empty((size, 3)),
+               np.empty((size, 3)))
         v1, q1, pt = self.v.copy(), np.empty(tree.nq), np.empty((len(pts), 3))
         it, status, c, fresh = contact_step(
-            ws.m, ws.w, self.act, concat_loads(inp.loads), inp.gravity, coef, inp.effort, self.K, self.D, tree.q0,
+            ws.m, ws.w, self.act, held["loads"], inp.gravity, held["coef"], inp.effort, self.K, self.D, tree.q0,
             tree.nq == tree.nv, self.q, self.v, h, self.theta, self.tol, 1e-14 * max(self.Ls, 1.0) / h,
             self.max_iterations, pts.joint, pts.x, pts.radius, pts.modulus, pts.weight, obs, obs0, moving,
-            held["Ainv"], held["key"], held["reuse"], v1, q1, pt, *held["out"])
+            held["Ainv"], held["key"], held["reuse"], v1, q1, pt, *out)
         self._kkt_factorisations += fresh
         held["reuse"] = status == 0 and it <= 2
         if status:
             why = {1: f"Newton did not converge in {self.max_iterations} iterations", 3: "non-finite residual",
                    4: "singular Newton matrix"}[status]
             raise StepError(f"step at t = {self.t:.6g} s: {why}")
-        idx, ob, n, gap, F, dF, dV, M, slip = (x[:c].copy() for x in held["out"])
+        idx = out[0][:c]
         self.a = (v1 - self.v) / h
         self.q, self.v = q1, v1
-        self.contacts = ContactState(idx, ob, pt[idx], n, gap, F, dF, dV, M, slip)
+        self.contacts = ContactState(idx, out[1][:c], pt[idx], *(x[:c] for x in out[2:]))
         self.t += h
         self.iterations = it
         self.newton_iterations += it
