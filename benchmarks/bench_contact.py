@@ -12,7 +12,8 @@ ratio; and the statics solve from the settled state.
 
 Issue 27's goal: at most 2x the cost without contact at the same dt.
 
-Run: .venv/bin/python benchmarks/bench_contact.py [--sections 5 10 20]
+Run: .venv/bin/python benchmarks/bench_contact.py [--sections 5 10 20] [--spacing 0.045]
+(--spacing 0.03: about 10 contacts pressed)
 """
 
 import argparse
@@ -27,7 +28,7 @@ from soft_twin_core.robot.model import model_from_dict
 from soft_twin_core.solve.constrained import MechanismSimulator, solve_equilibrium
 
 
-def arm(n, table):
+def arm(n, table, spacing=0.045):
     d = {"name": f"arm_{n}", "gravity": [0, 0, -9.81],
          "segments": [{"name": "arm", "length": 0.45, "sections": n,
                        "cross_section": {"shape": "solid_circle", "radius": 0.010},
@@ -37,24 +38,25 @@ def arm(n, table):
     if table:
         d["obstacles"] = [{"name": "table", "type": "plane", "point": [0, 0, -0.012], "normal": [0, 0, 1],
                            "damping": 5.0}]
-        d["contact"] = {"spacing": 0.045}
+        d["contact"] = {"spacing": spacing}
     return from_robot_model(model_from_dict(d), d)
 
 
 def main():
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--sections", type=int, nargs="+", default=[5, 10, 20])
+    ap.add_argument("--spacing", type=float, default=0.045, help="between contact points [m]")
     args = ap.parse_args()
     print(f"# {machine()}, load {os.getloadavg()[0]:.2f}")
     print(f"{'sections':>8} {'contacts':>8} {'free step':>12} {'on table':>12} {'ratio':>6} {'statics':>12}")
     for n in args.sections:
         times = []
         for table in (False, True):
-            mech = arm(n, table)
+            mech = arm(n, table, args.spacing)
             sim = MechanismSimulator(mech, 2e-3, 0.5, tol=1e-6)
             sim.step(n=500)                      # settle (and compile)
             times.append(per_call(lambda: sim.step(), number=50))
-        mech = arm(n, True)
+        mech = arm(n, True, args.spacing)
         eq = solve_equilibrium(mech)
         t0 = time.perf_counter()
         solve_equilibrium(mech, q_init=eq.q)
