@@ -19,13 +19,11 @@ import yaml
 
 rclpy = pytest.importorskip("rclpy", reason="needs ROS 2: the venv of `make setup`")
 
-from diagnostic_msgs.msg import DiagnosticArray  # noqa: E402
-from geometry_msgs.msg import PoseArray, PoseStamped, PoseWithCovarianceStamped  # noqa: E402
-from rclpy.executors import SingleThreadedExecutor  # noqa: E402
+from geometry_msgs.msg import PoseStamped  # noqa: E402
 from std_srvs.srv import Trigger  # noqa: E402
 
 from soft_twin.conversions import matrix_from_pose, pose_array, pose_msg  # noqa: E402
-from estimator_client import stop_estimator  # noqa: E402
+from estimator_client import Client, stop_estimator  # noqa: E402
 from soft_twin.msg import ActuationCommand  # noqa: E402
 from soft_twin_core.estimation import sensors as sn  # noqa: E402
 from soft_twin_core.robot.mechanism import from_robot_model  # noqa: E402
@@ -41,60 +39,6 @@ SENSORS = [{"name": f"em{i}", "type": "pose", "s": s, "sigma_position": 1.0e-3, 
            for i, s in enumerate([0.16, 0.28, 0.40])]
 
 
-class Client:
-    """Publishers of the measurements and the actuation; the estimate and
-    diagnostics as they arrive (a private context, spun in a thread)."""
-
-    def __init__(self, ns):
-        self.context = rclpy.Context()
-        rclpy.init(context=self.context)
-        self.node = rclpy.create_node("estimator_test_client", context=self.context)
-        n = self.node
-        self.pub_poses = n.create_publisher(PoseArray, f"{ns}/measurements/poses", 50)
-        self.pub_pose = n.create_publisher(PoseStamped, f"{ns}/measurements/pose", 50)
-        self.pub_act = n.create_publisher(ActuationCommand, "/soft_twin/actuation", 10)
-        self.tip = None
-        self.diag = None
-        self.tip_count = 0
-        n.create_subscription(PoseWithCovarianceStamped, f"{ns}/estimate/tip_pose", self._on_tip, 10)
-        n.create_subscription(DiagnosticArray, "/diagnostics", self._on_diag, 10)
-        self.reset = n.create_client(Trigger, f"{ns}/estimate/reset")
-        self.executor = SingleThreadedExecutor(context=self.context)
-        self.executor.add_node(n)
-        self.thread = threading.Thread(target=self._spin, daemon=True)
-        self.thread.start()
-
-    def _spin(self):
-        try:
-            self.executor.spin()
-        except Exception:          # shutdown
-            pass
-
-    def _on_tip(self, msg):
-        self.tip = msg
-        self.tip_count += 1
-
-    def _on_diag(self, msg):
-        for s in msg.status:
-            if s.name == "soft_twin_estimator":
-                self.diag = {kv.key: kv.value for kv in s.values}
-
-    @staticmethod
-    def wait_until(pred, timeout):
-        end = time.monotonic() + timeout
-        while time.monotonic() < end:
-            v = pred()
-            if v:
-                return v
-            time.sleep(0.01)
-        return pred()
-
-    def close(self):
-        self.executor.shutdown()
-        self.node.destroy_node()
-        rclpy.shutdown(context=self.context)
-
-
 @pytest.fixture(scope="module")
 def running(tmp_path_factory):
     tmp = tmp_path_factory.mktemp("estimator")
@@ -104,7 +48,7 @@ def running(tmp_path_factory):
                              "__node:=est_test", "-p", "robot_description_file:=tracked_arm",
                              "-p", f"sensors_file:={tmp / 'sensors.yaml'}", "-p", "rate_hz:=100.0"],
                             cwd=ROOT, env=os.environ.copy(), stdout=log, stderr=subprocess.STDOUT, text=True)
-    client = Client("/est_test")
+    client = Client("/est_test", "estimator_test_client")
     try:
         ok = client.wait_until(lambda: client.tip_count > 0 and client.pub_poses.get_subscription_count() > 0
                                and client.pub_act.get_subscription_count() > 0, 120.0)

@@ -26,7 +26,7 @@ from geometry_msgs.msg import PoseArray  # noqa: E402
 from rclpy.executors import SingleThreadedExecutor  # noqa: E402
 
 from soft_twin.conversions import pose_array  # noqa: E402
-from estimator_client import stop_estimator  # noqa: E402
+from estimator_client import Client, stop_estimator  # noqa: E402
 from soft_twin.msg import ActuationCommand  # noqa: E402
 from soft_twin_core.cli import main as cli_main  # noqa: E402
 from soft_twin_core.estimation import sensors as sn  # noqa: E402
@@ -64,16 +64,6 @@ def _stamp(msg, t):
     return msg
 
 
-def _wait_until(pred, timeout):
-    end = time.monotonic() + timeout
-    while time.monotonic() < end:
-        v = pred()
-        if v:
-            return v
-        time.sleep(0.01)
-    return pred()
-
-
 def test_estimator_node_records_a_sweep_that_calibrates(tmp_path, capsys):
     (tmp_path / "sensors.yaml").write_text(yaml.safe_dump({"sensors": SENSORS}))
     record = tmp_path / "run.mcap"
@@ -99,7 +89,7 @@ def test_estimator_node_records_a_sweep_that_calibrates(tmp_path, capsys):
     th = threading.Thread(target=lambda: _spin(ex), daemon=True)
     th.start()
     try:
-        assert _wait_until(lambda: pub_poses.get_subscription_count() > 0 and pub_act.get_subscription_count() > 0
+        assert Client.wait_until(lambda: pub_poses.get_subscription_count() > 0 and pub_act.get_subscription_count() > 0
                            and "recorded_inputs" in diag, 120.0), (tmp_path / "node.log").read_text()[-3000:]
         d = read_yaml_file(find_file("tracked_arm", "robots"))
         for seg in d["segments"]:
@@ -120,7 +110,7 @@ def test_estimator_node_records_a_sweep_that_calibrates(tmp_path, capsys):
                 pub_poses.publish(_stamp(pose_array(z), tc + (j + 0.5) * HOLD_S / READINGS))
                 sent += 1
                 time.sleep(0.004)         # the publishing rate (250 Hz), not a wait for ROS
-        assert _wait_until(lambda: int(diag.get("recorded_inputs", 0)) >= sent, 30.0), (sent, diag)
+        assert Client.wait_until(lambda: int(diag.get("recorded_inputs", 0)) >= sent, 30.0), (sent, diag)
         assert int(diag["recorded_inputs"]) == sent
     finally:
         ex.shutdown()
