@@ -79,15 +79,19 @@ class Obstacle:
     rotation: np.ndarray = None
     half_size: np.ndarray = None
     triangles: np.ndarray = None     # a convex mesh: (T, 3, 3) [m] in its axes (rotation) about a, outward
+    body: int = -1                   # a link's collision shape: its joint (a, b, rotation in its output frame)
 
 
 @dataclass(frozen=True, eq=False)
 class ContactPoints:
-    """Contact points of the soft members: on soft joint ``joint`` at
-    abscissa ``x`` [m] (a tree's point), standing for a length ``weight``
-    [m] of member, circle radius ``radius`` [m], the member's Young's
-    modulus ``modulus`` [Pa] (the default contact stiffness), its member's
-    name and arc length ``s`` [m]."""
+    """Contact points of the soft members and of the links' round
+    collision shapes: on joint ``joint`` at abscissa ``x`` [m] (a tree's
+    point; x < 0: the joint's output frame), ``offset`` (3,) [m] in that
+    point's frame (zero on a member's backbone; a link's: the point of its
+    shape's axis), standing for a length ``weight`` [m] of member or shape,
+    circle (sphere) radius ``radius`` [m], the member's Young's modulus or
+    the shape's stiffness ``modulus`` [Pa] (the default contact stiffness),
+    its member's or link's name and arc length ``s`` [m] (0 on links)."""
     joint: np.ndarray
     x: np.ndarray
     weight: np.ndarray
@@ -95,6 +99,11 @@ class ContactPoints:
     modulus: np.ndarray
     member: tuple
     s: np.ndarray
+    offset: np.ndarray = None
+
+    def __post_init__(self):
+        if self.offset is None:
+            object.__setattr__(self, "offset", np.zeros((len(self.joint), 3)))
 
     def __len__(self):
         return len(self.joint)
@@ -192,20 +201,27 @@ class ContactState:
     dF_dv: np.ndarray = None
     moment: np.ndarray = None        # (n, 3) [N m] about the backbone point (friction at the surface)
     slip: np.ndarray = None          # (n, 3) [m/s] tangential velocity of the backbone point
+    body: np.ndarray = None          # (n,) the joint of the touched obstacle's body (-1: the world's)
+    arm: np.ndarray = None           # (n, 3) [m] from the point's frame origin to the point (a link's offset)
+    body_arm: np.ndarray = None      # (n, 3) [m] from the touched body's frame origin to the point
 
     def __len__(self):
         return len(self.point)
 
 
-def contact_forces(points, obstacles, p):
+def contact_forces(points, obstacles, p, allowed=None, obs=None):
     """:class:`ContactState` of the contact points (:class:`ContactPoints`)
     at rest at world positions p (P, 3) against ``obstacles`` (statics; a
-    time step's: :func:`step_contact_forces`): every pair with a positive
-    force (penetration) is listed (:func:`kernels.contact.rest_contacts`)."""
+    time step's: :func:`step_contact_forces`): every ``allowed`` (P, O)
+    pair (None: all) with a positive force (penetration) is listed
+    (:func:`kernels.contact.rest_contacts`). ``obs``: the obstacles'
+    arrays as posed (bodies' shapes; default: ``obstacles`` as given)."""
     p = np.ascontiguousarray(p, dtype=float)
     m = p.shape[0] * len(obstacles)
     out = _outputs(m)
-    c = kc.rest_contacts(points.radius, points.modulus, points.weight, kc.obstacle_arrays(obstacles), p,
+    allowed = np.ones((p.shape[0], len(obstacles)), np.bool_) if allowed is None else allowed
+    c = kc.rest_contacts(points.radius, points.modulus, points.weight, allowed,
+                         kc.obstacle_arrays(obstacles) if obs is None else obs, p,
                          out["idx"], out["ob"], out["n"], out["gap"], out["F"], out["dF"])
     i = out["idx"][:c]
     return ContactState(i.copy(), out["ob"][:c].copy(), p[i], out["n"][:c].copy(), out["gap"][:c].copy(),
@@ -218,7 +234,8 @@ def _outputs(m):
                 slip=np.empty((m, 3)))
 
 
-def step_contact_forces(points, obstacles, p0, p1, pt, h, theta, v0=None, obstacles0=None):
+def step_contact_forces(points, obstacles, p0, p1, pt, h, theta, v0=None, obstacles0=None, allowed=None,
+                        posed=None, ovel0=None):
     """:class:`ContactState` of a time step from positions p0 to p1 (P, 3),
     the forces acting at pt (the step's theta point): the normal force is
     the :func:`discrete_gradient` of the penetrations at the two ends, along
@@ -232,17 +249,32 @@ def step_contact_forces(points, obstacles, p0, p1, pt, h, theta, v0=None, obstac
     ring from step to step instead of damping it. ``obstacles0``: where
     the obstacles were at the step's start (moving obstacles: the
     penetration at the start is against them, the slip relative to their
-    translation over the step; None: they do not move). The pass:
+    translation and rotation over the step; None: they do not move).
+    ``allowed`` (P, O): the pairs that may touch (None: all); ``posed``:
+    (obs0, obs1, obst), the obstacles' arrays at the step's start, end and
+    theta point, for obstacles carried by the robot's bodies (they move
+    with it), and ``ovel0`` (O, 6) their velocities at the step's start
+    ([at a0; angular], NaN rows for the others). The pass:
     :func:`kernels.contact.step_contacts`."""
     p0, p1, pt = (np.ascontiguousarray(x, dtype=float) for x in (p0, p1, pt))
-    obs = kc.obstacle_arrays(obstacles)
-    moving = np.zeros(len(obstacles), np.bool_) if obstacles0 is None else np.array(
-        [a is not b for a, b in zip(obstacles0, obstacles)], np.bool_)
-    obs0 = obs if obstacles0 is None else kc.obstacle_arrays(obstacles0)
+    if posed is not None:
+        obs0, obs, obst = posed
+        moving = np.array([ob.body >= 0 for ob in obstacles], np.bool_)
+        if obstacles0 is not None:
+            moving |= np.array([a is not b for a, b in zip(obstacles0, obstacles)], np.bool_)
+    else:
+        obs = obst = kc.obstacle_arrays(obstacles)
+        moving = np.zeros(len(obstacles), np.bool_) if obstacles0 is None else np.array(
+            [a is not b for a, b in zip(obstacles0, obstacles)], np.bool_)
+        obs0 = obs if obstacles0 is None else kc.obstacle_arrays(obstacles0)
     m = p0.shape[0] * len(obstacles)
     out = _outputs(m)
     v = np.zeros_like(p0) if v0 is None else np.ascontiguousarray(v0, dtype=float)
-    c = kc.step_contacts(points.radius, points.modulus, points.weight, obs, obs0, moving, p0, p1, pt, float(h),
+    allowed = np.ones((p0.shape[0], len(obstacles)), np.bool_) if allowed is None else allowed
+    if ovel0 is None:
+        ovel0 = np.full((len(obstacles), 6), np.nan)
+    c = kc.step_contacts(points.radius, points.modulus, points.weight, allowed, obs, obs0, obst, moving,
+                         np.ascontiguousarray(ovel0, float), p0, p1, pt, float(h),
                          float(theta), v, v0 is not None, out["idx"], out["ob"], out["n"], out["gap"], out["F"],
                          out["dF"], out["dV"], out["M"], out["slip"])
     i = out["idx"][:c]
@@ -262,3 +294,21 @@ def friction_force(fn, vt, mu, v_s):
     F, dF = np.empty((len(fn), 3)), np.empty((len(fn), 3, 3))
     kc.friction_arrays(fn, vt, float(mu), float(v_s), F, dF)
     return F, dF
+
+
+def transition_step(slip, dslip, v_s):
+    """The fraction alpha in (0, 1] of a Newton update to take so that no
+    contact's friction jumps across its stiction zone: Castro et al.'s
+    transition-aware line search (TAMSI: "A Transition-Aware Method for the
+    Simulation of Compliant Contact with Regularized Friction", IEEE RA-L
+    5(2), 2020), on slips ``slip`` (c, 3) [m/s] changing by ``dslip`` (c, 3)
+    under the full update, stiction velocities ``v_s`` (c,). A contact
+    sticking (``|slip| < v_s``) that the update would set sliding faster
+    than 2 v_s stops there (past the regularised law's knee); one sliding
+    that the update would turn past
+    the origin (its slip reversed) stops where its path passes closest to
+    it; any other change is taken whole. Without it a full Newton step
+    flips a regularised friction, whose derivative along a fast slip is
+    nearly zero, between fast slips of opposite signs."""
+    slip, dslip = (np.ascontiguousarray(x, dtype=float).reshape(-1, 3) for x in (slip, dslip))
+    return kc.transition_fractions(slip, dslip, np.ascontiguousarray(v_s, dtype=float).ravel())

@@ -19,47 +19,118 @@ import numpy as np
 from soft_twin_core.engine.forces import actuation_tangent_pass
 from soft_twin_core.engine.integrators import integrate_pass, residual_after_forward
 from soft_twin_core.engine.kernels import passes
-from soft_twin_core.engine.kernels.contact import step_contacts
+from soft_twin_core.engine.kernels.contact import pose_obstacles, step_contacts, transition_fraction
 from soft_twin_core.engine.kernels.data import LoadArrays
-from soft_twin_core.engine.kernels.frames import point_poses, world_point_jacobians
+from soft_twin_core.engine.kernels.frames import body_point_twists, offset_point_positions, relative_point_jacobians
 from soft_twin_core.engine.kernels.spatial import _jit, _jit_inline
 from soft_twin_core.engine.kernels.tangent import static_tangent_pass
 
 
 @_jit_inline
-def _with_contact_loads(ld, pj, px, idx, F, M, c):
+def _with_contact_loads(w, ld, pj, px, G, pt, idx, ob_of, obody, F, M, c, arm, barm):
     """The loads ``ld`` and the c contacts' forces F and moments M as dead
-    point loads at their backbone points."""
+    loads: on each point's frame (its pose G, after the forward pass at
+    the theta point pt), and their reactions -F, -M on the bodies that
+    carry the touched obstacles (``obody``: -1 for the world's), about
+    those frames' origins; arm and barm receive the lever arms [m] from the
+    frames' origins to the points."""
     L = ld.joint.shape[0]
-    joint = np.empty(L + c, np.int64)
-    x = np.empty(L + c)
-    wr = np.empty((L + c, 6))
-    world = np.empty(L + c, np.bool_)
+    nb = 0
+    for k in range(c):
+        if obody[ob_of[k]] >= 0:
+            nb += 1
+    joint = np.empty(L + c + nb, np.int64)
+    x = np.empty(L + c + nb)
+    wr = np.empty((L + c + nb, 6))
+    world = np.empty(L + c + nb, np.bool_)
     for k in range(L):
         joint[k], x[k], world[k] = ld.joint[k], ld.x[k], ld.world[k]
         for r in range(6):
             wr[k, r] = ld.wrench[k, r]
+    e = L + c
     for k in range(c):
-        joint[L + k], x[L + k], world[L + k] = pj[idx[k]], px[idx[k]], True
+        i = idx[k]
+        joint[L + k], x[L + k], world[L + k] = pj[i], px[i], True
         for r in range(3):
+            arm[k, r] = pt[i, r] - G[i, r, 3]
+        b = obody[ob_of[k]]
+        for r in range(3):
+            barm[k, r] = pt[i, r] - w.g_out[b, r, 3] if b >= 0 else 0.0
+        for r in range(3):
+            r1, r2 = (r + 1) % 3, (r + 2) % 3
             wr[L + k, r] = F[k, r]
-            wr[L + k, 3 + r] = M[k, r]
+            wr[L + k, 3 + r] = M[k, r] + arm[k, r1] * F[k, r2] - arm[k, r2] * F[k, r1]
+        if b >= 0:
+            joint[e], x[e], world[e] = b, -1.0, True
+            for r in range(3):
+                r1, r2 = (r + 1) % 3, (r + 2) % 3
+                wr[e, r] = -F[k, r]
+                wr[e, 3 + r] = -M[k, r] - (barm[k, r1] * F[k, r2] - barm[k, r2] * F[k, r1])
+            e += 1
     return LoadArrays(joint, x, wr, world)
 
 
 @_jit_inline
-def _positions(m, w, q, v, a, level, pj, px, G, out):
+def _positions(m, w, q, v, a, level, pj, px, poff, G, out):
     """The points' positions at q (a forward pass to ``level``: v and a too)."""
     passes.forward_pass(m, w, q, v, a, level)
-    point_poses(m, w, pj, px, G)
-    for p in range(pj.shape[0]):
-        for r in range(3):
-            out[p, r] = G[p, r, 3]
+    offset_point_positions(m, w, pj, px, poff, G, out)
 
 
 @_jit_inline
-def _newton_inverse(m, w, act, ldc, g, coef, K, D, qt, h, theta, pj, px, idx, dF, dV, c, zeros, Ainv):
-    """Ainv = ((M + th h D_t + (th h)^2 K_t) / h)^-1 at q_t; False if singular."""
+def _transition_alpha(m, w, pj, px, pt, idx, ob_of, obs, n_out, slip, dv, c):
+    """The fraction of the update dv that no frictional contact's slip
+    jumps across its stiction zone with (:func:`kernels.contact.transition_fraction`;
+    the workspace posed at the theta point)."""
+    nf = 0
+    for k in range(c):
+        if obs.friction[ob_of[k]] > 0.0:
+            nf += 1
+    if nf == 0:
+        return 1.0
+    rows = np.empty(nf, np.int64)
+    body = np.empty(nf, np.int64)
+    e = 0
+    for k in range(c):
+        if obs.friction[ob_of[k]] > 0.0:
+            rows[e], body[e] = k, obs.body[ob_of[k]]
+            e += 1
+    nv = dv.shape[0]
+    J = np.empty((nf, 3, nv))
+    relative_point_jacobians(m, w, pj[idx[rows]], px[idx[rows]], body, pt[idx[rows]], J, np.empty((nf, 3, nv)))
+    alpha = 1.0
+    d = np.empty(3)
+    for e in range(nf):
+        k = rows[e]
+        for r in range(3):
+            acc = 0.0
+            for j in range(nv):
+                acc += J[e, r, j] * dv[j]
+            d[r] = acc
+        dn = d[0] * n_out[k, 0] + d[1] * n_out[k, 1] + d[2] * n_out[k, 2]
+        for r in range(3):
+            d[r] -= dn * n_out[k, r]
+        alpha = min(alpha, transition_fraction(slip[k], d, obs.stiction[ob_of[k]]))
+    return alpha
+
+
+@_jit_inline
+def _cross_matrix(f):
+    """[f x] (3, 3)."""
+    X = np.zeros((3, 3))
+    X[0, 1], X[0, 2], X[1, 2] = -f[2], f[1], -f[0]
+    X[1, 0], X[2, 0], X[2, 1] = f[2], -f[1], f[0]
+    return X
+
+
+@_jit_inline
+def _newton_inverse(m, w, act, ldc, g, coef, K, D, qt, h, theta, pj, px, pt, idx, ob_of, obody, F, dF, dV, c,
+                    zeros, Ainv):
+    """Ainv = ((M + th h D_t + (th h)^2 K_t) / h)^-1 at q_t; False if
+    singular. A contact's stiffness acts through the velocity of its point
+    relative to the body carrying the obstacle (the world's: at rest), and
+    its force turns with that body: ``dF = dF/dp J_rel dq - [F x] J_w dq``
+    (:meth:`soft_twin_core.solve.contact.MemberContact.add_stiffness`)."""
     nv = K.shape[0]
     passes.forward_pass(m, w, qt, zeros, zeros, 0)
     A = np.zeros((nv, nv))
@@ -70,15 +141,21 @@ def _newton_inverse(m, w, act, ldc, g, coef, K, D, qt, h, theta, pj, px, idx, dF
     actuation_tangent_pass(m, w, act, coef, Kt)
     Dt = D.copy()
     if c > 0:
-        G = np.empty((c, 4, 4))
-        J = np.empty((c, 6, nv))
-        world_point_jacobians(m, w, pj[idx[:c]], px[idx[:c]], G, J)
+        J = np.empty((c, 3, nv))
+        Jw = np.empty((c, 3, nv))
+        body = np.empty(c, np.int64)
         for k in range(c):
-            Jl = np.ascontiguousarray(J[k, :3, :])
-            KJ = dF[k] @ Jl
+            body[k] = obody[ob_of[k]]
+        relative_point_jacobians(m, w, pj[idx[:c]], px[idx[:c]], body, pt[idx[:c]], J, Jw)
+        for k in range(c):
+            Jl = J[k]
+            X = _cross_matrix(F[k])
+            KJ = dF[k] @ Jl - X @ Jw[k]
             DJ = dV[k] @ Jl
             JT = np.ascontiguousarray(Jl.T)
             Kt -= JT @ KJ
+            if body[k] >= 0:            # the reaction's lever arm: J_w^T [F x] J_rel (solve.contact.add_stiffness)
+                Kt -= np.ascontiguousarray(Jw[k].T) @ (X @ Jl)
             Dt -= JT @ DJ
     th = theta * h
     for i in range(nv):
@@ -101,13 +178,16 @@ def _newton_inverse(m, w, act, ldc, g, coef, K, D, qt, h, theta, pj, px, idx, dF
 
 @_jit
 def contact_step(m, w, act, ld, g, coef, effort, K, D, q_ref, elastic_noise, q0, v0, h, theta, tol, floor,
-                 max_it, pj, px, prad, pmod, pw, obs, obs0, moving, Ainv, key, reuse,
-                 v1, q1, pt, idx, ob_of, n_out, gap, F, dF, dV, M, slip):
+                 max_it, pj, px, poff, prad, pmod, pw, allowed, obs, obs0, P0, P1, Pt, moving, Ainv, key, reuse,
+                 v1, q1, pt, idx, ob_of, n_out, gap, F, dF, dV, M, slip, arm, barm):
     """One step from (q0, v0) (guess v1, updated in place; q1 receives the
     end configuration, pt the contact points' positions at the theta point
-    of the last iterate). Contact points (joint pj, abscissa px, radius,
-    modulus, weight); obstacles ``obs`` (``obs0`` at the step's start for
-    the ``moving`` ones). ``Ainv``: the inverse Newton matrix, reused at the
+    of the last iterate). Contact points (joint pj, abscissa px, offset
+    poff, radius, modulus, weight), the ``allowed`` (P, O) pairs; obstacles
+    ``obs`` (``obs0`` at the step's start for the ``moving`` ones; those
+    the bodies carry, in their frames), posed into P0, P1, Pt
+    (:func:`kernels.contact.posable` copies) at the step's start, end and
+    theta point. ``Ainv``: the inverse Newton matrix, reused at the
     first iterate if ``reuse`` and the contacts there are ``key``
     (``key[0]`` of them, then obstacle * P + point each), else made anew
     (key updated). Returns (iterations, status, contacts, factorised):
@@ -116,14 +196,21 @@ def contact_step(m, w, act, ld, g, coef, effort, K, D, q_ref, elastic_noise, q0,
     nv, nq, P = v0.shape[0], q0.shape[0], pj.shape[0]
     zeros = np.zeros(nv)
     G = np.empty((P, 4, 4))
-    J = np.empty((P, 6, nv))
-    passes.forward_pass(m, w, q0, zeros, zeros, 0)
-    world_point_jacobians(m, w, pj, px, G, J)
     p0 = np.empty((P, 3))
+    _positions(m, w, q0, zeros, zeros, 0, pj, px, poff, G, p0)
+    pose_obstacles(w, obs0, P0)
+    ovel0 = np.full((obs.kind.shape[0], 6), np.nan)
+    if moving.any():
+        tw = np.empty((obs.kind.shape[0], 6))
+        body_point_twists(m, w, obs.body, P0.a, v0, tw)
+        for o in range(obs.kind.shape[0]):
+            if obs.body[o] >= 0:
+                ovel0[o, :] = tw[o, :]
+    J = np.empty((P, 3, nv))
+    relative_point_jacobians(m, w, pj, px, np.full(P, -1, np.int64), p0, J, np.empty((P, 3, nv)))
     pv0 = np.zeros((P, 3))
     for p in range(P):
         for r in range(3):
-            p0[p, r] = G[p, r, 3]
             for k in range(nv):
                 pv0[p, r] += J[p, r, k] * v0[k]
     p1 = np.empty((P, 3))
@@ -134,6 +221,8 @@ def contact_step(m, w, act, ld, g, coef, effort, K, D, q_ref, elastic_noise, q0,
     th = theta * h
     refactor, factorised = True, 0
     prev, first, Rs, noise = np.inf, 0.0, 1e-300, 0.0
+    dv = np.zeros(nv)
+    lastR, halvings = np.inf, 0
     c = 0
     for it in range(1, max_it + 1):
         for k in range(nv):
@@ -141,11 +230,13 @@ def contact_step(m, w, act, ld, g, coef, effort, K, D, q_ref, elastic_noise, q0,
             acc[k] = (v1[k] - v0[k]) / h
         integrate_pass(m, q0, vt, th, qt)
         integrate_pass(m, q0, vt, h, q1)
-        _positions(m, w, q1, zeros, zeros, 0, pj, px, G, p1)
-        _positions(m, w, qt, vt, acc, 2, pj, px, G, pt)          # (the residual's forward pass too)
-        c = step_contacts(prad, pmod, pw, obs, obs0, moving, p0, p1, pt, h, theta, pv0, True,
+        _positions(m, w, q1, zeros, zeros, 0, pj, px, poff, G, p1)
+        pose_obstacles(w, obs, P1)
+        _positions(m, w, qt, vt, acc, 2, pj, px, poff, G, pt)          # (the residual's forward pass too)
+        pose_obstacles(w, obs, Pt)
+        c = step_contacts(prad, pmod, pw, allowed, P1, P0, Pt, moving, ovel0, p0, p1, pt, h, theta, pv0, True,
                           idx, ob_of, n_out, gap, F, dF, dV, M, slip)
-        ldc = _with_contact_loads(ld, pj, px, idx, F, M, c)
+        ldc = _with_contact_loads(w, ld, pj, px, G, pt, idx, ob_of, obs.body, F, M, c, arm, barm)
         if refactor:
             same = reuse and it == 1 and key[0] == c
             if same:
@@ -153,8 +244,8 @@ def contact_step(m, w, act, ld, g, coef, effort, K, D, q_ref, elastic_noise, q0,
                     if key[1 + k] != ob_of[k] * P + idx[k]:
                         same = False
             if not same:
-                if not _newton_inverse(m, w, act, ldc, g, coef, K, D, qt, h, theta, pj, px, idx, dF, dV, c,
-                                       zeros, Ainv):
+                if not _newton_inverse(m, w, act, ldc, g, coef, K, D, qt, h, theta, pj, px, pt, idx, ob_of,
+                                       obs.body, F, dF, dV, c, zeros, Ainv):
                     return it, 4, c, factorised
                 passes.forward_pass(m, w, qt, vt, acc, 2)             # (it posed the workspace at rest)
                 factorised += 1
@@ -182,14 +273,26 @@ def contact_step(m, w, act, ld, g, coef, effort, K, D, q_ref, elastic_noise, q0,
                 break
         elif nR <= max(tol * Rs, noise):
             break
-        ndv, vmax = 0.0, 0.0
+        if it > 1 and nR > lastR and halvings < 4:
+            # the residual grew: back along the last update (solve.constrained.MechanismSimulator._step)
+            for i in range(nv):
+                dv[i] *= 0.5
+                v1[i] -= dv[i]
+            halvings += 1
+            continue
         for i in range(nv):
             s = 0.0
             for j in range(nv):
                 s -= Ainv[i, j] * R[j]
-            v1[i] += s
-            ndv = max(ndv, abs(s))
+            dv[i] = s
+        alpha = _transition_alpha(m, w, pj, px, pt, idx, ob_of, obs, n_out, slip, dv, c)
+        ndv, vmax = 0.0, 0.0
+        for i in range(nv):
+            dv[i] *= alpha
+            v1[i] += dv[i]
+            ndv = max(ndv, abs(dv[i]))
             vmax = max(vmax, abs(v1[i]), abs(v0[i]))
+        lastR, halvings = nR, 0
         if not np.isfinite(ndv):
             return it, 3, c, factorised
         if it == 1:

@@ -36,7 +36,7 @@ from soft_twin_core.engine.multibody import ModelBuilder, SoftSection, spatial_i
 from soft_twin_core.engine.workspace import Workspace
 from soft_twin_core.robot.model import (ModelError, _check_keys, _num, _vec, find_file, model_from_dict,
                                         pose_from_dict, read_yaml_file, robot_mapping)
-from soft_twin_core.robot.obstacles import contact_spacing, obstacles_from_list
+from soft_twin_core.robot.obstacles import contact_spacing, link_shape, obstacles_from_list
 from soft_twin_core.robot.stress import section_geometry
 from soft_twin_core.robot.urdf import bodies_from_urdf
 
@@ -121,6 +121,7 @@ class Link:
     name: str
     joint: int
     visual: dict = None
+    collision: object = None       # engine.contact.Obstacle in the link's frame (body = joint), or None
 
 
 @dataclass(frozen=True, eq=False)
@@ -139,6 +140,11 @@ class Mechanism:
     base_pose: np.ndarray = field(default_factory=lambda: np.eye(4))   # world <- base (the file's base)
     obstacles: tuple = ()          # engine.contact.Obstacle: what the members touch (robot/obstacles.py)
     contact_spacing: float = None  # [m] between contact points (None: robot.obstacles.contact_points' default)
+
+    @property
+    def shapes(self):
+        """The links' collision shapes (engine.contact.Obstacle carried by their joints)."""
+        return tuple(lk.collision for lk in self.links if lk.collision is not None)
 
     @property
     def actuators(self):
@@ -187,7 +193,7 @@ class Mechanism:
 # Robot file
 # ----------------------------------------------------------------------------
 
-_BODY_KEYS = {"name", "type", "parent", "joint", "mass", "com", "inertia", "visual", "segments",
+_BODY_KEYS = {"name", "type", "parent", "joint", "mass", "com", "inertia", "visual", "collision", "segments",
               "actuators"}
 _JOINT_KEYS = {"name", "type", "axis", "position", "rpy", "quaternion", "limits", "stiffness", "damping",
                "reference", "control", "max_velocity", "max_acceleration"}
@@ -320,8 +326,9 @@ def _joint(b, jd, where, default_name, is_member):
     if kind_name not in JOINT_TYPES:
         raise ModelError(f"{where}.type: expected one of {sorted(JOINT_TYPES)}, got {kind_name!r}")
     kind = JOINT_TYPES[kind_name]
-    if kind == FREE:
-        raise ModelError(f"{where}.type: a free joint is the floating base: give base: {{motion: floating}}")
+    if kind == FREE and is_member:
+        raise ModelError(f"{where}.type: a free member is not supported (a free link is: a loose object; a "
+                         f"floating robot: give base: {{motion: floating}})")
     name = jd.get("name", default_name)
     if not isinstance(name, str) or not name:
         raise ModelError(f"{where}.name: expected a non-empty string, got {name!r}")
@@ -487,11 +494,14 @@ def mechanism_from_dict(d, base_dir=None):
             ji = b.add_joint(jname, kind, pj, placement, axis, spatial_inertia(mass, com, Ic), None,
                              stiff, damp, ref, limits)
             control.append(ctrl)
-            links.append(Link(name, ji, _visual(bd.get("visual"), where + ".visual")))
+            if kind == FREE and mass == 0.0:
+                raise ModelError(f"{where}.mass: a free link (a loose object) needs a mass > 0 kg")
+            links.append(Link(name, ji, _visual(bd.get("visual"), where + ".visual"),
+                              link_shape(bd.get("collision"), name, ji, where + ".collision")))
             ends[name] = (ji, np.eye(4))
             frames[name] = PointRef(ji)
         else:
-            for key in ("mass", "com", "inertia", "visual"):
+            for key in ("mass", "com", "inertia", "visual", "collision"):
                 if key in bd:
                     raise ModelError(f"{where}.{key}: a member's inertia comes from its segments; "
                                      f"{key} is for links")

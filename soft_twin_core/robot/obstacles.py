@@ -200,6 +200,66 @@ def obstacle_placed(ob, T):
     return replace(ob, a=T[:3, 3] - half, b=T[:3, 3] + half)
 
 
+# the contact stiffness [N/m^2 = Pa] of a link's round shape against the world when its
+# ``collision`` gives none (that of a stiff rubber, as the soft members' modulus)
+DEFAULT_SHAPE_STIFFNESS = 1.0e6
+_SHAPES = {"sphere": ("radius",), "capsule": ("radius", "length"), "cylinder": ("radius", "length"),
+           "box": ("size",), "mesh": ("vertices", "faces")}
+
+
+def link_shape(d, name, joint, where):
+    """A link's ``collision`` shape (None: none) as an :class:`Obstacle`
+    carried by its joint ``joint`` (a, b, rotation in the link's frame),
+    named after the link::
+
+        collision: {shape: sphere | capsule | cylinder | box | mesh, radius, length, size,
+                    vertices, faces, position, rpy | quaternion,       # the shape's pose in the link
+                    stiffness, smoothing, damping, friction, stiction_velocity}
+
+    A capsule or cylinder lies along the shape frame's z axis, centred
+    (a cylinder is taken as a capsule: its ends rounded); a box has edge
+    lengths ``size``; a mesh is closed and convex. The soft members touch
+    it as they touch an obstacle; a sphere or capsule touches the world's
+    obstacles too (:func:`contact_points`)."""
+    if d is None:
+        return None
+    if not isinstance(d, dict):
+        raise ModelError(f"{where}: expected a mapping {{shape, sizes, ...}}, got {d!r}")
+    shape = d.get("shape")
+    if shape not in _SHAPES:
+        raise ModelError(f"{where}.shape: expected one of {sorted(_SHAPES)}, got {shape!r}")
+    _check_keys(d, {"shape", "position", "rpy", "quaternion"} | set(_SHAPES[shape]) | (_COMMON - {"name", "type"}),
+                where)
+    T = pose_from_dict({k: d[k] for k in ("position", "rpy", "quaternion") if k in d} or None, where)
+    law = {k: d[k] for k in _COMMON - {"name", "type"} if k in d}
+    if shape == "mesh":
+        ob = obstacle_at(name, "mesh", T, law=law, where=where, mesh=(d.get("vertices"), d.get("faces")))
+    else:
+        dims = {"sphere": lambda: [_num(d, "radius", where, positive=True)],
+                "box": lambda: list(_vec(d, "size", 3, where)),
+                "capsule": lambda: [_num(d, "length", where, positive=True), _num(d, "radius", where, positive=True)]}
+        kind = "capsule" if shape == "cylinder" else shape
+        ob = obstacle_at(name, kind, T, dims[kind](), law, where)
+    return replace(ob, body=int(joint))
+
+
+def _shape_points(link, spacing):
+    """(offset (k, 3), weight (k,), radius) of a link's round collision shape:
+    a sphere's centre (standing for its diameter), or the midpoints of equal
+    intervals of a capsule's axis at ``spacing`` (default: the smaller of
+    10 mm and a twentieth of it); None for a box or mesh."""
+    ob = link.collision
+    if ob is None or ob.kind not in ("sphere", "capsule"):
+        return None
+    if ob.kind == "sphere":
+        return ob.a[None, :].copy(), np.array([2.0 * ob.radius]), ob.radius
+    L = float(np.linalg.norm(ob.b - ob.a))
+    h = spacing if spacing is not None else min(0.01, L / 20)
+    n = max(1, int(np.ceil(L / h - 1e-9)))
+    t = (np.arange(n) + 0.5) / n
+    return ob.a + t[:, None] * (ob.b - ob.a), np.full(n, L / n), ob.radius
+
+
 def contact_spacing(d, where="robot.contact"):
     """The ``contact`` settings' spacing [m] (None: the default)."""
     if d is None:
@@ -213,10 +273,12 @@ def contact_points(mech, spacing=None):
     ``spacing`` [m] (default: the smaller of 10 mm and a twentieth of the
     member), each with its section's cross-section radius (the larger
     extreme fibre distance) and Young's modulus (axial stiffness over
-    area). ModelError for a member without a cross-section shape (a
-    ``sectional`` stiffness gives no radius)."""
+    area); then the points of the links' round collision shapes
+    (:func:`_shape_points`, their stiffness: the shape's, default
+    DEFAULT_SHAPE_STIFFNESS). ModelError for a member without a
+    cross-section shape (a ``sectional`` stiffness gives no radius)."""
     tree = mech.tree
-    J, X, W, R, E, M, S = [], [], [], [], [], [], []
+    J, X, W, R, E, M, S, OFF = [], [], [], [], [], [], [], []
     for mem in mech.members:
         path = tree.paths[mem.path]
         h = spacing if spacing is not None else min(0.01, path.length / 20)
@@ -232,9 +294,24 @@ def contact_points(mech, spacing=None):
         X.append(x)
         W.append(w)
         S.append(s)
+        OFF.append(np.zeros((len(j), 3)))
         M += [mem.name] * len(j)
+    for link in mech.links:
+        pts = _shape_points(link, spacing)
+        if pts is None:
+            continue
+        off, w, r = pts
+        k = len(w)
+        J.append(np.full(k, link.joint, np.int64))
+        X.append(np.full(k, -1.0))
+        W.append(w)
+        S.append(np.zeros(k))
+        OFF.append(off)
+        R += [r] * k
+        E += [link.collision.stiffness or DEFAULT_SHAPE_STIFFNESS] * k
+        M += [link.name] * k
     if not J:
         return ContactPoints(np.zeros(0, np.int64), np.zeros(0), np.zeros(0), np.zeros(0), np.zeros(0), (),
                              np.zeros(0))
-    return ContactPoints(np.concatenate(J), np.concatenate(X), np.concatenate(W), np.array(R), np.array(E),
-                         tuple(M), np.concatenate(S))
+    return ContactPoints(np.concatenate(J), np.concatenate(X), np.concatenate(W), np.array(R, float),
+                         np.array(E, float), tuple(M), np.concatenate(S), np.ascontiguousarray(np.concatenate(OFF)))

@@ -40,7 +40,7 @@ from soft_twin_core.engine.integrators import ThetaIntegrator, integrate_pass, r
 from soft_twin_core.engine.joint_kinds import FREE, PRISMATIC, REVOLUTE, SPHERICAL
 from soft_twin_core.engine.kernels import passes
 from soft_twin_core.engine.kernels.data import LoadArrays
-from soft_twin_core.engine.kernels.contact import obstacle_arrays
+from soft_twin_core.engine.kernels.contact import obstacle_arrays, posable
 from soft_twin_core.engine.kernels.frames import world_point_jacobians
 from soft_twin_core.solve.contact import MemberContact
 from soft_twin_core.engine.kernels.tangent import static_tangent_pass
@@ -796,30 +796,32 @@ class MechanismSimulator:
         :func:`engine.contact_step.contact_step` (the Newton iteration of
         :meth:`_step`, compiled), its inverse Newton matrix kept for the
         next step while the same points touch."""
-        tree, ws, pts = self.tree, self.ws, self.contact.points
-        obstacles = self.contact.obstacles
+        tree, ws, pts, contact = self.tree, self.ws, self.contact.points, self.contact
+        obstacles = contact.all
         obs = obstacle_arrays(obstacles)
         start = self._obstacles0
-        obs0 = obs if start is None else obstacle_arrays(start)
+        obs0 = obs if start is None else obstacle_arrays(tuple(start) + tuple(self.mech.shapes))
         held = self._compiled_held
         if held is None or held["h"] != h or held["obstacles"] != len(obstacles):
             nv = tree.nv
             held = self._compiled_held = dict(h=h, obstacles=len(obstacles), Ainv=np.zeros((nv, nv)),
                                               key=np.zeros(len(pts) * len(obstacles) + 1, np.int64), reuse=False,
-                                              still=np.zeros(len(obstacles), np.bool_))
-        moving = held["still"] if start is None else np.array([a is not b for a, b in zip(start, obstacles)])
+                                              still=obs.body >= 0)
+        moving = held["still"] if start is None else (obs.body >= 0) | np.array(
+            [a is not b for a, b in zip(start, contact.obstacles)] + [False] * len(self.mech.shapes))
         if held.get("inputs") is not inp:        # the inputs' arrays, once per Inputs
             coef = np.ascontiguousarray(self.act.unit @ inp.u) if inp.u.size else np.zeros(len(self.act.joint))
             held.update(inputs=inp, coef=coef, loads=concat_loads(inp.loads))
         size = len(pts) * len(obstacles)
         out = (np.empty(size, np.int64), np.empty(size, np.int64), np.empty((size, 3)), np.empty(size),
                np.empty((size, 3)), np.empty((size, 3, 3)), np.empty((size, 3, 3)), np.empty((size, 3)),
-               np.empty((size, 3)))
+               np.empty((size, 3)), np.empty((size, 3)), np.empty((size, 3)))
         v1, q1, pt = self.v.copy(), np.empty(tree.nq), np.empty((len(pts), 3))
         it, status, c, fresh = contact_step(
             ws.m, ws.w, self.act, held["loads"], inp.gravity, held["coef"], inp.effort, self.K, self.D, tree.q0,
             tree.nq == tree.nv, self.q, self.v, h, self.theta, self.tol, 1e-14 * max(self.Ls, 1.0) / h,
-            self.max_iterations, pts.joint, pts.x, pts.radius, pts.modulus, pts.weight, obs, obs0, moving,
+            self.max_iterations, pts.joint, pts.x, pts.offset, pts.radius, pts.modulus, pts.weight,
+            contact.allowed, obs, obs0, posable(obs0), posable(obs), posable(obs), moving,
             held["Ainv"], held["key"], held["reuse"], v1, q1, pt, *out)
         self._kkt_factorisations += fresh
         held["reuse"] = status == 0 and it <= 2
@@ -830,7 +832,8 @@ class MechanismSimulator:
         idx = out[0][:c]
         self.a = (v1 - self.v) / h
         self.q, self.v = q1, v1
-        self.contacts = ContactState(idx, out[1][:c], pt[idx], *(x[:c] for x in out[2:]))
+        self.contacts = ContactState(idx, out[1][:c], pt[idx], *(x[:c] for x in out[2:9]), body=obs.body[out[1][:c]],
+                                     arm=out[9][:c], body_arm=out[10][:c])
         self.t += h
         self.iterations = it
         self.newton_iterations += it
@@ -892,6 +895,7 @@ class MechanismSimulator:
         q1 = np.empty(tree.nq)
         R = np.empty(tree.nv)
         fac, refactor, prev, first, Rs = None, True, np.inf, 0.0, 1e-300
+        last, backtracks = None, 0          # the last Newton update (dv, dlambda, |R| before it), halvings of it
         for it in range(1, self.max_iterations + 1):
             vt = (1 - th) * v0 + th * v1
             acc = (v1 - v0) / h
@@ -901,7 +905,7 @@ class MechanismSimulator:
             contacts = None
             if self.contact:              # the step's mean contact forces (energy-consistent)
                 if it == 1:
-                    start = self.contact.motion(self.ws, q0, v0)
+                    start = self.contact.motion(self.ws, q0, v0, self._obstacles0)
                 contacts = self.contact.step_state(self.ws, start, q1, qt, h, th, self._obstacles0)
             if contacts is not None:
                 ld = concat_loads(ld, self.contact.loads(contacts))
@@ -929,7 +933,21 @@ class MechanismSimulator:
                     break
             elif phi_ok and nR <= max(self.tol * Rs, noise):
                 break              # balanced: forces to tol of their scale, constraints held
+            if last is not None and nR > last[2] and backtracks < 4 and contacts is not None and len(contacts):
+                # the residual grew: back along the last update (a contact's friction flips between
+                # fast slips of opposite signs under full Newton steps; without contacts a constraint's
+                # correction may rightly raise the residual a first time)
+                dv, dl = 0.5 * last[0], 0.5 * last[1]
+                v1 -= dv
+                lam -= dl
+                last, backtracks = (dv, dl, last[2]), backtracks + 1
+                continue
             dv, dl = solve_factored(fac, R, phi1)
+            if contacts is not None and len(contacts):
+                # no friction jumps across its stiction zone (the workspace is posed at q_t)
+                frac = self.contact.update_fraction(self.ws, contacts, dv)
+                dv, dl = frac * dv, frac * dl
+            last, backtracks = (dv, dl, nR), 0
             v1 += dv
             lam += dl
             ndv = np.abs(dv).max(initial=0)

@@ -5,11 +5,12 @@ passes, and their stiffness ``-J^T dF/dp J`` for Newton's matrix (the law:
 
 import numpy as np
 
-from soft_twin_core.engine.contact import (contact_forces, normal_potential_density, signed_distance,
-                                           step_contact_forces)
+from soft_twin_core.engine.contact import (ContactState, contact_forces, normal_potential_density,
+                                           step_contact_forces, transition_step)
 from soft_twin_core.engine.kernels import passes
+from soft_twin_core.engine.kernels.contact import distance_arrays, obstacle_arrays, posable, pose_obstacles
 from soft_twin_core.engine.kernels.data import LoadArrays
-from soft_twin_core.engine.kernels.frames import point_poses, world_point_jacobians
+from soft_twin_core.engine.kernels.frames import body_point_twists, offset_point_positions, relative_point_jacobians
 from soft_twin_core.robot.obstacles import contact_points
 
 
@@ -24,21 +25,50 @@ def mechanism_contact_points(mech):
 
 def contact_loads(mech, st):
     """The contact forces of a ContactState of ``mech`` (None: none) as dead
-    point loads: world axes, at the backbone points, with the friction's
-    moment about them."""
+    point loads: world axes, at the contact points, with the friction's
+    moment about them, and their reactions on the bodies whose shapes are
+    touched."""
     if st is None or not len(st):
         return LoadArrays(np.zeros(0, np.int64), np.zeros(0), np.zeros((0, 6)), np.zeros(0, np.bool_))
     return _point_loads(mechanism_contact_points(mech), st)
 
 
 def _point_loads(points, st):
+    """Each contact's force F and moment M on its point's frame (about its
+    origin: ``M + arm x F``) and, when a body carries the obstacle, -F and
+    -M on that body (``-M - body_arm x F``)."""
     n = len(st)
+    M = st.moment if st.moment is not None else np.zeros((n, 3))
+    arm = st.arm if st.arm is not None else np.zeros((n, 3))
     wr = np.zeros((n, 6))
     wr[:, :3] = st.force
-    if st.moment is not None:
-        wr[:, 3:] = st.moment
-    return LoadArrays(np.ascontiguousarray(points.joint[st.point]), np.ascontiguousarray(points.x[st.point]), wr,
-                      np.ones(n, np.bool_))
+    wr[:, 3:] = M + np.cross(arm, st.force)
+    joint, x = points.joint[st.point], points.x[st.point]
+    if st.body is not None and np.any(st.body >= 0):
+        b = st.body >= 0
+        rw = np.zeros((int(b.sum()), 6))
+        rw[:, :3] = -st.force[b]
+        rw[:, 3:] = -M[b] - np.cross(st.body_arm[b], st.force[b])
+        wr = np.concatenate([wr, rw])
+        joint = np.concatenate([joint, st.body[b]])
+        x = np.concatenate([x, np.full(int(b.sum()), -1.0)])
+    return LoadArrays(np.ascontiguousarray(joint, np.int64), np.ascontiguousarray(x, float),
+                      np.ascontiguousarray(wr), np.ones(len(joint), np.bool_))
+
+
+def contact_mask(tree, points, obstacles):
+    """(P, O) bool: the (point, obstacle) pairs that may touch. A world
+    obstacle touches every point; a body's shape no point of its own body,
+    of the bodies it carries, or of those carrying it (a finger does not
+    touch the palm it is mounted on, nor a link its own shape)."""
+    allowed = np.ones((len(points), len(obstacles)), np.bool_)
+    for o, ob in enumerate(obstacles):
+        if ob.body < 0:
+            continue
+        below = set(tree.subtree(ob.body))
+        above = set(tree.support(ob.body))
+        allowed[:, o] = [int(j) not in below and int(j) not in above for j in points.joint]
+    return allowed
 
 
 def contacts_dict(mech, st, obstacles=None):
@@ -49,46 +79,89 @@ def contacts_dict(mech, st, obstacles=None):
     if st is None or not len(st):
         return []
     pts = mechanism_contact_points(mech)
-    names = [ob.name for ob in (mech.obstacles if obstacles is None else obstacles)]
+    names = [ob.name for ob in (mech.obstacles if obstacles is None else obstacles)] + [
+        ob.name for ob in mech.shapes]
     return [dict(member=pts.member[i], s=float(pts.s[i]), obstacle=names[o],
                  position=st.p[c].tolist(), normal=st.normal[c].tolist(), gap=float(st.gap[c]),
                  force=st.force[c].tolist(), slip=(st.slip[c].tolist() if st.slip is not None else [0.0] * 3))
             for c, (i, o) in enumerate(zip(st.point, st.obstacle))]
 
 
+def _subset(st, rows):
+    """The contacts ``rows`` of a ContactState (the fields slip_jacobians reads)."""
+    return ContactState(st.point[rows], st.obstacle[rows], st.p[rows], st.normal[rows], st.gap[rows],
+                        st.force[rows], st.dF_dp[rows], body=None if st.body is None else st.body[rows])
+
+
 class MemberContact:
     """The contact points of ``mech`` against ``obstacles`` (default the
-    robot file's)."""
+    robot file's) and the collision shapes its links carry
+    (``mech.shapes``, after the obstacles in ``all``: a ContactState's
+    obstacle indices count in it)."""
 
     def __init__(self, mech, obstacles=None):
         self.mech = mech
         self.obstacles = tuple(mech.obstacles if obstacles is None else obstacles)
-        self.points = mechanism_contact_points(mech) if self.obstacles else None
+        self.all = self.obstacles + tuple(mech.shapes)
+        self.points = mechanism_contact_points(mech) if self.all else None
+        self.allowed = contact_mask(mech.tree, self.points, self.all) if self.all else None
+        self._local = obstacle_arrays(self.all) if self.all else None
 
     def __bool__(self):
-        return bool(self.obstacles) and len(self.points) > 0
+        return bool(self.all) and len(self.points) > 0 and bool(self.allowed.any())
+
+    def _positions(self, ws):
+        """World positions (P, 3) of the points and their frames' poses, on the workspace as posed."""
+        P = len(self.points)
+        G, p = np.empty((P, 4, 4)), np.empty((P, 3))
+        offset_point_positions(ws.m, ws.w, self.points.joint, self.points.x, self.points.offset, G, p)
+        return p, G
+
+    def _posed(self, ws, local=None):
+        """The obstacles' arrays with the bodies' shapes posed as the workspace is."""
+        local = self._local if local is None else local
+        out = posable(local)
+        pose_obstacles(ws.w, local, out)
+        return out
 
     def positions(self, ws, q):
         """World positions (P, 3) of the contact points at q (a forward pass of ``ws``)."""
         z = ws.zeros_v
         passes.forward_pass(ws.m, ws.w, np.ascontiguousarray(q, float), z, z, 0)
-        g = np.empty((len(self.points), 4, 4))
-        point_poses(ws.m, ws.w, self.points.joint, self.points.x, g)
-        return g[:, :3, 3]
+        return self._positions(ws)[0]
 
-    def motion(self, ws, q, v):
-        """(positions, velocities) (P, 3) of the contact points at (q, v)."""
+    def motion(self, ws, q, v, obstacles=None):
+        """(positions, velocities) (P, 3) of the contact points at (q, v)
+        and the obstacles' arrays posed at q (``obstacles``: the world's
+        where they are then, default this contact's)."""
+        p = self.positions(ws, q)
         P = len(self.points)
-        g = np.empty((P, 4, 4))
-        J = np.empty((P, 6, len(v)))
-        z = ws.zeros_v
-        passes.forward_pass(ws.m, ws.w, np.ascontiguousarray(q, float), z, z, 0)
-        world_point_jacobians(ws.m, ws.w, self.points.joint, self.points.x, g, J)
-        return g[:, :3, 3].copy(), J[:, :3, :] @ v
+        J = np.empty((P, 3, len(v)))
+        relative_point_jacobians(ws.m, ws.w, self.points.joint, self.points.x, np.full(P, -1, np.int64), p, J,
+                                 np.empty_like(J))
+        local = self._local if obstacles is None else obstacle_arrays(tuple(obstacles) + tuple(self.mech.shapes))
+        posed = self._posed(ws, local)
+        tw = np.empty((len(self.all), 6))
+        body_point_twists(ws.m, ws.w, local.body, posed.a, np.ascontiguousarray(v, float), tw)
+        tw[local.body < 0] = np.nan
+        return p, J @ v, posed, tw
+
+    def _with_arms(self, ws, st, G):
+        """``st`` with each contact's touched body and lever arms (the
+        workspace posed at the contacts' configuration, G: the points'
+        frames there)."""
+        body = self._local.body[st.obstacle]
+        arm = st.p - G[st.point, :3, 3]
+        barm = np.where(body[:, None] >= 0, st.p - ws.work.g_out[np.maximum(body, 0), :3, 3], 0.0)
+        st.body, st.arm, st.body_arm = body, arm, barm
+        return st
 
     def state(self, ws, q):
         """:class:`ContactState` at rest at q (statics)."""
-        return contact_forces(self.points, self.obstacles, self.positions(ws, q))
+        p = self.positions(ws, q)
+        _, G = self._positions(ws)
+        st = contact_forces(self.points, self.all, p, self.allowed, self._posed(ws))
+        return self._with_arms(ws, st, G)
 
     def with_obstacles(self, obstacles):
         """This contact with ``obstacles`` instead (the same points)."""
@@ -96,44 +169,98 @@ class MemberContact:
 
     def step_state(self, ws, start, q1, qt, h, theta, obstacles0=None):
         """:class:`ContactState` of a time step h from the points' ``start``
-        (:meth:`motion` at the step's start) to configuration q1, acting at the theta point
-        qt (:func:`engine.contact.step_contact_forces`)."""
-        p0, v0 = start
+        (:meth:`motion` at the step's start, with ``obstacles0``: the
+        world's obstacles then, if they move) to configuration q1, acting
+        at the theta point qt (:func:`engine.contact.step_contact_forces`)."""
+        p0, v0, P0, tw0 = start
         p1 = self.positions(ws, q1)
-        return step_contact_forces(self.points, self.obstacles, p0, p1, self.positions(ws, qt), h, theta, v0,
-                                   obstacles0)
+        P1 = self._posed(ws)
+        pt = self.positions(ws, qt)
+        _, G = self._positions(ws)
+        Pt = self._posed(ws)
+        all0 = None if obstacles0 is None else tuple(obstacles0) + tuple(self.mech.shapes)
+        st = step_contact_forces(self.points, self.all, p0, p1, pt, h, theta, v0, all0, self.allowed,
+                                 (P0, P1, Pt), tw0)
+        return self._with_arms(ws, st, G)
 
     def loads(self, st):
         """The contact forces of ``st`` as dead point loads (:func:`contact_loads`)."""
         return _point_loads(self.points, st)
 
     def add_stiffness(self, ws, st, Kt, scale=1.0, Dt=None):
-        """Kt -= scale J^T dF/dp J over the contacts of ``st`` (the
-        workspace posed at their q); J: each point's world velocity
-        Jacobian. ``Dt``: also Dt -= J^T dF/dv J (the contacts' damping)."""
+        """Kt -= scale J^T dF/dq over the contacts of ``st`` (the
+        workspace posed at their q); J: the Jacobian of each point's
+        velocity relative to the body carrying the obstacle (the world's:
+        at rest), ``dF/dq = dF/dp J - [F x] J_w`` (the force turns with
+        that body, J_w its angular velocity's Jacobian), and the reaction's
+        lever arm grows with the relative motion: ``Kt -= J_w^T [F x] J``
+        (checked against finite differences of the residual in the tests).
+        ``Dt``: also Dt -=
+        J^T dF/dv J (the contacts' damping)."""
         n = len(st)
         if not n:
             return Kt
-        g = np.empty((n, 4, 4))
-        J = np.empty((n, 6, Kt.shape[0]))
-        world_point_jacobians(ws.m, ws.w, np.ascontiguousarray(self.points.joint[st.point]),
-                              np.ascontiguousarray(self.points.x[st.point]), g, J)
-        Jl = np.ascontiguousarray(J[:, :3, :])
-        Jf = Jl.reshape(3 * n, -1)                     # the stacked point Jacobians: one GEMM each
-        Kt -= scale * (Jf.T @ np.matmul(st.dF_dp, Jl).reshape(3 * n, -1))
+        body = st.body if st.body is not None else np.full(n, -1, np.int64)
+        J = np.empty((n, 3, Kt.shape[0]))
+        Jw = np.empty_like(J)
+        relative_point_jacobians(ws.m, ws.w, np.ascontiguousarray(self.points.joint[st.point]),
+                                 np.ascontiguousarray(self.points.x[st.point]), np.ascontiguousarray(body),
+                                 np.ascontiguousarray(st.p), J, Jw)
+        Jf = J.reshape(3 * n, -1)                     # the stacked point Jacobians: one GEMM each
+        dFq = np.matmul(st.dF_dp, J)
+        if np.any(body >= 0):
+            F = st.force
+            X = np.zeros((n, 3, 3))
+            X[:, 0, 1], X[:, 0, 2], X[:, 1, 2] = -F[:, 2], F[:, 1], -F[:, 0]
+            X[:, 1, 0], X[:, 2, 0], X[:, 2, 1] = F[:, 2], -F[:, 1], F[:, 0]
+            dFq -= np.matmul(X, Jw)
+            # the reaction's point of application moves over the body: d(-J_b(p)^T F)/dp J_rel = J_w^T [F x] J_rel
+            Kt -= scale * (Jw.reshape(3 * n, -1).T @ np.matmul(X, J).reshape(3 * n, -1))
+        Kt -= scale * (Jf.T @ dFq.reshape(3 * n, -1))
         if Dt is not None:
-            Dt -= Jf.T @ np.matmul(st.dF_dv, Jl).reshape(3 * n, -1)
+            Dt -= Jf.T @ np.matmul(st.dF_dv, J).reshape(3 * n, -1)
         return Kt
 
+    def slip_jacobians(self, ws, st):
+        """(c, 3, nv): each contact's slip velocity's Jacobian, ``(I - n
+        n^T) J_rel`` (the workspace posed where ``st`` was made)."""
+        n = len(st)
+        body = st.body if st.body is not None else np.full(n, -1, np.int64)
+        J = np.empty((n, 3, len(ws.zeros_v)))
+        relative_point_jacobians(ws.m, ws.w, np.ascontiguousarray(self.points.joint[st.point]),
+                                 np.ascontiguousarray(self.points.x[st.point]), np.ascontiguousarray(body),
+                                 np.ascontiguousarray(st.p), J, np.empty_like(J))
+        N = st.normal
+        return J - N[:, :, None] * np.einsum("ck,ckv->cv", N, J)[:, None, :]
+
+    def update_fraction(self, ws, st, dv):
+        """The fraction of a Newton update dv to take
+        (:func:`engine.contact.transition_step`) for the frictional contacts
+        of ``st`` (1 without any)."""
+        if st is None or not len(st):
+            return 1.0
+        mu = np.array([ob.friction for ob in self.all])[st.obstacle]
+        fr = mu > 0
+        if not fr.any():
+            return 1.0
+        sub = np.flatnonzero(fr)
+        Jt = self.slip_jacobians(ws, _subset(st, sub))
+        vs = np.array([ob.stiction_velocity for ob in self.all])[st.obstacle[sub]]
+        return transition_step(st.slip[sub], Jt @ dv, vs)
+
     def potential(self, ws, q):
-        """The energy [J] the contacts store at q: the sum over points and
-        obstacles of ``w Phi(delta)`` (:func:`engine.contact.normal_potential_density`)."""
+        """The energy [J] the contacts store at q: the sum over the allowed
+        (point, obstacle) pairs of ``w Phi(delta)``
+        (:func:`engine.contact.normal_potential_density`)."""
         p = self.positions(ws, q)
+        posed = self._posed(ws)
         r = self.points.radius
         out = 0.0
-        for ob in self.obstacles:
-            d, _, _ = signed_distance(ob, p)
+        for o, ob in enumerate(self.all):
+            d = np.empty(len(p))
+            distance_arrays(posed, o, np.ascontiguousarray(p), d, np.empty((len(p), 3)), np.empty((len(p), 3, 3)))
             k = self.points.modulus if ob.stiffness is None else ob.stiffness
             eps = 0.1 * r if ob.smoothing is None else ob.smoothing
-            out += float(np.sum(self.points.weight * normal_potential_density(r - d, k, eps)))
+            out += float(np.sum(np.where(self.allowed[:, o], self.points.weight * normal_potential_density(
+                r - d, k, eps), 0.0)))
         return out

@@ -31,6 +31,7 @@ ObstacleArrays = namedtuple("ObstacleArrays", [
     "stiction",    # (O,) the stiction velocity [m/s]
     "tri",         # (T, 3, 3) every mesh's triangles, in its axes about its a, outward (counter-clockwise)
     "tri_start",   # (O + 1,) obstacle o's triangles: tri[tri_start[o]:tri_start[o + 1]]
+    "body",        # (O,) the joint whose output frame carries the obstacle (a link's collision shape), -1: the world
 ])
 
 
@@ -65,7 +66,38 @@ def _obstacle_arrays(obstacles):
                           col(lambda ob: nan if ob.stiffness is None else ob.stiffness),
                           col(lambda ob: nan if ob.smoothing is None else ob.smoothing),
                           col(lambda ob: ob.damping), col(lambda ob: ob.friction),
-                          col(lambda ob: ob.stiction_velocity), np.ascontiguousarray(np.concatenate(tris)), start)
+                          col(lambda ob: ob.stiction_velocity), np.ascontiguousarray(np.concatenate(tris)), start,
+                          np.array([ob.body for ob in obstacles], np.int64))
+
+
+def posable(obs):
+    """A copy of ``obs`` whose poses (a, b, rotation) :func:`pose_obstacles`
+    may overwrite (the shapes and laws shared)."""
+    return obs._replace(a=obs.a.copy(), b=obs.b.copy(), rotation=obs.rotation.copy())
+
+
+@_jit
+def pose_obstacles(w, local, out):
+    """The obstacles carried by bodies (``local.body >= 0``: a, b, rotation
+    in the body's output frame) posed in the world from the workspace's
+    poses (after a forward pass) into ``out`` (:func:`posable`): ``a`` and a
+    capsule's ``b`` as points, the rotation composed."""
+    for o in range(local.kind.shape[0]):
+        j = local.body[o]
+        if j < 0:
+            continue
+        G = w.g_out[j]
+        for r in range(3):
+            out.a[o, r] = G[r, 3]
+            out.b[o, r] = G[r, 3] if local.kind[o] == CAPSULE else 0.0
+            for c in range(3):
+                out.a[o, r] += G[r, c] * local.a[o, c]
+                if local.kind[o] == CAPSULE:
+                    out.b[o, r] += G[r, c] * local.b[o, c]
+                acc = 0.0
+                for k in range(3):
+                    acc += G[r, k] * local.rotation[o, k, c]
+                out.rotation[o, r, c] = acc
 
 
 # --- the law, per point ---------------------------------------------------------
@@ -296,18 +328,50 @@ def friction(fn, vt, mu, v_s, F, dF):
             dF[r, q] = -c * ((1.0 if r == q else 0.0) - vt[r] * vt[q] / s2)
 
 
+@_jit_inline
+def transition_fraction(v, d, vs):
+    """The fraction in (0, 1] of an update that changes a contact's slip v
+    (3,) by d (3,) to take (:func:`soft_twin_core.engine.contact.transition_step`):
+    a sticking contact (|v| < vs) set sliding stops at |v + a d| = vs; a
+    sliding one whose slip would reverse stops where its path passes
+    closest to zero; else 1."""
+    dd = d[0] * d[0] + d[1] * d[1] + d[2] * d[2]
+    if dd == 0.0:
+        return 1.0
+    vd = v[0] * d[0] + v[1] * d[1] + v[2] * d[2]
+    x0 = np.sqrt(v[0] * v[0] + v[1] * v[1] + v[2] * v[2])
+    x1 = np.sqrt((v[0] + d[0]) ** 2 + (v[1] + d[1]) ** 2 + (v[2] + d[2]) ** 2)
+    if x0 < vs and x1 > 2.0 * vs:
+        a = (-vd + np.sqrt(max(vd * vd - dd * (x0 * x0 - 4.0 * vs * vs), 0.0))) / dd
+        return max(a, 1e-3)
+    if x0 > vs and x1 > vs and x0 * x0 + vd < 0.0:
+        return max(-vd / dd, 1e-3)
+    return 1.0
+
+
+@_jit
+def transition_fractions(slip, dslip, vs):
+    """The smallest :func:`transition_fraction` over contacts (c, 3)."""
+    alpha = 1.0
+    for k in range(slip.shape[0]):
+        alpha = min(alpha, transition_fraction(slip[k], dslip[k], vs[k]))
+    return alpha
+
+
 # --- the passes ---------------------------------------------------------------
 
 @_jit
-def rest_contacts(radius, modulus, weight, obs, p, idx, ob_of, n_out, gap, F, dF):
-    """Statics: every (point, obstacle) pair pressed in at positions p (P,
-    3), obstacle-major; fills the outputs (sized P O) and returns their
-    count: force F = w f n and dF/dp = w (-f' n n^T + f H)."""
+def rest_contacts(radius, modulus, weight, allowed, obs, p, idx, ob_of, n_out, gap, F, dF):
+    """Statics: every ``allowed`` (P, O) (point, obstacle) pair pressed in
+    at positions p (P, 3), obstacle-major; fills the outputs (sized P O)
+    and returns their count: force F = w f n and dF/dp = w (-f' n n^T + f H)."""
     n = np.empty(3)
     H = np.empty((3, 3))
     c = 0
     for o in range(obs.kind.shape[0]):
         for i in range(p.shape[0]):
+            if not allowed[i, o]:
+                continue
             d = distance(obs, o, p[i], n, H)
             delta = radius[i] - d
             if delta <= 0.0:
@@ -327,18 +391,25 @@ def rest_contacts(radius, modulus, weight, obs, p, idx, ob_of, n_out, gap, F, dF
 
 
 @_jit
-def step_contacts(radius, modulus, weight, obs, obs0, moving, p0, p1, pt, h, theta, v0, use_v0,
-                  idx, ob_of, n_out, gap, F, dF, dV, M, slip):
+def step_contacts(radius, modulus, weight, allowed, obs, obs0, obst, moving, ovel0, p0, p1, pt, h, theta, v0,
+                  use_v0, idx, ob_of, n_out, gap, F, dF, dV, M, slip):
     """A time step from positions p0 to p1 (P, 3), forces at the theta
-    point pt: every pair pressed in at either end, obstacle-major (sizes
-    P O; returns the count). The normal force is the mean force of the
-    penetrations at the ends (against obs0 at the start for a ``moving``
-    obstacle), along the normal at pt, times the Hunt-Crossley factor
-    ``max(1 + alpha (delta1 - delta0)/h, 0)``; friction acts against the
-    slip at the end of the step (v0: the points' start velocities,
-    ``use_v0``), relative to a moving obstacle's translation, at the
-    surface (moment M about the backbone point). dF: through p1 (1/theta),
-    dV: d F/d v1."""
+    point pt: every ``allowed`` (P, O) pair pressed in at either end,
+    obstacle-major (sizes P O; returns the count). The obstacles: ``obs``
+    at the step's end, ``obs0`` at its start and ``obst`` at its theta
+    point (the same for those that do not move). The normal force is the
+    mean force of the penetrations at the ends (against obs0 at the start
+    for a ``moving`` obstacle), along the normal at pt, times the
+    Hunt-Crossley factor ``max(1 + alpha (delta1 - delta0)/h, 0)``;
+    friction acts against the slip at the end of the step (v0: the points'
+    start velocities, ``use_v0``), relative to a moving obstacle's
+    material point (the one at p1 at the end was at ``x0 = a0 + R0 R1^T
+    (p1 - a1)`` at the start: translation and rotation; its velocity at the
+    end of the step, from the mean ``(p1 - x0) / h`` and, for the bodies'
+    shapes, its velocity at the start, ``ovel0`` (O, 6): [velocity at a0;
+    angular velocity]; NaN: the mean for a prescribed motion), at the
+    backbone point (M: the moment about it, zero). dF: through p1
+    (1/theta), dV: d F/d v1."""
     n = np.empty(3)
     H = np.empty((3, 3))
     n0 = np.empty(3)
@@ -350,13 +421,15 @@ def step_contacts(radius, modulus, weight, obs, obs0, moving, p0, p1, pt, h, the
     c = 0
     for o in range(obs.kind.shape[0]):
         for i in range(p0.shape[0]):
+            if not allowed[i, o]:
+                continue
             r_i = radius[i]
             src = obs0 if moving[o] else obs
             d0 = distance(src, o, p0[i], n0, H0)
             d1 = distance(obs, o, p1[i], n0, H0)
             if not (r_i - d0 > 0.0 or r_i - d1 > 0.0):
                 continue
-            dt_ = distance(obs, o, pt[i], n, H)
+            dt_ = distance(obst, o, pt[i], n, H)
             k = modulus[i] if np.isnan(obs.stiffness[o]) else obs.stiffness[o]
             eps = 0.1 * r_i if np.isnan(obs.smoothing[o]) else obs.smoothing[o]
             fbar, dfbar = mean_force(r_i - d0, r_i - d1, k, eps)
@@ -370,8 +443,25 @@ def step_contacts(radius, modulus, weight, obs, obs0, moving, p0, p1, pt, h, the
                 vel[r] = (p1[i, r] - p0[i, r]) / h
                 if use_v0:
                     vel[r] = (vel[r] - (1.0 - theta) * v0[i, r]) / theta
-                if moving[o]:
-                    vel[r] -= (obs.a[o, r] - obs0.a[o, r]) / h
+            if moving[o]:
+                for r in range(3):
+                    # the obstacle's material point at p1: x0 = a0 + R0 R1^T (p1 - a1) at the start
+                    x0 = obs0.a[o, r]
+                    for a_ in range(3):
+                        loc = 0.0
+                        for b_ in range(3):
+                            loc += obs.rotation[o, b_, a_] * (p1[i, b_] - obs.a[o, b_])
+                        x0 += obs0.rotation[o, r, a_] * loc
+                    sl[r] = x0
+                for r in range(3):
+                    um = (p1[i, r] - sl[r]) / h
+                    if use_v0 and not np.isnan(ovel0[o, 0]):
+                        r1, r2 = (r + 1) % 3, (r + 2) % 3
+                        u0 = ovel0[o, r] + ovel0[o, 3 + r1] * (sl[r2] - obs0.a[o, r2]) - \
+                            ovel0[o, 3 + r2] * (sl[r1] - obs0.a[o, r1])
+                        um = (um - (1.0 - theta) * u0) / theta
+                    vel[r] -= um
+            for r in range(3):
                 vn += vel[r] * n[r]
             for r in range(3):
                 sl[r] = vel[r] - vn * n[r]
@@ -384,10 +474,9 @@ def step_contacts(radius, modulus, weight, obs, obs0, moving, p0, p1, pt, h, the
                     dV[c, r, s] = -w * fbar * dv * n[r] * n[s]
             if obs.friction[o] > 0.0:
                 friction(fn, sl, obs.friction[o], obs.stiction[o], Ft, dFt)
-                # at the surface, -r n from the backbone point
-                M[c, 0] = -r_i * (n[1] * Ft[2] - n[2] * Ft[1])
-                M[c, 1] = -r_i * (n[2] * Ft[0] - n[0] * Ft[2])
-                M[c, 2] = -r_i * (n[0] * Ft[1] - n[1] * Ft[0])
+                # the friction acts at the backbone point, where its slip is measured (so it only ever
+                # dissipates: at the surface, -r n from it, with the slip of the backbone point, its moment
+                # would work against the cross-section's rotation, and can pump energy into a grasp)
                 # slip = (I - n n^T) v1: Newton's matrix has theta Dt; friction grows with the normal
                 # force: dFt/dp = -mu (slip/s) dfn/dp^T, dfn/dp = -w fac fbar'/theta n
                 g = w * fac * dfbar / theta

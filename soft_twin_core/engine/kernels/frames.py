@@ -186,3 +186,67 @@ def spatial_jacobian_dot(m, w, j, x, v, Jd):
             _Ad_into(w.g_out[k], Ad, FALSE)
             _col_dot(Ad, w.S[k], Sd, w.V[k], nv, iv, Jd, t1, t2)
         k = m.parent[k]
+
+
+@_jit
+def offset_point_positions(m, w, joint, x, offset, G, out):
+    """out[p] (3,): world position of the point ``offset[p]`` (3,) in the
+    frame of (joint[p], x[p]) (G[p] receives that frame's pose)."""
+    point_poses(m, w, joint, x, G)
+    for p in range(joint.shape[0]):
+        for r in range(3):
+            out[p, r] = G[p, r, 3] + G[p, r, 0] * offset[p, 0] + G[p, r, 1] * offset[p, 1] + G[p, r, 2] * offset[p, 2]
+
+
+@_jit_inner
+def _shifted(Js, p, J, sign):
+    """J (3, nv) += sign * the velocity at world point p of the body whose
+    spatial Jacobian is Js (6, nv): v + w x p."""
+    for c in range(J.shape[1]):
+        wx, wy, wz = Js[3, c], Js[4, c], Js[5, c]
+        J[0, c] += sign * (Js[0, c] + wy * p[2] - wz * p[1])
+        J[1, c] += sign * (Js[1, c] + wz * p[0] - wx * p[2])
+        J[2, c] += sign * (Js[2, c] + wx * p[1] - wy * p[0])
+
+
+@_jit
+def relative_point_jacobians(m, w, joint, x, body, p, J, Jw):
+    """J[k] (3, nv): the Jacobian of the velocity at world point p[k] of the
+    frame (joint[k], x[k]) relative to that of joint ``body[k]``'s output
+    frame (-1: the world, at rest): of a contact point against an obstacle
+    that body carries; Jw[k] (3, nv): that body's angular velocity's (zero
+    for the world)."""
+    g = np.empty((4, 4))
+    Js = np.empty((6, J.shape[2]))
+    for k in range(joint.shape[0]):
+        J[k, :, :] = 0.0
+        Jw[k, :, :] = 0.0
+        spatial_jacobian(m, w, joint[k], x[k], g, Js)
+        _shifted(Js, p[k], J[k], 1.0)
+        if body[k] >= 0:
+            spatial_jacobian(m, w, body[k], -1.0, g, Js)
+            _shifted(Js, p[k], J[k], -1.0)
+            for r in range(3):
+                for c in range(J.shape[2]):
+                    Jw[k, r, c] = Js[3 + r, c]
+
+
+@_jit
+def body_point_twists(m, w, body, p, v, out):
+    """out[k] (6,): [velocity at world point p[k]; angular velocity] of
+    joint ``body[k]``'s output frame at joint velocities v (zeros for
+    body -1, the world)."""
+    g = np.empty((4, 4))
+    Js = np.empty((6, v.shape[0]))
+    Jp = np.empty((3, v.shape[0]))
+    for k in range(body.shape[0]):
+        out[k, :] = 0.0
+        if body[k] < 0:
+            continue
+        spatial_jacobian(m, w, body[k], -1.0, g, Js)
+        Jp[:, :] = 0.0
+        _shifted(Js, p[k], Jp, 1.0)
+        for r in range(3):
+            for c in range(v.shape[0]):
+                out[k, r] += Jp[r, c] * v[c]
+                out[k, 3 + r] += Js[3 + r, c] * v[c]
