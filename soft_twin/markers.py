@@ -70,7 +70,8 @@ def tip_marker(pose, diameter, header):
 def obstacle_markers(obstacles, centre, extent, header):
     """Markers of the obstacles (engine.contact.Obstacle): a plane as a
     1 mm thick square of side 1.2 ``extent`` [m] around the point of it
-    nearest ``centre``, a sphere, a capsule as a cylinder and two spheres."""
+    nearest ``centre``, a sphere, a capsule as a cylinder and two spheres,
+    a tube as its centre line as wide as its lumen."""
     out = []
 
     def add(kind, T, sx, sy, sz):
@@ -88,6 +89,11 @@ def obstacle_markers(obstacles, centre, extent, header):
         if ob.kind == "box":
             T[:3, :3], T[:3, 3] = ob.rotation, ob.a
             add(Marker.CUBE, T, *(2 * ob.half_size))
+            continue
+        if ob.kind == "tube":               # its centre line, as wide as the lumen
+            T[:3, :3], T[:3, 3] = ob.rotation, ob.a
+            add(Marker.LINE_STRIP, T, 2 * ob.radius, 0.0, 0.0)
+            out[-1].points = [Point(x=float(x), y=float(y), z=float(z)) for x, y, z in ob.path]
             continue
         if ob.kind == "plane":
             T[:3, :3] = rotation_with_z(ob.b)

@@ -45,14 +45,15 @@ import numpy as np
 
 from soft_twin_core.engine.kernels import contact as kc
 
-PLANE, SPHERE, CAPSULE, BOX, MESH = 0, 1, 2, 3, 4
-OBSTACLE_KINDS = {"plane": PLANE, "sphere": SPHERE, "capsule": CAPSULE, "box": BOX, "mesh": MESH}
+PLANE, SPHERE, CAPSULE, BOX, MESH, TUBE = 0, 1, 2, 3, 4, 5
+OBSTACLE_KINDS = {"plane": PLANE, "sphere": SPHERE, "capsule": CAPSULE, "box": BOX, "mesh": MESH, "tube": TUBE}
 
 
 @dataclass(frozen=True, eq=False)
 class Obstacle:
-    """A rigid obstacle. ``kind``: "plane", "sphere", "capsule", "box" or
-    "mesh" (convex); ``a``: a point of the plane, the sphere's centre, the
+    """A rigid obstacle. ``kind``: "plane", "sphere", "capsule", "box",
+    "mesh" (convex) or "tube" (the free space inside ``radius`` of the
+    centre line ``path``, open at both ends: a lumen); ``a``: a point of the plane, the sphere's centre, the
     capsule's first end, the box's centre or the mesh's reference point
     (its vertices' mean) [m, world]; ``b``: the plane's outward normal
     (unit) or the capsule's second end; ``radius`` [m] (sphere, capsule);
@@ -79,6 +80,7 @@ class Obstacle:
     rotation: np.ndarray = None
     half_size: np.ndarray = None
     triangles: np.ndarray = None     # a convex mesh: (T, 3, 3) [m] in its axes (rotation) about a, outward
+    path: np.ndarray = None          # a tube's centre line: (N, 3) [m] in its axes (rotation) about a
     body: int = -1                   # a link's collision shape: its joint (a, b, rotation in its output frame)
 
 
@@ -118,7 +120,8 @@ def moved(ob, delta):
 def sample_path(path, spacing):
     """(joint, x, s, weight) of contact points along a tree path: the
     midpoints of ceil(L / spacing) equal intervals, each standing for its
-    interval (the midpoint rule)."""
+    interval (the midpoint rule: a tip pressed head-on is felt from half an
+    interval behind it)."""
     n = max(1, int(np.ceil(path.length / spacing - 1e-9)))
     w = path.length / n
     s = (np.arange(n) + 0.5) * w

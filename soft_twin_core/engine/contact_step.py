@@ -149,13 +149,14 @@ def _newton_inverse(m, w, act, ldc, g, coef, K, D, qt, h, theta, pj, px, pt, idx
         relative_point_jacobians(m, w, pj[idx[:c]], px[idx[:c]], body, pt[idx[:c]], J, Jw)
         for k in range(c):
             Jl = J[k]
-            X = _cross_matrix(F[k])
-            KJ = dF[k] @ Jl - X @ Jw[k]
+            KJ = dF[k] @ Jl
             DJ = dV[k] @ Jl
             JT = np.ascontiguousarray(Jl.T)
-            Kt -= JT @ KJ
-            if body[k] >= 0:            # the reaction's lever arm: J_w^T [F x] J_rel (solve.contact.add_stiffness)
+            if body[k] >= 0:            # a body's shape: the force turns with it, the reaction's lever arm
+                X = _cross_matrix(F[k])     # (solve.contact.MemberContact.add_stiffness)
+                KJ -= X @ Jw[k]
                 Kt -= np.ascontiguousarray(Jw[k].T) @ (X @ Jl)
+            Kt -= JT @ KJ
             Dt -= JT @ DJ
     th = theta * h
     for i in range(nv):

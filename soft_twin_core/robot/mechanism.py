@@ -143,8 +143,12 @@ class Mechanism:
 
     @property
     def shapes(self):
-        """The links' collision shapes (engine.contact.Obstacle carried by their joints)."""
-        return tuple(lk.collision for lk in self.links if lk.collision is not None)
+        """The links' collision shapes (engine.contact.Obstacle carried by their joints; cached)."""
+        out = self.__dict__.get("_shapes")
+        if out is None:
+            out = tuple(lk.collision for lk in self.links if lk.collision is not None)
+            object.__setattr__(self, "_shapes", out)
+        return out
 
     @property
     def actuators(self):

@@ -8,6 +8,8 @@ the ``contact`` settings, in either schema), checked at the door::
       - {name: block, type: box, center: [0.3, 0, -0.1], size: [0.1, 0.2, 0.05], rpy: [0, 0, 0.3]}
       - {name: wedge, type: mesh, vertices: [[0, 0, 0], [0.1, 0, 0], [0, 0.1, 0], [0, 0, 0.1]],
          faces: [[0, 2, 1], [0, 1, 3], [0, 3, 2], [1, 2, 3]]}   # closed and convex (faces turned outward)
+      - {name: vessel, type: tube, path: [[0, 0, 0], [0.1, 0, 0], [0.17, 0.03, 0]], radius: 0.004}
+        # the free space is inside: within radius of the centre line (a polyline, open at its ends)
       # each may add: stiffness [N/m^2] (default: the member's Young's modulus),
       # smoothing [m] (default: a tenth of the member's radius), damping [s/m] (Hunt-Crossley
       # alpha, default 0), friction (Coulomb mu, default 0), stiction_velocity [m/s]
@@ -27,7 +29,7 @@ from soft_twin_core.engine.contact import OBSTACLE_KINDS, ContactPoints, Obstacl
 from soft_twin_core.robot.model import ModelError, _check_keys, _num, _vec, pose_from_dict
 
 _FIELDS = {"plane": ("point", "normal"), "sphere": ("center", "radius"), "capsule": ("from", "to", "radius"),
-           "box": ("center", "size", "rpy", "quaternion"), "mesh": ("vertices", "faces")}
+           "box": ("center", "size", "rpy", "quaternion"), "mesh": ("vertices", "faces"), "tube": ("path", "radius")}
 _COMMON = {"name", "type", "stiffness", "smoothing", "damping", "friction", "stiction_velocity"}
 
 
@@ -36,7 +38,7 @@ def obstacle_from_dict(d, where):
     bad field (unknown type or key, non-finite or negative sizes, a zero
     normal, a capsule of zero length)."""
     _check_keys(d, _COMMON | {"point", "normal", "center", "radius", "from", "to", "size", "rpy", "quaternion",
-                              "vertices", "faces"}, where)
+                              "vertices", "faces", "path"}, where)
     kind = d.get("type")
     if kind not in OBSTACLE_KINDS:
         raise ModelError(f"{where}.type: expected one of {sorted(OBSTACLE_KINDS)}, got {kind!r}")
@@ -62,6 +64,10 @@ def obstacle_from_dict(d, where):
         centre, tri = convex_mesh(d.get("vertices"), d.get("faces"), where)
         return Obstacle(name, kind, centre, rotation=np.eye(3), triangles=tri, **common)
     radius = _num(d, "radius", where, positive=True)
+    if kind == "tube":
+        path = tube_path(d.get("path"), where)
+        return Obstacle(name, kind, path[0].copy(), radius=radius, rotation=np.eye(3),
+                        path=np.ascontiguousarray(path - path[0]), **common)
     if kind == "sphere":
         return Obstacle(name, kind, _vec(d, "center", 3, where), None, radius, **common)
     a, b = _vec(d, "from", 3, where), _vec(d, "to", 3, where)
@@ -117,6 +123,21 @@ def convex_mesh(vertices, faces, where):
         raise ModelError(f"{where}: the mesh is not convex: vertex {int(v)} lies {1e3 * out[f, v]:.3g} mm outside "
                          f"the plane of faces[{int(f)}] (only convex meshes are supported)")
     return centre, np.ascontiguousarray(tri)
+
+
+def tube_path(path, where):
+    """(N, 3) [m] a tube's centre line; ModelError naming the field: not at
+    least 2 finite [x, y, z] points, or two consecutive ones the same."""
+    try:
+        P = np.array(path, dtype=float)
+    except (TypeError, ValueError):
+        P = np.zeros((0,))
+    if P.ndim != 2 or P.shape[1:] != (3,) or len(P) < 2 or not np.all(np.isfinite(P)):
+        raise ModelError(f"{where}.path: expected at least 2 finite [x, y, z] points [m], got {str(path)[:200]}")
+    seg = np.linalg.norm(np.diff(P, axis=0), axis=1)
+    if np.any(seg <= 1e-12 * max(float(np.ptp(P, axis=0).max()), 1e-300)):
+        raise ModelError(f"{where}.path[{int(np.argmin(seg)) + 1}]: the same point as the one before it")
+    return P
 
 
 def contact_law(d, where):
@@ -194,7 +215,7 @@ def obstacle_placed(ob, T):
         return replace(ob, a=T[:3, 3].copy(), b=T[:3, 2].copy())
     if ob.kind == "sphere":
         return replace(ob, a=T[:3, 3].copy())
-    if ob.kind in ("box", "mesh"):
+    if ob.kind in ("box", "mesh", "tube"):
         return replace(ob, a=T[:3, 3].copy(), rotation=T[:3, :3].copy())
     half = 0.5 * np.linalg.norm(ob.b - ob.a) * T[:3, 2]
     return replace(ob, a=T[:3, 3] - half, b=T[:3, 3] + half)

@@ -821,7 +821,7 @@ class MechanismSimulator:
             ws.m, ws.w, self.act, held["loads"], inp.gravity, held["coef"], inp.effort, self.K, self.D, tree.q0,
             tree.nq == tree.nv, self.q, self.v, h, self.theta, self.tol, 1e-14 * max(self.Ls, 1.0) / h,
             self.max_iterations, pts.joint, pts.x, pts.offset, pts.radius, pts.modulus, pts.weight,
-            contact.allowed, obs, obs0, posable(obs0), posable(obs), posable(obs), moving,
+            contact.allowed, obs, obs0, *self._posed_arrays(obs0, obs), moving,
             held["Ainv"], held["key"], held["reuse"], v1, q1, pt, *out)
         self._kkt_factorisations += fresh
         held["reuse"] = status == 0 and it <= 2
@@ -837,6 +837,14 @@ class MechanismSimulator:
         self.t += h
         self.iterations = it
         self.newton_iterations += it
+
+    def _posed_arrays(self, obs0, obs):
+        """(P0, P1, Pt): the obstacles' arrays the compiled step poses the
+        bodies' shapes into at the step's start, end and theta point (the
+        given ones when no body carries a shape: nothing to pose)."""
+        if not self.mech.shapes:
+            return obs0, obs, obs
+        return posable(obs0), posable(obs), posable(obs)
 
     def _run_free(self, inp, n):
         """n steps of :class:`integrators.ThetaIntegrator` (no multipliers)."""

@@ -39,10 +39,9 @@ def _point_loads(points, st):
     -M on that body (``-M - body_arm x F``)."""
     n = len(st)
     M = st.moment if st.moment is not None else np.zeros((n, 3))
-    arm = st.arm if st.arm is not None else np.zeros((n, 3))
     wr = np.zeros((n, 6))
     wr[:, :3] = st.force
-    wr[:, 3:] = M + np.cross(arm, st.force)
+    wr[:, 3:] = M if st.arm is None else M + np.cross(st.arm, st.force)
     joint, x = points.joint[st.point], points.x[st.point]
     if st.body is not None and np.any(st.body >= 0):
         b = st.body >= 0
@@ -120,15 +119,19 @@ class MemberContact:
     def _posed(self, ws, local=None):
         """The obstacles' arrays with the bodies' shapes posed as the workspace is."""
         local = self._local if local is None else local
+        if not self.mech.shapes:
+            return local
         out = posable(local)
         pose_obstacles(ws.w, local, out)
         return out
 
-    def positions(self, ws, q):
-        """World positions (P, 3) of the contact points at q (a forward pass of ``ws``)."""
+    def positions(self, ws, q, frames=False):
+        """World positions (P, 3) of the contact points at q (a forward pass
+        of ``ws``; ``frames``: and their frames' poses (P, 4, 4))."""
         z = ws.zeros_v
         passes.forward_pass(ws.m, ws.w, np.ascontiguousarray(q, float), z, z, 0)
-        return self._positions(ws)[0]
+        p, G = self._positions(ws)
+        return (p, G) if frames else p
 
     def motion(self, ws, q, v, obstacles=None):
         """(positions, velocities) (P, 3) of the contact points at (q, v)
@@ -151,15 +154,16 @@ class MemberContact:
         workspace posed at the contacts' configuration, G: the points'
         frames there)."""
         body = self._local.body[st.obstacle]
-        arm = st.p - G[st.point, :3, 3]
-        barm = np.where(body[:, None] >= 0, st.p - ws.work.g_out[np.maximum(body, 0), :3, 3], 0.0)
-        st.body, st.arm, st.body_arm = body, arm, barm
+        st.body = body
+        if not self.mech.shapes:            # members only: the points are their frames' origins
+            return st
+        st.arm = st.p - G[st.point, :3, 3]
+        st.body_arm = np.where(body[:, None] >= 0, st.p - ws.work.g_out[np.maximum(body, 0), :3, 3], 0.0)
         return st
 
     def state(self, ws, q):
         """:class:`ContactState` at rest at q (statics)."""
-        p = self.positions(ws, q)
-        _, G = self._positions(ws)
+        p, G = self.positions(ws, q, frames=True)
         st = contact_forces(self.points, self.all, p, self.allowed, self._posed(ws))
         return self._with_arms(ws, st, G)
 
@@ -175,8 +179,7 @@ class MemberContact:
         p0, v0, P0, tw0 = start
         p1 = self.positions(ws, q1)
         P1 = self._posed(ws)
-        pt = self.positions(ws, qt)
-        _, G = self._positions(ws)
+        pt, G = self.positions(ws, qt, frames=True)
         Pt = self._posed(ws)
         all0 = None if obstacles0 is None else tuple(obstacles0) + tuple(self.mech.shapes)
         st = step_contact_forces(self.points, self.all, p0, p1, pt, h, theta, v0, all0, self.allowed,

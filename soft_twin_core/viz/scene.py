@@ -137,10 +137,20 @@ def visual_placement(visual):
 
 def obstacle_outline(ob, centre, extent):
     """(N, 3) [m] world polyline of an obstacle (engine.contact.Obstacle):
-    a mesh's triangles; a sphere's great circles; a capsule's cylinder and end circles; a
+    a tube's centre line and a ring at each of its vertices; a mesh's
+    triangles; a sphere's great circles; a capsule's cylinder and end circles; a
     plane's square of side 1.2 ``extent`` around the point of the plane
     nearest ``centre`` (the robot's), with a short stroke along its normal."""
     nan = np.full((1, 3), np.nan)
+    if ob.kind == "tube":                    # its wall's two outlines beside the centre line, rings at its vertices
+        W = ob.path @ ob.rotation.T + ob.a
+        parts = [W]
+        for k, p in enumerate(W):
+            t = W[min(k + 1, len(W) - 1)] - W[max(k - 1, 0)]
+            R = _translation(p)
+            R[:3, :3] = rotation_with_z(t / np.linalg.norm(t))
+            parts.append(solid_outline({"shape": "sphere", "radius": ob.radius}, R)[:CIRCLE_POINTS + 1])
+        return np.concatenate([np.vstack([q, nan]) for q in parts])[:-1]
     if ob.kind == "mesh":                    # every triangle's edges
         W = ob.triangles @ ob.rotation.T + ob.a
         return np.concatenate([np.vstack([t, t[:1], nan]) for t in W])[:-1]

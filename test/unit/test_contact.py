@@ -203,6 +203,10 @@ def test_contact_in_a_tree_robot_file_and_on_a_sphere():
     ({"type": "sphere", "center": [0, 0, 0], "radius": 0.1, "normal": [0, 0, 1]}, "[0]: unknown field"),
     ({"type": "plane", "point": [0, 0, 0], "normal": [0, 0, 1], "stiffness": 0}, "[0].stiffness"),
     ({"type": "plane", "point": [0, 0, 0], "normal": [0, 0, 1], "friction": -1}, "[0].friction"),
+    ({"type": "tube", "path": [[0, 0, 0]], "radius": 0.01}, "[0].path"),
+    ({"type": "tube", "path": [[0, 0, 0], [0, 0, 0], [1, 0, 0]], "radius": 0.01}, "[0].path[1]"),
+    ({"type": "tube", "path": [[0, 0, 0], [1, 0, float("inf")]], "radius": 0.01}, "[0].path"),
+    ({"type": "tube", "path": [[0, 0, 0], [1, 0, 0]], "radius": 0}, "[0].radius"),
 ])
 def test_bad_obstacles_are_rejected_naming_the_field(entry, field):
     with pytest.raises(ModelError, match=r"robot\.obstacles" + field.replace("[", r"\[").replace("]", r"\]")):
@@ -914,3 +918,51 @@ def test_a_rod_on_a_mesh_table_rests_as_on_the_box():
     assert len(shapes) == 1 and shapes[0].type == Marker.TRIANGLE_LIST and len(shapes[0].points) == 36
     outline = obstacle_outline(mech.obstacles[0], np.zeros(3), 1.0)
     assert outline.shape == (12 * 5 - 1, 3) and np.nanmax(outline[:, 2]) == pytest.approx(top)
+
+
+def test_a_tube_its_distance_gradient_and_hessian():
+    """A tube (the free space within its radius of a bent centre line, open
+    at both ends): the signed distance is the radius less the distance to
+    the nearest point of the polyline (brute force over a fine sampling of
+    it), its gradient and Hessian central differences of it; beyond an
+    open end nothing is touched."""
+    path = [[0, 0, 0], [0.1, 0, 0], [0.15, 0.05, 0], [0.15, 0.15, 0.02]]
+    (ob,) = obstacles_from_list([{"name": "vessel", "type": "tube", "path": path, "radius": 0.004}])
+    P = np.asarray(path, float)
+    fine = np.concatenate([a + np.linspace(0, 1, 2001)[:, None] * (b - a) for a, b in zip(P[:-1], P[1:])])
+    s = RNG.uniform(0.05, 0.95, 12) * 3
+    centre = np.array([P[int(k)] + (k % 1) * (P[int(k) + 1] - P[int(k)]) for k in s])
+    p = centre + RNG.normal(0, 0.002, (12, 3))
+    d, n, H = signed_distance(ob, p)
+    brute = 0.004 - np.min(np.linalg.norm(p[:, None] - fine[None], axis=2), axis=1)
+    np.testing.assert_allclose(d, brute, atol=2e-5)
+    _check_derivatives(ob, p, n, H, 1e-7, 1e-6, 1e-3)
+    assert np.all(np.einsum("ij,ij->i", n, p - centre) < 0)            # the wall pushes towards the axis
+    d_out, _, _ = signed_distance(ob, np.array([[-0.01, 0.0, 0.0], [0.15, 0.16, 0.02]]))
+    assert np.all(d_out > 1e29)
+
+
+def test_a_catheter_pushed_through_a_curved_vessel_takes_the_bend():
+    """The example scenario (config/scenarios/catheter_in_vessel.yaml): the
+    rod pushed through the vessel's 90-degree bend (2.5 s of the 3 s push,
+    90 mm). Its tip ends in the bend's second half, and the rod stays in
+    the lumen (every backbone point but the tip within the lumen's radius
+    less the rod's, plus the penetration the penalty allows, 0.5 mm: the
+    contact points are the midpoints of 5 mm intervals, and the tip, 2.5 mm
+    beyond the last, is not checked); the wall pushes on it."""
+    from pathlib import Path
+    from soft_twin_core.files.runs import run_mechanism_dynamics
+    from soft_twin_core.files.scenario import load_scenario
+    sc = load_scenario(str(Path(__file__).resolve().parents[2] / "config" / "scenarios" / "catheter_in_vessel.yaml"))
+    run = run_mechanism_dynamics(sc, 2.5, 1e-3, record_every=100, backbone_every=100)
+    assert run.get("error") is None
+    tip = np.asarray(run["tip_position"])[-1]
+    assert tip[0] > 0.19 and tip[1] > 0.015          # round the bend (its centre at (0.15, 0.05)), towards +y
+    vessel = sc.mech.obstacles[0]
+    mech = sc.mech
+    sim_pts = mechanism_contact_points(mech)
+    assert sim_pts.s.max() == pytest.approx(0.12 - 0.0025)      # (midpoints: the tip's last 2.5 mm unchecked)
+    pts = np.asarray(run["members"][-1]["catheter"]["positions"])[:-1]     # every 10 mm but the tip
+    d, _, _ = signed_distance(vessel, pts)
+    assert d.min() > 0.001 - 5e-4
+    assert np.asarray(run["contact_count"])[-1] >= 2

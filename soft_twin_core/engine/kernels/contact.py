@@ -15,8 +15,8 @@ import numpy as np
 
 from soft_twin_core.engine.kernels.spatial import _jit, _jit_inline
 
-PLANE, SPHERE, CAPSULE, BOX, MESH = 0, 1, 2, 3, 4
-KIND_CODES = {"plane": PLANE, "sphere": SPHERE, "capsule": CAPSULE, "box": BOX, "mesh": MESH}
+PLANE, SPHERE, CAPSULE, BOX, MESH, TUBE = 0, 1, 2, 3, 4, 5
+KIND_CODES = {"plane": PLANE, "sphere": SPHERE, "capsule": CAPSULE, "box": BOX, "mesh": MESH, "tube": TUBE}
 
 ObstacleArrays = namedtuple("ObstacleArrays", [
     "kind",        # (O,) PLANE, SPHERE, CAPSULE or BOX
@@ -32,6 +32,8 @@ ObstacleArrays = namedtuple("ObstacleArrays", [
     "tri",         # (T, 3, 3) every mesh's triangles, in its axes about its a, outward (counter-clockwise)
     "tri_start",   # (O + 1,) obstacle o's triangles: tri[tri_start[o]:tri_start[o + 1]]
     "body",        # (O,) the joint whose output frame carries the obstacle (a link's collision shape), -1: the world
+    "path",        # (N, 3) every tube's centre line, in its axes about its a
+    "path_start",  # (O + 1,) obstacle o's centre line: path[path_start[o]:path_start[o + 1]]
 ])
 
 
@@ -50,12 +52,16 @@ def _obstacle_arrays(obstacles):
     rot = np.tile(np.eye(3), (O, 1, 1))
     nan = float("nan")
     tris, start = [np.zeros((0, 3, 3))], np.zeros(O + 1, np.int64)
+    paths, pstart = [np.zeros((0, 3))], np.zeros(O + 1, np.int64)
     for o, ob in enumerate(obstacles):
         a[o] = ob.a
         if ob.b is not None:
             b[o] = ob.b
-        if ob.kind in ("box", "mesh"):
+        if ob.kind in ("box", "mesh", "tube"):
             rot[o] = ob.rotation
+        if ob.kind == "tube":
+            paths.append(ob.path)
+        pstart[o + 1] = pstart[o] + (len(ob.path) if ob.kind == "tube" else 0)
         if ob.kind == "box":
             half[o] = ob.half_size
         if ob.kind == "mesh":
@@ -67,7 +73,8 @@ def _obstacle_arrays(obstacles):
                           col(lambda ob: nan if ob.smoothing is None else ob.smoothing),
                           col(lambda ob: ob.damping), col(lambda ob: ob.friction),
                           col(lambda ob: ob.stiction_velocity), np.ascontiguousarray(np.concatenate(tris)), start,
-                          np.array([ob.body for ob in obstacles], np.int64))
+                          np.array([ob.body for ob in obstacles], np.int64),
+                          np.ascontiguousarray(np.concatenate(paths)), pstart)
 
 
 def posable(obs):
@@ -160,6 +167,8 @@ def distance(obs, o, p, n, H):
         return _box_distance(obs, o, p, n, H)
     if kind == MESH:
         return _mesh_distance(obs, o, p, n, H)
+    if kind == TUBE:
+        return _tube_distance(obs, o, p, n, H)
     c = np.empty(3)
     axis = np.zeros(3)
     if kind == SPHERE:
@@ -219,6 +228,55 @@ def _box_distance(obs, o, p, n, H):
                     acc += R[r, a] * R[s, a] * (1.0 if e[a] > 0.0 else 0.0)
                 H[r, s] = (acc - n[r] * n[s]) / d_out
     return d
+
+
+@_jit_inline
+def _tube_distance(obs, o, p, n, H):
+    """A tube's signed distance: the free space is inside, within ``radius``
+    of its centre line (a polyline, open at both ends), so ``d = radius -
+    |p - c|`` with c the line's nearest point (its nearest segment's);
+    gradient ``-(p - c) / |p - c|`` (towards the centre line), Hessian
+    ``-(I - n n^T - t t^T) / |p - c|`` (t the segment's direction inside
+    its span). A point beyond either open end touches nothing (1e30)."""
+    R = obs.rotation[o]
+    loc = np.zeros(3)
+    for c in range(3):
+        for r in range(3):
+            loc[c] += (p[r] - obs.a[o, r]) * R[r, c]
+    i0, i1 = obs.path_start[o], obs.path_start[o + 1]
+    best, bt, bk, braw = np.inf, 0.0, -1, 0.0
+    for k in range(i0, i1 - 1):
+        A, B = obs.path[k], obs.path[k + 1]
+        ab = B - A
+        raw = np.dot(loc - A, ab) / np.dot(ab, ab)
+        t = min(max(raw, 0.0), 1.0)
+        v = loc - (A + t * ab)
+        dd = np.dot(v, v)
+        if dd < best:
+            best, bt, bk, braw = dd, t, k, raw
+    if (bk == i0 and braw < 0.0) or (bk == i1 - 2 and braw > 1.0):
+        return 1e30                         # nearest to an open end, from beyond it
+    A, B = obs.path[bk], obs.path[bk + 1]
+    ab = B - A
+    v = loc - (A + bt * ab)
+    dist = max(np.sqrt(best), 1e-300)
+    u = v / dist
+    axis = np.zeros(3)
+    if 0.0 < bt < 1.0:
+        axis = ab / np.sqrt(np.dot(ab, ab))
+    Hl = np.zeros((3, 3))
+    for r in range(3):
+        for s in range(3):
+            Hl[r, s] = -((1.0 if r == s else 0.0) - u[r] * u[s] - axis[r] * axis[s]) / dist
+    for r in range(3):
+        n[r] = -(R[r, 0] * u[0] + R[r, 1] * u[1] + R[r, 2] * u[2])
+        for s in range(3):
+            acc = 0.0
+            for a in range(3):
+                for b in range(3):
+                    acc += R[r, a] * Hl[a, b] * R[s, b]
+            H[r, s] = acc
+    return obs.radius[o] - dist
 
 
 @_jit_inline
