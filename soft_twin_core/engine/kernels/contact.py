@@ -231,6 +231,19 @@ def _box_distance(obs, o, p, n, H):
 
 
 @_jit_inline
+def _to_world(R, n_loc, Hl, n, H):
+    """n = R n_loc, H = R Hl R^T: a gradient and Hessian from an obstacle's axes to the world's."""
+    for r in range(3):
+        n[r] = R[r, 0] * n_loc[0] + R[r, 1] * n_loc[1] + R[r, 2] * n_loc[2]
+        for s in range(3):
+            acc = 0.0
+            for a in range(3):
+                for b in range(3):
+                    acc += R[r, a] * Hl[a, b] * R[s, b]
+            H[r, s] = acc
+
+
+@_jit_inline
 def _tube_distance(obs, o, p, n, H):
     """A tube's signed distance: the free space is inside, within ``radius``
     of its centre line (a polyline, open at both ends), so ``d = radius -
@@ -268,14 +281,7 @@ def _tube_distance(obs, o, p, n, H):
     for r in range(3):
         for s in range(3):
             Hl[r, s] = -((1.0 if r == s else 0.0) - u[r] * u[s] - axis[r] * axis[s]) / dist
-    for r in range(3):
-        n[r] = -(R[r, 0] * u[0] + R[r, 1] * u[1] + R[r, 2] * u[2])
-        for s in range(3):
-            acc = 0.0
-            for a in range(3):
-                for b in range(3):
-                    acc += R[r, a] * Hl[a, b] * R[s, b]
-            H[r, s] = acc
+    _to_world(R, -u, Hl, n, H)
     return obs.radius[o] - dist
 
 
@@ -363,14 +369,7 @@ def _mesh_distance(obs, o, p, n, H):
             for r in range(3):
                 for s in range(3):
                     Hl[r, s] = ((1.0 if r == s else 0.0) - n_loc[r] * n_loc[s] - e[r] * e[s]) / d
-    for r in range(3):
-        n[r] = R[r, 0] * n_loc[0] + R[r, 1] * n_loc[1] + R[r, 2] * n_loc[2]
-        for s in range(3):
-            acc = 0.0
-            for a in range(3):
-                for b in range(3):
-                    acc += R[r, a] * Hl[a, b] * R[s, b]
-            H[r, s] = acc
+    _to_world(R, n_loc, Hl, n, H)
     return d
 
 
