@@ -202,7 +202,7 @@ class ContactState:
     force: np.ndarray
     dF_dp: np.ndarray
     dF_dv: np.ndarray = None
-    moment: np.ndarray = None        # (n, 3) [N m] about the backbone point (friction at the surface)
+    moment: np.ndarray = None        # (n, 3) [N m] about the contact point (zero: friction acts at the point)
     slip: np.ndarray = None          # (n, 3) [m/s] tangential velocity of the backbone point
     body: np.ndarray = None          # (n,) the joint of the touched obstacle's body (-1: the world's)
     arm: np.ndarray = None           # (n, 3) [m] from the point's frame origin to the point (a link's offset)
