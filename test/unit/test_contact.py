@@ -966,3 +966,95 @@ def test_a_catheter_pushed_through_a_curved_vessel_takes_the_bend():
     d, _, _ = signed_distance(vessel, pts)
     assert d.min() > 0.001 - 5e-4
     assert np.asarray(run["contact_count"])[-1] >= 2
+
+
+def _strip_on_a_drum_bvp(P, L, rho, EI):
+    """Large-deflection reference (our own BVP) of a strip clamped
+    tangentially on top of a rigid frictionless cylinder (its centreline
+    on a circle of radius rho) under a dead tip load P (downwards): the
+    wrapped length a lies on the circle (curvature 1/rho, tangent angle
+    s/rho, no shear, a constant tension); the free span [a, L] is an
+    elastica, EI theta'' = -P cos(theta), leaving with the circle's slope
+    and curvature (the moment is continuous; the shear is not: a
+    concentrated reaction P cos(a/rho) at the lift-off point) and free of
+    moment at the tip. Shooting on a; returns a and the tip (x, z)."""
+    from scipy.integrate import solve_ivp
+    from scipy.optimize import brentq
+
+    def shoot(a):
+        def rhs(s, y):
+            return [y[1], -P / EI * np.cos(y[0]), np.cos(y[0]), -np.sin(y[0])]
+        y0 = [a / rho, 1 / rho, rho * np.sin(a / rho), rho * np.cos(a / rho) - rho]
+        return solve_ivp(rhs, (a, L), y0, rtol=1e-12, atol=1e-14).y[:, -1]
+    a = brentq(lambda a: shoot(a)[1], 0.0, L * (1 - 1e-9))
+    return a, shoot(a)[2:]
+
+
+def test_a_strip_clamped_on_a_drum_wraps_as_the_small_slope_and_large_deflection_solutions():
+    """A strip clamped tangentially on top of a rigid frictionless
+    cylinder (radius R; its centreline on the circle rho = R + r) bent
+    over it by a dead tip load P (issue 27). Small slopes: the wrapped
+    length has the cylinder's curvature, so the lift-off point carries
+    the moment EI/rho: a = L - EI/(P rho) (for P > EI/(rho L)), tip
+    deflection a^2/(2 rho) + a b/rho + P b^3/(3 EI), b = L - a. Large
+    deflection: :func:`_strip_on_a_drum_bvp`. The twin's wrapped length
+    is read from the contact forces: they are radial, so their horizontal
+    resultant is the tension the clamp holds, P sin(a/rho) (the
+    distributed pressure P sin(a/rho)/rho over the wrapped arc and the
+    concentrated P cos(a/rho) at its end). Checks: on a large drum (wrap
+    angle 0.05 rad) BVP and small-slope solution agree to O(slope^2)
+    (0.7 % in a, 0.3 % in the tip), and the twin matches the BVP; on a
+    small drum (0.53 rad of wrap; the small-slope a = 0.2 m is 3.6 times
+    too long) the twin's tip within 1e-4 L of the BVP's, its wrapped
+    length within 1 %, both converging as the contact stiffness grows
+    (the penalty spreads the concentrated reaction over the foundation
+    length (4 EI/k)^(1/4) and ramps the pressure up from the clamp)."""
+    from soft_twin_core.robot.mechanism import tip_frame
+    from soft_twin_core.solve.constrained import FrameLoad
+    from soft_twin_core.solve.outputs import state_outputs
+    L, r = 0.3, R_ROD
+    EI = E * np.pi * r ** 4 / 4
+
+    def strip(R, k):
+        d = {"name": "strip", "gravity": [0, 0, 0], "segments": [{
+            "name": "s", "length": L, "sections": 60, "cross_section": {"shape": "solid_circle", "radius": r},
+            "material": {"youngs_modulus": E, "poisson_ratio": 0.5, "density": RHO}, "free_modes": ["bending_y"]}],
+            "obstacles": [{"name": "drum", "type": "capsule", "from": [0, -0.1, -R - r], "to": [0, 0.1, -R - r],
+                           "radius": R, "stiffness": k}],
+            "contact": {"spacing": 0.002}}
+        return from_robot_model(model_from_dict(d), d)
+
+    def twin(R, P, stiffnesses):
+        q, out = None, []
+        for k in stiffnesses:
+            mech = strip(R, k)
+            eq = solve_equilibrium(mech, point_loads=[FrameLoad(tip_frame(mech), np.array([0, 0, -P, 0, 0, 0.0]),
+                                                                "world")], q_init=q, max_iterations=100)
+            q, c = eq.q, eq.contacts
+            assert eq.stable and len(c) > 10 and np.all(c.force[:, 1] == 0)
+            tip = state_outputs(mech, eq.q, eq.lam, eq.inputs).frames[tip_frame(mech)][[0, 2], 3]
+            out.append(((R + r) * np.arcsin(c.force[:, 0].sum() / P), tip))
+        return out
+
+    R = 2.0                                     # a large drum: small slopes
+    rho = R + r
+    P = 1.5 * EI / (rho * L)
+    a_small = L - EI / (P * rho)
+    b = L - a_small
+    w_small = a_small ** 2 / (2 * rho) + a_small * b / rho + P * b ** 3 / (3 * EI)
+    a_ref, tip_ref = _strip_on_a_drum_bvp(P, L, rho, EI)
+    assert a_ref == pytest.approx(a_small, rel=0.01) and -tip_ref[1] == pytest.approx(w_small, rel=0.005)
+    (a, tip), = twin(R, P, [10 * E])
+    assert a == pytest.approx(a_ref, rel=5e-3)
+    np.testing.assert_allclose(tip, tip_ref, atol=1e-4 * L)
+
+    R = 0.1                                     # a small drum: half a radian of wrap
+    rho = R + r
+    P = 3 * EI / (rho * L)
+    a_ref, tip_ref = _strip_on_a_drum_bvp(P, L, rho, EI)
+    assert a_ref / rho > 0.5 and (L - EI / (P * rho)) / a_ref > 3
+    runs = twin(R, P, [E, 10 * E, 100 * E])
+    a_err = [abs(a / a_ref - 1) for a, _ in runs]
+    tip_err = [np.abs(tip - tip_ref).max() for _, tip in runs]
+    assert a_err[2] < 0.01 and a_err[0] > a_err[1] > a_err[2]
+    assert tip_err[1] < 1e-4 * L and tip_err[0] > tip_err[1] > tip_err[2]
