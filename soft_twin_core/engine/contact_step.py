@@ -1,7 +1,8 @@
 """One theta-method step of a tree with contacts, compiled: the step of
 :meth:`soft_twin_core.solve.constrained.MechanismSimulator._step` for a
-mechanism without multipliers (no constraint rows, no position-controlled
-joints), whose Python glue cost five times the passes it drove.
+mechanism without constraint rows (its position-controlled joints
+eliminated: their velocities prescribed), whose Python glue cost five times
+the passes it drove.
 
 Modified Newton on the step's mean velocity as there: the residual
 ``ID(q_t, v_t, a) + K (q_t - q_ref) + D v_t - tau_act - effort`` with the
@@ -125,8 +126,10 @@ def _cross_matrix(f):
 
 @_jit_inline
 def _newton_inverse(m, w, act, ldc, g, coef, K, D, qt, h, theta, pj, px, pt, idx, ob_of, obody, F, dF, dV, c,
-                    zeros, Ainv):
-    """Ainv = ((M + th h D_t + (th h)^2 K_t) / h)^-1 at q_t; False if
+                    zeros, fixed, Ainv, Afix):
+    """Ainv = ((M + th h D_t + (th h)^2 K_t) / h)^-1 at q_t, the rows and
+    columns of the ``fixed`` (prescribed) velocities replaced by the
+    identity's (their rows of the full matrix into Afix); False if
     singular. A contact's stiffness acts through the velocity of its point
     relative to the body carrying the obstacle (the world's: at rest), and
     its force turns with that body: ``dF = dF/dp J_rel dq - [F x] J_w dq``
@@ -164,6 +167,13 @@ def _newton_inverse(m, w, act, ldc, g, coef, K, D, qt, h, theta, pj, px, pt, idx
             A[i, j] = (A[i, j] + th * Dt[i, j] + th * th * Kt[i, j]) / h
             if not np.isfinite(A[i, j]):
                 return False
+    for i in range(nv):
+        if fixed[i]:
+            for j in range(nv):
+                Afix[i, j] = A[i, j]
+                A[i, j] = 0.0
+                A[j, i] = 0.0
+            A[i, i] = 1.0
     try:
         inv = np.linalg.inv(A)
     except Exception:           # singular to machine precision
@@ -179,11 +189,17 @@ def _newton_inverse(m, w, act, ldc, g, coef, K, D, qt, h, theta, pj, px, pt, idx
 
 @_jit
 def contact_step(m, w, act, ld, g, coef, effort, K, D, q_ref, elastic_noise, q0, v0, h, theta, tol, floor,
-                 max_it, pj, px, poff, prad, pmod, pw, allowed, obs, obs0, P0, P1, Pt, moving, Ainv, key, reuse,
-                 v1, q1, pt, idx, ob_of, n_out, gap, F, dF, dV, M, slip, arm, barm):
+                 max_it, pj, px, poff, prad, pmod, pw, allowed, obs, obs0, P0, P1, Pt, moving, fixed, Ainv, Afix,
+                 key, reuse, v1, q1, pt, R, idx, ob_of, n_out, gap, F, dF, dV, M, slip, arm, barm):
     """One step from (q0, v0) (guess v1, updated in place; q1 receives the
     end configuration, pt the contact points' positions at the theta point
-    of the last iterate). Contact points (joint pj, abscissa px, offset
+    of the last iterate, R the residual there). The velocities ``fixed``
+    (a mask) are prescribed: they keep v1's values, and their residual
+    rows, left out of the iteration, are the efforts that hold them
+    (position-controlled joints eliminated: the multipliers of
+    ``q_j = q_cmd`` are these rows, carried along the last update by the
+    Newton matrix's rows ``Afix`` as the KKT step's multiplier update
+    does). Contact points (joint pj, abscissa px, offset
     poff, radius, modulus, weight), the ``allowed`` (P, O) pairs; obstacles
     ``obs`` (``obs0`` at the step's start for the ``moving`` ones; those
     the bodies carry, in their frames), posed into P0, P1, Pt
@@ -218,7 +234,6 @@ def contact_step(m, w, act, ld, g, coef, effort, K, D, q_ref, elastic_noise, q0,
     qt = np.empty(nq)
     vt = np.empty(nv)
     acc = np.empty(nv)
-    R = np.empty(nv)
     th = theta * h
     refactor, factorised = True, 0
     prev, first, Rs, noise = np.inf, 0.0, 1e-300, 0.0
@@ -246,7 +261,7 @@ def contact_step(m, w, act, ld, g, coef, effort, K, D, q_ref, elastic_noise, q0,
                         same = False
             if not same:
                 if not _newton_inverse(m, w, act, ldc, g, coef, K, D, qt, h, theta, pj, px, pt, idx, ob_of,
-                                       obs.body, F, dF, dV, c, zeros, Ainv):
+                                       obs.body, F, dF, dV, c, zeros, fixed, Ainv, Afix):
                     return it, 4, c, factorised
                 passes.forward_pass(m, w, qt, vt, acc, 2)             # (it posed the workspace at rest)
                 factorised += 1
@@ -259,7 +274,8 @@ def contact_step(m, w, act, ld, g, coef, effort, K, D, q_ref, elastic_noise, q0,
         for k in range(nv):
             if not np.isfinite(R[k]):
                 return it, 3, c, factorised
-            nR = max(nR, abs(R[k]))
+            if not fixed[k]:
+                nR = max(nR, abs(R[k]))
         if it == 1:
             Rs = max(nR, 1e-300)
             if elastic_noise:
@@ -283,8 +299,10 @@ def contact_step(m, w, act, ld, g, coef, effort, K, D, q_ref, elastic_noise, q0,
             continue
         for i in range(nv):
             s = 0.0
-            for j in range(nv):
-                s -= Ainv[i, j] * R[j]
+            if not fixed[i]:
+                for j in range(nv):
+                    if not fixed[j]:
+                        s -= Ainv[i, j] * R[j]
             dv[i] = s
         alpha = _transition_alpha(m, w, pj, px, pt, idx, ob_of, obs, n_out, slip, dv, c)
         ndv, vmax = 0.0, 0.0
@@ -293,6 +311,10 @@ def contact_step(m, w, act, ld, g, coef, effort, K, D, q_ref, elastic_noise, q0,
             v1[i] += dv[i]
             ndv = max(ndv, abs(dv[i]))
             vmax = max(vmax, abs(v1[i]), abs(v0[i]))
+        for i in range(nv):
+            if fixed[i]:            # the held joints' efforts, linearised along the update
+                for j in range(nv):
+                    R[i] += Afix[i, j] * dv[j]
         lastR, halvings = nR, 0
         if not np.isfinite(ndv):
             return it, 3, c, factorised

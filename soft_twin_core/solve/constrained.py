@@ -712,6 +712,15 @@ class MechanismSimulator:
         self._obstacles0 = None           # moving obstacles: where they were at the step's start
         self._compiled_held = None        # the compiled contact step's inverse Newton matrix and inputs
         self.contacts = None              # the ContactState of the last step (at its theta point)
+        # position-controlled joints without constraint rows: eliminated (their velocity prescribed, their
+        # effort the residual's row) in the compiled contact step; 1-dof joints, whose update is q + h v
+        pos = mech.joints_with("position")
+        self._pos_v = np.array([tree.idx_v[i] for i in pos], dtype=np.int64)
+        self._pos_q = np.array([tree.idx_q[i] for i in pos], dtype=np.int64)
+        self._fixed = np.zeros(tree.nv, dtype=np.bool_)
+        self._fixed[self._pos_v] = True
+        self._compiled_contact = mech.n_constraint_rows == 0 and all(
+            tree.joints[i].kind in (REVOLUTE, PRISMATIC) for i in pos)
         # no multipliers (a rod, a tree of soft members and effort-controlled or passive joints): the
         # engine's compiled O(n) integrator, the rod's (integrators.ThetaIntegrator)
         self._theta_integrator = None
@@ -770,7 +779,7 @@ class MechanismSimulator:
         """One step of h with contacts: if Newton fails (a contact made or
         lost within the step), two halves, down to ``max_substep_levels``."""
         try:
-            if not self.lam.size:          # no multipliers: the compiled step
+            if self._compiled_contact:     # no constraint rows: the compiled step
                 return self._compiled_contact_step(inp, h)
             return self._step(inp, targets, h)
         except StepError:
@@ -792,10 +801,14 @@ class MechanismSimulator:
             raise
 
     def _compiled_contact_step(self, inp, h):
-        """One step of h with contacts and no multipliers:
+        """One step of h with contacts and no constraint rows:
         :func:`engine.contact_step.contact_step` (the Newton iteration of
         :meth:`_step`, compiled), its inverse Newton matrix kept for the
-        next step while the same points touch."""
+        next step while the same points touch. A position-controlled joint
+        is eliminated: its end-of-step velocity makes ``q_1 = q_cmd``
+        (``q_1 = q_0 + h v_theta``), and its multiplier (the effort that
+        holds it) is its residual row, as the KKT step's ``q_j = q_cmd``
+        row gives."""
         tree, ws, pts, contact = self.tree, self.ws, self.contact.points, self.contact
         obstacles = contact.all
         obs = obstacle_arrays(obstacles)
@@ -805,6 +818,7 @@ class MechanismSimulator:
         if held is None or held["h"] != h or held["obstacles"] != len(obstacles):
             nv = tree.nv
             held = self._compiled_held = dict(h=h, obstacles=len(obstacles), Ainv=np.zeros((nv, nv)),
+                                              Afix=np.zeros((nv, nv)),
                                               key=np.zeros(len(pts) * len(obstacles) + 1, np.int64), reuse=False,
                                               still=obs.body >= 0)
         moving = held["still"] if start is None else (obs.body >= 0) | np.array(
@@ -816,13 +830,16 @@ class MechanismSimulator:
         out = (np.empty(size, np.int64), np.empty(size, np.int64), np.empty((size, 3)), np.empty(size),
                np.empty((size, 3)), np.empty((size, 3, 3)), np.empty((size, 3, 3)), np.empty((size, 3)),
                np.empty((size, 3)), np.empty((size, 3)), np.empty((size, 3)))
-        v1, q1, pt = self.v.copy(), np.empty(tree.nq), np.empty((len(pts), 3))
+        v1, q1, pt, R = self.v.copy(), np.empty(tree.nq), np.empty((len(pts), 3)), np.empty(tree.nv)
+        pv, th = self._pos_v, self.theta
+        if pv.size:
+            v1[pv] = ((inp.q_cmd - self.q[self._pos_q]) / h - (1 - th) * self.v[pv]) / th
         it, status, c, fresh = contact_step(
             ws.m, ws.w, self.act, held["loads"], inp.gravity, held["coef"], inp.effort, self.K, self.D, tree.q0,
             tree.nq == tree.nv, self.q, self.v, h, self.theta, self.tol, 1e-14 * max(self.Ls, 1.0) / h,
             self.max_iterations, pts.joint, pts.x, pts.offset, pts.radius, pts.modulus, pts.weight,
-            contact.allowed, obs, obs0, *self._posed_arrays(obs0, obs), moving,
-            held["Ainv"], held["key"], held["reuse"], v1, q1, pt, *out)
+            contact.allowed, obs, obs0, *self._posed_arrays(obs0, obs), moving, self._fixed,
+            held["Ainv"], held["Afix"], held["key"], held["reuse"], v1, q1, pt, R, *out)
         self._kkt_factorisations += fresh
         held["reuse"] = status == 0 and it <= 2
         if status:
@@ -831,6 +848,9 @@ class MechanismSimulator:
             raise StepError(f"step at t = {self.t:.6g} s: {why}")
         idx = out[0][:c]
         self.a = (v1 - self.v) / h
+        if pv.size:      # their velocity as the KKT step leaves it (MechanismSimulator._step), their efforts
+            v1[pv] = inp.v_cmd if inp.v_cmd is not None else (q1[self._pos_q] - self.q[self._pos_q]) / h
+            self.lam = R[pv].copy()
         self.q, self.v = q1, v1
         self.contacts = ContactState(idx, out[1][:c], pt[idx], *(x[:c] for x in out[2:9]), body=obs.body[out[1][:c]],
                                      arm=out[9][:c], body_arm=out[10][:c])

@@ -218,3 +218,51 @@ def test_the_twin_runs_the_gripper_and_names_its_contacts():
     rows = contacts_dict(mech, twin.contacts)
     assert rows and {(r["member"], r["obstacle"]) for r in rows} == {("cylinder", "table")}
     assert all(r["force"][2] > 0 for r in rows)
+
+
+def test_the_compiled_step_eliminates_a_position_controlled_joint_as_the_kkt_step_holds_it():
+    """The gripper's lift is position-controlled: the compiled contact
+    step prescribes its velocity (q_1 = q_cmd) and reads its effort off
+    its residual row; the Python step holds it by a multiplier (KKT). From
+    the same states, with the fingers closing on the cylinder (gravity on,
+    tendons pulling) while the lift rises, both give the same
+    configuration (1e-8), contacts and lift effort (1e-6 of the weight
+    it carries), also through a velocity command. (Their Newton paths
+    differ in the halving of an update that raised the residual, whose
+    norm has the lift's row in the KKT step: on a hard step one of them
+    may split the step in halves; such steps, rare, are not compared.)"""
+    mech = _gripper()
+    sims = [MechanismSimulator(mech, 5e-4, 0.5, tol=1e-12) for _ in range(2)]
+    calls = []
+    for sim, step in zip(sims, (sims[0]._compiled_contact_step, lambda inp, h: sims[1]._step(inp, None, h))):
+        def counted(inp, h, step=step, sim=sim):
+            calls.append(sim)
+            return step(inp, h)
+        sim._compiled_contact_step = counted
+    split = 0
+    tree = mech.tree
+    iq = tree.idx_q[tree.joint_index("lift")]
+    u = {name: 0.0 for name in mech.actuator_names}
+    touched = 0
+    for k in range(240):
+        u = {name: min(6.0, 0.05 * k) for name in u}
+        lift = max(0.0, 1e-5 * (k - 120))
+        vel = {"lift": 0.02} if k % 3 == 0 and k > 120 else None
+        inp = make_inputs(mech, u, positions={"lift": lift}, velocities=vel)
+        calls.clear()
+        for sim in sims:
+            sim.step(inputs=inp)
+        a, b = sims
+        assert a.q[iq] == pytest.approx(lift, abs=1e-14) and b.q[iq] == pytest.approx(lift, abs=1e-12)
+        if len(calls) > 2:
+            split += 1
+            b.q, b.v, b.a, b.lam = a.q.copy(), a.v.copy(), a.a.copy(), a.lam.copy()
+            continue
+        assert np.abs(a.q - b.q).max() <= 1e-8 * max(np.abs(b.q).max(), 1.0), k
+        np.testing.assert_allclose(a.v, b.v, atol=1e-6)
+        assert np.array_equal(a.contacts.point, b.contacts.point)
+        np.testing.assert_allclose(a.lam, b.lam, rtol=1e-6, atol=1e-9)
+        b.q, b.v, b.a, b.lam = a.q.copy(), a.v.copy(), a.a.copy(), a.lam.copy()
+        touched += int((a.contacts.body >= 0).any())
+    assert touched > 20 and split <= 3
+    assert sims[0].joint_efforts()["lift"] > 0
