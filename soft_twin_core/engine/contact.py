@@ -65,7 +65,11 @@ class Obstacle:
     the force law turns on (None: a tenth of the member's radius);
     ``damping``: Hunt-Crossley alpha [s/m] (dynamics); ``friction``:
     Coulomb coefficient mu (dynamics), regularised below ``stiction_velocity``
-    [m/s] (:func:`friction_force`). Checked at the door
+    [m/s] (:func:`friction_force`); ``torsional_friction`` mu_t [m]: the
+    spin friction of a contact patch, a moment about the normal of at most
+    mu_t F_n against the spin of the touching frame relative to the
+    obstacle (dynamics; :func:`kernels.contact.spin_friction`; zero: none,
+    the default). Checked at the door
     (:func:`soft_twin_core.robot.obstacles.obstacles_from_list`)."""
     name: str
     kind: str
@@ -77,6 +81,7 @@ class Obstacle:
     damping: float = 0.0
     friction: float = 0.0
     stiction_velocity: float = 1e-4
+    torsional_friction: float = 0.0
     rotation: np.ndarray = None
     half_size: np.ndarray = None
     triangles: np.ndarray = None     # a convex mesh: (T, 3, 3) [m] in its axes (rotation) about a, outward
@@ -202,11 +207,13 @@ class ContactState:
     force: np.ndarray
     dF_dp: np.ndarray
     dF_dv: np.ndarray = None
-    moment: np.ndarray = None        # (n, 3) [N m] about the contact point (zero: friction acts at the point)
+    moment: np.ndarray = None        # (n, 3) [N m] about the contact point: the spin friction (along the normal)
     slip: np.ndarray = None          # (n, 3) [m/s] tangential velocity of the backbone point
     body: np.ndarray = None          # (n,) the joint of the touched obstacle's body (-1: the world's)
     arm: np.ndarray = None           # (n, 3) [m] from the point's frame origin to the point (a link's offset)
     body_arm: np.ndarray = None      # (n, 3) [m] from the touched body's frame origin to the point
+    spin: np.ndarray = None          # (n,) [rad/s] the point's frame's spin about the normal, relative
+    dM_dw: np.ndarray = None         # (n,) [N m s] d(spin moment)/d(spin) / theta (zero without spin friction)
 
     def __len__(self):
         return len(self.point)
@@ -234,11 +241,11 @@ def contact_forces(points, obstacles, p, allowed=None, obs=None):
 def _outputs(m):
     return dict(idx=np.empty(m, np.int64), ob=np.empty(m, np.int64), n=np.empty((m, 3)), gap=np.empty(m),
                 F=np.empty((m, 3)), dF=np.empty((m, 3, 3)), dV=np.empty((m, 3, 3)), M=np.empty((m, 3)),
-                slip=np.empty((m, 3)))
+                slip=np.empty((m, 3)), spin=np.empty(m), dW=np.empty(m))
 
 
 def step_contact_forces(points, obstacles, p0, p1, pt, h, theta, v0=None, obstacles0=None, allowed=None,
-                        posed=None, ovel0=None):
+                        posed=None, ovel0=None, spin=None):
     """:class:`ContactState` of a time step from positions p0 to p1 (P, 3),
     the forces acting at pt (the step's theta point): the normal force is
     the :func:`discrete_gradient` of the penetrations at the two ends, along
@@ -257,8 +264,10 @@ def step_contact_forces(points, obstacles, p0, p1, pt, h, theta, v0=None, obstac
     (obs0, obs1, obst), the obstacles' arrays at the step's start, end and
     theta point, for obstacles carried by the robot's bodies (they move
     with it), and ``ovel0`` (O, 6) their velocities at the step's start
-    ([at a0; angular], NaN rows for the others). The pass:
-    :func:`kernels.contact.step_contacts`."""
+    ([at a0; angular], NaN rows for the others). ``spin``: (R0, R1, w0),
+    the points' frames' rotations (P, 3, 3) at the step's ends and angular
+    velocities (P, 3) at its start, for torsional friction (None: none
+    acts). The pass: :func:`kernels.contact.step_contacts`."""
     p0, p1, pt = (np.ascontiguousarray(x, dtype=float) for x in (p0, p1, pt))
     if posed is not None:
         obs0, obs, obst = posed
@@ -276,13 +285,20 @@ def step_contact_forces(points, obstacles, p0, p1, pt, h, theta, v0=None, obstac
     allowed = np.ones((p0.shape[0], len(obstacles)), np.bool_) if allowed is None else allowed
     if ovel0 is None:
         ovel0 = np.full((len(obstacles), 6), np.nan)
+    if spin is None:
+        if np.any(obs.torsion > 0):
+            raise ValueError("spin: an obstacle has torsional friction; give the points' frames' rotations")
+        eye = np.broadcast_to(np.eye(3), (p0.shape[0], 3, 3))
+        spin = (eye, eye, np.zeros_like(p0))
+    R0, R1, w0 = (np.ascontiguousarray(x, dtype=float) for x in spin)
     c = kc.step_contacts(points.radius, points.modulus, points.weight, allowed, obs, obs0, obst, moving,
                          np.ascontiguousarray(ovel0, float), p0, p1, pt, float(h),
-                         float(theta), v, v0 is not None, out["idx"], out["ob"], out["n"], out["gap"], out["F"],
-                         out["dF"], out["dV"], out["M"], out["slip"])
+                         float(theta), v, v0 is not None, R0, R1, w0, out["idx"], out["ob"], out["n"], out["gap"],
+                         out["F"], out["dF"], out["dV"], out["M"], out["slip"], out["spin"], out["dW"])
     i = out["idx"][:c]
     return ContactState(i.copy(), out["ob"][:c].copy(), pt[i], *(out[k][:c].copy() for k in
-                                                                    ("n", "gap", "F", "dF", "dV", "M", "slip")))
+                                                                    ("n", "gap", "F", "dF", "dV", "M", "slip")),
+                        spin=out["spin"][:c].copy(), dM_dw=out["dW"][:c].copy())
 
 
 def friction_force(fn, vt, mu, v_s):

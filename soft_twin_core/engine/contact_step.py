@@ -22,7 +22,8 @@ from soft_twin_core.engine.integrators import integrate_pass, residual_after_for
 from soft_twin_core.engine.kernels import passes
 from soft_twin_core.engine.kernels.contact import pose_obstacles, step_contacts, transition_fraction
 from soft_twin_core.engine.kernels.data import LoadArrays
-from soft_twin_core.engine.kernels.frames import body_point_twists, offset_point_positions, relative_point_jacobians
+from soft_twin_core.engine.kernels.frames import (body_point_twists, frame_spins, offset_point_positions,
+                                                  relative_point_jacobians, spatial_jacobian)
 from soft_twin_core.engine.kernels.spatial import _jit, _jit_inline
 from soft_twin_core.engine.kernels.tangent import static_tangent_pass
 
@@ -116,6 +117,44 @@ def _transition_alpha(m, w, pj, px, pt, idx, ob_of, obs, n_out, slip, dv, c):
 
 
 @_jit_inline
+def _spin_jacobian(m, w, j, x, body, n, out):
+    """out (nv,): the Jacobian of the spin about n of frame (j, x) relative
+    to joint ``body``'s output frame (-1: the world)."""
+    g = np.empty((4, 4))
+    Js = np.empty((6, out.shape[0]))
+    spatial_jacobian(m, w, j, x, g, Js)
+    for c in range(out.shape[0]):
+        out[c] = n[0] * Js[3, c] + n[1] * Js[4, c] + n[2] * Js[5, c]
+    if body >= 0:
+        spatial_jacobian(m, w, body, -1.0, g, Js)
+        for c in range(out.shape[0]):
+            out[c] -= n[0] * Js[3, c] + n[1] * Js[4, c] + n[2] * Js[5, c]
+
+
+@_jit_inline
+def _spin_alpha(m, w, pj, px, idx, ob_of, obs, n_out, spin, dv, c):
+    """The fraction of the update dv that no spinning contact's spin jumps
+    across its stiction zone with (as the slip of the patch's rim, mu_t
+    spin; the workspace posed at the theta point)."""
+    alpha = 1.0
+    Js = np.empty(dv.shape[0])
+    v = np.zeros(3)
+    d = np.zeros(3)
+    for k in range(c):
+        o = ob_of[k]
+        mu_t = obs.torsion[o]
+        if mu_t <= 0.0:
+            continue
+        _spin_jacobian(m, w, pj[idx[k]], px[idx[k]], obs.body[o], n_out[k], Js)
+        ds = 0.0
+        for j in range(dv.shape[0]):
+            ds += Js[j] * dv[j]
+        v[0], d[0] = mu_t * spin[k], mu_t * ds
+        alpha = min(alpha, transition_fraction(v, d, obs.stiction[o]))
+    return alpha
+
+
+@_jit_inline
 def _cross_matrix(f):
     """[f x] (3, 3)."""
     X = np.zeros((3, 3))
@@ -126,13 +165,14 @@ def _cross_matrix(f):
 
 @_jit_inline
 def _newton_inverse(m, w, act, ldc, g, coef, K, D, qt, h, theta, pj, px, pt, idx, ob_of, obody, F, dF, dV, c,
-                    zeros, fixed, Ainv, Afix):
+                    zeros, fixed, Ainv, Afix, n_out, dW):
     """Ainv = ((M + th h D_t + (th h)^2 K_t) / h)^-1 at q_t, the rows and
     columns of the ``fixed`` (prescribed) velocities replaced by the
     identity's (their rows of the full matrix into Afix); False if
     singular. A contact's stiffness acts through the velocity of its point
     relative to the body carrying the obstacle (the world's: at rest), and
-    its force turns with that body: ``dF = dF/dp J_rel dq - [F x] J_w dq``
+    its force turns with that body: ``dF = dF/dp J_rel dq - [F x] J_w dq``;
+    its spin friction's damping through the spin's Jacobian
     (:meth:`soft_twin_core.solve.contact.MemberContact.add_stiffness`)."""
     nv = K.shape[0]
     passes.forward_pass(m, w, qt, zeros, zeros, 0)
@@ -161,6 +201,13 @@ def _newton_inverse(m, w, act, ldc, g, coef, K, D, qt, h, theta, pj, px, pt, idx
                 Kt -= np.ascontiguousarray(Jw[k].T) @ (X @ Jl)
             Kt -= JT @ KJ
             Dt -= JT @ DJ
+        Js = np.empty(nv)
+        for k in range(c):
+            if dW[k] != 0.0:
+                _spin_jacobian(m, w, pj[idx[k]], px[idx[k]], body[k], n_out[k], Js)
+                for i in range(nv):
+                    for j in range(nv):
+                        Dt[i, j] -= dW[k] * Js[i] * Js[j]
     th = theta * h
     for i in range(nv):
         for j in range(nv):
@@ -190,7 +237,7 @@ def _newton_inverse(m, w, act, ldc, g, coef, K, D, qt, h, theta, pj, px, pt, idx
 @_jit
 def contact_step(m, w, act, ld, g, coef, effort, K, D, q_ref, elastic_noise, q0, v0, h, theta, tol, floor,
                  max_it, pj, px, poff, prad, pmod, pw, allowed, obs, obs0, P0, P1, Pt, moving, fixed, Ainv, Afix,
-                 key, reuse, v1, q1, pt, R, idx, ob_of, n_out, gap, F, dF, dV, M, slip, arm, barm):
+                 key, reuse, v1, q1, pt, R, idx, ob_of, n_out, gap, F, dF, dV, M, slip, arm, barm, spin, dW):
     """One step from (q0, v0) (guess v1, updated in place; q1 receives the
     end configuration, pt the contact points' positions at the theta point
     of the last iterate, R the residual there). The velocities ``fixed``
@@ -223,6 +270,15 @@ def contact_step(m, w, act, ld, g, coef, effort, K, D, q_ref, elastic_noise, q0,
         for o in range(obs.kind.shape[0]):
             if obs.body[o] >= 0:
                 ovel0[o, :] = tw[o, :]
+    spins = False
+    for o in range(obs.kind.shape[0]):
+        if obs.torsion[o] > 0.0:
+            spins = True
+    R0 = np.empty((P, 3, 3))
+    R1 = np.empty((P, 3, 3))
+    w0 = np.zeros((P, 3))
+    if spins:                    # the points' frames' rotations and angular velocities at the start
+        frame_spins(m, w, pj, px, v0, R0, w0, np.empty((P, 3, nv)))
     J = np.empty((P, 3, nv))
     relative_point_jacobians(m, w, pj, px, np.full(P, -1, np.int64), p0, J, np.empty((P, 3, nv)))
     pv0 = np.zeros((P, 3))
@@ -247,11 +303,16 @@ def contact_step(m, w, act, ld, g, coef, effort, K, D, q_ref, elastic_noise, q0,
         integrate_pass(m, q0, vt, th, qt)
         integrate_pass(m, q0, vt, h, q1)
         _positions(m, w, q1, zeros, zeros, 0, pj, px, poff, G, p1)
+        if spins:
+            for p in range(P):
+                for r in range(3):
+                    for s in range(3):
+                        R1[p, r, s] = G[p, r, s]
         pose_obstacles(w, obs, P1)
         _positions(m, w, qt, vt, acc, 2, pj, px, poff, G, pt)          # (the residual's forward pass too)
         pose_obstacles(w, obs, Pt)
         c = step_contacts(prad, pmod, pw, allowed, P1, P0, Pt, moving, ovel0, p0, p1, pt, h, theta, pv0, True,
-                          idx, ob_of, n_out, gap, F, dF, dV, M, slip)
+                          R0, R1, w0, idx, ob_of, n_out, gap, F, dF, dV, M, slip, spin, dW)
         ldc = _with_contact_loads(w, ld, pj, px, G, pt, idx, ob_of, obs.body, F, M, c, arm, barm)
         if refactor:
             same = reuse and it == 1 and key[0] == c
@@ -261,7 +322,7 @@ def contact_step(m, w, act, ld, g, coef, effort, K, D, q_ref, elastic_noise, q0,
                         same = False
             if not same:
                 if not _newton_inverse(m, w, act, ldc, g, coef, K, D, qt, h, theta, pj, px, pt, idx, ob_of,
-                                       obs.body, F, dF, dV, c, zeros, fixed, Ainv, Afix):
+                                       obs.body, F, dF, dV, c, zeros, fixed, Ainv, Afix, n_out, dW):
                     return it, 4, c, factorised
                 passes.forward_pass(m, w, qt, vt, acc, 2)             # (it posed the workspace at rest)
                 factorised += 1
@@ -305,6 +366,8 @@ def contact_step(m, w, act, ld, g, coef, effort, K, D, q_ref, elastic_noise, q0,
                         s -= Ainv[i, j] * R[j]
             dv[i] = s
         alpha = _transition_alpha(m, w, pj, px, pt, idx, ob_of, obs, n_out, slip, dv, c)
+        if spins:
+            alpha = min(alpha, _spin_alpha(m, w, pj, px, idx, ob_of, obs, n_out, spin, dv, c))
         ndv, vmax = 0.0, 0.0
         for i in range(nv):
             dv[i] *= alpha

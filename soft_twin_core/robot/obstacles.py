@@ -13,7 +13,9 @@ the ``contact`` settings, in either schema), checked at the door::
       # each may add: stiffness [N/m^2] (default: the member's Young's modulus),
       # smoothing [m] (default: a tenth of the member's radius), damping [s/m] (Hunt-Crossley
       # alpha, default 0), friction (Coulomb mu, default 0), stiction_velocity [m/s]
-      # (the regularisation: a load held at half the friction limit creeps at 0.58 of it, default 1e-5)
+      # (the regularisation: a load held at half the friction limit creeps at 0.58 of it, default 1e-4),
+      # torsional_friction [m] (the spin friction of a contact patch: a moment about the normal of
+      # at most torsional_friction x the normal force; default 0)
     contact:
       spacing: 0.01                  # [m] between contact points along every member
                                      # (default: the smaller of 10 mm and a twentieth of the member)
@@ -30,7 +32,8 @@ from soft_twin_core.robot.model import ModelError, _check_keys, _num, _vec, pose
 
 _FIELDS = {"plane": ("point", "normal"), "sphere": ("center", "radius"), "capsule": ("from", "to", "radius"),
            "box": ("center", "size", "rpy", "quaternion"), "mesh": ("vertices", "faces"), "tube": ("path", "radius")}
-_COMMON = {"name", "type", "stiffness", "smoothing", "damping", "friction", "stiction_velocity"}
+_COMMON = {"name", "type", "stiffness", "smoothing", "damping", "friction", "stiction_velocity",
+           "torsional_friction"}
 
 
 def obstacle_from_dict(d, where):
@@ -147,7 +150,8 @@ def contact_law(d, where):
         smoothing=_num(d, "smoothing", where, positive=True) if "smoothing" in d else None,
         damping=_num(d, "damping", where, nonneg=True, default=0.0),
         stiction_velocity=_num(d, "stiction_velocity", where, positive=True, default=1e-4),
-        friction=_num(d, "friction", where, nonneg=True, default=0.0))
+        friction=_num(d, "friction", where, nonneg=True, default=0.0),
+        torsional_friction=_num(d, "torsional_friction", where, nonneg=True, default=0.0))
 
 
 def obstacles_from_list(items, where="robot.obstacles"):
@@ -177,7 +181,8 @@ def obstacle_at(name, kind, T, dimensions=(), law=None, where="obstacle", mesh=N
     [length, radius]) along its z axis, centred; a convex mesh (``mesh``:
     (vertices (V, 3) [m] in T's frame, faces (F, 3))) with T's frame as its
     own (a MOVE places that frame). ``law``: the contact-law keys
-    (stiffness, smoothing, damping, friction, stiction_velocity)."""
+    (stiffness, smoothing, damping, friction, stiction_velocity,
+    torsional_friction)."""
     T = np.asarray(T, dtype=float)
     if kind == "mesh":
         centre, tri = convex_mesh(*(mesh if mesh is not None else (None, None)), where)
@@ -235,7 +240,7 @@ def link_shape(d, name, joint, where):
 
         collision: {shape: sphere | capsule | cylinder | box | mesh, radius, length, size,
                     vertices, faces, position, rpy | quaternion,       # the shape's pose in the link
-                    stiffness, smoothing, damping, friction, stiction_velocity}
+                    stiffness, smoothing, damping, friction, stiction_velocity, torsional_friction}
 
     A capsule or cylinder lies along the shape frame's z axis, centred
     (a cylinder is taken as a capsule: its ends rounded); a box has edge

@@ -829,7 +829,7 @@ class MechanismSimulator:
         size = len(pts) * len(obstacles)
         out = (np.empty(size, np.int64), np.empty(size, np.int64), np.empty((size, 3)), np.empty(size),
                np.empty((size, 3)), np.empty((size, 3, 3)), np.empty((size, 3, 3)), np.empty((size, 3)),
-               np.empty((size, 3)), np.empty((size, 3)), np.empty((size, 3)))
+               np.empty((size, 3)), np.empty((size, 3)), np.empty((size, 3)), np.empty(size), np.empty(size))
         v1, q1, pt, R = self.v.copy(), np.empty(tree.nq), np.empty((len(pts), 3)), np.empty(tree.nv)
         pv, th = self._pos_v, self.theta
         if pv.size:
@@ -853,7 +853,7 @@ class MechanismSimulator:
             self.lam = R[pv].copy()
         self.q, self.v = q1, v1
         self.contacts = ContactState(idx, out[1][:c], pt[idx], *(x[:c] for x in out[2:9]), body=obs.body[out[1][:c]],
-                                     arm=out[9][:c], body_arm=out[10][:c])
+                                     arm=out[9][:c], body_arm=out[10][:c], spin=out[11][:c], dM_dw=out[12][:c])
         self.t += h
         self.iterations = it
         self.newton_iterations += it

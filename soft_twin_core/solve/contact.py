@@ -10,7 +10,8 @@ from soft_twin_core.engine.contact import (ContactState, contact_forces, normal_
 from soft_twin_core.engine.kernels import passes
 from soft_twin_core.engine.kernels.contact import distance_arrays, obstacle_arrays, posable, pose_obstacles
 from soft_twin_core.engine.kernels.data import LoadArrays
-from soft_twin_core.engine.kernels.frames import body_point_twists, offset_point_positions, relative_point_jacobians
+from soft_twin_core.engine.kernels.frames import (body_point_twists, frame_spins, offset_point_positions,
+                                                  relative_point_jacobians)
 from soft_twin_core.robot.obstacles import contact_points
 
 
@@ -25,8 +26,8 @@ def mechanism_contact_points(mech):
 
 def contact_loads(mech, st):
     """The contact forces of a ContactState of ``mech`` (None: none) as dead
-    point loads: world axes, at the contact points, with the friction's
-    moment about them, and their reactions on the bodies whose shapes are
+    point loads: world axes, at the contact points, with the spin
+    friction's moment about them, and their reactions on the bodies whose shapes are
     touched."""
     if st is None or not len(st):
         return LoadArrays(np.zeros(0, np.int64), np.zeros(0), np.zeros((0, 6)), np.zeros(0, np.bool_))
@@ -73,7 +74,8 @@ def contact_mask(tree, points, obstacles):
 def contacts_dict(mech, st, obstacles=None):
     """JSON-ready contacts of a ContactState (None: none): per contact its
     member, arc length s [m], obstacle, position [m], normal, gap [m] (< 0:
-    pressed in), force [N] on the member (world), slip velocity [m/s]
+    pressed in), force [N] on the member (world), slip velocity [m/s],
+    moment [N m] (the spin friction's, about the normal) and spin [rad/s]
     (``obstacles``: those the contacts index, default the robot file's)."""
     if st is None or not len(st):
         return []
@@ -82,7 +84,9 @@ def contacts_dict(mech, st, obstacles=None):
         ob.name for ob in mech.shapes]
     return [dict(member=pts.member[i], s=float(pts.s[i]), obstacle=names[o],
                  position=st.p[c].tolist(), normal=st.normal[c].tolist(), gap=float(st.gap[c]),
-                 force=st.force[c].tolist(), slip=(st.slip[c].tolist() if st.slip is not None else [0.0] * 3))
+                 force=st.force[c].tolist(), slip=(st.slip[c].tolist() if st.slip is not None else [0.0] * 3),
+                 moment=(st.moment[c].tolist() if st.moment is not None else [0.0] * 3),
+                 spin=float(st.spin[c]) if st.spin is not None else 0.0)
             for c, (i, o) in enumerate(zip(st.point, st.obstacle))]
 
 
@@ -105,6 +109,7 @@ class MemberContact:
         self.points = mechanism_contact_points(mech) if self.all else None
         self.allowed = contact_mask(mech.tree, self.points, self.all) if self.all else None
         self._local = obstacle_arrays(self.all) if self.all else None
+        self.spins = bool(self.all) and bool(np.any(self._local.torsion > 0))   # any torsional friction
 
     def __bool__(self):
         return bool(self.all) and len(self.points) > 0 and bool(self.allowed.any())
@@ -133,10 +138,21 @@ class MemberContact:
         p, G = self._positions(ws)
         return (p, G) if frames else p
 
+    def spin_state(self, ws, v):
+        """(R, W, Jw): the points' frames' rotations (P, 3, 3), angular
+        velocities at v (P, 3) and their Jacobians (P, 3, nv), the workspace
+        posed."""
+        P = len(self.points)
+        R, W, Jw = np.empty((P, 3, 3)), np.empty((P, 3)), np.empty((P, 3, len(v)))
+        frame_spins(ws.m, ws.w, self.points.joint, self.points.x, np.ascontiguousarray(v, float), R, W, Jw)
+        return R, W, Jw
+
     def motion(self, ws, q, v, obstacles=None):
-        """(positions, velocities) (P, 3) of the contact points at (q, v)
-        and the obstacles' arrays posed at q (``obstacles``: the world's
-        where they are then, default this contact's)."""
+        """(positions, velocities) (P, 3) of the contact points at (q, v),
+        the obstacles' arrays posed at q (``obstacles``: the world's where
+        they are then, default this contact's), the bodies' twists and,
+        with torsional friction, the points' frames' (rotations, angular
+        velocities) (else None)."""
         p = self.positions(ws, q)
         P = len(self.points)
         J = np.empty((P, 3, len(v)))
@@ -147,7 +163,8 @@ class MemberContact:
         tw = np.empty((len(self.all), 6))
         body_point_twists(ws.m, ws.w, local.body, posed.a, np.ascontiguousarray(v, float), tw)
         tw[local.body < 0] = np.nan
-        return p, J @ v, posed, tw
+        spin0 = self.spin_state(ws, v)[:2] if self.spins else None
+        return p, J @ v, posed, tw, spin0
 
     def _with_arms(self, ws, st, G):
         """``st`` with each contact's touched body and lever arms (the
@@ -176,14 +193,15 @@ class MemberContact:
         (:meth:`motion` at the step's start, with ``obstacles0``: the
         world's obstacles then, if they move) to configuration q1, acting
         at the theta point qt (:func:`engine.contact.step_contact_forces`)."""
-        p0, v0, P0, tw0 = start
-        p1 = self.positions(ws, q1)
+        p0, v0, P0, tw0, spin0 = start
+        p1, G1 = self.positions(ws, q1, frames=True)
         P1 = self._posed(ws)
         pt, G = self.positions(ws, qt, frames=True)
         Pt = self._posed(ws)
         all0 = None if obstacles0 is None else tuple(obstacles0) + tuple(self.mech.shapes)
+        spin = None if spin0 is None else (spin0[0], G1[:, :3, :3], spin0[1])
         st = step_contact_forces(self.points, self.all, p0, p1, pt, h, theta, v0, all0, self.allowed,
-                                 (P0, P1, Pt), tw0)
+                                 (P0, P1, Pt), tw0, spin)
         return self._with_arms(ws, st, G)
 
     def loads(self, st):
@@ -198,8 +216,9 @@ class MemberContact:
         that body, J_w its angular velocity's Jacobian), and the reaction's
         lever arm grows with the relative motion: ``Kt -= J_w^T [F x] J``
         (checked against finite differences of the residual in the tests).
-        ``Dt``: also Dt -=
-        J^T dF/dv J (the contacts' damping)."""
+        ``Dt``: also Dt -= J^T dF/dv J (the contacts' damping) and, for
+        spin friction, ``J_s^T dm/dspin J_s`` with J_s = n^T (J_frame -
+        J_w) the spin's Jacobian."""
         n = len(st)
         if not n:
             return Kt
@@ -222,7 +241,21 @@ class MemberContact:
         Kt -= scale * (Jf.T @ dFq.reshape(3 * n, -1))
         if Dt is not None:
             Dt -= Jf.T @ np.matmul(st.dF_dv, J).reshape(3 * n, -1)
+            if st.dM_dw is not None and np.any(st.dM_dw != 0):
+                Js = self._spin_jacobians(ws, st, Jw)
+                Dt -= Js.T @ (st.dM_dw[:, None] * Js)
         return Kt
+
+    def _spin_jacobians(self, ws, st, Jw):
+        """(c, nv): each contact's spin's Jacobian ``n^T (J_frame - J_w)``
+        (Jw: the touched bodies' angular velocities' Jacobians; the
+        workspace posed at the contacts' configuration)."""
+        n, nv = len(st), Jw.shape[2]
+        Jm = np.empty((n, 3, nv))
+        frame_spins(ws.m, ws.w, np.ascontiguousarray(self.points.joint[st.point]),
+                    np.ascontiguousarray(self.points.x[st.point]), np.zeros(nv), np.empty((n, 3, 3)),
+                    np.empty((n, 3)), Jm)
+        return np.einsum("ck,ckv->cv", st.normal, Jm - Jw)
 
     def slip_jacobians(self, ws, st):
         """(c, 3, nv): each contact's slip velocity's Jacobian, ``(I - n
@@ -243,13 +276,27 @@ class MemberContact:
         if st is None or not len(st):
             return 1.0
         mu = np.array([ob.friction for ob in self.all])[st.obstacle]
+        vs_all = np.array([ob.stiction_velocity for ob in self.all])
+        alpha = 1.0
         fr = mu > 0
-        if not fr.any():
-            return 1.0
-        sub = np.flatnonzero(fr)
-        Jt = self.slip_jacobians(ws, _subset(st, sub))
-        vs = np.array([ob.stiction_velocity for ob in self.all])[st.obstacle[sub]]
-        return transition_step(st.slip[sub], Jt @ dv, vs)
+        if fr.any():
+            sub = np.flatnonzero(fr)
+            Jt = self.slip_jacobians(ws, _subset(st, sub))
+            alpha = transition_step(st.slip[sub], Jt @ dv, vs_all[st.obstacle[sub]])
+        mu_t = np.array([ob.torsional_friction for ob in self.all])[st.obstacle]
+        if np.any(mu_t > 0):           # the spins, as slips of the patch's rim (mu_t spin)
+            sub = np.flatnonzero(mu_t > 0)
+            body = st.body[sub] if st.body is not None else np.full(len(sub), -1, np.int64)
+            J, Jw = np.empty((len(sub), 3, len(dv))), np.empty((len(sub), 3, len(dv)))
+            relative_point_jacobians(ws.m, ws.w, np.ascontiguousarray(self.points.joint[st.point[sub]]),
+                                     np.ascontiguousarray(self.points.x[st.point[sub]]), np.ascontiguousarray(body),
+                                     np.ascontiguousarray(st.p[sub]), J, Jw)
+            ds = self._spin_jacobians(ws, _subset(st, sub), Jw) @ dv
+            rim = np.zeros((len(sub), 3))
+            drim = np.zeros((len(sub), 3))
+            rim[:, 0], drim[:, 0] = mu_t[sub] * st.spin[sub], mu_t[sub] * ds
+            alpha = min(alpha, transition_step(rim, drim, vs_all[st.obstacle[sub]]))
+        return alpha
 
     def potential(self, ws, q):
         """The energy [J] the contacts store at q: the sum over the allowed

@@ -203,6 +203,8 @@ def test_contact_in_a_tree_robot_file_and_on_a_sphere():
     ({"type": "sphere", "center": [0, 0, 0], "radius": 0.1, "normal": [0, 0, 1]}, "[0]: unknown field"),
     ({"type": "plane", "point": [0, 0, 0], "normal": [0, 0, 1], "stiffness": 0}, "[0].stiffness"),
     ({"type": "plane", "point": [0, 0, 0], "normal": [0, 0, 1], "friction": -1}, "[0].friction"),
+    ({"type": "plane", "point": [0, 0, 0], "normal": [0, 0, 1], "torsional_friction": float("nan")},
+     "[0].torsional_friction"),
     ({"type": "tube", "path": [[0, 0, 0]], "radius": 0.01}, "[0].path"),
     ({"type": "tube", "path": [[0, 0, 0], [0, 0, 0], [1, 0, 0]], "radius": 0.01}, "[0].path[1]"),
     ({"type": "tube", "path": [[0, 0, 0], [1, 0, float("inf")]], "radius": 0.01}, "[0].path"),
@@ -405,7 +407,7 @@ def test_scenario_runs_carry_the_contacts(tmp_path):
     js = json.loads((tmp_path / "s.json").read_text())
     assert len(js["contacts"]) > 3
     c = js["contacts"][0]
-    assert set(c) == {"member", "s", "obstacle", "position", "normal", "gap", "force", "slip"}
+    assert set(c) == {"member", "s", "obstacle", "position", "normal", "gap", "force", "slip", "moment", "spin"}
     assert c["member"] == "backbone" and c["obstacle"] == "table" and c["gap"] < 0 and c["force"][2] > 0
     assert cli.main(["dynamics", str(scen), "--duration", "0.2", "--dt", "0.002", "-o",
                      str(tmp_path / "d.json")]) == 0

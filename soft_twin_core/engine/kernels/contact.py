@@ -29,6 +29,7 @@ ObstacleArrays = namedtuple("ObstacleArrays", [
     "damping",     # (O,) Hunt-Crossley alpha [s/m]
     "friction",    # (O,) Coulomb mu
     "stiction",    # (O,) the stiction velocity [m/s]
+    "torsion",     # (O,) torsional (spin) friction mu_t [m]: the largest moment about the normal is mu_t F_n
     "tri",         # (T, 3, 3) every mesh's triangles, in its axes about its a, outward (counter-clockwise)
     "tri_start",   # (O + 1,) obstacle o's triangles: tri[tri_start[o]:tri_start[o + 1]]
     "body",        # (O,) the joint whose output frame carries the obstacle (a link's collision shape), -1: the world
@@ -72,7 +73,8 @@ def _obstacle_arrays(obstacles):
                           col(lambda ob: nan if ob.stiffness is None else ob.stiffness),
                           col(lambda ob: nan if ob.smoothing is None else ob.smoothing),
                           col(lambda ob: ob.damping), col(lambda ob: ob.friction),
-                          col(lambda ob: ob.stiction_velocity), np.ascontiguousarray(np.concatenate(tris)), start,
+                          col(lambda ob: ob.stiction_velocity), col(lambda ob: ob.torsional_friction),
+                          np.ascontiguousarray(np.concatenate(tris)), start,
                           np.array([ob.body for ob in obstacles], np.int64),
                           np.ascontiguousarray(np.concatenate(paths)), pstart)
 
@@ -386,6 +388,33 @@ def friction(fn, vt, mu, v_s, F, dF):
 
 
 @_jit_inline
+def spin_friction(fn, spin, mu_t, v_s):
+    """Regularised torsional friction of a contact patch: the moment about
+    the normal ``m = -mu_t fn s / sqrt(s^2 + v_s^2)``, ``s = mu_t spin``
+    (spin [rad/s] about the normal; s: the slip of a rim at mu_t), and
+    dm/dspin. Returns (m, dm)."""
+    s = mu_t * spin
+    d2 = s * s + v_s * v_s
+    d = np.sqrt(d2)
+    return -mu_t * fn * s / d, -mu_t * mu_t * fn * v_s * v_s / (d2 * d)
+
+
+@_jit_inline
+def rotation_rate(R0, R1, h, out):
+    """out (3,) [rad/s]: the mean angular velocity, world axes, that turns
+    R0 into R1 in h: the rotation vector of R1 R0^T over h (angles < pi)."""
+    Q = np.empty((3, 3))
+    for r in range(3):
+        for c in range(3):
+            Q[r, c] = R1[r, 0] * R0[c, 0] + R1[r, 1] * R0[c, 1] + R1[r, 2] * R0[c, 2]
+    vx, vy, vz = 0.5 * (Q[2, 1] - Q[1, 2]), 0.5 * (Q[0, 2] - Q[2, 0]), 0.5 * (Q[1, 0] - Q[0, 1])
+    sn = np.sqrt(vx * vx + vy * vy + vz * vz)
+    cs = 0.5 * (Q[0, 0] + Q[1, 1] + Q[2, 2] - 1.0)
+    f = 1.0 + sn * sn / 6.0 if sn < 1e-6 and cs > 0.0 else np.arctan2(sn, cs) / sn
+    out[0], out[1], out[2] = f * vx / h, f * vy / h, f * vz / h
+
+
+@_jit_inline
 def transition_fraction(v, d, vs):
     """The fraction in (0, 1] of an update that changes a contact's slip v
     (3,) by d (3,) to take (:func:`soft_twin_core.engine.contact.transition_step`):
@@ -449,7 +478,7 @@ def rest_contacts(radius, modulus, weight, allowed, obs, p, idx, ob_of, n_out, g
 
 @_jit
 def step_contacts(radius, modulus, weight, allowed, obs, obs0, obst, moving, ovel0, p0, p1, pt, h, theta, v0,
-                  use_v0, idx, ob_of, n_out, gap, F, dF, dV, M, slip):
+                  use_v0, R0, R1, w0, idx, ob_of, n_out, gap, F, dF, dV, M, slip, spin, dW):
     """A time step from positions p0 to p1 (P, 3), forces at the theta
     point pt: every ``allowed`` (P, O) pair pressed in at either end,
     obstacle-major (sizes P O; returns the count). The obstacles: ``obs``
@@ -465,8 +494,13 @@ def step_contacts(radius, modulus, weight, allowed, obs, obs0, obst, moving, ove
     end of the step, from the mean ``(p1 - x0) / h`` and, for the bodies'
     shapes, its velocity at the start, ``ovel0`` (O, 6): [velocity at a0;
     angular velocity]; NaN: the mean for a prescribed motion), at the
-    backbone point (M: the moment about it, zero). dF: through p1
-    (1/theta), dV: d F/d v1."""
+    backbone point. An obstacle with torsional friction (``obs.torsion``)
+    resists the spin about the normal of the point's frame (rotations R0,
+    R1 (P, 3, 3) at the step's ends, angular velocities w0 (P, 3) at its
+    start) relative to the obstacle (its rotation over the step, and its
+    start angular velocity from ovel0), at the step's end as the slip:
+    M = m n (:func:`spin_friction`), spin its rate [rad/s], dW = dm/dspin /
+    theta; M = 0 without. dF: through p1 (1/theta), dV: d F/d v1."""
     n = np.empty(3)
     H = np.empty((3, 3))
     n0 = np.empty(3)
@@ -475,6 +509,8 @@ def step_contacts(radius, modulus, weight, allowed, obs, obs0, obst, moving, ove
     sl = np.empty(3)
     Ft = np.empty(3)
     dFt = np.empty((3, 3))
+    wm = np.empty(3)
+    wo = np.empty(3)
     c = 0
     for o in range(obs.kind.shape[0]):
         for i in range(p0.shape[0]):
@@ -526,6 +562,25 @@ def step_contacts(radius, modulus, weight, allowed, obs, obs0, obst, moving, ove
                 slip[c, r] = sl[r]
                 F[c, r] = fn * n[r]
                 M[c, r] = 0.0
+            spin[c], dW[c] = 0.0, 0.0
+            if obs.torsion[o] > 0.0:
+                rotation_rate(R0[i], R1[i], h, wm)
+                wo[:] = 0.0
+                if moving[o]:
+                    rotation_rate(obs0.rotation[o], obs.rotation[o], h, wo)
+                for r in range(3):
+                    if use_v0:
+                        wm[r] = (wm[r] - (1.0 - theta) * w0[i, r]) / theta
+                        if not np.isnan(ovel0[o, 0]):
+                            wo[r] = (wo[r] - (1.0 - theta) * ovel0[o, 3 + r]) / theta
+                om = 0.0
+                for r in range(3):
+                    om += (wm[r] - wo[r]) * n[r]
+                mt, dm = spin_friction(fn, om, obs.torsion[o], obs.stiction[o])
+                spin[c], dW[c] = om, dm / theta
+                for r in range(3):
+                    M[c, r] = mt * n[r]
+            for r in range(3):
                 for s in range(3):
                     dF[c, r, s] = w * fac * (-(dfbar / theta) * n[r] * n[s] + fbar * H[r, s])
                     dV[c, r, s] = -w * fbar * dv * n[r] * n[s]

@@ -250,3 +250,22 @@ def body_point_twists(m, w, body, p, v, out):
             for c in range(v.shape[0]):
                 out[k, r] += Jp[r, c] * v[c]
                 out[k, 3 + r] += Js[3 + r, c] * v[c]
+
+
+@_jit
+def frame_spins(m, w, joint, x, v, R, W, Jw):
+    """For frames (joint[k], x[k]) (the workspace posed): R[k] (3, 3) their
+    world rotations, W[k] (3,) their angular velocities at joint velocities
+    v, Jw[k] (3, nv) the Jacobians of those (world axes)."""
+    g = np.empty((4, 4))
+    Js = np.empty((6, v.shape[0]))
+    for k in range(joint.shape[0]):
+        spatial_jacobian(m, w, joint[k], x[k], g, Js)
+        for r in range(3):
+            acc = 0.0
+            for c in range(v.shape[0]):
+                Jw[k, r, c] = Js[3 + r, c]
+                acc += Js[3 + r, c] * v[c]
+            W[k, r] = acc
+            for c in range(3):
+                R[k, r, c] = g[r, c]
