@@ -15,7 +15,7 @@ fixed_fixed_beam, planar_parallel_robot) and a rigid four-bar:
 Printed with the machine load (1-minute load average): the project machine
 has 2 CPUs shared with other jobs. CPU time (process_time) beside wall time.
 
-Run: PYTHONPATH=.:test .venv/bin/python benchmarks/bench_articulated.py
+Run: PYTHONPATH=. .venv/bin/python benchmarks/bench_articulated.py
 """
 
 import os
@@ -30,7 +30,8 @@ from soft_twin_core.robot.model import find_file
 from soft_twin_core.solve.constrained import MechanismSimulator, make_inputs, solve_equilibrium
 from soft_twin_core.solve.outputs import state_outputs
 
-sys.path.insert(0, os.path.join(os.path.dirname(os.path.dirname(os.path.abspath(__file__))), "test"))
+_TEST = os.path.join(os.path.dirname(os.path.dirname(os.path.abspath(__file__))), "test")
+sys.path[:0] = [_TEST, os.path.join(_TEST, "unit")]       # the tests' helpers (rod_statics) and four_bar
 
 
 def load():

@@ -261,8 +261,10 @@ def contact_step(m, w, act, ld, g, coef, effort, K, D, q_ref, elastic_noise, q0,
     zeros = np.zeros(nv)
     G = np.empty((P, 4, 4))
     p0 = np.empty((P, 3))
-    _positions(m, w, q0, zeros, zeros, 0, pj, px, poff, G, p0)
-    pose_obstacles(w, obs0, P0)
+    touching = P > 0 and obs.kind.shape[0] > 0       # else: only the eliminated joints (no positions needed)
+    if touching:
+        _positions(m, w, q0, zeros, zeros, 0, pj, px, poff, G, p0)
+        pose_obstacles(w, obs0, P0)
     ovel0 = np.full((obs.kind.shape[0], 6), np.nan)
     if moving.any():
         tw = np.empty((obs.kind.shape[0], 6))
@@ -302,15 +304,18 @@ def contact_step(m, w, act, ld, g, coef, effort, K, D, q_ref, elastic_noise, q0,
             acc[k] = (v1[k] - v0[k]) / h
         integrate_pass(m, q0, vt, th, qt)
         integrate_pass(m, q0, vt, h, q1)
-        _positions(m, w, q1, zeros, zeros, 0, pj, px, poff, G, p1)
+        if touching:
+            _positions(m, w, q1, zeros, zeros, 0, pj, px, poff, G, p1)
         if spins:
             for p in range(P):
                 for r in range(3):
                     for s in range(3):
                         R1[p, r, s] = G[p, r, s]
-        pose_obstacles(w, obs, P1)
+        if touching:
+            pose_obstacles(w, obs, P1)
         _positions(m, w, qt, vt, acc, 2, pj, px, poff, G, pt)          # (the residual's forward pass too)
-        pose_obstacles(w, obs, Pt)
+        if touching:
+            pose_obstacles(w, obs, Pt)
         c = step_contacts(prad, pmod, pw, allowed, P1, P0, Pt, moving, ovel0, p0, p1, pt, h, theta, pv0, True,
                           R0, R1, w0, idx, ob_of, n_out, gap, F, dF, dV, M, slip, spin, dW)
         ldc = _with_contact_loads(w, ld, pj, px, G, pt, idx, ob_of, obs.body, F, M, c, arm, barm)

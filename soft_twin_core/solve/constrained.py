@@ -32,7 +32,7 @@ import numpy as np
 
 from soft_twin_core._blas import one_blas_thread
 from soft_twin_core.engine.algorithms import crba, forward_kinematics, point_poses
-from soft_twin_core.engine.contact import ContactState, moved
+from soft_twin_core.engine.contact import ContactPoints, ContactState, moved
 from soft_twin_core.engine.contact_step import contact_step
 from soft_twin_core.engine.forces import (actuation_tangent_pass, actuator_arrays, check_member_loads,
                                           concat_loads, gravity_of, load_arrays, point_moment_arrays)
@@ -666,6 +666,10 @@ class _FreeState:
         self.q, self.qdot, self.t = q, qdot, t
 
 
+_NO_POINTS = ContactPoints(np.zeros(0, np.int64), np.zeros(0), np.zeros(0), np.zeros(0), np.zeros(0), (),
+                           np.zeros(0))
+
+
 class MechanismSimulator:
     """Time integration of a mechanism with joint control and constraints:
     the theta-method step of :mod:`integrators` (theta = 1/2: implicit
@@ -758,6 +762,8 @@ class MechanismSimulator:
                 if self.contact:
                     self._move_obstacles(obstacles)
                     self._contact_step(inp, targets, self.dt, 0)
+                elif self._compiled_contact:     # position-controlled joints, eliminated; no contacts
+                    self._contact_step(inp, targets, self.dt, 0)
                 else:
                     self._step(inp, targets)
         return self
@@ -809,8 +815,11 @@ class MechanismSimulator:
         (``q_1 = q_0 + h v_theta``), and its multiplier (the effort that
         holds it) is its residual row, as the KKT step's ``q_j = q_cmd``
         row gives."""
-        tree, ws, pts, contact = self.tree, self.ws, self.contact.points, self.contact
-        obstacles = contact.all
+        tree, ws, contact = self.tree, self.ws, self.contact
+        if contact:
+            pts, obstacles, allowed = contact.points, contact.all, contact.allowed
+        else:                            # nothing to touch: the step of the position-controlled joints
+            pts, obstacles, allowed = _NO_POINTS, (), np.zeros((0, 0), np.bool_)
         obs = obstacle_arrays(obstacles)
         start = self._obstacles0
         obs0 = obs if start is None else obstacle_arrays(tuple(start) + tuple(self.mech.shapes))
@@ -838,7 +847,7 @@ class MechanismSimulator:
             ws.m, ws.w, self.act, held["loads"], inp.gravity, held["coef"], inp.effort, self.K, self.D, tree.q0,
             tree.nq == tree.nv, self.q, self.v, h, self.theta, self.tol, 1e-14 * max(self.Ls, 1.0) / h,
             self.max_iterations, pts.joint, pts.x, pts.offset, pts.radius, pts.modulus, pts.weight,
-            contact.allowed, obs, obs0, *self._posed_arrays(obs0, obs), moving, self._fixed,
+            allowed, obs, obs0, *self._posed_arrays(obs0, obs), moving, self._fixed,
             held["Ainv"], held["Afix"], held["key"], held["reuse"], v1, q1, pt, R, *out)
         self._kkt_factorisations += fresh
         held["reuse"] = status == 0 and it <= 2
@@ -853,7 +862,8 @@ class MechanismSimulator:
             self.lam = R[pv].copy()
         self.q, self.v = q1, v1
         self.contacts = ContactState(idx, out[1][:c], pt[idx], *(x[:c] for x in out[2:9]), body=obs.body[out[1][:c]],
-                                     arm=out[9][:c], body_arm=out[10][:c], spin=out[11][:c], dM_dw=out[12][:c])
+                                     arm=out[9][:c], body_arm=out[10][:c], spin=out[11][:c],
+                                     dM_dw=out[12][:c]) if contact else None
         self.t += h
         self.iterations = it
         self.newton_iterations += it

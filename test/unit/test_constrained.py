@@ -312,6 +312,30 @@ def test_position_controlled_efforts_equal_inverse_dynamics():
     assert worst < 1e-9
 
 
+@pytest.mark.parametrize("name", ["pan_tilt_arm", "soft_gripper"])
+def test_position_controlled_joints_eliminated_step_as_the_kkt_step_holds_them(name):
+    """A robot whose only multipliers are position-controlled (revolute or
+    prismatic) joints steps through the compiled step with those joints
+    eliminated (their velocity prescribed, their effort their residual
+    row); the Python KKT step holds them by multipliers. From the same
+    states they agree: configuration to 1e-8, efforts to 1e-6."""
+    mech = load_mechanism(find_file(name, "robots"))
+    sims = [MechanismSimulator(mech, 5e-3, 0.5, tol=1e-12) for _ in range(2)]
+    assert sims[0]._compiled_contact and not sims[0].contact
+    sims[1]._compiled_contact = False
+    pos = [mech.tree.joints[i].name for i in mech.joints_with("position")]
+    for k in range(100):
+        inp = make_inputs(mech, {a.name: 1.0 for a in mech.actuators[:1]},
+                          positions={p: 0.3 * np.sin(2 * np.pi * k * 5e-3) for p in pos})
+        for sim in sims:
+            sim.step(inputs=inp)
+        a, b = sims
+        assert np.abs(a.q - b.q).max() <= 1e-8 * max(np.abs(b.q).max(), 1.0), k
+        np.testing.assert_allclose(a.lam, b.lam, rtol=1e-6, atol=1e-9)
+        assert a.contacts is None
+        b.q, b.v, b.a, b.lam = a.q.copy(), a.v.copy(), a.a.copy(), a.lam.copy()
+
+
 def test_frozen_soft_arm_efforts_match_pinocchio():
     pin = pytest.importorskip("pinocchio")
     mech = load_mechanism(find_file("pan_tilt_arm", "robots"))
