@@ -120,7 +120,7 @@ def quaternion(q):
 # --- contact (issue 27): soft_twin/Obstacle in, soft_twin/Contacts out ---------
 
 _PRIMITIVES = {1: ("box", 3), 2: ("sphere", 1), 3: ("capsule", 2)}    # shape_msgs/SolidPrimitive BOX, SPHERE, CYLINDER
-_LAW = ("stiffness", "smoothing", "damping", "friction", "stiction_velocity")
+_LAW = ("stiffness", "smoothing", "damping", "friction", "stiction_velocity", "torsional_friction")
 
 
 def obstacles_after(msg, obstacles):

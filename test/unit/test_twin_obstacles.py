@@ -136,7 +136,7 @@ def test_obstacle_messages_add_move_and_remove_and_bad_ones_are_counted_not_appl
     obstacles as the good ones left them."""
     from soft_twin import inputs
     batch = [(_msg("floor", 0, plane=True, z=-0.3, friction=0.5), None),
-             (_msg("ball", 0, kind=2, dims=[0.05], z=0.1), None),
+             (_msg("ball", 0, kind=2, dims=[0.05], z=0.1, torsional_friction=0.002), None),
              (_msg("post", 0, kind=3, dims=[0.2, 0.01]), None),
              (_msg("ball", 1, z=0.2), None),
              (_msg("ghost", 1), None),                           # unknown_name
@@ -151,7 +151,7 @@ def test_obstacle_messages_add_move_and_remove_and_bad_ones_are_counted_not_appl
     assert "radius: must be > 0" in str(errors[-1]) and "primitive.type 4" in str(errors[-2])
     assert [o.name for o in obstacles] == ["ball", "post"]
     ball, post = obstacles
-    assert ball.a == pytest.approx([0, 0, 0.2]) and ball.radius == 0.05
+    assert ball.a == pytest.approx([0, 0, 0.2]) and ball.radius == 0.05 and ball.torsional_friction == 0.002
     assert post.kind == "capsule" and post.a == pytest.approx([0, 0, -0.1]) and post.radius == 0.01
     floor = inputs.fold_obstacles(batch[:1], ())[0][0]
     assert floor.friction == 0.5 and floor.stiffness is None and floor.b == pytest.approx([0, 0, 1])
