@@ -69,6 +69,7 @@ def kernels(monkeypatch):
         monkeypatch.setattr(module, name, kernel_entry)
     wrap(integrators, "run_steps")
     wrap(constrained, "residual_pass")
+    wrap(constrained, "contact_step")           # (the compiled step of position-controlled joints and contacts)
     wrap(equilibrium, "static_newton")          # (the name equilibrium calls it by)
 
 
