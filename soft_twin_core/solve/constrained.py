@@ -513,7 +513,6 @@ def gap_force_scale(k_max, phi, length):
 
 def _kkt_newton(pb, q, lam, tol, max_iterations):
     """Newton with backtracking on the KKT system; (q, lam, it, ok, R, phi)."""
-    nv = pb.tree.nv
     Ls = _length_scale(pb.mech)
     R, phi, G = pb.residual(q, lam)
     Kq = pb.K @ (q - pb.tree.q0)
@@ -723,7 +722,11 @@ class MechanismSimulator:
         self._pos_q = np.array([tree.idx_q[i] for i in pos], dtype=np.int64)
         self._fixed = np.zeros(tree.nv, dtype=np.bool_)
         self._fixed[self._pos_v] = True
-        self._compiled_contact = mech.n_constraint_rows == 0 and all(
+        # the compiled step (engine.contact_step) serves every robot without constraint rows: with
+        # obstacles or without (then only its position-controlled joints need more than the rod's
+        # integrator). Closed chains keep the Python KKT step: a loop's constraint rows couple joints
+        # across the loop and cannot be eliminated one joint at a time as a position command can.
+        self._use_compiled_step = mech.n_constraint_rows == 0 and all(
             tree.joints[i].kind in (REVOLUTE, PRISMATIC) for i in pos)
         # no multipliers (a rod, a tree of soft members and effort-controlled or passive joints): the
         # engine's compiled O(n) integrator, the rod's (integrators.ThetaIntegrator)
@@ -762,7 +765,7 @@ class MechanismSimulator:
                 if self.contact:
                     self._move_obstacles(obstacles)
                     self._contact_step(inp, targets, self.dt, 0)
-                elif self._compiled_contact:     # position-controlled joints, eliminated; no contacts
+                elif self._use_compiled_step:     # position-controlled joints, eliminated; no contacts
                     self._contact_step(inp, targets, self.dt, 0)
                 else:
                     self._step(inp, targets)
@@ -785,8 +788,8 @@ class MechanismSimulator:
         """One step of h with contacts: if Newton fails (a contact made or
         lost within the step), two halves, down to ``max_substep_levels``."""
         try:
-            if self._compiled_contact:     # no constraint rows: the compiled step
-                return self._compiled_contact_step(inp, h)
+            if self._use_compiled_step:     # no constraint rows: the compiled step
+                return self._compiled_step(inp, h)
             return self._step(inp, targets, h)
         except StepError:
             if level >= self.max_substep_levels:
@@ -806,8 +809,8 @@ class MechanismSimulator:
             self._obstacles0, self.contact = start, end
             raise
 
-    def _compiled_contact_step(self, inp, h):
-        """One step of h with contacts and no constraint rows:
+    def _compiled_step(self, inp, h):
+        """One step of h without constraint rows (with contacts or none):
         :func:`engine.contact_step.contact_step` (the Newton iteration of
         :meth:`_step`, compiled), its inverse Newton matrix kept for the
         next step while the same points touch. A position-controlled joint

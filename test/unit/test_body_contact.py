@@ -8,6 +8,7 @@ Python step (the compiled step with bodies' shapes), and on the example
 gripper that lifts a cylinder off a table."""
 
 import copy
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -149,7 +150,7 @@ def test_the_compiled_step_with_a_loose_body_is_the_python_step():
     v[iv] = 0.2                                 # body x = world x
     sims = [MechanismSimulator(mech, 1e-3, 0.5, q=q, v=v, tol=1e-12) for _ in range(2)]
     python = sims[1]
-    python._compiled_contact_step = lambda inp, h: python._step(inp, None, h)
+    python._compiled_step = lambda inp, h: python._step(inp, None, h)
     touched = 0
     for k in range(80):
         for sim in sims:
@@ -240,11 +241,11 @@ def test_the_compiled_step_eliminates_a_position_controlled_joint_as_the_kkt_ste
     mech = _gripper()
     sims = [MechanismSimulator(mech, 5e-4, 0.5, tol=1e-12) for _ in range(2)]
     calls = []
-    for sim, step in zip(sims, (sims[0]._compiled_contact_step, lambda inp, h: sims[1]._step(inp, None, h))):
+    for sim, step in zip(sims, (sims[0]._compiled_step, lambda inp, h: sims[1]._step(inp, None, h))):
         def counted(inp, h, step=step, sim=sim):
             calls.append(sim)
             return step(inp, h)
-        sim._compiled_contact_step = counted
+        sim._compiled_step = counted
     split = 0
     tree = mech.tree
     iq = tree.idx_q[tree.joint_index("lift")]
@@ -300,7 +301,7 @@ def test_a_ball_spinning_on_the_floor_stops_at_the_rate_of_its_torsional_frictio
     mech = _spinning_ball(mu_t, r)
     iv = mech.tree.idx_v[mech.tree.joint_index("ball")]
     sims = [MechanismSimulator(mech, 1e-3, 0.5) for _ in range(2)]
-    sims[1]._compiled_contact_step = lambda inp, h: sims[1]._step(inp, None, h)
+    sims[1]._compiled_step = lambda inp, h: sims[1]._step(inp, None, h)
     spins = []
     for sim in sims:
         sim.step(n=100)                         # settled on the floor
@@ -320,3 +321,62 @@ def test_a_ball_spinning_on_the_floor_stops_at_the_rate_of_its_torsional_frictio
     assert np.all(np.diff(w) <= 1e-12) and abs(w[599:]).max() < 1e-3
     assert w[480] > 0.1 and w[540] < 0.01
 
+
+
+@pytest.mark.parametrize("spin", [0.05, 5.0])
+def test_the_spin_frictions_damping_in_newtons_matrix_is_the_residuals_derivative(spin):
+    """Newton's matrix of a step carries the torsional friction's damping
+    ``-J_s^T dm/dspin J_s`` (J_s = n^T (J_frame - J_w), the spin's
+    Jacobian) besides the contact's stiffness and sliding damping: the
+    contacts' generalised force in the step residual, differentiated
+    centrally along every velocity of a ball resting on the floor and
+    spinning about the vertical (slowly, inside the regularisation
+    mu_t spin < v_s where dm/dspin is largest, and fast), against
+    ``theta D_c + theta^2 h K_c``. Spinning about the vertical moves no
+    contact point, so that column is the spin damping alone, and a
+    matrix without it fails."""
+    from soft_twin_core.engine.forces import concat_loads
+    from soft_twin_core.engine.integrators import residual_pass
+    from soft_twin_core.engine.kernels import passes
+
+    mech = _spinning_ball(1e-3)
+    tree = mech.tree
+    sim = MechanismSimulator(mech, 1e-3, 0.5)
+    sim.step(n=100)                                 # settled on the floor
+    ws, h, th, inp = sim.ws, sim.dt, sim.theta, sim.inputs
+    iv = tree.idx_v[tree.joint_index("ball")]
+    v0 = sim.v.copy()
+    v0[iv + 5] = spin
+    coef, start = np.zeros(len(sim.act.joint)), sim.contact.motion(ws, sim.q, v0)
+
+    def contacts_force(v1):
+        """The contacts' part of the step residual at end velocity v1, and their state."""
+        vt, acc = (1 - th) * v0 + th * v1, (v1 - v0) / h
+        qt, q1 = np.empty(tree.nq), np.empty(tree.nq)
+        integrate_pass(ws.m, sim.q, vt, th * h, qt)
+        integrate_pass(ws.m, sim.q, vt, h, q1)
+        st = sim.contact.step_state(ws, start, q1, qt, h, th)
+        R = [np.empty(tree.nv), np.empty(tree.nv)]
+        for ld, out in zip((inp.loads, concat_loads(inp.loads, sim.contact.loads(st))), R):
+            residual_pass(ws.m, ws.w, sim.act, ld, inp.gravity, coef, inp.effort, qt, vt, acc, out, False)
+        return R[1] - R[0], st, qt
+
+    v1 = v0.copy()
+    _, st, qt = contacts_force(v1)
+    assert len(st) == 1 and np.isfinite(st.dM_dw).all() and st.dM_dw[0] < 0
+    z = ws.zeros_v
+    passes.forward_pass(ws.m, ws.w, qt, z, z, 0)      # add_stiffness wants the workspace at q_t
+    Kc, Dc = np.zeros((tree.nv, tree.nv)), np.zeros((tree.nv, tree.nv))
+    sim.contact.add_stiffness(ws, st, Kc, Dt=Dc)
+    A = th * Dc + th * th * h * Kc
+    e = 1e-7 * max(abs(spin), 1.0)
+    fd = np.column_stack([(contacts_force(v1 + e * u)[0] - contacts_force(v1 - e * u)[0]) / (2 * e)
+                          for u in np.eye(tree.nv)])
+    # (the slips' turn with the ball's orientation is left out of the matrix: 1e-5 of its scale)
+    np.testing.assert_allclose(A, fd, atol=1e-4 * np.abs(fd).max())
+    w = iv + 5
+    np.testing.assert_allclose(A[:, w], fd[:, w], rtol=1e-5, atol=1e-6 * fd[w, w])
+    assert fd[w, w] > 0                                                 # it damps the spin
+    Kn, Dn = np.zeros_like(Kc), np.zeros_like(Dc)                       # a matrix without it
+    sim.contact.add_stiffness(ws, replace(st, dM_dw=np.zeros(1)), Kn, Dt=Dn)
+    assert abs((th * Dn + th * th * h * Kn)[w, w]) < 1e-3 * fd[w, w]

@@ -321,8 +321,8 @@ def test_position_controlled_joints_eliminated_step_as_the_kkt_step_holds_them(n
     states they agree: configuration to 1e-8, efforts to 1e-6."""
     mech = load_mechanism(find_file(name, "robots"))
     sims = [MechanismSimulator(mech, 5e-3, 0.5, tol=1e-12) for _ in range(2)]
-    assert sims[0]._compiled_contact and not sims[0].contact
-    sims[1]._compiled_contact = False
+    assert sims[0]._use_compiled_step and not sims[0].contact
+    sims[1]._use_compiled_step = False
     pos = [mech.tree.joints[i].name for i in mech.joints_with("position")]
     for k in range(100):
         inp = make_inputs(mech, {a.name: 1.0 for a in mech.actuators[:1]},
