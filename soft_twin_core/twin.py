@@ -228,6 +228,12 @@ class Snapshot:
                 for m in self._loads.members}
 
 
+def _ik_error(r, with_rot):
+    """An IK answer's distance from its target: position [m] plus 0.1 m/rad
+    of orientation when it has one (the solver's weighting)."""
+    return r.position_error + (0.1 * r.orientation_error if with_rot else 0.0)
+
+
 class Twin:
     """A mechanism, its state and inputs (see the module docstring). Not
     thread-safe: the node serialises calls."""
@@ -635,8 +641,9 @@ class Twin:
         planner's sample solve, :class:`soft_twin_core.planning.planner.TipSolver`:
         joint limits, tensions in [0, limit], least change of the joint
         commands and least tension among redundant inputs; the current joint
-        efforts and tip wrench held). Raises PlanError, StaticsError or
-        ValueError."""
+        efforts and tip wrench held); a target it does not reach is tried
+        again from rest, the closer answer kept. Raises PlanError,
+        StaticsError or ValueError."""
         target = np.asarray(target, float)
         if not (self.mech.actuators or self.mech.joints_with("position")):
             # nothing drives this robot: the shape that would reach the target (not an equilibrium)
@@ -649,6 +656,18 @@ class Twin:
         solver.with_rot = target.shape == (4, 4)
         x0 = np.clip(self.command_vector(solver), solver.lower, solver.upper)
         r = solver.solve(target, x0, self.state.q)
+        if not r.reached:
+            # a second start at rest (the joints' reference commands, no actuation): from a state far off
+            # (the tendon arm curled by 16 N and 18 N) the solve ended in a poor local optimum, 280 mm
+            # from a target 40 mm above the rest tip, against the 32 mm the arm can come to from rest
+            tree = self.mech.tree
+            ref = {tree.joints[i].name: tree.joints[i].q_ref for i in self.mech.rigid_joints}
+            x_ref = np.clip(np.concatenate([[ref[n] for n in solver.joint_names], np.zeros(len(self.u))]),
+                            solver.lower, solver.upper)
+            if not np.allclose(x_ref, x0):
+                r_ref = solver.solve(target, x_ref, self.rest_q)
+                if r_ref.reached or _ik_error(r_ref, solver.with_rot) < _ik_error(r, solver.with_rot):
+                    r = r_ref
         return TwinIK(bool(r.reached), r.status, solver.joint_names + solver.actuator_names, r.x, r.q.copy(),
                       section_strains(self.mech, r.q), r.pose, r.position_error, int(r.iterations),
                       r.orientation_error)

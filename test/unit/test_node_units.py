@@ -693,3 +693,23 @@ def test_forward_kinematics_of_a_closed_chain_says_whether_the_strains_close_it(
     bent[:3, 5] += 0.5                       # 0.5 rad/m more bending at the first sections of one leg only
     msg, _ = twin.query_copy().forward_kinematics(bent.ravel())
     assert "violated by up to" in msg, msg
+
+
+def test_ik_from_a_far_off_state_is_tried_again_from_rest():
+    """The tendon arm curled by 15.9 N and 18 N (its tip 0.28 m from the
+    rest tip) asked for a target 40 mm above the rest tip, out of reach:
+    the solve from the curled state ended 280 mm from the target; tried
+    again from rest, the answer is the one from rest (32 mm away, the
+    closest the arm gets), whatever the state it starts from."""
+    from soft_twin_core import twin as tw
+    from soft_twin_core.robot.mechanism import load_mechanism
+    t = tw.Twin(load_mechanism("tendon_arm"), tw.TwinSettings(mode="quasi_static"))
+    target = t.outputs().tip_pose[:3, 3] + [0.0, 0.0, 0.04]
+    from_rest = t.inverse_kinematics(target, 1e-4)
+    t.set_actuation(np.array([15.9, 0.0, 18.0, 0.0]))
+    assert t.step().converged
+    assert np.linalg.norm(t.outputs().tip_pose[:3, 3] - target) > 0.2
+    from_curled = t.inverse_kinematics(target, 1e-4)
+    assert not from_rest.reached and 0.02 < from_rest.position_error < 0.05
+    assert from_curled.position_error == pytest.approx(from_rest.position_error, rel=1e-6)
+    np.testing.assert_allclose(from_curled.values, from_rest.values, atol=1e-6)
