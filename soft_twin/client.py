@@ -26,7 +26,7 @@ from diagnostic_msgs.msg import DiagnosticArray
 from geometry_msgs.msg import PoseArray, PoseStamped, WrenchStamped
 from rclpy.executors import SingleThreadedExecutor
 from sensor_msgs.msg import JointState
-from std_srvs.srv import Trigger
+from std_srvs.srv import SetBool, Trigger
 
 from soft_twin.msg import ActuationCommand, Strains
 from soft_twin.srv import ForwardKinematics, InverseKinematics, PlanPath, StaticsQuery
@@ -133,6 +133,8 @@ class TwinClient:
             "reset": n.create_client(Trigger, f"{self.ns}/reset"),
             "plan_path": n.create_client(PlanPath, f"{self.ns}/plan_path"),
             "cancel_plan": n.create_client(Trigger, f"{self.ns}/cancel_plan"),
+            "pause": n.create_client(SetBool, f"{self.ns}/pause"),
+            "step": n.create_client(Trigger, f"{self.ns}/step"),
         }
         self.executor = SingleThreadedExecutor(context=self.context)
         self.executor.add_node(n)

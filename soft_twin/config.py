@@ -49,6 +49,10 @@ PARAMETERS = {
     "step_rate_hz": (
         200.0, "Dynamic mode: integration steps per second of wall time; the step is "
                "dt = 1/step_rate_hz of twin time (Hz, in (0, 2000])."),
+    "time_scale": (
+        1.0, "Dynamic mode: seconds of twin time per second of wall time (slow motion below 1, e.g. 0.1 "
+             "runs the twin ten times slower than real time; in (0, 10]). The step dt is unchanged: the "
+             "steps come every dt / time_scale of wall time."),
     "step_on_command": (
         True, "Dynamic mode: a new command (or tip wrench) starts the next step at once instead of "
               "at the next timer tick, so twin time may lead wall time by up to one step; the step "
@@ -156,10 +160,16 @@ class NodeConfig:
     record_max_duration_s: float = 0.0
     live_view_port: int = 0
     obstacles_file: str = ""
+    time_scale: float = 1.0          # twin seconds per wall second (issue 31: slow motion)
 
     @property
     def dt(self):
         return 1.0 / self.step_rate_hz
+
+    @property
+    def wall_dt(self):
+        """Wall time [s] between dynamic steps: dt / time_scale."""
+        return self.dt / self.time_scale
 
     @property
     def robot_key(self):
@@ -243,6 +253,7 @@ VALIDATORS = {
     "actuator_names": _names,
     "mode": lambda n, v: _choice(n, v, MODES),
     "step_rate_hz": lambda n, v: _number(n, v, 0.0, 2000.0, lo_open=True),
+    "time_scale": lambda n, v: _number(n, v, 0.0, 10.0, lo_open=True),
     "step_on_command": lambda n, v: _boolean(n, v),
     "publish_every_n_steps": lambda n, v: _integer(n, v, 1, 10000),
     "republish_rate_hz": lambda n, v: _number(n, v, 0.0, 1000.0, lo_open=True),

@@ -94,10 +94,10 @@ def _lost(total, gaps):
     return str(total) if gaps.supported else "n/a"
 
 
-def values(s, cfg, twin, gaps, now):
+def values(s, cfg, twin, gaps, now, paused=False):
     """(key/values of the period ending at monotonic time ``now`` [s], the
     step rate [Hz]); ``gaps``: the SequenceGaps of the actuation, wrench and
-    joint topics."""
+    joint topics; ``paused``: the twin is paused (``~/pause``)."""
     wall = max(now - s.window_start, 1e-9)
     ct = np.array(s.compute_times) if s.compute_times else np.zeros(1)
     its = np.array(s.iterations) if s.iterations else np.zeros(1)
@@ -112,7 +112,10 @@ def values(s, cfg, twin, gaps, now):
                   f"sections, {twin.mech.tree.nv} dof)"),
         "twin_time_s": f"{twin.state.t:.4f}",
         "contacts_active": str(len(twin.contacts) if twin.contacts is not None else 0),     # with obstacles
-        "step_rate_target_hz": f"{cfg.step_rate_hz:.3f}" if cfg.mode == "dynamic" else "on input",
+        "paused": "true" if paused else "false",
+        "time_scale": f"{cfg.time_scale:g}",          # twin s per wall s (slow motion < 1)
+        "step_rate_target_hz": (f"{cfg.step_rate_hz * cfg.time_scale:.3f}" if cfg.mode == "dynamic" and not paused
+                                else "paused" if paused else "on input"),
         "step_rate_hz": f"{rate:.3f}",
         "publish_rate_hz": f"{s.publishes / wall:.3f}",
         "real_time_factor": f"{s.sim_time / wall:.4f}" if cfg.mode == "dynamic" else "n/a",
@@ -171,7 +174,7 @@ def joint_values(s, gaps, snap):
     return out
 
 
-def level(s, cfg, rate, new_internal_error):
+def level(s, cfg, rate, new_internal_error, paused=False):
     """(DiagnosticStatus level, message) of a period: the first that applies
     (see the module); ``new_internal_error``: an internal error not reported yet."""
     last = clip(s.last_solver_message, 400)
@@ -182,15 +185,17 @@ def level(s, cfg, rate, new_internal_error):
                                        f"dropped: {last}")
     if new_internal_error:
         return DiagnosticStatus.ERROR, f"internal error: {s.last_internal_error}"
-    if cfg.mode == "dynamic" and s.steps and rate < 0.95 * cfg.step_rate_hz:
-        return DiagnosticStatus.WARN, f"behind real time: {rate:.1f} of {cfg.step_rate_hz:g} steps/s"
+    target = cfg.step_rate_hz * cfg.time_scale
+    if cfg.mode == "dynamic" and s.steps and not paused and rate < 0.95 * target:
+        return DiagnosticStatus.WARN, (f"behind real time: {rate:.1f} of {target:g} steps/s"
+                                       + (f" (time_scale {cfg.time_scale:g})" if cfg.time_scale != 1 else ""))
     if s.lost:
         return DiagnosticStatus.WARN, f"{s.lost} input(s) lost before the node took them (queue overflow or transport)"
     if s.unstable:
         return DiagnosticStatus.WARN, "only an unstable equilibrium was found"
     if s.rejected:
         return DiagnosticStatus.WARN, f"{s.rejected} input(s) rejected: {s.last_rejection}"
-    return DiagnosticStatus.OK, "ok"
+    return DiagnosticStatus.OK, "paused (~/pause, ~/step)" if paused else "ok"
 
 
 def diagnostic_array(header, name, hardware_id, lvl, message, kv):

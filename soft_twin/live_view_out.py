@@ -3,13 +3,66 @@
 states drawn at up to ``RATE_HZ`` by :class:`soft_twin_core.viz.live_view.LiveView`
 (a tube per member with its sections' radii, links and joints, base and
 tip frames, the tip load as an arrow, the actuation values and joint
-positions)."""
+positions with their units).
 
+The page drives the twin too (issue 31): a slider per actuator and per
+position- or effort-controlled joint (:func:`page_controls`) publishes
+on the node's own ``~/actuation`` and ``~/joint_commands`` topics, so a
+value from the page is validated, counted and recorded as any command;
+pause, step and reset call what the ``~/pause``, ``~/step`` and
+``~/reset`` services call; the time-scale slider sets the ``time_scale``
+parameter (validated as any parameter change)."""
+
+import math
+import threading
 import time
 
 import numpy as np
 
 RATE_HZ = 20.0
+DEFAULT_TENSION_N = 20.0         # slider range of a tendon without a declared limit
+DEFAULT_PRESSURE_PA = 50e3       # ... of a chamber without one
+DEFAULT_EFFORT = {"revolute": 1.0, "prismatic": 10.0}      # [N m], [N]: effort-controlled joints, +-
+DEFAULT_TRAVEL = {"revolute": math.pi, "prismatic": 0.1}   # [rad], [m]: position-controlled joints without limits
+
+
+def page_controls(mech, u=None, positions=None, efforts=None):
+    """The page's sliders (:class:`soft_twin_core.viz.live_view.Control`) of
+    a robot: an actuator's admissible range (``lower``, ``upper``; where the
+    robot file declares no bound, 0 to 20 N of tension or +-50 kPa of
+    pressure), a position-controlled joint's limits (else +-pi rad or
+    +-0.1 m), an effort-controlled joint's +-1 N m or +-10 N; each at its
+    current value (``u``, ``positions``, ``efforts``)."""
+    from soft_twin_core.engine.joint_kinds import PRISMATIC
+    from soft_twin_core.viz.live_view import Control
+    out = []
+    for k, act in enumerate(mech.actuators):
+        tendon = act.kind == "tendon"
+        big = DEFAULT_TENSION_N if tendon else DEFAULT_PRESSURE_PA
+        lo = act.lower if math.isfinite(act.lower) else (0.0 if tendon else -big)
+        hi = act.upper if math.isfinite(act.upper) else big
+        value = float(u[k]) if u is not None else 0.0
+        out.append(Control("actuation", act.name, lo, hi, _step(lo, hi), "N" if tendon else "Pa", value))
+    tree = mech.tree
+    for i in mech.rigid_joints:
+        j, mode = tree.joints[i], mech.control[i]
+        kind = "prismatic" if j.kind == PRISMATIC else "revolute"
+        if mode == "position":
+            lo, hi = j.limits if j.limits is not None else (-DEFAULT_TRAVEL[kind], DEFAULT_TRAVEL[kind])
+            unit, value = ("m" if kind == "prismatic" else "rad"), (positions or {}).get(j.name, j.q_ref)
+        elif mode == "effort":
+            lo, hi = -DEFAULT_EFFORT[kind], DEFAULT_EFFORT[kind]
+            unit, value = ("N" if kind == "prismatic" else "N m"), (efforts or {}).get(j.name, 0.0)
+        else:
+            continue
+        out.append(Control(f"joint {mode}", j.name, float(lo), float(hi), _step(lo, hi), unit, float(value)))
+    return out
+
+
+def _step(lo, hi):
+    """A slider step: a round number near a five-hundredth of the range."""
+    x = (hi - lo) / 500.0
+    return float(10.0 ** math.floor(math.log10(x))) if x > 0 else 1.0
 
 
 def articulated_view_snapshot(mech, snap):
@@ -24,12 +77,57 @@ def articulated_view_snapshot(mech, snap):
             member_radii(mech, {name: len(P) for name, P in members.items()}))
 
 
+# the page's "colour by" menu: label -> the values per member at its backbone points, from a state
+COLOURINGS = {
+    "none": None,
+    "peak normal stress [MPa]": lambda snap: {m.name: 1e-6 * np.asarray(m.normal_stress, dtype=float)
+                                              for m in snap._loads.members},
+    "bending moment [N m]": lambda snap: {n: np.hypot(w[:, 4], w[:, 5]) for n, w in snap.internal_wrenches.items()},
+    "axial force [N]": lambda snap: {n: w[:, 0] for n, w in snap.internal_wrenches.items()},
+    "torsion [N m]": lambda snap: {n: w[:, 3] for n, w in snap.internal_wrenches.items()},
+}
+
+
+def member_values(snap, members, label):
+    """(label, [values per member in ``members`` order]) of the colouring
+    ``label`` (:data:`COLOURINGS`) of a state, or None ("none")."""
+    make = COLOURINGS[label]
+    if make is None:
+        return None
+    by_name = make(snap)
+    return label, [np.nan_to_num(np.asarray(by_name[m], dtype=float)) for m in members]
+
+
+def contact_arrows(snap):
+    """(positions, forces) of a state's contacts, or None."""
+    st = snap.contacts
+    if st is None or not len(st):
+        return None
+    return np.asarray(st.p, dtype=float), np.asarray(st.force, dtype=float)
+
+
+def units_of(mech):
+    """{actuator or joint name: unit} for the page's panel."""
+    from soft_twin_core.engine.joint_kinds import PRISMATIC
+    out = {a.name: ("N" if a.kind == "tendon" else "Pa") for a in mech.actuators}
+    tree = mech.tree
+    out.update({tree.joints[i].name: "m" if tree.joints[i].kind == PRISMATIC else "rad" for i in mech.rigid_joints})
+    return out
+
+
 class LiveViewOutput:
     def __init__(self, node):
         self._node = node
         self._view, self._port = None, 0
         self._last = -np.inf
         self._framed = False
+        self._controls_of = None         # the robot the page's controls were made for
+        self.colour_by = "none"           # the page's "colour by" choice (COLOURINGS)
+        self.trail = True
+        self._latest = None               # the last state given to publish: redrawn on a change of the page's view
+        self._ik = threading.Condition()  # the target's IK: the latest target waiting, a worker thread solving it
+        self._ik_target, self._ik_answer, self._ik_thread, self._closed = None, None, None, False
+        self._pubs = None                # (actuation, joint command) publishers to the node's own inputs
 
     def follow(self, port):
         """Serve on ``port`` (0: stop)."""
@@ -45,27 +143,170 @@ class LiveViewOutput:
                 return
             self._port = port
             self._framed = False
+            self._controls_of = None
             self._node.get_logger().info(f"live 3D view: {self._view.url}")
 
-    def publish(self, snap, robot):
+    def publish(self, snap, robot, force=False):
+        """Draw a published state (at most RATE_HZ a second; ``force``: now,
+        e.g. the page's state line after a pause)."""
         view = self._view
         now = time.monotonic()
-        if view is None or now - self._last < 1.0 / RATE_HZ:
+        self._latest = (snap, robot)
+        if view is None or (now - self._last < 1.0 / RATE_HZ and not force):
             return
         self._last = now
+        if self._controls_of is not robot:
+            self._make_controls(robot)
         shot, radii = articulated_view_snapshot(robot.mech, snap)
         if not self._framed:              # the first state: frame the robot for every new page
             from soft_twin_core.viz.scene import bounds
             view.frame(*bounds([shot], pad=0.3))
             self._framed = True
         tip_force = snap.tip_pose[:3, :3] @ np.asarray(snap.tip_wrench[:3], dtype=float)      # tip axes -> base
-        view.show(shot, radii, base_pose=np.eye(4), tip_pose=snap.tip_pose,
+        values = None
+        if self.colour_by != "none" and snap.state is not None:
+            values = member_values(snap, [m.name for m in robot.mech.members], self.colour_by)
+        view.show(shot, radii, base_pose=np.eye(4), tip_pose=snap.tip_pose, values=values, trail=self.trail,
+                  contacts=contact_arrows(snap),
                   tip_force=tip_force if np.any(tip_force) else None,
                   actuation=dict(zip(robot.mech.actuator_names, np.asarray(snap.u, dtype=float).tolist())),
-                  text=f"({snap.mode})",
-                  joints=dict(zip(snap.joint_names, np.asarray(snap.joint_positions, dtype=float).tolist())))
+                  text=f"({snap.mode}{', paused' if self._node.paused else ''})",
+                  joints=dict(zip(snap.joint_names, np.asarray(snap.joint_positions, dtype=float).tolist())),
+                  units=units_of(robot.mech), paused=self._node.paused)
+
+    def _make_controls(self, robot):
+        """The page's sliders for ``robot`` and the run controls."""
+        node = self._node
+        if self._pubs is None:
+            from sensor_msgs.msg import JointState
+            from soft_twin.msg import ActuationCommand
+            self._pubs = (node.create_publisher(ActuationCommand, "~/actuation", 10),
+                          node.create_publisher(JointState, "~/joint_commands", 10)
+                          if robot.mech.joint_names else None)
+        twin = node.twin
+        controls = page_controls(robot.mech, twin.u, twin.positions, twin.efforts)
+        self._view.set_controls(controls, self._send, on_pause=node.set_paused, on_step=node.single_step,
+                                on_reset=self._reset, on_time_scale=self._time_scale,
+                                time_scale=node.cfg.time_scale)
+        self._view.set_view_options(list(COLOURINGS), self._set_colour, self._set_trail, self.trail)
+        self._view.set_target(twin.outputs().tip_pose[:3, 3], self._on_target, self._apply_ik)
+        self._controls_of = robot
+
+    def _on_target(self, position):
+        """The page's target moved: solve for the latest position (a drag
+        sends many; the worker takes the newest when it is free)."""
+        with self._ik:
+            self._ik_target = np.asarray(position, dtype=float)
+            if self._ik_thread is None:
+                self._ik_thread = threading.Thread(target=self._ik_loop, name="live_view_ik", daemon=True)
+                self._ik_thread.start()
+            self._ik.notify()
+
+    def _ik_loop(self):
+        while True:
+            with self._ik:
+                while self._ik_target is None and not self._closed:
+                    self._ik.wait()
+                if self._closed:
+                    return
+                target, self._ik_target = self._ik_target, None
+            try:
+                self._solve_ik(target)
+            except Exception as e:          # the page says so; the node goes on
+                if self._view is not None:
+                    self._view.show_ik(target, None, f"IK failed: {type(e).__name__}: {e}")
+
+    def _solve_ik(self, target):
+        """The node's own IK (what ``~/inverse_kinematics`` answers, position
+        only, to 0.1 mm) for the target; the answer shown and kept for "apply"."""
+        from geometry_msgs.msg import Pose
+        from soft_twin import services
+        from soft_twin.srv import InverseKinematics
+        req = InverseKinematics.Request(position_only=True, tolerance=1e-4)
+        req.target = Pose()
+        req.target.position.x, req.target.position.y, req.target.position.z = map(float, target)
+        req.target.orientation.w = 1.0
+        r = services.inverse_kinematics(self._node, req, InverseKinematics.Response())
+        units = units_of(self._node.robot.mech)
+        inputs = ", ".join(f"{n} = {v if abs(v) > 1e-9 else 0.0:.4g} {units.get(n, '')}".rstrip()  # (round-off: 0)
+                           for n, v in zip(r.actuator_names, r.actuator_values))
+        p = r.achieved.position
+        achieved = np.array([p.x, p.y, p.z]) if r.actuation_found else None
+        self._ik_answer = r if r.actuation_found else None
+        view = self._view
+        if view is not None:
+            reach = "" if achieved is None else f"; the tip reaches [{achieved[0]:.4f}, {achieved[1]:.4f}, " \
+                                                 f"{achieved[2]:.4f}] m, {1e3 * r.position_error:.2f} mm from the target"
+            view.show_ik(target, achieved, f"{r.message}" + (f"; {inputs}" if inputs else "") + reach)
+
+    def _apply_ik(self):
+        """The last IK answer's inputs sent as the sliders send theirs."""
+        r = self._ik_answer
+        if r is None:
+            return
+        from sensor_msgs.msg import JointState
+        from soft_twin.msg import ActuationCommand
+        node = self._node
+        joints = set(node.robot.mech.joint_names)
+        header = node._header(node.cfg.base_frame)
+        pairs = list(zip(r.actuator_names, map(float, r.actuator_values)))
+        act = [(n, v) for n, v in pairs if n not in joints]
+        pos = [(n, v) for n, v in pairs if n in joints]
+        if act:
+            self._pubs[0].publish(ActuationCommand(header=header, names=[n for n, _ in act], values=[v for _, v in act]))
+        if pos and self._pubs[1] is not None:
+            self._pubs[1].publish(JointState(header=header, name=[n for n, _ in pos], position=[v for _, v in pos]))
+
+    def _set_colour(self, label):
+        self.colour_by = label
+        self._redraw()
+
+    def _set_trail(self, on):
+        self.trail = bool(on)
+        self._redraw()
+
+    def _redraw(self):
+        """The last state drawn again (a paused twin publishes none)."""
+        if self._latest is not None:
+            with self._node._publish_lock:
+                self.publish(*self._latest, force=True)
+
+    def _send(self, control, value):
+        """A slider's value, published on the node's own input topic."""
+        node = self._node
+        header = node._header(node.cfg.base_frame)
+        if control.kind == "actuation":
+            from soft_twin.msg import ActuationCommand
+            self._pubs[0].publish(ActuationCommand(header=header, names=[control.name], values=[value]))
+        elif self._pubs[1] is not None:
+            from sensor_msgs.msg import JointState
+            msg = JointState(header=header, name=[control.name])
+            if control.kind == "joint position":
+                msg.position = [value]
+            else:
+                msg.effort = [value]
+            self._pubs[1].publish(msg)
+
+    def _reset(self):
+        from std_srvs.srv import Trigger
+        from soft_twin import services
+        services.reset(self._node, Trigger.Request(), Trigger.Response())
+
+    def _time_scale(self, value):
+        from rclpy.parameter import Parameter
+        result = self._node.set_parameters([Parameter("time_scale", value=float(value))])[0]
+        if not result.successful:
+            self._node.get_logger().warn(f"time scale from the page refused: {result.reason}")
 
     def close(self):
+        with self._ik:
+            self._closed = True
+            self._ik.notify()
+            thread = self._ik_thread
+        if thread is not None:
+            thread.join(5.0)
+        with self._ik:
+            self._ik_thread, self._ik_target, self._ik_answer, self._closed = None, None, None, False
         if self._view is not None:
             self._view.close()
         self._view, self._port = None, 0

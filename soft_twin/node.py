@@ -62,7 +62,7 @@ from rclpy.parameter import Parameter
 from rclpy.qos import QoSProfile, ReliabilityPolicy, HistoryPolicy
 from rclpy.signals import SignalHandlerOptions
 from std_msgs.msg import Float64MultiArray, Header, MultiArrayDimension
-from std_srvs.srv import Trigger
+from std_srvs.srv import SetBool, Trigger
 from visualization_msgs.msg import MarkerArray
 
 from soft_twin.msg import ActuationCommand, Contacts, Obstacle, Strains
@@ -201,6 +201,10 @@ class SoftTwinNode(Node):
         self.create_service(StaticsQuery, "~/statics_query", self._guarded(self._srv_statics),
                             callback_group=self._service_group)
         self.create_service(Trigger, "~/reset", self._guarded(self._srv_reset), callback_group=self._service_group)
+        # issue 31: pause, single step (slow motion: the time_scale parameter)
+        self._paused = False
+        self.create_service(SetBool, "~/pause", self._guarded(self._srv_pause), callback_group=self._service_group)
+        self.create_service(Trigger, "~/step", self._guarded(self._srv_step), callback_group=self._service_group)
         # --- issue 13: tip path planning and timed execution (soft_twin.plan_service)
         from soft_twin import plan_service
         from soft_twin.srv import PlanPath
@@ -421,7 +425,7 @@ class SoftTwinNode(Node):
         not an rclpy timer: see its module) at the step period (dynamic) or
         the re-publish period (quasi-static), its schedule restarted."""
         cfg = self.cfg
-        period = cfg.dt if cfg.mode == "dynamic" else 1.0 / cfg.republish_rate_hz
+        period = cfg.wall_dt if cfg.mode == "dynamic" else 1.0 / cfg.republish_rate_hz
         with self._lock:
             self._anchor = None        # wall time of twin step 0 (dynamic schedule)
             self._steps_done = 0
@@ -500,8 +504,8 @@ class SoftTwinNode(Node):
                 self.twin.change_settings(self._settings(cfg))
         if twin is not None:
             self.get_logger().info(f"new robot {robot.model.name!r} from {robot.source}: state reset")
-        if (cfg.mode, cfg.step_rate_hz, cfg.republish_rate_hz) != (old.mode, old.step_rate_hz,
-                                                                   old.republish_rate_hz):
+        if (cfg.mode, cfg.step_rate_hz, cfg.republish_rate_hz, cfg.time_scale) != (
+                old.mode, old.step_rate_hz, old.republish_rate_hz, old.time_scale):
             self._make_stepper()
         if cfg.diagnostics_rate_hz != old.diagnostics_rate_hz:
             self._diag_timer.timer_period_ns = int(1e9 / cfg.diagnostics_rate_hz)
@@ -635,7 +639,7 @@ class SoftTwinNode(Node):
         info = batch[-1][1]
         arrival = info.get("received_timestamp", 0) if isinstance(info, dict) else 0
         arrival = 1e-9 * arrival if arrival else time.time()
-        sparse = len(batch) == 1 and arrival - self._last_input_time >= self.cfg.dt
+        sparse = len(batch) == 1 and arrival - self._last_input_time >= self.cfg.wall_dt
         self._last_input_time = arrival
         if self.cfg.mode == "quasi_static":
             self._solve_trigger.trigger()
@@ -649,7 +653,8 @@ class SoftTwinNode(Node):
         """Dynamic mode: is the next step more than a period past its tick?
         (A hint read without the lock, like _early_step_allowed.)"""
         cfg = self.cfg
-        return cfg.mode == "dynamic" and schedule.clock_late(time.monotonic(), self._anchor, cfg.dt, self._steps_done)
+        return cfg.mode == "dynamic" and schedule.clock_late(time.monotonic(), self._anchor, cfg.wall_dt,
+                                                              self._steps_done)
 
     # ------------------------------------------------------------------------
     # stepping
@@ -672,7 +677,7 @@ class SoftTwinNode(Node):
         the lock; _step_dynamic decides under it."""
         cfg = self.cfg
         return (cfg.mode == "dynamic" and cfg.step_on_command
-                and schedule.may_step_early(time.monotonic(), self._anchor, cfg.dt, self._steps_done))
+                and schedule.may_step_early(time.monotonic(), self._anchor, cfg.wall_dt, self._steps_done))
 
     def _step_dynamic(self, early=False, wait=True):
         """The steps due by the wall clock: twin step k is due at anchor + k dt.
@@ -687,9 +692,11 @@ class SoftTwinNode(Node):
             return
         try:
             now = time.monotonic()
+            if self._paused:
+                return
             if self._anchor is None:
-                self._anchor = now - cfg.dt
-            due = schedule.steps_due(now, self._anchor, cfg.dt, self._steps_done, early)
+                self._anchor = now - cfg.wall_dt
+            due = schedule.steps_due(now, self._anchor, cfg.wall_dt, self._steps_done, early)
             if due <= 0:
                 return
             due, dropped = schedule.catch_up(due, cfg.max_catchup_steps)
@@ -708,10 +715,7 @@ class SoftTwinNode(Node):
             self._publish_lock.acquire()      # before the twin lock is released: states go out in order
         finally:
             self._lock.release()
-        try:
-            header = self._publish(snap, robot)
-        finally:
-            self._publish_lock.release()
+        header = self._publish_taken(snap, robot)
         if now - self._last_wrench_time >= 1.0 / cfg.wrench_rate_hz - 0.5 * cfg.dt:
             self._publish_wrenches(snap, robot, header, now)
 
@@ -720,17 +724,66 @@ class SoftTwinNode(Node):
             twin, robot = self.twin, self.robot
             if not twin.needs_solve and not republish:
                 return
-            solved = twin.needs_solve
-            info = twin.step()
-            if solved:
-                self._record(info, 0.0)
+            if self._paused:             # the state shown stays: republished, new inputs wait for ~/step
+                if not republish:
+                    return
+            else:
+                solved = twin.needs_solve
+                info = twin.step()
+                if solved:
+                    self._record(info, 0.0)
             snap = twin.outputs()
             self._publish_lock.acquire()
+        header = self._publish_taken(snap, robot)
+        self._publish_wrenches(snap, robot, header, time.monotonic())
+
+    def set_paused(self, paused):
+        """Pause (True) or resume the twin: paused, the dynamic twin takes
+        no step and a quasi-static one solves no new input (the inputs
+        still arrive, are counted and wait), until :meth:`single_step` or
+        the resume; resumed, the schedule restarts from now (no catch-up
+        of the pause). Returns (paused before, twin time [s])."""
+        with self._lock:
+            was, self._paused = self._paused, bool(paused)
+            if was and not self._paused:
+                self._anchor, self._steps_done = None, 0
+            t, mode = self.twin.state.t, self.cfg.mode
+            snap, robot = self.twin.outputs(), self.robot
+        if not paused and mode == "quasi_static":
+            self._solve_trigger.trigger()
+        with self._publish_lock:
+            self._live_view.publish(snap, robot, force=True)      # the page's state line says so
+        return was, t
+
+    def single_step(self):
+        """While paused: one step of dt (dynamic) or the solve of the inputs
+        waiting (quasi-static), published. Returns its UpdateInfo and the
+        twin time after it, or None when the twin is not paused."""
+        with self._lock:
+            if not self._paused:
+                return None
+            twin, robot = self.twin, self.robot
+            dynamic = self.cfg.mode == "dynamic"
+            info = twin.step(1)
+            self._record(info, twin.settings.dt * info.steps if dynamic else 0.0)
+            snap, t = twin.outputs(), twin.state.t
+            self._publish_lock.acquire()
+        header = self._publish_taken(snap, robot)
+        self._publish_wrenches(snap, robot, header, time.monotonic())
+        return info, t
+
+    @property
+    def paused(self):
+        return self._paused
+
+    def _publish_taken(self, snap, robot):
+        """Publish a state whose publish lock the caller took while holding
+        the twin lock (so that states go out in step order), and release
+        it; returns the header."""
         try:
-            header = self._publish(snap, robot)
+            return self._publish(snap, robot)
         finally:
             self._publish_lock.release()
-        self._publish_wrenches(snap, robot, header, time.monotonic())
 
     def _record(self, info, sim_dt):
         """Statistics of one step call or solve (under the lock)."""
@@ -833,10 +886,10 @@ class SoftTwinNode(Node):
         with self._lock:
             s, cfg, twin = self.stats, self.cfg, self.twin
             gaps = {"actuation": self._command_gaps, "wrench": self._wrench_gaps, "joint": self._joint_gaps}
-            values, rate = diagnostics.values(s, cfg, twin, gaps, now)
+            values, rate = diagnostics.values(s, cfg, twin, gaps, now, self._paused)
             values.update(diagnostics.joint_values(s, gaps, getattr(self, "_last_articulated", None)))
             new_error = s.totals["internal_errors"] > self._reported_internal_errors
-            level, message = diagnostics.level(s, cfg, rate, new_error)
+            level, message = diagnostics.level(s, cfg, rate, new_error, self._paused)
             if new_error and message.startswith("internal error"):
                 self._reported_internal_errors = s.totals["internal_errors"]
             s.reset_window(now)
@@ -866,6 +919,12 @@ class SoftTwinNode(Node):
 
     def _srv_reset(self, req, resp):
         return services.reset(self, req, resp)
+
+    def _srv_pause(self, req, resp):
+        return services.pause(self, req, resp)
+
+    def _srv_step(self, req, resp):
+        return services.single_step(self, req, resp)
 
     # --- the plan execution stops, the MCAP recording closes with the node ----
     def destroy_node(self):

@@ -181,3 +181,29 @@ def reset(node, req, resp):
         node._solve_trigger.trigger()
     node.get_logger().info(resp.message)
     return resp
+
+
+def pause(node, req, resp):
+    """std_srvs/SetBool ``~/pause``: data true pauses the twin, false resumes it
+    (:meth:`SoftTwinNode.set_paused`)."""
+    was, t = node.set_paused(req.data)
+    state = "paused" if req.data else "running"
+    resp.success = True
+    resp.message = f"twin {state} at t = {t:.4f} s" + (" (it already was)" if was == bool(req.data) else "")
+    node.get_logger().info(resp.message)
+    return resp
+
+
+def single_step(node, req, resp):
+    """std_srvs/Trigger ``~/step``: one step of the paused twin
+    (:meth:`SoftTwinNode.single_step`); refused while it runs."""
+    out = node.single_step()
+    if out is None:
+        resp.success = False
+        resp.message = "the twin is running: pause it first (~/pause with data: true)"
+        return resp
+    info, t = out
+    resp.success = bool(info.converged)
+    resp.message = (f"stepped to t = {t:.4f} s" if info.converged else
+                    f"step failed, the state kept at t = {t:.4f} s: {info.message}")
+    return resp

@@ -12,9 +12,17 @@ actuation values.
 Used by ``soft-twin-sim view`` (a recorded or simulated run played back in
 a loop) and by the twin node (parameter ``live_view_port``). ``show`` is
 cheap and thread-safe (viser sends the updates from its own thread).
+
+The page can drive what it shows (issue 31): :meth:`LiveView.set_controls`
+adds a slider per :class:`Control` (an actuator, a position- or
+effort-controlled joint; range and unit in its label), pause, single
+step, reset and a slow-motion slider; each calls back its owner (the
+node sends them through its own input path and services).
 """
 
+import collections
 import threading
+from dataclasses import dataclass
 
 import numpy as np
 
@@ -24,6 +32,52 @@ LINK_COLOR = (70, 70, 70)
 SHAPE_COLOR = (64, 96, 170)    # rigid links' visual shapes (articulated robots)
 JOINT_COLOR = (20, 20, 20)
 FORCE_COLOR = (204, 41, 204)
+TRAIL_COLOR = (40, 150, 90)      # the tip's path
+OBSTACLE_COLOR = (120, 120, 120)
+CONTACT_COLOR = (204, 41, 204)   # contact forces, as the tip load
+TRAIL_SECONDS = 10.0             # the tip path drawn: the last 10 s
+TRAIL_STEP_M = 0.001             # ... a point each time the tip has moved 1 mm
+# members coloured by a value: 0 -> blue, half -> light grey, the largest -> red (a diverging map, "coolwarm"'s
+# ends: none of its colours is the plain tube's orange)
+VALUE_COLORS = np.array([[59, 76, 192], [221, 221, 221], [180, 4, 38]], dtype=float)
+
+
+def value_colors(values, vmax):
+    """(n, 3) uint8 colours of ``values`` on the blue-grey-red scale from 0
+    to ``vmax`` (|value|; above vmax: red)."""
+    x = np.clip(np.abs(np.asarray(values, dtype=float)) / max(float(vmax), 1e-300), 0.0, 1.0) * 2.0
+    k = np.minimum(x.astype(int), 1)
+    f = (x - k)[:, None]
+    return np.round(VALUE_COLORS[k] * (1 - f) + VALUE_COLORS[k + 1] * f).astype(np.uint8)
+
+
+def polyline_segments(polylines):
+    """(S, 2, 3) segments of polylines (N, 3) whose NaN rows separate pieces."""
+    segs = []
+    for P in polylines:
+        P = np.asarray(P, dtype=float)
+        ok = np.all(np.isfinite(P), axis=1)
+        both = ok[:-1] & ok[1:]
+        segs.append(np.stack([P[:-1][both], P[1:][both]], axis=1))
+    return np.concatenate(segs) if segs else np.zeros((0, 2, 3))
+
+
+@dataclass(frozen=True)
+class Control:
+    """A slider of the page: ``kind`` "actuation" or "joint", ``name``
+    (actuator or joint), its range [lo, hi] and step in ``unit``, the
+    value it starts at."""
+    kind: str
+    name: str
+    lo: float
+    hi: float
+    step: float
+    unit: str
+    value: float = 0.0
+
+    @property
+    def label(self):
+        return f"{self.name} [{self.unit}]"
 
 
 def tube_mesh(points, radii, sides=TUBE_SIDES):
@@ -96,6 +150,38 @@ def shape_mesh(visual, pose, sides=TUBE_SIDES):
     raise ValueError(f"visual.shape: expected box, cylinder or sphere, got {shape!r}")
 
 
+FOV_DEG = 75.0                   # viser's camera: vertical field of view
+
+
+def camera_framing(lo, hi):
+    """(camera position, point looked at) [m] framing the box (lo, hi): seen
+    from the front-left, a little above, +z up, its diagonal spanning 80 %
+    of the view's height, and shifted left of the centre, clear of the
+    panel on the right of the page."""
+    lo, hi = np.asarray(lo, dtype=float), np.asarray(hi, dtype=float)
+    c, size = 0.5 * (lo + hi), max(float(np.linalg.norm(hi - lo)), 0.05)
+    look = np.array([0.35, -0.85, 0.4]) / np.linalg.norm([0.35, -0.85, 0.4])      # camera from the target
+    distance = size / (0.8 * 2.0 * np.tan(0.5 * np.radians(FOV_DEG)))
+    right = np.cross(-look, [0.0, 0.0, 1.0])
+    target = c + 0.2 * size * right / np.linalg.norm(right)
+    return target + distance * look, target
+
+
+def project(points, camera, target, width, height, fov_deg=FOV_DEG):
+    """Page pixels (N, 2) of world points (N, 3) [m] seen by a perspective
+    camera at ``camera`` looking at ``target``, +z up, vertical field of
+    view ``fov_deg``, on a canvas of ``width`` x ``height`` pixels."""
+    f = np.asarray(target, dtype=float) - np.asarray(camera, dtype=float)
+    f /= np.linalg.norm(f)
+    r = np.cross(f, [0.0, 0.0, 1.0])
+    r /= np.linalg.norm(r)
+    u = np.cross(r, f)
+    d = np.atleast_2d(points) - np.asarray(camera, dtype=float)
+    depth = d @ f
+    k = 0.5 * height / np.tan(0.5 * np.radians(fov_deg))
+    return np.c_[0.5 * width + k * (d @ r) / depth, 0.5 * height - k * (d @ u) / depth]
+
+
 def wxyz(R):
     """Quaternion [w, x, y, z] of a rotation matrix (viser's convention)."""
     from scipy.spatial.transform import Rotation
@@ -123,15 +209,191 @@ class LiveView:
         self._n_links = self._n_shapes = self._n_joints = 0
         self._sent = {}                  # scene node -> the data last sent
         self.updates = 0
+        self._controls = []              # the GUI handles of set_controls
+        self._trail = collections.deque()    # (t [s] or a count, tip position) of the tip path
+        self._sliders = {}               # (kind, name) -> (slider handle, Control)
+        self._paused_box = None
+        self.control_events = 0          # values sent by the page's controls
+
+    def set_controls(self, controls, on_value, on_pause=None, on_step=None, on_reset=None, on_time_scale=None,
+                     time_scale=1.0):
+        """The page's controls, replacing any before: a folder "drive the
+        twin" with a slider per :class:`Control` (``on_value(control,
+        value)`` when the page moves it), a "paused" checkbox
+        (``on_pause(bool)``), "step" and "reset" buttons (``on_step()``,
+        ``on_reset()``) and a time-scale slider (``on_time_scale(x)``, twin s
+        per wall s). A callback left None leaves its control out."""
+        gui = self.server.gui
+        with self._lock:
+            for h in self._controls:
+                h.remove()
+            self._controls, self._sliders, self._paused_box = [], {}, None
+
+            def hook(handle, call):
+                def run(event):
+                    if event.client is None:      # set here (following the twin's inputs): not the page's
+                        return
+                    self.control_events += 1
+                    call(event.target.value)
+                handle.on_update(run)
+                self._controls.append(handle)
+
+            if on_pause or on_step or on_reset or on_time_scale:
+                folder = gui.add_folder("run", order=1.0)
+                self._controls.append(folder)
+                with folder:
+                    if on_pause:
+                        self._paused_box = gui.add_checkbox("paused", False, hint="~/pause: stop stepping (inputs wait)")
+                        hook(self._paused_box, on_pause)
+                    if on_step:
+                        b = gui.add_button("step", hint="~/step: one step while paused")
+                        b.on_click(lambda _: (self._count(), on_step()))
+                        self._controls.append(b)
+                    if on_reset:
+                        b = gui.add_button("reset", hint="~/reset: back to rest, no input, t = 0")
+                        b.on_click(lambda _: (self._count(), on_reset()))
+                        self._controls.append(b)
+                    if on_time_scale:
+                        hook(gui.add_slider("time scale [twin s / wall s]", 0.05, 1.0, 0.05, float(time_scale),
+                                            hint="slow motion below 1 (parameter time_scale)"), on_time_scale)
+            if controls:
+                folder = gui.add_folder("drive the twin", order=2.0)
+                self._controls.append(folder)
+                with folder:
+                    for c in controls:
+                        h = gui.add_slider(c.label, float(c.lo), float(c.hi), float(c.step),
+                                           float(min(max(c.value, c.lo), c.hi)),
+                                           hint=f"{c.kind} {c.name}: {c.lo:g} to {c.hi:g} {c.unit}")
+                        hook(h, lambda v, c=c: on_value(c, float(v)))
+                        self._sliders[(c.kind, c.name)] = (h, c)
+
+    def _follow(self, kind, values):
+        """Move the sliders of ``kind`` to the twin's values {name: value}
+        (commands from topics or plans; a value off the slider's range
+        pins it at the end), under the lock."""
+        for name, v in values.items():
+            h, c = self._sliders.get((kind, name), (None, None))
+            if h is not None:
+                v = float(min(max(v, c.lo), c.hi))
+                if abs(h.value - v) > 0.5 * c.step:
+                    h.value = v
+
+    def _count(self):
+        self.control_events += 1
+
+    def set_target(self, position, on_move, on_apply, scale=0.08):
+        """A draggable tip target (a gizmo at ``position`` [m], moved along
+        its axes or planes; ``on_move(position)`` while it is dragged) and a
+        "target" folder with the answer (:meth:`show_ik`) and an "apply"
+        button (``on_apply()``)."""
+        gui, sc = self.server.gui, self.server.scene
+        with self._lock:
+            handle = sc.add_transform_controls("/target", scale=scale, disable_rotations=True,
+                                               position=tuple(np.asarray(position, dtype=float)))
+
+            @handle.on_update
+            def _(event):
+                self.control_events += 1
+                on_move(np.array(event.target.position, dtype=float))
+            folder = gui.add_folder("target", order=2.5)
+            self._controls += [handle, folder]
+            with folder:
+                self._ik_text = gui.add_markdown("drag the gizmo at the tip: inverse kinematics to its position")
+                b = gui.add_button("apply", hint="send the inputs that reach the target, as the sliders do")
+                b.on_click(lambda _: (self._count(), on_apply()))
+                self._controls += [self._ik_text, b]
+
+    def show_ik(self, target, achieved, message):
+        """The answer of the target's inverse kinematics: the tip it reaches
+        (``achieved`` [m], a sphere; None: none) and ``message``."""
+        with self._lock:
+            if achieved is not None:
+                self.server.scene.add_icosphere("/target_reached", radius=0.006, color=TRAIL_COLOR,
+                                                position=tuple(np.asarray(achieved, dtype=float)))
+            t = np.asarray(target, dtype=float)
+            self._ik_text.content = (f"target [{t[0]:.4f}, {t[1]:.4f}, {t[2]:.4f}] m: {message}")
+
+    def set_view_options(self, colourings, on_colour, on_trail, trail=True):
+        """A "see" folder: a "colour by" menu (``colourings``: labels with
+        units, "none" first; ``on_colour(label)``) and a "tip path" box
+        (``on_trail(bool)``)."""
+        gui = self.server.gui
+        with self._lock:
+            folder = gui.add_folder("see", order=3.0)
+            self._controls.append(folder)
+            with folder:
+                for handle, call in ((gui.add_dropdown("colour by", tuple(colourings), initial_value=colourings[0]),
+                                      on_colour),
+                                     (gui.add_checkbox("tip path", bool(trail), hint="the last 10 s"), on_trail)):
+                    def run(event, call=call):
+                        if event.client is not None:
+                            self.control_events += 1
+                            call(event.target.value)
+                    handle.on_update(run)
+                    self._controls.append(handle)
+
+    def set_playback(self, t0, t1, step, signals, on_play, on_seek, on_speed, on_signal):
+        """The controls of a run played back (:mod:`soft_twin_core.viz.playback`):
+        a "playing" box (``on_play(bool)``), a "time [s]" slider from t0 to t1
+        to scrub (``on_seek(t)``), a "speed [x]" slider (``on_speed(x)``, run s
+        per wall s) and a "signal" menu of ``signals`` (labels with units;
+        ``on_signal(label)``) plotted below, up to the time shown
+        (:meth:`show_playback`)."""
+        from viser import uplot
+        gui = self.server.gui
+        with self._lock:
+            folder = gui.add_folder("playback", order=1.0)
+            self._controls.append(folder)
+
+            def hook(handle, call):
+                def run(event):
+                    if event.client is not None:          # the page's, not ours (the slider following)
+                        self.control_events += 1
+                        call(event.target.value)
+                handle.on_update(run)
+                self._controls.append(handle)
+                return handle
+            with folder:
+                hook(gui.add_checkbox("playing", True), on_play)
+                self._time_slider = hook(gui.add_slider("time [s]", float(t0), float(max(t1, t0 + step)), float(step),
+                                                        float(t0)), on_seek)
+                hook(gui.add_slider("speed [x]", 0.05, 2.0, 0.05, 1.0, hint="run seconds per wall second"),
+                     on_speed)
+                labels = tuple(signals)
+                hook(gui.add_dropdown("signal", labels, initial_value=labels[0]), on_signal)
+                self._plot = gui.add_uplot(
+                    data=(np.zeros(1), np.zeros(1)),
+                    series=(uplot.Series(label="t [s]"), uplot.Series(label=labels[0], stroke="#d97333", width=2)),
+                    scales={"x": uplot.Scale(time=False, auto=False, range=(float(t0), float(max(t1, t0 + step))))},
+                    axes=(uplot.Axis(label="t [s]"), uplot.Axis(label=labels[0])), aspect=1.6)
+                self._controls.append(self._plot)
+            self._plot_label = labels[0]
+
+    def show_playback(self, t, times, label, values):
+        """The playback's state at run time ``t`` [s]: the time slider there,
+        the plot of signal ``label`` over ``times`` up to it (``values``: the
+        signal at ``times``)."""
+        from viser import uplot
+        with self._lock:
+            if abs(self._time_slider.value - t) >= 0.5 * self._time_slider.step:
+                self._time_slider.value = float(min(max(t, self._time_slider.min), self._time_slider.max))
+            k = int(np.searchsorted(times, t, side="right"))
+            x, y = np.asarray(times[:max(k, 1)], dtype=float), np.asarray(values[:max(k, 1)], dtype=float)
+            if label != self._plot_label:
+                self._plot.series = (uplot.Series(label="t [s]"), uplot.Series(label=label, stroke="#d97333", width=2))
+                self._plot.axes = (uplot.Axis(label="t [s]"), uplot.Axis(label=label))
+                self._plot_label = label
+            if self._changed("/gui/plot", x, y, np.frombuffer(label.encode(), np.uint8)):
+                self._plot.data = (x, y)
 
     def frame(self, lo, hi):
         """Aim the camera of every new page at the box (lo, hi) [m] (a robot's
         extent, e.g. :func:`scene.bounds`) from the front-left, a little
         above, and put the grid just under it."""
-        lo, hi = np.asarray(lo, dtype=float), np.asarray(hi, dtype=float)
-        c, size = 0.5 * (lo + hi), max(float(np.max(hi - lo)), 0.05)
-        self.server.initial_camera.look_at = tuple(c)
-        self.server.initial_camera.position = tuple(c + (1.6 * size + 0.1) * np.array([0.35, -0.85, 0.4]))
+        position, target = camera_framing(lo, hi)
+        self.server.initial_camera.look_at = tuple(target)
+        self.server.initial_camera.position = tuple(position)
+        c = 0.5 * (np.asarray(lo, dtype=float) + np.asarray(hi, dtype=float))
         self._grid.position = (float(c[0]), float(c[1]), float(lo[2]) - 0.02)
 
     @property
@@ -139,19 +401,37 @@ class LiveView:
         return f"http://{self.host}:{self.port}"
 
     def show(self, snap, radii=0.01, base_pose=None, tip_pose=None, tip_force=None, actuation=None,
-             force_scale=0.5, text="", joints=None):
+             force_scale=0.5, text="", joints=None, units=None, paused=None, values=None, trail=False,
+             contacts=None):
         """Draw one :class:`scene.Snapshot`: a tube per member (radii [m]: one
         value or one per point of each member, a list per member), links as
         bars, the base and tip frames (4x4 poses, world), the tip force [N]
         as an arrow of ``force_scale`` m per N, the actuation values and the
-        joint positions (``joints``: {name: rad or m})."""
+        joint positions (``joints``: {name: value}); ``units``: {actuator or
+        joint name: unit} for the panel (default N for actuators, rad for
+        joints); ``paused``: tick the page's "paused" box so. The sliders
+        follow the actuation and joint positions. ``values``: (label with
+        unit, [per member, a value per backbone point]): the members
+        coloured by them (:func:`value_colors`, from 0 to the largest |value|
+        shown, given in the panel); ``trail``: draw the tip's path over the
+        last TRAIL_SECONDS; ``contacts``: (positions (K, 3) [m], forces (K, 3)
+        [N]) drawn as arrows of ``force_scale`` m per N; the snapshot's
+        obstacles are outlined."""
         sc = self.server.scene
         with self._lock:
+            vmax = None
+            if values is not None:
+                vmax = max([float(np.max(np.abs(v), initial=0.0)) for v in values[1]] + [1e-300])
             for k, P in enumerate(snap.members):
                 r = radii[k] if isinstance(radii, (list, tuple)) else radii
                 if len(P) >= 2:
                     V, F = tube_mesh(P, r)
-                    if self._changed(f"/twin/member_{k}", V, F):
+                    vk = None if values is None or k >= len(values[1]) else np.asarray(values[1][k], dtype=float)
+                    if vk is not None and len(vk) == len(P):
+                        C = value_colors(np.r_[np.repeat(vk, TUBE_SIDES), vk[0], vk[-1]], vmax)
+                        if self._changed(f"/twin/member_{k}", V, F, C):
+                            self._add_coloured_mesh(f"/twin/member_{k}", V, F, C)
+                    elif self._changed(f"/twin/member_{k}", V, F):
                         sc.add_mesh_simple(f"/twin/member_{k}", V, F, color=TUBE_COLOR, flat_shading=False)
             for k, seg in enumerate(snap.links):
                 if self._changed(f"/twin/link_{k}", seg):
@@ -182,23 +462,80 @@ class LiveView:
                     T = np.asarray(T, dtype=float)
                     sc.add_frame(f"/twin/{name}_frame", wxyz=wxyz(T[:3, :3]), position=T[:3, 3],
                                  axes_length=0.05, axes_radius=0.002)
+            self._draw_trail(tip_pose, snap.time, trail)
+            self._draw_world(snap, contacts, force_scale)
             if tip_force is not None and tip_pose is not None:
                 p0 = np.asarray(tip_pose, dtype=float)[:3, 3]
                 seg = np.array([[p0, p0 + force_scale * np.asarray(tip_force, dtype=float)]], np.float32)
                 if self._changed("/twin/tip_force", seg):
                     sc.add_line_segments("/twin/tip_force", seg, colors=FORCE_COLOR, line_width=5.0)
             lines = [f"**soft_twin** {snap.caption}  {text}".rstrip()]
+            if vmax is not None:
+                lines.append(f"- colour: {values[0]}, blue 0 to red {vmax:.4g}")
+            units = units or {}
             if actuation:
-                lines += [f"- `{k}`: {v:.3g}" for k, v in actuation.items()]
+                lines += [f"- `{k}`: {v:.4g} {units.get(k, 'N')}" for k, v in actuation.items()]
             if joints:
-                lines += [f"- joint `{k}`: {v:.3g}" for k, v in joints.items()]
+                lines += [f"- joint `{k}`: {v:.4g} {units.get(k, 'rad')}" for k, v in joints.items()]
             if tip_force is not None:
                 f = np.asarray(tip_force, dtype=float)
                 lines.append(f"- tip force: [{f[0]:.3g}, {f[1]:.3g}, {f[2]:.3g}] N")
+            self._follow("actuation", actuation or {})
+            self._follow("joint position", joints or {})
+            if paused is not None and self._paused_box is not None and self._paused_box.value != bool(paused):
+                self._paused_box.value = bool(paused)
             content = "\n".join(lines)
             if content != self._text.content:
                 self._text.content = content
             self.updates += 1
+
+    def _add_coloured_mesh(self, name, V, F, C):
+        import trimesh
+        mesh = trimesh.Trimesh(vertices=V, faces=F, vertex_colors=np.c_[C, np.full(len(C), 255, np.uint8)],
+                               process=False)
+        self.server.scene.add_mesh_trimesh(name, mesh)
+
+    def _draw_trail(self, tip_pose, t, on):
+        """The tip's path over the last TRAIL_SECONDS (a point per TRAIL_STEP_M
+        moved), or none (``on`` false: the path forgotten)."""
+        sc, trail = self.server.scene, self._trail
+        if not on or tip_pose is None:
+            trail.clear()
+            if "/twin/tip_path" in self._sent:
+                self._remove("/twin/tip_path")
+            return
+        p = np.asarray(tip_pose, dtype=float)[:3, 3]
+        t = float(t) if t is not None else float(self.updates)
+        if trail and t < trail[-1][0]:                 # time went back (a reset, a loop): start again
+            trail.clear()
+        if not trail or np.linalg.norm(p - trail[-1][1]) >= TRAIL_STEP_M:
+            trail.append((t, p.copy()))
+        while trail and trail[0][0] < t - TRAIL_SECONDS:
+            trail.popleft()
+        if len(trail) >= 2:
+            P = np.array([q for _, q in trail], np.float32)
+            seg = np.stack([P[:-1], P[1:]], axis=1)
+            if self._changed("/twin/tip_path", seg):
+                sc.add_line_segments("/twin/tip_path", seg, colors=TRAIL_COLOR, thickness=3.0,
+                                     thickness_units="screen")
+        elif "/twin/tip_path" in self._sent:
+            self._remove("/twin/tip_path")
+
+    def _draw_world(self, snap, contacts, force_scale):
+        """The obstacles' outlines and the contact forces as arrows."""
+        sc = self.server.scene
+        segs = polyline_segments(getattr(snap, "obstacles", ()) or ()).astype(np.float32)
+        if len(segs) and self._changed("/world/obstacles", segs):
+            sc.add_line_segments("/world/obstacles", segs, colors=OBSTACLE_COLOR, thickness=2.0,
+                                 thickness_units="screen")
+        p, f = (np.zeros((0, 3)), np.zeros((0, 3))) if contacts is None else map(np.asarray, contacts)
+        if len(p):
+            seg = np.stack([p, p + force_scale * f], axis=1).astype(np.float32)
+            if self._changed("/world/contact_forces", seg):
+                sc.add_line_segments("/world/contact_forces", seg, colors=CONTACT_COLOR, thickness=4.0,
+                                     thickness_units="screen")
+        elif "/world/contact_forces" in self._sent:
+            self._remove("/world/contact_forces")
 
     def _changed(self, name, *arrays):
         """True (and remembered) when the data of scene node ``name`` differ

@@ -9,10 +9,12 @@ Kept apart from cli.py so the runner's own options stay where they are.
 import json
 import os
 import sys
+from dataclasses import replace
 
 import numpy as np
 
 from soft_twin_core.limits import MAX_NESTING
+from soft_twin_core.viz.playback import PlaybackClock, frame_signals, sample_at
 
 DEFAULT_FPS = 25.0           # dynamics: real time at 25 frames/s (40 ms, exact in GIF)
 DEFAULT_SWEEP_FPS = 2.0      # a statics sweep: two angles per second
@@ -184,7 +186,10 @@ def read_run(args):
 def view_main(args, stop=None):
     """``soft-twin-sim view RUN [--scenario S | --robot R] [--port P] [--radius R] [--seconds T]``:
     plays a saved run (JSON or MCAP, as for ``render``) in the live 3D view
-    in real time, in a loop, until Ctrl-C (or ``--seconds`` of wall time)."""
+    in real time, in a loop, until Ctrl-C (or ``--seconds`` of wall time).
+    The page's "playback" folder pauses it, scrubs it (a time slider),
+    changes its speed and plots a signal (a frame's x, y or z [m]) up to
+    the time shown, in step with the 3D view (issue 31)."""
     import time as _time
     from soft_twin_core.viz.live_view import LiveView  # here: start-up (numba)
     from soft_twin_core.viz.scene import bounds  # here: start-up (numba)
@@ -198,21 +203,34 @@ def view_main(args, stop=None):
     except OSError as e:
         raise ValueError(f"view: cannot serve on port {args.port}: {e}") from None
     view.frame(*bounds(snaps, pad=0.3))           # one camera framing the whole motion
+    times = np.array([s.time for s in snaps], dtype=float)
+    t0, t_end = float(times[0]), float(times[-1])
     say(f"live 3D view of {args.run}: {view.url} ({len(snaps)} states, "
-        f"{snaps[-1].time - snaps[0].time:.2f} s, in a loop; Ctrl-C to stop)")
+        f"{t_end - t0:.2f} s, in a loop; Ctrl-C to stop)")
+    signals = frame_signals(list(out["frame_names"]), out["frame_poses"])
+    label = [next((k for k in signals if k.endswith(" z [m]")), next(iter(signals)))]
+    clock = PlaybackClock(t0, t_end, _time.monotonic())
+    step = float(np.median(np.diff(times))) if len(times) > 1 else 0.01
+    view.set_playback(t0, t_end, step, [label[0]] + [k for k in signals if k != label[0]],
+                      on_play=lambda on: clock.set_playing(on, _time.monotonic()),
+                      on_seek=lambda t: clock.seek(t, _time.monotonic()),
+                      on_speed=lambda x: clock.set_speed(x, _time.monotonic()),
+                      on_signal=lambda name: label.__setitem__(0, name))
     start = _time.monotonic()
-    t0, t_end = snaps[0].time, snaps[-1].time
     shown = None
     try:
         while args.seconds is None or _time.monotonic() - start < args.seconds:
             if stop is not None and stop.is_set():
                 break
-            t = t0 + ((_time.monotonic() - start) % max(t_end - t0, 1e-9) if t_end > t0 else 0.0)
-            k = int(np.searchsorted([s.time for s in snaps], t, side="right") - 1)
-            if k != shown:
-                s = snaps[max(k, 0)]
-                view.show(s, radii, tip_pose=_tip_pose(s), base_pose=np.eye(4))
-                shown = k
+            t = clock.time(_time.monotonic())
+            k = sample_at(times, t)
+            name = label[0]
+            if (k, name, clock.playing) != shown:
+                s = replace(snaps[k], caption=f"t = {times[k]:.4f} s")       # the sample's own time
+                view.show(s, radii, tip_pose=_tip_pose(s), base_pose=np.eye(4),
+                          text=f"{'' if clock.playing else '(paused) '}{name}: {signals[name][k]:.6g}")
+                view.show_playback(float(times[k]), times, name, signals[name])
+                shown = (k, name, clock.playing)
             _time.sleep(0.02)
     except KeyboardInterrupt:
         pass

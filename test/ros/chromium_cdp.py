@@ -83,6 +83,31 @@ class Browser:
     def evaluate(self, expression):
         return self.call("Runtime.evaluate", expression=expression, returnByValue=True)["result"].get("value")
 
+    def mouse(self, kind, x, y, buttons=1):
+        """One mouse event (``kind``: mousePressed, mouseMoved, mouseReleased)
+        at page pixel (x, y), left button."""
+        self.call("Input.dispatchMouseEvent", type=kind, x=float(x), y=float(y), button="left",
+                  buttons=buttons if kind != "mouseReleased" else 0, clickCount=1 if kind != "mouseMoved" else 0)
+
+    def click(self, x, y):
+        self.mouse("mousePressed", x, y)
+        self.mouse("mouseReleased", x, y)
+
+    def drag(self, x0, y0, x1, y1, steps=8):
+        """Press at (x0, y0), move in ``steps`` to (x1, y1), release: a user's drag."""
+        self.mouse("mousePressed", x0, y0)
+        for k in range(1, steps + 1):
+            self.mouse("mouseMoved", x0 + (x1 - x0) * k / steps, y0 + (y1 - y0) * k / steps)
+        self.mouse("mouseReleased", x1, y1)
+
+    def rect(self, js_element):
+        """The page rectangle {x, y, width, height} of the element the JS
+        expression ``js_element`` gives (None: none), scrolled into view
+        first (as a user scrolls a long panel to reach it)."""
+        return self.evaluate(f"(() => {{ const e = {js_element}; if (!e) return null; "
+                             "e.scrollIntoView({block: 'center', inline: 'center'}); const r = "
+                             "e.getBoundingClientRect(); return {x: r.x, y: r.y, width: r.width, height: r.height}; })()")
+
     def screenshot(self, timeout=20.0):
         end = time.monotonic() + timeout
         while True:

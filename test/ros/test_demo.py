@@ -53,3 +53,90 @@ def test_demo_writes_png_animation_and_recording(tmp_path):
     stamps = [m.header.stamp.sec * 10**9 + m.header.stamp.nanosec for m in msgs[f"{ns}/tip_pose"]]
     assert all(b > a for a, b in zip(stamps, stamps[1:]))
     assert len(stamps) > 300       # states over the ~12 s run (200 Hz nominal; 898 at a load of 5)
+    _scrub_the_recording_in_the_page(rec, tmp_path)
+
+
+def _scrub_the_recording_in_the_page(rec, tmp_path):
+    """Issue 31: the demo's recording played back in the browser
+    (``soft-twin-sim view``), paused and scrubbed with the page's time
+    slider in headless Chromium to two times: the state shown and the
+    plotted signal (the tip's z [m]) are the recording's at that time
+    (read back here with the mcap library)."""
+    import re
+    import socket
+    import threading
+    from chromium_cdp import Browser, chromium_path, wait_for
+    from soft_twin_core import cli
+    from soft_twin_core.files.recording import read_node_recording
+    from soft_twin_core.robot.mechanism import load_mechanism
+    from soft_twin_core.viz import render
+    from soft_twin_core.viz.scene import run_snapshots
+    assert chromium_path(), "no chromium on PATH: `make setup` installs Debian's chromium"
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        port = s.getsockname()[1]
+    mech = load_mechanism("tendon_arm")
+    run = read_node_recording(str(rec), mech, "/soft_twin_demo")
+    times = np.array([s.time for s in run_snapshots(run, mech)])
+    tip = run["frame_names"][0]
+    tip_z = np.array([poses[0][2][3] for poses in run["frame_poses"]])
+    args = cli._parser().parse_args(["view", str(rec), "--robot", "tendon_arm", "--node", "/soft_twin_demo",
+                                     "--port", str(port), "--seconds", "300"])
+    stop = threading.Event()
+    th = threading.Thread(target=render.view_main, args=(args, stop), daemon=True)
+    th.start()
+    browser = None
+
+    def shown(browser):
+        text = browser.evaluate("document.body.innerText") or ""
+        m = re.search(r"t = ([-0-9.]+) s.*?(\S+ z \[m\]): ([-0-9.e+]+)", text, re.S)
+        return (float(m.group(1)), m.group(2), float(m.group(3))) if m else None
+
+    try:
+        browser = Browser(width=1000, height=800)
+        assert wait_for(lambda: _opened(browser, port), 60.0, 0.5), "the view did not serve its page"
+        assert wait_for(lambda: shown(browser) is not None and "time [s]" in browser.evaluate(
+            "document.body.innerText"), 60.0, 0.25), browser.evaluate("document.body.innerText")
+        row = """(() => {{ const lab = [...document.querySelectorAll('*')].filter(e =>
+            e.textContent.trim() === {label!r}).pop(); let p = lab; while (p && !p.querySelector({sel!r}))
+            p = p.parentElement; return p ? p.querySelector({sel!r}) : null; }})()"""
+        playing = row.format(label="playing", sel="input[type=checkbox]")
+
+        def untick():                 # (a click before the page's controls are live is lost: again)
+            if not browser.evaluate(f"{playing}.checked"):
+                return True
+            box = browser.rect(playing)
+            browser.click(box["x"] + 0.5 * box["width"], box["y"] + 0.5 * box["height"])
+            return False
+        assert wait_for(untick, 20.0, 1.0)
+        assert wait_for(lambda: "(paused)" in browser.evaluate("document.body.innerText"), 20.0, 0.25)
+        thumb = browser.rect(row.format(label="time [s]", sel="[role=slider]"))
+        track = browser.rect(row.format(label="time [s]", sel=".mantine-Slider-track"))
+        for k, frac in enumerate((0.6, 0.2)):
+            y = thumb["y"] + 0.5 * thumb["height"]
+            x0 = browser.rect(row.format(label="time [s]", sel="[role=slider]"))
+            browser.drag(x0["x"] + 0.5 * x0["width"], y, track["x"] + frac * track["width"], y)
+            target = times[0] + frac * (times[-1] - times[0])
+
+            def settled():
+                got = shown(browser)
+                return got is not None and abs(got[0] - target) < 0.05 * (times[-1] - times[0])
+            assert wait_for(settled, 20.0, 0.25), (shown(browser), target)
+            t, label, z = shown(browser)
+            i = int(np.argmin(np.abs(times - t)))          # (the page shows t to 0.1 ms; samples ~5 ms apart)
+            assert label == f"{tip} z [m]"
+            assert t == pytest.approx(times[i], abs=1e-4) and z == pytest.approx(tip_z[i], rel=1e-5, abs=1e-9)
+            (tmp_path / f"playback_{k}.png").write_bytes(browser.screenshot())
+    finally:
+        stop.set()
+        if browser is not None:
+            browser.close()
+        th.join(30)
+
+
+def _opened(browser, port):
+    try:
+        browser.open(f"http://127.0.0.1:{port}", timeout=5.0)
+        return True
+    except Exception:
+        return False

@@ -4,8 +4,8 @@ DevTools protocol) loads the page, and screenshots must show the arm and
 change when the actuation moves it. Plus the tube mesh against its
 definition."""
 import io
+import re
 import socket
-import time
 
 import numpy as np
 import pytest
@@ -46,6 +46,16 @@ def arm_pixels(png):
     return (r > g + 40) & (r > b + 80) & (r > 120)
 
 
+def tube_orange_pixels(png):
+    """Boolean mask of pixels of the tube's own orange hue (TUBE_COLOR, any
+    shade: green about half the red, little blue), which no colour of the
+    members' value scale has."""
+    from PIL import Image
+    a = np.asarray(Image.open(io.BytesIO(png)).convert("RGB"), dtype=float)
+    r, g, b = a[..., 0], a[..., 1], a[..., 2]
+    return (r > 80) & (g > 0.38 * r) & (g < 0.68 * r) & (b < 0.38 * r)
+
+
 def _screenshot(browser):
     """A screenshot, or None when the (software-rendering) browser is too
     busy to answer in time on a loaded machine: try again."""
@@ -73,18 +83,21 @@ def _wait_for_page_text(browser, words, timeout_s=30.0):
 
 @pytest.mark.ros
 @pytest.mark.slow
-def test_browser_shows_the_arm_and_follows_the_actuation(tmp_path):
+def test_browser_shows_the_arm_follows_the_actuation_and_drives_the_twin(tmp_path):
+    """The node's page shows the arm and follows a topic command; then the
+    page drives the twin (:func:`_drive_from_the_page`)."""
     pytest.importorskip("rclpy", reason="needs ROS 2: the venv of `make setup`")
     from chromium_cdp import Browser, chromium_path, wait_for
     from soft_twin.client import NodeProcess, TwinClient
     assert chromium_path(), "no chromium on PATH: `make setup` installs Debian's chromium"
     port = free_port()
-    proc = NodeProcess(["-p", f"live_view_port:={port}"], node_name=HERE_NODE, log_path=tmp_path / "node.log")
+    proc = NodeProcess(["-p", f"live_view_port:={port}", "-p", "diagnostics_rate_hz:=20.0"], node_name=HERE_NODE,
+                       log_path=tmp_path / "node.log")
     client = TwinClient(HERE_NODE, client_name=f"{HERE_NODE}_client")
     browser = None
     try:
         client.wait_ready(120.0)
-        browser = Browser(width=1000, height=700)
+        browser = Browser(width=1000, height=1000)      # (tall enough for the whole panel)
         browser.open(f"http://127.0.0.1:{port}")
         shots = {}
 
@@ -98,6 +111,7 @@ def test_browser_shows_the_arm_and_follows_the_actuation(tmp_path):
         assert ok, text
 
         tip0 = client.tip_pose.pose.position.z
+        rest = np.array([[p.position.x, p.position.y, p.position.z] for p in client.backbone.poses])
         client.send_actuation(["tendon_z_pos"], [18.0])
         assert client.wait_until(lambda: client.tip_pose.pose.position.z > tip0 + 0.05, 20.0), "the twin did not lift"
 
@@ -113,6 +127,7 @@ def test_browser_shows_the_arm_and_follows_the_actuation(tmp_path):
         (tmp_path / "after.png").write_bytes(shots["after"])
         ok, text = _wait_for_page_text(browser, ["18"])
         assert ok, text
+        _drive_from_the_page(browser, client, tmp_path, rest)
     finally:
         if browser is not None:
             browser.close()
@@ -211,3 +226,118 @@ def test_browser_shows_an_articulated_robot_and_follows_a_joint_command(tmp_path
         if browser is not None:
             browser.close()
         stop_twin(proc, client)
+
+
+_FIND_ROW = """(() => {{ const lab = [...document.querySelectorAll('*')].filter(e =>
+    e.textContent.trim() === {label!r}).pop(); let p = lab; while (p && !p.querySelector({sel!r})) p = p.parentElement;
+    return p ? p.querySelector({sel!r}) : null; }})()"""
+
+
+def _control(browser, label, selector):
+    """The page rectangle of the ``selector`` element in the GUI row labelled ``label``."""
+    return browser.rect(_FIND_ROW.format(label=label, sel=selector))
+
+
+def _centre(r):
+    return r["x"] + 0.5 * r["width"], r["y"] + 0.5 * r["height"]
+
+
+def _drive_from_the_page(browser, client, tmp_path, rest):
+    """Issue 31, driven as a user would: dragging the ``tendon_y_pos [N]``
+    slider sends a command through the node's own input path (its
+    counters show it applied, the panel shows the tension in N, the tip
+    moves to +y); ticking "paused" stops the twin's steps (the
+    diagnostics' count stands still over five periods); "step" takes one;
+    "colour by" colours the arm; dragging the tip target (at the rest
+    tip: ``rest``, the rest backbone [m]) shows the node's IK answer, and
+    "apply" takes the tip there. Screenshots of each stage are kept in the
+    test's folder."""
+    from chromium_cdp import wait_for
+    ok, text = _wait_for_page_text(browser, ["tendon_y_pos [N]", "paused", "time scale"], 60.0)
+    assert ok, text
+    # the sliders follow the twin's inputs: tendon_z_pos shows the 18 N sent on the topic
+    z_thumb = _FIND_ROW.format(label="tendon_z_pos [N]", sel="[role=slider]")
+    assert wait_for(lambda: browser.evaluate(f"{z_thumb}.getAttribute('aria-valuenow')") == "18", 20.0, 0.25)
+    before = client.wait_diagnostics(timeout=10.0)
+    tip0 = client.tip_pose.pose.position.y
+
+    # 1. drag the tension slider's thumb to 80 % of its track
+    thumb = _control(browser, "tendon_y_pos [N]", "[role=slider]")
+    track = _control(browser, "tendon_y_pos [N]", ".mantine-Slider-track")
+    assert thumb and track, text
+    x0, y0 = _centre(thumb)
+    browser.drag(x0, y0, track["x"] + 0.8 * track["width"], y0)
+    d = client.wait_diagnostics(lambda d: int(d["commands_applied_total"]) > int(before["commands_applied_total"]),
+                                20.0)
+    assert d is not None, "the slider sent no command the node applied"
+    assert int(d["commands_received_total"]) >= 1 and int(d["rejected_actuation_total"]) == 0
+    ok, text = _wait_for_page_text(browser, ["tendon_y_pos: 1"], 20.0)     # 16 N or so, with its unit
+    assert ok and re.search(r"tendon_y_pos: 1\d(\.\d+)? N", text), text
+    assert client.wait_until(lambda: client.tip_pose.pose.position.y > tip0 + 0.02, 20.0), "the tip did not move to +y"
+    (tmp_path / "1_slider_moved.png").write_bytes(browser.screenshot())
+
+    # 2. pause: the steps stop
+    box = _control(browser, "paused", "input[type=checkbox]")
+    assert box, text
+    browser.click(*_centre(box))
+    d0 = client.wait_diagnostics(lambda d: d["paused"] == "true", 20.0)
+    assert d0 is not None, "the page's pause did not pause the twin"
+    for _ in range(5):
+        d = client.wait_diagnostics(timeout=10.0)
+        assert d["steps_total"] == d0["steps_total"]
+    ok, text = _wait_for_page_text(browser, ["paused)"], 20.0)
+    assert ok, text
+    (tmp_path / "2_paused.png").write_bytes(browser.screenshot())
+
+    # 3. one step
+    step = browser.rect("[...document.querySelectorAll('button')].find(b => b.textContent.trim() === 'step')")
+    assert step, text
+    browser.click(*_centre(step))
+    d = client.wait_diagnostics(lambda d: int(d["steps_total"]) == int(d0["steps_total"]) + 1, 20.0)
+    assert d is not None, "the page's step did not take one step"
+    (tmp_path / "3_stepped.png").write_bytes(browser.screenshot())
+    # the page's inputs are counted once each: the drag's, none echoed back by the sliders following
+    d = client.wait_diagnostics(timeout=10.0)
+    assert int(d["rejected_actuation_total"]) == 0
+
+    # 4. colour the arm by its bending moment: the legend in N m, the tube no longer plain orange
+    orange = tube_orange_pixels(browser.screenshot()).sum()
+    menu = _control(browser, "colour by", "input")
+    assert menu, text
+    browser.click(*_centre(menu))
+    option = "[...document.querySelectorAll('[role=option]')].find(e => e.textContent.trim() === 'bending moment [N m]')"
+    assert wait_for(lambda: browser.rect(option) is not None, 10.0, 0.25), "no colouring menu"
+    browser.click(*_centre(browser.rect(option)))
+    ok, text = _wait_for_page_text(browser, ["colour: bending moment [N m], blue 0 to red"], 20.0)
+    assert ok, text
+    assert orange > 400
+    assert wait_for(lambda: tube_orange_pixels(browser.screenshot()).sum() < 0.2 * orange, 20.0, 0.5), \
+        "the arm kept its colour"
+    (tmp_path / "4_coloured.png").write_bytes(browser.screenshot())
+
+    # 5. running again, drag the tip target (a gizmo at the rest tip) up by its z arrow: the node's IK
+    # answers in the panel; "apply" sends its inputs and the tip goes where the answer says
+    browser.click(*_centre(_control(browser, "paused", "input[type=checkbox]")))
+    assert client.wait_diagnostics(lambda d: d["paused"] == "false", 20.0) is not None
+    from soft_twin_core.viz.live_view import camera_framing, project
+    from soft_twin_core.viz.scene import Snapshot, bounds
+    camera, look = camera_framing(*bounds([Snapshot(members=[rest])], pad=0.3))
+    w, h = browser.evaluate("(() => { const r = document.querySelector('canvas').getBoundingClientRect(); "
+                            "return [r.width, r.height]; })()")
+    (x0, y0), = project(rest[-1] + [0.0, 0.0, 0.06], camera, look, w, h)     # on the gizmo's z arrow (scale 0.08)
+    browser.drag(x0, y0, x0, y0 - 40, steps=10)
+    ok, text = _wait_for_page_text(browser, ["the tip reaches"], 30.0)
+    assert ok, text
+    m = re.search(r"target \[([^\]]+)\] m: .*?the tip reaches \[([^\]]+)\] m", text, re.S)
+    target, reach = (np.array([float(v) for v in g.split(",")]) for g in m.groups())
+    assert target[2] > rest[-1][2] + 0.01 and np.allclose(target[:2], rest[-1][:2], atol=2e-3), (target, rest[-1])
+    applied = int(client.wait_diagnostics(timeout=10.0)["commands_applied_total"])
+    apply = browser.rect("[...document.querySelectorAll('button')].find(b => b.textContent.trim() === 'apply')")
+    browser.click(*_centre(apply))
+    assert client.wait_diagnostics(lambda d: int(d["commands_applied_total"]) > applied, 20.0) is not None
+
+    def at_reach():
+        p = client.tip_pose.pose.position
+        return np.linalg.norm([p.x - reach[0], p.y - reach[1], p.z - reach[2]]) < 0.01
+    assert client.wait_until(at_reach, 30.0), f"the tip did not go to the IK's answer {reach}"
+    (tmp_path / "5_ik_applied.png").write_bytes(browser.screenshot())

@@ -101,7 +101,7 @@ def test_stats_record_takes_a_dropped_input_back_and_the_level_says_so():
     assert s.record(failed, 0.0) == ("actuation", "joint")
     assert s.totals["commands_applied"] == 2 and s.totals["joint_commands_applied"] == 0
     assert s.rejected_by_reason["solver_failed"] == 2 and s.totals["steps"] == 2
-    cfg = SimpleNamespace(mode="dynamic", step_rate_hz=100.0)
+    cfg = SimpleNamespace(mode="dynamic", step_rate_hz=100.0, time_scale=1.0)
     assert diagnostics.level(s, cfg, 100.0, False)[0] == DiagnosticStatus.ERROR     # failing now
     s.record(tw.UpdateInfo(steps=1), 0.01)
     level, message = diagnostics.level(s, cfg, 100.0, False)
@@ -110,6 +110,44 @@ def test_stats_record_takes_a_dropped_input_back_and_the_level_says_so():
     assert diagnostics.level(s, cfg, 100.0, False) == (DiagnosticStatus.OK, "ok")
     s.steps = 10
     assert "behind real time" in diagnostics.level(s, cfg, 50.0, False)[1]
+    # slow motion (time_scale 0.5): 50 steps/s is the target; paused: no steps is no lag
+    slow = SimpleNamespace(mode="dynamic", step_rate_hz=100.0, time_scale=0.5)
+    assert diagnostics.level(s, slow, 50.0, False) == (DiagnosticStatus.OK, "ok")
+    assert "of 50 steps/s (time_scale 0.5)" in diagnostics.level(s, slow, 40.0, False)[1]
+    assert diagnostics.level(s, cfg, 0.0, False, paused=True) == (DiagnosticStatus.OK, "paused (~/pause, ~/step)")
+
+
+def test_time_scale_is_validated_and_sets_the_wall_period():
+    from soft_twin.config import ConfigError, config_from_values
+    cfg = config_from_values({"time_scale": 0.25, "step_rate_hz": 200.0})
+    assert cfg.dt == pytest.approx(0.005) and cfg.wall_dt == pytest.approx(0.02)
+    assert config_from_values({}).time_scale == 1.0
+    for bad in (0.0, -1.0, 11.0, float("nan"), "fast"):
+        with pytest.raises(ConfigError, match="time_scale"):
+            config_from_values({"time_scale": bad})
+
+
+def test_the_pages_sliders_carry_each_input_its_range_and_unit():
+    """One slider per actuator and per position- or effort-controlled joint
+    (none for a passive one): the robot file's bounds where it declares
+    them, else the documented defaults; units N, Pa, rad, m."""
+    from soft_twin.live_view_out import page_controls, units_of
+    from soft_twin_core.robot.mechanism import load_mechanism
+    arm = load_mechanism("tendon_arm")
+    c = page_controls(arm, np.array([0.0, 0.0, 3.0, 0.0]))
+    assert [x.label for x in c] == ["tendon_y_pos [N]", "tendon_y_neg [N]", "tendon_z_pos [N]", "tendon_z_neg [N]"]
+    assert all((x.kind, x.lo, x.hi) == ("actuation", 0.0, 20.0) for x in c) and c[2].value == 3.0
+    pneu = load_mechanism("pneumatic_arm")
+    for x, act in zip(page_controls(pneu), pneu.actuators):
+        assert (x.unit, x.lo, x.hi) == ("Pa", act.lower, act.upper) and np.isfinite([x.lo, x.hi]).all()
+        assert 0 < x.step <= (x.hi - x.lo) / 100
+    pan = load_mechanism("pan_tilt_arm")
+    joints = {x.name: x for x in page_controls(pan) if x.kind.startswith("joint")}
+    tree = pan.tree
+    modes = {tree.joints[i].name: pan.control[i] for i in pan.rigid_joints}
+    assert set(joints) == {n for n, m in modes.items() if m in ("position", "effort")} and joints
+    assert (joints["pan"].lo, joints["pan"].hi, joints["pan"].unit) == (-3.0, 3.0, "rad")
+    assert units_of(pan)["pan"] == "rad" and units_of(pneu)[pneu.actuators[0].name] == "Pa"
 
 
 # ------------------------------------------------------------------ markers
