@@ -24,6 +24,8 @@ DEFAULT_TENSION_N = 20.0         # slider range of a tendon without a declared l
 DEFAULT_PRESSURE_PA = 50e3       # ... of a chamber without one
 DEFAULT_EFFORT = {"revolute": 1.0, "prismatic": 10.0}      # [N m], [N]: effort-controlled joints, +-
 DEFAULT_TRAVEL = {"revolute": math.pi, "prismatic": 0.1}   # [rad], [m]: position-controlled joints without limits
+PUSH_STIFFNESS_N_PER_M = 10.0    # the page's push: a spring from the tip to the dragged gizmo
+GIZMO_MODES = ("solve IK", "push the tip (spring)")
 
 
 def page_controls(mech, u=None, positions=None, efforts=None):
@@ -127,6 +129,8 @@ class LiveViewOutput:
         self._latest = None               # the last state given to publish: redrawn on a change of the page's view
         self._ik = threading.Condition()  # the target's IK: the latest target waiting, a worker thread solving it
         self._ik_target, self._ik_answer, self._ik_thread, self._closed = None, None, None, False
+        self.gizmo_mode = GIZMO_MODES[0]
+        self._push_at = None              # push mode, while dragged: where the gizmo is [m]
         self._pubs = None                # (actuation, joint command) publishers to the node's own inputs
 
     def follow(self, port):
@@ -163,6 +167,8 @@ class LiveViewOutput:
             view.frame(*bounds([shot], pad=0.3))
             self._framed = True
         tip_force = snap.tip_pose[:3, :3] @ np.asarray(snap.tip_wrench[:3], dtype=float)      # tip axes -> base
+        if self._push_at is not None:      # the spring follows the tip
+            self._push()
         values = None
         if self.colour_by != "none" and snap.state is not None:
             values = member_values(snap, [m.name for m in robot.mech.members], self.colour_by)
@@ -180,21 +186,46 @@ class LiveViewOutput:
         if self._pubs is None:
             from sensor_msgs.msg import JointState
             from soft_twin.msg import ActuationCommand
+            from geometry_msgs.msg import WrenchStamped
             self._pubs = (node.create_publisher(ActuationCommand, "~/actuation", 10),
                           node.create_publisher(JointState, "~/joint_commands", 10)
-                          if robot.mech.joint_names else None)
+                          if robot.mech.joint_names else None,
+                          node.create_publisher(WrenchStamped, "~/tip_wrench_command", 10))
         twin = node.twin
         controls = page_controls(robot.mech, twin.u, twin.positions, twin.efforts)
         self._view.set_controls(controls, self._send, on_pause=node.set_paused, on_step=node.single_step,
                                 on_reset=self._reset, on_time_scale=self._time_scale,
                                 time_scale=node.cfg.time_scale)
         self._view.set_view_options(list(COLOURINGS), self._set_colour, self._set_trail, self.trail)
-        self._view.set_target(twin.outputs().tip_pose[:3, 3], self._on_target, self._apply_ik)
+        self._view.set_target(twin.outputs().tip_pose[:3, 3], self._on_target, self._apply_ik, GIZMO_MODES,
+                              self._set_gizmo_mode)
         self._controls_of = robot
 
-    def _on_target(self, position):
-        """The page's target moved: solve for the latest position (a drag
-        sends many; the worker takes the newest when it is free)."""
+    def _set_gizmo_mode(self, mode):
+        """What dragging the gizmo does; the gizmo back on the tip."""
+        self.gizmo_mode = mode
+        if self._latest is not None and self._view is not None:
+            self._view.move_target(self._latest[0].tip_pose[:3, 3])
+            self._view.say_target("drag the gizmo: " + ("a spring of %g N/m from the tip pulls it there (a dead load "
+                                                        "on the tip, base axes), until you let go"
+                                                        % PUSH_STIFFNESS_N_PER_M if mode != GIZMO_MODES[0] else
+                                                        "inverse kinematics to its position"))
+
+    def _on_target(self, position, phase="update"):
+        """The page's gizmo moved. Solving IK: for the latest position (a
+        drag sends many; the worker takes the newest when it is free).
+        Pushing: the spring's force on the tip while dragged, none (and the
+        gizmo back on the tip) once let go."""
+        if self.gizmo_mode != GIZMO_MODES[0]:
+            if phase == "end":
+                self._push_at = None
+                self._send_wrench(np.zeros(3))
+                if self._latest is not None:
+                    self._view.move_target(self._latest[0].tip_pose[:3, 3])
+            else:
+                self._push_at = np.asarray(position, dtype=float)
+                self._push()
+            return
         with self._ik:
             self._ik_target = np.asarray(position, dtype=float)
             if self._ik_thread is None:
@@ -216,19 +247,43 @@ class LiveViewOutput:
                 if self._view is not None:
                     self._view.show_ik(target, None, f"IK failed: {type(e).__name__}: {e}")
 
+    def _push(self):
+        """The spring's force PUSH_STIFFNESS_N_PER_M (gizmo - tip) on the tip
+        now (at most the node's max_tip_force_n), sent as a tip wrench
+        command (base axes: a dead load), said in the panel."""
+        at, latest = self._push_at, self._latest
+        if at is None or latest is None:
+            return
+        f = PUSH_STIFFNESS_N_PER_M * (at - latest[0].tip_pose[:3, 3])
+        cap = 0.99 * self._node.cfg.max_tip_force_n
+        n = float(np.linalg.norm(f))
+        if n > cap:
+            f *= cap / n
+        self._send_wrench(f)
+        self._view.say_target(f"pushing the tip with [{f[0]:.3f}, {f[1]:.3f}, {f[2]:.3f}] N "
+                              f"({np.linalg.norm(f):.3f} N)")
+
+    def _send_wrench(self, force):
+        from geometry_msgs.msg import WrenchStamped
+        node = self._node
+        msg = WrenchStamped(header=node._header(node.cfg.base_frame))
+        msg.wrench.force.x, msg.wrench.force.y, msg.wrench.force.z = map(float, force)
+        self._pubs[2].publish(msg)
+
     def _solve_ik(self, target):
         """The node's own IK (what ``~/inverse_kinematics`` answers, position
         only, to 0.1 mm) for the target; the answer shown and kept for "apply"."""
         from geometry_msgs.msg import Pose
         from soft_twin import services
         from soft_twin.srv import InverseKinematics
+        from soft_twin_core.viz.live_view import shown_value
         req = InverseKinematics.Request(position_only=True, tolerance=1e-4)
         req.target = Pose()
         req.target.position.x, req.target.position.y, req.target.position.z = map(float, target)
         req.target.orientation.w = 1.0
         r = services.inverse_kinematics(self._node, req, InverseKinematics.Response())
         units = units_of(self._node.robot.mech)
-        inputs = ", ".join(f"{n} = {v if abs(v) > 1e-9 else 0.0:.4g} {units.get(n, '')}".rstrip()  # (round-off: 0)
+        inputs = ", ".join(f"{n} = {shown_value(v)} {units.get(n, '')}".rstrip()
                            for n, v in zip(r.actuator_names, r.actuator_values))
         p = r.achieved.position
         achieved = np.array([p.x, p.y, p.z]) if r.actuation_found else None

@@ -51,6 +51,11 @@ def value_colors(values, vmax):
     return np.round(VALUE_COLORS[k] * (1 - f) + VALUE_COLORS[k + 1] * f).astype(np.uint8)
 
 
+def shown_value(v):
+    """A panel value: 4 significant digits, round-off (|v| < 1e-9) as 0."""
+    return f"{v if abs(v) >= 1e-9 else 0.0:.4g}"
+
+
 def polyline_segments(polylines):
     """(S, 2, 3) segments of polylines (N, 3) whose NaN rows separate pieces."""
     segs = []
@@ -281,27 +286,47 @@ class LiveView:
     def _count(self):
         self.control_events += 1
 
-    def set_target(self, position, on_move, on_apply, scale=0.08):
-        """A draggable tip target (a gizmo at ``position`` [m], moved along
-        its axes or planes; ``on_move(position)`` while it is dragged) and a
-        "target" folder with the answer (:meth:`show_ik`) and an "apply"
-        button (``on_apply()``)."""
+    def set_target(self, position, on_move, on_apply, modes=None, on_mode=None, scale=0.08):
+        """A draggable gizmo at ``position`` [m] (moved along its axes or
+        planes; ``on_move(position, phase)`` while it is dragged, phase
+        "start", "update" or "end") and a "target" folder: a menu of what
+        dragging does (``modes``; ``on_mode(mode)``), the answer
+        (:meth:`show_ik`) and an "apply" button (``on_apply()``)."""
         gui, sc = self.server.gui, self.server.scene
         with self._lock:
-            handle = sc.add_transform_controls("/target", scale=scale, disable_rotations=True,
-                                               position=tuple(np.asarray(position, dtype=float)))
+            handle = self._target = sc.add_transform_controls(
+                "/target", scale=scale, disable_rotations=True, position=tuple(np.asarray(position, dtype=float)))
 
             @handle.on_update
             def _(event):
                 self.control_events += 1
-                on_move(np.array(event.target.position, dtype=float))
+                on_move(np.array(event.target.position, dtype=float), getattr(event, "phase", "update"))
             folder = gui.add_folder("target", order=2.5)
             self._controls += [handle, folder]
             with folder:
+                if modes:
+                    menu = gui.add_dropdown("drag to", tuple(modes), initial_value=modes[0])
+
+                    @menu.on_update
+                    def _(event):
+                        if event.client is not None:
+                            self.control_events += 1
+                            on_mode(event.target.value)
+                    self._controls.append(menu)
                 self._ik_text = gui.add_markdown("drag the gizmo at the tip: inverse kinematics to its position")
                 b = gui.add_button("apply", hint="send the inputs that reach the target, as the sliders do")
                 b.on_click(lambda _: (self._count(), on_apply()))
                 self._controls += [self._ik_text, b]
+
+    def move_target(self, position):
+        """Put the gizmo at ``position`` [m] (e.g. back on the tip)."""
+        with self._lock:
+            self._target.position = tuple(np.asarray(position, dtype=float))
+
+    def say_target(self, message):
+        """The "target" folder's line."""
+        with self._lock:
+            self._ik_text.content = message
 
     def show_ik(self, target, achieved, message):
         """The answer of the target's inverse kinematics: the tip it reaches
@@ -474,9 +499,9 @@ class LiveView:
                 lines.append(f"- colour: {values[0]}, blue 0 to red {vmax:.4g}")
             units = units or {}
             if actuation:
-                lines += [f"- `{k}`: {v:.4g} {units.get(k, 'N')}" for k, v in actuation.items()]
+                lines += [f"- `{k}`: {shown_value(v)} {units.get(k, 'N')}" for k, v in actuation.items()]
             if joints:
-                lines += [f"- joint `{k}`: {v:.4g} {units.get(k, 'rad')}" for k, v in joints.items()]
+                lines += [f"- joint `{k}`: {shown_value(v)} {units.get(k, 'rad')}" for k, v in joints.items()]
             if tip_force is not None:
                 f = np.asarray(tip_force, dtype=float)
                 lines.append(f"- tip force: [{f[0]:.3g}, {f[1]:.3g}, {f[2]:.3g}] N")

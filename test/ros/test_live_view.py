@@ -250,7 +250,8 @@ def _drive_from_the_page(browser, client, tmp_path, rest):
     diagnostics' count stands still over five periods); "step" takes one;
     "colour by" colours the arm; dragging the tip target (at the rest
     tip: ``rest``, the rest backbone [m]) shows the node's IK answer, and
-    "apply" takes the tip there. Screenshots of each stage are kept in the
+    "apply" takes the tip there; dragging it in "push" mode lifts the tip
+    with a spring while held, and the load goes when let go. Screenshots of each stage are kept in the
     test's folder."""
     from chromium_cdp import wait_for
     ok, text = _wait_for_page_text(browser, ["tendon_y_pos [N]", "paused", "time scale"], 60.0)
@@ -341,3 +342,27 @@ def _drive_from_the_page(browser, client, tmp_path, rest):
         return np.linalg.norm([p.x - reach[0], p.y - reach[1], p.z - reach[2]]) < 0.01
     assert client.wait_until(at_reach, 30.0), f"the tip did not go to the IK's answer {reach}"
     (tmp_path / "5_ik_applied.png").write_bytes(browser.screenshot())
+
+    # 6. push the tip: the gizmo back on the tip; held 60 px above it, a spring pulls the tip up (a tip
+    # load through the node's own ~/tip_wrench_command, counted); let go, the load is gone
+    browser.click(*_centre(_control(browser, "drag to", "input")))
+    option = "[...document.querySelectorAll('[role=option]')].find(e => e.textContent.trim() === 'push the tip (spring)')"
+    assert wait_for(lambda: browser.rect(option) is not None, 10.0, 0.25), "no gizmo menu"
+    browser.click(*_centre(browser.rect(option)))
+    ok, text = _wait_for_page_text(browser, ["a spring of 10 N/m"], 20.0)
+    assert ok, text
+    wrenches = int(client.wait_diagnostics(timeout=10.0)["wrenches_applied_total"])
+    p = client.tip_pose.pose.position
+    tip = np.array([p.x, p.y, p.z])
+    (x0, y0), = project(tip + [0.0, 0.0, 0.06], camera, look, w, h)
+    browser.mouse("mousePressed", x0, y0)
+    for k in range(1, 11):
+        browser.mouse("mouseMoved", x0, y0 - 6 * k)
+    assert client.wait_until(lambda: client.tip_pose.pose.position.z > tip[2] + 0.01, 30.0), "the push did not lift"
+    ok, text = _wait_for_page_text(browser, ["pushing the tip with", "tip force:"], 20.0)
+    assert ok, text
+    assert int(client.wait_diagnostics(timeout=10.0)["wrenches_applied_total"]) > wrenches
+    (tmp_path / "6_pushing.png").write_bytes(browser.screenshot())
+    browser.mouse("mouseReleased", x0, y0 - 60)
+    assert wait_for(lambda: "tip force:" not in browser.evaluate("document.body.innerText"), 20.0, 0.25), \
+        "the push's load stayed after letting go"

@@ -112,3 +112,8 @@ def test_the_view_draws_coloured_members_the_tip_path_obstacles_and_contact_forc
         assert "/twin/tip_path" not in view._sent and "/world/contact_forces" not in view._sent
     finally:
         view.close()
+
+
+def test_panel_values_round_off_to_zero():
+    from soft_twin_core.viz.live_view import shown_value
+    assert [shown_value(v) for v in (1.483e-10, -3e-12, 2.05123, 1e-6)] == ["0", "0", "2.051", "1e-06"]
