@@ -259,9 +259,19 @@ def workspace_of(scenario, opts):
 
 
 def plot_workspace(points, hs, path, title="workspace", color=None, color_label=None, mark=None):
-    """PNG of a point cloud (n, 3) [m]: a 3-D view with the hull's facets
+    """PNG of :func:`workspace_figure` at ``path``."""
+    import matplotlib.pyplot as plt
+    fig = workspace_figure(points, hs, title, color, color_label, mark)
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+    return path
+
+
+def workspace_figure(points, hs, title="workspace", color=None, color_label=None, mark=None):
+    """Figure of a point cloud (n, 3) [m]: a 3-D view with the hull's facets
     and the three projections (x-y, x-z, y-z) with the outline of each
-    projection's convex hull. ``color``: a value per point (e.g. an input);
+    projection's convex hull. ``color``: a value per point (e.g. an input;
+    its colour bar left of the 3-D view, clear of its z label);
     ``mark``: a mask of points drawn as red crosses (the actuation box's
     corners)."""
     import matplotlib
@@ -285,7 +295,7 @@ def plot_workspace(points, hs, path, title="workspace", color=None, color_label=
     ax.set_title(f"{title}\n{hs['n_points']} points, hull volume {vol * 1e6:.4g} cm^3"
                  + ("" if hs["dimension"] == 3 else f" (dimension {hs['dimension']})"), fontsize=9)
     if cvals is not None:
-        fig.colorbar(sc, ax=ax, shrink=0.6, label=color_label or "")
+        fig.colorbar(sc, ax=ax, shrink=0.6, location="left", pad=0.02, label=color_label or "")
     for k, (i, j) in enumerate(((0, 1), (0, 2), (1, 2))):
         a = fig.add_subplot(2, 2, k + 2)
         a.scatter(Q[:, i], Q[:, j], s=3, c=cvals if cvals is not None else "tab:blue")
@@ -303,7 +313,9 @@ def plot_workspace(points, hs, path, title="workspace", color=None, color_label=
         a.set_ylabel("xyz"[j] + " [m]")
         a.set_aspect("equal", adjustable="datalim")
         a.grid(alpha=0.3)
+    from matplotlib.ticker import MaxNLocator
+    for axis in (ax.xaxis, ax.yaxis, ax.zaxis):          # (8 ticks a side crowded the 3-D view's corners)
+        axis.set_major_locator(MaxNLocator(4))
     fig.tight_layout()
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
-    return path
+    fig.subplots_adjust(wspace=0.3)                      # (tight_layout leaves the 3-D z label no room)
+    return fig

@@ -202,6 +202,63 @@ def _json_default(o):
     return str(o)
 
 
+# the unit of a column, by its name: a parameter's last key, an output's suffix or stem (issue 31: the
+# scatter plots had none)
+_PARAMETER_UNITS = {"youngs_modulus": "Pa", "shear_modulus": "Pa", "density": "kg/m^3", "radius": "m",
+                    "inner_radius": "m", "outer_radius": "m", "length": "m", "offset": "m", "offset_end": "m",
+                    "width": "m", "height": "m", "thickness": "m", "limit": "N", "damping": "N m s",
+                    "viscosity": "Pa s", "stiffness": "N/m", "mass": "kg", "poisson_ratio": "-"}
+_SUFFIX_UNITS = (("_m3", "m^3"), ("_m2", "m^2"), ("_m_s", "m/s"), ("_pa", "Pa"), ("_s", "s"), ("_m", "m"),
+                 ("_n", "N"), ("_nm", "N m"))
+_PREFIXES = {-3: "n", -2: "u", -1: "m", 0: "", 1: "k", 2: "M", 3: "G"}
+
+
+def column_unit(name, parameter, study=None):
+    """The SI unit of a study column (None: not known): a ``parameter``
+    path's last key (``segments[0].material.youngs_modulus``: Pa), an
+    actuator's input (``scenario.actuation.<name>``: N for a tendon, Pa for
+    a chamber, from ``study``'s robot when given); an output's
+    (``statics.max_stress_pa``) suffix (``_m``, ``_pa``, ``_m3``, ...) or
+    stem (``tip_position_x``: m, ``base_wrench_fz``: N, ``base_wrench_my``:
+    N m)."""
+    import re
+    last = re.sub(r"\[\d+\]$", "", name.split(".")[-1])
+    if parameter:
+        if name.startswith("scenario.actuation."):
+            mech = getattr(getattr(study, "scenario", None), "mech", None)
+            kinds = {a.name: a.kind for a in mech.actuators} if mech is not None else {}
+            return "Pa" if kinds.get(last) == "chamber" else "N"
+        return _PARAMETER_UNITS.get(last)
+    stem = name.split(".")[-1]
+    m = re.search(r"base_wrench_([fm])[xyz]$", stem)
+    if m:
+        return "N" if m.group(1) == "f" else "N m"
+    if re.search(r"(tip_position|backbone_\d+)_[xyz]$", stem):
+        return "m"
+    if re.search(r"tip_velocity_[xyz]$", stem):
+        return "m/s"
+    for suffix, unit in _SUFFIX_UNITS:
+        if stem.endswith(suffix):
+            return unit
+    return None
+
+
+def scaled_axis(values, name, parameter, study=None):
+    """(values scaled, axis label): the column's unit with an SI prefix
+    putting its largest magnitude in [1, 1000) (``youngs_modulus [MPa]``),
+    so that no offset or ``1e6`` factor sits at the axis' end where it ran
+    into the label; a column of unknown unit keeps a ``x1e6`` in its label."""
+    v = np.asarray(values, dtype=float)
+    big = float(np.nanmax(np.abs(v))) if np.any(np.isfinite(v)) else 0.0
+    k = int(np.clip(math.floor(math.log10(big) / 3), -3, 3)) if big > 0 else 0
+    unit = column_unit(name, parameter, study)
+    if unit in (None, "-"):
+        return (v / 10.0 ** (3 * k), f"{name} [x1e{3 * k}]") if k else (v, name)
+    if unit in ("m^3", "m^2", "kg/m^3", "m/s", "N m s", "Pa s", "N/m") or " " in unit:
+        return (v / 10.0 ** (3 * k), f"{name} [x1e{3 * k} {unit}]") if k else (v, f"{name} [{unit}]")
+    return v / 10.0 ** (3 * k), f"{name} [{_PREFIXES[k]}{unit}]"
+
+
 def _plots(study, ok, p_num, o_num, X, Y, rho, points, plots):
     import matplotlib
     matplotlib.use("Agg")
@@ -228,11 +285,14 @@ def _plots(study, ok, p_num, o_num, X, Y, rho, points, plots):
         for i, c in enumerate(po):
             for j, p in enumerate(pp):
                 a = axes[i, j]
-                a.scatter(X[:, j], Y[:, i], s=5)
+                x, xlabel = scaled_axis(X[:, j], p, True, study)
+                y, ylabel = scaled_axis(Y[:, i], c, False, study)
+                a.scatter(x, y, s=5)
+                a.ticklabel_format(useOffset=False, style="plain")
                 if i == len(po) - 1:
-                    a.set_xlabel(p, fontsize=7)
+                    a.set_xlabel(xlabel, fontsize=7)
                 if j == 0:
-                    a.set_ylabel(c, fontsize=7)
+                    a.set_ylabel(ylabel, fontsize=7)
                 a.tick_params(labelsize=6)
         fig.tight_layout()
         figs.append(plots / "scatter.png")

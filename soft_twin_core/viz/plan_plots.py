@@ -6,7 +6,9 @@ SVG):
   (the quasi-static prediction of the plan; with dynamics also the
   simulated tip without and with lag compensation) in the top (x-y), side
   (x-z) and front (y-z) views at equal scale, unreachable samples marked,
-  and the tracking error [mm] against time.
+  and the tracking error [mm] against time. An axis the plan leaves free
+  (position weight 0) shows the target at the achieved coordinate, the
+  view's title saying so.
 * ``plan_actuation``: the actuator inputs against time (tendon tensions [N],
   pressures [Pa]; the compensated sequence dashed when present) and, for an
   articulated robot, the joint commands [rad or m] with their limits.
@@ -23,13 +25,24 @@ _VIEWS = (("top view (x-y)", 0, 1), ("side view (x-z)", 0, 2), ("front view (y-z
 
 def plot_plan_path(out, folder, title=None):
     """Planned vs achieved tip path and the error against time; paths written."""
+    return _save(plan_path_figure(out, title), folder, "plan_tip_path")
+
+
+def plan_path_figure(out, title=None):
+    """The figure of :func:`plot_plan_path`."""
     plt = _plt()
     t = np.asarray(out["time"])
     tgt = np.asarray(out["target"]).reshape(len(t), 3)
     tip = np.asarray(out["predicted_tip"]).reshape(len(t), 3)
     reached = np.asarray(out["reached"], bool)
     dyn = out.get("dynamics")
-    curves = [("planned (target)", tgt, dict(color="k", lw=2.5, alpha=0.35)),
+    # an axis the plan does not track (position weight 0) is where the arm puts it: the target is
+    # drawn there at the achieved coordinate (its nominal one read as a miss of tens of mm that no
+    # tracking error has), and the views say so
+    free = [a for a, w in enumerate(out.get("position_weights", (1, 1, 1))) if w == 0]
+    shown = tgt.copy()
+    shown[:, free] = tip[:, free]
+    curves = [("planned (target)", shown, dict(color="k", lw=2.5, alpha=0.35)),
               ("achieved (statics)", tip, dict(color="C0", lw=1.2))]
     if dyn:
         curves.append(("simulated", np.asarray(dyn["simulated_tip"]), dict(color="C3", lw=1.0)))
@@ -44,8 +57,11 @@ def plot_plan_path(out, folder, title=None):
         ax = fig.add_subplot(2, 3, k + 1)
         for label, p, kw in curves:
             ax.plot(p[:, i], p[:, j], label=label, **kw)
+        loose = [f"{'xyz'[a]}" for a in (i, j) if a in free]
+        if loose:
+            name = f"{name}, {' and '.join(loose)} free (not tracked)"
         if np.any(~reached):
-            ax.plot(tgt[~reached, i], tgt[~reached, j], "rx", ms=5, label="unreachable sample")
+            ax.plot(shown[~reached, i], shown[~reached, j], "rx", ms=5, label="unreachable sample")
         ax.set_xlim(mid[i] - half, mid[i] + half)
         ax.set_ylim(mid[j] - half, mid[j] + half)
         ax.set_aspect("equal", adjustable="box")
@@ -70,7 +86,7 @@ def plot_plan_path(out, folder, title=None):
     s = out["summary"]
     fig.suptitle(title or f"{out['robot']}: tip path, {s['reached']} of {s['samples']} samples reached")
     fig.tight_layout()
-    return _save(fig, folder, "plan_tip_path")
+    return fig
 
 
 def plot_plan_actuation(out, folder, title=None):

@@ -46,11 +46,21 @@ def _save(fig, folder, stem):
     return paths
 
 
-def equal_limits(ax, lo, hi, i, j):
-    """Set the 2D axes limits to the box (lo, hi) on axes i, j, equal scale."""
-    ax.set_xlim(lo[i], hi[i])
-    ax.set_ylim(lo[j], hi[j])
+def equal_limits(ax, lo, hi, i, j, min_aspect=0.75):
+    """Set the 2D axes limits to the box (lo, hi) on axes i, j, equal scale;
+    the narrower side widened about its centre to at least ``min_aspect``
+    of the wider (a vertical arm's side view was a sliver whose x ticks ran
+    into each other, ``-0.0250.0000.025``), at most 4 ticks an axis."""
+    from matplotlib.ticker import MaxNLocator
+    lo, hi = np.asarray(lo, dtype=float), np.asarray(hi, dtype=float)
+    wi, wj = hi[i] - lo[i], hi[j] - lo[j]
+    ci, cj = 0.5 * (lo[i] + hi[i]), 0.5 * (lo[j] + hi[j])
+    wi, wj = max(wi, min_aspect * wj), max(wj, min_aspect * wi)
+    ax.set_xlim(ci - 0.5 * wi, ci + 0.5 * wi)
+    ax.set_ylim(cj - 0.5 * wj, cj + 0.5 * wj)
     ax.set_aspect("equal", adjustable="box")
+    ax.xaxis.set_major_locator(MaxNLocator(4))
+    ax.yaxis.set_major_locator(MaxNLocator(4))
 
 
 def equal_limits_3d(ax, lo, hi):
@@ -60,6 +70,9 @@ def equal_limits_3d(ax, lo, hi):
     ax.set_ylim(c[1] - half, c[1] + half)
     ax.set_zlim(c[2] - half, c[2] + half)
     ax.set_box_aspect((1.0, 1.0, 1.0))
+    from matplotlib.ticker import MaxNLocator
+    for axis in (ax.xaxis, ax.yaxis, ax.zaxis):       # (7 ticks ran into each other at the corner)
+        axis.set_major_locator(MaxNLocator(4))
 
 
 def pick(n, k):
@@ -147,9 +160,11 @@ def shapes_figure(snapshots, title, max_shapes=8):
     ax3.set_ylabel("y [m]")
     ax3.set_zlabel("z [m]")
     ax3.set_title("3D view")
-    side.legend(fontsize=7, loc="best")
+    # the legend under the panels, never over the arm
+    handles, labels = side.get_legend_handles_labels()
+    fig.legend(handles, labels, loc="lower center", ncol=min(len(labels), 5), fontsize=7, frameon=False)
     fig.suptitle(title)
-    fig.tight_layout()
+    fig.tight_layout(rect=(0.0, 0.04 * (1 + (len(labels) - 1) // 5), 1.0, 1.0))
     return fig
 
 

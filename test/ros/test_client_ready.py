@@ -16,7 +16,7 @@ rclpy = pytest.importorskip("rclpy")
 from geometry_msgs.msg import PoseArray, PoseStamped, WrenchStamped   # noqa: E402
 from rclpy.executors import SingleThreadedExecutor                   # noqa: E402
 from sensor_msgs.msg import JointState                               # noqa: E402
-from std_srvs.srv import Trigger                                     # noqa: E402
+from std_srvs.srv import SetBool, Trigger                            # noqa: E402
 
 from soft_twin.client import TwinClient                              # noqa: E402
 from soft_twin.msg import ActuationCommand, Strains                  # noqa: E402
@@ -34,7 +34,7 @@ class StandInTwin:
         n = self.node = rclpy.create_node(name, context=self.context)
         for srv, sname in ((ForwardKinematics, "forward_kinematics"), (InverseKinematics, "inverse_kinematics"),
                            (StaticsQuery, "statics_query"), (Trigger, "reset"), (PlanPath, "plan_path"),
-                           (Trigger, "cancel_plan")):
+                           (Trigger, "cancel_plan"), (SetBool, "pause"), (Trigger, "step")):
             n.create_service(srv, f"~/{sname}", lambda req, resp: resp)
         n.create_subscription(ActuationCommand, "~/actuation", lambda m: None, 10)
         n.create_subscription(WrenchStamped, "~/tip_wrench_command", lambda m: None, 10)

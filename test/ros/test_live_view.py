@@ -248,7 +248,7 @@ def _drive_from_the_page(browser, client, tmp_path, rest):
     counters show it applied, the panel shows the tension in N, the tip
     moves to +y); ticking "paused" stops the twin's steps (the
     diagnostics' count stands still over five periods); "step" takes one;
-    "colour by" colours the arm; dragging the tip target (at the rest
+    "colour by" colours the arm; "reset" brings it back to rest; dragging the tip target (at the rest
     tip: ``rest``, the rest backbone [m]) shows the node's IK answer, and
     "apply" takes the tip there; dragging it in "push" mode lifts the tip
     with a spring while held, and the load goes when let go. Screenshots of each stage are kept in the
@@ -320,6 +320,10 @@ def _drive_from_the_page(browser, client, tmp_path, rest):
     # answers in the panel; "apply" sends its inputs and the tip goes where the answer says
     browser.click(*_centre(_control(browser, "paused", "input[type=checkbox]")))
     assert client.wait_diagnostics(lambda d: d["paused"] == "false", 20.0) is not None
+    reset = browser.rect("[...document.querySelectorAll('button')].find(b => b.textContent.trim() === 'reset')")
+    browser.click(*_centre(reset))                  # back to rest (and no input): the IK's answer is near
+    assert client.wait_until(lambda: abs(client.tip_pose.pose.position.z - rest[-1][2]) < 2e-3, 20.0), \
+        "the page's reset did not bring the arm back to rest"
     from soft_twin_core.viz.live_view import camera_framing, project
     from soft_twin_core.viz.scene import Snapshot, bounds
     camera, look = camera_framing(*bounds([Snapshot(members=[rest])], pad=0.3))

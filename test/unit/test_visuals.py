@@ -327,3 +327,106 @@ def test_rviz_config_shows_the_node_topics_and_frames():
         assert cls in displays, cls
     topics = {d["Topic"]["Value"] for d in vm["Displays"] if "Topic" in d}
     assert topics == {"/soft_twin/markers", "/soft_twin/tip_pose", "/soft_twin/tip_wrench", "/soft_twin/base_wrench"}
+
+
+def test_a_vertical_arms_shapes_figure_has_room_for_its_ticks_and_keeps_the_legend_off_the_axes():
+    """Issue 31: a vertical arm (0.3 m tall, 10 mm wide) in the shapes
+    figure: its side view is at least 3/4 as wide as tall (it was a
+    sliver), no two tick labels of an axis overlap (they ran together as
+    ``-0.0250.0000.025``), and the legend sits outside every panel (it
+    covered the arm)."""
+    from soft_twin_core.viz.plots import shapes_figure
+    from soft_twin_core.viz.scene import Snapshot
+    z = np.linspace(0.0, 0.3, 20)
+    snaps = [Snapshot(members=[np.c_[0.01 * k * np.sin(8 * z), 0.002 * z, z]], time=0.5 * k) for k in range(4)]
+    fig = shapes_figure(snaps, "a vertical arm")
+    fig.canvas.draw()
+    renderer = fig.canvas.get_renderer()
+    side = fig.axes[0]
+    (x0, x1), (z0, z1) = side.get_xlim(), side.get_ylim()
+    assert x1 - x0 >= 0.75 * (z1 - z0) - 1e-12
+    for ax in fig.axes[:2]:
+        for labels in (ax.get_xticklabels(), ax.get_yticklabels()):
+            boxes = [t.get_window_extent(renderer) for t in labels if t.get_visible() and t.get_text()]
+            assert not any(a.overlaps(b) for k, a in enumerate(boxes) for b in boxes[k + 1:]), \
+                [t.get_text() for t in labels]
+    legend = fig.legends[0].get_window_extent(renderer)
+    assert not any(legend.overlaps(ax.get_window_extent(renderer)) for ax in fig.axes)
+    assert [t.get_text() for t in fig.legends[0].get_texts()][:2] == ["t = 0.00 s", "t = 0.50 s"]
+    import matplotlib.pyplot as plt
+    plt.close(fig)
+
+
+def test_the_workspace_colour_bar_leaves_the_z_label_free():
+    """Issue 31: the colour bar of a workspace cloud coloured by an input
+    covered the 3-D view's z label; it sits left of the view now."""
+    from soft_twin_core.planning.reach import hull_summary, workspace_figure
+    rng = np.random.default_rng(0)
+    P = rng.normal(0.0, 0.05, (200, 3))
+    fig = workspace_figure(P, hull_summary(P), "cloud", color=P[:, 0] * 10, color_label="tendon_y_pos [N]")
+    fig.canvas.draw()
+    r = fig.canvas.get_renderer()
+    ax3, bar = fig.axes[0], [a for a in fig.axes if a.get_label() == "<colorbar>"][0]
+    assert not bar.get_window_extent(r).overlaps(ax3.zaxis.label.get_window_extent(r))
+    assert bar.get_window_extent(r).x1 <= ax3.get_window_extent(r).x0 + 1
+    right = fig.axes[1]                                       # the x-y projection, right of the 3-D view
+    assert not ax3.zaxis.label.get_window_extent(r).overlaps(right.yaxis.label.get_window_extent(r))
+    import matplotlib.pyplot as plt
+    plt.close(fig)
+
+
+def test_a_plan_that_leaves_x_free_draws_its_target_where_the_arm_puts_x():
+    """Issue 31: the tendon arm's circle plan tracks y and z only
+    (position_weights [0, 1, 1]); its side view drew the target at its
+    nominal x, a vertical line tens of mm from the achieved path that read
+    as a large miss. The target is drawn at the achieved x and the views
+    that show x say it is free; y and z stay the target's."""
+    from soft_twin_core.viz.plan_plots import plan_path_figure
+    t = np.linspace(0.0, 2.0, 41)
+    target = np.c_[np.full_like(t, 0.25), 0.03 * np.cos(np.pi * t), -0.1 + 0.03 * np.sin(np.pi * t)]
+    tip = target + np.c_[-0.04 + 0.01 * np.sin(np.pi * t), np.zeros_like(t), 1e-4 * np.ones_like(t)]
+    out = {"time": t.tolist(), "target": target.tolist(), "predicted_tip": tip.tolist(),
+           "reached": [True] * len(t), "position_weights": [0.0, 1.0, 1.0], "robot": "tendon_arm",
+           "error_m": np.abs(tip[:, 2] - target[:, 2]).tolist(), "summary": {"reached": len(t), "samples": len(t)}}
+    fig = plan_path_figure(out)
+    top, side, front = fig.axes[:3]
+    line = [ln for ln in side.get_lines() if ln.get_label() == "planned (target)"][0]
+    np.testing.assert_allclose(line.get_xdata(), tip[:, 0])
+    np.testing.assert_allclose(line.get_ydata(), target[:, 2])
+    front_line = [ln for ln in front.get_lines() if ln.get_label() == "planned (target)"][0]
+    np.testing.assert_allclose(front_line.get_xdata(), target[:, 1])
+    assert "x free" in side.get_title() and "x free" in top.get_title() and "free" not in front.get_title()
+    import matplotlib.pyplot as plt
+    plt.close(fig)
+
+
+def test_study_axes_carry_units_and_an_si_prefix_instead_of_an_offset():
+    """Issue 31: the study scatter plots had no units, and Young's modulus
+    (1-4e6 Pa) put a ``1e6`` at the axis' end over its label. Each column
+    gets its unit from its name, with a prefix bringing the values into
+    [1, 1000); matplotlib then draws no offset."""
+    from soft_twin_core.studies.report import column_unit, scaled_axis
+    assert column_unit("segments[0].material.youngs_modulus", True) == "Pa"
+    assert column_unit("actuators[0].offset[0]", True) == "m"
+    assert column_unit("scenario.actuation.tendon_y_pos", True) == "N"
+    assert column_unit("statics.tip_position_z", False) == "m"
+    assert column_unit("statics.base_wrench_my", False) == "N m"
+    assert column_unit("statics.max_stress_pa", False) == "Pa"
+    assert column_unit("workspace.volume_m3", False) == "m^3"
+    assert column_unit("statics.iterations", False) is None
+    v, label = scaled_axis([1.2e6, 3.9e6], "segments[0].material.youngs_modulus", True)
+    assert label == "segments[0].material.youngs_modulus [MPa]" and np.allclose(v, [1.2, 3.9])
+    v, label = scaled_axis([0.0075, 0.0099], "segments[2].cross_section.radius", True)
+    assert label.endswith("[mm]") and np.allclose(v, [7.5, 9.9])
+    v, label = scaled_axis([2e-5, 9e-5], "workspace.volume_m3", False)
+    assert label == "workspace.volume_m3 [x1e-6 m^3]" and np.allclose(v, [20.0, 90.0])
+    import matplotlib
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    fig, ax = plt.subplots(figsize=(2.6, 2.0))
+    x, _ = scaled_axis(np.linspace(1.0e6, 4.0e6, 40), "segments[0].material.youngs_modulus", True)
+    ax.scatter(x, x ** 2)
+    ax.ticklabel_format(useOffset=False, style="plain")
+    fig.canvas.draw()
+    assert ax.xaxis.get_offset_text().get_text() == ""
+    plt.close(fig)
