@@ -165,6 +165,7 @@ def main(argv=None):
         say(f"sweeping the tendon tensions for {DURATION:.0f} s (commands at {COMMAND_RATE:.0f} Hz) ...")
         samples, frames = [], []
         t0 = time.monotonic()
+        sweep_stamp = client.tip_pose.header.stamp         # the sweep's t = 0 on the node's clock (the recording's)
         next_cmd, next_sample, next_frame = t0, t0, t0
         while True:
             now = time.monotonic()
@@ -226,8 +227,11 @@ def main(argv=None):
         msgs = read_messages(str(args.record))
         say(f"the node recorded {sum(map(len, msgs.values()))} messages on {len(msgs)} topics "
             f"({len(msgs.get('/soft_twin_demo/actuation', []))} of the {sent} commands sent): {args.record}")
-        say(f"  replay as figures: .venv/bin/soft-twin-sim render {args.record} --robot tendon_arm "
-            f"--plot out/demo_figures")
+        # the table's t = 0 in the recording's time (its first state): render and view take it as --t0
+        ns = [m.header.stamp.sec * 10**9 + m.header.stamp.nanosec for m in msgs.get("/soft_twin_demo/tip_pose", [])]
+        t0_rec = (sweep_stamp.sec * 10**9 + sweep_stamp.nanosec - min(ns)) * 1e-9 if ns else 0.0
+        say(f"  replay as figures, t = 0 at the sweep's start as in the table: .venv/bin/soft-twin-sim render "
+            f"{args.record} --robot tendon_arm --node /soft_twin_demo --t0 {t0_rec:.3f} --plot out/demo_figures")
     if rc != 0:
         say(f"the node exited with code {rc}; its log:\n{proc.output()}")
         return 1

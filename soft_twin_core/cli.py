@@ -115,6 +115,9 @@ def _parser():
     r.add_argument("--robot", help="the recorded node's robot (file or example name): energies, members")
     r.add_argument("--sections", type=int, help="sections per segment, as for the run")
     r.add_argument("--node", help="the twin node's name when the recording holds several")
+    r.add_argument("--t0", type=float, metavar="SECONDS",
+                   help="take this time of the run as t = 0, the samples before it dropped (`make demo` prints "
+                        "the time of its sweep's start in its recording)")
     render.add_visual_arguments(r)
     v = sub.add_parser("view", help="play a saved run (JSON or MCAP) in the live 3D view in the browser")
     v.add_argument("run", help="as for render: a dynamics JSON (with --backbone-every K) or a .mcap of the node")
@@ -122,6 +125,7 @@ def _parser():
     v.add_argument("--robot")
     v.add_argument("--sections", type=int)
     v.add_argument("--node")
+    v.add_argument("--t0", type=float, metavar="SECONDS", help="as for render")
     v.add_argument("--port", type=int, default=8080, help="http://127.0.0.1:PORT (default 8080)")
     v.add_argument("--radius", type=float, default=0.01, help="tube radius [m] (default 0.01)")
     v.add_argument("--seconds", type=float, help="stop after this many seconds (default: Ctrl-C)")

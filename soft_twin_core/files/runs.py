@@ -136,6 +136,41 @@ HISTORY_FIELDS = ("time", "tip_position", "tip_orientation", "tip_velocity", "ba
 SAMPLE_FIELDS = ("member_positions", "member_velocities", "member_internal_wrenches")
 
 
+# the lists of a dynamics run (JSON) sampled with its member samples (``members_time``)
+MEMBER_SAMPLE_KEYS = SAMPLE_FIELDS + ("members", "frame_poses", "energies")
+
+
+def shifted_run(out, t0):
+    """The run ``out`` (a dynamics JSON or a recording read back) from its
+    time ``t0`` [s] on, with t0 taken as t = 0: the samples before it
+    dropped from every series, every time shifted (to the nanosecond). A
+    JSON run's series are its ``history_fields`` (with ``time``) and
+    :data:`MEMBER_SAMPLE_KEYS` (with ``members_time``); a recording has one
+    clock, every list as long as it (names aside) is cut with it.
+    ValueError if the run ends before t0."""
+    out = dict(out)
+    t = np.asarray(out["time"], dtype=float)
+    if not len(t) or t[-1] < t0 - 1e-9:
+        raise ValueError(f"--t0 {t0:g} s: the run ends at {t[-1] if len(t) else 0:.6g} s")
+    if "history_fields" in out:
+        clocks = {"time": [k for k in out["history_fields"] if k != "time" and k in out],
+                  "members_time": [k for k in MEMBER_SAMPLE_KEYS if k in out]}
+    else:
+        clocks = {"time": [k for k, v in out.items() if isinstance(v, list) and len(v) == len(t)
+                           and not k.endswith("_names") and k not in ("time", "members_time")],
+                  "members_time": []}           # (a recording's member samples are its states: the same clock)
+    for clock, keys in clocks.items():
+        if clock not in out:
+            continue
+        tc = np.asarray(out[clock], dtype=float)
+        keep = tc >= t0 - 1e-9
+        for k in keys:
+            if isinstance(out[k], list) and len(out[k]) == len(tc):
+                out[k] = [v for v, ok in zip(out[k], keep) if ok]
+        out[clock] = [round(float(x) - t0, 9) for x in tc[keep]]
+    return out
+
+
 class StepInputs:
     """The checked inputs of the steps t0 -> t1 [s] of the theta method:
     the forces (actuation, efforts, loads) at the step's theta point t0 +

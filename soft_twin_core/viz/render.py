@@ -161,7 +161,17 @@ def read_run(args):
     RUN is the JSON of ``soft-twin-sim dynamics`` (read first: a bad file
     is named before the robot is asked for) or an MCAP recording of the
     twin node (:func:`recording.read_node_recording`), of the
-    robot of ``--scenario`` or ``--robot``."""
+    robot of ``--scenario`` or ``--robot``; with ``--t0``, from that time
+    on, taken as t = 0 (:func:`runs.shifted_run`)."""
+    out, mech, name = _read_run(args)
+    t0 = getattr(args, "t0", None)
+    if t0 is not None:
+        from soft_twin_core.files.runs import shifted_run  # here: start-up (numba)
+        out = shifted_run(out, t0)
+    return out, mech, name
+
+
+def _read_run(args):
     out = None
     if not args.run.lower().endswith(".mcap"):
         out = load_run(args.run)

@@ -117,3 +117,24 @@ def test_the_view_draws_coloured_members_the_tip_path_obstacles_and_contact_forc
 def test_panel_values_round_off_to_zero():
     from soft_twin_core.viz.live_view import shown_value
     assert [shown_value(v) for v in (1.483e-10, -3e-12, 2.05123, 1e-6)] == ["0", "0", "2.051", "1e-06"]
+
+
+def test_a_run_shifted_to_its_t0_drops_the_earlier_samples_of_every_series():
+    """``--t0`` (render, view): a dynamics JSON's history series and member
+    samples each cut with their own clock, a recording's lists with its
+    one clock, names kept, times shifted; a t0 past the end refused."""
+    from soft_twin_core.files.runs import shifted_run
+    js = {"time": [0.0, 0.5, 1.0, 1.5], "tip_position": [[0, 0, k] for k in range(4)], "newton_iterations": [1, 2, 3, 4],
+          "history_fields": ["time", "tip_position", "newton_iterations"], "members_time": [0.0, 1.0],
+          "members": [{"a": 0}, {"a": 1}], "frame_poses": [0, 1], "member_names": ["a", "b", "c", "d"]}
+    r = shifted_run(js, 1.0)
+    assert r["time"] == [0.0, 0.5] and r["tip_position"] == [[0, 0, 2], [0, 0, 3]] and r["newton_iterations"] == [3, 4]
+    assert r["members_time"] == [0.0] and r["members"] == [{"a": 1}] and r["frame_poses"] == [1]
+    assert r["member_names"] == ["a", "b", "c", "d"] and js["time"][0] == 0.0          # (a copy)
+    rec = {"time": [0.0, 0.25, 0.5], "members_time": [0.0, 0.25, 0.5], "members": [0, 1, 2], "frame_poses": [0, 1, 2],
+           "frame_positions": [0, 1, 2], "frame_names": ["tip", "x", "y"]}
+    r = shifted_run(rec, 0.25)
+    assert r["time"] == r["members_time"] == [0.0, 0.25] and r["members"] == [1, 2] and r["frame_positions"] == [1, 2]
+    assert r["frame_names"] == ["tip", "x", "y"]
+    with pytest.raises(ValueError, match="ends at 0.5 s"):
+        shifted_run(rec, 2.0)
