@@ -233,15 +233,7 @@ class LiveView:
             for h in self._controls:
                 h.remove()
             self._controls, self._sliders, self._paused_box = [], {}, None
-
-            def hook(handle, call):
-                def run(event):
-                    if event.client is None:      # set here (following the twin's inputs): not the page's
-                        return
-                    self.control_events += 1
-                    call(event.target.value)
-                handle.on_update(run)
-                self._controls.append(handle)
+            hook = self._page_input
 
             if on_pause or on_step or on_reset or on_time_scale:
                 folder = gui.add_folder("run", order=1.0)
@@ -286,6 +278,18 @@ class LiveView:
     def _count(self):
         self.control_events += 1
 
+    def _page_input(self, handle, call):
+        """``call(value)`` when the page changes GUI input ``handle`` (not
+        when this view sets it, following the twin: no echo); the handle
+        kept with the controls (removed with them). Returns the handle."""
+        def run(event):
+            if event.client is not None:
+                self.control_events += 1
+                call(event.target.value)
+        handle.on_update(run)
+        self._controls.append(handle)
+        return handle
+
     def set_target(self, position, on_move, on_apply, modes=None, on_mode=None, scale=0.08):
         """A draggable gizmo at ``position`` [m] (moved along its axes or
         planes; ``on_move(position, phase)`` while it is dragged, phase
@@ -305,14 +309,7 @@ class LiveView:
             self._controls += [handle, folder]
             with folder:
                 if modes:
-                    menu = gui.add_dropdown("drag to", tuple(modes), initial_value=modes[0])
-
-                    @menu.on_update
-                    def _(event):
-                        if event.client is not None:
-                            self.control_events += 1
-                            on_mode(event.target.value)
-                    self._controls.append(menu)
+                    self._page_input(gui.add_dropdown("drag to", tuple(modes), initial_value=modes[0]), on_mode)
                 self._ik_text = gui.add_markdown("drag the gizmo at the tip: inverse kinematics to its position")
                 b = gui.add_button("apply", hint="send the inputs that reach the target, as the sliders do")
                 b.on_click(lambda _: (self._count(), on_apply()))
@@ -347,15 +344,9 @@ class LiveView:
             folder = gui.add_folder("see", order=3.0)
             self._controls.append(folder)
             with folder:
-                for handle, call in ((gui.add_dropdown("colour by", tuple(colourings), initial_value=colourings[0]),
-                                      on_colour),
-                                     (gui.add_checkbox("tip path", bool(trail), hint="the last 10 s"), on_trail)):
-                    def run(event, call=call):
-                        if event.client is not None:
-                            self.control_events += 1
-                            call(event.target.value)
-                    handle.on_update(run)
-                    self._controls.append(handle)
+                self._page_input(gui.add_dropdown("colour by", tuple(colourings), initial_value=colourings[0]),
+                                 on_colour)
+                self._page_input(gui.add_checkbox("tip path", bool(trail), hint="the last 10 s"), on_trail)
 
     def set_playback(self, t0, t1, step, signals, on_play, on_seek, on_speed, on_signal):
         """The controls of a run played back (:mod:`soft_twin_core.viz.playback`):
@@ -369,15 +360,7 @@ class LiveView:
         with self._lock:
             folder = gui.add_folder("playback", order=1.0)
             self._controls.append(folder)
-
-            def hook(handle, call):
-                def run(event):
-                    if event.client is not None:          # the page's, not ours (the slider following)
-                        self.control_events += 1
-                        call(event.target.value)
-                handle.on_update(run)
-                self._controls.append(handle)
-                return handle
+            hook = self._page_input
             with folder:
                 hook(gui.add_checkbox("playing", True), on_play)
                 self._time_slider = hook(gui.add_slider("time [s]", float(t0), float(max(t1, t0 + step)), float(step),
