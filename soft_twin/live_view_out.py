@@ -205,8 +205,9 @@ class LiveViewOutput:
         """What dragging the gizmo does; the gizmo back on the tip."""
         self.gizmo_mode = mode
         if self._latest is not None and self._view is not None:
-            self._view.move_target(self._latest[0].tip_pose[:3, 3])
-            self._view.say_target("drag the gizmo: " + ("a spring of %g N/m from the tip pulls it there (a dead load "
+            p = self._latest[0].tip_pose[:3, 3]
+            self._view.move_target(p)
+            self._view.say_target(f"drag the gizmo (at [{p[0]:.4f}, {p[1]:.4f}, {p[2]:.4f}] m): " + ("a spring of %g N/m from the tip pulls it there (a dead load "
                                                         "on the tip, base axes), until you let go"
                                                         % PUSH_STIFFNESS_N_PER_M if mode != GIZMO_MODES[0] else
                                                         "inverse kinematics to its position"))

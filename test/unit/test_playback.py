@@ -138,3 +138,25 @@ def test_a_run_shifted_to_its_t0_drops_the_earlier_samples_of_every_series():
     assert r["frame_names"] == ["tip", "x", "y"]
     with pytest.raises(ValueError, match="ends at 0.5 s"):
         shifted_run(rec, 2.0)
+
+
+def test_the_camera_projection_is_a_pinhole_of_the_views_field_of_view():
+    """live_view.project (the browser tests aim their drags with it): the
+    point looked at lands on the canvas centre; a point at distance d on
+    the camera's up direction by d tan(fov/2) on the top edge, on its
+    right by d tan(fov/2) width/height on the right edge; the framing
+    puts the box's centre on the canvas, left of the middle."""
+    from soft_twin_core.viz.live_view import FOV_DEG, camera_framing, project
+    cam, look = np.array([1.0, -2.0, 1.0]), np.array([0.2, 0.1, -0.1])
+    w, h = 1000.0, 800.0
+    f = (look - cam) / np.linalg.norm(look - cam)
+    r = np.cross(f, [0, 0, 1.0])
+    r /= np.linalg.norm(r)
+    u = np.cross(r, f)
+    d, tn = np.linalg.norm(look - cam), np.tan(np.radians(FOV_DEG) / 2)
+    P = project(np.array([look, look + d * tn * u, look + d * tn * (w / h) * r]), cam, look, w, h)
+    np.testing.assert_allclose(P, [[500, 400], [500, 0], [1000, 400]], atol=1e-9)
+    lo, hi = np.array([0.0, -0.05, -0.3]), np.array([0.3, 0.05, 0.0])
+    cam, look = camera_framing(lo, hi)
+    (x, y), = project(0.5 * (lo + hi), cam, look, w, h)
+    assert 0 < x < 500 and abs(y - 400) < 1e-6
