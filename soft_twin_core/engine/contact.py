@@ -198,7 +198,9 @@ class ContactState:
     backbone point, outward normal n, gap = d - r [m] (< 0: pressed in),
     force F (3,) [N] on the member (world), its derivative dF/dp (3, 3)
     [N/m] (the damping factor held) and dF/dv (3, 3) [N s/m] (zero
-    without damping)."""
+    without damping): the normal force's, through the backbone point; the
+    friction's, which acts at the contact surface (``-r n`` from the
+    point), in dFf_dp and dFf_dv (:func:`kernels.contact.step_contacts`)."""
     point: np.ndarray
     obstacle: np.ndarray
     p: np.ndarray
@@ -207,13 +209,17 @@ class ContactState:
     force: np.ndarray
     dF_dp: np.ndarray
     dF_dv: np.ndarray = None
-    moment: np.ndarray = None        # (n, 3) [N m] about the contact point: the spin friction (along the normal)
-    slip: np.ndarray = None          # (n, 3) [m/s] tangential velocity of the backbone point
+    moment: np.ndarray = None        # (n, 3) [N m] about the contact point: the spin friction's (along the
+    #                                  normal) and the moment of the friction at the surface, (-r n) x F_t
+    slip: np.ndarray = None          # (n, 3) [m/s] tangential velocity of the contact surface's point
     body: np.ndarray = None          # (n,) the joint of the touched obstacle's body (-1: the world's)
     arm: np.ndarray = None           # (n, 3) [m] from the point's frame origin to the point (a link's offset)
     body_arm: np.ndarray = None      # (n, 3) [m] from the touched body's frame origin to the point
     spin: np.ndarray = None          # (n,) [rad/s] the point's frame's spin about the normal, relative
     dM_dw: np.ndarray = None         # (n,) [N m s] d(spin moment)/d(spin) / theta (zero without spin friction)
+    dFf_dp: np.ndarray = None        # (n, 3, 3) [N/m] the friction's growth with the normal force, through p
+    dFf_dv: np.ndarray = None        # (n, 3, 3) [N s/m] d(friction)/d(surface point's velocity) / theta
+    radius: np.ndarray = None        # (n,) [m] the backbone point's distance from the surface, r
 
     def __len__(self):
         return len(self.point)
@@ -240,7 +246,8 @@ def contact_forces(points, obstacles, p, allowed=None, obs=None):
 
 def _outputs(m):
     return dict(idx=np.empty(m, np.int64), ob=np.empty(m, np.int64), n=np.empty((m, 3)), gap=np.empty(m),
-                F=np.empty((m, 3)), dF=np.empty((m, 3, 3)), dV=np.empty((m, 3, 3)), M=np.empty((m, 3)),
+                F=np.empty((m, 3)), dF=np.empty((m, 3, 3)), dV=np.empty((m, 3, 3)), dFf=np.empty((m, 3, 3)),
+                dVf=np.empty((m, 3, 3)), M=np.empty((m, 3)),
                 slip=np.empty((m, 3)), spin=np.empty(m), dW=np.empty(m))
 
 
@@ -266,8 +273,10 @@ def step_contact_forces(points, obstacles, p0, p1, pt, h, theta, v0=None, obstac
     with it), and ``ovel0`` (O, 6) their velocities at the step's start
     ([at a0; angular], NaN rows for the others). ``spin``: (R0, R1, w0),
     the points' frames' rotations (P, 3, 3) at the step's ends and angular
-    velocities (P, 3) at its start, for torsional friction (None: none
-    acts). The pass: :func:`kernels.contact.step_contacts`."""
+    velocities (P, 3) at its start, for torsional friction and for the
+    friction at the contact surface (None: the points' frames do not
+    turn; refused with torsional friction, or friction on an obstacle
+    that moves). The pass: :func:`kernels.contact.step_contacts`."""
     p0, p1, pt = (np.ascontiguousarray(x, dtype=float) for x in (p0, p1, pt))
     if posed is not None:
         obs0, obs, obst = posed
@@ -286,19 +295,22 @@ def step_contact_forces(points, obstacles, p0, p1, pt, h, theta, v0=None, obstac
     if ovel0 is None:
         ovel0 = np.full((len(obstacles), 6), np.nan)
     if spin is None:
-        if np.any(obs.torsion > 0):
-            raise ValueError("spin: an obstacle has torsional friction; give the points' frames' rotations")
+        if np.any(obs.torsion > 0) or np.any((obs.friction > 0) & moving):
+            raise ValueError("spin: an obstacle has torsional friction, or moves with friction; give the "
+                             "points' frames' rotations")
         eye = np.broadcast_to(np.eye(3), (p0.shape[0], 3, 3))
         spin = (eye, eye, np.zeros_like(p0))
     R0, R1, w0 = (np.ascontiguousarray(x, dtype=float) for x in spin)
     c = kc.step_contacts(points.radius, points.modulus, points.weight, allowed, obs, obs0, obst, moving,
                          np.ascontiguousarray(ovel0, float), p0, p1, pt, float(h),
                          float(theta), v, v0 is not None, R0, R1, w0, out["idx"], out["ob"], out["n"], out["gap"],
-                         out["F"], out["dF"], out["dV"], out["M"], out["slip"], out["spin"], out["dW"])
+                         out["F"], out["dF"], out["dV"], out["dFf"], out["dVf"], out["M"], out["slip"], out["spin"],
+                         out["dW"])
     i = out["idx"][:c]
     return ContactState(i.copy(), out["ob"][:c].copy(), pt[i], *(out[k][:c].copy() for k in
                                                                     ("n", "gap", "F", "dF", "dV", "M", "slip")),
-                        spin=out["spin"][:c].copy(), dM_dw=out["dW"][:c].copy())
+                        spin=out["spin"][:c].copy(), dM_dw=out["dW"][:c].copy(), dFf_dp=out["dFf"][:c].copy(),
+                        dFf_dv=out["dVf"][:c].copy(), radius=points.radius[i].copy())
 
 
 def friction_force(fn, vt, mu, v_s):

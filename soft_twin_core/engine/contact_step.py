@@ -80,55 +80,78 @@ def _positions(m, w, q, v, a, level, pj, px, poff, G, out):
 
 
 @_jit_inline
-def _transition_alpha(m, w, pj, px, pt, idx, ob_of, obs, n_out, slip, dv, c):
+def _transition_alpha(m, w, pj, px, prad, pt, idx, ob_of, obs, n_out, slip, dv, c):
     """The fraction of the update dv that no frictional contact's slip
-    jumps across its stiction zone with (:func:`kernels.contact.transition_fraction`;
-    the workspace posed at the theta point)."""
-    nf = 0
-    for k in range(c):
-        if obs.friction[ob_of[k]] > 0.0:
-            nf += 1
-    if nf == 0:
-        return 1.0
-    rows = np.empty(nf, np.int64)
-    body = np.empty(nf, np.int64)
-    e = 0
-    for k in range(c):
-        if obs.friction[ob_of[k]] > 0.0:
-            rows[e], body[e] = k, obs.body[ob_of[k]]
-            e += 1
+    (the surface point's) jumps across its stiction zone with
+    (:func:`kernels.contact.transition_fraction`; the workspace posed at
+    the theta point)."""
     nv = dv.shape[0]
-    J = np.empty((nf, 3, nv))
-    relative_point_jacobians(m, w, pj[idx[rows]], px[idx[rows]], body, pt[idx[rows]], J, np.empty((nf, 3, nv)))
+    Js = np.empty((3, nv))
     alpha = 1.0
     d = np.empty(3)
-    for e in range(nf):
-        k = rows[e]
+    for k in range(c):
+        o = ob_of[k]
+        if obs.friction[o] <= 0.0:
+            continue
+        i = idx[k]
+        _surface_jacobian(m, w, pj[i], px[i], prad[i], obs.body[o], pt[i], n_out[k], Js)
         for r in range(3):
             acc = 0.0
             for j in range(nv):
-                acc += J[e, r, j] * dv[j]
+                acc += Js[r, j] * dv[j]
             d[r] = acc
         dn = d[0] * n_out[k, 0] + d[1] * n_out[k, 1] + d[2] * n_out[k, 2]
         for r in range(3):
             d[r] -= dn * n_out[k, r]
-        alpha = min(alpha, transition_fraction(slip[k], d, obs.stiction[ob_of[k]]))
+        alpha = min(alpha, transition_fraction(slip[k], d, obs.stiction[o]))
     return alpha
+
+
+@_jit_inline
+def _angular_jacobian(m, w, j, x, body, out):
+    """out (3, nv): the Jacobian of the angular velocity of frame (j, x)
+    relative to joint ``body``'s output frame (-1: the world), world axes."""
+    g = np.empty((4, 4))
+    Js = np.empty((6, out.shape[1]))
+    spatial_jacobian(m, w, j, x, g, Js)
+    for r in range(3):
+        for c in range(out.shape[1]):
+            out[r, c] = Js[3 + r, c]
+    if body >= 0:
+        spatial_jacobian(m, w, body, -1.0, g, Js)
+        for r in range(3):
+            for c in range(out.shape[1]):
+                out[r, c] -= Js[3 + r, c]
+
+
+@_jit_inline
+def _surface_jacobian(m, w, j, x, r, body, p, n, out):
+    """out (3, nv): the Jacobian of the velocity of the contact surface's
+    point, ``-r n`` from the point p of frame (j, x), relative to joint
+    ``body``'s output frame: ``J_p + r [n x] J_omega``."""
+    nv = out.shape[1]
+    Jp = np.empty((1, 3, nv))
+    Jb = np.empty((1, 3, nv))
+    pp = np.empty((1, 3))
+    for q in range(3):
+        pp[0, q] = p[q]
+    relative_point_jacobians(m, w, np.array([j]), np.array([x]), np.array([body]), pp, Jp, Jb)
+    Jw = np.empty((3, nv))
+    _angular_jacobian(m, w, j, x, body, Jw)
+    for c in range(nv):
+        out[0, c] = Jp[0, 0, c] + r * (n[1] * Jw[2, c] - n[2] * Jw[1, c])
+        out[1, c] = Jp[0, 1, c] + r * (n[2] * Jw[0, c] - n[0] * Jw[2, c])
+        out[2, c] = Jp[0, 2, c] + r * (n[0] * Jw[1, c] - n[1] * Jw[0, c])
 
 
 @_jit_inline
 def _spin_jacobian(m, w, j, x, body, n, out):
     """out (nv,): the Jacobian of the spin about n of frame (j, x) relative
     to joint ``body``'s output frame (-1: the world)."""
-    g = np.empty((4, 4))
-    Js = np.empty((6, out.shape[0]))
-    spatial_jacobian(m, w, j, x, g, Js)
+    Jw = np.empty((3, out.shape[0]))
+    _angular_jacobian(m, w, j, x, body, Jw)
     for c in range(out.shape[0]):
-        out[c] = n[0] * Js[3, c] + n[1] * Js[4, c] + n[2] * Js[5, c]
-    if body >= 0:
-        spatial_jacobian(m, w, body, -1.0, g, Js)
-        for c in range(out.shape[0]):
-            out[c] -= n[0] * Js[3, c] + n[1] * Js[4, c] + n[2] * Js[5, c]
+        out[c] = n[0] * Jw[0, c] + n[1] * Jw[1, c] + n[2] * Jw[2, c]
 
 
 @_jit_inline
@@ -164,14 +187,16 @@ def _cross_matrix(f):
 
 
 @_jit_inline
-def _newton_inverse(m, w, act, ldc, g, coef, K, D, qt, h, theta, pj, px, pt, idx, ob_of, obody, F, dF, dV, c,
-                    zeros, fixed, Ainv, Afix, n_out, dW):
+def _newton_inverse(m, w, act, ldc, g, coef, K, D, qt, h, theta, pj, px, prad, pt, idx, ob_of, obody, F, dF, dV,
+                    dFf, dVf, c, zeros, fixed, Ainv, Afix, n_out, dW):
     """Ainv = ((M + th h D_t + (th h)^2 K_t) / h)^-1 at q_t, the rows and
     columns of the ``fixed`` (prescribed) velocities replaced by the
     identity's (their rows of the full matrix into Afix); False if
     singular. A contact's stiffness acts through the velocity of its point
     relative to the body carrying the obstacle (the world's: at rest), and
     its force turns with that body: ``dF = dF/dp J_rel dq - [F x] J_w dq``;
+    its friction's through the contact surface's point's Jacobian J_s
+    (:func:`_surface_jacobian`): ``J_s^T dFf J`` and ``J_s^T dVf J_s``;
     its spin friction's damping through the spin's Jacobian
     (:meth:`soft_twin_core.solve.contact.MemberContact.add_stiffness`)."""
     nv = K.shape[0]
@@ -201,6 +226,19 @@ def _newton_inverse(m, w, act, ldc, g, coef, K, D, qt, h, theta, pj, px, pt, idx
                 Kt -= np.ascontiguousarray(Jw[k].T) @ (X @ Jl)
             Kt -= JT @ KJ
             Dt -= JT @ DJ
+        Jsf = np.empty((3, nv))
+        for k in range(c):
+            fr = False
+            for r in range(3):
+                for q in range(3):
+                    if dFf[k, r, q] != 0.0 or dVf[k, r, q] != 0.0:
+                        fr = True
+            if fr:
+                i = idx[k]
+                _surface_jacobian(m, w, pj[i], px[i], prad[i], body[k], pt[i], n_out[k], Jsf)
+                JsT = np.ascontiguousarray(Jsf.T)
+                Kt -= JsT @ (dFf[k] @ J[k])
+                Dt -= JsT @ (dVf[k] @ Jsf)
         Js = np.empty(nv)
         for k in range(c):
             if dW[k] != 0.0:
@@ -237,7 +275,8 @@ def _newton_inverse(m, w, act, ldc, g, coef, K, D, qt, h, theta, pj, px, pt, idx
 @_jit
 def contact_step(m, w, act, ld, g, coef, effort, K, D, q_ref, elastic_noise, q0, v0, h, theta, tol, floor,
                  max_it, pj, px, poff, prad, pmod, pw, allowed, obs, obs0, P0, P1, Pt, moving, fixed, Ainv, Afix,
-                 key, reuse, v1, q1, pt, R, idx, ob_of, n_out, gap, F, dF, dV, M, slip, arm, barm, spin, dW):
+                 key, reuse, v1, q1, pt, R, idx, ob_of, n_out, gap, F, dF, dV, dFf, dVf, M, slip, arm, barm, spin,
+                 dW):
     """One step from (q0, v0) (guess v1, updated in place; q1 receives the
     end configuration, pt the contact points' positions at the theta point
     of the last iterate, R the residual there). The velocities ``fixed``
@@ -272,9 +311,9 @@ def contact_step(m, w, act, ld, g, coef, effort, K, D, q_ref, elastic_noise, q0,
         for o in range(obs.kind.shape[0]):
             if obs.body[o] >= 0:
                 ovel0[o, :] = tw[o, :]
-    spins = False
+    spins = False                # the points' frames' rotations: torsional friction, friction (rolling)
     for o in range(obs.kind.shape[0]):
-        if obs.torsion[o] > 0.0:
+        if obs.torsion[o] > 0.0 or obs.friction[o] > 0.0:
             spins = True
     R0 = np.empty((P, 3, 3))
     R1 = np.empty((P, 3, 3))
@@ -317,7 +356,7 @@ def contact_step(m, w, act, ld, g, coef, effort, K, D, q_ref, elastic_noise, q0,
         if touching:
             pose_obstacles(w, obs, Pt)
         c = step_contacts(prad, pmod, pw, allowed, P1, P0, Pt, moving, ovel0, p0, p1, pt, h, theta, pv0, True,
-                          R0, R1, w0, idx, ob_of, n_out, gap, F, dF, dV, M, slip, spin, dW)
+                          R0, R1, w0, idx, ob_of, n_out, gap, F, dF, dV, dFf, dVf, M, slip, spin, dW)
         ldc = _with_contact_loads(w, ld, pj, px, G, pt, idx, ob_of, obs.body, F, M, c, arm, barm)
         if refactor:
             same = reuse and it == 1 and key[0] == c
@@ -326,8 +365,8 @@ def contact_step(m, w, act, ld, g, coef, effort, K, D, q_ref, elastic_noise, q0,
                     if key[1 + k] != ob_of[k] * P + idx[k]:
                         same = False
             if not same:
-                if not _newton_inverse(m, w, act, ldc, g, coef, K, D, qt, h, theta, pj, px, pt, idx, ob_of,
-                                       obs.body, F, dF, dV, c, zeros, fixed, Ainv, Afix, n_out, dW):
+                if not _newton_inverse(m, w, act, ldc, g, coef, K, D, qt, h, theta, pj, px, prad, pt, idx, ob_of,
+                                       obs.body, F, dF, dV, dFf, dVf, c, zeros, fixed, Ainv, Afix, n_out, dW):
                     return it, 4, c, factorised
                 passes.forward_pass(m, w, qt, vt, acc, 2)             # (it posed the workspace at rest)
                 factorised += 1
@@ -370,7 +409,7 @@ def contact_step(m, w, act, ld, g, coef, effort, K, D, q_ref, elastic_noise, q0,
                     if not fixed[j]:
                         s -= Ainv[i, j] * R[j]
             dv[i] = s
-        alpha = _transition_alpha(m, w, pj, px, pt, idx, ob_of, obs, n_out, slip, dv, c)
+        alpha = _transition_alpha(m, w, pj, px, prad, pt, idx, ob_of, obs, n_out, slip, dv, c)
         if spins:
             alpha = min(alpha, _spin_alpha(m, w, pj, px, idx, ob_of, obs, n_out, spin, dv, c))
         ndv, vmax = 0.0, 0.0

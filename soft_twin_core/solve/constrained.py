@@ -840,8 +840,9 @@ class MechanismSimulator:
             held.update(inputs=inp, coef=coef, loads=concat_loads(inp.loads))
         size = len(pts) * len(obstacles)
         out = (np.empty(size, np.int64), np.empty(size, np.int64), np.empty((size, 3)), np.empty(size),
-               np.empty((size, 3)), np.empty((size, 3, 3)), np.empty((size, 3, 3)), np.empty((size, 3)),
-               np.empty((size, 3)), np.empty((size, 3)), np.empty((size, 3)), np.empty(size), np.empty(size))
+               np.empty((size, 3)), np.empty((size, 3, 3)), np.empty((size, 3, 3)), np.empty((size, 3, 3)),
+               np.empty((size, 3, 3)), np.empty((size, 3)), np.empty((size, 3)), np.empty((size, 3)),
+               np.empty((size, 3)), np.empty(size), np.empty(size))
         v1, q1, pt, R = self.v.copy(), np.empty(tree.nq), np.empty((len(pts), 3)), np.empty(tree.nv)
         pv, th = self._pos_v, self.theta
         if pv.size:
@@ -866,9 +867,10 @@ class MechanismSimulator:
             v1[pv] = inp.v_cmd if inp.v_cmd is not None else (q1[self._pos_q] - self.q[self._pos_q]) / h
             self.lam = R[pv].copy()
         self.q, self.v = q1, v1
-        self.contacts = ContactState(idx, out[1][:c], pt[idx], *(x[:c] for x in out[2:9]), body=obs.body[out[1][:c]],
-                                     arm=out[9][:c], body_arm=out[10][:c], spin=out[11][:c],
-                                     dM_dw=out[12][:c]) if contact else None
+        n_, gap, F, dF, dV, dFf, dVf, M, slip, arm, barm, spin, dW = (x[:c] for x in out[2:])
+        self.contacts = ContactState(idx, out[1][:c], pt[idx], n_, gap, F, dF, dV, M, slip, body=obs.body[out[1][:c]],
+                                     arm=arm, body_arm=barm, spin=spin, dM_dw=dW, dFf_dp=dFf, dFf_dv=dVf,
+                                     radius=pts.radius[idx]) if contact else None
         self.t += h
         self.iterations = it
         self.newton_iterations += it

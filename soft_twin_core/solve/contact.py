@@ -93,7 +93,8 @@ def contacts_dict(mech, st, obstacles=None):
 def _subset(st, rows):
     """The contacts ``rows`` of a ContactState (the fields slip_jacobians reads)."""
     return ContactState(st.point[rows], st.obstacle[rows], st.p[rows], st.normal[rows], st.gap[rows],
-                        st.force[rows], st.dF_dp[rows], body=None if st.body is None else st.body[rows])
+                        st.force[rows], st.dF_dp[rows], body=None if st.body is None else st.body[rows],
+                        radius=None if st.radius is None else st.radius[rows])
 
 
 class MemberContact:
@@ -109,7 +110,8 @@ class MemberContact:
         self.points = mechanism_contact_points(mech) if self.all else None
         self.allowed = contact_mask(mech.tree, self.points, self.all) if self.all else None
         self._local = obstacle_arrays(self.all) if self.all else None
-        self.spins = bool(self.all) and bool(np.any(self._local.torsion > 0))   # any torsional friction
+        # the points' frames' rotations are needed: torsional friction, or friction (at the surface: rolling)
+        self.turns = bool(self.all) and bool(np.any((self._local.torsion > 0) | (self._local.friction > 0)))
 
     def __bool__(self):
         return bool(self.all) and len(self.points) > 0 and bool(self.allowed.any())
@@ -151,8 +153,8 @@ class MemberContact:
         """(positions, velocities) (P, 3) of the contact points at (q, v),
         the obstacles' arrays posed at q (``obstacles``: the world's where
         they are then, default this contact's), the bodies' twists and,
-        with torsional friction, the points' frames' (rotations, angular
-        velocities) (else None)."""
+        with friction, the points' frames' (rotations, angular velocities)
+        (else None)."""
         p = self.positions(ws, q)
         P = len(self.points)
         J = np.empty((P, 3, len(v)))
@@ -163,7 +165,7 @@ class MemberContact:
         tw = np.empty((len(self.all), 6))
         body_point_twists(ws.m, ws.w, local.body, posed.a, np.ascontiguousarray(v, float), tw)
         tw[local.body < 0] = np.nan
-        spin0 = self.spin_state(ws, v)[:2] if self.spins else None
+        spin0 = self.spin_state(ws, v)[:2] if self.turns else None
         return p, J @ v, posed, tw, spin0
 
     def _with_arms(self, ws, st, G):
@@ -216,8 +218,11 @@ class MemberContact:
         that body, J_w its angular velocity's Jacobian), and the reaction's
         lever arm grows with the relative motion: ``Kt -= J_w^T [F x] J``
         (checked against finite differences of the residual in the tests).
-        ``Dt``: also Dt -= J^T dF/dv J (the contacts' damping) and, for
-        spin friction, ``J_s^T dm/dspin J_s`` with J_s = n^T (J_frame -
+        The friction acts at the contact surface: its growth with the
+        normal force as ``Kt -= J_s^T dFf/dp J`` (J_s: the surface point's
+        Jacobian, :meth:`surface_jacobians`). ``Dt``: also Dt -= J^T dF/dv
+        J (the normal damping), ``J_s^T dFf/dv J_s`` (the friction's) and,
+        for spin friction, ``J_n^T dm/dspin J_n`` with J_n = n^T (J_frame -
         J_w) the spin's Jacobian."""
         n = len(st)
         if not n:
@@ -239,33 +244,57 @@ class MemberContact:
             # the reaction's point of application moves over the body: d(-J_b(p)^T F)/dp J_rel = J_w^T [F x] J_rel
             Kt -= scale * (Jw.reshape(3 * n, -1).T @ np.matmul(X, J).reshape(3 * n, -1))
         Kt -= scale * (Jf.T @ dFq.reshape(3 * n, -1))
+        fr = st.dFf_dp is not None and (np.any(st.dFf_dp != 0) or np.any(st.dFf_dv != 0))
+        Jm = self._angular_jacobians(ws, st, Jw) if fr or (st.dM_dw is not None and np.any(st.dM_dw != 0)) \
+            else None
+        if fr:
+            Js = self._surface(st, J, Jm).reshape(3 * n, -1)
+            Kt -= scale * (Js.T @ np.matmul(st.dFf_dp, J).reshape(3 * n, -1))
         if Dt is not None:
             Dt -= Jf.T @ np.matmul(st.dF_dv, J).reshape(3 * n, -1)
+            if fr:
+                Dt -= Js.T @ np.matmul(st.dFf_dv, Js.reshape(n, 3, -1)).reshape(3 * n, -1)
             if st.dM_dw is not None and np.any(st.dM_dw != 0):
-                Js = self._spin_jacobians(ws, st, Jw)
-                Dt -= Js.T @ (st.dM_dw[:, None] * Js)
+                Jn = np.einsum("ck,ckv->cv", st.normal, Jm)
+                Dt -= Jn.T @ (st.dM_dw[:, None] * Jn)
         return Kt
 
-    def _spin_jacobians(self, ws, st, Jw):
-        """(c, nv): each contact's spin's Jacobian ``n^T (J_frame - J_w)``
-        (Jw: the touched bodies' angular velocities' Jacobians; the
-        workspace posed at the contacts' configuration)."""
+    def _angular_jacobians(self, ws, st, Jw):
+        """(c, 3, nv): the Jacobians of each contact's frame's angular
+        velocity relative to the touched body's, ``J_frame - J_w`` (Jw:
+        the bodies'; the workspace posed at the contacts' configuration)."""
         n, nv = len(st), Jw.shape[2]
         Jm = np.empty((n, 3, nv))
         frame_spins(ws.m, ws.w, np.ascontiguousarray(self.points.joint[st.point]),
                     np.ascontiguousarray(self.points.x[st.point]), np.zeros(nv), np.empty((n, 3, 3)),
                     np.empty((n, 3)), Jm)
-        return np.einsum("ck,ckv->cv", st.normal, Jm - Jw)
+        return Jm - Jw
 
-    def slip_jacobians(self, ws, st):
-        """(c, 3, nv): each contact's slip velocity's Jacobian, ``(I - n
-        n^T) J_rel`` (the workspace posed where ``st`` was made)."""
+    @staticmethod
+    def _surface(st, J, Jm):
+        """(c, 3, nv): the surface points' velocities' Jacobians, ``J + r
+        [n x] J_omega`` (the point -r n from the backbone point's; J, Jm
+        its velocity's and its frame's angular velocity's, relative)."""
+        r = st.radius if st.radius is not None else np.zeros(len(st))
+        return J + r[:, None, None] * np.cross(st.normal[:, :, None], Jm, axisa=1, axisb=1, axisc=1)
+
+    def surface_jacobians(self, ws, st):
+        """(c, 3, nv): each contact's surface point's velocity Jacobian
+        relative to the touched body, ``J_s = J_p + r [n x] J_omega`` (the
+        workspace posed where ``st`` was made)."""
         n = len(st)
         body = st.body if st.body is not None else np.full(n, -1, np.int64)
         J = np.empty((n, 3, len(ws.zeros_v)))
+        Jw = np.empty_like(J)
         relative_point_jacobians(ws.m, ws.w, np.ascontiguousarray(self.points.joint[st.point]),
                                  np.ascontiguousarray(self.points.x[st.point]), np.ascontiguousarray(body),
-                                 np.ascontiguousarray(st.p), J, np.empty_like(J))
+                                 np.ascontiguousarray(st.p), J, Jw)
+        return self._surface(st, J, self._angular_jacobians(ws, st, Jw))
+
+    def slip_jacobians(self, ws, st):
+        """(c, 3, nv): each contact's slip velocity's Jacobian, ``(I - n
+        n^T) J_s`` (the surface point's: :meth:`surface_jacobians`)."""
+        J = self.surface_jacobians(ws, st)
         N = st.normal
         return J - N[:, :, None] * np.einsum("ck,ckv->cv", N, J)[:, None, :]
 
@@ -291,7 +320,7 @@ class MemberContact:
             relative_point_jacobians(ws.m, ws.w, np.ascontiguousarray(self.points.joint[st.point[sub]]),
                                      np.ascontiguousarray(self.points.x[st.point[sub]]), np.ascontiguousarray(body),
                                      np.ascontiguousarray(st.p[sub]), J, Jw)
-            ds = self._spin_jacobians(ws, _subset(st, sub), Jw) @ dv
+            ds = np.einsum("ck,ckv->cv", st.normal[sub], self._angular_jacobians(ws, _subset(st, sub), Jw)) @ dv
             rim = np.zeros((len(sub), 3))
             drim = np.zeros((len(sub), 3))
             rim[:, 0], drim[:, 0] = mu_t[sub] * st.spin[sub], mu_t[sub] * ds

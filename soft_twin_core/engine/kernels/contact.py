@@ -478,7 +478,7 @@ def rest_contacts(radius, modulus, weight, allowed, obs, p, idx, ob_of, n_out, g
 
 @_jit
 def step_contacts(radius, modulus, weight, allowed, obs, obs0, obst, moving, ovel0, p0, p1, pt, h, theta, v0,
-                  use_v0, R0, R1, w0, idx, ob_of, n_out, gap, F, dF, dV, M, slip, spin, dW):
+                  use_v0, R0, R1, w0, idx, ob_of, n_out, gap, F, dF, dV, dFf, dVf, M, slip, spin, dW):
     """A time step from positions p0 to p1 (P, 3), forces at the theta
     point pt: every ``allowed`` (P, O) pair pressed in at either end,
     obstacle-major (sizes P O; returns the count). The obstacles: ``obs``
@@ -486,21 +486,34 @@ def step_contacts(radius, modulus, weight, allowed, obs, obs0, obst, moving, ove
     point (the same for those that do not move). The normal force is the
     mean force of the penetrations at the ends (against obs0 at the start
     for a ``moving`` obstacle), along the normal at pt, times the
-    Hunt-Crossley factor ``max(1 + alpha (delta1 - delta0)/h, 0)``;
-    friction acts against the slip at the end of the step (v0: the points'
-    start velocities, ``use_v0``), relative to a moving obstacle's
-    material point (the one at p1 at the end was at ``x0 = a0 + R0 R1^T
-    (p1 - a1)`` at the start: translation and rotation; its velocity at the
-    end of the step, from the mean ``(p1 - x0) / h`` and, for the bodies'
-    shapes, its velocity at the start, ``ovel0`` (O, 6): [velocity at a0;
-    angular velocity]; NaN: the mean for a prescribed motion), at the
-    backbone point. An obstacle with torsional friction (``obs.torsion``)
-    resists the spin about the normal of the point's frame (rotations R0,
-    R1 (P, 3, 3) at the step's ends, angular velocities w0 (P, 3) at its
-    start) relative to the obstacle (its rotation over the step, and its
-    start angular velocity from ovel0), at the step's end as the slip:
-    M = m n (:func:`spin_friction`), spin its rate [rad/s], dW = dm/dspin /
-    theta; M = 0 without. dF: through p1 (1/theta), dV: d F/d v1."""
+    Hunt-Crossley factor ``max(1 + alpha (delta1 - delta0)/h, 0)``.
+
+    Friction acts at the contact surface, the point ``l = -r n`` from the
+    backbone point, against that point's slip at the end of the step (as
+    implicit Euler would): ``(I - n n^T) v_p + (omega_rel x l)``, v_p the
+    backbone point's velocity (v0: the points' start velocities,
+    ``use_v0``) relative to a moving obstacle's material point (the one at
+    p1 at the end was at ``x0 = a0 + R0 R1^T (p1 - a1)`` at the start:
+    translation and rotation; its velocity at the end of the step, from
+    the mean ``(p1 - x0) / h`` and, for the bodies' shapes, its velocity at
+    the start, ``ovel0`` (O, 6): [velocity at a0; angular velocity]; NaN:
+    the mean for a prescribed motion), omega_rel the angular velocity of
+    the point's frame (rotations R0, R1 (P, 3, 3) at the step's ends,
+    angular velocity w0 (P, 3) at its start) relative to the obstacle's.
+    So a cross-section rolling without slip feels no friction (a ball on
+    an incline rolls at 5/7 g sin(alpha)), and friction only ever
+    dissipates. On the backbone point it is the force Ft and the moment
+    ``l x Ft``. An obstacle with torsional friction (``obs.torsion``)
+    resists the spin about the normal, omega_rel . n: ``M += m n``
+    (:func:`spin_friction`), spin its rate [rad/s], dW = dm/dspin / theta.
+
+    Outputs: F, M the force and moment on the backbone point; dF (the
+    normal force's, through p1: 1/theta) and dV (d/dv1) act through the
+    backbone point's Jacobian J_p; the friction's dFf (through p1, its
+    normal force's growth) acts as ``J_s^T dFf J_p`` and its dVf as
+    ``J_s^T dVf J_s``, with J_s = J_p + r [n x] J_omega the surface
+    point's Jacobian (:func:`soft_twin_core.engine.contact_step._surface_jacobian`);
+    slip: the surface point's tangential velocity."""
     n = np.empty(3)
     H = np.empty((3, 3))
     n0 = np.empty(3)
@@ -559,11 +572,12 @@ def step_contacts(radius, modulus, weight, allowed, obs, obs0, obst, moving, ove
             for r in range(3):
                 sl[r] = vel[r] - vn * n[r]
                 n_out[c, r] = n[r]
-                slip[c, r] = sl[r]
                 F[c, r] = fn * n[r]
                 M[c, r] = 0.0
             spin[c], dW[c] = 0.0, 0.0
-            if obs.torsion[o] > 0.0:
+            rolls = obs.friction[o] > 0.0 and r_i > 0.0
+            if obs.torsion[o] > 0.0 or rolls:
+                # the frame's angular velocity at the step's end, relative to the obstacle's
                 rotation_rate(R0[i], R1[i], h, wm)
                 wo[:] = 0.0
                 if moving[o]:
@@ -573,25 +587,31 @@ def step_contacts(radius, modulus, weight, allowed, obs, obs0, obst, moving, ove
                         wm[r] = (wm[r] - (1.0 - theta) * w0[i, r]) / theta
                         if not np.isnan(ovel0[o, 0]):
                             wo[r] = (wo[r] - (1.0 - theta) * ovel0[o, 3 + r]) / theta
-                om = 0.0
-                for r in range(3):
-                    om += (wm[r] - wo[r]) * n[r]
+                    wm[r] -= wo[r]
+            if obs.torsion[o] > 0.0:
+                om = wm[0] * n[0] + wm[1] * n[1] + wm[2] * n[2]
                 mt, dm = spin_friction(fn, om, obs.torsion[o], obs.stiction[o])
                 spin[c], dW[c] = om, dm / theta
                 for r in range(3):
                     M[c, r] = mt * n[r]
+            if rolls:               # the surface point's slip: + omega x (-r n) = r n x omega
+                sl[0] += r_i * (n[1] * wm[2] - n[2] * wm[1])
+                sl[1] += r_i * (n[2] * wm[0] - n[0] * wm[2])
+                sl[2] += r_i * (n[0] * wm[1] - n[1] * wm[0])
             for r in range(3):
+                slip[c, r] = sl[r]
                 for s in range(3):
                     dF[c, r, s] = w * fac * (-(dfbar / theta) * n[r] * n[s] + fbar * H[r, s])
                     dV[c, r, s] = -w * fbar * dv * n[r] * n[s]
+                    dFf[c, r, s] = 0.0
+                    dVf[c, r, s] = 0.0
             if obs.friction[o] > 0.0:
                 friction(fn, sl, obs.friction[o], obs.stiction[o], Ft, dFt)
-                # the friction acts at the backbone point, where its slip is measured (so it only ever
-                # dissipates: at the surface, -r n from it, with the slip of the backbone point, its moment
-                # would work against the cross-section's rotation, and can pump energy into a grasp)
-                # slip = (I - n n^T) v1: Newton's matrix has theta Dt; friction grows with the normal
-                # force: dFt/dp = -mu (slip/s) dfn/dp^T, dfn/dp = -w fac fbar'/theta n
+                # slip = (I - n n^T) v1 + ...: Newton's matrix has theta Dt; friction grows with the normal
+                # force: dFt/dp = -mu (slip/s) dfn/dp^T, dfn/dp = -w fac fbar'/theta n, and with its
+                # Hunt-Crossley factor: dfn/dv = -w fbar alpha n (as dV)
                 g = w * fac * dfbar / theta
+                gv = w * fbar * dv
                 for r in range(3):
                     F[c, r] += Ft[r]
                     unit = Ft[r] / max(fn, 1e-300)
@@ -599,8 +619,12 @@ def step_contacts(radius, modulus, weight, allowed, obs, obs0, obst, moving, ove
                         acc = 0.0
                         for q in range(3):
                             acc += dFt[r, q] * ((1.0 if q == s else 0.0) - n[q] * n[s])
-                        dV[c, r, s] += acc / theta
-                        dF[c, r, s] -= unit * g * n[s]
+                        dVf[c, r, s] = acc / theta - unit * gv * n[s]
+                        dFf[c, r, s] = -unit * g * n[s]
+                if rolls:           # its moment about the backbone point: (-r n) x Ft
+                    M[c, 0] -= r_i * (n[1] * Ft[2] - n[2] * Ft[1])
+                    M[c, 1] -= r_i * (n[2] * Ft[0] - n[0] * Ft[2])
+                    M[c, 2] -= r_i * (n[0] * Ft[1] - n[1] * Ft[0])
             c += 1
     return c
 
