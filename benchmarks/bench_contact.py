@@ -13,7 +13,7 @@ ratio; and the statics solve from the settled state.
 Issue 27's goal: at most 2x the cost without contact at the same dt.
 
 Run: .venv/bin/python benchmarks/bench_contact.py [--sections 5 10 20] [--spacing 0.045]
-(--spacing 0.03: about 10 contacts pressed)
+(--spacing 0.03: about 10 contacts pressed; --friction 0.5: friction at the contact surface)
 """
 
 import argparse
@@ -28,7 +28,7 @@ from soft_twin_core.robot.model import model_from_dict
 from soft_twin_core.solve.constrained import MechanismSimulator, solve_equilibrium
 
 
-def arm(n, table, spacing=0.045):
+def arm(n, table, spacing=0.045, friction=0.0):
     d = {"name": f"arm_{n}", "gravity": [0, 0, -9.81],
          "segments": [{"name": "arm", "length": 0.45, "sections": n,
                        "cross_section": {"shape": "solid_circle", "radius": 0.010},
@@ -37,7 +37,7 @@ def arm(n, table, spacing=0.045):
                        "free_modes": "bending_torsion"}]}
     if table:
         d["obstacles"] = [{"name": "table", "type": "plane", "point": [0, 0, -0.012], "normal": [0, 0, 1],
-                           "damping": 5.0}]
+                           "damping": 5.0, "friction": friction, "stiction_velocity": 1e-3}]
         d["contact"] = {"spacing": spacing}
     return from_robot_model(model_from_dict(d), d)
 
@@ -46,17 +46,18 @@ def main():
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--sections", type=int, nargs="+", default=[5, 10, 20])
     ap.add_argument("--spacing", type=float, default=0.045, help="between contact points [m]")
+    ap.add_argument("--friction", type=float, default=0.0, help="the table's Coulomb mu (stiction velocity 1 mm/s)")
     args = ap.parse_args()
-    print(f"# {machine()}, load {os.getloadavg()[0]:.2f}")
+    print(f"# {machine()}, load {os.getloadavg()[0]:.2f}, friction {args.friction:g}")
     print(f"{'sections':>8} {'contacts':>8} {'free step':>12} {'on table':>12} {'ratio':>6} {'statics':>12}")
     for n in args.sections:
         times = []
         for table in (False, True):
-            mech = arm(n, table, args.spacing)
+            mech = arm(n, table, args.spacing, args.friction)
             sim = MechanismSimulator(mech, 2e-3, 0.5, tol=1e-6)
             sim.step(n=500)                      # settle (and compile)
             times.append(per_call(lambda: sim.step(), number=50))
-        mech = arm(n, True, args.spacing)
+        mech = arm(n, True, args.spacing, args.friction)
         eq = solve_equilibrium(mech)
         t0 = time.perf_counter()
         solve_equilibrium(mech, q_init=eq.q)

@@ -5,8 +5,8 @@
                   [--output FILE] [--backbone-every K] [--record-every K] [--theta 0.5]
     soft-twin-sim study STUDY.yaml [-o OUT] [--scheduler ADDRESS | --workers N | --serial]
     soft-twin-sim workspace ROBOT_OR_SCENARIO [-o OUT] [--limit MAX] [--samples N]
-    soft-twin-sim plan PLAN_FILE [--output PREFIX] [--no-dynamics] [--plot DIR]
-    ... [--plot DIR] [--animate FILE.gif|FILE.mp4] [--fps HZ]     (statics and dynamics; soft_twin_core.viz.render)
+    soft-twin-sim plan PLAN_FILE [--output PREFIX] [--no-dynamics] [--plot DIR] [--style paper]
+    ... [--plot DIR [--style screen|paper|paper-wide]] [--animate FILE.gif|FILE.mp4] [--fps HZ]     (statics and dynamics)
     soft-twin-sim render RUN.json|RUN.mcap [--scenario S | --robot R] [--plot DIR] [--animate FILE] [--fps HZ]
     soft-twin-sim view RUN.json|RUN.mcap [--port 8080]      (live 3D view in the browser, in a loop)
     soft-twin-sim calibrate ROBOT --sensors S.yaml --data D.csv --fit PARAMS [--output R.yaml]
@@ -103,6 +103,7 @@ def _parser():
     pp.add_argument("--no-dynamics", action="store_true", help="skip the dynamic verification")
     pp.add_argument("--plot", metavar="DIR", help="also write figures into DIR: plan_tip_path (planned vs "
                     "achieved tip path, error) and plan_actuation (inputs and joint commands), PNG and SVG")
+    render.add_style_argument(pp)
     render.add_visual_arguments(d)
     d.add_argument("--mcap", metavar="FILE", help="also write the backbone samples as the twin node publishes "
                    "them (ROS 2 bag format: ~/backbone, ~/tip_pose, ~/strains of node soft_twin_sim; articulated robots: "
@@ -174,7 +175,9 @@ def _run_plan(args):
     print(f"soft-twin-sim: wrote {prefix}.csv and {prefix}.json", file=sys.stderr)
     if args.plot:
         from soft_twin_core.viz.plan_plots import plot_plan
-        written = plot_plan(out, args.plot)
+        from soft_twin_core.viz.style import figure_style
+        with figure_style(args.style):
+            written = plot_plan(out, args.plot)
         print(f"soft-twin-sim: wrote {len(written)} figure files into {args.plot}", file=sys.stderr)
     return 0 if s["unreachable"] == 0 else 3
 

@@ -85,7 +85,7 @@ def plan_path_figure(out, title=None):
     ax.legend(fontsize=8)
     s = out["summary"]
     fig.suptitle(title or f"{out['robot']}: tip path, {s['reached']} of {s['samples']} samples reached")
-    fig.tight_layout()
+    fig.set_layout_engine("tight")
     return fig
 
 
@@ -127,7 +127,7 @@ def plot_plan_actuation(out, folder, title=None):
         ax.legend(fontsize=7)
     axs[-1, 0].set_xlabel("time [s]")
     fig.suptitle(title or f"{out['robot']}: planned {'joint commands and ' if joints else ''}actuation")
-    fig.tight_layout()
+    fig.set_layout_engine("tight")
     return _save(fig, folder, "plan_actuation")
 
 

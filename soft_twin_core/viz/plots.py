@@ -14,16 +14,13 @@ by :mod:`recording`; fields a recording lacks are skipped (each figure needs
 its own fields only). Shapes are drawn from :class:`scene.Snapshot` lists.
 """
 
-import os
-
 import numpy as np
 
 from soft_twin_core.robot.model import STRAIN_NAMES
 from soft_twin_core.viz.scene import bounds, run_snapshots
+from soft_twin_core.viz.style import save_figure
 
 
-FORMATS = ("png", "svg")
-DPI = 110
 _VIEWS = (("side", 0, 2, "side view (x-z)"), ("top", 0, 1, "top view (x-y)"))
 _WRENCH = (("f_x", "N"), ("f_y", "N"), ("f_z", "N"), ("m_x", "N m"), ("m_y", "N m"), ("m_z", "N m"))
 
@@ -36,14 +33,9 @@ def _plt():
 
 
 def _save(fig, folder, stem):
-    os.makedirs(folder, exist_ok=True)
-    paths = []
-    for ext in FORMATS:
-        p = os.path.join(folder, f"{stem}.{ext}")
-        fig.savefig(p, dpi=DPI)
-        paths.append(p)
-    _plt().close(fig)
-    return paths
+    """Write ``fig`` in the figure style in force (:mod:`style`: PNG and
+    SVG, or a paper style's PDF, SVG and PNG at a column's width)."""
+    return save_figure(fig, folder, stem)
 
 
 def equal_limits(ax, lo, hi, i, j, min_aspect=0.75):
@@ -164,7 +156,7 @@ def shapes_figure(snapshots, title, max_shapes=8):
     handles, labels = side.get_legend_handles_labels()
     fig.legend(handles, labels, loc="lower center", ncol=min(len(labels), 5), fontsize=7, frameon=False)
     fig.suptitle(title)
-    fig.tight_layout(rect=(0.0, 0.04 * (1 + (len(labels) - 1) // 5), 1.0, 1.0))
+    fig.set_layout_engine("tight", rect=(0.0, 0.04 * (1 + (len(labels) - 1) // 5), 1.0, 1.0))
     return fig
 
 
@@ -196,7 +188,7 @@ def plot_tip(out, folder, title="tip motion"):
         ax.grid(alpha=0.3)
         ax.legend(fontsize=8)
     fig.suptitle(title)
-    fig.tight_layout()
+    fig.set_layout_engine("tight")
     return _save(fig, folder, "tip")
 
 
@@ -218,7 +210,7 @@ def wrench_figure(s_list, W_list, labels, title):
         ax.set_xlabel("arc length s [m]")
     axs[0, 0].legend(fontsize=7)
     fig.suptitle(title + " (body frame; the distal part on the proximal part)")
-    fig.tight_layout()
+    fig.set_layout_engine("tight")
     return fig
 
 
@@ -254,7 +246,7 @@ def plot_sweep(results, snaps, folder, reference=None, name="sweep"):
         ax.grid(alpha=0.3)
         ax.legend(fontsize=7)
     fig.suptitle(f"{name}: tip position (world) against the load angle")
-    fig.tight_layout()
+    fig.set_layout_engine("tight")
     paths = _save(fig, folder, "sweep_tip")
     return paths + plot_shapes(snaps, folder, f"{name}: equilibrium shapes", "sweep_shapes")
 
@@ -279,7 +271,7 @@ def plot_joint_states(out, folder, title="joint states"):
         ax.legend(fontsize=8)
     axs[-1].set_xlabel("time [s]")
     fig.suptitle(title + " (rotations in rad, N m; translations in m, N)")
-    fig.tight_layout()
+    fig.set_layout_engine("tight")
     return _save(fig, folder, "joint_states")
 
 
@@ -304,7 +296,7 @@ def plot_joint_wrenches(out, folder, title="wrenches through the rigid joints"):
     for ax in axs[-1]:
         ax.set_xlabel("time [s]")
     fig.suptitle(title + " (world axes, about the joint's input origin)")
-    fig.tight_layout()
+    fig.set_layout_engine("tight")
     return _save(fig, folder, "joint_wrenches")
 
 
@@ -325,7 +317,7 @@ def plot_frames(out, folder, title="frame positions", frames=None):
     axs[0].legend(fontsize=7, ncol=2)
     axs[-1].set_xlabel("time [s]")
     fig.suptitle(title + " (world)")
-    fig.tight_layout()
+    fig.set_layout_engine("tight")
     return _save(fig, folder, "frames")
 
 
@@ -357,7 +349,7 @@ def plot_section_strains(out, folder, title="strains of the soft sections"):
     axs[0, 0].legend(fontsize=7, title=None if len(members) == 1 else "member (one line per section)",
                      title_fontsize=7)
     fig.suptitle(title)
-    fig.tight_layout()
+    fig.set_layout_engine("tight")
     return _save(fig, folder, "strains")
 
 
@@ -390,7 +382,7 @@ def plot_energies(out, folder, title="energies"):
     ax.grid(alpha=0.3)
     ax.legend(fontsize=8)
     ax.set_title(title + " (the sum changes by the inputs' work and damping)")
-    fig.tight_layout()
+    fig.set_layout_engine("tight")
     return _save(fig, folder, "energies")
 
 

@@ -15,6 +15,7 @@ import numpy as np
 
 from soft_twin_core.limits import MAX_NESTING
 from soft_twin_core.viz.playback import PlaybackClock, frame_signals, sample_at
+from soft_twin_core.viz.style import STYLES, figure_style
 
 DEFAULT_FPS = 25.0           # dynamics: real time at 25 frames/s (40 ms, exact in GIF)
 DEFAULT_SWEEP_FPS = 2.0      # a statics sweep: two angles per second
@@ -22,11 +23,18 @@ DEFAULT_SWEEP_FPS = 2.0      # a statics sweep: two angles per second
 
 def add_visual_arguments(p, sweep=False):
     p.add_argument("--plot", metavar="DIR", help="write PNG and SVG figures of the run into DIR")
+    add_style_argument(p)
     p.add_argument("--animate", metavar="FILE", help="write an animation (.gif or .mp4) of the run"
                    + (" (with --sweep-angle: one frame per angle)" if sweep else ""))
     p.add_argument("--fps", type=float, default=None, metavar="HZ",
                    help=f"animation frame rate (default {DEFAULT_SWEEP_FPS if sweep else DEFAULT_FPS:g}"
                    + ("" if sweep else "; the run plays in real time") + ")")
+
+
+def add_style_argument(p):
+    p.add_argument("--style", choices=tuple(STYLES), default="screen",
+                   help="figure style: screen (PNG and SVG, the default), paper (PDF, SVG and a 300 dpi PNG at "
+                   "a journal's column width, 3.5 in, 8 pt type) or paper-wide (the text width, 7.16 in)")
 
 
 def check_visual_arguments(args):
@@ -66,7 +74,8 @@ def render_dynamics(out, args, mech, name="run"):
     :mod:`plots`, :mod:`recording`)."""
     if args.plot:
         from soft_twin_core.viz.plots import plot_dynamics  # here: start-up (numba)
-        paths = plot_dynamics(out, args.plot, mech, name)
+        with figure_style(args.style):
+            paths = plot_dynamics(out, args.plot, mech, name)
         say(f"wrote {len(paths)} figures into {args.plot}: " + ", ".join(os.path.basename(p) for p in paths))
         if not out.get("members_time"):
             say("warning: the run has no member samples, so the backbone_shapes, member internal wrench and "
@@ -95,8 +104,9 @@ def render_statics(results, args, sc, sweep, name="statics"):
     snaps = [statics_snapshot(r, sc.mech, f"load angle {r['angle_deg']:g} deg" if sweep else "equilibrium")
              for r in results]
     if args.plot:
-        paths = (plot_sweep(results, snaps, args.plot, sc.reference, name) if sweep
-                 else plot_statics(results[-1], snaps[-1], args.plot, name))
+        with figure_style(args.style):
+            paths = (plot_sweep(results, snaps, args.plot, sc.reference, name) if sweep
+                     else plot_statics(results[-1], snaps[-1], args.plot, name))
         say(f"wrote {len(paths)} figures into {args.plot}: " + ", ".join(os.path.basename(p) for p in paths))
     if args.animate:
         from soft_twin_core.viz.animate import write_animation  # here: start-up (numba)

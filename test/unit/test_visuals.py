@@ -329,6 +329,17 @@ def test_rviz_config_shows_the_node_topics_and_frames():
     assert topics == {"/soft_twin/markers", "/soft_twin/tip_pose", "/soft_twin/tip_wrench", "/soft_twin/base_wrench"}
 
 
+def _check_ticks_apart_and_legend_off_the_panels(fig, renderer):
+    """No two tick labels of an axis of the 2D views overlap; the legend meets no panel."""
+    for ax in fig.axes[:2]:
+        for labels in (ax.get_xticklabels(), ax.get_yticklabels()):
+            boxes = [t.get_window_extent(renderer) for t in labels if t.get_visible() and t.get_text()]
+            assert not any(a.overlaps(b) for k, a in enumerate(boxes) for b in boxes[k + 1:]), \
+                [t.get_text() for t in labels]
+    legend = fig.legends[0].get_window_extent(renderer)
+    assert not any(legend.overlaps(ax.get_window_extent(renderer)) for ax in fig.axes)
+
+
 def test_a_vertical_arms_shapes_figure_has_room_for_its_ticks_and_keeps_the_legend_off_the_axes():
     """Issue 31: a vertical arm (0.3 m tall, 10 mm wide) in the shapes
     figure: its side view is at least 3/4 as wide as tall (it was a
@@ -345,13 +356,7 @@ def test_a_vertical_arms_shapes_figure_has_room_for_its_ticks_and_keeps_the_lege
     side = fig.axes[0]
     (x0, x1), (z0, z1) = side.get_xlim(), side.get_ylim()
     assert x1 - x0 >= 0.75 * (z1 - z0) - 1e-12
-    for ax in fig.axes[:2]:
-        for labels in (ax.get_xticklabels(), ax.get_yticklabels()):
-            boxes = [t.get_window_extent(renderer) for t in labels if t.get_visible() and t.get_text()]
-            assert not any(a.overlaps(b) for k, a in enumerate(boxes) for b in boxes[k + 1:]), \
-                [t.get_text() for t in labels]
-    legend = fig.legends[0].get_window_extent(renderer)
-    assert not any(legend.overlaps(ax.get_window_extent(renderer)) for ax in fig.axes)
+    _check_ticks_apart_and_legend_off_the_panels(fig, renderer)
     assert [t.get_text() for t in fig.legends[0].get_texts()][:2] == ["t = 0.00 s", "t = 0.50 s"]
     import matplotlib.pyplot as plt
     plt.close(fig)
@@ -430,3 +435,69 @@ def test_study_axes_carry_units_and_an_si_prefix_instead_of_an_offset():
     fig.canvas.draw()
     assert ax.xaxis.get_offset_text().get_text() == ""
     plt.close(fig)
+
+
+@pytest.mark.parametrize("style,width_pt", [("paper", 252.0), ("paper-wide", 515.52)])
+def test_paper_figures_are_vector_at_a_column_width_in_8_point_type(style, width_pt, tmp_path):
+    """Issue 31: ``--style paper`` (3.5 in, a journal's column) and
+    ``paper-wide`` (7.16 in): the shapes figure of a vertical arm keeps
+    its aspect ratio at that width, every text between 6 and 9 pt, no two
+    tick labels of an axis overlapping, the legend off the panels and
+    every text inside the page; written as PDF (that width in points,
+    TrueType fonts: no Type 3, which publishers refuse), SVG (that width,
+    its text as text) and a 300 dpi PNG."""
+    import re
+    import matplotlib.pyplot as plt
+    from matplotlib.text import Text
+    from soft_twin_core.viz.plots import shapes_figure
+    from soft_twin_core.viz.scene import Snapshot
+    from soft_twin_core.viz.style import STYLES, fit_to_width, save_figure
+    z = np.linspace(0.0, 0.3, 20)
+    snaps = [Snapshot(members=[np.c_[0.01 * k * np.sin(8 * z), 0.002 * z, z]], time=0.5 * k) for k in range(4)]
+    fig = shapes_figure(snaps, "a vertical arm")
+    w, h = fig.get_size_inches()
+    fit_to_width(fig, STYLES[style].width_in)
+    assert fig.get_size_inches()[0] == pytest.approx(width_pt / 72)
+    fig.canvas.draw()
+    renderer = fig.canvas.get_renderer()
+    page = fig.bbox
+    texts = [t for t in fig.findobj(Text) if t.get_visible() and t.get_text()]
+    assert texts and all(6.0 <= t.get_fontsize() <= 9.0 for t in texts)
+
+    ticks, shown = set(), set()         # (a tick label outside its axis's view limits is kept, not drawn)
+    for ax in fig.axes:
+        for labels, lim, k in ((ax.get_xticklabels(), ax.get_xlim(), 0), (ax.get_yticklabels(), ax.get_ylim(), 1)):
+            lo, hi = sorted(lim)
+            ticks |= {id(t) for t in labels}
+            shown |= {id(t) for t in labels if ax.name != "3d" and lo - 1e-12 <= t.get_position()[k] <= hi + 1e-12}
+        if ax.name == "3d":             # (3D ticks: projected, past the limits too)
+            ticks |= {id(t) for t in ax.zaxis.get_ticklabels()}
+    for t in (t for t in texts if id(t) not in ticks or id(t) in shown):
+        b = t.get_window_extent(renderer)
+        assert b.x0 >= page.x0 - 1 and b.x1 <= page.x1 + 1 and b.y0 >= page.y0 - 1 and b.y1 <= page.y1 + 1, \
+            t.get_text()
+    _check_ticks_apart_and_legend_off_the_panels(fig, renderer)
+    paths = save_figure(fig, str(tmp_path), "shapes", STYLES[style])
+    assert [os.path.basename(p) for p in paths] == ["shapes.pdf", "shapes.svg", "shapes.png"]
+    assert not plt.get_fignums()                                       # closed
+    pdf = (tmp_path / "shapes.pdf").read_bytes()
+    box = re.search(rb"/MediaBox \[ *0 0 ([\d.]+) ([\d.]+) *\]", pdf)
+    assert box and float(box.group(1)) == pytest.approx(width_pt, abs=0.5)
+    assert b"/Type3" not in pdf and b"/FontFile2" in pdf                 # TrueType embedded
+    svg = (tmp_path / "shapes.svg").read_text()
+    assert re.search(r'<svg[^>]* width="([\d.]+)pt"', svg).group(1) == pytest.approx(f"{width_pt:g}", abs=0) \
+        or float(re.search(r'<svg[^>]* width="([\d.]+)pt"', svg).group(1)) == pytest.approx(width_pt, abs=0.5)
+    assert "<text" in svg and "a vertical arm" in svg                   # text kept as text
+    with Image.open(tmp_path / "shapes.png") as im:
+        assert im.size[0] == pytest.approx(STYLES[style].width_in * 300, abs=2) and ink(im) > 0.01
+
+
+def test_the_cli_writes_paper_figures_and_refuses_an_unknown_style(tmp_path, capsys):
+    code, _, err = run_cli(["statics", "tendon_arm_statics", "--plot", str(tmp_path), "--style", "paper"], capsys)
+    assert code == 0, err
+    names = set(os.listdir(tmp_path))
+    assert {"backbone_shapes.pdf", "backbone_shapes.svg", "backbone_shapes.png"} <= names
+    assert not any(n.endswith(".png") and n[:-4] + ".pdf" not in names for n in names)
+    with pytest.raises(SystemExit) as e:
+        cli.main(["statics", "tendon_arm_statics", "--plot", str(tmp_path / "x"), "--style", "poster"])
+    assert e.value.code == 2 and "poster" in capsys.readouterr().err and not (tmp_path / "x").exists()
