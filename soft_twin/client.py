@@ -28,7 +28,7 @@ from rclpy.executors import SingleThreadedExecutor
 from sensor_msgs.msg import JointState
 from std_srvs.srv import SetBool, Trigger
 
-from soft_twin.msg import ActuationCommand, Strains
+from soft_twin.msg import ActuationCommand, PointWrench, Strains
 from soft_twin.srv import ForwardKinematics, InverseKinematics, PlanPath, StaticsQuery
 
 REPO_ROOT = Path(__file__).resolve().parents[1]
@@ -125,6 +125,7 @@ class TwinClient:
         n.create_subscription(DiagnosticArray, "/diagnostics", self._on_diag, 10)
         self.pub_actuation = n.create_publisher(ActuationCommand, f"{self.ns}/actuation", 10)
         self.pub_wrench = n.create_publisher(WrenchStamped, f"{self.ns}/tip_wrench_command", 10)
+        self.pub_point_wrench = n.create_publisher(PointWrench, f"{self.ns}/point_wrench_command", 10)
         self.pub_joints = n.create_publisher(JointState, f"{self.ns}/joint_commands", 10)
         self.clients = {
             "forward_kinematics": n.create_client(ForwardKinematics, f"{self.ns}/forward_kinematics"),
@@ -242,14 +243,21 @@ class TwinClient:
         self.pub_actuation.publish(msg)
         return msg.header.stamp
 
-    def send_tip_wrench(self, force, torque, frame_id):
-        msg = WrenchStamped()
+    def _send_wrench(self, pub, msg, force, torque, frame_id):
+        """Stamp ``msg`` (a WrenchStamped or PointWrench), fill its wrench, publish it; returns its stamp."""
         msg.header.stamp = self.now()
         msg.header.frame_id = frame_id
         (msg.wrench.force.x, msg.wrench.force.y, msg.wrench.force.z) = [float(v) for v in force]
         (msg.wrench.torque.x, msg.wrench.torque.y, msg.wrench.torque.z) = [float(v) for v in torque]
-        self.pub_wrench.publish(msg)
+        pub.publish(msg)
         return msg.header.stamp
+
+    def send_tip_wrench(self, force, torque, frame_id):
+        return self._send_wrench(self.pub_wrench, WrenchStamped(), force, torque, frame_id)
+
+    def send_point_wrench(self, point, force, torque, frame_id):
+        """Publish a wrench on ``point`` (a frame or ``<member>@<s>``); returns its stamp."""
+        return self._send_wrench(self.pub_point_wrench, PointWrench(point=str(point)), force, torque, frame_id)
 
     def send_joint_command(self, names, positions=(), efforts=()):
         """Publish a JointState command (articulated robots); returns its stamp."""

@@ -67,6 +67,21 @@ def parse_wrenches(batch, cfg):
     return newest, errors
 
 
+def parse_point_wrenches(batch, cfg, mech):
+    """(the valid (point, wrench, core axes) of a batch of soft_twin/PointWrench
+    commands, in order; the InputErrors of the others)
+    (:func:`soft_twin_core.commands.parse_point_wrench`)."""
+    valid, errors = [], []
+    for m, _ in batch:
+        force, torque = cv.wrench_parts(m.wrench)
+        try:
+            valid.append(cmd.parse_point_wrench(mech, m.point, force, torque, m.header.frame_id, cfg.base_frame,
+                                                cfg.max_tip_force_n, cfg.max_tip_torque_nm))
+        except cmd.InputError as e:
+            errors.append(e)
+    return valid, errors
+
+
 def fold_obstacles(batch, obstacles):
     """(the obstacles after the valid soft_twin/Obstacle messages of
     ``batch`` in order, how many were valid, the InputErrors of the others);

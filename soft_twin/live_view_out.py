@@ -24,8 +24,9 @@ DEFAULT_TENSION_N = 20.0         # slider range of a tendon without a declared l
 DEFAULT_PRESSURE_PA = 50e3       # ... of a chamber without one
 DEFAULT_EFFORT = {"revolute": 1.0, "prismatic": 10.0}      # [N m], [N]: effort-controlled joints, +-
 DEFAULT_TRAVEL = {"revolute": math.pi, "prismatic": 0.1}   # [rad], [m]: position-controlled joints without limits
-PUSH_STIFFNESS_N_PER_M = 10.0    # the page's push: a spring from the tip to the dragged gizmo
-GIZMO_MODES = ("solve IK", "push the tip (spring)")
+PUSH_STIFFNESS_N_PER_M = 10.0    # the page's push: a spring from the pushed point to the dragged gizmo
+GIZMO_MODES = ("solve IK", "push a point (spring)")
+PICK_RADIUS_M = 0.03             # a click picks the robot's point nearest its ray, if within this [m]
 
 
 def page_controls(mech, u=None, positions=None, efforts=None):
@@ -65,6 +66,43 @@ def _step(lo, hi):
     """A slider step: a round number near a five-hundredth of the range."""
     x = (hi - lo) / 500.0
     return float(10.0 ** math.floor(math.log10(x))) if x > 0 else 1.0
+
+
+def point_position(snap, name):
+    """World position [m] of a frame or ``<member>@<s>`` point of a
+    twin's Snapshot (a member point between its backbone samples: linear)."""
+    if name in snap.frames:
+        return np.asarray(snap.frames[name], dtype=float)[:3, 3]
+    member, s = name.rsplit("@", 1)
+    poses, ss = snap.backbones[member]
+    P = np.asarray(poses, dtype=float)[:, :3, 3]
+    return np.array([np.interp(float(s), ss, P[:, k]) for k in range(3)])
+
+
+def nearest_point_to_ray(snap, mech, origin, direction):
+    """(name, position, distance from the ray [m]) of the robot's point
+    nearest a ray (a click): its members' backbone samples, named
+    ``<member>@<s>`` (s to the micrometre), and its links' frames;
+    (None, None, inf) for a robot with neither."""
+    d = np.asarray(direction, dtype=float)
+    d = d / max(np.linalg.norm(d), 1e-300)
+    names, points = [], []
+    for m in mech.members:
+        if m.name in snap.backbones:
+            poses, ss = snap.backbones[m.name]
+            names += [f"{m.name}@{s:.6f}" for s in ss]
+            points += [T[:3, 3] for T in np.asarray(poses, dtype=float)]
+    for link in mech.links:
+        if link.name in snap.frames:
+            names.append(link.name)
+            points.append(np.asarray(snap.frames[link.name], dtype=float)[:3, 3])
+    if not names:
+        return None, None, np.inf
+    v = np.asarray(points) - np.asarray(origin, dtype=float)
+    along = np.maximum(v @ d, 0.0)
+    miss = np.linalg.norm(v - along[:, None] * d, axis=1)
+    k = int(np.argmin(miss))
+    return names[k], points[k], float(miss[k])
 
 
 def articulated_view_snapshot(mech, snap):
@@ -131,6 +169,7 @@ class LiveViewOutput:
         self._ik_target, self._ik_answer, self._ik_thread, self._closed = None, None, None, False
         self.gizmo_mode = GIZMO_MODES[0]
         self._push_at = None              # push mode, while dragged: where the gizmo is [m]
+        self._push_point = None           # push mode: the point picked on the page (None: the tip)
         self._pubs = None                # (actuation, joint command) publishers to the node's own inputs
 
     def follow(self, port):
@@ -167,7 +206,7 @@ class LiveViewOutput:
             view.frame(*bounds([shot], pad=0.3))
             self._framed = True
         tip_force = snap.tip_pose[:3, :3] @ np.asarray(snap.tip_wrench[:3], dtype=float)      # tip axes -> base
-        if self._push_at is not None:      # the spring follows the tip
+        if self._push_at is not None:      # the spring follows the pushed point
             self._push()
         values = None
         if self.colour_by != "none" and snap.state is not None:
@@ -178,19 +217,20 @@ class LiveViewOutput:
                   actuation=dict(zip(robot.mech.actuator_names, np.asarray(snap.u, dtype=float).tolist())),
                   text=f"({snap.mode}{', paused' if self._node.paused else ''})",
                   joints=dict(zip(snap.joint_names, np.asarray(snap.joint_positions, dtype=float).tolist())),
-                  units=units_of(robot.mech), paused=self._node.paused)
+                  units=units_of(robot.mech), paused=self._node.paused, point_forces=snap.point_loads)
 
     def _make_controls(self, robot):
         """The page's sliders for ``robot`` and the run controls."""
         node = self._node
         if self._pubs is None:
             from sensor_msgs.msg import JointState
-            from soft_twin.msg import ActuationCommand
+            from soft_twin.msg import ActuationCommand, PointWrench
             from geometry_msgs.msg import WrenchStamped
             self._pubs = (node.create_publisher(ActuationCommand, "~/actuation", 10),
                           node.create_publisher(JointState, "~/joint_commands", 10)
                           if robot.mech.joint_names else None,
-                          node.create_publisher(WrenchStamped, "~/tip_wrench_command", 10))
+                          node.create_publisher(WrenchStamped, "~/tip_wrench_command", 10),
+                          node.create_publisher(PointWrench, "~/point_wrench_command", 10))
         twin = node.twin
         controls = page_controls(robot.mech, twin.u, twin.positions, twin.efforts)
         self._view.set_controls(controls, self._send, on_pause=node.set_paused, on_step=node.single_step,
@@ -199,18 +239,35 @@ class LiveViewOutput:
         self._view.set_view_options(list(COLOURINGS), self._set_colour, self._set_trail, self.trail)
         self._view.set_target(twin.outputs().tip_pose[:3, 3], self._on_target, self._apply_ik, GIZMO_MODES,
                               self._set_gizmo_mode)
+        self._view.set_pick(self._on_pick)
         self._controls_of = robot
 
     def _set_gizmo_mode(self, mode):
         """What dragging the gizmo does; the gizmo back on the tip."""
         self.gizmo_mode = mode
+        self._push_point = None
         if self._latest is not None and self._view is not None:
             p = self._latest[0].tip_pose[:3, 3]
             self._view.move_target(p)
-            self._view.say_target(f"drag the gizmo (at [{p[0]:.4f}, {p[1]:.4f}, {p[2]:.4f}] m): " + ("a spring of %g N/m from the tip pulls it there (a dead load "
-                                                        "on the tip, base axes), until you let go"
-                                                        % PUSH_STIFFNESS_N_PER_M if mode != GIZMO_MODES[0] else
-                                                        "inverse kinematics to its position"))
+            self._view.say_target(f"drag the gizmo (at [{p[0]:.4f}, {p[1]:.4f}, {p[2]:.4f}] m): " + (
+                "a spring of %g N/m from the tip pulls it there (a dead load, base axes), until you let go; "
+                "click a member or a link to push that point instead" % PUSH_STIFFNESS_N_PER_M
+                if mode != GIZMO_MODES[0] else "inverse kinematics to its position"))
+
+    def _on_pick(self, origin, direction):
+        """A click on the robot (push mode): the point nearest the click's
+        ray among the members' backbone points (``<member>@<s>``) and the
+        links' frames becomes the pushed point; the gizmo moves onto it."""
+        latest = self._latest
+        if latest is None or self.gizmo_mode == GIZMO_MODES[0]:
+            return
+        name, p, miss = nearest_point_to_ray(latest[0], latest[1].mech, origin, direction)
+        if name is None or miss > PICK_RADIUS_M:          # a click beside the robot
+            return
+        self._push_point = name
+        self._view.move_target(p)
+        self._view.say_target(f"picked `{name}` at [{p[0]:.4f}, {p[1]:.4f}, {p[2]:.4f}] m: drag the gizmo, a "
+                              f"spring of {PUSH_STIFFNESS_N_PER_M:g} N/m pulls that point (a dead load, base axes)")
 
     def _on_target(self, position, phase="update"):
         """The page's gizmo moved. Solving IK: for the latest position (a
@@ -220,9 +277,9 @@ class LiveViewOutput:
         if self.gizmo_mode != GIZMO_MODES[0]:
             if phase == "end":
                 self._push_at = None
-                self._send_wrench(np.zeros(3))
+                self._send_push(np.zeros(3))
                 if self._latest is not None:
-                    self._view.move_target(self._latest[0].tip_pose[:3, 3])
+                    self._view.move_target(self._pushed_position(self._latest[0]))
             else:
                 self._push_at = np.asarray(position, dtype=float)
                 self._push()
@@ -248,21 +305,37 @@ class LiveViewOutput:
                 if self._view is not None:
                     self._view.show_ik(target, None, f"IK failed: {type(e).__name__}: {e}")
 
+    def _pushed_position(self, snap):
+        """Where the pushed point (the tip unless one was picked) is [m]."""
+        return snap.tip_pose[:3, 3] if self._push_point is None else point_position(snap, self._push_point)
+
     def _push(self):
-        """The spring's force PUSH_STIFFNESS_N_PER_M (gizmo - tip) on the tip
-        now (at most the node's max_tip_force_n), sent as a tip wrench
-        command (base axes: a dead load), said in the panel."""
+        """The spring's force PUSH_STIFFNESS_N_PER_M (gizmo - point) on the
+        pushed point now (at most the node's max_tip_force_n), sent as a tip
+        wrench command or, for a picked point, a point wrench command (base
+        axes: a dead load), said in the panel."""
         at, latest = self._push_at, self._latest
         if at is None or latest is None:
             return
-        f = PUSH_STIFFNESS_N_PER_M * (at - latest[0].tip_pose[:3, 3])
+        f = PUSH_STIFFNESS_N_PER_M * (at - self._pushed_position(latest[0]))
         cap = 0.99 * self._node.cfg.max_tip_force_n
         n = float(np.linalg.norm(f))
         if n > cap:
             f *= cap / n
-        self._send_wrench(f)
-        self._view.say_target(f"pushing the tip with [{f[0]:.3f}, {f[1]:.3f}, {f[2]:.3f}] N "
+        self._send_push(f)
+        what = "the tip" if self._push_point is None else f"`{self._push_point}`"
+        self._view.say_target(f"pushing {what} with [{f[0]:.3f}, {f[1]:.3f}, {f[2]:.3f}] N "
                               f"({np.linalg.norm(f):.3f} N)")
+
+    def _send_push(self, force):
+        if self._push_point is None:
+            self._send_wrench(force)
+            return
+        from soft_twin.msg import PointWrench
+        node = self._node
+        msg = PointWrench(header=node._header(node.cfg.base_frame), point=self._push_point)
+        msg.wrench.force.x, msg.wrench.force.y, msg.wrench.force.z = map(float, force)
+        self._pubs[3].publish(msg)
 
     def _send_wrench(self, force):
         from geometry_msgs.msg import WrenchStamped

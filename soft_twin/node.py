@@ -65,7 +65,7 @@ from std_msgs.msg import Float64MultiArray, Header, MultiArrayDimension
 from std_srvs.srv import SetBool, Trigger
 from visualization_msgs.msg import MarkerArray
 
-from soft_twin.msg import ActuationCommand, Contacts, Obstacle, Strains
+from soft_twin.msg import ActuationCommand, Contacts, Obstacle, PointWrench, Strains
 from soft_twin.stepper import Stepper
 from soft_twin.srv import ForwardKinematics, InverseKinematics, StaticsQuery
 
@@ -139,6 +139,7 @@ class SoftTwinNode(Node):
         self._command_received = None     # newest applied command: (header, stamp [ns], taken [ns])
         self._command_gaps = cmd.SequenceGaps()    # commands lost upstream, from sequence numbers
         self._wrench_gaps = cmd.SequenceGaps()
+        self._point_wrench_gaps = cmd.SequenceGaps()
         self._joint_gaps = cmd.SequenceGaps()
         self._last_input_time = -math.inf
         self._reported_internal_errors = 0
@@ -187,6 +188,10 @@ class SoftTwinNode(Node):
             callback_group=self._input_group)
         self._wrench_sub = self.create_subscription(
             WrenchStamped, "~/tip_wrench_command", lambda msg, info: on_wrench(msg, info), WRENCH_QUEUE,
+            callback_group=self._input_group)
+        on_point = self._guarded(self._on_point_wrench)       # issue 31: a load on any point
+        self._point_wrench_sub = self.create_subscription(
+            PointWrench, "~/point_wrench_command", lambda msg, info: on_point(msg, info), WRENCH_QUEUE,
             callback_group=self._input_group)
         on_obstacle = self._guarded(self._on_obstacle)
         self._obstacle_sub = self.create_subscription(
@@ -605,6 +610,29 @@ class SoftTwinNode(Node):
         if errors:
             self.get_logger().warn(inputs.rejection_warning("tip wrench", errors), throttle_duration_sec=1.0)
         if newest is not None:
+            self._react_to_input(batch)
+
+    def _on_point_wrench(self, msg, info=None):
+        """Every queued soft_twin/PointWrench in order, counted with the
+        tip wrenches and validated (:func:`inputs.parse_point_wrenches`);
+        each valid one replaces the load on its point (zeros remove it)."""
+        batch = self._take_queued(self._point_wrench_sub, (msg, info), WRENCH_QUEUE)
+        publishers = self._point_wrench_sub.get_publisher_count()
+        lost = sum(self._point_wrench_gaps.add(inputs.sequence_number(inf), publishers) for _, inf in batch)
+        with self._lock:
+            valid, errors = inputs.parse_point_wrenches(batch, self.cfg, self.twin.mech)
+            s = self.stats
+            s.totals["wrenches_received"] += len(batch)
+            s.totals["wrenches_applied"] += len(valid)
+            s.totals["wrenches_lost"] += lost
+            s.lost += lost
+            for e in errors:
+                s.reject("wrench", e)
+            for point, w, axes in valid:
+                self.twin.set_point_wrench(point, w, axes)
+        if errors:
+            self.get_logger().warn(inputs.rejection_warning("point wrench", errors), throttle_duration_sec=1.0)
+        if valid:
             self._react_to_input(batch)
 
     def _on_obstacle(self, msg, info=None):

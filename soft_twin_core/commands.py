@@ -3,7 +3,8 @@ a script) gives the twin is parsed here once into values the twin applies
 without checking them again.
 
 :func:`parse_actuation` (tendon tensions [N], chamber pressures [Pa] by
-name), :func:`parse_tip_wrench` (a wrench on the tip, base or tip axes) and
+name), :func:`parse_tip_wrench` (a wrench on the tip, base or tip axes),
+:func:`parse_point_wrench` (on any point) and
 :func:`parse_joint_command` (joint positions [rad, m] or efforts [N m, N])
 raise :class:`InputError` carrying a short reason key (:data:`REJECT_REASONS`,
 the node's rejection counters) and never apply part of a bad command.
@@ -28,7 +29,7 @@ from soft_twin_core.text import clip, short_list
 # solve it caused failed
 REJECT_REASONS = ("non_finite", "wrong_length", "unknown_name", "duplicate_name",
                   "negative_tension", "over_limit", "under_limit", "bad_frame", "wrong_mode",
-                  "solver_failed", "bad_obstacle")
+                  "solver_failed", "bad_obstacle", "bad_point")
 
 
 def parse_actuation(model, names, values, current, order=None):
@@ -94,23 +95,50 @@ def parse_tip_wrench(force, moment, frame_id, base_frame, tip_frame, max_force=m
     |force| <= max_force [N] and |moment| <= max_torque [N m] (else
     "over_limit"). Returns (wrench (6,), core frame "world" | "body").
     """
-    w = np.array(list(force) + list(moment), dtype=float)
+    frame = _axes(frame_id, base_frame, tip_frame, "tip wrench", f"the tip frame {tip_frame!r}")
+    return _checked_wrench(force, moment, "tip", max_force, max_torque), frame
+
+
+def _axes(frame_id, base_frame, own_frame, what, own):
+    """"world" for the base frame (a dead load), "body" for the loaded
+    point's own frame (a follower load); InputError "bad_frame" else."""
     if frame_id == base_frame:
-        frame = "world"
-    elif frame_id == tip_frame:
-        frame = "body"
-    else:
-        raise InputError("bad_frame", f"tip wrench frame_id {clip(repr(frame_id))}: expected the base "
-                         f"frame {base_frame!r} or the tip frame {tip_frame!r}")
+        return "world"
+    if frame_id == own_frame:
+        return "body"
+    raise InputError("bad_frame", f"{what} frame_id {clip(repr(frame_id))}: expected the base frame "
+                                  f"{base_frame!r} or {own}")
+
+
+def _checked_wrench(force, moment, what, max_force, max_torque):
+    """The wrench (6,) [N, N m], finite and within the limits (InputError)."""
+    w = np.array(list(force) + list(moment), dtype=float)
     if not np.all(np.isfinite(w)):
-        raise InputError("non_finite", f"tip wrench not finite: {w.tolist()}")
+        raise InputError("non_finite", f"{what} wrench not finite: {w.tolist()}")
     f, m = math.hypot(*w[:3]), math.hypot(*w[3:])        # no overflow on 1e300
     if f > max_force:
-        raise InputError("over_limit", f"tip force |f| = {f:g} N exceeds max_tip_force_n = {max_force:g} N")
+        raise InputError("over_limit", f"{what} force |f| = {f:g} N exceeds max_tip_force_n = {max_force:g} N")
     if m > max_torque:
-        raise InputError("over_limit", f"tip torque |m| = {m:g} N m exceeds max_tip_torque_nm = "
+        raise InputError("over_limit", f"{what} torque |m| = {m:g} N m exceeds max_tip_torque_nm = "
                                        f"{max_torque:g} N m")
-    return w, frame
+    return w
+
+
+def parse_point_wrench(mech, point, force, moment, frame_id, base_frame, max_force=math.inf,
+                       max_torque=math.inf):
+    """External wrench on any point of the robot, from a soft_twin/PointWrench's
+    parts: ``point`` a frame of the robot or ``"<member>@<s>"`` (s [m]
+    from the member's base; "bad_point" otherwise); frame_id == base_frame:
+    a dead load along the base axes; frame_id == point: a follower load
+    along the point's axes. The limits are the tip wrench's. Returns
+    (point, wrench (6,), core axes "world" | "body")."""
+    point = str(point)
+    try:
+        mech.frame(point)
+    except KeyError as e:
+        raise InputError("bad_point", f"point {clip(repr(point))}: {clip(e.args[0], 300)}") from None
+    axes = _axes(frame_id, base_frame, point, "point wrench", f"the point {point!r} itself")
+    return point, _checked_wrench(force, moment, f"point {point!r}", max_force, max_torque), axes
 
 
 class SequenceGaps:

@@ -33,6 +33,7 @@ import time
 import numpy as np
 
 from soft_twin_core._blas import one_blas_thread
+from soft_twin_core.engine.algorithms import point_poses
 from soft_twin_core.engine.workspace import Workspace
 from soft_twin_core.errors import StaticsError
 from soft_twin_core.planning import planner as pl
@@ -133,7 +134,7 @@ def _same_inputs(a, b):
     """Two input tuples of :meth:`Twin._inputs_tuple` alike (the
     stamps by identity)."""
     return (np.array_equal(a[0], b[0]) and np.array_equal(a[1], b[1]) and a[2] == b[2] and a[3] == b[3]
-            and a[4] == b[4] and all(x is y for x, y in zip(a[5:], b[5:])))
+            and a[4] == b[4] and all(x is y for x, y in zip(a[5:8], b[5:8])) and a[8] == b[8])
 
 
 @dataclass
@@ -167,6 +168,7 @@ class Snapshot:
     member name; backbone and s of the main member (the one with the tip),
     tip_pose; strains and strain_rates (n_soft_sections, 6) in tree order;
     frames {name: 4x4}; tip_wrench (the load at the tip frame, tip axes);
+    point_loads (the other points' loads: (point, position, force), world);
     command_stamp. These come from one forward pass (the poses), what every
     published state needs. The loads inside the robot are computed on
     first use, once (an RNEA pass and the members' cut wrenches; the node
@@ -199,6 +201,7 @@ class Snapshot:
     contacts: object = None         # robots with obstacles: the engine.contact.ContactState of this state
     obstacles: tuple = ()           # the obstacles of this state (those ``contacts`` index)
     state: tuple = field(default=None, repr=False)    # (mech, q, v, a, lam, inputs): what the loads need
+    point_loads: tuple = ()         # the point wrenches: (point, position (3,) [m], force (3,) [N], world)
 
     @cached_property
     def _loads(self):
@@ -247,6 +250,7 @@ class Twin:
         self.u = np.zeros(len(mech.actuators))
         self.tip_wrench = np.zeros(6)
         self.tip_frame = "world"
+        self.point_wrenches = {}         # {point: (wrench (6,), "world" | "body")}: loads on other points
         self.positions = {mech.tree.joints[i].name: mech.tree.joints[i].q_ref for i in mech.joints_with("position")}
         self.efforts = {mech.tree.joints[i].name: 0.0 for i in mech.joints_with("effort")}
         self.command_stamp = None
@@ -282,7 +286,11 @@ class Twin:
 
     def _inputs_tuple(self):
         return (self.u.copy(), self.tip_wrench.copy(), self.tip_frame, dict(self.positions), dict(self.efforts),
-                self.command_stamp, self.joint_stamp, self.actuation_stamp)
+                self.command_stamp, self.joint_stamp, self.actuation_stamp, self._points_tuple())
+
+    def _points_tuple(self):
+        """The point wrenches as plain, comparable data."""
+        return tuple(sorted((p, tuple(float(x) for x in w), axes) for p, (w, axes) in self.point_wrenches.items()))
 
     def core_inputs(self, positions=None, velocities=None):
         """The core Inputs of the current commands (``positions``,
@@ -325,6 +333,19 @@ class Twin:
 
     def set_tip_wrench(self, wrench, frame="world"):
         self.tip_wrench, self.tip_frame = np.array(wrench, dtype=float), frame
+        self._changed()
+
+    def set_point_wrench(self, point, wrench, axes="world"):
+        """A wrench [f; m] (N, N m) on ``point`` (a frame of the robot or
+        ``"<member>@<s>"``, checked at the door:
+        :func:`soft_twin_core.commands.parse_point_wrench`), in ``axes``
+        "world" (a dead load) or "body" (the point's); it replaces the one
+        before on that point, and all zeros removes it."""
+        w = np.array(wrench, dtype=float)
+        if np.any(w):
+            self.point_wrenches[str(point)] = (w, axes)
+        else:
+            self.point_wrenches.pop(str(point), None)
         self._changed()
 
     def set_joint_commands(self, positions, efforts, stamp=None):
@@ -403,6 +424,7 @@ class Twin:
             self.rest_q, self.rest_message, self.rest_contacts = self._rest()
         self.u = np.zeros(len(mech.actuators))
         self.tip_wrench, self.tip_frame = np.zeros(6), "world"
+        self.point_wrenches = {}
         self.positions = {mech.tree.joints[i].name: mech.tree.joints[i].q_ref for i in mech.joints_with("position")}
         self.efforts = {mech.tree.joints[i].name: 0.0 for i in mech.joints_with("effort")}
         self.command_stamp = self.joint_stamp = self.actuation_stamp = None
@@ -520,9 +542,10 @@ class Twin:
             dropped.append("actuation")
         if now[3] != target[3] or now[4] != target[4] or now[6] is not target[6]:
             dropped.append("joint")
-        if not np.array_equal(now[1], target[1]) or now[2] != target[2]:
+        if not np.array_equal(now[1], target[1]) or now[2] != target[2] or now[8] != target[8]:
             dropped.append("wrench")
-        (u, w, frame, pos, eff, self.command_stamp, self.joint_stamp, self.actuation_stamp) = target
+        (u, w, frame, pos, eff, self.command_stamp, self.joint_stamp, self.actuation_stamp, points) = target
+        self.point_wrenches = {p: (np.array(w_), axes) for p, w_, axes in points}
         self._good_joint_stamp, self._good_actuation_stamp = self.joint_stamp, self.actuation_stamp
         self.u, self.tip_wrench, self.tip_frame = u.copy(), w.copy(), frame
         self.positions, self.efforts = dict(pos), dict(eff)
@@ -571,13 +594,14 @@ class Twin:
         in another process: :mod:`soft_twin.query_worker`)."""
         return dict(q=self.state.q.copy(), t=float(self.state.t), u=self.u.copy(),
                     tip_wrench=self.tip_wrench.copy(), tip_frame=self.tip_frame, positions=dict(self.positions),
-                    efforts=dict(self.efforts), lam=self.lam.copy())
+                    efforts=dict(self.efforts), lam=self.lam.copy(), points=self._points_tuple())
 
     def load_query_state(self, st):
         """Become the quasi-static query twin of :meth:`query_state` ``st``."""
         self.settings = TwinSettings(mode="quasi_static")
         self.state = State(st["q"].copy(), np.zeros(self.mech.tree.nv), st["t"])
         self.u, self.tip_wrench, self.tip_frame = st["u"].copy(), st["tip_wrench"].copy(), st["tip_frame"]
+        self.point_wrenches = {p: (np.array(w), axes) for p, w, axes in st.get("points", ())}
         self.positions, self.efforts = dict(st["positions"]), dict(st["efforts"])
         self.lam, self._sim = st["lam"].copy(), None
         self._changed()
@@ -619,9 +643,24 @@ class Twin:
         return "ok: the twin's current shape", self.outputs()
 
     def held_loads(self):
-        """The tip wrench as the core's point loads (empty without one)."""
-        return [cs.FrameLoad(self.tip, self.tip_wrench, "world" if self.tip_frame == "world" else "body")] \
-            if np.any(self.tip_wrench) else []
+        """The tip wrench and the point wrenches as the core's point loads
+        (empty without any)."""
+        return self._loads_of(self.tip_wrench, self.tip_frame, self._points_tuple())
+
+    def _point_loads_out(self, ws, q, points):
+        """(point, position [m], force [N]) in the world of each point wrench at q."""
+        if not points:
+            return ()
+        refs = [self.mech.frame(p) for p, _, _ in points]
+        poses = point_poses(self.mech.tree, ws, q, [r.joint for r in refs], [r.x for r in refs])
+        return tuple((p, T[:3, 3].copy(), (T[:3, :3] @ np.array(w[:3])) if axes == "body" else np.array(w[:3]))
+                     for (p, w, axes), T in zip(points, poses))
+
+    def _loads_of(self, w, frame, points):
+        """FrameLoads of a tip wrench (``frame`` "world" or "body") and of
+        :meth:`_points_tuple` entries."""
+        out = [cs.FrameLoad(self.tip, w, "world" if frame == "world" else "body")] if np.any(w) else []
+        return out + [cs.FrameLoad(p, np.array(pw), axes) for p, pw, axes in points]
 
     def plan_options(self, **kw):
         """Planner options for this twin's tip frame, with its current joint
@@ -697,8 +736,7 @@ class Twin:
         if self._good_version == self._version:          # the good state's inputs are the commands'
             inp = self.core_inputs()
         else:                                             # (checked at the door)
-            pl = [cs.FrameLoad(self.tip, w, "world" if frame == "world" else "body")] if np.any(w) else []
-            inp = cs.assemble_inputs(mech, u, eff, pos, None, pl)
+            inp = cs.assemble_inputs(mech, u, eff, pos, None, self._loads_of(w, frame, self._good[8]))
         ws = self.__dict__.get("_shape_ws")
         if ws is None:
             ws = self._shape_ws = Workspace(tree)
@@ -713,7 +751,7 @@ class Twin:
         iq = [tree.idx_q[tree.joint_index(n)] for n in names]
         iv = [tree.idx_v[tree.joint_index(n)] for n in names]
         efforts = cs._efforts_out(mech, self.lam, inp)
-        return Snapshot(
+        return Snapshot(point_loads=self._point_loads_out(ws, q, self._good[8]),
             mode=self.settings.mode, t=float(self.state.t), u=u.copy(), joint_names=names,
             joint_positions=q[iq].copy(), joint_velocities=v[iv].copy() if v is not None else np.zeros(len(names)),
             joint_efforts=np.array([efforts[n] for n in names]),

@@ -177,10 +177,32 @@ class Mechanism:
         return tuple(self.tree.joints[i].name for i in self.rigid_joints)
 
     def frame(self, name):
-        try:
+        """The PointRef of a named frame, or of a point of a soft member at
+        arc length s [m] from its base, ``"<member>@<s>"`` (KeyError naming
+        what is wrong)."""
+        if name in self.frames:
             return self.frames[name]
-        except KeyError:
-            raise KeyError(f"no frame named {name!r}; this robot has {sorted(self.frames)}") from None
+        if isinstance(name, str) and "@" in name:
+            return self.member_point(*name.rsplit("@", 1))
+        raise KeyError(f"no frame named {name!r}; this robot has {sorted(self.frames)}, and the points "
+                       f"'<member>@<s>' of its members {[m.name for m in self.members]} (s in m)")
+
+    def member_point(self, member, s):
+        """PointRef of member ``member``'s point at arc length ``s`` [m] (a
+        number or its text) from the member's base, within its length."""
+        m = self.member(member)
+        try:
+            s = float(s)
+        except (TypeError, ValueError):
+            raise KeyError(f"{member}@{s}: the arc length must be a number of metres") from None
+        lengths = [self.tree.joints[j].section.length for j in m.joints]
+        total = float(sum(lengths))
+        if not (np.isfinite(s) and -1e-6 <= s <= total + 1e-6):
+            raise KeyError(f"{member}@{s:g}: the arc length must lie in [0, {total:g}] m (member {member!r})")
+        for j, L in zip(m.joints, lengths):
+            if s <= L or j == m.joints[-1]:
+                return PointRef(j, float(min(max(s, 0.0), L)))
+            s -= L
 
     def member(self, name):
         for m in self.members:

@@ -219,6 +219,7 @@ class LiveView:
         self._sliders = {}               # (kind, name) -> (slider handle, Control)
         self._paused_box = None
         self.control_events = 0          # values sent by the page's controls
+        self._on_pick = None             # a click on the robot: on_pick(ray origin, ray direction)
 
     def set_controls(self, controls, on_value, on_pause=None, on_step=None, on_reset=None, on_time_scale=None,
                      time_scale=1.0):
@@ -315,6 +316,22 @@ class LiveView:
                 b.on_click(lambda _: (self._count(), on_apply()))
                 self._controls += [self._ik_text, b]
 
+    def set_pick(self, on_pick):
+        """A click in the scene calls ``on_pick(origin, direction)`` with the
+        click's ray (world, [m]; the caller finds what it hits). The scene's
+        click, not a mesh's: the members' meshes are sent again as they
+        move, and a press on one and the release on its successor made no
+        click."""
+        with self._lock:
+            first = self._on_pick is None
+            self._on_pick = on_pick
+            if first:
+                @self.server.scene.on_click()
+                def _(event):
+                    self.control_events += 1
+                    self._on_pick(np.array(event.ray_origin, dtype=float),
+                                  np.array(event.ray_direction, dtype=float))
+
     def move_target(self, position):
         """Put the gizmo at ``position`` [m] (e.g. back on the tip)."""
         with self._lock:
@@ -410,7 +427,7 @@ class LiveView:
 
     def show(self, snap, radii=0.01, base_pose=None, tip_pose=None, tip_force=None, actuation=None,
              force_scale=0.5, text="", joints=None, units=None, paused=None, values=None, trail=False,
-             contacts=None):
+             contacts=None, point_forces=None):
         """Draw one :class:`scene.Snapshot`: a tube per member (radii [m]: one
         value or one per point of each member, a list per member), links as
         bars, the base and tip frames (4x4 poses, world), the tip force [N]
@@ -424,7 +441,8 @@ class LiveView:
         shown, given in the panel); ``trail``: draw the tip's path over the
         last TRAIL_SECONDS; ``contacts``: (positions (K, 3) [m], forces (K, 3)
         [N]) drawn as arrows of ``force_scale`` m per N; the snapshot's
-        obstacles are outlined."""
+        obstacles are outlined; ``point_forces``: [(point name, position,
+        force)] the loads on other points than the tip, drawn and listed."""
         sc = self.server.scene
         with self._lock:
             vmax = None
@@ -488,6 +506,7 @@ class LiveView:
             if tip_force is not None:
                 f = np.asarray(tip_force, dtype=float)
                 lines.append(f"- tip force: [{f[0]:.3g}, {f[1]:.3g}, {f[2]:.3g}] N")
+            self._draw_point_forces(point_forces or (), force_scale, lines)
             self._follow("actuation", actuation or {})
             self._follow("joint position", joints or {})
             if paused is not None and self._paused_box is not None and self._paused_box.value != bool(paused):
@@ -528,6 +547,17 @@ class LiveView:
                                      thickness_units="screen")
         elif "/twin/tip_path" in self._sent:
             self._remove("/twin/tip_path")
+
+    def _draw_point_forces(self, point_forces, force_scale, lines):
+        """The loads on other points than the tip: arrows, and a panel line each."""
+        if point_forces:
+            seg = np.array([[p, np.asarray(p) + force_scale * np.asarray(f)] for _, p, f in point_forces],
+                           np.float32)
+            if self._changed("/twin/point_forces", seg):
+                self.server.scene.add_line_segments("/twin/point_forces", seg, colors=FORCE_COLOR, line_width=5.0)
+            lines += [f"- force on `{n}`: [{f[0]:.3g}, {f[1]:.3g}, {f[2]:.3g}] N" for n, _, f in point_forces]
+        elif "/twin/point_forces" in self._sent:
+            self._remove("/twin/point_forces")
 
     def _draw_world(self, snap, contacts, force_scale):
         """The obstacles' outlines and the contact forces as arrows."""

@@ -350,7 +350,7 @@ def _drive_from_the_page(browser, client, tmp_path, rest):
     # 6. push the tip: the gizmo back on the tip; held 60 px above it, a spring pulls the tip up (a tip
     # load through the node's own ~/tip_wrench_command, counted); let go, the load is gone
     browser.click(*_centre(_control(browser, "drag to", "input")))
-    option = "[...document.querySelectorAll('[role=option]')].find(e => e.textContent.trim() === 'push the tip (spring)')"
+    option = "[...document.querySelectorAll('[role=option]')].find(e => e.textContent.trim() === 'push a point (spring)')"
     assert wait_for(lambda: browser.rect(option) is not None, 10.0, 0.25), "no gizmo menu"
     browser.click(*_centre(browser.rect(option)))
     ok, text = _wait_for_page_text(browser, ["a spring of 10 N/m"], 20.0)
@@ -370,3 +370,36 @@ def _drive_from_the_page(browser, client, tmp_path, rest):
     browser.mouse("mouseReleased", x0, y0 - 60)
     assert wait_for(lambda: "tip force:" not in browser.evaluate("document.body.innerText"), 20.0, 0.25), \
         "the push's load stayed after letting go"
+    # 7. push a point picked on the page: a click on the arm's middle picks the backbone point nearest the
+    # click (the page names it, <member>@<s>) and puts the gizmo there; held 60 px above it, the spring
+    # pulls that point (the node's own ~/point_wrench_command, counted with the wrenches), the panel lists
+    # the force on it; let go, the load is gone
+    assert client.wait_until(lambda: client.tip_pose.pose.position.z < tip[2] + 0.005, 30.0), "not back down"
+    # (the projection of the page's camera is good to some 30 px: clicks across the drawn arm, from its
+    # middle's projection outwards, until one lands on it, as a user would aim)
+    P = np.array([[q.position.x, q.position.y, q.position.z] for q in client.backbone.poses])
+    mid = P[len(P) // 2]
+    (xm, ym), (xa, ya) = project(np.array([mid, P[len(P) // 2 + 2]]), camera, look, w, h)
+    across = np.array([ya - ym, xm - xa]) / max(np.hypot(ya - ym, xm - xa), 1e-9)
+    for off in (0, 6, -6, 12, -12, 18, -18, 24, -24, 30, -30, 36, -36, 42, -42):
+        browser.click(xm + off * across[0], ym + off * across[1])
+        ok, text = _wait_for_page_text(browser, ["picked "], 2.0)
+        if ok:
+            break
+    assert ok, text
+    m = re.search(r"picked (\S+)@([0-9.]+) at \[([^\]]+)\] m", text)         # (the name in code type)
+    assert m, text
+    picked = np.array([float(v) for v in m.group(3).split(",")])
+    assert np.linalg.norm(picked - mid) < 0.03, (picked, mid)           # the point under the click
+    wrenches = int(client.wait_diagnostics(timeout=10.0)["wrenches_applied_total"])
+    (x0, y0), = project(picked + [0.0, 0.0, 0.06], camera, look, w, h)
+    browser.mouse("mousePressed", x0, y0)
+    for k in range(1, 11):
+        browser.mouse("mouseMoved", x0, y0 - 6 * k)
+    ok, text = _wait_for_page_text(browser, [f"pushing {m.group(1)}@", f"force on {m.group(1)}@"], 30.0)
+    assert ok, text
+    assert int(client.wait_diagnostics(timeout=10.0)["wrenches_applied_total"]) > wrenches
+    (tmp_path / "7_pushing_a_point.png").write_bytes(browser.screenshot())
+    browser.mouse("mouseReleased", x0, y0 - 60)
+    assert wait_for(lambda: f"force on {m.group(1)}@" not in browser.evaluate("document.body.innerText"), 20.0,
+                    0.25), "the point's load stayed after letting go"

@@ -145,6 +145,32 @@ class TestQuasiStatic:
         c.send_tip_wrench([0.0, 0.0, 0.0], [0.0, 0.0, 0.0], "base_link")    # clear it
         assert c.wait_until(lambda: c.tip_wrench.wrench.force.z == 0.0, 10.0)
 
+    def test_a_point_wrench_loads_the_member_where_it_is_named(self, qs, model):
+        """Issue 31: ``~/point_wrench_command`` (soft_twin/PointWrench) puts
+        a wrench on any point of the robot: 0.05 N down on ``backbone@0.1``
+        (the default arm's member, 0.1 m from its base) is carried by the
+        base (its vertical reaction is the weight plus the load, exactly)
+        and bends the arm down; an unknown point is refused (bad_point),
+        counted and never applied; zeros remove the load."""
+        c, _ = qs
+        stamp = c.send_actuation(NAMES, [0.0, 0.0, 0.0, 0.0])
+        assert c.wait_until(lambda: c.applied(stamp), 10.0)
+        c.send_tip_wrench([0.0, 0.0, 0.0], [0.0, 0.0, 0.0], "base_link")
+        weight = model.mass * 9.81
+        assert c.wait_until(lambda: c.base_wrench is not None
+                            and abs(c.base_wrench.wrench.force.z - weight) < 1e-9, 10.0)
+        z0 = c.tip_pose.pose.position.z
+        c.send_point_wrench("backbone@0.1", [0.0, 0.0, -0.05], [0.0, 0.0, 0.0], "base_link")
+        assert c.wait_until(lambda: abs(c.base_wrench.wrench.force.z - (weight + 0.05)) < 1e-9, 10.0)
+        assert c.wait_until(lambda: c.tip_pose.pose.position.z < z0 - 1e-4, 10.0)
+        before = int(c.wait_diagnostics(timeout=10.0)["rejected_wrench_total"])
+        c.send_point_wrench("nowhere@0.1", [0.0, 0.0, -1.0], [0.0, 0.0, 0.0], "base_link")
+        d = c.wait_diagnostics(lambda d: int(d["rejected_wrench_total"]) > before, 10.0)
+        assert d is not None and "bad_point" in d["last_rejection"] and "nowhere" in d["last_rejection"]
+        assert abs(c.base_wrench.wrench.force.z - (weight + 0.05)) < 1e-9          # not applied
+        c.send_point_wrench("backbone@0.1", [0.0, 0.0, 0.0], [0.0, 0.0, 0.0], "base_link")
+        assert c.wait_until(lambda: abs(c.base_wrench.wrench.force.z - weight) < 1e-9, 10.0)
+
     def test_forward_kinematics_round_trip(self, qs, model):
         c, _ = qs
         shape = solve_statics(model, [0.5, 0.0, 0.2, 0.0])
