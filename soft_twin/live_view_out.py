@@ -105,6 +105,27 @@ def nearest_point_to_ray(snap, mech, origin, direction):
     return names[k], points[k], float(miss[k])
 
 
+def actuator_routes(mech, snap):
+    """[(kind, polyline (K, 3) [m])] of each actuator: its path through the
+    member's cross-sections, ``p(s) + R(s) d(s)`` at the member's backbone
+    samples from its ``start`` to its ``end`` (d: the robot file's offset,
+    routing included: :meth:`Actuator.offset_at`)."""
+    tree, out = mech.tree, []
+    for k, act in enumerate(mech.actuators):
+        pi = tree.actuator_paths[k] if tree.actuator_paths else tree.actuator_path
+        member = next((m for m in mech.members if m.path == pi), None)
+        if member is None or member.name not in snap.backbones:
+            continue
+        poses, s = snap.backbones[member.name]
+        poses, s = np.asarray(poses, dtype=float), np.asarray(s, dtype=float)
+        on = (s >= act.start - 1e-9) & (s <= act.end + 1e-9)
+        if on.sum() < 2:
+            continue
+        d, _ = act.offset_at(s[on])
+        out.append((act.kind, np.einsum("kij,kj->ki", poses[on, :3, :3], d) + poses[on, :3, 3]))
+    return out
+
+
 def articulated_view_snapshot(mech, snap):
     """(scene.Snapshot, radii per member) of a robot's state: its members
     through their backbone points (radii from their cross-sections), its
@@ -164,6 +185,8 @@ class LiveViewOutput:
         self._controls_of = None         # the robot the page's controls were made for
         self.colour_by = "none"           # the page's "colour by" choice (COLOURINGS)
         self.trail = True
+        self.routes = False               # the page's "actuators' routes" box
+        self.frames = False               # the page's "frames" box
         self._latest = None               # the last state given to publish: redrawn on a change of the page's view
         self._ik = threading.Condition()  # the target's IK: the latest target waiting, a worker thread solving it
         self._ik_target, self._ik_answer, self._ik_thread, self._closed = None, None, None, False
@@ -217,7 +240,9 @@ class LiveViewOutput:
                   actuation=dict(zip(robot.mech.actuator_names, np.asarray(snap.u, dtype=float).tolist())),
                   text=f"({snap.mode}{', paused' if self._node.paused else ''})",
                   joints=dict(zip(snap.joint_names, np.asarray(snap.joint_positions, dtype=float).tolist())),
-                  units=units_of(robot.mech), paused=self._node.paused, point_forces=snap.point_loads)
+                  units=units_of(robot.mech), paused=self._node.paused, point_forces=snap.point_loads,
+                  routes=actuator_routes(robot.mech, snap) if self.routes else None,
+                  frames=snap.frames if self.frames else None)
 
     def _make_controls(self, robot):
         """The page's sliders for ``robot`` and the run controls."""
@@ -236,7 +261,9 @@ class LiveViewOutput:
         self._view.set_controls(controls, self._send, on_pause=node.set_paused, on_step=node.single_step,
                                 on_reset=self._reset, on_time_scale=self._time_scale,
                                 time_scale=node.cfg.time_scale)
-        self._view.set_view_options(list(COLOURINGS), self._set_colour, self._set_trail, self.trail)
+        self._view.set_view_options(list(COLOURINGS), self._set_colour, self._set_trail, self.trail,
+                                    on_routes=self._set_flag("routes"), routes=self.routes,
+                                    on_frames=self._set_flag("frames"), frames=self.frames)
         self._view.set_target(twin.outputs().tip_pose[:3, 3], self._on_target, self._apply_ik, GIZMO_MODES,
                               self._set_gizmo_mode)
         self._view.set_pick(self._on_pick)
@@ -393,6 +420,13 @@ class LiveViewOutput:
     def _set_trail(self, on):
         self.trail = bool(on)
         self._redraw()
+
+    def _set_flag(self, name):
+        """A page box's callback: the attribute ``name`` set, the state drawn again."""
+        def set_it(on):
+            setattr(self, name, bool(on))
+            self._redraw()
+        return set_it
 
     def _redraw(self):
         """The last state drawn again (a paused twin publishes none)."""

@@ -35,6 +35,8 @@ FORCE_COLOR = (204, 41, 204)
 TRAIL_COLOR = (40, 150, 90)      # the tip's path
 OBSTACLE_COLOR = (120, 120, 120)
 CONTACT_COLOR = (204, 41, 204)   # contact forces, as the tip load
+TENDON_COLOR = (0, 140, 150)     # the tendons' routes
+CHAMBER_COLOR = (50, 80, 220)    # the chambers' routes
 TRAIL_SECONDS = 10.0             # the tip path drawn: the last 10 s
 TRAIL_STEP_M = 0.001             # ... a point each time the tip has moved 1 mm
 # members coloured by a value: 0 -> blue, half -> light grey, the largest -> red (a diverging map, "coolwarm"'s
@@ -352,10 +354,12 @@ class LiveView:
             t = np.asarray(target, dtype=float)
             self._ik_text.content = (f"target [{t[0]:.4f}, {t[1]:.4f}, {t[2]:.4f}] m: {message}")
 
-    def set_view_options(self, colourings, on_colour, on_trail, trail=True):
+    def set_view_options(self, colourings, on_colour, on_trail, trail=True, on_routes=None, routes=True,
+                         on_frames=None, frames=False):
         """A "see" folder: a "colour by" menu (``colourings``: labels with
-        units, "none" first; ``on_colour(label)``) and a "tip path" box
-        (``on_trail(bool)``)."""
+        units, "none" first; ``on_colour(label)``), a "tip path" box
+        (``on_trail(bool)``) and, given their callbacks, "actuators' routes"
+        and "frames" boxes."""
         gui = self.server.gui
         with self._lock:
             folder = gui.add_folder("see", order=3.0)
@@ -364,6 +368,14 @@ class LiveView:
                 self._page_input(gui.add_dropdown("colour by", tuple(colourings), initial_value=colourings[0]),
                                  on_colour)
                 self._page_input(gui.add_checkbox("tip path", bool(trail), hint="the last 10 s"), on_trail)
+                if on_routes is not None:
+                    self._page_input(gui.add_checkbox("actuators' routes", bool(routes),
+                                                      hint="tendons (teal) and chambers (blue) through the "
+                                                           "cross-sections"), on_routes)
+                if on_frames is not None:
+                    self._page_input(gui.add_checkbox("frames", bool(frames),
+                                                      hint="every named frame's axes (x red, y green, z blue)"),
+                                     on_frames)
 
     def set_playback(self, t0, t1, step, signals, on_play, on_seek, on_speed, on_signal):
         """The controls of a run played back (:mod:`soft_twin_core.viz.playback`):
@@ -427,7 +439,7 @@ class LiveView:
 
     def show(self, snap, radii=0.01, base_pose=None, tip_pose=None, tip_force=None, actuation=None,
              force_scale=0.5, text="", joints=None, units=None, paused=None, values=None, trail=False,
-             contacts=None, point_forces=None):
+             contacts=None, point_forces=None, routes=None, frames=None):
         """Draw one :class:`scene.Snapshot`: a tube per member (radii [m]: one
         value or one per point of each member, a list per member), links as
         bars, the base and tip frames (4x4 poses, world), the tip force [N]
@@ -442,7 +454,10 @@ class LiveView:
         last TRAIL_SECONDS; ``contacts``: (positions (K, 3) [m], forces (K, 3)
         [N]) drawn as arrows of ``force_scale`` m per N; the snapshot's
         obstacles are outlined; ``point_forces``: [(point name, position,
-        force)] the loads on other points than the tip, drawn and listed."""
+        force)] the loads on other points than the tip, drawn and listed;
+        ``routes``: [(actuator kind, polyline (K, 3))] drawn as lines
+        (tendons green, chambers blue); ``frames``: {name: 4x4} drawn as
+        small axes (None: none)."""
         sc = self.server.scene
         with self._lock:
             vmax = None
@@ -507,6 +522,8 @@ class LiveView:
                 f = np.asarray(tip_force, dtype=float)
                 lines.append(f"- tip force: [{f[0]:.3g}, {f[1]:.3g}, {f[2]:.3g}] N")
             self._draw_point_forces(point_forces or (), force_scale, lines)
+            self._draw_routes(routes or ())
+            self._draw_frames(frames or {})
             self._follow("actuation", actuation or {})
             self._follow("joint position", joints or {})
             if paused is not None and self._paused_box is not None and self._paused_box.value != bool(paused):
@@ -558,6 +575,29 @@ class LiveView:
             lines += [f"- force on `{n}`: [{f[0]:.3g}, {f[1]:.3g}, {f[2]:.3g}] N" for n, _, f in point_forces]
         elif "/twin/point_forces" in self._sent:
             self._remove("/twin/point_forces")
+
+    def _draw_routes(self, routes):
+        """The actuators' routes: one node of segments per kind."""
+        for kind, node, color in (("tendon", "/twin/tendons", TENDON_COLOR), ("chamber", "/twin/chambers",
+                                                                            CHAMBER_COLOR)):
+            lines = [P for k, P in routes if k == kind]
+            if lines:
+                seg = np.concatenate([np.stack([P[:-1], P[1:]], axis=1) for P in lines]).astype(np.float32)
+                if self._changed(node, seg):
+                    self.server.scene.add_line_segments(node, seg, colors=color, thickness=2.0,
+                                                        thickness_units="screen")
+            elif node in self._sent:
+                self._remove(node)
+
+    def _draw_frames(self, frames):
+        """Every named frame's axes (those no longer asked for removed)."""
+        for name, T in frames.items():
+            T = np.asarray(T, dtype=float)
+            if self._changed(f"/twin/frames/{name}", T):
+                self.server.scene.add_frame(f"/twin/frames/{name}", wxyz=wxyz(T[:3, :3]), position=T[:3, 3],
+                                            axes_length=0.03, axes_radius=0.0012)
+        for node in [n for n in self._sent if n.startswith("/twin/frames/") and n[13:] not in frames]:
+            self._remove(node)
 
     def _draw_world(self, snap, contacts, force_scale):
         """The obstacles' outlines and the contact forces as arrows."""

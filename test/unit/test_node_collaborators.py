@@ -189,3 +189,51 @@ def test_parameter_coercion_and_the_unknown_name_hint():
     assert coerced("not_ours", 3) == 3
     text = unknown_parameters_message(["step_rate"])
     assert "'step_rate' -> 'step_rate_hz'?" in text and all(p in text for p in PARAMETERS)
+
+
+def test_the_pages_actuator_routes_run_through_the_cross_sections_at_their_offsets():
+    """The page draws each actuator along its route: at every backbone
+    sample from its start to its end, the point ``p(s) + R(s) d(s)`` lies
+    |d| from the backbone, square to its tangent (the tendon arm's four
+    straight tendons on a curled arm, one of them made helical, 5 turns a
+    metre; the pneumatic arm's chambers), and a view given routes and
+    frames draws them (and takes them away when they are off)."""
+    import yaml
+    from soft_twin.live_view_out import actuator_routes
+    from soft_twin_core.robot.mechanism import from_robot_model, load_mechanism
+    from soft_twin_core.robot.model import find_file, model_from_dict
+    from soft_twin_core.twin import Twin, TwinSettings
+    from soft_twin_core.viz.live_view import LiveView
+    d = yaml.safe_load(open(find_file("tendon_arm", "robots")).read())
+    d["actuators"][0].update(routing="helical", radius=0.008, turns_per_meter=5.0)
+    d["actuators"][0].pop("offset", None)
+    helical = from_robot_model(model_from_dict(d), d)
+    assert helical.actuators[0].routing == "helical"
+    for robot, u in (("tendon_arm", [0.0, 0.0, 3.0, 0.0]), (helical, [1.0, 0.0, 0.0, 0.0]), ("pneumatic_arm", None)):
+        mech = load_mechanism(robot) if isinstance(robot, str) else robot
+        twin = Twin(mech, TwinSettings(mode="quasi_static"))
+        if u is not None:
+            twin.set_actuation(u)
+            assert twin.step().converged
+        snap = twin.outputs()
+        routes = actuator_routes(mech, snap)
+        assert [k for k, _ in routes] == [a.kind for a in mech.actuators]
+        for (kind, P), act in zip(routes, mech.actuators):
+            poses, s = (np.asarray(x) for x in snap.backbones[mech.members[0].name])
+            on = (s >= act.start - 1e-9) & (s <= act.end + 1e-9)
+            d, _ = act.offset_at(s[on])
+            arm = P - poses[on, :3, 3]
+            np.testing.assert_allclose(np.linalg.norm(arm, axis=1), np.linalg.norm(d, axis=1), rtol=1e-12)
+            np.testing.assert_allclose(np.einsum("ki,ki->k", arm, poses[on, :3, 0]), 0.0, atol=1e-12)
+    view = LiveView(port=0)
+    try:
+        from soft_twin.live_view_out import articulated_view_snapshot
+        shot, radii = articulated_view_snapshot(mech, snap)
+        view.show(shot, radii, routes=routes, frames=snap.frames)
+        kinds = {k for k, _ in routes}
+        assert ("/twin/chambers" in view._sent) == ("chamber" in kinds)
+        assert all(f"/twin/frames/{n}" in view._sent for n in snap.frames)
+        view.show(shot, radii)
+        assert not any(n.startswith(("/twin/frames/", "/twin/tendons", "/twin/chambers")) for n in view._sent)
+    finally:
+        view.close()
