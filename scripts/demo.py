@@ -223,10 +223,12 @@ def main(argv=None):
                                      f"soft_twin demo: tendon arm ({args.mode} twin), 10 g payload")
         say(f"wrote the animation: {args.animation} ({n} frames, {seconds:.1f} s at {FRAME_RATE:g} fps)")
     if args.record.name and rc == 0:
+        from soft_twin_core.files.mcap_salvage import topic_counts
         from soft_twin_core.files.recording import read_messages
-        msgs = read_messages(str(args.record))
-        say(f"the node recorded {sum(map(len, msgs.values()))} messages on {len(msgs)} topics "
-            f"({len(msgs.get('/soft_twin_demo/actuation', []))} of the {sent} commands sent): {args.record}")
+        counts = topic_counts(str(args.record))            # (decoding every message would take seconds)
+        msgs = read_messages(str(args.record), ["/soft_twin_demo/tip_pose"])
+        say(f"the node recorded {sum(counts.values())} messages on {len(counts)} topics "
+            f"({counts.get('/soft_twin_demo/actuation', 0)} of the {sent} commands sent): {args.record}")
         # the table's t = 0 in the recording's time (its first state): render and view take it as --t0
         ns = [m.header.stamp.sec * 10**9 + m.header.stamp.nanosec for m in msgs.get("/soft_twin_demo/tip_pose", [])]
         t0_rec = (sweep_stamp.sec * 10**9 + sweep_stamp.nanosec - min(ns)) * 1e-9 if ns else 0.0

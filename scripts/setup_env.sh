@@ -230,7 +230,7 @@ EOF
 # (soft-twin-sim and the Dask workers of its studies, soft_twin_node) import:
 # numba keeps a cache per source file, so the checkout's cache does not serve
 # it (without this, their first run compiles for about a minute).
-say "kernels: compiling into numba's cache if needed (about 2.5 minutes after a change of soft_twin_core, seconds otherwise)"
+say "kernels: compiling into numba's cache if needed (about 2.5 minutes after a change of a kernel's sources, seconds otherwise)"
 "$VENV/bin/python" -m soft_twin_core.warmup >"$LOG.warmup" 2>&1 &
 WARM_CHECKOUT=$!
 (cd "$VENV" && "$VENV/bin/python" -m soft_twin_core.warmup) >"$LOG.warmup_installed" 2>&1 &

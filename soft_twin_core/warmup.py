@@ -123,22 +123,79 @@ def tiny_mechanism_run():
     state_outputs(mech, sim.q, sim.lam, sim.inputs, sim.v, sim.a, sim.ws)
 
 
+def _top_level_imports(f, root):
+    """The package's source files that file ``f`` imports at its top level
+    (``import soft_twin_core.x``, ``from soft_twin_core.x import y``: x's file,
+    and y's when y is a module)."""
+    import ast
+
+    def source(name):
+        parts = name.split(".")
+        if parts[0] != root.name:
+            return None
+        p = root.joinpath(*parts[1:])
+        for cand in (p.with_suffix(".py"), p / "__init__.py"):
+            if cand.is_file():
+                return cand
+        return None
+    out = set()
+    for node in ast.parse(f.read_text()).body:
+        names = []
+        if isinstance(node, ast.Import):
+            names = [a.name for a in node.names]
+        elif isinstance(node, ast.ImportFrom) and node.module and node.level == 0:
+            names = [node.module] + [f"{node.module}.{a.name}" for a in node.names]
+        out |= {s for s in map(source, names) if s is not None}
+    return out
+
+
+def kernel_sources(root):
+    """The source files whose change can change a compiled kernel: those
+    that import numba or the package's jit decorators (``_jit...``), and
+    every file they import at their top level, transitively (a kernel bakes
+    in the module globals it reads, and links the kernels it calls). A
+    jitted function cannot import, so imports inside functions do not
+    count; the warm-up driver (this file) is no kernel."""
+    import ast
+    from pathlib import Path
+    root = Path(root)
+
+    def is_kernel_file(f):
+        for node in ast.walk(ast.parse(f.read_text())):
+            if isinstance(node, ast.Import) and any(a.name.split(".")[0] == "numba" for a in node.names):
+                return True
+            if isinstance(node, ast.ImportFrom) and node.module and (
+                    node.module.split(".")[0] == "numba" or any(a.name.startswith("_jit") for a in node.names)):
+                return True
+        return False
+    todo = [f for f in sorted(root.rglob("*.py")) if f.name != "warmup.py" and is_kernel_file(f)]
+    seen = set(todo)
+    while todo:
+        for g in _top_level_imports(todo.pop(), root):
+            if g not in seen:
+                seen.add(g)
+                todo.append(g)
+    return sorted(seen)
+
+
 def purge_stale_caches(root=None):
-    """Delete every kernel cache of this package when any of its sources
-    changed since the last warm-up; returns True if it did.
+    """Delete every kernel cache of this package when a source a kernel
+    depends on (:func:`kernel_sources`) changed since the last warm-up;
+    returns True if it did.
 
     numba checks a cached kernel against its own file's timestamp only: a
     kernel whose callee in another file changed (linked or inlined into it)
-    would load the old machine code. A hash of all the package's sources,
-    kept beside the caches, catches that (and an upgrade installed over an
-    old ``__pycache__``). ``NUMBA_CACHE_DIR``: its copy of this package's
-    tree is purged too."""
+    would load the old machine code. A hash of the kernels' sources, kept
+    beside the caches, catches that (and an upgrade installed over an old
+    ``__pycache__``); a change elsewhere in the package (the solvers' Python
+    layers, the files, the views) keeps the caches. ``NUMBA_CACHE_DIR``: its
+    copy of this package's tree is purged too."""
     import hashlib
     import os
     from pathlib import Path
     root = Path(__file__).resolve().parent if root is None else Path(root)
     h = hashlib.sha256()
-    for f in sorted(root.rglob("*.py")):
+    for f in kernel_sources(root):
         h.update(f.relative_to(root).as_posix().encode())
         h.update(f.read_bytes())
     digest = h.hexdigest()

@@ -68,19 +68,52 @@ def _decoded_streaming(fh, size, topics):
     return out, good, error
 
 
+def _open_mcap(path, error, what):
+    """The file, open at its start, after checking its MCAP magic (``error``
+    naming the file otherwise)."""
+    try:
+        fh = open(path, "rb")
+    except OSError as e:
+        raise error(f"cannot read the {what} {str(path)!r}: {e.strerror or e}") from None
+    if fh.read(len(MAGIC)) != MAGIC:
+        fh.close()
+        raise error(f"{path}: not an MCAP {what} (no MCAP magic at the start of the file)")
+    fh.seek(0)
+    return fh
+
+
+def topic_counts(path, error=ValueError, what="recording"):
+    """{topic: number of messages} of an MCAP file, every message read but
+    none decoded (a file cut short: its readable part; a topic without a
+    message counts 0)."""
+    from mcap.records import Channel, Message
+    from mcap.stream_reader import StreamReader
+    with _open_mcap(path, error, what) as fh:
+        size = os.fstat(fh.fileno()).st_size
+        topics, counts = {}, {}
+        try:
+            for rec in StreamReader(fh, validate_crcs=False, record_size_limit=max(size, 1)).records:
+                if isinstance(rec, Channel):
+                    topics[rec.id] = rec.topic
+                    counts.setdefault(rec.topic, 0)
+                elif isinstance(rec, Message) and rec.channel_id in topics:
+                    counts[topics[rec.channel_id]] += 1
+        except Exception:          # noqa: BLE001 - the end of the readable part
+            pass
+        return counts
+
+
+def recorded_topics(path, error=ValueError, what="recording"):
+    """The set of topics of an MCAP file, none of its messages decoded."""
+    return set(topic_counts(path, error, what))
+
+
 def read_decoded(path, topics=None, error=ValueError, what="recording"):
     """[(channel, message, decoded message)] of an MCAP file in log-time
     order (``topics``: only these). A file cut short is read up to its last
     complete chunk, with a :class:`TruncatedRecordingWarning`; an unreadable
     file raises ``error`` with a message naming it."""
-    try:
-        fh = open(path, "rb")
-    except OSError as e:
-        raise error(f"cannot read the {what} {str(path)!r}: {e.strerror or e}") from None
-    with fh:
-        if fh.read(len(MAGIC)) != MAGIC:
-            raise error(f"{path}: not an MCAP {what} (no MCAP magic at the start of the file)")
-        fh.seek(0)
+    with _open_mcap(path, error, what) as fh:
         try:
             return _decoded_seeking(fh, topics)
         except Exception as e:     # noqa: BLE001 - the mcap library raises its own error types

@@ -31,7 +31,7 @@ import re
 
 import numpy as np
 
-from soft_twin_core.files.mcap_salvage import read_decoded
+from soft_twin_core.files.mcap_salvage import read_decoded, recorded_topics
 from soft_twin_core.robot.mechanism import tip_frame, tip_frame as tip_frame_of
 from soft_twin_core.solve.outputs import main_member
 
@@ -289,8 +289,8 @@ def read_node_recording(path, mech, node=None, tf_prefix=None):
     on /tf under ``tf_prefix``, default ``<node>/``) when it has them, else
     from the backbone, tip pose and strains every twin node publishes
     (:func:`recording.read_node_run`)."""
-    msgs = read_messages(path)
-    found = articulated_namespaces(msgs) or node_namespaces(msgs)
+    topics = dict.fromkeys(recorded_topics(path))          # decode only the node's state topics below
+    found = articulated_namespaces(topics) or node_namespaces(topics)
     if node is not None:
         ns = "/" + node.strip("/")
         if ns not in found:
@@ -301,12 +301,20 @@ def read_node_recording(path, mech, node=None, tf_prefix=None):
         raise ValueError(f"{path}: " + (f"several twin nodes recorded {found}: choose one with --node"
                                         if found else "no twin state topics (joint_states, or backbone, "
                                                       "tip_pose and strains)"))
+    msgs = read_messages(path, [t for t in topics if _state_topic(t, ns)])
     try:
         if f"{ns}/joint_states" in msgs:
             return articulated_run_from_messages(msgs, mech, ns, tf_prefix)
         return read_node_run(msgs, ns, mech)
     except ValueError as e:
         raise ValueError(f"{path}: {e}") from None
+
+
+def _state_topic(topic, ns):
+    """True for a topic the run of node ``ns`` is read from (by
+    :func:`articulated_run_from_messages` or :func:`read_node_run`)."""
+    return topic == "/tf" or topic in [f"{ns}/{s}" for s in ("joint_states",) + STATE_TOPICS] \
+        or topic.startswith((f"{ns}/backbones/", f"{ns}/joint_wrenches/"))
 
 
 def articulated_run_from_messages(msgs, mech, ns, tf_prefix=None):

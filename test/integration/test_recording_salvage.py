@@ -23,7 +23,7 @@ from soft_twin.recorder import McapRecording, rotated_path  # noqa: E402
 from soft_twin_core.estimation import mcap_data as calibration_mcap
 from soft_twin_core.estimation.calibration import CalibrationError  # noqa: E402
 from soft_twin_core.files import recording  # noqa: E402
-from soft_twin_core.files.mcap_salvage import TruncatedRecordingWarning, read_decoded  # noqa: E402
+from soft_twin_core.files.mcap_salvage import TruncatedRecordingWarning, read_decoded, topic_counts  # noqa: E402
 
 START_TIMEOUT = 120.0      # a fresh clone compiles the numba kernels first
 
@@ -63,6 +63,7 @@ def test_truncated_file_reads_back_to_its_last_chunk(tmp_path):
     _write(path, n)
     clean = read_decoded(path)               # the complete file: no warning
     assert len(clean) == 2 * n
+    assert topic_counts(path) == {"/t/a": n, "/t/b": n}          # (read, not decoded)
     data = path.read_bytes()
     cut = int(0.9 * len(data))
     path.write_bytes(data[:cut])
@@ -77,6 +78,7 @@ def test_truncated_file_reads_back_to_its_last_chunk(tmp_path):
         assert 0.7 * n < k < n, (t, k)
         assert got[t] == [float(i) for i in range(k)]
     assert abs(len(got["/t/a"]) - len(got["/t/b"])) <= 1
+    assert topic_counts(path) == {t: len(v) for t, v in got.items()}      # the same readable part
     # the calibrate MCAP loader reads it the same way
     with pytest.warns(TruncatedRecordingWarning):
         rows = calibration_mcap._iter(str(path), ["/t/a"])

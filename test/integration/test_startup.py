@@ -71,22 +71,32 @@ def test_probe_is_left_alone_once_numba_has_run():
 
 def test_warm_up_purges_every_kernel_cache_when_a_source_changes(tmp_path):
     """numba checks a cached kernel against its own file only, so a change in
-    a callee's file must clear the package's caches (warmup.purge_stale_caches)."""
-    from soft_twin_core.warmup import purge_stale_caches
+    a file a kernel's file imports (a callee, a constant) must clear the
+    package's caches (warmup.purge_stale_caches); a change in a file no
+    kernel depends on keeps them (issue 30: compile less)."""
+    from soft_twin_core.warmup import kernel_sources, purge_stale_caches
     pkg = tmp_path / "soft_twin_core"
     (pkg / "kernels" / "__pycache__").mkdir(parents=True)
-    (pkg / "a.py").write_text("x = 1\n")
-    (pkg / "kernels" / "b.py").write_text("y = 2\n")
+    (pkg / "a.py").write_text("from soft_twin_core.c import z\nx = 1\n")
+    (pkg / "c.py").write_text("z = 0\n")
+    (pkg / "views.py").write_text("def draw():\n    from soft_twin_core import a\n")
+    (pkg / "kernels" / "b.py").write_text("from numba import njit\nfrom soft_twin_core.a import x\n")
+    assert kernel_sources(pkg) == sorted([pkg / "a.py", pkg / "c.py", pkg / "kernels" / "b.py"])
     caches = [pkg / "kernels" / "__pycache__" / "b.f-1.py311.nbi", pkg / "kernels" / "__pycache__" / "b.f-1.py311.1.nbc"]
     assert purge_stale_caches(pkg)                     # first time: no stamp
     for c in caches:
         c.write_bytes(b"cache")
     assert not purge_stale_caches(pkg)                 # nothing changed: caches kept
-    assert all(c.exists() for c in caches)
-    (pkg / "a.py").write_text("x = 3\n")               # a source elsewhere changes
-    assert purge_stale_caches(pkg)
-    assert not any(c.exists() for c in caches)
+    (pkg / "views.py").write_text("def draw():\n    pass\n")   # no kernel imports it: caches kept
     assert not purge_stale_caches(pkg)
+    assert all(c.exists() for c in caches)
+    for f, text in (("a.py", "from soft_twin_core.c import z\nx = 3\n"), ("c.py", "z = 1\n")):
+        for c in caches:                               # a kernel's import changes, directly or not
+            c.write_bytes(b"cache")
+        (pkg / f).write_text(text)
+        assert purge_stale_caches(pkg), f
+        assert not any(c.exists() for c in caches)
+        assert not purge_stale_caches(pkg)
 
 
 def test_warm_up_purge_reaches_numba_cache_dir_but_not_another_copy(tmp_path, monkeypatch):
@@ -103,7 +113,8 @@ def test_warm_up_purge_reaches_numba_cache_dir_but_not_another_copy(tmp_path, mo
         (pkg / "__init__.py").write_text("")
         (pkg / "kernels" / "__init__.py").write_text("")
         (pkg / "a.py").write_text("x = 1\n")
-        (pkg / "kernels" / "b.py").write_text("import numba\n@numba.njit(cache=True)\ndef f(x):\n    return x + 1\n")
+        (pkg / "kernels" / "b.py").write_text("import numba\nfrom soft_twin_core.a import x\n"
+                                              "@numba.njit(cache=True)\ndef f(y):\n    return y + x\n")
         copies.append(pkg)
     monkeypatch.setenv("NUMBA_CACHE_DIR", str(cache))
     for pkg in copies:
