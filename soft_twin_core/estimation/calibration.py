@@ -5,15 +5,19 @@ rod, a tree robot: one :class:`mechanism.Mechanism` path).
 
 Data: a :class:`Recording` -- per row the actuator inputs u (N or Pa), the
 position commands of the position-controlled joints (rad or m; default
-their references) and the readings of pose sensors and position markers
-(:mod:`sensors`) at the equilibrium those commands reach (a static sweep;
-CSV format in :func:`read_csv`).
+their references), the efforts of the effort-controlled joints (N m or N;
+default 0), the known external wrenches on named frames or member points
+(a hung weight, a force gauge; N, N m) and the readings of pose sensors
+and position markers (:mod:`sensors`) at the equilibrium all these reach
+(a static sweep; CSV format in :func:`read_csv`).
 
 Parameters (names as given to :func:`calibrate`, SI units):
 
 - ``youngs_modulus:<segment>`` [Pa] of a segment (its shear modulus
   follows at the fixed Poisson ratio; the stiffness is linear in E); a
   segment name used by two members of a tree is ``<member>/<segment>``;
+  ``youngs_modulus:<a>+<b>``: one modulus shared by segments a and b (one
+  material; starting from the mean of their values);
 - ``tendon_offset:<actuator>`` [m]: the distance of a straight tendon from
   the centre line, along its nominal direction;
 - ``payload_mass`` [kg]: a point mass at the tip frame (its weight, a dead
@@ -58,6 +62,7 @@ import numpy as np
 
 from soft_twin_core.engine import algorithms as alg
 from soft_twin_core.engine.forces import tension_factors
+from soft_twin_core.engine.joint_kinds import PRISMATIC
 from soft_twin_core.engine.workspace import Workspace
 from soft_twin_core.errors import CalibrationError, CalibrationFailed
 from soft_twin_core.estimation import sensors as sn
@@ -88,12 +93,19 @@ def _measuring(mech, sensors):
 class Recording:
     """A static sweep: inputs (N, n_actuators), per sensor name an array of
     readings (N, 4, 4) for pose sensors or (N, 3) for markers (NaN rows: not
-    seen), times (N,) [s] or None and the position commands (N, n_joints)
-    [rad or m] of the position-controlled joints (None: their references)."""
+    seen), times (N,) [s] or None, the position commands (N, n_joints)
+    [rad or m] of the position-controlled joints (None: their references),
+    the efforts {joint: (N,)} [N m or N] of effort-controlled joints (the
+    others' 0), and the known loads ``wrenches`` {(point, axes): (N, 6)}
+    ([fx, fy, fz, mx, my, mz], N and N m, at a frame of the robot or a
+    member's point ``"<member>@<s>"``; axes "world": a dead load, "body":
+    a follower along the point's axes; a zero row: no load then)."""
     inputs: np.ndarray
     readings: dict
     time: np.ndarray = None
     joints: np.ndarray = None
+    efforts: dict = field(default_factory=dict)
+    wrenches: dict = field(default_factory=dict)
 
     def __len__(self):
         return len(self.inputs)
@@ -102,7 +114,18 @@ class Recording:
         idx = np.asarray(idx)
         return Recording(self.inputs[idx], {k: v[idx] for k, v in self.readings.items()},
                          None if self.time is None else self.time[idx],
-                         None if self.joints is None else self.joints[idx])
+                         None if self.joints is None else self.joints[idx],
+                         {k: np.asarray(v)[idx] for k, v in self.efforts.items()},
+                         {k: np.asarray(v)[idx] for k, v in self.wrenches.items()})
+
+    def row_loads(self, r):
+        """The known point loads of row r (FrameLoads)."""
+        return tuple(FrameLoad(p, np.asarray(W[r], dtype=float), axes) for (p, axes), W in self.wrenches.items()
+                     if np.any(np.asarray(W[r]) != 0.0))
+
+    def row_efforts(self, r):
+        """{joint: effort} of row r, or None."""
+        return {j: float(e[r]) for j, e in self.efforts.items()} or None
 
 
 def position_joints(robot):
@@ -111,6 +134,14 @@ def position_joints(robot):
     if not hasattr(robot, "joints_with"):
         return ()
     return tuple(robot.tree.joints[i].name for i in robot.joints_with("position"))
+
+
+def effort_joints(robot):
+    """Names of the effort-controlled joints of a mechanism (() for a
+    classic model)."""
+    if not hasattr(robot, "joints_with"):
+        return ()
+    return tuple(robot.tree.joints[i].name for i in robot.joints_with("effort"))
 
 
 def mechanism_of(robot_dict, n_sections=None, base_dir=None):
@@ -124,8 +155,9 @@ def mechanism_of(robot_dict, n_sections=None, base_dir=None):
     return from_robot_model(model_from_dict(robot_dict, n_sections), robot_dict)
 
 
-def _as_mechanism(robot):
-    """A mechanism from a mechanism or a classic model."""
+def as_mechanism(robot):
+    """A mechanism from a mechanism or a classic model (its frames, the
+    points of its member "backbone")."""
     return robot if hasattr(robot, "joints_with") else from_robot_model(robot)
 
 
@@ -181,13 +213,25 @@ def _segment_rows(mech, d):
 # ----------------------------------------------------------------------------
 
 _POSE_COLS = ("x", "y", "z", "qx", "qy", "qz", "qw")
+_WRENCH_COLS = ("fx", "fy", "fz", "mx", "my", "mz")
+_NEWTON_METRE = ("N m", "N*m", "Nm", "N.m", "N\u00b7m")
 
 
-def csv_header(model, sensors):
+def csv_header(model, sensors, recording=None):
     """Columns: ``t``, one per actuator (its name), one per
     position-controlled joint (its name, rad or m), then per marker
-    ``<name>.x .y .z`` and per pose sensor also ``.qx .qy .qz .qw``."""
+    ``<name>.x .y .z`` and per pose sensor also ``.qx .qy .qz .qw``; with a
+    ``recording``, also the columns of its efforts (the joints' names) and
+    known loads (``wrench:<point>.fx`` .. ``.mz``), as :func:`write_csv`
+    writes them."""
     cols = ["t"] + list(model.actuator_names) + list(position_joints(model))
+    if recording is not None:
+        cols += list(recording.efforts)
+        for (point, axes) in recording.wrenches:
+            if axes != "world":
+                raise CalibrationError(f"wrench on {point!r}: a CSV holds dead loads (world axes) only; "
+                                       f"a follower load is recorded in an MCAP file")
+            cols += [f"wrench:{point}.{c}" for c in _WRENCH_COLS]
     for s in sensors:
         if _marker(s):
             cols += [f"{s.name}.{c}" for c in _POSE_COLS[:3]]
@@ -196,30 +240,98 @@ def csv_header(model, sensors):
     return cols
 
 
+def column_units(model, name):
+    """The units a column's header may name (``name [unit]``), the first
+    the one written; None: a column :func:`read_csv` does not read. SI
+    only: a column in mm, g or ms is refused, not converted."""
+    kinds = {j.name: j.kind for j in model.tree.joints} if hasattr(model, "tree") else {}
+    if name == "t":
+        return ("s",)
+    if name in model.actuator_names:
+        kind = model.actuators[list(model.actuator_names).index(name)].kind
+        return ("N",) if kind == "tendon" else ("Pa",)
+    if name in position_joints(model):
+        return ("m",) if kinds[name] == PRISMATIC else ("rad",)
+    if name in effort_joints(model):
+        return ("N",) if kinds[name] == PRISMATIC else _NEWTON_METRE
+    if name.startswith("wrench:"):
+        comp = name.rsplit(".", 1)[-1]
+        return ("N",) if comp.startswith("f") else _NEWTON_METRE
+    if name.startswith("mass:"):
+        return ("kg",)
+    comp = name.rsplit(".", 1)[-1]
+    if comp in ("x", "y", "z"):
+        return ("m",)
+    if comp in ("qx", "qy", "qz", "qw"):
+        return ("1", "-", "")
+    return None
+
+
+def _split_unit(header):
+    """(name, unit or None) of a header ``name`` or ``name [unit]``."""
+    h = header.strip()
+    if h.endswith("]") and "[" in h:
+        name, _, unit = h[:-1].rpartition("[")
+        return name.strip(), unit.strip()
+    return h, None
+
+
 def write_csv(path, model, sensors, rec):
+    """Write a recording as :func:`read_csv` reads it: a header of
+    :func:`csv_header`'s columns with their units (``tendon_y [N]``), one
+    row per sample; a reading not seen is an empty group of cells."""
     from scipy.spatial.transform import Rotation
+    cols = csv_header(model, sensors, rec)
     with open(path, "w", newline="") as fh:
         w = csv.writer(fh)
-        w.writerow(csv_header(model, sensors))
-        t = np.arange(len(rec)) if rec.time is None else rec.time
+        w.writerow([c if not (column_units(model, c) or ("",))[0] else f"{c} [{column_units(model, c)[0]}]"
+                    for c in cols])
+        t = np.arange(len(rec), dtype=float) if rec.time is None else rec.time
+
+        def cells(values):
+            v = np.asarray(values, dtype=float).ravel()
+            return [repr(float(x)) for x in v] if np.all(np.isfinite(v)) else [""] * len(v)
         for r in range(len(rec)):
-            row = [repr(float(t[r]))] + [repr(float(x)) for x in rec.inputs[r]]
+            row = cells([t[r]]) + cells(rec.inputs[r])
             if position_joints(model):
-                row += [repr(float(x)) for x in _joint_rows(model, rec)[r]]
+                row += cells(_joint_rows(model, rec)[r])
+            row += [repr(float(e[r])) for e in rec.efforts.values()]
+            for W in rec.wrenches.values():
+                row += cells(W[r])
             for s in sensors:
                 z = rec.readings.get(s.name)
                 if _marker(s):
-                    row += [repr(float(x)) for x in z[r]]
+                    row += cells(z[r])
                 elif isinstance(s, sn.PoseSensor):
-                    row += [repr(float(x)) for x in z[r][:3, 3]]
-                    row += [repr(float(x)) for x in Rotation.from_matrix(z[r][:3, :3]).as_quat()]
+                    ok = np.all(np.isfinite(z[r]))
+                    row += cells(z[r][:3, 3] if ok else np.full(3, np.nan))
+                    row += cells(Rotation.from_matrix(z[r][:3, :3]).as_quat() if ok else np.full(4, np.nan))
             w.writerow(row)
 
 
 def read_csv(path, model, sensors):
-    """A :class:`Recording` from a CSV file of :func:`csv_header`'s columns
-    (any order; extra columns are ignored; ``t`` optional). Raises
-    CalibrationError naming a missing column or a bad value (row, column)."""
+    """A :class:`Recording` from a CSV file (the column reference is in the
+    docs; :func:`write_csv` writes one):
+
+    - ``t`` [s], optional, strictly increasing;
+    - one column per actuator (its name; N for a tendon, Pa for a chamber)
+      and per position-controlled joint (rad or m), required;
+    - optional: one per effort-controlled joint (N m or N; missing: 0);
+      known loads, ``wrench:<point>.fx .fy .fz .mx .my .mz`` [N, N m] (a
+      dead load, world axes, about the point; the components not given are
+      0) and hung weights ``mass:<point>`` [kg] (the weight m g along the
+      robot's gravity), ``<point>`` a frame of the robot or a member's
+      point ``<member>@<s>``;
+    - per marker ``<name>.x .y .z`` [m], per pose sensor also ``.qx .qy
+      .qz .qw`` (x y z w), required; a reading not seen is a row whose
+      cells of that sensor are all empty (or nan).
+
+    A header may name its unit, ``tendon_y [N]``: SI units only. Any order;
+    columns it does not know are ignored. Raises CalibrationError naming a
+    missing or repeated column, a unit that does not match, a value that
+    is not a number (row, column), a non-finite input or load, time that
+    does not increase, a reading with some of its cells empty, an unknown
+    point or effort joint."""
     try:
         with open(path, newline="") as fh:
             rows = list(csv.reader(fh))
@@ -227,7 +339,19 @@ def read_csv(path, model, sensors):
         raise CalibrationError(f"data file {path}: {e.strerror}") from None
     if not rows:
         raise CalibrationError(f"data file {path}: empty")
-    header = [h.strip() for h in rows[0]]
+    if len(rows) < 2:
+        raise CalibrationError(f"data file {path}: a header but no data row")
+    model = as_mechanism(model)
+    header = []
+    for raw in rows[0]:
+        name, unit = _split_unit(raw)
+        if name in header:
+            raise CalibrationError(f"data file {path}: column {name!r} appears twice")
+        allowed = column_units(model, name)
+        if unit is not None and allowed is not None and unit not in allowed:
+            raise CalibrationError(f"data file {path}, column {raw.strip()!r}: unit [{unit}], expected "
+                                   f"[{allowed[0]}] (SI units: convert the column)")
+        header.append(name)
     need = [c for c in csv_header(model, sensors) if c != "t"]
     missing = [c for c in need if c not in header]
     if missing:
@@ -243,26 +367,91 @@ def read_csv(path, model, sensors):
                 raise CalibrationError(f"data file {path}, row {i + 2}, column {header[j]}: "
                                        f"not a number: {v!r}") from None
     col = {h: data[:, j] for j, h in enumerate(header)}
+
+    def finite(names, what):
+        for name in names:
+            bad = np.flatnonzero(~np.isfinite(col[name]))
+            if len(bad):
+                raise CalibrationError(f"data file {path}, row {bad[0] + 2}, column {name}: {what} must be a "
+                                       f"finite number, got {rows[bad[0] + 1][header.index(name)]!r}")
+    finite(model.actuator_names, "an actuator input")
+    finite(position_joints(model), "a joint position")
     u = np.stack([col[a] for a in model.actuator_names], axis=1) if model.actuators else np.zeros((len(data), 0))
-    if not np.all(np.isfinite(u)):
-        raise CalibrationError(f"data file {path}: the actuator inputs must be finite numbers in every row")
-    joints = None
-    if position_joints(model):
-        joints = np.stack([col[n] for n in position_joints(model)], axis=1)
-        if not np.all(np.isfinite(joints)):
-            raise CalibrationError(f"data file {path}: the joint positions must be finite numbers in every row")
+    joints = np.stack([col[n] for n in position_joints(model)], axis=1) if position_joints(model) else None
+    time = col.get("t")
+    if time is not None:
+        finite(["t"], "the time")
+        back = np.flatnonzero(np.diff(time) <= 0)
+        if len(back):
+            raise CalibrationError(f"data file {path}, row {back[0] + 3}, column t: the time must increase "
+                                   f"({time[back[0] + 1]:g} s after {time[back[0]]:g} s)")
+    efforts = {n: col[n] for n in effort_joints(model) if n in col}
+    finite(efforts, "a joint effort")
+    wrenches = _known_loads(path, model, header, col, finite)
     readings = {}
     for s in sensors:
+        if not isinstance(s, sn.PoseSensor):
+            continue
+        names = [f"{s.name}.{c}" for c in (_POSE_COLS[:3] if _marker(s) else _POSE_COLS)]
+        v = np.stack([col[n] for n in names], axis=1)
+        inf = np.flatnonzero(np.any(np.isinf(v), axis=1))
+        if len(inf):
+            raise CalibrationError(f"data file {path}, row {inf[0] + 2}: sensor {s.name!r} reads an infinite value")
+        seen = np.isfinite(v)
+        part = np.flatnonzero(np.any(seen, axis=1) & ~np.all(seen, axis=1))
+        if len(part):
+            r = part[0]
+            blank = names[int(np.flatnonzero(~seen[r])[0])]
+            raise CalibrationError(f"data file {path}, row {r + 2}, column {blank}: sensor {s.name!r} has some "
+                                   f"of its cells empty (a reading not seen leaves all of them empty)")
         if _marker(s):
-            readings[s.name] = np.stack([col[f"{s.name}.{c}"] for c in "xyz"], axis=1)
-        elif isinstance(s, sn.PoseSensor):
-            v = np.stack([col[f"{s.name}.{c}"] for c in _POSE_COLS], axis=1)
+            readings[s.name] = v
+        else:
             T = np.full((len(v), 4, 4), np.nan)
-            for r in range(len(v)):
-                if np.all(np.isfinite(v[r])):
-                    T[r] = sn.pose_from_position_quaternion(v[r, :3], v[r, 3:])
+            for r in np.flatnonzero(np.all(seen, axis=1)):
+                if not np.linalg.norm(v[r, 3:]) > 1e-6:
+                    raise CalibrationError(f"data file {path}, row {r + 2}: sensor {s.name!r} has a zero quaternion")
+                T[r] = sn.pose_from_position_quaternion(v[r, :3], v[r, 3:])
             readings[s.name] = T
-    return Recording(u, readings, col.get("t"), joints)
+    return Recording(u, readings, time, joints, efforts, wrenches)
+
+
+def _known_loads(path, model, header, col, finite):
+    """{(point, "world"): (N, 6)} of the ``wrench:<point>.<c>`` and
+    ``mass:<point>`` columns (:func:`read_csv`)."""
+    out = {}
+
+    def point_of(name, prefix):
+        point = name[len(prefix):]
+        if prefix == "wrench:":
+            point, _, comp = point.rpartition(".")
+            if comp not in _WRENCH_COLS:
+                raise CalibrationError(f"data file {path}, column {name}: expected wrench:<point>.<component>, "
+                                       f"the component one of {list(_WRENCH_COLS)}")
+        try:
+            model.frame(point)
+        except KeyError as e:
+            raise CalibrationError(f"data file {path}, column {name}: {e.args[0]}") from None
+        return point
+    n = len(next(iter(col.values())))
+    for name in header:
+        for prefix in ("wrench:", "mass:"):
+            if not name.startswith(prefix):
+                continue
+            point = point_of(name, prefix)
+            finite([name], "a known load")
+            W = out.setdefault((point, "world"), np.zeros((n, 6)))
+            if prefix == "wrench:":
+                W[:, _WRENCH_COLS.index(name.rsplit(".", 1)[1])] += col[name]
+                continue
+            g = np.asarray(model.tree.gravity, dtype=float)
+            if np.any(col[name] < 0):
+                raise CalibrationError(f"data file {path}, column {name}: a mass must be >= 0 kg")
+            if not np.any(g):
+                raise CalibrationError(f"data file {path}, column {name}: the robot has no gravity to weigh the "
+                                       f"mass; give its weight as wrench:{point}.fx .. .fz")
+            W[:, :3] += col[name][:, None] * g[None, :]
+    return out
 
 
 def _joint_rows(mech, rec):
@@ -273,6 +462,29 @@ def _joint_rows(mech, rec):
         return np.asarray(rec.joints, dtype=float).reshape(len(rec), len(names))
     ref = [mech.tree.joints[i].q_ref for i in mech.joints_with("position")] if names else []
     return np.tile(np.asarray(ref, dtype=float), (len(rec), 1))
+
+
+def check_recording(mech, rec, source="recording"):
+    """Refuse (CalibrationError naming the field) a recording's efforts of a
+    joint that is not effort-controlled, known loads on an unknown point,
+    with unknown axes, of the wrong shape or not finite."""
+    n = len(rec)
+    for j, e in rec.efforts.items():
+        if j not in effort_joints(mech):
+            raise CalibrationError(f"{source}.efforts: {j!r} is not an effort-controlled joint; this robot's are "
+                                   f"{list(effort_joints(mech))}")
+        if np.shape(e) != (n,) or not np.all(np.isfinite(e)):
+            raise CalibrationError(f"{source}.efforts[{j!r}]: expected {n} finite values [N m or N]")
+    for key, W in rec.wrenches.items():
+        if not (isinstance(key, tuple) and len(key) == 2 and key[1] in ("world", "body")):
+            raise CalibrationError(f"{source}.wrenches: keys are (point, 'world' | 'body'), got {key!r}")
+        try:
+            mech.frame(key[0])
+        except KeyError as e:
+            raise CalibrationError(f"{source}.wrenches: {e.args[0]}") from None
+        if np.shape(W) != (n, 6) or not np.all(np.isfinite(W)):
+            raise CalibrationError(f"{source}.wrenches[{key!r}]: expected {n} finite rows [fx, fy, fz, mx, my, mz] "
+                                   f"(N, N m)")
 
 
 def check_recording_inputs(model, inputs, source="recording"):
@@ -294,25 +506,31 @@ def check_recording_inputs(model, inputs, source="recording"):
                 raise CalibrationError(f"{source}, row {i + 1}, actuator {a.name}: {bad[1]} [{bad[0]}]")
 
 
-def record_static_sweep(robot, sensors, inputs, rng, loads=None, joints=None, point_loads=()):
+def record_static_sweep(robot, sensors, inputs, rng, loads=None, joints=None, point_loads=(), *, efforts=None,
+                        wrenches=None):
     """Simulated recording: the equilibria of ``robot`` (a mechanism or a
     classic model) under each row of ``inputs`` and ``joints`` (position
-    commands, rad or m; default the references), ``loads`` and
-    ``point_loads`` (FrameLoad), read by the sensors with their noise. The
-    inputs must lie in the actuators' declared ranges."""
-    mech = _as_mechanism(robot)
+    commands, rad or m; default the references), ``efforts`` {joint: (N,)}
+    and the known loads ``wrenches`` {(point, axes): (N, 6)} (kept in the
+    recording, as a lab logs what it applied), and the loads no log holds
+    (``loads``, ``point_loads``: FrameLoads), read by the sensors with their
+    noise. The inputs must lie in the actuators' declared ranges."""
+    mech = as_mechanism(robot)
     check_recording_inputs(mech, inputs, "inputs")
     sensors, where = _measuring(mech, sensors)
     ws = Workspace(mech.tree)
     names = position_joints(mech)
     inputs = np.asarray(inputs, dtype=float)
-    rec = Recording(inputs, {}, None, None if joints is None else np.asarray(joints, dtype=float))
+    rec = Recording(inputs, {}, None, None if joints is None else np.asarray(joints, dtype=float),
+                    {k: np.asarray(v, dtype=float) for k, v in (efforts or {}).items()},
+                    {k: np.asarray(v, dtype=float) for k, v in (wrenches or {}).items()})
+    check_recording(mech, rec, "record_static_sweep")
     jrows = _joint_rows(mech, rec)
     q = None
     readings = {s.name: [] for s in sensors}
     for r, u in enumerate(inputs):
-        q = solve_equilibrium(mech, u, None, dict(zip(names, jrows[r])) if names else None, loads, point_loads,
-                              q_init=q).q
+        q = solve_equilibrium(mech, u, rec.row_efforts(r), dict(zip(names, jrows[r])) if names else None, loads,
+                              tuple(point_loads) + rec.row_loads(r), q_init=q).q
         truth = sn.predict_readings(ws, q, sensors, where)
         for s in sensors:
             readings[s.name].append(sn.simulate_measurement(s, truth[s.name], rng))
@@ -342,11 +560,14 @@ def _params(names, robot_dict, sensors):
     for name in names:
         kind, _, rest = name.partition(":")
         if kind == "youngs_modulus":
-            seg = segs.get(rest)
-            if seg is None or "material" not in seg:
-                raise CalibrationError(f"parameter {name!r}: no segment {rest!r} with a material "
-                                       f"(segments: {list(segs)})")
-            E = float(seg["material"]["youngs_modulus"])
+            keys = rest.split("+")                # one modulus shared by the segments "a+b"
+            for key in keys:
+                if key not in segs or "material" not in segs[key]:
+                    raise CalibrationError(f"parameter {name!r}: no segment {key!r} with a material "
+                                           f"(segments: {list(segs)})")
+            if len(set(keys)) != len(keys):
+                raise CalibrationError(f"parameter {name!r}: a segment named twice")
+            E = float(np.mean([float(segs[k]["material"]["youngs_modulus"]) for k in keys]))
             out.append(_Param(name, kind, rest, 0, E, E))
         elif kind == "tendon_offset":
             a = acts.get(rest)
@@ -382,7 +603,8 @@ def apply_parameters(robot_dict, sensors, params, theta):
     mass = 0.0
     for p, v in zip(params, theta):
         if p.kind == "youngs_modulus":
-            segs[p.target]["material"]["youngs_modulus"] = float(v)
+            for key in p.target.split("+"):
+                segs[key]["material"]["youngs_modulus"] = float(v)
         elif p.kind == "tendon_offset":
             off = np.asarray(acts[p.target]["offset"], dtype=float)
             acts[p.target]["offset"] = [float(x) for x in off / np.linalg.norm(off) * v]
@@ -447,6 +669,7 @@ class Problem:
         if recording.joints is not None and np.shape(recording.joints) != (len(recording), len(names_j)):
             raise CalibrationError(f"recording.joints: expected {len(recording)} rows of the position-controlled "
                                    f"joints {list(names_j)}, got shape {np.shape(recording.joints)}")
+        check_recording(mech, recording)
         self.rec = recording
         self.params = _params(names, robot_dict, self.sensors)
         self.rows_of = _segment_rows(mech, robot_dict) if any(p.kind == "youngs_modulus" for p in self.params) \
@@ -465,8 +688,8 @@ class Problem:
     def equilibrium(self, mech, r, mass):
         """The equilibrium of row r (warm-started from the last one found)."""
         pos = dict(zip(self._names_j, self._joints[r])) if self._names_j else None
-        eq = solve_equilibrium(mech, self.rec.inputs[r], None, pos, None, _payload(mech, mass), q_init=self._q[r],
-                               check_stability=False)
+        eq = solve_equilibrium(mech, self.rec.inputs[r], self.rec.row_efforts(r), pos, None,
+                               _payload(mech, mass) + self.rec.row_loads(r), q_init=self._q[r], check_stability=False)
         self._q[r] = eq.q
         return eq
 
@@ -493,7 +716,7 @@ class Problem:
                 sn.forward(ws, q)
                 for j, p in enumerate(self.params):
                     if p.kind == "youngs_modulus":
-                        rows_j = self.rows_of[p.target]
+                        rows_j = np.any([self.rows_of[k] for k in p.target.split("+")], axis=0)
                         dR[rows_j, j] = (K @ (q - tree.q0))[rows_j] / theta[j]
                     elif p.kind == "tendon_offset":
                         k = list(mech.actuator_names).index(p.target)
@@ -549,16 +772,74 @@ class CalibrationResult:
     sensors: list
     payload_mass: float
     heldout: dict = field(default_factory=dict)
+    correlation: np.ndarray = None
+    warnings: list = field(default_factory=list)
 
     def table(self):
-        lines = [f"{'parameter':32s} {'nominal':>12s} {'fitted':>12s} {'95 % CI':>12s}"]
-        for n, a, b, c in zip(self.names, self.nominal, self.values, self.ci95):
-            lines.append(f"{n:32s} {a:12.6g} {b:12.6g} {'+-':>3s}{c:9.3g}")
+        lines = [f"{'parameter':32s} {'nominal':>12s} {'fitted':>12s} {'std error':>12s} {'95 % CI':>12s}"]
+        for n, a, b, s, c in zip(self.names, self.nominal, self.values, self.std, self.ci95):
+            lines.append(f"{n:32s} {a:12.6g} {b:12.6g} {s:12.3g} {'+-':>3s}{c:9.3g}")
         lines.append(f"residual sigma (in sensor-noise units): {self.residual_sigma:.3f} "
                      f"over {self.n_residuals} residuals")
+        if self.correlation is not None and len(self.names) > 1:
+            lines.append("correlations: " + ", ".join(
+                f"{self.names[i]} ~ {self.names[j]} {self.correlation[i, j]:+.3f}"
+                for i in range(len(self.names)) for j in range(i + 1, len(self.names))))
         for k, v in self.heldout.items():
             lines.append(f"held-out {k}: {v:.6g}")
+        lines += [f"warning: {w}" for w in self.warnings]
         return "\n".join(lines)
+
+
+def fit_statistics(names, r, J_scaled, scale, values):
+    """The statistics of a least-squares fit at its solution, from its
+    weighted residuals r (M,) and Jacobian in the scaled parameters
+    ``theta / scale`` (M, p): {std, ci95, residual_sigma, n_residuals,
+    correlation, warnings} (:class:`CalibrationResult`'s fields). ``cov =
+    s^2 (J^T J)^-1`` with ``s^2 = |r|^2 / (M - p)``, 95 % intervals from
+    Student's t, the correlations ``cov_ij / (std_i std_j)``, and the
+    warnings of :func:`identifiability` and of correlations beyond 0.99."""
+    from scipy.stats import t as student_t
+    m, p = len(r), len(values)
+    dof = max(m - p, 1)
+    s2 = float(r @ r) / dof
+    cov = s2 * scale[:, None] * np.linalg.pinv(J_scaled.T @ J_scaled) * scale[None, :]
+    std = np.sqrt(np.diag(cov))
+    with np.errstate(invalid="ignore", divide="ignore"):
+        corr = np.clip(cov / np.outer(std, std), -1.0, 1.0)
+    corr[~np.isfinite(corr)] = 0.0
+    np.fill_diagonal(corr, 1.0)
+    warn = identifiability(names, J_scaled, values, std)
+    warn += [f"{names[i]} and {names[j]}: correlated {corr[i, j]:+.3f} (the data hardly tell them apart)"
+             for i in range(p) for j in range(i + 1, p) if abs(corr[i, j]) > 0.99]
+    return dict(std=std, ci95=student_t.ppf(0.975, dof) * std, residual_sigma=float(np.sqrt(s2)), n_residuals=m,
+                correlation=corr, warnings=warn)
+
+
+def identifiability(names, J_scaled, values, std):
+    """Warnings on what a fit could not identify, from its weighted Jacobian
+    in scaled parameters: a parameter the residuals do not depend on, a
+    combination they hardly see (the smallest singular value of the
+    column-normalised Jacobian below 1e-3 of the largest: its direction
+    names the parameters), a standard error over half the value, a
+    correlation beyond 0.99."""
+    out = []
+    norms = np.linalg.norm(J_scaled, axis=0)
+    dead = norms <= 1e-12 * max(float(norms.max(initial=0.0)), 1e-300)
+    for n in np.asarray(names)[dead]:
+        out.append(f"{n}: not identifiable, the readings do not depend on it (no sensitivity)")
+    live = np.flatnonzero(~dead)
+    if len(live) > 1:
+        _, sv, Vt = np.linalg.svd(J_scaled[:, live] / norms[live], full_matrices=False)
+        if sv[-1] < 1e-3 * sv[0]:
+            v = Vt[-1]
+            involved = [names[live[k]] for k in np.flatnonzero(np.abs(v) > 0.2)]
+            out.append(f"{' and '.join(involved)}: not identifiable apart (the readings see only a combination; "
+                       f"condition {sv[0] / max(sv[-1], 1e-300):.3g}): add rows that move them differently")
+    for n, x, s in zip(names, values, std):
+        if np.isfinite(s) and s > 0.5 * abs(x) and n in [names[k] for k in live]:
+            out.append(f"{n}: poorly identified (standard error {s:.3g} against a value of {x:.3g})")
+    return out
 
 
 def _tip_sensor(mech, sensors):
@@ -592,14 +873,17 @@ def tip_errors(problem, theta, rows, truth_tips=None):
 
 
 def calibrate(robot_dict, sensors, recording, names, *, holdout_every=4, n_sections=None, verbose=0,
-              base_dir=None):
+              base_dir=None, max_evaluations=None):
     """Fit the parameters ``names`` (module docstring) to the recording of a
     robot (a mapping of either schema; ``base_dir``: where its relative
     files are); every ``holdout_every``-th row (0: none) is held out and
     reports the tip-sensor error before and after. Returns a
-    :class:`CalibrationResult`."""
+    :class:`CalibrationResult` (standard errors, correlations, warnings on
+    what the data cannot identify: :func:`identifiability`); raises
+    CalibrationFailed, with the last residual, when the fit does not
+    converge in ``max_evaluations`` residual evaluations (default:
+    scipy's, 100 per parameter)."""
     from scipy.optimize import least_squares
-    from scipy.stats import t as student_t
     n = len(recording)
     held = np.arange(n)[holdout_every - 1::holdout_every] if holdout_every else np.zeros(0, int)
     fit_rows = np.setdiff1d(np.arange(n), held)
@@ -615,20 +899,22 @@ def calibrate(robot_dict, sensors, recording, names, *, holdout_every=4, n_secti
     x0 = pb.theta0 / s
     # a modulus stays positive (a trust-region step of a poorly seen one could otherwise cross 0)
     lower = np.array([1e-3 * p.nominal / p.scale if p.kind == "youngs_modulus" else -np.inf for p in pb.params])
-    sol = least_squares(fun, x0, jac=jac, method="trf", x_scale=1.0, verbose=verbose, bounds=(lower, np.inf))
+    sol = least_squares(fun, x0, jac=jac, method="trf", x_scale=1.0, verbose=verbose, bounds=(lower, np.inf),
+                        max_nfev=max_evaluations)
+    m, p = len(sol.fun), len(sol.x)
+    dof = max(m - p, 1)
+    if not sol.success:
+        raise CalibrationFailed(f"the fit did not converge in {sol.nfev} evaluations ({sol.message}); its last "
+                                f"residual sigma {np.sqrt(float(sol.fun @ sol.fun) / dof):.4g} (in sensor-noise "
+                                f"units) at {dict(zip([q.name for q in pb.params], (sol.x * s).tolist()))}: no "
+                                f"result written")
     theta = sol.x * s
     r, J = pb.evaluate(theta)
-    m, p = len(r), len(theta)
-    dof = max(m - p, 1)
-    s2 = float(r @ r) / dof
-    Jx = J * s                                   # in the scaled parameters (well conditioned)
-    cov = s2 * s[:, None] * np.linalg.pinv(Jx.T @ Jx) * s[None, :]
-    std = np.sqrt(np.diag(cov))
-    ci = student_t.ppf(0.975, dof) * std
+    names_fit = [q.name for q in pb.params]
+    stats = fit_statistics(names_fit, r, J * s, s, theta)
     d, new_sensors, mass = apply_parameters(robot_dict, pb.sensors, pb.params, theta)
-    out = CalibrationResult(names=[q.name for q in pb.params], nominal=pb.theta0, values=theta, std=std, ci95=ci,
-                            residual_sigma=float(np.sqrt(s2)), n_residuals=m, iterations=int(sol.nfev),
-                            robot_dict=d, sensors=new_sensors, payload_mass=mass)
+    out = CalibrationResult(names=names_fit, nominal=pb.theta0, values=theta, iterations=int(sol.nfev),
+                            robot_dict=d, sensors=new_sensors, payload_mass=mass, **stats)
     if len(held):
         hp = Problem(robot_dict, sensors, recording.rows(held), names, n_sections, base_dir)
         before = tip_errors(hp, hp.theta0, range(len(held)))
@@ -651,30 +937,35 @@ def write_robot_file(path, robot_dict, header=""):
 # Damping from a dynamic recording
 # ----------------------------------------------------------------------------
 
-def simulate_readings(robot, sensors, times, inputs, dt, theta=0.5, joints=None):
+def simulate_readings(robot, sensors, times, inputs, dt, theta=0.5, joints=None, *, efforts=None, wrenches=None):
     """Noise-free readings {sensor: (N, ...)} of a time series of any robot
     (a mechanism or a classic model): it starts at rest in equilibrium
-    under ``inputs[0]`` (and ``joints[0]``, the position commands of the
-    position-controlled joints, rad or m; None: their references) at
-    ``times[0]``; each row's actuator inputs are held until the next row's
-    time (zero-order hold), the joints move linearly from one row's command
-    to the next (as a servo tracking the recorded commands does: a held
-    command would jump the joint within one integrator step, at a speed
-    set by the step); integrator steps of about ``dt`` [s]
+    under the first row's inputs -- ``inputs[0]``, ``joints[0]`` (the
+    position commands of the position-controlled joints, rad or m; None:
+    their references), and the known loads ``efforts`` {joint: (N,)} and
+    ``wrenches`` {(point, axes): (N, 6)} (:class:`Recording`): an arm held
+    deflected by a known load, released when the next rows drop it, or
+    loaded by a payload step -- at ``times[0]``; each row's actuator inputs
+    and loads are held until the next row's time (zero-order hold), the
+    joints move linearly from one row's command to the next (as a servo
+    tracking the recorded commands does: a held command would jump the
+    joint within one integrator step, at a speed set by the step);
+    integrator steps of about ``dt`` [s]
     (:class:`constrained.MechanismSimulator`). Raises CalibrationFailed if
     a step fails, CalibrationError if the times do not increase."""
-    mech = _as_mechanism(robot)
+    mech = as_mechanism(robot)
     sensors, where = _measuring(mech, sensors)
     ws = Workspace(mech.tree)
     times = np.asarray(times, dtype=float)
     if np.any(np.diff(times) <= 0):
         raise CalibrationError("t: the times of a dynamic recording must increase")
     names = position_joints(mech)
+    known = Recording(np.asarray(inputs, dtype=float), {}, times, None, dict(efforts or {}), dict(wrenches or {}))
 
     def positions(r):
         return None if joints is None else dict(zip(names, joints[r]))
 
-    q0 = solve_equilibrium(mech, inputs[0], positions=positions(0)).q
+    q0 = solve_equilibrium(mech, inputs[0], known.row_efforts(0), positions(0), None, known.row_loads(0)).q
     sim = MechanismSimulator(mech, dt, theta, q=q0, full_newton=False)
     sim.t = float(times[0])
     out = {s.name: [] for s in sensors}
@@ -686,13 +977,14 @@ def simulate_readings(robot, sensors, times, inputs, dt, theta=0.5, joints=None)
                 t, q, v = sim.t, sim.q, sim.v
                 sim = MechanismSimulator(mech, span / n, theta, q=q, v=v, full_newton=False)
                 sim.t = t
+            held = dict(efforts=known.row_efforts(r - 1), point_loads=known.row_loads(r - 1))
             try:
                 if joints is None:
-                    sim.step(inputs[r - 1], n=n)
+                    sim.step(inputs[r - 1], n=n, **held)
                 else:                             # the joints' commands: linear from row to row
                     for k in range(1, n + 1):
                         c = joints[r - 1] + (k / n) * (np.asarray(joints[r]) - joints[r - 1])
-                        sim.step(inputs[r - 1], positions=dict(zip(names, c)))
+                        sim.step(inputs[r - 1], positions=dict(zip(names, c)), **held)
             except StepError as e:
                 raise CalibrationFailed(f"row {r}: the simulation failed ({e})") from None
         for name, z in sn.predict_readings(ws, sim.q, sensors, where).items():
@@ -700,23 +992,27 @@ def simulate_readings(robot, sensors, times, inputs, dt, theta=0.5, joints=None)
     return {k: np.array(v) for k, v in out.items()}
 
 
-def record_dynamic(robot, sensors, times, inputs, rng, dt=1e-3, joints=None):
+def record_dynamic(robot, sensors, times, inputs, rng, dt=1e-3, joints=None, *, efforts=None, wrenches=None):
     """Simulated noisy recording of a time series of any robot (see
-    :func:`simulate_readings`)."""
-    clean = simulate_readings(robot, sensors, times, inputs, dt, joints=joints)
+    :func:`simulate_readings`; the known loads kept in the recording)."""
+    clean = simulate_readings(robot, sensors, times, inputs, dt, joints=joints, efforts=efforts, wrenches=wrenches)
     by_name = {s.name: s for s in sensors}
     readings = {k: np.array([sn.simulate_measurement(by_name[k], z, rng) for z in v]) for k, v in clean.items()}
     return Recording(np.asarray(inputs, dtype=float), readings, np.asarray(times, dtype=float),
-                     None if joints is None else np.asarray(joints, dtype=float))
+                     None if joints is None else np.asarray(joints, dtype=float),
+                     {k: np.asarray(v, dtype=float) for k, v in (efforts or {}).items()},
+                     {k: np.asarray(v, dtype=float) for k, v in (wrenches or {}).items()})
 
 
 def calibrate_damping(robot_dict, sensors, recording, members=None, *, dt=5e-3, n_sections=None, verbose=0,
                       base_dir=None):
     """Fit the viscosity [Pa s] of the segments ``members`` (keys as in
     the static fit: a segment's name, ``<member>/<segment>`` where names
-    repeat; default: every segment with a material) of a robot of either
-    schema to a dynamic recording (rows at increasing times ``t``, the
-    robot at rest at the first row, its joint commands in
+    repeat, ``<a>+<b>`` one viscosity for both; default: every segment with
+    a material) of a robot of either schema to a dynamic recording (rows at
+    increasing times ``t``, the robot at rest at the first row under its
+    inputs and known loads -- a release test holds it deflected by a known
+    load that the next rows drop --, its joint commands in
     ``recording.joints``; :func:`simulate_readings`), the other parameters
     as in the robot dict (calibrate them first from a static sweep).
     Sensitivities: central differences of the simulated trajectory
@@ -724,33 +1020,37 @@ def calibrate_damping(robot_dict, sensors, recording, members=None, *, dt=5e-3, 
     information, and no analytic sensitivity through the integrator is
     implemented). Returns a :class:`CalibrationResult` (no held-out rows)."""
     from scipy.optimize import least_squares
-    from scipy.stats import t as student_t
     if recording.time is None:
         raise CalibrationError("damping: the recording needs a time column t")
     segs = _segments_of(robot_dict)[0]
     if members is None:
         members = [k for k, sd in segs.items() if "material" in sd]
     for m in members:
-        if m not in segs or "material" not in segs[m]:
-            raise CalibrationError(f"parameter 'viscosity:{m}': no segment {m!r} with a material "
-                                   f"(segments: {list(segs)})")
-    nominal = np.array([float(segs[m]["material"].get("viscosity", 0.0)) for m in members])
+        for key in m.split("+"):
+            if key not in segs or "material" not in segs[key]:
+                raise CalibrationError(f"parameter 'viscosity:{m}': no segment {key!r} with a material "
+                                       f"(segments: {list(segs)})")
+    nominal = np.array([np.mean([float(segs[k]["material"].get("viscosity", 0.0)) for k in m.split("+")])
+                        for m in members])
     if np.any(nominal <= 0):
         raise CalibrationError("damping: the starting viscosities must be > 0 (set them in the robot file)")
     mech0 = mechanism_of(robot_dict, n_sections, base_dir)
     check_recording_inputs(mech0, recording.inputs)         # the declared actuator ranges
+    check_recording(mech0, recording)
     sensors = _measuring(mech0, sensors)[0]
 
     def with_visc(x):
         d = copy.deepcopy(robot_dict)
         dd = _segments_of(d)[0]
         for m, v in zip(members, x):
-            dd[m]["material"]["viscosity"] = float(v)
+            for key in m.split("+"):
+                dd[key]["material"]["viscosity"] = float(v)
         return d
 
     def fun(x):
         mech = mechanism_of(with_visc(x * nominal), n_sections, base_dir)
-        pred = simulate_readings(mech, sensors, recording.time, recording.inputs, dt, joints=recording.joints)
+        pred = simulate_readings(mech, sensors, recording.time, recording.inputs, dt, joints=recording.joints,
+                                 efforts=recording.efforts, wrenches=recording.wrenches)
         res = []
         for s in sensors:
             for r in range(len(recording)):
@@ -767,18 +1067,11 @@ def calibrate_damping(robot_dict, sensors, recording, members=None, *, dt=5e-3, 
 
     sol = least_squares(fun, np.ones(len(members)), jac="3-point", diff_step=1e-3, bounds=(1e-3, 1e3),
                         verbose=verbose)
-    r = sol.fun
-    J = sol.jac / nominal                                 # d r / d eta
-    dof = max(len(r) - len(members), 1)
-    s2 = float(r @ r) / dof
-    Jx = J * nominal
-    cov = s2 * nominal[:, None] * np.linalg.pinv(Jx.T @ Jx) * nominal[None, :]
-    std = np.sqrt(np.diag(cov))
     values = sol.x * nominal
-    return CalibrationResult(names=[f"viscosity:{m}" for m in members], nominal=nominal, values=values, std=std,
-                             ci95=student_t.ppf(0.975, dof) * std, residual_sigma=float(np.sqrt(s2)),
-                             n_residuals=len(r), iterations=int(sol.nfev), robot_dict=with_visc(values),
-                             sensors=sensors, payload_mass=0.0)
+    names = [f"viscosity:{m}" for m in members]
+    stats = fit_statistics(names, sol.fun, sol.jac, nominal, values)       # (sol.jac: d r / d (eta / nominal))
+    return CalibrationResult(names=names, nominal=nominal, values=values, iterations=int(sol.nfev),
+                             robot_dict=with_visc(values), sensors=sensors, payload_mass=0.0, **stats)
 
 
 def _log_so3(R):

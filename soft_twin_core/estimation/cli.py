@@ -23,13 +23,15 @@ def add_cli_parser(sub):
     c.add_argument("robot", help="robot file or example name")
     c.add_argument("--sensors", required=True, help="sensors file (YAML list of pose/marker sensors)")
     c.add_argument("--data", required=True,
-                   help="CSV (t, one column per actuator and per position-controlled joint, "
-                        "<sensor>.x/.y/.z[/.qx..qw]) or an MCAP recording "
-                        "(ROS 2 bag: commands and sensor topics, see --actuation-topic, --topic)")
+                   help="CSV (t, one column per actuator and per position-controlled joint, optional "
+                        "efforts of effort-controlled joints, known loads wrench:<point>.fx..mz [N, N m] and "
+                        "mass:<point> [kg], <sensor>.x/.y/.z[/.qx..qw]; a header may carry its SI unit, "
+                        "'t [s]') or an MCAP recording (ROS 2 bag: commands, known loads and sensor topics, "
+                        "see --actuation-topic, --topic)")
     c.add_argument("--fit", required=True,
-                   help="comma-separated parameters: youngs_modulus:<segment>, tendon_offset:<tendon>, "
-                        "payload_mass, sensor_offset:<sensor>:<x|y|z>; 'youngs_modulus' or 'tendon_offset' "
-                        "alone mean all segments / all straight tendons")
+                   help="comma-separated parameters: youngs_modulus:<segment> (youngs_modulus:<a>+<b>: one "
+                        "modulus for both), tendon_offset:<tendon>, payload_mass, sensor_offset:<sensor>:<x|y|z>; "
+                        "'youngs_modulus' or 'tendon_offset' alone mean all segments / all straight tendons")
     c.add_argument("--holdout-every", type=int, default=4, metavar="K",
                    help="hold out every K-th row to report the error before/after (0: none; default 4)")
     c.add_argument("--sections", type=int,
@@ -44,6 +46,14 @@ def add_cli_parser(sub):
     c.add_argument("--joint-command-topic", default="/soft_twin/joint_commands",
                    help="MCAP: topic of the position commands of the position-controlled joints "
                         "(sensor_msgs/JointState; default /soft_twin/joint_commands)")
+    c.add_argument("--point-wrench-topic", default="/soft_twin/point_wrench_command",
+                   help="MCAP: topic of the known loads on the robot's points (soft_twin/PointWrench; "
+                        "default /soft_twin/point_wrench_command)")
+    c.add_argument("--tip-wrench-topic", default="/soft_twin/tip_wrench_command",
+                   help="MCAP: topic of the known load on the tip (geometry_msgs/WrenchStamped; "
+                        "default /soft_twin/tip_wrench_command)")
+    c.add_argument("--base-frame", default="base_link",
+                   help="MCAP: the base frame of the recorded loads' frame_id (a dead load; default base_link)")
     c.add_argument("--measurements-ns", default="/soft_twin_estimator",
                    help="MCAP: namespace of the estimator's measurement topics <ns>/measurements/poses, "
                         "/pose, /position (default /soft_twin_estimator)")
@@ -105,7 +115,12 @@ def cli_main(args):
     report = {"parameters": {n: {"nominal": float(a), "fitted": float(b), "std": float(c), "ci95": float(e)}
                              for n, a, b, c, e in zip(res.names, res.nominal, res.values, res.std, res.ci95)},
               "residual_sigma": res.residual_sigma, "n_residuals": res.n_residuals,
-              "heldout": res.heldout, "payload_mass_kg": res.payload_mass}
+              "heldout": res.heldout, "payload_mass_kg": res.payload_mass,
+              "rows": len(rec), "known_loads": [f"{p} ({axes})" for p, axes in rec.wrenches],
+              "warnings": list(getattr(res, "warnings", []))}
+    if getattr(res, "correlation", None) is not None:
+        report["correlation"] = {"parameters": list(res.names),
+                                 "matrix": [[float(x) for x in row] for row in res.correlation]}
     if mcap_report is not None:
         report["recording"] = mcap_report
     if args.output:
@@ -135,7 +150,8 @@ def _read_mcap(args, model, sensors):
             raise CalibrationError(f"--topic: expected SENSOR=/topic, got {item!r}")
         topics[name] = topic
     kw = dict(actuation_topic=args.actuation_topic, joint_command_topic=args.joint_command_topic,
-              measurements_ns=args.measurements_ns, topics=topics)
+              measurements_ns=args.measurements_ns, topics=topics, point_wrench_topic=args.point_wrench_topic,
+              tip_wrench_topic=args.tip_wrench_topic, base_frame=args.base_frame)
     if args.dynamic:
         return cm.read_time_series(args.data, model, sensors, **kw)
     return cm.read_static_sweep(args.data, model, sensors, settle_s=args.settle, **kw)

@@ -15,6 +15,17 @@ Topics (all optional but the commands; decoded with ``mcap`` and
   and records them; a command naming some joints keeps the others; before
   the first one each joint is at its reference; the efforts of
   effort-controlled joints are not read);
+- the known loads, as the twin's node takes them: ``point_wrench_topic``
+  (default ``/soft_twin/point_wrench_command``, soft_twin/PointWrench:
+  ``point``, ``wrench``; ``header.frame_id`` the point itself: a follower
+  load, else a dead load along the base axes) and ``tip_wrench_topic``
+  (default ``/soft_twin/tip_wrench_command``, geometry_msgs/WrenchStamped
+  on the tip frame; ``header.frame_id`` the base frame ``base_frame``
+  (default ``base_link``): a dead load, else a follower). A wrench replaces
+  the one before on its point (the tip's command and a point command on
+  the tip are apart, as in the node), all zeros removes it; before the
+  first, none. A point that is not the robot's is skipped
+  (``bad_load``);
 - the estimator node's measurement topics under ``measurements_ns``
   (default ``/soft_twin_estimator``): ``<ns>/measurements/poses``
   (PoseArray, one pose per pose sensor in the sensors file's order),
@@ -45,12 +56,15 @@ time (zero-order hold) and per sensor the reading nearest in time within
 import numpy as np
 
 from soft_twin_core.estimation import sensors as sn
-from soft_twin_core.estimation.calibration import CalibrationError, Recording, position_joints
+from soft_twin_core.estimation.calibration import CalibrationError, Recording, as_mechanism, position_joints
 from soft_twin_core.files.mcap_salvage import read_decoded
+from soft_twin_core.robot.mechanism import tip_frame
 
 DEFAULT_ACTUATION_TOPIC = "/soft_twin/actuation"
 DEFAULT_JOINT_COMMAND_TOPIC = "/soft_twin/joint_commands"
 DEFAULT_MEASUREMENTS_NS = "/soft_twin_estimator"
+DEFAULT_POINT_WRENCH_TOPIC = "/soft_twin/point_wrench_command"
+DEFAULT_TIP_WRENCH_TOPIC = "/soft_twin/tip_wrench_command"
 
 
 def is_mcap(path):
@@ -116,12 +130,14 @@ def _joint_references(model, joints):
 
 def read_events(path, model, sensors, *, actuation_topic=DEFAULT_ACTUATION_TOPIC,
                 joint_command_topic=DEFAULT_JOINT_COMMAND_TOPIC, measurements_ns=DEFAULT_MEASUREMENTS_NS,
-                topics=None):
-    """The commands and readings of a recording: (commands [(t_ns, input)]
-    with the full input after each command -- the actuation u (n_act,)
-    followed by the position commands of the position-controlled joints
-    (:func:`calibration.position_joints`) --, the first entry ``(None,
-    input)`` the input before any command; readings {sensor: [(t_ns,
+                topics=None, point_wrench_topic=DEFAULT_POINT_WRENCH_TOPIC, tip_wrench_topic=DEFAULT_TIP_WRENCH_TOPIC,
+                base_frame="base_link"):
+    """The commands and readings of a recording: (commands [(t_ns, (input,
+    loads))] with the full input after each command -- the actuation u
+    (n_act,) followed by the position commands of the position-controlled
+    joints (:func:`calibration.position_joints`) -- and the known loads
+    then (a tuple of ((slot, point, axes), wrench 6-tuple))), the first entry
+    ``(None, ...)`` the input before any command; readings {sensor: [(t_ns,
     reading)]}, skipped {reason: count}). Raises CalibrationError naming a
     bad topic mapping or an empty recording."""
     sensors = [s for s in sensors if isinstance(s, sn.PoseSensor)]
@@ -134,11 +150,14 @@ def read_events(path, model, sensors, *, actuation_topic=DEFAULT_ACTUATION_TOPIC
     t_poses, t_pose, t_pos = f"{ns}/measurements/poses", f"{ns}/measurements/pose", f"{ns}/measurements/position"
     own = {topic: name for name, topic in topics.items()}
     joints = list(position_joints(model))
-    events = _iter(path, {actuation_topic, t_poses, t_pose, t_pos, *own} | ({joint_command_topic} if joints else set()))
+    events = _iter(path, {actuation_topic, t_poses, t_pose, t_pos, point_wrench_topic, tip_wrench_topic, *own}
+                   | ({joint_command_topic} if joints else set()))
     pose_sensors = [s for s in sensors if not s.position_only]
     names = list(model.actuator_names)
     u = np.concatenate([np.zeros(len(names)), _joint_references(model, joints) if joints else []])
-    commands, readings = [(None, u.copy())], {s.name: [] for s in sensors}
+    loads = {}                                          # {(slot, point, axes): wrench 6-tuple}
+    mech = None                                         # (the loaded points' robot, made at the first load)
+    commands, readings = [(None, (u.copy(), ()))], {s.name: [] for s in sensors}
     skipped = {}
 
     def skip(reason):
@@ -163,7 +182,7 @@ def read_events(path, model, sensors, *, actuation_topic=DEFAULT_ACTUATION_TOPIC
                 skip("bad_command")
                 continue
             u = new
-            commands.append((t, u.copy()))
+            commands.append((t, (u.copy(), tuple(sorted(loads.items())))))
         elif topic == joint_command_topic:
             new = _joint_command(u, msg, joints, len(names))
             if new is None:
@@ -171,7 +190,13 @@ def read_events(path, model, sensors, *, actuation_topic=DEFAULT_ACTUATION_TOPIC
                 continue
             if len(msg.position):
                 u = new
-                commands.append((t, u.copy()))
+                commands.append((t, (u.copy(), tuple(sorted(loads.items())))))
+        elif topic in (point_wrench_topic, tip_wrench_topic):
+            mech = as_mechanism(model) if mech is None else mech
+            if not _load_command(loads, mech, msg, topic == tip_wrench_topic, base_frame):
+                skip("bad_load")
+                continue
+            commands.append((t, (u.copy(), tuple(sorted(loads.items())))))
         elif topic in own:
             take(by_name[own[topic]], t, msg)
         elif topic == t_poses:
@@ -188,10 +213,35 @@ def read_events(path, model, sensors, *, actuation_topic=DEFAULT_ACTUATION_TOPIC
             take(s, t, msg)
     if len(commands) == 1:
         where = repr(actuation_topic) + (f" or {joint_command_topic!r}" if joints else "")
-        raise CalibrationError(f"data file {path}: no actuation command on {where}")
+        raise CalibrationError(f"data file {path}: no actuation command on {where}, nor a known load on "
+                               f"{point_wrench_topic!r} or {tip_wrench_topic!r}")
     if not any(readings.values()):
         raise CalibrationError(f"data file {path}: no sensor reading on {sorted({t_poses, t_pose, t_pos, *own})}")
     return commands, readings, skipped
+
+
+def _load_command(loads, model, msg, tip, base_frame):
+    """Apply one known-load command (soft_twin/PointWrench, or the tip's
+    WrenchStamped when ``tip``) to ``loads`` {(slot, point, axes): wrench};
+    False (and ``loads`` unchanged) for a point that is not the robot's or
+    a wrench that is not finite."""
+    try:
+        point = tip_frame(model) if tip else str(msg.point)
+        model.frame(point)
+        f, m = msg.wrench.force, msg.wrench.torque
+        w = tuple(float(x) for x in (f.x, f.y, f.z, m.x, m.y, m.z))
+    except (KeyError, AttributeError, TypeError, ValueError):
+        return False
+    if not np.all(np.isfinite(w)):
+        return False
+    frame = msg.header.frame_id
+    axes = ("world" if frame == base_frame else "body") if tip else ("body" if frame == point else "world")
+    slot = "tip" if tip else "point"
+    for key in [k for k in loads if k[:2] == (slot, point)]:
+        del loads[key]
+    if any(w):
+        loads[(slot, point, axes)] = w
+    return True
 
 
 def _joint_command(u, msg, joints, n_act):
@@ -211,11 +261,19 @@ def _joint_command(u, msg, joints, n_act):
 
 
 def _recording(model, inputs, rows, times):
-    """A :class:`calibration.Recording` of input rows [u; joint positions]."""
-    inputs = np.array(inputs)
+    """A :class:`calibration.Recording` of input rows ([u; joint positions],
+    known loads) (:func:`read_events`): the loads summed per (point, axes)."""
+    loads = [ld for _, ld in inputs]
+    inputs = np.array([u for u, _ in inputs])
     n_act = len(model.actuator_names)
     joints = inputs[:, n_act:] if inputs.shape[1] > n_act else None
-    return Recording(inputs[:, :n_act], {k: np.array(v) for k, v in rows.items()}, times, joints)
+    keys = sorted({(point, axes) for ld in loads for (_, point, axes), _ in ld})
+    wrenches = {k: np.zeros((len(inputs), 6)) for k in keys}
+    for r, ld in enumerate(loads):
+        for (_, point, axes), w in ld:
+            wrenches[(point, axes)][r] += w
+    return Recording(inputs[:, :n_act], {k: np.array(v) for k, v in rows.items()}, times, joints,
+                     wrenches=wrenches)
 
 
 def _mean_reading(zs):
@@ -236,7 +294,7 @@ def _holds(commands, t_first):
     (_, u), commands = commands[0], commands[1:]
     start = min(t_first, commands[0][0])
     for t, v in commands:
-        if np.array_equal(v, u):
+        if np.array_equal(v[0], u[0]) and v[1] == u[1]:
             continue
         if t > start:
             out.append((start, t, u))
@@ -293,7 +351,7 @@ def read_time_series(path, model, sensors, *, tolerance_s=None, **topic_args):
         tol = 0.5 * float(np.median(np.diff(times))) if len(times) > 1 else 0.0
     u0 = commands[0][1]                                   # the input before the first command
     ct = np.array([t for t, _ in commands[1:]], dtype=np.int64)
-    cu = np.array([u for _, u in commands[1:]])
+    cu = [u for _, u in commands[1:]]
     inputs = []
     for t in times:
         k = np.searchsorted(ct, t, side="right") - 1

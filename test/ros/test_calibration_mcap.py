@@ -329,3 +329,73 @@ def test_cli_calibrates_a_closed_chain_from_an_mcap_recording(tmp_path, capsys):
     assert rep["recording"]["rows"] == len(U)
     for rod, k in (("rod1", 1.2), ("rod2", 0.9)):
         assert rep["parameters"][f"youngs_modulus:{rod}"]["fitted"] == pytest.approx(k * 5.0e6, rel=0.03), rep
+
+
+# ------------------------------------------- known loads: the node's load commands (issue 29)
+
+def test_a_sweep_of_known_loads_recorded_by_the_node_calibrates(tmp_path, capsys):
+    """A lab's experiment as the twin's node records it: no tendon pulled,
+    hung weights sent as the tip's load (~/tip_wrench_command, a dead load
+    along the base axes) and a force gauge on the backbone's point at 0.2 m
+    (~/point_wrench_command, soft_twin/PointWrench; one hold as a follower
+    load, frame_id the point), each hold's settled readings after it; a
+    load on a point the robot does not have is skipped and counted. Every
+    hold's row carries its loads; both moduli (1.3x nominal) come within
+    2 % through the command line."""
+    import yaml
+    from geometry_msgs.msg import WrenchStamped
+    from soft_twin.msg import PointWrench
+    true = _nominal()
+    for s in true["segments"]:
+        s["material"]["youngs_modulus"] *= 1.3
+    truth = model_from_dict(true, 16)
+    masses = [0.0, 0.05, 0.1, 0.2, 0.0, 0.0, 0.0, 0.1, 0.1]
+    gauge = [0.0, 0.0, 0.0, 0.0, 0.3, -0.3, 0.5, 0.4, 0.0]
+    follower = [False] * 6 + [True] + [False] * 2         # the 0.5 N push along the point's own z axis
+    W_tip = np.zeros((len(masses), 6))
+    W_tip[:, 2] = -9.81 * np.array(masses)
+    G_dead, G_body = np.zeros((len(masses), 6)), np.zeros((len(masses), 6))
+    for k, (f, body) in enumerate(zip(gauge, follower)):
+        (G_body if body else G_dead)[k, 2 if body else 1] = f
+    sensors = [sn.marker(f"mk{i}", 3e-4, s=s) for i, s in enumerate([0.16, 0.28, 0.40])]
+    truth_rec = cal.record_static_sweep(truth, sensors, np.zeros((len(masses), 4)), np.random.default_rng(6),
+                                        wrenches={("tip", "world"): W_tip, ("backbone@0.2", "world"): G_dead,
+                                                  ("backbone@0.2", "body"): G_body})
+    path = tmp_path / "loads.mcap"
+    rec = McapRecording(path)
+    for k in range(len(masses)):
+        tc = T0 + k * HOLD_S
+        tw = WrenchStamped()
+        tw.header.frame_id = "base_link"
+        tw.wrench.force.z = float(W_tip[k, 2])
+        rec.write("/soft_twin/tip_wrench_command", _stamp(tw, tc))
+        pw = PointWrench(point="backbone@0.2")
+        pw.header.frame_id = "backbone@0.2" if follower[k] else "base_link"
+        if follower[k]:
+            pw.wrench.force.z = float(gauge[k])
+        else:
+            pw.wrench.force.y = float(gauge[k])
+        rec.write("/soft_twin/point_wrench_command", _stamp(pw, tc + 0.01))
+        for j in range(5, 10):
+            t = tc + j * READ_EVERY_S
+            for s in sensors:
+                rec.write("/soft_twin_estimator/measurements/position", _point(s.name, truth_rec.readings[s.name][k], t))
+    rec.write("/soft_twin/point_wrench_command", _stamp(PointWrench(point="elbow"), T0 + 2.5))
+    rec.close()
+    model = model_from_dict(_nominal(), 4)
+    got, rep = cm.read_static_sweep(path, model, sensors)
+    assert len(got) == len(masses) and rep["skipped"] == {"bad_load": 1}
+    np.testing.assert_allclose(got.wrenches[("tip", "world")], W_tip, atol=1e-15)
+    np.testing.assert_allclose(got.wrenches[("backbone@0.2", "world")], G_dead, atol=1e-15)
+    np.testing.assert_allclose(got.wrenches[("backbone@0.2", "body")], G_body, atol=1e-15)
+    for s in sensors:
+        np.testing.assert_allclose(got.readings[s.name], truth_rec.readings[s.name], atol=1e-12)
+    (tmp_path / "s.yaml").write_text(yaml.safe_dump({"sensors": sn.sensors_to_list(sensors)}))
+    code = cli_main(["calibrate", "tracked_arm", "--sensors", str(tmp_path / "s.yaml"), "--data", str(path),
+                     "--fit", "youngs_modulus", "--sections", "4", "--holdout-every", "0"])
+    cap = capsys.readouterr()
+    assert code == 0, cap.err
+    out = json.loads(cap.out)
+    for seg in ("proximal", "distal"):
+        assert out["parameters"][f"youngs_modulus:{seg}"]["fitted"] == pytest.approx(2.6e7, rel=0.02), cap.err
+    assert sorted(out["known_loads"]) == ["backbone@0.2 (body)", "backbone@0.2 (world)", "tip (world)"]

@@ -100,12 +100,13 @@ def test_tree_csv_has_joint_columns_and_the_cli_calibrates(tmp_path, recording, 
     path = tmp_path / "sweep.csv"
     cal.write_csv(path, mech, _sensors(), recording)
     header = path.read_text().splitlines()[0].split(",")
-    assert header[:7] == ["t", "tendon_y_pos", "tendon_y_neg", "tendon_z_pos", "tendon_z_neg", "pan", "tilt"]
+    assert header[:7] == ["t [s]", "tendon_y_pos [N]", "tendon_y_neg [N]", "tendon_z_pos [N]", "tendon_z_neg [N]",
+                          "pan [rad]", "tilt [rad]"]                  # (each column's SI unit, issue 29)
     back = cal.read_csv(path, mech, _sensors())
     np.testing.assert_allclose(back.joints, recording.joints)
     for k in recording.readings:
         np.testing.assert_allclose(back.readings[k], recording.readings[k], atol=1e-12)
-    bad = path.read_text().replace(",pan,", ",pann,", 1)
+    bad = path.read_text().replace(",pan [rad],", ",pann [rad],", 1)
     (tmp_path / "bad.csv").write_text(bad)
     with pytest.raises(cal.CalibrationError, match=r"missing column\(s\) \['pan'\]"):
         cal.read_csv(tmp_path / "bad.csv", mech, _sensors())
