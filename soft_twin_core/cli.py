@@ -10,6 +10,7 @@
     soft-twin-sim render RUN.json|RUN.mcap [--scenario S | --robot R] [--plot DIR] [--animate FILE] [--fps HZ]
     soft-twin-sim view RUN.json|RUN.mcap [--port 8080]      (live 3D view in the browser, in a loop)
     soft-twin-sim calibrate ROBOT --sensors S.yaml --data D.csv --fit PARAMS [--output R.yaml]
+    soft-twin-sim estimate ROBOT --sensors S.yaml --data D.csv|D.mcap [--wrench payload] [--plot DIR] [-o E.csv]
 
 (study and workspace: see soft_twin_core/studies/cli.py; plan: soft_twin_core/planning/plan_file.py.)
 
@@ -134,6 +135,24 @@ def _parser():
     from soft_twin_core.estimation.cli import add_cli_parser
     add_cli_parser(sub)
     return p
+
+
+def _run_estimate(args):
+    """``soft-twin-sim estimate``: the filter replayed over a record
+    (:func:`estimation.cli.estimate_run`), its figure (``--plot``), the JSON
+    summary on stdout. Exit 0, or 2 for a bad argument or file."""
+    from soft_twin_core.estimation.cli import estimate_run  # here: start-up (numba)
+    from soft_twin_core.viz.plots import estimation_figure  # here: start-up (matplotlib)
+    from soft_twin_core.viz.style import figure_style, save_figure  # here: start-up (matplotlib)
+    run, report = estimate_run(args)
+    if run is None:
+        return report
+    if args.plot:
+        with figure_style(args.style):
+            fig = estimation_figure(run, f"state estimation: {os.path.basename(args.data)}")
+            report["figures"] = save_figure(fig, args.plot, "estimation")
+    print(json.dumps(report, indent=1))
+    return 0
 
 
 def _run_plan(args):
@@ -295,6 +314,8 @@ def main(argv=None):
         return main_study(args) if args.command == "study" else main_workspace(args)
     if args.command == "plan":
         return _run_plan(args)
+    if args.command == "estimate":               # issue 29
+        return _run_estimate(args)
     if args.command == "calibrate":              # issue 14
         from soft_twin_core.estimation.cli import cli_main
         return cli_main(args)

@@ -40,7 +40,34 @@ def add_cli_parser(sub):
                    help="the rows are a time series from rest (column t): fit viscosity:<segment> (or "
                         "'viscosity' for all segments) by simulating it")
     c.add_argument("--dt", type=float, default=5e-3, help="integrator step for --dynamic [s] (default 0.005)")
-    # MCAP recordings (soft_twin_core.estimation.mcap_data)
+    _add_mcap_arguments(c)
+    c.add_argument("--settle", type=float, metavar="S",
+                   help="MCAP: seconds after each command before the readings are averaged "
+                        "(default: the second half of each hold)")
+    c.add_argument("--output", "-o", help="write the calibrated robot file here")
+    c.add_argument("--sensors-output", help="write the calibrated sensors file here")
+    e = sub.add_parser("estimate", help="run the state estimator over a recorded time series (CSV or MCAP): "
+                                        "estimates, innovation statistics and a figure")
+    e.add_argument("robot", help="robot file or example name")
+    e.add_argument("--sensors", required=True, help="sensors file (YAML list of pose/marker sensors)")
+    e.add_argument("--data", required=True,
+                   help="CSV (as for calibrate, with its column t) or an MCAP recording of the twin's and the "
+                        "estimator's topics (as for calibrate --dynamic)")
+    e.add_argument("--wrench", choices=("payload", "force", "wrench"),
+                   help="also estimate an unknown tip load: a payload mass [kg], a force or a wrench")
+    e.add_argument("--dt", type=float, help="the filter's step [s] (default: the rows' median spacing)")
+    e.add_argument("--sections", type=int, help="sections per segment, classic robots (default: the robot file's)")
+    _add_mcap_arguments(e)
+    e.add_argument("--output", "-o", help="write the estimates here as CSV (SI units in the header)")
+    e.add_argument("--plot", metavar="FOLDER",
+                   help="write the figure FOLDER/estimation.png (and .svg; --style paper: PDF) here")
+    e.add_argument("--style", default="screen", choices=("screen", "paper", "paper-wide"),
+                   help="figure style (default screen)")
+    return c
+
+
+def _add_mcap_arguments(c):
+    """The topic options of an MCAP record (soft_twin_core.estimation.mcap_data)."""
     c.add_argument("--actuation-topic", default="/soft_twin/actuation",
                    help="MCAP: topic of the actuation commands (default /soft_twin/actuation)")
     c.add_argument("--joint-command-topic", default="/soft_twin/joint_commands",
@@ -60,14 +87,38 @@ def add_cli_parser(sub):
     c.add_argument("--topic", action="append", default=[], metavar="SENSOR=TOPIC",
                    help="MCAP: a sensor's own topic (PoseStamped, PoseWithCovarianceStamped, "
                         "TransformStamped or PointStamped); repeatable")
-    c.add_argument("--settle", type=float, metavar="S",
-                   help="MCAP: seconds after each command before the readings are averaged "
-                        "(default: the second half of each hold)")
-    c.add_argument("--output", "-o", help="write the calibrated robot file here")
-    c.add_argument("--sensors-output", help="write the calibrated sensors file here")
-    return c
 
 
+
+
+def estimate_run(args):
+    """The replay of ``soft-twin-sim estimate`` (the figure is drawn by the
+    command line above, :mod:`soft_twin_core.cli`): (EstimationRun, the
+    JSON report with the CSV written), or (None, exit status 2) for a bad
+    argument or file (named on stderr)."""
+    from soft_twin_core.estimation.replay import estimate_recording  # here: the calibrate command does not need it
+    try:
+        if args.sections is not None and args.sections < 1:
+            raise CalibrationError(f"--sections must be >= 1, got {args.sections}")
+        path = find_file(args.robot, "robots")
+        robot_dict = robot_mapping(read_yaml_file(path, ModelError, "robot file"), f"robot file {path}")
+        mech = mechanism_of(robot_dict, args.sections, os.path.dirname(os.path.abspath(path)))
+        sensors = sn.load_sensors(args.sensors, mech)
+        if cm.is_mcap(args.data):
+            args.dynamic = True                           # (a time series)
+            rec, _ = _read_mcap(args, mech, sensors)
+        else:
+            rec = read_csv(args.data, mech, sensors)
+        run = estimate_recording(mech, sensors, rec, dt=args.dt, wrench=args.wrench)
+    except (CalibrationError, ModelError, ValueError) as e:
+        print(f"soft-twin-sim estimate: {e}", file=sys.stderr)
+        return None, 2
+    report = run.summary()
+    if args.output:
+        head, body = run.rows()
+        np.savetxt(args.output, body, delimiter=",", header=",".join(head), comments="", fmt="%.9g")
+        report["output"] = args.output
+    return run, report
 
 
 def cli_main(args):

@@ -410,3 +410,64 @@ def plot_dynamics(out, folder, mech, name="run"):
         if out.get("energies"):
             paths += plot_energies(out, folder, f"{name}: energies")
     return paths
+
+
+def estimation_figure(run, title="state estimation"):
+    """The figure of an estimation run (an ``EstimationRun`` of
+    :mod:`soft_twin_core.estimation.replay`): the tip-most sensor's position
+    measured (dots) and estimated (lines, 2-sigma band) [m]; the payload
+    [g] (or the estimated force [N]) with its 2-sigma band; the NIS per
+    dimension of each update against its 95 % band. Returns the figure."""
+    from scipy.stats import chi2
+    plt = _plt()
+    has_load = run.wrench_mode is not None
+    fig, axs = plt.subplots(3 if has_load else 2, 1, figsize=(8, 8.5 if has_load else 6), sharex=True)
+    t = run.time
+    a = axs[0]
+    p0 = run.estimated[0]                  # (x, y and z moved from the start: one scale for the three)
+    for k, (c, col) in enumerate(zip("xyz", ("C0", "C1", "C2"))):
+        e, sd = 1e3 * (run.estimated[:, k] - p0[k]), 1e3 * run.estimated_std[:, k]
+        a.plot(t, 1e3 * (run.measured[:, k] - p0[k]), ".", ms=2, color=col, alpha=0.5, label=f"{c} measured")
+        a.plot(t, e, "-", lw=1.2, color=col, label=f"{c} estimated")
+        a.fill_between(t, e - 2 * sd, e + 2 * sd, color=col, alpha=0.2, lw=0)
+    a.set_ylabel(f"{run.sensor}: position - start [mm]")
+    a.set_title(f"measured and estimated (2 sigma band); start ({', '.join(f'{x:.3f}' for x in p0)}) m",
+                fontsize=9)
+    a.legend(fontsize=7, ncol=3, loc="best")
+    if has_load:
+        b = axs[1]
+        if run.wrench_mode == "payload":
+            m, sd = 1e3 * run.payload, 1e3 * run.payload_std
+            b.plot(t, m, "k-", lw=1.2, label="payload estimate")
+            b.fill_between(t, m - 2 * sd, m + 2 * sd, color="k", alpha=0.15, lw=0, label="2 sigma")
+            pad = 4 * float(np.median(sd))         # (the prior's wide band of the first steps left out)
+            b.set_ylim(min(m.min(), 0.0) - pad, max(m.max(), 0.0) + pad)
+            b.set_ylabel("payload [g]")
+        else:
+            for k, c in enumerate(("f_x", "f_y", "f_z")):
+                b.plot(t, run.wrench[:, k], lw=1.2, label=c)
+                b.fill_between(t, run.wrench[:, k] - 2 * run.wrench_std[:, k],
+                               run.wrench[:, k] + 2 * run.wrench_std[:, k], alpha=0.15, lw=0)
+            b.set_ylabel("tip force [N]")
+        b.legend(fontsize=7, loc="best")
+    c = axs[-1]
+    ok = run.nis_dof > 0
+    m = run.nis_dof[ok]
+    c.plot(t[ok], run.nis[ok] / m, ".", ms=2, color="C3", label="NIS / dimension")
+    mode = int(np.bincount(m).argmax()) if len(m) else 1
+    lo, hi = chi2.ppf(0.025, mode) / mode, chi2.ppf(0.975, mode) / mode
+    c.axhline(1.0, color="k", lw=0.8)
+    c.axhline(lo, color="k", lw=0.8, ls="--")
+    c.axhline(hi, color="k", lw=0.8, ls="--", label=f"95 % band ({mode} dimensions)")
+    mean_nis, inside = run.consistency()
+    c.set_title(f"mean NIS per dimension {mean_nis:.2f}, {100 * inside:.1f} % of the updates inside their "
+                f"95 % band", fontsize=9)
+    c.set_yscale("log")
+    c.set_ylabel("NIS / dimension [-]")
+    c.set_xlabel("time [s]")
+    c.legend(fontsize=7, loc="best")
+    for ax in axs:
+        ax.grid(alpha=0.3)
+    fig.suptitle(title)
+    fig.set_layout_engine("tight")
+    return fig
