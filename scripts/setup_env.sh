@@ -224,24 +224,24 @@ for pkg in ("soft_twin", "soft_twin_core"):
 EOF
 
 # ---- 4. compile the numba kernels into their disk cache (seconds when cached) ----
-# Two trees, compiled side by side (each is one process; the machine's two
-# cores halve the first set-up's 2 x 2.5 minutes): the checkout's kernels,
-# and those of the copy installed in the venv, which the commands
-# (soft-twin-sim and the Dask workers of its studies, soft_twin_node) import:
-# numba keeps a cache per source file, so the checkout's cache does not serve
-# it (without this, their first run compiles for about a minute).
+# Once (issue 30: compile less): the checkout's kernels compile, and the copy
+# installed in the venv -- which the commands import (soft-twin-sim and the
+# Dask workers of its studies, soft_twin_node) -- takes their caches: numba
+# 0.68 stamps a cache with its source's content hash, so a cache serves an
+# identical file anywhere (soft_twin_core.warmup.copy_caches). Its own
+# warm-up then loads in seconds; it compiles only what differs.
 say "kernels: compiling into numba's cache if needed (about 2.5 minutes after a change of a kernel's sources, seconds otherwise)"
-"$VENV/bin/python" -m soft_twin_core.warmup >"$LOG.warmup" 2>&1 &
-WARM_CHECKOUT=$!
-(cd "$VENV" && "$VENV/bin/python" -m soft_twin_core.warmup) >"$LOG.warmup_installed" 2>&1 &
-WARM_INSTALLED=$!
-ok_checkout=0; ok_installed=0
-wait "$WARM_CHECKOUT" || ok_checkout=$?
-wait "$WARM_INSTALLED" || ok_installed=$?
-cat "$LOG.warmup" "$LOG.warmup_installed" >>"$LOG"
-[ "$ok_checkout" -eq 0 ] || fail "compiling the kernels (python -m soft_twin_core.warmup; its output: $LOG.warmup)"
-[ "$ok_installed" -eq 0 ] || \
+SITE_CORE=$("$VENV/bin/python" -c 'import sysconfig; print(sysconfig.get_paths()["purelib"])')/soft_twin_core
+"$VENV/bin/python" -m soft_twin_core.warmup >"$LOG.warmup" 2>&1 ||
+    { cat "$LOG.warmup" >>"$LOG"; fail "compiling the kernels (python -m soft_twin_core.warmup; its output: $LOG.warmup)"; }
+"$VENV/bin/python" -m soft_twin_core.warmup --copy-to "$SITE_CORE" >>"$LOG.warmup" 2>&1 ||
+    { cat "$LOG.warmup" >>"$LOG"; fail "copying the kernel caches to $SITE_CORE (its output: $LOG.warmup)"; }
+(cd "$VENV" && "$VENV/bin/python" -m soft_twin_core.warmup) >"$LOG.warmup_installed" 2>&1 || {
+    cat "$LOG.warmup_installed" >>"$LOG"
     fail "compiling the installed kernels (cd $VENV && python -m soft_twin_core.warmup; its output: $LOG.warmup_installed)"
+}
+cat "$LOG.warmup" "$LOG.warmup_installed" >>"$LOG"
+say "kernels: $(grep 'compiled and cached' "$LOG.warmup" | head -n 1)"
 say "kernels: $(tail -n 1 "$LOG.warmup")"
 say "installed kernels: $(tail -n 1 "$LOG.warmup_installed")"
 

@@ -178,6 +178,48 @@ def kernel_sources(root):
     return sorted(seen)
 
 
+def _kernel_digest(root):
+    """The hash of the kernels' sources under ``root`` (paths and contents)."""
+    import hashlib
+    h = hashlib.sha256()
+    for f in kernel_sources(root):
+        h.update(f.relative_to(root).as_posix().encode())
+        h.update(f.read_bytes())
+    return h.hexdigest()
+
+
+def copy_caches(src, dst):
+    """Give the copy of this package at ``dst`` (the one installed in a
+    venv) the kernel caches of the one at ``src`` (the checkout, warmed up),
+    when their kernels' sources are identical: numba (0.68) stamps a cache
+    with its source file's content hash, so a cache serves an identical file
+    anywhere, and the installed copy loads in seconds instead of compiling
+    for minutes. Its own caches are replaced, and the stamp of
+    :func:`purge_stale_caches` with them. Returns the number of cache files
+    copied, or None when the sources differ or ``NUMBA_CACHE_DIR`` moves
+    the caches elsewhere (then it compiles its own)."""
+    import os
+    import shutil
+    from pathlib import Path
+    src, dst = Path(src), Path(dst)
+    if os.environ.get("NUMBA_CACHE_DIR") or _kernel_digest(src) != _kernel_digest(dst):
+        return None
+    n = 0
+    for d in sorted({f.parent / "__pycache__" for f in kernel_sources(src)}):
+        target = dst / d.relative_to(src)
+        target.mkdir(parents=True, exist_ok=True)
+        for old in list(target.glob("*.nbi")) + list(target.glob("*.nbc")):
+            old.unlink()
+        for f in list(d.glob("*.nbi")) + list(d.glob("*.nbc")):
+            shutil.copyfile(f, target / f.name)
+            n += 1
+    stamp = src / "__pycache__" / "soft_twin_kernels.sha256"
+    if stamp.is_file():
+        (dst / "__pycache__").mkdir(exist_ok=True)
+        shutil.copyfile(stamp, dst / "__pycache__" / stamp.name)
+    return n
+
+
 def purge_stale_caches(root=None):
     """Delete every kernel cache of this package when a source a kernel
     depends on (:func:`kernel_sources`) changed since the last warm-up;
@@ -190,15 +232,10 @@ def purge_stale_caches(root=None):
     ``__pycache__``); a change elsewhere in the package (the solvers' Python
     layers, the files, the views) keeps the caches. ``NUMBA_CACHE_DIR``: its
     copy of this package's tree is purged too."""
-    import hashlib
     import os
     from pathlib import Path
     root = Path(__file__).resolve().parent if root is None else Path(root)
-    h = hashlib.sha256()
-    for f in kernel_sources(root):
-        h.update(f.relative_to(root).as_posix().encode())
-        h.update(f.read_bytes())
-    digest = h.hexdigest()
+    digest = _kernel_digest(root)
     stamp = root / "__pycache__" / "soft_twin_kernels.sha256"
     if stamp.is_file() and stamp.read_text().strip() == digest:
         return False
@@ -225,7 +262,21 @@ def _user_cache_dirs(root, cache_dir):
 
 
 def main(argv=None):
+    """``python -m soft_twin_core.warmup [--copy-to DIR]``: compile (or
+    load) every kernel; with ``--copy-to``, then give the copy of the
+    package at DIR these caches (:func:`copy_caches`)."""
+    argv = sys.argv[1:] if argv is None else argv
     t0 = time.perf_counter()
+    if argv[:1] == ["--copy-to"] and len(argv) == 2:
+        from pathlib import Path
+        run()                                      # (the caches complete first)
+        n = copy_caches(Path(__file__).resolve().parent, argv[1])
+        print(f"soft_twin_core kernel caches: {'sources differ, none' if n is None else n} copied to {argv[1]}",
+              file=sys.stderr)
+        return 0
+    if argv:
+        print("usage: python -m soft_twin_core.warmup [--copy-to DIR]", file=sys.stderr)
+        return 2
     if purge_stale_caches():
         print("soft_twin_core sources changed since the last warm-up: kernel caches cleared", file=sys.stderr)
     run()

@@ -131,3 +131,39 @@ def test_warm_up_purge_reaches_numba_cache_dir_but_not_another_copy(tmp_path, mo
     assert purge_stale_caches(checkout)
     assert not list(where[checkout].glob("*.nb*"))
     assert list(where[venv].glob("*.nbi")) and list(where[venv].glob("*.nbc"))
+
+
+def test_an_installed_copy_takes_the_checkouts_kernel_caches(tmp_path, monkeypatch):
+    """Issue 30, compile once: the copy of the package installed in a venv
+    takes the warmed-up checkout's caches (warmup.copy_caches) and loads its
+    kernels from them instead of compiling (numba says "data loaded" under
+    NUMBA_DEBUG_CACHE, where it would say "data saved"); a copy whose
+    kernels' sources differ gets none."""
+    from soft_twin_core.warmup import copy_caches, purge_stale_caches
+    monkeypatch.delenv("NUMBA_CACHE_DIR", raising=False)
+    copies = []
+    for name in ("checkout", "venv"):
+        pkg = tmp_path / name / "soft_twin_core"
+        (pkg / "kernels").mkdir(parents=True)
+        (pkg / "__init__.py").write_text("")
+        (pkg / "kernels" / "__init__.py").write_text("")
+        (pkg / "a.py").write_text("x = 1\n")
+        (pkg / "kernels" / "b.py").write_text("import numba\nfrom soft_twin_core.a import x\n"
+                                              "@numba.njit(cache=True)\ndef f(y):\n    return y + x\n")
+        copies.append(pkg)
+    checkout, venv = copies
+    env = {k: v for k, v in os.environ.items() if k != "NUMBA_CACHE_DIR"}
+
+    def call(pkg):
+        out = subprocess.run([sys.executable, "-c", "import sys; sys.path.insert(0, sys.argv[1]); "
+                              "from soft_twin_core.kernels.b import f; print(f(1))", str(pkg.parent)],
+                             check=True, capture_output=True, text=True, env=dict(env, NUMBA_DEBUG_CACHE="1"))
+        return out.stdout
+    assert purge_stale_caches(checkout)
+    assert "data saved" in call(checkout)                        # compiled, cached
+    assert copy_caches(checkout, venv) == 2                      # its index and its data
+    assert not purge_stale_caches(venv)                          # the stamp came along: nothing purged
+    got = call(venv)
+    assert "data loaded" in got and "data saved" not in got and got.split()[-1] == "2"
+    (venv / "a.py").write_text("x = 2\n")                        # the sources differ: nothing copied
+    assert copy_caches(checkout, venv) is None
