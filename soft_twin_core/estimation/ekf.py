@@ -541,9 +541,15 @@ class EKF:
                 continue
             if q is None:
                 q = sn.forward(self.ws, self.q)
-            e, Hq = sn.residual_and_jacobian(self.ws, q, sen, self._where[sen.name], z)
+            ft_load = isinstance(sen, sn.BaseWrenchSensor) and self.k
+            load = (*self._tip_point, self.wrench()) if ft_load else None
+            e, Hq = sn.residual_and_jacobian(self.ws, q, sen, self._where[sen.name], z, point_load=load)
             H = np.zeros((len(e), N))
             H[:, :n] = Hq
+            if ft_load:                     # the support carries the estimated tip load too
+                i = 2 * n + self.nb
+                H[:, i:i + self.k] = sn.base_wrench_load_jacobian(self.tree, self.ws, q, *self._tip_point) @ self.S
+                sn.forward(self.ws, q)
             Rm = sen.noise_covariance()
             if not gate_reading(rep, sen.name, e, H, Rm, self.P, self._gate(len(e)), self._gated_run,
                                 self.max_gated_run):

@@ -39,7 +39,12 @@ estimator (:mod:`soft_twin_core.estimation.ekf`) and the calibration
   S]`` with ``S = dc/dq = sum_k m_k Jp_k = -[tau_x, tau_y, tau_z]^T``, the
   columns being the generalised gravity forces of inverse dynamics under a
   unit gravity along x, y, z (the gravity potential ``-m_k g . p_k``
-  differentiated). Noise ``sigma_force_n``, ``sigma_moment_nm`` per axis.
+  differentiated). A dead load ``[f; m]`` (world axes) on a point p of the
+  robot -- the filter's estimated tip load -- is carried by the support
+  too: ``h -= [f; p x f + m]``, ``dh/dq += [0; hat(f) Jp]`` (Jp the point's
+  world velocity Jacobian; :func:`base_wrench_and_jacobian`), and in the
+  load ``dh/d[f; m] = -[[I, 0], [hat(p), I]]``. Noise ``sigma_force_n``,
+  ``sigma_moment_nm`` per axis.
 - :class:`TensionSensor`: a measured tendon tension [N] (or chamber
   pressure [Pa]) is an *input* of the twin, not a function of q; the
   estimator feeds it to the process model and turns its noise into process
@@ -293,9 +298,11 @@ def point_pose_and_body_jacobian(ws, joint, x, placement):
     return T, lie.Ad_inv(T) @ Js
 
 
-def base_wrench_and_jacobian(tree, ws, q, jacobian=True):
+def base_wrench_and_jacobian(tree, ws, q, jacobian=True, point_load=None):
     """(W (6,) the support's wrench on the robot at rest, world axes about
-    the base origin; dW/dq (6, nv) or None), module docstring."""
+    the base origin; dW/dq (6, nv) or None), module docstring;
+    ``point_load``: (joint, abscissa, [f; m] (6,) world axes) a dead load
+    on that point, which the support balances too."""
     q = np.ascontiguousarray(q, dtype=float)
     z = np.zeros(tree.nv)
     g = np.asarray(tree.gravity, dtype=float)
@@ -306,6 +313,10 @@ def base_wrench_and_jacobian(tree, ws, q, jacobian=True):
         R, p = G[:3, :3], G[:3, 3]
         f, m = R @ ws.work.f_in[i, :3], R @ ws.work.f_in[i, 3:]
         W += np.concatenate([f, m + np.cross(p, f)])
+    if point_load is not None:
+        T, Jw = alg.point_jacobian(tree, ws, q, point_load[0], point_load[1], "world")
+        f, m = np.asarray(point_load[2][:3], dtype=float), np.asarray(point_load[2][3:], dtype=float)
+        W -= np.concatenate([f, np.cross(T[:3, 3], f) + m])
     if not jacobian:
         return W, None
     S = np.empty((3, tree.nv))
@@ -313,16 +324,29 @@ def base_wrench_and_jacobian(tree, ws, q, jacobian=True):
         S[a] = -alg.rnea(tree, ws, q, z, z, None, np.eye(3)[a], elastic=False)
     H = np.zeros((6, tree.nv))
     H[3:] = lie.hat(g) @ S
+    if point_load is not None:
+        H[3:] += lie.hat(f) @ Jw[:3]
     return W, H
 
 
-def residual_and_jacobian(ws, q, sensor, where, z):
+def base_wrench_load_jacobian(tree, ws, q, joint, x):
+    """d W / d [f; m] (6, 6) of :func:`base_wrench_and_jacobian` in its
+    point load on (joint, x): ``-[[I, 0], [hat(p), I]]``."""
+    p = alg.point_jacobian(tree, ws, q, joint, x, "world")[0][:3, 3]
+    D = -np.eye(6)
+    D[3:, :3] = -lie.hat(p)
+    return D
+
+
+def residual_and_jacobian(ws, q, sensor, where, z, point_load=None):
     """(e (m,), de/dq (m, nv)) of one reading z (:func:`measurement_vector`)
     at q, the forward pass of ``ws`` done at q; ``where``: the sensor's
-    entry of :func:`check_sensors`. Module docstring."""
+    entry of :func:`check_sensors`; ``point_load``: a dead load the base
+    wrench sensor's support carries too (:func:`base_wrench_and_jacobian`).
+    Module docstring."""
     nv = ws.zeros_v.shape[0]
     if isinstance(sensor, BaseWrenchSensor):
-        W, H = base_wrench_and_jacobian(ws.model, ws, q)
+        W, H = base_wrench_and_jacobian(ws.model, ws, q, point_load=point_load)
         return W - z, H
     if isinstance(sensor, JointStateSensor):
         H = np.zeros((sensor.size, nv))
@@ -337,11 +361,12 @@ def residual_and_jacobian(ws, q, sensor, where, z):
     return np.concatenate([T[:3, 3] - z[:3, 3], e_rot]), np.vstack([Hp, lie.T_so3_inv(e_rot) @ J[3:]])
 
 
-def predict_measurement(ws, q, sensor, where):
+def predict_measurement(ws, q, sensor, where, point_load=None):
     """Noise-free reading at q (the forward pass of ``ws`` done at q): a 4x4
-    pose, a position (3,), joint positions, a wrench (6,)."""
+    pose, a position (3,), joint positions, a wrench (6,) (with a dead
+    ``point_load`` its support carries: :func:`base_wrench_and_jacobian`)."""
     if isinstance(sensor, BaseWrenchSensor):
-        return base_wrench_and_jacobian(ws.model, ws, q, jacobian=False)[0]
+        return base_wrench_and_jacobian(ws.model, ws, q, jacobian=False, point_load=point_load)[0]
     if isinstance(sensor, JointStateSensor):
         return q[where].copy()
     T, _ = point_pose_and_body_jacobian(ws, where[0], where[1], np.asarray(sensor.placement, dtype=float))
