@@ -77,16 +77,58 @@ def _marker(s):
     return isinstance(s, sn.PoseSensor) and s.position_only
 
 
-def _measuring(mech, sensors):
-    """(the pose sensors and markers, {name: where}) of a sensor list
-    checked against the robot (:func:`sensors.check_sensors`); tension
-    sensors are left out (the recording's inputs are the tensions), other
-    kinds refused by name."""
+STATIC_KINDS = (sn.PoseSensor, sn.JointStateSensor, sn.BaseWrenchSensor)
+
+
+def _measuring(mech, sensors, kinds=(sn.PoseSensor,)):
+    """(the sensors of ``kinds``, {name: where}) of a sensor list checked
+    against the robot (:func:`sensors.check_sensors`); tension sensors are
+    left out (the recording's inputs are the tensions), other kinds refused
+    by name. A static sweep reads :data:`STATIC_KINDS` (pose sensors and
+    markers, joint encoders, a base force/torque sensor); a dynamic record
+    pose sensors and markers."""
     sensors, where = sn.check_sensors(mech, sensors)
-    other = [s.name for s in sensors if not isinstance(s, (sn.PoseSensor, sn.TensionSensor))]
+    other = [s.name for s in sensors if not isinstance(s, kinds + (sn.TensionSensor,))]
     if other:
-        raise CalibrationError(f"sensors {other}: calibration reads pose sensors and markers only")
-    return [s for s in sensors if isinstance(s, sn.PoseSensor)], where
+        raise CalibrationError(f"sensors {other}: this calibration reads "
+                               f"{', '.join(k.__name__ for k in kinds)} only")
+    return [s for s in sensors if isinstance(s, kinds)], where
+
+
+def _sigma(sensor, m):
+    """The noise standard deviations (m,) of a reading of ``sensor``."""
+    if isinstance(sensor, sn.JointStateSensor):
+        return np.asarray(sensor.sigma, dtype=float)
+    if isinstance(sensor, sn.BaseWrenchSensor):
+        return np.array([sensor.sigma_force_n] * 3 + [sensor.sigma_moment_nm] * 3)
+    sig = np.full(m, sensor.sigma_position_m)
+    if m == 6:
+        sig[3:] = sensor.sigma_rotation_rad
+    return sig
+
+
+def _sensor_columns(s):
+    """The CSV columns of a sensor's reading (:func:`read_csv`)."""
+    if isinstance(s, sn.JointStateSensor):
+        return [f"{s.name}.{j}" for j in s.joints]
+    if isinstance(s, sn.BaseWrenchSensor):
+        return [f"{s.name}.{c}" for c in _WRENCH_COLS]
+    return [f"{s.name}.{c}" for c in (_POSE_COLS[:3] if _marker(s) else _POSE_COLS)]
+
+
+def _support_loads(mech, loads):
+    """The dead loads a base F/T sensor's support carries besides gravity,
+    as :func:`sensors.base_wrench_and_jacobian` takes them: [(joint,
+    abscissa, [f; m] world)] of FrameLoads (CalibrationError for a follower
+    load: its direction turns with the robot)."""
+    out = []
+    for ld in loads:
+        if ld.axes != "world":
+            raise CalibrationError(f"a base force/torque sensor with a follower load on {ld.frame!r}: not supported "
+                                   f"(record it as a dead load, world axes)")
+        ref = mech.frame(ld.frame)
+        out.append((ref.joint, ref.x, np.asarray(ld.wrench, dtype=float)))
+    return out
 
 
 @dataclass
@@ -233,10 +275,8 @@ def csv_header(model, sensors, recording=None):
                                        f"a follower load is recorded in an MCAP file")
             cols += [f"wrench:{point}.{c}" for c in _WRENCH_COLS]
     for s in sensors:
-        if _marker(s):
-            cols += [f"{s.name}.{c}" for c in _POSE_COLS[:3]]
-        elif isinstance(s, sn.PoseSensor):
-            cols += [f"{s.name}.{c}" for c in _POSE_COLS]
+        if isinstance(s, STATIC_KINDS):
+            cols += _sensor_columns(s)
     return cols
 
 
@@ -260,6 +300,10 @@ def column_units(model, name):
     if name.startswith("mass:"):
         return ("kg",)
     comp = name.rsplit(".", 1)[-1]
+    if comp in _WRENCH_COLS:                         # a base force/torque sensor's
+        return ("N",) if comp.startswith("f") else _NEWTON_METRE
+    if comp in kinds and "." in name:                # an encoder's joint
+        return ("m",) if kinds[comp] == PRISMATIC else ("rad",)
     if comp in ("x", "y", "z"):
         return ("m",)
     if comp in ("qx", "qy", "qz", "qw"):
@@ -300,7 +344,7 @@ def write_csv(path, model, sensors, rec):
                 row += cells(W[r])
             for s in sensors:
                 z = rec.readings.get(s.name)
-                if _marker(s):
+                if _marker(s) or isinstance(s, (sn.JointStateSensor, sn.BaseWrenchSensor)):
                     row += cells(z[r])
                 elif isinstance(s, sn.PoseSensor):
                     ok = np.all(np.isfinite(z[r]))
@@ -390,9 +434,9 @@ def read_csv(path, model, sensors):
     wrenches = _known_loads(path, model, header, col, finite)
     readings = {}
     for s in sensors:
-        if not isinstance(s, sn.PoseSensor):
+        if not isinstance(s, STATIC_KINDS):
             continue
-        names = [f"{s.name}.{c}" for c in (_POSE_COLS[:3] if _marker(s) else _POSE_COLS)]
+        names = _sensor_columns(s)
         v = np.stack([col[n] for n in names], axis=1)
         inf = np.flatnonzero(np.any(np.isinf(v), axis=1))
         if len(inf):
@@ -404,7 +448,7 @@ def read_csv(path, model, sensors):
             blank = names[int(np.flatnonzero(~seen[r])[0])]
             raise CalibrationError(f"data file {path}, row {r + 2}, column {blank}: sensor {s.name!r} has some "
                                    f"of its cells empty (a reading not seen leaves all of them empty)")
-        if _marker(s):
+        if not isinstance(s, sn.PoseSensor) or _marker(s):
             readings[s.name] = v
         else:
             T = np.full((len(v), 4, 4), np.nan)
@@ -517,7 +561,9 @@ def record_static_sweep(robot, sensors, inputs, rng, loads=None, joints=None, po
     noise. The inputs must lie in the actuators' declared ranges."""
     mech = as_mechanism(robot)
     check_recording_inputs(mech, inputs, "inputs")
-    sensors, where = _measuring(mech, sensors)
+    sensors, where = _measuring(mech, sensors, STATIC_KINDS)
+    if loads is not None and any(isinstance(s, sn.BaseWrenchSensor) for s in sensors):
+        raise CalibrationError("record_static_sweep: a base force/torque sensor with path loads: give point_loads")
     ws = Workspace(mech.tree)
     names = position_joints(mech)
     inputs = np.asarray(inputs, dtype=float)
@@ -529,9 +575,14 @@ def record_static_sweep(robot, sensors, inputs, rng, loads=None, joints=None, po
     q = None
     readings = {s.name: [] for s in sensors}
     for r, u in enumerate(inputs):
+        row_loads = tuple(point_loads) + rec.row_loads(r)
         q = solve_equilibrium(mech, u, rec.row_efforts(r), dict(zip(names, jrows[r])) if names else None, loads,
-                              tuple(point_loads) + rec.row_loads(r), q_init=q).q
+                              row_loads, q_init=q).q
         truth = sn.predict_readings(ws, q, sensors, where)
+        for s in sensors:
+            if isinstance(s, sn.BaseWrenchSensor):          # the support carries the loads too
+                truth[s.name] = sn.predict_measurement(ws, sn.forward(ws, q), s, None,
+                                                       point_load=_support_loads(mech, row_loads))
         for s in sensors:
             readings[s.name].append(sn.simulate_measurement(s, truth[s.name], rng))
     rec.readings = {k: np.array(v) for k, v in readings.items()}
@@ -661,9 +712,13 @@ class Problem:
     def __init__(self, robot_dict, sensors, recording, names, n_sections=None, base_dir=None):
         self.robot_dict, self.n_sections, self.base_dir = robot_dict, n_sections, base_dir
         mech = mechanism_of(robot_dict, n_sections, base_dir)
-        self.sensors, self.where = _measuring(mech, sensors)     # the points stay with theta
+        self.sensors, self.where = _measuring(mech, sensors, STATIC_KINDS)     # the points stay with theta
         if not self.sensors:
-            raise CalibrationError("sensors: calibration needs at least one pose sensor or marker")
+            raise CalibrationError("sensors: calibration needs at least one pose sensor, marker, encoder or "
+                                   "base force/torque sensor")
+        if any(isinstance(s, sn.BaseWrenchSensor) for s in self.sensors):
+            for r in range(len(recording)):
+                _support_loads(mech, recording.row_loads(r))          # (dead loads only: refused at the door)
         check_recording_inputs(mech, recording.inputs)      # the declared actuator ranges
         names_j = position_joints(mech)
         if recording.joints is not None and np.shape(recording.joints) != (len(recording), len(names_j)):
@@ -736,13 +791,20 @@ class Problem:
                 z = self.rec.readings[s.name][r]
                 if not np.all(np.isfinite(z)):
                     continue
-                e, H = sn.residual_and_jacobian(ws, qc, s, self.where[s.name], z)
-                sig = np.full(len(e), s.sigma_position_m)
-                if len(e) == 6:
-                    sig[3:] = s.sigma_rotation_rad
+                ft = isinstance(s, sn.BaseWrenchSensor)
+                held = _support_loads(mech, _payload(mech, mass) + self.rec.row_loads(r)) if ft else None
+                e, H = sn.residual_and_jacobian(ws, qc, s, self.where[s.name], z, point_load=held)
+                sig = _sigma(s, len(e))
                 res.append(e / sig)
                 if jacobian:
                     J = H @ dq
+                    if ft:                                # the payload's weight at fixed q
+                        ref = mech.frame(tip_frame(mech))
+                        D = sn.base_wrench_load_jacobian(tree, ws, qc, ref.joint, ref.x)
+                        for j, p in enumerate(self.params):
+                            if p.kind == "payload_mass":
+                                J[:, j] += D @ np.concatenate([tree.gravity, np.zeros(3)])
+                    qc = sn.forward(ws, q) if ft else qc
                     for j, p in enumerate(self.params):
                         if p.kind == "sensor_offset" and p.target == s.name:
                             T, _ = sn.point_pose_and_body_jacobian(ws, *self.where[s.name], np.asarray(s.placement))
@@ -843,8 +905,11 @@ def identifiability(names, J_scaled, values, std):
 
 
 def _tip_sensor(mech, sensors):
-    """The sensor nearest the tip: one on the tip frame, else the farthest
-    along the main member, else the last."""
+    """The pose sensor or marker nearest the tip: one on the tip frame, else
+    the farthest along the main member, else the last (None: none)."""
+    sensors = [s for s in sensors if isinstance(s, sn.PoseSensor)]
+    if not sensors:
+        return None
     tip = tip_frame(mech)
     on_tip = [s for s in sensors if s.frame == tip]
     if on_tip:
@@ -915,7 +980,7 @@ def calibrate(robot_dict, sensors, recording, names, *, holdout_every=4, n_secti
     d, new_sensors, mass = apply_parameters(robot_dict, pb.sensors, pb.params, theta)
     out = CalibrationResult(names=names_fit, nominal=pb.theta0, values=theta, iterations=int(sol.nfev),
                             robot_dict=d, sensors=new_sensors, payload_mass=mass, **stats)
-    if len(held):
+    if len(held) and _tip_sensor(mechanism_of(robot_dict, n_sections, base_dir), pb.sensors) is not None:
         hp = Problem(robot_dict, sensors, recording.rows(held), names, n_sections, base_dir)
         before = tip_errors(hp, hp.theta0, range(len(held)))
         after = tip_errors(hp, theta, range(len(held)))

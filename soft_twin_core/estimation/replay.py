@@ -105,7 +105,9 @@ def estimate_recording(mech, sensors, rec, *, dt=None, wrench=None, **ekf_option
         pos = dict(zip(names, rec.joints[r])) if names and rec.joints is not None else None
         return dict(actuation=rec.inputs[r], positions=pos, efforts=rec.row_efforts(r))
     ekf = EKF(mech, sensors, dt, wrench=wrench, **inputs(0), **ekf_options)
-    tip = _tip_sensor(mech, [s for s in ekf.sensors if isinstance(s, sn.PoseSensor)])
+    tip = _tip_sensor(mech, ekf.sensors)
+    if tip is None:
+        raise CalibrationError("estimate: the sensors need a pose sensor or marker (the estimate it draws)")
     where = ekf._where[tip.name]
     n, N = ekf.n, len(t)
     out = {k: np.full((N, 3), np.nan) for k in ("measured", "estimated", "estimated_std")}

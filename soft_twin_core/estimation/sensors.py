@@ -302,7 +302,7 @@ def base_wrench_and_jacobian(tree, ws, q, jacobian=True, point_load=None):
     """(W (6,) the support's wrench on the robot at rest, world axes about
     the base origin; dW/dq (6, nv) or None), module docstring;
     ``point_load``: (joint, abscissa, [f; m] (6,) world axes) a dead load
-    on that point, which the support balances too."""
+    on that point, which the support balances too, or a list of them."""
     q = np.ascontiguousarray(q, dtype=float)
     z = np.zeros(tree.nv)
     g = np.asarray(tree.gravity, dtype=float)
@@ -313,10 +313,14 @@ def base_wrench_and_jacobian(tree, ws, q, jacobian=True, point_load=None):
         R, p = G[:3, :3], G[:3, 3]
         f, m = R @ ws.work.f_in[i, :3], R @ ws.work.f_in[i, 3:]
         W += np.concatenate([f, m + np.cross(p, f)])
-    if point_load is not None:
-        T, Jw = alg.point_jacobian(tree, ws, q, point_load[0], point_load[1], "world")
-        f, m = np.asarray(point_load[2][:3], dtype=float), np.asarray(point_load[2][3:], dtype=float)
+    loads = [] if point_load is None or not len(point_load) else \
+        [point_load] if isinstance(point_load[0], (int, np.integer)) else list(point_load)
+    arms = []
+    for joint, x, w in loads:
+        T, Jw = alg.point_jacobian(tree, ws, q, joint, x, "world")
+        f, m = np.asarray(w[:3], dtype=float), np.asarray(w[3:], dtype=float)
         W -= np.concatenate([f, np.cross(T[:3, 3], f) + m])
+        arms.append((f, Jw[:3]))
     if not jacobian:
         return W, None
     S = np.empty((3, tree.nv))
@@ -324,8 +328,8 @@ def base_wrench_and_jacobian(tree, ws, q, jacobian=True, point_load=None):
         S[a] = -alg.rnea(tree, ws, q, z, z, None, np.eye(3)[a], elastic=False)
     H = np.zeros((6, tree.nv))
     H[3:] = lie.hat(g) @ S
-    if point_load is not None:
-        H[3:] += lie.hat(f) @ Jw[:3]
+    for f, Jp in arms:
+        H[3:] += lie.hat(f) @ Jp
     return W, H
 
 

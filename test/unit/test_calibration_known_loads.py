@@ -263,3 +263,51 @@ def test_damping_from_a_release_test(tmp_path, capsys):
     assert code == 0, cap.err
     got = json.loads(cap.out)["parameters"]["viscosity:proximal+distal"]
     assert got["fitted"] == pytest.approx(res.values[0], rel=1e-6) and got["std"] > 0
+
+
+def test_a_base_force_sensor_and_encoders_calibrate_too(tmp_path):
+    """Issue 29: a static sweep read by a base force/torque sensor and joint
+    encoders besides markers. The sensitivities (the F/T sensor's through
+    the equilibrium and, for the payload, its weight on the support) match
+    central differences on the pan-tilt arm with known loads on the tool;
+    on the tracked arm an unknown 30 g payload and the modulus come back
+    from the known-load sweep read by the F/T sensor and one tip marker;
+    the CSV carries the new columns with their units."""
+    import importlib.util as iu
+    from soft_twin_core.robot.mechanism import mechanism_from_dict
+    spec = iu.spec_from_file_location("test_calibration", ROOT / "test" / "unit" / "test_calibration.py")
+    tc = iu.module_from_spec(spec)
+    spec.loader.exec_module(tc)
+    d = read_yaml_file(find_file("pan_tilt_arm", "robots"))
+    mech = mechanism_from_dict(d)
+    sensors = [sn.marker("tool_mk", 3e-4, frame="tool"), sn.JointStateSensor("enc", ("pan", "tilt"), np.array([1e-3, 1e-3])),
+               sn.BaseWrenchSensor("ft", 0.02, 0.002)]
+    W = np.zeros((3, 6))
+    W[1, 1], W[2, 2] = 0.3, -0.4
+    rec = cal.record_static_sweep(mech, sensors, np.array([[2.0, 0, 0, 0], [0, 0, 3.0, 0], [0, 1.0, 0, 0]]),
+                                  np.random.default_rng(2), joints=np.array([[0.0, 0.1], [0.3, -0.2], [-0.2, 0.3]]),
+                                  wrenches={("tool", "world"): W})
+    pb = cal.Problem(d, sensors, rec, ["youngs_modulus:proximal", "payload_mass"])
+    tc.assert_sensitivities(pb, pb.theta0 + np.array([3e5, 0.03]), 1e-6)
+    # the tracked arm: F/T sensor and one marker, an unknown payload
+    truth_d = _nominal()
+    for s in truth_d["segments"]:
+        s["material"]["youngs_modulus"] = TRUE_E
+    truth = from_robot_model(model_from_dict(truth_d, 16), truth_d)
+    ft = [sn.BaseWrenchSensor("ft", 0.02, 0.002), sn.marker("mk2", 3e-4, s=0.40)]
+    m, F = _experiment()
+    W_tip = np.zeros((len(m), 6))
+    W_tip[:, 2] = -G * m
+    payload = (cal.FrameLoad("tip", np.array([0.0, 0.0, -G * 0.03, 0.0, 0.0, 0.0])),)
+    rec = cal.record_static_sweep(truth, ft, np.zeros((len(m), 4)), np.random.default_rng(4), point_loads=payload,
+                                  wrenches={("tip", "world"): W_tip, ("backbone@0.2", "world"): F})
+    res = cal.calibrate(_nominal(), ft, rec, ["youngs_modulus:proximal+distal", "payload_mass"], holdout_every=0,
+                        n_sections=4)
+    assert abs(res.values[1] - 0.03) < 1e-3 and abs(res.values[0] / TRUE_E - 1) < 0.02, res.table()
+    assert 0.5 < res.residual_sigma < 2.0, res.table()
+    mech = from_robot_model(model_from_dict(_nominal()), _nominal())
+    cal.write_csv(tmp_path / "ft.csv", mech, ft, rec)
+    head = (tmp_path / "ft.csv").read_text().splitlines()[0]
+    assert "ft.fz [N]" in head and "ft.my [N m]" in head
+    back = cal.read_csv(tmp_path / "ft.csv", mech, ft)
+    np.testing.assert_allclose(back.readings["ft"], rec.readings["ft"], rtol=1e-12)
