@@ -30,7 +30,11 @@ Topics (all optional but the commands; decoded with ``mcap`` and
   (default ``/soft_twin_estimator``): ``<ns>/measurements/poses``
   (PoseArray, one pose per pose sensor in the sensors file's order),
   ``<ns>/measurements/pose`` (PoseStamped, ``header.frame_id`` = sensor
-  name), ``<ns>/measurements/position`` (PointStamped, a marker's name);
+  name), ``<ns>/measurements/position`` (PointStamped, a marker's name),
+  ``<ns>/measurements/joint_states`` (JointState: an encoder sensor reads
+  when the message names all its joints) and
+  ``<ns>/measurements/base_wrench`` (WrenchStamped: the base force/torque
+  sensor's reading);
 - per sensor a topic of its own (``topics={sensor: topic}``, e.g. a tip
   tracker): PoseStamped, PoseWithCovarianceStamped, TransformStamped or
   PointStamped (the position only, for a marker).
@@ -64,6 +68,7 @@ DEFAULT_ACTUATION_TOPIC = "/soft_twin/actuation"
 DEFAULT_JOINT_COMMAND_TOPIC = "/soft_twin/joint_commands"
 DEFAULT_MEASUREMENTS_NS = "/soft_twin_estimator"
 DEFAULT_POINT_WRENCH_TOPIC = "/soft_twin/point_wrench_command"
+READ_KINDS = (sn.PoseSensor, sn.JointStateSensor, sn.BaseWrenchSensor)
 DEFAULT_TIP_WRENCH_TOPIC = "/soft_twin/tip_wrench_command"
 
 
@@ -108,7 +113,10 @@ def _pose_of(p):
 
 def _reading(sensor, msg):
     """A reading of one sensor from a PoseStamped, PoseWithCovarianceStamped,
-    TransformStamped or PointStamped message (ValueError when unusable)."""
+    TransformStamped or PointStamped message, or an encoder's or F/T
+    sensor's values already read (ValueError when unusable)."""
+    if isinstance(msg, np.ndarray):
+        return sn.measurement_vector(sensor, msg)
     if hasattr(msg, "point"):
         z = np.array([msg.point.x, msg.point.y, msg.point.z], dtype=float)
         if not sensor.position_only:
@@ -140,7 +148,7 @@ def read_events(path, model, sensors, *, actuation_topic=DEFAULT_ACTUATION_TOPIC
     ``(None, ...)`` the input before any command; readings {sensor: [(t_ns,
     reading)]}, skipped {reason: count}). Raises CalibrationError naming a
     bad topic mapping or an empty recording."""
-    sensors = [s for s in sensors if isinstance(s, sn.PoseSensor)]
+    sensors = [s for s in sensors if isinstance(s, READ_KINDS)]
     by_name = {s.name: s for s in sensors}
     topics = dict(topics or {})
     for name in topics:
@@ -148,11 +156,12 @@ def read_events(path, model, sensors, *, actuation_topic=DEFAULT_ACTUATION_TOPIC
             raise CalibrationError(f"--topic {name}=...: unknown sensor {name!r}; sensors: {list(by_name)}")
     ns = "/" + measurements_ns.strip("/") if measurements_ns.strip("/") else ""
     t_poses, t_pose, t_pos = f"{ns}/measurements/poses", f"{ns}/measurements/pose", f"{ns}/measurements/position"
+    t_joints, t_ft = f"{ns}/measurements/joint_states", f"{ns}/measurements/base_wrench"
     own = {topic: name for name, topic in topics.items()}
     joints = list(position_joints(model))
-    events = _iter(path, {actuation_topic, t_poses, t_pose, t_pos, point_wrench_topic, tip_wrench_topic, *own}
-                   | ({joint_command_topic} if joints else set()))
-    pose_sensors = [s for s in sensors if not s.position_only]
+    events = _iter(path, {actuation_topic, t_poses, t_pose, t_pos, t_joints, t_ft, point_wrench_topic,
+                          tip_wrench_topic, *own} | ({joint_command_topic} if joints else set()))
+    pose_sensors = [s for s in sensors if isinstance(s, sn.PoseSensor) and not s.position_only]
     names = list(model.actuator_names)
     u = np.concatenate([np.zeros(len(names)), _joint_references(model, joints) if joints else []])
     loads = {}                                          # {(slot, point, axes): wrench 6-tuple}
@@ -199,6 +208,21 @@ def read_events(path, model, sensors, *, actuation_topic=DEFAULT_ACTUATION_TOPIC
             commands.append((t, (u.copy(), tuple(sorted(loads.items())))))
         elif topic in own:
             take(by_name[own[topic]], t, msg)
+        elif topic == t_joints:
+            value = dict(zip(msg.name, msg.position)) if len(msg.name) == len(msg.position) else None
+            if value is None:
+                skip("wrong_length")
+                continue
+            for s in sensors:
+                if isinstance(s, sn.JointStateSensor) and all(j in value for j in s.joints):
+                    take(s, t, np.array([value[j] for j in s.joints], dtype=float))
+        elif topic == t_ft:
+            ft = [s for s in sensors if isinstance(s, sn.BaseWrenchSensor)]
+            if not ft:
+                skip("unknown_sensor")
+                continue
+            f, m = msg.wrench.force, msg.wrench.torque
+            take(ft[0], t, np.array([f.x, f.y, f.z, m.x, m.y, m.z], dtype=float))
         elif topic == t_poses:
             if len(msg.poses) != len(pose_sensors):
                 skip("wrong_length")
@@ -207,7 +231,7 @@ def read_events(path, model, sensors, *, actuation_topic=DEFAULT_ACTUATION_TOPIC
                 take(s, t, type("M", (), {"pose": p}))
         else:
             s = by_name.get(msg.header.frame_id)
-            if s is None or s.position_only != (topic == t_pos):
+            if not isinstance(s, sn.PoseSensor) or s.position_only != (topic == t_pos):
                 skip("unknown_sensor")
                 continue
             take(s, t, msg)
@@ -216,7 +240,8 @@ def read_events(path, model, sensors, *, actuation_topic=DEFAULT_ACTUATION_TOPIC
         raise CalibrationError(f"data file {path}: no actuation command on {where}, nor a known load on "
                                f"{point_wrench_topic!r} or {tip_wrench_topic!r}")
     if not any(readings.values()):
-        raise CalibrationError(f"data file {path}: no sensor reading on {sorted({t_poses, t_pose, t_pos, *own})}")
+        raise CalibrationError(f"data file {path}: no sensor reading on "
+                               f"{sorted({t_poses, t_pose, t_pos, t_joints, t_ft, *own})}")
     return commands, readings, skipped
 
 
@@ -276,6 +301,15 @@ def _recording(model, inputs, rows, times):
                      wrenches=wrenches)
 
 
+def _not_seen(s):
+    """The NaN reading of a sensor not seen in a row."""
+    if isinstance(s, sn.JointStateSensor):
+        return np.full(len(s.joints), np.nan)
+    if isinstance(s, sn.BaseWrenchSensor):
+        return np.full(6, np.nan)
+    return np.full(3 if s.position_only else (4, 4), np.nan)
+
+
 def _mean_reading(zs):
     zs = np.asarray(zs)
     if zs.ndim == 2:                                  # positions (k, 3)
@@ -307,7 +341,7 @@ def read_static_sweep(path, model, sensors, *, settle_s=None, **topic_args):
     """A :class:`Recording` of a static sweep (module docstring) and a report
     dict (holds, rows, readings averaged, skipped messages)."""
     commands, readings, skipped = read_events(path, model, sensors, **topic_args)
-    sensors = [s for s in sensors if isinstance(s, sn.PoseSensor)]
+    sensors = [s for s in sensors if isinstance(s, READ_KINDS)]
     if settle_s is not None and not (np.isfinite(settle_s) and settle_s >= 0):
         raise CalibrationError(f"--settle must be >= 0 s, got {settle_s}")
     t_first = min(t for r in readings.values() for t, _ in r)
@@ -325,8 +359,7 @@ def read_static_sweep(path, model, sensors, *, settle_s=None, **topic_args):
         times.append(1e-9 * (start - holds[0][0]))
         for s in sensors:
             z = got[s.name]
-            nan = np.full(3 if s.position_only else (4, 4), np.nan)
-            rows[s.name].append(_mean_reading(z) if z else nan)
+            rows[s.name].append(_mean_reading(z) if z else _not_seen(s))
         averaged.append(sum(len(z) for z in got.values()))
     if not inputs:
         raise CalibrationError(f"data file {path}: no hold of the commands has readings after settling")
@@ -339,7 +372,7 @@ def read_static_sweep(path, model, sensors, *, settle_s=None, **topic_args):
 def read_time_series(path, model, sensors, *, tolerance_s=None, **topic_args):
     """A :class:`Recording` of a time series (module docstring) and a report."""
     commands, readings, skipped = read_events(path, model, sensors, **topic_args)
-    sensors = [s for s in sensors if isinstance(s, sn.PoseSensor)]
+    sensors = [s for s in sensors if isinstance(s, READ_KINDS)]
     lead = next(s for s in sensors if readings[s.name])
     times = np.array([t for t, _ in readings[lead.name]], dtype=np.int64)
     if len(times) > 1 and np.any(np.diff(times) <= 0):
@@ -362,12 +395,11 @@ def read_time_series(path, model, sensors, *, tolerance_s=None, **topic_args):
         zs = [z for _, z in readings[s.name]]
         out = []
         for t in times:
-            nan = np.full(3 if s.position_only else (4, 4), np.nan)
             if len(st) == 0:
-                out.append(nan)
+                out.append(_not_seen(s))
                 continue
             k = int(np.argmin(np.abs(st - t)))
-            out.append(zs[k] if abs(st[k] - t) <= tol else nan)
+            out.append(zs[k] if abs(st[k] - t) <= tol else _not_seen(s))
         rows[s.name] = np.array(out)
     rec = _recording(model, inputs, rows, 1e-9 * (times - times[0]))
     return rec, {"rows": len(times), "commands": len(commands) - 1, "skipped": skipped}

@@ -417,3 +417,77 @@ def test_estimate_replays_the_filter_over_an_mcap_recording(recording, tmp_path,
     assert rep["rows"] == 5 + n * len(_sweep()) and rep["sensor"] == "tip" and rep["integrator_failures"] == 0
     # (the readings of each hold's first half show the previous equilibrium, and the arm is 30 % off: cm)
     assert rep["tip_sensor_rms_error_m"] < 0.05 and (tmp_path / "fig" / "estimation.png").exists()
+
+
+def test_encoders_and_a_base_force_sensor_read_from_mcap(tmp_path, capsys):
+    """The estimator's ``measurements/joint_states`` and
+    ``measurements/base_wrench`` topics feed a static sweep too: on the
+    pan-tilt arm, each hold's row carries the mean of its encoder and F/T
+    readings (a JointState naming only some of a sensor's joints gives no
+    reading; one with fewer positions than names is skipped and counted);
+    on the tracked arm, an unknown 30 g payload is weighed through the
+    command line from the F/T readings and a tip marker, beside the hung
+    weights of the node's tip load commands."""
+    import yaml
+    from geometry_msgs.msg import WrenchStamped
+    from sensor_msgs.msg import JointState
+    from soft_twin_core.robot.mechanism import from_robot_model
+
+    def wrench_msg(w, t, frame=""):
+        m = WrenchStamped()
+        m.header.frame_id = frame
+        m.wrench.force.x, m.wrench.force.y, m.wrench.force.z = (float(x) for x in w[:3])
+        m.wrench.torque.x, m.wrench.torque.y, m.wrench.torque.z = (float(x) for x in w[3:])
+        return _stamp(m, t)
+    true = _nominal()
+    for s in true["segments"]:
+        s["material"]["youngs_modulus"] *= 1.3
+    truth = from_robot_model(model_from_dict(true, 16), true)
+    sensors = [sn.BaseWrenchSensor("ft", 0.02, 0.002), sn.marker("mk2", 3e-4, s=0.40)]
+    masses = np.array([0.0, 0.05, 0.1, 0.15, 0.2, 0.05])
+    W_tip = np.zeros((len(masses), 6))
+    W_tip[:, 2] = -9.81 * masses
+    payload = (cal.FrameLoad("tip", np.array([0.0, 0.0, -9.81 * 0.03, 0.0, 0.0, 0.0])),)
+    truth_rec = cal.record_static_sweep(truth, sensors, np.zeros((len(masses), 4)), np.random.default_rng(7),
+                                        point_loads=payload, wrenches={("tip", "world"): W_tip})
+    path = tmp_path / "ft.mcap"
+    rec = McapRecording(path)
+    for k in range(len(masses)):
+        tc = T0 + k * HOLD_S
+        rec.write("/soft_twin/tip_wrench_command", wrench_msg(W_tip[k], tc, "base_link"))
+        for j in range(5, 10):
+            t = tc + j * READ_EVERY_S
+            rec.write("/soft_twin_estimator/measurements/base_wrench", wrench_msg(truth_rec.readings["ft"][k], t))
+            rec.write("/soft_twin_estimator/measurements/position", _point("mk2", truth_rec.readings["mk2"][k], t))
+    rec.write("/soft_twin_estimator/measurements/joint_states", _stamp(JointState(name=["a", "b"], position=[0.1]),
+                                                                        T0 + 2.5))
+    rec.close()
+    got, rep = cm.read_static_sweep(path, model_from_dict(_nominal(), 4), sensors)
+    assert len(got) == len(masses) and rep["skipped"] == {"wrong_length": 1}
+    np.testing.assert_allclose(got.readings["ft"], truth_rec.readings["ft"], atol=1e-12)
+    (tmp_path / "s.yaml").write_text(yaml.safe_dump({"sensors": sn.sensors_to_list(sensors)}))
+    code = cli_main(["calibrate", "tracked_arm", "--sensors", str(tmp_path / "s.yaml"), "--data", str(path),
+                     "--fit", "payload_mass,youngs_modulus:proximal+distal", "--sections", "4", "--holdout-every", "0"])
+    cap = capsys.readouterr()
+    assert code == 0, cap.err
+    p = json.loads(cap.out)["parameters"]
+    assert abs(p["payload_mass"]["fitted"] - 0.03) < 1e-3, cap.err
+    # encoders: a tree robot's joint states, averaged per hold
+    from soft_twin_core.robot.mechanism import mechanism_from_dict
+    mech = mechanism_from_dict(_pan_tilt())
+    enc = [sn.JointStateSensor("enc", ("pan", "tilt"), np.array([1e-3, 1e-3])), sn.marker("mk", 1e-3, frame="tool")]
+    path = tmp_path / "enc.mcap"
+    rec = McapRecording(path)
+    for k, (pan, tilt) in enumerate([(0.0, 0.0), (0.3, -0.2)]):
+        tc = T0 + k * HOLD_S
+        rec.write("/soft_twin/actuation", _stamp(ActuationCommand(names=PT_NAMES, values=[float(k), 0.0, 0.0, 0.0]), tc))
+        for j in range(5, 10):
+            t = tc + j * READ_EVERY_S
+            rec.write("/soft_twin_estimator/measurements/joint_states",
+                      _stamp(JointState(name=["pan", "tilt"], position=[pan + 1e-3 * (j - 7), tilt]), t))
+            rec.write("/soft_twin_estimator/measurements/joint_states", _stamp(JointState(name=["pan"], position=[9.0]),
+                                                                                t + 0.001))
+            rec.write("/soft_twin_estimator/measurements/position", _point("mk", [0.2, 0.0, 0.1], t))
+    rec.close()
+    got, rep = cm.read_static_sweep(path, mech, enc)
+    np.testing.assert_allclose(got.readings["enc"], [[0.0, 0.0], [0.3, -0.2]], atol=1e-12)
