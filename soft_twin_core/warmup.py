@@ -76,28 +76,6 @@ def run():
     pl.box_lstsq(np.eye(3, 2), np.ones(3), np.zeros(2), np.array([np.inf, 0.5]))
     tiny_mechanism_run()
     tiny_contact_run()
-    grasp_run()
-
-
-def grasp_run():
-    """The soft gripper and its loose cylinder (example robot
-    ``soft_gripper_lift``): a free rigid body touching soft members, the
-    compiled contact step with a free joint, in the two control modes of its
-    lift joint (a minute of compiling otherwise at a grasp's first step)."""
-    from soft_twin_core.robot.mechanism import mechanism_from_dict
-    from soft_twin_core.robot.model import find_file, read_yaml_file
-    from soft_twin_core.solve.constrained import MechanismSimulator
-    for control in ("position", "effort"):
-        d = read_yaml_file(find_file("soft_gripper_lift", "robots"))
-        if control == "effort":
-            d["bodies"][0]["joint"]["control"] = "effort"
-            for k in ("max_velocity", "max_acceleration"):
-                d["bodies"][0]["joint"].pop(k, None)
-        mech = mechanism_from_dict(d)
-        tree = mech.tree
-        v = np.zeros(tree.nv)
-        v[tree.idx_v[tree.joint_index("cylinder")]] = 0.2
-        MechanismSimulator(mech, 1e-3, 0.5, v=v).step(n=3)
 
 
 def tiny_contact_run():
