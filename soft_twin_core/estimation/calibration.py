@@ -804,7 +804,6 @@ class Problem:
                         for j, p in enumerate(self.params):
                             if p.kind == "payload_mass":
                                 J[:, j] += D @ np.concatenate([tree.gravity, np.zeros(3)])
-                    qc = sn.forward(ws, q) if ft else qc
                     for j, p in enumerate(self.params):
                         if p.kind == "sensor_offset" and p.target == s.name:
                             T, _ = sn.point_pose_and_body_jacobian(ws, *self.where[s.name], np.asarray(s.placement))

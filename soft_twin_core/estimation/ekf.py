@@ -549,7 +549,6 @@ class EKF:
             if ft_load:                     # the support carries the estimated tip load too
                 i = 2 * n + self.nb
                 H[:, i:i + self.k] = sn.base_wrench_load_jacobian(self.tree, self.ws, q, *self._tip_point) @ self.S
-                sn.forward(self.ws, q)
             Rm = sen.noise_covariance()
             if not gate_reading(rep, sen.name, e, H, Rm, self.P, self._gate(len(e)), self._gated_run,
                                 self.max_gated_run):

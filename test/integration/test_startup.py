@@ -99,13 +99,9 @@ def test_warm_up_purges_every_kernel_cache_when_a_source_changes(tmp_path):
         assert not purge_stale_caches(pkg)
 
 
-def test_warm_up_purge_reaches_numba_cache_dir_but_not_another_copy(tmp_path, monkeypatch):
-    """With NUMBA_CACHE_DIR, numba keeps each source directory's caches in
-    <dir>_<sha1 of its path>: the purge clears this copy's there and leaves
-    another copy's (the venv's, warmed up at the same time by make setup)."""
-    from numba.core.caching import _CacheLocator
-    from soft_twin_core.warmup import purge_stale_caches
-    cache = tmp_path / "numba_cache"
+def _two_copies(tmp_path):
+    """Two copies ("checkout", "venv") of a tiny package: a kernel in
+    kernels/b.py reading a constant of a.py."""
     copies = []
     for name in ("checkout", "venv"):
         pkg = tmp_path / name / "soft_twin_core"
@@ -116,6 +112,17 @@ def test_warm_up_purge_reaches_numba_cache_dir_but_not_another_copy(tmp_path, mo
         (pkg / "kernels" / "b.py").write_text("import numba\nfrom soft_twin_core.a import x\n"
                                               "@numba.njit(cache=True)\ndef f(y):\n    return y + x\n")
         copies.append(pkg)
+    return copies
+
+
+def test_warm_up_purge_reaches_numba_cache_dir_but_not_another_copy(tmp_path, monkeypatch):
+    """With NUMBA_CACHE_DIR, numba keeps each source directory's caches in
+    <dir>_<sha1 of its path>: the purge clears this copy's there and leaves
+    another copy's (the venv's, warmed up at the same time by make setup)."""
+    from numba.core.caching import _CacheLocator
+    from soft_twin_core.warmup import purge_stale_caches
+    cache = tmp_path / "numba_cache"
+    copies = _two_copies(tmp_path)
     monkeypatch.setenv("NUMBA_CACHE_DIR", str(cache))
     for pkg in copies:
         assert purge_stale_caches(pkg)                 # first time: no stamp
@@ -141,16 +148,7 @@ def test_an_installed_copy_takes_the_checkouts_kernel_caches(tmp_path, monkeypat
     kernels' sources differ gets none."""
     from soft_twin_core.warmup import copy_caches, purge_stale_caches
     monkeypatch.delenv("NUMBA_CACHE_DIR", raising=False)
-    copies = []
-    for name in ("checkout", "venv"):
-        pkg = tmp_path / name / "soft_twin_core"
-        (pkg / "kernels").mkdir(parents=True)
-        (pkg / "__init__.py").write_text("")
-        (pkg / "kernels" / "__init__.py").write_text("")
-        (pkg / "a.py").write_text("x = 1\n")
-        (pkg / "kernels" / "b.py").write_text("import numba\nfrom soft_twin_core.a import x\n"
-                                              "@numba.njit(cache=True)\ndef f(y):\n    return y + x\n")
-        copies.append(pkg)
+    copies = _two_copies(tmp_path)
     checkout, venv = copies
     env = {k: v for k, v in os.environ.items() if k != "NUMBA_CACHE_DIR"}
 
