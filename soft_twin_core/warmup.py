@@ -82,7 +82,7 @@ def tiny_contact_run():
     """A 2-section arm on a table, a ball, a post and a block (issue 27):
     the contact law's kernels in statics and in dynamics, friction and a
     moving obstacle included."""
-    from soft_twin_core.engine.contact import moved
+    from soft_twin_core.engine.contact import moved, transition_step
     from soft_twin_core.robot.mechanism import from_robot_model
     from soft_twin_core.robot.model import model_from_dict
     from soft_twin_core.solve.constrained import MechanismSimulator, solve_equilibrium
@@ -100,6 +100,7 @@ def tiny_contact_run():
     sim = MechanismSimulator(mech, 1e-3)
     sim.step(n=2)
     sim.step(obstacles=[moved(ob, [0.0, 0.0, 1e-5]) for ob in mech.obstacles])
+    transition_step(np.zeros((1, 3)), np.ones((1, 3)), np.ones(1))     # the Python (KKT) step's line search
 
 
 def tiny_mechanism_run():

@@ -9,7 +9,7 @@ returns views of it (copy what you keep). Conventions of
 import numpy as np
 
 from soft_twin_core.engine.kernels import passes
-from soft_twin_core.engine.kernels.data import LoadArrays, empty_loads
+from soft_twin_core.engine.kernels.data import LoadArrays, empty_loads, kernel_array
 from soft_twin_core.engine.kernels.derivatives import rnea_derivatives_pass
 from soft_twin_core.engine.kernels.frames import point_poses as _poses, spatial_jacobian, spatial_jacobian_dot
 from soft_twin_core.lie import Ad_inv, ad
@@ -19,9 +19,9 @@ _NO_LOADS = empty_loads()
 
 def _enter(model, ws, q, v=None, a=None):
     ws.check(model)
-    q = np.ascontiguousarray(model.check_q(q), dtype=float)
-    v = ws.zeros_v if v is None else np.ascontiguousarray(model.check_v(v), dtype=float)
-    a = ws.zeros_v if a is None else np.ascontiguousarray(model.check_v(a, "a"), dtype=float)
+    q = kernel_array(model.check_q(q))
+    v = ws.zeros_v if v is None else kernel_array(model.check_v(v))
+    a = ws.zeros_v if a is None else kernel_array(model.check_v(a, "a"))
     return q, v, a
 
 
@@ -44,7 +44,7 @@ def rnea(model, ws, q, v, a, loads=None, gravity=None, elastic=True):
     i's subtree through its input frame (body axes), ``ws.work.f[i]`` the
     one at its output frame."""
     q, v, a = _enter(model, ws, q, v, a)
-    g = model.gravity if gravity is None else np.asarray(gravity, dtype=float)
+    g = kernel_array(model.gravity if gravity is None else gravity)
     passes.forward_pass(ws.m, ws.w, q, v, a, 2)
     ws.level = 2
     passes.rnea_pass(ws.m, ws.w, _NO_LOADS if loads is None else loads, g, ws.tau, False)
@@ -139,7 +139,7 @@ def rnea_derivatives(model, ws, q, v, a, gravity=None):
     if np.any(ws.arrays.kmap != 0):
         raise NotImplementedError("rnea_derivatives: Cayley-map sections are not supported")
     q, v, a = _enter(model, ws, q, v, a)
-    g = model.gravity if gravity is None else np.asarray(gravity, dtype=float)
+    g = kernel_array(model.gravity if gravity is None else gravity)
     rnea(model, ws, q, v, a, None, g)
     dq = np.zeros((model.nv, model.nv))
     dv = np.zeros((model.nv, model.nv))

@@ -323,6 +323,9 @@ def contact_step(m, w, act, ld, g, coef, effort, K, D, q_ref, elastic_noise, q0,
     J = np.empty((P, 3, nv))
     relative_point_jacobians(m, w, pj, px, np.full(P, -1, np.int64), p0, J, np.empty((P, 3, nv)))
     pv0 = np.zeros((P, 3))
+    # the start velocities are given; a run-time bool, not the constant True, so that this call
+    # and the Python step's (engine.contact.step_contact_forces) share one compiled specialisation
+    given = pv0.shape[0] == P
     for p in range(P):
         for r in range(3):
             for k in range(nv):
@@ -355,7 +358,7 @@ def contact_step(m, w, act, ld, g, coef, effort, K, D, q_ref, elastic_noise, q0,
         _positions(m, w, qt, vt, acc, 2, pj, px, poff, G, pt)          # (the residual's forward pass too)
         if touching:
             pose_obstacles(w, obs, Pt)
-        c = step_contacts(prad, pmod, pw, allowed, P1, P0, Pt, moving, ovel0, p0, p1, pt, h, theta, pv0, True,
+        c = step_contacts(prad, pmod, pw, allowed, P1, P0, Pt, moving, ovel0, p0, p1, pt, h, theta, pv0, given,
                           R0, R1, w0, idx, ob_of, n_out, gap, F, dF, dV, dFf, dVf, M, slip, spin, dW)
         ldc = _with_contact_loads(w, ld, pj, px, G, pt, idx, ob_of, obs.body, F, M, c, arm, barm)
         if refactor:

@@ -405,11 +405,12 @@ def actuation_matrix(tree, ws, act, q, posed=False):
     q = np.ascontiguousarray(q, dtype=float)
     if not posed:
         passes.forward_pass(ws.m, ws.w, q, ws.zeros_v, ws.zeros_v, 0)
-    B = np.zeros((tree.nv, len(tree.actuators)))
+    Bt = np.zeros((len(tree.actuators), tree.nv))     # rows: contiguous outputs (one compiled layout)
     moments = [k for k, a in enumerate(tree.actuators) if a.tendon_model == "point_moment"]
     for k in range(len(tree.actuators)):
         if k not in moments:
-            actuation_pass(ws.m, ws.w, act, np.ascontiguousarray(act.unit[:, k]), B[:, k])
+            actuation_pass(ws.m, ws.w, act, np.ascontiguousarray(act.unit[:, k]), Bt[k])
+    B = np.ascontiguousarray(Bt.T)
     for k in moments:                 # (point_jacobian runs its own forward pass: after the others)
         a = tree.actuators[k]
         j, x = tree.path_of_actuator(k).locate(np.array([a.end]))

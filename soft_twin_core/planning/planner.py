@@ -76,6 +76,7 @@ from soft_twin_core.engine import algorithms as alg
 from soft_twin_core.engine.forces import actuation_matrix, point_moment_arrays
 from soft_twin_core.engine.kernels import passes
 from soft_twin_core.engine.kernels.bvls import box_lstsq_kernel, regularised_box_step
+from soft_twin_core.engine.kernels.data import kernel_array
 from soft_twin_core.engine.kernels.frames import point_pose, spatial_jacobian
 from soft_twin_core.engine.kernels.tip_error import error_jacobian, tip_error
 from soft_twin_core.engine.loads import Loads
@@ -111,7 +112,7 @@ def bounded_gauss_newton_step(Je, e, x, lo, hi, scale, eps, x_ref, lam):
     resolution of redundancy), by the compiled BVLS
     (:func:`kernels.bvls.regularised_box_step`). Unknowns whose box is empty
     stay put. Returns (dx, all_fixed)."""
-    c = np.ascontiguousarray
+    c = kernel_array
     dx = np.empty(x.size)
     held = regularised_box_step(c(Je, dtype=float), c(e, dtype=float), c(x, dtype=float), c(lo, dtype=float),
                                 c(hi, dtype=float), c(scale, dtype=float), float(eps), c(x_ref, dtype=float),

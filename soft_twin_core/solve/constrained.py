@@ -39,7 +39,7 @@ from soft_twin_core.engine.forces import (actuation_tangent_pass, actuator_array
 from soft_twin_core.engine.integrators import ThetaIntegrator, integrate_pass, residual_pass
 from soft_twin_core.engine.joint_kinds import FREE, PRISMATIC, REVOLUTE, SPHERICAL
 from soft_twin_core.engine.kernels import passes
-from soft_twin_core.engine.kernels.data import LoadArrays
+from soft_twin_core.engine.kernels.data import LoadArrays, kernel_array
 from soft_twin_core.engine.kernels.contact import obstacle_arrays, posable
 from soft_twin_core.engine.kernels.frames import world_point_jacobians
 from soft_twin_core.solve.contact import MemberContact
@@ -203,7 +203,7 @@ def assemble_inputs(mech, u, efforts, positions, velocities=None, point_loads=()
     u = np.asarray(u, dtype=float)
     return Inputs(u, effort, q_cmd, v_cmd, concat_loads(_checked_frame_loads(mech, point_loads),
                                                          point_moment_arrays(tree, u)),
-                  np.asarray(tree.gravity, dtype=float))
+                  kernel_array(tree.gravity))
 
 
 def _checked_frame_loads(mech, point_loads):

@@ -20,6 +20,15 @@ from numba.experimental import structref
 from soft_twin_core.engine.joint_kinds import SOFT
 from soft_twin_core.lie import Ad, se3_inv
 
+def kernel_array(x, dtype=float):
+    """``x`` as the compiled kernels take an array: C-contiguous, of
+    ``dtype``, writable. numba types a read-only array (a model's frozen
+    q0 or gravity) apart from a writable one, so one reaching a kernel
+    compiles a second copy of it and of every pass it calls."""
+    x = np.ascontiguousarray(x, dtype=dtype)
+    return x if x.flags.writeable else x.copy()
+
+
 ModelArrays = namedtuple("ModelArrays", [
     "parent",      # (n,) int: parent joint, -1 = world
     "kind",        # (n,) int: multibody.FIXED .. SOFT
