@@ -93,6 +93,8 @@ class EstimatorNode(Node):
             "sensors_file": ("", "YAML list of the sensors (soft_twin_core.estimation.sensors.load_sensors)"),
             "rate_hz": (100.0, "filter rate [Hz]"),
             "wrench": ("none", "estimated tip load: none, payload, force or wrench"),
+            "force_directions": ("", "with wrench force: the world directions of the force, 'x,y,z' or "
+                                     "'x,y,z;x,y,z' ('': all three axes)"),
             "actuation_topic": ("/soft_twin/actuation", "the twin's actuation commands (the inputs)"),
             "frame_id": ("base_link", "frame of the published estimates"),
             "joint_command_topic": ("/soft_twin/joint_commands", "the twin's joint commands"),
@@ -118,7 +120,10 @@ class EstimatorNode(Node):
         # --- the robot, its sensors and the filter ---
         self.mech = mech = load_mechanism(get("robot_description_file"))
         self.sensors = sn.load_sensors(get("sensors_file"), mech)
-        self.ekf = es.EKF(mech, self.sensors, 1.0 / rate, wrench=_WRENCH[get("wrench")])
+        options = {}
+        if get("force_directions"):
+            options["force_directions"] = es.parse_directions(get("force_directions"), "force_directions")
+        self.ekf = es.EKF(mech, self.sensors, 1.0 / rate, wrench=_WRENCH[get("wrench")], **options)
         self.frame_id = get("frame_id")
         self.pose_sensors = [s for s in self.sensors if isinstance(s, sn.PoseSensor) and not s.position_only]
         self.joint_sensors = [s for s in self.sensors if isinstance(s, sn.JointStateSensor)]

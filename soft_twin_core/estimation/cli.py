@@ -12,6 +12,7 @@ import yaml
 
 from soft_twin_core.errors import CalibrationError, CalibrationFailed, ModelError, StaticsError
 from soft_twin_core.estimation import mcap_data as cm, sensors as sn
+from soft_twin_core.estimation.ekf import parse_directions
 from soft_twin_core.estimation.calibration import (_expand, calibrate, calibrate_damping, mechanism_of,
                                                    read_csv, write_robot_file)
 from soft_twin_core.robot.model import find_file, read_yaml_file, robot_mapping
@@ -55,6 +56,9 @@ def add_cli_parser(sub):
                         "estimator's topics (as for calibrate --dynamic)")
     e.add_argument("--wrench", choices=("payload", "force", "wrench"),
                    help="also estimate an unknown tip load: a payload mass [kg], a force or a wrench")
+    e.add_argument("--force-directions", metavar="X,Y,Z[;X,Y,Z]",
+                   help="with --wrench force: the world directions the force lies along, e.g. '0,0,1' (a "
+                        "contact's normal) or '0,1,0;0,0,1' (across an arm along x); default: all three axes")
     e.add_argument("--dt", type=float, help="the filter's step [s] (default: the rows' median spacing)")
     e.add_argument("--sections", type=int, help="sections per segment, classic robots (default: the robot file's)")
     _add_mcap_arguments(e)
@@ -109,7 +113,10 @@ def estimate_run(args):
             rec, _ = _read_mcap(args, mech, sensors)
         else:
             rec = read_csv(args.data, mech, sensors)
-        run = estimate_recording(mech, sensors, rec, dt=args.dt, wrench=args.wrench)
+        options = {}
+        if args.force_directions is not None:
+            options["force_directions"] = parse_directions(args.force_directions, "--force-directions")
+        run = estimate_recording(mech, sensors, rec, dt=args.dt, wrench=args.wrench, **options)
     except (CalibrationError, ModelError, ValueError) as e:
         print(f"soft-twin-sim estimate: {e}", file=sys.stderr)
         return None, 2

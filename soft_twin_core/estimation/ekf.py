@@ -13,7 +13,11 @@ State ``x = [q (nv); v (nv); b (n_pos); w (k)]``:
   (:func:`mechanism.tip_frame`) in world axes, a dead load ``S w`` with a
   selection S, random walk ``wrench_walk``: ``k = 1`` (``wrench="payload"``:
   w is a mass [kg] at the tip, force ``w g``), 3 (force only,
-  ``"force"``), 6 (``"wrench"``) or 0 (None, the default).
+  ``"force"``), 6 (``"wrench"``) or 0 (None, the default). A force may be
+  confined to known world directions (``force_directions``, k = 1 or 2: a
+  contact's normal, the plane across the arm): a force the readings cannot
+  see (along a straight arm, the tip force barely changes the shape) is
+  then not estimated at all, instead of soaking up the model's own error.
 
 **Process model.** The twin's dynamics ``M a + tau(q, v) = effort +
 tau_act(q, u) + J_tip^T S w`` (``tau``: inertia, gravity, stiffness and
@@ -95,6 +99,7 @@ from soft_twin_core.engine.forces import (actuation_matrix, actuation_tangent_pa
                                           point_moment_arrays)
 from soft_twin_core.engine.joint_kinds import FIXED, PRISMATIC, REVOLUTE, SOFT
 from soft_twin_core.engine.kernels import passes
+from soft_twin_core.engine.kernels.data import kernel_array
 from soft_twin_core.engine.kernels.tangent import static_tangent_pass
 from soft_twin_core.engine.workspace import Workspace
 from soft_twin_core.errors import StepError
@@ -152,7 +157,9 @@ class EKF:
 
     dt [s]: filter step; theta: integrator theta (1: implicit Euler,
     L-stable: the corrections do not excite stiff modes); wrench: the
-    estimated tip load (None, "payload", "force", "wrench"); actuation
+    estimated tip load (None, "payload", "force", "wrench");
+    force_directions: with "force", the (k, 3) world directions the force
+    lies along (k = 1..3; normalised; None: all three axes); actuation
     (tendon tensions N / pressures Pa, vector or dict), positions ({joint:
     rad or m} of the position-controlled joints), efforts ({joint: N m or
     N}): the nominal inputs; q_init: initial q (default: the static
@@ -176,7 +183,7 @@ class EKF:
                  sigma_wrench0=(1.0, 0.1), process_noise_joint=(0.05, 2.0), process_noise_q=None,
                  process_noise_v=10.0, wrench_walk=(0.05, 0.005), servo_hz=None, servo_damping=1.0,
                  sigma_offset0=0.05, offset_walk=0.01, input_sigma=0.0, gate_probability=0.999,
-                 max_gated_run=10):
+                 max_gated_run=10, force_directions=None):
         from scipy.stats import chi2            # here: scipy.stats takes 0.3 s to import
         tree = mech.tree
         if not (isinstance(dt, (int, float)) and np.isfinite(dt) and dt > 0):
@@ -185,6 +192,10 @@ class EKF:
             raise ValueError(f"gate_probability: expected a value in (0, 1), got {gate_probability!r}")
         if wrench not in WRENCH_DIMS:
             raise ValueError(f"wrench: expected None, 'payload', 'force' or 'wrench', got {wrench!r}")
+        if force_directions is not None:
+            if wrench != "force":
+                raise ValueError(f"force_directions: only with wrench='force', not {wrench!r}")
+            force_directions = unit_directions(force_directions, "force_directions")
         _check_supported(mech)
         if servo_hz is not None and not (servo_hz > 0 and servo_damping > 0):
             raise ValueError("servo_hz and servo_damping must be > 0 (or servo_hz None: the twin's tracking)")
@@ -195,7 +206,7 @@ class EKF:
         self.n = n = tree.nv
         self.ws = Workspace(tree)
         self._act = actuator_arrays(tree)
-        self._g = np.asarray(tree.gravity, dtype=float)
+        self._g = kernel_array(tree.gravity)
         self._zero_g = np.zeros(3)
         # --- the tip load: w, its selection S and where it acts ---
         self.wrench_mode, self.k = wrench, WRENCH_DIMS[wrench]
@@ -206,6 +217,9 @@ class EKF:
             if not np.linalg.norm(self._g) > 0:
                 raise ValueError("wrench: 'payload' needs gravity (the robot's gravity is zero)")
             self.S = np.concatenate([self._g, np.zeros(3)])[:, None]    # w = mass [kg]: tip force m g
+        elif force_directions is not None:                             # w = force along each direction [N]
+            self.k = len(force_directions)
+            self.S = np.vstack([force_directions.T, np.zeros((3, self.k))])
         else:
             self.S = np.eye(6)[:, :self.k]
         # --- inputs ---
@@ -314,7 +328,12 @@ class EKF:
 
     def wrench_std(self):
         """Standard deviations (6,) of :meth:`wrench` (zeros where not estimated)."""
-        return np.abs(self.S) @ np.sqrt(np.diag(self.P)[2 * self.n + self.nb:])
+        return np.sqrt(np.diag(self._wrench_cov()))
+
+    def _wrench_cov(self):
+        """Covariance (6, 6) of :meth:`wrench`: S P_w S^T."""
+        i = 2 * self.n + self.nb
+        return self.S @ self.P[i:, i:] @ self.S.T
 
     def payload_mass_kg(self):
         """Mass [kg] whose weight explains the estimated tip force, and its std."""
@@ -325,7 +344,7 @@ class EKF:
         if self.wrench_mode == "payload":
             return float(self.x[i]), float(np.sqrt(self.P[i, i]))
         d = self._g / gn
-        Pf = self.P[i:i + 3, i:i + 3]
+        Pf = self._wrench_cov()[:3, :3]
         return float(self.wrench()[:3] @ d / gn), float(np.sqrt(d @ Pf @ d) / gn)
 
     def set_inputs(self, actuation=None, positions=None, efforts=None):
@@ -588,6 +607,38 @@ class EKF:
         """predict(**inputs) then update(measurements); returns the UpdateReport."""
         self.predict(**inputs)
         return self.update(measurements)
+
+
+def unit_directions(x, name):
+    """(k, 3) unit vectors from ``x`` (k = 1..3 independent directions,
+    e.g. ``[[0, 0, 1]]``); ValueError naming ``name`` otherwise."""
+    try:
+        D = np.array(x, dtype=float)
+    except (TypeError, ValueError):
+        D = np.zeros((0, 0))
+    if D.ndim == 1 and D.size % 3 == 0:
+        D = D.reshape(-1, 3)
+    if D.ndim != 2 or D.shape[1] != 3 or not 1 <= len(D) <= 3:
+        raise ValueError(f"{name}: expected 1 to 3 directions of 3 components each, got {x!r}")
+    norms = np.linalg.norm(D, axis=1)
+    if not np.all(np.isfinite(D)) or np.any(norms == 0):
+        raise ValueError(f"{name}: a direction is zero or not finite: {D.tolist()}")
+    D = D / norms[:, None]
+    if np.linalg.matrix_rank(D, tol=1e-6) < len(D):
+        raise ValueError(f"{name}: the directions are not independent: {D.tolist()}")
+    return D
+
+
+def parse_directions(text, name):
+    """'x,y,z' or 'x,y,z;x,y,z' (a command line's or a node parameter's
+    text) -> :func:`unit_directions`; ValueError naming ``name``."""
+    try:
+        rows = [[float(c) for c in d.split(",")] for d in str(text).split(";")]
+    except ValueError:
+        raise ValueError(f"{name}: expected 'x,y,z' or 'x,y,z;x,y,z', got {text!r}") from None
+    if any(len(r) != 3 for r in rows):
+        raise ValueError(f"{name}: expected 'x,y,z' or 'x,y,z;x,y,z', got {text!r}")
+    return unit_directions(rows, name)
 
 
 def _check_supported(mech):

@@ -188,3 +188,32 @@ def test_estimator_flood_is_accounted_for(tmp_path):
     assert accepted == used + merged and accepted + 7 == received, d
     # a 100 Hz filter fed at 1 kHz: most readings are merged, each step uses one
     assert merged > used > 0 and used <= int(d["predictions"]), d
+
+
+# ---------------------------------------------------------------------------
+# the node's force_directions parameter (issue 29), in this process
+# ---------------------------------------------------------------------------
+def test_the_estimator_takes_its_force_directions_parameter(tmp_path):
+    rclpy = pytest.importorskip("rclpy", reason="needs ROS 2: the venv of `make setup`")
+    from rclpy.parameter import Parameter
+    from soft_twin.estimator import EstimatorNode
+    (tmp_path / "s.yaml").write_text(yaml.safe_dump({"sensors": [
+        {"name": "em", "type": "pose", "s": 0.4, "sigma_position": 1e-3, "sigma_rotation": 0.01}]}))
+    ctx = rclpy.Context()
+    rclpy.init(context=ctx)
+
+    def node(directions):
+        return EstimatorNode("est_dirs", context=ctx, parameter_overrides=[
+            Parameter("robot_description_file", value="tracked_arm"),
+            Parameter("sensors_file", value=str(tmp_path / "s.yaml")),
+            Parameter("wrench", value="force"), Parameter("force_directions", value=directions)])
+    try:
+        n = node("0,1,0; 0,0,2")
+        try:
+            assert n.ekf.k == 2 and np.allclose(n.ekf.S[:3].T, [[0, 1, 0], [0, 0, 1]])
+        finally:
+            n.destroy_node()
+        with pytest.raises(ValueError, match="force_directions: expected 'x,y,z'"):
+            node("0,1")
+    finally:
+        rclpy.shutdown(context=ctx)

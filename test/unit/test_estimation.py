@@ -205,6 +205,44 @@ def test_a_payload_hung_on_the_moving_arm_is_found_within_10_percent_in_1_5_s(co
     assert np.all(np.abs(m[after] - 0.05) < 3 * sd[after])
 
 
+@pytest.mark.parametrize("force", [(0.0, 0.1, 0.0), (0.0, 0.0, 0.1), (0.0, 0.0707, 0.0707)])
+def test_a_0_1_N_contact_force_across_the_arm_within_30_percent(coarse, fine, force):
+    """Issue 29: a 0.1 N force at the tip of the straight arm (no tension;
+    the finer model), read by pose sensors with the lab's noise (0.5 mm,
+    0.3 degree) at 100 Hz: with the force confined to the plane across the
+    arm (``force_directions``), each of four runs reads it within 30 % after
+    1.5 s, within 3 reported standard deviations. Left free in 3D, the
+    axial component, which the readings barely see on a straight arm,
+    soaks up the coarse model's own error (about 1 N of it in these runs)
+    and pulls the transverse estimate off."""
+    lab = [sn.PoseSensor(f"em{i}", 5e-4, np.radians(0.3), s=s) for i, s in enumerate([0.16, 0.28, 0.40])]
+    u = np.zeros(4)
+    loads = Loads(point=(PointLoad(fine.total_length, force + (0.0, 0.0, 0.0)),))
+    F = np.array(force)
+    for seed in (1, 2, 3, 4):
+        ekf, _ = _run_static(coarse, fine, lab, u, loads, 150, seed, actuation=u,
+                             force_directions=[[0, 1, 0], [0, 0, 1]])
+        est, sd = ekf.wrench()[:3], ekf.wrench_std()[:3]
+        assert est[0] == 0.0 and sd[0] == 0.0                  # nothing estimated along the arm
+        assert np.linalg.norm(est - F) < 0.03, (seed, est)
+        assert np.all(np.abs(est - F)[1:] < 3 * sd[1:]), (seed, est, sd)
+
+
+def test_force_directions_are_checked_at_the_door(coarse, sensors):
+    ekf = _ekf(coarse, sensors, force_directions=[0, 0, 2])     # one direction, normalised
+    assert ekf.k == 1 and np.allclose(ekf.S[:, 0], [0, 0, 1, 0, 0, 0])
+    # the reported std is that of S w: sqrt(S P_w S^T), for a direction off the axes too
+    ekf = _ekf(coarse, sensors, force_directions=[[0, 1, 1]])
+    i = 2 * ekf.n + ekf.nb
+    assert np.allclose(ekf.wrench_std()[1:3], np.sqrt(ekf.P[i, i] / 2))
+    for bad, match in [([[0, 0, 0]], "zero"), ([[0, 1, 0], [0, 2, 0]], "not independent"),
+                       ([1, 2], "1 to 3 directions"), ([[0, np.nan, 1]], "not finite"), ("up", "1 to 3")]:
+        with pytest.raises(ValueError, match=f"force_directions: .*{match}"):
+            _ekf(coarse, sensors, force_directions=bad)
+    with pytest.raises(ValueError, match="force_directions: only with wrench='force'"):
+        _ekf(coarse, sensors, wrench="payload", force_directions=[0, 0, 1])
+
+
 # ------------------------------------------------------------ dynamic manoeuvre
 
 def _inputs(t):

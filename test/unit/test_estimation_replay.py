@@ -90,3 +90,20 @@ def test_cli_estimate_writes_the_estimates_and_the_figure(record, tmp_path, caps
     assert cli_main(["estimate", "tracked_arm", "--sensors", str(tmp_path / "s.yaml"), "--data",
                      str(tmp_path / "no_t.csv")]) == 2
     assert "needs a time column t" in capsys.readouterr().err
+
+
+def test_cli_estimate_takes_the_force_directions(record, tmp_path, capsys):
+    """--wrench force --force-directions: the force is estimated along the
+    given directions only (none along x); a bad text is refused by name."""
+    cal.write_csv(tmp_path / "run.csv", _arm(), SENSORS, record)
+    (tmp_path / "s.yaml").write_text(yaml.safe_dump({"sensors": sn.sensors_to_list(SENSORS)}))
+    base = ["estimate", "tracked_arm", "--sensors", str(tmp_path / "s.yaml"), "--data", str(tmp_path / "run.csv"),
+            "--wrench", "force"]
+    assert cli_main(base + ["--force-directions", "0,1,0;0,0,1"]) == 0
+    rep = json.loads(capsys.readouterr().out)
+    assert rep["final_wrench"][0] == 0.0 and rep["final_wrench_std"][0] == 0.0
+    # the payload's weight, read as a vertical force
+    assert rep["final_wrench"][2] == pytest.approx(-9.81 * MASS, rel=0.1)
+    for bad, said in [("0,1", "expected 'x,y,z'"), ("0,1,0;0,2,0", "the directions are not independent"), ("up", "expected")]:
+        assert cli_main(base + ["--force-directions", bad]) == 2
+        assert f"--force-directions: {said}" in capsys.readouterr().err
