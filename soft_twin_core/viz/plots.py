@@ -209,7 +209,8 @@ def wrench_figure(s_list, W_list, labels, title):
     for ax in axs[1]:
         ax.set_xlabel("arc length s [m]")
     axs[0, 0].legend(fontsize=7)
-    fig.suptitle(title + " (body frame; the distal part on the proximal part)")
+    fig.suptitle(title + " (body frame; the distal part on the proximal part)\n"
+                 "steps inside a section: its weight and inertia act at its two quadrature points")
     fig.set_layout_engine("tight")
     return fig
 
