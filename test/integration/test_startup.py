@@ -165,3 +165,23 @@ def test_an_installed_copy_takes_the_checkouts_kernel_caches(tmp_path, monkeypat
     assert "data loaded" in got and "data saved" not in got and got.split()[-1] == "2"
     (venv / "a.py").write_text("x = 2\n")                        # the sources differ: nothing copied
     assert copy_caches(checkout, venv) is None
+
+
+def test_the_warm_up_compiles_its_parts_side_by_side(monkeypatch, capsys):
+    """Issue 30, compile in parallel: the first parts go to processes of
+    their own (one fewer than the cores), the rest run here meanwhile; a
+    part whose process fails is named with its output (and left to the
+    final run). With the kernels cached, as after `make setup`, the side
+    processes only load them."""
+    import os as _os
+    from soft_twin_core import warmup
+    ran = []
+    monkeypatch.setattr(warmup, "run", lambda parts: ran.append(parts))
+    monkeypatch.setattr(_os, "sched_getaffinity", lambda pid: {0, 1, 2}, raising=False)
+    assert warmup.compile_side_by_side(("no_such_part", "mechanism", "rods")) == 2
+    assert ran == [("rods",)]                                    # the rest, here
+    err = capsys.readouterr().err
+    assert "warm-up of part no_such_part failed (exit 2)" in err and "usage" in err
+    assert "part mechanism failed" not in err
+    monkeypatch.setattr(_os, "sched_getaffinity", lambda pid: {0}, raising=False)
+    assert warmup.compile_side_by_side(("contact", "rods")) == 0 and ran[-1] == ("contact", "rods")

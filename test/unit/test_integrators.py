@@ -31,7 +31,7 @@ from soft_twin_core.engine import algorithms as alg
 from soft_twin_core.engine.forces import actuator_arrays
 from soft_twin_core.engine.integrators import ThetaIntegrator
 from soft_twin_core.engine.joint_kinds import FREE, SOFT, SPHERICAL
-from soft_twin_core.engine.kernels.data import empty_loads
+from soft_twin_core.engine.kernels.data import empty_loads, kernel_array
 from soft_twin_core.engine.multibody import ModelBuilder, spatial_inertia
 from soft_twin_core.engine.workspace import Workspace
 from soft_twin_core.reference import joints as jnt
@@ -126,14 +126,15 @@ def _integrator(model, dt, theta=0.5, loads=None, effort=None, **kw):
     assert act.joint.shape == (0,)
     loads = empty_loads() if loads is None else loads
     coef = np.zeros(0)
+    g = kernel_array(model.gravity)       # (writable, as the twin's own inputs: the model's is frozen)
     if callable(effort):
         def inputs(t):
-            return loads, model.gravity, coef, np.ascontiguousarray(effort(t), dtype=float)
+            return loads, g, coef, np.ascontiguousarray(effort(t), dtype=float)
     else:
         eff = np.zeros(model.nv) if effort is None else np.asarray(effort, dtype=float)
 
         def inputs(t):
-            return loads, model.gravity, coef, eff
+            return loads, g, coef, eff
     return ThetaIntegrator(model, ws, act, inputs, dt, theta, **kw), ws
 
 
