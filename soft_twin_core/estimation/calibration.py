@@ -42,10 +42,12 @@ wrench ``T [t; d x t]``, ``t = n/|n|``, ``n = nu + kappa x d``, with
 ``d = r_a e_a``), ``dR/dm = -J_tip,world^T [g; 0]`` and, for a sensor
 offset, ``de_p/dt = R_section``.
 
-Damping (``viscosity:<segment>`` [Pa s]) needs a dynamic recording (a
-time series from rest): :func:`calibrate_damping` fits it by simulating the
-recording, with central-difference sensitivities of the simulated
-trajectory.
+A dynamic recording (a time series: a release test, a payload step, a
+swing) also carries the damping and the mass: :func:`calibrate_dynamic`
+fits ``viscosity:<segment>`` [Pa s], ``density:<segment>`` [kg/m^3] and any
+of the above but the payload (known loads go in the record) by simulating
+the recording, with central-difference sensitivities of the simulated
+trajectory; :func:`calibrate_damping` is its viscosity-only form.
 
 Confidence intervals: ``cov = s^2 (J^T J)^-1`` with the residual variance
 ``s^2 = |r|^2 / (N - p)`` (J: the weighted Jacobian at the solution), 95 %
@@ -603,6 +605,10 @@ class _Param:
     scale: float = 1.0
 
 
+MATERIAL_KINDS = ("youngs_modulus", "viscosity", "density")      # a segment's material, > 0
+DYNAMIC_ONLY = ("viscosity", "density")          # (no analytic static sensitivity: fitted by simulation)
+
+
 def _params(names, robot_dict, sensors):
     segs = _segments_of(robot_dict)[0]
     acts = _actuators_of(robot_dict)
@@ -610,16 +616,19 @@ def _params(names, robot_dict, sensors):
     out = []
     for name in names:
         kind, _, rest = name.partition(":")
-        if kind == "youngs_modulus":
-            keys = rest.split("+")                # one modulus shared by the segments "a+b"
+        if kind in MATERIAL_KINDS:
+            keys = rest.split("+")                # one value shared by the segments "a+b"
             for key in keys:
                 if key not in segs or "material" not in segs[key]:
                     raise CalibrationError(f"parameter {name!r}: no segment {key!r} with a material "
                                            f"(segments: {list(segs)})")
             if len(set(keys)) != len(keys):
                 raise CalibrationError(f"parameter {name!r}: a segment named twice")
-            E = float(np.mean([float(segs[k]["material"]["youngs_modulus"]) for k in keys]))
-            out.append(_Param(name, kind, rest, 0, E, E))
+            v = float(np.mean([float(segs[k]["material"].get(kind, 0.0)) for k in keys]))
+            if not v > 0:
+                raise CalibrationError(f"parameter {name!r}: its starting value must be > 0 (set {kind} in the "
+                                       f"robot file), got {v}")
+            out.append(_Param(name, kind, rest, 0, v, v))
         elif kind == "tendon_offset":
             a = acts.get(rest)
             if a is None or a.get("routing", "straight") != "straight":
@@ -637,8 +646,9 @@ def _params(names, robot_dict, sensors):
             i = "xyz".index(ax)
             out.append(_Param(name, kind, sname, i, float(np.asarray(s.placement)[i, 3]), 1e-3))
         else:
-            raise CalibrationError(f"parameter {name!r}: expected youngs_modulus:<member>, "
-                                   f"tendon_offset:<tendon>, payload_mass or sensor_offset:<sensor>:<axis>")
+            raise CalibrationError(f"parameter {name!r}: expected youngs_modulus:<member>, viscosity:<member>, "
+                                   f"density:<member>, tendon_offset:<tendon>, payload_mass or "
+                                   f"sensor_offset:<sensor>:<axis>")
     if len({p.name for p in out}) != len(out):
         raise CalibrationError(f"parameters: duplicates in {list(names)}")
     return out
@@ -653,9 +663,9 @@ def apply_parameters(robot_dict, sensors, params, theta):
                   if isinstance(s, sn.PoseSensor)}
     mass = 0.0
     for p, v in zip(params, theta):
-        if p.kind == "youngs_modulus":
+        if p.kind in MATERIAL_KINDS:
             for key in p.target.split("+"):
-                segs[key]["material"]["youngs_modulus"] = float(v)
+                segs[key]["material"][p.kind] = float(v)
         elif p.kind == "tendon_offset":
             off = np.asarray(acts[p.target]["offset"], dtype=float)
             acts[p.target]["offset"] = [float(x) for x in off / np.linalg.norm(off) * v]
@@ -948,6 +958,10 @@ def calibrate(robot_dict, sensors, recording, names, *, holdout_every=4, n_secti
     converge in ``max_evaluations`` residual evaluations (default:
     scipy's, 100 per parameter)."""
     from scipy.optimize import least_squares
+    for name in names:
+        if name.partition(":")[0] in DYNAMIC_ONLY:
+            raise CalibrationError(f"parameter {name!r}: fitted from a time series (calibrate_dynamic; "
+                                   f"soft-twin-sim calibrate --dynamic), not from a static sweep")
     n = len(recording)
     held = np.arange(n)[holdout_every - 1::holdout_every] if holdout_every else np.zeros(0, int)
     fit_rows = np.setdiff1d(np.arange(n), held)
@@ -1068,55 +1082,49 @@ def record_dynamic(robot, sensors, times, inputs, rng, dt=1e-3, joints=None, *, 
                      {k: np.asarray(v, dtype=float) for k, v in (wrenches or {}).items()})
 
 
-def calibrate_damping(robot_dict, sensors, recording, members=None, *, dt=5e-3, n_sections=None, verbose=0,
-                      base_dir=None):
-    """Fit the viscosity [Pa s] of the segments ``members`` (keys as in
-    the static fit: a segment's name, ``<member>/<segment>`` where names
-    repeat, ``<a>+<b>`` one viscosity for both; default: every segment with
-    a material) of a robot of either schema to a dynamic recording (rows at
-    increasing times ``t``, the robot at rest at the first row under its
-    inputs and known loads -- a release test holds it deflected by a known
-    load that the next rows drop --, its joint commands in
-    ``recording.joints``; :func:`simulate_readings`), the other parameters
-    as in the robot dict (calibrate them first from a static sweep).
-    Sensitivities: central differences of the simulated trajectory
-    (``least_squares(jac="3-point")``; a static sweep carries no damping
-    information, and no analytic sensitivity through the integrator is
-    implemented). Returns a :class:`CalibrationResult` (no held-out rows)."""
+def calibrate_dynamic(robot_dict, sensors, recording, names, *, dt=5e-3, n_sections=None, verbose=0,
+                      base_dir=None, max_evaluations=None):
+    """Fit the parameters ``names`` (module docstring: ``viscosity:``,
+    ``density:``, ``youngs_modulus:``, ``tendon_offset:``,
+    ``sensor_offset:``; not ``payload_mass``: a known load goes in the
+    record, an unknown one is the filter's) of a robot of either schema to
+    a dynamic recording: rows at increasing times ``t``, the robot at rest
+    at the first row under its inputs and known loads -- a release test
+    holds it deflected by a known load that the next rows drop --, its
+    joint commands in ``recording.joints``; each evaluation simulates the
+    record (:func:`simulate_readings`, step ``dt``). Sensitivities: central
+    differences of the simulated trajectory (``least_squares(jac=
+    "3-point")``; no analytic sensitivity through the integrator is
+    implemented). A material parameter stays within 1e-3..1e3 of its
+    starting value. Returns a :class:`CalibrationResult` (no held-out
+    rows); raises CalibrationFailed, with the last residual, when the fit
+    does not converge in ``max_evaluations`` simulations."""
     from scipy.optimize import least_squares
     if recording.time is None:
-        raise CalibrationError("damping: the recording needs a time column t")
-    segs = _segments_of(robot_dict)[0]
-    if members is None:
-        members = [k for k, sd in segs.items() if "material" in sd]
-    for m in members:
-        for key in m.split("+"):
-            if key not in segs or "material" not in segs[key]:
-                raise CalibrationError(f"parameter 'viscosity:{m}': no segment {key!r} with a material "
-                                       f"(segments: {list(segs)})")
-    nominal = np.array([np.mean([float(segs[k]["material"].get("viscosity", 0.0)) for k in m.split("+")])
-                        for m in members])
-    if np.any(nominal <= 0):
-        raise CalibrationError("damping: the starting viscosities must be > 0 (set them in the robot file)")
+        raise CalibrationError("dynamic fit: the recording needs a time column t")
+    if not (np.isfinite(dt) and dt > 0):
+        raise CalibrationError(f"dynamic fit: dt must be a positive step in s, got {dt}")
     mech0 = mechanism_of(robot_dict, n_sections, base_dir)
     check_recording_inputs(mech0, recording.inputs)         # the declared actuator ranges
     check_recording(mech0, recording)
     sensors = _measuring(mech0, sensors)[0]
-
-    def with_visc(x):
-        d = copy.deepcopy(robot_dict)
-        dd = _segments_of(d)[0]
-        for m, v in zip(members, x):
-            for key in m.split("+"):
-                dd[key]["material"]["viscosity"] = float(v)
-        return d
+    params = _params(names, robot_dict, sensors)
+    if any(p.kind == "payload_mass" for p in params):
+        raise CalibrationError("dynamic fit: payload_mass is not fitted from a time series (give the known "
+                               "load in the record: its mass:/wrench: columns)")
+    nominal = np.array([p.nominal for p in params])
+    scale = np.array([p.scale for p in params])
+    material = np.array([p.kind in MATERIAL_KINDS for p in params])
+    lower = np.where(material, (1e-3 - 1.0) * nominal / scale, -np.inf)
+    upper = np.where(material, (1e3 - 1.0) * nominal / scale, np.inf)
 
     def fun(x):
-        mech = mechanism_of(with_visc(x * nominal), n_sections, base_dir)
-        pred = simulate_readings(mech, sensors, recording.time, recording.inputs, dt, joints=recording.joints,
+        d, sens, _ = apply_parameters(robot_dict, sensors, params, nominal + scale * x)
+        mech = mechanism_of(d, n_sections, base_dir)
+        pred = simulate_readings(mech, sens, recording.time, recording.inputs, dt, joints=recording.joints,
                                  efforts=recording.efforts, wrenches=recording.wrenches)
         res = []
-        for s in sensors:
+        for s in sens:
             for r in range(len(recording)):
                 z = recording.readings[s.name][r]
                 if not np.all(np.isfinite(z)):
@@ -1129,13 +1137,33 @@ def calibrate_damping(robot_dict, sensors, recording, members=None, *, dt=5e-3, 
                     res.append(np.concatenate([e_p, e_r]))
         return np.concatenate(res)
 
-    sol = least_squares(fun, np.ones(len(members)), jac="3-point", diff_step=1e-3, bounds=(1e-3, 1e3),
-                        verbose=verbose)
-    values = sol.x * nominal
-    names = [f"viscosity:{m}" for m in members]
-    stats = fit_statistics(names, sol.fun, sol.jac, nominal, values)       # (sol.jac: d r / d (eta / nominal))
-    return CalibrationResult(names=names, nominal=nominal, values=values, iterations=int(sol.nfev),
-                             robot_dict=with_visc(values), sensors=sensors, payload_mass=0.0, **stats)
+    sol = least_squares(fun, np.zeros(len(params)), jac="3-point", diff_step=1e-3, bounds=(lower, upper),
+                        verbose=verbose, max_nfev=max_evaluations)
+    names_fit = [p.name for p in params]
+    values = nominal + scale * sol.x
+    if not sol.success:
+        dof = max(len(sol.fun) - len(sol.x), 1)
+        raise CalibrationFailed(f"the fit did not converge in {sol.nfev} simulations ({sol.message}); its last "
+                                f"residual sigma {np.sqrt(float(sol.fun @ sol.fun) / dof):.4g} (in sensor-noise "
+                                f"units) at {dict(zip(names_fit, values.tolist()))}: no result written")
+    stats = fit_statistics(names_fit, sol.fun, sol.jac, scale, values)       # (sol.jac: d r / d (theta / scale))
+    d, new_sensors, _ = apply_parameters(robot_dict, sensors, params, values)
+    return CalibrationResult(names=names_fit, nominal=nominal, values=values, iterations=int(sol.nfev),
+                             robot_dict=d, sensors=new_sensors, payload_mass=0.0, **stats)
+
+
+def calibrate_damping(robot_dict, sensors, recording, members=None, *, dt=5e-3, n_sections=None, verbose=0,
+                      base_dir=None):
+    """:func:`calibrate_dynamic` of the viscosities [Pa s] of the segments
+    ``members`` (keys as in the static fit: a segment's name,
+    ``<member>/<segment>`` where names repeat, ``<a>+<b>`` one viscosity
+    for both; default: every segment with a material), the other
+    parameters as in the robot dict (calibrate them first from a static
+    sweep, or fit them here with :func:`calibrate_dynamic`)."""
+    if members is None:
+        members = [k for k, sd in _segments_of(robot_dict)[0].items() if "material" in sd]
+    return calibrate_dynamic(robot_dict, sensors, recording, [f"viscosity:{m}" for m in members], dt=dt,
+                             n_sections=n_sections, verbose=verbose, base_dir=base_dir)
 
 
 def _log_so3(R):
@@ -1149,8 +1177,8 @@ def _log_so3(R):
 def _expand(names, robot_dict):
     out = []
     for n in names:
-        if n == "youngs_modulus":
-            out += [f"youngs_modulus:{k}" for k, s in _segments_of(robot_dict)[0].items() if "material" in s]
+        if n in MATERIAL_KINDS:
+            out += [f"{n}:{k}" for k, s in _segments_of(robot_dict)[0].items() if "material" in s]
         elif n == "tendon_offset":
             out += [f"tendon_offset:{name}" for name, a in _actuators_of(robot_dict).items()
                     if a.get("type", "tendon") == "tendon" and a.get("routing", "straight") == "straight"]

@@ -13,7 +13,7 @@ import yaml
 from soft_twin_core.errors import CalibrationError, CalibrationFailed, ModelError, StaticsError
 from soft_twin_core.estimation import mcap_data as cm, sensors as sn
 from soft_twin_core.estimation.ekf import parse_directions
-from soft_twin_core.estimation.calibration import (_expand, calibrate, calibrate_damping, mechanism_of,
+from soft_twin_core.estimation.calibration import (_expand, calibrate, calibrate_dynamic, mechanism_of,
                                                    read_csv, write_robot_file)
 from soft_twin_core.robot.model import find_file, read_yaml_file, robot_mapping
 
@@ -32,14 +32,16 @@ def add_cli_parser(sub):
     c.add_argument("--fit", required=True,
                    help="comma-separated parameters: youngs_modulus:<segment> (youngs_modulus:<a>+<b>: one "
                         "modulus for both), tendon_offset:<tendon>, payload_mass, sensor_offset:<sensor>:<x|y|z>; "
-                        "'youngs_modulus' or 'tendon_offset' alone mean all segments / all straight tendons")
+                        "with --dynamic also viscosity:<segment> and density:<segment> (not payload_mass); "
+                        "'youngs_modulus', 'viscosity', 'density' or 'tendon_offset' alone mean all segments / all "
+                        "straight tendons")
     c.add_argument("--holdout-every", type=int, default=4, metavar="K",
                    help="hold out every K-th row to report the error before/after (0: none; default 4)")
     c.add_argument("--sections", type=int,
                    help="sections per segment for the fit, classic robots (default: the robot file's)")
     c.add_argument("--dynamic", action="store_true",
-                   help="the rows are a time series from rest (column t): fit viscosity:<segment> (or "
-                        "'viscosity' for all segments) by simulating it")
+                   help="the rows are a time series from rest under the first row's inputs and loads (column "
+                        "t; a release test, a step): fit the parameters by simulating it")
     c.add_argument("--dt", type=float, default=5e-3, help="integrator step for --dynamic [s] (default 0.005)")
     _add_mcap_arguments(c)
     c.add_argument("--settle", type=float, metavar="S",
@@ -150,17 +152,13 @@ def cli_main(args):
         names = [n.strip() for n in args.fit.split(",") if n.strip()]
         if not names:
             raise CalibrationError("--fit: no parameter given")
+        names = _expand(names, robot_dict)
         if args.dynamic:
-            bad = [n for n in names if n != "viscosity" and not n.startswith("viscosity:")]
-            if bad:
-                raise CalibrationError(f"--fit with --dynamic: only viscosity:<member> or viscosity, got {bad}")
             if not (np.isfinite(args.dt) and args.dt > 0):
                 raise CalibrationError(f"--dt must be a positive step in s, got {args.dt}")
-            members = None if "viscosity" in names else [n.split(":", 1)[1] for n in names]
-            res = calibrate_damping(robot_dict, sensors, rec, members, dt=args.dt, n_sections=args.sections,
+            res = calibrate_dynamic(robot_dict, sensors, rec, names, dt=args.dt, n_sections=args.sections,
                                     base_dir=base_dir)
         else:
-            names = _expand(names, robot_dict)
             res = calibrate(robot_dict, sensors, rec, names, holdout_every=args.holdout_every,
                             n_sections=args.sections, base_dir=base_dir)
     except (CalibrationError, ModelError, ValueError) as e:

@@ -229,5 +229,8 @@ def test_damping_fitted_to_a_step_response(tmp_path, capsys):
     assert load_model(str(tmp_path / "damped.yaml")).sections[0].D[4, 4] == pytest.approx(
         model.sections[0].D[4, 4] * prox["fitted"] / 5.0e4, rel=1e-9)
     assert cli_main(["calibrate", "tracked_arm", "--sensors", str(tmp_path / "s.yaml"), "--data",
-                     str(tmp_path / "step.csv"), "--fit", "youngs_modulus", "--dynamic"]) == 2
-    assert "only viscosity" in capsys.readouterr().err
+                     str(tmp_path / "step.csv"), "--fit", "payload_mass", "--dynamic"]) == 2
+    assert "payload_mass is not fitted from a time series" in capsys.readouterr().err
+    assert cli_main(["calibrate", "tracked_arm", "--sensors", str(tmp_path / "s.yaml"), "--data",
+                     str(tmp_path / "step.csv"), "--fit", "viscosity"]) == 2                  # a static fit
+    assert "fitted from a time series" in capsys.readouterr().err
