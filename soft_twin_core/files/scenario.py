@@ -447,18 +447,31 @@ def _load(d, i, mech, angle_override):
 
 
 def _reference(v):
-    """``reference: {label: text, angle_deg: [a_1, ...], tip_position: [[x, y, z], ...]}``:
-    tip positions [m] (world) to plot against a statics sweep over the
-    in_plane_force angle [deg] (soft-twin-sim statics --sweep-angle --plot)."""
+    """``reference: {label: text, angle_deg: [a_1, ...], tip_position: [[x, y, z], ...]}``,
+    or a list of them: tip positions [m] (world) to plot against a statics
+    sweep over the in_plane_force angle [deg] (soft-twin-sim statics
+    --sweep-angle --plot); a component a source does not give is ``null``.
+    Returns a list of {label, angle_deg, tip_position (NaN: not given)}."""
     if v is None:
         return None
-    where = "scenario.reference"
+    return [_one_reference(r, f"scenario.reference[{k}]") for k, r in enumerate(v)] if isinstance(v, list) \
+        else [_one_reference(v, "scenario.reference")]
+
+
+def _one_reference(v, where):
     if not isinstance(v, dict) or set(v) - {"label", "angle_deg", "tip_position"} or "angle_deg" not in v \
             or "tip_position" not in v:
         raise ScenarioError(f"{where}: expected {{label: text, angle_deg: [...], tip_position: [[x, y, z], ...]}}, "
                             f"got {v!r}")
     a = parse_numbers(v["angle_deg"], (None,), where + ".angle_deg", ScenarioError)
-    p = parse_numbers(v["tip_position"], (len(a), 3), where + ".tip_position", ScenarioError)
+    rows = v["tip_position"]
+    given = [[c is not None for c in r] if isinstance(r, list) else [True] * 3 for r in rows] \
+        if isinstance(rows, list) else None
+    if given is not None:                   # null: a component the source does not give
+        rows = [[0.0 if c is None else c for c in r] if isinstance(r, list) else r for r in rows]
+    p = parse_numbers(rows, (len(a), 3), where + ".tip_position", ScenarioError)
+    if given is not None:
+        p[~np.array(given, dtype=bool).reshape(p.shape)] = np.nan
     return {"label": str(v.get("label", "reference")), "angle_deg": a.tolist(), "tip_position": p.tolist()}
 
 

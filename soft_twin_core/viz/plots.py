@@ -230,17 +230,20 @@ def plot_statics(result, snap, folder, name="statics"):
 def plot_sweep(results, snaps, folder, reference=None, name="sweep"):
     """A statics sweep over the load angle (any robot): its tip frame's
     position [m] against the angle [deg], with the scenario's reference
-    values (if any) as markers; and the shapes of every angle (``snaps``)."""
+    values (if any: one or a list, :func:`files.scenario._reference`) as
+    markers; and the shapes of every angle (``snaps``)."""
     plt = _plt()
+    references = [] if not reference else [reference] if isinstance(reference, dict) else list(reference)
     a = np.array([r["angle_deg"] for r in results])
     p = np.array([r["tip_position"] for r in results])
     fig, axs = plt.subplots(1, 3, figsize=(14, 4.6))
     for k, (c, ax) in enumerate(zip("xyz", axs)):
         ax.plot(a, 1e3 * p[:, k], "-", marker=".", color=f"C{k}", label="soft_twin")
-        if reference:
-            ra = np.asarray(reference["angle_deg"], dtype=float)
-            rp = np.asarray(reference["tip_position"], dtype=float)
-            ax.plot(ra, 1e3 * rp[:, k], "o", mfc="none", color="k", label=reference.get("label", "reference"))
+        for ref, marker in zip(references, "osD^v"):
+            ra = np.asarray(ref["angle_deg"], dtype=float)
+            rp = np.asarray(ref["tip_position"], dtype=float)
+            if np.any(np.isfinite(rp[:, k])):
+                ax.plot(ra, 1e3 * rp[:, k], marker, mfc="none", color="k", label=ref.get("label", "reference"))
         ax.set_xlabel("load angle [deg]")
         ax.set_ylabel(f"tip {c} [mm]")
         ax.set_title(f"tip {c}")

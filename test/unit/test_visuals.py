@@ -197,13 +197,15 @@ def test_princeton_sweep_figures_and_animation(tmp_path, capsys):
         check_png(tmp_path / "fig" / f"{stem}.png")
     with Image.open(tmp_path / "sweep.gif") as im:
         assert im.n_frames == 4 and im.info["duration"] == 500       # 2 angles per second
-    # the reference drawn is the scenario's (linear beam theory), and the
-    # twin's 0 deg tip matches it (small deflection along the stiff axis)
+    # the references drawn are the scenario's (the published large-deflection solution, whose x is not
+    # given, and linear beam theory), and the twin's 0 deg tip matches both (small deflection, stiff axis)
     from soft_twin_core.files.scenario import load_scenario
-    ref = load_scenario("princeton_beam").reference
-    assert ref["angle_deg"][0] == 0 and "linear" in ref["label"]
+    published, linear = load_scenario("princeton_beam").reference
+    assert "Obrezkov" in published["label"] and np.isnan(published["tip_position"][0][0])
+    assert linear["angle_deg"][0] == 0 and "linear" in linear["label"]
     rs = json.loads(out)
-    assert rs[0]["tip_position"][1] == pytest.approx(ref["tip_position"][0][1], rel=0.02)
+    for ref in (published, linear):
+        assert rs[0]["tip_position"][1] == pytest.approx(ref["tip_position"][0][1], rel=0.02)
 
 
 def test_statics_plot_without_sweep(tmp_path, capsys):
@@ -238,6 +240,10 @@ def test_bad_reference_is_named(tmp_path):
     from soft_twin_core.files.scenario import ScenarioError, scenario_from_dict
     d = {"robot": "princeton_beam", "reference": {"angle_deg": [0, 10], "tip_position": [[0, 0, 0]]}}
     with pytest.raises(ScenarioError, match=r"scenario\.reference\.tip_position"):
+        scenario_from_dict(d)
+    good = {"angle_deg": [0], "tip_position": [[None, 0.01, 0.0]]}         # null: not given
+    d["reference"] = [good, {"angle_deg": [0], "tip_position": [["a", 0, 0]]}]
+    with pytest.raises(ScenarioError, match=r"scenario\.reference\[1\]\.tip_position"):
         scenario_from_dict(d)
 
 
