@@ -27,6 +27,7 @@ DEFAULT_TRAVEL = {"revolute": math.pi, "prismatic": 0.1}   # [rad], [m]: positio
 PUSH_STIFFNESS_N_PER_M = 10.0    # the page's push: a spring from the pushed point to the dragged gizmo
 GIZMO_MODES = ("solve IK", "push a point (spring)")
 PICK_RADIUS_M = 0.03             # a click picks the robot's point nearest its ray, if within this [m]
+PLAN_SPEED_M_S = 0.05            # the page's "plan a line here": the tip moves at 5 cm/s (at least 1 s)
 
 
 def page_controls(mech, u=None, positions=None, efforts=None):
@@ -193,6 +194,8 @@ class LiveViewOutput:
         self.gizmo_mode = GIZMO_MODES[0]
         self._push_at = None              # push mode, while dragged: where the gizmo is [m]
         self._push_point = None           # push mode: the point picked on the page (None: the tip)
+        self._target_at = None            # where the gizmo was last dragged to [m] (the plan's end)
+        self._plan_thread = None          # the page's plan, solved off the page's thread
         self._pubs = None                # (actuation, joint command) publishers to the node's own inputs
 
     def follow(self, port):
@@ -265,7 +268,7 @@ class LiveViewOutput:
                                     on_routes=self._set_flag("routes"), routes=self.routes,
                                     on_frames=self._set_flag("frames"), frames=self.frames)
         self._view.set_target(twin.outputs().tip_pose[:3, 3], self._on_target, self._apply_ik, GIZMO_MODES,
-                              self._set_gizmo_mode)
+                              self._set_gizmo_mode, on_plan=self._plan_to_target)
         self._view.set_pick(self._on_pick)
         self._controls_of = robot
 
@@ -311,6 +314,7 @@ class LiveViewOutput:
                 self._push_at = np.asarray(position, dtype=float)
                 self._push()
             return
+        self._target_at = np.asarray(position, dtype=float)
         with self._ik:
             self._ik_target = np.asarray(position, dtype=float)
             if self._ik_thread is None:
@@ -378,11 +382,13 @@ class LiveViewOutput:
         from soft_twin import services
         from soft_twin.srv import InverseKinematics
         from soft_twin_core.viz.live_view import shown_value
+        from soft_twin_core.viz.scene import skeleton        # here: the view's modules load with the page
         req = InverseKinematics.Request(position_only=True, tolerance=1e-4)
         req.target = Pose()
         req.target.position.x, req.target.position.y, req.target.position.z = map(float, target)
         req.target.orientation.w = 1.0
-        r = services.inverse_kinematics(self._node, req, InverseKinematics.Response())
+        r, result = services.ik_answer(self._node, req, InverseKinematics.Response())
+        ghost = None if result is None else skeleton(self._node.robot.mech, result.q)
         units = units_of(self._node.robot.mech)
         inputs = ", ".join(f"{n} = {shown_value(v)} {units.get(n, '')}".rstrip()
                            for n, v in zip(r.actuator_names, r.actuator_values))
@@ -393,13 +399,16 @@ class LiveViewOutput:
         if view is not None:
             reach = "" if achieved is None else f"; the tip reaches [{achieved[0]:.4f}, {achieved[1]:.4f}, " \
                                                  f"{achieved[2]:.4f}] m, {1e3 * r.position_error:.2f} mm from the target"
-            view.show_ik(target, achieved, f"{r.message}" + (f"; {inputs}" if inputs else "") + reach)
+            view.show_ik(target, achieved, f"{r.message}" + (f"; {inputs}" if inputs else "") + reach
+                         + ("" if ghost is None else " (its shape: the violet ghost)"), ghost)
 
     def _apply_ik(self):
         """The last IK answer's inputs sent as the sliders send theirs."""
         r = self._ik_answer
         if r is None:
             return
+        if self._view is not None:
+            self._view.show_ghost(None)             # (the twin goes there now)
         from sensor_msgs.msg import JointState
         from soft_twin.msg import ActuationCommand
         node = self._node
@@ -412,6 +421,58 @@ class LiveViewOutput:
             self._pubs[0].publish(ActuationCommand(header=header, names=[n for n, _ in act], values=[v for _, v in act]))
         if pos and self._pubs[1] is not None:
             self._pubs[1].publish(JointState(header=header, name=[n for n, _ in pos], position=[v for _, v in pos]))
+
+    def _plan_to_target(self):
+        """The page's "plan a line here": the node's own ~/plan_path (the
+        twin's planner, executed on the twin's inputs as a client's plan is)
+        for a straight line from the tip to where the gizmo was dragged, at
+        PLAN_SPEED_M_S; the planned tip path drawn as the ghost, the answer
+        said in the panel. Solved in a thread of its own (a tree robot's
+        plan takes a second)."""
+        if self._target_at is None or self._latest is None:
+            self._view.say_target("drag the gizmo to where the tip should go first")
+            return
+        if self._plan_thread is not None and self._plan_thread.is_alive():
+            return
+        start, end = self._latest[0].tip_pose[:3, 3].copy(), self._target_at.copy()
+        self._plan_thread = threading.Thread(target=self._plan_line, args=(start, end), name="live_view_plan",
+                                             daemon=True)
+        self._plan_thread.start()
+
+    def _plan_line(self, start, end):
+        import yaml
+        from soft_twin.srv import PlanPath
+        duration = max(1.0, float(np.linalg.norm(end - start)) / PLAN_SPEED_M_S)
+        req = PlanPath.Request(path_yaml=yaml.safe_dump({
+            "type": "line", "start": start.tolist(), "end": end.tolist(), "duration": duration,
+            "sample_period": 0.1}), execute=True)
+        try:
+            r = self._node._srv_plan_path(req, PlanPath.Response())
+        except Exception as e:                 # the page says so; the node goes on
+            r = PlanPath.Response(success=False, message=f"plan failed: {type(e).__name__}: {e}")
+        view = self._view
+        if view is None:
+            return
+        tips = np.asarray(r.predicted_tip, dtype=float).reshape(-1, 3)
+        if len(tips):
+            e = tips[-1]
+            view.show_ghost([tips] + self._shape_reaching(e))
+            view.say_target(f"{r.message}; the planned tip path and the shape it ends in (violet) end at "
+                            f"[{e[0]:.4f}, {e[1]:.4f}, {e[2]:.4f}] m")
+        else:
+            view.show_ghost(None)
+            view.say_target(r.message)
+
+    def _shape_reaching(self, tip):
+        """Polylines of the robot's shape with its tip at ``tip`` (a plan's
+        end, which its inputs reach): the twin's IK of that point
+        (:func:`services.ik_query`), [] when it fails."""
+        from soft_twin import services
+        from soft_twin_core.viz.scene import skeleton        # here: the view's modules load with the page
+        try:
+            return skeleton(self._node.robot.mech, services.ik_query(self._node, tip, 1e-4).q)
+        except Exception:                   # (the path alone is drawn)
+            return []
 
     def _set_colour(self, label):
         self.colour_by = label

@@ -126,25 +126,30 @@ def ik_query(node, target, tol):
 
 
 def _inverse_kinematics(node, req, resp):
+    return ik_answer(node, req, resp)[0]
+
+
+def ik_answer(node, req, resp):
     """Joint commands and actuator inputs putting the tip at the target pose,
     or position with ``position_only``: ``actuator_names``/``actuator_values``
     the position-controlled joints (rad or m) first, then the actuators (N
     or Pa); a robot without inputs answers with the shape that reaches the
-    target (``actuation_found`` False)."""
+    target (``actuation_found`` False). Returns (resp, the twin's IK result
+    -- its configuration ``q`` included -- or None when there is none)."""
     tol = req.tolerance
     if not math.isfinite(tol) or tol < 0:
         resp.success, resp.message = False, f"tolerance must be >= 0 (0 = default 1e-6), got {tol}"
-        return resp
+        return resp, None
     try:
         target = cv.matrix_from_pose(req.target)
     except ValueError as e:
         resp.success, resp.message = False, clip(f"target rejected: {e}", 400)
-        return resp
+        return resp, None
     try:
         r = ik_query(node, target[:3, 3] if req.position_only else target, tol or 1e-6)
     except (PlanError, StaticsError, ModelError, ValueError, np.linalg.LinAlgError, QueryError) as e:
         resp.success, resp.message = False, clip(f"IK failed: {e}", 400)
-        return resp
+        return resp, None
     resp.success = r.reached
     by = "joint commands and actuation" if node.twin.mech.joints_with("position") else "actuation"
     if not r.actuation_found:
@@ -166,7 +171,7 @@ def _inverse_kinematics(node, req, resp):
     resp.orientation_error = (float(np.linalg.norm(lie.log_so3(r.achieved_pose[:3, :3].T @ target[:3, :3])))
                               if req.position_only else float(r.orientation_error))
     resp.iterations = int(r.iterations)
-    return resp
+    return resp, r
 
 
 def reset(node, req, resp):

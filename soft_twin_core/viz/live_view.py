@@ -33,6 +33,7 @@ SHAPE_COLOR = (64, 96, 170)    # rigid links' visual shapes (articulated robots)
 JOINT_COLOR = (20, 20, 20)
 FORCE_COLOR = (204, 41, 204)
 TRAIL_COLOR = (40, 150, 90)      # the tip's path
+GHOST_COLOR = (140, 60, 230)     # an IK answer's shape, before it is applied (violet)
 OBSTACLE_COLOR = (120, 120, 120)
 CONTACT_COLOR = (204, 41, 204)   # contact forces, as the tip load
 TENDON_COLOR = (0, 140, 150)     # the tendons' routes
@@ -293,12 +294,13 @@ class LiveView:
         self._controls.append(handle)
         return handle
 
-    def set_target(self, position, on_move, on_apply, modes=None, on_mode=None, scale=0.08):
+    def set_target(self, position, on_move, on_apply, modes=None, on_mode=None, scale=0.08, on_plan=None):
         """A draggable gizmo at ``position`` [m] (moved along its axes or
         planes; ``on_move(position, phase)`` while it is dragged, phase
         "start", "update" or "end") and a "target" folder: a menu of what
         dragging does (``modes``; ``on_mode(mode)``), the answer
-        (:meth:`show_ik`) and an "apply" button (``on_apply()``)."""
+        (:meth:`show_ik`), an "apply" button (``on_apply()``) and, given
+        ``on_plan``, a "plan a line here" button (``on_plan()``)."""
         gui, sc = self.server.gui, self.server.scene
         with self._lock:
             handle = self._target = sc.add_transform_controls(
@@ -317,6 +319,11 @@ class LiveView:
                 b = gui.add_button("apply", hint="send the inputs that reach the target, as the sliders do")
                 b.on_click(lambda _: (self._count(), on_apply()))
                 self._controls += [self._ik_text, b]
+                if on_plan is not None:
+                    p = gui.add_button("plan a line here", hint="plan the tip along a straight line to the "
+                                                                "target (5 cm/s) and run the plan")
+                    p.on_click(lambda _: (self._count(), on_plan()))
+                    self._controls.append(p)
 
     def set_pick(self, on_pick):
         """A click in the scene calls ``on_pick(origin, direction)`` with the
@@ -344,15 +351,28 @@ class LiveView:
         with self._lock:
             self._ik_text.content = message
 
-    def show_ik(self, target, achieved, message):
+    def show_ik(self, target, achieved, message, ghost=None):
         """The answer of the target's inverse kinematics: the tip it reaches
-        (``achieved`` [m], a sphere; None: none) and ``message``."""
+        (``achieved`` [m], a sphere; None: none), ``message`` and the shape
+        it puts the robot in (``ghost``: polylines (N, 3) [m], drawn as
+        violet lines until the next answer or "apply"; None: none)."""
         with self._lock:
             if achieved is not None:
                 self.server.scene.add_icosphere("/target_reached", radius=0.006, color=TRAIL_COLOR,
                                                 position=tuple(np.asarray(achieved, dtype=float)))
             t = np.asarray(target, dtype=float)
             self._ik_text.content = (f"target [{t[0]:.4f}, {t[1]:.4f}, {t[2]:.4f}] m: {message}")
+        self.show_ghost(ghost)
+
+    def show_ghost(self, polylines):
+        """Draw ``polylines`` as the IK answer's ghost (None: remove it)."""
+        with self._lock:
+            if polylines is None:
+                self._remove("/target_ghost")
+                return
+            seg = polyline_segments(polylines)
+            if len(seg):
+                self.server.scene.add_line_segments("/target_ghost", seg, colors=GHOST_COLOR, line_width=4.0)
 
     def set_view_options(self, colourings, on_colour, on_trail, trail=True, on_routes=None, routes=True,
                          on_frames=None, frames=False):

@@ -22,7 +22,8 @@ import numpy as np
 from soft_twin_core.engine.joint_kinds import PRISMATIC, REVOLUTE
 from soft_twin_core.lie import rotation_with_z
 from soft_twin_core.robot.model import pose_from_dict
-from soft_twin_core.solve.outputs import member_samples
+from soft_twin_core.engine.workspace import Workspace
+from soft_twin_core.solve.outputs import member_samples, state_shape
 
 
 @dataclass
@@ -268,6 +269,17 @@ def snapshot(mech, members, frame_poses, time=None, caption="", contacts=None):
     return Snapshot(members, links, time=time, caption=caption, solids=solids,
                     joints=np.array(joints).reshape(-1, 3), joint_axes=axes, shapes=shapes, obstacles=obstacles,
                     contacts=contacts)
+
+
+def skeleton(mech, q, points_per_section=4):
+    """Polylines (each (N, 3) [m]; NaN rows separate pieces) of the robot at
+    configuration ``q``, drawn as :func:`snapshot` draws it: its members'
+    backbones, its links (a line from the parent link's frame) and the
+    outlines of their shapes. A "ghost" of a shape the robot is not in:
+    an IK answer before it is applied."""
+    frames, members = state_shape(mech, Workspace(mech.tree), q, points_per_section)
+    snap = snapshot(mech, {m: G[:, :3, 3] for m, (G, _) in members.items()}, frames)
+    return list(snap.members) + list(snap.links) + list(snap.solids)
 
 
 def member_radii(mech, n_points=None, default=0.005):

@@ -56,6 +56,16 @@ def tube_orange_pixels(png):
     return (r > 80) & (g > 0.38 * r) & (g < 0.68 * r) & (b < 0.38 * r)
 
 
+def ghost_pixels(png):
+    """Boolean mask of pixels of the IK ghost's violet (GHOST_COLOR, any
+    shade: blue high, red about 0.6 of it, little green), which neither the
+    force magenta, the chambers' blue nor the value scale's blue has."""
+    from PIL import Image
+    a = np.asarray(Image.open(io.BytesIO(png)).convert("RGB"), dtype=float)
+    r, g, b = a[..., 0], a[..., 1], a[..., 2]
+    return (b > 120) & (r > 0.42 * b) & (r < 0.8 * b) & (g < 0.6 * r)
+
+
 def _screenshot(browser):
     """A screenshot, or None when the (software-rendering) browser is too
     busy to answer in time on a loaded machine: try again."""
@@ -336,6 +346,10 @@ def _drive_from_the_page(browser, client, tmp_path, rest):
     m = re.search(r"target \[([^\]]+)\] m: .*?the tip reaches \[([^\]]+)\] m", text, re.S)
     target, reach = (np.array([float(v) for v in g.split(",")]) for g in m.groups())
     assert target[2] > rest[-1][2] + 0.01 and np.allclose(target[:2], rest[-1][:2], atol=2e-3), (target, rest[-1])
+    # the answer's shape is drawn as a violet ghost until it is applied
+    assert "the violet ghost" in text, text
+    assert wait_for(lambda: ghost_pixels(browser.screenshot()).sum() > 50, 20.0, 0.5), "no ghost of the IK answer"
+    (tmp_path / "5_ik_ghost.png").write_bytes(browser.screenshot())
     applied = int(client.wait_diagnostics(timeout=10.0)["commands_applied_total"])
     apply = browser.rect("[...document.querySelectorAll('button')].find(b => b.textContent.trim() === 'apply')")
     browser.click(*_centre(apply))
@@ -345,7 +359,34 @@ def _drive_from_the_page(browser, client, tmp_path, rest):
         p = client.tip_pose.pose.position
         return np.linalg.norm([p.x - reach[0], p.y - reach[1], p.z - reach[2]]) < 0.01
     assert client.wait_until(at_reach, 30.0), f"the tip did not go to the IK's answer {reach}"
+    assert wait_for(lambda: ghost_pixels(browser.screenshot()).sum() < 5, 20.0, 0.5), "the ghost stayed"
     (tmp_path / "5_ik_applied.png").write_bytes(browser.screenshot())
+
+    # 5b. the planner from the page: the gizmo dragged back down, "plan a line here" plans the tip along a
+    # straight line to it and runs the plan through the twin's inputs; the planned path is the ghost
+    (x0, y0), = project(target + [0.0, 0.0, 0.06], camera, look, w, h)
+    browser.drag(x0, y0, x0, y0 + 40, steps=10)         # back down by the 40 px it went up: near the rest tip
+    ok, text = _wait_for_page_text(browser, ["the tip reaches"], 30.0)
+    assert ok, text
+    applied = int(client.wait_diagnostics(timeout=10.0)["commands_applied_total"])
+    plan = browser.rect("[...document.querySelectorAll('button')].find(b => b.textContent.trim() === "
+                        "'plan a line here')")
+    assert plan, "no plan button"
+    browser.click(*_centre(plan))
+    ok, text = _wait_for_page_text(browser, ["the planned tip path and the shape it ends in (violet) end at"],
+                                   60.0)
+    assert ok, text
+    assert "executing" in text, text
+    end = np.array([float(v) for v in re.search(r"\(violet\) end at \[([^\]]+)\] m", text).group(1).split(",")])
+    assert end[2] < reach[2] - 0.005, (end, reach)                 # down, towards where the gizmo went
+    (tmp_path / "5b_plan.png").write_bytes(browser.screenshot())
+    assert wait_for(lambda: ghost_pixels(browser.screenshot()).sum() > 50, 20.0, 0.5), "no plan drawn"
+
+    def at_end():
+        p = client.tip_pose.pose.position
+        return np.linalg.norm([p.x - end[0], p.y - end[1], p.z - end[2]]) < 0.005
+    assert client.wait_until(at_end, 30.0), f"the tip did not follow the plan to {end}"
+    assert int(client.wait_diagnostics(timeout=10.0)["commands_applied_total"]) > applied + 5   # the plan's samples
 
     # 6. push the tip: the gizmo back on the tip; held 60 px above it, a spring pulls the tip up (a tip
     # load through the node's own ~/tip_wrench_command, counted); let go, the load is gone

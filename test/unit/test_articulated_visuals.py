@@ -103,6 +103,32 @@ def test_pan_tilt_snapshot_draws_links_joints_and_the_arm():
     assert np.all(np.isfinite(lo)) and hi[2] >= 0.08 + 0.015 - 1e-9     # the box top is in the bounds
 
 
+def test_the_ghost_of_a_configuration_is_the_snapshot_drawn_from_its_outputs():
+    """scene.skeleton (the IK answer's ghost on the live page): at the
+    IK's configuration of the pan-tilt arm, its lines are the snapshot's
+    (the member's backbone ending at the tool frame, the two links'
+    outlines), from kinematics alone; the twin's own state is not touched."""
+    from soft_twin_core.twin import Twin, TwinSettings
+    from soft_twin_core.viz.scene import skeleton
+    from soft_twin_core.robot.model import read_yaml_file
+    twin = Twin(mechanism_from_dict(read_yaml_file(find_file("pan_tilt_arm", "robots"))), TwinSettings())
+    q_before = twin.state.q.copy()
+    target = twin.outputs().tip_pose[:3, 3] + [0.0, 0.02, 0.01]
+    r = twin.query_copy().inverse_kinematics(target, 1e-7)
+    assert r.reached and np.array_equal(twin.state.q, q_before)
+    mech = twin.mech
+    lines = skeleton(mech, r.q, points_per_section=4)
+    from soft_twin_core.solve.constrained import make_inputs
+    from soft_twin_core.solve.outputs import state_outputs
+    o = state_outputs(mech, r.q, np.zeros(len(mech.joints_with("position"))), make_inputs(mech), points_per_section=4)
+    assert np.allclose(o.frames[twin.tip][:3, 3], r.achieved_pose[:3, 3], atol=1e-12)
+    snap = snapshot(mech, {m.name: m.poses[:, :3, 3] for m in o.members}, o.frames)
+    expected = snap.members + snap.links + snap.solids
+    assert len(lines) == len(expected) == 1 + 2                     # the arm, the two links' outlines
+    for got, want in zip(lines, expected):
+        assert np.allclose(got, want, atol=1e-12, equal_nan=True)
+
+
 def test_pendulum_energies_equal_the_closed_form():
     """sample_energies of a rigid pendulum (one revolute joint about y, a
     point-like mass on a 0.2 m arm, a joint spring) against 1/2 I w^2,
