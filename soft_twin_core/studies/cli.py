@@ -20,12 +20,13 @@ import time
 from pathlib import Path
 
 from soft_twin_core.files.scenario import ScenarioError
-from soft_twin_core.planning.reach import actuation_ranges, plot_workspace, workspace_of
+from soft_twin_core.planning.reach import actuation_ranges, workspace_of
 from soft_twin_core.robot.model import ModelError, find_file, read_yaml_file
 from soft_twin_core.studies.cluster import (StudyInterrupted, _write_parquet, rows_to_table, run_study,
                                             write_csv)
 from soft_twin_core.studies.study import (CaseValidationError, StudyError, build_scenario, load_study,
                                           study_from_dict)
+from soft_twin_core.viz.style import STYLES, figure_style, save_figure
 
 
 def add_parsers(sub):
@@ -52,6 +53,10 @@ def add_parsers(sub):
     w.add_argument("--design", choices=("lhs", "random", "grid"), default="lhs")
     w.add_argument("--seed", type=int, default=0)
     w.add_argument("--no-corners", action="store_true", help="do not add the corners of the actuation box")
+    for p in (s, w):
+        p.add_argument("--style", choices=tuple(STYLES), default="screen",
+                       help="figures: screen (PNG and SVG, the default), paper (PDF, SVG and PNG at a journal's "
+                            "column width, 3.5 in) or paper-wide (7.16 in)")
 
 
 def _say(msg):
@@ -72,9 +77,10 @@ def main_study(args):
     try:
         study = load_study(args.study)
         out = args.output or os.path.join("out", study.name)
-        res = run_study(study, out, scheduler=args.scheduler, n_workers=args.workers, serial=args.serial,
-                        chunk_size=args.chunk_size, retry_failed=args.retry_failed, overwrite=args.overwrite,
-                        flush_seconds=args.flush_seconds)
+        with figure_style(args.style):             # the summary's figures (studies.report)
+            res = run_study(study, out, scheduler=args.scheduler, n_workers=args.workers, serial=args.serial,
+                            chunk_size=args.chunk_size, retry_failed=args.retry_failed, overwrite=args.overwrite,
+                            flush_seconds=args.flush_seconds)
     except CaseValidationError as e:
         _say(str(e))
         return 2
@@ -108,6 +114,12 @@ def _target_kind(target):
             return "scenario"
         return "robot"
     return "robot"
+
+
+def _with_unit(mech, actuator):
+    """'name [N]' (a tendon's tension) or 'name [Pa]' (a chamber's pressure)."""
+    kind = mech.actuators[list(mech.actuator_names).index(actuator)].kind
+    return f"{actuator} [{'N' if kind == 'tendon' else 'Pa'}]"
 
 
 def main_workspace(args):
@@ -165,12 +177,17 @@ def main_workspace(args):
                "boundary_samples": hs["boundary"].tolist(), "seconds": dt}
     (out / "workspace.json").write_text(json.dumps(summary, indent=1))
     color = w["U"][:, idx[0]] if len(idx) else None
-    plot_workspace(w["points"], hs, out / "workspace.png", f"{sc.mech.name} workspace",
-                   color=color, color_label=names[idx[0]] if len(idx) else None, mark=w["corner"])
+    from soft_twin_core.viz.plots import workspace_figure          # here: matplotlib, once the points are in
+    with figure_style(args.style):
+        figures = save_figure(workspace_figure(w["points"], hs, f"{sc.mech.name} workspace", color=color,
+                                               color_label=_with_unit(sc.mech, names[idx[0]]) if len(idx) else None,
+                                               mark=w["corner"]),
+                              out, "workspace", drawn=True)
     ext = np.array(summary["extent_max_m"]) - np.array(summary["extent_min_m"])
     _say(f"{len(rows) - len(w['failed'])} of {len(rows)} samples solved in {dt:.1f} s; hull volume "
          f"{hs['volume_m3'] * 1e6:.4g} cm^3 (dimension {hs['dimension']}), extent "
          f"{', '.join(f'{e * 100:.2f}' for e in ext)} cm (x, y, z); {len(hs['boundary'])} boundary points; "
-         f"written to {out}/ (points.parquet, points.csv, workspace.json, workspace.png)")
+         f"written to {out}/ (points.parquet, points.csv, workspace.json, "
+         f"{', '.join(os.path.basename(f) for f in figures)})")
     print(json.dumps({k: v for k, v in summary.items() if k != "boundary_samples"}))
     return 0 if not w["failed"] else 3

@@ -24,7 +24,8 @@ from pathlib import Path
 
 import numpy as np
 
-from soft_twin_core.planning.reach import hull_summary, plot_workspace
+from soft_twin_core.planning.reach import hull_summary
+from soft_twin_core.viz.style import current_style, drawing_rc, drawn_size, save_figure
 
 SKIP = {"case", "case_key", "status", "error", "compute_time_s", "started_unix_s", "worker"}
 
@@ -189,7 +190,7 @@ def write_summary(study, rows, points, out_dir, run_info):
             md.append(f"| {c} | {_fmt(float(r2[i]))} | "
                       + " | ".join(f"{_fmt(float(rho[i, j]))} ({_fmt(float(src[i, j]))})" for j in range(len(p_num)))
                       + " |")
-    md += ["", "## Plots", ""] + [f"![{p.stem}](plots/{p.name})" for p in figs]
+    md += ["", "## Plots", ""] + [f"![{p.stem}](plots/{p.name})" for p in figs if p.suffix == ".png"]
     (out / "summary.md").write_text("\n".join(md) + "\n")
     return str(out / "summary.md")
 
@@ -259,66 +260,76 @@ def scaled_axis(values, name, parameter, study=None):
     return v / 10.0 ** (3 * k), f"{name} [{_PREFIXES[k]}{unit}]"
 
 
+def _stacked(label):
+    """A long axis label on a paper figure's inch-wide panel, one line per
+    part of its path and its unit: "statics.tip_position_x [mm]" ->
+    "statics.\ntip_position_x\n[mm]"."""
+    name, _, unit = label.partition(" [")
+    return "\n".join([p + "." for p in name.split(".")[:-1]] + [name.split(".")[-1]] + (["[" + unit] if unit else []))
+
+
 def _plots(study, ok, p_num, o_num, X, Y, rho, points, plots):
+    """The study's figures in the figure style in force (:mod:`viz.style`:
+    a paper style draws them at its width and type sizes); their paths."""
     import matplotlib
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
+    from matplotlib.ticker import MaxNLocator
+    from soft_twin_core.viz.plots import workspace_figure         # here: matplotlib, for the summary only
+    paper = bool(current_style().width_in)
     figs = []
-    if p_num and o_num:
-        fig, ax = plt.subplots(figsize=(2.0 + 1.1 * len(p_num), 1.2 + 0.32 * len(o_num)))
-        im = ax.imshow(np.nan_to_num(rho), cmap="RdBu_r", vmin=-1, vmax=1, aspect="auto")
-        ax.set_xticks(range(len(p_num)), p_num, rotation=30, ha="right", fontsize=7)
-        ax.set_yticks(range(len(o_num)), o_num, fontsize=7)
-        for i in range(len(o_num)):
-            for j in range(len(p_num)):
-                if np.isfinite(rho[i, j]):
-                    ax.text(j, i, f"{rho[i, j]:.2f}", ha="center", va="center", fontsize=6,
-                            color="white" if abs(rho[i, j]) > 0.6 else "black")
-        fig.colorbar(im, ax=ax, label="Spearman rho")
-        ax.set_title(f"{study.name}: sensitivity of each output to each parameter", fontsize=9)
-        fig.tight_layout()
-        figs.append(plots / "sensitivity.png")
-        fig.savefig(figs[-1], dpi=110)
-        plt.close(fig)
-        po, pp = o_num[:6], p_num[:6]
-        fig, axes = plt.subplots(len(po), len(pp), figsize=(2.6 * len(pp), 2.0 * len(po)), squeeze=False)
-        for i, c in enumerate(po):
-            for j, p in enumerate(pp):
-                a = axes[i, j]
-                x, xlabel = scaled_axis(X[:, j], p, True, study)
-                y, ylabel = scaled_axis(Y[:, i], c, False, study)
-                a.scatter(x, y, s=5)
-                a.ticklabel_format(useOffset=False, style="plain")
-                if i == len(po) - 1:
-                    a.set_xlabel(xlabel, fontsize=7)
-                if j == 0:
-                    a.set_ylabel(ylabel, fontsize=7)
-                a.tick_params(labelsize=6)
-        fig.tight_layout()
-        figs.append(plots / "scatter.png")
-        fig.savefig(figs[-1], dpi=100)
-        plt.close(fig)
-    if points:
-        by = {}
-        for p in points:
-            by.setdefault(p["case"], []).append((p["tip_position_x"], p["tip_position_y"], p["tip_position_z"]))
-        cases = sorted(by)
-        fig = plt.figure(figsize=(7, 6))
-        ax = fig.add_subplot(projection="3d")
-        for c in cases[:12]:
-            P = np.array(by[c], dtype=float)
-            ax.scatter(P[:, 0], P[:, 1], P[:, 2], s=3, label=f"case {c}")
-        ax.set_xlabel("x [m]")
-        ax.set_ylabel("y [m]")
-        ax.set_zlabel("z [m]")
-        ax.legend(fontsize=6, markerscale=3)
-        ax.set_title(f"{study.name}: workspace point clouds", fontsize=9)
-        fig.tight_layout()
-        figs.append(plots / "workspace_clouds.png")
-        fig.savefig(figs[-1], dpi=110)
-        plt.close(fig)
-        for c in cases[:4]:
-            P = np.array(by[c], dtype=float)
-            figs.append(plots / f"workspace_case_{c}.png")
-            plot_workspace(P, hull_summary(P), figs[-1], f"{study.name}, case {c}")
-    return figs
+    with matplotlib.rc_context(drawing_rc()):
+        if p_num and o_num:
+            fig, ax = plt.subplots(figsize=drawn_size(2.0 + 1.1 * len(p_num), 1.2 + 0.32 * len(o_num)),
+                                   layout="constrained")
+            im = ax.imshow(np.nan_to_num(rho), cmap="RdBu_r", vmin=-1, vmax=1, aspect="auto")
+            ax.set_xticks(range(len(p_num)), p_num, rotation=30, ha="right", fontsize=6 if paper else 7)
+            ax.set_yticks(range(len(o_num)), o_num, fontsize=6 if paper else 7)
+            for i in range(len(o_num)):
+                for j in range(len(p_num)):
+                    if np.isfinite(rho[i, j]):
+                        ax.text(j, i, f"{rho[i, j]:.2f}", ha="center", va="center", fontsize=6,
+                                color="white" if abs(rho[i, j]) > 0.6 else "black")
+            fig.colorbar(im, ax=ax, label="Spearman rho")
+            ax.set_title(f"{study.name}: sensitivity of each output to each parameter", fontsize=8 if paper else 9)
+            figs += save_figure(fig, plots, "sensitivity", drawn=True)
+            po, pp = o_num[:6], p_num[:6]
+            fig, axes = plt.subplots(len(po), len(pp), figsize=drawn_size(2.6 * len(pp), 2.0 * len(po)),
+                                     squeeze=False, layout="constrained")
+            for i, c in enumerate(po):
+                for j, p in enumerate(pp):
+                    a = axes[i, j]
+                    x, xlabel = scaled_axis(X[:, j], p, True, study)
+                    y, ylabel = scaled_axis(Y[:, i], c, False, study)
+                    a.scatter(x, y, s=2 if paper else 5)
+                    a.ticklabel_format(useOffset=False, style="plain")
+                    if paper:                         # (a panel an inch wide: three 6 pt labels)
+                        a.xaxis.set_major_locator(MaxNLocator(3))
+                        a.yaxis.set_major_locator(MaxNLocator(3))
+                    if i == len(po) - 1:
+                        a.set_xlabel(_stacked(xlabel) if paper else xlabel, fontsize=6 if paper else 7)
+                    if j == 0:
+                        a.set_ylabel(_stacked(ylabel) if paper else ylabel, fontsize=6 if paper else 7)
+                    a.tick_params(labelsize=6 if paper else 6)
+            figs += save_figure(fig, plots, "scatter", drawn=True)
+        if points:
+            by = {}
+            for p in points:
+                by.setdefault(p["case"], []).append((p["tip_position_x"], p["tip_position_y"], p["tip_position_z"]))
+            cases = sorted(by)
+            fig = plt.figure(figsize=drawn_size(7, 6), layout="constrained")
+            ax = fig.add_subplot(projection="3d")
+            for c in cases[:12]:
+                P = np.array(by[c], dtype=float)
+                ax.scatter(P[:, 0], P[:, 1], P[:, 2], s=3, label=f"case {c}")
+            ax.set_xlabel("x [m]")
+            ax.set_ylabel("y [m]")
+            ax.set_zlabel("z [m]")
+            ax.legend(fontsize=6, markerscale=3)
+            ax.set_title(f"{study.name}: workspace point clouds", fontsize=8 if paper else 9)
+            figs += save_figure(fig, plots, "workspace_clouds", drawn=True)
+    for c in (sorted(by)[:4] if points else []):
+        P = np.array(by[c], dtype=float)
+        figs += save_figure(workspace_figure(P, hull_summary(P), f"{study.name}, case {c}"), plots,
+                            f"workspace_case_{c}", drawn=True)
+    return [Path(f) for f in figs]

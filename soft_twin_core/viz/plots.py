@@ -18,7 +18,7 @@ import numpy as np
 
 from soft_twin_core.robot.model import STRAIN_NAMES
 from soft_twin_core.viz.scene import bounds, run_snapshots
-from soft_twin_core.viz.style import save_figure
+from soft_twin_core.viz.style import current_style, drawing_rc, drawn_size, save_figure
 
 
 _VIEWS = (("side", 0, 2, "side view (x-z)"), ("top", 0, 1, "top view (x-y)"))
@@ -474,4 +474,75 @@ def estimation_figure(run, title="state estimation"):
         ax.grid(alpha=0.3)
     fig.suptitle(title)
     fig.set_layout_engine("tight")
+    return fig
+
+
+def workspace_figure(points, hs, title="workspace", color=None, color_label=None, mark=None):
+    """Figure of a point cloud (n, 3) [m]: a 3-D view with the hull's facets
+    and the three projections (x-y, x-z, y-z) with the outline of each
+    projection's convex hull. ``color``: a value per point (e.g. an input;
+    its colour bar left of the 3-D view, clear of its z label);
+    ``mark``: a mask of points drawn as red crosses (the actuation box's
+    corners). Drawn for the figure style in force (a paper style: at its
+    width, its type sizes, three ticks an axis, the legend under the
+    panels): save it with ``save_figure(..., drawn=True)``."""
+    import matplotlib
+    from matplotlib.ticker import MaxNLocator
+    from scipy.spatial import ConvexHull
+    plt = _plt()
+    paper = bool(current_style().width_in)
+    P = np.asarray(points, dtype=float)
+    ok = np.all(np.isfinite(P), axis=1)
+    Q = P[ok]
+    cvals = None if color is None else np.asarray(color, dtype=float)[ok]
+    with matplotlib.rc_context(drawing_rc()):
+        fig = plt.figure(figsize=drawn_size(11, 9), layout="constrained" if paper else None)
+        ax = fig.add_subplot(2, 2, 1, projection="3d")
+        sc = ax.scatter(Q[:, 0], Q[:, 1], Q[:, 2], s=2 if paper else 4, c=cvals if cvals is not None else "tab:blue")
+        if len(hs["facets"]) and hs["dimension"] == 3:
+            ax.plot_trisurf(P[:, 0], P[:, 1], P[:, 2], triangles=hs["facets"], alpha=0.12, color="tab:orange",
+                            edgecolor="none")
+        ax.set_xlabel("x [m]")
+        ax.set_ylabel("y [m]")
+        ax.set_zlabel("z [m]")
+        vol = hs["volume_m3"]
+        ax.set_title(f"{title}\n{hs['n_points']} points, hull volume {vol * 1e6:.4g} cm^3"
+                     + ("" if hs["dimension"] == 3 else f" (dimension {hs['dimension']})"),
+                     fontsize=None if paper else 9)
+        if cvals is not None:
+            fig.colorbar(sc, ax=ax, shrink=0.6, location="left", pad=0.02, label=color_label or "")
+        for k, (i, j) in enumerate(((0, 1), (0, 2), (1, 2))):
+            a = fig.add_subplot(2, 2, k + 2)
+            a.scatter(Q[:, i], Q[:, j], s=1.5 if paper else 3, c=cvals if cvals is not None else "tab:blue")
+            if mark is not None:
+                M = P[np.asarray(mark, bool) & ok]
+                a.plot(M[:, i], M[:, j], "x", color="red", ms=3 if paper else 5,
+                       label="inputs at their limits (corners)")
+                if k == 0 and not paper:
+                    a.legend(fontsize=7, loc="best")
+            xy = Q[:, [i, j]]
+            if len(xy) >= 3 and np.linalg.matrix_rank(xy - xy.mean(0), tol=1e-12) == 2:
+                h = ConvexHull(xy)
+                loop = np.r_[h.vertices, h.vertices[:1]]
+                a.plot(xy[loop, 0], xy[loop, 1], "-", color="tab:orange", lw=1)
+            a.set_xlabel("xyz"[i] + " [m]")
+            a.set_ylabel("xyz"[j] + " [m]")
+            a.set_aspect("equal", adjustable="datalim")
+            a.grid(alpha=0.3)
+            if paper:                                    # (four 6 pt labels ran into each other on 1.5 in)
+                a.xaxis.set_major_locator(MaxNLocator(3))
+                a.yaxis.set_major_locator(MaxNLocator(3))
+        for axis in (ax.xaxis, ax.yaxis, ax.zaxis):      # (8 ticks a side crowded the 3-D view's corners)
+            axis.set_major_locator(MaxNLocator(3 if paper else 4))
+            if paper:                                    # (a 1.5 in view: its numbers are the projections')
+                axis.set_ticklabels([])
+                axis.labelpad = -8
+        if paper:                                        # (its z label ran into the next panel's)
+            ax.set_zlabel("")
+        if paper:
+            if mark is not None:                         # under the panels, off the data
+                fig.legend(*fig.axes[-3].get_legend_handles_labels(), loc="outside lower center", frameon=False)
+        else:
+            fig.tight_layout()
+            fig.subplots_adjust(wspace=0.3)              # (tight_layout leaves the 3-D z label no room)
     return fig

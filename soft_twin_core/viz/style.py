@@ -59,6 +59,29 @@ def current_style():
     return _CURRENT.get()
 
 
+def drawn_size(width_in, height_in, style=None):
+    """The size [in] to draw a figure designed at (width_in, height_in): as
+    designed on screen; in a paper style, scaled to the style's width
+    (its aspect kept) -- a figure drawn so is saved with ``drawn=True``."""
+    style = current_style() if style is None else style
+    if not style.width_in:
+        return (width_in, height_in)
+    return (style.width_in, style.width_in * height_in / width_in)
+
+
+def drawing_rc(style=None):
+    """rcParams to draw a figure in (``matplotlib.rc_context``): none on
+    screen; a paper style's type sizes (text 7 pt, titles 8 pt, ticks and
+    legends 6 pt) and thinner lines, so that a figure drawn at the
+    column's width (:func:`drawn_size`) is laid out with them."""
+    style = current_style() if style is None else style
+    if not style.width_in:
+        return {}
+    return {"font.size": 7.0, "axes.titlesize": 8.0, "axes.labelsize": 7.0, "xtick.labelsize": 6.0,
+            "ytick.labelsize": 6.0, "legend.fontsize": 6.0, "figure.titlesize": 8.0, "lines.linewidth": 1.0,
+            "lines.markersize": 4.0, "axes.linewidth": 0.6, "xtick.major.size": 2.5, "ytick.major.size": 2.5}
+
+
 def paper_font_size(size_pt):
     """A text's size [pt] in a paper figure: 0.8 of its screen size within
     [6, 9] (screen 10 -> 8 pt, titles 12 -> 9, legends 8 -> 6.4)."""
@@ -155,16 +178,18 @@ def _fit_legends(fig, width_in):
         engine.set(rect=(0.0, min(height + 0.01, 0.4), 1.0, 1.0))
 
 
-def save_figure(fig, folder, stem, style=None):
+def save_figure(fig, folder, stem, style=None, drawn=False):
     """Write ``fig`` as ``<folder>/<stem>.<ext>`` in every format of the
-    style in force (or ``style``), close it, and return the paths."""
+    style in force (or ``style``), close it, and return the paths.
+    ``drawn``: the figure was drawn for the style (:func:`drawn_size`,
+    :func:`drawing_rc`): not laid out again."""
     import matplotlib
     import matplotlib.pyplot as plt
     style = current_style() if style is None else style
     os.makedirs(folder, exist_ok=True)
     paths = []
     rc = _PAPER_RC if style.width_in else {}
-    if style.width_in:
+    if style.width_in and not drawn:
         fit_to_width(fig, style.width_in)
     with matplotlib.rc_context(rc):
         for ext in style.formats:

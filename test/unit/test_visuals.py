@@ -6,6 +6,7 @@ against independent computations."""
 import json
 import os
 import time
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -371,7 +372,8 @@ def test_a_vertical_arms_shapes_figure_has_room_for_its_ticks_and_keeps_the_lege
 def test_the_workspace_colour_bar_leaves_the_z_label_free():
     """Issue 31: the colour bar of a workspace cloud coloured by an input
     covered the 3-D view's z label; it sits left of the view now."""
-    from soft_twin_core.planning.reach import hull_summary, workspace_figure
+    from soft_twin_core.planning.reach import hull_summary
+    from soft_twin_core.viz.plots import workspace_figure
     rng = np.random.default_rng(0)
     P = rng.normal(0.0, 0.05, (200, 3))
     fig = workspace_figure(P, hull_summary(P), "cloud", color=P[:, 0] * 10, color_label="tendon_y_pos [N]")
@@ -507,3 +509,90 @@ def test_the_cli_writes_paper_figures_and_refuses_an_unknown_style(tmp_path, cap
     with pytest.raises(SystemExit) as e:
         cli.main(["statics", "tendon_arm_statics", "--plot", str(tmp_path / "x"), "--style", "poster"])
     assert e.value.code == 2 and "poster" in capsys.readouterr().err and not (tmp_path / "x").exists()
+
+
+def _texts_between_6_and_9_pt_and_on_the_page(fig, renderer):
+    """Every drawn text of ``fig`` is 6-9 pt and lies on the page; no two
+    tick labels of a 2D axis overlap."""
+    from matplotlib.text import Text
+    page = fig.bbox
+    hidden = set()                       # tick labels of ticks outside the view: not drawn
+    for ax in fig.axes:
+        for axis, k in ((ax.xaxis, 0), (ax.yaxis, 1)):
+            lo, hi = sorted(axis.get_view_interval())
+            hidden |= {id(t) for t in axis.get_ticklabels() if not lo - 1e-12 <= t.get_position()[k] <= hi + 1e-12}
+    for t in fig.findobj(Text):
+        if not (t.get_visible() and t.get_text().strip()) or id(t) in hidden:
+            continue
+        assert 6.0 <= t.get_fontsize() <= 9.0, (t.get_text(), t.get_fontsize())
+        if t.axes is None or t.axes.name != "3d":
+            b = t.get_window_extent(renderer)
+            assert b.x0 >= page.x0 - 1 and b.x1 <= page.x1 + 1 and b.y0 >= page.y0 - 1 and b.y1 <= page.y1 + 1, \
+                t.get_text()
+    for ax in fig.axes:
+        if ax.name == "3d" or ax.get_label() == "<colorbar>":
+            continue
+        for labels in (ax.get_xticklabels(), ax.get_yticklabels()):
+            boxes = [t.get_window_extent(renderer) for t in labels if t.get_visible() and t.get_text()]
+            assert not any(a.overlaps(b) for k, a in enumerate(boxes) for b in boxes[k + 1:]), \
+                [t.get_text() for t in labels]
+
+
+def _pdf_width_pt(path):
+    import re
+    pdf = path.read_bytes()
+    assert b"/Type3" not in pdf and b"/FontFile2" in pdf                 # TrueType embedded
+    return float(re.search(rb"/MediaBox \[ *0 0 ([\d.]+) ([\d.]+) *\]", pdf).group(1))
+
+
+def test_the_workspace_and_study_figures_in_the_paper_styles(tmp_path, capsys):
+    """Issue 31: ``--style paper`` / ``paper-wide`` for the workspace
+    command and a design study: their figures are drawn at the column's
+    (3.5 in = 252 pt) or the page's (7.16 in = 515.5 pt) width in 6-9 pt
+    type (viz.style.drawn_size, drawing_rc), every text on the page, no two
+    tick labels overlapping, the workspace legend under the panels; written
+    as PDF (TrueType), SVG and PNG. The scatter matrix keeps its rows and
+    columns, its long labels stacked; summary.md shows the PNGs."""
+    import matplotlib.pyplot as plt
+    import yaml
+    from soft_twin_core.cli import main
+    from soft_twin_core.planning.reach import hull_summary
+    from soft_twin_core.viz.plots import workspace_figure
+    from soft_twin_core.viz.style import figure_style
+    rng = np.random.default_rng(0)
+    P = rng.normal(0.0, 0.05, (200, 3)) + [0.3, 0.0, -0.3]
+    with figure_style("paper"):
+        fig = workspace_figure(P, hull_summary(P), "cloud", color=P[:, 0] * 10, color_label="tendon_y_pos [N]",
+                               mark=np.arange(200) < 8)
+    try:
+        assert fig.get_size_inches()[0] == pytest.approx(3.5)
+        fig.canvas.draw()
+        r = fig.canvas.get_renderer()
+        _texts_between_6_and_9_pt_and_on_the_page(fig, r)
+        legend = fig.legends[0].get_window_extent(r)
+        assert not any(legend.overlaps(ax.get_window_extent(r)) for ax in fig.axes)
+    finally:
+        plt.close(fig)
+    out = tmp_path / "ws"
+    assert main(["workspace", "tendon_arm", "--limit", "3", "--samples", "8", "--actuators",
+                 "tendon_y_pos,tendon_z_neg", "-o", str(out), "--style", "paper"]) == 0
+    assert _pdf_width_pt(out / "workspace.pdf") == pytest.approx(252.0, abs=0.5)
+    assert (out / "workspace.svg").exists() and (out / "workspace.png").exists()
+    assert "workspace.pdf" in capsys.readouterr().err
+    scenario = Path(__file__).resolve().parents[2] / "config" / "scenarios" / "tendon_arm_statics.yaml"
+    f = tmp_path / "s.yaml"
+    f.write_text(yaml.safe_dump({"name": "paper", "scenario": str(scenario), "design": {"type": "grid"},
+                                 "parameters": [{"path": "actuators[0].offset[0]", "values": [0.005, 0.006, 0.007]},
+                                                {"path": "segments[0].material.youngs_modulus",
+                                                 "values": [1.0e6, 1.5e6]}],
+                                 "compute": {"statics": {}}}))
+    assert main(["study", str(f), "-o", str(tmp_path / "st"), "--serial", "--style", "paper-wide"]) == 0
+    plots = tmp_path / "st" / "plots"
+    for stem in ("sensitivity", "scatter"):
+        assert _pdf_width_pt(plots / f"{stem}.pdf") == pytest.approx(515.52, abs=0.5)
+        assert (plots / f"{stem}.svg").exists() and (plots / f"{stem}.png").exists()
+    md = (tmp_path / "st" / "summary.md").read_text()
+    assert "](plots/scatter.png)" in md and ".pdf)" not in md and ".svg)" not in md
+    with pytest.raises(SystemExit):                                   # argparse: exit 2, nothing written
+        main(["workspace", "tendon_arm", "--limit", "3", "--style", "poster", "-o", str(tmp_path / "p")])
+    assert not (tmp_path / "p").exists()
