@@ -17,11 +17,10 @@ Run: .venv/bin/python benchmarks/accuracy_per_dof.py [--out docs/figures/accurac
 import argparse
 import os
 import sys
-import time
 
 import numpy as np
 
-from _timing import machine
+from _timing import best_of, machine
 from soft_twin_core.engine.loads import Loads, PointLoad
 from soft_twin_core.robot.mechanism import from_robot_model
 from soft_twin_core.robot.model import benchmark_cantilever_dict, model_from_dict
@@ -45,15 +44,6 @@ def tip(mech, q, inp):
     return state_outputs(mech, q, np.zeros(0), inp).frames["tip"][:3, 3]
 
 
-def timed(fn, repeat=3):
-    best, out = np.inf, None
-    for _ in range(repeat):
-        t0 = time.perf_counter()
-        out = fn()
-        best = min(best, time.perf_counter() - t0)
-    return out, best
-
-
 def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--out", default="docs/figures/accuracy_per_dof.png")
@@ -68,13 +58,13 @@ def main(argv=None):
         pcs, leg = [], []
         for n in (1, 2, 4, 8, 16, 32, 64):
             m = arm(n)
-            sol, t = timed(lambda: solve_equilibrium(m, loads=loads))
+            t, sol = best_of(lambda: solve_equilibrium(m, loads=loads), 3)
             pcs.append((m.tree.nv, np.linalg.norm(tip(m, sol.q, make_inputs(m, loads=loads)) - p_ref) / L, t))
         inp = make_inputs(backbone, loads=loads)
         pb = free_problem(backbone, inp)
         for p in range(0, 8):
             B = legendre_basis(backbone, p)
-            (q, _, _), t = timed(lambda: solve_reduced(pb, B, backbone.tree.q0, load_steps=8))
+            t, (q, _, _) = best_of(lambda: solve_reduced(pb, B, backbone.tree.q0, load_steps=8), 3)
             leg.append((B.shape[1], np.linalg.norm(tip(backbone, q, inp) - p_ref) / L, t))
         rows[name] = (pcs, leg)
         print(f"\n## {name}\n| coordinates | PCS tip error / L | time | | coordinates | Legendre tip error / L | time |")

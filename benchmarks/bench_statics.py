@@ -3,25 +3,15 @@
 Run: .venv/bin/python benchmarks/bench_statics.py
 """
 
-import time
 
 import numpy as np
 
-from _timing import fmt, machine
+from _timing import best_of, fmt, machine
 from soft_twin_core.engine import loads as ld
 from soft_twin_core.reference import kinematics as kin
 from soft_twin_core.robot.mechanism import from_robot_model
 from soft_twin_core.robot.model import benchmark_cantilever_dict, model_from_dict
 from soft_twin_core.solve.constrained import solve_equilibrium
-
-
-def timed(fn, repeat=5):
-    best, out = np.inf, None
-    for _ in range(repeat):
-        t0 = time.perf_counter()
-        out = fn()
-        best = min(best, time.perf_counter() - t0)
-    return best, out
 
 
 def main():
@@ -37,9 +27,9 @@ def main():
         u = {"t1": 0.8, "t2": 0.4}
         mech = from_robot_model(m)
         solve_equilibrium(mech, u, loads=loads)               # compile
-        t_cold, r = timed(lambda: solve_equilibrium(mech, u, loads=loads))
+        t_cold, r = best_of(lambda: solve_equilibrium(mech, u, loads=loads))
         u2 = {"t1": 0.85, "t2": 0.4}                           # a new command, warm-started
-        t_warm, r2 = timed(lambda: solve_equilibrium(mech, u2, loads=loads, q_init=r.q))
+        t_warm, r2 = best_of(lambda: solve_equilibrium(mech, u2, loads=loads, q_init=r.q))
         print(f"10 sections ({free}, {m.n_dof} dof), gravity + tip load + 2 tendons: cold {fmt(t_cold)} "
               f"({r.iterations} it), warm {fmt(t_warm)} ({r2.iterations} it), residual {r2.residual:.1e}")
     # the common benchmark cantilever under gravity: convergence to the continuum BVP
@@ -55,7 +45,7 @@ def main():
         m = model_from_dict(benchmark_cantilever_dict(n))
         mech = from_robot_model(m)
         solve_equilibrium(mech)
-        t, r = timed(lambda: solve_equilibrium(mech), repeat=3)
+        t, r = best_of(lambda: solve_equilibrium(mech), repeat=3)
         e = np.linalg.norm(kin.tip_pose(m, r.q)[:3, 3] - ref)
         print(f"{n:>8} {fmt(t):>10} {e:>14.3e} {e / 0.5:>10.2e}")
 

@@ -226,6 +226,19 @@ def test_efforts_and_loads_round_trip_and_are_checked(tmp_path):
                                                     wrenches={("tool", "body"): np.zeros((n, 6))}))
 
 
+def _release_test(d, seed, rows=33, sensors=None):
+    """The record of a release test of the arm ``d`` (32 sections, 2 ms
+    steps): held by 0.5 N sideways on the tip (the first row's
+    ``wrench:tip.fy``), let go, read by ``sensors`` (the three markers) at
+    40 Hz for ``rows`` rows."""
+    truth = from_robot_model(model_from_dict(d, 16), d)
+    times = np.arange(rows) * 0.025
+    pull = np.zeros((len(times), 6))
+    pull[0, 1] = 0.5
+    return cal.record_dynamic(truth, _markers() if sensors is None else sensors, times, np.zeros((len(times), 4)),
+                              np.random.default_rng(seed), dt=2e-3, wrenches={("tip", "world"): pull})
+
+
 def test_damping_from_a_release_test(tmp_path, capsys):
     """A release test: the true arm (its viscosity 1.6x the file's, 32
     sections, 2 ms steps) held deflected by a known 0.5 N sideways pull on
@@ -238,12 +251,7 @@ def test_damping_from_a_release_test(tmp_path, capsys):
     d = _nominal()
     for s in d["segments"]:
         s["material"]["viscosity"] = 1.6 * float(s["material"]["viscosity"])
-    truth = from_robot_model(model_from_dict(d, 16), d)
-    times = np.arange(33) * 0.025
-    pull = np.zeros((len(times), 6))
-    pull[0, 1] = 0.5
-    rec = cal.record_dynamic(truth, _markers(), times, np.zeros((len(times), 4)), np.random.default_rng(8), dt=2e-3,
-                             wrenches={("tip", "world"): pull})
+    rec = _release_test(d, 8)
     assert np.ptp(rec.readings["mk2"][:, 1]) > 0.01                 # it swings: 1 cm and more
     res = cal.calibrate_damping(_nominal(), _markers(), rec, ["proximal+distal"], dt=5e-3, n_sections=4)
     assert res.values[0] == pytest.approx(8.0e4, rel=0.10), res.table()
@@ -281,12 +289,7 @@ def test_stiffness_density_and_damping_from_one_release_test(tmp_path, capsys):
     for seg in d["segments"]:
         seg["material"].update(youngs_modulus=TRUE_E, density=0.85 * float(seg["material"]["density"]),
                                viscosity=1.6 * float(seg["material"]["viscosity"]))
-    truth = from_robot_model(model_from_dict(d, 16), d)
-    times = np.arange(33) * 0.025
-    pull = np.zeros((len(times), 6))
-    pull[0, 1] = 0.5
-    rec = cal.record_dynamic(truth, _markers(), times, np.zeros((len(times), 4)), np.random.default_rng(9), dt=2e-3,
-                             wrenches={("tip", "world"): pull})
+    rec = _release_test(d, 9)
     names = ["youngs_modulus:proximal+distal", "density:proximal+distal", "viscosity:proximal+distal"]
     res = cal.calibrate_dynamic(_nominal(), _markers(), rec, names, dt=5e-3, n_sections=4)
     true = np.array([TRUE_E, 0.85 * 1100.0, 1.6 * 5.0e4])
@@ -316,13 +319,8 @@ def test_a_sensor_offset_and_the_damping_from_a_release_test():
     d = _nominal()
     for seg in d["segments"]:
         seg["material"]["viscosity"] = 1.6 * float(seg["material"]["viscosity"])
-    truth = from_robot_model(model_from_dict(d, 16), d)
     real = _markers()[:2] + [sn.marker("mk2", 3e-4, (0.0, 0.004, 0.0), s=0.40)]
-    times = np.arange(25) * 0.025
-    pull = np.zeros((len(times), 6))
-    pull[0, 1] = 0.5
-    rec = cal.record_dynamic(truth, real, times, np.zeros((len(times), 4)), np.random.default_rng(5), dt=2e-3,
-                             wrenches={("tip", "world"): pull})
+    rec = _release_test(d, 5, rows=25, sensors=real)
     res = cal.calibrate_dynamic(_nominal(), _markers(), rec, ["sensor_offset:mk2:y", "viscosity:proximal+distal"],
                                 dt=5e-3, n_sections=4)
     assert res.values[0] == pytest.approx(0.004, abs=3e-4), res.table()
