@@ -4,6 +4,7 @@ and checked."""
 import os
 import subprocess
 import sys
+import time
 from pathlib import Path
 
 import numpy as np
@@ -126,14 +127,26 @@ def _scrub_the_recording_in_the_page(rec, run, tmp_path):
             p = p.parentElement; return p ? p.querySelector({sel!r}) : null; }})()"""
         playing = row.format(label="playing", sel="input[type=checkbox]")
 
-        def untick():                 # (a click before the page's controls are live is lost: again)
-            if not browser.evaluate(f"{playing}.checked"):
+        unticked_at = []
+
+        def pause():
+            """Untick "playing" until the view says it paused. A click before
+            the page's controls are live toggles the box but never reaches
+            the view: a box left unticked 3 s with no "(paused)" is ticked
+            again, to be unticked on the next call."""
+            if "(paused)" in browser.evaluate("document.body.innerText"):
                 return True
             box = browser.rect(playing)
-            browser.click(box["x"] + 0.5 * box["width"], box["y"] + 0.5 * box["height"])
+            if browser.evaluate(f"{playing}.checked"):
+                browser.click(box["x"] + 0.5 * box["width"], box["y"] + 0.5 * box["height"])     # untick
+                unticked_at[:] = [time.monotonic()]
+            elif not unticked_at:
+                unticked_at[:] = [time.monotonic()]
+            elif time.monotonic() - unticked_at[0] > 3.0:
+                browser.click(box["x"] + 0.5 * box["width"], box["y"] + 0.5 * box["height"])     # tick again
+                unticked_at.clear()
             return False
-        assert wait_for(untick, 20.0, 1.0)
-        assert wait_for(lambda: "(paused)" in browser.evaluate("document.body.innerText"), 20.0, 0.25)
+        assert wait_for(pause, 40.0, 0.5), browser.evaluate("document.body.innerText")
         thumb = browser.rect(row.format(label="time [s]", sel="[role=slider]"))
         track = browser.rect(row.format(label="time [s]", sel=".mantine-Slider-track"))
         for k, frac in enumerate((0.6, 0.2)):
