@@ -17,7 +17,6 @@ twin runs (up to ~100 dof) costs less than the glue it replaces."""
 
 import numpy as np
 
-from soft_twin_core.engine.forces import actuation_tangent_pass
 from soft_twin_core.engine.integrators import integrate_pass, residual_after_forward
 from soft_twin_core.engine.kernels import passes
 from soft_twin_core.engine.kernels.contact import pose_obstacles, step_contacts, transition_fraction
@@ -25,7 +24,8 @@ from soft_twin_core.engine.kernels.data import LoadArrays
 from soft_twin_core.engine.kernels.frames import (body_point_twists, frame_spins, offset_point_positions,
                                                   relative_point_jacobians, spatial_jacobian)
 from soft_twin_core.engine.kernels.spatial import _jit, _jit_inline
-from soft_twin_core.engine.kernels.tangent import static_tangent_pass
+from soft_twin_core.engine.step_matrix import (elastic_noise, free_newton_update, invert_step_matrix,
+                                                step_tangents, theta_point)
 
 
 @_jit_inline
@@ -200,14 +200,7 @@ def _newton_inverse(m, w, act, ldc, g, coef, K, D, qt, h, theta, pj, px, prad, p
     its spin friction's damping through the spin's Jacobian
     (:meth:`soft_twin_core.solve.contact.MemberContact.add_stiffness`)."""
     nv = K.shape[0]
-    passes.forward_pass(m, w, qt, zeros, zeros, 0)
-    A = np.zeros((nv, nv))
-    passes.crba_pass(m, w, A)
-    passes.rnea_pass(m, w, ldc, g, np.empty(nv), True)
-    Kt = K.copy()
-    static_tangent_pass(m, w, ldc, g, Kt)
-    actuation_tangent_pass(m, w, act, coef, Kt)
-    Dt = D.copy()
+    A, Kt, Dt = step_tangents(m, w, act, ldc, g, coef, K, D, qt, zeros)
     if c > 0:
         J = np.empty((c, 3, nv))
         Jw = np.empty((c, 3, nv))
@@ -246,34 +239,11 @@ def _newton_inverse(m, w, act, ldc, g, coef, K, D, qt, h, theta, pj, px, prad, p
                 for i in range(nv):
                     for j in range(nv):
                         Dt[i, j] -= dW[k] * Js[i] * Js[j]
-    th = theta * h
-    for i in range(nv):
-        for j in range(nv):
-            A[i, j] = (A[i, j] + th * Dt[i, j] + th * th * Kt[i, j]) / h
-            if not np.isfinite(A[i, j]):
-                return False
-    for i in range(nv):
-        if fixed[i]:
-            for j in range(nv):
-                Afix[i, j] = A[i, j]
-                A[i, j] = 0.0
-                A[j, i] = 0.0
-            A[i, i] = 1.0
-    try:
-        inv = np.linalg.inv(A)
-    except Exception:           # singular to machine precision
-        return False
-    ok = True
-    for i in range(nv):
-        for j in range(nv):
-            if not np.isfinite(inv[i, j]):
-                ok = False
-            Ainv[i, j] = inv[i, j]
-    return ok
+    return invert_step_matrix(A, Kt, Dt, h, theta, fixed, Ainv, Afix)
 
 
 @_jit
-def contact_step(m, w, act, ld, g, coef, effort, K, D, q_ref, elastic_noise, q0, v0, h, theta, tol, floor,
+def contact_step(m, w, act, ld, g, coef, effort, K, D, q_ref, elastic, q0, v0, h, theta, tol, floor,
                  max_it, pj, px, poff, prad, pmod, pw, allowed, obs, obs0, P0, P1, Pt, moving, fixed, Ainv, Afix,
                  key, reuse, v1, q1, pt, R, idx, ob_of, n_out, gap, F, dF, dV, dFf, dVf, M, slip, arm, barm, spin,
                  dW):
@@ -334,18 +304,13 @@ def contact_step(m, w, act, ld, g, coef, effort, K, D, q_ref, elastic_noise, q0,
     qt = np.empty(nq)
     vt = np.empty(nv)
     acc = np.empty(nv)
-    th = theta * h
     refactor, factorised = True, 0
     prev, first, Rs, noise = np.inf, 0.0, 1e-300, 0.0
     dv = np.zeros(nv)
     lastR, halvings = np.inf, 0
     c = 0
     for it in range(1, max_it + 1):
-        for k in range(nv):
-            vt[k] = (1.0 - theta) * v0[k] + theta * v1[k]
-            acc[k] = (v1[k] - v0[k]) / h
-        integrate_pass(m, q0, vt, th, qt)
-        integrate_pass(m, q0, vt, h, q1)
+        theta_point(m, q0, v0, v1, h, theta, vt, acc, qt, q1)
         if touching:
             _positions(m, w, q1, zeros, zeros, 0, pj, px, poff, G, p1)
         if spins:
@@ -386,14 +351,8 @@ def contact_step(m, w, act, ld, g, coef, effort, K, D, q_ref, elastic_noise, q0,
                 nR = max(nR, abs(R[k]))
         if it == 1:
             Rs = max(nR, 1e-300)
-            if elastic_noise:
-                # round-off of the forces: the elastic ones (a robot resting on obstacles steps from an
-                # equilibrium whose residual is this noise)
-                for i in range(nv):
-                    s = 0.0
-                    for j in range(nv):
-                        s += K[i, j] * (qt[j] - q_ref[j])
-                    noise = max(noise, 1e-9 * abs(s))
+            if elastic:       # round-off of the elastic forces (a robot resting on obstacles)
+                noise = elastic_noise(K, qt, q_ref)
             if nR <= noise:
                 break
         elif nR <= max(tol * Rs, noise):
@@ -405,13 +364,7 @@ def contact_step(m, w, act, ld, g, coef, effort, K, D, q_ref, elastic_noise, q0,
                 v1[i] -= dv[i]
             halvings += 1
             continue
-        for i in range(nv):
-            s = 0.0
-            if not fixed[i]:
-                for j in range(nv):
-                    if not fixed[j]:
-                        s -= Ainv[i, j] * R[j]
-            dv[i] = s
+        free_newton_update(Ainv, R, fixed, dv)
         alpha = _transition_alpha(m, w, pj, px, prad, pt, idx, ob_of, obs, n_out, slip, dv, c)
         if spins:
             alpha = min(alpha, _spin_alpha(m, w, pj, px, idx, ob_of, obs, n_out, spin, dv, c))

@@ -244,8 +244,11 @@ class EKF:
         # the process model steps the robot with its position-controlled joints driven by the servo's
         # efforts; its multipliers are the closed chains' reactions (none: the compiled O(n) integrator)
         self._servo_mech = replace(mech, control=tuple("effort" if c == "position" else c for c in mech.control))
+        # (a closed chain's step factorises its KKT matrix afresh: its mean must be what the analytic Phi
+        # linearises, to Newton's quadratic convergence, not to the tolerance a reused matrix stops at)
         self._sim = MechanismSimulator(self._servo_mech, self.dt, self.theta, tol=1e-9, max_iterations=10,
-                                       max_substep_levels=4, full_newton=False)
+                                       max_substep_levels=4, full_newton=False,
+                                       reuse_factorisation=mech.n_constraint_rows == 0)
         self._no_cmd = np.zeros(0)
         self.gate = {m: float(chi2.ppf(gate_probability, m)) for m in range(1, 7)}
         self._gate_probability = gate_probability

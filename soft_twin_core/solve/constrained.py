@@ -25,6 +25,7 @@ Rotation rows of a clamp use ``log(R_a R_b^T)`` whose derivative is
 ``w_a - w_b`` at zero error: Newton's matrix is exact at the solution.
 """
 
+import contextlib
 from collections import namedtuple
 from dataclasses import dataclass
 
@@ -33,6 +34,7 @@ import numpy as np
 from soft_twin_core._blas import one_blas_thread
 from soft_twin_core.engine.algorithms import crba, forward_kinematics, point_poses
 from soft_twin_core.engine.contact import ContactPoints, ContactState, moved
+from soft_twin_core.engine.closed_step import CLAMPED, closed_step
 from soft_twin_core.engine.contact_step import contact_step
 from soft_twin_core.engine.forces import (actuation_tangent_pass, actuator_arrays, check_member_loads,
                                           concat_loads, gravity_of, load_arrays, point_moment_arrays)
@@ -680,7 +682,12 @@ class MechanismSimulator:
     in up to 2**``max_substep_levels`` sub-steps, then (``full_newton``) by
     the dense Newton fallback (:class:`integrators.ThetaIntegrator`;
     ``reuse_factorisation``: its Newton matrix serves later steps while it
-    contracts the error as a fresh one does). ``iterations``: the last
+    contracts the error as a fresh one does; with constraint rows, the
+    compiled KKT step's factors serve later steps while steps converge in 5
+    iterations or fewer: results to the tolerance, not beyond as a fresh
+    Newton matrix's quadratic convergence gives them). ``compiled``: the compiled
+    steps (:mod:`engine.contact_step`, :mod:`engine.closed_step`) where they
+    apply; False: the Python KKT step (a reference). ``iterations``: the last
     call's Newton iterations a step; ``newton_iterations``: all of them so
     far; ``factorisations``: the Newton matrices factorised so far.
 
@@ -690,7 +697,7 @@ class MechanismSimulator:
 
     def __init__(self, mech, dt, theta=0.5, q=None, v=None, *, tol=1e-10, constraint_tol=1e-12,
                  max_iterations=40, max_substep_levels=4, full_newton=True, reuse_factorisation=True,
-                 obstacles=None):
+                 obstacles=None, compiled=True):
         if not dt > 0 or not np.isfinite(dt):
             raise ValueError(f"dt: expected a positive time step [s], got {dt}")
         if not 0.5 <= theta <= 1.0:
@@ -699,6 +706,7 @@ class MechanismSimulator:
         self.mech, self.tree, self.dt, self.theta = mech, tree, float(dt), float(theta)
         self.tol, self.constraint_tol, self.max_iterations = tol, constraint_tol, max_iterations
         self.max_substep_levels = int(max_substep_levels)
+        self.reuse_factorisation = bool(reuse_factorisation)
         self.ws = Workspace(tree)
         self.act = _cached(mech, "_act_arrays", lambda: actuator_arrays(tree))
         self.K, self.D = _cached(mech, "_dense_KD", lambda: _dense_blocks(tree))
@@ -726,8 +734,12 @@ class MechanismSimulator:
         # obstacles or without (then only its position-controlled joints need more than the rod's
         # integrator). Closed chains keep the Python KKT step: a loop's constraint rows couple joints
         # across the loop and cannot be eliminated one joint at a time as a position command can.
-        self._use_compiled_step = mech.n_constraint_rows == 0 and all(
-            tree.joints[i].kind in (REVOLUTE, PRISMATIC) for i in pos)
+        eliminable = all(tree.joints[i].kind in (REVOLUTE, PRISMATIC) for i in pos)
+        self._use_compiled_step = compiled and mech.n_constraint_rows == 0 and eliminable
+        # constraint rows, no contacts: the compiled KKT step (engine.closed_step), the Python one its
+        # fallback when it fails
+        self._use_closed_step = compiled and mech.n_constraint_rows > 0 and eliminable and not self.contact
+        self._closed_held = None          # its factors, constraint arrays and independent rows
         # no multipliers (a rod, a tree of soft members and effort-controlled or passive joints): the
         # engine's compiled O(n) integrator, the rod's (integrators.ThetaIntegrator)
         self._theta_integrator = None
@@ -760,13 +772,19 @@ class MechanismSimulator:
         if self._theta_integrator is not None:
             self._run_free(inp, int(n))          # the O(n) passes: no BLAS
             return self
-        with one_blas_thread():
+        # the Python KKT step's scipy factorisations on one BLAS thread; the compiled steps' small
+        # inverses gain nothing from the limit, which costs ~20 us a call to set (a step of the
+        # four-bar takes 50 us)
+        compiled = self._use_compiled_step or self._use_closed_step
+        with contextlib.nullcontext() if compiled else one_blas_thread():
             for _ in range(int(n)):
                 if self.contact:
                     self._move_obstacles(obstacles)
                     self._contact_step(inp, targets, self.dt, 0)
                 elif self._use_compiled_step:     # position-controlled joints, eliminated; no contacts
                     self._contact_step(inp, targets, self.dt, 0)
+                elif self._use_closed_step:
+                    self._closed_or_kkt_step(inp, targets)
                 else:
                     self._step(inp, targets)
         return self
@@ -871,6 +889,88 @@ class MechanismSimulator:
         self.contacts = ContactState(idx, out[1][:c], pt[idx], n_, gap, F, dF, dV, M, slip, body=obs.body[out[1][:c]],
                                      arm=arm, body_arm=barm, spin=spin, dM_dw=dW, dFf_dp=dFf, dFf_dv=dVf,
                                      radius=pts.radius[idx]) if contact else None
+        self.t += h
+        self.iterations = it
+        self.newton_iterations += it
+
+    def _closed_or_kkt_step(self, inp, targets):
+        """One step with constraint rows: the compiled KKT step
+        (:func:`engine.closed_step.closed_step`), or, if it fails (its
+        redundant rows changed, Newton stalled), the Python one."""
+        try:
+            return self._closed_step(inp, targets, self.dt)
+        except StepError:
+            self._closed_held = None
+        self._step(inp, targets)
+
+    def _closed_arrays(self, targets):
+        """The constraints' arrays for :func:`engine.closed_step.closed_step`:
+        frames (joint, x), kinds, rows C (k, 6, 6) and sizes, world targets."""
+        mech = self.mech
+        cs = mech.constraints
+        arrays = mech.__dict__.get("_closed_arrays")
+        if arrays is None:
+            joint, x = _constraint_points(mech)
+            crows = np.zeros((len(cs), 6, 6))
+            for k, c in enumerate(cs):
+                crows[k, :c.size] = c.rows()
+            arrays = (joint, kernel_array(x), np.array([CLAMPED if c.kind == "clamped" else 0 for c in cs], np.int64),
+                      crows, np.array([c.size for c in cs], np.int64),
+                      np.ascontiguousarray([np.eye(4) if c.target is None else c.target for c in cs], dtype=float))
+            object.__setattr__(mech, "_closed_arrays", arrays)
+        if targets is None or all(t is None for t in targets):
+            return arrays
+        ctarget = arrays[5].copy()
+        for k, t in enumerate(targets):
+            if t is not None:
+                ctarget[k] = t
+        return arrays[:5] + (ctarget,)
+
+    def _closed_step(self, inp, targets, h):
+        """One step of h with constraint rows and no contacts: the Newton
+        iteration of :meth:`_step`, compiled (the KKT system by its Schur
+        complement on the constraint rows); its factors kept for the next
+        step while steps converge fast, as :meth:`_compiled_step` does. The
+        position-controlled joints eliminated as there. Raises StepError
+        (state unchanged) if it fails."""
+        tree, ws, mech = self.tree, self.ws, self.mech
+        cj, cx, ckind, crows, csize, ctarget = self._closed_arrays(targets)
+        nc = mech.n_constraint_rows
+        held = self._closed_held
+        if held is None or held["h"] != h:
+            _, G = constraint_rows(mech, ws, self.q, targets, inp.q_cmd)
+            rows = independent_rows(G[:nc]).astype(np.int64)
+            nv, mr = tree.nv, len(rows)
+            held = self._closed_held = dict(h=h, rows=rows, Ainv=np.zeros((nv, nv)), Afix=np.zeros((nv, nv)),
+                                            Z=np.zeros((nv, mr)), Sinv=np.zeros((mr, mr)), G1f=np.zeros((mr, nv)),
+                                            Gtf=np.zeros((mr, nv)), reuse=False)
+        if held.get("inputs") is not inp:        # the inputs' arrays, once per Inputs
+            coef = np.ascontiguousarray(self.act.unit @ inp.u) if inp.u.size else np.zeros(len(self.act.joint))
+            held.update(inputs=inp, coef=coef, loads=concat_loads(inp.loads))
+        v1, q1, R, phi = self.v.copy(), np.empty(tree.nq), np.empty(tree.nv), np.empty(nc)
+        lam = self.lam[:nc].copy()
+        pv, th = self._pos_v, self.theta
+        if pv.size:
+            v1[pv] = ((inp.q_cmd - self.q[self._pos_q]) / h - (1 - th) * self.v[pv]) / th
+        lam_force = np.abs(self.lam).max(initial=0) * max(self.Ls, 1.0)
+        it, status, fresh = closed_step(
+            ws.m, ws.w, self.act, held["loads"], inp.gravity, held["coef"], inp.effort, self.K, self.D, tree.q0,
+            tree.nq == tree.nv, self.q, self.v, h, th, self.tol, 1e-14 * max(self.Ls, 1.0) / h, self.max_iterations,
+            cj, cx, ckind, crows, csize, ctarget, held["rows"], self.constraint_tol * max(self.Ls, 1.0), lam_force,
+            self._fixed, held["Ainv"], held["Afix"], held["Z"], held["Sinv"], held["G1f"], held["Gtf"], held["reuse"],
+            v1, lam, q1, R, phi)
+        self._kkt_factorisations += fresh
+        held["reuse"] = self.reuse_factorisation and status == 0 and it <= 5
+        if status:
+            why = {1: f"Newton did not converge in {self.max_iterations} iterations (constraint error "
+                      f"{np.abs(phi).max(initial=0):.3g})", 3: "non-finite residual", 4: "singular Newton matrix"}[status]
+            raise StepError(f"step at t = {self.t:.6g} s: {why}")
+        self.a = (v1 - self.v) / h
+        if pv.size:      # their velocity as the KKT step leaves it, their efforts
+            v1[pv] = inp.v_cmd if inp.v_cmd is not None else (q1[self._pos_q] - self.q[self._pos_q]) / h
+        self.lam = np.concatenate([lam, R[pv]])
+        self.q, self.v = q1, v1
+        self.contacts = None
         self.t += h
         self.iterations = it
         self.newton_iterations += it

@@ -1,0 +1,108 @@
+"""The Newton matrix of an implicit theta step, compiled, shared by the
+compiled steps (:mod:`contact_step`, :mod:`closed_step`):
+
+    A = (M + theta h D_t + (theta h)^2 K_t) / h
+
+at the theta point q_t (M: the mass matrix, CRBA; K_t: the static tangent
+of the elastic forces, loads and tendons; D_t: the damping), inverted
+densely with the rows and columns of the prescribed (``fixed``) velocities
+replaced by the identity's: a position-controlled joint is eliminated, its
+row of the full matrix kept (``Afix``) to carry its effort along an update.
+Dense, nv^3 a factorisation: for the robots the twin runs (up to ~100 dof)
+it costs less than the Python glue it replaces."""
+
+import numpy as np
+
+from soft_twin_core.engine.forces import actuation_tangent_pass
+from soft_twin_core.engine.integrators import integrate_pass
+from soft_twin_core.engine.kernels import passes
+from soft_twin_core.engine.kernels.spatial import _jit_inline, _jit_inner
+from soft_twin_core.engine.kernels.tangent import static_tangent_pass
+
+
+@_jit_inline
+def step_tangents(m, w, act, ld, g, coef, K, D, qt, zeros):
+    """(M, K_t, D_t) at q_t under the dead and follower loads ``ld``, gravity
+    g and tendon coefficients ``coef`` (the workspace posed at q_t, at rest)."""
+    nv = K.shape[0]
+    passes.forward_pass(m, w, qt, zeros, zeros, 0)
+    M = np.zeros((nv, nv))
+    passes.crba_pass(m, w, M)
+    passes.rnea_pass(m, w, ld, g, np.empty(nv), True)
+    Kt = K.copy()
+    static_tangent_pass(m, w, ld, g, Kt)
+    actuation_tangent_pass(m, w, act, coef, Kt)
+    return M, Kt, D.copy()
+
+
+@_jit_inner
+def invert_step_matrix(A, Kt, Dt, h, theta, fixed, Ainv, Afix):
+    """Ainv = ((A + th h D_t + (th h)^2 K_t) / h)^-1 (A holds M on entry and
+    the step matrix on return), the ``fixed`` rows and columns replaced by
+    the identity's (their rows of the full matrix into Afix). False if
+    singular or not finite."""
+    nv = A.shape[0]
+    th = theta * h
+    for i in range(nv):
+        for j in range(nv):
+            A[i, j] = (A[i, j] + th * Dt[i, j] + th * th * Kt[i, j]) / h
+            if not np.isfinite(A[i, j]):
+                return False
+    for i in range(nv):
+        if fixed[i]:
+            for j in range(nv):
+                Afix[i, j] = A[i, j]
+                A[i, j] = 0.0
+                A[j, i] = 0.0
+            A[i, i] = 1.0
+    try:
+        inv = np.linalg.inv(A)
+    except Exception:           # singular to machine precision
+        return False
+    ok = True
+    for i in range(nv):
+        for j in range(nv):
+            if not np.isfinite(inv[i, j]):
+                ok = False
+            Ainv[i, j] = inv[i, j]
+    return ok
+
+
+@_jit_inner
+def elastic_noise(K, qt, q_ref):
+    """The round-off of the elastic forces ``K (q_t - q_ref)`` (1e-9 of the
+    largest): a robot at rest, or resting on obstacles, steps from an
+    equilibrium whose residual is this noise, which a step cannot reduce."""
+    nv = K.shape[0]
+    noise = 0.0
+    for i in range(nv):
+        s = 0.0
+        for j in range(nv):
+            s += K[i, j] * (qt[j] - q_ref[j])
+        noise = max(noise, 1e-9 * abs(s))
+    return noise
+
+
+@_jit_inner
+def free_newton_update(Ainv, R, fixed, out):
+    """out = -A^-1 R over the free velocities (zero on the ``fixed`` ones)."""
+    nv = R.shape[0]
+    for i in range(nv):
+        s = 0.0
+        if not fixed[i]:
+            for j in range(nv):
+                if not fixed[j]:
+                    s -= Ainv[i, j] * R[j]
+        out[i] = s
+
+
+@_jit_inner
+def theta_point(m, q0, v0, v1, h, theta, vt, acc, qt, q1):
+    """The step's mean velocity vt = (1 - theta) v0 + theta v1, its mean
+    acceleration acc = (v1 - v0) / h, the theta point qt = q0 (+) theta h vt
+    and the end q1 = q0 (+) h vt."""
+    for k in range(v0.shape[0]):
+        vt[k] = (1.0 - theta) * v0[k] + theta * v1[k]
+        acc[k] = (v1[k] - v0[k]) / h
+    integrate_pass(m, q0, vt, theta * h, qt)
+    integrate_pass(m, q0, vt, h, q1)

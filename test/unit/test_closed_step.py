@@ -1,0 +1,154 @@
+"""The compiled step of robots with constraint rows (engine.closed_step):
+the KKT system of the implicit step solved by its Schur complement on the
+constraint rows, against the Python KKT step it replaces (the reference:
+``MechanismSimulator(..., compiled=False)``, itself tested against closed
+forms, the continuum reference and energy in test_constrained.py and
+test_constrained_stability.py).
+
+Robots: a rigid four-bar (a planar loop closed by a 3-D pin: one redundant
+row), the fixed-fixed beam (a member clamped at both ends), the planar
+parallel robot (two loops, position-controlled joints eliminated), and an
+arm on a base clamped to a moving target (a free joint: quaternion
+coordinates)."""
+
+import numpy as np
+import pytest
+
+from soft_twin_core.engine.closed_step import closed_step
+from soft_twin_core.robot.mechanism import load_mechanism, mechanism_from_dict
+from soft_twin_core.robot.model import find_file
+from soft_twin_core.solve.constrained import MechanismSimulator, constraint_rows, make_inputs, solve_equilibrium
+from test_constrained import _member, four_bar
+
+
+def _swing(mech, k, dt):
+    """Inputs of step k: position-controlled joints swing, the first tendon pulls."""
+    pos = {mech.tree.joints[i].name: 0.2 * np.sin(2 * np.pi * k * dt) for i in mech.joints_with("position")}
+    act = {a.name: 1.0 for a in mech.actuators[:1]}
+    vel = [0.4 * np.pi * np.cos(2 * np.pi * k * dt) for _ in pos]
+    return make_inputs(mech, act, None, pos, vel or None)
+
+
+def _run_both(mech, dt, steps, reuse, targets=lambda t: None, q=None):
+    """The compiled and the Python step side by side, the same inputs."""
+    sims = [MechanismSimulator(mech, dt, q=q, compiled=c, reuse_factorisation=reuse) for c in (True, False)]
+    assert sims[0]._use_closed_step and not sims[1]._use_closed_step
+    for k in range(steps):
+        inp = _swing(mech, k, dt)
+        for s in sims:
+            s.step(inputs=inp, targets=targets(s.t + dt))
+    return sims
+
+
+def _assert_same(a, b, rtol):
+    for name in ("q", "v", "lam"):
+        x, y = getattr(a, name), getattr(b, name)
+        assert np.abs(x - y).max() <= rtol * max(np.abs(y).max(), 1.0), name
+
+
+def _robots():
+    return [("four_bar", four_bar(1.0))] + [(n, load_mechanism(find_file(n, "robots")))
+                                            for n in ("fixed_fixed_beam", "planar_parallel_robot")]
+
+
+@pytest.mark.parametrize("name,mech", _robots(), ids=lambda x: x if isinstance(x, str) else "")
+def test_compiled_closed_step_is_the_python_kkt_step(name, mech):
+    """With a fresh KKT matrix every step both iterate alike: the same
+    states and multipliers to round-off over 60 steps of motion (joints
+    swinging, a tendon pulling), every constraint held at the end of each
+    step; with the matrix reused across steps, the same to the Newton
+    tolerance, with far fewer factorisations."""
+    eq = solve_equilibrium(mech)
+    fresh = _run_both(mech, 5e-3, 60, reuse=False, q=eq.q)
+    _assert_same(*fresh, 1e-9)
+    assert fresh[0].factorisations >= 60 and fresh[0]._closed_held is not None     # the compiled path ran
+    assert fresh[0].constraint_error() < 1e-10
+    reused = _run_both(mech, 5e-3, 60, reuse=True, q=eq.q)
+    _assert_same(*reused, 1e-7)
+    assert reused[0].factorisations <= 10 and reused[1].factorisations >= 60
+    assert reused[0].constraint_error() < 1e-10
+    # the efforts of the position-controlled joints (eliminated) are the KKT step's multipliers
+    for j, e in fresh[1].joint_efforts().items():
+        assert abs(fresh[0].joint_efforts()[j] - e) <= 1e-8 * max(abs(e), 1.0), j
+
+
+def test_compiled_closed_step_follows_a_moving_clamp_target():
+    """A member on a free base clamped to a target that moves (a prescribed
+    base: quaternion coordinates, a clamp's rotation rows): as the Python step."""
+    mech = mechanism_from_dict({"name": "b", "gravity": [0, 0, -9.81], "base": {"motion": "prescribed"},
+                                "bodies": [_member("arm", 0.3, 3, modes="bending_torsion")]})
+
+    def target(t):
+        g = np.eye(4)
+        g[0, 3] = 0.05 * np.sin(2 * np.pi * t)
+        c, s = np.cos(0.3 * t), np.sin(0.3 * t)
+        g[:2, :2] = [[c, -s], [s, c]]
+        return [g]
+    sims = _run_both(mech, 2e-3, 100, reuse=False, targets=target)
+    _assert_same(*sims, 1e-9)
+    assert sims[0].constraint_error(target(sims[0].t)) < 1e-10
+
+
+def test_a_failing_compiled_step_falls_back_to_the_python_step(monkeypatch):
+    """Told to keep the four-bar's redundant row (the pin's out-of-plane
+    one, identically zero), the Schur complement is singular: the compiled
+    step reports it, the Python KKT step (which leaves that row out) takes
+    the step, and the compiled one resumes with its rows found anew."""
+    from soft_twin_core.solve import constrained
+    mech = four_bar(1.0)
+    sim, ref = (MechanismSimulator(mech, 5e-3, compiled=c, reuse_factorisation=False) for c in (True, False))
+    sim.step()
+    ref.step()
+    _, G = constraint_rows(mech, sim.ws, sim.q)
+    assert len(sim._closed_held["rows"]) == 2 and np.abs(G).max(axis=1).min() < 1e-12
+    real, calls = constrained.independent_rows, []
+
+    def all_rows_once(G, rtol=1e-10):          # the compiled step's rows: all three, once
+        calls.append(len(G))
+        return np.arange(len(G)) if len(calls) == 1 else real(G, rtol)
+    monkeypatch.setattr(constrained, "independent_rows", all_rows_once)
+    sim._closed_held = None
+    sim.step()
+    ref.step()
+    _assert_same(sim, ref, 1e-9)
+    assert sim._closed_held is None and len(calls) >= 2          # the Python step's rows after the compiled's
+    sim.step()
+    ref.step()
+    _assert_same(sim, ref, 1e-9)
+    assert len(sim._closed_held["rows"]) == 2
+
+
+def test_closed_step_refuses_factors_of_other_rows():
+    """Factors sized for other rows: status 4 before any work (the kernel
+    has no bounds checks)."""
+    mech = four_bar(1.0)
+    sim = MechanismSimulator(mech, 5e-3)
+    sim.step()
+    held = sim._closed_held
+    tree, ws = mech.tree, sim.ws
+    inp = make_inputs(mech)
+    out = closed_step(
+        ws.m, ws.w, sim.act, held["loads"], inp.gravity, held["coef"], inp.effort, sim.K, sim.D, tree.q0, True,
+        sim.q, sim.v, 5e-3, 0.5, 1e-10, 1e-14, 10, *sim._closed_arrays(None), np.arange(3), 1e-12, 0.0,
+        sim._fixed, held["Ainv"], held["Afix"], held["Z"], held["Sinv"], held["G1f"], held["Gtf"], False,
+        sim.v.copy(), sim.lam[:3].copy(), np.empty(tree.nq), np.empty(tree.nv), np.empty(3))
+    assert out == (0, 4, 0)
+
+
+def test_closed_step_reports_a_step_that_does_not_converge():
+    """One Newton iteration allowed: status 1, not a silent wrong state."""
+    mech = four_bar(1.0)
+    sim = MechanismSimulator(mech, 5e-3, compiled=True)
+    sim.step()
+    held = sim._closed_held
+    tree, ws = mech.tree, sim.ws
+    cj, cx, ckind, crows, csize, ctarget = sim._closed_arrays(None)
+    inp = make_inputs(mech)
+    q0, v0 = sim.q.copy(), sim.v + 1.0
+    v1, q1, R, phi, lam = v0.copy(), np.empty(tree.nq), np.empty(tree.nv), np.empty(3), sim.lam[:3].copy()
+    it, status, _ = closed_step(
+        ws.m, ws.w, sim.act, held["loads"], inp.gravity, held["coef"], inp.effort, sim.K, sim.D, tree.q0, True,
+        q0, v0, 5e-3, 0.5, 1e-10, 1e-14, 1, cj, cx, ckind, crows, csize, ctarget, held["rows"], 1e-12, 0.0,
+        sim._fixed, held["Ainv"], held["Afix"], held["Z"], held["Sinv"], held["G1f"], held["Gtf"], False,
+        v1, lam, q1, R, phi)
+    assert (it, status) == (1, 1)
