@@ -34,6 +34,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from soft_twin_core import lie
 from soft_twin_core.engine import algorithms as alg
 from soft_twin_core.engine.forces import actuation_pass
 from soft_twin_core.engine.joint_kinds import FREE, SPHERICAL
@@ -97,6 +98,33 @@ def integrate_pass(m, q, v, h, out):
         else:
             for a in range(m.nv[i]):
                 out[iq + a] = q[iq + a] + h * v[iv + a]
+
+
+def integrate_jacobians(model, v, h):
+    """(E, J) (nv, nv): the derivatives of ``q1 = q (+) h v``
+    (:func:`integrate_pass`) in the right-trivialised perturbations of the
+    joints' groups (``q (+) d``: ``g exp(d)`` on a spherical or free joint,
+    addition otherwise, the convention of
+    :func:`algorithms.rnea_derivatives`): ``d1 = E d + h J dv``. On a
+    group joint with ``x = h v`` (its body angular velocity, or twist
+    ``[v; w]``) ``g exp(d) exp(x) = g exp(x) exp(Ad(exp(-x)) d)``, so
+    ``E = Ad(exp(-x))`` (the rotation ``exp(-x)`` on SO(3)), and
+    ``exp(x + h dv) = exp(x) exp(T(x) h dv)`` with T the right tangent
+    operator (:func:`lie.T_so3`, :func:`lie.T_se3`); identities elsewhere."""
+    nv = model.nv
+    E, J = np.eye(nv), np.eye(nv)
+    for i, joint in enumerate(model.joints):
+        if joint.kind not in (SPHERICAL, FREE):
+            continue
+        iv = model.idx_v[i]
+        x = h * np.asarray(v[iv:iv + joint.nv], dtype=float)
+        if joint.kind == SPHERICAL:
+            E[iv:iv + 3, iv:iv + 3] = lie.exp_so3(-x)
+            J[iv:iv + 3, iv:iv + 3] = lie.T_so3(x)
+        else:
+            E[iv:iv + 6, iv:iv + 6] = lie.Ad_inv(lie.exp_se3(x))
+            J[iv:iv + 6, iv:iv + 6] = lie.T_se3(x)
+    return E, J
 
 
 @_jit

@@ -1,10 +1,15 @@
 """State estimation of a robot from its sensors: an extended Kalman filter
 over the positions and velocities of every joint of the robot (the strains
 of the soft sections and the rigid joints alike), with the twin's dynamics
-as process model, for every :class:`mechanism.Mechanism` with a fixed base:
-a classic rod, a tree of members, a soft articulated arm, closed chains.
+as process model, for every :class:`mechanism.Mechanism` with a fixed or a
+floating base: a classic rod, a tree of members, a soft articulated arm,
+ball joints, closed chains, a free-flying robot.
 
-State ``x = [q (nv); v (nv); b (n_pos); w (k)]``:
+State ``x = [q (nq); v (nv); b (n_pos); w (k)]``, its covariance P over the
+errors ``[dq (nv); dv; db; dw]`` (error-state: a spherical or free joint's
+quaternion moves on its group, ``q (+) dq = q exp(dq)`` as
+:func:`integrators.integrate_pass` steps it, its error a rotation vector or
+twist in its body frame; the other coordinates add):
 
 - b: the tracking offsets of the position-controlled joints (a real servo
   stands off its command: gravity, friction, calibration), random walks of
@@ -97,7 +102,8 @@ from soft_twin_core._blas import block_diag
 from soft_twin_core.engine import algorithms as alg
 from soft_twin_core.engine.forces import (actuation_matrix, actuation_tangent_pass, actuator_arrays, concat_loads,
                                           point_moment_arrays)
-from soft_twin_core.engine.joint_kinds import FIXED, PRISMATIC, REVOLUTE, SOFT
+from soft_twin_core.engine.integrators import integrate_jacobians, integrate_pass
+from soft_twin_core.engine.joint_kinds import SOFT
 from soft_twin_core.engine.kernels import passes
 from soft_twin_core.engine.kernels.data import kernel_array
 from soft_twin_core.engine.kernels.tangent import static_tangent_pass
@@ -204,6 +210,7 @@ class EKF:
         self.by_name = {s.name: s for s in self.sensors}
         self.dt, self.theta = float(dt), float(theta)
         self.n = n = tree.nv
+        self.nq = tree.nq             # q has nq entries (quaternions), its error and v have n
         self.ws = Workspace(tree)
         self._act = actuator_arrays(tree)
         self._g = kernel_array(tree.gravity)
@@ -228,6 +235,7 @@ class EKF:
         self._effort_nominal = inp.effort.copy()
         self._pos_joints = mech.joints_with("position")
         self._pos_v = np.array([tree.idx_v[i] for i in self._pos_joints], dtype=np.int64)
+        self._pos_q = np.array([tree.idx_q[i] for i in self._pos_joints], dtype=np.int64)
         self._q_cmd_nominal = inp.q_cmd.copy()
         self._tendon = np.array([a.kind == "tendon" for a in mech.actuators], dtype=bool)
         sig_u = np.full(len(mech.actuators), float(input_sigma))
@@ -254,8 +262,10 @@ class EKF:
         self._gate_probability = gate_probability
         self.max_gated_run = int(max_gated_run)
         # --- noise ---
-        rigid = np.zeros(n, dtype=bool)
-        rigid[[tree.idx_v[i] for i in mech.rigid_joints]] = True
+        rigid = np.zeros(n, dtype=bool)          # every coordinate of a rigid joint (a free base's six)
+        for i, joint in enumerate(tree.joints):
+            if joint.kind != SOFT:
+                rigid[tree.idx_v[i]:tree.idx_v[i] + joint.nv] = True
         self.rigid = rigid
         self.nb = nb = len(self._pos_v)
         k = self.k
@@ -281,8 +291,8 @@ class EKF:
         """Back to the initial estimate (or q), zero velocities, offsets and
         wrench, the initial covariance and inputs, counters cleared."""
         n = self.n
-        self.x = np.zeros(2 * n + self.nb + self.k)
-        self.x[:n] = self._q_init if q is None else self.tree.check_q(np.asarray(q, dtype=float))
+        self.x = np.zeros(self.nq + n + self.nb + self.k)
+        self.x[:self.nq] = self._q_init if q is None else self.tree.check_q(np.asarray(q, dtype=float))
         self.P = self._P0.copy()
         self.t = 0.0
         self.a = np.zeros(n)
@@ -307,27 +317,27 @@ class EKF:
 
     @property
     def q(self):
-        return self.x[:self.n]
+        return self.x[:self.nq]
 
     @property
     def v(self):
-        return self.x[self.n:2 * self.n]
+        return self.x[self.nq:self.nq + self.n]
 
     @property
     def offsets(self):
         """Estimated tracking offsets (position - command) of the
         position-controlled joints, in the order of ``mech.joints_with("position")``."""
-        return self.x[2 * self.n:2 * self.n + self.nb]
+        return self.x[self.nq + self.n:self.nq + self.n + self.nb]
 
     def joint_offsets(self):
         """{position-controlled joint: (offset [rad or m], standard deviation)}."""
-        i0 = 2 * self.n
-        return {self.tree.joints[i].name: (float(self.x[i0 + k]), float(np.sqrt(self.P[i0 + k, i0 + k])))
+        i0, p0 = self.nq + self.n, 2 * self.n          # in x, in P (the errors: n for q)
+        return {self.tree.joints[i].name: (float(self.x[i0 + k]), float(np.sqrt(self.P[p0 + k, p0 + k])))
                 for k, i in enumerate(self._pos_joints)}
 
     def wrench(self):
         """Estimated tip wrench [f; m] (6,), world axes (zeros where not estimated)."""
-        return self.S @ self.x[2 * self.n + self.nb:]
+        return self.S @ self.x[self.nq + self.n + self.nb:]
 
     def wrench_std(self):
         """Standard deviations (6,) of :meth:`wrench` (zeros where not estimated)."""
@@ -345,7 +355,7 @@ class EKF:
             return 0.0, float("inf")
         i = 2 * self.n + self.nb
         if self.wrench_mode == "payload":
-            return float(self.x[i]), float(np.sqrt(self.P[i, i]))
+            return float(self.x[self.nq + self.n + self.nb]), float(np.sqrt(self.P[i, i]))
         d = self._g / gn
         Pf = self._wrench_cov()[:3, :3]
         return float(self.wrench()[:3] @ d / gn), float(np.sqrt(d @ Pf @ d) / gn)
@@ -366,11 +376,11 @@ class EKF:
                 self.effort_cmd[self.tree.idx_v[i]] = eff[k]
 
     def joint_positions(self):
-        """{rigid joint: (position [rad or m], standard deviation)}."""
+        """{revolute or prismatic joint: (position [rad or m], standard deviation)}."""
         out = {}
         for i in self.mech.rigid_joints:
             k = self.tree.idx_v[i]
-            out[self.tree.joints[i].name] = (float(self.q[k]), float(np.sqrt(self.P[k, k])))
+            out[self.tree.joints[i].name] = (float(self.q[self.tree.idx_q[i]]), float(np.sqrt(self.P[k, k])))
         return out
 
     def _point(self, frame):
@@ -422,7 +432,8 @@ class EKF:
             bias = alg.rnea(self.tree, self.ws, q, v, np.zeros(self.n)).copy()
             j = self._pos_v
             mjj = _servo_inertia(M, j)
-            effort[j] = bias[j] + mjj * (self._w ** 2 * (self.q_cmd + self.offsets - q[j]) - 2 * self._zeta * self._w * v[j])
+            effort[j] = bias[j] + mjj * (self._w ** 2 * (self.q_cmd + self.offsets - q[self._pos_q])
+                                         - 2 * self._zeta * self._w * v[j])
         return effort, M
 
     def linearisation(self):
@@ -430,8 +441,12 @@ class EKF:
         docstring), analytic: :func:`theta_step_jacobian` of the forces'
         Jacobians; the offsets and the tip wrench are random walks."""
         M, dq, dv, F, G = self._force_jacobians()
-        N, n_ext = len(self.x), self.nb + self.k
-        J = theta_step_jacobian(M, dq, dv, F, G, self.dt, self.theta)
+        N, n_ext = self.P.shape[0], self.nb + self.k
+        steps = None
+        if self.nq != self.n:     # quaternions: the step's map on the joints' groups, at vt ~ v (O(dt) as dF)
+            steps = (*integrate_jacobians(self.tree, self.v, self.theta * self.dt),
+                     *integrate_jacobians(self.tree, self.v, self.dt))
+        J = theta_step_jacobian(M, dq, dv, F, G, self.dt, self.theta, steps)
         Phi = np.zeros((N, N))
         Phi[:2 * self.n] = J[:, :N]
         Phi[2 * self.n:, 2 * self.n:] = np.eye(n_ext)
@@ -511,7 +526,7 @@ class EKF:
                 break
             # the twin's tracking: correct the efforts until the joints land on their commands
             # (dq1 = theta h^2 d effort / m_j, the soft members free to bend)
-            err = self.q_cmd + self.offsets - stepped[0][j]
+            err = self.q_cmd + self.offsets - stepped[0][self._pos_q]
             if np.abs(err).max() <= 1e-9:
                 break
             effort = effort.copy()
@@ -519,8 +534,8 @@ class EKF:
         if stepped is not None:
             q1, v1, self.lam = stepped
             self.a = (v1 - self.v) / self.dt
-            self.x[:n] = q1
-            self.x[n:2 * n] = v1
+            self.x[:self.nq] = q1
+            self.x[self.nq:self.nq + n] = v1
         else:
             self.health.integrator_failures += 1
         self.P = Phi @ self.P @ Phi.T + self.Q * self.dt + (Gamma * self.sigma_u ** 2) @ Gamma.T
@@ -542,7 +557,7 @@ class EKF:
             if name not in self.by_name:
                 raise ValueError(f"measurements: unknown sensor {name!r}; configured: {list(self.by_name)}")
         rep = UpdateReport()
-        n, N = self.n, len(self.x)
+        n, N = self.n, self.P.shape[0]
         q = None
         es, Hs, Rs = [], [], []
         for sen in self.sensors:
@@ -579,25 +594,37 @@ class EKF:
             Hs.append(H)
             Rs.append(Rm)
         if es:
-            self.x, self.P = kalman_update(self.x, self.P, es, Hs, Rs)
+            dx, self.P = kalman_update(self.P, es, Hs, Rs)
+            self._correct(dx)
             if self.lam.size:
                 self._onto_the_loops()
         tally_update(self.health, rep)
         self.last_report = rep
         return rep
 
+    def _correct(self, dx):
+        """x (+) dx: the correction dx (the errors' layout: n for q) added, q
+        moved on the joints' groups (:func:`integrators.integrate_pass`)."""
+        n, nq = self.n, self.nq
+        self._move_q(dx[:n])
+        self.x[nq:] += dx[n:]
+
+    def _move_q(self, dq):
+        q1 = np.empty(self.nq)
+        integrate_pass(self.ws.m, np.ascontiguousarray(self.q), np.ascontiguousarray(dq, dtype=float), 1.0, q1)
+        self.x[:self.nq] = q1
+
     def _onto_the_loops(self, iterations=3):
         """Back onto the closed chains after an update, which moves along
         their tangent but leaves a second-order gap: the least change of q
         with Phi(q) = 0 (Gauss-Newton), then of v with G v = 0."""
-        n = self.n
         for _ in range(iterations):
             phi, G = constraint_rows(self._servo_mech, self.ws, self.q)
             if np.abs(phi).max(initial=0.0) <= 1e-13:
                 break
-            self.x[:n] -= np.linalg.lstsq(G, phi, rcond=None)[0]
+            self._move_q(-np.linalg.lstsq(G, phi, rcond=None)[0])
         G = constraint_rows(self._servo_mech, self.ws, self.q)[1]
-        self.x[n:2 * n] -= np.linalg.lstsq(G, G @ self.v, rcond=None)[0]
+        self.x[self.nq:self.nq + self.n] -= np.linalg.lstsq(G, G @ self.v, rcond=None)[0]
 
     def _gate(self, m):
         g = self.gate.get(m)
@@ -645,53 +672,62 @@ def parse_directions(text, name):
 
 
 def _check_supported(mech):
-    """ValueError naming what the filter does not handle: a moving base, joints other than revolute, prismatic, fixed and soft,
-    other kinematic maps than the exponential."""
-    tree = mech.tree
-    bad = [j.name for j in tree.joints if j.kind not in (FIXED, REVOLUTE, PRISMATIC, SOFT)]
-    if bad or tree.nq != tree.nv or mech.base_motion != "fixed":
-        raise ValueError(f"EKF: only a fixed base with revolute, prismatic, fixed and soft joints is "
-                         f"supported (not {bad or mech.base_motion})")
-    if np.any(tree.arrays.kmap != 0):
+    """ValueError naming what the filter does not handle: a prescribed base
+    (its trajectory is no input of the filter's steps, which would hold it
+    where it starts), other kinematic maps than the exponential (the process
+    Jacobian's :func:`algorithms.rnea_derivatives`)."""
+    if mech.base_motion == "prescribed":
+        raise ValueError("EKF: a prescribed base is not supported (the filter's process model has no input "
+                         "for the base's trajectory and would hold it where it starts); a fixed or floating "
+                         "base is")
+    if np.any(mech.tree.arrays.kmap != 0):
         raise ValueError("EKF: only exponential-map sections are supported (the process Jacobian uses "
                          "algorithms.rnea_derivatives)")
 
 
-def theta_step_jacobian(M, dq, dv, F, G, h, theta):
+def theta_step_jacobian(M, dq, dv, F, G, h, theta, step_jacobians=None):
     """d(q1, v1) / d(q0, v0, e): the Jacobian (2n, 2n + n_e) of one theta
     step of the linearised dynamics with holonomic constraints,
 
         M da + dF/dq dq + dF/dv dv - G^T dlam = F de,
 
-    by the integrator's own rule: ``dq1 = dq0 + h dvt``, ``dvt = (1 -
-    theta) dv0 + theta dv1``, the forces at ``dqt = dq0 + theta h dvt``
-    and the constraints at the end of the step, ``G dq1 = 0``. With the
-    step's Newton matrix ``A_h = M / h + theta^2 h dF/dq + theta dF/dv``
+    by the integrator's own rule: ``q1 = q0 (+) h vt``, ``vt = (1 - theta)
+    v0 + theta v1``, the forces at ``qt = q0 (+) theta h vt`` and the
+    constraints at the end of the step, ``G dq1 = 0``; linearised
+    (:func:`integrators.integrate_jacobians`) ``dqt = E_t dq0 + theta h J_t
+    dvt`` and ``dq1 = E_1 dq0 + h J_1 dvt`` (``step_jacobians``: (E_t, J_t,
+    E_1, J_1); None: identities, every joint a vector space). With the
+    step's Newton matrix ``A_h = M / h + theta^2 h dF/dq J_t + theta dF/dv``
     each column solves
 
-        [[A_h, -G^T], [theta h G, 0]] [dv1; dlam] =
-            [-dF/dq dq0 + (M/h - theta (1 - theta) h dF/dq - (1 - theta) dF/dv) dv0 + F de;
-             -G dq0 - (1 - theta) h G dv0].
+        [[A_h, -G^T], [theta h G J_1, 0]] [dv1; dlam] =
+            [-dF/dq E_t dq0 + (M/h - theta (1 - theta) h dF/dq J_t - (1 - theta) dF/dv) dv0 + F de;
+             -G E_1 dq0 - (1 - theta) h G J_1 dv0].
 
-    Without constraints (G with no row) this is the theta discretisation
-    of ``xdot = A x + b e``: ``(I - theta h A)^-1 [I + (1 - theta) h A,
-    h b]``."""
+    Without constraints (G with no row) and on vector spaces this is the
+    theta discretisation of ``xdot = A x + b e``: ``(I - theta h A)^-1
+    [I + (1 - theta) h A, h b]``."""
     n, ne = M.shape[0], F.shape[1]
+    I = np.eye(n)
+    Et, Jt, E1, J1 = step_jacobians if step_jacobians is not None else (I, I, I, I)
+    dqJ = dq @ Jt
     rhs = np.zeros((n, 2 * n + ne))
-    rhs[:, :n] = -dq
-    rhs[:, n:2 * n] = M / h - theta * (1.0 - theta) * h * dq - (1.0 - theta) * dv
+    rhs[:, :n] = -dq @ Et
+    rhs[:, n:2 * n] = M / h - theta * (1.0 - theta) * h * dqJ - (1.0 - theta) * dv
     rhs[:, 2 * n:] = F
+    GJ = G @ J1
     cons = np.zeros((G.shape[0], 2 * n + ne))
-    cons[:, :n] = -G
-    cons[:, n:2 * n] = -(1.0 - theta) * h * G
-    A_h = M / h + theta ** 2 * h * dq + theta * dv
+    cons[:, :n] = -G @ E1
+    cons[:, n:2 * n] = -(1.0 - theta) * h * GJ
+    A_h = M / h + theta ** 2 * h * dqJ + theta * dv
     if G.shape[0]:
-        dv1, _ = solve_factored(factor_kkt(A_h, G, theta * h * G), -rhs, -cons)
+        dv1, _ = solve_factored(factor_kkt(A_h, G, theta * h * GJ), -rhs, -cons)
     else:
         dv1 = np.linalg.solve(A_h, rhs)
-    dq1 = theta * h * dv1
-    dq1[:, :n] += np.eye(n)
-    dq1[:, n:2 * n] += (1.0 - theta) * h * np.eye(n)
+    dvt = theta * dv1                  # d vt = (1 - theta) dv0 + theta dv1
+    dvt[:, n:2 * n] += (1.0 - theta) * I
+    dq1 = h * J1 @ dvt
+    dq1[:, :n] += E1
     return np.vstack([dq1, dv1])
 
 
@@ -735,17 +771,18 @@ def gate_reading(rep, name, e, H, Rm, P, gate, runs, max_run):
     return True
 
 
-def kalman_update(x, P, es, Hs, Rs):
+def kalman_update(P, es, Hs, Rs):
     """The EKF measurement update with the accepted sensors' residuals es
     (e = h(x) - z), Jacobians Hs and noise covariances Rs stacked: gain
-    K = P H^T (H P H^T + R)^-1, x - K e, and the covariance in Joseph form
-    (I - K H) P (I - K H)^T + K R K^T, symmetrised. Returns (x, P)."""
+    K = P H^T (H P H^T + R)^-1, the correction -K e of the state (in the
+    errors' coordinates), and the covariance in Joseph form
+    (I - K H) P (I - K H)^T + K R K^T, symmetrised. Returns (dx, P)."""
     e, H, Rm = np.concatenate(es), np.vstack(Hs), block_diag(Rs)
     PHt = P @ H.T
     K = np.linalg.solve(H @ PHt + Rm, PHt.T).T
-    IKH = np.eye(len(x)) - K @ H
+    IKH = np.eye(P.shape[0]) - K @ H
     P = IKH @ P @ IKH.T + K @ Rm @ K.T
-    return x - K @ e, 0.5 * (P + P.T)
+    return -K @ e, 0.5 * (P + P.T)
 
 
 def tally_update(health, rep):

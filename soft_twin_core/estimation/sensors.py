@@ -187,6 +187,14 @@ def joint_velocity_indices(mech, joints, where="joints"):
     return np.array(out, dtype=np.int64)
 
 
+def position_indices(model, velocity_indices):
+    """The configuration indices of 1-dof joints given by their velocity
+    indices (they differ after a ball joint or a floating base, whose
+    quaternions take one entry more than their velocities)."""
+    q_of_v = {int(model.idx_v[i]): int(model.idx_q[i]) for i, j in enumerate(model.joints) if j.nv == 1}
+    return np.array([q_of_v[int(k)] for k in velocity_indices], dtype=np.int64)
+
+
 def _positive(values):
     return all(isinstance(x, (int, float, np.floating)) and np.isfinite(x) and x > 0 for x in values)
 
@@ -355,7 +363,7 @@ def residual_and_jacobian(ws, q, sensor, where, z, point_load=None):
     if isinstance(sensor, JointStateSensor):
         H = np.zeros((sensor.size, nv))
         H[np.arange(sensor.size), where] = 1.0
-        return q[where] - z, H
+        return q[position_indices(ws.model, where)] - z, H
     T, J = point_pose_and_body_jacobian(ws, where[0], where[1], np.asarray(sensor.placement, dtype=float))
     R = T[:3, :3]
     Hp = R @ J[:3]
@@ -372,7 +380,7 @@ def predict_measurement(ws, q, sensor, where, point_load=None):
     if isinstance(sensor, BaseWrenchSensor):
         return base_wrench_and_jacobian(ws.model, ws, q, jacobian=False, point_load=point_load)[0]
     if isinstance(sensor, JointStateSensor):
-        return q[where].copy()
+        return q[position_indices(ws.model, where)]
     T, _ = point_pose_and_body_jacobian(ws, where[0], where[1], np.asarray(sensor.placement, dtype=float))
     return T[:3, 3].copy() if sensor.position_only else T
 
