@@ -70,7 +70,11 @@ class Obstacle:
     mu_t F_n against the spin of the touching frame relative to the
     obstacle (dynamics; :func:`kernels.contact.spin_friction`; zero: none,
     the default). Checked at the door
-    (:func:`soft_twin_core.robot.obstacles.obstacles_from_list`)."""
+    (:func:`soft_twin_core.robot.obstacles.obstacles_from_list`). ``body``: the
+    joint whose output frame carries it (-1: the world); ``touches``: the
+    names of the members (or links) whose contact points it touches (None:
+    all), for the capsules along a member that other members touch
+    (:func:`soft_twin_core.robot.obstacles.member_capsules`)."""
     name: str
     kind: str
     a: np.ndarray
@@ -87,6 +91,7 @@ class Obstacle:
     triangles: np.ndarray = None     # a convex mesh: (T, 3, 3) [m] in its axes (rotation) about a, outward
     path: np.ndarray = None          # a tube's centre line: (N, 3) [m] in its axes (rotation) about a
     body: int = -1                   # a link's collision shape: its joint (a, b, rotation in its output frame)
+    touches: tuple = None            # the members whose points it touches (None: every point)
 
 
 @dataclass(frozen=True, eq=False)

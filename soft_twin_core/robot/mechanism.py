@@ -36,7 +36,8 @@ from soft_twin_core.engine.multibody import ModelBuilder, SoftSection, spatial_i
 from soft_twin_core.engine.workspace import Workspace
 from soft_twin_core.robot.model import (ModelError, _check_keys, _num, _vec, find_file, model_from_dict,
                                         pose_from_dict, read_yaml_file, robot_mapping)
-from soft_twin_core.robot.obstacles import contact_spacing, link_shape, obstacles_from_list
+from soft_twin_core.robot.obstacles import (contact_spacing, link_shape, member_capsules, member_contact,
+                                            obstacles_from_list)
 from soft_twin_core.robot.stress import section_geometry
 from soft_twin_core.robot.urdf import bodies_from_urdf
 
@@ -140,13 +141,15 @@ class Mechanism:
     base_pose: np.ndarray = field(default_factory=lambda: np.eye(4))   # world <- base (the file's base)
     obstacles: tuple = ()          # engine.contact.Obstacle: what the members touch (robot/obstacles.py)
     contact_spacing: float = None  # [m] between contact points (None: robot.obstacles.contact_points' default)
+    member_shapes: tuple = ()      # capsules along members that others touch (robot.obstacles.member_capsules)
 
     @property
     def shapes(self):
-        """The links' collision shapes (engine.contact.Obstacle carried by their joints; cached)."""
+        """The obstacles the robot carries (engine.contact.Obstacle on its joints' frames; cached): the
+        links' collision shapes, then the capsules along members that others touch."""
         out = self.__dict__.get("_shapes")
         if out is None:
-            out = tuple(lk.collision for lk in self.links if lk.collision is not None)
+            out = tuple(lk.collision for lk in self.links if lk.collision is not None) + tuple(self.member_shapes)
             object.__setattr__(self, "_shapes", out)
         return out
 
@@ -623,8 +626,11 @@ def mechanism_from_dict(d, base_dir=None):
         if any(c.name == "base" for c in constraints):
             raise ModelError("robot.constraints: the name 'base' is taken by the prescribed base motion")
         constraints.insert(0, Constraint("base", "clamped", frames["base"], PointRef(-1), base_pose.copy()))
+    contact = d.get("contact") if isinstance(d.get("contact"), dict) else {}
+    between = member_contact(contact.get("between"), [m.name for m in members])
     mech = Mechanism(tree.name, tree, tuple(control), tuple(constraints), tuple(members), tuple(links),
-                     frames, motion, motion_limits, np.array(base_pose, dtype=float), **_contact_fields(d))
+                     frames, motion, motion_limits, np.array(base_pose, dtype=float), **_contact_fields(d),
+                     member_shapes=member_capsules(tree, members, *between) if between else ())
     return mech
 
 
@@ -706,6 +712,8 @@ def from_robot_model(robot, d=None):
     p = tree.paths[0]
     member = Member("backbone", 0, p.joints, tuple(geo))
     frames = {"tip": PointRef(p.joints[-1], tree.joints[p.joints[-1]].section.length)}
+    if isinstance(d.get("contact"), dict):      # one member: nothing to touch (ModelError naming the field)
+        member_contact(d["contact"].get("between"), ["backbone"])
     return Mechanism(tree.name, tree, ("",) * tree.n_joints, (), (member,), (), frames, "fixed",
                      base_pose=np.array(robot.base_pose, dtype=float), **_contact_fields(d))
 

@@ -27,6 +27,7 @@ from dataclasses import replace
 
 import numpy as np
 
+from soft_twin_core import lie
 from soft_twin_core.engine.contact import OBSTACLE_KINDS, ContactPoints, Obstacle, sample_path
 from soft_twin_core.robot.model import ModelError, _check_keys, _num, _vec, pose_from_dict
 
@@ -286,12 +287,75 @@ def _shape_points(link, spacing):
     return ob.a + t[:, None] * (ob.b - ob.a), np.full(n, L / n), ob.radius
 
 
+_MEMBER_CONTACT = {"members"} | (_COMMON - {"name", "type", "torsional_friction"})
+
+
 def contact_spacing(d, where="robot.contact"):
     """The ``contact`` settings' spacing [m] (None: the default)."""
     if d is None:
         return None
-    _check_keys(d, {"spacing"}, where)
+    _check_keys(d, {"spacing", "between"}, where)
     return _num(d, "spacing", where, positive=True) if "spacing" in d else None
+
+
+def member_contact(d, member_names, where="robot.contact.between"):
+    """The ``contact.between`` settings of a robot file (None: none),
+    checked against its members: ``(members, law)``, the members (at least
+    two, distinct) whose surfaces touch one another and their contact law
+    (:func:`contact_law`'s keys, the obstacles' defaults)::
+
+        contact:
+          between: {members: [finger_left, finger_right], friction: 0.5}
+    """
+    if d is None:
+        return None
+    if not isinstance(d, dict):
+        raise ModelError(f"{where}: expected a mapping {{members: [...], friction, ...}}, got {d!r}")
+    _check_keys(d, _MEMBER_CONTACT, where)
+    names = d.get("members")
+    if not isinstance(names, list) or len(names) < 2 or len(set(map(str, names))) != len(names):
+        raise ModelError(f"{where}.members: expected two or more distinct member names, got {names!r}")
+    for n in names:
+        if n not in member_names:
+            raise ModelError(f"{where}.members: {n!r} is not a member of this robot; its members are "
+                             f"{list(member_names)}")
+    return tuple(names), contact_law({k: v for k, v in d.items() if k != "members"}, where)
+
+
+def member_capsules(tree, members, names, law):
+    """The capsules along the members ``names`` (in that order) that the
+    earlier ones' contact points touch: each pair of members touches once,
+    the points of the one listed first against the capsules of the other
+    (a second, mirrored contact would double the law's stiffness). Each
+    section's surface is two half-capsules of its cross-section radius (the
+    larger extreme fibre distance, as its contact points'), each carried
+    rigidly by the nearer section frame: the distal half by the section's
+    end frame, the proximal half by the end frame of the member's section
+    before it (by its own end frame for the first section), placed at the
+    reference strain: off the bent section by about ``kappa (L/2)^2 / 2``.
+    The members' own points never touch their capsules
+    (:func:`soft_twin_core.solve.contact.contact_mask`)."""
+    by_name = {m.name: m for m in members}
+    out = []
+    for k, name in enumerate(names[1:], start=1):
+        mem = by_name[name]
+        touches = tuple(names[:k])
+        for i, (j, geo) in enumerate(zip(mem.joints, mem.geometry)):
+            joint = tree.joints[j]
+            sec = joint.section
+            r = max(geo.cy, geo.cz)
+            half, full = lie.exp_se3(0.5 * sec.length * sec.f0), lie.exp_se3(sec.length * sec.f0)
+            end = lie.se3_inv(full)                      # the section's start, seen from its end
+            distal = (j, (end @ half)[:3, 3], np.zeros(3))
+            if i > 0 and joint.parent == mem.joints[i - 1]:
+                P = joint.placement                      # the section's start in the previous one's end frame
+                proximal = (joint.parent, P[:3, 3].copy(), (P @ half)[:3, 3])
+            else:
+                proximal = (j, end[:3, 3].copy(), (end @ half)[:3, 3])
+            for part, (body, a, b) in zip("pd", (proximal, distal)):
+                out.append(Obstacle(f"{name}[{i}]{part}", "capsule", np.asarray(a, float), np.asarray(b, float),
+                                    radius=float(r), body=int(body), touches=touches, **law))
+    return tuple(out)
 
 
 def contact_points(mech, spacing=None):

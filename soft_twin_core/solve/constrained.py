@@ -584,7 +584,7 @@ def solve_equilibrium(mech, actuation=None, efforts=None, positions=None, loads=
     m = mech.n_constraint_rows + len(mech.joints_with("position"))
     lam = np.zeros(m)
     obstacles = tuple(mech.obstacles if obstacles is None else obstacles)
-    if m == 0 and not obstacles:
+    if m == 0 and not obstacles and not mech.shapes:       # (shapes: the robot's own, which members touch)
         return _free_equilibrium(mech, inp, q, tol, max_iterations, max_load_steps, check_stability, tangent_hint)
     with one_blas_thread():
         pb = _Equilibrium(mech, inp, targets, obstacles)

@@ -60,14 +60,17 @@ def contact_mask(tree, points, obstacles):
     """(P, O) bool: the (point, obstacle) pairs that may touch. A world
     obstacle touches every point; a body's shape no point of its own body,
     of the bodies it carries, or of those carrying it (a finger does not
-    touch the palm it is mounted on, nor a link its own shape)."""
+    touch the palm it is mounted on, nor a link its own shape); an
+    obstacle that ``touches`` named members only their points."""
     allowed = np.ones((len(points), len(obstacles)), np.bool_)
     for o, ob in enumerate(obstacles):
+        if ob.touches is not None:           # a member's capsule: the points of the members it touches
+            allowed[:, o] = [m in ob.touches for m in points.member]
         if ob.body < 0:
             continue
         below = set(tree.subtree(ob.body))
         above = set(tree.support(ob.body))
-        allowed[:, o] = [int(j) not in below and int(j) not in above for j in points.joint]
+        allowed[:, o] &= [int(j) not in below and int(j) not in above for j in points.joint]
     return allowed
 
 
