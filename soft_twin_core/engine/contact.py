@@ -73,7 +73,9 @@ class Obstacle:
     (:func:`soft_twin_core.robot.obstacles.obstacles_from_list`). ``body``: the
     joint whose output frame carries it (-1: the world); ``touches``: the
     names of the members (or links) whose contact points it touches (None:
-    all), for the capsules along a member that other members touch
+    all), for the capsules along a member that other members touch;
+    ``skips`` (member, s_lo, s_hi): a capsule on that member touched by the
+    member's own points outside that arc window (self-contact)
     (:func:`soft_twin_core.robot.obstacles.member_capsules`)."""
     name: str
     kind: str
@@ -92,6 +94,7 @@ class Obstacle:
     path: np.ndarray = None          # a tube's centre line: (N, 3) [m] in its axes (rotation) about a
     body: int = -1                   # a link's collision shape: its joint (a, b, rotation in its output frame)
     touches: tuple = None            # the members whose points it touches (None: every point)
+    skips: tuple = None              # (member, s_lo, s_hi): its own member's points it touches outside [s_lo, s_hi]
 
 
 @dataclass(frozen=True, eq=False)

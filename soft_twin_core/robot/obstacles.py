@@ -287,7 +287,7 @@ def _shape_points(link, spacing):
     return ob.a + t[:, None] * (ob.b - ob.a), np.full(n, L / n), ob.radius
 
 
-_MEMBER_CONTACT = {"members"} | (_COMMON - {"name", "type", "torsional_friction"})
+_MEMBER_CONTACT = {"members", "self", "exclusion"} | (_COMMON - {"name", "type", "torsional_friction"})
 
 
 def contact_spacing(d, where="robot.contact"):
@@ -300,12 +300,16 @@ def contact_spacing(d, where="robot.contact"):
 
 def member_contact(d, member_names, where="robot.contact.between"):
     """The ``contact.between`` settings of a robot file (None: none),
-    checked against its members: ``(members, law)``, the members (at least
-    two, distinct) whose surfaces touch one another and their contact law
-    (:func:`contact_law`'s keys, the obstacles' defaults)::
+    checked against its members: ``(members, law, self, exclusion)``, the
+    members (distinct; at least two, or one touching itself) whose surfaces
+    touch one another, their contact law (:func:`contact_law`'s keys, the
+    obstacles' defaults), whether each touches itself too (``self``,
+    default false) beyond ``exclusion`` [m] of arc length from each capsule
+    (None: four cross-section radii)::
 
         contact:
           between: {members: [finger_left, finger_right], friction: 0.5}
+          between: {members: [arm], self: true}          # an arm coiling onto itself
     """
     if d is None:
         return None
@@ -313,20 +317,30 @@ def member_contact(d, member_names, where="robot.contact.between"):
         raise ModelError(f"{where}: expected a mapping {{members: [...], friction, ...}}, got {d!r}")
     _check_keys(d, _MEMBER_CONTACT, where)
     names = d.get("members")
-    if not isinstance(names, list) or len(names) < 2 or len(set(map(str, names))) != len(names):
-        raise ModelError(f"{where}.members: expected two or more distinct member names, got {names!r}")
+    self_contact = d.get("self", False)
+    if not isinstance(self_contact, bool):
+        raise ModelError(f"{where}.self: expected true or false, got {self_contact!r}")
+    least = 1 if self_contact else 2
+    if not isinstance(names, list) or len(names) < least or len(set(map(str, names))) != len(names):
+        raise ModelError(f"{where}.members: expected {'one' if self_contact else 'two'} or more distinct "
+                         f"member names, got {names!r}")
     for n in names:
         if n not in member_names:
             raise ModelError(f"{where}.members: {n!r} is not a member of this robot; its members are "
                              f"{list(member_names)}")
-    return tuple(names), contact_law({k: v for k, v in d.items() if k != "members"}, where)
+    exclusion = _num(d, "exclusion", where, nonneg=True) if "exclusion" in d else None
+    return (tuple(names), contact_law({k: v for k, v in d.items() if k not in ("members", "self", "exclusion")},
+                                      where), self_contact, exclusion)
 
 
-def member_capsules(tree, members, names, law):
+def member_capsules(tree, members, names, law, self_contact=False, exclusion=None):
     """The capsules along the members ``names`` (in that order) that the
     earlier ones' contact points touch: each pair of members touches once,
     the points of the one listed first against the capsules of the other
-    (a second, mirrored contact would double the law's stiffness). Each
+    (a second, mirrored contact would double the law's stiffness); with
+    ``self_contact`` each member's own points touch its capsules too, those
+    farther along its arc than ``exclusion`` [m] (None: four radii) from the
+    capsule's ends (its neighbours, which bending brings close, do not). Each
     section's surface is two half-capsules of its cross-section radius (the
     larger extreme fibre distance, as its contact points'), each carried
     rigidly by the nearer section frame: the distal half by the section's
@@ -337,13 +351,18 @@ def member_capsules(tree, members, names, law):
     (:func:`soft_twin_core.solve.contact.contact_mask`)."""
     by_name = {m.name: m for m in members}
     out = []
-    for k, name in enumerate(names[1:], start=1):
+    for k, name in enumerate(names):
         mem = by_name[name]
-        touches = tuple(names[:k])
+        touches = tuple(names[:k]) + ((name,) if self_contact else ())
+        if not touches:
+            continue
+        path = tree.paths[mem.path]
         for i, (j, geo) in enumerate(zip(mem.joints, mem.geometry)):
             joint = tree.joints[j]
             sec = joint.section
             r = max(geo.cy, geo.cz)
+            s0 = float(path.s_starts[list(path.joints).index(j)])
+            gap = 4.0 * r if exclusion is None else exclusion
             half, full = lie.exp_se3(0.5 * sec.length * sec.f0), lie.exp_se3(sec.length * sec.f0)
             end = lie.se3_inv(full)                      # the section's start, seen from its end
             distal = (j, (end @ half)[:3, 3], np.zeros(3))
@@ -352,9 +371,11 @@ def member_capsules(tree, members, names, law):
                 proximal = (joint.parent, P[:3, 3].copy(), (P @ half)[:3, 3])
             else:
                 proximal = (j, end[:3, 3].copy(), (end @ half)[:3, 3])
-            for part, (body, a, b) in zip("pd", (proximal, distal)):
+            for part, (body, a, b), (lo, hi) in zip("pd", (proximal, distal),
+                                                    ((s0, s0 + sec.length / 2), (s0 + sec.length / 2, s0 + sec.length))):
+                skips = (name, lo - gap, hi + gap) if self_contact else None
                 out.append(Obstacle(f"{name}[{i}]{part}", "capsule", np.asarray(a, float), np.asarray(b, float),
-                                    radius=float(r), body=int(body), touches=touches, **law))
+                                    radius=float(r), body=int(body), touches=touches, skips=skips, **law))
     return tuple(out)
 
 

@@ -61,7 +61,9 @@ def contact_mask(tree, points, obstacles):
     obstacle touches every point; a body's shape no point of its own body,
     of the bodies it carries, or of those carrying it (a finger does not
     touch the palm it is mounted on, nor a link its own shape); an
-    obstacle that ``touches`` named members only their points."""
+    obstacle that ``touches`` named members only their points, and one
+    that ``skips`` an arc window of its own member that member's points
+    outside the window (self-contact)."""
     allowed = np.ones((len(points), len(obstacles)), np.bool_)
     for o, ob in enumerate(obstacles):
         if ob.touches is not None:           # a member's capsule: the points of the members it touches
@@ -70,7 +72,11 @@ def contact_mask(tree, points, obstacles):
             continue
         below = set(tree.subtree(ob.body))
         above = set(tree.support(ob.body))
-        allowed[:, o] &= [int(j) not in below and int(j) not in above for j in points.joint]
+        apart = [int(j) not in below and int(j) not in above for j in points.joint]
+        if ob.skips is not None:             # a member's capsule on itself: its points away along the arc
+            mem, lo, hi = ob.skips
+            apart = [a or (m == mem and not lo <= s <= hi) for a, m, s in zip(apart, points.member, points.s)]
+        allowed[:, o] &= apart
     return allowed
 
 

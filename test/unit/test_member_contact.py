@@ -120,7 +120,8 @@ def test_in_dynamics_the_pushed_pair_moves_together():
 
 @pytest.mark.parametrize("between,field", [
     ({"members": ["a"]}, "members"), ({"members": ["a", "c"]}, "members"), ({"members": ["a", "a"]}, "members"),
-    ({"members": ["a", "b"], "friction": -1}, "friction"), ({"members": ["a", "b"], "colour": 1}, "colour")])
+    ({"members": ["a", "b"], "friction": -1}, "friction"), ({"members": ["a", "b"], "colour": 1}, "colour"),
+    ({"members": ["a"], "self": "yes"}, "self"), ({"members": ["a"], "self": True, "exclusion": -1}, "exclusion")])
 def test_bad_between_settings_are_refused_naming_the_field(between, field):
     with pytest.raises(ModelError, match=f"robot.contact.between.*{field}"):
         mechanism_from_dict({"name": "pair", "bodies": [_member("a", 0.0, 2), _member("b", D, 2)],
@@ -135,3 +136,49 @@ def test_a_classic_rod_has_no_member_to_touch():
     d["contact"] = {"between": {"members": ["backbone", "other"]}}
     with pytest.raises(ModelError, match="robot.contact.between.members"):
         from_robot_model(model_from_dict(d), d)
+
+
+def _coil(self_contact):
+    """A 0.3 m arm (radius 3 mm) clamped at the origin; with ``self``, it
+    touches itself beyond the default exclusion (four radii of arc)."""
+    d = {"name": "coil", "gravity": [0, 0, 0], "bodies": [{"name": "arm", "type": "member", "segments": [{
+        "length": 0.3, "sections": 24, "cross_section": {"shape": "solid_circle", "radius": 0.003},
+        "material": {"youngs_modulus": 1e6, "density": 1000.0}, "free_modes": "bending"}]}],
+        "contact": {"spacing": 0.003}}
+    if self_contact:
+        d["contact"]["between"] = {"members": ["arm"], "self": True}
+    return mechanism_from_dict(d)
+
+
+def _nearest_far_apart(mech, q, arc=0.025):
+    """The least distance [m] from a contact point to the backbone more than
+    ``arc`` [m] away along it (four radii and a capsule's length)."""
+    from soft_twin_core.solve.contact import mechanism_contact_points
+    path = mech.tree.paths[0]
+    s = np.linspace(0, path.length, 301)
+    sp = mechanism_contact_points(mech).s
+    ws = Workspace(mech.tree)
+    P = alg.point_poses(mech.tree, ws, q, *path.locate(s))[:, :3, 3]
+    Q = alg.point_poses(mech.tree, ws, q, *path.locate(sp))[:, :3, 3]
+    D = np.linalg.norm(Q[:, None] - P[None], axis=2)
+    return D[np.abs(sp[:, None] - s[None]) > arc].min()
+
+
+def test_an_arm_coiled_by_a_tip_moment_rests_on_itself():
+    """A tip moment 1.15 times the one that bends the arm into one full
+    circle (M = 2 pi EI / L): without self-contact the tip passes through
+    the arm's base (0.4 mm apart); with it, its contact points keep the
+    diameter (6 mm, to the penalty's 25 um) from every part of the arm
+    farther than four radii and a capsule along it, the contacts found by
+    the solver."""
+    EI = 1e6 * np.pi * 0.003 ** 4 / 4
+    load = [FrameLoad("arm_tip", [0, 0, 0, 0, 0, 1.15 * 2 * np.pi * EI / 0.3], "world")]
+    free = _coil(False)
+    assert _nearest_far_apart(free, solve_equilibrium(free, point_loads=load).q) < 0.001
+    mech = _coil(True)
+    assert len(mech.shapes) == 48 and all(c.touches == ("arm",) and c.skips[0] == "arm" for c in mech.shapes)
+    eq = solve_equilibrium(mech, point_loads=load)
+    assert eq.contacts is not None and len(eq.contacts)
+    assert _nearest_far_apart(mech, eq.q) > 0.006 - 1e-4
+    # a capsule's own neighbours (within four radii of arc) never touch it: straight, nothing touches
+    assert solve_equilibrium(mech).contacts is None or not len(solve_equilibrium(mech).contacts)
