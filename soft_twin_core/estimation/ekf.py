@@ -1,9 +1,10 @@
 """State estimation of a robot from its sensors: an extended Kalman filter
 over the positions and velocities of every joint of the robot (the strains
 of the soft sections and the rigid joints alike), with the twin's dynamics
-as process model, for every :class:`mechanism.Mechanism` with a fixed or a
-floating base: a classic rod, a tree of members, a soft articulated arm,
-ball joints, closed chains, a free-flying robot.
+as process model, for every :class:`mechanism.Mechanism`: a classic rod,
+a tree of members, a soft articulated arm, ball joints, closed chains, a
+free-flying robot, a robot on a prescribed (moving) base whose pose is an
+input (``predict(base_pose=...)``: an arm carried by a manipulator).
 
 State ``x = [q (nq); v (nv); b (n_pos); w (k)]``, its covariance P over the
 errors ``[dq (nv); dv; db; dw]`` (error-state: a spherical or free joint's
@@ -110,6 +111,7 @@ from soft_twin_core.engine.kernels.tangent import static_tangent_pass
 from soft_twin_core.engine.workspace import Workspace
 from soft_twin_core.errors import StepError
 from soft_twin_core.estimation import sensors as sn
+from soft_twin_core.lie import log_so3
 from soft_twin_core.robot.mechanism import tip_frame
 from soft_twin_core.solve.constrained import (Inputs, MechanismSimulator, actuation_vector, constraint_loads,
                                               constraint_rows, factor_kkt, joint_vector, make_inputs,
@@ -254,10 +256,14 @@ class EKF:
         self._servo_mech = replace(mech, control=tuple("effort" if c == "position" else c for c in mech.control))
         # (a closed chain's step factorises its KKT matrix afresh: its mean must be what the analytic Phi
         # linearises, to Newton's quadratic convergence, not to the tolerance a reused matrix stops at)
-        self._sim = MechanismSimulator(self._servo_mech, self.dt, self.theta, tol=1e-9, max_iterations=10,
+        # (up to 40 Newton iterations: a moving base's clamp converges linearly, 13 a step at 10 ms)
+        self._sim = MechanismSimulator(self._servo_mech, self.dt, self.theta, tol=1e-9, max_iterations=40,
                                        max_substep_levels=4, full_newton=False,
                                        reuse_factorisation=mech.n_constraint_rows == 0)
         self._no_cmd = np.zeros(0)
+        names = [c.name for c in mech.constraints]
+        self._base_k = names.index("base") if mech.base_motion == "prescribed" else None
+        self._base_row = sum(c.size for c in mech.constraints[:self._base_k]) if self._base_k is not None else 0
         self.gate = {m: float(chi2.ppf(gate_probability, m)) for m in range(1, 7)}
         self._gate_probability = gate_probability
         self.max_gated_run = int(max_gated_run)
@@ -281,8 +287,10 @@ class EKF:
                                          np.full(nb, offset_walk ** 2), walk ** 2]))
         self._P0 = np.diag(np.concatenate([np.where(rigid, sigma_joint0 ** 2, sigma_q0 ** 2),
                                            np.full(n, sigma_v0 ** 2), np.full(nb, sigma_offset0 ** 2), w0 ** 2]))
-        if q_init is None:
-            q_init = solve_equilibrium(mech, actuation, efforts, positions).q
+        if q_init is None:   # the equilibrium under the inputs; where statics has none to find (a moving base,
+            # ball joints: no static equilibrium solver on quaternions), the reference configuration
+            statics = mech.base_motion == "fixed" and tree.nq == tree.nv
+            q_init = solve_equilibrium(mech, actuation, efforts, positions).q if statics else tree.q0
         self._q_init = tree.check_q(np.array(q_init, dtype=float)).copy()
         self.reset()
 
@@ -302,6 +310,10 @@ class EKF:
         self.health = FilterHealth()
         self.last_report = UpdateReport()
         self._gated_run = {s.name: 0 for s in self.sensors}
+        cons = self.mech.constraints
+        self._targets = [c.target.copy() if c.b.joint < 0 else None for c in cons] if self._base_k is not None \
+            else None                      # a prescribed base's target: where it starts
+        self._target_rate = np.zeros(self.mech.n_constraint_rows)
         self.lam = self._rest_multipliers()
 
     def _rest_multipliers(self):
@@ -312,7 +324,7 @@ class EKF:
             return sim.lam.copy()
         sim.q, sim.v = self.q.copy(), np.zeros(self.n)
         effort, _ = self._servo(self.q, sim.v)
-        sim.start_multipliers(self._inputs(effort, self._tip_loads()))
+        sim.start_multipliers(self._inputs(effort, self._tip_loads()), self._targets)
         return sim.lam.copy()
 
     @property
@@ -360,8 +372,13 @@ class EKF:
         Pf = self._wrench_cov()[:3, :3]
         return float(self.wrench()[:3] @ d / gn), float(np.sqrt(d @ Pf @ d) / gn)
 
-    def set_inputs(self, actuation=None, positions=None, efforts=None):
-        """New inputs (each None: kept); ValueError naming a bad one."""
+    def set_inputs(self, actuation=None, positions=None, efforts=None, base_pose=None):
+        """New inputs (each None: kept); ValueError naming a bad one.
+        ``base_pose``: a prescribed base's world pose (4x4) at the end of the
+        next step (it moves there from the last one; at the same pose it
+        rests)."""
+        if base_pose is not None:
+            self._set_base_pose(base_pose)
         if actuation is not None:
             self.u = actuation_vector(self.mech, actuation)
         if positions is not None:
@@ -374,6 +391,20 @@ class EKF:
             eff = joint_vector(self.mech, efforts, "effort", "effort", "N m or N")
             for k, i in enumerate(self.mech.joints_with("effort")):
                 self.effort_cmd[self.tree.idx_v[i]] = eff[k]
+
+    def _set_base_pose(self, pose):
+        if self._base_k is None:
+            raise ValueError(f"base_pose: only for a prescribed base (this robot's is {self.mech.base_motion})")
+        T = np.asarray(pose, dtype=float)
+        if T.shape != (4, 4) or not np.all(np.isfinite(T)) or not np.allclose(T[3], [0, 0, 0, 1]) or \
+                not np.allclose(T[:3, :3] @ T[:3, :3].T, np.eye(3), atol=1e-6) or np.linalg.det(T[:3, :3]) < 0:
+            raise ValueError(f"base_pose: expected a finite 4x4 rigid transform (rotation, position [m]), "
+                             f"got {pose!r}")
+        k, r = self._base_k, self._base_row
+        T0 = self._targets[k]
+        self._target_rate[r:r + 3] = (T[:3, 3] - T0[:3, 3]) / self.dt          # the base's twist over the step,
+        self._target_rate[r + 3:r + 6] = log_so3(T[:3, :3] @ T0[:3, :3].T) / self.dt   # world axes at its origin
+        self._targets[k] = T.copy()
 
     def joint_positions(self):
         """{revolute or prismatic joint: (position [rad or m], standard deviation)}."""
@@ -503,17 +534,17 @@ class EKF:
         sim = self._sim
         sim.q, sim.v, sim.t, sim.a, sim.lam = q.copy(), v.copy(), self.t, self.a.copy(), self.lam.copy()
         try:
-            sim.step(inputs=self._inputs(effort, loads))
+            sim.step(inputs=self._inputs(effort, loads), targets=self._targets)
         except StepError:
             return None
         return sim.q, sim.v, sim.lam
 
-    def predict(self, actuation=None, positions=None, efforts=None):
+    def predict(self, actuation=None, positions=None, efforts=None, base_pose=None):
         """Advance the estimate by dt (inputs as :meth:`set_inputs`; None:
         the last ones). Returns True when the integrator step converged (else
         the mean stays where it was, the covariance grows and the failure is
         counted)."""
-        self.set_inputs(actuation, positions, efforts)
+        self.set_inputs(actuation, positions, efforts, base_pose)
         Phi, Gamma = self.linearisation()
         n = self.n
         q, v = self.q.copy(), self.v.copy()
@@ -619,12 +650,13 @@ class EKF:
         their tangent but leaves a second-order gap: the least change of q
         with Phi(q) = 0 (Gauss-Newton), then of v with G v = 0."""
         for _ in range(iterations):
-            phi, G = constraint_rows(self._servo_mech, self.ws, self.q)
+            phi, G = constraint_rows(self._servo_mech, self.ws, self.q, self._targets)
             if np.abs(phi).max(initial=0.0) <= 1e-13:
                 break
             self._move_q(-np.linalg.lstsq(G, phi, rcond=None)[0])
         G = constraint_rows(self._servo_mech, self.ws, self.q)[1]
-        self.x[self.nq:self.nq + self.n] -= np.linalg.lstsq(G, G @ self.v, rcond=None)[0]
+        rate = self._target_rate[:G.shape[0]]              # a prescribed base moves: G v is its twist
+        self.x[self.nq:self.nq + self.n] -= np.linalg.lstsq(G, G @ self.v - rate, rcond=None)[0]
 
     def _gate(self, m):
         g = self.gate.get(m)
@@ -672,14 +704,9 @@ def parse_directions(text, name):
 
 
 def _check_supported(mech):
-    """ValueError naming what the filter does not handle: a prescribed base
-    (its trajectory is no input of the filter's steps, which would hold it
-    where it starts), other kinematic maps than the exponential (the process
-    Jacobian's :func:`algorithms.rnea_derivatives`)."""
-    if mech.base_motion == "prescribed":
-        raise ValueError("EKF: a prescribed base is not supported (the filter's process model has no input "
-                         "for the base's trajectory and would hold it where it starts); a fixed or floating "
-                         "base is")
+    """ValueError naming what the filter does not handle: other kinematic
+    maps than the exponential (the process Jacobian's
+    :func:`algorithms.rnea_derivatives`)."""
     if np.any(mech.tree.arrays.kmap != 0):
         raise ValueError("EKF: only exponential-map sections are supported (the process Jacobian uses "
                          "algorithms.rnea_derivatives)")
