@@ -160,6 +160,12 @@ def shapes_figure(snapshots, title, max_shapes=8):
     return fig
 
 
+def side_legend(ax, **kw):
+    """The axes' legend beside it, on the right (outside the data: a legend
+    inside, even at matplotlib's "best" place, can hide a curve)."""
+    return ax.legend(loc="upper left", bbox_to_anchor=(1.01, 1.0), borderaxespad=0.0, **kw)
+
+
 def plot_shapes(snapshots, folder, title="backbone shapes", stem="backbone_shapes"):
     return _save(shapes_figure(snapshots, title), folder, stem)
 
@@ -186,7 +192,7 @@ def plot_tip(out, folder, title="tip motion"):
     axs[-1, 0].set_xlabel("time [s]")
     for ax in axs[:, 0]:
         ax.grid(alpha=0.3)
-        ax.legend(fontsize=8)
+        side_legend(ax, fontsize=8)
     fig.suptitle(title)
     fig.set_layout_engine("tight")
     return _save(fig, folder, "tip")
@@ -318,7 +324,7 @@ def plot_frames(out, folder, title="frame positions", frames=None):
             ax.plot(t, P[:, fn.index(n), k], label=n)
         ax.set_ylabel(f"{_XYZ[k]} [m]")
         ax.grid(alpha=0.3)
-    axs[0].legend(fontsize=7, ncol=2)
+    side_legend(axs[0], fontsize=7)
     axs[-1].set_xlabel("time [s]")
     fig.suptitle(title + " (world)")
     fig.set_layout_engine("tight")
