@@ -109,7 +109,7 @@ def plot_plan_actuation(out, folder, title=None):
             uf = np.asarray(dyn["compensated_actuation"]).reshape(len(t), len(names))
             for i, n in enumerate(names):
                 ax.plot(t, uf[:, i], "--", color=f"C{i}", lw=0.9, label=f"{n}, compensated")
-        ax.set_ylabel("actuator inputs")
+        ax.set_ylabel(f"actuator inputs [{', '.join(sorted({units[n] for n in names}))}]")
         ax.grid(alpha=0.3)
         ax.legend(fontsize=7, ncol=2)
         k += 1
@@ -122,7 +122,7 @@ def plot_plan_actuation(out, folder, title=None):
             for lim in (out["joint_lower"][i], out["joint_upper"][i]):
                 if lim is not None and abs(lim - qj[:, i]).min() < 0.25 * max(np.ptp(qj[:, i]), 0.1):
                     ax.axhline(lim, color=f"C{i}", ls=":", lw=0.8)
-        ax.set_ylabel("joint commands")
+        ax.set_ylabel(f"joint commands [{', '.join(sorted({ju[n] for n in joints}))}]")
         ax.grid(alpha=0.3)
         ax.legend(fontsize=7)
     axs[-1, 0].set_xlabel("time [s]")

@@ -160,10 +160,11 @@ def shapes_figure(snapshots, title, max_shapes=8):
     return fig
 
 
-def side_legend(ax, **kw):
-    """The axes' legend beside it, on the right (outside the data: a legend
-    inside, even at matplotlib's "best" place, can hide a curve)."""
-    return ax.legend(loc="upper left", bbox_to_anchor=(1.01, 1.0), borderaxespad=0.0, **kw)
+def side_legend(ax, *handles_labels, **kw):
+    """The axes' legend (or one of these handles and labels) beside it, on
+    the right (outside the data: a legend inside, even at matplotlib's
+    "best" place, can hide a curve)."""
+    return ax.legend(*handles_labels, loc="upper left", bbox_to_anchor=(1.01, 1.0), borderaxespad=0.0, **kw)
 
 
 def plot_shapes(snapshots, folder, title="backbone shapes", stem="backbone_shapes"):
@@ -214,7 +215,7 @@ def wrench_figure(s_list, W_list, labels, title):
         ax.grid(alpha=0.3)
     for ax in axs[1]:
         ax.set_xlabel("arc length s [m]")
-    axs[0, 0].legend(fontsize=7)
+    side_legend(axs[0, 2], *axs[0, 0].get_legend_handles_labels(), fontsize=7)
     fig.suptitle(title + " (body frame; the distal part on the proximal part)\n"
                  "steps inside a section: its weight and inertia act at its two quadrature points")
     fig.set_layout_engine("tight")

@@ -90,3 +90,53 @@ def test_the_figures_of_every_shipped_scenario_read_well(scenario, tmp_path, mon
     assert codes[1] in (0, None) and codes[0] in (0, None, 2)
     assert "backbone_shapes.png" in seen and "tip.png" in seen and "energies.png" in seen
     assert not problems, "\n".join(problems)
+
+
+PATHS = sorted(f for f in os.listdir(os.path.join(os.path.dirname(__file__), "..", "..", "config", "paths"))
+               if f.endswith(".yaml"))
+
+
+def _run_checked(monkeypatch, where, argvs):
+    """Run the command lines with every PNG checked instead of written:
+    (the PNG names seen, the problems found, the exit codes)."""
+    seen, problems, codes = [], [], []
+
+    def check_instead_of_saving(fig, fname, *args, **kwargs):
+        name = os.path.basename(str(fname))
+        if name.endswith(".png"):
+            seen.append(name)
+            problems.extend(figure_problems(fig, f"{where}: {name}"))
+    with monkeypatch.context() as mp:
+        mp.setattr(Figure, "savefig", check_instead_of_saving)
+        with contextlib.redirect_stdout(io.StringIO()), contextlib.redirect_stderr(io.StringIO()):
+            for argv in argvs:
+                try:
+                    codes.append(cli.main(argv))
+                except SystemExit as e:
+                    codes.append(e.code)
+    return seen, problems, codes
+
+
+@pytest.mark.parametrize("path", PATHS)
+def test_the_figures_of_every_shipped_plan_read_well(path, tmp_path, monkeypatch):
+    plan = os.path.join(os.path.dirname(__file__), "..", "..", "config", "paths", path)
+    seen, problems, codes = _run_checked(monkeypatch, path, [["plan", plan, "--plot", str(tmp_path),
+                                                              "-o", str(tmp_path / "plan")]])
+    assert codes == [0] or codes == [None]
+    assert {"plan_tip_path.png", "plan_actuation.png"} <= set(seen)
+    assert not problems, "\n".join(problems)
+
+
+def test_the_workspace_and_a_rendered_run_read_well(tmp_path, monkeypatch):
+    """The workspace figure of the default arm, and the figures ``render``
+    draws from a saved dynamics run (JSON)."""
+    run = tmp_path / "run.json"
+    with contextlib.redirect_stdout(io.StringIO()) as out, contextlib.redirect_stderr(io.StringIO()):
+        assert cli.main(["dynamics", "tendon_arm_dynamics", "--duration", "0.05", "--backbone-every", "10"]) in (0, None)
+    run.write_text(out.getvalue())
+    seen, problems, codes = _run_checked(monkeypatch, "workspace, render", [
+        ["workspace", "tendon_arm", "--samples", "20", "--limit", "5", "-o", str(tmp_path / "ws")],
+        ["render", str(run), "--scenario", "tendon_arm_dynamics", "--plot", str(tmp_path / "r")]])
+    assert all(c in (0, None) for c in codes), codes
+    assert "workspace.png" in seen and "tip.png" in seen and "backbone_shapes.png" in seen
+    assert not problems, "\n".join(problems)
