@@ -626,11 +626,8 @@ def mechanism_from_dict(d, base_dir=None):
         if any(c.name == "base" for c in constraints):
             raise ModelError("robot.constraints: the name 'base' is taken by the prescribed base motion")
         constraints.insert(0, Constraint("base", "clamped", frames["base"], PointRef(-1), base_pose.copy()))
-    contact = d.get("contact") if isinstance(d.get("contact"), dict) else {}
-    between = member_contact(contact.get("between"), [m.name for m in members])
     mech = Mechanism(tree.name, tree, tuple(control), tuple(constraints), tuple(members), tuple(links),
-                     frames, motion, motion_limits, np.array(base_pose, dtype=float), **_contact_fields(d),
-                     member_shapes=member_capsules(tree, members, *between) if between else ())
+                     frames, motion, motion_limits, np.array(base_pose, dtype=float), **_contact_fields(d, tree, members))
     return mech
 
 
@@ -712,15 +709,19 @@ def from_robot_model(robot, d=None):
     p = tree.paths[0]
     member = Member("backbone", 0, p.joints, tuple(geo))
     frames = {"tip": PointRef(p.joints[-1], tree.joints[p.joints[-1]].section.length)}
-    if isinstance(d.get("contact"), dict):      # one member: nothing to touch (ModelError naming the field)
-        member_contact(d["contact"].get("between"), ["backbone"])
     return Mechanism(tree.name, tree, ("",) * tree.n_joints, (), (member,), (), frames, "fixed",
-                     base_pose=np.array(robot.base_pose, dtype=float), **_contact_fields(d))
+                     base_pose=np.array(robot.base_pose, dtype=float), **_contact_fields(d, tree, (member,)))
 
 
-def _contact_fields(d):
-    """The ``obstacles`` and ``contact`` of a robot mapping, checked."""
-    return dict(obstacles=obstacles_from_list(d.get("obstacles")), contact_spacing=contact_spacing(d.get("contact")))
+def _contact_fields(d, tree, members):
+    """The ``obstacles`` and ``contact`` of a robot mapping, checked: the
+    world's obstacles, the contact spacing and the capsules of the members
+    that touch (``contact.between``; a classic rod's one member, "backbone",
+    touches itself only)."""
+    contact = d.get("contact") if isinstance(d.get("contact"), dict) else {}
+    between = member_contact(contact.get("between"), [m.name for m in members])
+    return dict(obstacles=obstacles_from_list(d.get("obstacles")), contact_spacing=contact_spacing(d.get("contact")),
+                member_shapes=member_capsules(tree, members, *between) if between else ())
 
 
 def shape_command(r, v, target, vmax, amax, h):

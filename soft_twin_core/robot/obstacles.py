@@ -358,6 +358,9 @@ def member_capsules(tree, members, names, law, self_contact=False, exclusion=Non
             continue
         path = tree.paths[mem.path]
         for i, (j, geo) in enumerate(zip(mem.joints, mem.geometry)):
+            if geo is None:
+                raise ModelError(f"robot.contact.between.members: member {name!r} has no cross_section (shape and "
+                                 f"size): its surface has no radius")
             joint = tree.joints[j]
             sec = joint.section
             r = max(geo.cy, geo.cz)

@@ -138,6 +138,25 @@ def test_a_classic_rod_has_no_member_to_touch():
         from_robot_model(model_from_dict(d), d)
 
 
+def test_a_classic_rod_touches_itself_through_the_same_capsules():
+    """The classic schema's one member, "backbone", with ``self: true``:
+    the same capsules as a tree's member (two per section, on its own
+    points), its points near a capsule (within the arc window) left out,
+    those far along it in."""
+    from soft_twin_core.robot.mechanism import from_robot_model
+    from soft_twin_core.robot.model import find_file, model_from_dict, read_yaml_file
+    d = read_yaml_file(find_file("tendon_arm", "robots"), what="robot file")
+    d["contact"] = {"between": {"members": ["backbone"], "self": True}}
+    mech = from_robot_model(model_from_dict(d), d)
+    n = len(mech.members[0].joints)
+    assert len(mech.shapes) == 2 * n and all(c.touches == ("backbone",) for c in mech.shapes)
+    mc = MemberContact(mech)
+    first = mech.shapes[0]                   # the base half of the first section
+    lo, hi = first.skips[1:]
+    near = (mc.points.s >= lo) & (mc.points.s <= hi)
+    assert near.any() and not mc.allowed[near, 0].any() and mc.allowed[~near, 0].all()
+
+
 def _coil(self_contact):
     """A 0.3 m arm (radius 3 mm) clamped at the origin; with ``self``, it
     touches itself beyond the default exclusion (four radii of arc)."""
