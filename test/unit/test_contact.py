@@ -1101,3 +1101,177 @@ def test_a_strip_clamped_on_a_drum_wraps_as_the_small_slope_and_large_deflection
     tip_err = [np.abs(tip - tip_ref).max() for _, tip in runs]
     assert a_err[2] < 0.01 and a_err[0] > a_err[1] > a_err[2]
     assert tip_err[1] < 1e-4 * L and tip_err[0] > tip_err[1] > tip_err[2]
+
+
+# -- an elastic rod on a capstan (Singh, J. Elasticity 151, 2022) ---------------
+
+CAP_EI, CAP_R, CAP_LIFT = 0.0245, 0.05, 0.5     # bending stiffness [N m^2], drum radius [m], lift-off angle [rad]
+
+
+def _lift_off_angle(EI, T, rho):
+    """The angle between the rod's tangent where it leaves a drum (its
+    centreline on a circle of radius rho) and the pull T of a long free
+    span: the elastica's first integral EI k^2 / 2 = T (1 - cos(angle))
+    with the drum's curvature 1/rho at lift-off (the moment is continuous)."""
+    return np.arccos(1 - EI / (2 * T * rho ** 2))
+
+
+def _capstan(r, stiffness, mu=0.0, pulled=False, n_wrap=60, spacing=0.002):
+    """A rod (radius r, bending in its plane only, inextensible) pinned at
+    its base on the drum's top tangent line, 8 elastic lengths sqrt(EI/T)
+    to the left, laid half way around a drum (a capsule along y, radius
+    CAP_R) and pulled back to the left at its tip by a dead load T that
+    makes it leave the drum at CAP_LIFT. ``pulled``: the pin rides on a
+    position-controlled slider along x. Returns (mechanism, T, rho, the
+    wrapped initial guess)."""
+    rho = CAP_R + r
+    T = CAP_EI / (2 * (1 - np.cos(CAP_LIFT)) * rho ** 2)
+    span = 8 * np.sqrt(CAP_EI / T)
+    wrap = np.pi * rho + 0.04
+
+    def seg(name, length, n):
+        return {"name": name, "length": length, "sections": n,
+                "cross_section": {"shape": "solid_circle", "radius": r},
+                "material": {"youngs_modulus": CAP_EI / (np.pi * r ** 4 / 4), "poisson_ratio": 0.5, "density": 1000.0},
+                "free_modes": ["bending_y"]}
+    rod = {"name": "rod", "type": "member", "parent": "base",
+           "joint": {"name": "pin", "type": "revolute", "axis": [0, 1, 0], "control": "passive"},
+           "segments": [seg("a", span - 0.02, 20), seg("b", wrap, n_wrap), seg("c", span - 0.02, 20)]}
+    bodies = [rod]
+    if pulled:
+        rod["parent"] = "slider"
+        bodies.insert(0, {"name": "slider", "type": "link", "parent": "base", "mass": 0.01,
+                          "inertia": [1e-6, 1e-6, 1e-6, 0, 0, 0],
+                          "joint": {"name": "pull", "type": "prismatic", "axis": [1, 0, 0], "control": "position"}})
+    d = {"name": "capstan", "gravity": [0, 0, 0], "base": {"position": [-span, 0, rho]}, "bodies": bodies,
+         "obstacles": [{"name": "drum", "type": "capsule", "from": [0, -0.1, 0], "to": [0, 0.1, 0], "radius": CAP_R,
+                        "stiffness": stiffness, "friction": mu}],
+         "contact": {"spacing": spacing}}
+    mech = mechanism_from_dict(d)
+    tree = mech.tree
+    q = tree.q0.copy()                  # straight to the drum's top, half way round it, straight on
+    h = wrap / n_wrap
+    k0, k1 = round(0.02 / h), round(0.02 / h) + round(np.pi * rho / h)
+    for k in range(20 + k0, 20 + k1):
+        q[tree.idx_q[tree.joint_index(f"rod_{k}")]] = np.pi / ((k1 - k0) * h)
+    return mech, T, rho, q
+
+
+def _capstan_at_rest(r, stiffnesses, **kw):
+    """Frictionless statics of :func:`_capstan`, continued over the contact
+    stiffnesses: [(mechanism, T, rho, Equilibrium)]."""
+    from soft_twin_core.robot.mechanism import tip_frame
+    from soft_twin_core.solve.constrained import FrameLoad
+    out, q = [], None
+    for k in stiffnesses:
+        mech, T, rho, q0 = _capstan(r, k, **kw)
+        load = [FrameLoad(tip_frame(mech), np.array([-T, 0, 0, 0, 0, 0.0]), "world")]
+        eq = solve_equilibrium(mech, point_loads=load, q_init=q0 if q is None else q, max_iterations=200)
+        q = eq.q
+        assert eq.stable and len(eq.contacts) > 20
+        out.append((mech, T, rho, eq))
+    return out
+
+
+def _wrap_angle(T, contacts):
+    """The angle [rad] between the two far pulls: the tip's load (-x) and
+    the pin's, the balance of the load and the contact forces (no
+    gravity, at rest or sliding steadily)."""
+    F = -(np.array([-T, 0.0, 0.0]) + contacts.force.sum(axis=0))
+    return np.pi - np.arctan2(F[2], -F[0]), np.linalg.norm(F)
+
+
+def test_an_elastic_rod_on_a_frictionless_capstan_leaves_it_where_the_elastica_says():
+    """A rod wrapped on a frictionless drum and pulled at both ends by T
+    (Singh, "Planar equilibria of an elastic rod wrapped around a circular
+    capstan", J. Elasticity 151 (2022) 321-346, the continuous-arc case in
+    its long-rod limit). A flexible filament would touch the drum over the
+    whole wrap angle W between the pulls with tension T. The rod leaves
+    the drum early, at the angle phi to each pull (:func:`_lift_off_angle`),
+    so that it touches over W - 2 phi, with the tension T cos(phi) there
+    (constant curvature: no shear), and point forces T sin(phi) at the
+    ends of the contact arc. Checks: the pressure inside the arc, rho p
+    = T cos(phi), within 2e-4 at the stiffest contact (2.5e-3 at a tenth);
+    the normal forces' sum, 2 T sin(phi) + T cos(phi) (W - 2 phi), which
+    measures the arc's extent (a shift of the contact ends by 0.01 rad
+    moves it by 0.35 %), within 5e-4; the pin's pull equals the load
+    (frictionless: both pulls T); the filament's answers are 12 % and
+    10 % off."""
+    runs = _capstan_at_rest(0.005, [5e7, 5e8, 5e9], n_wrap=100, spacing=0.001)
+    errors = []
+    for mech, T, rho, eq in runs:
+        c = eq.contacts
+        phi = _lift_off_angle(CAP_EI, T, rho)
+        assert phi == pytest.approx(CAP_LIFT)
+        fn = np.linalg.norm(c.force, axis=1)
+        angle = np.arctan2(c.p[:, 0], c.p[:, 2])             # about y from the drum's top
+        inside = np.abs(angle - np.pi / 2) < 0.3
+        tension = rho * np.median(fn[inside] / mechanism_contact_points(mech).weight[c.point[inside]])
+        errors.append(abs(tension / (T * np.cos(phi)) - 1))
+        wrap, pin = _wrap_angle(T, c)
+    assert errors[2] < 2e-4 < errors[1]                   # (the softest only starts the continuation)
+    assert pin == pytest.approx(T, rel=1e-5) and abs(wrap - np.pi) < 0.05
+    total = 2 * T * np.sin(phi) + T * np.cos(phi) * (wrap - 2 * phi)
+    assert fn.sum() == pytest.approx(total, rel=5e-4)
+    assert abs(fn.sum() / (T * wrap) - 1) > 0.09 and abs(tension / T - 1) > 0.1
+
+
+def _sliding_capstan_ratio(T1, wrap, rho, r, mu):
+    """The tension ratio T2 / T1 of a rod sliding over a drum (the limiting
+    equilibrium of Singh 2022, sec. 6, in its long-rod limit, derived here
+    for a thin rod): the rod leaves the slack side at phi1 and the tight
+    side at phi2 (:func:`_lift_off_angle` at T1 and T2); point forces N_i
+    = T_i sin(phi_i) at the contact's ends carry frictions mu N_i, so
+    that the arc's tension starts at T1 (cos phi1 + mu sin phi1) and ends
+    at T2 (cos phi2 - mu sin phi2); inside it grows as exp(lam s), where
+    friction acts on the rod's surface (the drum's radius R = rho - r) and
+    its moment about the centreline makes a shear r mu p:
+    lam (1 + r mu lam) = mu R / rho^2 (T' = mu p R / rho, p = T / rho -
+    r mu p'); over the arc rho (wrap - phi1 - phi2). The thin-rod
+    approximation leaves out the point frictions' moments r mu N_i (a jump
+    of the lift-off curvature by r mu N_i / EI: 0.5 % at r = 0.5 mm)."""
+    from scipy.optimize import brentq
+    R = rho - r
+    c1 = 1 - CAP_EI / (2 * T1 * rho ** 2)
+    p1 = np.arccos(c1)
+    Tc1 = T1 * (c1 + mu * np.sin(p1))
+    a, b = r * mu, mu * R / rho ** 2
+    lam = (np.sqrt(1 + 4 * a * b) - 1) / (2 * a)
+
+    def gap(T2):
+        c2 = 1 - CAP_EI / (2 * T2 * rho ** 2)
+        p2 = np.arccos(c2)
+        return T2 * (c2 - mu * np.sin(p2)) - Tc1 * np.exp(lam * rho * (wrap - p1 - p2))
+    return brentq(gap, T1, 10 * T1) / T1
+
+
+def test_an_elastic_rod_sliding_over_a_capstan_holds_the_bending_corrected_tension_ratio():
+    """The rod of the test above, its pin dragged away from the drum at
+    20 mm/s by a slider while its tip holds T (mu = 0.3): it slides over
+    the drum, and the pin's pull reaches a steady T2. Singh (J. Elasticity
+    151, 2022) generalises Euler's capstan equation T2 / T1 = exp(mu W)
+    to an elastic rod; :func:`_sliding_capstan_ratio` is that limit for a
+    thin rod. The twin's ratio, within 0.5 % at r = 0.5 mm (2.384 against
+    2.390), where Euler's is 8 % off and Euler's with friction at the
+    drum's surface 7 %; steady (the same at 0.15 and 0.2 s); every contact
+    slipping at about the pull's speed (regularised Coulomb friction at
+    its sliding limit)."""
+    from soft_twin_core.robot.mechanism import tip_frame
+    from soft_twin_core.solve.constrained import FrameLoad
+    r, mu, v = 0.0005, 0.3, 0.02
+    (_, T, rho, eq), = _capstan_at_rest(r, [5e8])
+    mech, *_ = _capstan(r, 5e8, mu, pulled=True)
+    sim = MechanismSimulator(mech, 5e-3, 1.0, q=np.concatenate([[0.0], eq.q]), tol=1e-9)
+    load = [FrameLoad(tip_frame(mech), np.array([-T, 0, 0, 0, 0, 0.0]), "world")]
+    ratios = {}
+    for i in range(40):
+        sim.step(positions={"pull": -v * (i + 1) * 5e-3}, point_loads=load)
+        if i + 1 in (30, 40):
+            wrap, pin = _wrap_angle(T, sim.contacts)
+            ratios[i + 1] = pin / T
+    assert ratios[30] == pytest.approx(ratios[40], rel=1e-3)
+    ratio = ratios[40]
+    assert ratio == pytest.approx(_sliding_capstan_ratio(T, wrap, rho, r, mu), rel=5e-3)
+    assert np.exp(mu * wrap) / ratio > 1.07 and np.exp(mu * (rho - r) / rho * wrap) / ratio > 1.06
+    slip = np.linalg.norm(sim.contacts.slip, axis=1)
+    assert np.all(slip > 0.8 * v) and np.all(slip < 1.1 * v)
