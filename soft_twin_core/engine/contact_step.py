@@ -343,14 +343,18 @@ def contact_step(m, w, act, ld, g, coef, effort, K, D, q_ref, elastic, q0, v0, h
                     key[1 + k] = ob_of[k] * P + idx[k]
             refactor = False
         residual_after_forward(m, w, act, ldc, g, coef, effort, qt, vt, R, False)
-        nR = 0.0
+        nR, held = 0.0, 0.0
         for k in range(nv):
             if not np.isfinite(R[k]):
                 return it, 3, c, factorised
-            if not fixed[k]:
+            if fixed[k]:
+                held = max(held, abs(R[k]))
+            else:
                 nR = max(nR, abs(R[k]))
         if it == 1:
-            Rs = max(nR, 1e-300)
+            # the forces' scale: the residual's and the efforts holding the prescribed joints (the
+            # Python step's multipliers' rows); at rest, the residual alone is round-off
+            Rs = max(nR, held, 1e-300)
             if elastic:       # round-off of the elastic forces (a robot resting on obstacles)
                 noise = elastic_noise(K, qt, q_ref)
             if nR <= noise:
