@@ -1032,7 +1032,9 @@ class MechanismSimulator:
         h, th = self.dt if h is None else h, self.theta
         q0, v0 = self.q, self.v
         v1 = v0.copy()
-        lam = self.lam.copy()
+        if self._pos_v.size:     # the prescribed joints reach their commands from the first iterate (a friction's
+            v1[self._pos_v] = ((inp.q_cmd - q0[self._pos_q]) / h - (1 - th) * v0[self._pos_v]) / th   # cut updates
+        lam = self.lam.copy()                                         # would otherwise cut their rows' too)
         coef = np.ascontiguousarray(self.act.unit @ inp.u) if inp.u.size else np.zeros(len(self.act.joint))
         npos = len(self.mech.joints_with("position"))
         pos_v = np.array([tree.idx_v[i] for i in self.mech.joints_with("position")], dtype=np.int64)
