@@ -30,7 +30,8 @@ class Stats:
                            rejected_parameter_changes=0, joint_commands_received=0,
                            joint_commands_applied=0, joint_commands_superseded=0, joint_commands_lost=0,
                            rejected_joint=0, obstacle_updates_received=0, obstacle_updates_applied=0,
-                           rejected_obstacle=0)
+                           rejected_obstacle=0, base_poses_received=0, base_poses_applied=0, base_poses_lost=0,
+                           rejected_base_pose=0)
         self.last_internal_error = ""
         self.rejected_by_reason = {r: 0 for r in cmd.REJECT_REASONS}
         self.last_rejection = ""
@@ -141,12 +142,16 @@ def values(s, cfg, twin, gaps, now, paused=False):
         "wrenches_applied_total": str(t["wrenches_applied"]),
         "wrenches_lost_total": _lost(t["wrenches_lost"], gaps["wrench"]),
         "rejected_inputs_total": str(t["rejected_actuation"] + t["rejected_wrench"] + t["rejected_joint"]
-                                     + t["rejected_obstacle"]),
+                                     + t["rejected_obstacle"] + t["rejected_base_pose"]),
         "rejected_actuation_total": str(t["rejected_actuation"]),
         "rejected_wrench_total": str(t["rejected_wrench"]),
         "obstacle_updates_received_total": str(t["obstacle_updates_received"]),      # ~/obstacles (issue 27)
         "obstacle_updates_applied_total": str(t["obstacle_updates_applied"]),
         "rejected_obstacle_total": str(t["rejected_obstacle"]),
+        "base_poses_received_total": str(t["base_poses_received"]),          # ~/base_pose_command (issue 29)
+        "base_poses_applied_total": str(t["base_poses_applied"]),
+        "base_poses_lost_total": str(t["base_poses_lost"]),
+        "rejected_base_pose_total": str(t["rejected_base_pose"]),
         "obstacles": str(len(twin.obstacles)),
         **{f"rejected_{r}_total": str(n) for r, n in s.rejected_by_reason.items()},
         "last_rejection": s.last_rejection,

@@ -72,7 +72,7 @@ from soft_twin.msg import ActuationCommand
 from soft_twin import conversions as cv
 from soft_twin.readings import STAMP_REJECTIONS, InputLedger, accept_reading
 from soft_twin.shutdown import StopSignals, spin_until_stopped, tear_down
-from soft_twin_core.commands import InputError, parse_joint_command
+from soft_twin_core.commands import InputError, parse_base_pose, parse_joint_command
 from soft_twin_core.estimation import ekf as es
 from soft_twin_core.estimation import sensors as sn
 from soft_twin_core.robot.mechanism import load_mechanism
@@ -80,7 +80,7 @@ from soft_twin_core.solve.outputs import main_member
 
 NODE_NAME = "soft_twin_estimator"
 REJECTION_KINDS = ("non_finite", "malformed", "wrong_length", "unknown_sensor", "unknown_joint", "actuation",
-                   "joint_command") + STAMP_REJECTIONS
+                   "joint_command", "base_pose") + STAMP_REJECTIONS
 _WRENCH = {"none": None, "payload": "payload", "force": "force", "wrench": "wrench"}
 
 
@@ -98,6 +98,8 @@ class EstimatorNode(Node):
             "actuation_topic": ("/soft_twin/actuation", "the twin's actuation commands (the inputs)"),
             "frame_id": ("base_link", "frame of the published estimates"),
             "joint_command_topic": ("/soft_twin/joint_commands", "the twin's joint commands"),
+            "base_pose_topic": ("/soft_twin/base_pose_command", "where a prescribed base is carried "
+                                                                "(geometry_msgs/PoseStamped in frame_id)"),
             "record_file": ("", "MCAP file recording every measurement and command received ('' : none)"),
             "max_reading_age_s": (1.0, "readings stamped further than this from the node's clock are rejected [s]"),
         }
@@ -132,6 +134,7 @@ class EstimatorNode(Node):
         self.rejections = dict.fromkeys(REJECTION_KINDS, 0)
         self.last_rejection = ""
         self.cmd_pos, self.cmd_eff = {}, {}
+        self._base_pose = None             # the newest base pose received, for the next filter step
         # --- publications ---
         self.pub_tip = self.create_publisher(PoseWithCovarianceStamped, "~/estimate/tip_pose", 10)
         self.pub_backbone = self.create_publisher(PoseArray, "~/estimate/backbone", 10)
@@ -148,6 +151,7 @@ class EstimatorNode(Node):
         self.create_subscription(WrenchStamped, "~/measurements/base_wrench", self._on_base_wrench, 50)
         self.create_subscription(ActuationCommand, get("actuation_topic"), self._on_actuation, 50)
         self.create_subscription(JointState, get("joint_command_topic"), self._on_joint_command, 50)
+        self.create_subscription(PoseStamped, get("base_pose_topic"), self._on_base_pose, 50)
         self.create_service(Trigger, "~/estimate/reset", self._on_reset)
         self.create_timer(1.0 / rate, self._on_timer)
         self.create_timer(0.2, self._publish_diagnostics)
@@ -266,10 +270,27 @@ class EstimatorNode(Node):
             return
         self.cmd_pos, self.cmd_eff = pos, eff
 
+    def _on_base_pose(self, msg):
+        """A prescribed base's pose (checked as the twin checks it:
+        :func:`soft_twin_core.commands.parse_base_pose`); the newest one is
+        where the filter steps carry the base (poses arriving faster than
+        the filter: the intermediate ones are passed over, so that a step's
+        base velocity is the one over the step; slower: the base rests at
+        the newest one between them)."""
+        try:
+            try:
+                T = cv.matrix_from_pose(msg.pose)
+            except ValueError as e:
+                raise InputError("non_finite", f"base pose: {e}") from None
+            self._base_pose = parse_base_pose(self.mech, T, msg.header.frame_id, self.frame_id)
+        except InputError as e:
+            self._reject("base_pose", str(e))
+
     def _on_reset(self, req, resp):
         self.ledger.reset()
         self.ekf.reset()
         self.cmd_pos, self.cmd_eff = {}, {}
+        self._base_pose = None
         self.rejections = dict.fromkeys(REJECTION_KINDS, 0)
         self.last_rejection = ""
         resp.success, resp.message = True, "estimate reset to the initial state"
@@ -278,7 +299,7 @@ class EstimatorNode(Node):
     # ----------------------------------------------------------------- filter
     def _on_timer(self):
         ekf = self.ekf
-        ekf.predict()
+        ekf.predict(base_pose=self._base_pose)    # the newest pose again: the base rests there
         ekf.update(self.ledger.take())
         header = _header(self.get_clock().now().to_msg(), self.frame_id)
         msg = PoseWithCovarianceStamped(header=header)

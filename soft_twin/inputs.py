@@ -67,6 +67,23 @@ def parse_wrenches(batch, cfg):
     return newest, errors
 
 
+def parse_base_poses(batch, cfg, mech):
+    """(the newest valid base pose (4x4) of a batch of PoseStamped
+    commands, or None; the InputErrors of the invalid ones)
+    (:func:`soft_twin_core.commands.parse_base_pose`)."""
+    newest, errors = None, []
+    for m, _ in batch:
+        try:
+            try:
+                T = cv.matrix_from_pose(m.pose)
+            except ValueError as e:
+                raise cmd.InputError("non_finite", f"base pose: {e}") from None
+            newest = cmd.parse_base_pose(mech, T, m.header.frame_id, cfg.base_frame)
+        except cmd.InputError as e:
+            errors.append(e)
+    return newest, errors
+
+
 def parse_point_wrenches(batch, cfg, mech):
     """(the valid (point, wrench, core axes) of a batch of soft_twin/PointWrench
     commands, in order; the InputErrors of the others)

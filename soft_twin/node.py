@@ -140,6 +140,7 @@ class SoftTwinNode(Node):
         self._command_gaps = cmd.SequenceGaps()    # commands lost upstream, from sequence numbers
         self._wrench_gaps = cmd.SequenceGaps()
         self._point_wrench_gaps = cmd.SequenceGaps()
+        self._base_pose_gaps = cmd.SequenceGaps()
         self._joint_gaps = cmd.SequenceGaps()
         self._last_input_time = -math.inf
         self._reported_internal_errors = 0
@@ -192,6 +193,10 @@ class SoftTwinNode(Node):
         on_point = self._guarded(self._on_point_wrench)       # issue 31: a load on any point
         self._point_wrench_sub = self.create_subscription(
             PointWrench, "~/point_wrench_command", lambda msg, info: on_point(msg, info), WRENCH_QUEUE,
+            callback_group=self._input_group)
+        on_base = self._guarded(self._on_base_pose)           # a prescribed base, carried (issue 29)
+        self._base_pose_sub = self.create_subscription(
+            PoseStamped, "~/base_pose_command", lambda msg, info: on_base(msg, info), WRENCH_QUEUE,
             callback_group=self._input_group)
         on_obstacle = self._guarded(self._on_obstacle)
         self._obstacle_sub = self.create_subscription(
@@ -609,6 +614,29 @@ class SoftTwinNode(Node):
                 self.twin.set_tip_wrench(*newest)
         if errors:
             self.get_logger().warn(inputs.rejection_warning("tip wrench", errors), throttle_duration_sec=1.0)
+        if newest is not None:
+            self._react_to_input(batch)
+
+    def _on_base_pose(self, msg, info=None):
+        """Every queued geometry_msgs/PoseStamped in order, counted and
+        validated (:func:`inputs.parse_base_poses`); the newest valid one is
+        where the prescribed base goes at the next step."""
+        batch = self._take_queued(self._base_pose_sub, (msg, info), WRENCH_QUEUE)
+        publishers = self._base_pose_sub.get_publisher_count()
+        lost = sum(self._base_pose_gaps.add(inputs.sequence_number(inf), publishers) for _, inf in batch)
+        with self._lock:
+            newest, errors = inputs.parse_base_poses(batch, self.cfg, self.twin.mech)
+            s = self.stats
+            s.totals["base_poses_received"] += len(batch)
+            s.totals["base_poses_applied"] += len(batch) - len(errors)
+            s.totals["base_poses_lost"] += lost
+            s.lost += lost
+            for e in errors:
+                s.reject("base_pose", e)
+            if newest is not None:
+                self.twin.set_base_pose(newest)
+        if errors:
+            self.get_logger().warn(inputs.rejection_warning("base pose", errors), throttle_duration_sec=1.0)
         if newest is not None:
             self._react_to_input(batch)
 

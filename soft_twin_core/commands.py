@@ -19,6 +19,7 @@ import numpy as np
 
 from soft_twin_core.engine import loads as ld
 from soft_twin_core.errors import InputError
+from soft_twin_core.lie import checked_rigid_transform
 from soft_twin_core.robot.mechanism import check_joint_position
 from soft_twin_core.robot.model import check_actuator_input
 from soft_twin_core.solve.constrained import actuation_vector
@@ -29,7 +30,7 @@ from soft_twin_core.text import clip, short_list
 # solve it caused failed
 REJECT_REASONS = ("non_finite", "wrong_length", "unknown_name", "duplicate_name",
                   "negative_tension", "over_limit", "under_limit", "bad_frame", "wrong_mode",
-                  "solver_failed", "bad_obstacle", "bad_point")
+                  "solver_failed", "bad_obstacle", "bad_point", "bad_pose")
 
 
 def parse_actuation(model, names, values, current, order=None):
@@ -97,6 +98,24 @@ def parse_tip_wrench(force, moment, frame_id, base_frame, tip_frame, max_force=m
     """
     frame = _axes(frame_id, base_frame, tip_frame, "tip wrench", f"the tip frame {tip_frame!r}")
     return _checked_wrench(force, moment, "tip", max_force, max_torque), frame
+
+
+def parse_base_pose(mech, pose, frame_id, base_frame):
+    """A prescribed base's pose, where it is carried (a manipulator's
+    flange, a stage): ``pose`` a 4x4 in the base frame (the robot file's
+    world, ``frame_id == base_frame``). InputError "wrong_mode" if the
+    robot's base is not prescribed, "bad_frame", "non_finite", "bad_pose"
+    (not a rigid transform). Returns the 4x4."""
+    if mech.base_motion != "prescribed":
+        raise InputError("wrong_mode", f"base pose: only for a robot whose base is prescribed (base: {{motion: "
+                                       f"prescribed}}); this robot's is {mech.base_motion}")
+    if frame_id != base_frame:
+        raise InputError("bad_frame", f"base pose frame_id {clip(repr(frame_id))}: expected the base frame "
+                                      f"{base_frame!r}")
+    try:
+        return checked_rigid_transform(pose, "base pose")
+    except ValueError as e:
+        raise InputError("non_finite" if "non-finite" in str(e) else "bad_pose", str(e)) from None
 
 
 def _axes(frame_id, base_frame, own_frame, what, own):

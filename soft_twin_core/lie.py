@@ -31,7 +31,7 @@ __all__ = [
     "hat", "vee", "hat6", "vee6", "ad", "coad", "Ad", "Ad_inv", "se3_inv",
     "se3_from_rp", "exp_so3", "log_so3", "T_so3", "T_so3_inv", "exp_se3",
     "log_se3", "T_se3", "T_se3_inv", "T_se3_dot", "cay_so3", "cay_se3",
-    "T_cay_se3", "T_cay_se3_inv", "cayley_coordinates",
+    "T_cay_se3", "T_cay_se3_inv", "cayley_coordinates", "checked_rigid_transform",
 ]
 
 # Below these angles the Taylor branches are used. Chosen so that the direct
@@ -185,6 +185,25 @@ def se3_inv(H):
     out[..., :3, 3] = -np.einsum("...ij,...j->...i", Rt, H[..., :3, 3])
     out[..., 3, 3] = 1.0
     return out
+
+
+def checked_rigid_transform(T, what, atol=1e-6):
+    """``T`` as a float 4x4 rigid transform (a proper rotation to ``atol``,
+    a finite position [m], the row [0, 0, 0, 1]); ValueError naming
+    ``what`` else. The rotation is used as given (not re-orthonormalised)."""
+    try:
+        H = np.array(T, dtype=float)
+    except (TypeError, ValueError):
+        raise ValueError(f"{what}: expected a 4x4 rigid transform, got {str(T)[:200]}") from None
+    if H.shape != (4, 4) or not np.all(np.isfinite(H)):
+        raise ValueError(f"{what}: expected a finite 4x4 rigid transform (rotation, position [m]), got "
+                         f"{'shape ' + str(H.shape) if H.shape != (4, 4) else 'non-finite entries'}")
+    R = H[:3, :3]
+    if not np.allclose(H[3], [0, 0, 0, 1]) or not np.allclose(R @ R.T, np.eye(3), atol=atol) \
+            or np.linalg.det(R) < 0:
+        raise ValueError(f"{what}: not a rigid transform (its rotation is not orthonormal with determinant 1 "
+                         f"to {atol:g}, or its last row is not [0, 0, 0, 1])")
+    return H
 
 
 def se3_from_rp(R, p):

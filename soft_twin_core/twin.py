@@ -38,7 +38,7 @@ from soft_twin_core.engine.workspace import Workspace
 from soft_twin_core.errors import StaticsError
 from soft_twin_core.planning import planner as pl
 from soft_twin_core.planning.ik import frame_ik
-from soft_twin_core.robot.mechanism import shape_command, tip_frame
+from soft_twin_core.robot.mechanism import base_targets, shape_command, tip_frame
 from soft_twin_core.robot.model import State
 from soft_twin_core.robot.obstacles import check_unique_names
 from soft_twin_core.solve import constrained as cs
@@ -134,7 +134,8 @@ def _same_inputs(a, b):
     """Two input tuples of :meth:`Twin._inputs_tuple` alike (the
     stamps by identity)."""
     return (np.array_equal(a[0], b[0]) and np.array_equal(a[1], b[1]) and a[2] == b[2] and a[3] == b[3]
-            and a[4] == b[4] and all(x is y for x, y in zip(a[5:8], b[5:8])) and a[8] == b[8])
+            and a[4] == b[4] and all(x is y for x, y in zip(a[5:8], b[5:8])) and a[8] == b[8]
+            and (a[9] is None) == (b[9] is None) and (a[9] is None or np.array_equal(a[9], b[9])))
 
 
 @dataclass
@@ -253,6 +254,7 @@ class Twin:
         self.point_wrenches = {}         # {point: (wrench (6,), "world" | "body")}: loads on other points
         self.positions = {mech.tree.joints[i].name: mech.tree.joints[i].q_ref for i in mech.joints_with("position")}
         self.efforts = {mech.tree.joints[i].name: 0.0 for i in mech.joints_with("effort")}
+        self.base_pose = None            # a prescribed base's commanded pose (4x4; None: the robot file's)
         self.command_stamp = None
         self.joint_stamp = None          # the newest joint command's header
         self.actuation_stamp = None      # the newest actuation command's header
@@ -286,7 +288,8 @@ class Twin:
 
     def _inputs_tuple(self):
         return (self.u.copy(), self.tip_wrench.copy(), self.tip_frame, dict(self.positions), dict(self.efforts),
-                self.command_stamp, self.joint_stamp, self.actuation_stamp, self._points_tuple())
+                self.command_stamp, self.joint_stamp, self.actuation_stamp, self._points_tuple(),
+                None if self.base_pose is None else self.base_pose.copy())
 
     def _points_tuple(self):
         """The point wrenches as plain, comparable data."""
@@ -353,6 +356,22 @@ class Twin:
         self.command_stamp = stamp if stamp is not None else self.command_stamp
         self.joint_stamp = stamp
         self._changed()
+
+    def set_base_pose(self, pose):
+        """Where a prescribed base is carried to (4x4 in the robot file's
+        world, checked at the door: :func:`soft_twin_core.commands.parse_base_pose`):
+        the next dynamic step moves it there (a clamp of the base frame to a
+        moving target; the pose commanded before is where the step starts,
+        so a stream should start at the base's pose, and a jump is a jolt
+        the step may refuse: then it is dropped); the next solve holds it
+        there. None: back to the robot file's pose."""
+        self.base_pose = None if pose is None else np.array(pose, dtype=float)
+        self._changed()
+
+    def _targets(self):
+        """The constraints' world targets for the simulator: the prescribed
+        base's commanded pose (None: every constraint's own)."""
+        return base_targets(self.mech, self.base_pose)
 
     @property
     def joint_command_pending(self):
@@ -425,6 +444,7 @@ class Twin:
         self.u = np.zeros(len(mech.actuators))
         self.tip_wrench, self.tip_frame = np.zeros(6), "world"
         self.point_wrenches = {}
+        self.base_pose = None
         self.positions = {mech.tree.joints[i].name: mech.tree.joints[i].q_ref for i in mech.joints_with("position")}
         self.efforts = {mech.tree.joints[i].name: 0.0 for i in mech.joints_with("effort")}
         self.command_stamp = self.joint_stamp = self.actuation_stamp = None
@@ -492,7 +512,7 @@ class Twin:
                     ref = self._shaped(self.settings.dt)
                     inp = self.core_inputs({k: r for k, (r, _) in ref.items()}, {k: v for k, (_, v) in ref.items()})
                 try:
-                    self._sim.step(inputs=inp, obstacles=self._moved)
+                    self._sim.step(inputs=inp, targets=self._targets(), obstacles=self._moved)
                     if self._moved is not None:
                         self.obstacles, self._moved = self._moved, None
                 except (cs.StepError,) + STEP_ERRORS as e:
@@ -544,7 +564,10 @@ class Twin:
             dropped.append("joint")
         if not np.array_equal(now[1], target[1]) or now[2] != target[2] or now[8] != target[8]:
             dropped.append("wrench")
-        (u, w, frame, pos, eff, self.command_stamp, self.joint_stamp, self.actuation_stamp, points) = target
+        if not _same_inputs(now[:9] + (target[9],), now):
+            dropped.append("base_pose")
+        (u, w, frame, pos, eff, self.command_stamp, self.joint_stamp, self.actuation_stamp, points,
+         self.base_pose) = target
         self.point_wrenches = {p: (np.array(w_), axes) for p, w_, axes in points}
         self._good_joint_stamp, self._good_actuation_stamp = self.joint_stamp, self.actuation_stamp
         self.u, self.tip_wrench, self.tip_frame = u.copy(), w.copy(), frame
@@ -559,7 +582,7 @@ class Twin:
         self._dirty = False
         try:
             eq = cs.solve_equilibrium(self.mech, q_init=self.state.q, inputs=self.core_inputs(),
-                                      tangent_hint=self._tangent, obstacles=self.obstacles)
+                                      tangent_hint=self._tangent, obstacles=self.obstacles, targets=self._targets())
         except (ValueError, cs.StaticsError) + STEP_ERRORS as e:
             dropped = self._drop()
             return UpdateInfo(0, 0, False, f"statics failed for the last input (dropped): {clip(e, 300)}; "
@@ -594,7 +617,8 @@ class Twin:
         in another process: :mod:`soft_twin.query_worker`)."""
         return dict(q=self.state.q.copy(), t=float(self.state.t), u=self.u.copy(),
                     tip_wrench=self.tip_wrench.copy(), tip_frame=self.tip_frame, positions=dict(self.positions),
-                    efforts=dict(self.efforts), lam=self.lam.copy(), points=self._points_tuple())
+                    efforts=dict(self.efforts), lam=self.lam.copy(), points=self._points_tuple(),
+                    base_pose=None if self.base_pose is None else self.base_pose.copy())
 
     def load_query_state(self, st):
         """Become the quasi-static query twin of :meth:`query_state` ``st``."""
@@ -603,6 +627,7 @@ class Twin:
         self.u, self.tip_wrench, self.tip_frame = st["u"].copy(), st["tip_wrench"].copy(), st["tip_frame"]
         self.point_wrenches = {p: (np.array(w), axes) for p, w, axes in st.get("points", ())}
         self.positions, self.efforts = dict(st["positions"]), dict(st["efforts"])
+        self.base_pose = None if st.get("base_pose") is None else np.array(st["base_pose"])
         self.lam, self._sim = st["lam"].copy(), None
         self._changed()
 

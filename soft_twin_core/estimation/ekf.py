@@ -111,7 +111,7 @@ from soft_twin_core.engine.kernels.tangent import static_tangent_pass
 from soft_twin_core.engine.workspace import Workspace
 from soft_twin_core.errors import StepError
 from soft_twin_core.estimation import sensors as sn
-from soft_twin_core.lie import log_so3
+from soft_twin_core.lie import checked_rigid_transform, log_so3
 from soft_twin_core.robot.mechanism import tip_frame
 from soft_twin_core.solve.constrained import (Inputs, MechanismSimulator, actuation_vector, constraint_loads,
                                               constraint_rows, factor_kkt, joint_vector, make_inputs,
@@ -395,11 +395,7 @@ class EKF:
     def _set_base_pose(self, pose):
         if self._base_k is None:
             raise ValueError(f"base_pose: only for a prescribed base (this robot's is {self.mech.base_motion})")
-        T = np.asarray(pose, dtype=float)
-        if T.shape != (4, 4) or not np.all(np.isfinite(T)) or not np.allclose(T[3], [0, 0, 0, 1]) or \
-                not np.allclose(T[:3, :3] @ T[:3, :3].T, np.eye(3), atol=1e-6) or np.linalg.det(T[:3, :3]) < 0:
-            raise ValueError(f"base_pose: expected a finite 4x4 rigid transform (rotation, position [m]), "
-                             f"got {pose!r}")
+        T = checked_rigid_transform(pose, "base_pose")
         k, r = self._base_k, self._base_row
         T0 = self._targets[k]
         self._target_rate[r:r + 3] = (T[:3, 3] - T0[:3, 3]) / self.dt          # the base's twist over the step,

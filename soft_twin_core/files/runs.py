@@ -18,7 +18,7 @@ from soft_twin_core.solve.constrained import (MechanismSimulator, StepError, con
 _NO_LOADS = Loads(gravity=False)
 from soft_twin_core.engine.workspace import Workspace
 from soft_twin_core.files.timeline import check_output_size, count, n_steps_for, step_times
-from soft_twin_core.robot.mechanism import tip_frame
+from soft_twin_core.robot.mechanism import base_targets, tip_frame
 from soft_twin_core.solve.contact import contacts_dict
 from soft_twin_core.solve.outputs import (frame_velocity, main_member, member_samples, section_rates,
                                           section_strains, state_outputs)
@@ -34,10 +34,7 @@ def _inputs(sc, t, factor=1.0):
 
 
 def _targets(sc, t):
-    g = sc.base_pose_at(t)
-    if g is None:
-        return None
-    return [g if c.name == "base" else None for c in sc.mech.constraints]
+    return base_targets(sc.mech, sc.base_pose_at(t))
 
 
 def _outputs_dict(sc, out, prefix=""):

@@ -243,6 +243,14 @@ def check_joint_position(joint, value):
     return None
 
 
+def base_targets(mech, pose):
+    """The constraints' world targets with a prescribed base at ``pose``
+    (4x4; None: every constraint's own): the ``targets`` of the solvers."""
+    if pose is None:
+        return None
+    return [pose if c.name == "base" else None for c in mech.constraints]
+
+
 def tip_frame(mech):
     """The frame that is the robot's tip (the node's ``~/tip_pose``, the
     default of the planner and of the workspace map): ``tip`` if the robot
