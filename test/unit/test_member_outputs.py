@@ -153,3 +153,33 @@ def test_the_internal_force_steps_inside_a_section_are_the_weight_lumped_at_its_
         assert 0.1 * lam * wk.max() < dev <= lam * wk.max()
         worst.append(dev)
     assert worst[1] == pytest.approx(worst[0] / 2, rel=0.15)
+
+
+def test_a_tendons_compression_and_moment_are_even_along_its_span_and_step_at_its_anchor():
+    """Issue 31: the staircase inside sections is gravity's (its weight
+    lumped at the quadrature points, the test above), not the tendons'. A
+    straight tendon at offset d in the cross-section, tension T, anchored at
+    s_a, loads the backbone (the tendon apart) as the continuum says on
+    the whole bent arm: the distal part, pulled at the anchor by -T along
+    the tendon, exerts on the proximal part the body-frame wrench [-T, 0,
+    0] and moment d x [-T, 0, 0] at every cut before the anchor, and
+    nothing beyond it: even to round-off inside and across every section,
+    one step at the anchor (the tendon_arm: y tendon to the tip, z tendon
+    to 0.30 m; zero gravity)."""
+    from soft_twin_core.solve.constrained import solve_equilibrium
+    mech = load_mechanism("tendon_arm")
+    Ty, Tz, d = 5.0, 3.0, 0.007
+    u = np.array([Ty if a.name == "tendon_y_pos" else Tz if a.name == "tendon_z_pos" else 0.0
+                  for a in mech.actuators])
+    eq = solve_equilibrium(mech, inputs=make_inputs(mech, u, None, None, None, Loads(gravity=False), []))
+    (m,) = state_outputs(mech, eq.q, eq.lam, eq.inputs, points_per_section=8).members
+    bend = m.poses[-1][:3, 0]
+    assert abs(bend[1]) > 0.1 and abs(bend[2]) > 0.1, bend     # bent away from straight, both ways
+    s, W = m.s, m.internal_wrench
+    before, after = s < 0.30 - 1e-9, s > 0.30 + 1e-9
+    y = np.cross([0, d, 0], [-Ty, 0, 0])
+    z = np.cross([0, 0, d], [-Tz, 0, 0])
+    expected = np.where(before[:, None], np.r_[-Ty - Tz, 0, 0, y + z], np.r_[-Ty, 0, 0, y])
+    keep = before | after
+    assert after[:-1].sum() > 8 and before.sum() > 16
+    np.testing.assert_allclose(W[keep][:-1], expected[keep][:-1], atol=1e-9 * Ty)
