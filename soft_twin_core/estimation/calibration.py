@@ -765,7 +765,7 @@ class Problem:
         tree = mech.tree
         ws = Workspace(tree)
         act = cs.actuator_arrays(tree) if mech.actuators else None
-        K = cs._dense_blocks(tree)[0] if self.rows_of else None
+        K = cs.dense_stiffness_damping(tree)[0] if self.rows_of else None
         rows = range(len(self.rec)) if rows is None else rows
         res, jac = [], []
         for r in rows:

@@ -320,7 +320,7 @@ def _efforts_out(mech, lam, inp):
 # The equilibrium problem
 # ----------------------------------------------------------------------------
 
-def _dense_blocks(tree):
+def dense_stiffness_damping(tree):
     """Joint-space stiffness and damping matrices (nv, nv) of the tree."""
     K = np.zeros((tree.nv, tree.nv))
     D = np.zeros((tree.nv, tree.nv))
@@ -351,7 +351,7 @@ class _Equilibrium:
         self.tree = tree
         self.ws = Workspace(tree)
         self.act = _cached(mech, "_act_arrays", lambda: actuator_arrays(tree))
-        self.K, _ = _cached(mech, "_dense_KD", lambda: _dense_blocks(tree))
+        self.K, _ = _cached(mech, "_dense_KD", lambda: dense_stiffness_damping(tree))
         self.coef = (np.ascontiguousarray(self.act.unit @ inp.u) if inp.u.size
                      else np.zeros(len(self.act.joint)))
         self.zeros = np.zeros(tree.nv)
@@ -609,7 +609,7 @@ def free_problem(mech, inp):
     under checked inputs ``inp`` (:class:`Inputs`)."""
     tree = mech.tree
     act = _cached(mech, "_act_arrays", lambda: actuator_arrays(tree))
-    K, _ = _cached(mech, "_dense_KD", lambda: _dense_blocks(tree))
+    K, _ = _cached(mech, "_dense_KD", lambda: dense_stiffness_damping(tree))
     coef = np.ascontiguousarray(act.unit @ inp.u) if inp.u.size else np.zeros(len(act.joint))
     return eq.Problem(tree, act, K, inp.loads, inp.gravity, coef, inp.effort)
 
@@ -709,7 +709,7 @@ class MechanismSimulator:
         self.reuse_factorisation = bool(reuse_factorisation)
         self.ws = Workspace(tree)
         self.act = _cached(mech, "_act_arrays", lambda: actuator_arrays(tree))
-        self.K, self.D = _cached(mech, "_dense_KD", lambda: _dense_blocks(tree))
+        self.K, self.D = _cached(mech, "_dense_KD", lambda: dense_stiffness_damping(tree))
         self.t = 0.0
         self.q = tree.q0.copy() if q is None else tree.check_q(np.array(q, float)).copy()
         self.v = np.zeros(tree.nv) if v is None else tree.check_v(np.array(v, float)).copy()

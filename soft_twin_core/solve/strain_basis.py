@@ -23,8 +23,12 @@ the accuracy per generalised coordinate now
 """
 
 import numpy as np
+from scipy.linalg import eigh
 
+from soft_twin_core.engine import algorithms as alg
+from soft_twin_core.engine.workspace import Workspace
 from soft_twin_core.errors import StaticsError
+from soft_twin_core.solve.constrained import dense_stiffness_damping
 
 
 def legendre_basis(mech, order):
@@ -33,30 +37,92 @@ def legendre_basis(mech, order):
     midpoints normalised to [-1, 1] along it): column (member, mode a, j)."""
     if not (isinstance(order, (int, np.integer)) and order >= 0):
         raise ValueError(f"order: expected an integer >= 0, got {order!r}")
+    return _member_basis(mech, lambda x: np.array([np.polynomial.legendre.Legendre.basis(j)(2 * x - 1)
+                                                   for j in range(order + 1)]), "legendre_basis")
+
+
+FEM_DEGREES = (1, 3)
+
+
+def fem_basis(mech, elements, degree):
+    """B (nv, nz) of FEM-like local shape functions (the variable-strain
+    "FEM-like linear and cubic" bases): each member cut into ``elements``
+    equal elements, the strain of each free mode continuous and a
+    polynomial of ``degree`` (1: linear, hat functions, elements + 1 nodal
+    values; 3: cubic Lagrange, 4 equally spaced nodes an element, 3
+    elements + 1 values) inside each; column (member, mode a, node j),
+    evaluated at the sections' midpoints. The nodal values are the
+    coordinates: a load with a kink (a point load inside the span) is
+    followed where the elements are, unlike a global basis."""
+    if not (isinstance(elements, (int, np.integer)) and elements >= 1):
+        raise ValueError(f"elements: expected an integer >= 1, got {elements!r}")
+    if degree not in FEM_DEGREES:
+        raise ValueError(f"degree: expected one of {FEM_DEGREES} (linear, cubic), got {degree!r}")
+    return _member_basis(mech, lambda x: _lagrange_shapes(x, elements, degree), "fem_basis")
+
+
+def _lagrange_shapes(x, elements, degree):
+    """(elements * degree + 1, len(x)): the continuous piecewise Lagrange
+    shape functions of ``degree`` on ``elements`` equal elements of [0, 1]
+    (nodes x_j = j / (elements * degree)) at the points x."""
+    n = elements * degree
+    nodes = np.arange(n + 1) / n
+    e = np.minimum((np.asarray(x) * elements).astype(int), elements - 1)     # each point's element
+    out = np.zeros((n + 1, len(x)))
+    for k, (xk, ek) in enumerate(zip(x, e)):
+        local = nodes[ek * degree:(ek + 1) * degree + 1]
+        for a in range(degree + 1):
+            others = np.delete(local, a)
+            out[ek * degree + a, k] = np.prod((xk - others) / (local[a] - others))
+    return out
+
+
+def _member_basis(mech, functions, what):
+    """B (nv, nz): ``functions(x)`` ((nf, len(x)) values at the abscissae x
+    in [0, 1] of a member's sections' midpoints) for each free mode of each
+    soft member (a tree without rigid joints with coordinates)."""
     tree = mech.tree
     soft = set(tree.soft_joints)
     if any(tree.joints[i].nv for i in range(tree.n_joints) if i not in soft):
-        raise ValueError("legendre_basis: the robot has rigid joints with coordinates; a strain basis covers "
-                         "soft members only")
+        raise ValueError(f"{what}: the robot has rigid joints with coordinates; a strain basis covers "
+                         f"soft members only")
     cols = []
     for path in tree.paths:
         js = [j for j in path.joints if j in soft]
         if not js:
             continue
         L = np.array([tree.joints[j].section.length for j in js])
-        mid = (np.cumsum(L) - 0.5 * L) / L.sum() * 2.0 - 1.0         # midpoints in [-1, 1]
+        vals = functions((np.cumsum(L) - 0.5 * L) / L.sum())
         modes = tree.joints[js[0]].section.modes
+        for jt in js:
+            sec = tree.joints[jt].section
+            if len(sec.modes) != len(modes) or np.any(sec.modes != modes):
+                raise ValueError(f"{what}: a member's sections must share their free modes")
         for a in range(len(modes)):
-            for j in range(order + 1):
+            for f in vals:
                 c = np.zeros(tree.nv)
-                vals = np.polynomial.legendre.Legendre.basis(j)(mid)
                 for k, jt in enumerate(js):
-                    sec = tree.joints[jt].section
-                    if len(sec.modes) != len(modes) or np.any(sec.modes != modes):
-                        raise ValueError("legendre_basis: a member's sections must share their free modes")
-                    c[tree.idx_v[jt] + a] = vals[k]
+                    c[tree.idx_v[jt] + a] = f[k]
                 cols.append(c)
     return np.array(cols).T if cols else np.zeros((tree.nv, 0))
+
+
+def modal_frequencies(mech, B, q_ref=None, count=None):
+    """The natural frequencies [Hz] of small vibrations about ``q_ref``
+    (default the reference configuration: with no loads, an equilibrium),
+    in the coordinates z of ``q = q_ref + B z``: the generalised
+    eigenvalues of the elastic stiffness and the mass matrix projected on
+    the basis, ``B^T K B x = w^2 B^T M(q_ref) B x`` (the static tangent of
+    the elastic forces, no load stiffness; CRBA's M). ``count``: the
+    lowest ones (default all)."""
+    tree = mech.tree
+    q = tree.q0.copy() if q_ref is None else np.asarray(q_ref, dtype=float)
+    K, _ = dense_stiffness_damping(tree)
+    M = alg.crba(tree, Workspace(tree), q).copy()
+    B = np.asarray(B, dtype=float)
+    w2 = eigh(B.T @ K @ B, B.T @ M @ B, eigvals_only=True)
+    f = np.sqrt(np.maximum(w2, 0.0)) / (2 * np.pi)
+    return f if count is None else f[:count]
 
 
 def solve_reduced(pb, B, q_ref, z0=None, *, tol=1e-10, max_iterations=50, load_steps=1):
