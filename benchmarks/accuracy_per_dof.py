@@ -1,8 +1,10 @@
 """Accuracy per generalised coordinate (issue 28): the tip error of a
 cantilever's statics against the number of its coordinates, for piecewise
-constant strain with n sections, PCS(n), and for a global Legendre strain
-basis of order p (soft_twin_core.solve.strain_basis, on a 128-section
-backbone), and the wall time of each solve.
+constant strain with n sections, PCS(n), for a global Legendre strain
+basis of order p and for FEM-like linear and cubic elements
+(soft_twin_core.solve.strain_basis, on a 128-section backbone), and the
+wall time of each solve; and the first three bending frequencies in each
+(against the Rayleigh beam: Euler-Bernoulli with rotary inertia).
 
 The arm: the common benchmark cantilever (L = 0.5 m, r = 10 mm, E = 1 MPa,
 1000 kg/m^3, along +x; bending modes free, so 2 coordinates per section or
@@ -26,7 +28,7 @@ from soft_twin_core.robot.mechanism import from_robot_model
 from soft_twin_core.robot.model import benchmark_cantilever_dict, model_from_dict
 from soft_twin_core.solve.constrained import free_problem, make_inputs, solve_equilibrium
 from soft_twin_core.solve.outputs import state_outputs
-from soft_twin_core.solve.strain_basis import legendre_basis, solve_reduced
+from soft_twin_core.solve.strain_basis import fem_basis, legendre_basis, modal_frequencies, solve_reduced
 
 L = 0.5
 CASES = {
@@ -44,6 +46,15 @@ def tip(mech, q, inp):
     return state_outputs(mech, q, np.zeros(0), inp).frames["tip"][:3, 3]
 
 
+def rayleigh_frequencies(E=1e6, r=0.01, rho=1000.0):
+    """The cantilever's first three bending frequencies [Hz] with rotary
+    inertia (Rayleigh's quotient on the Euler-Bernoulli mode shapes; the
+    unit tests' reference, test_strain_basis.py)."""
+    sys.path.insert(0, os.path.join(os.path.dirname(__file__), "..", "test", "unit"))
+    from test_strain_basis import _rayleigh_beam_frequencies
+    return _rayleigh_beam_frequencies(E, r, rho, L)[1]
+
+
 def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--out", default="docs/figures/accuracy_per_dof.png")
@@ -55,7 +66,7 @@ def main(argv=None):
         ref = arm(400)
         ref_inp = make_inputs(ref, loads=loads)
         p_ref = tip(ref, solve_equilibrium(ref, loads=loads).q, ref_inp)
-        pcs, leg = [], []
+        pcs, leg, lin, cub = [], [], [], []
         for n in (1, 2, 4, 8, 16, 32, 64):
             m = arm(n)
             t, sol = best_of(lambda: solve_equilibrium(m, loads=loads), 3)
@@ -66,21 +77,34 @@ def main(argv=None):
             B = legendre_basis(backbone, p)
             t, (q, _, _) = best_of(lambda: solve_reduced(pb, B, backbone.tree.q0, load_steps=8), 3)
             leg.append((B.shape[1], np.linalg.norm(tip(backbone, q, inp) - p_ref) / L, t))
-        rows[name] = (pcs, leg)
-        print(f"\n## {name}\n| coordinates | PCS tip error / L | time | | coordinates | Legendre tip error / L | time |")
-        print("|---:|---:|---:|---|---:|---:|---:|")
-        for k in range(max(len(pcs), len(leg))):
-            a = pcs[k] if k < len(pcs) else None
-            b = leg[k] if k < len(leg) else None
-            print("| " + (f"{a[0]} | {a[1]:.2e} | {a[2] * 1e3:.2f} ms" if a else " | | ") + " | | "
-                  + (f"{b[0]} | {b[1]:.2e} | {b[2] * 1e3:.2f} ms" if b else " | | ") + " |")
+        for out, degree, counts in ((lin, 1, (1, 2, 4, 8, 16)), (cub, 3, (1, 2, 4, 8))):
+            for e in counts:
+                B = fem_basis(backbone, e, degree)
+                t, (q, _, _) = best_of(lambda: solve_reduced(pb, B, backbone.tree.q0, load_steps=8), 3)
+                out.append((B.shape[1], np.linalg.norm(tip(backbone, q, inp) - p_ref) / L, t))
+        rows[name] = (pcs, leg, lin, cub)
+        print(f"\n## {name}\n| basis | coordinates | tip error / L | time |\n|---|---:|---:|---:|")
+        for label, data in (("PCS", pcs), ("Legendre", leg), ("linear elements", lin), ("cubic elements", cub)):
+            for c, e, t in data:
+                print(f"| {label} | {c} | {e:.2e} | {t * 1e3:.2f} ms |")
+    print("\n## first three bending frequencies, relative error against the Rayleigh beam\n"
+          "| basis | coordinates per bending direction | f1 | f2 | f3 |\n|---|---:|---:|---:|---:|")
+    ray = rayleigh_frequencies()
+    for label, mech, B in ([(f"PCS({n})", arm(n), None) for n in (8, 16, 32, 64, 128)]
+                           + [(f"Legendre({p})", backbone, legendre_basis(backbone, p)) for p in (3, 5, 7, 11)]
+                           + [(f"linear({e})", backbone, fem_basis(backbone, e, 1)) for e in (4, 8, 11)]
+                           + [(f"cubic({e})", backbone, fem_basis(backbone, e, 3)) for e in (1, 2, 4)]):
+        B = np.eye(mech.tree.nv) if B is None else B
+        f = modal_frequencies(mech, B, count=6)[0:6:2]
+        print(f"| {label} | {B.shape[1] // 2} | " + " | ".join(f"{x:+.1e}" for x in f / ray - 1) + " |")
     import matplotlib
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
     fig, axs = plt.subplots(2, 3, figsize=(13, 7.5), layout="constrained")
-    for c, (name, (pcs, leg)) in enumerate(rows.items()):
+    for c, (name, (pcs, leg, lin, cub)) in enumerate(rows.items()):
         for data, label, mk in ((pcs, "PCS(n sections)", "o-"), (leg, "Legendre(order p), 128-section backbone",
-                                                                    "s-")):
+                                                                    "s-"),
+                                (lin, "linear elements", "^-"), (cub, "cubic elements", "v-")):
             d = np.array(data)
             axs[0, c].loglog(d[:, 0], np.maximum(d[:, 1], 1e-12), mk, label=label)
             axs[1, c].loglog(1e3 * d[:, 2], np.maximum(d[:, 1], 1e-12), mk, label=label)
