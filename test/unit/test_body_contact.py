@@ -118,18 +118,22 @@ def test_a_loose_can_rests_on_the_table_carrying_its_weight():
 def test_who_touches_whom():
     """A body's shape is touched by every point but those of its own body
     and of the bodies above or below it in the tree (a finger does not
-    touch the palm it is mounted on); the world's obstacles by all."""
+    touch the palm it is mounted on); the world's obstacles by all; the
+    right finger's capsules (the example's ``contact.between``: the fingers
+    meet when they close on nothing) by the left finger's points only."""
     d = _gripper_dict()
     d["bodies"][0]["collision"] = {"shape": "box", "size": [0.08, 0.03, 0.01]}
     mech = _gripper(d)
     mc = MemberContact(mech)
     names = [o.name for o in mc.all]
-    assert names == ["table", "palm", "cylinder"]
+    assert names[:3] == ["table", "palm", "cylinder"] and all(n.startswith("finger_right[") for n in names[3:])
+    assert len(names) == 3 + 2 * 3                       # two half-capsules per section of the right finger
     members = np.array(mc.points.member)
     allowed = mc.allowed
     assert allowed[:, 0].all()
     assert not allowed[members != "cylinder", 1].any() and allowed[members == "cylinder", 1].all()
     assert allowed[members != "cylinder", 2].all() and not allowed[members == "cylinder", 2].any()
+    assert allowed[members == "finger_left", 3:].all() and not allowed[members != "finger_left", 3:].any()
 
 
 def test_the_compiled_step_with_a_loose_body_is_the_python_step():
@@ -500,3 +504,28 @@ def test_the_rolling_frictions_terms_in_newtons_matrix_are_the_residuals_derivat
     Kn, Dn = np.zeros_like(Kc), np.zeros_like(Dc)                      # the backbone point's Jacobian only
     sim.contact.add_stiffness(ws, replace(st, radius=np.zeros(1)), Kn, Dt=Dn)
     assert abs((th * Dn + th * th * h * Kn)[wy, wy] - fd[wy, wy]) > 0.5 * fd[wy, wy]
+
+
+def test_the_examples_fingers_closing_on_nothing_meet_instead_of_crossing():
+    """The lift example without its cylinder, both tendons pulled to 6 N
+    (1.5 s, stepped through the compiled contact step): its
+    ``contact.between`` makes the fingers meet and stay on their own sides;
+    without it the same run has them pass through each other (the tips'
+    x swap signs)."""
+    from soft_twin_core.solve.outputs import state_outputs
+    tips = {}
+    for between in (True, False):
+        d = _gripper_dict()
+        d["bodies"] = [b for b in d["bodies"] if b["name"] != "cylinder"]
+        if not between:
+            del d["contact"]["between"]
+        mech = _gripper(d)
+        sim = MechanismSimulator(mech, 2e-3, 1.0)
+        for T in (2.0, 4.0, 6.0):
+            sim.step(actuation=[T, T], n=250)
+        frames = state_outputs(mech, sim.q, sim.lam, make_inputs(mech, [T, T])).frames
+        tips[between] = (frames["finger_left_tip"][0, 3], frames["finger_right_tip"][0, 3], sim.contacts)
+    left, right, contacts = tips[True]
+    assert left < -0.005 and right > 0.005 and len(contacts) >= 1
+    left, right, contacts = tips[False]
+    assert left > 0.01 and right < -0.01 and not contacts
