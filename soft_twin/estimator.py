@@ -70,9 +70,10 @@ from std_srvs.srv import Trigger
 
 from soft_twin.msg import ActuationCommand
 from soft_twin import conversions as cv
+from soft_twin.inputs import base_pose_of
 from soft_twin.readings import STAMP_REJECTIONS, InputLedger, accept_reading
 from soft_twin.shutdown import StopSignals, spin_until_stopped, tear_down
-from soft_twin_core.commands import InputError, parse_base_pose, parse_joint_command
+from soft_twin_core.commands import InputError, parse_joint_command
 from soft_twin_core.estimation import ekf as es
 from soft_twin_core.estimation import sensors as sn
 from soft_twin_core.robot.mechanism import load_mechanism
@@ -278,11 +279,7 @@ class EstimatorNode(Node):
         base velocity is the one over the step; slower: the base rests at
         the newest one between them)."""
         try:
-            try:
-                T = cv.matrix_from_pose(msg.pose)
-            except ValueError as e:
-                raise InputError("non_finite", f"base pose: {e}") from None
-            self._base_pose = parse_base_pose(self.mech, T, msg.header.frame_id, self.frame_id)
+            self._base_pose = base_pose_of(msg, self.mech, self.frame_id)
         except InputError as e:
             self._reject("base_pose", str(e))
 

@@ -74,14 +74,21 @@ def parse_base_poses(batch, cfg, mech):
     newest, errors = None, []
     for m, _ in batch:
         try:
-            try:
-                T = cv.matrix_from_pose(m.pose)
-            except ValueError as e:
-                raise cmd.InputError("non_finite", f"base pose: {e}") from None
-            newest = cmd.parse_base_pose(mech, T, m.header.frame_id, cfg.base_frame)
+            newest = base_pose_of(m, mech, cfg.base_frame)
         except cmd.InputError as e:
             errors.append(e)
     return newest, errors
+
+
+def base_pose_of(msg, mech, base_frame):
+    """The 4x4 of a PoseStamped base pose command, checked
+    (:func:`soft_twin_core.commands.parse_base_pose`; a zero quaternion:
+    "non_finite"); InputError naming why not."""
+    try:
+        T = cv.matrix_from_pose(msg.pose)
+    except ValueError as e:
+        raise cmd.InputError("non_finite", f"base pose: {e}") from None
+    return cmd.parse_base_pose(mech, T, msg.header.frame_id, base_frame)
 
 
 def parse_point_wrenches(batch, cfg, mech):

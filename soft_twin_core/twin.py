@@ -135,7 +135,12 @@ def _same_inputs(a, b):
     stamps by identity)."""
     return (np.array_equal(a[0], b[0]) and np.array_equal(a[1], b[1]) and a[2] == b[2] and a[3] == b[3]
             and a[4] == b[4] and all(x is y for x, y in zip(a[5:8], b[5:8])) and a[8] == b[8]
-            and (a[9] is None) == (b[9] is None) and (a[9] is None or np.array_equal(a[9], b[9])))
+            and _same_pose(a[9], b[9]))
+
+
+def _same_pose(a, b):
+    """Two commanded base poses alike (None: the robot file's)."""
+    return (a is None) == (b is None) and (a is None or np.array_equal(a, b))
 
 
 @dataclass
@@ -564,7 +569,7 @@ class Twin:
             dropped.append("joint")
         if not np.array_equal(now[1], target[1]) or now[2] != target[2] or now[8] != target[8]:
             dropped.append("wrench")
-        if not _same_inputs(now[:9] + (target[9],), now):
+        if not _same_pose(now[9], target[9]):
             dropped.append("base_pose")
         (u, w, frame, pos, eff, self.command_stamp, self.joint_stamp, self.actuation_stamp, points,
          self.base_pose) = target
