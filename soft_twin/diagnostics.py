@@ -84,10 +84,11 @@ class Stats:
         self.totals["solver_failures"] += 1
         self.last_solver_message = info.message
         applied = {"actuation": "commands_applied", "joint": "joint_commands_applied", "wrench": "wrenches_applied",
-                   "obstacles": "obstacle_updates_applied"}
+                   "obstacles": "obstacle_updates_applied", "base_pose": "base_poses_applied"}
+        rejected = {"obstacles": "obstacle"}
         for kind in info.dropped:
             self.totals[applied[kind]] -= 1
-            self.reject("obstacle" if kind == "obstacles" else kind, cmd.InputError("solver_failed", info.message))
+            self.reject(rejected.get(kind, kind), cmd.InputError("solver_failed", info.message))
         return tuple(info.dropped)
 
 

@@ -409,7 +409,7 @@ class Twin:
         return cs.MechanismSimulator(self.mech, s.dt, s.theta, q, v, tol=s.tolerance,
                                      max_iterations=max(s.max_iterations, 10),
                                      max_substep_levels=s.max_substep_levels, full_newton=bool(s.full_newton),
-                                     obstacles=self.obstacles)
+                                     obstacles=self.obstacles, carried_secant=True)    # streamed base poses
 
     def _sim_at_state(self):
         """A new simulator at the twin's state (q, v, t, multipliers): after

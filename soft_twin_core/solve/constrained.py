@@ -30,6 +30,7 @@ from collections import namedtuple
 from dataclasses import dataclass
 
 import numpy as np
+from scipy.spatial.transform import Rotation
 
 from soft_twin_core._blas import one_blas_thread
 from soft_twin_core.engine.algorithms import crba, forward_kinematics, point_poses
@@ -49,7 +50,7 @@ from soft_twin_core.engine.kernels.tangent import static_tangent_pass
 from soft_twin_core.engine.loads import Loads
 from soft_twin_core.engine.workspace import Workspace
 from soft_twin_core.errors import StaticsError, StepError
-from soft_twin_core.lie import log_so3
+from soft_twin_core.lie import log_se3, log_so3, se3_inv
 from soft_twin_core.solve import equilibrium as eq
 from soft_twin_core.solve.equilibrium import equilibrium_stability
 
@@ -498,6 +499,14 @@ def _check_statics_model(mech):
                              f"use the dynamics to let it settle")
 
 
+def _free_pose(q):
+    """The 4x4 of a free joint's coordinates (position, quaternion x y z w)."""
+    g = np.eye(4)
+    g[:3, :3] = Rotation.from_quat(q[3:7]).as_matrix()
+    g[:3, 3] = q[:3]
+    return g
+
+
 def _length_scale(mech):
     L = sum(p.length for p in mech.tree.paths)
     return max(L, 1e-3)
@@ -697,7 +706,7 @@ class MechanismSimulator:
 
     def __init__(self, mech, dt, theta=0.5, q=None, v=None, *, tol=1e-10, constraint_tol=1e-12,
                  max_iterations=40, max_substep_levels=4, full_newton=True, reuse_factorisation=True,
-                 obstacles=None, compiled=True):
+                 obstacles=None, compiled=True, carried_secant=False):
         if not dt > 0 or not np.isfinite(dt):
             raise ValueError(f"dt: expected a positive time step [s], got {dt}")
         if not 0.5 <= theta <= 1.0:
@@ -707,6 +716,7 @@ class MechanismSimulator:
         self.tol, self.constraint_tol, self.max_iterations = tol, constraint_tol, max_iterations
         self.max_substep_levels = int(max_substep_levels)
         self.reuse_factorisation = bool(reuse_factorisation)
+        self.carried_secant = bool(carried_secant)      # a prescribed base's end velocity (_carried_velocity)
         self.ws = Workspace(tree)
         self.act = _cached(mech, "_act_arrays", lambda: actuator_arrays(tree))
         self.K, self.D = _cached(mech, "_dense_KD", lambda: dense_stiffness_damping(tree))
@@ -728,6 +738,9 @@ class MechanismSimulator:
         pos = mech.joints_with("position")
         self._pos_v = np.array([tree.idx_v[i] for i in pos], dtype=np.int64)
         self._pos_q = np.array([tree.idx_q[i] for i in pos], dtype=np.int64)
+        base = [c.a.joint for c in mech.constraints if c.name == "base" and mech.base_motion == "prescribed"]
+        self._carried = (tree.idx_q[base[0]], tree.idx_v[base[0]]) if base and \
+            tree.joints[base[0]].kind == FREE else None     # a prescribed base's free joint (q, v offsets)
         self._fixed = np.zeros(tree.nv, dtype=np.bool_)
         self._fixed[self._pos_v] = True
         # the compiled step (engine.contact_step) serves every robot without constraint rows: with
@@ -893,6 +906,21 @@ class MechanismSimulator:
         self.iterations = it
         self.newton_iterations += it
 
+    def _carried_velocity(self, q0, q1, v1, h):
+        """``carried_secant``: a prescribed base leaves the step with the
+        twist of its motion over it, ``log(g0^-1 g1) / h`` (body axes), as a
+        position-controlled joint leaves it with (q1 - q0) / h: not the
+        midpoint rule's v1 = 2 s - v0, which feeds v0 back and grows without
+        bound in alternating signs when the poses come in jerks (moved one
+        step, held the next: a carrier's stream slower than the steps). First
+        order on a smooth motion (the velocity half a step late), so it is
+        for streamed poses (the twin's), not trajectories (the default)."""
+        if self._carried is None or not self.carried_secant:
+            return
+        iq, iv = self._carried
+        g0, g1 = _free_pose(q0[iq:iq + 7]), _free_pose(q1[iq:iq + 7])
+        v1[iv:iv + 6] = log_se3(se3_inv(g0) @ g1) / h
+
     def _closed_or_kkt_step(self, inp, targets):
         """One step with constraint rows: the compiled KKT step
         (:func:`engine.closed_step.closed_step`), or, if it fails (its
@@ -969,6 +997,7 @@ class MechanismSimulator:
         if pv.size:      # their velocity as the KKT step leaves it, their efforts
             v1[pv] = inp.v_cmd if inp.v_cmd is not None else (q1[self._pos_q] - self.q[self._pos_q]) / h
         self.lam = np.concatenate([lam, R[pv]])
+        self._carried_velocity(self.q, q1, v1, h)
         self.q, self.v = q1, v1
         self.contacts = None
         self.t += h
@@ -1121,6 +1150,7 @@ class MechanismSimulator:
             iq = np.array([tree.idx_q[i] for i in self.mech.joints_with("position")], dtype=np.int64)
             v1 = v1.copy()
             v1[pos_v] = inp.v_cmd if inp.v_cmd is not None else (q1[iq] - q0[iq]) / h
+        self._carried_velocity(q0, q1, v1, h)
         self.q, self.v, self.lam = q1.copy(), v1, lam
         self.contacts = contacts
         self.t += h

@@ -101,6 +101,13 @@ def test_stats_record_takes_a_dropped_input_back_and_the_level_says_so():
     assert s.record(failed, 0.0) == ("actuation", "joint")
     assert s.totals["commands_applied"] == 2 and s.totals["joint_commands_applied"] == 0
     assert s.rejected_by_reason["solver_failed"] == 2 and s.totals["steps"] == 2
+    # every other input a twin drops (Twin._drop) is taken back too, and counted as rejected
+    s.totals.update(wrenches_applied=1, obstacle_updates_applied=1, base_poses_applied=1)
+    others = ("wrench", "obstacles", "base_pose")
+    assert s.record(tw.UpdateInfo(converged=False, message="Newton failed", dropped=others), 0.0) == others
+    assert s.totals["wrenches_applied"] == s.totals["obstacle_updates_applied"] == s.totals["base_poses_applied"] == 0
+    assert s.totals["rejected_wrench"] == s.totals["rejected_obstacle"] == s.totals["rejected_base_pose"] == 1
+    assert s.rejected_by_reason["solver_failed"] == 5
     cfg = SimpleNamespace(mode="dynamic", step_rate_hz=100.0, time_scale=1.0)
     assert diagnostics.level(s, cfg, 100.0, False)[0] == DiagnosticStatus.ERROR     # failing now
     s.record(tw.UpdateInfo(steps=1), 0.01)
