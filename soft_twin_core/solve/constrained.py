@@ -30,7 +30,6 @@ from collections import namedtuple
 from dataclasses import dataclass
 
 import numpy as np
-from scipy.spatial.transform import Rotation
 
 from soft_twin_core._blas import one_blas_thread
 from soft_twin_core.engine.algorithms import crba, forward_kinematics, point_poses
@@ -500,9 +499,13 @@ def _check_statics_model(mech):
 
 
 def _free_pose(q):
-    """The 4x4 of a free joint's coordinates (position, quaternion x y z w)."""
+    """The 4x4 of a free joint's coordinates (position, unit quaternion x y
+    z w; scipy's Rotation would import scipy.linalg at start-up)."""
+    x, y, z, w = q[3:7]
     g = np.eye(4)
-    g[:3, :3] = Rotation.from_quat(q[3:7]).as_matrix()
+    g[:3, :3] = [[1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)],
+                 [2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)],
+                 [2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)]]
     g[:3, 3] = q[:3]
     return g
 
