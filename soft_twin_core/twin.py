@@ -694,9 +694,10 @@ class Twin:
 
     def plan_options(self, **kw):
         """Planner options for this twin's tip frame, with its current joint
-        efforts and tip wrench held (``kw``: the other options)."""
+        efforts and tip wrench held and a prescribed base where it is now
+        (``kw``: the other options)."""
         return pl.PlanOptions(frame=self.tip, efforts=dict(self.efforts),
-                                         point_loads=tuple(self.held_loads()), **kw)
+                              point_loads=tuple(self.held_loads()), base_pose=self.base_pose, **kw)
 
     def command_vector(self, solver):
         """x = [position commands of ``solver.joint_names``, actuator inputs] now."""

@@ -7,7 +7,9 @@ inputs (tendon tensions [N], chamber pressures [Pa]).
 Unknowns per sample: ``x = [q_cmd (position-controlled joints, in the order
 of mech.joints_with("position")), u (actuators)]``. A frame of the robot
 (``options.frame``, default its tip, :func:`mechanism.tip_frame`) follows
-the path, given in the robot's base frame (``mech.base_pose``).
+the path, given in the robot's base frame (``mech.base_pose``; a prescribed
+base's where ``options.base_pose`` carries it: every sample's statics then
+holds the base there).
 
 * **Sensitivity (exact).** The equilibrium ``R(q, lam; x) = 0``,
   ``Phi(q; q_cmd) = 0`` (constraint rows and the rows ``q_j - q_cmd,j``)
@@ -82,9 +84,9 @@ from soft_twin_core.engine.kernels.tip_error import error_jacobian, tip_error
 from soft_twin_core.engine.loads import Loads
 from soft_twin_core.engine.workspace import Workspace
 from soft_twin_core.errors import PlanError, StaticsError
-from soft_twin_core.lie import hat
+from soft_twin_core.lie import checked_rigid_transform, hat
 from soft_twin_core.planning.paths import TipPath
-from soft_twin_core.robot.mechanism import tip_frame
+from soft_twin_core.robot.mechanism import base_targets, tip_frame
 from soft_twin_core.solve import constrained as cs, equilibrium as eq
 
 
@@ -169,7 +171,9 @@ class PlanOptions:
     {joint: N m or N} held by the effort-controlled joints (default 0) and
     point_loads (:class:`constrained.FrameLoad` on named frames), both
     constant over the path (e.g. the node's current joint efforts and tip
-    wrench)."""
+    wrench); base_pose (4x4, world <- base; None: the robot file's): where
+    a prescribed base is carried (the twin's base pose): the statics hold
+    it there, and the path's base frame is there."""
     position_weights: tuple = (1.0, 1.0, 1.0)
     orientation_weight: float = 0.1
     tolerance: float = 1e-6
@@ -184,6 +188,7 @@ class PlanOptions:
     joint_limits_margin: float = 0.0
     efforts: object = None
     point_loads: tuple = ()
+    base_pose: object = None
 
     def weights(self):
         """(sqrt of the position weights (3,), sqrt of the orientation
@@ -203,6 +208,25 @@ class PlanOptions:
                 or self.max_iterations < 1:
             raise PlanError(f"max_iterations: expected an integer >= 1, got {self.max_iterations!r}")
         return np.sqrt(w), np.sqrt(wo)
+
+
+def base_pose_of(mech, options):
+    """(the base's pose 4x4, world <- base; the constraints' ``targets``
+    of the statics, None for the robot file's): ``options.base_pose`` for
+    a prescribed base (checked: a rigid transform), else the robot
+    file's; PlanError naming ``base_pose`` on a robot whose base is not
+    prescribed or on a bad pose."""
+    T = None if options is None else options.base_pose
+    if T is None:
+        return np.asarray(mech.base_pose, dtype=float), None
+    if mech.base_motion != "prescribed":
+        raise PlanError(f"base_pose: only for a robot whose base is prescribed (base: {{motion: prescribed}}); "
+                        f"this robot's base is {mech.base_motion}")
+    try:
+        T = checked_rigid_transform(T, "base_pose")
+    except ValueError as e:
+        raise PlanError(str(e)) from None
+    return T, base_targets(mech, T)
 
 
 def actuator_bounds(mech, options=None):
@@ -261,8 +285,9 @@ class _Statics:
     the general path through :func:`constrained.solve_equilibrium` and the
     KKT system."""
 
-    def __init__(self, mech, ref, options, loads, n_j):
+    def __init__(self, mech, ref, options, loads, n_j, targets=None):
         self.mech, self.ref, self.options, self.loads, self.n_j = mech, ref, options, loads, n_j
+        self.targets = targets          # a carried base's clamp target (base_pose_of)
         self.ws = Workspace(mech.tree)
 
     def pose(self, q):
@@ -280,7 +305,7 @@ class _Statics:
             r = cs.solve_equilibrium(self.mech, actuation=x[nj:] if len(x) > nj else None, efforts=o.efforts,
                                      positions=x[:nj] if nj else None, loads=self.loads,
                                      point_loads=tuple(o.point_loads), q_init=q_init,
-                                     check_stability=stability, tangent_hint=hint)
+                                     check_stability=stability, tangent_hint=hint, targets=self.targets)
         except ValueError as e:
             raise StaticsError(str(e)) from None
         return _Eq(r.q, self.pose(r.q), getattr(r, "tangent", None), r)
@@ -289,7 +314,7 @@ class _Statics:
         """(frame pose, spatial Jacobian Js (6, nv), dq/dx (nv, n_x)) at the
         equilibrium ``e``: the implicit function theorem on the KKT system."""
         mech, tree, nj = self.mech, self.mech.tree, self.n_j
-        pb = cs._Equilibrium(mech, e.result.inputs)
+        pb = cs._Equilibrium(mech, e.result.inputs, self.targets)
         q, lam = e.q, e.result.lam
         Kt = pb.tangent(q, lam)
         _, phi, G = pb.residual(q, lam)
@@ -414,6 +439,7 @@ class TipSolver:
         if margin < 0:
             raise PlanError(f"joint_limits_margin: expected a number >= 0, got {margin}")
         self.loads = Loads() if o.loads is None else o.loads
+        self.base_pose, targets = base_pose_of(mech, o)
         jlo, jhi = np.full(self.n_j, -np.inf), np.full(self.n_j, np.inf)
         vmax, amax = np.full(self.n_j, np.inf), np.full(self.n_j, np.inf)
         for k, i in enumerate(self.pos):
@@ -430,7 +456,8 @@ class TipSolver:
         self.max_velocity, self.max_acceleration = vmax, amax
         try:
             free = self.n_j == 0 and mech.n_constraint_rows == 0          # no multiplier: the compiled statics
-            self.statics = (_FreeStatics if free else _Statics)(mech, self.ref, o, self.loads, self.n_j)
+            self.statics = _FreeStatics(mech, self.ref, o, self.loads, self.n_j) if free else \
+                _Statics(mech, self.ref, o, self.loads, self.n_j, targets)
         except ValueError as e:
             raise PlanError(str(e)) from None
         self.with_rot = False          # the orientation counts (a path with orientations, a pose target)
@@ -478,8 +505,8 @@ class TipSolver:
         """The equilibrium under x_new to first order from the one at (q, x),
         with the sensitivity of the last Jacobian (None if not taken at q)."""
         d = getattr(self, "_dq_dx", None)
-        if d is None or d[0] is not q or not np.array_equal(d[1], x):
-            return None
+        if d is None or d[0] is not q or not np.array_equal(d[1], x) or q.shape != d[2].shape[:1]:
+            return None         # (no sensitivity at q; or a carried base's quaternion: q is not additive)
         return q + d[2] @ (x_new - x)
 
     def held(self, target, x, q):
@@ -773,7 +800,7 @@ def plan_path(mech, path, options=None, start=None, q_start=None, solver=None, f
         q = mech.tree.check_q(np.array(q_start, dtype=float), "q_start")
     else:
         q = solver.statics.solve(x, None).q
-    targets = path.world_targets(mech.base_pose)
+    targets = path.world_targets(solver.base_pose)
     N = len(path)
     out = {k: [] for k in ("x", "q", "tip", "R", "pe", "we", "oe", "reached", "status", "it")}
     d_prev = np.zeros(nj)
@@ -895,7 +922,8 @@ def simulate_plan(mech, plan, options=None, path_positions=None, dt=0.005, theta
         x = np.array([np.interp(t, times, X[:, k]) for k in range(X.shape[1])])
         return dict(zip(plan.joint_names, x[:nj])), x[nj:]
     pos, u = commands(times[0])
-    eq0 = cs.solve_equilibrium(mech, u, o.efforts, pos, o.loads, o.point_loads, q_init=plan.q[0])
+    _, held = base_pose_of(mech, o)                            # a carried base held where the plan was made
+    eq0 = cs.solve_equilibrium(mech, u, o.efforts, pos, o.loads, o.point_loads, q_init=plan.q[0], targets=held)
     sim = cs.MechanismSimulator(mech, dt, theta, q=eq0.q)
     ws = Workspace(mech.tree)
 
@@ -908,7 +936,7 @@ def simulate_plan(mech, plan, options=None, path_positions=None, dt=0.005, theta
         pos, _ = commands(t1)                                  # the joints reach them at the end of the step
         _, u = commands(t1 - (1.0 - theta) * dt)               # the inputs at the step's theta point
         try:
-            sim.step(u, o.efforts, pos, o.loads, o.point_loads)
+            sim.step(u, o.efforts, pos, o.loads, o.point_loads, targets=held)
         except (cs.StepError, StaticsError, ValueError, np.linalg.LinAlgError):
             ok = False
             break
@@ -945,7 +973,7 @@ def compensate_lag(mech, path, options=None, iterations=4, gain=0.5, dt=0.005, s
     uncompensated)."""
     options = PlanOptions() if options is None else options
     solver = TipSolver(mech, options)
-    base = mech.base_pose
+    base = solver.base_pose
     P_world = path.world_targets(base)[:, :3, 3]
     w = np.asarray(options.position_weights, dtype=float)
     targets = path.positions.copy()

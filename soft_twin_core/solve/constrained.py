@@ -480,22 +480,96 @@ def solve_kkt(A, G_force, G_cons, R, phi, rows=None):
 
 def _check_statics_model(mech):
     """ValueError, in the robot file's words, for what statics cannot hold:
-    a prescribed or floating base, spherical or free joints."""
+    a floating base, spherical or free joints. A prescribed base is held
+    where its clamp puts it (:func:`carry_base`): its free joint is the
+    one group joint statics takes, never moved by the Newton (the clamp
+    holds it exactly from the first iterate)."""
     tree = mech.tree
     motion = getattr(mech, "base_motion", "fixed")
-    if motion == "prescribed":
-        raise ValueError("statics: the base is prescribed (base.motion: prescribed: it follows a trajectory, "
-                         "held by the constraint 'base'), and statics has no moving base: set base.motion: "
-                         "fixed with the base pose to solve for (base.position, base.rpy), or run the dynamics")
     if motion == "floating":
         raise ValueError("statics: the base is floating (base.motion: floating): a free body has no static "
                          "equilibrium under gravity unless held; clamp it (base.motion: fixed) or run the "
                          "dynamics to let it settle")
-    for j in tree.joints:
-        if j.kind in (SPHERICAL, FREE):
+    carried = _carried_base(mech)
+    for i, j in enumerate(tree.joints):
+        if j.kind in (SPHERICAL, FREE) and (carried is None or i != carried[0]):
             raise ValueError(f"statics: joint {j.name!r} is {'spherical' if j.kind == SPHERICAL else 'free'}; "
                              f"statics needs joints with nq = nv (soft, revolute, prismatic, fixed): "
                              f"use the dynamics to let it settle")
+
+
+def _carried_base(mech):
+    """(joint, q offset, v offset, constraint index) of a prescribed base's
+    free joint (held by the clamp named 'base'), or None."""
+    if getattr(mech, "base_motion", "fixed") != "prescribed":
+        return None
+    for k, c in enumerate(mech.constraints):
+        if c.name == "base" and mech.tree.joints[c.a.joint].kind == FREE:
+            j = c.a.joint
+            return j, mech.tree.idx_q[j], mech.tree.idx_v[j], k
+    return None
+
+
+def _free_coordinates(g):
+    """A free joint's coordinates (position, unit quaternion x y z w) of the
+    4x4 ``g``: :func:`_free_pose`'s inverse (Shepperd's method: the largest
+    of w, x, y, z first, so no division by a small number)."""
+    R = g[:3, :3]
+    tr = np.trace(R)
+    k = int(np.argmax([tr, R[0, 0], R[1, 1], R[2, 2]]))
+    if k == 0:
+        w = 0.5 * np.sqrt(1.0 + tr)
+        x, y, z = (R[2, 1] - R[1, 2]) / (4 * w), (R[0, 2] - R[2, 0]) / (4 * w), (R[1, 0] - R[0, 1]) / (4 * w)
+    elif k == 1:
+        x = 0.5 * np.sqrt(1.0 + 2 * R[0, 0] - tr)
+        w, y, z = (R[2, 1] - R[1, 2]) / (4 * x), (R[0, 1] + R[1, 0]) / (4 * x), (R[0, 2] + R[2, 0]) / (4 * x)
+    elif k == 2:
+        y = 0.5 * np.sqrt(1.0 + 2 * R[1, 1] - tr)
+        w, x, z = (R[0, 2] - R[2, 0]) / (4 * y), (R[0, 1] + R[1, 0]) / (4 * y), (R[1, 2] + R[2, 1]) / (4 * y)
+    else:
+        z = 0.5 * np.sqrt(1.0 + 2 * R[2, 2] - tr)
+        w, x, y = (R[1, 0] - R[0, 1]) / (4 * z), (R[0, 2] + R[2, 0]) / (4 * z), (R[1, 2] + R[2, 1]) / (4 * z)
+    quat = np.array([x, y, z, w])
+    return np.concatenate([g[:3, 3], quat / np.linalg.norm(quat)])
+
+
+def carry_base(mech, q, targets=None):
+    """q with a prescribed base's free joint where the clamp 'base' puts the
+    base frame: at its target in ``targets`` (:func:`base_targets`), else
+    at the robot file's base pose (a copy; q itself without a prescribed
+    base). The base frame is the free joint's output frame, so its pose is
+    the joint's placement times the joint's transform."""
+    carried = _carried_base(mech)
+    if carried is None:
+        return q
+    j, iq, _, k = carried
+    T = targets[k] if targets is not None and targets[k] is not None else mech.constraints[k].target
+    q = np.array(q, dtype=float)
+    q[iq:iq + 7] = _free_coordinates(se3_inv(mech.tree.joints[j].placement) @ T)
+    return q
+
+
+def _coordinate_offsets(tree, q):
+    """q - q0 per velocity coordinate (nv), zero on group joints (spherical,
+    free: they carry no spring): what the stiffness matrix multiplies."""
+    if tree.nq == tree.nv:
+        return q - tree.q0
+    out = np.zeros(tree.nv)
+    for i, j in enumerate(tree.joints):
+        if j.kind not in (SPHERICAL, FREE):
+            a, b = tree.idx_q[i], tree.idx_v[i]
+            out[b:b + j.nv] = q[a:a + j.nv] - tree.q0[a:a + j.nv]
+    return out
+
+
+def _moved_by(ws, q, dq, step):
+    """q (+) step dq: addition, and the group exponential on a prescribed
+    base's free joint (:func:`integrators.integrate_pass`)."""
+    if q.shape == dq.shape:
+        return q + step * dq
+    out = np.empty_like(q)
+    integrate_pass(ws.m, np.ascontiguousarray(q), np.ascontiguousarray(dq), step, out)
+    return out
 
 
 def _free_pose(q):
@@ -529,7 +603,7 @@ def _kkt_newton(pb, q, lam, tol, max_iterations):
     """Newton with backtracking on the KKT system; (q, lam, it, ok, R, phi)."""
     Ls = _length_scale(pb.mech)
     R, phi, G = pb.residual(q, lam)
-    Kq = pb.K @ (q - pb.tree.q0)
+    Kq = pb.K @ _coordinate_offsets(pb.tree, q)
     k_max = np.abs(pb.K).max(initial=0)
 
     def scale_of(R):
@@ -552,7 +626,7 @@ def _kkt_newton(pb, q, lam, tol, max_iterations):
         f0 = merit(R, phi, sc)
         step = 1.0
         for _ in range(30):
-            q_t, l_t = q + step * dq, lam + step * dl
+            q_t, l_t = _moved_by(pb.ws, q, dq, step), lam + step * dl
             R_t, phi_t, G_t = pb.residual(q_t, l_t)
             if np.all(np.isfinite(R_t)) and merit(R_t, phi_t, sc) < (1 - 1e-4 * step) * f0:
                 break
@@ -560,7 +634,7 @@ def _kkt_newton(pb, q, lam, tol, max_iterations):
         else:
             return q, lam, it, False, R, phi, sc
         q, lam, R, phi, G = q_t, l_t, R_t, phi_t, G_t
-        Kq = pb.K @ (q - pb.tree.q0)
+        Kq = pb.K @ _coordinate_offsets(pb.tree, q)
         sc = max(sc, scale_of(R))
     return q, lam, max_iterations, False, R, phi, sc
 
@@ -593,6 +667,7 @@ def solve_equilibrium(mech, actuation=None, efforts=None, positions=None, loads=
     inp = inputs if inputs is not None else make_inputs(mech, actuation, efforts, positions, None, loads, point_loads)
     tree = mech.tree
     q = tree.q0.copy() if q_init is None else tree.check_q(np.array(q_init, dtype=float), "q_init").copy()
+    q = carry_base(mech, q, targets)
     m = mech.n_constraint_rows + len(mech.joints_with("position"))
     lam = np.zeros(m)
     obstacles = tuple(mech.obstacles if obstacles is None else obstacles)
@@ -741,9 +816,8 @@ class MechanismSimulator:
         pos = mech.joints_with("position")
         self._pos_v = np.array([tree.idx_v[i] for i in pos], dtype=np.int64)
         self._pos_q = np.array([tree.idx_q[i] for i in pos], dtype=np.int64)
-        base = [c.a.joint for c in mech.constraints if c.name == "base" and mech.base_motion == "prescribed"]
-        self._carried = (tree.idx_q[base[0]], tree.idx_v[base[0]]) if base and \
-            tree.joints[base[0]].kind == FREE else None     # a prescribed base's free joint (q, v offsets)
+        carried = _carried_base(mech)
+        self._carried = None if carried is None else carried[1:3]   # a prescribed base's free joint (q, v offsets)
         self._fixed = np.zeros(tree.nv, dtype=np.bool_)
         self._fixed[self._pos_v] = True
         # the compiled step (engine.contact_step) serves every robot without constraint rows: with
@@ -1201,8 +1275,8 @@ class MechanismSimulator:
         tree = self.tree
         M = crba(tree, self.ws, self.q)
         T = 0.5 * self.v @ M @ self.v
-        qd = self.q - tree.q0
-        V = 0.5 * qd @ self.K @ qd if tree.nq == tree.nv else 0.0
+        qd = _coordinate_offsets(tree, self.q)
+        V = 0.5 * qd @ self.K @ qd
         g = self.inputs.gravity
         a = tree.arrays
         alg_ws = self.ws

@@ -385,7 +385,9 @@ class MechanismOutputs:
     joint (soft sections included), ``constraint_wrenches`` {constraint:
     world [f; m] on its frame a}, ``frames`` {name: world pose 4x4},
     ``members`` (MemberOutput list), ``base_wrench`` (6,) the support's
-    reaction (:func:`base_reaction`), ``contacts`` (the ContactState the
+    reaction (:func:`base_reaction`; a prescribed base's carrier's: the
+    clamp 'base''s wrench, world axes, about the world origin),
+    ``contacts`` (the ContactState the
     loads include, None without obstacles)."""
     positions: dict
     velocities: dict
@@ -422,13 +424,20 @@ def state_outputs(mech, q, lam, inputs, v=None, a=None, ws=None, points_per_sect
     jw = joint_wrenches(mech, ws)
     by_joint = {j.name: jw[i] for i, j in enumerate(tree.joints)}
     members = member_outputs(mech, ws, inputs.u, loads, points_per_section, *((v, a) if member_motion else ()))
+    cw = constraint_wrenches(mech, lam)
+    base = base_reaction(mech, by_joint, ws, inputs.u)
+    if mech.base_motion == "prescribed":
+        # the carrier holds the robot through the clamp 'base' (its free root joint transmits nothing):
+        # the clamp's wrench, from the carried base's origin to the world origin
+        f, m = cw["base"][:3], cw["base"][3:]
+        base += np.concatenate([f, m + np.cross(frames["base"][:3, 3], f)])
     return MechanismOutputs(
         positions={n: float(q[k]) for n, k in zip(names, iq)},
         velocities={n: float(v_[k]) for n, k in zip(names, iv)},
         accelerations={n: float(a_[k]) for n, k in zip(names, iv)},
         efforts=_efforts_out(mech, lam, inputs),
         joint_wrenches=by_joint,
-        constraint_wrenches=constraint_wrenches(mech, lam),
+        constraint_wrenches=cw,
         frames=frames,
         members=members,
-        base_wrench=base_reaction(mech, by_joint, ws, inputs.u), contacts=contacts)
+        base_wrench=base, contacts=contacts)

@@ -10,6 +10,7 @@ load of a clamped-pinned column, 20.19 EI/L^2 ((4.4934/L)^2 EI); the
 shipped planar parallel robot below and past its critical load."""
 
 import json
+import math
 import subprocess
 import sys
 from pathlib import Path
@@ -191,15 +192,28 @@ def _prescribed_bar_file(folder, clamp_tip):
     return folder / "driven.yaml", folder / "drive.yaml"
 
 
-def test_statics_of_a_prescribed_base_says_so():
-    """The message names the prescribed base and what to do, not 'joint base is free'."""
+def test_statics_of_a_bar_between_a_carried_base_and_a_wall_is_hookes():
+    """The bar clamped to the wall at its tip, its prescribed base pulled
+    back 0.1 mm along its axis and turned 0.01 rad about it: a bar in
+    uniform tension and torsion, whose clamp reactions are the closed forms
+    E A delta / L and G J theta / L (exact for PCS: uniform strains), equal
+    and opposite at the wall. The other components vanish."""
     import tempfile
+    from soft_twin_core.lie import exp_so3
+    from soft_twin_core.robot.mechanism import base_targets
     with tempfile.TemporaryDirectory() as d:
-        robot, _ = _prescribed_bar_file(Path(d), clamp_tip=False)
+        robot, _ = _prescribed_bar_file(Path(d), clamp_tip=True)
         mech = load_mechanism(str(robot))
-    with pytest.raises(ValueError) as e:
-        cs.solve_equilibrium(mech)
-    assert "prescribed" in str(e.value) and "base.motion: fixed" in str(e.value) and "is free" not in str(e.value)
+    delta, theta, L, r, E, nu = 1e-4, 0.01, 0.4, 0.002, 6.0e10, 0.33
+    A, J, G = math.pi * r ** 2, math.pi * r ** 4 / 2, E / (2 * (1 + nu))
+    T = np.eye(4)
+    T[:3, :3] = exp_so3([theta, 0, 0])
+    T[0, 3] = -delta
+    eq = cs.solve_equilibrium(mech, targets=base_targets(mech, T))
+    base, wall = eq.constraint_wrenches["base"], eq.constraint_wrenches["wall"]
+    expected = np.array([-E * A * delta / L, 0, 0, G * J * theta / L, 0, 0])     # held against the bar
+    assert np.allclose(base, expected, rtol=1e-7, atol=1e-7 * np.abs(expected).max())
+    assert np.allclose(wall[[0, 3]], -expected[[0, 3]], rtol=1e-7)
 
 
 def test_a_base_driven_against_a_clamp_fails_in_physical_terms(tmp_path):
