@@ -444,3 +444,91 @@ def _drive_from_the_page(browser, client, tmp_path, rest):
     browser.mouse("mouseReleased", x0, y0 - 60)
     assert wait_for(lambda: f"force on {m.group(1)}@" not in browser.evaluate("document.body.innerText"), 20.0,
                     0.25), "the point's load stayed after letting go"
+
+
+def _box_js(label, selector):
+    """JS giving the page box {x, y, width, height, page} (page: the page's
+    height) of the ``selector`` element in the GUI row labelled ``label``
+    (null: none), not scrolled (:meth:`Browser.rect` scrolls)."""
+    return ("(() => { const e = " + _FIND_ROW.format(label=label, sel=selector) + "; if (!e) return null; "
+            "const r = e.getBoundingClientRect(); return {x: r.x, y: r.y, width: r.width, height: r.height, "
+            "page: innerHeight}; })()")
+
+
+def _wheel_until_visible(browser, box_js, at, notches=60):
+    """Turn the mouse wheel over the page point ``at`` (down) a notch at a
+    time until the element of ``box_js`` is whole inside the page; its box
+    once the scroll has come to rest (the panel scrolls smoothly: a box read
+    during the glide is not where the element stops)."""
+    import time
+
+    def at_rest():
+        box = browser.evaluate(box_js)
+        for _ in range(50):
+            time.sleep(0.05)
+            again = browser.evaluate(box_js)
+            if again == box:
+                return box
+            box = again
+        return box
+    box = at_rest()
+    for _ in range(notches):
+        if 0 <= box["y"] and box["y"] + box["height"] <= box["page"]:
+            break
+        browser.call("Input.dispatchMouseEvent", type="mouseWheel", x=at[0], y=at[1], deltaX=0, deltaY=120)
+        box = at_rest()
+    return box
+
+
+@pytest.mark.slow
+def test_a_short_window_scrolls_the_panel_to_its_last_control_and_it_works():
+    """Issue 31: in a window shorter than the panel (a laptop's browser
+    beside an editor: 1000 x 450, the page about 300 px high), with the
+    node's four folders (run, eight sliders, the target, what to see), the
+    last slider and the last box lie below the page's bottom; the mouse
+    wheel over the panel scrolls each into view, and each works as in a
+    tall window (the slider dragged sends its value, the box ticked turns
+    the frames on). The panel's own box stays inside the page."""
+    from chromium_cdp import Browser, chromium_path, wait_for
+    from soft_twin_core.viz.live_view import Control, LiveView
+    assert chromium_path(), "no chromium on PATH: `make setup` installs Debian's chromium"
+    view = LiveView(port=0)
+    sent, frames = [], []
+    view.set_controls([Control("actuation", f"tendon_{k}", 0.0, 20.0, 0.1, "N") for k in range(8)],
+                      lambda c, v: sent.append((c.name, v)), on_pause=lambda b: None, on_step=lambda: None,
+                      on_reset=lambda: None, on_time_scale=lambda x: None)
+    view.set_target(np.zeros(3), lambda p, phase: None, lambda: None, on_plan=lambda: None)
+    view.set_view_options(("none", "bending moment [N m]"), lambda c: None, lambda b: None, on_routes=lambda b: None,
+                          on_frames=frames.append)
+    thumb_js = _box_js("tendon_7 [N]", "[role=slider]")
+    box_js = _box_js("frames", "input[type=checkbox]")
+    try:
+        with Browser(width=1000, height=450) as browser:
+            browser.open(f"http://127.0.0.1:{view.port}")
+            ok, text = _wait_for_page_text(browser, ["tendon_7 [N]", "frames", "plan a line here"])
+            assert ok, text
+
+            def settled():      # the folders' opening animation over: the last box stands still
+                a = browser.evaluate(box_js)
+                return a is not None and a == browser.evaluate(box_js)
+            assert wait_for(settled, 20.0, 0.3)
+            thumb = browser.evaluate(thumb_js)
+            assert thumb["y"] > thumb["page"], f"the panel fits the page ({thumb}): the test needs a longer panel"
+            panel = browser.evaluate("(() => { const r = document.querySelector('.mantine-ScrollArea-viewport')"
+                                     ".getBoundingClientRect(); return {x: r.x, y: r.y, width: r.width, "
+                                     "height: r.height}; })()")
+            assert panel["y"] + panel["height"] <= thumb["page"] + 1, panel
+            at = (panel["x"] + 0.5 * panel["width"], panel["y"] + 0.5 * panel["height"])
+            thumb = _wheel_until_visible(browser, thumb_js, at)
+            assert 0 <= thumb["y"] and thumb["y"] + thumb["height"] <= thumb["page"], thumb
+            track = browser.evaluate(_box_js("tendon_7 [N]", ".mantine-Slider-track"))
+            cx, cy = thumb["x"] + 0.5 * thumb["width"], thumb["y"] + 0.5 * thumb["height"]
+            browser.drag(cx, cy, track["x"] + 0.6 * track["width"], cy)
+            assert wait_for(lambda: any(n == "tendon_7" and v > 5.0 for n, v in sent), 20.0, 0.2), sent
+            assert not any(n != "tendon_7" for n, _ in sent), sent
+            box = _wheel_until_visible(browser, box_js, at)
+            assert 0 <= box["y"] and box["y"] + box["height"] <= box["page"], box
+            browser.click(box["x"] + 0.5 * box["width"], box["y"] + 0.5 * box["height"])
+            assert wait_for(lambda: frames == [True], 20.0, 0.2), frames
+    finally:
+        view.close()
