@@ -42,6 +42,7 @@ from soft_twin_core.robot.mechanism import base_targets, shape_command, tip_fram
 from soft_twin_core.robot.model import State
 from soft_twin_core.robot.obstacles import check_unique_names
 from soft_twin_core.solve import constrained as cs
+from soft_twin_core.solve.contact import MemberContact
 from soft_twin_core.solve.outputs import (main_member, q_from_section_strains, section_rates, section_strains,
                                           state_outputs, state_shape)
 from soft_twin_core.text import clip
@@ -270,6 +271,8 @@ class Twin:
         self.obstacles = check_unique_names(tuple(mech.obstacles if obstacles is None else obstacles),
                                             "obstacles")       # what the members touch now (set_obstacles)
         self._moved = None               # dynamic: obstacles moved, where the next step takes them
+        self._stick = None               # quasi-static friction: where the contact points stick (_sticking)
+        self._contact = None             # (obstacles, MemberContact) of the stick points
         self._rest_of = self.obstacles   # the obstacles the rest shape was solved with
         self.rest_q, self.rest_message, self.rest_contacts = self._rest()
         self.lam = np.zeros(mech.n_constraint_rows + len(mech.joints_with("position")))
@@ -429,6 +432,7 @@ class Twin:
         current state). Quasi-static: the next solve has them. A reset
         solves the rest shape again with them."""
         obstacles = check_unique_names(tuple(obstacles), "obstacles")
+        self._stick = None               # stick points on the obstacles as they were: made again
         same = (len(obstacles) == len(self.obstacles) and all(
             a.name == b.name and a.kind == b.kind for a, b in zip(obstacles, self.obstacles)))
         if self._sim is not None and same and obstacles and self._sim.contact:
@@ -459,6 +463,7 @@ class Twin:
         self._ref = {n: (float(v), 0.0) for n, v in self.positions.items()}
         self.lam = np.zeros_like(self.lam)
         self.contacts = self.rest_contacts
+        self._stick = None
         self._sim = self._new_sim(self.state.q, self.state.qdot) if self.settings.mode == "dynamic" else None
         if self._sim is not None:
             self._sim.start_multipliers(self.core_inputs())
@@ -481,6 +486,7 @@ class Twin:
             tree = self.mech.tree
             self._ref = {n: (float(self.state.q[tree.idx_q[tree.joint_index(n)]]), 0.0) for n in self.positions}
             self._dirty = True
+            self._stick = None
 
     def warm_up(self):
         """One throw-away step and solve (numba's kernels load or compile)."""
@@ -581,13 +587,37 @@ class Twin:
         # the simulator's state is unchanged by a failed step
         return tuple(dropped)
 
+    def _member_contact(self):
+        """The MemberContact of the current obstacles (made once for them)."""
+        if self._contact is None or self._contact[0] is not self.obstacles:
+            self._contact = (self.obstacles, MemberContact(self.mech, self.obstacles))
+        return self._contact[1]
+
+    def _sticking(self):
+        """Where the contact points stick (:class:`solve.contact.StickPoints`)
+        for the friction of the next solve: kept from solve to solve (statics
+        with friction has a history: a load that slid the arm and is taken
+        off leaves it where friction holds it), made at the current state
+        when there are none (after a reset, a change of obstacles or of
+        mode: the points touching then stick where they are); None when no
+        obstacle of the world has friction."""
+        if not any(ob.friction > 0 and ob.body < 0 for ob in self.obstacles):
+            return None
+        if self._stick is None:
+            mc = self._member_contact()
+            ws = Workspace(self.mech.tree)
+            self._stick = mc.stuck_after(ws, self.state.q, mc.stick_points(ws, self.state.q), self.contacts)
+        return self._stick
+
     def _solve(self):
         if not self._dirty:
             return UpdateInfo()
         self._dirty = False
         try:
+            stick = self._sticking()
             eq = cs.solve_equilibrium(self.mech, q_init=self.state.q, inputs=self.core_inputs(),
-                                      tangent_hint=self._tangent, obstacles=self.obstacles, targets=self._targets())
+                                      tangent_hint=self._tangent, obstacles=self.obstacles, targets=self._targets(),
+                                      stick=stick)
         except (ValueError, cs.StaticsError) + STEP_ERRORS as e:
             dropped = self._drop()
             return UpdateInfo(0, 0, False, f"statics failed for the last input (dropped): {clip(e, 300)}; "
@@ -600,6 +630,8 @@ class Twin:
         self.state.qdot = np.zeros(self.mech.tree.nv)
         self.lam = eq.lam.copy()
         self.contacts = eq.contacts
+        if stick is not None:
+            self._stick = self._member_contact().stuck_after(Workspace(self.mech.tree), eq.q, stick, eq.contacts)
         return UpdateInfo(1, eq.iterations, True, "" if eq.stable else
                           f"only an unstable equilibrium was found (smallest reduced stiffness eigenvalue "
                           f"{eq.min_stiffness_eigenvalue:.3g}): the robot buckles or snaps through under these "
@@ -623,7 +655,7 @@ class Twin:
         return dict(q=self.state.q.copy(), t=float(self.state.t), u=self.u.copy(),
                     tip_wrench=self.tip_wrench.copy(), tip_frame=self.tip_frame, positions=dict(self.positions),
                     efforts=dict(self.efforts), lam=self.lam.copy(), points=self._points_tuple(),
-                    base_pose=None if self.base_pose is None else self.base_pose.copy())
+                    base_pose=None if self.base_pose is None else self.base_pose.copy(), stick=self._stick)
 
     def load_query_state(self, st):
         """Become the quasi-static query twin of :meth:`query_state` ``st``."""
@@ -633,6 +665,7 @@ class Twin:
         self.point_wrenches = {p: (np.array(w), axes) for p, w, axes in st.get("points", ())}
         self.positions, self.efforts = dict(st["positions"]), dict(st["efforts"])
         self.base_pose = None if st.get("base_pose") is None else np.array(st["base_pose"])
+        self._stick = st.get("stick")
         self.lam, self._sim = st["lam"].copy(), None
         self._changed()
 

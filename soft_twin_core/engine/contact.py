@@ -64,7 +64,8 @@ class Obstacle:
     member's Young's modulus); ``smoothing`` [m] the depth eps over which
     the force law turns on (None: a tenth of the member's radius);
     ``damping``: Hunt-Crossley alpha [s/m] (dynamics); ``friction``:
-    Coulomb coefficient mu (dynamics), regularised below ``stiction_velocity``
+    Coulomb coefficient mu (dynamics, and statics from stick points:
+    :func:`stick_friction`), regularised below ``stiction_velocity``
     [m/s] (:func:`friction_force`); ``torsional_friction`` mu_t [m]: the
     spin friction of a contact patch, a moment about the normal of at most
     mu_t F_n against the spin of the touching frame relative to the
@@ -227,6 +228,7 @@ class ContactState:
     dM_dw: np.ndarray = None         # (n,) [N m s] d(spin moment)/d(spin) / theta (zero without spin friction)
     dFf_dp: np.ndarray = None        # (n, 3, 3) [N/m] the friction's growth with the normal force, through p
     dFf_dv: np.ndarray = None        # (n, 3, 3) [N s/m] d(friction)/d(surface point's velocity) / theta
+    dFf_dd: np.ndarray = None        # (n, 3, 3) [N/m] statics: d(friction)/d(surface point's displacement)
     radius: np.ndarray = None        # (n,) [m] the backbone point's distance from the surface, r
 
     def __len__(self):
@@ -249,7 +251,8 @@ def contact_forces(points, obstacles, p, allowed=None, obs=None):
                          out["idx"], out["ob"], out["n"], out["gap"], out["F"], out["dF"])
     i = out["idx"][:c]
     return ContactState(i.copy(), out["ob"][:c].copy(), p[i], out["n"][:c].copy(), out["gap"][:c].copy(),
-                        out["F"][:c].copy(), out["dF"][:c].copy(), np.zeros((c, 3, 3)))
+                        out["F"][:c].copy(), out["dF"][:c].copy(), np.zeros((c, 3, 3)),
+                        radius=points.radius[i].copy())
 
 
 def _outputs(m):
@@ -332,6 +335,36 @@ def friction_force(fn, vt, mu, v_s):
     vt = np.ascontiguousarray(vt, dtype=float)
     F, dF = np.empty((len(fn), 3)), np.empty((len(fn), 3, 3))
     kc.friction_arrays(fn, vt, float(mu), float(v_s), F, dF)
+    return F, dF
+
+
+STICK_TIME = 1.0      # [s] statics' stick length: the stiction velocity times this time
+
+
+def stick_friction(fn, d, mu, v_s):
+    """(F (P, 3), dF/dd (P, 3, 3)): statics' friction on points displaced
+    tangentially by d (P, 3) [m] from where they stick, under normal forces
+    fn (P,) [N]: ``F = -mu fn tanh(|d| / l_s) d / |d|``, Coulomb's law
+    smoothed over the stick length ``l_s = v_s STICK_TIME`` (0.1 mm at the
+    default stiction velocity v_s): a tangential load T < mu fn is held
+    with the points displaced ``l_s atanh(T / (mu fn))``; beyond mu fn they
+    slide, the friction at mu fn (99.5 % of it at 3 l_s: so a stick point
+    is dragged along 3 l_s behind a sliding point, and a load turned back
+    takes up at most 6 l_s before the point slides back). A tanh, not the
+    dynamics' ``|v| / sqrt(|v|^2 + v_s^2)`` (:func:`friction_force`),
+    which needs 10 stick lengths for the same 99.5 %: statics has no
+    time to creep over, only this take-up."""
+    fn = np.asarray(fn, dtype=float)
+    d = np.asarray(d, dtype=float).reshape(-1, 3)
+    ls = v_s * STICK_TIME
+    size = np.sqrt(np.einsum("ck,ck->c", d, d))
+    x = size / ls
+    small = x < 1e-4
+    g = np.where(small, (1.0 - x * x / 3.0) / ls, np.tanh(x) / np.where(small, 1.0, size))   # tanh(x) / |d|
+    u = d / np.where(small, 1.0, size)[:, None]
+    radial = np.where(small, 0.0, 1.0 / np.cosh(np.minimum(x, 350.0)) ** 2 / ls - g)    # d(g |d|)/d|d| - g
+    F = -(mu * fn * g)[:, None] * d
+    dF = -(mu * fn)[:, None, None] * (g[:, None, None] * np.eye(3) + radial[:, None, None] * u[:, :, None] * u[:, None, :])
     return F, dF
 
 

@@ -344,8 +344,8 @@ class _Equilibrium:
     """R(q, lambda) and Phi(q) of a mechanism under fixed inputs, with the
     analytic Newton matrix."""
 
-    def __init__(self, mech, inp, targets=None, obstacles=None):
-        self.mech, self.inp, self.targets = mech, inp, targets
+    def __init__(self, mech, inp, targets=None, obstacles=None, stick=None):
+        self.mech, self.inp, self.targets, self.stick = mech, inp, targets, stick
         self.contact = MemberContact(mech, obstacles)
         tree = mech.tree
         self.tree = tree
@@ -365,7 +365,7 @@ class _Equilibrium:
 
     def contacts(self, q):
         """The ContactState at q (None without obstacles)."""
-        return self.contact.state(self.ws, q) if self.contact else None
+        return self.contact.state(self.ws, q, self.stick) if self.contact else None
 
     def effort(self, lam):
         e = self.inp.effort.copy()
@@ -641,7 +641,7 @@ def _kkt_newton(pb, q, lam, tol, max_iterations):
 
 def solve_equilibrium(mech, actuation=None, efforts=None, positions=None, loads=None, point_loads=(),
                       q_init=None, *, targets=None, tol=1e-10, max_iterations=50, max_load_steps=64,
-                      check_stability=True, tangent_hint=None, inputs=None, obstacles=None):
+                      check_stability=True, tangent_hint=None, inputs=None, obstacles=None, stick=None):
     """Static equilibrium of a mechanism under actuation (tendon tensions N,
     chamber pressures Pa), joint efforts {joint: N m or N} of effort-controlled
     joints, positions {joint: rad or m} of position-controlled joints (default
@@ -662,7 +662,12 @@ def solve_equilibrium(mech, actuation=None, efforts=None, positions=None, loads=
     of the input arguments. ``obstacles`` (default the robot file's): what
     the soft members touch (:mod:`soft_twin_core.solve.contact`); with
     any, the contacts found are ``contacts`` (a ContactState) and the
-    solve is the KKT Newton's, with the contacts' stiffness in its matrix."""
+    solve is the KKT Newton's, with the contacts' stiffness in its matrix.
+    ``stick`` (:class:`solve.contact.StickPoints`, where the contact points
+    stick: an earlier equilibrium's, :meth:`MemberContact.stuck_after`):
+    the world obstacles' friction acts against the contacts' displacements
+    from there (:func:`engine.contact.stick_friction`); None: statics
+    without friction."""
     _check_statics_model(mech)
     inp = inputs if inputs is not None else make_inputs(mech, actuation, efforts, positions, None, loads, point_loads)
     tree = mech.tree
@@ -674,14 +679,14 @@ def solve_equilibrium(mech, actuation=None, efforts=None, positions=None, loads=
     if m == 0 and not obstacles and not mech.shapes:       # (shapes: the robot's own, which members touch)
         return _free_equilibrium(mech, inp, q, tol, max_iterations, max_load_steps, check_stability, tangent_hint)
     with one_blas_thread():
-        pb = _Equilibrium(mech, inp, targets, obstacles)
+        pb = _Equilibrium(mech, inp, targets, obstacles, stick)
         q1, lam1, it, ok, R, phi, sc = _kkt_newton(pb, q, lam, tol, max_iterations)
         steps, total = 1, it
         if not ok:
             q1, lam1, total, steps, R, phi, sc = _continuation(mech, inp, targets, q, lam, tol, max_iterations,
-                                                               max_load_steps, total, obstacles)
+                                                               max_load_steps, total, obstacles, stick)
         stable, lo = True, float("nan")
-        pb = _Equilibrium(mech, inp, targets, obstacles)
+        pb = _Equilibrium(mech, inp, targets, obstacles, stick)
         if check_stability:
             _, _, G = pb.residual(q1, lam1)
             stable, lo = equilibrium_stability(pb.tangent(q1, lam1), G)
@@ -722,12 +727,12 @@ def _scaled_inputs(mech, inp, t, q_start):
                   LoadArrays(ld.joint, ld.x, t * ld.wrench, ld.world), t * inp.gravity)
 
 
-def _continuation(mech, inp, targets, q, lam, tol, max_iterations, max_load_steps, total, obstacles=()):
+def _continuation(mech, inp, targets, q, lam, tol, max_iterations, max_load_steps, total, obstacles=(), stick=None):
     t, dt, steps = 0.0, 0.25, 0
     q_c, l_c = q.copy(), lam.copy()
     while t < 1.0:
         target = min(1.0, t + dt)
-        pb = _Equilibrium(mech, _scaled_inputs(mech, inp, target, q), targets, obstacles)
+        pb = _Equilibrium(mech, _scaled_inputs(mech, inp, target, q), targets, obstacles, stick)
         q_t, l_t, it, ok, R, phi, sc = _kkt_newton(pb, q_c, l_c, tol, max_iterations)
         total += it
         steps += 1

@@ -1,18 +1,43 @@
 """Contact of a mechanism's soft members with its obstacles, on a
 workspace: the contact forces at q as dead point loads for the engine's
 passes, and their stiffness ``-J^T dF/dp J`` for Newton's matrix (the law:
-:mod:`soft_twin_core.engine.contact`)."""
+:mod:`soft_twin_core.engine.contact`). Statics' friction acts against the
+displacement of each contact's surface point from where it sticks
+(:class:`StickPoints`: the points' positions and frames at an earlier
+equilibrium), by :func:`engine.contact.stick_friction`."""
+
+from dataclasses import dataclass
 
 import numpy as np
 
-from soft_twin_core.engine.contact import (ContactState, contact_forces, normal_potential_density,
-                                           step_contact_forces, transition_step)
+from soft_twin_core.engine.contact import (STICK_TIME, ContactState, contact_forces, normal_potential_density,
+                                           step_contact_forces, stick_friction, transition_step)
 from soft_twin_core.engine.kernels import passes
 from soft_twin_core.engine.kernels.contact import distance_arrays, obstacle_arrays, posable, pose_obstacles
 from soft_twin_core.engine.kernels.data import LoadArrays
 from soft_twin_core.engine.kernels.frames import (body_point_twists, frame_spins, offset_point_positions,
                                                   relative_point_jacobians)
+from soft_twin_core.lie import log_so3
 from soft_twin_core.robot.obstacles import contact_points
+
+
+STICK_CAP = 3.0      # a sliding point's stick point is dragged along to this many stick lengths behind it
+
+
+@dataclass(frozen=True)
+class StickPoints:
+    """Where the contact points stick, for statics' friction: their world
+    positions p (P, 3) [m] and frames' rotations R (P, 3, 3) at the
+    equilibrium they last rested in, and which of them touched a world
+    obstacle with friction there (``touching`` (P,) bool): only those have
+    a stick point; one that touches down in a solve lands where it meets
+    the obstacle, which a statics solve cannot know (the path is not
+    solved), so it is frictionless in that solve and sticks where it
+    landed from the next (:meth:`MemberContact.stick_points`,
+    :meth:`MemberContact.stuck_after`)."""
+    p: np.ndarray
+    R: np.ndarray
+    touching: np.ndarray
 
 
 def mechanism_contact_points(mech):
@@ -189,11 +214,94 @@ class MemberContact:
         st.body_arm = np.where(body[:, None] >= 0, st.p - ws.work.g_out[np.maximum(body, 0), :3, 3], 0.0)
         return st
 
-    def state(self, ws, q):
-        """:class:`ContactState` at rest at q (statics)."""
+    def state(self, ws, q, stick=None):
+        """:class:`ContactState` at rest at q (statics); with ``stick``
+        (:class:`StickPoints`), the world obstacles' friction against the
+        contacts' displacements from there (:meth:`_stick_friction`)."""
         p, G = self.positions(ws, q, frames=True)
-        st = contact_forces(self.points, self.all, p, self.allowed, self._posed(ws))
-        return self._with_arms(ws, st, G)
+        st = self._with_arms(ws, contact_forces(self.points, self.all, p, self.allowed, self._posed(ws)), G)
+        return st if stick is None else self._stick_friction(st, G, stick)
+
+    def stick_points(self, ws, q):
+        """:class:`StickPoints` of the points where they are at q."""
+        p, G = self.positions(ws, q, frames=True)
+        return StickPoints(p, G[:, :3, :3].copy(), np.zeros(len(p), np.bool_))
+
+    def _surface_displacement(self, st, G, stick):
+        """(c, 3): each contact's surface point's tangential displacement
+        from where it sticks, ``(I - n n^T) (dp + r n x phi)`` (dp: the
+        backbone point's, phi: its frame's rotation vector from the stick
+        frame, world axes: the surface point -r n turns by phi x (-r n))."""
+        i = st.point
+        phi = log_so3(np.einsum("cij,ckj->cik", G[i, :3, :3], stick.R[i]))
+        r = st.radius if st.radius is not None else np.zeros(len(st))
+        u = st.p - stick.p[i] + r[:, None] * np.cross(st.normal, phi)
+        return u - st.normal * np.einsum("ck,ck->c", st.normal, u)[:, None]
+
+    def _stick_friction(self, st, G, stick):
+        """``st`` with statics' friction (:func:`engine.contact.stick_friction`)
+        at the contacts with world obstacles that have friction: the force
+        at the surface point (on the backbone point: the force and its
+        moment ``(-r n) x F_t``), ``dFf_dd`` its derivative along the
+        surface point's displacement (Newton's ``J_s^T dFf_dd J_s``) and
+        ``dFf_dp`` its growth with the normal force (``J_s^T dFf_dp J_p``).
+        The world's obstacles only: a body's shape moves with the robot,
+        and its contacts stay frictionless in statics."""
+        n = len(st)
+        mu = np.array([ob.friction for ob in self.all])[st.obstacle] if n else np.zeros(0)
+        world = st.body < 0 if st.body is not None else np.ones(n, np.bool_)
+        rows = np.flatnonzero((mu > 0) & world & stick.touching[st.point])
+        if not len(rows):
+            return st
+        d = self._surface_displacement(st, G, stick)
+        N = st.normal
+        fn = np.einsum("ck,ck->c", N, st.force)
+        dfn = np.einsum("ck,ckj->cj", N, st.dF_dp)           # d fn / dp (n^T Hess d n = 0)
+        r = st.radius if st.radius is not None else np.zeros(n)
+        force, moment = st.force.copy(), np.zeros((n, 3)) if st.moment is None else st.moment.copy()
+        dFf_dd, dFf_dp = np.zeros((n, 3, 3)), np.zeros((n, 3, 3))
+        proj = np.eye(3) - N[:, :, None] * N[:, None, :]
+        for o in np.unique(st.obstacle[rows]):
+            ob = self.all[o]
+            c = rows[st.obstacle[rows] == o]
+            Ft, dFt = stick_friction(fn[c], d[c], ob.friction, ob.stiction_velocity)
+            force[c] += Ft
+            moment[c] -= r[c, None] * np.cross(N[c], Ft)
+            dFf_dd[c] = np.matmul(dFt, proj[c])
+            dFf_dp[c] = (Ft / np.maximum(fn[c], 1e-300)[:, None])[:, :, None] * dfn[c][:, None, :]
+        st.force, st.moment, st.dFf_dd, st.dFf_dp = force, moment, dFf_dd, dFf_dp
+        st.dFf_dv = np.zeros((n, 3, 3))
+        return st
+
+    def stuck_after(self, ws, q, stick, st=None):
+        """The stick points after an equilibrium at q (its ContactState
+        ``st``, made with ``stick``): a point touching a world obstacle with
+        friction that had a stick point keeps it, unless it slid more than
+        ``STICK_CAP`` stick lengths: then it is dragged along to that
+        distance behind its surface point (its friction stays at 0.995 mu
+        fn, and a load turned back first takes up the stick, at most twice
+        that distance, before it slides back); one that touched down in the solve sticks where it is now;
+        the others have none (they stick where they are now, untouching)."""
+        p, G = self.positions(ws, q, frames=True)
+        out_p, out_R = p.copy(), G[:, :3, :3].copy()
+        touching = np.zeros(len(p), np.bool_)
+        if st is None or not len(st):
+            return StickPoints(out_p, out_R, touching)
+        mu = np.array([ob.friction for ob in self.all])[st.obstacle]
+        world = st.body < 0 if st.body is not None else np.ones(len(st), np.bool_)
+        touching[st.point[(mu > 0) & world]] = True
+        if st.dFf_dd is None:
+            return StickPoints(out_p, out_R, touching)
+        held = np.flatnonzero(np.any(st.dFf_dd != 0, axis=(1, 2)) | np.any(st.dFf_dp != 0, axis=(1, 2)))
+        d = self._surface_displacement(st, G, stick)
+        cap = STICK_CAP * np.array([ob.stiction_velocity for ob in self.all])[st.obstacle] * STICK_TIME
+        for c in held:
+            i = st.point[c]
+            size = np.linalg.norm(d[c])
+            out_p[i], out_R[i] = stick.p[i], stick.R[i]
+            if size > cap[c]:
+                out_p[i] = stick.p[i] + (1.0 - cap[c] / size) * d[c]
+        return StickPoints(out_p, out_R, touching)
 
     def with_obstacles(self, obstacles):
         """This contact with ``obstacles`` instead (the same points)."""
@@ -253,12 +361,15 @@ class MemberContact:
             # the reaction's point of application moves over the body: d(-J_b(p)^T F)/dp J_rel = J_w^T [F x] J_rel
             Kt -= scale * (Jw.reshape(3 * n, -1).T @ np.matmul(X, J).reshape(3 * n, -1))
         Kt -= scale * (Jf.T @ dFq.reshape(3 * n, -1))
-        fr = st.dFf_dp is not None and (np.any(st.dFf_dp != 0) or np.any(st.dFf_dv != 0))
+        stuck = st.dFf_dd is not None and np.any(st.dFf_dd != 0)
+        fr = st.dFf_dp is not None and (np.any(st.dFf_dp != 0) or np.any(st.dFf_dv != 0) or stuck)
         Jm = self._angular_jacobians(ws, st, Jw) if fr or (st.dM_dw is not None and np.any(st.dM_dw != 0)) \
             else None
         if fr:
             Js = self._surface(st, J, Jm).reshape(3 * n, -1)
             Kt -= scale * (Js.T @ np.matmul(st.dFf_dp, J).reshape(3 * n, -1))
+            if stuck:        # statics' friction: along the surface point's displacement
+                Kt -= scale * (Js.T @ np.matmul(st.dFf_dd, Js.reshape(n, 3, -1)).reshape(3 * n, -1))
         if Dt is not None:
             Dt -= Jf.T @ np.matmul(st.dF_dv, J).reshape(3 * n, -1)
             if fr:
