@@ -19,7 +19,7 @@ import time
 
 import numpy as np
 
-RATE_HZ = 20.0
+RATE_HZ = 30.0
 DEFAULT_TENSION_N = 20.0         # slider range of a tendon without a declared limit
 DEFAULT_PRESSURE_PA = 50e3       # ... of a chamber without one
 DEFAULT_EFFORT = {"revolute": 1.0, "prismatic": 10.0}      # [N m], [N]: effort-controlled joints, +-
