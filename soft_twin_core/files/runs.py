@@ -19,7 +19,7 @@ _NO_LOADS = Loads(gravity=False)
 from soft_twin_core.engine.workspace import Workspace
 from soft_twin_core.files.timeline import check_output_size, count, n_steps_for, step_times
 from soft_twin_core.robot.mechanism import base_targets, tip_frame
-from soft_twin_core.solve.contact import contacts_dict
+from soft_twin_core.solve.contact import MemberContact, contacts_dict
 from soft_twin_core.solve.outputs import (frame_velocity, main_member, member_samples, section_rates,
                                           section_strains, state_outputs)
 
@@ -104,13 +104,25 @@ def run_mechanism_statics(sc, t=0.0, points_per_section=1):
     its input origin); members: per soft member at its sample points
     (``points_per_section`` per section and its end) s [m], positions, orientations (quaternions x, y, z, w), internal_wrench (body axes), strains,
     normal_stress and shear_stress [Pa] (null without geometry); iterations, residual; stable and
-    min_stiffness_eigenvalue (constrained.equilibrium_stability)."""
+    min_stiffness_eigenvalue (constrained.equilibrium_stability). Friction
+    (world obstacles with ``friction``) acts from increment to increment:
+    a contact made in one sticks where it landed from the next
+    (:class:`solve.contact.StickPoints`), so a single increment is
+    frictionless."""
     q, iterations = None, 0
+    obstacles = sc.obstacles_at(t)
+    contact = MemberContact(sc.mech, obstacles)
+    stick = None
+    if any(ob.friction > 0 and ob.body < 0 for ob in contact.obstacles) and contact:
+        ws = Workspace(sc.mech.tree)
+        stick = contact.stick_points(ws, sc.mech.tree.q0)
     for k in range(1, sc.load_steps + 1):     # load_steps increments, each warm-started
         eq = solve_equilibrium(sc.mech, q_init=q, targets=_targets(sc, t), inputs=_inputs(sc, t, k / sc.load_steps),
-                               obstacles=sc.obstacles_at(t),
+                               obstacles=obstacles, stick=stick,
                                check_stability=k == sc.load_steps)      # the final equilibrium's is the one to judge
         q, iterations = eq.q, iterations + eq.iterations
+        if stick is not None:
+            stick = contact.stuck_after(ws, q, stick, eq.contacts)
     out = state_outputs(sc.mech, eq.q, eq.lam, eq.inputs, points_per_section=points_per_section,
                         contacts=eq.contacts)
     d = _outputs_dict(sc, out)

@@ -158,3 +158,33 @@ def test_the_statics_tangent_with_friction_is_the_residuals_derivative():
                               for e in np.eye(len(q))])
         assert np.abs(K - fd).max() < 1e-5 * np.abs(fd).max(), (T, np.abs(K - fd).max(), np.abs(fd).max())
         stick = mc.stuck_after(ws, q, stick, eq.contacts)
+
+
+def test_a_scenarios_statics_holds_with_friction_from_increment_to_increment(tmp_path):
+    """The CLI's statics (:func:`files.scenario.run_statics`) with the tip
+    load applied in increments (``load_steps``): the tip touches down in
+    the second of four (fraction 1/2: frictionless in that increment, it
+    lands where the half load puts it without friction), then sticks there
+    while the load grows to its full value (mu N holds it); in one
+    increment, the same scenario is frictionless (the whole lateral load
+    bends the rod), as the plane without friction is in four."""
+    import yaml
+    from soft_twin_core.files.scenario import load_scenario, run_statics
+    T = 0.04
+    robot = {"name": "rod", "gravity": [0, 0, 0], "bodies": [{
+        "name": "rod", "type": "member", "segments": [{
+            "length": L, "sections": 8, "cross_section": {"shape": "solid_circle", "radius": R},
+            "material": {"youngs_modulus": E, "poisson_ratio": 0.5, "density": 1000},
+            "free_modes": "bending_torsion"}]}]}
+    (tmp_path / "rod.yaml").write_text(yaml.safe_dump(robot))
+    tips = {}
+    for mu, steps in ((MU, 4), (MU, 1), (0.0, 4)):
+        sc = {"robot": "rod.yaml", "gravity": False, "load_steps": steps,
+              "loads": [{"frame": "rod_tip", "force": [0, T, -P], "axes": "world"}],
+              "obstacles": [{"name": "floor", "type": "plane", "point": [0, 0, -(R + GAP)], "normal": [0, 0, 1],
+                             "friction": mu}]}
+        (tmp_path / "sc.yaml").write_text(yaml.safe_dump(sc))
+        tips[mu, steps] = run_statics(load_scenario(str(tmp_path / "sc.yaml")))["tip_position"][1]
+    free = T * L ** 3 / (3 * EI)                       # 3.7 mm: the whole lateral load on the free rod
+    assert tips[MU, 1] == pytest.approx(tips[0.0, 4], rel=1e-6) and tips[0.0, 4] == pytest.approx(free, rel=0.03)
+    assert tips[MU, 4] == pytest.approx(free / 2, rel=0.05)        # held where it landed, at half the load
