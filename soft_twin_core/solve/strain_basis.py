@@ -116,10 +116,13 @@ def modal_frequencies(mech, B, q_ref=None, count=None):
     the elastic forces, no load stiffness; CRBA's M). ``count``: the
     lowest ones (default all)."""
     tree = mech.tree
-    q = tree.q0.copy() if q_ref is None else np.asarray(q_ref, dtype=float)
+    q = tree.q0.copy() if q_ref is None else tree.check_q(np.asarray(q_ref, dtype=float), "q_ref")
+    B = np.asarray(B, dtype=float)
+    if B.ndim != 2 or B.shape[0] != tree.nv or B.shape[1] < 1 or not np.all(np.isfinite(B)):
+        raise ValueError(f"B: expected a finite basis of shape ({tree.nv}, k >= 1) (a column per coordinate, a row "
+                         f"per velocity coordinate of the robot), got shape {B.shape}")
     K, _ = dense_stiffness_damping(tree)
     M = alg.crba(tree, Workspace(tree), q).copy()
-    B = np.asarray(B, dtype=float)
     w2 = eigh(B.T @ K @ B, B.T @ M @ B, eigvals_only=True)
     f = np.sqrt(np.maximum(w2, 0.0)) / (2 * np.pi)
     return f if count is None else f[:count]

@@ -159,3 +159,15 @@ def test_the_cantilevers_first_three_frequencies_in_every_basis():
     cub = modal_frequencies(back, fem_basis(back, 4, 3), count=6)[0:6:2]
     lin = modal_frequencies(back, fem_basis(back, 8, 1), count=6)[0:6:2]
     assert np.abs(cub / full[128] - 1).max() < 1e-5 and np.abs(lin / full[128] - 1).max() < 1e-3
+
+
+def test_a_basis_of_the_wrong_shape_is_refused_naming_it():
+    """``modal_frequencies`` checks its basis at the door: a row per
+    velocity coordinate, at least one column, finite."""
+    arm = _arm(4)
+    nv = arm.tree.nv
+    for bad in (np.eye(nv - 1), np.zeros((nv, 0)), np.ones(nv), np.full((nv, 2), np.nan)):
+        with pytest.raises(ValueError, match=rf"B: expected a finite basis of shape \({nv}, k >= 1\)"):
+            modal_frequencies(arm, bad)
+    with pytest.raises(ValueError, match="q_ref"):
+        modal_frequencies(arm, np.eye(nv), q_ref=np.zeros(nv + 1))
