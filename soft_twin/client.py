@@ -39,6 +39,20 @@ def stamp_key(stamp):
     return (int(stamp.sec), int(stamp.nanosec))
 
 
+def interrupt(proc, timeout=20.0):
+    """Stop a child process as Ctrl-C would: SIGINT, then wait up to
+    ``timeout`` s; killed if it has not stopped by then. Returns its exit
+    code."""
+    if proc.poll() is None:
+        proc.send_signal(signal.SIGINT)
+        try:
+            proc.wait(timeout=timeout)
+        except subprocess.TimeoutExpired:
+            proc.kill()
+            proc.wait()
+    return proc.returncode
+
+
 class NodeProcess:
     """The node in a child process: ``python -m soft_twin.node --ros-args ...``.
 
@@ -64,13 +78,7 @@ class NodeProcess:
 
     def stop(self, timeout=20.0):
         """SIGINT, then wait; returns the exit code (kills after the timeout)."""
-        if self.proc.poll() is None:
-            self.proc.send_signal(signal.SIGINT)
-            try:
-                self.proc.wait(timeout=timeout)
-            except subprocess.TimeoutExpired:
-                self.proc.kill()
-                self.proc.wait()
+        interrupt(self.proc, timeout)
         if self._out is None and self._log is subprocess.PIPE:
             self._out = self.proc.stdout.read()
             self.proc.stdout.close()

@@ -49,7 +49,7 @@ from soft_twin_core.engine.kernels.tangent import static_tangent_pass
 from soft_twin_core.engine.loads import Loads
 from soft_twin_core.engine.workspace import Workspace
 from soft_twin_core.errors import StaticsError, StepError
-from soft_twin_core.lie import log_se3, log_so3, se3_inv
+from soft_twin_core.lie import exp_se3, log_se3, log_so3, se3_inv
 from soft_twin_core.solve import equilibrium as eq
 from soft_twin_core.solve.equilibrium import equilibrium_stability
 
@@ -549,6 +549,29 @@ def carry_base(mech, q, targets=None):
     return q
 
 
+def _base_path(mech, q_start, targets):
+    """The constraints' targets as a function of the load fraction t in
+    [0, 1] (the continuation's): a prescribed base carried along the
+    geodesic ``T0 exp(t log(T0^-1 T1))`` from where it is at ``q_start``
+    to its target T1, so that a base posed far from where the robot rests
+    is brought there in steps, as the loads are; the other targets as
+    given."""
+    carried = _carried_base(mech)
+    if carried is None:
+        return lambda t: targets
+    j, iq, _, k = carried
+    T1 = targets[k] if targets is not None and targets[k] is not None else mech.constraints[k].target
+    T0 = mech.tree.joints[j].placement @ _free_pose(q_start[iq:iq + 7])
+    X = log_se3(se3_inv(T0) @ T1)
+
+    def at(t):
+        out = list(targets) if targets is not None else [None] * len(mech.constraints)
+        out[k] = T0 @ exp_se3(t * X)
+        return out
+    at.carries = bool(np.abs(X).max() > 0)
+    return at
+
+
 def _coordinate_offsets(tree, q):
     """q - q0 per velocity coordinate (nv), zero on group joints (spherical,
     free: they carry no spring): what the stiffness matrix multiplies."""
@@ -671,8 +694,8 @@ def solve_equilibrium(mech, actuation=None, efforts=None, positions=None, loads=
     _check_statics_model(mech)
     inp = inputs if inputs is not None else make_inputs(mech, actuation, efforts, positions, None, loads, point_loads)
     tree = mech.tree
-    q = tree.q0.copy() if q_init is None else tree.check_q(np.array(q_init, dtype=float), "q_init").copy()
-    q = carry_base(mech, q, targets)
+    q_start = tree.q0.copy() if q_init is None else tree.check_q(np.array(q_init, dtype=float), "q_init").copy()
+    q = carry_base(mech, q_start, targets)
     m = mech.n_constraint_rows + len(mech.joints_with("position"))
     lam = np.zeros(m)
     obstacles = tuple(mech.obstacles if obstacles is None else obstacles)
@@ -683,8 +706,9 @@ def solve_equilibrium(mech, actuation=None, efforts=None, positions=None, loads=
         q1, lam1, it, ok, R, phi, sc = _kkt_newton(pb, q, lam, tol, max_iterations)
         steps, total = 1, it
         if not ok:
-            q1, lam1, total, steps, R, phi, sc = _continuation(mech, inp, targets, q, lam, tol, max_iterations,
-                                                               max_load_steps, total, obstacles, stick)
+            q1, lam1, total, steps, R, phi, sc = _continuation(mech, inp, _base_path(mech, q_start, targets), q_start,
+                                                               lam, tol, max_iterations, max_load_steps, total,
+                                                               obstacles, stick)
         stable, lo = True, float("nan")
         pb = _Equilibrium(mech, inp, targets, obstacles, stick)
         if check_stability:
@@ -727,13 +751,16 @@ def _scaled_inputs(mech, inp, t, q_start):
                   LoadArrays(ld.joint, ld.x, t * ld.wrench, ld.world), t * inp.gravity)
 
 
-def _continuation(mech, inp, targets, q, lam, tol, max_iterations, max_load_steps, total, obstacles=(), stick=None):
+def _continuation(mech, inp, path, q, lam, tol, max_iterations, max_load_steps, total, obstacles=(), stick=None):
+    """The inputs raised in fractions t from ``q`` (adaptive steps), the
+    constraints' targets ``path(t)`` (:func:`_base_path`)."""
     t, dt, steps = 0.0, 0.25, 0
     q_c, l_c = q.copy(), lam.copy()
     while t < 1.0:
         target = min(1.0, t + dt)
+        targets = path(target)
         pb = _Equilibrium(mech, _scaled_inputs(mech, inp, target, q), targets, obstacles, stick)
-        q_t, l_t, it, ok, R, phi, sc = _kkt_newton(pb, q_c, l_c, tol, max_iterations)
+        q_t, l_t, it, ok, R, phi, sc = _kkt_newton(pb, carry_base(mech, q_c, targets), l_c, tol, max_iterations)
         total += it
         steps += 1
         if ok:
@@ -742,7 +769,9 @@ def _continuation(mech, inp, targets, q, lam, tol, max_iterations, max_load_step
         else:
             dt *= 0.5
             if dt < 1.0 / max_load_steps / 64 or steps > 4 * max_load_steps:
-                raise StaticsError(f"statics did not converge: reached load fraction {t:.4f}; the loads, "
+                carried = " (a prescribed base brought that fraction of the way to its pose)" \
+                    if getattr(path, "carries", False) else ""
+                raise StaticsError(f"statics did not converge: reached load fraction {t:.4f}{carried}; the loads, "
                                    f"commands or constraints may be incompatible")
     return q_c, l_c, total, steps, R, phi, sc
 

@@ -13,7 +13,6 @@ write its own)."""
 
 import os
 import shutil
-import signal
 import subprocess
 import sys
 from pathlib import Path
@@ -80,7 +79,7 @@ def test_colcon_builds_the_package_and_its_install_space_works(tmp_path):
                       for f in core.rglob("*.nb[ic]")}
     before = caches()
     assert len(before) > 100, len(before)
-    from soft_twin.client import TwinClient
+    from soft_twin.client import TwinClient, interrupt
     name = "colcon_twin"
     log = open(tmp_path / "node.log", "w")
     node = subprocess.Popen(["bash", "-c", f". '{install}/setup.sh' && exec '{prefix}/lib/soft_twin/soft_twin_node' "
@@ -92,11 +91,7 @@ def test_colcon_builds_the_package_and_its_install_space_works(tmp_path):
         assert client.backbone is not None and len(client.backbone.poses) > 10
     finally:
         client.close()
-        node.send_signal(signal.SIGINT)
-        try:
-            node.wait(timeout=20)
-        except subprocess.TimeoutExpired:
-            node.kill()
+        interrupt(node)
         log.close()
     out = (tmp_path / "node.log").read_text()
     assert node.returncode == 0 and "Traceback" not in out, out[-3000:]

@@ -2,8 +2,6 @@
 measurements, the estimates and the diagnostics as they arrive (a private
 rclpy context spun in a thread), for the estimator tests of test/ros."""
 
-import signal
-import subprocess
 import threading
 import time
 
@@ -14,6 +12,7 @@ from rclpy.executors import SingleThreadedExecutor
 from sensor_msgs.msg import JointState
 from std_srvs.srv import Trigger
 
+from soft_twin.client import interrupt
 from soft_twin.conversions import matrix_from_pose
 from soft_twin.msg import ActuationCommand
 
@@ -90,10 +89,4 @@ class Client:
 def stop_estimator(proc):
     """SIGINT to the estimator's process (Ctrl-C), waited for; killed if it
     does not stop within 20 s."""
-    if proc.poll() is None:
-        proc.send_signal(signal.SIGINT)
-        try:
-            proc.wait(timeout=20)
-        except subprocess.TimeoutExpired:
-            proc.kill()
-            proc.wait()
+    interrupt(proc)

@@ -267,3 +267,24 @@ def test_ik_and_planning_hold_a_carried_base_where_the_twin_has_it():
     assert np.allclose(a.target, b.target, rtol=0, atol=1e-15)
     with pytest.raises(pl.PlanError, match="base_pose"):
         pl.TipSolver(fixed, pl.PlanOptions(base_pose=T))
+
+
+def test_statics_brings_a_far_base_along_the_geodesic_in_steps():
+    """The continuation's targets (:func:`constrained._base_path`): the
+    base from where it rests at q_start to its target along ``T0 exp(t
+    log(T0^-1 T1))`` (its ends and midpoint against the matrix
+    exponential's definition: the midpoint's twice is the whole motion);
+    the catheter pushed 50 mm into its vessel (its scenario at t = 1.5 s)
+    rests with its base where the trajectory puts it."""
+    from soft_twin_core.files.scenario import load_scenario, run_statics
+    from soft_twin_core.lie import log_se3
+    arm = _arm()
+    q0 = cs.carry_base(arm, arm.tree.q0, base_targets(arm, _pose(x=0.1)))
+    path = cs._base_path(arm, q0, base_targets(arm, _tilted()))
+    assert np.allclose(path(0.0)[0], _pose(x=0.1), atol=1e-14) and np.allclose(path(1.0)[0], _tilted(), atol=1e-12)
+    half = np.linalg.inv(_pose(x=0.1)) @ path(0.5)[0]
+    assert np.allclose(half @ half, np.linalg.inv(_pose(x=0.1)) @ _tilted(), atol=1e-12)
+    assert np.allclose(log_se3(half), 0.5 * log_se3(np.linalg.inv(_pose(x=0.1)) @ _tilted()), atol=1e-12)
+    out = run_statics(load_scenario("catheter_in_vessel"), time=1.5)
+    base = np.array(out["frame_poses"][out["frame_names"].index("base")])
+    assert np.allclose(base[:3, 3], [0.05, 0, 0], atol=1e-9) and out["residual"] < 1e-8
