@@ -350,9 +350,10 @@ def test_a_killed_worker_process_loses_no_case(client, tmp_path):
 def test_a_task_whose_worker_keeps_dying_is_recorded_lost_and_rerun_by_resume(tmp_path):
     """With no retries allowed (distributed.scheduler.allowed-failures = 0)
     a task whose worker dies under it fails (KilledWorker): its cases are
-    recorded lost, the others finish, and a resume computes just those."""
-    import threading
-
+    recorded lost, the others finish, and a resume computes just those. The
+    worker dies in its first case, whatever the machine's speed: its
+    process is set to kill itself there (``run_case`` replaced in that
+    process only); the nanny's restarted worker is a fresh process."""
     import dask
     import distributed  # noqa: F401  (loads its config first: set() must not replace it)
     from soft_twin_core.studies.cluster import start_local_cluster
@@ -360,30 +361,19 @@ def test_a_task_whose_worker_keeps_dying_is_recorded_lost_and_rerun_by_resume(tm
     with dask.config.set({"distributed.scheduler.allowed-failures": 0}):
         cluster, c = start_local_cluster(1)
     try:
-        stop = threading.Event()
-        killed = []
-
-        def killer():
-            while not stop.is_set() and not killed:
-                busy = [w for w, tasks in c.processing().items() if tasks]
-                if busy:
-                    time.sleep(0.05)
-                    pid = c.run(os.getpid, workers=busy)[busy[0]]
-                    os.kill(pid, signal.SIGKILL)
-                    killed.append(pid)
-                time.sleep(0.01)
-        th = threading.Thread(target=killer)
-        th.start()
-        try:
-            res = run_study(st, tmp_path / "o", client=c, chunk_size=12, log=lambda m: None, summary=False)
-        finally:
-            stop.set()
-            th.join()
-        assert killed
+        def die_in_the_first_case():         # runs in the worker's process (pickled by value: a closure)
+            import os as os_
+            import signal as signal_
+            import soft_twin_core.studies.case as case
+            case.run_case = lambda *args: os_.kill(os_.getpid(), signal_.SIGKILL)
+            return os_.getpid()
+        doomed = set(c.run(die_in_the_first_case).values())
+        res = run_study(st, tmp_path / "o", client=c, chunk_size=12, log=lambda m: None, summary=False)
         assert (res["ok"], res["lost"]) == (0, 12)
         rows = read_rows(tmp_path / "o" / "results.parquet")
         assert all(r["status"] == "lost" and "KilledWorker" in r["error"] for r in rows)
         c.wait_for_workers(1, timeout=60)
+        assert not doomed & set(c.run(os.getpid).values())          # the nanny started a new process
         res = run_study(st, tmp_path / "o", client=c, chunk_size=12, log=lambda m: None, summary=False)
         assert (res["computed"], res["ok"]) == (12, 12)
     finally:
