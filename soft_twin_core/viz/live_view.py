@@ -37,6 +37,7 @@ GHOST_COLOR = (140, 60, 230)     # an IK answer's shape, before it is applied (v
 OBSTACLE_COLOR = (120, 120, 120)
 CONTACT_COLOR = (204, 41, 204)   # contact forces, as the tip load
 TENDON_COLOR = (0, 140, 150)     # the tendons' routes
+GRID_COLOR = (205, 205, 205)    # the floor's grid
 CHAMBER_COLOR = (50, 80, 220)    # the chambers' routes
 TRAIL_SECONDS = 10.0             # the tip path drawn: the last 10 s
 TRAIL_STEP_M = 0.001             # ... a point each time the tip has moved 1 mm
@@ -57,6 +58,15 @@ def value_colors(values, vmax):
 def shown_value(v):
     """A panel value: 4 significant digits, round-off (|v| < 1e-9) as 0."""
     return f"{v if abs(v) >= 1e-9 else 0.0:.4g}"
+
+
+def grid_segments(size, cell):
+    """(S, 2, 3) float32 [m]: the lines of a square grid of side ``size``
+    and spacing ``cell`` in the xy plane, centred on the origin."""
+    k = np.linspace(-0.5 * size, 0.5 * size, int(round(size / cell)) + 1)
+    zero, end = np.zeros_like(k), np.full_like(k, 0.5 * size)
+    along_y = np.stack([np.c_[k, -end, zero], np.c_[k, end, zero]], axis=1)
+    return np.concatenate([along_y, along_y[:, :, [1, 0, 2]]]).astype(np.float32)
 
 
 def polyline_segments(polylines):
@@ -207,8 +217,11 @@ class LiveView:
         self.host = host
         self._lock = threading.Lock()
         self._text = self.server.gui.add_markdown("**soft_twin**: waiting for the twin ...")
-        self._grid = self.server.scene.add_grid("/grid", width=1.0, height=1.0, cell_size=0.05,
-                                                position=(0.2, 0.0, -0.5))
+        # the floor's grid as plain lines (viser's shaded grid costs a browser without a GPU a fifth of its
+        # frame rate: benchmarks/bench_live_view.py)
+        self._grid = self.server.scene.add_line_segments("/grid", grid_segments(1.0, 0.05), colors=GRID_COLOR,
+                                                         thickness=1.0, thickness_units="screen",
+                                                         position=(0.2, 0.0, -0.5))
         self.server.scene.set_up_direction("+z")
         # lit without shadows or an environment map (a sky-and-ground light instead): a browser without a
         # GPU (software WebGL) renders the arm at 35-40 frames a second instead of 18

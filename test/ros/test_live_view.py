@@ -38,6 +38,17 @@ def test_tube_mesh_rings_are_normal_to_the_backbone_at_the_radius():
     assert np.all(counts == 2)
 
 
+def test_the_floor_grid_is_the_squares_lines():
+    """``grid_segments(1, 0.05)``: 21 lines along each axis, spanning the
+    square centred on the origin, 5 cm apart, in the xy plane."""
+    from soft_twin_core.viz.live_view import grid_segments
+    S = grid_segments(1.0, 0.05)
+    assert S.shape == (42, 2, 3) and S.dtype == np.float32 and np.all(S[:, :, 2] == 0)
+    along_y, along_x = S[:21], S[21:]
+    assert np.allclose(along_y[:, 0, 0], np.linspace(-0.5, 0.5, 21)) and np.allclose(along_y[:, :, 1], [-0.5, 0.5])
+    assert np.allclose(along_x[:, 0, 1], np.linspace(-0.5, 0.5, 21)) and np.allclose(along_x[:, :, 0], [-0.5, 0.5])
+
+
 def arm_pixels(png):
     """Boolean mask of the tube's orange pixels in a screenshot."""
     from PIL import Image
