@@ -364,7 +364,8 @@ def stick_friction(fn, d, mu, v_s):
     u = d / np.where(small, 1.0, size)[:, None]
     radial = np.where(small, 0.0, 1.0 / np.cosh(np.minimum(x, 350.0)) ** 2 / ls - g)    # d(g |d|)/d|d| - g
     F = -(mu * fn * g)[:, None] * d
-    dF = -(mu * fn)[:, None, None] * (g[:, None, None] * np.eye(3) + radial[:, None, None] * u[:, :, None] * u[:, None, :])
+    uu = u[:, :, None] * u[:, None, :]
+    dF = -(mu * fn)[:, None, None] * (g[:, None, None] * np.eye(3) + radial[:, None, None] * uu)
     return F, dF
 
 
