@@ -311,8 +311,9 @@ def contact_step(m, w, act, ld, g, coef, effort, K, D, q_ref, elastic, q0, v0, h
     c = 0
     for it in range(1, max_it + 1):
         theta_point(m, q0, v0, v1, h, theta, vt, acc, qt, q1)
-        if touching:
-            _positions(m, w, q1, zeros, zeros, 0, pj, px, poff, G, p1)
+        if touching:            # the end positions: poses alone (the pass at the theta point follows)
+            passes.poses_pass(m, w, q1)
+            offset_point_positions(m, w, pj, px, poff, G, p1)
         if spins:
             for p in range(P):
                 for r in range(3):

@@ -146,9 +146,10 @@ class MemberContact:
         self._local = obstacle_arrays(self.all) if self.all else None
         # the points' frames' rotations are needed: torsional friction, or friction (at the surface: rolling)
         self.turns = bool(self.all) and bool(np.any((self._local.torsion > 0) | (self._local.friction > 0)))
+        self._some = bool(self.all) and len(self.points) > 0 and bool(self.allowed.any())
 
-    def __bool__(self):
-        return bool(self.all) and len(self.points) > 0 and bool(self.allowed.any())
+    def __bool__(self):              # (a simulator asks at every step)
+        return self._some
 
     def _positions(self, ws):
         """World positions (P, 3) of the points and their frames' poses, on the workspace as posed."""

@@ -8,17 +8,19 @@ friction; and the passes that list the contacts of a configuration
 Obstacles are :class:`ObstacleArrays` (one row per obstacle; NaN stiffness
 or smoothing: the member's default)."""
 
-from collections import namedtuple
 from functools import lru_cache
 
+import numba as nb
 import numpy as np
+from numba.core import types
+from numba.experimental import structref
 
 from soft_twin_core.engine.kernels.spatial import _jit, _jit_inline
 
 PLANE, SPHERE, CAPSULE, BOX, MESH, TUBE = 0, 1, 2, 3, 4, 5
 KIND_CODES = {"plane": PLANE, "sphere": SPHERE, "capsule": CAPSULE, "box": BOX, "mesh": MESH, "tube": TUBE}
 
-ObstacleArrays = namedtuple("ObstacleArrays", [
+OBSTACLE_FIELDS = (
     "kind",        # (O,) PLANE, SPHERE, CAPSULE or BOX
     "a", "b",      # (O, 3) engine.contact.Obstacle.a and .b (zeros where unused)
     "radius",      # (O,) [m]
@@ -35,7 +37,47 @@ ObstacleArrays = namedtuple("ObstacleArrays", [
     "body",        # (O,) the joint whose output frame carries the obstacle (a link's collision shape), -1: the world
     "path",        # (N, 3) every tube's centre line, in its axes about its a
     "path_start",  # (O + 1,) obstacle o's centre line: path[path_start[o]:path_start[o + 1]]
-])
+)
+
+
+@structref.register
+class ObstacleArraysType(types.StructRef):
+    def preprocess_fields(self, fields):
+        return tuple((n, types.unliteral(t)) for n, t in fields)
+
+
+class ObstacleArrays(structref.StructRefProxy):
+    """The obstacles' arrays (:data:`OBSTACLE_FIELDS`), as the kernels take
+    them: a structref, passed by reference (a named tuple of 17 arrays cost
+    about 4 us a call to type at every kernel call, a structref under 1 us).
+    Python reads the same arrays as attributes."""
+
+    def __getattr__(self, name):
+        if name in OBSTACLE_FIELDS:
+            return self.__dict__["arrays"][OBSTACLE_FIELDS.index(name)]
+        raise AttributeError(name)
+
+    def __reduce__(self):            # pickled as its arrays (a study's worker rebuilds it)
+        return _obstacle_struct, self.__dict__["arrays"]
+
+
+structref.define_constructor(ObstacleArrays, ObstacleArraysType, list(OBSTACLE_FIELDS))
+structref.define_boxing(ObstacleArraysType, ObstacleArrays)
+
+
+@nb.njit(cache=True)
+def _make_obstacle_ref(kind, a, b, radius, rotation, half, stiffness, smoothing, damping, friction, stiction,
+                       torsion, tri, tri_start, body, path, path_start):
+    return ObstacleArrays(kind, a, b, radius, rotation, half, stiffness, smoothing, damping, friction, stiction,
+                          torsion, tri, tri_start, body, path, path_start)
+
+
+def _obstacle_struct(*arrays):
+    """An :class:`ObstacleArrays` of these arrays (in OBSTACLE_FIELDS' order), shared."""
+    arrays = tuple(np.ascontiguousarray(x) for x in arrays)
+    out = _make_obstacle_ref(*arrays)
+    out.__dict__["arrays"] = arrays
+    return out
 
 
 def obstacle_arrays(obstacles):
@@ -69,7 +111,7 @@ def _obstacle_arrays(obstacles):
             tris.append(ob.triangles)
         start[o + 1] = start[o] + (len(ob.triangles) if ob.kind == "mesh" else 0)
     col = (lambda f: np.array([f(ob) for ob in obstacles], dtype=float))
-    return ObstacleArrays(kind, a, b, col(lambda ob: ob.radius), rot, half,
+    return _obstacle_struct(kind, a, b, col(lambda ob: ob.radius), rot, half,
                           col(lambda ob: nan if ob.stiffness is None else ob.stiffness),
                           col(lambda ob: nan if ob.smoothing is None else ob.smoothing),
                           col(lambda ob: ob.damping), col(lambda ob: ob.friction),
@@ -82,7 +124,11 @@ def _obstacle_arrays(obstacles):
 def posable(obs):
     """A copy of ``obs`` whose poses (a, b, rotation) :func:`pose_obstacles`
     may overwrite (the shapes and laws shared)."""
-    return obs._replace(a=obs.a.copy(), b=obs.b.copy(), rotation=obs.rotation.copy())
+    arrays = list(obs.__dict__["arrays"])
+    for name in ("a", "b", "rotation"):
+        k = OBSTACLE_FIELDS.index(name)
+        arrays[k] = arrays[k].copy()
+    return _obstacle_struct(*arrays)
 
 
 @_jit

@@ -24,7 +24,7 @@ frame, with subspace Sp = x_p T(x_p f) B.
 import numpy as np
 
 from soft_twin_core.engine.joint_kinds import FIXED, FREE, PRISMATIC, REVOLUTE, SOFT, SPHERICAL  # noqa: F401
-from soft_twin_core.engine.kernels.spatial import (TRUE, _Ad_into, _ad_t, _ad_vec, _exp_into, _jit,
+from soft_twin_core.engine.kernels.spatial import (FALSE, TRUE, _Ad_into, _ad_t, _ad_vec, _exp_into, _jit,
                                                    _jit_inner, _jit_inline, _map_into, _T_dot_along,
                                                    _tangent_dot_into, _tangent_into)
 
@@ -92,9 +92,10 @@ def _Sv(S, nv, v, iv, out):
 
 
 @_jit_inner
-def _joint_transform(kind, kmap, iq, nv, axis, length, f0, modes, q, J, S, strain, x6, T, S3):
-    """Joint transform J (input -> output frame), subspace S (output frame)
-    and, for a soft joint, its strain."""
+def _joint_transform(kind, kmap, iq, nv, axis, length, f0, modes, q, J, S, strain, x6, T, S3, subspace):
+    """Joint transform J (input -> output frame), subspace S (output frame;
+    a soft joint's only if ``subspace``, else zeros) and, for a soft joint,
+    its strain."""
     S[:, :] = 0.0
     _eye4(J)
     if kind == SOFT:
@@ -105,6 +106,8 @@ def _joint_transform(kind, kmap, iq, nv, axis, length, f0, modes, q, J, S, strai
         for a in range(6):
             x6[a] = length * strain[a]
         _map_into(kmap, x6, J)
+        if not subspace:
+            return
         _tangent_into(kmap, x6, T, S3)
         for a in range(nv):
             for r in range(6):
@@ -170,6 +173,28 @@ def _soft_bias(kmap, x, strain, rate, V, Sv, out, vs, P):
 
 
 @_jit_inline
+def poses_pass(m, w, q):
+    """The joints' transforms, strains and frames' poses (Jq, strain, g_in,
+    g_out) alone: what point positions need (frames.point_poses), at a
+    third of :func:`forward_pass`'s level 0 (no subspaces, no quadrature
+    points). The workspace's other arrays are not of q (S: zeros for soft
+    joints): a forward pass before anything that reads them."""
+    T = w.scratch[0]
+    S3 = np.empty((7, 3, 3))
+    for i in range(m.parent.shape[0]):
+        par = m.parent[i]
+        _joint_transform(m.kind[i], m.kmap[i], m.iq[i], m.nv[i], m.axis[i], m.length[i], m.f0[i], m.modes[i], q, w.Jq[i],
+                         w.S[i], w.strain[i], w.vscratch[0], T, S3, FALSE)
+        if par < 0:
+            for r in range(4):
+                for cc in range(4):
+                    w.g_in[i, r, cc] = m.placement[i, r, cc]
+        else:
+            _mm4(w.g_out[par], m.placement[i], w.g_in[i])
+        _mm4(w.g_in[i], w.Jq[i], w.g_out[i])
+
+
+@_jit_inline
 def forward_pass(m, w, q, v, a, level):
     """level 0: poses and subspaces; 1: + twists; 2: + accelerations (a may
     be zeros: the velocity-product accelerations alone)."""
@@ -183,7 +208,7 @@ def forward_pass(m, w, q, v, a, level):
     for i in range(n):
         par = m.parent[i]
         _joint_transform(m.kind[i], m.kmap[i], m.iq[i], m.nv[i], m.axis[i], m.length[i], m.f0[i], m.modes[i], q, w.Jq[i],
-                         w.S[i], w.strain[i], w.vscratch[0], T, S3)
+                         w.S[i], w.strain[i], w.vscratch[0], T, S3, TRUE)
         if par < 0:
             for r in range(4):
                 for cc in range(4):
