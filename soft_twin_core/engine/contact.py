@@ -52,7 +52,7 @@ OBSTACLE_KINDS = {"plane": PLANE, "sphere": SPHERE, "capsule": CAPSULE, "box": B
 @dataclass(frozen=True, eq=False)
 class Obstacle:
     """A rigid obstacle. ``kind``: "plane", "sphere", "capsule", "box",
-    "mesh" (convex) or "tube" (the free space inside ``radius`` of the
+    "mesh" (closed, convex or not) or "tube" (the free space inside ``radius`` of the
     centre line ``path``, open at both ends: a lumen); ``a``: a point of the plane, the sphere's centre, the
     capsule's first end, the box's centre or the mesh's reference point
     (its vertices' mean) [m, world]; ``b``: the plane's outward normal
@@ -91,7 +91,7 @@ class Obstacle:
     torsional_friction: float = 0.0
     rotation: np.ndarray = None
     half_size: np.ndarray = None
-    triangles: np.ndarray = None     # a convex mesh: (T, 3, 3) [m] in its axes (rotation) about a, outward
+    triangles: np.ndarray = None     # a closed mesh: (T, 3, 3) [m] in its axes (rotation) about a, outward
     path: np.ndarray = None          # a tube's centre line: (N, 3) [m] in its axes (rotation) about a
     body: int = -1                   # a link's collision shape: its joint (a, b, rotation in its output frame)
     touches: tuple = None            # the members whose points it touches (None: every point)

@@ -7,7 +7,7 @@ the ``contact`` settings, in either schema), checked at the door::
       - {name: post, type: capsule, from: [0.2, -0.1, 0], to: [0.2, 0.1, 0], radius: 0.01}
       - {name: block, type: box, center: [0.3, 0, -0.1], size: [0.1, 0.2, 0.05], rpy: [0, 0, 0.3]}
       - {name: wedge, type: mesh, vertices: [[0, 0, 0], [0.1, 0, 0], [0, 0.1, 0], [0, 0, 0.1]],
-         faces: [[0, 2, 1], [0, 1, 3], [0, 3, 2], [1, 2, 3]]}   # closed and convex (faces turned outward)
+         faces: [[0, 2, 1], [0, 1, 3], [0, 3, 2], [1, 2, 3]]}   # closed, convex or not (faces turned outward)
       - {name: vessel, type: tube, path: [[0, 0, 0], [0.1, 0, 0], [0.17, 0.03, 0]], radius: 0.004}
         # the free space is inside: within radius of the centre line (a polyline, open at its ends)
       # each may add: stiffness [N/m^2] (default: the member's Young's modulus),
@@ -65,7 +65,7 @@ def obstacle_from_dict(d, where):
         return Obstacle(name, kind, _vec(d, "center", 3, where), rotation=T[:3, :3].copy(), half_size=0.5 * size,
                         **common)
     if kind == "mesh":
-        centre, tri = convex_mesh(d.get("vertices"), d.get("faces"), where)
+        centre, tri = closed_mesh(d.get("vertices"), d.get("faces"), where)
         return Obstacle(name, kind, centre, rotation=np.eye(3), triangles=tri, **common)
     radius = _num(d, "radius", where, positive=True)
     if kind == "tube":
@@ -80,13 +80,13 @@ def obstacle_from_dict(d, where):
     return Obstacle(name, kind, a, b, radius, **common)
 
 
-def convex_mesh(vertices, faces, where):
-    """(centre, triangles (T, 3, 3) about it, outward) of a closed convex
-    triangle mesh; ModelError naming the field: vertices not finite
-    triples (at least 4), faces not index triples into them (at least 4),
-    a face of zero area, an edge not shared by exactly two faces (not
-    closed), a vertex outside a face's plane (not convex: only convex meshes
-    are supported)."""
+def closed_mesh(vertices, faces, where):
+    """(centre, triangles (T, 3, 3) about it, outward) of a closed triangle
+    mesh, convex or not (its faces in either winding: turned to one, then
+    outward); ModelError naming the field: vertices not finite triples (at
+    least 4), faces not index triples into them (at least 4), a face of zero
+    area, an edge not shared by exactly two faces (not closed), faces whose
+    windings cannot agree (not orientable: a face met from both sides)."""
     try:
         V = np.array(vertices, dtype=float)
     except (TypeError, ValueError):
@@ -105,28 +105,65 @@ def convex_mesh(vertices, faces, where):
     size = float(np.ptp(V, axis=0).max())
     centre = V.mean(axis=0)
     tri = V[F] - centre
-    normal = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
-    area = 0.5 * np.linalg.norm(normal, axis=1)
+    area = 0.5 * np.linalg.norm(np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]), axis=1)
     if np.any(area <= 1e-12 * size * size):
         raise ModelError(f"{where}.faces[{int(np.argmin(area))}]: a face of zero area")
-    edges = {}
-    for f in F:
-        for i, j in ((f[0], f[1]), (f[1], f[2]), (f[2], f[0])):
-            edges[(min(i, j), max(i, j))] = edges.get((min(i, j), max(i, j)), 0) + 1
-    bad = next(((e, k) for e, k in edges.items() if k != 2), None)
+    by_edge = _faces_by_edge(F)
+    bad = next(((e, t) for e, t in by_edge.items() if len(t) != 2), None)
     if bad is not None:
         raise ModelError(f"{where}.faces: the mesh is not closed: edge {list(map(int, bad[0]))} belongs to "
-                         f"{bad[1]} face(s), not 2")
-    inward = np.einsum("ij,ij->i", normal, tri[:, 0]) < 0           # turn every face outward
-    tri[inward] = tri[inward][:, ::-1]
-    normal[inward] *= -1
-    unit = normal / np.linalg.norm(normal, axis=1)[:, None]
-    out = np.einsum("fk,vk->fv", unit, V - centre) - np.einsum("fk,fk->f", unit, tri[:, 0])[:, None]
-    f, v = np.unravel_index(np.argmax(out), out.shape)
-    if out[f, v] > 1e-9 * size:
-        raise ModelError(f"{where}: the mesh is not convex: vertex {int(v)} lies {1e3 * out[f, v]:.3g} mm outside "
-                         f"the plane of faces[{int(f)}] (only convex meshes are supported)")
+                         f"{len(bad[1])} face(s), not 2")
+    F, part, clash = _one_winding(F, by_edge)
+    if clash is not None:
+        raise ModelError(f"{where}.faces[{clash}]: the faces' windings cannot agree (a surface that is not "
+                         "orientable, or one that meets itself)")
+    tri = V[F] - centre
+    for k in range(part.max() + 1):                 # each closed piece outward: its volume positive
+        mine = part == k
+        t = tri[mine]
+        if np.einsum("ij,ij->", t[:, 0], np.cross(t[:, 1], t[:, 2])) < 0:
+            tri[mine] = t[:, ::-1]
     return centre, np.ascontiguousarray(tri)
+
+
+def _faces_by_edge(F):
+    """{(i, j), i < j: the faces having that edge}."""
+    out = {}
+    for t, f in enumerate(F):
+        for k in range(3):
+            a, b = int(f[k]), int(f[(k + 1) % 3])
+            out.setdefault((min(a, b), max(a, b)), []).append(t)
+    return out
+
+
+def _one_winding(F, by_edge):
+    """(faces turned so that each edge runs once each way, each face's
+    connected piece, the first face that cannot agree with its neighbours
+    or None): a walk over neighbours from a face of each piece."""
+    F = np.array(F, dtype=np.int64)
+    part = np.full(len(F), -1)
+    for seed in range(len(F)):
+        if part[seed] >= 0:
+            continue
+        part[seed] = k = part.max() + 1
+        stack = [seed]
+        while stack:
+            t = stack.pop()
+            for i in range(3):
+                a, b = F[t, i], F[t, (i + 1) % 3]
+                for u in by_edge[(min(a, b), max(a, b))]:
+                    if u == t:
+                        continue
+                    along = any(F[u, j] == a and F[u, (j + 1) % 3] == b for j in range(3))   # as t runs it
+                    if part[u] >= 0:
+                        if along:
+                            return F, part, u
+                        continue
+                    if along:
+                        F[u] = F[u, ::-1]
+                    part[u] = k
+                    stack.append(u)
+    return F, part, None
 
 
 def tube_path(path, where):
@@ -179,14 +216,14 @@ def obstacle_at(name, kind, T, dimensions=(), law=None, where="obstacle", mesh=N
     ``where``'s field): a plane through T's origin with T's z axis its
     normal; a sphere (dimensions [radius]) or box (dimensions [x, y, z] edge
     lengths) centred at it, the box along its axes; a capsule (dimensions
-    [length, radius]) along its z axis, centred; a convex mesh (``mesh``:
+    [length, radius]) along its z axis, centred; a closed mesh (``mesh``:
     (vertices (V, 3) [m] in T's frame, faces (F, 3))) with T's frame as its
     own (a MOVE places that frame). ``law``: the contact-law keys
     (stiffness, smoothing, damping, friction, stiction_velocity,
     torsional_friction)."""
     T = np.asarray(T, dtype=float)
     if kind == "mesh":
-        centre, tri = convex_mesh(*(mesh if mesh is not None else (None, None)), where)
+        centre, tri = closed_mesh(*(mesh if mesh is not None else (None, None)), where)
         _check_keys(law or {}, _COMMON - {"name", "type"}, where)
         return Obstacle(name, "mesh", T[:3, 3].copy(), rotation=T[:3, :3].copy(),
                         triangles=np.ascontiguousarray(tri + centre), **contact_law(law or {}, where))
@@ -245,7 +282,7 @@ def link_shape(d, name, joint, where):
 
     A capsule or cylinder lies along the shape frame's z axis, centred
     (a cylinder is taken as a capsule: its ends rounded); a box has edge
-    lengths ``size``; a mesh is closed and convex. The soft members touch
+    lengths ``size``; a mesh is closed (convex or not). The soft members touch
     it as they touch an obstacle; a sphere or capsule touches the world's
     obstacles too (:func:`contact_points`)."""
     if d is None:

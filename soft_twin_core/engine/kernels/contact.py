@@ -34,6 +34,7 @@ OBSTACLE_FIELDS = (
     "torsion",     # (O,) torsional (spin) friction mu_t [m]: the largest moment about the normal is mu_t F_n
     "tri",         # (T, 3, 3) every mesh's triangles, in its axes about its a, outward (counter-clockwise)
     "tri_start",   # (O + 1,) obstacle o's triangles: tri[tri_start[o]:tri_start[o + 1]]
+    "normals",     # (T, 7, 3) each triangle's unit normal, its edges' and vertices' pseudonormals (mesh_normals)
     "body",        # (O,) the joint whose output frame carries the obstacle (a link's collision shape), -1: the world
     "path",        # (N, 3) every tube's centre line, in its axes about its a
     "path_start",  # (O + 1,) obstacle o's centre line: path[path_start[o]:path_start[o + 1]]
@@ -67,9 +68,9 @@ structref.define_boxing(ObstacleArraysType, ObstacleArrays)
 
 @nb.njit(cache=True)
 def _make_obstacle_ref(kind, a, b, radius, rotation, half, stiffness, smoothing, damping, friction, stiction,
-                       torsion, tri, tri_start, body, path, path_start):
+                       torsion, tri, tri_start, normals, body, path, path_start):
     return ObstacleArrays(kind, a, b, radius, rotation, half, stiffness, smoothing, damping, friction, stiction,
-                          torsion, tri, tri_start, body, path, path_start)
+                          torsion, tri, tri_start, normals, body, path, path_start)
 
 
 def _obstacle_struct(*arrays):
@@ -94,7 +95,7 @@ def _obstacle_arrays(obstacles):
     a, b, half = np.zeros((O, 3)), np.zeros((O, 3)), np.zeros((O, 3))
     rot = np.tile(np.eye(3), (O, 1, 1))
     nan = float("nan")
-    tris, start = [np.zeros((0, 3, 3))], np.zeros(O + 1, np.int64)
+    tris, start, normals = [np.zeros((0, 3, 3))], np.zeros(O + 1, np.int64), [np.zeros((0, 7, 3))]
     paths, pstart = [np.zeros((0, 3))], np.zeros(O + 1, np.int64)
     for o, ob in enumerate(obstacles):
         a[o] = ob.a
@@ -109,6 +110,7 @@ def _obstacle_arrays(obstacles):
             half[o] = ob.half_size
         if ob.kind == "mesh":
             tris.append(ob.triangles)
+            normals.append(mesh_normals(ob.triangles))
         start[o + 1] = start[o] + (len(ob.triangles) if ob.kind == "mesh" else 0)
     col = (lambda f: np.array([f(ob) for ob in obstacles], dtype=float))
     return _obstacle_struct(kind, a, b, col(lambda ob: ob.radius), rot, half,
@@ -116,9 +118,48 @@ def _obstacle_arrays(obstacles):
                           col(lambda ob: nan if ob.smoothing is None else ob.smoothing),
                           col(lambda ob: ob.damping), col(lambda ob: ob.friction),
                           col(lambda ob: ob.stiction_velocity), col(lambda ob: ob.torsional_friction),
-                          np.ascontiguousarray(np.concatenate(tris)), start,
+                          np.ascontiguousarray(np.concatenate(tris)), start, np.ascontiguousarray(np.concatenate(normals)),
                           np.array([ob.body for ob in obstacles], np.int64),
                           np.ascontiguousarray(np.concatenate(paths)), pstart)
+
+
+def mesh_normals(tri):
+    """(T, 7, 3): for each triangle (T, 3, 3) of a closed mesh turned
+    outward, its unit normal, then its edges' (AB, AC, BC) and its
+    vertices' (A, B, C) angle-weighted pseudonormals (Baerentzen and
+    Aanaes, IEEE TVCG 11(3), 2005): an edge's, the sum of its two faces'
+    normals; a vertex's, the sum of its faces' normals each weighted by the
+    face's angle there. The side of a point p is the sign of (p - c) . N
+    for c the nearest point of the surface and N the pseudonormal of the
+    feature c lies on, for any closed mesh, convex or not."""
+    tri = np.asarray(tri, dtype=float)
+    T = len(tri)
+    out = np.zeros((T, 7, 3))
+    if T == 0:
+        return out
+    nrm = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])
+    nrm /= np.linalg.norm(nrm, axis=1)[:, None]
+    out[:, 0] = nrm
+    # the vertices by position (one mesh's triangles share them exactly)
+    _, vid = np.unique(tri.reshape(-1, 3), axis=0, return_inverse=True)
+    vid = vid.reshape(T, 3)
+    at_vertex = np.zeros((vid.max() + 1, 3))
+    for k in range(3):
+        e1, e2 = tri[:, (k + 1) % 3] - tri[:, k], tri[:, (k + 2) % 3] - tri[:, k]
+        cos = np.einsum("ij,ij->i", e1, e2) / (np.linalg.norm(e1, axis=1) * np.linalg.norm(e2, axis=1))
+        np.add.at(at_vertex, vid[:, k], np.arccos(np.clip(cos, -1.0, 1.0))[:, None] * nrm)
+    pairs = ((0, 1), (0, 2), (1, 2))
+    edge_key = (lambda t, a, b: (min(vid[t, a], vid[t, b]), max(vid[t, a], vid[t, b])))
+    at_edge = {}
+    for t in range(T):
+        for a, b in pairs:
+            at_edge[edge_key(t, a, b)] = at_edge.get(edge_key(t, a, b), 0.0) + nrm[t]
+    for t in range(T):
+        for k, (a, b) in enumerate(pairs):
+            out[t, 1 + k] = at_edge[edge_key(t, a, b)]
+        out[t, 4:] = at_vertex[vid[t]]
+    size = np.linalg.norm(out, axis=2, keepdims=True)
+    return out / np.where(size > 0, size, 1.0)
 
 
 def posable(obs):
@@ -401,50 +442,51 @@ def closest_on_triangle(p, A, B, C, out):
 
 @_jit_inline
 def _mesh_distance(obs, o, p, n, H):
-    """A convex mesh's signed distance (its triangles outward): inside, the
-    largest of the face planes' distances (to the nearest face: Hessian 0);
-    outside, the distance to the nearest triangle: along a face's normal
-    (Hessian 0), or from an edge, ``(I - n n^T - e e^T) / d`` (e along the
-    edge), or a vertex, ``(I - n n^T) / d``. In the mesh's axes about a."""
+    """A closed mesh's signed distance, convex or not (its triangles
+    outward): the distance to the nearest point c of the nearest triangle,
+    its sign the side of the pseudonormal of the feature c lies on
+    (:func:`mesh_normals`). Gradient: the face's normal on a face, else the
+    unit vector from c (signed: outward); Hessian 0 on a face, from an edge
+    ``(I - n n^T - e e^T) / d`` (e along the edge), from a vertex
+    ``(I - n n^T) / d`` (d signed, negative inside). In the mesh's axes
+    about a."""
     R = obs.rotation[o]
     loc = np.zeros(3)
     for c in range(3):
         for r in range(3):
             loc[c] += (p[r] - obs.a[o, r]) * R[r, c]
-    best, face = -np.inf, obs.tri_start[o]
-    nf = np.zeros(3)
+    c, q = np.empty(3), np.empty(3)
+    d2, feat, tbest = np.inf, 0, obs.tri_start[o]
     for t in range(obs.tri_start[o], obs.tri_start[o + 1]):
         T = obs.tri[t]
-        nt = np.cross(T[1] - T[0], T[2] - T[0])
-        nt /= np.sqrt(np.dot(nt, nt))
-        dp = np.dot(loc - T[0], nt)
-        if dp > best:
-            best, face, nf = dp, t, nt
-    n_loc = nf.copy()
+        f = closest_on_triangle(loc, T[0], T[1], T[2], q)
+        v = loc - q
+        dd = np.dot(v, v)
+        if dd < d2:
+            d2, feat, tbest = dd, f, t
+            c[:] = q
+    T = obs.tri[tbest]
+    k = feat
+    if feat == 4:               # which vertex (closest_on_triangle copies it)
+        k = 4
+        for j in range(1, 3):
+            if np.dot(c - T[j], c - T[j]) < np.dot(c - T[k - 4], c - T[k - 4]):
+                k = 4 + j
+    v = loc - c
+    dist = np.sqrt(d2)
+    side = 1.0 if np.dot(v, obs.normals[tbest, k]) >= 0.0 else -1.0
     Hl = np.zeros((3, 3))
-    d = best
-    if best > 0.0:                      # outside: the nearest triangle
-        c, q = np.empty(3), np.empty(3)
-        d2, feat, tbest = np.inf, 0, face
-        for t in range(obs.tri_start[o], obs.tri_start[o + 1]):
-            T = obs.tri[t]
-            f = closest_on_triangle(loc, T[0], T[1], T[2], q)
-            v = loc - q
-            dd = np.dot(v, v)
-            if dd < d2:
-                d2, feat, tbest = dd, f, t
-                c[:] = q
-        d = np.sqrt(d2)
-        n_loc = (loc - c) / d
-        if feat != 0:
-            e = np.zeros(3)
-            if feat < 4:
-                T = obs.tri[tbest]
-                e = (T[1] - T[0]) if feat == 1 else ((T[2] - T[0]) if feat == 2 else (T[2] - T[1]))
-                e /= np.sqrt(np.dot(e, e))
-            for r in range(3):
-                for s in range(3):
-                    Hl[r, s] = ((1.0 if r == s else 0.0) - n_loc[r] * n_loc[s] - e[r] * e[s]) / d
+    n_loc = obs.normals[tbest, 0].copy()
+    d = side * dist
+    if feat != 0 and dist > 1e-300:
+        n_loc = side * v / dist
+        e = np.zeros(3)
+        if feat < 4:
+            e = (T[1] - T[0]) if feat == 1 else ((T[2] - T[0]) if feat == 2 else (T[2] - T[1]))
+            e /= np.sqrt(np.dot(e, e))
+        for r in range(3):
+            for s in range(3):
+                Hl[r, s] = ((1.0 if r == s else 0.0) - n_loc[r] * n_loc[s] - e[r] * e[s]) / d
     _to_world(R, n_loc, Hl, n, H)
     return d
 
