@@ -167,7 +167,8 @@ if [ "$(cat "$BUILD_STAMP" 2>/dev/null)" != "$BUILD_HASH" ]; then
             -DCMAKE_INSTALL_PREFIX="$VENV" \
             -DPython3_EXECUTABLE="$VENV/bin/python3" \
             -DCMAKE_BUILD_TYPE=Release \
-            -DBUILD_TESTING=OFF &&
+            -DBUILD_TESTING=OFF \
+            -DSOFT_TWIN_KERNEL_CACHES=OFF &&
             "${CMAKE_ENV[@]}" cmake --build "$BUILD" -j "$(nproc)"
     } >>"$LOG" 2>&1 || fail "cmake build"
     echo "$BUILD_HASH" >"$BUILD_STAMP"
@@ -209,6 +210,8 @@ if [ "$(cat "$TF_STAMP" 2>/dev/null)" != "$TF_HASH" ]; then
 fi
 
 # ---- 3. (re-)install: copies only what changed, then drops stale modules ----
+# (SOFT_TWIN_KERNEL_CACHES=OFF above: the kernels compile once, in step 4, and the installed copy takes
+# their caches; a colcon build gives its install space its caches itself)
 "${CMAKE_ENV[@]}" cmake --install "$BUILD" >>"$LOG" 2>&1 || fail "cmake --install"
 # A module deleted or renamed in the sources must not linger in the venv.
 python3 - "$BUILD/install_manifest.txt" "$VENV" >>"$LOG" 2>&1 <<'EOF' || fail "pruning stale modules"

@@ -238,6 +238,26 @@ def copy_caches(src, dst):
     return n
 
 
+def install_caches(dst):
+    """Give the copy of this package at ``dst`` (an install space's, e.g.
+    colcon's) its kernel caches: this copy's when its kernels' sources are
+    the same (:func:`copy_caches`: seconds), then a warm-up of that copy in
+    a process of its own (``python -m soft_twin_core.warmup`` with it first
+    on the path), which loads them, or compiles what is missing or stale
+    there. Returns that process's exit code."""
+    import os
+    import subprocess
+    from pathlib import Path
+    src, dst = Path(__file__).resolve().parent, Path(dst).resolve()
+    if src != dst:                 # (a symlinked install is this copy: warmed in place)
+        n = copy_caches(src, dst)
+        print(f"soft_twin_core kernel caches: {'sources differ, none' if n is None else n} copied to {dst}",
+              file=sys.stderr)
+    env = dict(os.environ)
+    env["PYTHONPATH"] = os.pathsep.join([str(dst.parent)] + ([env["PYTHONPATH"]] if env.get("PYTHONPATH") else []))
+    return subprocess.run([sys.executable, "-m", "soft_twin_core.warmup"], cwd=dst.parent, env=env).returncode
+
+
 def purge_stale_caches(root=None):
     """Delete every kernel cache of this package when a source a kernel
     depends on (:func:`kernel_sources`) changed since the last warm-up;
@@ -308,10 +328,12 @@ def compile_side_by_side(parts=PARTS):
 
 
 def main(argv=None):
-    """``python -m soft_twin_core.warmup [--copy-to DIR | --part P]``:
+    """``python -m soft_twin_core.warmup [--copy-to DIR | --install-to DIR | --part P]``:
     compile (or load) every kernel, after a purge the parts side by side
     (:func:`compile_side_by_side`); with ``--copy-to``, then give the copy
     of the package at DIR these caches (:func:`copy_caches`); with
+    ``--install-to``, give the copy at DIR its caches without compiling
+    this one's (:func:`install_caches`: the colcon build's step); with
     ``--part``, that part only (the side process)."""
     argv = sys.argv[1:] if argv is None else argv
     t0 = time.perf_counter()
@@ -322,11 +344,14 @@ def main(argv=None):
         print(f"soft_twin_core kernel caches: {'sources differ, none' if n is None else n} copied to {argv[1]}",
               file=sys.stderr)
         return 0
+    if argv[:1] == ["--install-to"] and len(argv) == 2:
+        return install_caches(argv[1])
     if argv[:1] == ["--part"] and len(argv) == 2 and argv[1] in PARTS:
         run((argv[1],))
         return 0
     if argv:
-        print(f"usage: python -m soft_twin_core.warmup [--copy-to DIR | --part {'|'.join(PARTS)}]", file=sys.stderr)
+        print(f"usage: python -m soft_twin_core.warmup [--copy-to DIR | --install-to DIR | --part {'|'.join(PARTS)}]",
+              file=sys.stderr)
         return 2
     if purge_stale_caches():
         print("soft_twin_core sources changed since the last warm-up: kernel caches cleared", file=sys.stderr)

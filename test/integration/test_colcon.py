@@ -5,11 +5,11 @@ wheels of the venv (their prefix as the underlay, as /opt/ros/jazzy would
 be), and the install used as the docs say, its ``setup.sh`` sourced in a
 fresh shell: the generated interfaces, the node package and the core import
 from the install (not from the checkout), the commands and the config files
-are where the docs put them; given the checkout's compiled kernel caches
-(``python -m soft_twin_core.warmup --copy-to``, as the docs say), the node
-started from the install reaches its first state with every kernel loaded
-from them: not one cache file of the install is written (a compile would
-write its own)."""
+are where the docs put them; the build gives the install its kernel
+caches (the source tree's, warmed by ``make setup``, copied: the build's
+``warmup --install-to`` step), and the node started from the install
+reaches its first state with every kernel loaded from them: not one cache
+file of the install is written (a compile would write its own)."""
 
 import os
 import shutil
@@ -28,12 +28,14 @@ VENV = Path(sys.prefix)
 
 def _sources(dest):
     """The checkout's sources copied to ``dest`` (a workspace's src/soft_twin,
-    as the docs clone it): the venv inside the checkout must not lie under
-    the package's source folder (CMake refuses include paths there)."""
+    as the docs clone it), with its kernel caches (a checkout that ran
+    ``make setup``), not its bytecode: the venv inside the checkout must not
+    lie under the package's source folder (CMake refuses include paths
+    there)."""
     top = {".venv", "build", "install", "log", ".git", ".pytest_cache", ".hypothesis"}
 
     def ignore(folder, names):
-        return [n for n in names if n == "__pycache__" or (Path(folder) == ROOT and n in top)]
+        return [n for n in names if n.endswith(".pyc") or (Path(folder) == ROOT and n in top)]
     shutil.copytree(ROOT, dest, ignore=ignore, symlinks=True)
     return dest
 
@@ -72,13 +74,10 @@ def test_colcon_builds_the_package_and_its_install_space_works(tmp_path):
     shutil.rmtree(tmp_path / "build", ignore_errors=True)
 
     core = Path(where[1]).parent
-    copy = subprocess.run([sys.executable, "-m", "soft_twin_core.warmup", "--copy-to", str(core)], cwd=ROOT,
-                          capture_output=True, text=True, timeout=900)
-    assert copy.returncode == 0 and "copied to" in copy.stderr, copy.stderr[-2000:]
     caches = lambda: {(f.name, f.stat().st_size, f.stat().st_mtime_ns)                # noqa: E731
                       for f in core.rglob("*.nb[ic]")}
     before = caches()
-    assert len(before) > 100, len(before)
+    assert len(before) > 100, (len(before), "the build gave the install no kernel caches")
     from soft_twin.client import TwinClient, interrupt
     name = "colcon_twin"
     log = open(tmp_path / "node.log", "w")
