@@ -31,18 +31,20 @@ path, gravity, tendons and chambers.
   (:func:`sheath_tangent_pass`).
 """
 
-from collections import namedtuple
 from dataclasses import replace
 
+import numba as nb
 import numpy as np
+from numba.core import types
+from numba.experimental import structref
 
 from soft_twin_core.engine.algorithms import point_jacobian
 from soft_twin_core.engine.kernels import passes
-from soft_twin_core.engine.kernels.data import LoadArrays
+from soft_twin_core.engine.kernels.data import ArraysRef, LoadArrays
 from soft_twin_core.engine.kernels.spatial import _jit, _jit_inline
 from soft_twin_core.engine.loads import Loads, actuator_point_loads
 
-ActuatorArrays = namedtuple("ActuatorArrays", [
+ACTUATOR_FIELDS = (
     "joint",      # (P,) soft joint of each tendon quadrature point
     "d", "dd",    # (P, 3) offset d(s) and d'(s) in the cross-section frame [m, -]
     "unit",       # (P, n_actuators): coefficient per unit input (-c w: m per N or m^3 per Pa... see module)
@@ -52,7 +54,30 @@ ActuatorArrays = namedtuple("ActuatorArrays", [
     "node_joint",  # (N,) soft joint of each wrap-angle node
     "node_d", "node_dd", "node_ddd",  # (N, 3) d, d', d'' at the node [m, -, 1/m]
     "node_w",     # (N,) quadrature weight of the node [m]
-])
+)
+
+
+@structref.register
+class ActuatorArraysType(types.StructRef):
+    def preprocess_fields(self, fields):
+        return tuple((n, types.unliteral(t)) for n, t in fields)
+
+
+class ActuatorArrays(ArraysRef):
+    """The actuators' quadrature geometry (:data:`ACTUATOR_FIELDS`) as the kernels take it."""
+    FIELDS = ACTUATOR_FIELDS
+
+
+structref.define_constructor(ActuatorArrays, ActuatorArraysType, list(ACTUATOR_FIELDS))
+structref.define_boxing(ActuatorArraysType, ActuatorArrays)
+
+
+@nb.njit(cache=True)
+def _make_actuator_ref(joint, d, dd, unit, mu, first, node_ptr, node_joint, node_d, node_dd, node_ddd, node_w):
+    return ActuatorArrays(joint, d, dd, unit, mu, first, node_ptr, node_joint, node_d, node_dd, node_ddd, node_w)
+
+
+ActuatorArrays.make = _make_actuator_ref
 
 WRAP_NODES = 3     # Gauss points per piece of the wrap-angle integral (exact for straight routings)
 
@@ -128,10 +153,10 @@ def actuator_arrays(model):
                 COUNT.append(0)
     if not J:
         z3 = np.zeros((0, 3))
-        return ActuatorArrays(np.zeros(0, np.int64), z3, z3, np.zeros((0, na)), np.zeros(0), np.zeros(0, np.int64),
+        return ActuatorArrays.of(np.zeros(0, np.int64), z3, z3, np.zeros((0, na)), np.zeros(0), np.zeros(0, np.int64),
                               np.zeros(1, np.int64), np.zeros(0, np.int64), z3, z3, z3, np.zeros(0))
     cat3 = (lambda x: np.ascontiguousarray(np.concatenate(x)) if x else np.zeros((0, 3)))
-    return ActuatorArrays(np.concatenate(J), np.ascontiguousarray(np.concatenate(D)),
+    return ActuatorArrays.of(np.concatenate(J), np.ascontiguousarray(np.concatenate(D)),
                           np.ascontiguousarray(np.concatenate(DD)), np.ascontiguousarray(np.concatenate(U)),
                           np.concatenate(MU), np.concatenate(FIRST),
                           np.concatenate([[0], np.cumsum(COUNT)]).astype(np.int64),

@@ -15,6 +15,7 @@ import numpy as np
 from numba.core import types
 from numba.experimental import structref
 
+from soft_twin_core.engine.kernels.data import ArraysRef
 from soft_twin_core.engine.kernels.spatial import _jit, _jit_inline
 
 PLANE, SPHERE, CAPSULE, BOX, MESH, TUBE = 0, 1, 2, 3, 4, 5
@@ -47,19 +48,9 @@ class ObstacleArraysType(types.StructRef):
         return tuple((n, types.unliteral(t)) for n, t in fields)
 
 
-class ObstacleArrays(structref.StructRefProxy):
-    """The obstacles' arrays (:data:`OBSTACLE_FIELDS`), as the kernels take
-    them: a structref, passed by reference (a named tuple of 17 arrays cost
-    about 4 us a call to type at every kernel call, a structref under 1 us).
-    Python reads the same arrays as attributes."""
-
-    def __getattr__(self, name):
-        if name in OBSTACLE_FIELDS:
-            return self.__dict__["arrays"][OBSTACLE_FIELDS.index(name)]
-        raise AttributeError(name)
-
-    def __reduce__(self):            # pickled as its arrays (a study's worker rebuilds it)
-        return _obstacle_struct, self.__dict__["arrays"]
+class ObstacleArrays(ArraysRef):
+    """The obstacles' arrays (:data:`OBSTACLE_FIELDS`) as the kernels take them."""
+    FIELDS = OBSTACLE_FIELDS
 
 
 structref.define_constructor(ObstacleArrays, ObstacleArraysType, list(OBSTACLE_FIELDS))
@@ -73,12 +64,7 @@ def _make_obstacle_ref(kind, a, b, radius, rotation, half, stiffness, smoothing,
                           torsion, tri, tri_start, normals, body, path, path_start)
 
 
-def _obstacle_struct(*arrays):
-    """An :class:`ObstacleArrays` of these arrays (in OBSTACLE_FIELDS' order), shared."""
-    arrays = tuple(np.ascontiguousarray(x) for x in arrays)
-    out = _make_obstacle_ref(*arrays)
-    out.__dict__["arrays"] = arrays
-    return out
+ObstacleArrays.make = _make_obstacle_ref
 
 
 def obstacle_arrays(obstacles):
@@ -113,7 +99,7 @@ def _obstacle_arrays(obstacles):
             normals.append(mesh_normals(ob.triangles))
         start[o + 1] = start[o] + (len(ob.triangles) if ob.kind == "mesh" else 0)
     col = (lambda f: np.array([f(ob) for ob in obstacles], dtype=float))
-    return _obstacle_struct(kind, a, b, col(lambda ob: ob.radius), rot, half,
+    return ObstacleArrays.of(kind, a, b, col(lambda ob: ob.radius), rot, half,
                           col(lambda ob: nan if ob.stiffness is None else ob.stiffness),
                           col(lambda ob: nan if ob.smoothing is None else ob.smoothing),
                           col(lambda ob: ob.damping), col(lambda ob: ob.friction),
@@ -169,7 +155,7 @@ def posable(obs):
     for name in ("a", "b", "rotation"):
         k = OBSTACLE_FIELDS.index(name)
         arrays[k] = arrays[k].copy()
-    return _obstacle_struct(*arrays)
+    return ObstacleArrays.of(*arrays)
 
 
 @_jit
