@@ -973,12 +973,13 @@ def test_a_mesh_that_is_not_convex_has_its_exact_signed_distance_and_derivatives
     from soft_twin_core.robot.obstacles import obstacle_from_dict
     star = obstacle_from_dict(dict(_prism_mesh(_STAR, _STAR_CAP, 0.04, np.random.default_rng(3), inner=[[0, 0]]),
                                    name="star"), "star")
+    rng = np.random.default_rng(12)
     lo, hi = np.array([-0.01, -0.025, -0.025]), np.array([0.05, 0.025, 0.025])
-    P = lo + (hi - lo) * RNG.uniform(size=(3000, 3))
+    P = lo + (hi - lo) * rng.uniform(size=(3000, 3))
     np.testing.assert_allclose(signed_distance(star, P)[0], _prism_distance(_STAR, 0.04, P), atol=1e-12)
     ob = obstacle_from_dict(dict(_prism_mesh(_U, _U_CAP, 0.04, np.random.default_rng(3)), name="u"), "u")
     lo, hi = np.array([-0.01, -0.025, -0.01]), np.array([0.05, 0.025, 0.03])
-    P = lo + (hi - lo) * RNG.uniform(size=(3000, 3))
+    P = lo + (hi - lo) * rng.uniform(size=(3000, 3))
     d, n, H = signed_distance(ob, P)
     ref = _prism_distance(_U, 0.04, P)
     np.testing.assert_allclose(d, ref, atol=1e-12)
@@ -1026,13 +1027,73 @@ def test_a_rod_lying_in_a_channel_mesh_rests_as_on_its_floor():
     np.testing.assert_allclose(results[1][2], results[0][2], rtol=1e-7, atol=1e-10)
 
 
+def bumpy_sphere(levels, radius=0.05):
+    """A closed mesh that is not convex: an octahedron's faces split in four
+    ``levels`` times (8 4^levels triangles) onto the sphere, each vertex then
+    at radius (1 + 0.3 sin(3 theta) cos(2 phi)) [m]; (vertices, faces)."""
+    V = [np.array(v, dtype=float) for v in ((1, 0, 0), (-1, 0, 0), (0, 1, 0), (0, -1, 0), (0, 0, 1), (0, 0, -1))]
+    F = [(0, 2, 4), (2, 1, 4), (1, 3, 4), (3, 0, 4), (2, 0, 5), (1, 2, 5), (3, 1, 5), (0, 3, 5)]
+    for _ in range(levels):
+        mid, out = {}, []
+
+        def m(a, b):
+            if (min(a, b), max(a, b)) not in mid:
+                c = V[a] + V[b]
+                V.append(c / np.linalg.norm(c))
+                mid[(min(a, b), max(a, b))] = len(V) - 1
+            return mid[(min(a, b), max(a, b))]
+        for a, b, c in F:
+            ab, bc, ca = m(a, b), m(b, c), m(c, a)
+            out += [(a, ab, ca), (ab, b, bc), (ca, bc, c), (ab, bc, ca)]
+        F = out
+    V = np.array(V)
+    theta, phi = np.arccos(np.clip(V[:, 2], -1, 1)), np.arctan2(V[:, 1], V[:, 0])
+    return V * (radius * (1 + 0.3 * np.sin(3 * theta) * np.cos(2 * phi)))[:, None], np.array(F)
+
+
+def test_a_mesh_s_box_tree_finds_the_nearest_triangle_of_every_point():
+    """A bumpy sphere of 2048 triangles: the signed distance, gradient and
+    Hessian through its box tree (4 triangles a leaf) equal those of every
+    triangle searched (one leaf), at points inside, near and far; its
+    bounding sphere holds it."""
+    from soft_twin_core.engine.kernels import contact as kc
+    from soft_twin_core.robot.obstacles import obstacle_from_dict
+    V, F = bumpy_sphere(4)
+    ob = obstacle_from_dict({"name": "rock", "type": "mesh", "vertices": V.tolist(), "faces": F.tolist()}, "rock")
+    assert len(ob.triangles) == 2048
+    rng = np.random.default_rng(13)
+    P = np.concatenate([rng.standard_normal((1500, 3)) * 0.04, rng.standard_normal((500, 3)) * 0.3])
+    out = []
+    for leaf in (4, 4096):
+        arrays = kc.obstacle_arrays((ob,), leaf)
+        assert len(arrays.node) == (1 if leaf > 2048 else 1023)
+        d, n, H = np.empty(len(P)), np.empty((len(P), 3)), np.empty((len(P), 3, 3))
+        kc.distance_arrays(arrays, 0, np.ascontiguousarray(P), d, n, H)
+        out.append((d, n, H))
+    np.testing.assert_array_equal(out[0][0], out[1][0])
+    for x, y in zip(out[0][1:], out[1][1:]):      # (a point nearest a shared edge: either face's, to round-off)
+        np.testing.assert_allclose(x, y, rtol=1e-12, atol=1e-12)
+    assert (out[0][0] < 0).sum() > 300 and (out[0][0] > 0.05).sum() > 300
+    from soft_twin_core.robot.obstacles import obstacle_placed
+    T = np.eye(4)
+    T[:3, :3] = np.linalg.qr(rng.standard_normal((3, 3)))[0]
+    T[:3, :3] *= np.sign(np.linalg.det(T[:3, :3]))
+    T[:3, 3] = [0.3, -0.2, 0.1]
+    V[V[:, 0] > 0, 0] *= 4                       # lopsided: the box's centre off the vertices' mean
+    lop = obstacle_from_dict({"name": "lop", "type": "mesh", "vertices": V.tolist(), "faces": F.tolist()}, "lop")
+    for m in (ob, lop, obstacle_placed(lop, T)):
+        *c, R = kc.bounding_sphere(kc.obstacle_arrays((m,)), 0)
+        world = m.triangles.reshape(-1, 3) @ m.rotation.T + m.a
+        assert np.linalg.norm(world - c, axis=1).max() <= R * (1 + 1e-12)
+
+
 # the real projective plane in 6 vertices and 10 triangles: closed (each edge in two faces), not orientable
 _RP2 = [[0, 1, 2], [0, 2, 3], [0, 3, 4], [0, 4, 5], [0, 5, 1], [1, 2, 4], [2, 3, 5], [3, 4, 1], [4, 5, 2], [5, 1, 3]]
 
 
 @pytest.mark.parametrize("change, message", [
     (lambda m: m.update(faces=m["faces"][:-1]), "faces: the mesh is not closed: edge"),
-    (lambda m: m.update(vertices=RNG.standard_normal((6, 3)).tolist(), faces=_RP2),
+    (lambda m: m.update(vertices=np.random.default_rng(14).standard_normal((6, 3)).tolist(), faces=_RP2),
      r"faces\[\d\]: the faces' windings cannot agree"),
     (lambda m: m["vertices"][0].__setitem__(1, float("nan")), "vertices: expected at least 4 finite"),
     (lambda m: m["faces"][0].__setitem__(2, 8), "faces: expected at least 4 triples of vertex indices in 0..7"),
@@ -1087,9 +1148,10 @@ def test_a_tube_its_distance_gradient_and_hessian():
     (ob,) = obstacles_from_list([{"name": "vessel", "type": "tube", "path": path, "radius": 0.004}])
     P = np.asarray(path, float)
     fine = np.concatenate([a + np.linspace(0, 1, 2001)[:, None] * (b - a) for a, b in zip(P[:-1], P[1:])])
-    s = RNG.uniform(0.05, 0.95, 12) * 3
+    rng = np.random.default_rng(11)                # its own draws: the same points in any order of the tests
+    s = rng.uniform(0.05, 0.95, 12) * 3
     centre = np.array([P[int(k)] + (k % 1) * (P[int(k) + 1] - P[int(k)]) for k in s])
-    p = centre + RNG.normal(0, 0.002, (12, 3))
+    p = centre + rng.normal(0, 0.002, (12, 3))
     d, n, H = signed_distance(ob, p)
     brute = 0.004 - np.min(np.linalg.norm(p[:, None] - fine[None], axis=2), axis=1)
     np.testing.assert_allclose(d, brute, atol=2e-5)

@@ -36,6 +36,9 @@ OBSTACLE_FIELDS = (
     "tri",         # (T, 3, 3) every mesh's triangles, in its axes about its a, outward (counter-clockwise)
     "tri_start",   # (O + 1,) obstacle o's triangles: tri[tri_start[o]:tri_start[o + 1]]
     "normals",     # (T, 7, 3) each triangle's unit normal, its edges' and vertices' pseudonormals (mesh_normals)
+    "box",         # (N, 2, 3) every mesh's bounding-box tree (mesh_tree): each node's box [lo, hi] in its axes
+    "node",        # (N, 4) int: [left, right, first, end], children -1 at a leaf: tri[first:end] (absolute)
+    "node_start",  # (O + 1,) obstacle o's nodes: node_start[o] its tree's root (mesh obstacles)
     "body",        # (O,) the joint whose output frame carries the obstacle (a link's collision shape), -1: the world
     "path",        # (N, 3) every tube's centre line, in its axes about its a
     "path_start",  # (O + 1,) obstacle o's centre line: path[path_start[o]:path_start[o + 1]]
@@ -59,29 +62,64 @@ structref.define_boxing(ObstacleArraysType, ObstacleArrays)
 
 @nb.njit(cache=True)
 def _make_obstacle_ref(kind, a, b, radius, rotation, half, stiffness, smoothing, damping, friction, stiction,
-                       torsion, tri, tri_start, normals, body, path, path_start):
+                       torsion, tri, tri_start, normals, box, node, node_start, body, path, path_start):
     return ObstacleArrays(kind, a, b, radius, rotation, half, stiffness, smoothing, damping, friction, stiction,
-                          torsion, tri, tri_start, normals, body, path, path_start)
+                          torsion, tri, tri_start, normals, box, node, node_start, body, path, path_start)
 
 
 ObstacleArrays.make = _make_obstacle_ref
 
 
-def obstacle_arrays(obstacles):
+MESH_LEAF = 4       # triangles in a leaf of a mesh's bounding-box tree
+
+
+def obstacle_arrays(obstacles, leaf=MESH_LEAF):
     """:class:`ObstacleArrays` of a sequence of engine.contact.Obstacle
     (immutable, compared by identity: the arrays of the last few tuples
-    are kept)."""
-    return _obstacle_arrays(tuple(obstacles))
+    are kept); ``leaf``: the most triangles in a leaf of a mesh's tree."""
+    return _obstacle_arrays(tuple(obstacles), leaf)
+
+
+def mesh_tree(tri, leaf=MESH_LEAF):
+    """A bounding-box tree of a mesh's triangles (T, 3, 3): (order (T,) the
+    triangles in the tree's order, each leaf's contiguous; box (N, 2, 3)
+    each node's axis-aligned box [lo, hi]; node (N, 4) int [left, right,
+    first, end], the children -1 at a leaf, whose triangles are
+    tri[order][first:end]). Node 0 is the root; each node splits its
+    triangles at the median of their centroids along its longest extent,
+    down to ``leaf`` triangles."""
+    tri = np.asarray(tri, dtype=float)
+    cen = tri.mean(axis=1)
+    order = np.arange(len(tri))
+    boxes, nodes = [], []
+
+    def build(lo, hi):                    # the node of order[lo:hi]; returns its index
+        k = len(nodes)
+        pts = tri[order[lo:hi]].reshape(-1, 3)
+        boxes.append((pts.min(axis=0), pts.max(axis=0)))
+        nodes.append([-1, -1, lo, hi])
+        if hi - lo > leaf:
+            c = cen[order[lo:hi]]
+            axis = int(np.argmax(np.ptp(c, axis=0)))
+            order[lo:hi] = order[lo:hi][np.argsort(c[:, axis], kind="stable")]
+            mid = (lo + hi) // 2
+            nodes[k][0] = build(lo, mid)
+            nodes[k][1] = build(mid, hi)
+        return k
+    if len(tri):
+        build(0, len(tri))
+    return order, np.array(boxes, dtype=float).reshape(-1, 2, 3), np.array(nodes, dtype=np.int64).reshape(-1, 4)
 
 
 @lru_cache(maxsize=16)
-def _obstacle_arrays(obstacles):
+def _obstacle_arrays(obstacles, leaf):
     O = len(obstacles)
     kind = np.array([KIND_CODES[ob.kind] for ob in obstacles], np.int64)
     a, b, half = np.zeros((O, 3)), np.zeros((O, 3)), np.zeros((O, 3))
     rot = np.tile(np.eye(3), (O, 1, 1))
     nan = float("nan")
     tris, start, normals = [np.zeros((0, 3, 3))], np.zeros(O + 1, np.int64), [np.zeros((0, 7, 3))]
+    boxes, nodes, nstart = [np.zeros((0, 2, 3))], [np.zeros((0, 4), np.int64)], np.zeros(O + 1, np.int64)
     paths, pstart = [np.zeros((0, 3))], np.zeros(O + 1, np.int64)
     for o, ob in enumerate(obstacles):
         a[o] = ob.a
@@ -95,18 +133,26 @@ def _obstacle_arrays(obstacles):
         if ob.kind == "box":
             half[o] = ob.half_size
         if ob.kind == "mesh":
-            tris.append(ob.triangles)
-            normals.append(mesh_normals(ob.triangles))
+            order, box, node = mesh_tree(ob.triangles, leaf)
+            tris.append(ob.triangles[order])
+            normals.append(mesh_normals(ob.triangles)[order])
+            node[:, :2] = np.where(node[:, :2] >= 0, node[:, :2] + nstart[o], -1)     # absolute indices
+            node[:, 2:] += start[o]
+            boxes.append(box)
+            nodes.append(node)
+        nstart[o + 1] = nstart[o] + (len(nodes[-1]) if ob.kind == "mesh" else 0)
         start[o + 1] = start[o] + (len(ob.triangles) if ob.kind == "mesh" else 0)
     col = (lambda f: np.array([f(ob) for ob in obstacles], dtype=float))
     return ObstacleArrays.of(kind, a, b, col(lambda ob: ob.radius), rot, half,
-                          col(lambda ob: nan if ob.stiffness is None else ob.stiffness),
-                          col(lambda ob: nan if ob.smoothing is None else ob.smoothing),
-                          col(lambda ob: ob.damping), col(lambda ob: ob.friction),
-                          col(lambda ob: ob.stiction_velocity), col(lambda ob: ob.torsional_friction),
-                          np.ascontiguousarray(np.concatenate(tris)), start, np.ascontiguousarray(np.concatenate(normals)),
-                          np.array([ob.body for ob in obstacles], np.int64),
-                          np.ascontiguousarray(np.concatenate(paths)), pstart)
+                             col(lambda ob: nan if ob.stiffness is None else ob.stiffness),
+                             col(lambda ob: nan if ob.smoothing is None else ob.smoothing),
+                             col(lambda ob: ob.damping), col(lambda ob: ob.friction),
+                             col(lambda ob: ob.stiction_velocity), col(lambda ob: ob.torsional_friction),
+                             np.ascontiguousarray(np.concatenate(tris)), start, np.ascontiguousarray(np.concatenate(normals)),
+                             np.ascontiguousarray(np.concatenate(boxes)), np.ascontiguousarray(np.concatenate(nodes)),
+                             nstart,
+                             np.array([ob.body for ob in obstacles], np.int64),
+                             np.ascontiguousarray(np.concatenate(paths)), pstart)
 
 
 def mesh_normals(tri):
@@ -239,6 +285,17 @@ def bounding_sphere(obs, o):
         ax, ay, az = b[o, 0] - a[o, 0], b[o, 1] - a[o, 1], b[o, 2] - a[o, 2]
         return (0.5 * (a[o, 0] + b[o, 0]), 0.5 * (a[o, 1] + b[o, 1]), 0.5 * (a[o, 2] + b[o, 2]),
                 0.5 * np.sqrt(ax * ax + ay * ay + az * az) + obs.radius[o])
+    if kind == MESH and obs.node_start[o + 1] > obs.node_start[o]:      # its tree's root box, turned
+        B = obs.box[obs.node_start[o]]
+        R = obs.rotation[o]
+        c = np.empty(3)
+        h2 = 0.0
+        for r in range(3):
+            c[r] = 0.5 * (B[0, r] + B[1, r])
+            h2 += 0.25 * (B[1, r] - B[0, r]) ** 2
+        return (a[o, 0] + R[0, 0] * c[0] + R[0, 1] * c[1] + R[0, 2] * c[2],
+                a[o, 1] + R[1, 0] * c[0] + R[1, 1] * c[1] + R[1, 2] * c[2],
+                a[o, 2] + R[2, 0] * c[0] + R[2, 1] * c[1] + R[2, 2] * c[2], np.sqrt(h2))
     return 0.0, 0.0, 0.0, np.inf
 
 
@@ -427,9 +484,20 @@ def closest_on_triangle(p, A, B, C, out):
 
 
 @_jit_inline
+def _box_gap2(p, B):
+    """The squared distance from p to the box B = [lo, hi] (0 inside)."""
+    out = 0.0
+    for r in range(3):
+        e = max(B[0, r] - p[r], p[r] - B[1, r], 0.0)
+        out += e * e
+    return out
+
+
+@_jit_inline
 def _mesh_distance(obs, o, p, n, H):
     """A closed mesh's signed distance, convex or not (its triangles
-    outward): the distance to the nearest point c of the nearest triangle,
+    outward): the distance to the nearest point c of the nearest triangle
+    (found by the mesh's box tree, :func:`mesh_tree`: O(log T) a point),
     its sign the side of the pseudonormal of the feature c lies on
     (:func:`mesh_normals`). Gradient: the face's normal on a face, else the
     unit vector from c (signed: outward); Hessian 0 on a face, from an edge
@@ -443,14 +511,30 @@ def _mesh_distance(obs, o, p, n, H):
             loc[c] += (p[r] - obs.a[o, r]) * R[r, c]
     c, q = np.empty(3), np.empty(3)
     d2, feat, tbest = np.inf, 0, obs.tri_start[o]
-    for t in range(obs.tri_start[o], obs.tri_start[o + 1]):
-        T = obs.tri[t]
-        f = closest_on_triangle(loc, T[0], T[1], T[2], q)
-        v = loc - q
-        dd = np.dot(v, v)
-        if dd < d2:
-            d2, feat, tbest = dd, f, t
-            c[:] = q
+    # the nearest triangle by the mesh's box tree: nearer child first, boxes farther than the best skipped
+    stack = np.empty(64, np.int64)
+    stack[0], top = obs.node_start[o], 0
+    while top >= 0:
+        k = stack[top]
+        top -= 1
+        if _box_gap2(loc, obs.box[k]) >= d2:
+            continue
+        left, right = obs.node[k, 0], obs.node[k, 1]
+        if left < 0:
+            for t in range(obs.node[k, 2], obs.node[k, 3]):
+                T = obs.tri[t]
+                f = closest_on_triangle(loc, T[0], T[1], T[2], q)
+                v = loc - q
+                dd = np.dot(v, v)
+                if dd < d2:
+                    d2, feat, tbest = dd, f, t
+                    c[:] = q
+            continue
+        near, far = left, right
+        if _box_gap2(loc, obs.box[right]) < _box_gap2(loc, obs.box[left]):
+            near, far = right, left
+        stack[top + 1], stack[top + 2] = far, near
+        top += 2
     T = obs.tri[tbest]
     k = feat
     if feat == 4:               # which vertex (closest_on_triangle copies it)
