@@ -434,7 +434,7 @@ def load_obstacles(name):
         raise ConfigError(f"obstacles_file: {clip(str(path))}: expected a mapping with one key, 'obstacles' "
                           f"(a list), got {clip(repr(d if not isinstance(d, dict) else sorted(d)))}")
     try:
-        return obstacles_from_list(d.get("obstacles"), "obstacles")
+        return obstacles_from_list(d.get("obstacles"), "obstacles", str(path.parent))
     except ModelError as e:
         raise ConfigError(f"obstacles_file: {clip(str(path))}: {clip(e, 400)}") from None
 

@@ -215,7 +215,7 @@ def _robot(robot, base_dir, sections):
             raise ScenarioError("sections: a tree robot takes its section counts from the robot file")
         return mechanism_from_dict(d, robot_dir), None
     model = model_from_dict(d, sections)
-    return from_robot_model(model, d), model
+    return from_robot_model(model, d, robot_dir), model
 
 
 def scenario_from_dict(d, base_dir=".", sections=None, angle_deg=None, source="<dict>"):
@@ -263,11 +263,12 @@ def scenario_from_dict(d, base_dir=".", sections=None, angle_deg=None, source="<
         except ModelError as e:
             raise Err(f"scenario.initial_strains: {e}") from None
     return Scenario(mech, model, u, aprof, positions, trajectories, efforts, eprof, base, loads, grav, steps,
-                    init, source, _reference(d.get("reference")), _obstacles(d.get("obstacles"), mech))
+                    init, source, _reference(d.get("reference")), _obstacles(d.get("obstacles"), mech, base_dir))
 
 
-def _obstacles(items, mech):
-    """The scenario's obstacles with their trajectories (None: fixed)."""
+def _obstacles(items, mech, base_dir=None):
+    """The scenario's obstacles with their trajectories (None: fixed); mesh
+    files relative to ``base_dir``."""
     if items is None:
         return ()
     if not isinstance(items, list):
@@ -285,7 +286,7 @@ def _obstacles(items, mech):
         trajs.append(tr)
         plain.append(it)
     try:
-        obs = obstacles_from_list(plain, "scenario.obstacles")
+        obs = obstacles_from_list(plain, "scenario.obstacles", base_dir)
     except ModelError as e:
         raise ScenarioError(str(e)) from None
     names = [o.name for o in mech.obstacles]

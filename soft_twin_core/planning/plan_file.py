@@ -135,7 +135,8 @@ def _robot(robot, base_dir):
     (relative to the plan file) or an inline mapping, of either schema."""
     if isinstance(robot, dict):
         d = robot_mapping(robot, "plan.robot")
-        return mechanism_from_dict(d, base_dir) if is_tree_file(d) else from_robot_model(model_from_dict(d), d)
+        return mechanism_from_dict(d, base_dir) if is_tree_file(d) else from_robot_model(model_from_dict(d), d,
+                                                                                          base_dir)
     if isinstance(robot, str):
         p = robot if os.path.isabs(robot) else os.path.join(base_dir, robot)
         return load_mechanism(p if os.path.isfile(p) else robot)

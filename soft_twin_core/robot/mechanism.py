@@ -298,7 +298,7 @@ def load_mechanism(path, sections=None):
     d = robot_mapping(read_yaml_file(path, what="robot file"), str(path))
     if is_tree_file(d):
         return mechanism_from_dict(d, os.path.dirname(os.path.abspath(path)))
-    return from_robot_model(model_from_dict(d, sections), d)
+    return from_robot_model(model_from_dict(d, sections), d, os.path.dirname(os.path.abspath(path)))
 
 
 def _with_urdf(d, base_dir):
@@ -534,7 +534,7 @@ def mechanism_from_dict(d, base_dir=None):
             if kind == FREE and mass == 0.0:
                 raise ModelError(f"{where}.mass: a free link (a loose object) needs a mass > 0 kg")
             links.append(Link(name, ji, _visual(bd.get("visual"), where + ".visual"),
-                              link_shape(bd.get("collision"), name, ji, where + ".collision")))
+                              link_shape(bd.get("collision"), name, ji, where + ".collision", base_dir)))
             ends[name] = (ji, np.eye(4))
             frames[name] = PointRef(ji)
         else:
@@ -635,7 +635,8 @@ def mechanism_from_dict(d, base_dir=None):
             raise ModelError("robot.constraints: the name 'base' is taken by the prescribed base motion")
         constraints.insert(0, Constraint("base", "clamped", frames["base"], PointRef(-1), base_pose.copy()))
     mech = Mechanism(tree.name, tree, tuple(control), tuple(constraints), tuple(members), tuple(links),
-                     frames, motion, motion_limits, np.array(base_pose, dtype=float), **_contact_fields(d, tree, members))
+                     frames, motion, motion_limits, np.array(base_pose, dtype=float),
+                     **_contact_fields(d, tree, members, base_dir))
     return mech
 
 
@@ -698,10 +699,11 @@ def _with_targets(tree, constraints):
     return out
 
 
-def from_robot_model(robot, d=None):
+def from_robot_model(robot, d=None, base_dir=None):
     """The mechanism of a classic robot description: the soft chain
     (:func:`multibody.from_robot_model`), one member "backbone", no rigid
-    joints, no constraints. ``d``: its mapping, for the stress geometry.
+    joints, no constraints. ``d``: its mapping, for the stress geometry
+    and the obstacles (mesh files relative to ``base_dir``).
     Without ``d`` the mechanism is made once per description (both are
     immutable) and kept with it."""
     if d is None:
@@ -718,17 +720,19 @@ def from_robot_model(robot, d=None):
     member = Member("backbone", 0, p.joints, tuple(geo))
     frames = {"tip": PointRef(p.joints[-1], tree.joints[p.joints[-1]].section.length)}
     return Mechanism(tree.name, tree, ("",) * tree.n_joints, (), (member,), (), frames, "fixed",
-                     base_pose=np.array(robot.base_pose, dtype=float), **_contact_fields(d, tree, (member,)))
+                     base_pose=np.array(robot.base_pose, dtype=float),
+                     **_contact_fields(d, tree, (member,), base_dir))
 
 
-def _contact_fields(d, tree, members):
+def _contact_fields(d, tree, members, base_dir=None):
     """The ``obstacles`` and ``contact`` of a robot mapping, checked: the
-    world's obstacles, the contact spacing and the capsules of the members
-    that touch (``contact.between``; a classic rod's one member, "backbone",
-    touches itself only)."""
+    world's obstacles (mesh files relative to ``base_dir``), the contact
+    spacing and the capsules of the members that touch (``contact.between``;
+    a classic rod's one member, "backbone", touches itself only)."""
     contact = d.get("contact") if isinstance(d.get("contact"), dict) else {}
     between = member_contact(contact.get("between"), [m.name for m in members])
-    return dict(obstacles=obstacles_from_list(d.get("obstacles")), contact_spacing=contact_spacing(d.get("contact")),
+    return dict(obstacles=obstacles_from_list(d.get("obstacles"), base_dir=base_dir),
+                contact_spacing=contact_spacing(d.get("contact")),
                 member_shapes=member_capsules(tree, members, *between) if between else ())
 
 

@@ -32,17 +32,20 @@ from soft_twin_core.engine.contact import OBSTACLE_KINDS, ContactPoints, Obstacl
 from soft_twin_core.robot.model import ModelError, _check_keys, _num, _vec, pose_from_dict
 
 _FIELDS = {"plane": ("point", "normal"), "sphere": ("center", "radius"), "capsule": ("from", "to", "radius"),
-           "box": ("center", "size", "rpy", "quaternion"), "mesh": ("vertices", "faces"), "tube": ("path", "radius")}
+           "box": ("center", "size", "rpy", "quaternion"), "tube": ("path", "radius"),
+           "mesh": ("vertices", "faces", "file", "scale", "position", "rpy", "quaternion")}
 _COMMON = {"name", "type", "stiffness", "smoothing", "damping", "friction", "stiction_velocity",
            "torsional_friction"}
 
 
-def obstacle_from_dict(d, where):
+def obstacle_from_dict(d, where, base_dir=None):
     """An :class:`Obstacle` of one ``obstacles`` entry; ModelError naming the
     bad field (unknown type or key, non-finite or negative sizes, a zero
-    normal, a capsule of zero length)."""
+    normal, a capsule of zero length, a mesh file that cannot be read).
+    ``base_dir``: the folder a mesh's ``file`` is relative to (the robot or
+    scenario file's; None: the working directory)."""
     _check_keys(d, _COMMON | {"point", "normal", "center", "radius", "from", "to", "size", "rpy", "quaternion",
-                              "vertices", "faces", "path"}, where)
+                              "vertices", "faces", "path", "file", "scale", "position"}, where)
     kind = d.get("type")
     if kind not in OBSTACLE_KINDS:
         raise ModelError(f"{where}.type: expected one of {sorted(OBSTACLE_KINDS)}, got {kind!r}")
@@ -65,8 +68,10 @@ def obstacle_from_dict(d, where):
         return Obstacle(name, kind, _vec(d, "center", 3, where), rotation=T[:3, :3].copy(), half_size=0.5 * size,
                         **common)
     if kind == "mesh":
-        centre, tri = closed_mesh(d.get("vertices"), d.get("faces"), where)
-        return Obstacle(name, kind, centre, rotation=np.eye(3), triangles=tri, **common)
+        T = pose_from_dict({k: d[k] for k in ("position", "rpy", "quaternion") if k in d} or None, where)
+        centre, tri = closed_mesh(*mesh_source(d, where, base_dir), where)
+        return Obstacle(name, kind, T[:3, :3] @ centre + T[:3, 3], rotation=T[:3, :3].copy(), triangles=tri,
+                        **common)
     radius = _num(d, "radius", where, positive=True)
     if kind == "tube":
         path = tube_path(d.get("path"), where)
@@ -78,6 +83,93 @@ def obstacle_from_dict(d, where):
     if not np.linalg.norm(b - a) > 0:
         raise ModelError(f"{where}: 'from' and 'to' must differ (a capsule of zero length is a sphere)")
     return Obstacle(name, kind, a, b, radius, **common)
+
+
+MESH_FILES = (".stl", ".obj")
+
+
+def mesh_source(d, where, base_dir=None):
+    """(vertices (V, 3) [m], faces (F, 3)) of a mesh entry: inline
+    ``vertices`` and ``faces``, or a ``file`` (STL, binary or ASCII, or
+    Wavefront OBJ; relative to ``base_dir``) times ``scale`` (default 1:
+    the file in metres; 0.001 for millimetres). ModelError naming the
+    field."""
+    if "file" not in d:
+        if "scale" in d:
+            raise ModelError(f"{where}.scale: scales a mesh 'file'; the inline vertices are in metres")
+        return d.get("vertices"), d.get("faces")
+    if "vertices" in d or "faces" in d:
+        raise ModelError(f"{where}: a mesh is either 'file' or 'vertices' and 'faces', not both")
+    scale = _num(d, "scale", where, positive=True) if "scale" in d else 1.0
+    V, F = read_mesh_file(d["file"], f"{where}.file", base_dir)
+    return V * scale, F
+
+
+def read_mesh_file(name, where, base_dir=None):
+    """(vertices (V, 3), faces (F, 3) int) of a mesh file: STL (binary or
+    ASCII; its corners welded where they coincide exactly) or Wavefront OBJ
+    (``v`` and ``f`` lines; polygons split into fans; 1-based or negative
+    indices; texture and normal indices ignored). ModelError naming
+    ``where`` and the file for a missing or unreadable file, an unknown
+    extension, a truncated STL or an OBJ face index out of range."""
+    import os
+    if not isinstance(name, str) or not name:
+        raise ModelError(f"{where}: expected a mesh file's path (.stl or .obj), got {name!r}")
+    path = os.path.join(base_dir or "", os.path.expanduser(name))
+    ext = os.path.splitext(path)[1].lower()
+    if ext not in MESH_FILES:
+        raise ModelError(f"{where}: {name!r}: expected an .stl or .obj file")
+    try:
+        with open(path, "rb") as f:
+            data = f.read()
+    except OSError as e:
+        raise ModelError(f"{where}: cannot read {path!r}: {e.strerror or e}") from None
+    return _read_stl(data, where, path) if ext == ".stl" else _read_obj(data, where, path)
+
+
+def _read_stl(data, where, path):
+    """An STL's triangles, binary (80-byte header, a uint32 count, 50 bytes
+    a triangle) or ASCII (``vertex x y z`` lines), corners welded."""
+    n = int(np.frombuffer(data[80:84], "<u4")[0]) if len(data) >= 84 else -1
+    if n >= 0 and len(data) == 84 + 50 * n:
+        rec = np.dtype([("normal", "<f4", 3), ("corners", "<f4", (3, 3)), ("attr", "<u2")])
+        corners = np.frombuffer(data, rec, count=n, offset=84)["corners"].astype(float)
+    elif data.lstrip()[:5].lower() == b"solid":
+        words = data.decode("ascii", "replace").split()
+        at = [i for i, w in enumerate(words) if w == "vertex"]
+        try:
+            corners = np.array([[float(w) for w in words[i + 1:i + 4]] for i in at]).reshape(-1, 3, 3)
+        except ValueError:
+            raise ModelError(f"{where}: {path!r}: an ASCII STL 'vertex' line without three numbers") from None
+        if len(at) % 3:
+            raise ModelError(f"{where}: {path!r}: {len(at)} vertices, not whole triangles")
+    else:
+        raise ModelError(f"{where}: {path!r}: neither a binary STL ({len(data)} bytes for "
+                         f"{max(n, 0)} triangles) nor an ASCII one (starting 'solid')")
+    V, F = np.unique(corners.reshape(-1, 3), axis=0, return_inverse=True)
+    return V, F.reshape(-1, 3)
+
+
+def _read_obj(data, where, path):
+    """An OBJ's vertices and its faces (polygons as fans)."""
+    V, F = [], []
+    for k, line in enumerate(data.decode("utf-8", "replace").splitlines(), 1):
+        w = line.split()
+        if not w or w[0] not in ("v", "f"):
+            continue
+        try:
+            if w[0] == "v":
+                V.append([float(x) for x in w[1:4]])
+                continue
+            idx = [int(x.split("/")[0]) for x in w[1:]]
+        except ValueError:
+            raise ModelError(f"{where}: {path!r} line {k}: expected numbers, got {line.strip()!r}") from None
+        idx = [i - 1 if i > 0 else len(V) + i for i in idx]
+        if len(idx) < 3 or not all(0 <= i < len(V) for i in idx):
+            raise ModelError(f"{where}: {path!r} line {k}: a face needs 3 or more indices of the {len(V)} "
+                             f"vertices before it, got {line.strip()!r}")
+        F += [[idx[0], idx[j], idx[j + 1]] for j in range(1, len(idx) - 1)]
+    return np.array(V, dtype=float).reshape(-1, 3), np.array(F, dtype=np.int64).reshape(-1, 3)
 
 
 def closed_mesh(vertices, faces, where):
@@ -192,13 +284,15 @@ def contact_law(d, where):
         torsional_friction=_num(d, "torsional_friction", where, nonneg=True, default=0.0))
 
 
-def obstacles_from_list(items, where="robot.obstacles"):
-    """Obstacles of a robot file's or scenario's ``obstacles`` list (None: none)."""
+def obstacles_from_list(items, where="robot.obstacles", base_dir=None):
+    """Obstacles of a robot file's or scenario's ``obstacles`` list (None:
+    none); ``base_dir``: the folder mesh files are relative to."""
     if items is None:
         return ()
     if not isinstance(items, list):
         raise ModelError(f"{where}: expected a list of obstacles, got {items!r}")
-    return check_unique_names(tuple(obstacle_from_dict(d, f"{where}[{i}]") for i, d in enumerate(items)), where)
+    return check_unique_names(tuple(obstacle_from_dict(d, f"{where}[{i}]", base_dir) for i, d in enumerate(items)),
+                              where)
 
 
 def check_unique_names(obstacles, where):
@@ -268,16 +362,16 @@ def obstacle_placed(ob, T):
 # ``collision`` gives none (that of a stiff rubber, as the soft members' modulus)
 DEFAULT_SHAPE_STIFFNESS = 1.0e6
 _SHAPES = {"sphere": ("radius",), "capsule": ("radius", "length"), "cylinder": ("radius", "length"),
-           "box": ("size",), "mesh": ("vertices", "faces")}
+           "box": ("size",), "mesh": ("vertices", "faces", "file", "scale")}
 
 
-def link_shape(d, name, joint, where):
+def link_shape(d, name, joint, where, base_dir=None):
     """A link's ``collision`` shape (None: none) as an :class:`Obstacle`
     carried by its joint ``joint`` (a, b, rotation in the link's frame),
     named after the link::
 
         collision: {shape: sphere | capsule | cylinder | box | mesh, radius, length, size,
-                    vertices, faces, position, rpy | quaternion,       # the shape's pose in the link
+                    vertices, faces | file, scale, position, rpy | quaternion,   # the shape's pose in the link
                     stiffness, smoothing, damping, friction, stiction_velocity, torsional_friction}
 
     A capsule or cylinder lies along the shape frame's z axis, centred
@@ -297,7 +391,7 @@ def link_shape(d, name, joint, where):
     T = pose_from_dict({k: d[k] for k in ("position", "rpy", "quaternion") if k in d} or None, where)
     law = {k: d[k] for k in _COMMON - {"name", "type"} if k in d}
     if shape == "mesh":
-        ob = obstacle_at(name, "mesh", T, law=law, where=where, mesh=(d.get("vertices"), d.get("faces")))
+        ob = obstacle_at(name, "mesh", T, law=law, where=where, mesh=mesh_source(d, where, base_dir))
     else:
         dims = {"sphere": lambda: [_num(d, "radius", where, positive=True)],
                 "box": lambda: list(_vec(d, "size", 3, where)),

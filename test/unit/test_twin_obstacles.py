@@ -188,6 +188,14 @@ def test_a_bad_obstacles_file_is_refused_naming_the_file_and_the_field(tmp_path)
         load_obstacles(str(f))
     f.write_text("obstacles:\n  - {name: a, type: sphere, center: [0, 0, 0], radius: 0.1}\n")
     assert [o.name for o in load_obstacles(str(f))] == ["a"]
+    # a mesh file beside the obstacles file (the node's working directory elsewhere)
+    (tmp_path / "tet.obj").write_text("v 0 0 0\nv 1 0 0\nv 0 1 0\nv 0 0 1\nf 1 3 2\nf 1 2 4\nf 1 4 3\nf 2 3 4\n")
+    f.write_text("obstacles:\n  - {name: tet, type: mesh, file: tet.obj, scale: 0.01}\n")
+    (tet,) = load_obstacles(str(f))
+    assert len(tet.triangles) == 4 and np.ptp(tet.triangles.reshape(-1, 3), axis=0) == pytest.approx([0.01] * 3)
+    f.write_text("obstacles:\n  - {name: tet, type: mesh, file: gone.obj}\n")
+    with pytest.raises(ConfigError, match=r"obstacles\[0\]\.file: cannot read"):
+        load_obstacles(str(f))
 
 
 def test_a_mesh_obstacle_message_is_a_convex_mesh_in_its_pose_frame():
