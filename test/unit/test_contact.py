@@ -1013,10 +1013,17 @@ def test_a_rod_lying_in_a_channel_mesh_rests_as_on_its_floor():
     U[[5, 6], 0] = -R_ROD - 0.0025
     channel = _prism_mesh(U, _U_CAP, 0.6, np.random.default_rng(5))
     channel["vertices"] = (np.array(channel["vertices"]) + [-0.1, 0, 0]).tolist()
+    _rests_as_on_the_box(floor, channel)
+
+
+def _rests_as_on_the_box(top, table):
+    """The heavy rod's statics and a dynamic settle on ``table`` (an
+    obstacle entry) equal those on a box table whose top is at ``top``
+    [m]; returns the mechanism with ``table``."""
     results = []
-    for table in ({"type": "box", "center": [0.2, 0, floor - 0.05], "size": [0.6, 0.2, 0.1]}, channel):
+    for ob in ({"type": "box", "center": [0.2, 0, top - 0.05], "size": [0.6, 0.2, 0.1]}, table):
         d = _heavy_rod_dict()
-        d["obstacles"] = [dict(table, name="table")]
+        d["obstacles"] = [dict(ob, name="table")]
         mech = from_robot_model(model_from_dict(d), d)
         eq = solve_equilibrium(mech)
         sim = MechanismSimulator(mech, 2e-3, 1.0)
@@ -1025,6 +1032,7 @@ def test_a_rod_lying_in_a_channel_mesh_rests_as_on_its_floor():
     np.testing.assert_allclose(results[1][0], results[0][0], rtol=1e-9, atol=1e-12)
     assert results[1][1] == results[0][1] > 3
     np.testing.assert_allclose(results[1][2], results[0][2], rtol=1e-7, atol=1e-10)
+    return mech
 
 
 def bumpy_sphere(levels, radius=0.05):
@@ -1118,19 +1126,7 @@ def test_a_rod_on_a_mesh_table_rests_as_on_the_box():
     from soft_twin_core.twin import Twin, TwinSettings
     from soft_twin_core.viz.scene import obstacle_outline
     top = -0.0035 - R_ROD
-    results = []
-    for table in ({"type": "box", "center": [0.2, 0, top - 0.05], "size": [0.6, 0.2, 0.1]},
-                  _cube_mesh(np.array([0.2, 0, top - 0.05]), [0.6, 0.2, 0.1])):
-        d = _heavy_rod_dict()
-        d["obstacles"] = [dict(table, name="table")]
-        mech = from_robot_model(model_from_dict(d), d)
-        eq = solve_equilibrium(mech)
-        sim = MechanismSimulator(mech, 2e-3, 1.0)
-        sim.step(n=50)
-        results.append((eq.q, len(eq.contacts), sim.q))
-    np.testing.assert_allclose(results[1][0], results[0][0], rtol=1e-9, atol=1e-12)
-    assert results[1][1] == results[0][1] > 3
-    np.testing.assert_allclose(results[1][2], results[0][2], rtol=1e-7, atol=1e-10)
+    mech = _rests_as_on_the_box(top, _cube_mesh(np.array([0.2, 0, top - 0.05]), [0.6, 0.2, 0.1]))
     snap = Twin(mech, TwinSettings(mode="quasi_static")).outputs()
     shapes = [m for m in markers.Markers()(snap, SimpleNamespace(mech=mech), Header()).markers if m.ns == "obstacles"]
     assert len(shapes) == 1 and shapes[0].type == Marker.TRIANGLE_LIST and len(shapes[0].points) == 36

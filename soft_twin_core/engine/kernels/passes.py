@@ -172,6 +172,23 @@ def _soft_bias(kmap, x, strain, rate, V, Sv, out, vs, P):
         out[a] = x * out[a] + tmp[a]
 
 
+@_jit_inner
+def _place_joint(m, w, i, q, T, S3, subspace):
+    """Joint i's transform, strain (and subspace if ``subspace``) at q, and
+    its frames' poses g_in, g_out from its parent's (a pass in topological
+    order)."""
+    par = m.parent[i]
+    _joint_transform(m.kind[i], m.kmap[i], m.iq[i], m.nv[i], m.axis[i], m.length[i], m.f0[i], m.modes[i], q, w.Jq[i],
+                     w.S[i], w.strain[i], w.vscratch[0], T, S3, subspace)
+    if par < 0:
+        for r in range(4):
+            for cc in range(4):
+                w.g_in[i, r, cc] = m.placement[i, r, cc]
+    else:
+        _mm4(w.g_out[par], m.placement[i], w.g_in[i])
+    _mm4(w.g_in[i], w.Jq[i], w.g_out[i])
+
+
 @_jit_inline
 def poses_pass(m, w, q):
     """The joints' transforms, strains and frames' poses (Jq, strain, g_in,
@@ -182,16 +199,7 @@ def poses_pass(m, w, q):
     T = w.scratch[0]
     S3 = np.empty((7, 3, 3))
     for i in range(m.parent.shape[0]):
-        par = m.parent[i]
-        _joint_transform(m.kind[i], m.kmap[i], m.iq[i], m.nv[i], m.axis[i], m.length[i], m.f0[i], m.modes[i], q, w.Jq[i],
-                         w.S[i], w.strain[i], w.vscratch[0], T, S3, FALSE)
-        if par < 0:
-            for r in range(4):
-                for cc in range(4):
-                    w.g_in[i, r, cc] = m.placement[i, r, cc]
-        else:
-            _mm4(w.g_out[par], m.placement[i], w.g_in[i])
-        _mm4(w.g_in[i], w.Jq[i], w.g_out[i])
+        _place_joint(m, w, i, q, T, S3, FALSE)
 
 
 @_jit_inline
@@ -207,15 +215,7 @@ def forward_pass(m, w, q, v, a, level):
     P5 = w.scratch[15][:5]
     for i in range(n):
         par = m.parent[i]
-        _joint_transform(m.kind[i], m.kmap[i], m.iq[i], m.nv[i], m.axis[i], m.length[i], m.f0[i], m.modes[i], q, w.Jq[i],
-                         w.S[i], w.strain[i], w.vscratch[0], T, S3, TRUE)
-        if par < 0:
-            for r in range(4):
-                for cc in range(4):
-                    w.g_in[i, r, cc] = m.placement[i, r, cc]
-        else:
-            _mm4(w.g_out[par], m.placement[i], w.g_in[i])
-        _mm4(w.g_in[i], w.Jq[i], w.g_out[i])
+        _place_joint(m, w, i, q, T, S3, TRUE)
         _Ad_into(w.Jq[i], w.Ad_J_inv[i], TRUE)
         soft = m.kind[i] == SOFT
         nv, iv = m.nv[i], m.iv[i]
