@@ -93,6 +93,11 @@ def _member_basis(mech, functions, what):
             continue
         L = np.array([tree.joints[j].section.length for j in js])
         vals = functions((np.cumsum(L) - 0.5 * L) / L.sum())
+        if np.linalg.matrix_rank(vals) < len(vals):
+            raise ValueError(f"{what}: member {path.name!r} has {len(js)} sections for the basis's {len(vals)} "
+                             f"functions, which its midpoints cannot tell apart (coordinates not independent: a "
+                             f"singular Newton matrix); give it more sections than functions, and many more for "
+                             f"the backbone's accuracy (about 0.14 L / n^2)")
         modes = tree.joints[js[0]].section.modes
         for jt in js:
             sec = tree.joints[jt].section

@@ -39,6 +39,14 @@ def test_the_basis_columns_are_legendre_polynomials_at_the_midpoints():
         legendre_basis(mech, -1)
     with pytest.raises(ValueError, match="rigid joints"):
         legendre_basis(load_mechanism("pan_tilt_arm"), 2)
+    # more functions than the member's midpoints can tell apart: refused, not a singular Newton matrix later
+    assert np.linalg.matrix_rank(legendre_basis(mech, 7)) == 16
+    with pytest.raises(ValueError, match="has 8 sections for the basis's 9 functions"):
+        legendre_basis(mech, 8)
+    with pytest.raises(ValueError, match="has 8 sections for the basis's 9 functions"):
+        fem_basis(mech, 8, 1)
+    with pytest.raises(ValueError, match="has 8 sections for the basis's 13 functions"):
+        fem_basis(mech, 4, 3)
 
 
 def test_with_the_identity_as_basis_the_reduced_solve_is_the_engines():
