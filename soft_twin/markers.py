@@ -2,8 +2,9 @@
 along every soft member (one per sample interval, the diameter of its
 section), the rigid links' visual shapes (a small sphere for a link without
 one), a sphere at the tip, the robot file's obstacles (translucent grey: a
-plane as a thin square around the robot, spheres, capsules) and an arrow per
-contact, along its force on the member (the longest 5 cm, the others to scale).
+plane as a thin square around the robot, spheres, capsules, meshes: these
+sent when they change and once a second) and an arrow per contact, along its
+force on the member (the longest 5 cm, the others to scale).
 
 :class:`Markers` remembers how many tube cylinders and contact arrows it drew
 last, so that a state with fewer deletes the extra ones.
@@ -68,10 +69,11 @@ def tip_marker(pose, diameter, header):
 
 
 def obstacle_markers(obstacles, centre, extent, header):
-    """Markers of the obstacles (engine.contact.Obstacle): a plane as a
-    1 mm thick square of side 1.2 ``extent`` [m] around the point of it
-    nearest ``centre``, a sphere, a capsule as a cylinder and two spheres,
-    a tube as its centre line as wide as its lumen."""
+    """Markers of the obstacles (engine.contact.Obstacle) but meshes
+    (:func:`mesh_marker`): a plane as a 1 mm thick square of side 1.2
+    ``extent`` [m] around the point of it nearest ``centre``, a sphere, a
+    capsule as a cylinder and two spheres, a tube as its centre line as wide
+    as its lumen."""
     out = []
 
     def add(kind, T, sx, sy, sz):
@@ -81,10 +83,7 @@ def obstacle_markers(obstacles, centre, extent, header):
         out.append(m)
     for ob in obstacles:
         T = np.eye(4)
-        if ob.kind == "mesh":               # its triangles, in world
-            T[:3, :3], T[:3, 3] = ob.rotation, ob.a
-            add(Marker.TRIANGLE_LIST, T, 1.0, 1.0, 1.0)
-            out[-1].points = [Point(x=float(x), y=float(y), z=float(z)) for x, y, z in ob.triangles.reshape(-1, 3)]
+        if ob.kind == "mesh":               # (mesh_marker, in their own namespace)
             continue
         if ob.kind == "box":
             T[:3, :3], T[:3, 3] = ob.rotation, ob.a
@@ -113,6 +112,22 @@ def obstacle_markers(obstacles, centre, extent, header):
     return out
 
 
+def mesh_marker(ob, k, header):
+    """A mesh obstacle's TRIANGLE_LIST marker (``obstacle_meshes``, id k),
+    its points in its own frame."""
+    m = Marker(header=header, ns="obstacle_meshes", id=k, type=Marker.TRIANGLE_LIST, action=Marker.ADD,
+               color=OBSTACLE)
+    T = np.eye(4)
+    T[:3, :3], T[:3, 3] = ob.rotation, ob.a
+    m.pose = cv.pose_msg(T)
+    m.scale = Vector3(x=1.0, y=1.0, z=1.0)
+    m.points = [Point(x=x, y=y, z=z) for x, y, z in ob.triangles.reshape(-1, 3).tolist()]
+    return m
+
+
+MESH_REFRESH_S = 1.0        # mesh markers are sent again at most this often unless the meshes change
+
+
 def contact_arrows(contacts, header):
     """An arrow per contact (engine.contact.ContactState) from its backbone
     point along its force, the largest ARROW_LENGTH long."""
@@ -135,6 +150,9 @@ class Markers:
         self.n_tube = 0
         self.n_contacts = 0
         self.n_obstacles = 0          # obstacle markers drawn (removed obstacles: deleted)
+        # meshes: built once each and sent when they change, else every MESH_REFRESH_S (RViz keeps a marker
+        # until it is replaced; a mesh of 2048 triangles costs 60 ms a message to build and serialise)
+        self._meshes, self._mesh_markers, self._mesh_sent = (), [], -np.inf
 
     def __call__(self, snap, robot, header):
         out = MarkerArray()
@@ -161,12 +179,32 @@ class Markers:
             out.markers += [Marker(header=header, ns="obstacles", id=i, action=Marker.DELETE)
                             for i in range(len(shapes), self.n_obstacles)]
             self.n_obstacles = len(shapes)
+        out.markers += self._mesh_update(snap.obstacles or (), header)
         arrows = contact_arrows(snap.contacts, header) if snap.contacts is not None and len(snap.contacts) else []
         out.markers += arrows
         out.markers += [Marker(header=header, ns="contacts", id=i, action=Marker.DELETE)
                         for i in range(len(arrows), self.n_contacts)]
         self.n_contacts = len(arrows)
         return out
+
+    def _mesh_update(self, obstacles, header):
+        """The mesh obstacles' markers when they changed (those removed
+        deleted) or were last sent MESH_REFRESH_S ago, else none."""
+        import time
+        meshes = tuple(ob for ob in obstacles if ob.kind == "mesh")
+        now = time.monotonic()
+        changed = len(meshes) != len(self._meshes) or any(a is not b for a, b in zip(meshes, self._meshes))
+        if not changed and now - self._mesh_sent < MESH_REFRESH_S:
+            return []
+        old = len(self._meshes)
+        if changed:
+            self._mesh_markers = [mesh_marker(ob, k, header) for k, ob in enumerate(meshes)]
+            self._meshes = meshes
+        for m in self._mesh_markers:
+            m.header = header
+        self._mesh_sent = now
+        return list(self._mesh_markers) + [Marker(header=header, ns="obstacle_meshes", id=k, action=Marker.DELETE)
+                                           for k in range(len(meshes), old)]
 
     @staticmethod
     def _radius(g):

@@ -70,14 +70,29 @@ def grid_segments(size, cell):
 
 
 def polyline_segments(polylines):
-    """(S, 2, 3) segments of polylines (N, 3) whose NaN rows separate pieces."""
-    segs = []
-    for P in polylines:
-        P = np.asarray(P, dtype=float)
-        ok = np.all(np.isfinite(P), axis=1)
-        both = ok[:-1] & ok[1:]
-        segs.append(np.stack([P[:-1][both], P[1:][both]], axis=1))
+    """(S, 2, 3) segments of polylines (N, 3) whose NaN rows separate pieces
+    (a read-only polyline's, e.g. a mesh's cached outline, kept: a view
+    drawing every frame cuts it once)."""
+    segs = [_segments(P) for P in polylines]
     return np.concatenate(segs) if segs else np.zeros((0, 2, 3))
+
+
+_SEGMENTS = {}           # id of a read-only polyline -> (the polyline, kept alive; its segments)
+
+
+def _segments(P):
+    kept = _SEGMENTS.get(id(P)) if isinstance(P, np.ndarray) and not P.flags.writeable else None
+    if kept is not None and kept[0] is P:
+        return kept[1]
+    Q = np.asarray(P, dtype=float)
+    ok = np.all(np.isfinite(Q), axis=1)
+    both = ok[:-1] & ok[1:]
+    out = np.stack([Q[:-1][both], Q[1:][both]], axis=1)
+    if isinstance(P, np.ndarray) and not P.flags.writeable:
+        if len(_SEGMENTS) >= 32:
+            _SEGMENTS.pop(next(iter(_SEGMENTS)))
+        _SEGMENTS[id(P)] = (P, out)
+    return out
 
 
 @dataclass(frozen=True)

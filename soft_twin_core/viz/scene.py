@@ -16,6 +16,7 @@ snapshots only. No matplotlib here; no ROS anywhere in the core.
 """
 
 from dataclasses import dataclass, field
+from functools import lru_cache
 
 import numpy as np
 
@@ -136,6 +137,18 @@ def visual_placement(visual):
     return pose_from_dict(v or None, "visual")
 
 
+@lru_cache(maxsize=32)
+def _mesh_outline(ob):
+    """A mesh obstacle's triangles as closed loops (T, 3, 3) -> (5 T - 1, 3),
+    NaN rows between, in the world; kept for the obstacle (immutable: a
+    view drawing every frame builds it once)."""
+    W = ob.triangles @ ob.rotation.T + ob.a
+    loops = np.concatenate([W, W[:, :1], np.full((len(W), 1, 3), np.nan)], axis=1)
+    out = loops.reshape(-1, 3)[:-1]
+    out.setflags(write=False)
+    return out
+
+
 def obstacle_outline(ob, centre, extent):
     """(N, 3) [m] world polyline of an obstacle (engine.contact.Obstacle):
     a tube's centre line and a ring at each of its vertices; a mesh's
@@ -153,8 +166,7 @@ def obstacle_outline(ob, centre, extent):
             parts.append(solid_outline({"shape": "sphere", "radius": ob.radius}, R)[:CIRCLE_POINTS + 1])
         return np.concatenate([np.vstack([q, nan]) for q in parts])[:-1]
     if ob.kind == "mesh":                    # every triangle's edges
-        W = ob.triangles @ ob.rotation.T + ob.a
-        return np.concatenate([np.vstack([t, t[:1], nan]) for t in W])[:-1]
+        return _mesh_outline(ob)
     if ob.kind == "sphere":
         return solid_outline({"shape": "sphere", "radius": ob.radius}, _translation(ob.a))
     if ob.kind == "box":

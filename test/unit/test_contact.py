@@ -1128,10 +1128,28 @@ def test_a_rod_on_a_mesh_table_rests_as_on_the_box():
     top = -0.0035 - R_ROD
     mech = _rests_as_on_the_box(top, _cube_mesh(np.array([0.2, 0, top - 0.05]), [0.6, 0.2, 0.1]))
     snap = Twin(mech, TwinSettings(mode="quasi_static")).outputs()
-    shapes = [m for m in markers.Markers()(snap, SimpleNamespace(mech=mech), Header()).markers if m.ns == "obstacles"]
-    assert len(shapes) == 1 and shapes[0].type == Marker.TRIANGLE_LIST and len(shapes[0].points) == 36
+    draw, robot = markers.Markers(), SimpleNamespace(mech=mech)
+    meshes = (lambda: [m for m in draw(snap, robot, Header()).markers if m.ns == "obstacle_meshes"])
+    (shape,) = meshes()
+    assert shape.type == Marker.TRIANGLE_LIST and shape.action == Marker.ADD and len(shape.points) == 36
+    corners = np.array([[p.x, p.y, p.z] for p in shape.points])       # in the mesh's frame, placed by its pose
+    assert corners[:, 2].max() + shape.pose.position.z == pytest.approx(top)
+    # a mesh is sent when it changes and every MESH_REFRESH_S, not with every state (60 ms a message at 2048
+    # triangles); a mesh taken away is deleted
+    old = markers.MESH_REFRESH_S
+    try:
+        markers.MESH_REFRESH_S = 1e9
+        assert meshes() == []
+        markers.MESH_REFRESH_S = 0.0
+        assert [m.action for m in meshes()] == [Marker.ADD]
+        from dataclasses import replace
+        snap = replace(snap, obstacles=())
+        assert [(m.action, m.id) for m in meshes()] == [(Marker.DELETE, 0)]
+    finally:
+        markers.MESH_REFRESH_S = old
     outline = obstacle_outline(mech.obstacles[0], np.zeros(3), 1.0)
     assert outline.shape == (12 * 5 - 1, 3) and np.nanmax(outline[:, 2]) == pytest.approx(top)
+    assert obstacle_outline(mech.obstacles[0], np.zeros(3), 1.0) is outline          # built once
 
 
 def test_a_tube_its_distance_gradient_and_hessian():
