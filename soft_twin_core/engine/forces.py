@@ -35,12 +35,11 @@ from dataclasses import replace
 
 import numba as nb
 import numpy as np
-from numba.core import types
 from numba.experimental import structref
 
 from soft_twin_core.engine.algorithms import point_jacobian
 from soft_twin_core.engine.kernels import passes
-from soft_twin_core.engine.kernels.data import ArraysRef, LoadArrays
+from soft_twin_core.engine.kernels.data import ArraysRef, ArraysType, LoadArrays, declare
 from soft_twin_core.engine.kernels.spatial import _jit, _jit_inline
 from soft_twin_core.engine.loads import Loads, actuator_point_loads
 
@@ -58,9 +57,8 @@ ACTUATOR_FIELDS = (
 
 
 @structref.register
-class ActuatorArraysType(types.StructRef):
-    def preprocess_fields(self, fields):
-        return tuple((n, types.unliteral(t)) for n, t in fields)
+class ActuatorArraysType(ArraysType):
+    pass
 
 
 class ActuatorArrays(ArraysRef):
@@ -68,8 +66,7 @@ class ActuatorArrays(ArraysRef):
     FIELDS = ACTUATOR_FIELDS
 
 
-structref.define_constructor(ActuatorArrays, ActuatorArraysType, list(ACTUATOR_FIELDS))
-structref.define_boxing(ActuatorArraysType, ActuatorArrays)
+declare(ActuatorArrays, ActuatorArraysType, ACTUATOR_FIELDS)
 
 
 @nb.njit(cache=True)

@@ -12,10 +12,9 @@ from functools import lru_cache
 
 import numba as nb
 import numpy as np
-from numba.core import types
 from numba.experimental import structref
 
-from soft_twin_core.engine.kernels.data import ArraysRef
+from soft_twin_core.engine.kernels.data import ArraysRef, ArraysType, declare
 from soft_twin_core.engine.kernels.spatial import _jit, _jit_inline
 
 PLANE, SPHERE, CAPSULE, BOX, MESH, TUBE = 0, 1, 2, 3, 4, 5
@@ -46,9 +45,8 @@ OBSTACLE_FIELDS = (
 
 
 @structref.register
-class ObstacleArraysType(types.StructRef):
-    def preprocess_fields(self, fields):
-        return tuple((n, types.unliteral(t)) for n, t in fields)
+class ObstacleArraysType(ArraysType):
+    pass
 
 
 class ObstacleArrays(ArraysRef):
@@ -56,8 +54,7 @@ class ObstacleArrays(ArraysRef):
     FIELDS = OBSTACLE_FIELDS
 
 
-structref.define_constructor(ObstacleArrays, ObstacleArraysType, list(OBSTACLE_FIELDS))
-structref.define_boxing(ObstacleArraysType, ObstacleArrays)
+declare(ObstacleArrays, ObstacleArraysType, OBSTACLE_FIELDS)
 
 
 @nb.njit(cache=True)

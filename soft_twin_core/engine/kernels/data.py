@@ -140,16 +140,29 @@ def make_work(mo):
 # structrefs for the kernels
 # ----------------------------------------------------------------------------
 
-@structref.register
-class ModelArraysType(types.StructRef):
+class ArraysType(types.StructRef):
+    """The numba type of a structref of arrays (each kind registers a
+    subclass of its own, defined at module level: numba's cache names it)."""
+
     def preprocess_fields(self, fields):
         return tuple((n, types.unliteral(t)) for n, t in fields)
 
 
+def declare(proxy, typ, fields):
+    """``proxy`` (a StructRefProxy class) as the Python side of ``typ`` (a
+    registered :class:`ArraysType`) with ``fields``."""
+    structref.define_constructor(proxy, typ, list(fields))
+    structref.define_boxing(typ, proxy)
+
+
 @structref.register
-class WorkArraysType(types.StructRef):
-    def preprocess_fields(self, fields):
-        return tuple((n, types.unliteral(t)) for n, t in fields)
+class ModelArraysType(ArraysType):
+    pass
+
+
+@structref.register
+class WorkArraysType(ArraysType):
+    pass
 
 
 class ModelArraysRef(structref.StructRefProxy):
@@ -160,10 +173,8 @@ class WorkArraysRef(structref.StructRefProxy):
     """Kernel view of :class:`WorkArrays` (same arrays)."""
 
 
-structref.define_constructor(ModelArraysRef, ModelArraysType, list(ModelArrays._fields))
-structref.define_boxing(ModelArraysType, ModelArraysRef)
-structref.define_constructor(WorkArraysRef, WorkArraysType, list(WorkArrays._fields))
-structref.define_boxing(WorkArraysType, WorkArraysRef)
+declare(ModelArraysRef, ModelArraysType, ModelArrays._fields)
+declare(WorkArraysRef, WorkArraysType, WorkArrays._fields)
 
 
 @nb.njit(cache=True)
