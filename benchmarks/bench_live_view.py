@@ -10,7 +10,9 @@ arm swings: every state differs from the one before). Three phases of
 1. no browser: the twin's step rate and real-time factor from its
    diagnostics (1 s periods);
 2. headless Chromium (Debian's, software WebGL: no GPU here) on the page,
-   at each window size of ``--sizes``: the page's frame rate
+   at each window size of ``--sizes`` and canvas pixel ratio of ``--dprs``
+   (viser's adaptive one, and the fixed one for a browser without a GPU):
+   the page's frame rate
    (``requestAnimationFrame`` callbacks a second), how many of those frames
    had new data from the node (frames in which a message from the server
    arrived: the view's visible update rate; the node draws at most
@@ -23,6 +25,7 @@ Goal (issue 31): the view at 30 frames a second or more with the twin at
 browser connected. Reports the machine's load before and after.
 
 Run: .venv/bin/python benchmarks/bench_live_view.py [--seconds 8] [--step-rate 200] [--sizes 1200x800 800x600]
+     [--dprs auto 0.6]
 """
 
 import argparse
@@ -42,6 +45,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "test" / "ros"))
 from chromium_cdp import Browser, chromium_path, wait_for  # noqa: E402  (the tests' DevTools driver)
 
 NAMES = ["tendon_y_pos", "tendon_z_pos"]
+SOFTWARE_DPR = 0.5      # the canvas's pixel ratio docs/visualisation.md gives for a browser without a GPU
 
 # counts, from before the page's own scripts run: messages from the server
 # (on a websocket, or from the worker that holds it: viser's), animation
@@ -130,6 +134,10 @@ def main():
     ap.add_argument("--seconds", type=float, default=8.0)
     ap.add_argument("--step-rate", type=float, default=200.0)
     ap.add_argument("--sizes", nargs="+", default=["1200x800", "800x600"], help="browser window sizes (px)")
+    ap.add_argument("--dprs", nargs="+", default=["auto", str(SOFTWARE_DPR)],
+                    help="device pixel ratios of the 3D canvas: auto (viser's adaptive one, 0.75-1 here) or a "
+                         "fixed value (the page's ?fixedDpr=, as docs/visualisation.md gives for a browser "
+                         "without a GPU)")
     args = ap.parse_args()
     assert chromium_path(), "no chromium on PATH: `make setup` installs Debian's chromium"
     print(f"machine: {machine()}, {load()}")
@@ -144,27 +152,29 @@ def main():
             watched = {}
             for size in args.sizes:
                 w, h = (int(x) for x in size.split("x"))
-                with Browser(width=w, height=h) as browser:
-                    browser.call("Page.enable")
-                    browser.call("Performance.enable")
-                    browser.call("Page.addScriptToEvaluateOnNewDocument", source=_PAGE_COUNTERS)
-                    browser.open(f"http://127.0.0.1:{port}")
-                    assert wait_for(lambda: (browser.evaluate("window.__fresh") or 0) > 10, 60.0, 0.5), \
-                        "the page shows no updates"
-                    watched[size] = stream_and_measure(client, args.seconds, browser)
+                for dpr in args.dprs:
+                    with Browser(width=w, height=h) as browser:
+                        browser.call("Page.enable")
+                        browser.call("Performance.enable")
+                        browser.call("Page.addScriptToEvaluateOnNewDocument", source=_PAGE_COUNTERS)
+                        browser.open(f"http://127.0.0.1:{port}" + ("" if dpr == "auto" else f"/?fixedDpr={dpr}"))
+                        assert wait_for(lambda: (browser.evaluate("window.__fresh") or 0) > 10, 60.0, 0.5), \
+                            "the page shows no updates"
+                        watched[f"{size} dpr {dpr}"] = stream_and_measure(client, args.seconds, browser)
             after, after_rtf, _ = stream_and_measure(client, args.seconds)
         finally:
             client.close()
             proc.stop()
     print(f"\ntwin at {args.step_rate:g} Hz, tendon arm, tensions streamed at 20 Hz, {args.seconds:g} s a phase")
-    print(f"{'phase':28s} {'step rate [Hz] (median of 1 s periods)':44s} real-time factor")
+    print(f"{'phase':32s} {'step rate [Hz] (median of 1 s periods)':44s} real-time factor")
     rows = [("no browser", quiet, quiet_rtf)] + [(f"browser {size}", r, f) for size, (r, f, _) in watched.items()] \
         + [("browser closed again", after, after_rtf)]
     for name, r, f in rows:
-        print(f"{name:28s} {summary(r):44s} {statistics.median(f) if f else float('nan'):.3f}")
-    print(f"\n{'window':10s} {'frames/s':>9s} {'with new data/s':>16s} {'messages/s':>11s} {'renderer busy':>14s}")
+        print(f"{name:32s} {summary(r):44s} {statistics.median(f) if f else float('nan'):.3f}")
+    print(f"\n{'window, pixel ratio':20s} {'frames/s':>9s} {'with new data/s':>16s} {'messages/s':>11s} "
+          f"{'renderer busy':>14s}")
     for size, (_, _, (frames, fresh, msgs, busy)) in watched.items():
-        print(f"{size:10s} {frames:9.1f} {fresh:16.1f} {msgs:11.0f} {busy:13.0%}")
+        print(f"{size:20s} {frames:9.1f} {fresh:16.1f} {msgs:11.0f} {busy:13.0%}")
     print(f"\nafter: {load()}")
 
 

@@ -213,7 +213,8 @@ class LiveViewOutput:
             self._port = port
             self._framed = False
             self._controls_of = None
-            self._node.get_logger().info(f"live 3D view: {self._view.url}")
+            self._node.get_logger().info(f"live 3D view: {self._view.url} (a browser without a GPU: "
+                                         f"{self._view.url.rstrip('/')}/?fixedDpr=0.5)")
 
     def publish(self, snap, robot, force=False):
         """Draw a published state (at most RATE_HZ a second; ``force``: now,

@@ -518,7 +518,9 @@ def test_a_short_window_scrolls_the_panel_to_its_last_control_and_it_works():
     last slider and the last box lie below the page's bottom; the mouse
     wheel over the panel scrolls each into view, and each works as in a
     tall window (the slider dragged sends its value, the box ticked turns
-    the frames on). The panel's own box stays inside the page."""
+    the frames on). The panel's own box stays inside the page. The page
+    is opened as the docs say for a browser without a GPU (``?fixedDpr=0.5``):
+    the 3D canvas draws half the pixels across, the panel is unchanged."""
     from chromium_cdp import Browser, chromium_path, wait_for
     from soft_twin_core.viz.live_view import Control, LiveView
     assert chromium_path(), "no chromium on PATH: `make setup` installs Debian's chromium"
@@ -534,9 +536,14 @@ def test_a_short_window_scrolls_the_panel_to_its_last_control_and_it_works():
     box_js = _box_js("frames", "input[type=checkbox]")
     try:
         with Browser(width=1000, height=450) as browser:
-            browser.open(f"http://127.0.0.1:{view.port}")
+            browser.open(f"http://127.0.0.1:{view.port}/?fixedDpr=0.5")
             ok, text = _wait_for_page_text(browser, ["tendon_7 [N]", "frames", "plan a line here"])
             assert ok, text
+            widest = ("(() => { const c = [...document.querySelectorAll('canvas')].sort((a, b) => b.width - "
+                      "a.width)[0]; return c ? [c.width, c.clientWidth, window.devicePixelRatio] : null; })()")
+            assert wait_for(lambda: (browser.evaluate(widest) or [0])[0] > 0, 20.0, 0.2)
+            canvas = browser.evaluate(widest)
+            assert canvas[2] == 1 and canvas[1] > 500 and abs(canvas[0] - 0.5 * canvas[1]) <= 1, canvas
 
             def settled():      # the folders' opening animation over: the last box stands still
                 a = browser.evaluate(box_js)
