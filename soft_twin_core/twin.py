@@ -398,10 +398,15 @@ class Twin:
     # --- state --------------------------------------------------------------
     def _rest(self):
         """Equilibrium under gravity with the joints at their references
-        (statics; a robot with a floating base or spherical joints starts
-        from its reference configuration). Returns (q, message, its contacts)."""
+        (statics; what touches an obstacle or a shape with friction where
+        the robot file places it sticks there: a loose object on a table;
+        a robot with a floating base, or a loose object nothing holds,
+        starts from its reference configuration). Returns (q, message, its
+        contacts)."""
         try:
-            eq = cs.solve_equilibrium(self.mech, obstacles=self.obstacles)
+            mc = self._member_contact()
+            stick = mc.stuck_at(Workspace(self.mech.tree), self.mech.tree.q0) if mc.has_friction else None
+            eq = cs.solve_equilibrium(self.mech, obstacles=self.obstacles, stick=stick)
             return eq.q.copy(), "rest: static equilibrium under gravity", eq.contacts
         except (ValueError, cs.StaticsError) as e:
             return self.mech.tree.q0.copy(), f"rest: reference configuration ({clip(e, 200)})", None
@@ -600,11 +605,11 @@ class Twin:
         off leaves it where friction holds it), made at the current state
         when there are none (after a reset, a change of obstacles or of
         mode: the points touching then stick where they are); None when no
-        obstacle of the world has friction."""
-        if not any(ob.friction > 0 and ob.body < 0 for ob in self.obstacles):
+        obstacle and no body's shape has friction."""
+        mc = self._member_contact()
+        if not mc.has_friction:
             return None
         if self._stick is None:
-            mc = self._member_contact()
             ws = Workspace(self.mech.tree)
             self._stick = mc.stuck_after(ws, self.state.q, mc.stick_points(ws, self.state.q), self.contacts)
         return self._stick

@@ -105,17 +105,18 @@ def run_mechanism_statics(sc, t=0.0, points_per_section=1):
     (``points_per_section`` per section and its end) s [m], positions, orientations (quaternions x, y, z, w), internal_wrench (body axes), strains,
     normal_stress and shear_stress [Pa] (null without geometry); iterations, residual; stable and
     min_stiffness_eigenvalue (constrained.equilibrium_stability). Friction
-    (world obstacles with ``friction``) acts from increment to increment:
-    a contact made in one sticks where it landed from the next
-    (:class:`solve.contact.StickPoints`), so a single increment is
-    frictionless."""
+    (obstacles and bodies' shapes with ``friction``) acts from increment to increment:
+    a contact made in one sticks where it landed from the next (one made
+    at the start, where the robot file places it, from the first:
+    :class:`solve.contact.StickPoints`), so a single increment has friction
+    only where the robot touches at the start."""
     q, iterations = None, 0
     obstacles = sc.obstacles_at(t)
     contact = MemberContact(sc.mech, obstacles)
     stick = None
-    if any(ob.friction > 0 and ob.body < 0 for ob in contact.obstacles) and contact:
+    if contact.has_friction:
         ws = Workspace(sc.mech.tree)
-        stick = contact.stick_points(ws, sc.mech.tree.q0)
+        stick = contact.stuck_at(ws, sc.mech.tree.q0)
     for k in range(1, sc.load_steps + 1):     # load_steps increments, each warm-started
         eq = solve_equilibrium(sc.mech, q_init=q, targets=_targets(sc, t), inputs=_inputs(sc, t, k / sc.load_steps),
                                obstacles=obstacles, stick=stick,

@@ -478,23 +478,32 @@ def solve_kkt(A, G_force, G_cons, R, phi, rows=None):
     return solve_factored(factor_kkt(A, G_force, G_cons, rows), R, phi)
 
 
-def _check_statics_model(mech):
+def _check_statics_model(mech, obstacles):
     """ValueError, in the robot file's words, for what statics cannot hold:
-    a floating base, spherical or free joints. A prescribed base is held
-    where its clamp puts it (:func:`carry_base`): its free joint is the
-    one group joint statics takes, never moved by the Newton (the clamp
-    holds it exactly from the first iterate)."""
+    a floating base, spherical or free joints with nothing to hold them. A
+    prescribed base is held where its clamp puts it (:func:`carry_base`):
+    its free joint is never moved by the Newton (the clamp holds it
+    exactly from the first iterate). A loose object (a free or spherical
+    joint) is held by contacts (a gripper's fingers, a table): statics
+    takes it when the robot has obstacles or shapes, and moves it by the
+    group's exponential (:func:`_moved_by`); with friction it needs stick
+    points where it touches (:class:`solve.contact.StickPoints`: a twin or
+    a scenario's load steps keep them), else it slides off (no
+    equilibrium: StaticsError)."""
     tree = mech.tree
     motion = getattr(mech, "base_motion", "fixed")
     if motion == "floating":
         raise ValueError("statics: the base is floating (base.motion: floating): a free body has no static "
                          "equilibrium under gravity unless held; clamp it (base.motion: fixed) or run the "
                          "dynamics to let it settle")
+    if obstacles or mech.shapes:
+        return
     carried = _carried_base(mech)
     for i, j in enumerate(tree.joints):
         if j.kind in (SPHERICAL, FREE) and (carried is None or i != carried[0]):
-            raise ValueError(f"statics: joint {j.name!r} is {'spherical' if j.kind == SPHERICAL else 'free'}; "
-                             f"statics needs joints with nq = nv (soft, revolute, prismatic, fixed): "
+            raise ValueError(f"statics: joint {j.name!r} is {'spherical' if j.kind == SPHERICAL else 'free'} and "
+                             f"nothing can hold it (no obstacle, no collision shape): statics needs joints with "
+                             f"nq = nv (soft, revolute, prismatic, fixed) or a loose object held by contacts; "
                              f"use the dynamics to let it settle")
 
 
@@ -691,14 +700,14 @@ def solve_equilibrium(mech, actuation=None, efforts=None, positions=None, loads=
     the world obstacles' friction acts against the contacts' displacements
     from there (:func:`engine.contact.stick_friction`); None: statics
     without friction."""
-    _check_statics_model(mech)
+    obstacles = tuple(mech.obstacles if obstacles is None else obstacles)
+    _check_statics_model(mech, obstacles)
     inp = inputs if inputs is not None else make_inputs(mech, actuation, efforts, positions, None, loads, point_loads)
     tree = mech.tree
     q_start = tree.q0.copy() if q_init is None else tree.check_q(np.array(q_init, dtype=float), "q_init").copy()
     q = carry_base(mech, q_start, targets)
     m = mech.n_constraint_rows + len(mech.joints_with("position"))
     lam = np.zeros(m)
-    obstacles = tuple(mech.obstacles if obstacles is None else obstacles)
     if m == 0 and not obstacles and not mech.shapes:       # (shapes: the robot's own, which members touch)
         return _free_equilibrium(mech, inp, q, tol, max_iterations, max_load_steps, check_stability, tangent_hint)
     with one_blas_thread():

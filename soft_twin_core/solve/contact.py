@@ -26,18 +26,47 @@ STICK_CAP = 3.0      # a sliding point's stick point is dragged along to this ma
 
 @dataclass(frozen=True)
 class StickPoints:
-    """Where the contact points stick, for statics' friction: their world
+    """Where the contact points stick, for statics' friction: their
     positions p (P, 3) [m] and frames' rotations R (P, 3, 3) at the
-    equilibrium they last rested in, and which of them touched a world
-    obstacle with friction there (``touching`` (P,) bool): only those have
-    a stick point; one that touches down in a solve lands where it meets
-    the obstacle, which a statics solve cannot know (the path is not
-    solved), so it is frictionless in that solve and sticks where it
-    landed from the next (:meth:`MemberContact.stick_points`,
-    :meth:`MemberContact.stuck_after`)."""
+    equilibrium they last rested in, and which of them touched an obstacle
+    with friction there (``touching`` (P,) bool): only those have a stick
+    point; one that touches down in a solve lands where it meets the
+    obstacle, which a statics solve cannot know (the path is not solved),
+    so it is frictionless in that solve and sticks where it landed from the
+    next (:meth:`MemberContact.stick_points`,
+    :meth:`MemberContact.stuck_after`). ``body`` (P,) int: the joint whose
+    output frame p and R are given in, the body carrying the touched shape
+    (a loose object held by the fingers: the stick point moves with it);
+    -1 (or None for all): the world's axes."""
     p: np.ndarray
     R: np.ndarray
     touching: np.ndarray
+    body: np.ndarray = None
+
+    def in_world(self, ws):
+        """(p, R): these stick points' positions and rotations in world
+        axes, the bodies posed as the workspace is (after its forward
+        pass)."""
+        if self.body is None or not np.any(self.body >= 0):
+            return self.p, self.R
+        p, R = self.p.copy(), self.R.copy()
+        on = np.flatnonzero(self.body >= 0)
+        g = ws.work.g_out[self.body[on]]
+        p[on] = np.einsum("cij,cj->ci", g[:, :3, :3], self.p[on]) + g[:, :3, 3]
+        R[on] = np.matmul(g[:, :3, :3], self.R[on])
+        return p, R
+
+
+def _in_body(ws, body, p, R):
+    """World positions p (c, 3) and rotations R (c, 3, 3) in the output
+    frames of the joints ``body`` (c,) (-1: left in world axes), the
+    workspace posed."""
+    p, R = p.copy(), R.copy()
+    on = np.flatnonzero(body >= 0)
+    g = ws.work.g_out[body[on]]
+    p[on] = np.einsum("cji,cj->ci", g[:, :3, :3], p[on] - g[:, :3, 3])
+    R[on] = np.matmul(np.transpose(g[:, :3, :3], (0, 2, 1)), R[on])
+    return p, R
 
 
 def mechanism_contact_points(mech):
@@ -221,40 +250,44 @@ class MemberContact:
         contacts' displacements from there (:meth:`_stick_friction`)."""
         p, G = self.positions(ws, q, frames=True)
         st = self._with_arms(ws, contact_forces(self.points, self.all, p, self.allowed, self._posed(ws)), G)
-        return st if stick is None else self._stick_friction(st, G, stick)
+        return st if stick is None else self._stick_friction(ws, st, G, stick)
 
     def stick_points(self, ws, q):
         """:class:`StickPoints` of the points where they are at q."""
         p, G = self.positions(ws, q, frames=True)
-        return StickPoints(p, G[:, :3, :3].copy(), np.zeros(len(p), np.bool_))
+        return StickPoints(p, G[:, :3, :3].copy(), np.zeros(len(p), np.bool_), np.full(len(p), -1, np.int64))
 
-    def _surface_displacement(self, st, G, stick):
+    def _surface_displacement(self, st, G, stick_pose):
         """(c, 3): each contact's surface point's tangential displacement
         from where it sticks, ``(I - n n^T) (dp + r n x phi)`` (dp: the
         backbone point's, phi: its frame's rotation vector from the stick
         frame, world axes: the surface point -r n turns by phi x (-r n))."""
         i = st.point
-        phi = log_so3(np.einsum("cij,ckj->cik", G[i, :3, :3], stick.R[i]))
+        sp, sR = stick_pose
+        phi = log_so3(np.einsum("cij,ckj->cik", G[i, :3, :3], sR[i]))
         r = st.radius if st.radius is not None else np.zeros(len(st))
-        u = st.p - stick.p[i] + r[:, None] * np.cross(st.normal, phi)
+        u = st.p - sp[i] + r[:, None] * np.cross(st.normal, phi)
         return u - st.normal * np.einsum("ck,ck->c", st.normal, u)[:, None]
 
-    def _stick_friction(self, st, G, stick):
+    def _stick_friction(self, ws, st, G, stick):
         """``st`` with statics' friction (:func:`engine.contact.stick_friction`)
         at the contacts with world obstacles that have friction: the force
         at the surface point (on the backbone point: the force and its
         moment ``(-r n) x F_t``), ``dFf_dd`` its derivative along the
         surface point's displacement (Newton's ``J_s^T dFf_dd J_s``) and
         ``dFf_dp`` its growth with the normal force (``J_s^T dFf_dp J_p``).
-        The world's obstacles only: a body's shape moves with the robot,
-        and its contacts stay frictionless in statics."""
+        A body's shape (a loose object, a link) carries its stick points
+        along (:meth:`StickPoints.in_world`): the displacement is relative
+        to it, and the friction's reaction acts
+        on it (:func:`_point_loads`). ``stick.body``: the body each point
+        stuck to; a contact with another one is frictionless in this
+        solve."""
         n = len(st)
         mu = np.array([ob.friction for ob in self.all])[st.obstacle] if n else np.zeros(0)
-        world = st.body < 0 if st.body is not None else np.ones(n, np.bool_)
-        rows = np.flatnonzero((mu > 0) & world & stick.touching[st.point])
+        rows = np.flatnonzero((mu > 0) & stick.touching[st.point] & (self._stuck_to(stick)[st.point] == self._body(st)))
         if not len(rows):
             return st
-        d = self._surface_displacement(st, G, stick)
+        d = self._surface_displacement(st, G, stick.in_world(ws))
         N = st.normal
         fn = np.einsum("ck,ck->c", N, st.force)
         dfn = np.einsum("ck,ckj->cj", N, st.dF_dp)           # d fn / dp (n^T Hess d n = 0)
@@ -274,35 +307,63 @@ class MemberContact:
         st.dFf_dv = np.zeros((n, 3, 3))
         return st
 
+    @staticmethod
+    def _body(st):
+        """(c,) the joint of each contact's touched body (-1: the world)."""
+        return st.body if st.body is not None else np.full(len(st), -1, np.int64)
+
+    @staticmethod
+    def _stuck_to(stick):
+        """(P,) the body each stick point moves with (-1: the world)."""
+        return stick.body if stick.body is not None else np.full(len(stick.p), -1, np.int64)
+
+    @property
+    def has_friction(self):
+        """Whether an obstacle or a body's shape has friction (statics then
+        keeps :class:`StickPoints` from solve to solve)."""
+        return self._some and any(ob.friction > 0 for ob in self.all)
+
+    def stuck_at(self, ws, q):
+        """:class:`StickPoints` of a robot placed at q: the points touching
+        an obstacle or a body's shape with friction there stick where they
+        are (a loose object set on a table, in the fingers), from the first
+        solve."""
+        return self.stuck_after(ws, q, self.stick_points(ws, q), self.state(ws, q))
+
     def stuck_after(self, ws, q, stick, st=None):
         """The stick points after an equilibrium at q (its ContactState
-        ``st``, made with ``stick``): a point touching a world obstacle with
-        friction that had a stick point keeps it, unless it slid more than
-        ``STICK_CAP`` stick lengths: then it is dragged along to that
-        distance behind its surface point (its friction stays at 0.995 mu
-        fn, and a load turned back first takes up the stick, at most twice
-        that distance, before it slides back); one that touched down in the solve sticks where it is now;
-        the others have none (they stick where they are now, untouching)."""
+        ``st``, made with ``stick``): a point touching an obstacle or a
+        body's shape with friction that had a stick point there keeps it,
+        unless it slid more than ``STICK_CAP`` stick lengths: then it is
+        dragged along to that distance behind its surface point (its
+        friction stays at 0.995 mu fn, and a load turned back first takes
+        up the stick, at most twice that distance, before it slides back);
+        one that touched down in the solve sticks where it is now; the
+        others have none (they stick where they are now, untouching). A
+        stick point on a body is kept in the body's frame."""
         p, G = self.positions(ws, q, frames=True)
         out_p, out_R = p.copy(), G[:, :3, :3].copy()
         touching = np.zeros(len(p), np.bool_)
+        body = np.full(len(p), -1, np.int64)
         if st is None or not len(st):
-            return StickPoints(out_p, out_R, touching)
+            return StickPoints(out_p, out_R, touching, body)
         mu = np.array([ob.friction for ob in self.all])[st.obstacle]
-        world = st.body < 0 if st.body is not None else np.ones(len(st), np.bool_)
-        touching[st.point[(mu > 0) & world]] = True
-        if st.dFf_dd is None:
-            return StickPoints(out_p, out_R, touching)
-        held = np.flatnonzero(np.any(st.dFf_dd != 0, axis=(1, 2)) | np.any(st.dFf_dp != 0, axis=(1, 2)))
-        d = self._surface_displacement(st, G, stick)
-        cap = STICK_CAP * np.array([ob.stiction_velocity for ob in self.all])[st.obstacle] * STICK_TIME
-        for c in held:
-            i = st.point[c]
-            size = np.linalg.norm(d[c])
-            out_p[i], out_R[i] = stick.p[i], stick.R[i]
-            if size > cap[c]:
-                out_p[i] = stick.p[i] + (1.0 - cap[c] / size) * d[c]
-        return StickPoints(out_p, out_R, touching)
+        fr = np.flatnonzero(mu > 0)
+        touching[st.point[fr]] = True
+        body[st.point[fr]] = self._body(st)[fr]
+        if st.dFf_dd is not None:
+            held = np.flatnonzero(np.any(st.dFf_dd != 0, axis=(1, 2)) | np.any(st.dFf_dp != 0, axis=(1, 2)))
+            wp, wR = stick.in_world(ws)
+            d = self._surface_displacement(st, G, (wp, wR))
+            cap = STICK_CAP * np.array([ob.stiction_velocity for ob in self.all])[st.obstacle] * STICK_TIME
+            for c in held:
+                i = st.point[c]
+                size = np.linalg.norm(d[c])
+                out_p[i], out_R[i] = wp[i], wR[i]
+                if size > cap[c]:
+                    out_p[i] = wp[i] + (1.0 - cap[c] / size) * d[c]
+        out_p, out_R = _in_body(ws, body, out_p, out_R)
+        return StickPoints(out_p, out_R, touching, body)
 
     def with_obstacles(self, obstacles):
         """This contact with ``obstacles`` instead (the same points)."""

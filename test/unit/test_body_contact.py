@@ -219,16 +219,16 @@ def test_the_gripper_grasps_lifts_and_holds_the_cylinder():
 
 
 def test_the_twin_runs_the_gripper_and_names_its_contacts():
-    """A dynamic twin of the gripper (statics cannot hold its loose
-    cylinder: it starts at the reference configuration, saying why) steps
-    with the cylinder resting on the table; its contacts name the
-    cylinder's points and the table (pushing it up), in the run's JSON
-    form."""
+    """A dynamic twin of the gripper starts from its rest (statics holds
+    the loose cylinder on the table by the friction where the file places
+    it: test/unit/test_static_grasp.py) and steps with the cylinder resting
+    on the table; its contacts name the cylinder's points and the table
+    (pushing it up), in the run's JSON form."""
     from soft_twin_core.solve.contact import contacts_dict
     from soft_twin_core.twin import Twin, TwinSettings
     mech = _gripper()
     twin = Twin(mech, TwinSettings(mode="dynamic", dt=5e-4, theta=0.5))
-    assert "reference configuration" in twin.rest_message and "free" in twin.rest_message
+    assert "static equilibrium" in twin.rest_message, twin.rest_message
     assert twin.step(40).converged
     rows = contacts_dict(mech, twin.contacts)
     assert rows and {(r["member"], r["obstacle"]) for r in rows} == {("cylinder", "table")}
