@@ -74,6 +74,10 @@ def _parser():
     s.add_argument("--time", type=_non_negative_seconds, metavar="T",
                    help="evaluate the scenario's time-varying inputs (actuation_profile, joint_trajectories, "
                         "load profiles) at T s; default: where every profile has reached its final value")
+    s.add_argument("--path-steps", type=int, default=0, metavar="N",
+                   help="solve at N equal times from 0 to the statics time, each from the one before, carrying "
+                        "where the contacts stick (statics with a history: a gripper closes, then lifts what it "
+                        "holds); default 0: the inputs at that time, in the scenario's load_steps")
     s.add_argument("--output", "-o", help="write to this file instead of stdout")
     render.add_visual_arguments(s, sweep=True)
     d = sub.add_parser("dynamics", help="time simulation of a scenario (JSON or CSV)")
@@ -320,9 +324,9 @@ def main(argv=None):
         from soft_twin_core.estimation.cli import cli_main
         return cli_main(args)
     failed = None
-    for name in ("sections", "backbone_every", "record_every", "points_per_section"):
+    for name in ("sections", "backbone_every", "record_every", "points_per_section", "path_steps"):
         v = getattr(args, name, None)
-        low = 0 if name == "backbone_every" else 1
+        low = 0 if name in ("backbone_every", "path_steps") else 1
         if v is not None and v < low:
             print(f"soft-twin-sim: --{name.replace('_', '-')} must be >= {low}, got {v}", file=sys.stderr)
             return 2
@@ -354,7 +358,7 @@ def main(argv=None):
                     if note is not None:
                         print(f"soft-twin-sim: statics: {note}", file=sys.stderr)
                     note = note or ""
-                r = run_statics(sc, args.points_per_section, args.time)
+                r = run_statics(sc, args.points_per_section, args.time, args.path_steps)
                 if r.get("stable") is False:
                     print(unstable_message(r, a), file=sys.stderr)
                 if a is not None:

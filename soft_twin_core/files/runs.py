@@ -94,9 +94,13 @@ def _nan_none(a):
     return [None if not np.isfinite(x) else float(x) for x in a]
 
 
-def run_mechanism_statics(sc, t=0.0, points_per_section=1):
+def run_mechanism_statics(sc, t=0.0, points_per_section=1, path_steps=0):
     """Equilibrium of the scenario's inputs at time ``t`` [s] (default 0;
-    :func:`scenario.run_statics` picks the end of the profiles). JSON-ready dict: joint_names and
+    :func:`scenario.run_statics` picks the end of the profiles), reached in
+    the scenario's ``load_steps`` increments of the inputs at t, or, with
+    ``path_steps`` N > 0, through the inputs at N equal times from 0 to t
+    (statics with a history: a gripper that closes, then lifts, holds
+    what it closed on). JSON-ready dict: joint_names and
     joint_positions/efforts [rad or m, N m or N]; frame_names and
     frame_positions (world, m) and frame_poses (4x4, world); constraint_names and constraint_wrenches
     (world [f; m] on the constraint's frame, N, N m); transmitted_names and
@@ -111,16 +115,19 @@ def run_mechanism_statics(sc, t=0.0, points_per_section=1):
     :class:`solve.contact.StickPoints`), so a single increment has friction
     only where the robot touches at the start."""
     q, iterations = None, 0
-    obstacles = sc.obstacles_at(t)
-    contact = MemberContact(sc.mech, obstacles)
-    stick = None
+    steps = [(t * k / path_steps, 1.0) for k in range(1, path_steps + 1)] if path_steps else \
+        [(t, k / sc.load_steps) for k in range(1, sc.load_steps + 1)]       # (time, fraction of its inputs)
+    contact, stick = MemberContact(sc.mech, sc.obstacles_at(0.0)), None
     if contact.has_friction:
         ws = Workspace(sc.mech.tree)
         stick = contact.stuck_at(ws, sc.mech.tree.q0)
-    for k in range(1, sc.load_steps + 1):     # load_steps increments, each warm-started
-        eq = solve_equilibrium(sc.mech, q_init=q, targets=_targets(sc, t), inputs=_inputs(sc, t, k / sc.load_steps),
+    for k, (tk, fraction) in enumerate(steps):      # each warm-started from the one before
+        obstacles = sc.obstacles_at(tk)
+        if obstacles is not None:                   # the scenario's own obstacles, where they are at tk
+            contact = contact.with_obstacles(obstacles)
+        eq = solve_equilibrium(sc.mech, q_init=q, targets=_targets(sc, tk), inputs=_inputs(sc, tk, fraction),
                                obstacles=obstacles, stick=stick,
-                               check_stability=k == sc.load_steps)      # the final equilibrium's is the one to judge
+                               check_stability=k == len(steps) - 1)    # the final equilibrium's is the one to judge
         q, iterations = eq.q, iterations + eq.iterations
         if stick is not None:
             stick = contact.stuck_after(ws, q, stick, eq.contacts)

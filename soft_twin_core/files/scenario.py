@@ -533,7 +533,7 @@ def _positive_or_zero_time(v, name):
     return float(v)
 
 
-def run_statics(sc, points_per_section=10, time=None):
+def run_statics(sc, points_per_section=10, time=None, path_steps=0):
     """Solve the scenario's equilibrium, for any robot, through the one
     equilibrium solver (:func:`constrained.solve_equilibrium`: the compiled
     Newton without constraint rows, KKT with them; the stability judged),
@@ -550,9 +550,16 @@ def run_statics(sc, points_per_section=10, time=None):
 
     Time-varying inputs (profiles, trajectories) are evaluated at ``time``
     [s], by default at the end of the last profile (:func:`statics_time`);
-    the result then holds ``time`` and ``time_note``."""
+    the result then holds ``time`` and ``time_note``. ``path_steps`` N > 0:
+    solved at N equal times from 0 to that time instead, each from the
+    one before, so that friction keeps its history (where the contacts
+    stick); the result holds ``path_steps``."""
     t, note = statics_time(sc, time)
-    out = run_mechanism_statics(sc, t, points_per_section)
+    if not (isinstance(path_steps, (int, np.integer)) and path_steps >= 0):
+        raise ValueError(f"path_steps: expected an integer >= 0 (0: the inputs at one time), got {path_steps!r}")
+    out = run_mechanism_statics(sc, t, points_per_section, int(path_steps))
+    if path_steps:
+        out.update(path_steps=int(path_steps))
     if note is not None:
         out.update(time=t, time_note=note)
     return out

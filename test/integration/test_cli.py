@@ -184,3 +184,21 @@ def test_scenario_fuzz_only_scenario_errors(base):
             scenario_from_dict(d)
         except (ScenarioError, ModelError):
             pass
+
+
+def test_statics_path_steps_solves_through_the_timeline_and_is_validated(capsys, tmp_path):
+    """``statics --path-steps N``: the tendon arm's scenario solved at N
+    times up to its statics time, each from the one before, ends at the
+    equilibrium of the inputs at that time (no friction: no history), and
+    says how many; a negative N is refused naming the flag."""
+    path = os.path.join(CONFIG, "scenarios", "tendon_arm_statics.yaml")
+    code, out, err = run_cli(["statics", path], capsys)
+    assert code == 0, err
+    once = json.loads(out)
+    code, out, err = run_cli(["statics", path, "--path-steps", "3"], capsys)
+    assert code == 0, err
+    path3 = json.loads(out)
+    assert path3["path_steps"] == 3
+    assert np.allclose(path3["tip_position"], once["tip_position"], atol=1e-9)
+    code, out, err = run_cli(["statics", path, "--path-steps", "-1"], capsys)
+    assert code == 2 and "--path-steps must be >= 0" in err, err

@@ -86,9 +86,9 @@ def test_the_figures_of_every_shipped_scenario_read_well(scenario, tmp_path, mon
                 codes.append(cli.main(argv))
             except SystemExit as e:
                 codes.append(e.code)
-    # dynamics always runs; statics may refuse a robot it cannot hold (a loose object), exit code 2, and
-    # the catheter's insertion (the base carried 100 mm, the tip round the bend) it cannot follow: exit 3
-    allowed = (0, None, 2, 3) if scenario == "catheter_in_vessel" else (0, None, 2)
+    # dynamics always runs; so does statics (loose objects held by friction where the file places them),
+    # but for the catheter's insertion (the base carried 100 mm, the tip round the bend) it cannot follow: exit 3
+    allowed = (0, None, 3) if scenario == "catheter_in_vessel" else (0, None)
     assert codes[1] in (0, None) and codes[0] in allowed
     assert "backbone_shapes.png" in seen and "tip.png" in seen and "energies.png" in seen
     assert not problems, "\n".join(problems)

@@ -5,7 +5,7 @@ across two stiff rods under tilted gravity creeps by Coulomb's smoothed law
 against its displacement relative to the rods, computed here from the
 poses alone, holds up to tan(theta) = mu and slides off beyond; the
 example gripper, as a quasi-static twin, grips its loose cylinder and lifts
-it where the dynamics holds it."""
+it where the dynamics holds it, and its fingers pressed together stick."""
 
 import math
 from pathlib import Path
@@ -17,6 +17,7 @@ from soft_twin_core.engine.contact import STICK_TIME
 from soft_twin_core.engine.workspace import Workspace
 from soft_twin_core.errors import StaticsError
 from soft_twin_core.robot.mechanism import mechanism_from_dict
+from soft_twin_core.robot.model import read_yaml_file
 from soft_twin_core.solve import constrained as cs
 from soft_twin_core.solve.contact import MemberContact
 
@@ -139,9 +140,13 @@ def test_a_quasi_static_twin_grips_and_lifts_the_loose_cylinder_where_the_dynami
     raised 50 mm carries it along. The cylinder ends where the example's
     dynamics (the same inputs over 1.5 s, then at rest within 10 um a
     0.1 s) holds it: within 0.02 mm after the grip and after the lift (6-7
-    um seen), the two solvers taking different paths through friction."""
+    um seen), the two solvers taking different paths through friction.
+    The scenario's statics through its timeline (15 times from 0 to 1.5 s,
+    stick points carried) holds it there too (0.17 mm seen, the tension
+    rising in 1.2 N steps); its statics at 1.5 s at once leaves it on the
+    table (the palm is up when the fingers close: the history matters)."""
     from soft_twin_core.files.runs import run_mechanism_dynamics
-    from soft_twin_core.files.scenario import load_scenario
+    from soft_twin_core.files.scenario import load_scenario, run_statics
     from soft_twin_core.twin import Twin, TwinSettings
     root = Path(__file__).resolve().parents[2]
     sc = load_scenario(str(root / "config" / "scenarios" / "soft_gripper_lift.yaml"))
@@ -170,3 +175,54 @@ def test_a_quasi_static_twin_grips_and_lifts_the_loose_cylinder_where_the_dynami
     assert np.abs(gripped - (P[at[0.7]] - start)).max() < 2e-5, (gripped, P[at[0.7]] - start)
     assert np.abs(lifted - (P[at[1.5]] - start)).max() < 2e-5, (lifted, P[at[1.5]] - start)
     assert lifted[2] - gripped[2] == pytest.approx(0.05, abs=2e-5)
+
+    path = run_statics(sc, 1, path_steps=15)          # the scenario's statics through its timeline
+    names = list(path["frame_names"])
+    assert path["stable"] and path["path_steps"] == 15
+    assert {c["obstacle"] for c in path["contacts"]} == {"cylinder"}
+    assert np.abs(np.asarray(path["frame_positions"])[names.index("cylinder")] - P[at[1.5]]).max() < 3e-4
+    at_once = run_statics(sc, 1)         # the inputs at t = 1.5 s at once: the palm is up before the fingers close
+    assert {c["obstacle"] for c in at_once["contacts"]} >= {"table"}
+    assert np.asarray(at_once["frame_positions"])[names.index("cylinder")][2] < start[2]
+
+
+def test_fingers_pressed_together_stick_in_statics_and_slip_apart_without_friction():
+    """The example gripper without its cylinder, as a quasi-static twin:
+    the tendons raised to 8 N press the fingertips together (their
+    ``contact.between`` capsules are shapes carried by the sections: the
+    same stick points as a loose object's); a sideways load of 0.02-0.1 N
+    on the left tip then carries the right finger along (it follows within
+    20 %: stuck, the two bend together), and every equilibrium is stable.
+    With the capsules frictionless, two fingertips pressed together are an
+    unstable pinch: statics flags the equilibria unstable and the right
+    tip moves the other way (it slides off)."""
+    from soft_twin_core.solve.outputs import state_outputs
+    from soft_twin_core.twin import Twin, TwinSettings
+    root = Path(__file__).resolve().parents[2]
+    moved = {}
+    for mu in (0.5, 0.0):
+        d = read_yaml_file(root / "config" / "robots" / "soft_gripper_lift.yaml")
+        d["bodies"] = [b for b in d["bodies"] if b["name"] != "cylinder"]
+        d["contact"]["between"]["friction"] = mu
+        mech = mechanism_from_dict(d)
+        twin = Twin(mech, TwinSettings(mode="quasi_static"))
+        for tension in (2.0, 4.0, 6.0, 8.0):
+            twin.set_actuation([tension, tension])
+            twin.step(1)
+        assert twin.contacts is not None and len(twin.contacts) >= 1
+
+        def tips():
+            f = state_outputs(mech, twin.state.q, twin.lam, twin.core_inputs()).frames
+            return f["finger_left_tip"][1, 3], f["finger_right_tip"][1, 3]
+        start = tips()
+        rows = []
+        for load in (0.02, 0.05, 0.1):
+            twin.set_point_wrench("finger_left_tip", [0.0, load, 0.0, 0.0, 0.0, 0.0])
+            info = twin.step(1)
+            assert info.converged, info.message
+            left, right = tips()
+            rows.append((left - start[0], right - start[1], info.stable))
+        moved[mu] = np.array(rows)
+    stuck, free = moved[0.5], moved[0.0]
+    assert np.all(stuck[:, 2]) and np.all(stuck[:, 0] > 0) and np.all(stuck[:, 1] > 0.8 * stuck[:, 0]), stuck
+    assert not np.any(free[:, 2]) and np.all(free[:, 1] * free[:, 0] < 0), free
