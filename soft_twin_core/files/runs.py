@@ -11,6 +11,7 @@ Outputs (JSON; the CSV has the same time histories): see
 import numpy as np
 
 from soft_twin_core._blas import one_blas_thread
+from soft_twin_core.errors import StaticsError
 from soft_twin_core.engine.loads import Loads
 from soft_twin_core.solve.constrained import (MechanismSimulator, StepError, concat_loads, make_inputs,
                                               solve_equilibrium)
@@ -125,9 +126,15 @@ def run_mechanism_statics(sc, t=0.0, points_per_section=1, path_steps=0):
         obstacles = sc.obstacles_at(tk)
         if obstacles is not None:                   # the scenario's own obstacles, where they are at tk
             contact = contact.with_obstacles(obstacles)
-        eq = solve_equilibrium(sc.mech, q_init=q, targets=_targets(sc, tk), inputs=_inputs(sc, tk, fraction),
-                               obstacles=obstacles, stick=stick,
-                               check_stability=k == len(steps) - 1)    # the final equilibrium's is the one to judge
+        try:
+            eq = solve_equilibrium(sc.mech, q_init=q, targets=_targets(sc, tk), inputs=_inputs(sc, tk, fraction),
+                                   obstacles=obstacles, stick=stick,
+                                   check_stability=k == len(steps) - 1)    # the final equilibrium's is judged
+        except StaticsError as e:
+            if not path_steps:
+                raise
+            raise StaticsError(f"statics through the timeline: the solve at t = {tk:.6g} s (time {k + 1} of "
+                               f"{len(steps)}) failed: {e}") from e
         q, iterations = eq.q, iterations + eq.iterations
         if stick is not None:
             stick = contact.stuck_after(ws, q, stick, eq.contacts)
