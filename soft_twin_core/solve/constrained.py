@@ -498,13 +498,18 @@ def _check_statics_model(mech, obstacles):
                          "dynamics to let it settle")
     if obstacles or mech.shapes:
         return
+    for name in _loose_joints(mech):
+        kind = "spherical" if tree.joints[tree.joint_index(name)].kind == SPHERICAL else "free"
+        raise ValueError(f"statics: joint {name!r} is {kind} and nothing can hold it (no obstacle, no collision "
+                         f"shape): statics needs joints with nq = nv (soft, revolute, prismatic, fixed) or a loose "
+                         f"object held by contacts; use the dynamics to let it settle")
+
+
+def _loose_joints(mech):
+    """Names of the free and spherical joints statics moves (not a carried base's)."""
     carried = _carried_base(mech)
-    for i, j in enumerate(tree.joints):
-        if j.kind in (SPHERICAL, FREE) and (carried is None or i != carried[0]):
-            raise ValueError(f"statics: joint {j.name!r} is {'spherical' if j.kind == SPHERICAL else 'free'} and "
-                             f"nothing can hold it (no obstacle, no collision shape): statics needs joints with "
-                             f"nq = nv (soft, revolute, prismatic, fixed) or a loose object held by contacts; "
-                             f"use the dynamics to let it settle")
+    return [j.name for i, j in enumerate(mech.tree.joints)
+            if j.kind in (SPHERICAL, FREE) and (carried is None or i != carried[0])]
 
 
 def _carried_base(mech):
@@ -715,9 +720,17 @@ def solve_equilibrium(mech, actuation=None, efforts=None, positions=None, loads=
         q1, lam1, it, ok, R, phi, sc = _kkt_newton(pb, q, lam, tol, max_iterations)
         steps, total = 1, it
         if not ok:
-            q1, lam1, total, steps, R, phi, sc = _continuation(mech, inp, _base_path(mech, q_start, targets), q_start,
-                                                               lam, tol, max_iterations, max_load_steps, total,
-                                                               obstacles, stick)
+            try:
+                q1, lam1, total, steps, R, phi, sc = _continuation(mech, inp, _base_path(mech, q_start, targets),
+                                                                   q_start, lam, tol, max_iterations, max_load_steps,
+                                                                   total, obstacles, stick)
+            except StaticsError as e:
+                loose = _loose_joints(mech)
+                if loose and stick is None:
+                    raise StaticsError(f"{e}; the loose object(s) {loose} can be held only by friction, which "
+                                       f"statics gives from stick points (stick=MemberContact.stuck_at(...): the "
+                                       f"quasi-static twin and a scenario's statics keep them)") from e
+                raise
         stable, lo = True, float("nan")
         pb = _Equilibrium(mech, inp, targets, obstacles, stick)
         if check_stability:

@@ -226,3 +226,11 @@ def test_fingers_pressed_together_stick_in_statics_and_slip_apart_without_fricti
     stuck, free = moved[0.5], moved[0.0]
     assert np.all(stuck[:, 2]) and np.all(stuck[:, 0] > 0) and np.all(stuck[:, 1] > 0.8 * stuck[:, 0]), stuck
     assert not np.any(free[:, 2]) and np.all(free[:, 1] * free[:, 0] < 0), free
+
+
+def test_statics_without_stick_points_says_a_loose_object_needs_them():
+    """The box on the rods solved without stick points (frictionless
+    everywhere, as IK and the planner solve): no equilibrium holds it, and
+    the error says the loose object needs stick points, naming it."""
+    with pytest.raises(StaticsError, match=r"loose object\(s\) \['box'\].*stick points"):
+        cs.solve_equilibrium(_box_on_rods(0.1))
