@@ -636,8 +636,18 @@ def gap_force_scale(k_max, phi, length):
     return k_max * np.abs(phi).max(initial=0) / length
 
 
-def _kkt_newton(pb, q, lam, tol, max_iterations):
-    """Newton with backtracking on the KKT system; (q, lam, it, ok, R, phi)."""
+STALL_STEP, STALL_ITERATIONS = 1.0 / 32, 4     # Newton stalls: this many steps in a row cut to this or less
+
+
+def _kkt_newton(pb, q, lam, tol, max_iterations, stall=False):
+    """Newton with backtracking on the KKT system; (q, lam, it, ok, R, phi).
+    ``stall``: give up early when it stalls (``STALL_ITERATIONS`` steps in
+    a row cut to ``STALL_STEP`` or less: a linear model far from the
+    solution, e.g. an arm falling onto a table from straight, whose Newton
+    step goes metres through it), so that the caller's continuation takes
+    over instead of 50 creeping iterations (:func:`solve_equilibrium` from
+    the reference configuration); else it creeps on (a catheter sliding
+    round a bend converges so, in 30-46 iterations a step)."""
     Ls = _length_scale(pb.mech)
     R, phi, G = pb.residual(q, lam)
     Kq = pb.K @ _coordinate_offsets(pb.tree, q)
@@ -651,6 +661,7 @@ def _kkt_newton(pb, q, lam, tol, max_iterations):
         return np.sqrt(np.sum((R / sc) ** 2) + np.sum((phi / Ls) ** 2))
 
     sc = scale_of(R)
+    stalled = 0
     for it in range(1, max_iterations + 1):
         r_ok = np.abs(R).max(initial=0) <= tol * sc + 64 * np.finfo(float).eps * np.abs(Kq).max(initial=0)
         if r_ok and np.abs(phi).max(initial=0) <= tol * Ls:
@@ -669,6 +680,9 @@ def _kkt_newton(pb, q, lam, tol, max_iterations):
                 break
             step *= 0.5
         else:
+            return q, lam, it, False, R, phi, sc
+        stalled = stalled + 1 if step <= STALL_STEP else 0
+        if stall and stalled >= STALL_ITERATIONS:
             return q, lam, it, False, R, phi, sc
         q, lam, R, phi, G = q_t, l_t, R_t, phi_t, G_t
         Kq = pb.K @ _coordinate_offsets(pb.tree, q)
@@ -717,7 +731,10 @@ def solve_equilibrium(mech, actuation=None, efforts=None, positions=None, loads=
         return _free_equilibrium(mech, inp, q, tol, max_iterations, max_load_steps, check_stability, tangent_hint)
     with one_blas_thread():
         pb = _Equilibrium(mech, inp, targets, obstacles, stick)
-        q1, lam1, it, ok, R, phi, sc = _kkt_newton(pb, q, lam, tol, max_iterations)
+        # from the reference configuration, a stalled Newton gives up for the continuation; from a warm start
+        # (a twin's last shape, the step before on a path) it creeps on: scaling the loads from there changes
+        # what friction holds (a catheter sliding round a bend)
+        q1, lam1, it, ok, R, phi, sc = _kkt_newton(pb, q, lam, tol, max_iterations, stall=q_init is None)
         steps, total = 1, it
         if not ok:
             try:

@@ -4,6 +4,8 @@ functions against their definitions and finite differences, the statics
 tangent with contacts against a finite difference of the residual, and a
 heavy rod lifted off a plane against its small-deflection closed form."""
 
+from pathlib import Path
+
 import numpy as np
 import pytest
 
@@ -1478,3 +1480,22 @@ def test_an_elastic_rod_sliding_over_a_capstan_holds_the_bending_corrected_tensi
     assert np.exp(mu * wrap) / ratio > 1.07 and np.exp(mu * (rho - r) / rho * wrap) / ratio > 1.06
     slip = np.linalg.norm(sim.contacts.slip, axis=1)
     assert np.all(slip > 0.8 * v) and np.all(slip < 1.1 * v)
+
+
+def test_statics_from_straight_onto_a_table_gives_up_a_stalled_newton_for_the_continuation(monkeypatch):
+    """The arm-on-a-table scenario (config/scenarios/tendon_arm_on_table.yaml)
+    solved from the straight reference: the full Newton step goes far
+    through the table and the line search creeps (steps cut to 1/512 for
+    50 iterations, then the load continuation converges: 104 iterations).
+    Newton now gives the stalled start up after 4 steps cut to 1/32 or
+    less: the same equilibrium (to round-off) in at most 70 iterations;
+    with the old rule (never give up), more than 100."""
+    from soft_twin_core.files.scenario import load_scenario, run_statics
+    from soft_twin_core.solve import constrained as cs
+    sc = load_scenario(str(Path(__file__).resolve().parents[2] / "config" / "scenarios" / "tendon_arm_on_table.yaml"))
+    new = run_statics(sc, 1)
+    monkeypatch.setattr(cs, "STALL_ITERATIONS", 10 ** 9)
+    old = run_statics(sc, 1)
+    assert new["iterations"] <= 70 < 100 < old["iterations"], (new["iterations"], old["iterations"])
+    assert np.allclose(new["tip_position"], old["tip_position"], atol=1e-12)
+    assert len(new["contacts"]) == len(old["contacts"]) >= 1
