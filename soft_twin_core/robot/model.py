@@ -935,3 +935,27 @@ def benchmark_cantilever_dict(n_sections=10, free_modes="all", length=0.5, radiu
             "free_modes": free_modes,
         }],
     }
+
+
+BEND45_RADIUS = 100.0                    # the 45-degree bend's arc radius (the classic problem has no units)
+
+
+def bend45_dict(n_sections=8):
+    """The 45-degree bend (Bathe and Bolourchi, 1979): a cantilever
+    pre-curved to a 45-degree arc of radius 100 in the xy plane (towards
+    +y), a unit square section, E = 1e7, G = E / 2 (A = 1, I = 1/12, J =
+    1/6), every strain mode free, no gravity; the classic load is 600 out of
+    its plane at the tip. Its length (78.5) trips the plausibility warning
+    for metres: the problem has no units."""
+    E, G, A, I, J = 1e7, 5e6, 1.0, 1.0 / 12, 1.0 / 6
+    return {
+        "name": "bend45",
+        "gravity": [0.0, 0.0, 0.0],
+        "segments": [{
+            "name": "bend", "length": BEND45_RADIUS * math.pi / 4, "sections": n_sections,
+            "reference_strain": [1.0, 0.0, 0.0, 0.0, 0.0, 1.0 / BEND45_RADIUS], "free_modes": "all",
+            "sectional": {"stiffness": {"EA": E * A, "GA2": G * A, "GA3": G * A, "GJ": G * J, "EI2": E * I,
+                                        "EI3": E * I},
+                          "inertia": {"mass_per_length": 1.0, "J1": 1.0, "J2": 1.0, "J3": 1.0}},
+        }],
+    }
