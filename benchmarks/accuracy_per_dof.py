@@ -11,7 +11,9 @@ The arm: the common benchmark cantilever (L = 0.5 m, r = 10 mm, E = 1 MPa,
 per basis function). Loads: its own weight (a large deflection: the tip
 hangs 0.45 m down), a transverse tip force of 0.05 N, and the same force at
 mid-span (a kink in the shear force: a global basis converges slower).
-Reference: PCS at 400 sections (its own error about 1e-6 L).
+Reference: PCS at 400 sections (its own error about 1e-6 L). Also in 3D
+the Princeton beam (config/scenarios/princeton_beam.yaml: 8.896 N at 30
+degrees), against the continuum reference.
 
 In 3D, the 45-degree bend (Bathe and Bolourchi, 1979; Simo and Vu-Quoc,
 1986): a cantilever pre-curved to a 45-degree arc of radius R = 100 in the
@@ -34,6 +36,8 @@ import numpy as np
 
 from _timing import best_of, machine
 from soft_twin_core.engine.loads import Loads, PointLoad
+from soft_twin_core.files.runs import scenario_inputs
+from soft_twin_core.files.scenario import load_scenario
 from soft_twin_core.reference.continuum import solve_cosserat_statics
 from soft_twin_core.robot.mechanism import from_robot_model
 from soft_twin_core.robot.model import BEND45_RADIUS, bend45_dict, benchmark_cantilever_dict, model_from_dict
@@ -68,6 +72,36 @@ def bend_reference():
                                   tip_force_world=(0.0, 0.0, 600.0)).tip_pose()[:3, 3]
 
 
+PRINCETON = os.path.join(os.path.dirname(os.path.abspath(__file__)), "..", "config", "scenarios",
+                         "princeton_beam.yaml")
+PRINCETON_L = 0.508
+
+
+def princeton(n):
+    """(mechanism, inputs) of the Princeton beam scenario (an aluminium strip
+    0.508 m long, 8.896 N at its tip at 30 degrees to its thin direction)
+    in n sections."""
+    sc = load_scenario(PRINCETON, n)
+    return sc.mech, scenario_inputs(sc, 0.0)
+
+
+def princeton_reference():
+    """Its tip [m] from the continuum reference (0.3 % of the tip's
+    deflection from Obrezkov et al.'s large-deflection beam, 2022, given in
+    the scenario)."""
+    mech, inp = princeton(1)
+    return solve_cosserat_statics(mech.tree.joints[0].section.K, PRINCETON_L,
+                                  tip_force_world=tuple(inp.loads.wrench[0, :3])).tip_pose()[:3, 3]
+
+
+def _with_loads(robot, loads):
+    """n -> (mechanism, inputs) of ``robot(n)`` under ``loads``."""
+    def setup(n):
+        m = robot(n)
+        return m, make_inputs(m, loads=loads)
+    return setup
+
+
 def arm(n):
     return from_robot_model(model_from_dict(benchmark_cantilever_dict(n, "bending", length=L)))
 
@@ -91,19 +125,19 @@ def main(argv=None):
     args = ap.parse_args(argv)
     print(f"# accuracy per coordinate, {machine()}, load {os.getloadavg()[0]:.2f}")
     rows = {}
-    cases = [(name, arm, loads, None, L) for name, loads in CASES.items()]
-    cases.append(("45-degree bend, tip force 600 (3D)", bend, BEND_LOADS, bend_reference(), BEND_R))
-    for name, robot, loads, p_ref, scale in cases:
-        backbone = robot(128)
+    cases = [(name, _with_loads(arm, loads), None, L, "L") for name, loads in CASES.items()]
+    cases.append(("45-degree bend, tip force 600 (3D)", _with_loads(bend, BEND_LOADS), bend_reference(), BEND_R, "R"))
+    cases.append(("Princeton beam, 8.9 N at 30 deg (3D)", princeton, princeton_reference(), PRINCETON_L, "L"))
+    for name, setup, p_ref, scale, unit in cases:
         if p_ref is None:
-            ref = robot(400)
-            p_ref = tip(ref, solve_equilibrium(ref, loads=loads).q, make_inputs(ref, loads=loads))
+            ref, ref_inp = setup(400)
+            p_ref = tip(ref, solve_equilibrium(ref, inputs=ref_inp).q, ref_inp)
         pcs, leg, lin, cub = [], [], [], []
         for n in (1, 2, 4, 8, 16, 32, 64):
-            m = robot(n)
-            t, sol = best_of(lambda: solve_equilibrium(m, loads=loads), 3)
-            pcs.append((m.tree.nv, np.linalg.norm(tip(m, sol.q, make_inputs(m, loads=loads)) - p_ref) / scale, t))
-        inp = make_inputs(backbone, loads=loads)
+            m, inp = setup(n)
+            t, sol = best_of(lambda: solve_equilibrium(m, inputs=inp), 3)
+            pcs.append((m.tree.nv, np.linalg.norm(tip(m, sol.q, inp) - p_ref) / scale, t))
+        backbone, inp = setup(128)
         pb = free_problem(backbone, inp)
         for p in range(0, 8):
             B = legendre_basis(backbone, p)
@@ -114,8 +148,7 @@ def main(argv=None):
                 B = fem_basis(backbone, e, degree)
                 t, (q, _, _) = best_of(lambda: solve_reduced(pb, B, backbone.tree.q0, load_steps=8), 3)
                 out.append((B.shape[1], np.linalg.norm(tip(backbone, q, inp) - p_ref) / scale, t))
-        rows[name] = (pcs, leg, lin, cub, "R" if robot is bend else "L")
-        unit = rows[name][4]
+        rows[name] = (pcs, leg, lin, cub, unit)
         print(f"\n## {name}\n| basis | coordinates | tip error / {unit} | time |\n|---|---:|---:|---:|")
         for label, data in (("PCS", pcs), ("Legendre", leg), ("linear elements", lin), ("cubic elements", cub)):
             for c, e, t in data:
@@ -150,7 +183,7 @@ def main(argv=None):
             axs[r, c].grid(alpha=0.3, which="both")
     axs[0, 0].legend(fontsize=8)
     fig.suptitle("Cantilever statics: tip error against coordinates and against time (references: PCS, 400 "
-                 "sections; the bend's: the continuum boundary-value solution)")
+                 "sections; the 3-D cases: the continuum boundary-value solution)")
     os.makedirs(os.path.dirname(args.out) or ".", exist_ok=True)
     fig.savefig(args.out, dpi=110)
     print(f"\nfigure: {args.out}")

@@ -25,7 +25,7 @@ from soft_twin_core.solve.outputs import (frame_velocity, main_member, member_sa
                                           section_strains, state_outputs)
 
 
-def _inputs(sc, t, factor=1.0):
+def scenario_inputs(sc, t, factor=1.0):
     """The checked :class:`constrained.Inputs` of the scenario at time t [s];
     ``factor`` scales the actuation, the efforts and the loads (gravity
     stays whole: load stepping)."""
@@ -127,8 +127,8 @@ def run_mechanism_statics(sc, t=0.0, points_per_section=1, path_steps=0):
         if obstacles is not None:                   # the scenario's own obstacles, where they are at tk
             contact = contact.with_obstacles(obstacles)
         try:
-            eq = solve_equilibrium(sc.mech, q_init=q, targets=_targets(sc, tk), inputs=_inputs(sc, tk, fraction),
-                                   obstacles=obstacles, stick=stick,
+            eq = solve_equilibrium(sc.mech, q_init=q, targets=_targets(sc, tk),
+                                   inputs=scenario_inputs(sc, tk, fraction), obstacles=obstacles, stick=stick,
                                    check_stability=k == len(steps) - 1)    # the final equilibrium's is judged
         except StaticsError as e:
             if not path_steps:
@@ -305,7 +305,7 @@ def _start(sc, sim):
     position-controlled joints where their commands are at t = 0, and the
     accelerations and multipliers of that state (t = 0's base reaction
     includes the inertia of the first motion)."""
-    inp0 = _inputs(sc, 0.0)
+    inp0 = scenario_inputs(sc, 0.0)
     if sc.initial_q is not None:
         sim.q[:] = sc.initial_q
     for k, i in enumerate(sc.mech.joints_with("position")):
