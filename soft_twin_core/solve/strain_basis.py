@@ -26,8 +26,10 @@ import numpy as np
 from scipy.linalg import eigh
 
 from soft_twin_core.engine import algorithms as alg
+from soft_twin_core.engine.joint_kinds import SOFT
 from soft_twin_core.engine.workspace import Workspace
 from soft_twin_core.errors import StaticsError
+from soft_twin_core.lie import ad
 from soft_twin_core.solve.constrained import dense_stiffness_damping
 
 
@@ -161,3 +163,119 @@ def solve_reduced(pb, B, q_ref, z0=None, *, tol=1e-10, max_iterations=50, load_s
             raise StaticsError(f"reduced statics: no convergence in {max_iterations} iterations at load step "
                                f"{step}/{load_steps} (|B^T R| = {np.abs(r).max():.3g})")
     return q_ref + B @ z, z, total
+
+
+GAUSS2 = 0.5 / np.sqrt(3.0)       # the 2-point Gauss abscissae: a section's midpoint -+ this times its length
+
+
+class Magnus4Field:
+    """A member's strain field ``xi(X) = f0 + Phi(X) z`` (a basis per free
+    mode, as :func:`legendre_basis`) on the engine's sections, each section
+    [X_k, X_k + h] given the fourth-order Magnus step of the field (Zanna
+    collocation at the two Gauss points X_1 < X_2):
+
+        Omega_k = h/2 (xi_1 + xi_2) + sqrt(3) h^2 / 12 [xi_1, xi_2]
+
+    for the body-frame ODE g' = g xi^ (the commutator's sign is the
+    left-invariant one: the left ODE's, Y' = A Y, has the opposite), the
+    section's constant strain Omega_k / h. Its configuration ``q(z)`` is
+    then nonlinear in z (the commutator); its elastic energy is the field's,
+    by 2-point Gauss quadrature on every section (exact for a linear field
+    on a section, fourth order otherwise), not the sections'. For loads at
+    the sections' ends (a tip wrench, actuation) the backbone converges at
+    fourth order in the sections; loads inside them (gravity) stay second
+    order (the points inside a section lie on its constant-strain arc).
+    Needs every strain mode free on the member (the commutator reaches
+    modes a bending-only section cannot hold)."""
+
+    def __init__(self, mech, order):
+        tree = mech.tree
+        self.tree, self.q0 = tree, tree.q0.copy()
+        if not (isinstance(order, (int, np.integer)) and order >= 0):
+            raise ValueError(f"order: expected an integer >= 0, got {order!r}")
+        rows = []             # per section: (v offset, h, f0, K, Phi_1, Phi_2) with Phi (6, nz) filled below
+        cols = 0
+        for path in tree.paths:
+            js = [j for j in path.joints if tree.joints[j].kind == SOFT]
+            if not js:
+                continue
+            L = np.array([tree.joints[j].section.length for j in js])
+            start = np.concatenate([[0.0], np.cumsum(L)[:-1]]) / L.sum()
+            for jt, x0, h in zip(js, start, L / L.sum()):
+                sec = tree.joints[jt].section
+                if list(sec.modes) != list(range(6)):
+                    raise ValueError(f"Magnus4Field: member {path.name!r} must have every strain mode free "
+                                     f"(free_modes: all): the commutator reaches them all")
+                vals = [np.array([np.polynomial.legendre.Legendre.basis(j)(2 * x - 1) for j in range(order + 1)])
+                        for x in (x0 + (0.5 - GAUSS2) * h, x0 + (0.5 + GAUSS2) * h)]
+                rows.append((tree.idx_v[jt], sec.length, np.asarray(sec.f0, float), np.asarray(sec.K, float),
+                             cols, vals))
+            cols += 6 * (order + 1)
+        if any(tree.joints[i].nv for i in range(tree.n_joints) if tree.joints[i].kind != SOFT):
+            raise ValueError("Magnus4Field: the robot has rigid joints with coordinates; a strain basis covers "
+                             "soft members only")
+        self.nz = cols
+        self.sections = []
+        for iv, h, f0, K, c0, vals in rows:
+            Phi = []
+            for v in vals:
+                P = np.zeros((6, cols))
+                for a in range(6):
+                    P[a, c0 + a * (order + 1):c0 + (a + 1) * (order + 1)] = v
+                Phi.append(P)
+            self.sections.append((iv, h, f0, K, Phi[0], Phi[1]))
+        self.K_z = sum(0.5 * h * (P1.T @ K @ P1 + P2.T @ K @ P2) for _, h, _, K, P1, P2 in self.sections)
+
+    def q(self, z):
+        """The engine's coordinates (each section's strain Omega / h) at z."""
+        q = self.q0.copy()
+        for iv, h, f0, _, P1, P2 in self.sections:
+            x1, x2 = f0 + P1 @ z, f0 + P2 @ z
+            q[iv:iv + 6] = 0.5 * (x1 + x2) + np.sqrt(3.0) * h / 12 * (ad(x1) @ x2)
+        return q
+
+    def jacobian(self, z):
+        """dq/dz (nv, nz) at z."""
+        J = np.zeros((len(self.q0), self.nz))
+        for iv, h, f0, _, P1, P2 in self.sections:
+            x1, x2 = f0 + P1 @ z, f0 + P2 @ z
+            J[iv:iv + 6] = 0.5 * (P1 + P2) + np.sqrt(3.0) * h / 12 * (ad(x1) @ P2 - ad(x2) @ P1)
+        return J
+
+    def residual(self, pb, z):
+        """The principle of virtual work in z: ``J^T (R(q) - K (q - q0)) +
+        K_z z`` (the sections' own elastic forces replaced by the field's)."""
+        q = self.q(z)
+        return self.jacobian(z).T @ (pb.residual(q) - pb.K @ (q - self.q0)) + self.K_z @ z
+
+
+def solve_magnus4(pb, field, z0=None, *, tol=1e-10, max_iterations=60, load_steps=1):
+    """Equilibrium of :class:`equilibrium.Problem` ``pb`` in the coordinates
+    z of a :class:`Magnus4Field`: Newton on its residual with a
+    central-difference tangent (z is small: a few per mode), the inputs in
+    ``load_steps`` steps. Returns (q, z, iterations)."""
+    z = np.zeros(field.nz) if z0 is None else np.array(z0, dtype=float)
+    total = 0
+    for step in range(1, load_steps + 1):
+        p = pb.scaled(step / load_steps) if load_steps > 1 else pb
+        scale = 1.0 + np.abs(field.residual(p, np.zeros(field.nz))).max()
+        for _ in range(max_iterations):
+            r = field.residual(p, z)
+            if np.abs(r).max() <= tol * scale:
+                break
+            eps = 1e-7 * (1.0 + np.abs(z))
+            T = np.empty((field.nz, field.nz))
+            for k in range(field.nz):
+                e = np.zeros(field.nz)
+                e[k] = eps[k]
+                T[:, k] = (field.residual(p, z + e) - field.residual(p, z - e)) / (2 * eps[k])
+            dz = np.linalg.solve(T, -r)
+            t, n0 = 1.0, np.linalg.norm(r)
+            while t > 1e-4 and np.linalg.norm(field.residual(p, z + t * dz)) > (1 - 1e-4 * t) * n0:
+                t *= 0.5
+            z = z + t * dz
+            total += 1
+        else:
+            raise StaticsError(f"Magnus-4 statics: no convergence in {max_iterations} iterations at load step "
+                               f"{step}/{load_steps} (|r| = {np.abs(r).max():.3g})")
+    return field.q(z), z, total
