@@ -199,6 +199,10 @@ class Magnus4Field:
             js = [j for j in path.joints if tree.joints[j].kind == SOFT]
             if not js:
                 continue
+            if order + 1 > 2 * len(js):
+                raise ValueError(f"Magnus4Field: member {path.name!r} has {2 * len(js)} Gauss points for the "
+                                 f"basis's {order + 1} functions a mode, which they cannot tell apart (a singular "
+                                 f"Newton matrix); give it at least {(order + 2) // 2} sections")
             L = np.array([tree.joints[j].section.length for j in js])
             start = np.concatenate([[0.0], np.cumsum(L)[:-1]]) / L.sum()
             for jt, x0, h in zip(js, start, L / L.sum()):
@@ -242,6 +246,21 @@ class Magnus4Field:
             J[iv:iv + 6] = 0.5 * (P1 + P2) + np.sqrt(3.0) * h / 12 * (ad(x1) @ P2 - ad(x2) @ P1)
         return J
 
+    def tangent(self, pb, z):
+        """d(residual)/dz, analytic: ``J^T (K_t - K) J + K_z`` plus the
+        commutator's curvature against the loads' part r = R - K (q - q0):
+        per section ``-c (X + X^T)``, ``X_ij = r^T ad(Phi2_i) Phi1_j``, c =
+        sqrt(3) h / 12 (from ``ad(a) b = -ad(b) a``)."""
+        q = self.q(z)
+        J = self.jacobian(z)
+        r = pb.residual(q) - pb.K @ (q - self.q0)
+        T = J.T @ (pb.tangent(q) - pb.K) @ J + self.K_z
+        for iv, h, _, _, P1, P2 in self.sections:
+            A2 = ad(P2.T)                                          # (nz, 6, 6): ad of each column of Phi_2
+            X = np.einsum("a,iab,bj->ij", r[iv:iv + 6], A2, P1)
+            T -= np.sqrt(3.0) * h / 12 * (X + X.T)
+        return T
+
     def residual(self, pb, z):
         """The principle of virtual work in z: ``J^T (R(q) - K (q - q0)) +
         K_z z`` (the sections' own elastic forces replaced by the field's)."""
@@ -251,9 +270,9 @@ class Magnus4Field:
 
 def solve_magnus4(pb, field, z0=None, *, tol=1e-10, max_iterations=60, load_steps=1):
     """Equilibrium of :class:`equilibrium.Problem` ``pb`` in the coordinates
-    z of a :class:`Magnus4Field`: Newton on its residual with a
-    central-difference tangent (z is small: a few per mode), the inputs in
-    ``load_steps`` steps. Returns (q, z, iterations)."""
+    z of a :class:`Magnus4Field`: Newton on its residual with its analytic
+    tangent (:meth:`Magnus4Field.tangent`), the inputs in ``load_steps``
+    steps. Returns (q, z, iterations)."""
     z = np.zeros(field.nz) if z0 is None else np.array(z0, dtype=float)
     total = 0
     for step in range(1, load_steps + 1):
@@ -263,13 +282,7 @@ def solve_magnus4(pb, field, z0=None, *, tol=1e-10, max_iterations=60, load_step
             r = field.residual(p, z)
             if np.abs(r).max() <= tol * scale:
                 break
-            eps = 1e-7 * (1.0 + np.abs(z))
-            T = np.empty((field.nz, field.nz))
-            for k in range(field.nz):
-                e = np.zeros(field.nz)
-                e[k] = eps[k]
-                T[:, k] = (field.residual(p, z + e) - field.residual(p, z - e)) / (2 * eps[k])
-            dz = np.linalg.solve(T, -r)
+            dz = np.linalg.solve(field.tangent(p, z), -r)
             t, n0 = 1.0, np.linalg.norm(r)
             while t > 1e-4 and np.linalg.norm(field.residual(p, z + t * dz)) > (1 - 1e-4 * t) * n0:
                 t *= 0.5

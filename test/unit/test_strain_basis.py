@@ -254,3 +254,28 @@ def test_the_fourth_order_magnus_step_converges_at_fourth_order_in_the_sections(
     assert e4[-1] < 3e-7
     with pytest.raises(ValueError, match="every strain mode free"):
         Magnus4Field(arm(4, "bending"), 2)
+
+
+def test_the_magnus4_tangent_is_the_residuals_derivative_and_too_few_gauss_points_are_refused():
+    """:meth:`Magnus4Field.tangent` (the engine's tangent through the
+    Jacobian of the sections' strains, the field's stiffness and the
+    commutator's curvature against the loads) against central differences
+    of its residual at a random z, with a tip force and gravity; a basis
+    with more functions a mode than the member's Gauss points (2 a
+    section) is refused, naming the member."""
+    from soft_twin_core.solve.strain_basis import Magnus4Field
+    m = from_robot_model(model_from_dict(benchmark_cantilever_dict(4, "all", length=0.5)))
+    loads = Loads(point=(PointLoad(0.5, (0.0, 0.02, -0.05, 0.0, 0.0, 0.0)),), gravity=True)
+    pb = free_problem(m, make_inputs(m, loads=loads))
+    field = Magnus4Field(m, 2)
+    rng = np.random.default_rng(5)
+    z = 0.3 * rng.standard_normal(field.nz) / (1 + np.arange(field.nz) % 3)
+    T = field.tangent(pb, z)
+    fd = np.empty_like(T)
+    for k in range(field.nz):
+        e = np.zeros(field.nz)
+        e[k] = 1e-6
+        fd[:, k] = (field.residual(pb, z + e) - field.residual(pb, z - e)) / 2e-6
+    assert np.abs(T - fd).max() < 1e-7 * np.abs(fd).max()
+    with pytest.raises(ValueError, match="member 'backbone' has 8 Gauss points for the basis's 9 functions"):
+        Magnus4Field(m, 8)
