@@ -498,7 +498,9 @@ def _check_statics_model(mech, obstacles):
                          "dynamics to let it settle")
     if obstacles or mech.shapes:
         return
-    for name in _loose_joints(mech):
+    loose = _loose_joints(mech)
+    if loose:
+        name = loose[0]
         kind = "spherical" if tree.joints[tree.joint_index(name)].kind == SPHERICAL else "free"
         raise ValueError(f"statics: joint {name!r} is {kind} and nothing can hold it (no obstacle, no collision "
                          f"shape): statics needs joints with nq = nv (soft, revolute, prismatic, fixed) or a loose "

@@ -43,30 +43,34 @@ class StickPoints:
     touching: np.ndarray
     body: np.ndarray = None
 
+    def __post_init__(self):
+        if self.body is None:
+            object.__setattr__(self, "body", np.full(len(self.p), -1, np.int64))
+
+    @classmethod
+    def from_world(cls, ws, p, R, touching, body):
+        """Stick points given in world axes (p (P, 3), R (P, 3, 3)), kept
+        in the output frames of the joints ``body`` (P,) (-1: the world's),
+        the bodies posed as the workspace is: :meth:`in_world`'s inverse."""
+        p, R = p.copy(), R.copy()
+        on = np.flatnonzero(body >= 0)
+        g = ws.work.g_out[body[on]]
+        p[on] = np.einsum("cji,cj->ci", g[:, :3, :3], p[on] - g[:, :3, 3])
+        R[on] = np.matmul(np.transpose(g[:, :3, :3], (0, 2, 1)), R[on])
+        return cls(p, R, touching, body)
+
     def in_world(self, ws):
         """(p, R): these stick points' positions and rotations in world
         axes, the bodies posed as the workspace is (after its forward
         pass)."""
-        if self.body is None or not np.any(self.body >= 0):
+        on = np.flatnonzero(self.body >= 0)
+        if not len(on):
             return self.p, self.R
         p, R = self.p.copy(), self.R.copy()
-        on = np.flatnonzero(self.body >= 0)
         g = ws.work.g_out[self.body[on]]
         p[on] = np.einsum("cij,cj->ci", g[:, :3, :3], self.p[on]) + g[:, :3, 3]
         R[on] = np.matmul(g[:, :3, :3], self.R[on])
         return p, R
-
-
-def _in_body(ws, body, p, R):
-    """World positions p (c, 3) and rotations R (c, 3, 3) in the output
-    frames of the joints ``body`` (c,) (-1: left in world axes), the
-    workspace posed."""
-    p, R = p.copy(), R.copy()
-    on = np.flatnonzero(body >= 0)
-    g = ws.work.g_out[body[on]]
-    p[on] = np.einsum("cji,cj->ci", g[:, :3, :3], p[on] - g[:, :3, 3])
-    R[on] = np.matmul(np.transpose(g[:, :3, :3], (0, 2, 1)), R[on])
-    return p, R
 
 
 def mechanism_contact_points(mech):
@@ -255,7 +259,7 @@ class MemberContact:
     def stick_points(self, ws, q):
         """:class:`StickPoints` of the points where they are at q."""
         p, G = self.positions(ws, q, frames=True)
-        return StickPoints(p, G[:, :3, :3].copy(), np.zeros(len(p), np.bool_), np.full(len(p), -1, np.int64))
+        return StickPoints(p, G[:, :3, :3].copy(), np.zeros(len(p), np.bool_))
 
     def _surface_displacement(self, st, G, stick_pose):
         """(c, 3): each contact's surface point's tangential displacement
@@ -284,7 +288,7 @@ class MemberContact:
         solve."""
         n = len(st)
         mu = np.array([ob.friction for ob in self.all])[st.obstacle] if n else np.zeros(0)
-        rows = np.flatnonzero((mu > 0) & stick.touching[st.point] & (self._stuck_to(stick)[st.point] == self._body(st)))
+        rows = np.flatnonzero((mu > 0) & stick.touching[st.point] & (stick.body[st.point] == self._body(st)))
         if not len(rows):
             return st
         d = self._surface_displacement(st, G, stick.in_world(ws))
@@ -311,11 +315,6 @@ class MemberContact:
     def _body(st):
         """(c,) the joint of each contact's touched body (-1: the world)."""
         return st.body if st.body is not None else np.full(len(st), -1, np.int64)
-
-    @staticmethod
-    def _stuck_to(stick):
-        """(P,) the body each stick point moves with (-1: the world)."""
-        return stick.body if stick.body is not None else np.full(len(stick.p), -1, np.int64)
 
     @property
     def has_friction(self):
@@ -362,8 +361,7 @@ class MemberContact:
                 out_p[i], out_R[i] = wp[i], wR[i]
                 if size > cap[c]:
                     out_p[i] = wp[i] + (1.0 - cap[c] / size) * d[c]
-        out_p, out_R = _in_body(ws, body, out_p, out_R)
-        return StickPoints(out_p, out_R, touching, body)
+        return StickPoints.from_world(ws, out_p, out_R, touching, body)
 
     def with_obstacles(self, obstacles):
         """This contact with ``obstacles`` instead (the same points)."""
@@ -406,7 +404,7 @@ class MemberContact:
         n = len(st)
         if not n:
             return Kt
-        body = st.body if st.body is not None else np.full(n, -1, np.int64)
+        body = self._body(st)
         J = np.empty((n, 3, Kt.shape[0]))
         Jw = np.empty_like(J)
         relative_point_jacobians(ws.m, ws.w, np.ascontiguousarray(self.points.joint[st.point]),
@@ -465,7 +463,7 @@ class MemberContact:
         relative to the touched body, ``J_s = J_p + r [n x] J_omega`` (the
         workspace posed where ``st`` was made)."""
         n = len(st)
-        body = st.body if st.body is not None else np.full(n, -1, np.int64)
+        body = self._body(st)
         J = np.empty((n, 3, len(ws.zeros_v)))
         Jw = np.empty_like(J)
         relative_point_jacobians(ws.m, ws.w, np.ascontiguousarray(self.points.joint[st.point]),
@@ -497,7 +495,7 @@ class MemberContact:
         mu_t = np.array([ob.torsional_friction for ob in self.all])[st.obstacle]
         if np.any(mu_t > 0):           # the spins, as slips of the patch's rim (mu_t spin)
             sub = np.flatnonzero(mu_t > 0)
-            body = st.body[sub] if st.body is not None else np.full(len(sub), -1, np.int64)
+            body = self._body(st)[sub]
             J, Jw = np.empty((len(sub), 3, len(dv))), np.empty((len(sub), 3, len(dv)))
             relative_point_jacobians(ws.m, ws.w, np.ascontiguousarray(self.points.joint[st.point[sub]]),
                                      np.ascontiguousarray(self.points.x[st.point[sub]]), np.ascontiguousarray(body),

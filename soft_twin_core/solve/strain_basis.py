@@ -26,21 +26,43 @@ import numpy as np
 from scipy.linalg import eigh
 
 from soft_twin_core.engine import algorithms as alg
-from soft_twin_core.engine.joint_kinds import SOFT
 from soft_twin_core.engine.workspace import Workspace
 from soft_twin_core.errors import StaticsError
 from soft_twin_core.lie import ad
 from soft_twin_core.solve.constrained import dense_stiffness_damping
 
 
+def _legendre(order, x):
+    """(order + 1, len(x)): the Legendre polynomials P_0 .. P_order at the
+    abscissae x in [0, 1] of a member (2 x - 1 in [-1, 1]); ValueError
+    naming ``order`` unless it is an integer >= 0."""
+    if not (isinstance(order, (int, np.integer)) and order >= 0):
+        raise ValueError(f"order: expected an integer >= 0, got {order!r}")
+    return np.array([np.polynomial.legendre.Legendre.basis(j)(2 * np.asarray(x, float) - 1)
+                     for j in range(order + 1)])
+
+
+def _soft_members(mech, what):
+    """(member path, its soft joints, their lengths [m]) of every member
+    with soft sections; ValueError (``what``) when the robot has rigid
+    joints with coordinates (a strain basis covers soft members only)."""
+    tree = mech.tree
+    soft = set(tree.soft_joints)
+    if any(tree.joints[i].nv for i in range(tree.n_joints) if i not in soft):
+        raise ValueError(f"{what}: the robot has rigid joints with coordinates; a strain basis covers "
+                         f"soft members only")
+    for path in tree.paths:
+        js = [j for j in path.joints if j in soft]
+        if js:
+            yield path, js, np.array([tree.joints[j].section.length for j in js])
+
+
 def legendre_basis(mech, order):
     """B (nv, nz) of Legendre order ``order`` (>= 0) for every soft member of
     ``mech`` without rigid joints (each member's free modes, the sections'
     midpoints normalised to [-1, 1] along it): column (member, mode a, j)."""
-    if not (isinstance(order, (int, np.integer)) and order >= 0):
-        raise ValueError(f"order: expected an integer >= 0, got {order!r}")
-    return _member_basis(mech, lambda x: np.array([np.polynomial.legendre.Legendre.basis(j)(2 * x - 1)
-                                                   for j in range(order + 1)]), "legendre_basis")
+    _legendre(order, ())                       # the order checked before any work
+    return _member_basis(mech, lambda x: _legendre(order, x), "legendre_basis")
 
 
 FEM_DEGREES = (1, 3)
@@ -84,16 +106,8 @@ def _member_basis(mech, functions, what):
     in [0, 1] of a member's sections' midpoints) for each free mode of each
     soft member (a tree without rigid joints with coordinates)."""
     tree = mech.tree
-    soft = set(tree.soft_joints)
-    if any(tree.joints[i].nv for i in range(tree.n_joints) if i not in soft):
-        raise ValueError(f"{what}: the robot has rigid joints with coordinates; a strain basis covers "
-                         f"soft members only")
     cols = []
-    for path in tree.paths:
-        js = [j for j in path.joints if j in soft]
-        if not js:
-            continue
-        L = np.array([tree.joints[j].section.length for j in js])
+    for path, js, L in _soft_members(mech, what):
         vals = functions((np.cumsum(L) - 0.5 * L) / L.sum())
         if np.linalg.matrix_rank(vals) < len(vals):
             raise ValueError(f"{what}: member {path.name!r} has {len(js)} sections for the basis's {len(vals)} "
@@ -191,33 +205,24 @@ class Magnus4Field:
     def __init__(self, mech, order):
         tree = mech.tree
         self.tree, self.q0 = tree, tree.q0.copy()
-        if not (isinstance(order, (int, np.integer)) and order >= 0):
-            raise ValueError(f"order: expected an integer >= 0, got {order!r}")
-        rows = []             # per section: (v offset, h, f0, K, Phi_1, Phi_2) with Phi (6, nz) filled below
+        _legendre(order, ())                   # the order checked before any work
+        rows = []             # per section: (v offset, h, f0, K, first column, values at the 2 Gauss points)
         cols = 0
-        for path in tree.paths:
-            js = [j for j in path.joints if tree.joints[j].kind == SOFT]
-            if not js:
-                continue
+        for path, js, L in _soft_members(mech, "Magnus4Field"):
             if order + 1 > 2 * len(js):
                 raise ValueError(f"Magnus4Field: member {path.name!r} has {2 * len(js)} Gauss points for the "
                                  f"basis's {order + 1} functions a mode, which they cannot tell apart (a singular "
                                  f"Newton matrix); give it at least {(order + 2) // 2} sections")
-            L = np.array([tree.joints[j].section.length for j in js])
             start = np.concatenate([[0.0], np.cumsum(L)[:-1]]) / L.sum()
             for jt, x0, h in zip(js, start, L / L.sum()):
                 sec = tree.joints[jt].section
                 if list(sec.modes) != list(range(6)):
                     raise ValueError(f"Magnus4Field: member {path.name!r} must have every strain mode free "
                                      f"(free_modes: all): the commutator reaches them all")
-                vals = [np.array([np.polynomial.legendre.Legendre.basis(j)(2 * x - 1) for j in range(order + 1)])
-                        for x in (x0 + (0.5 - GAUSS2) * h, x0 + (0.5 + GAUSS2) * h)]
+                vals = _legendre(order, [x0 + (0.5 - GAUSS2) * h, x0 + (0.5 + GAUSS2) * h]).T
                 rows.append((tree.idx_v[jt], sec.length, np.asarray(sec.f0, float), np.asarray(sec.K, float),
                              cols, vals))
             cols += 6 * (order + 1)
-        if any(tree.joints[i].nv for i in range(tree.n_joints) if tree.joints[i].kind != SOFT):
-            raise ValueError("Magnus4Field: the robot has rigid joints with coordinates; a strain basis covers "
-                             "soft members only")
         self.nz = cols
         self.sections = []
         for iv, h, f0, K, c0, vals in rows:
