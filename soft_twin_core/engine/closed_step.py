@@ -34,7 +34,7 @@ from soft_twin_core.engine.integrators import integrate_pass, residual_after_for
 from soft_twin_core.engine.kernels import passes
 from soft_twin_core.engine.kernels.data import LoadArrays
 from soft_twin_core.engine.kernels.frames import world_point_jacobians
-from soft_twin_core.engine.kernels.spatial import _jit, _jit_inner
+from soft_twin_core.engine.kernels.spatial import FALSE, _jit, _jit_inner
 from soft_twin_core.engine.kernels.tip_error import _log_so3
 from soft_twin_core.engine.step_matrix import (elastic_noise, free_newton_update, invert_step_matrix,
                                                 step_tangents, theta_point)
@@ -203,7 +203,7 @@ def closed_step(m, w, act, ld, g, coef, effort, K, D, q_ref, elastic, q0, v0, h,
     prev, first, Rs, noise = np.inf, 0.0, 1e-300, 0.0
     for it in range(1, max_it + 1):
         theta_point(m, q0, v0, v1, h, theta, vt, acc, qt, q1)
-        passes.forward_pass(m, w, q1, zeros, zeros, 0)
+        passes.forward_pass(m, w, q1, zeros, zeros, passes.POSES)
         constraint_values(m, w, cj, cx, ckind, crows, csize, ctarget, gc, Jc, phi, G1)
         ldc = _with_reactions(ld, cj, cx, crows, csize, lam)
         if refactor:
@@ -215,8 +215,8 @@ def closed_step(m, w, act, ld, g, coef, effort, K, D, q_ref, elastic, q0, v0, h,
                 return it, 4, factorised
             factorised += 1
             refactor, fresh = False, True
-        passes.forward_pass(m, w, qt, vt, acc, 2)
-        residual_after_forward(m, w, act, ldc, g, coef, effort, qt, vt, R, False)
+        passes.forward_pass(m, w, qt, vt, acc, passes.ACCELERATIONS)
+        residual_after_forward(m, w, act, ldc, g, coef, effort, qt, vt, R, FALSE)
         nR, nphi = 0.0, 0.0
         for k in range(nv):
             if not np.isfinite(R[k]):

@@ -23,7 +23,7 @@ from soft_twin_core.engine.kernels.contact import pose_obstacles, step_contacts,
 from soft_twin_core.engine.kernels.data import LoadArrays
 from soft_twin_core.engine.kernels.frames import (body_point_twists, frame_spins, offset_point_positions,
                                                   relative_point_jacobians, spatial_jacobian)
-from soft_twin_core.engine.kernels.spatial import _jit, _jit_inline
+from soft_twin_core.engine.kernels.spatial import FALSE, _jit, _jit_inline
 from soft_twin_core.engine.step_matrix import (elastic_noise, free_newton_update, invert_step_matrix,
                                                 step_tangents, theta_point)
 
@@ -272,7 +272,7 @@ def contact_step(m, w, act, ld, g, coef, effort, K, D, q_ref, elastic, q0, v0, h
     p0 = np.empty((P, 3))
     touching = P > 0 and obs.kind.shape[0] > 0       # else: only the eliminated joints (no positions needed)
     if touching:
-        _positions(m, w, q0, zeros, zeros, 0, pj, px, poff, G, p0)
+        _positions(m, w, q0, zeros, zeros, passes.POSES, pj, px, poff, G, p0)
         pose_obstacles(w, obs0, P0)
     ovel0 = np.full((obs.kind.shape[0], 6), np.nan)
     if moving.any():
@@ -321,7 +321,7 @@ def contact_step(m, w, act, ld, g, coef, effort, K, D, q_ref, elastic, q0, v0, h
                         R1[p, r, s] = G[p, r, s]
         if touching:
             pose_obstacles(w, obs, P1)
-        _positions(m, w, qt, vt, acc, 2, pj, px, poff, G, pt)          # (the residual's forward pass too)
+        _positions(m, w, qt, vt, acc, passes.ACCELERATIONS, pj, px, poff, G, pt)  # (the residual's forward pass too)
         if touching:
             pose_obstacles(w, obs, Pt)
         c = step_contacts(prad, pmod, pw, allowed, P1, P0, Pt, moving, ovel0, p0, p1, pt, h, theta, pv0, given,
@@ -337,13 +337,13 @@ def contact_step(m, w, act, ld, g, coef, effort, K, D, q_ref, elastic, q0, v0, h
                 if not _newton_inverse(m, w, act, ldc, g, coef, K, D, qt, h, theta, pj, px, prad, pt, idx, ob_of,
                                        obs.body, F, dF, dV, dFf, dVf, c, zeros, fixed, Ainv, Afix, n_out, dW):
                     return it, 4, c, factorised
-                passes.forward_pass(m, w, qt, vt, acc, 2)             # (it posed the workspace at rest)
+                passes.forward_pass(m, w, qt, vt, acc, passes.ACCELERATIONS)  # (it posed the workspace at rest)
                 factorised += 1
                 key[0] = c
                 for k in range(c):
                     key[1 + k] = ob_of[k] * P + idx[k]
             refactor = False
-        residual_after_forward(m, w, act, ldc, g, coef, effort, qt, vt, R, False)
+        residual_after_forward(m, w, act, ldc, g, coef, effort, qt, vt, R, FALSE)
         nR, held = 0.0, 0.0
         for k in range(nv):
             if not np.isfinite(R[k]):

@@ -394,7 +394,7 @@ def _tendon_wrench(w, act, p, c):
             c * (d[0] * t1 - d[1] * t0))
 
 
-@_jit_inline
+@_jit
 def actuation_pass(m, w, act, coef, out):
     """out += tau_act: the joint-space forces of the distributed actuators,
     coef[p] = sum_k unit[p, k] u_k, at the strains of the last forward pass;

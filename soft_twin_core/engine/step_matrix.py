@@ -16,7 +16,7 @@ import numpy as np
 from soft_twin_core.engine.forces import actuation_tangent_pass
 from soft_twin_core.engine.integrators import integrate_pass
 from soft_twin_core.engine.kernels import passes
-from soft_twin_core.engine.kernels.spatial import _jit_inline, _jit_inner
+from soft_twin_core.engine.kernels.spatial import TRUE, _jit_inline, _jit_inner
 from soft_twin_core.engine.kernels.tangent import static_tangent_pass
 
 
@@ -25,10 +25,10 @@ def step_tangents(m, w, act, ld, g, coef, K, D, qt, zeros):
     """(M, K_t, D_t) at q_t under the dead and follower loads ``ld``, gravity
     g and tendon coefficients ``coef`` (the workspace posed at q_t, at rest)."""
     nv = K.shape[0]
-    passes.forward_pass(m, w, qt, zeros, zeros, 0)
+    passes.forward_pass(m, w, qt, zeros, zeros, passes.POSES)
     M = np.zeros((nv, nv))
     passes.crba_pass(m, w, M)
-    passes.rnea_pass(m, w, ld, g, np.empty(nv), True)
+    passes.rnea_pass(m, w, ld, g, np.empty(nv), TRUE)
     Kt = K.copy()
     static_tangent_pass(m, w, ld, g, Kt)
     actuation_tangent_pass(m, w, act, coef, Kt)

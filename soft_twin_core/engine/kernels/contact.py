@@ -15,7 +15,7 @@ import numpy as np
 from numba.experimental import structref
 
 from soft_twin_core.engine.kernels.data import ArraysRef, ArraysType, declare
-from soft_twin_core.engine.kernels.spatial import _jit, _jit_inline
+from soft_twin_core.engine.kernels.spatial import _jit, _jit_inline, _jit_inner
 
 PLANE, SPHERE, CAPSULE, BOX, MESH, TUBE = 0, 1, 2, 3, 4, 5
 KIND_CODES = {"plane": PLANE, "sphere": SPHERE, "capsule": CAPSULE, "box": BOX, "mesh": MESH, "tube": TUBE}
@@ -305,7 +305,7 @@ def far_from(bound, p, i, r):
     return dx * dx + dy * dy + dz * dz >= (R + r) * (R + r)
 
 
-@_jit_inline
+@_jit_inner
 def distance(obs, o, p, n, H):
     """Signed distance [m] of point p from obstacle o's surface (> 0
     outside); n (3,) receives its gradient (the outward normal), H (3, 3)

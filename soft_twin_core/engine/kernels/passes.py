@@ -28,6 +28,10 @@ from soft_twin_core.engine.kernels.spatial import (FALSE, TRUE, _Ad_into, _ad_t,
                                                    _jit_inner, _jit_inline, _map_into, _T_dot_along,
                                                    _tangent_dot_into, _tangent_into)
 
+# forward_pass's levels, as numpy integers: a literal 0 or 2 from compiled code
+# would compile the pass once more for each value (a Literal[int] signature).
+POSES, TWISTS, ACCELERATIONS = np.int64(0), np.int64(1), np.int64(2)
+
 
 @_jit_inner
 def _quat_into(qx, qy, qz, qw, g):
@@ -202,7 +206,7 @@ def poses_pass(m, w, q):
         _place_joint(m, w, i, q, T, S3, FALSE)
 
 
-@_jit_inline
+@_jit
 def forward_pass(m, w, q, v, a, level):
     """level 0: poses and subspaces; 1: + twists; 2: + accelerations (a may
     be zeros: the velocity-product accelerations alone)."""
@@ -331,7 +335,7 @@ def _load_wrench(m, w, ld, l, T, S3, Wb, pose):
             Wb[a] = ld.wrench[l, a]
 
 
-@_jit_inline
+@_jit
 def rnea_pass(m, w, ld, g, tau, at_rest):
     """Inverse dynamics after :func:`forward_pass` (level 2; level 0 with
     ``at_rest``: v = a = 0): tau = M a + C v + g(q) - J^T F_ext (no
