@@ -233,9 +233,9 @@ EOF
 # 0.68 stamps a cache with its source's content hash, so a cache serves an
 # identical file anywhere (soft_twin_core.warmup.copy_caches). Its own
 # warm-up then loads in seconds; it compiles only what differs. The checkout's
-# compile runs its parts side by side, one process per core
-# (soft_twin_core.warmup.compile_side_by_side: 138 s instead of 241 s on 2 cores).
-say "kernels: compiling into numba's cache if needed (about 2.5 minutes on 2 cores after a change of a kernel's sources, seconds otherwise)"
+# compile runs its parts in two lanes, one process per core
+# (soft_twin_core.warmup.compile_side_by_side: 65 s on 2 cores; 171 s before).
+say "kernels: compiling into numba's cache if needed (about a minute on 2 cores after a change of a kernel's sources, seconds otherwise)"
 SITE_CORE=$("$VENV/bin/python" -c 'import sysconfig; print(sysconfig.get_paths()["purelib"])')/soft_twin_core
 "$VENV/bin/python" -m soft_twin_core.warmup >"$LOG.warmup" 2>&1 ||
     { cat "$LOG.warmup" >>"$LOG"; fail "compiling the kernels (python -m soft_twin_core.warmup; its output: $LOG.warmup)"; }

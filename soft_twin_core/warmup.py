@@ -28,26 +28,99 @@ def tiny_models():
     return out
 
 
-# The parts, the longest compile first, compiled side by side (numba compiles
-# on one core, and its cache is per function). Cold, one at a time on a
-# quiet 2-core machine: contact 155 s, rods 67 s, mechanism 30 s.
-PARTS = ("contact", "rods", "mechanism")
+# The parts, in the order one process compiles them: "passes" first, the
+# passes nearly every kernel links (numba compiles a callee once and links
+# its code into each caller's library).
+PARTS = ("passes", "leaves", "rods", "mechanism", "contact", "ik")
+
+# Side by side (numba compiles on one core, and its cache is per function):
+# one lane a process. This one compiles the passes, then what the rods and
+# the mechanisms add; a side process meanwhile compiles what links no pass
+# (the contact law's pairs, the bounded least squares), then waits until
+# the passes are cached (NEEDS) and compiles the contact steps, then the
+# IK's. Cold on a quiet 2-core machine, the two lanes at once: passes 31 s,
+# rods 17 s, mechanism 10 s | leaves 23 s, (waits 8 s), contact 23 s, ik
+# 10 s: 65 s in all (the three parts of before, two at once: 171 s).
+LANES = (("passes", "rods", "mechanism"), ("leaves", "contact", "ik"))
+NEEDS = {"rods": "passes", "mechanism": "passes", "contact": "passes", "ik": "rods"}
+
+# How long a side lane waits for a part another process compiles before it
+# compiles that part's kernels itself [s].
+WAIT_S = 300.0
 
 
-def run(parts=PARTS):
-    """Exercise the kernels of ``parts``: "contact" (an arm against four
-    obstacles, statics and dynamics), "rods" (the tiny arms' passes,
-    statics, dynamics, scenario runs and the IK), "mechanism" (a tree with a
-    closed loop and position control)."""
-    if "rods" in parts:
-        tiny_rod_runs()
-    if "mechanism" in parts:
-        tiny_mechanism_run()
-    if "contact" in parts:
-        tiny_contact_run()
+def run(parts=PARTS, marks=None):
+    """Exercise the kernels of ``parts`` (in PARTS's order): "passes" (a
+    pinned tree's statics: the forward pass, RNEA, the tangents, the
+    actuation, the constraints), "leaves" (the contact law's pairs, the
+    bounded least squares), "rods" (the tiny arms' statics, dynamics and
+    scenario runs), "mechanism" (the pinned tree's dynamics and outputs),
+    "contact" (an arm against four obstacles, statics and dynamics), "ik"
+    (RNEA's derivatives, the actuation IK). ``marks``: a directory where
+    each part done leaves a file of its name, and where a part first waits
+    for the one it NEEDS when another process compiles that one."""
+    import time as _time
+    from pathlib import Path
+    runs = {"passes": tiny_pass_runs, "leaves": tiny_leaf_runs, "rods": tiny_rod_runs,
+            "mechanism": tiny_mechanism_run, "contact": tiny_contact_run, "ik": tiny_ik_runs}
+    for part in PARTS:
+        if part not in parts:
+            continue
+        if marks is not None and NEEDS.get(part) not in (None, *parts):
+            _wait_for(Path(marks) / NEEDS[part])
+        t0 = _time.perf_counter()
+        try:
+            runs[part]()
+        finally:
+            if marks is not None:
+                (Path(marks) / part).touch()
+        print(f"part {part}: {_time.perf_counter() - t0:.1f} s", file=sys.stderr)
+
+
+def _wait_for(mark):
+    """Until file ``mark`` exists, for WAIT_S at most, or until this
+    process's parent is gone (then the part compiles what it needs)."""
+    import os
+    parent, t0 = os.getppid(), time.perf_counter()
+    while not mark.exists() and time.perf_counter() - t0 < WAIT_S and os.getppid() == parent:
+        time.sleep(0.05)
+
+
+def tiny_pass_runs():
+    """The pinned tree's statics (the KKT Newton calls the residual pass:
+    forward pass, RNEA, actuation; the tangents; the constraints' frames)
+    and the mass matrix: the passes every step and solver links."""
+    from soft_twin_core.engine import algorithms as alg
+    from soft_twin_core.engine.workspace import Workspace
+    from soft_twin_core.solve.constrained import solve_equilibrium
+    mech = _pinned_tree()
+    solve_equilibrium(mech, positions={"j": 0.01})
+    alg.crba(mech.tree, Workspace(mech.tree), mech.tree.q0)
+
+
+def tiny_leaf_runs():
+    """What links no pass: the contact law's pairs at rest and over a step
+    (an obstacle of each kind, friction, torsion, a moving one) and the
+    bounded least squares of the IK."""
+    from soft_twin_core.engine.contact import ContactPoints, contact_forces, moved, step_contact_forces
+    from soft_twin_core.planning import planner as pl
+    from soft_twin_core.robot.obstacles import obstacles_from_list
+    obstacles = tuple(obstacles_from_list(_contact_dict()["obstacles"]))
+    n = 3
+    points = ContactPoints(np.zeros(n, np.int64), np.zeros(n), np.full(n, 0.01), np.full(n, 0.01),
+                           np.full(n, 1e6), ("arm",) * n, np.zeros(n))
+    p = np.array([[0.0, 0.0, -0.005], [0.1, 0.0, 0.19], [0.1, -0.16, 0.0]])
+    contact_forces(points, obstacles, p)
+    eye = np.broadcast_to(np.eye(3), (n, 3, 3))
+    step_contact_forces(points, obstacles, p, p + 1e-4, p + 5e-5, 1e-3, 0.5, v0=np.zeros((n, 3)),
+                        obstacles0=[moved(ob, [0.0, 0.0, 1e-5]) for ob in obstacles],
+                        spin=(eye, eye, np.zeros((n, 3))))
+    pl.box_lstsq(np.eye(3, 2), np.ones(3), np.zeros(2), np.array([np.inf, 0.5]))
 
 
 def tiny_rod_runs():
+    """The tiny arms of both maps: statics, dynamics (the compiled
+    multi-step), the algorithms' passes and the scenario runner's."""
     from soft_twin_core.engine import algorithms as alg
     from soft_twin_core.engine.loads import Loads, PointLoad
     from soft_twin_core.engine.workspace import Workspace
@@ -68,8 +141,6 @@ def tiny_rod_runs():
                                                                                  [True]))
         # the state estimator's and the calibration's passes (issue 14)
         alg.point_jacobian(tree, ws, q, tree.n_joints - 1, 0.05)
-        if robot.kinematic_map == "exponential":
-            alg.rnea_derivatives(tree, ws, q, v, v)
         # what the scenario runner adds (backbone, internal wrenches, recorded
         # states): the design studies' workers run it for every case
         from soft_twin_core.files.scenario import run_dynamics, run_statics, scenario_from_dict
@@ -81,18 +152,42 @@ def tiny_rod_runs():
             "actuation": {"t": 0.5}, "loads": [{"s": "tip", "force": [0, 0, -0.01]}]})
         run_statics(sc, 2)
         run_dynamics(sc, 2e-3, 1e-3, 1, points_per_section=2)
-    # the actuation IK (node's ~/inverse_kinematics, the planner): its tip
-    # error, sensitivities and bounded least squares, position and full pose
+
+
+def tiny_ik_runs():
+    """RNEA's derivatives and the actuation IK (the node's
+    ~/inverse_kinematics, the planner): its tip error, sensitivities and
+    bounded least squares, position and full pose."""
+    from soft_twin_core.engine import algorithms as alg
+    from soft_twin_core.engine.workspace import Workspace
     from soft_twin_core.planning import planner as pl
+    from soft_twin_core.robot.mechanism import from_robot_model
+    from soft_twin_core.solve.constrained import solve_equilibrium
     from soft_twin_core.solve.outputs import state_outputs
-    mech = from_robot_model(tiny_models()[0])
+    robot = tiny_models()[0]
+    tree = robot.tree
+    q, v = tree.q0 + 0.01, np.full(tree.nv, 0.1)
+    alg.rnea_derivatives(tree, Workspace(tree), q, v, v)
+    mech = from_robot_model(robot)
     solver = pl.TipSolver(mech)
     eq = solve_equilibrium(mech, {"t": 0.3})
     target = state_outputs(mech, eq.q, eq.lam, eq.inputs).frames["tip"]
     for with_rot in (False, True):
         solver.with_rot = with_rot
         solver.solve(target, np.zeros(1), None)
-    pl.box_lstsq(np.eye(3, 2), np.ones(3), np.zeros(2), np.array([np.inf, 0.5]))
+
+
+def _contact_dict():
+    """A 2-section arm among a table, a ball, a post and a block."""
+    return {"name": "warmup_contact", "segments": [{
+        "length": 0.2, "sections": 2, "cross_section": {"shape": "solid_circle", "radius": 0.01},
+        "material": {"youngs_modulus": 1e6, "density": 1000, "viscosity": 10.0}}],
+        "obstacles": [{"name": "table", "type": "plane", "point": [0, 0, -0.0105], "normal": [0, 0, 1],
+                       "friction": 0.3, "damping": 1.0},
+                      {"name": "ball", "type": "sphere", "center": [0.1, 0, 0.2], "radius": 0.01},
+                      {"name": "post", "type": "capsule", "from": [0.1, 0.2, 0], "to": [0.1, 0.2, 0.1],
+                       "radius": 0.01},
+                      {"name": "block", "type": "box", "center": [0.1, -0.2, 0], "size": [0.1, 0.1, 0.1]}]}
 
 
 def tiny_contact_run():
@@ -103,15 +198,7 @@ def tiny_contact_run():
     from soft_twin_core.robot.mechanism import from_robot_model
     from soft_twin_core.robot.model import model_from_dict
     from soft_twin_core.solve.constrained import MechanismSimulator, solve_equilibrium
-    d = {"name": "warmup_contact", "segments": [{
-        "length": 0.2, "sections": 2, "cross_section": {"shape": "solid_circle", "radius": 0.01},
-        "material": {"youngs_modulus": 1e6, "density": 1000, "viscosity": 10.0}}],
-        "obstacles": [{"name": "table", "type": "plane", "point": [0, 0, -0.0105], "normal": [0, 0, 1],
-                       "friction": 0.3, "damping": 1.0},
-                      {"name": "ball", "type": "sphere", "center": [0.1, 0, 0.2], "radius": 0.01},
-                      {"name": "post", "type": "capsule", "from": [0.1, 0.2, 0], "to": [0.1, 0.2, 0.1],
-                       "radius": 0.01},
-                      {"name": "block", "type": "box", "center": [0.1, -0.2, 0], "size": [0.1, 0.1, 0.1]}]}
+    d = _contact_dict()
     mech = from_robot_model(model_from_dict(d), d)
     solve_equilibrium(mech)
     sim = MechanismSimulator(mech, 1e-3)
@@ -120,20 +207,26 @@ def tiny_contact_run():
     transition_step(np.zeros((1, 3)), np.ones((1, 3)), np.ones(1))     # the Python (KKT) step's line search
 
 
-def tiny_mechanism_run():
+def _pinned_tree():
     """A soft member on a position-controlled revolute joint, its tip pinned
-    to the world: the articulated robots' passes (constraint frames, KKT
-    statics and dynamics, outputs)."""
+    to the world."""
     from soft_twin_core.robot.mechanism import mechanism_from_dict
-    from soft_twin_core.solve.constrained import MechanismSimulator, solve_equilibrium
-    from soft_twin_core.solve.outputs import state_outputs
-    mech = mechanism_from_dict({"name": "warmup_tree", "bodies": [
+    return mechanism_from_dict({"name": "warmup_tree", "bodies": [
         {"name": "link", "type": "link", "mass": 0.1, "inertia": [1e-4, 1e-4, 1e-4, 0, 0, 0],
          "joint": {"name": "j", "type": "revolute", "axis": [0, 0, 1], "control": "position"}},
         {"name": "arm", "type": "member", "parent": "link", "segments": [{
             "length": 0.2, "sections": 2, "cross_section": {"shape": "solid_circle", "radius": 0.01},
             "material": {"youngs_modulus": 1e6, "density": 1000, "viscosity": 10.0}}]}],
         "constraints": [{"name": "pin", "type": "pinned", "frame": "arm_tip", "to": "world"}]})
+
+
+def tiny_mechanism_run():
+    """The pinned tree's statics, outputs and dynamics: the articulated
+    robots' passes (constraint frames, the compiled closed-chain step,
+    outputs)."""
+    from soft_twin_core.solve.constrained import MechanismSimulator, solve_equilibrium
+    from soft_twin_core.solve.outputs import state_outputs
+    mech = _pinned_tree()
     eq = solve_equilibrium(mech, positions={"j": 0.01})
     state_outputs(mech, eq.q, eq.lam, eq.inputs)
     sim = MechanismSimulator(mech, 1e-3, q=eq.q)
@@ -299,42 +392,54 @@ def _user_cache_dirs(root, cache_dir):
     return [cache_dir / _CacheLocator.get_suitable_cache_subpath(str(d / "_.py")) for d in sorted(src_dirs)]
 
 
-def compile_side_by_side(parts=PARTS):
-    """Compile ``parts`` at once: the first ones each in a process of its
-    own (``python -m soft_twin_core.warmup --part P``, this copy of the
-    package first on its path), one fewer than the cores this process may
-    use, and the rest in this process meanwhile. A part whose process fails
-    is left to the caller's :func:`run`, which compiles whatever is not
-    cached. Returns the number of processes started."""
+def compile_side_by_side(lanes=LANES):
+    """Compile the parts of ``lanes`` at once: the first lane here, the
+    next ones each in a process of its own (``python -m
+    soft_twin_core.warmup --parts P,Q --marks DIR``, this copy of the
+    package first on its path), as many as the cores this process may use
+    (the lanes beyond them here too). The parts leave marks in a shared
+    temporary directory, and wait there for the part they need (NEEDS). A
+    lane whose process fails is named with its output and left to the
+    caller's :func:`run`, which compiles whatever is not cached. Returns
+    the number of processes started."""
     import os
+    import shutil
     import subprocess
+    import tempfile
     from pathlib import Path
     cores = len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else (os.cpu_count() or 1)
-    others = list(parts[:min(cores - 1, len(parts) - 1)])
+    side = list(lanes[1:max(cores, 1)])
+    here = tuple(p for lane in [lanes[0], *lanes[1 + len(side):]] for p in lane)
+    marks = tempfile.mkdtemp(prefix="soft_twin_warmup_")
     env = dict(os.environ)
     env["PYTHONPATH"] = os.pathsep.join([str(Path(__file__).resolve().parents[1])] +
                                         ([env["PYTHONPATH"]] if env.get("PYTHONPATH") else []))
-    procs = [subprocess.Popen([sys.executable, "-m", "soft_twin_core.warmup", "--part", p], env=env,
-                              stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True) for p in others]
+    procs = [subprocess.Popen([sys.executable, "-m", "soft_twin_core.warmup", "--parts", ",".join(lane),
+                               "--marks", marks], env=env, stdout=subprocess.PIPE, stderr=subprocess.STDOUT,
+                              text=True) for lane in side]
     try:
-        run(tuple(p for p in parts if p not in others))
+        run(here, marks if procs else None)
     finally:
-        for p, name in zip(procs, others):
+        for p, lane in zip(procs, side):
             out, _ = p.communicate()
             if p.returncode:
-                print(f"warm-up of part {name} failed (exit {p.returncode}); compiling it here:\n{out[-2000:]}",
-                      file=sys.stderr)
+                print(f"warm-up of parts {','.join(lane)} failed (exit {p.returncode}); compiling them here:\n"
+                      f"{out[-2000:]}", file=sys.stderr)
+            else:
+                sys.stderr.write(out)
+        shutil.rmtree(marks, ignore_errors=True)
     return len(procs)
 
 
 def main(argv=None):
-    """``python -m soft_twin_core.warmup [--copy-to DIR | --install-to DIR | --part P]``:
+    """``python -m soft_twin_core.warmup [--copy-to DIR | --install-to DIR | --parts P,Q [--marks DIR]]``:
     compile (or load) every kernel, after a purge the parts side by side
     (:func:`compile_side_by_side`); with ``--copy-to``, then give the copy
     of the package at DIR these caches (:func:`copy_caches`); with
     ``--install-to``, give the copy at DIR its caches without compiling
     this one's (:func:`install_caches`: the colcon build's step); with
-    ``--part``, that part only (the side process)."""
+    ``--parts``, those parts only (a side lane; ``--marks``: see
+    :func:`run`)."""
     argv = sys.argv[1:] if argv is None else argv
     t0 = time.perf_counter()
     if argv[:1] == ["--copy-to"] and len(argv) == 2:
@@ -346,12 +451,13 @@ def main(argv=None):
         return 0
     if argv[:1] == ["--install-to"] and len(argv) == 2:
         return install_caches(argv[1])
-    if argv[:1] == ["--part"] and len(argv) == 2 and argv[1] in PARTS:
-        run((argv[1],))
+    if argv[:1] == ["--parts"] and len(argv) in (2, 4) and set(argv[1].split(",")) <= set(PARTS) and (
+            len(argv) == 2 or argv[2] == "--marks"):
+        run(tuple(argv[1].split(",")), argv[3] if len(argv) == 4 else None)
         return 0
     if argv:
-        print(f"usage: python -m soft_twin_core.warmup [--copy-to DIR | --install-to DIR | --part {'|'.join(PARTS)}]",
-              file=sys.stderr)
+        print("usage: python -m soft_twin_core.warmup [--copy-to DIR | --install-to DIR | "
+              f"--parts P[,Q...] [--marks DIR]]  (parts: {', '.join(PARTS)})", file=sys.stderr)
         return 2
     if purge_stale_caches():
         print("soft_twin_core sources changed since the last warm-up: kernel caches cleared", file=sys.stderr)

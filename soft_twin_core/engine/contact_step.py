@@ -23,7 +23,7 @@ from soft_twin_core.engine.kernels.contact import pose_obstacles, step_contacts,
 from soft_twin_core.engine.kernels.data import LoadArrays
 from soft_twin_core.engine.kernels.frames import (body_point_twists, frame_spins, offset_point_positions,
                                                   relative_point_jacobians, spatial_jacobian)
-from soft_twin_core.engine.kernels.spatial import FALSE, _jit, _jit_inline
+from soft_twin_core.engine.kernels.spatial import FALSE, _jit, _jit_inline, _jit_inner
 from soft_twin_core.engine.step_matrix import (elastic_noise, free_newton_update, invert_step_matrix,
                                                 step_tangents, theta_point)
 
@@ -107,7 +107,7 @@ def _transition_alpha(m, w, pj, px, prad, pt, idx, ob_of, obs, n_out, slip, dv, 
     return alpha
 
 
-@_jit_inline
+@_jit_inner
 def _angular_jacobian(m, w, j, x, body, out):
     """out (3, nv): the Jacobian of the angular velocity of frame (j, x)
     relative to joint ``body``'s output frame (-1: the world), world axes."""
@@ -124,7 +124,7 @@ def _angular_jacobian(m, w, j, x, body, out):
                 out[r, c] -= Js[3 + r, c]
 
 
-@_jit_inline
+@_jit_inner
 def _surface_jacobian(m, w, j, x, r, body, p, n, out):
     """out (3, nv): the Jacobian of the velocity of the contact surface's
     point, ``-r n`` from the point p of frame (j, x), relative to joint
@@ -144,7 +144,7 @@ def _surface_jacobian(m, w, j, x, r, body, p, n, out):
         out[2, c] = Jp[0, 2, c] + r * (n[0] * Jw[1, c] - n[1] * Jw[0, c])
 
 
-@_jit_inline
+@_jit_inner
 def _spin_jacobian(m, w, j, x, body, n, out):
     """out (nv,): the Jacobian of the spin about n of frame (j, x) relative
     to joint ``body``'s output frame (-1: the world)."""

@@ -9,6 +9,9 @@ import os
 import subprocess
 import sys
 import textwrap
+import time
+
+import pytest
 
 ROOT = os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 
@@ -167,21 +170,41 @@ def test_an_installed_copy_takes_the_checkouts_kernel_caches(tmp_path, monkeypat
     assert copy_caches(checkout, venv) is None
 
 
-def test_the_warm_up_compiles_its_parts_side_by_side(monkeypatch, capsys):
-    """Issue 30, compile in parallel: the first parts go to processes of
-    their own (one fewer than the cores), the rest run here meanwhile; a
-    part whose process fails is named with its output (and left to the
-    final run). With the kernels cached, as after `make setup`, the side
-    processes only load them."""
+def test_the_warm_up_compiles_its_parts_side_by_side(monkeypatch, capsys, tmp_path):
+    """Issue 30, compile in parallel: the lanes after the first go to
+    processes of their own (as many as the cores), the rest run here
+    meanwhile; a lane whose process fails is named with its output (and
+    left to the final run). A part that needs another one compiled
+    elsewhere waits for its mark, and leaves its own even when it fails."""
     import os as _os
     from soft_twin_core import warmup
     ran = []
-    monkeypatch.setattr(warmup, "run", lambda parts: ran.append(parts))
+    monkeypatch.setattr(warmup, "run", lambda parts, marks=None: ran.append((parts, marks is not None)))
     monkeypatch.setattr(_os, "sched_getaffinity", lambda pid: {0, 1, 2}, raising=False)
-    assert warmup.compile_side_by_side(("no_such_part", "mechanism", "rods")) == 2
-    assert ran == [("rods",)]                                    # the rest, here
+    lanes = (("rods",), ("no_such_part",), ("leaves",), ("contact",))     # (leaves: needs no other part)
+    assert warmup.compile_side_by_side(lanes) == 2
+    assert ran == [(("rods", "contact"), True)]                     # the first lane and those beyond the cores
     err = capsys.readouterr().err
-    assert "warm-up of part no_such_part failed (exit 2)" in err and "usage" in err
-    assert "part mechanism failed" not in err
+    assert "warm-up of parts no_such_part failed (exit 2)" in err and "usage" in err
+    assert "parts leaves failed" not in err and "part leaves:" in err
     monkeypatch.setattr(_os, "sched_getaffinity", lambda pid: {0}, raising=False)
-    assert warmup.compile_side_by_side(("contact", "rods")) == 0 and ran[-1] == ("contact", "rods")
+    assert warmup.compile_side_by_side(lanes) == 0 and ran[-1] == (("rods", "no_such_part", "leaves", "contact"),
+                                                                     False)
+    # the marks: a part waits for the one it needs, and marks itself done even when it raises
+    monkeypatch.undo()
+    done = []
+    monkeypatch.setattr(warmup, "tiny_pass_runs", lambda: done.append("passes"))
+    monkeypatch.setattr(warmup, "tiny_contact_run", lambda: done.append("contact") or 1 / 0)
+    monkeypatch.setattr(warmup, "WAIT_S", 30.0)
+    (tmp_path / "passes").touch()
+    with pytest.raises(ZeroDivisionError):
+        warmup.run(("contact",), tmp_path)
+    assert done == ["contact"] and (tmp_path / "contact").exists()
+    (tmp_path / "passes").unlink()
+    monkeypatch.setattr(warmup, "WAIT_S", 0.3)
+    t0 = time.perf_counter()
+    with pytest.raises(ZeroDivisionError):
+        warmup.run(("contact",), tmp_path)            # no mark: it waits WAIT_S, then compiles what it needs
+    assert time.perf_counter() - t0 >= 0.3
+    warmup.run(("passes",), tmp_path)
+    assert (tmp_path / "passes").exists()

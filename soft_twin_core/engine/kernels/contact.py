@@ -597,7 +597,7 @@ def rotation_rate(R0, R1, h, out):
     out[0], out[1], out[2] = f * vx / h, f * vy / h, f * vz / h
 
 
-@_jit_inline
+@_jit_inner
 def transition_fraction(v, d, vs):
     """The fraction in (0, 1] of an update that changes a contact's slip v
     (3,) by d (3,) to take (:func:`soft_twin_core.engine.contact.transition_step`):

@@ -26,7 +26,7 @@ external loads); exponential-map sections. O(n) per column.
 
 import numpy as np
 
-from soft_twin_core.engine.kernels.spatial import _T_d2_into, _T_dot_into, _ad_vec, _jit, _jit_inner
+from soft_twin_core.engine.kernels.spatial import TRUE, _T_d2_into, _T_dot_into, _ad_vec, _jit, _jit_inner
 
 from soft_twin_core.engine.joint_kinds import SOFT
 
@@ -251,7 +251,7 @@ def rnea_derivatives_pass(m, w, g, q, v, a, dtau_dq, dtau_dv):
                                 _Scol(w.Sp[i, p], nvk, a, ivk, Sa)
                                 _perturbed_frame(m.px[i, p], w.strain[i], w.strain_rate[i], fa, e_full,
                                                  w.Vp[i, p], w.Ap[i, p], Sv, Sa, w.Ad_p_inv[i, p], w.Ain[i], t3,
-                                                 wrt_q, True, dVp[i, p], dAp[i, p], tmp)
+                                                 wrt_q, TRUE, dVp[i, p], dAp[i, p], tmp)
                                 for r in range(6):
                                     dlp[i, p, r] = t3[r] if wrt_q else 0.0
                         continue
