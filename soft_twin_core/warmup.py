@@ -59,7 +59,6 @@ def run(parts=PARTS, marks=None):
     (RNEA's derivatives, the actuation IK). ``marks``: a directory where
     each part done leaves a file of its name, and where a part first waits
     for the one it NEEDS when another process compiles that one."""
-    import time as _time
     from pathlib import Path
     runs = {"passes": tiny_pass_runs, "leaves": tiny_leaf_runs, "rods": tiny_rod_runs,
             "mechanism": tiny_mechanism_run, "contact": tiny_contact_run, "ik": tiny_ik_runs}
@@ -68,13 +67,13 @@ def run(parts=PARTS, marks=None):
             continue
         if marks is not None and NEEDS.get(part) not in (None, *parts):
             _wait_for(Path(marks) / NEEDS[part])
-        t0 = _time.perf_counter()
+        t0 = time.perf_counter()
         try:
             runs[part]()
         finally:
             if marks is not None:
                 (Path(marks) / part).touch()
-        print(f"part {part}: {_time.perf_counter() - t0:.1f} s", file=sys.stderr)
+        print(f"part {part}: {time.perf_counter() - t0:.1f} s", file=sys.stderr)
 
 
 def _wait_for(mark):
