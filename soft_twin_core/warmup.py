@@ -57,23 +57,27 @@ def run(parts=PARTS, marks=None):
     scenario runs), "mechanism" (the pinned tree's dynamics and outputs),
     "contact" (an arm against four obstacles, statics and dynamics), "ik"
     (RNEA's derivatives, the actuation IK). ``marks``: a directory where
-    each part done leaves a file of its name, and where a part first waits
-    for the one it NEEDS when another process compiles that one."""
+    each part done leaves a file of its name (all of them, when one fails),
+    and where a part first waits for the one it NEEDS when another process
+    compiles that one."""
     from pathlib import Path
     runs = {"passes": tiny_pass_runs, "leaves": tiny_leaf_runs, "rods": tiny_rod_runs,
             "mechanism": tiny_mechanism_run, "contact": tiny_contact_run, "ik": tiny_ik_runs}
-    for part in PARTS:
-        if part not in parts:
-            continue
-        if marks is not None and NEEDS.get(part) not in (None, *parts):
-            _wait_for(Path(marks) / NEEDS[part])
-        t0 = time.perf_counter()
-        try:
+    try:
+        for part in PARTS:
+            if part not in parts:
+                continue
+            if marks is not None and NEEDS.get(part) not in (None, *parts):
+                _wait_for(Path(marks) / NEEDS[part])
+            t0 = time.perf_counter()
             runs[part]()
-        finally:
             if marks is not None:
                 (Path(marks) / part).touch()
-        print(f"part {part}: {time.perf_counter() - t0:.1f} s", file=sys.stderr)
+            print(f"part {part}: {time.perf_counter() - t0:.1f} s", file=sys.stderr)
+    finally:        # a failure marks the rest too: no other lane waits WAIT_S for a part that will not come
+        if marks is not None:
+            for part in parts:
+                (Path(marks) / part).touch()
 
 
 def _wait_for(mark):

@@ -190,7 +190,7 @@ def test_the_warm_up_compiles_its_parts_side_by_side(monkeypatch, capsys, tmp_pa
     monkeypatch.setattr(_os, "sched_getaffinity", lambda pid: {0}, raising=False)
     assert warmup.compile_side_by_side(lanes) == 0 and ran[-1] == (("rods", "no_such_part", "leaves", "contact"),
                                                                      False)
-    # the marks: a part waits for the one it needs, and marks itself done even when it raises
+    # the marks: a part waits for the one it needs; a failure marks the lane's parts done
     monkeypatch.undo()
     done = []
     monkeypatch.setattr(warmup, "tiny_pass_runs", lambda: done.append("passes"))
@@ -198,8 +198,9 @@ def test_the_warm_up_compiles_its_parts_side_by_side(monkeypatch, capsys, tmp_pa
     monkeypatch.setattr(warmup, "WAIT_S", 30.0)
     (tmp_path / "passes").touch()
     with pytest.raises(ZeroDivisionError):
-        warmup.run(("contact",), tmp_path)
+        warmup.run(("contact", "ik"), tmp_path)
     assert done == ["contact"] and (tmp_path / "contact").exists()
+    assert (tmp_path / "ik").exists()             # never run, marked: a lane waiting for it goes on
     (tmp_path / "passes").unlink()
     monkeypatch.setattr(warmup, "WAIT_S", 0.3)
     t0 = time.perf_counter()
