@@ -33,6 +33,7 @@ class Client:
         self.pub_cmd = n.create_publisher(JointState, "/soft_twin/joint_commands", 10)
         self.tip, self.joints, self.diag, self.tip_count = None, None, None, 0
         self.tips = []                                   # every estimated tool position received
+        self.joint_log = []                              # every estimated joint-position dict received
         n.create_subscription(PoseWithCovarianceStamped, f"{NS}/estimate/tip_pose", self._on_tip, 10)
         n.create_subscription(JointState, f"{NS}/estimate/joint_states", self._on_joints, 10)
         self.backbones = {}                              # the last PoseArray of each backbone topic
@@ -64,6 +65,7 @@ class Client:
 
     def _on_joints(self, msg):
         self.joints = dict(zip(msg.name, msg.position))
+        self.joint_log.append(self.joints)
 
     def _on_diag(self, msg):
         for s in msg.status:

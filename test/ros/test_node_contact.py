@@ -39,7 +39,7 @@ def test_obstacles_from_a_file_and_the_obstacles_topic_and_the_contacts_they_mak
     ``obstacles_file`` at z = -0.29 m: it rests on it, ~/contacts says where;
     REMOVE takes the floor away (no contacts); a sphere ADDed under the tip
     is touched; a MOVE of an unknown name is rejected and counted."""
-    from geometry_msgs.msg import Pose
+    from geometry_msgs.msg import Pose, PoseStamped
     from shape_msgs.msg import SolidPrimitive
     from soft_twin.msg import Contacts, Obstacle
     name = "twin_obstacles"
@@ -60,10 +60,23 @@ def test_obstacles_from_a_file_and_the_obstacles_topic_and_the_contacts_they_mak
         assert c.wait_diagnostics(lambda d: d["obstacles"] == "0", 20.0) is not None
         assert c.wait_until(lambda: bool(got) and not got[-1].contacts, 20.0), "the floor's contacts stayed"
 
+        # the tip, let go, swings about its hanging pose (7 mm up and down at first): the ball goes where the
+        # tip comes to rest, not wherever one reading caught it; and on the tip's axis (its frame's x, the
+        # backbone's tangent; the tip hangs tilted ~60 degrees): 2 mm into its flat end face
+        tips = c.subscribe(PoseStamped, f"/{name}/tip_pose", depth=50)
+
+        def at_rest(n=60, tol=3e-4):   # the last n tip poses (0.3 s at 200 Hz) within 0.3 mm in x and in z
+            xz = [(m.pose.position.x, m.pose.position.z) for m in tips[-n:]]
+            return len(xz) == n and all(max(v) - min(v) < tol for v in zip(*xz))
+        assert c.wait_until(at_rest, 30.0), "the tip did not come to rest after the floor went"
+        tip = tips[-1].pose
+        q = tip.orientation
+        axis = (1 - 2 * (q.y ** 2 + q.z ** 2), 2 * (q.x * q.y + q.w * q.z), 2 * (q.x * q.z - q.w * q.y))
         ball = Obstacle(name="ball", operation=Obstacle.ADD, pose=Pose(),
                         primitive=SolidPrimitive(type=SolidPrimitive.SPHERE, dimensions=[0.03]))
-        tip = c.tip_pose.pose.position
-        ball.pose.position.x, ball.pose.position.z = tip.x, tip.z - 0.008 - 0.03 + 0.002   # 2 mm into the tip
+        p = tip.position
+        ball.pose.position.x, ball.pose.position.y, ball.pose.position.z = (
+            x0 + (0.03 - 0.002) * a for x0, a in zip((p.x, p.y, p.z), axis))
         ball.pose.orientation.w = 1.0
         pub.publish(ball)
         assert c.wait_until(lambda: bool(got and got[-1].contacts)

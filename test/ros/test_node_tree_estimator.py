@@ -128,17 +128,20 @@ def test_tree_estimate_follows_the_real_robot_and_bad_joint_states_are_counted(r
             return np.inf
         return np.linalg.norm(matrix_from_pose(client.tip.pose.pose)[:3, 3] - tool_true)
 
-    def pan_error():
-        return abs(client.joints["pan"] - REAL["pan"]) if client.joints else np.inf
+    def pan_error(n=50):
+        """The median pan error (rad) of the last n estimates (1 s)."""
+        pans = [j["pan"] for j in client.joint_log[-n:]]
+        return float(np.median(np.abs(np.subtract(pans, REAL["pan"])))) if len(pans) == n else np.inf
 
     def settled(n=50):
-        """The median error of the last n estimates (1 s) within the tolerance (not a transient
+        """The median errors of the last n estimates (1 s) within the tolerances (not a transient
         crossing). The estimate of the static arm wanders: RMS 1.2 mm with fresh readings at every
         step, 2.5 mm (10 % of the steps above 4 mm) when half of them are missing, as on a loaded
-        machine: between readings it relaxes towards the twin's own, softer, equilibrium)."""
+        machine: between readings it relaxes towards the twin's own, softer, equilibrium). So does
+        the pan: single estimates up to 3.2 mrad off, the median of 50 0.55-0.6 mrad (quiet or loaded)."""
         tips = client.tips[-n:]
         return len(tips) == n and np.median([np.linalg.norm(t - tool_true) for t in tips]) < TOL \
-            and pan_error() < 0.003
+            and pan_error(n) < 0.003
 
     stop = threading.Event()
 
