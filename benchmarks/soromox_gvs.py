@@ -1,0 +1,100 @@
+"""SoRoMoX's variable-strain (GVS) cantilever statics, for the matched-basis cross-check (issue 28).
+
+The benchmark cantilever (L = 0.5 m, r = 0.01 m, E = 1 MPa, G = E / 3,
+1000 kg/m^3, along +x, gravity -z; shear stiffness G A, no correction
+factor, as SoRoMoX builds it) in SoRoMoX's GVS model: every strain
+component a Legendre series of order p on [0, L], p = 1 .. 5, with 8, 16
+and 32 Gauss points (its Magnus steps and quadrature). The equilibrium:
+SoRoMoX's ``potential_force(q) = 0`` (elastic and gravitational), solved by
+scipy's Levenberg-Marquardt with JAX's Jacobian, gravity raised in 8 steps.
+Written: each order's and Gauss count's tip position [m] and residual
+(``test/data/soromox_gvs_cantilever.json``, which
+``test/unit/test_strain_basis.py`` checks the engine's fourth-order Magnus
+field against: a Galerkin solution depends on the space the basis spans,
+not on how it is scaled, so Legendre order p here and there is the same
+problem).
+
+SoRoMoX needs JAX, which the project does not depend on: run this in a
+virtual environment of its own (about 25 s an equilibrium, JAX's
+compilation most of it):
+
+    python3 -m venv /tmp/peers && /tmp/peers/bin/pip install soromox==0.5.0
+    /tmp/peers/bin/python benchmarks/soromox_gvs.py
+"""
+
+import datetime
+import json
+import os
+import platform
+import sys
+import time
+from importlib.metadata import version
+
+import numpy as np
+from scipy.optimize import root
+
+import jax
+
+jax.config.update("jax_enable_x64", True)
+import jax.numpy as jnp  # noqa: E402
+from soromox.systems.components import JointSpec, LinkSpec  # noqa: E402
+from soromox.systems.gvs import GVS, GVSSegment, StrainBasisSpec  # noqa: E402
+
+LENGTH, RADIUS, E, DENSITY = 0.5, 0.01, 1.0e6, 1000.0
+G = E / 3                                # Poisson 0.5
+ALL = ["kappa_x", "kappa_y", "kappa_z", "sigma_x", "sigma_y", "sigma_z"]
+ORDERS, GAUSS_POINTS, LOAD_STEPS = (1, 2, 3, 4, 5), (8, 16, 32), 8
+OUT = os.path.join(os.path.dirname(os.path.abspath(__file__)), "..", "test", "data", "soromox_gvs_cantilever.json")
+
+
+def cantilever(order, gauss_points, g):
+    """The cantilever in SoRoMoX's GVS model, along +x (the identity base
+    pose, quaternion x, y, z, w first), gravity g [m/s^2] along -z."""
+    link = LinkSpec.circular(length=LENGTH, radius=RADIUS, density=DENSITY, reference_strain=[0, 0, 0, 1, 0, 0],
+                             young_modulus=E, shear_modulus=G)
+    seg = GVSSegment(link=link, joint=JointSpec.fixed(), basis=StrainBasisSpec("legendre", ALL, order),
+                     num_gauss_points=gauss_points)
+    return GVS.from_segments([seg], gravity=jnp.array([0.0, 0.0, -g]),
+                             base_pose=jnp.array([0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0]))
+
+
+def equilibrium(order, gauss_points):
+    """(tip position [m], |potential force| at the solution) under gravity
+    raised in LOAD_STEPS steps, each solved from the last."""
+    q = None
+    for k in range(1, LOAD_STEPS + 1):
+        rob = cantilever(order, gauss_points, 9.81 * k / LOAD_STEPS)
+        force = rob.potential_force
+        jac = jax.jacfwd(lambda x, rob=rob: rob.potential_force(x))
+        q = np.zeros(rob.num_coordinates) if q is None else q
+        q = root(lambda x: np.asarray(force(jnp.asarray(x))), q, jac=lambda x: np.asarray(jac(jnp.asarray(x))),
+                 method="lm", options=dict(xtol=1e-15, ftol=1e-15, gtol=1e-15)).x
+    residual = float(np.abs(np.asarray(force(jnp.asarray(q)))).max())
+    tip = np.asarray(rob.forward_kinematics(jnp.asarray(q), jnp.array(LENGTH)))[:3, 3]
+    return tip, residual
+
+
+def main():
+    rows = []
+    for order in ORDERS:
+        for n in GAUSS_POINTS:
+            t = time.perf_counter()
+            tip, res = equilibrium(order, n)
+            rows.append(dict(order=order, gauss_points=n, tip_m=[float(x) for x in tip], residual_n=res))
+            print(f"order {order}, {n:2d} Gauss points: tip {np.round(tip, 8)} m, residual {res:.1e} N "
+                  f"({time.perf_counter() - t:.1f} s)", flush=True)
+    out = dict(source=f"soromox {version('soromox')} (jax {version('jax')}), benchmarks/soromox_gvs.py",
+               date=datetime.date.today().isoformat(), machine=f"{platform.machine()}, Python {platform.python_version()}",
+               model=dict(length_m=LENGTH, radius_m=RADIUS, youngs_modulus_pa=E, shear_modulus_pa=G,
+                          density_kg_m3=DENSITY, gravity_m_s2=[0.0, 0.0, -9.81], strains="all six",
+                          basis="legendre", shear_stiffness="G A"),
+               results=rows)
+    os.makedirs(os.path.dirname(OUT), exist_ok=True)
+    with open(OUT, "w") as f:
+        json.dump(out, f, indent=1)
+    print(f"written: {os.path.relpath(OUT)}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
