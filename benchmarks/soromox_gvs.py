@@ -7,7 +7,10 @@ component a Legendre series of order p on [0, L], p = 1 .. 5, with 8, 16
 and 32 Gauss points (its Magnus steps and quadrature). The equilibrium:
 SoRoMoX's ``potential_force(q) = 0`` (elastic and gravitational), solved by
 scipy's Levenberg-Marquardt with JAX's Jacobian, gravity raised in 8 steps.
-Written: each order's and Gauss count's tip position [m] and residual
+And without gravity, about the straight rod: the lowest six natural
+frequencies [Hz] (``K x = w^2 M(0) x``, SoRoMoX's stiffness and inertia
+matrices: the inertia's projection on the basis). Written: each order's
+and Gauss count's tip position [m], residual and frequencies
 (``test/data/soromox_gvs_cantilever.json``, which
 ``test/unit/test_strain_basis.py`` checks the engine's fourth-order Magnus
 field against: a Galerkin solution depends on the space the basis spans,
@@ -31,6 +34,7 @@ import time
 from importlib.metadata import version
 
 import numpy as np
+from scipy.linalg import eigh
 from scipy.optimize import root
 
 import jax
@@ -74,17 +78,29 @@ def equilibrium(order, gauss_points):
     return tip, residual
 
 
+def frequencies(order, gauss_points, count=6):
+    """The lowest ``count`` natural frequencies [Hz] about the straight rod,
+    no gravity."""
+    rob = cantilever(order, gauss_points, 0.0)
+    M = np.asarray(rob.inertia_matrix(jnp.zeros(rob.num_coordinates)))
+    w2 = eigh(np.asarray(rob.stiffness_matrix()), M, eigvals_only=True)[:count]
+    return np.sqrt(np.maximum(w2, 0.0)) / (2 * np.pi)
+
+
 def main():
     rows = []
     for order in ORDERS:
         for n in GAUSS_POINTS:
             t = time.perf_counter()
             tip, res = equilibrium(order, n)
-            rows.append(dict(order=order, gauss_points=n, tip_m=[float(x) for x in tip], residual_n=res))
-            print(f"order {order}, {n:2d} Gauss points: tip {np.round(tip, 8)} m, residual {res:.1e} N "
-                  f"({time.perf_counter() - t:.1f} s)", flush=True)
+            f = frequencies(order, n)
+            rows.append(dict(order=order, gauss_points=n, tip_m=[float(x) for x in tip], residual_n=res,
+                             frequencies_hz=[float(x) for x in f]))
+            print(f"order {order}, {n:2d} Gauss points: tip {np.round(tip, 8)} m, residual {res:.1e} N, "
+                  f"frequencies {np.round(f, 6)} Hz ({time.perf_counter() - t:.1f} s)", flush=True)
     out = dict(source=f"soromox {version('soromox')} (jax {version('jax')}), benchmarks/soromox_gvs.py",
-               date=datetime.date.today().isoformat(), machine=f"{platform.machine()}, Python {platform.python_version()}",
+               date=datetime.date.today().isoformat(),
+               machine=f"{platform.machine()}, Python {platform.python_version()}",
                model=dict(length_m=LENGTH, radius_m=RADIUS, youngs_modulus_pa=E, shear_modulus_pa=G,
                           density_kg_m3=DENSITY, gravity_m_s2=[0.0, 0.0, -9.81], strains="all six",
                           basis="legendre", shear_stiffness="G A"),
