@@ -25,41 +25,29 @@ compilation most of it):
     /tmp/peers/bin/python benchmarks/soromox_gvs.py
 """
 
-import datetime
-import json
-import os
-import platform
 import sys
 import time
-from importlib.metadata import version
 
+import jax
+import jax.numpy as jnp
 import numpy as np
 from scipy.linalg import eigh
 from scipy.optimize import root
 
-import jax
+from _soromox import BASE_POSE, GRAVITY, LENGTH, link, write_reference
+from soromox.systems.components import JointSpec
+from soromox.systems.gvs import GVS, GVSSegment, StrainBasisSpec
 
-jax.config.update("jax_enable_x64", True)
-import jax.numpy as jnp  # noqa: E402
-from soromox.systems.components import JointSpec, LinkSpec  # noqa: E402
-from soromox.systems.gvs import GVS, GVSSegment, StrainBasisSpec  # noqa: E402
-
-LENGTH, RADIUS, E, DENSITY = 0.5, 0.01, 1.0e6, 1000.0
-G = E / 3                                # Poisson 0.5
 ALL = ["kappa_x", "kappa_y", "kappa_z", "sigma_x", "sigma_y", "sigma_z"]
 ORDERS, GAUSS_POINTS, LOAD_STEPS = (1, 2, 3, 4, 5), (8, 16, 32), 8
-OUT = os.path.join(os.path.dirname(os.path.abspath(__file__)), "..", "test", "data", "soromox_gvs_cantilever.json")
 
 
 def cantilever(order, gauss_points, g):
-    """The cantilever in SoRoMoX's GVS model, along +x (the identity base
-    pose, quaternion x, y, z, w first), gravity g [m/s^2] along -z."""
-    link = LinkSpec.circular(length=LENGTH, radius=RADIUS, density=DENSITY, reference_strain=[0, 0, 0, 1, 0, 0],
-                             young_modulus=E, shear_modulus=G)
-    seg = GVSSegment(link=link, joint=JointSpec.fixed(), basis=StrainBasisSpec("legendre", ALL, order),
+    """The cantilever in SoRoMoX's GVS model, along +x, gravity g [m/s^2]
+    along -z."""
+    seg = GVSSegment(link=link(LENGTH), joint=JointSpec.fixed(), basis=StrainBasisSpec("legendre", ALL, order),
                      num_gauss_points=gauss_points)
-    return GVS.from_segments([seg], gravity=jnp.array([0.0, 0.0, -g]),
-                             base_pose=jnp.array([0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0]))
+    return GVS.from_segments([seg], gravity=jnp.array([0.0, 0.0, -g]), base_pose=jnp.array(BASE_POSE))
 
 
 def equilibrium(order, gauss_points):
@@ -67,7 +55,7 @@ def equilibrium(order, gauss_points):
     raised in LOAD_STEPS steps, each solved from the last."""
     q = None
     for k in range(1, LOAD_STEPS + 1):
-        rob = cantilever(order, gauss_points, 9.81 * k / LOAD_STEPS)
+        rob = cantilever(order, gauss_points, -GRAVITY[2] * k / LOAD_STEPS)
         force = rob.potential_force
         jac = jax.jacfwd(lambda x, rob=rob: rob.potential_force(x))
         q = np.zeros(rob.num_coordinates) if q is None else q
@@ -98,17 +86,7 @@ def main():
                              frequencies_hz=[float(x) for x in f]))
             print(f"order {order}, {n:2d} Gauss points: tip {np.round(tip, 8)} m, residual {res:.1e} N, "
                   f"frequencies {np.round(f, 6)} Hz ({time.perf_counter() - t:.1f} s)", flush=True)
-    out = dict(source=f"soromox {version('soromox')} (jax {version('jax')}), benchmarks/soromox_gvs.py",
-               date=datetime.date.today().isoformat(),
-               machine=f"{platform.machine()}, Python {platform.python_version()}",
-               model=dict(length_m=LENGTH, radius_m=RADIUS, youngs_modulus_pa=E, shear_modulus_pa=G,
-                          density_kg_m3=DENSITY, gravity_m_s2=[0.0, 0.0, -9.81], strains="all six",
-                          basis="legendre", shear_stiffness="G A"),
-               results=rows)
-    os.makedirs(os.path.dirname(OUT), exist_ok=True)
-    with open(OUT, "w") as f:
-        json.dump(out, f, indent=1)
-    print(f"written: {os.path.relpath(OUT)}")
+    write_reference("soromox_gvs_cantilever.json", "soromox_gvs.py", rows, basis="legendre")
     return 0
 
 

@@ -18,38 +18,24 @@ virtual environment of its own:
     /tmp/peers/bin/python benchmarks/soromox_pcs_dynamics.py
 """
 
-import datetime
-import json
-import os
-import platform
 import sys
 import time
-from importlib.metadata import version
-
-import numpy as np
 
 import jax
+import jax.numpy as jnp
+import numpy as np
 
-jax.config.update("jax_enable_x64", True)
-import jax.numpy as jnp  # noqa: E402
-from soromox.systems.components import LinkSpec  # noqa: E402
-from soromox.systems.pcs import PCS  # noqa: E402
-from soromox.systems.system_state import SystemState  # noqa: E402
+from _soromox import BASE_POSE, GRAVITY, LENGTH, link, write_reference
+from soromox.systems.pcs import PCS
+from soromox.systems.system_state import SystemState
 
-LENGTH, RADIUS, E, DENSITY = 0.5, 0.01, 1.0e6, 1000.0
-G = E / 3                                # Poisson 0.5
-SEGMENTS, DT, TIMES = (8, 16), 1e-4, (0.1, 0.2, 0.3)
-OUT = os.path.join(os.path.dirname(os.path.abspath(__file__)), "..", "test", "data", "soromox_pcs_release.json")
+SEGMENTS, DT, TIMES = (8, 16), 1e-4, (0.1, 0.2, 0.3)          # -, s, s
 
 
 def cantilever(n):
-    """n equal PCS segments along +x (identity base pose: quaternion x, y,
-    z, w first), gravity -z."""
-    links = [LinkSpec.circular(length=LENGTH / n, radius=RADIUS, density=DENSITY,
-                               reference_strain=[0, 0, 0, 1, 0, 0], young_modulus=E, shear_modulus=G)
-             for _ in range(n)]
-    return PCS.from_links(links, gravity=jnp.array([0.0, 0.0, -9.81]),
-                          base_pose=jnp.array([0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0]))
+    """n equal PCS segments along +x, gravity -z."""
+    return PCS.from_links([link(LENGTH / n) for _ in range(n)], gravity=jnp.array(GRAVITY),
+                          base_pose=jnp.array(BASE_POSE))
 
 
 def release(n):
@@ -76,17 +62,7 @@ def main():
                          rollout_wall_s=wall, first_call_wall_s=first))
         print(f"{n} segments: tip at {TIMES[-1]} s {np.round(tips[-1], 8)} m; {TIMES[-1]} s simulated in "
               f"{wall:.3f} s ({first:.1f} s with JAX's compilation)", flush=True)
-    out = dict(source=f"soromox {version('soromox')} (jax {version('jax')}), benchmarks/soromox_pcs_dynamics.py",
-               date=datetime.date.today().isoformat(),
-               machine=f"{platform.machine()}, Python {platform.python_version()}, load {os.getloadavg()[0]:.2f}",
-               model=dict(length_m=LENGTH, radius_m=RADIUS, youngs_modulus_pa=E, shear_modulus_pa=G,
-                          density_kg_m3=DENSITY, gravity_m_s2=[0.0, 0.0, -9.81], strains="all six",
-                          shear_stiffness="G A", solver="Tsit5", dt_s=DT),
-               results=rows)
-    os.makedirs(os.path.dirname(OUT), exist_ok=True)
-    with open(OUT, "w") as f:
-        json.dump(out, f, indent=1)
-    print(f"written: {os.path.relpath(OUT)}")
+    write_reference("soromox_pcs_release.json", "soromox_pcs_dynamics.py", rows, solver="Tsit5", dt_s=DT)
     return 0
 
 
