@@ -367,7 +367,7 @@ def main(args=None):
         node = EstimatorNode()        # a signal during it: the start-up ends, then the node stops
         logger = node.get_logger()
         stop.add_last_act(node._recorder.close_now)
-        logger.info(f"estimator running: robot {node.mech.name!r}, {node.ekf.n} joint coordinates, "
+        logger.info(f"estimator running: robot {node.mech.name!r}, {node.ekf.nr} coordinates, "
                     f"{len(node.sensors)} sensors, at {node.get_parameter('rate_hz').value:g} Hz")
         executor = SingleThreadedExecutor()
         executor.add_node(node)

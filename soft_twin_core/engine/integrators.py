@@ -33,6 +33,7 @@ The whole Newton loop of a step runs compiled (one call per step).
 from dataclasses import dataclass
 
 import numpy as np
+from scipy.linalg import cho_factor, cho_solve
 
 from soft_twin_core import lie
 from soft_twin_core.engine import algorithms as alg
@@ -466,3 +467,106 @@ class ThetaIntegrator:
         self.last_a = (v1 - state.qdot) / self.dt
         state.q, state.qdot, state.t = q1, v1, state.t + self.dt
         return StepInfo(it, True, 0.0)
+
+
+class ReducedThetaIntegrator:
+    """The theta-method step of :class:`ThetaIntegrator` for a robot whose
+    velocities lie on a basis, ``v = B w`` (variable-strain segments:
+    :attr:`mechanism.Mechanism.basis`, ``q = q0 + B z``): the step's
+    residual R(v1) (module docstring) projected on the basis, ``B^T R(B w1)
+    = 0`` (Galerkin: the virtual power of the step's forces on the basis's
+    motions), by Newton with the stiff part of the matrix,
+    ``B^T (M + theta h D + (theta h)^2 K) B`` (dense CRBA at the step's
+    first iterate, O(n^2) over the sections; the small nz x nz matrix
+    factorised by Cholesky), as the O(n) iteration does in q. The
+    positions stay on the basis: ``q1 = q0 + h v_t`` is additive for soft
+    and 1-dof joints (a robot with quaternion coordinates is refused at
+    the door). A step that does not converge is split into halves (down to
+    ``max_substep_levels``). Same interface as :class:`ThetaIntegrator`
+    (``run``, ``step``, ``last_a``, ``iterations``, ``factorisations``)."""
+
+    def __init__(self, model, ws, act, inputs, dt, B, K, D, theta=0.5, tol=1e-4, max_iterations=10,
+                 max_substep_levels=4):
+        self.model, self.ws, self.act, self.inputs = model, ws, act, inputs
+        self.B = np.ascontiguousarray(B, dtype=float)
+        self.BT = np.ascontiguousarray(self.B.T)
+        self.K_z, self.D_z = self.BT @ K @ self.B, self.BT @ D @ self.B
+        self.dt, self.theta, self.tol = float(dt), float(theta), float(tol)
+        self.max_iterations, self.max_substep_levels = int(max_iterations), int(max_substep_levels)
+        self.last_a = np.zeros(model.nv)
+        self.factorisations = 0
+        self.iterations = 0
+
+    def newton_matrix(self, q, h):
+        """``B^T (M(q) + theta h D + (theta h)^2 K) B`` (nz, nz)."""
+        th = self.theta * h
+        return self.BT @ alg.crba(self.model, self.ws, q) @ self.B + th * self.D_z + th * th * self.K_z
+
+    def _newton(self, q0, v0, h, inputs):
+        """(q1, v1, iterations) of one step of h, or None."""
+        loads, g, coef, effort = inputs
+        ws, th = self.ws, self.theta * h
+        R, qt = np.empty(self.model.nv), np.empty_like(q0)
+        w1 = self._on_basis(v0 + h * self.last_a)            # predictor: the last step's acceleration
+        factor = None
+        floor = 1e-14 * max(1.0, np.abs(q0).max()) / h      # the round-off of q (as run_steps' floor)
+        for it in range(1, self.max_iterations + 1):
+            v1 = self.B @ w1
+            vt = (1.0 - self.theta) * v0 + self.theta * v1
+            integrate_pass(ws.m, q0, vt, th, qt)
+            if factor is None:
+                try:
+                    factor = cho_factor(self.newton_matrix(qt, h))
+                except np.linalg.LinAlgError:
+                    return None
+                self.factorisations += 1
+            residual_pass(ws.m, ws.w, self.act, loads, g, coef, effort, qt, vt, (v1 - v0) / h, R, False)
+            if not np.all(np.isfinite(R)):
+                return None
+            dw = cho_solve(factor, -h * (self.BT @ R))
+            w1 = w1 + dw
+            dv = self.B @ dw
+            if np.max(np.abs(dv)) <= max(self.tol * max(np.abs(v1).max(), np.abs(v0).max()), floor):
+                v1 = self.B @ w1
+                q1 = np.empty_like(q0)
+                integrate_pass(ws.m, q0, (1.0 - self.theta) * v0 + self.theta * v1, h, q1)
+                return q1, v1, it
+        return None
+
+    def _on_basis(self, v):
+        """The coordinates w of the velocity nearest v on the basis (least squares)."""
+        G = self.__dict__.get("_gram")
+        if G is None:
+            G = self._gram = np.linalg.inv(self.BT @ self.B)
+        return G @ (self.BT @ v)
+
+    def _advance(self, q0, v0, t, h, level):
+        out = self._newton(q0, v0, h, self.inputs(t + self.theta * h))
+        if out is None and level < self.max_substep_levels:
+            half = self._advance(q0, v0, t, 0.5 * h, level + 1)
+            if half is not None:
+                rest = self._advance(half[0], half[1], t + 0.5 * h, 0.5 * h, level + 1)
+                if rest is not None:
+                    return rest[0], rest[1], half[2] + rest[2]
+        return out
+
+    def step(self, state):
+        """One step of dt from ``state`` (updated in place when it converges)."""
+        out = self._advance(np.asarray(state.q, dtype=float), np.asarray(state.qdot, dtype=float), state.t,
+                            self.dt, 0)
+        if out is None:
+            return StepInfo(self.max_iterations, False, np.inf)
+        q1, v1, it = out
+        self.iterations += it
+        self.last_a = (v1 - state.qdot) / self.dt
+        state.q, state.qdot, state.t = q1, v1, state.t + self.dt
+        return StepInfo(it, True, 0.0)
+
+    def run(self, state, n):
+        """n steps (:meth:`step`); the StepInfo of the last one taken."""
+        info = StepInfo(0, True, 0.0)
+        for _ in range(n):
+            info = self.step(state)
+            if not info.converged:
+                break
+        return info

@@ -115,7 +115,7 @@ from soft_twin_core.lie import checked_rigid_transform, log_so3
 from soft_twin_core.robot.mechanism import tip_frame
 from soft_twin_core.solve.constrained import (Inputs, MechanismSimulator, actuation_vector, constraint_loads,
                                               constraint_rows, factor_kkt, joint_vector, make_inputs,
-                                              solve_equilibrium, solve_factored)
+                                              on_basis, solve_equilibrium, solve_factored)
 
 WRENCH_DIMS = {None: 0, "payload": 1, "force": 3, "wrench": 6}
 
@@ -213,6 +213,10 @@ class EKF:
         self.dt, self.theta = float(dt), float(theta)
         self.n = n = tree.nv
         self.nq = tree.nq             # q has nq entries (quaternions), its error and v have n
+        # variable-strain segments: the errors of q and v are those of the coordinates z (q = q0 + B z), nr of
+        # them; else nr = n (T None: the identity)
+        self.T = mech.basis
+        self.nr = nr = n if self.T is None else self.T.shape[1]
         self.ws = Workspace(tree)
         self._act = actuator_arrays(tree)
         self._g = kernel_array(tree.gravity)
@@ -272,6 +276,8 @@ class EKF:
         for i, joint in enumerate(tree.joints):
             if joint.kind != SOFT:
                 rigid[tree.idx_v[i]:tree.idx_v[i] + joint.nv] = True
+        if self.T is not None:                    # a coordinate is rigid when it moves a rigid joint
+            rigid = (self.T.T != 0) @ rigid > 0
         self.rigid = rigid
         self.nb = nb = len(self._pos_v)
         k = self.k
@@ -286,12 +292,14 @@ class EKF:
                                          np.where(rigid, pj_v ** 2, process_noise_v ** 2),
                                          np.full(nb, offset_walk ** 2), walk ** 2]))
         self._P0 = np.diag(np.concatenate([np.where(rigid, sigma_joint0 ** 2, sigma_q0 ** 2),
-                                           np.full(n, sigma_v0 ** 2), np.full(nb, sigma_offset0 ** 2), w0 ** 2]))
+                                           np.full(nr, sigma_v0 ** 2), np.full(nb, sigma_offset0 ** 2), w0 ** 2]))
         if q_init is None:   # the equilibrium under the inputs; where statics has none to find (a moving base,
             # ball joints: no static equilibrium solver on quaternions), the reference configuration
             statics = mech.base_motion == "fixed" and tree.nq == tree.nv
             q_init = solve_equilibrium(mech, actuation, efforts, positions).q if statics else tree.q0
         self._q_init = tree.check_q(np.array(q_init, dtype=float)).copy()
+        if self.T is not None:
+            on_basis(mech, self._q_init - tree.q0, "q_init")
         self.reset()
 
     # ------------------------------------------------------------------ state
@@ -343,7 +351,7 @@ class EKF:
 
     def joint_offsets(self):
         """{position-controlled joint: (offset [rad or m], standard deviation)}."""
-        i0, p0 = self.nq + self.n, 2 * self.n          # in x, in P (the errors: n for q)
+        i0, p0 = self.nq + self.n, 2 * self.nr         # in x, in P (the errors: nr for q)
         return {self.tree.joints[i].name: (float(self.x[i0 + k]), float(np.sqrt(self.P[p0 + k, p0 + k])))
                 for k, i in enumerate(self._pos_joints)}
 
@@ -357,7 +365,7 @@ class EKF:
 
     def _wrench_cov(self):
         """Covariance (6, 6) of :meth:`wrench`: S P_w S^T."""
-        i = 2 * self.n + self.nb
+        i = 2 * self.nr + self.nb
         return self.S @ self.P[i:, i:] @ self.S.T
 
     def payload_mass_kg(self):
@@ -365,7 +373,7 @@ class EKF:
         gn = np.linalg.norm(self._g)
         if self.k == 0 or gn == 0:
             return 0.0, float("inf")
-        i = 2 * self.n + self.nb
+        i = 2 * self.nr + self.nb
         if self.wrench_mode == "payload":
             return float(self.x[self.nq + self.n + self.nb]), float(np.sqrt(self.P[i, i]))
         d = self._g / gn
@@ -402,12 +410,21 @@ class EKF:
         self._target_rate[r + 3:r + 6] = log_so3(T[:3, :3] @ T0[:3, :3].T) / self.dt   # world axes at its origin
         self._targets[k] = T.copy()
 
+    def q_covariance(self):
+        """Covariance (nv, nv) of the errors of q (of the coordinates z
+        mapped by the strain basis, ``B P_zz B^T``, with variable-strain
+        segments)."""
+        nr = self.nr
+        P = self.P[:nr, :nr]
+        return P if self.T is None else self.T @ P @ self.T.T
+
     def joint_positions(self):
         """{revolute or prismatic joint: (position [rad or m], standard deviation)}."""
         out = {}
+        Pq = self.q_covariance()
         for i in self.mech.rigid_joints:
             k = self.tree.idx_v[i]
-            out[self.tree.joints[i].name] = (float(self.q[self.tree.idx_q[i]]), float(np.sqrt(self.P[k, k])))
+            out[self.tree.joints[i].name] = (float(self.q[self.tree.idx_q[i]]), float(np.sqrt(Pq[k, k])))
         return out
 
     def _point(self, frame):
@@ -423,8 +440,7 @@ class EKF:
         """Covariance (3, 3) [m^2] of a frame's position, ``Jp P_qq Jp^T``."""
         j, x = self._point(frame)
         _, Jw = alg.point_jacobian(self.tree, self.ws, self.q, j, x, "world")
-        n = self.n
-        return Jw[:3] @ self.P[:n, :n] @ Jw[:3].T
+        return Jw[:3] @ self.q_covariance() @ Jw[:3].T
 
     def tip_pose(self):
         """World pose (4x4) of the tip frame (:func:`mechanism.tip_frame`)."""
@@ -468,17 +484,20 @@ class EKF:
         docstring), analytic: :func:`theta_step_jacobian` of the forces'
         Jacobians; the offsets and the tip wrench are random walks."""
         M, dq, dv, F, G = self._force_jacobians()
-        N, n_ext = self.P.shape[0], self.nb + self.k
+        T = self.T
+        if T is not None:             # in the strain basis's coordinates: the Galerkin projection
+            M, dq, dv, F, G = T.T @ M @ T, T.T @ dq @ T, T.T @ dv @ T, T.T @ F, G @ T
+        N, n_ext, nr = self.P.shape[0], self.nb + self.k, self.nr
         steps = None
         if self.nq != self.n:     # quaternions: the step's map on the joints' groups, at vt ~ v (O(dt) as dF)
             steps = (*integrate_jacobians(self.tree, self.v, self.theta * self.dt),
                      *integrate_jacobians(self.tree, self.v, self.dt))
         J = theta_step_jacobian(M, dq, dv, F, G, self.dt, self.theta, steps)
         Phi = np.zeros((N, N))
-        Phi[:2 * self.n] = J[:, :N]
-        Phi[2 * self.n:, 2 * self.n:] = np.eye(n_ext)
+        Phi[:2 * nr] = J[:, :N]
+        Phi[2 * nr:, 2 * nr:] = np.eye(n_ext)
         Gamma = np.zeros((N, F.shape[1] - n_ext))
-        Gamma[:2 * self.n] = J[:, N:]
+        Gamma[:2 * nr] = J[:, N:]
         return Phi, Gamma
 
     def _force_jacobians(self):
@@ -584,7 +603,7 @@ class EKF:
             if name not in self.by_name:
                 raise ValueError(f"measurements: unknown sensor {name!r}; configured: {list(self.by_name)}")
         rep = UpdateReport()
-        n, N = self.n, self.P.shape[0]
+        nr, N = self.nr, self.P.shape[0]
         q = None
         es, Hs, Rs = [], [], []
         for sen in self.sensors:
@@ -609,9 +628,9 @@ class EKF:
             load = (*self._tip_point, self.wrench()) if ft_load else None
             e, Hq = sn.residual_and_jacobian(self.ws, q, sen, self._where[sen.name], z, point_load=load)
             H = np.zeros((len(e), N))
-            H[:, :n] = Hq
+            H[:, :nr] = Hq if self.T is None else Hq @ self.T
             if ft_load:                     # the support carries the estimated tip load too
-                i = 2 * n + self.nb
+                i = 2 * nr + self.nb
                 H[:, i:i + self.k] = sn.base_wrench_load_jacobian(self.tree, self.ws, q, *self._tip_point) @ self.S
             Rm = sen.noise_covariance()
             if not gate_reading(rep, sen.name, e, H, Rm, self.P, self._gate(len(e)), self._gated_run,
@@ -630,11 +649,16 @@ class EKF:
         return rep
 
     def _correct(self, dx):
-        """x (+) dx: the correction dx (the errors' layout: n for q) added, q
-        moved on the joints' groups (:func:`integrators.integrate_pass`)."""
-        n, nq = self.n, self.nq
-        self._move_q(dx[:n])
-        self.x[nq:] += dx[n:]
+        """x (+) dx: the correction dx (the errors' layout: nr for q and v)
+        added, q moved on the joints' groups (:func:`integrators.integrate_pass`)."""
+        n, nq, nr, T = self.n, self.nq, self.nr, self.T
+        if T is None:
+            self._move_q(dx[:n])
+            self.x[nq:] += dx[n:]
+        else:                      # the coordinates' corrections, mapped by the basis
+            self._move_q(T @ dx[:nr])
+            self.x[nq:nq + n] += T @ dx[nr:2 * nr]
+            self.x[nq + n:] += dx[2 * nr:]
 
     def _move_q(self, dq):
         q1 = np.empty(self.nq)

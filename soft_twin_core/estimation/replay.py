@@ -109,7 +109,7 @@ def estimate_recording(mech, sensors, rec, *, dt=None, wrench=None, **ekf_option
     if tip is None:
         raise CalibrationError("estimate: the sensors need a pose sensor or marker (the estimate it draws)")
     where = ekf._where[tip.name]
-    n, N = ekf.n, len(t)
+    N = len(t)
     out = {k: np.full((N, 3), np.nan) for k in ("measured", "estimated", "estimated_std")}
     W, Wsd = np.zeros((N, 6)), np.zeros((N, 6))
     mass, mass_sd = np.full(N, np.nan), np.full(N, np.nan)
@@ -132,7 +132,7 @@ def estimate_recording(mech, sensors, rec, *, dt=None, wrench=None, **ekf_option
         p = T[:3, 3] if np.shape(T) == (4, 4) else T
         _, H = sn.residual_and_jacobian(ekf.ws, q, tip, where, T if np.shape(T) == (4, 4) else p)
         out["estimated"][r] = p
-        out["estimated_std"][r] = np.sqrt(np.clip(np.diag(H[:3] @ ekf.P[:n, :n] @ H[:3].T), 0.0, None))
+        out["estimated_std"][r] = np.sqrt(np.clip(np.diag(H[:3] @ ekf.q_covariance() @ H[:3].T), 0.0, None))
         W[r], Wsd[r] = ekf.wrench(), ekf.wrench_std()
         if wrench in ("payload", "force", "wrench"):
             mass[r], mass_sd[r] = ekf.payload_mass_kg()

@@ -345,31 +345,40 @@ class _FreeStatics(_Statics):
     problem made once and re-used for every u (its coefficients and the
     point-moment tendons' moments set per u), Newton from a tangent hint;
     the full solver (continuation, stability) when Newton fails;
-    ``dq/du = Kt^-1 B``."""
+    ``dq/du = Kt^-1 B``. With variable-strain segments the Newton and the
+    tangents are in their coordinates z (:class:`equilibrium.ReducedProblem`)
+    and ``dq/du = T (T^T Kt T)^-1 T^T B`` (T the strain basis)."""
 
     def __init__(self, mech, ref, options, loads, n_j):
         super().__init__(mech, ref, options, loads, n_j)
         inp = cs.make_inputs(mech, None, options.efforts, None, None, loads, tuple(options.point_loads))
         self._base_loads, self._pm = inp.loads, point_moment_arrays
         self.point_moment = any(a.tendon_model == "point_moment" for a in mech.actuators)
-        self.pb = cs.free_problem(mech, inp)
-        self.ws = self.pb.ws
+        self.pb = self.full = cs.free_problem(mech, inp)
+        self.ws = self.full.ws
+        self.T = mech.basis
+        if self.T is not None:
+            self.pb = eq.ReducedProblem(self.full, self.T)
         self._u = None
 
     def _set(self, u):
-        pb = self.pb
+        pb = self.full
         if self._u is not None and np.array_equal(self._u, u):
-            return pb
+            return self.pb
         pb.coef = np.ascontiguousarray(pb.act.unit @ u) if u.size else pb.coef
         if self.point_moment:
             pb.loads = cs.concat_loads(self._base_loads, self._pm(self.mech.tree, u))
         self._u = np.array(u, dtype=float)
-        return pb
+        return self.pb
 
     def newton(self, q, u, hint=None, tol=1e-12):
         """(q, converged and stable, last tangent): Newton from q under u."""
         pb = self._set(np.asarray(u, dtype=float))
-        q1, _, _, ok, Kt = eq.newton(pb, q, tol, 30, hint)
+        if self.T is not None:
+            z1, _, _, ok, Kt = eq.newton(pb, pb.z_of(q), tol, 30, hint)
+            q1 = pb.q_of(z1)
+        else:
+            q1, _, _, ok, Kt = eq.newton(pb, q, tol, 30, hint)
         if ok and Kt is not None and Kt is not hint:
             ok = eq.is_stable(Kt)
         elif ok:
@@ -386,10 +395,13 @@ class _FreeStatics(_Statics):
         return _Eq(r.q, r.pose, getattr(r.result, "tangent", None))
 
     def sensitivity(self, e, x, Kt=None):
+        pb = self._set(np.asarray(x, dtype=float))
         if Kt is None:
-            Kt = self._set(np.asarray(x, dtype=float)).tangent(e.q)
+            Kt = pb.tangent(e.q if self.T is None else pb.z_of(e.q))
         g, Js = self._jacobian(e.q)                       # the forward pass at q, then B on it
         B = actuation_matrix(self.mech.tree, self.ws, _actuators(self.mech), e.q, posed=True)
+        if self.T is not None:
+            return g, Js, self.T @ np.linalg.solve(Kt, self.T.T @ B)
         return g, Js, np.linalg.solve(Kt, B)
 
 

@@ -38,6 +38,7 @@ from soft_twin_core.robot.model import (ModelError, _check_keys, _num, _vec, fin
                                         pose_from_dict, read_yaml_file, robot_mapping)
 from soft_twin_core.robot.obstacles import (contact_spacing, link_shape, member_capsules, member_contact,
                                             obstacles_from_list)
+from soft_twin_core.robot.strain_bases import robot_basis, segment_bases
 from soft_twin_core.robot.stress import section_geometry
 from soft_twin_core.robot.urdf import bodies_from_urdf
 
@@ -142,6 +143,25 @@ class Mechanism:
     obstacles: tuple = ()          # engine.contact.Obstacle: what the members touch (robot/obstacles.py)
     contact_spacing: float = None  # [m] between contact points (None: robot.obstacles.contact_points' default)
     member_shapes: tuple = ()      # capsules along members that others touch (robot.obstacles.member_capsules)
+    strain_bases: tuple = ()       # strain_bases.SegmentBasis: the variable-strain segments (none: PCS)
+
+    @property
+    def basis(self):
+        """B (nv, nz), read-only, of the robot's coordinates z, ``q = q0 + B
+        z`` (:func:`strain_bases.robot_basis`), or None when no segment has a
+        strain basis (then the coordinates are q). Cached."""
+        if not self.strain_bases:
+            return None
+        out = self.__dict__.get("_basis")
+        if out is None:
+            out = robot_basis(self.tree, self.strain_bases)
+            object.__setattr__(self, "_basis", out)
+        return out[0]
+
+    @property
+    def coordinate_names(self):
+        """The names of the coordinates z (:attr:`basis`'s columns)."""
+        return () if self.basis is None else self.__dict__["_basis"][1]
 
     @property
     def shapes(self):
@@ -492,6 +512,7 @@ def mechanism_from_dict(d, base_dir=None):
     n_soft = 0                    # soft sections of all members (resource bound)
     members, links, frames = [], [], {}
     actuators, act_paths = [], []
+    strain_bases = ()
     motion_limits = {}
     if motion != "fixed":
         frames["base"] = PointRef(ends["base"][0])
@@ -582,6 +603,7 @@ def mechanism_from_dict(d, base_dir=None):
             act_paths += [pi] * len(robot.actuators)
             geo = _member_geometry(bd["segments"], robot)
             members.append(Member(name, pi, tuple(js), tuple(geo)))
+            strain_bases += segment_bases(name, robot.sections, js)
             ends[name] = (js[-1], robot.sections[-1].offset_after)
             frames[f"{name}_tip"] = PointRef(js[-1], secs[-1].length)
     b.actuators, b.actuator_paths = tuple(actuators), tuple(act_paths)
@@ -636,7 +658,8 @@ def mechanism_from_dict(d, base_dir=None):
         constraints.insert(0, Constraint("base", "clamped", frames["base"], PointRef(-1), base_pose.copy()))
     mech = Mechanism(tree.name, tree, tuple(control), tuple(constraints), tuple(members), tuple(links),
                      frames, motion, motion_limits, np.array(base_pose, dtype=float),
-                     **_contact_fields(d, tree, members, base_dir))
+                     strain_bases=strain_bases, **_contact_fields(d, tree, members, base_dir))
+    _check_basis_robot(mech)
     return mech
 
 
@@ -719,9 +742,31 @@ def from_robot_model(robot, d=None, base_dir=None):
     p = tree.paths[0]
     member = Member("backbone", 0, p.joints, tuple(geo))
     frames = {"tip": PointRef(p.joints[-1], tree.joints[p.joints[-1]].section.length)}
-    return Mechanism(tree.name, tree, ("",) * tree.n_joints, (), (member,), (), frames, "fixed",
+    mech = Mechanism(tree.name, tree, ("",) * tree.n_joints, (), (member,), (), frames, "fixed",
                      base_pose=np.array(robot.base_pose, dtype=float),
+                     strain_bases=segment_bases("backbone", robot.sections, p.joints),
                      **_contact_fields(d, tree, (member,), base_dir))
+    _check_basis_robot(mech)
+    return mech
+
+
+def _check_basis_robot(mech):
+    """ModelError naming the first variable-strain segment when the robot
+    has what its solvers do not yet carry in the basis's coordinates:
+    closed chains or a prescribed base (constraint rows), position-controlled
+    joints (multipliers), obstacles or contact shapes (contact), spherical
+    or free joints (quaternions: q is not linear in the coordinates)."""
+    if not mech.strain_bases:
+        return
+    sb = mech.strain_bases[0]
+    why = ("closed chains or a moving base (constraints)" if mech.constraints else
+           "position-controlled joints" if mech.joints_with("position") else
+           "obstacles or contact shapes" if mech.obstacles or mech.shapes else
+           "spherical or free joints" if any(j.kind in (SPHERICAL, FREE) for j in mech.tree.joints) else None)
+    if why is not None:
+        raise ModelError(f"member {sb.member!r}, segment {sb.segment!r}: strain_basis (variable strain) is not "
+                         f"supported yet on a robot with {why}; drop strain_basis there (PCS sections) or the "
+                         f"{why.split(' (')[0]}")
 
 
 def _contact_fields(d, tree, members, base_dir=None):

@@ -33,8 +33,8 @@ from soft_twin_core.lie import exp_so3, se3_from_rp
 from soft_twin_core.limits import (MAX_SECTIONS_PER_SEGMENT, MAX_SECTIONS_TOTAL, check_limit, load_yaml_text,
                                    read_text)
 from soft_twin_core.robot import plausibility
+from soft_twin_core.robot.strain_bases import STRAIN_NAMES, parse_strain_basis, segment_columns
 
-STRAIN_NAMES = ("axial", "shear_y", "shear_z", "torsion", "bending_y", "bending_z")
 _MODE_GROUPS = {
     "all": STRAIN_NAMES,
     "bending": ("bending_y", "bending_z"),
@@ -107,7 +107,9 @@ class Section:
     density [kg/m, kg m] matrices acting on [linear; angular] strains/twists.
     ``f0`` reference strain; ``free`` boolean mask of free modes;
     ``offset_after`` rigid transform from this section's end to the next
-    section's start (identity inside a segment).
+    section's start (identity inside a segment); ``basis``: the segment's
+    strain basis (:class:`strain_bases.StrainBasis`, shared by its sections;
+    None: each section's strain is its own coordinates, PCS).
     """
     length: float
     K: np.ndarray
@@ -117,6 +119,7 @@ class Section:
     free: np.ndarray
     segment: str
     offset_after: np.ndarray
+    basis: object = None
 
 
 @dataclass(frozen=True, eq=False)
@@ -705,7 +708,7 @@ def model_from_dict(d, n_sections_override=None):
     for k, sd in enumerate(segs):
         where = f"segments[{k}]"
         _check_keys(sd, {"name", "length", "sections", "cross_section", "material", "sectional",
-                         "reference_strain", "free_modes", "offset_to_next"}, where)
+                         "reference_strain", "free_modes", "offset_to_next", "strain_basis"}, where)
         length = _num(sd, "length", where, positive=True)
         plausibility.check_length(where, length)
         n = sd.get("sections", 1) if n_sections_override is None else n_sections_override
@@ -742,6 +745,10 @@ def model_from_dict(d, n_sections_override=None):
             raise ModelError(f"{where}.reference_strain: axial strain must be > 0, got {f0[0]}")
         free = _free_modes(sd.get("free_modes", "all"), where + ".free_modes")
         off = pose_from_dict(sd.get("offset_to_next"), where + ".offset_to_next")
+        basis = parse_strain_basis(sd.get("strain_basis"), [m for m, f in zip(STRAIN_NAMES, free) if f],
+                                   where + ".strain_basis")
+        if basis is not None:                  # enough sections for its functions, checked here
+            segment_columns(basis, np.full(n, length / n), int(free.sum()), where + ".strain_basis")
         if "sectional" not in sd:
             K, D, M = section_matrices(cs, mat)
         if not (np.all(np.isfinite(K)) and np.all(np.isfinite(D)) and np.all(np.isfinite(M))
@@ -759,7 +766,7 @@ def model_from_dict(d, n_sections_override=None):
                       plausibility.section_extent(sd["cross_section"]), f"{where} ({name})"))
         for j in range(n):
             sections.append(Section(length / n, K, D, M, f0, free, name,
-                                    off if j == n - 1 else np.eye(4)))
+                                    off if j == n - 1 else np.eye(4), basis))
     total = sum(s.length for s in sections)
     acts = d.get("actuators", []) or []
     if not isinstance(acts, list):

@@ -38,7 +38,7 @@ from soft_twin_core.engine.closed_step import CLAMPED, closed_step
 from soft_twin_core.engine.contact_step import contact_step
 from soft_twin_core.engine.forces import (actuation_tangent_pass, actuator_arrays, check_member_loads,
                                           concat_loads, gravity_of, load_arrays, point_moment_arrays)
-from soft_twin_core.engine.integrators import ThetaIntegrator, integrate_pass, residual_pass
+from soft_twin_core.engine.integrators import ReducedThetaIntegrator, ThetaIntegrator, integrate_pass, residual_pass
 from soft_twin_core.engine.joint_kinds import FREE, PRISMATIC, REVOLUTE, SPHERICAL
 from soft_twin_core.engine.kernels import passes
 from soft_twin_core.engine.kernels.data import LoadArrays, kernel_array
@@ -760,6 +760,20 @@ def solve_equilibrium(mech, actuation=None, efforts=None, positions=None, loads=
                        inp, stable, lo, contacts=pb.contacts(q1))
 
 
+def on_basis(mech, dq, name):
+    """The coordinates z of ``dq`` (q - q0, or a velocity) on the robot's
+    strain basis (``dq = B z``); ValueError naming ``name`` when dq is not
+    on it (a configuration the variable-strain segments cannot take)."""
+    B = mech.basis
+    z = np.linalg.lstsq(B, dq, rcond=None)[0]
+    off = np.abs(B @ z - dq).max(initial=0.0)
+    if off > 1e-9 * max(1.0, np.abs(dq).max(initial=0.0)):
+        raise ValueError(f"{name}: not a configuration of the robot's variable-strain segments (off their strain "
+                         f"basis by {off:.3g}); start from the basis's coordinates: q = q0 + B z "
+                         f"(Mechanism.basis)")
+    return z
+
+
 def free_problem(mech, inp):
     """The compiled equilibrium problem (:class:`equilibrium.Problem`:
     residual, analytic tangent, Newton) of a mechanism without multipliers
@@ -772,13 +786,19 @@ def free_problem(mech, inp):
 
 
 def _free_equilibrium(mech, inp, q, tol, max_iterations, max_load_steps, check_stability, tangent_hint):
-    """:func:`solve_equilibrium` without multipliers: :func:`equilibrium.solve`."""
+    """:func:`solve_equilibrium` without multipliers: :func:`equilibrium.solve`
+    (in the coordinates z of variable-strain segments, :class:`equilibrium.ReducedProblem`:
+    then ``tangent`` is ``B^T K_t B``, a hint for the next solve of the same robot)."""
     with one_blas_thread():
         pb = free_problem(mech, inp)
+        if mech.basis is not None:        # variable-strain segments: Newton in their coordinates z
+            pb = eq.ReducedProblem(pb, mech.basis)
+            q = pb.z_of(q)
         sol = eq.solve(pb, q, tol=tol, max_iterations=max_iterations, max_load_steps=max_load_steps,
                        check_stability=check_stability, tangent_hint=tangent_hint)
     lam = np.zeros(0)
-    return Equilibrium(sol.q.copy(), lam, _efforts_out(mech, lam, inp), {}, sol.iterations,
+    q1 = sol.q if mech.basis is None else pb.q_of(sol.q)
+    return Equilibrium(q1.copy(), lam, _efforts_out(mech, lam, inp), {}, sol.iterations,
                        float(np.abs(sol.R).max(initial=0) / eq.force_scale(pb, sol.q, sol.R)), 0.0, sol.load_steps,
                        inp, sol.stable, sol.min_stiffness_eigenvalue, sol.tangent,
                        sol.tangent if check_stability and sol.stable else None)
@@ -877,6 +897,9 @@ class MechanismSimulator:
         self.q = tree.q0.copy() if q is None else tree.check_q(np.array(q, float)).copy()
         self.v = np.zeros(tree.nv) if v is None else tree.check_v(np.array(v, float)).copy()
         self.a = np.zeros(tree.nv)
+        if mech.basis is not None:
+            on_basis(mech, self.q - tree.q0, "q")
+            on_basis(mech, self.v, "v")
         self.lam = np.zeros(mech.n_constraint_rows + len(mech.joints_with("position")))
         self.iterations = self.newton_iterations = self._kkt_factorisations = 0
         self.inputs = make_inputs(mech)
@@ -908,7 +931,12 @@ class MechanismSimulator:
         # no multipliers (a rod, a tree of soft members and effort-controlled or passive joints): the
         # engine's compiled O(n) integrator, the rod's (integrators.ThetaIntegrator)
         self._theta_integrator = None
-        if self.lam.size == 0 and not self.contact:
+        if mech.basis is not None:        # variable-strain segments: the step in their coordinates
+            self._theta_integrator = ReducedThetaIntegrator(tree, self.ws, self.act, lambda t: self._held, self.dt,
+                                                            mech.basis, self.K, self.D, self.theta, tol=tol,
+                                                            max_iterations=max_iterations,
+                                                            max_substep_levels=max_substep_levels)
+        elif self.lam.size == 0 and not self.contact:
             self._theta_integrator = ThetaIntegrator(tree, self.ws, self.act, lambda t: self._held, self.dt, self.theta,
                                                      tol=tol, max_iterations=max_iterations,
                                                      max_substep_levels=max_substep_levels, full_newton=full_newton,

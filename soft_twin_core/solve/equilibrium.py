@@ -59,6 +59,16 @@ class Problem:
         return Problem(self.tree, self.act, self.K, LoadArrays(ld.joint, ld.x, t * ld.wrench, ld.world),
                        t * self.g, t * self.coef, t * self.effort)
 
+    @property
+    def n(self):
+        """The number of unknowns (the tree's velocity coordinates)."""
+        return self.tree.nv
+
+    @property
+    def q0(self):
+        """Where the unknowns are at the reference configuration."""
+        return self.tree.q0
+
     def residual(self, q, loads=None):
         """R(q); the workspace then holds the forward pass and the RNEA
         wrenches at rest under ``loads`` (default the problem's): what
@@ -78,6 +88,46 @@ class Problem:
         static_tangent_pass(m, w, self.loads, self.g, Kt)
         actuation_tangent_pass(m, w, self.act, self.coef, Kt)
         return Kt
+
+
+class ReducedProblem:
+    """A :class:`Problem` in the coordinates z of ``q = q0 + B z`` (a robot
+    with variable-strain segments, :attr:`mechanism.Mechanism.basis`): the
+    principle of virtual work on the basis (Galerkin), residual ``B^T R(q0 +
+    B z)``, tangent ``B^T K_t B``, stiffness ``B^T K B``. :func:`solve`
+    takes it as it takes a Problem; its unknowns are z."""
+
+    def __init__(self, full, B):
+        self.full, self.B = full, np.asarray(B, dtype=float)
+        self.K = self.B.T @ full.K @ self.B
+        self.absK = np.abs(self.B).T @ full.absK @ np.abs(self.B)
+        self.floor = full.floor
+        self.q0 = np.zeros(self.B.shape[1])
+
+    @property
+    def n(self):
+        return self.B.shape[1]
+
+    @property
+    def n_tangents(self):
+        return self.full.n_tangents
+
+    def q_of(self, z):
+        """The robot's q at the coordinates z."""
+        return self.full.q0 + self.B @ z
+
+    def z_of(self, q):
+        """The coordinates z nearest q (least squares: q itself when it lies on the basis)."""
+        return np.linalg.lstsq(self.B, np.asarray(q, dtype=float) - self.full.q0, rcond=None)[0]
+
+    def scaled(self, t):
+        return ReducedProblem(self.full.scaled(t), self.B)
+
+    def residual(self, z):
+        return self.B.T @ self.full.residual(self.q_of(z))
+
+    def tangent(self, z):
+        return self.B.T @ self.full.tangent(self.q_of(z)) @ self.B
 
 
 def load_scale(tree, loads, g, effort):
@@ -159,14 +209,14 @@ def force_scale(pb, q, R):
     """A force scale for the relative residual: the largest of the elastic
     force K (q - q0), the applied force K (q - q0) - R and the inputs'
     :func:`load_scale`."""
-    Kq = pb.K @ (q - pb.tree.q0)
+    Kq = pb.K @ (q - pb.q0)
     return max(np.abs(Kq).max(initial=0), np.abs(Kq - R).max(initial=0), pb.floor, 1e-300)
 
 
 def converged(pb, q, R, scale, tol):
     """|R| <= tol scale + the round-off level 64 eps |K| (|q| + |q0|) of the
     stiff axial/shear modes (K (q - q0) cancels terms of size |K| |q|)."""
-    roundoff = 64 * np.finfo(float).eps * (pb.absK @ (np.abs(q) + np.abs(pb.tree.q0)))
+    roundoff = 64 * np.finfo(float).eps * (pb.absK @ (np.abs(q) + np.abs(pb.q0)))
     return bool(np.all(np.abs(R) <= tol * scale + roundoff))
 
 
@@ -179,8 +229,8 @@ def newton(pb, q, tol, max_iterations, Kt_hint=None):
     :func:`newton_numpy` (the same iterates). Returns (q, R, iterations,
     converged, the last tangent used: the hint object itself, a fresh array,
     or None)."""
-    n = pb.tree.nv
-    if n > COMPILED_NEWTON_MAX_DOF:
+    n = pb.n
+    if n > COMPILED_NEWTON_MAX_DOF or isinstance(pb, ReducedProblem):
         return newton_numpy(pb, np.array(q, dtype=float), tol, max_iterations, Kt_hint)
     use_hint = Kt_hint is not None and Kt_hint.shape == (n, n)
     q = np.array(q, dtype=float)
@@ -199,7 +249,7 @@ def newton_numpy(pb, q, tol, max_iterations, Kt_hint=None):
     R = pb.residual(q)
     scale = force_scale(pb, q, R)
     it, Kt = 0, None
-    n = pb.tree.nv
+    n = pb.n
     reuse = Kt_hint is not None and Kt_hint.shape == (n, n)
     for it in range(1, max_iterations + 1):
         if converged(pb, q, R, scale, tol):

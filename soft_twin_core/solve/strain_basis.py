@@ -29,6 +29,7 @@ from soft_twin_core.engine import algorithms as alg
 from soft_twin_core.engine.workspace import Workspace
 from soft_twin_core.errors import StaticsError
 from soft_twin_core.lie import ad
+from soft_twin_core.robot.strain_bases import global_values, lagrange_shapes
 from soft_twin_core.solve.constrained import dense_stiffness_damping
 
 
@@ -38,8 +39,7 @@ def _legendre(order, x):
     naming ``order`` unless it is an integer >= 0."""
     if not (isinstance(order, (int, np.integer)) and order >= 0):
         raise ValueError(f"order: expected an integer >= 0, got {order!r}")
-    return np.array([np.polynomial.legendre.Legendre.basis(j)(2 * np.asarray(x, float) - 1)
-                     for j in range(order + 1)])
+    return global_values("legendre", order, np.asarray(x, float))
 
 
 def _soft_members(mech, what):
@@ -82,23 +82,7 @@ def fem_basis(mech, elements, degree):
         raise ValueError(f"elements: expected an integer >= 1, got {elements!r}")
     if degree not in FEM_DEGREES:
         raise ValueError(f"degree: expected one of {FEM_DEGREES} (linear, cubic), got {degree!r}")
-    return _member_basis(mech, lambda x: _lagrange_shapes(x, elements, degree), "fem_basis")
-
-
-def _lagrange_shapes(x, elements, degree):
-    """(elements * degree + 1, len(x)): the continuous piecewise Lagrange
-    shape functions of ``degree`` on ``elements`` equal elements of [0, 1]
-    (nodes x_j = j / (elements * degree)) at the points x."""
-    n = elements * degree
-    nodes = np.arange(n + 1) / n
-    e = np.minimum((np.asarray(x) * elements).astype(int), elements - 1)     # each point's element
-    out = np.zeros((n + 1, len(x)))
-    for k, (xk, ek) in enumerate(zip(x, e)):
-        local = nodes[ek * degree:(ek + 1) * degree + 1]
-        for a in range(degree + 1):
-            others = np.delete(local, a)
-            out[ek * degree + a, k] = np.prod((xk - others) / (local[a] - others))
-    return out
+    return _member_basis(mech, lambda x: lagrange_shapes(x, elements, degree), "fem_basis")
 
 
 def _member_basis(mech, functions, what):

@@ -1,0 +1,325 @@
+"""Variable-strain segments chosen in the robot file (``strain_basis``,
+soft_twin_core.robot.strain_bases): the robot's coordinates z with
+``q = q0 + B z``, and statics, dynamics and the filter in them.
+
+Independent references: one PCS section of the segment's length (a
+constant basis), the reduced statics of soft_twin_core.solve.strain_basis
+(a basis built by another function, solved by another Newton), the
+projected eigenproblem's natural frequency, energy conservation at the
+integrator's order, and central differences of the filter's step."""
+
+import numpy as np
+import pytest
+
+from soft_twin_core.engine import algorithms as alg
+from soft_twin_core.engine.workspace import Workspace
+from soft_twin_core.errors import ModelError
+from soft_twin_core.estimation import ekf as es
+from soft_twin_core.estimation import sensors as sn
+from soft_twin_core.robot.mechanism import from_robot_model, mechanism_from_dict
+from soft_twin_core.robot.model import benchmark_cantilever_dict, find_file, model_from_dict, read_yaml_file
+from soft_twin_core.solve.constrained import MechanismSimulator, free_problem, make_inputs, solve_equilibrium
+from soft_twin_core.solve.strain_basis import fem_basis, legendre_basis, modal_frequencies, solve_reduced
+
+
+def _cantilever(n, basis=None, free="bending", **extra):
+    d = benchmark_cantilever_dict(n, free)
+    d.update(extra)
+    if basis is not None:
+        d["segments"][0]["strain_basis"] = basis
+    return from_robot_model(model_from_dict(d))
+
+
+# ------------------------------------------------------------- the robot file
+
+def test_the_basis_columns_are_the_families_functions_at_the_sections_midpoints():
+    """B's columns: Legendre P_j(2x - 1), Chebyshev T_j, monomials x^j at the
+    midpoints x_k = (k + 1/2)/n, per free mode (rows interleaved by mode);
+    the FEM families equal solve.strain_basis's (another function)."""
+    n = 10
+    x = (np.arange(n) + 0.5) / n
+    cases = {"legendre": [np.ones(n), 2 * x - 1, 0.5 * (3 * (2 * x - 1) ** 2 - 1)],
+             "chebyshev": [np.ones(n), 2 * x - 1, 2 * (2 * x - 1) ** 2 - 1],
+             "monomial": [np.ones(n), x, x ** 2]}
+    for kind, funcs in cases.items():
+        B = _cantilever(n, {"type": kind, "order": 2}).basis
+        assert B.shape == (2 * n, 6)
+        for a in range(2):                    # bending_y, bending_z
+            for j, f in enumerate(funcs):
+                col = np.zeros(2 * n)
+                col[a::2] = f
+                assert np.abs(B[:, 3 * a + j] - col).max() < 1e-14, (kind, a, j)
+    ref = _cantilever(n)
+    for kind, degree in (("fem_linear", 1), ("fem_cubic", 3)):
+        B = _cantilever(12, {"type": kind, "elements": 2}).basis
+        assert np.abs(B - fem_basis(_cantilever(12), 2, degree)).max() < 1e-14
+    assert ref.basis is None and ref.coordinate_names == ()
+
+
+def test_per_mode_orders_and_coordinate_names():
+    mech = _cantilever(8, {"type": "legendre", "order": {"bending_y": 3, "bending_z": 1}})
+    assert mech.basis.shape == (16, 6)
+    assert mech.coordinate_names == tuple(f"backbone/rod/bending_y/{j}" for j in range(4)) + (
+        "backbone/rod/bending_z/0", "backbone/rod/bending_z/1")
+
+
+@pytest.mark.parametrize("basis, field", [
+    ({"type": "spline", "order": 2}, "strain_basis.type"),
+    ({"type": "legendre", "order": -1}, "strain_basis.order"),
+    ({"type": "legendre", "order": 13}, "strain_basis.order"),
+    ({"type": "legendre", "order": 2.0}, "strain_basis.order"),
+    ({"type": "legendre", "order": {"torsion": 1, "bending_y": 1, "bending_z": 1}}, "strain_basis.order.torsion"),
+    ({"type": "legendre", "order": {"bending_y": 1}}, "strain_basis.order"),
+    ({"type": "fem_cubic", "elements": 0}, "strain_basis.elements"),
+    ({"type": "fem_linear", "order": 2}, "strain_basis.order"),
+    ({"type": "legendre", "order": 9}, "strain_basis: 8 sections cannot carry 10"),
+    ("legendre", "strain_basis: expected a mapping"),
+])
+def test_bad_bases_are_refused_naming_the_field(basis, field):
+    with pytest.raises(ModelError, match=f"segments\\[0\\].{field}"):
+        _cantilever(8, basis)
+
+
+def test_a_mask_that_frees_nothing_is_refused():
+    with pytest.raises(ModelError, match=r"segments\[0\].free_modes: at least one free mode"):
+        _cantilever(8, {"type": "legendre", "order": 1}, free=[])
+
+
+def _tree_dict(control="effort"):
+    return {"name": "gvs_tree", "bodies": [
+        {"name": "pan", "type": "link", "mass": 0.1, "inertia": [1e-4, 1e-4, 1e-4, 0, 0, 0],
+         "joint": {"name": "pan", "type": "revolute", "axis": [0, 0, 1], "control": control}},
+        {"name": "arm", "type": "member", "parent": "pan",
+         "segments": [{**benchmark_cantilever_dict(8, "bending")["segments"][0],
+                       "strain_basis": {"type": "legendre", "order": 2}},
+                      {**benchmark_cantilever_dict(4, "bending")["segments"][0], "name": "pcs", "length": 0.1}]}]}
+
+
+def test_a_tree_members_segment_takes_a_basis_the_rest_keeps_its_coordinates():
+    mech = mechanism_from_dict(_tree_dict())
+    B, tree = mech.basis, mech.tree
+    assert B.shape == (1 + 16 + 8, 1 + 6 + 8)
+    assert mech.coordinate_names[0] == "pan/0" and mech.coordinate_names[1] == "arm/rod/bending_y/0"
+    assert mech.coordinate_names[-1].startswith("arm_")         # the PCS segment's joints: their own coordinates
+    assert np.all(B[0] == np.eye(15)[0]) and np.abs(B[17:, 7:] - np.eye(8)).max() == 0
+    assert np.abs(B[1:17, 1:7] - legendre_basis(_cantilever(8), 2)).max() < 1e-14
+    assert tree.nv == 25
+
+
+def test_what_the_solvers_do_not_carry_yet_is_refused_at_the_door():
+    with pytest.raises(ModelError, match="member 'arm', segment 'rod': strain_basis .* position-controlled joints"):
+        mechanism_from_dict(_tree_dict("position"))
+
+
+# --------------------------------------------------- a constant basis is one section
+
+@pytest.fixture(scope="module")
+def one_and_six():
+    """One PCS section, and six sections with the order-0 basis (precurved,
+    all six modes free, exact quadrature: 12 Gauss points a section)."""
+    def mech(n, basis):
+        d = benchmark_cantilever_dict(n, "all")
+        d["quadrature_points"] = 12
+        d["segments"][0]["reference_strain"] = [1, 0, 0, 0.3, 0.5, -0.2]
+        if basis:
+            d["segments"][0]["strain_basis"] = {"type": "legendre", "order": 0}
+        return from_robot_model(model_from_dict(d))
+    return mech(1, False), mech(6, True)
+
+
+def test_a_constant_basis_is_one_pcs_section_fk_m_rnea_statics(one_and_six):
+    one, six = one_and_six
+    B = six.basis
+    rng = np.random.default_rng(1)
+    w1, w6 = Workspace(one.tree), Workspace(six.tree)
+    for _ in range(3):
+        z = rng.normal(size=6) * np.array([0.01, 0.02, 0.02, 0.5, 1.0, 1.0])
+        v, a = rng.normal(size=6), rng.normal(size=6)
+        q1, q6 = one.tree.q0 + z, six.tree.q0 + B @ z
+        T1 = alg.forward_kinematics(one.tree, w1, q1)[1][-1].copy()
+        assert np.abs(T1 - alg.forward_kinematics(six.tree, w6, q6)[1][-1]).max() < 1e-12
+        M1 = alg.crba(one.tree, w1, q1).copy()
+        assert np.abs(M1 - B.T @ alg.crba(six.tree, w6, q6) @ B).max() < 1e-12 * np.abs(M1).max()
+        t1 = alg.rnea(one.tree, w1, q1, v, a).copy()
+        assert np.abs(t1 - B.T @ alg.rnea(six.tree, w6, q6, B @ v, B @ a)).max() < 1e-12 * np.abs(t1).max()
+    e1, e6 = solve_equilibrium(one, tol=1e-13), solve_equilibrium(six, tol=1e-13)
+    assert np.abs(e1.q - one.tree.q0).max() > 0.1                    # it sags
+    assert np.abs(six.tree.q0 + B @ (e1.q - one.tree.q0) - e6.q).max() < 1e-12
+
+
+def test_a_constant_basis_is_one_pcs_section_for_1_s_of_dynamics(one_and_six):
+    """Released under gravity, no damping, 400 steps of the implicit
+    midpoint rule: the reduced step and the engine's O(n) step agree to
+    their Newton tolerance (1e-13), amplified over the run."""
+    one, six = one_and_six
+    out = []
+    for mech in (one, six):
+        sim = MechanismSimulator(mech, 2.5e-3, 0.5, tol=1e-13, max_iterations=60)
+        sim.step(n=400)
+        out.append((sim.q - mech.tree.q0, sim.v))
+    z6 = np.linalg.lstsq(six.basis, out[1][0], rcond=None)[0]
+    assert np.abs(out[0][0]).max() > 0.3
+    assert np.abs(out[0][0] - z6).max() < 1e-10
+    assert np.abs(six.basis @ z6 - out[1][0]).max() < 1e-13          # the state stays on the basis
+
+
+# ----------------------------------------------------------------- statics
+
+@pytest.mark.parametrize("basis, columns", [
+    ({"type": "legendre", "order": 3}, lambda m: legendre_basis(m, 3)),
+    ({"type": "fem_cubic", "elements": 2}, lambda m: fem_basis(m, 2, 3)),
+])
+def test_statics_in_the_robot_files_basis_is_the_reduced_galerkin_solve(basis, columns):
+    """solve_equilibrium on the robot with a basis equals solve_reduced
+    (solve.strain_basis: its own basis function and Newton) on the PCS
+    robot, under gravity and a tip force."""
+    from soft_twin_core.engine.loads import Loads, PointLoad
+    loads = Loads(point=(PointLoad(0.5, (0.0, 0.02, 0.05, 0.0, 0.0, 0.0)),))
+    gvs, pcs = _cantilever(24, basis), _cantilever(24)
+    eq = solve_equilibrium(gvs, loads=loads)
+    q_ref, _, _ = solve_reduced(free_problem(pcs, make_inputs(pcs, loads=loads)), columns(pcs), pcs.tree.q0,
+                                load_steps=4)
+    assert np.abs(eq.q - pcs.tree.q0).max() > 0.5
+    assert np.abs(eq.q - q_ref).max() < 1e-9
+    assert eq.stable
+
+
+# ----------------------------------------------------------------- dynamics
+
+def _energy(mech, q, v):
+    from soft_twin_core.solve.constrained import dense_stiffness_damping
+    K, _ = dense_stiffness_damping(mech.tree)
+    M = alg.crba(mech.tree, Workspace(mech.tree), q)
+    dq = q - mech.tree.q0
+    return 0.5 * v @ M @ v + 0.5 * dq @ K @ dq
+
+
+def test_free_vibration_at_the_projected_eigenfrequency_and_energy_at_second_order():
+    """No gravity, no damping: the cantilever, Legendre order 3 on 24
+    sections, released from a small bend in its first mode shape (an
+    eigenvector of ``B^T K B x = w^2 B^T M B x``), vibrates at the lowest
+    frequency of modal_frequencies (that eigen-solve) to 0.2 %; with large
+    swings the midpoint rule's energy error falls about 4x a halving of dt."""
+    from scipy.linalg import eigh
+    from soft_twin_core.engine.loads import Loads, PointLoad
+    from soft_twin_core.solve.constrained import dense_stiffness_damping
+    gvs = _cantilever(24, {"type": "legendre", "order": 3}, gravity=[0.0, 0.0, 0.0])
+    B = gvs.basis
+    f1 = modal_frequencies(_cantilever(24, gravity=[0.0, 0.0, 0.0]), B, count=1)[0]
+    K, _ = dense_stiffness_damping(gvs.tree)
+    M = alg.crba(gvs.tree, Workspace(gvs.tree), gvs.tree.q0)
+    shape = eigh(B.T @ K @ B, B.T @ M @ B)[1][:, 0]
+    dq = B @ shape
+    dq *= 1e-3 / np.abs(dq).max()
+    dt = 1.0 / f1 / 200
+    sim = MechanismSimulator(gvs, dt, 0.5, q=gvs.tree.q0 + dq, tol=1e-12)
+    k = int(np.argmax(np.abs(dq)))
+    y = []
+    for _ in range(600):                   # three periods
+        sim.step()
+        y.append(sim.q[k] - gvs.tree.q0[k])
+    y = np.array(y)
+    up = np.flatnonzero((y[:-1] < 0) & (y[1:] >= 0))
+    t_up = (up + y[up] / (y[up] - y[up + 1])) * dt   # upward zero crossings, interpolated
+    period = np.diff(t_up).mean()
+    assert len(t_up) >= 2 and abs(1.0 / period / f1 - 1) < 2e-3, (1 / period, f1)
+    q_big = solve_equilibrium(gvs, loads=Loads(point=(PointLoad(0.5, (0, 0, 5e-3, 0, 0, 0)),))).q
+    drift = []
+    for h in (2e-3, 1e-3):
+        sim = MechanismSimulator(gvs, h, 0.5, q=q_big, tol=1e-12)
+        e0 = _energy(gvs, sim.q, sim.v)
+        worst = 0.0
+        for _ in range(int(round(0.2 / h))):
+            sim.step()
+            worst = max(worst, abs(_energy(gvs, sim.q, sim.v) - e0))
+        drift.append(worst / e0)
+    assert drift[0] < 1e-2 and 3.0 < drift[0] / drift[1] < 5.0, drift
+
+
+def test_a_start_off_the_basis_is_refused():
+    gvs = _cantilever(8, {"type": "legendre", "order": 1})
+    q = gvs.tree.q0.copy()
+    q[5] += 0.3
+    with pytest.raises(ValueError, match="q: not a configuration of the robot's variable-strain segments"):
+        MechanismSimulator(gvs, 1e-3, q=q)
+
+
+# ----------------------------------------------------------------- the filter
+
+def _tracked_arm(sections, order=None):
+    d = read_yaml_file(find_file("tracked_arm", "robots"))
+    for seg in d["segments"]:
+        seg["sections"] = sections
+        if order is not None:
+            seg["strain_basis"] = {"type": "legendre", "order": order}
+    return from_robot_model(model_from_dict(d))
+
+
+def test_the_filters_process_jacobian_in_the_basis_is_its_steps_linearisation():
+    """At an equilibrium under tendons and a tip wrench, the filter's
+    analytic Phi and Gamma_u (the Galerkin projection of the engine's
+    derivatives) equal central differences of its mean step, whose state
+    has 2 nz + 6 entries in the errors (nz = 12 coordinates for 48
+    strains)."""
+    from soft_twin_core.engine.loads import Loads, PointLoad
+    mech = _tracked_arm(8, 1)
+    u = np.array([12.0, 2.0, 6.0, 1.0])
+    w = np.array([0.3, -0.2, -0.5, 0.01, 0.02, -0.015])
+    eq = solve_equilibrium(mech, u, loads=Loads(point=(PointLoad(0.4, tuple(w)),)))
+    sensors = [sn.PoseSensor("em", 1e-3, 0.01, s=0.4)]
+    ekf = es.EKF(mech, sensors, 0.01, wrench="wrench", actuation=u, q_init=eq.q)
+    assert ekf.P.shape == (2 * 12 + 6, 2 * 12 + 6)
+    B = mech.basis
+    z0 = np.linalg.lstsq(B, eq.q - mech.tree.q0, rcond=None)[0]
+    x0 = np.concatenate([z0, np.zeros(12), w])          # the errors' layout: z, its rate, w
+
+    def step(x, u):
+        ekf.x = np.concatenate([mech.tree.q0 + B @ x[:12], B @ x[12:24], x[24:]])
+        ekf.a = np.zeros(ekf.n)
+        ekf.predict(u)
+        return np.concatenate([np.linalg.lstsq(B, ekf.x[:ekf.n] - mech.tree.q0, rcond=None)[0],
+                               np.linalg.lstsq(B, ekf.x[ekf.n:2 * ekf.n], rcond=None)[0], ekf.x[2 * ekf.n:]])
+    assert np.abs(step(x0, u) - x0).max() < 1e-8
+    ekf.x = np.concatenate([eq.q, np.zeros(ekf.n), w])
+    Phi, Gamma = ekf.linearisation()
+    h, hu = 1e-6, 1e-4
+    Phi_fd = np.stack([(step(x0 + h * e, u) - step(x0 - h * e, u)) / (2 * h) for e in np.eye(len(x0))], axis=1)
+    assert np.abs(Phi - Phi_fd).max() <= 1e-5 * np.abs(Phi_fd).max()
+    Gamma_fd = np.stack([(step(x0, u + hu * e) - step(x0, u - hu * e)) / (2 * hu) for e in np.eye(4)], axis=1)
+    assert np.abs(Gamma - Gamma_fd).max() <= 1e-5 * np.abs(Gamma_fd).max()
+
+
+# ------------------------------------------------------- planner and calibration
+
+def test_the_planners_tip_solve_finds_the_tensions_of_a_gvs_equilibrium():
+    """The tip of the GVS arm's own equilibrium under known tensions is a
+    target the IK reaches with those tensions (its Newton and sensitivities
+    in the basis's coordinates: with the full PCS Newton it would land on
+    another shape)."""
+    from soft_twin_core.twin import Twin, TwinSettings
+    from soft_twin_core.robot.mechanism import load_mechanism
+    mech = load_mechanism(find_file("gvs_arm", "robots"))
+    twin = Twin(mech, TwinSettings(mode="quasi_static"))
+    u = np.array([4.0, 0.0, 2.0, 0.0])
+    target = solve_equilibrium(mech, u)
+    from soft_twin_core.solve.outputs import state_outputs
+    tip = state_outputs(mech, target.q, np.zeros(0), make_inputs(mech, u)).frames["tip"][:3, 3]
+    r = twin.inverse_kinematics(tip)
+    assert r.reached and r.position_error < 1e-9
+    assert np.abs(r.values - u).max() < 1e-6
+    assert np.abs(r.q - target.q).max() < 1e-8
+
+
+def test_calibration_sensitivities_on_a_gvs_arm_match_finite_differences():
+    from test_calibration import ALL, _markers, assert_sensitivities
+    from soft_twin_core.estimation import calibration as cal
+    d = read_yaml_file(find_file("tracked_arm", "robots"))
+    for seg in d["segments"]:
+        seg["sections"] = 6
+        seg["strain_basis"] = {"type": "legendre", "order": 2}
+    mech = from_robot_model(model_from_dict(d))
+    rng = np.random.default_rng(1)
+    U = np.array([[12.0, 0.0, 6.0, 0.0], [0.0, 9.0, 0.0, 14.0], [5.0, 0.0, 0.0, 7.0]])
+    rec = cal.record_static_sweep(mech, _markers(), U, rng)
+    pb = cal.Problem(d, _markers(), rec, ALL + ["payload_mass"])
+    assert_sensitivities(pb, pb.theta0 + np.array([3e6, -2e6, 4e-4, -3e-4, 2e-4, 5e-4, 0.02]), 1e-6)
