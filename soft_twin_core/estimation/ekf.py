@@ -272,12 +272,10 @@ class EKF:
         self._gate_probability = gate_probability
         self.max_gated_run = int(max_gated_run)
         # --- noise ---
-        rigid = np.zeros(n, dtype=bool)          # every coordinate of a rigid joint (a free base's six)
+        rigid = np.zeros(n, dtype=bool)          # every coordinate of q of a rigid joint (a free base's six)
         for i, joint in enumerate(tree.joints):
             if joint.kind != SOFT:
                 rigid[tree.idx_v[i]:tree.idx_v[i] + joint.nv] = True
-        if self.T is not None:                    # a coordinate is rigid when it moves a rigid joint
-            rigid = (self.T.T != 0) @ rigid > 0
         self.rigid = rigid
         self.nb = nb = len(self._pos_v)
         k = self.k
@@ -288,11 +286,12 @@ class EKF:
         w0 = np.array([sigma_wrench0[0]] * 3 + [sigma_wrench0[1]] * 3)[:k]
         if wrench == "payload":                            # in kg: the force levels over |g|
             walk, w0 = walk / np.linalg.norm(self._g), w0 / np.linalg.norm(self._g)
-        self.Q = np.diag(np.concatenate([np.where(rigid, pj_q ** 2, process_noise_q ** 2),
-                                         np.where(rigid, pj_v ** 2, process_noise_v ** 2),
-                                         np.full(nb, offset_walk ** 2), walk ** 2]))
-        self._P0 = np.diag(np.concatenate([np.where(rigid, sigma_joint0 ** 2, sigma_q0 ** 2),
-                                           np.full(nr, sigma_v0 ** 2), np.full(nb, sigma_offset0 ** 2), w0 ** 2]))
+        qv = [np.where(rigid, pj_q ** 2, process_noise_q ** 2), np.where(rigid, pj_v ** 2, process_noise_v ** 2)]
+        qv0 = [np.where(rigid, sigma_joint0 ** 2, sigma_q0 ** 2), np.full(n, sigma_v0 ** 2)]
+        self.Q = block_diag([*_in_coordinates(self.T, qv), np.diag(np.full(nb, offset_walk ** 2)),
+                             np.diag(walk ** 2)])
+        self._P0 = block_diag([*_in_coordinates(self.T, qv0), np.diag(np.full(nb, sigma_offset0 ** 2)),
+                               np.diag(w0 ** 2)])
         if q_init is None:   # the equilibrium under the inputs; where statics has none to find (a moving base,
             # ball joints: no static equilibrium solver on quaternions), the reference configuration
             statics = mech.base_motion == "fixed" and tree.nq == tree.nv
@@ -721,6 +720,20 @@ def parse_directions(text, name):
     if any(len(r) != 3 for r in rows):
         raise ValueError(f"{name}: expected 'x,y,z' or 'x,y,z;x,y,z', got {text!r}")
     return unit_directions(rows, name)
+
+
+def _in_coordinates(T, variances):
+    """The covariances of independent errors of q and v (``variances``:
+    per coordinate of q, then of v) in the coordinates z of ``q = q0 + T
+    z`` (variable-strain segments; T None: unchanged): the least-squares
+    projection ``T^+ diag(var) T^+^T``, T^+ = (T^T T)^-1 T^T. The noise of
+    a strain field that the sections carry independently, restricted to
+    the basis: a coordinate spanning n sections gets 1/n of a section's
+    variance, as the n sections' independent noises move its shape."""
+    if T is None:
+        return [np.diag(v) for v in variances]
+    Tp = np.linalg.solve(T.T @ T, T.T)
+    return [(Tp * v) @ Tp.T for v in variances]
 
 
 def _check_supported(mech):
