@@ -794,12 +794,11 @@ class Problem:
                         dR[:, j] = -Jw.T @ np.concatenate([tree.gravity, np.zeros(3)])
                         sn.forward(ws, q)
                 zero = np.zeros(len(phi))
-                T = mech.basis
-                if T is not None:         # variable-strain segments: q moves on their basis (no multipliers)
-                    dq = -T @ np.linalg.solve(T.T @ Kt @ T, T.T @ dR)
-                else:
-                    dq = np.column_stack([cs.solve_factored(fac, dR[:, j], zero)[0]
-                                          for j in range(len(self.params))]) if self.params else np.zeros((tree.nv, 0))
+                if pb.T is not None:      # variable-strain segments: the KKT system in their coordinates
+                    dR = pb.T.T @ dR
+                dq = pb.lift(np.column_stack([cs.solve_factored(fac, dR[:, j], zero)[0]
+                                              for j in range(len(self.params))])) if self.params \
+                    else np.zeros((tree.nv, 0))
             qc = sn.forward(ws, q)
             for s in sensors:
                 z = self.rec.readings[s.name][r]

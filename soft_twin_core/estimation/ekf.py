@@ -585,7 +585,8 @@ class EKF:
             self.health.integrator_failures += 1
         self.P = Phi @ self.P @ Phi.T + self.Q * self.dt + (Gamma * self.sigma_u ** 2) @ Gamma.T
         if self.lam.size:
-            self.P = constrained_covariance(self.P, constraint_rows(self._servo_mech, self.ws, self.q)[1])
+            G = constraint_rows(self._servo_mech, self.ws, self.q)[1]
+            self.P = constrained_covariance(self.P, G if self.T is None else G @ self.T)
         self.P = 0.5 * (self.P + self.P.T)
         self.t += self.dt
         self.health.predictions += 1
@@ -668,14 +669,15 @@ class EKF:
         """Back onto the closed chains after an update, which moves along
         their tangent but leaves a second-order gap: the least change of q
         with Phi(q) = 0 (Gauss-Newton), then of v with G v = 0."""
+        T = np.eye(self.n) if self.T is None else self.T       # (variable-strain segments: on their basis)
         for _ in range(iterations):
             phi, G = constraint_rows(self._servo_mech, self.ws, self.q, self._targets)
             if np.abs(phi).max(initial=0.0) <= 1e-13:
                 break
-            self._move_q(-np.linalg.lstsq(G, phi, rcond=None)[0])
+            self._move_q(-T @ np.linalg.lstsq(G @ T, phi, rcond=None)[0])
         G = constraint_rows(self._servo_mech, self.ws, self.q)[1]
         rate = self._target_rate[:G.shape[0]]              # a prescribed base moves: G v is its twist
-        self.x[self.nq:self.nq + self.n] -= np.linalg.lstsq(G, G @ self.v - rate, rcond=None)[0]
+        self.x[self.nq:self.nq + self.n] -= T @ np.linalg.lstsq(G @ T, G @ self.v - rate, rcond=None)[0]
 
     def _gate(self, m):
         g = self.gate.get(m)

@@ -326,10 +326,10 @@ class _Statics:
         if n_x > nj:
             dR[:, nj:] = -actuation_matrix(mech.tree, self.ws, _actuators(mech), q)
         fac = cs.factor_kkt(Kt, G, G)
-        dq = np.empty((tree.nv, n_x))
-        for k in range(n_x):
-            dq[:, k] = cs.solve_factored(fac, dR[:, k], dphi[:, k])[0]
-        return self._jacobian(q) + (dq,)
+        if pb.T is not None:            # variable-strain segments: the KKT system in their coordinates
+            dR = pb.T.T @ dR
+        dq = np.column_stack([cs.solve_factored(fac, dR[:, k], dphi[:, k])[0] for k in range(n_x)])
+        return self._jacobian(q) + (pb.lift(dq),)
 
     def _jacobian(self, q):
         ws = self.ws

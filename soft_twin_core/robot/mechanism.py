@@ -752,21 +752,17 @@ def from_robot_model(robot, d=None, base_dir=None):
 
 def _check_basis_robot(mech):
     """ModelError naming the first variable-strain segment when the robot
-    has what its solvers do not yet carry in the basis's coordinates:
-    closed chains or a prescribed base (constraint rows), position-controlled
-    joints (multipliers), obstacles or contact shapes (contact), spherical
-    or free joints (quaternions: q is not linear in the coordinates)."""
+    has joints with quaternion coordinates (spherical or free joints, a
+    floating or prescribed base), on which q is not linear in the
+    coordinates (``q = q0 + B z``)."""
     if not mech.strain_bases:
         return
     sb = mech.strain_bases[0]
-    why = ("closed chains or a moving base (constraints)" if mech.constraints else
-           "position-controlled joints" if mech.joints_with("position") else
-           "obstacles or contact shapes" if mech.obstacles or mech.shapes else
-           "spherical or free joints" if any(j.kind in (SPHERICAL, FREE) for j in mech.tree.joints) else None)
-    if why is not None:
+    if any(j.kind in (SPHERICAL, FREE) for j in mech.tree.joints):
         raise ModelError(f"member {sb.member!r}, segment {sb.segment!r}: strain_basis (variable strain) is not "
-                         f"supported yet on a robot with {why}; drop strain_basis there (PCS sections) or the "
-                         f"{why.split(' (')[0]}")
+                         f"supported yet on a robot with spherical or free joints (a floating or prescribed base, a "
+                         f"loose object): their quaternions are not linear in the coordinates; drop strain_basis "
+                         f"there (PCS sections) or those joints")
 
 
 def _contact_fields(d, tree, members, base_dir=None):

@@ -342,7 +342,10 @@ def _cached(mech, key, make):
 
 class _Equilibrium:
     """R(q, lambda) and Phi(q) of a mechanism under fixed inputs, with the
-    analytic Newton matrix."""
+    analytic Newton matrix. With variable-strain segments (``T`` the
+    mechanism's strain basis) the Newton unknowns are their coordinates:
+    the residual ``T^T R``, the constraint Jacobian ``G T``, the tangent
+    ``T^T Kt T``, and :meth:`lift` maps an update back to q."""
 
     def __init__(self, mech, inp, targets=None, obstacles=None, stick=None):
         self.mech, self.inp, self.targets, self.stick = mech, inp, targets, stick
@@ -357,6 +360,11 @@ class _Equilibrium:
         self.zeros = np.zeros(tree.nv)
         self.npos = len(mech.joints_with("position"))
         self.pos_v = np.array([tree.idx_v[i] for i in mech.joints_with("position")], dtype=np.int64)
+        self.T = mech.basis
+
+    def lift(self, dz):
+        """The update of q of a Newton update of the unknowns."""
+        return dz if self.T is None else self.T @ dz
 
     def loads(self, lam, contact=None):
         """The loads at multipliers lam (and contacts ``contact``, a ContactState)."""
@@ -378,6 +386,8 @@ class _Equilibrium:
         residual_pass(self.ws.m, self.ws.w, self.act, self.loads(lam, self.contacts(q)), self.inp.gravity, self.coef,
                       self.effort(lam), np.ascontiguousarray(q, float), self.zeros, self.zeros, out, True)
         phi, G = constraint_rows(self.mech, self.ws, q, self.targets, self.inp.q_cmd)
+        if self.T is not None:
+            return self.T.T @ out, phi, G @ self.T
         return out, phi, G
 
     def tangent(self, q, lam):
@@ -392,7 +402,7 @@ class _Equilibrium:
         actuation_tangent_pass(m, w, self.act, self.coef, Kt)
         if st is not None:
             self.contact.add_stiffness(self.ws, st, Kt)
-        return Kt
+        return Kt if self.T is None else self.T.T @ Kt @ self.T
 
 
 @dataclass
@@ -676,7 +686,7 @@ def _kkt_newton(pb, q, lam, tol, max_iterations, stall=False):
         f0 = merit(R, phi, sc)
         step = 1.0
         for _ in range(30):
-            q_t, l_t = _moved_by(pb.ws, q, dq, step), lam + step * dl
+            q_t, l_t = _moved_by(pb.ws, q, pb.lift(dq), step), lam + step * dl
             R_t, phi_t, G_t = pb.residual(q_t, l_t)
             if np.all(np.isfinite(R_t)) and merit(R_t, phi_t, sc) < (1 - 1e-4 * step) * f0:
                 break
@@ -726,6 +736,8 @@ def solve_equilibrium(mech, actuation=None, efforts=None, positions=None, loads=
     inp = inputs if inputs is not None else make_inputs(mech, actuation, efforts, positions, None, loads, point_loads)
     tree = mech.tree
     q_start = tree.q0.copy() if q_init is None else tree.check_q(np.array(q_init, dtype=float), "q_init").copy()
+    if mech.basis is not None:            # variable-strain segments: the start on their basis (least squares)
+        q_start = tree.q0 + mech.basis @ np.linalg.lstsq(mech.basis, q_start - tree.q0, rcond=None)[0]
     q = carry_base(mech, q_start, targets)
     m = mech.n_constraint_rows + len(mech.joints_with("position"))
     lam = np.zeros(m)
@@ -922,7 +934,7 @@ class MechanismSimulator:
         # obstacles or without (then only its position-controlled joints need more than the rod's
         # integrator). Closed chains keep the Python KKT step: a loop's constraint rows couple joints
         # across the loop and cannot be eliminated one joint at a time as a position command can.
-        eliminable = all(tree.joints[i].kind in (REVOLUTE, PRISMATIC) for i in pos)
+        eliminable = all(tree.joints[i].kind in (REVOLUTE, PRISMATIC) for i in pos) and mech.basis is None
         self._use_compiled_step = compiled and mech.n_constraint_rows == 0 and eliminable
         # constraint rows, no contacts: the compiled KKT step (engine.closed_step), the Python one its
         # fallback when it fails
@@ -931,12 +943,13 @@ class MechanismSimulator:
         # no multipliers (a rod, a tree of soft members and effort-controlled or passive joints): the
         # engine's compiled O(n) integrator, the rod's (integrators.ThetaIntegrator)
         self._theta_integrator = None
-        if mech.basis is not None:        # variable-strain segments: the step in their coordinates
+        free = self.lam.size == 0 and not self.contact
+        if free and mech.basis is not None:     # variable-strain segments: the step in their coordinates
             self._theta_integrator = ReducedThetaIntegrator(tree, self.ws, self.act, lambda t: self._held, self.dt,
                                                             mech.basis, self.K, self.D, self.theta, tol=tol,
                                                             max_iterations=max_iterations,
                                                             max_substep_levels=max_substep_levels)
-        elif self.lam.size == 0 and not self.contact:
+        elif free:
             self._theta_integrator = ThetaIntegrator(tree, self.ws, self.act, lambda t: self._held, self.dt, self.theta,
                                                      tol=tol, max_iterations=max_iterations,
                                                      max_substep_levels=max_substep_levels, full_newton=full_newton,
@@ -1231,6 +1244,9 @@ class MechanismSimulator:
         _, G1 = constraint_rows(self.mech, self.ws, q1, targets, inp.q_cmd)
         A = (Mq + th * h * Dt + (th * h) ** 2 * Kt) / h
         self._kkt_factorisations += 1
+        T = self.mech.basis
+        if T is not None:        # variable-strain segments: the Newton unknowns are their coordinates' rates
+            A, Gt, G1 = T.T @ A @ T, Gt @ T, G1 @ T
         return factor_kkt(A, Gt, th * h * G1)
 
     def _step(self, inp, targets, h=None):
@@ -1249,7 +1265,8 @@ class MechanismSimulator:
         pos_v = np.array([tree.idx_v[i] for i in self.mech.joints_with("position")], dtype=np.int64)
         qt = np.empty(tree.nq)
         q1 = np.empty(tree.nq)
-        R = np.empty(tree.nv)
+        R_full = np.empty(tree.nv)
+        T = self.mech.basis
         fac, refactor, prev, first, Rs = None, True, np.inf, 0.0, 1e-300
         last, backtracks = None, 0          # the last Newton update (dv, dlambda, |R| before it), halvings of it
         for it in range(1, self.max_iterations + 1):
@@ -1274,7 +1291,8 @@ class MechanismSimulator:
                 except np.linalg.LinAlgError:
                     raise StepError(f"step at t = {self.t:.6g} s: singular Newton matrix") from None
                 refactor = False
-            residual_pass(m, w, self.act, ld, inp.gravity, coef, effort, qt, vt, acc, R, False)
+            residual_pass(m, w, self.act, ld, inp.gravity, coef, effort, qt, vt, acc, R_full, False)
+            R = R_full if T is None else T.T @ R_full      # variable-strain segments: on their basis
             phi1, _ = constraint_rows(self.mech, self.ws, q1, targets, inp.q_cmd)
             if not (np.all(np.isfinite(R)) and np.all(np.isfinite(phi1))):
                 raise StepError(f"step at t = {self.t:.6g} s: non-finite residual")
@@ -1299,6 +1317,8 @@ class MechanismSimulator:
                 last, backtracks = (dv, dl, last[2]), backtracks + 1
                 continue
             dv, dl = solve_factored(fac, R, phi1)
+            if T is not None:
+                dv = T @ dv
             if contacts is not None and len(contacts):
                 # no friction jumps across its stiction zone (the workspace is posed at q_t)
                 frac = self.contact.update_fraction(self.ws, contacts, dv)
@@ -1353,7 +1373,12 @@ class MechanismSimulator:
         passes.forward_pass(m, w, np.ascontiguousarray(self.q), self.ws.zeros_v, self.ws.zeros_v, 0)
         passes.crba_pass(m, w, M)
         phi, G = constraint_rows(self.mech, self.ws, self.q, targets, inp.q_cmd)
-        a, lam = solve_kkt(M, G, G, bias, np.zeros(len(phi)))
+        T = self.mech.basis
+        if T is None:
+            a, lam = solve_kkt(M, G, G, bias, np.zeros(len(phi)))
+        else:                    # variable-strain segments: the accelerations on their basis
+            a, lam = solve_kkt(T.T @ M @ T, G @ T, G @ T, T.T @ bias, np.zeros(len(phi)))
+            a = T @ a
         self.a, self.lam, self.inputs = a, lam, inp
         return self
 

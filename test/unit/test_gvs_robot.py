@@ -106,9 +106,16 @@ def test_a_tree_members_segment_takes_a_basis_the_rest_keeps_its_coordinates():
     assert tree.nv == 25
 
 
-def test_what_the_solvers_do_not_carry_yet_is_refused_at_the_door():
-    with pytest.raises(ModelError, match="member 'arm', segment 'rod': strain_basis .* position-controlled joints"):
-        mechanism_from_dict(_tree_dict("position"))
+def test_quaternion_joints_with_a_basis_are_refused_at_the_door():
+    d = _tree_dict()
+    d["bodies"][0]["joint"] = {"name": "ball", "type": "spherical"}
+    with pytest.raises(ModelError, match="member 'arm', segment 'rod': strain_basis .* spherical or free joints"):
+        mechanism_from_dict(d)
+    d = _tree_dict("position")
+    d["base"] = {"motion": "floating"}
+    with pytest.raises(ModelError, match="member 'arm', segment 'rod': strain_basis .* spherical or free joints"):
+        mechanism_from_dict(d)
+    assert mechanism_from_dict(_tree_dict("position")).basis.shape == (25, 15)      # position control: fine
 
 
 # --------------------------------------------------- a constant basis is one section
@@ -255,6 +262,37 @@ def _tracked_arm(sections, order=None):
     return from_robot_model(model_from_dict(d))
 
 
+def assert_gvs_linearisation(ekf, q_eq, extra, u):
+    """At rest at q_eq (with ``extra``: the offsets and the wrench) the
+    filter's step keeps the state, and its analytic Phi and Gamma_u equal
+    central differences of that step, in the errors' layout (z, its rate,
+    extra), the state mapped through the basis."""
+    mech = ekf.mech
+    B, q0, n, nz = mech.basis, mech.tree.q0, ekf.n, ekf.nr
+    z0 = np.linalg.lstsq(B, q_eq - q0, rcond=None)[0]
+    x0 = np.concatenate([z0, np.zeros(nz), extra])
+    ekf.x = np.concatenate([q_eq, np.zeros(n), extra])
+    ekf.lam = ekf._rest_multipliers()
+    lam0 = ekf.lam.copy()
+
+    def step(x, u):
+        ekf.x = np.concatenate([q0 + B @ x[:nz], B @ x[nz:2 * nz], x[2 * nz:]])
+        ekf.a, ekf.lam = np.zeros(n), lam0.copy()
+        ekf.predict(u)
+        return np.concatenate([np.linalg.lstsq(B, ekf.x[:n] - q0, rcond=None)[0],
+                               np.linalg.lstsq(B, ekf.x[n:2 * n], rcond=None)[0], ekf.x[2 * n:]])
+    assert np.abs(step(x0, u) - x0).max() < 1e-8
+    ekf.x, ekf.lam = np.concatenate([q_eq, np.zeros(n), extra]), lam0.copy()
+    Phi, Gamma = ekf.linearisation()
+    h, hu = 1e-6, 1e-4
+    Phi_fd = np.stack([(step(x0 + h * e, u) - step(x0 - h * e, u)) / (2 * h) for e in np.eye(len(x0))], axis=1)
+    assert np.abs(Phi - Phi_fd).max() <= 1e-5 * np.abs(Phi_fd).max()
+    if len(u):
+        Gamma_fd = np.stack([(step(x0, u + hu * e) - step(x0, u - hu * e)) / (2 * hu) for e in np.eye(len(u))],
+                            axis=1)
+        assert np.abs(Gamma - Gamma_fd).max() <= 1e-5 * np.abs(Gamma_fd).max()
+
+
 def test_the_filters_process_jacobian_in_the_basis_is_its_steps_linearisation():
     """At an equilibrium under tendons and a tip wrench, the filter's
     analytic Phi and Gamma_u (the Galerkin projection of the engine's
@@ -269,60 +307,40 @@ def test_the_filters_process_jacobian_in_the_basis_is_its_steps_linearisation():
     sensors = [sn.PoseSensor("em", 1e-3, 0.01, s=0.4)]
     ekf = es.EKF(mech, sensors, 0.01, wrench="wrench", actuation=u, q_init=eq.q)
     assert ekf.P.shape == (2 * 12 + 6, 2 * 12 + 6)
-    B = mech.basis
-    z0 = np.linalg.lstsq(B, eq.q - mech.tree.q0, rcond=None)[0]
-    x0 = np.concatenate([z0, np.zeros(12), w])          # the errors' layout: z, its rate, w
-
-    def step(x, u):
-        ekf.x = np.concatenate([mech.tree.q0 + B @ x[:12], B @ x[12:24], x[24:]])
-        ekf.a = np.zeros(ekf.n)
-        ekf.predict(u)
-        return np.concatenate([np.linalg.lstsq(B, ekf.x[:ekf.n] - mech.tree.q0, rcond=None)[0],
-                               np.linalg.lstsq(B, ekf.x[ekf.n:2 * ekf.n], rcond=None)[0], ekf.x[2 * ekf.n:]])
-    assert np.abs(step(x0, u) - x0).max() < 1e-8
-    ekf.x = np.concatenate([eq.q, np.zeros(ekf.n), w])
-    Phi, Gamma = ekf.linearisation()
-    h, hu = 1e-6, 1e-4
-    Phi_fd = np.stack([(step(x0 + h * e, u) - step(x0 - h * e, u)) / (2 * h) for e in np.eye(len(x0))], axis=1)
-    assert np.abs(Phi - Phi_fd).max() <= 1e-5 * np.abs(Phi_fd).max()
-    Gamma_fd = np.stack([(step(x0, u + hu * e) - step(x0, u - hu * e)) / (2 * hu) for e in np.eye(4)], axis=1)
-    assert np.abs(Gamma - Gamma_fd).max() <= 1e-5 * np.abs(Gamma_fd).max()
+    assert_gvs_linearisation(ekf, eq.q, w, u)
 
 
-# ------------------------------------------------------- planner and calibration
-
-def test_the_planners_tip_solve_finds_the_tensions_of_a_gvs_equilibrium():
-    """The tip of the GVS arm's own equilibrium under known tensions is a
-    target the IK reaches with those tensions (its Newton and sensitivities
-    in the basis's coordinates: with the full PCS Newton it would land on
-    another shape)."""
-    from soft_twin_core.twin import Twin, TwinSettings
-    from soft_twin_core.robot.mechanism import load_mechanism
-    mech = load_mechanism(find_file("gvs_arm", "robots"))
-    twin = Twin(mech, TwinSettings(mode="quasi_static"))
-    u = np.array([4.0, 0.0, 2.0, 0.0])
-    target = solve_equilibrium(mech, u)
-    from soft_twin_core.solve.outputs import state_outputs
-    tip = state_outputs(mech, target.q, np.zeros(0), make_inputs(mech, u)).frames["tip"][:3, 3]
-    r = twin.inverse_kinematics(tip)
-    assert r.reached and r.position_error < 1e-9
-    assert np.abs(r.values - u).max() < 1e-6
-    assert np.abs(r.q - target.q).max() < 1e-8
-
-
-def test_calibration_sensitivities_on_a_gvs_arm_match_finite_differences():
-    from test_calibration import ALL, _markers, assert_sensitivities
-    from soft_twin_core.estimation import calibration as cal
-    d = read_yaml_file(find_file("tracked_arm", "robots"))
-    for seg in d["segments"]:
-        seg["sections"] = 6
-        seg["strain_basis"] = {"type": "legendre", "order": 2}
-    mech = from_robot_model(model_from_dict(d))
-    rng = np.random.default_rng(1)
-    U = np.array([[12.0, 0.0, 6.0, 0.0], [0.0, 9.0, 0.0, 14.0], [5.0, 0.0, 0.0, 7.0]])
-    rec = cal.record_static_sweep(mech, _markers(), U, rng)
-    pb = cal.Problem(d, _markers(), rec, ALL + ["payload_mass"])
-    assert_sensitivities(pb, pb.theta0 + np.array([3e6, -2e6, 4e-4, -3e-4, 2e-4, 5e-4, 0.02]), 1e-6)
+def test_the_filters_process_jacobian_with_rigid_joints_and_a_closed_chain_in_a_basis():
+    """The same check on the pan-tilt arm on springs (its rigid joints
+    identity columns of the basis) and on the parallel robot (the loop's
+    reactions in the step, its covariance conditioned on G B)."""
+    import copy
+    from soft_twin_core.solve.constrained import FrameLoad
+    d = copy.deepcopy(read_yaml_file(find_file("pan_tilt_arm", "robots")))
+    for b in d["bodies"]:
+        j = b.get("joint", {})
+        if j.get("type") == "revolute":
+            j["control"], j["stiffness"] = "passive", 2.0
+        if b.get("type") == "member":
+            for seg in b["segments"]:
+                seg["sections"], seg["strain_basis"] = 6, {"type": "legendre", "order": 2}
+    sprung = mechanism_from_dict(d, str(find_file("pan_tilt_arm", "robots").parent))
+    u = np.array([5.0, 1.0, 2.0, 0.5])
+    w = np.array([0.2, -0.1, -0.3, 0.004, 0.01, -0.006])
+    eq = solve_equilibrium(sprung, u, point_loads=[FrameLoad("tool", w)]).q
+    ekf = es.EKF(sprung, [sn.PoseSensor("em", 1e-3, 0.01, frame="tool")], 0.01, wrench="wrench", actuation=u,
+                 q_init=eq)
+    assert ekf.nr == 2 + 2 * 9
+    assert_gvs_linearisation(ekf, eq, w, u)
+    d = read_yaml_file(find_file("planar_parallel_robot", "robots"))
+    for b in d["bodies"]:
+        for seg in b.get("segments", []):
+            seg["strain_basis"] = {"type": "legendre", "order": 3}
+    par = mechanism_from_dict(d, str(find_file("planar_parallel_robot", "robots").parent))
+    eq = solve_equilibrium(par)                          # (the filter's process model: gravity alone)
+    ekf = es.EKF(par, [sn.PoseSensor("em", 1e-3, 0.01, frame="platform")], 0.01, q_init=eq.q)
+    assert ekf.lam.size == 6 and ekf.nr < par.tree.nv
+    assert_gvs_linearisation(ekf, eq.q, np.zeros(0), np.zeros(0))
 
 
 def test_the_gvs_filter_tracks_as_the_pcs_filter_on_the_same_sections_with_a_fifth_of_the_state():
@@ -358,3 +376,113 @@ def test_the_gvs_filter_tracks_as_the_pcs_filter_on_the_same_sections_with_a_fif
         med[label] = np.median(err[20:]), ekf.P.shape[0]
     assert med["pcs"][1] == 2 * 48 + 3 and med["gvs"][1] == 2 * 18 + 3
     assert med["gvs"][0] < 0.004 and abs(med["gvs"][0] / med["pcs"][0] - 1) < 0.05, med
+
+
+# ------------------------------------- a full basis: the same robot in other coordinates
+
+def _with_full_bases(name):
+    """The robot file ``name`` and the same file with every segment on a
+    Legendre basis of order sections - 1: as many functions as sections,
+    an invertible change of coordinates (the same physics, solved in z)."""
+    from soft_twin_core.robot.mechanism import is_tree_file, load_mechanism
+    import copy
+    import yaml
+    path = find_file(name, "robots")
+    d = read_yaml_file(path)
+    g = copy.deepcopy(d)
+    segments = [s for b in g.get("bodies", []) if b.get("type") == "member" for s in b["segments"]] \
+        if is_tree_file(g) else g["segments"]
+    for seg in segments:
+        seg["strain_basis"] = {"type": "legendre", "order": int(seg.get("sections", 1)) - 1}
+    load = (lambda m: mechanism_from_dict(m, str(path.parent))) if is_tree_file(d) else \
+        (lambda m: from_robot_model(model_from_dict(m), m, str(path.parent)))
+    assert yaml.safe_dump(g)                     # (a plain mapping, as a file would give)
+    return load_mechanism(path), load(g)
+
+
+def _platform_load(inputs):
+    """The scenario's 2 N across and 3 N down on the parallel robot's platform."""
+    from soft_twin_core.solve.constrained import FrameLoad
+    if inputs.get("point_loads") == "platform":
+        return {**inputs, "point_loads": (FrameLoad("platform", np.array([2.0, 0.0, -3.0, 0.0, 0.0, 0.0]), "world"),)}
+    return inputs
+
+
+def _same_config(gvs, q, pcs_q):
+    B = gvs.basis
+    assert B.shape[0] == B.shape[1] and np.linalg.matrix_rank(B) == B.shape[0]
+    return np.abs(q - pcs_q).max()
+
+
+@pytest.mark.parametrize("name, inputs", [
+    ("pan_tilt_arm", dict(actuation=[2.0, 0.0, 1.0, 0.0], positions={"pan": 0.4, "tilt": -0.3})),
+    ("planar_parallel_robot", dict(point_loads="platform")),
+    ("tendon_arm_on_table", dict(actuation=[0.0, 0.0, 0.0, 1.5])),
+])
+def test_statics_with_position_joints_closed_chains_and_contact_in_full_bases(name, inputs):
+    """Position-controlled joints and their efforts, a closed chain's
+    reactions, contact with a table: the KKT Newton in z gives the PCS
+    robot's equilibrium (a full basis is a change of coordinates)."""
+    pcs, gvs = _with_full_bases(name)
+    inputs = _platform_load(inputs)
+    a, b = solve_equilibrium(pcs, **inputs), solve_equilibrium(gvs, **inputs)
+    assert np.abs(a.q - pcs.tree.q0).max() > 1e-2
+    assert _same_config(gvs, b.q, a.q) < 1e-8
+    assert np.abs(a.lam - b.lam).max(initial=0) <= 1e-7 * max(1.0, np.abs(a.lam).max(initial=0))
+    for k, v in a.joint_efforts.items():
+        assert abs(b.joint_efforts[k] - v) < 1e-7
+
+
+@pytest.mark.parametrize("name, inputs, steps", [
+    ("pan_tilt_arm", dict(actuation=[2.0, 0.0, 1.0, 0.0], positions={"pan": 0.4, "tilt": -0.3}), 200),
+    ("planar_parallel_robot", dict(point_loads="platform"), 100),
+    ("tendon_arm_on_table", dict(actuation=[0.0, 0.0, 0.0, 1.5]), 200),
+])
+def test_dynamics_with_position_joints_closed_chains_and_contact_in_full_bases(name, inputs, steps):
+    """The Python KKT step in z against the engine's steps on the PCS robot
+    (compiled where they apply): the same trajectory to the Newton
+    tolerances."""
+    pcs, gvs = _with_full_bases(name)
+    inputs = _platform_load(inputs)
+    out = []
+    for mech in (pcs, gvs):
+        sim = MechanismSimulator(mech, 2e-3, 0.5, tol=1e-12, constraint_tol=1e-12, max_iterations=60)
+        sim.step(n=steps, **inputs)
+        out.append(sim.q.copy())
+    assert np.abs(out[0] - pcs.tree.q0).max() > 1e-3
+    assert _same_config(gvs, out[1], out[0]) < 1e-7
+
+
+def _pan_tilt_gvs(sections=8, order=2):
+    from soft_twin_core.robot.mechanism import load_mechanism
+    path = find_file("pan_tilt_arm", "robots")
+    d = read_yaml_file(path)
+    arm = next(b for b in d["bodies"] if b.get("type") == "member")
+    for seg in arm["segments"]:
+        seg["sections"] = sections
+        seg["strain_basis"] = {"type": "legendre", "order": order}
+    return mechanism_from_dict(d, str(path.parent)), load_mechanism(path)
+
+
+def test_a_position_controlled_arm_with_a_reduced_basis_balances_on_the_basis_only():
+    """The pan-tilt arm, 8 sections a segment on Legendre order 2 (6 of
+    its 16 strain coordinates a segment): at the KKT Newton's equilibrium
+    the virtual work of the forces on the basis vanishes (``B^T R = 0``,
+    R the engine's full residual with the joints' efforts), the joints sit
+    at their commands, and R itself does not vanish (a PCS equilibrium
+    would need strains off the basis). Its dynamics, damped, settles there
+    (the Python KKT step in z, another path)."""
+    gvs, _ = _pan_tilt_gvs()
+    inputs = dict(actuation=[2.0, 0.0, 1.0, 0.0], positions={"pan": 0.4, "tilt": -0.3})
+    eq = solve_equilibrium(gvs, **inputs)
+    from soft_twin_core.solve.constrained import _Equilibrium
+    pb = _Equilibrium(gvs, eq.inputs)
+    pb.T = None                                           # the full residual, for the check
+    R, phi, _ = pb.residual(eq.q, eq.lam)
+    scale = np.abs(pb.K @ (eq.q - gvs.tree.q0)).max()
+    assert np.abs(gvs.basis.T @ R).max() < 1e-9 * scale
+    assert np.abs(R).max() > 1e-4 * scale
+    assert np.abs(phi).max() < 1e-10
+    sim = MechanismSimulator(gvs, 5e-3, 1.0, tol=1e-10)
+    sim.step(n=1200, **inputs)                            # 6 s: the first modes are damped 12-15 %
+    assert np.abs(sim.q - eq.q).max() < 1e-4 * np.abs(eq.q - gvs.tree.q0).max()

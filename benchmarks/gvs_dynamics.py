@@ -1,0 +1,59 @@
+"""What a variable-strain segment costs a dynamic step (issue 28): the
+benchmark cantilever (L = 0.5 m, r = 10 mm, E = 1 MPa, bending modes free,
+gravity) released from straight, 0.5 s at dt 2.5 ms (implicit midpoint,
+Newton tolerance 1e-6), on n sections as PCS (the engine's compiled O(n)
+step) and with the robot file's ``strain_basis: {type: legendre, order:
+p}`` (integrators.ReducedThetaIntegrator: the same residual pass over the
+n sections, a dense CRBA and an nz x nz Cholesky a step). Reported: CPU
+time a step (median of 3 runs), Newton iterations a step, and the tip's
+distance from PCS on the same sections at the end.
+
+Run: PYTHONPATH=. .venv/bin/python benchmarks/gvs_dynamics.py
+"""
+
+import time
+
+import numpy as np
+
+from soft_twin_core.robot.mechanism import from_robot_model
+from soft_twin_core.robot.model import benchmark_cantilever_dict, model_from_dict
+from soft_twin_core.solve.constrained import MechanismSimulator
+from soft_twin_core.solve.outputs import state_outputs
+from soft_twin_core.solve.constrained import make_inputs
+
+DT, STEPS = 2.5e-3, 200
+
+
+def cantilever(n, order=None):
+    d = benchmark_cantilever_dict(n, "bending")
+    if order is not None:
+        d["segments"][0]["strain_basis"] = {"type": "legendre", "order": order}
+    return from_robot_model(model_from_dict(d))
+
+
+def run(mech):
+    times, sim = [], None
+    for _ in range(3):
+        sim = MechanismSimulator(mech, DT, 0.5, tol=1e-6, max_iterations=30)
+        sim.step(n=2)                                   # (compiled code loaded)
+        t0 = time.process_time()
+        sim.step(n=STEPS)
+        times.append((time.process_time() - t0) / STEPS)
+    tip = state_outputs(mech, sim.q, np.zeros(0), make_inputs(mech)).frames["tip"][:3, 3]
+    return np.median(times), sim.newton_iterations / (STEPS + 2), tip
+
+
+def main():
+    print(f"{'sections':>8s} {'model':>12s} {'coords':>6s} {'us/step':>8s} {'it/step':>7s} {'tip vs PCS':>11s}")
+    for n in (16, 32, 64):
+        t, it, tip_pcs = run(cantilever(n))
+        print(f"{n:8d} {'PCS':>12s} {2 * n:6d} {t * 1e6:8.0f} {it:7.2f} {'':>11s}", flush=True)
+        for p in (1, 3, 5, 7):
+            mech = cantilever(n, p)
+            t, it, tip = run(mech)
+            print(f"{n:8d} {f'Legendre {p}':>12s} {mech.basis.shape[1]:6d} {t * 1e6:8.0f} {it:7.2f} "
+                  f"{np.linalg.norm(tip - tip_pcs):9.2e} m", flush=True)
+
+
+if __name__ == "__main__":
+    main()
