@@ -216,7 +216,7 @@ class EKF:
         # variable-strain segments: the errors of q and v are those of the coordinates z (q = q0 + B z), nr of
         # them; else nr = n (T None: the identity)
         self.T = mech.basis
-        self.nr = nr = n if self.T is None else self.T.shape[1]
+        self.nr = n if self.T is None else self.T.shape[1]
         self.ws = Workspace(tree)
         self._act = actuator_arrays(tree)
         self._g = kernel_array(tree.gravity)
