@@ -115,7 +115,7 @@ from soft_twin_core.lie import checked_rigid_transform, log_so3
 from soft_twin_core.robot.mechanism import tip_frame
 from soft_twin_core.solve.constrained import (Inputs, MechanismSimulator, actuation_vector, constraint_loads,
                                               constraint_rows, factor_kkt, joint_vector, make_inputs,
-                                              on_basis, solve_equilibrium, solve_factored)
+                                              basis_offset, on_basis, solve_equilibrium, solve_factored)
 
 WRENCH_DIMS = {None: 0, "payload": 1, "force": 3, "wrench": 6}
 
@@ -298,7 +298,7 @@ class EKF:
             q_init = solve_equilibrium(mech, actuation, efforts, positions).q if statics else tree.q0
         self._q_init = tree.check_q(np.array(q_init, dtype=float)).copy()
         if self.T is not None:
-            on_basis(mech, self._q_init - tree.q0, "q_init")
+            on_basis(mech, basis_offset(mech, self._q_init), "q_init")
         self.reset()
 
     # ------------------------------------------------------------------ state

@@ -659,7 +659,6 @@ def mechanism_from_dict(d, base_dir=None):
     mech = Mechanism(tree.name, tree, tuple(control), tuple(constraints), tuple(members), tuple(links),
                      frames, motion, motion_limits, np.array(base_pose, dtype=float),
                      strain_bases=strain_bases, **_contact_fields(d, tree, members, base_dir))
-    _check_basis_robot(mech)
     return mech
 
 
@@ -746,23 +745,7 @@ def from_robot_model(robot, d=None, base_dir=None):
                      base_pose=np.array(robot.base_pose, dtype=float),
                      strain_bases=segment_bases("backbone", robot.sections, p.joints),
                      **_contact_fields(d, tree, (member,), base_dir))
-    _check_basis_robot(mech)
     return mech
-
-
-def _check_basis_robot(mech):
-    """ModelError naming the first variable-strain segment when the robot
-    has joints with quaternion coordinates (spherical or free joints, a
-    floating or prescribed base), on which q is not linear in the
-    coordinates (``q = q0 + B z``)."""
-    if not mech.strain_bases:
-        return
-    sb = mech.strain_bases[0]
-    if any(j.kind in (SPHERICAL, FREE) for j in mech.tree.joints):
-        raise ModelError(f"member {sb.member!r}, segment {sb.segment!r}: strain_basis (variable strain) is not "
-                         f"supported yet on a robot with spherical or free joints (a floating or prescribed base, a "
-                         f"loose object): their quaternions are not linear in the coordinates; drop strain_basis "
-                         f"there (PCS sections) or those joints")
 
 
 def _contact_fields(d, tree, members, base_dir=None):

@@ -737,7 +737,7 @@ def solve_equilibrium(mech, actuation=None, efforts=None, positions=None, loads=
     tree = mech.tree
     q_start = tree.q0.copy() if q_init is None else tree.check_q(np.array(q_init, dtype=float), "q_init").copy()
     if mech.basis is not None:            # variable-strain segments: the start on their basis (least squares)
-        q_start = tree.q0 + mech.basis @ np.linalg.lstsq(mech.basis, q_start - tree.q0, rcond=None)[0]
+        q_start = onto_basis(mech, q_start)
     q = carry_base(mech, q_start, targets)
     m = mech.n_constraint_rows + len(mech.joints_with("position"))
     lam = np.zeros(m)
@@ -773,9 +773,10 @@ def solve_equilibrium(mech, actuation=None, efforts=None, positions=None, loads=
 
 
 def on_basis(mech, dq, name):
-    """The coordinates z of ``dq`` (q - q0, or a velocity) on the robot's
-    strain basis (``dq = B z``); ValueError naming ``name`` when dq is not
-    on it (a configuration the variable-strain segments cannot take)."""
+    """The coordinates z of ``dq`` (a velocity, or :func:`basis_offset` of
+    a configuration) on the robot's strain basis (``dq = B z``); ValueError
+    naming ``name`` when dq is not on it (a configuration the
+    variable-strain segments cannot take)."""
     B = mech.basis
     z = np.linalg.lstsq(B, dq, rcond=None)[0]
     off = np.abs(B @ z - dq).max(initial=0.0)
@@ -784,6 +785,28 @@ def on_basis(mech, dq, name):
                          f"basis by {off:.3g}); start from the basis's coordinates: q = q0 + B z "
                          f"(Mechanism.basis)")
     return z
+
+
+def basis_offset(mech, q):
+    """What must lie on the strain basis of a configuration q:
+    :func:`_coordinate_offsets` (q - q0 on the coordinates that add, zero
+    on the quaternion joints', which move on their groups and are identity
+    columns of the basis of their own)."""
+    return _coordinate_offsets(mech.tree, q)
+
+
+def onto_basis(mech, q):
+    """q with its additive coordinates moved to the nearest configuration
+    of the strain basis (least squares), the quaternions kept."""
+    tree, B = mech.tree, mech.basis
+    dq = basis_offset(mech, q)
+    change = B @ np.linalg.lstsq(B, dq, rcond=None)[0] - dq       # zero on the quaternion joints
+    out = np.array(q, dtype=float)
+    for i, j in enumerate(tree.joints):
+        if j.kind not in (SPHERICAL, FREE):
+            a, b = tree.idx_q[i], tree.idx_v[i]
+            out[a:a + j.nv] += change[b:b + j.nv]
+    return out
 
 
 def free_problem(mech, inp):
@@ -910,7 +933,7 @@ class MechanismSimulator:
         self.v = np.zeros(tree.nv) if v is None else tree.check_v(np.array(v, float)).copy()
         self.a = np.zeros(tree.nv)
         if mech.basis is not None:
-            on_basis(mech, self.q - tree.q0, "q")
+            on_basis(mech, basis_offset(mech, self.q), "q")
             on_basis(mech, self.v, "v")
         self.lam = np.zeros(mech.n_constraint_rows + len(mech.joints_with("position")))
         self.iterations = self.newton_iterations = self._kkt_factorisations = 0

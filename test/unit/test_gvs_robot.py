@@ -1,12 +1,15 @@
 """Variable-strain segments chosen in the robot file (``strain_basis``,
 soft_twin_core.robot.strain_bases): the robot's coordinates z with
-``q = q0 + B z``, and statics, dynamics and the filter in them.
+``q = q0 + B z``, and statics, dynamics, the filter, the planner and
+calibration in them, with joints, closed chains, contact and moving bases.
 
 Independent references: one PCS section of the segment's length (a
 constant basis), the reduced statics of soft_twin_core.solve.strain_basis
 (a basis built by another function, solved by another Newton), the
 projected eigenproblem's natural frequency, energy conservation at the
-integrator's order, and central differences of the filter's step."""
+integrator's order, central differences of the filter's step and of
+calibration's residuals, the PCS robot itself under a full basis (a change
+of coordinates), and the definition of the reduced equilibrium (B^T R = 0)."""
 
 import numpy as np
 import pytest
@@ -106,16 +109,26 @@ def test_a_tree_members_segment_takes_a_basis_the_rest_keeps_its_coordinates():
     assert tree.nv == 25
 
 
-def test_quaternion_joints_with_a_basis_are_refused_at_the_door():
-    d = _tree_dict()
-    d["bodies"][0]["joint"] = {"name": "ball", "type": "spherical"}
-    with pytest.raises(ModelError, match="member 'arm', segment 'rod': strain_basis .* spherical or free joints"):
-        mechanism_from_dict(d)
-    d = _tree_dict("position")
-    d["base"] = {"motion": "floating"}
-    with pytest.raises(ModelError, match="member 'arm', segment 'rod': strain_basis .* spherical or free joints"):
-        mechanism_from_dict(d)
-    assert mechanism_from_dict(_tree_dict("position")).basis.shape == (25, 15)      # position control: fine
+def test_a_free_flying_gvs_member_moves_as_the_pcs_one():
+    """A soft arm on a floating base (quaternion coordinates: identity
+    columns of the basis, moving on their group), bent and spun in zero
+    gravity: with a full basis the reduced step flies, turns and bends as
+    the engine's O(n) step, and the strains stay on the basis."""
+    out = []
+    for order in (None, 5):
+        seg = {**benchmark_cantilever_dict(6, "bending_torsion")["segments"][0], "length": 0.3}
+        if order is not None:
+            seg["strain_basis"] = {"type": "legendre", "order": order}
+        mech = mechanism_from_dict({"name": "flyer", "gravity": [0, 0, 0], "base": {"motion": "floating"},
+                                    "bodies": [{"name": "arm", "type": "member", "segments": [seg]}]})
+        q, v = mech.tree.q0.copy(), np.zeros(mech.tree.nv)
+        q[7:] += 2.0 * (np.arange(len(q) - 7) % 3 == 1)            # bent: 2 rad/m about y
+        v[3:6] = [0.5, -1.0, 2.0]                                   # spinning
+        sim = MechanismSimulator(mech, 1e-4, 0.5, q=q, v=v, tol=1e-12, max_iterations=60)
+        sim.step(n=200)
+        out.append(sim.q.copy())
+    assert np.abs(out[0][3:7] - [0, 0, 0, 1]).max() > 1e-2          # it turned
+    assert np.abs(out[0] - out[1]).max() < 1e-8
 
 
 # --------------------------------------------------- a constant basis is one section
@@ -437,6 +450,8 @@ def test_statics_with_position_joints_closed_chains_and_contact_in_full_bases(na
     ("pan_tilt_arm", dict(actuation=[2.0, 0.0, 1.0, 0.0], positions={"pan": 0.4, "tilt": -0.3}), 200),
     ("planar_parallel_robot", dict(point_loads="platform"), 100),
     ("tendon_arm_on_table", dict(actuation=[0.0, 0.0, 0.0, 1.5]), 200),
+    ("soft_gripper_lift", dict(actuation=[6.0, 6.0], positions={"lift": 0.0}), 200),    # a loose cylinder held
+    ("catheter_in_vessel", dict(), 100),                  # a prescribed base, in a tube
 ])
 def test_dynamics_with_position_joints_closed_chains_and_contact_in_full_bases(name, inputs, steps):
     """The Python KKT step in z against the engine's steps on the PCS robot
