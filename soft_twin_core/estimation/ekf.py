@@ -491,6 +491,9 @@ class EKF:
         if self.nq != self.n:     # quaternions: the step's map on the joints' groups, at vt ~ v (O(dt) as dF)
             steps = (*integrate_jacobians(self.tree, self.v, self.theta * self.dt),
                      *integrate_jacobians(self.tree, self.v, self.dt))
+        if steps is not None and T is not None:       # E T = T E_z: the group joints are columns of their own
+            Tp = np.linalg.solve(T.T @ T, T.T)
+            steps = tuple(Tp @ E @ T for E in steps)
         J = theta_step_jacobian(M, dq, dv, F, G, self.dt, self.theta, steps)
         Phi = np.zeros((N, N))
         Phi[:2 * nr] = J[:, :N]

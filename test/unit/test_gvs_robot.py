@@ -501,3 +501,30 @@ def test_a_position_controlled_arm_with_a_reduced_basis_balances_on_the_basis_on
     sim = MechanismSimulator(gvs, 5e-3, 1.0, tol=1e-10)
     sim.step(n=1200, **inputs)                            # 6 s: the first modes are damped 12-15 %
     assert np.abs(sim.q - eq.q).max() < 1e-4 * np.abs(eq.q - gvs.tree.q0).max()
+
+
+def test_the_filters_jacobian_of_a_free_flying_gvs_arm_is_the_pcs_filters_in_other_coordinates():
+    """A free-flying arm (its base's quaternion stepped on its group) with
+    a full basis T: the filter's Phi is the PCS filter's (checked against
+    differences in test_free_base_estimation) seen in the coordinates z,
+    ``Phi_z = S^-1 Phi_q S`` with S = diag(T, T, I)."""
+    ekfs = []
+    for order in (None, 5):
+        seg = {**benchmark_cantilever_dict(6, "bending_torsion")["segments"][0], "length": 0.3}
+        if order is not None:
+            seg["strain_basis"] = {"type": "legendre", "order": order}
+        mech = mechanism_from_dict({"name": "flyer", "gravity": [0, 0, -9.81], "base": {"motion": "floating"},
+                                    "bodies": [{"name": "arm", "type": "member", "segments": [seg]}]})
+        ekf = es.EKF(mech, [sn.PoseSensor("em", 1e-3, 0.01, s=0.3)], 0.01, wrench="force")
+        q, v = mech.tree.q0.copy(), np.zeros(mech.tree.nv)
+        q[7:] += 2.0 * (np.arange(len(q) - 7) % 3 == 1)            # bent
+        v[:6] = [0.1, 0.0, -0.2, 0.5, -1.0, 2.0]                    # moving and spinning
+        ekf.x[:ekf.nq], ekf.x[ekf.nq:ekf.nq + ekf.n] = q, v
+        ekfs.append(ekf)
+    (pcs, gvs), T = ekfs, ekfs[1].mech.basis
+    n = T.shape[0]
+    S = np.eye(2 * n + 3)
+    S[:n, :n] = S[n:2 * n, n:2 * n] = T
+    Phi_q, Phi_z = pcs.linearisation()[0], gvs.linearisation()[0]
+    assert np.abs(Phi_q[:6, :6] - np.eye(6)).max() > 1e-3                 # the group step is not the identity
+    assert np.abs(Phi_z - np.linalg.solve(S, Phi_q @ S)).max() < 1e-9 * np.abs(Phi_q).max()
