@@ -21,7 +21,7 @@ from soft_twin_core.engine.workspace import Workspace
 from soft_twin_core.files.timeline import check_output_size, count, n_steps_for, step_times
 from soft_twin_core.robot.mechanism import base_targets, tip_frame
 from soft_twin_core.solve.contact import MemberContact, contacts_dict
-from soft_twin_core.solve.outputs import (frame_velocity, main_member, member_samples, section_rates,
+from soft_twin_core.solve.outputs import (basis_coordinates, frame_velocity, main_member, member_samples, section_rates,
                                           section_strains, state_outputs)
 
 
@@ -145,6 +145,9 @@ def run_mechanism_statics(sc, t=0.0, points_per_section=1, path_steps=0):
     tree = sc.mech.tree
     d.update(section_names=[tree.joints[i].name for i in tree.soft_joints],
              strains=section_strains(sc.mech, eq.q).tolist(), n_sections=len(tree.soft_joints))
+    if sc.mech.basis is not None:          # variable-strain segments: their coordinates too
+        d.update(coordinate_names=list(sc.mech.coordinate_names),
+                 coordinates=basis_coordinates(sc.mech, eq.q).tolist())
     d.update(_backbone_view(sc.mech, out))
     d.update(iterations=iterations, residual=eq.residual, constraint_error=eq.constraint_error,
              stable=eq.stable, min_stiffness_eigenvalue=eq.min_stiffness_eigenvalue)
@@ -240,6 +243,8 @@ class _Recorder:
                    joint_names=list(mech.joint_names), frame_names=list(mech.frames),
                    constraint_names=[c.name for c in mech.constraints], member_names=[m.name for m in mech.members],
                    history_fields=list(HISTORY_FIELDS), dt=sim.dt)
+        if mech.basis is not None:         # variable-strain segments: their coordinates, a row per step (JSON)
+            out.update(coordinate_names=list(mech.coordinate_names), coordinates=[])
         if sample_every:
             out.update({key: [] for key in SAMPLE_FIELDS}, members_time=[], members=[], frame_poses=[], energies=[],
                        member_point_names=[f"{m.name}_{k}" for m in mech.members
@@ -277,6 +282,8 @@ class _Recorder:
         out["constraint_error"].append(sim.constraint_error(_targets(sc, t)))
         out["transmitted_wrenches"].append([w.tolist() for w in o.joint_wrenches.values()])
         out["strains"].append(section_strains(mech, sim.q).tolist())
+        if mech.basis is not None:
+            out["coordinates"].append(basis_coordinates(mech, sim.q).tolist())
         out["strain_rates"].append(section_rates(mech, sim.v).tolist())
         out["peak_normal_stress"].append([float(np.nanmax(m.normal_stress, initial=0)) for m in o.members])
         out["peak_shear_stress"].append([float(np.nanmax(m.shear_stress, initial=0)) for m in o.members])
@@ -298,6 +305,8 @@ class _Recorder:
         for key in HISTORY_FIELDS + ((SAMPLE_FIELDS + ("members_time", "members", "frame_poses", "energies"))
                                      if self.sample_every else ()):
             self.out[key].clear()
+        if "coordinates" in self.out:
+            self.out["coordinates"].clear()
 
 
 def _start(sc, sim):

@@ -528,3 +528,28 @@ def test_the_filters_jacobian_of_a_free_flying_gvs_arm_is_the_pcs_filters_in_oth
     Phi_q, Phi_z = pcs.linearisation()[0], gvs.linearisation()[0]
     assert np.abs(Phi_q[:6, :6] - np.eye(6)).max() > 1e-3                 # the group step is not the identity
     assert np.abs(Phi_z - np.linalg.solve(S, Phi_q @ S)).max() < 1e-9 * np.abs(Phi_q).max()
+
+
+def test_the_command_lines_runs_report_the_coordinates(tmp_path):
+    """soft-twin-sim statics and dynamics on a scenario of the GVS arm:
+    the JSON carries the coordinates z with their names, and each row's
+    section strains are ``f0 + B z``."""
+    import json
+    from soft_twin_core.cli import main as cli_main
+    from soft_twin_core.robot.mechanism import load_mechanism
+    robot = find_file("gvs_arm", "robots")
+    mech = load_mechanism(robot)
+    (tmp_path / "s.yaml").write_text(f"robot: {robot}\ngravity: true\nactuation: {{tendon_y_pos: 2.0}}\n")
+    assert cli_main(["statics", str(tmp_path / "s.yaml"), "-o", str(tmp_path / "st.json")]) == 0
+    assert cli_main(["dynamics", str(tmp_path / "s.yaml"), "--duration", "0.05", "-o",
+                     str(tmp_path / "dy.json")]) == 0
+    st, dy = (json.loads((tmp_path / f).read_text()) for f in ("st.json", "dy.json"))
+    for d, rows in ((st, [(st["coordinates"], st["strains"])]), (dy, zip(dy["coordinates"], dy["strains"]))):
+        assert d["coordinate_names"] == list(mech.coordinate_names) and len(d["coordinate_names"]) == 27
+        for z, strains in rows:
+            q = mech.tree.q0 + mech.basis @ np.array(z)
+            xi = np.reshape(strains, (-1, 6))
+            got = np.concatenate([xi[k, mech.tree.joints[j].section.modes]
+                                  for k, j in enumerate(mech.members[0].joints)])
+            assert np.abs(got - q).max() < 1e-12
+    assert len(dy["coordinates"]) == len(dy["time"]) > 10 and np.abs(st["coordinates"]).max() > 0.1
