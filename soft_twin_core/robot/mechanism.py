@@ -21,7 +21,7 @@ rigid joints through :func:`from_robot_model`. Units SI; frames and wrench
 conventions of docs/CONVENTIONS.md.
 """
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 import warnings
 
 import numpy as np
@@ -38,7 +38,7 @@ from soft_twin_core.robot.model import (ModelError, _check_keys, _num, _vec, fin
                                         pose_from_dict, read_yaml_file, robot_mapping)
 from soft_twin_core.robot.obstacles import (contact_spacing, link_shape, member_capsules, member_contact,
                                             obstacles_from_list)
-from soft_twin_core.robot.strain_bases import robot_basis, segment_bases
+from soft_twin_core.robot.strain_bases import SegmentBasis, robot_basis, segment_bases
 from soft_twin_core.robot.stress import section_geometry
 from soft_twin_core.robot.urdf import bodies_from_urdf
 
@@ -746,6 +746,29 @@ def from_robot_model(robot, d=None, base_dir=None):
                      strain_bases=segment_bases("backbone", robot.sections, p.joints),
                      **_contact_fields(d, tree, (member,), base_dir))
     return mech
+
+
+def with_strain_basis(mech, member, basis):
+    """The mechanism with every section of soft member ``member`` on one
+    strain basis along the whole member (any object with the methods of
+    :class:`strain_bases.StrainBasis`, e.g. a
+    :class:`strain_bases.CustomBasis` of a Python callable), replacing the
+    bases its segments had. ModelError naming the member when it is not
+    one, when its sections differ in their free modes, or when the basis
+    does not fit its sections (checked here, at the door)."""
+    try:
+        m = mech.member(member)
+    except KeyError as e:
+        raise ModelError(f"member: {e.args[0]}") from None
+    modes = [tuple(mech.tree.joints[j].section.modes) for j in m.joints]
+    if len(set(modes)) != 1:
+        raise ModelError(f"member {member!r}: its sections must share their free modes for one basis along it "
+                         f"(they have {sorted(set(modes))})")
+    bases = tuple(sb for sb in mech.strain_bases if sb.member != member) + (
+        SegmentBasis(member, "member", tuple(m.joints), basis),)
+    out = replace(mech, strain_bases=bases)
+    robot_basis(out.tree, bases)           # the basis checked now (its values, its rank on the sections)
+    return out
 
 
 def _contact_fields(d, tree, members, base_dir=None):

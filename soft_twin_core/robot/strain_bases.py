@@ -76,6 +76,32 @@ class StrainBasis:
         return global_values(self.kind, self.orders[mode_index], x)
 
 
+@dataclass(frozen=True, eq=False)
+class CustomBasis:
+    """A basis from a Python callable (the core's API, not the robot
+    file): ``function(x)`` gives the values (k, len(x)) of k functions at
+    the abscissae x in [0, 1] along the member, the same for every free
+    mode (:func:`mechanism.with_strain_basis`). Checked where it is used:
+    finite, the shape, and functions the sections' midpoints can tell
+    apart."""
+    function: object
+    kind: str = "custom"
+
+    def values(self, mode_index, x):
+        x = np.asarray(x, dtype=float)
+        try:
+            out = np.asarray(self.function(x), dtype=float)
+        except Exception as e:      # noqa: BLE001 (a user's callable: any failure, named)
+            raise ModelError(f"strain basis: the callable failed at {len(x)} abscissae: {e!r}") from None
+        if out.ndim != 2 or out.shape[1] != len(x) or out.shape[0] < 1 or not np.all(np.isfinite(out)):
+            raise ModelError(f"strain basis: the callable must return finite values of shape (k >= 1, {len(x)}) "
+                             f"for {len(x)} abscissae, got shape {out.shape}")
+        return out
+
+    def functions(self, mode_index):
+        return self.values(mode_index, np.array([0.5])).shape[0]
+
+
 def global_values(kind, order, x):
     """(order + 1, len(x)): the global family ``kind``'s functions 0..order at x in [0, 1]."""
     x = np.asarray(x, dtype=float)

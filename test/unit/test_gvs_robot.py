@@ -553,3 +553,29 @@ def test_the_command_lines_runs_report_the_coordinates(tmp_path):
                                   for k, j in enumerate(mech.members[0].joints)])
             assert np.abs(got - q).max() < 1e-12
     assert len(dy["coordinates"]) == len(dy["time"]) > 10 and np.abs(st["coordinates"]).max() > 0.1
+
+
+def test_a_custom_basis_from_a_python_callable():
+    """with_strain_basis(mech, member, CustomBasis(f)): Legendre P_0..P_2
+    given as a callable spans what the robot file's order 2 does (the same
+    B), and solves the same statics; a callable of the wrong shape, with
+    non-finite values, or an unknown member are refused, naming them."""
+    from soft_twin_core.robot.mechanism import with_strain_basis
+    from soft_twin_core.robot.strain_bases import CustomBasis
+
+    def legendre2(x):
+        t = 2 * x - 1
+        return np.array([np.ones_like(t), t, 0.5 * (3 * t * t - 1)])
+    file_basis, pcs = _cantilever(12, {"type": "legendre", "order": 2}), _cantilever(12)
+    custom = with_strain_basis(pcs, "backbone", CustomBasis(legendre2))
+    assert np.abs(custom.basis - file_basis.basis).max() < 1e-14
+    assert np.abs(solve_equilibrium(custom).q - solve_equilibrium(file_basis).q).max() < 1e-12
+    assert pcs.basis is None                                   # the original is untouched
+    with pytest.raises(ModelError, match=r"shape \(k >= 1, 12\)"):
+        with_strain_basis(pcs, "backbone", CustomBasis(lambda x: x))
+    with pytest.raises(ModelError, match="finite"):
+        with_strain_basis(pcs, "backbone", CustomBasis(lambda x: np.array([np.full_like(x, np.inf)])))
+    with pytest.raises(ModelError, match="12 sections cannot carry 13"):
+        with_strain_basis(pcs, "backbone", CustomBasis(lambda x: np.array([x ** j for j in range(13)])))
+    with pytest.raises(ModelError, match="member: no member named 'arm'"):
+        with_strain_basis(pcs, "arm", CustomBasis(legendre2))
