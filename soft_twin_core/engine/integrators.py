@@ -487,10 +487,16 @@ class ReducedThetaIntegrator:
     and 1-dof joints (a robot with quaternion coordinates is refused at
     the door). A step that does not converge is split into halves (down to
     ``max_substep_levels``). Same interface as :class:`ThetaIntegrator`
-    (``run``, ``step``, ``last_a``, ``iterations``, ``factorisations``)."""
+    (``run``, ``step``, ``last_a``, ``iterations``, ``factorisations``).
+
+    ``prescribed``: (velocity indices, position indices) of
+    position-controlled 1-dof joints (identity columns of B), eliminated: ``command`` (q_cmd, v_cmd
+    or None) sets their end-of-step position, the Newton runs over the
+    other coordinates, and ``efforts`` are their residual rows, the
+    efforts that hold them (as the engine's compiled step does)."""
 
     def __init__(self, model, ws, act, inputs, dt, B, K, D, theta=0.5, tol=1e-4, max_iterations=10,
-                 max_substep_levels=4):
+                 max_substep_levels=4, prescribed=None):
         self.model, self.ws, self.act, self.inputs = model, ws, act, inputs
         self.B = np.ascontiguousarray(B, dtype=float)
         self.BT = np.ascontiguousarray(self.B.T)
@@ -501,6 +507,12 @@ class ReducedThetaIntegrator:
         self.factorisations = 0
         self.iterations = 0
         self._held = None             # (h, the inverse Newton matrix) kept across steps
+        pv, pq = (np.asarray(a, dtype=np.int64) for a in (prescribed or ((), ())))
+        self._pv, self._pq = pv, pq
+        cols = np.array([int(np.flatnonzero(self.B[k])[0]) for k in pv], dtype=np.int64)
+        self._pz, self._fz = cols, np.setdiff1d(np.arange(self.B.shape[1]), cols)
+        self.command = (np.zeros(len(pv)), None)
+        self.efforts = np.zeros(len(pv))
 
     def newton_matrix(self, q, h):
         """``B^T (M(q) + theta h D + (theta h)^2 K) B`` (nz, nz)."""
@@ -527,13 +539,17 @@ class ReducedThetaIntegrator:
         ws, th = self.ws, self.theta * h
         R, qt = np.empty(self.model.nv), np.empty_like(q0)
         w1 = self._on_basis(v0 + h * self.last_a)            # predictor: the last step's acceleration
+        pv, pz, fz = self._pv, self._pz, self._fz
+        if pv.size:                  # the prescribed joints reach their commands at the end of the step
+            w1[pz] = ((self.command[0] - q0[self._pq]) / h - (1 - self.theta) * v0[pv]) / self.theta
         floor = 1e-14 * max(1.0, np.abs(q0).max()) / h      # the round-off of q (as run_steps' floor)
+        dw, prev = np.zeros_like(w1), np.inf
         for it in range(1, max_iterations + 1):
             v1 = self.B @ w1
             vt = (1.0 - self.theta) * v0 + self.theta * v1
             integrate_pass(ws.m, q0, vt, th, qt)
             if inverse is None:
-                A = self.newton_matrix(qt, h)
+                A = self.newton_matrix(qt, h)[np.ix_(self._fz, self._fz)]
                 try:
                     np.linalg.cholesky(A)              # positive definite, else no step with it
                     inverse = np.linalg.inv(A)
@@ -544,14 +560,23 @@ class ReducedThetaIntegrator:
             residual_pass(ws.m, ws.w, self.act, loads, g, coef, effort, qt, vt, (v1 - v0) / h, R, False)
             if not np.all(np.isfinite(R)):
                 return None
-            dw = inverse @ (-h * (self.BT @ R))
+            r = self.BT @ R
+            dw[fz] = inverse @ (-h * r[fz])
             w1 = w1 + dw
             dv = self.B @ dw
-            if np.max(np.abs(dv)) <= max(self.tol * max(np.abs(v1).max(), np.abs(v0).max()), floor):
+            ndv = np.max(np.abs(dv))
+            if ndv <= max(self.tol * max(np.abs(v1).max(), np.abs(v0).max()), floor):
                 v1 = self.B @ w1
                 q1 = np.empty_like(q0)
                 integrate_pass(ws.m, q0, (1.0 - self.theta) * v0 + self.theta * v1, h, q1)
+                if pv.size:          # their efforts; their velocity the command's, or the step's change
+                    self.efforts = r[pz].copy()
+                    v_cmd = self.command[1]
+                    v1[pv] = v_cmd if v_cmd is not None else (q1[self._pq] - q0[self._pq]) / h
                 return q1, v1, it
+            if it > 1 and ndv > 0.25 * prev:
+                inverse = None                 # slow: a fresh matrix at the next iterate (as the KKT step)
+            prev = ndv
         return None
 
     def _on_basis(self, v):

@@ -967,11 +967,15 @@ class MechanismSimulator:
         # engine's compiled O(n) integrator, the rod's (integrators.ThetaIntegrator)
         self._theta_integrator = None
         free = self.lam.size == 0 and not self.contact
-        if free and mech.basis is not None:     # variable-strain segments: the step in their coordinates
+        joints_only = compiled and mech.n_constraint_rows == 0 and not self.contact and \
+            all(tree.joints[i].kind in (REVOLUTE, PRISMATIC) for i in pos)
+        if mech.basis is not None and (free or joints_only):
+            # variable-strain segments: the step in their coordinates, position-controlled joints eliminated
             self._theta_integrator = ReducedThetaIntegrator(tree, self.ws, self.act, lambda t: self._held, self.dt,
                                                             mech.basis, self.K, self.D, self.theta, tol=tol,
                                                             max_iterations=max_iterations,
-                                                            max_substep_levels=max_substep_levels)
+                                                            max_substep_levels=max_substep_levels,
+                                                            prescribed=(self._pos_v, self._pos_q))
         elif free:
             self._theta_integrator = ThetaIntegrator(tree, self.ws, self.act, lambda t: self._held, self.dt, self.theta,
                                                      tol=tol, max_iterations=max_iterations,
@@ -1235,10 +1239,14 @@ class MechanismSimulator:
             self._held, self._held_of = (inp.loads, inp.gravity, coef, inp.effort), inp
         integ = self._theta_integrator
         integ.last_a = self.a
+        if self._pos_v.size:                 # (the reduced step: position-controlled joints eliminated)
+            integ.command = (inp.q_cmd, inp.v_cmd)
         state = _FreeState(self.q, self.v, self.t)
         it0 = integ.iterations
         info = integ.run(state, n)          # the converged steps in one compiled call
         self.q, self.v, self.t, self.a = state.q, state.qdot, state.t, integ.last_a
+        if self._pos_v.size:
+            self.lam = integ.efforts.copy()
         self.iterations = (integ.iterations - it0) // max(n, 1)
         self.newton_iterations += integ.iterations - it0
         if not info.converged:

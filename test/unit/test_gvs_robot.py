@@ -447,7 +447,7 @@ def test_statics_with_position_joints_closed_chains_and_contact_in_full_bases(na
 
 
 @pytest.mark.parametrize("name, inputs, steps", [
-    ("pan_tilt_arm", dict(actuation=[2.0, 0.0, 1.0, 0.0], positions={"pan": 0.4, "tilt": -0.3}), 200),
+    ("pan_tilt_arm", dict(actuation=[2.0, 0.0, 1.0, 0.0], positions="ramp"), 200),
     ("planar_parallel_robot", dict(point_loads="platform"), 100),
     ("tendon_arm_on_table", dict(actuation=[0.0, 0.0, 0.0, 1.5]), 200),
     ("soft_gripper_lift", dict(actuation=[6.0, 6.0], positions={"lift": 0.0}), 200),    # a loose cylinder held
@@ -462,7 +462,13 @@ def test_dynamics_with_position_joints_closed_chains_and_contact_in_full_bases(n
     out = []
     for mech in (pcs, gvs):
         sim = MechanismSimulator(mech, 2e-3, 0.5, tol=1e-12, constraint_tol=1e-12, max_iterations=60)
-        sim.step(n=steps, **inputs)
+        if inputs.get("positions") == "ramp":        # the joints' commands in a smooth ramp, as a twin shapes them
+            for k in range(steps):
+                s = min(1.0, (k + 1) / 150)
+                s = s * s * (3 - 2 * s)
+                sim.step(**{**inputs, "positions": {"pan": 0.4 * s, "tilt": -0.3 * s}})
+        else:
+            sim.step(n=steps, **inputs)
         out.append(sim.q.copy())
     assert np.abs(out[0] - pcs.tree.q0).max() > 1e-3
     assert _same_config(gvs, out[1], out[0]) < 1e-7
@@ -579,3 +585,24 @@ def test_a_custom_basis_from_a_python_callable():
         with_strain_basis(pcs, "backbone", CustomBasis(lambda x: np.array([x ** j for j in range(13)])))
     with pytest.raises(ModelError, match="member: no member named 'arm'"):
         with_strain_basis(pcs, "arm", CustomBasis(legendre2))
+
+
+def test_position_controlled_joints_eliminated_in_the_reduced_step_as_in_the_kkt_step():
+    """The pan-tilt arm on Legendre order 2, its joints following a smooth
+    command: the reduced step with the joints eliminated (their end
+    positions prescribed, their efforts the residual's rows) and the Python
+    KKT step (their efforts multipliers) give the same trajectory and
+    efforts."""
+    gvs, _ = _pan_tilt_gvs(6, 2)
+    out = []
+    for compiled in (True, False):
+        sim = MechanismSimulator(gvs, 2e-3, 0.5, tol=1e-12, max_iterations=60, compiled=compiled)
+        assert (sim._theta_integrator is not None) == compiled
+        for k in range(300):
+            s = min(1.0, (k + 1) / 200)
+            s = s * s * (3 - 2 * s)
+            sim.step(actuation=[2.0, 0.0, 1.0, 0.0], positions={"pan": 0.4 * s, "tilt": -0.3 * s})
+        out.append((sim.q.copy(), sim.joint_efforts()))
+    assert abs(out[0][0][0] - 0.4) < 1e-12 and abs(out[0][1]["tilt"]) > 0.1
+    assert np.abs(out[0][0] - out[1][0]).max() < 1e-9
+    assert all(abs(out[0][1][j] - out[1][1][j]) < 1e-9 for j in ("pan", "tilt"))
