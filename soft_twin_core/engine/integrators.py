@@ -480,20 +480,23 @@ class ReducedThetaIntegrator:
     residual R(v1) (module docstring) projected on the basis, ``B^T R(B w1)
     = 0`` (Galerkin: the virtual power of the step's forces on the basis's
     motions), by Newton with the stiff part of the matrix,
-    ``B^T (M + theta h D + (theta h)^2 K) B`` (dense CRBA at the step's
+    ``B^T (M + theta h D + (theta h)^2 K) B`` (dense CRBA at a step's
     first iterate, O(n^2) over the sections; the small nz x nz matrix
-    factorised by Cholesky), as the O(n) iteration does in q. The
-    positions stay on the basis: ``q1 = q0 + h v_t`` is additive for soft
-    and 1-dof joints (a robot with quaternion coordinates is refused at
-    the door). A step that does not converge is split into halves (down to
+    checked positive definite and inverted, kept for the next steps while
+    it serves, refreshed when the iteration slows), as the O(n) iteration
+    does in q. The positions stay on the basis: ``q1 = q0 (+) h v_t`` adds
+    on the soft and 1-dof joints and moves a spherical or free joint's
+    quaternion on its group (its velocity coordinates are identity columns
+    of B). A step that does not converge is split into halves (down to
     ``max_substep_levels``). Same interface as :class:`ThetaIntegrator`
     (``run``, ``step``, ``last_a``, ``iterations``, ``factorisations``).
 
     ``prescribed``: (velocity indices, position indices) of
-    position-controlled 1-dof joints (identity columns of B), eliminated: ``command`` (q_cmd, v_cmd
-    or None) sets their end-of-step position, the Newton runs over the
-    other coordinates, and ``efforts`` are their residual rows, the
-    efforts that hold them (as the engine's compiled step does)."""
+    position-controlled 1-dof joints (identity columns of B), eliminated:
+    ``command`` (q_cmd, v_cmd or None) sets their end-of-step position,
+    the Newton runs over the other coordinates, and ``efforts`` are their
+    residual rows, the efforts that hold them (as the engine's compiled
+    step does)."""
 
     def __init__(self, model, ws, act, inputs, dt, B, K, D, theta=0.5, tol=1e-4, max_iterations=10,
                  max_substep_levels=4, prescribed=None):

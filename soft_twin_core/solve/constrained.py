@@ -904,7 +904,11 @@ class MechanismSimulator:
     iterations or fewer: results to the tolerance, not beyond as a fresh
     Newton matrix's quadratic convergence gives them). ``compiled``: the compiled
     steps (:mod:`engine.contact_step`, :mod:`engine.closed_step`) where they
-    apply; False: the Python KKT step (a reference). ``iterations``: the last
+    apply; False: the Python KKT step (a reference). Variable-strain
+    segments (``mech.basis``) step in their coordinates: the reduced step
+    (:class:`integrators.ReducedThetaIntegrator`, position-controlled joints
+    eliminated) without constraint rows or contacts, else the Python KKT
+    step projected on the basis. ``iterations``: the last
     call's Newton iterations a step; ``newton_iterations``: all of them so
     far; ``factorisations``: the Newton matrices factorised so far.
 

@@ -1,5 +1,9 @@
-"""Variable-strain members by a global strain basis (issue 28, a first slice:
-statics of open trees, e.g. a classic rod).
+"""Strain bases for accuracy studies: statics and natural frequencies of
+open trees in the coordinates of a basis built here (Legendre, FEM-like),
+and the fourth-order Magnus field (:class:`Magnus4Field`). A robot file's
+``strain_basis`` (:mod:`soft_twin_core.robot.strain_bases`) puts a segment
+on a basis for every solver; these functions are the studies' and the
+tests' independent path.
 
 A member's strain field is ``xi(X) = xi_ref(X) + sum_j P_j(2 X / L - 1) z_j``
 for each free strain mode, with P_j the Legendre polynomials up to order p:
@@ -16,9 +20,7 @@ restricted to the basis (Galerkin): ``B^T R(q_ref + B z) = 0``, tangent
 ``B^T K_t B`` (:class:`equilibrium.Problem`'s analytic residual and tangent).
 Its error is the basis's (spectral for a smooth load) plus the backbone's
 midpoint rule (about 0.14 L / n^2: keep n fine); its passes run over the n
-sections, its Newton solves are p + 1 per mode. The engine's variable-strain
-joint (fewer Gauss points, fourth-order Magnus) is the next step; this gives
-the accuracy per generalised coordinate now
+sections, its Newton solves are p + 1 per mode
 (``benchmarks/accuracy_per_dof.py``).
 """
 
