@@ -468,11 +468,6 @@ class ThetaIntegrator:
         return StepInfo(it, True, 0.0)
 
 
-# a held Newton matrix serves a step while it converges in this many iterations (a fresh one takes
-# 3-4 on the benchmark cantilever at 2.5 ms)
-REDUCED_REUSE_ITERATIONS = 5
-
-
 class ReducedThetaIntegrator:
     """The theta-method step of :class:`ThetaIntegrator` for a robot whose
     velocities lie on a basis, ``v = B w`` (variable-strain segments:
@@ -523,17 +518,11 @@ class ReducedThetaIntegrator:
         return self.BT @ alg.crba(self.model, self.ws, q) @ self.B + th * self.D_z + th * th * self.K_z
 
     def _newton(self, q0, v0, h, inputs):
-        """(q1, v1, iterations) of one step of h, or None: with the Newton
-        matrix held from an earlier step of this h while it converges in
-        ``REDUCED_REUSE_ITERATIONS`` iterations (modified Newton: results to
-        the tolerance), else with a fresh one."""
-        held = self._held if self._held is not None and self._held[0] == h else None
-        if held is not None:
-            out = self._iterate(q0, v0, h, inputs, held[1], REDUCED_REUSE_ITERATIONS)
-            if out is not None:
-                return out
-            self._held = None
-        return self._iterate(q0, v0, h, inputs, None, self.max_iterations)
+        """(q1, v1, iterations) of one step of h, or None: from the Newton
+        matrix held from an earlier step of this h (modified Newton: results
+        to the tolerance), a fresh one when the iteration slows."""
+        held = self._held[1] if self._held is not None and self._held[0] == h else None
+        return self._iterate(q0, v0, h, inputs, held, self.max_iterations)
 
     def _iterate(self, q0, v0, h, inputs, inverse, max_iterations):
         """Newton iterations from the predictor with the inverse Newton
