@@ -517,6 +517,17 @@ class ReducedThetaIntegrator:
         th = self.theta * h
         return self.BT @ alg.crba(self.model, self.ws, q) @ self.B + th * self.D_z + th * th * self.K_z
 
+    def full_matrix(self, q, v, a, g, h):
+        """``B^T (M + theta h dtau/dv + (theta h)^2 dtau/dq) B`` (nz, nz) at
+        (q, v, a): the velocity products and gravity's geometric terms in
+        the matrix (:func:`algorithms.rnea_derivatives`; the loads' and
+        tendons' geometric terms left out, as in
+        :meth:`ThetaIntegrator._newton_full`)."""
+        th = self.theta * h
+        dq, dv = alg.rnea_derivatives(self.model, self.ws, q, v, a, g)
+        A = alg.crba(self.model, self.ws, q) + th * dv + th * th * dq
+        return self.BT @ A @ self.B
+
     def _newton(self, q0, v0, h, inputs):
         """(q1, v1, iterations) of one step of h, or None: from the Newton
         matrix held from an earlier step of this h (modified Newton: results
@@ -524,13 +535,16 @@ class ReducedThetaIntegrator:
         held = self._held[1] if self._held is not None and self._held[0] == h else None
         return self._iterate(q0, v0, h, inputs, held, self.max_iterations)
 
-    def _iterate(self, q0, v0, h, inputs, inverse, max_iterations):
-        """Newton iterations from the predictor with the inverse Newton
-        matrix ``inverse`` (None: a fresh one at the first iterate, then held)."""
+    def _iterate(self, q0, v0, h, inputs, inverse, max_iterations, full=False, extrapolate=True):
+        """Newton iterations from the predictor (``extrapolate``: the last
+        step's acceleration, else v0) with the inverse Newton matrix
+        ``inverse`` (None: a fresh one at the first iterate, then held).
+        ``full``: the full Newton matrix at every iterate instead (the
+        fallback of :meth:`_advance`)."""
         loads, g, coef, effort = inputs
         ws, th = self.ws, self.theta * h
         R, qt = np.empty(self.model.nv), np.empty_like(q0)
-        w1 = self._on_basis(v0 + h * self.last_a)            # predictor: the last step's acceleration
+        w1 = self._on_basis(v0 + h * self.last_a if extrapolate else v0)
         pv, pz, fz = self._pv, self._pz, self._fz
         if pv.size:                  # the prescribed joints reach their commands at the end of the step
             w1[pz] = ((self.command[0] - q0[self._pq]) / h - (1 - self.theta) * v0[pv]) / self.theta
@@ -540,8 +554,14 @@ class ReducedThetaIntegrator:
             v1 = self.B @ w1
             vt = (1.0 - self.theta) * v0 + self.theta * v1
             integrate_pass(ws.m, q0, vt, th, qt)
-            if inverse is None:
-                A = self.newton_matrix(qt, h)[np.ix_(self._fz, self._fz)]
+            if full:
+                A = self.full_matrix(qt, vt, (v1 - v0) / h, g, h)[np.ix_(fz, fz)]
+                try:
+                    inverse = np.linalg.inv(A)
+                except np.linalg.LinAlgError:
+                    return None
+            elif inverse is None:
+                A = self.newton_matrix(qt, h)[np.ix_(fz, fz)]
                 try:
                     np.linalg.cholesky(A)              # positive definite, else no step with it
                     inverse = np.linalg.inv(A)
@@ -579,7 +599,18 @@ class ReducedThetaIntegrator:
         return G @ (self.BT @ v)
 
     def _advance(self, q0, v0, t, h, level):
-        out = self._newton(q0, v0, h, self.inputs(t + self.theta * h))
+        """One step of h: Newton from the held matrix; if it fails, from v0
+        with a fresh one (after a violent step the last acceleration
+        extrapolates far off), then full Newton from v0 (fast motions: the
+        velocity products the matrix leaves out matter; not with the Cayley
+        map, whose derivatives the engine does not have); then two halves,
+        down to ``max_substep_levels``."""
+        inputs = self.inputs(t + self.theta * h)
+        out = self._newton(q0, v0, h, inputs)
+        if out is None:
+            out = self._iterate(q0, v0, h, inputs, None, self.max_iterations, extrapolate=False)
+        if out is None and not np.any(self.ws.arrays.kmap != 0):
+            out = self._iterate(q0, v0, h, inputs, None, self.max_iterations, full=True, extrapolate=False)
         if out is None and level < self.max_substep_levels:
             half = self._advance(q0, v0, t, 0.5 * h, level + 1)
             if half is not None:
