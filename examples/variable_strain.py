@@ -14,8 +14,8 @@ import numpy as np
 from soft_twin_core.robot.mechanism import load_mechanism
 from soft_twin_core.robot.model import find_file, model_from_dict, read_yaml_file
 from soft_twin_core.robot.mechanism import from_robot_model
-from soft_twin_core.solve.constrained import make_inputs, solve_equilibrium
-from soft_twin_core.solve.outputs import basis_coordinates, section_strains, state_outputs
+from soft_twin_core.solve.constrained import basis_coordinates, make_inputs, solve_equilibrium
+from soft_twin_core.solve.outputs import section_strains, state_outputs
 
 
 def arm_with(sections):

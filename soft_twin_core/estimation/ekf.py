@@ -217,6 +217,7 @@ class EKF:
         # them; else nr = n (T None: the identity)
         self.T = mech.basis
         self.nr = n if self.T is None else self.T.shape[1]
+        self._Tp = None if self.T is None else np.linalg.solve(self.T.T @ self.T, self.T.T)    # T^+
         self.ws = Workspace(tree)
         self._act = actuator_arrays(tree)
         self._g = kernel_array(tree.gravity)
@@ -288,9 +289,9 @@ class EKF:
             walk, w0 = walk / np.linalg.norm(self._g), w0 / np.linalg.norm(self._g)
         qv = [np.where(rigid, pj_q ** 2, process_noise_q ** 2), np.where(rigid, pj_v ** 2, process_noise_v ** 2)]
         qv0 = [np.where(rigid, sigma_joint0 ** 2, sigma_q0 ** 2), np.full(n, sigma_v0 ** 2)]
-        self.Q = block_diag([*_in_coordinates(self.T, qv), np.diag(np.full(nb, offset_walk ** 2)),
+        self.Q = block_diag([*_in_coordinates(self._Tp, qv), np.diag(np.full(nb, offset_walk ** 2)),
                              np.diag(walk ** 2)])
-        self._P0 = block_diag([*_in_coordinates(self.T, qv0), np.diag(np.full(nb, sigma_offset0 ** 2)),
+        self._P0 = block_diag([*_in_coordinates(self._Tp, qv0), np.diag(np.full(nb, sigma_offset0 ** 2)),
                                np.diag(w0 ** 2)])
         if q_init is None:   # the equilibrium under the inputs; where statics has none to find (a moving base,
             # ball joints: no static equilibrium solver on quaternions), the reference configuration
@@ -492,8 +493,7 @@ class EKF:
             steps = (*integrate_jacobians(self.tree, self.v, self.theta * self.dt),
                      *integrate_jacobians(self.tree, self.v, self.dt))
         if steps is not None and T is not None:       # E T = T E_z: the group joints are columns of their own
-            Tp = np.linalg.solve(T.T @ T, T.T)
-            steps = tuple(Tp @ E @ T for E in steps)
+            steps = tuple(self._Tp @ E @ T for E in steps)
         J = theta_step_jacobian(M, dq, dv, F, G, self.dt, self.theta, steps)
         Phi = np.zeros((N, N))
         Phi[:2 * nr] = J[:, :N]
@@ -727,17 +727,16 @@ def parse_directions(text, name):
     return unit_directions(rows, name)
 
 
-def _in_coordinates(T, variances):
+def _in_coordinates(Tp, variances):
     """The covariances of independent errors of q and v (``variances``:
     per coordinate of q, then of v) in the coordinates z of ``q = q0 + T
-    z`` (variable-strain segments; T None: unchanged): the least-squares
-    projection ``T^+ diag(var) T^+^T``, T^+ = (T^T T)^-1 T^T. The noise of
+    z`` (variable-strain segments; ``Tp`` = T^+ = (T^T T)^-1 T^T, None:
+    unchanged): the least-squares projection ``T^+ diag(var) T^+^T``. The noise of
     a strain field that the sections carry independently, restricted to
     the basis: a coordinate spanning n sections gets 1/n of a section's
     variance, as the n sections' independent noises move its shape."""
-    if T is None:
+    if Tp is None:
         return [np.diag(v) for v in variances]
-    Tp = np.linalg.solve(T.T @ T, T.T)
     return [(Tp * v) @ Tp.T for v in variances]
 
 

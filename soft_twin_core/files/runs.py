@@ -13,15 +13,15 @@ import numpy as np
 from soft_twin_core._blas import one_blas_thread
 from soft_twin_core.errors import StaticsError
 from soft_twin_core.engine.loads import Loads
-from soft_twin_core.solve.constrained import (MechanismSimulator, StepError, concat_loads, make_inputs,
-                                              solve_equilibrium)
+from soft_twin_core.solve.constrained import (MechanismSimulator, StepError, basis_coordinates, concat_loads,
+                                              make_inputs, solve_equilibrium)
 
 _NO_LOADS = Loads(gravity=False)
 from soft_twin_core.engine.workspace import Workspace
 from soft_twin_core.files.timeline import check_output_size, count, n_steps_for, step_times
 from soft_twin_core.robot.mechanism import base_targets, tip_frame
 from soft_twin_core.solve.contact import MemberContact, contacts_dict
-from soft_twin_core.solve.outputs import (basis_coordinates, frame_velocity, main_member, member_samples, section_rates,
+from soft_twin_core.solve.outputs import (frame_velocity, main_member, member_samples, section_rates,
                                           section_strains, state_outputs)
 
 

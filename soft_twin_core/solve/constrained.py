@@ -795,12 +795,20 @@ def basis_offset(mech, q):
     return _coordinate_offsets(mech.tree, q)
 
 
+def basis_coordinates(mech, q):
+    """The coordinates z (nz,) of q on the robot's strain basis (variable-
+    strain segments: ``q = q0 + B z``, least squares; their names are
+    ``mech.coordinate_names``), or None when it has none."""
+    if mech.basis is None:
+        return None
+    return np.linalg.lstsq(mech.basis, basis_offset(mech, q), rcond=None)[0]
+
+
 def onto_basis(mech, q):
     """q with its additive coordinates moved to the nearest configuration
     of the strain basis (least squares), the quaternions kept."""
-    tree, B = mech.tree, mech.basis
-    dq = basis_offset(mech, q)
-    change = B @ np.linalg.lstsq(B, dq, rcond=None)[0] - dq       # zero on the quaternion joints
+    tree = mech.tree
+    change = mech.basis @ basis_coordinates(mech, q) - basis_offset(mech, q)   # zero on the quaternion joints
     out = np.array(q, dtype=float)
     for i, j in enumerate(tree.joints):
         if j.kind not in (SPHERICAL, FREE):
@@ -961,7 +969,10 @@ class MechanismSimulator:
         # obstacles or without (then only its position-controlled joints need more than the rod's
         # integrator). Closed chains keep the Python KKT step: a loop's constraint rows couple joints
         # across the loop and cannot be eliminated one joint at a time as a position command can.
-        eliminable = all(tree.joints[i].kind in (REVOLUTE, PRISMATIC) for i in pos) and mech.basis is None
+        one_dof = all(tree.joints[i].kind in (REVOLUTE, PRISMATIC) for i in pos)
+        # (the compiled steps' Newton runs on every velocity coordinate; with variable-strain segments the
+        # unknowns are the basis's coordinates: the reduced step below, or the Python KKT step projected)
+        eliminable = one_dof and mech.basis is None
         self._use_compiled_step = compiled and mech.n_constraint_rows == 0 and eliminable
         # constraint rows, no contacts: the compiled KKT step (engine.closed_step), the Python one its
         # fallback when it fails
@@ -971,8 +982,7 @@ class MechanismSimulator:
         # engine's compiled O(n) integrator, the rod's (integrators.ThetaIntegrator)
         self._theta_integrator = None
         free = self.lam.size == 0 and not self.contact
-        joints_only = compiled and mech.n_constraint_rows == 0 and not self.contact and \
-            all(tree.joints[i].kind in (REVOLUTE, PRISMATIC) for i in pos)
+        joints_only = compiled and mech.n_constraint_rows == 0 and not self.contact and one_dof
         if mech.basis is not None and (free or joints_only):
             # variable-strain segments: the step in their coordinates, position-controlled joints eliminated
             self._theta_integrator = ReducedThetaIntegrator(tree, self.ws, self.act, lambda t: self._held, self.dt,

@@ -30,7 +30,7 @@ from soft_twin_core.engine.workspace import Workspace
 from soft_twin_core.errors import ModelError
 from soft_twin_core.lie import Ad, Ad_inv, se3_inv
 from soft_twin_core.robot.stress import peak_stresses, von_mises
-from soft_twin_core.solve.constrained import _efforts_out, basis_offset, constraint_loads, constraint_wrenches
+from soft_twin_core.solve.constrained import _efforts_out, constraint_loads, constraint_wrenches
 from soft_twin_core.solve.contact import contact_loads
 
 
@@ -288,15 +288,6 @@ def max_von_mises(mech, members):
             i = int(np.nanargmax(v))
             best, where = float(v[i]), float(s[i])
     return (best, where) if np.isfinite(best) else (math.nan, math.nan)
-
-
-def basis_coordinates(mech, q):
-    """The coordinates z (nz,) of q on the robot's strain basis (variable-
-    strain segments: ``q = q0 + B z``, least squares; the names are
-    ``mech.coordinate_names``), or None when it has none."""
-    if mech.basis is None:
-        return None
-    return np.linalg.lstsq(mech.basis, basis_offset(mech, q), rcond=None)[0]
 
 
 def section_strains(mech, q):
