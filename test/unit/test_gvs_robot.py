@@ -624,3 +624,37 @@ def test_a_jumping_joint_command_in_a_full_basis_follows_the_compiled_step():
         assert abs(sims[0].t - sims[1].t) < 1e-12
     assert np.abs(sims[0].q - pcs.tree.q0).max() > 0.3
     assert _same_config(gvs, sims[1].q, sims[0].q) < 1e-6
+
+
+def test_the_reduced_steps_full_newton_matrix_is_the_derivative_of_its_residual():
+    """The fallback's matrix ``B^T (M + theta h dtau/dv + (theta h)^2
+    dtau/dq) B`` equals central differences of ``h B^T R`` in the end
+    velocity's coordinates w1 (R the theta step's residual, gravity and
+    the sections' stiffness and damping, a moving bent state), and the
+    held matrix (no velocity products, no gravity terms) does not."""
+    from soft_twin_core.engine.integrators import integrate_pass, residual_pass
+    from soft_twin_core.engine.kernels.data import empty_loads
+    mech = _cantilever(12, {"type": "legendre", "order": 3}, free="all")
+    sim = MechanismSimulator(mech, 2e-3, 0.5)
+    integ, tree, B = sim._theta_integrator, mech.tree, mech.basis
+    rng = np.random.default_rng(3)
+    q0 = tree.q0 + B @ (0.3 * rng.normal(size=B.shape[1]) * np.repeat([0.01, 0.01, 0.01, 1, 1, 1], 4))
+    v0 = B @ (5.0 * rng.normal(size=B.shape[1]))
+    h, th = 2e-3, 0.5
+    g = np.array(tree.gravity, dtype=float)
+    coef = np.zeros(len(sim.act.joint))
+
+    def hR(w1):
+        vt = (1 - th) * v0 + th * (B @ w1)
+        qt, R = np.empty_like(q0), np.empty(tree.nv)
+        integrate_pass(sim.ws.m, q0, vt, th * h, qt)
+        residual_pass(sim.ws.m, sim.ws.w, sim.act, empty_loads(), g, coef, np.zeros(tree.nv), qt, vt,
+                      (B @ w1 - v0) / h, R, False)
+        return h * (B.T @ R), qt, vt
+    w1 = np.linalg.lstsq(B, v0, rcond=None)[0] + rng.normal(size=B.shape[1])
+    _, qt, vt = hR(w1)
+    A = integ.full_matrix(qt, vt, (B @ w1 - v0) / h, g, h)
+    eps = 1e-6
+    fd = np.stack([(hR(w1 + eps * e)[0] - hR(w1 - eps * e)[0]) / (2 * eps) for e in np.eye(len(w1))], axis=1)
+    assert np.abs(A - fd).max() <= 1e-6 * np.abs(fd).max()
+    assert np.abs(integ.newton_matrix(qt, h) - fd).max() > 1e-4 * np.abs(fd).max()
