@@ -5,7 +5,9 @@ The ROS 2 package soft_twin (interfaces, node) is built by CMake from
 CMakeLists.txt/package.xml: `make setup` here, or colcon in a ROS 2 workspace
 (see README.md). This file lets the core be used without any ROS install.
 """
+import importlib.util
 import re
+import sys
 from pathlib import Path
 
 from setuptools import find_packages, setup
@@ -16,6 +18,31 @@ VERSION = re.search(
     (HERE / "soft_twin_core" / "__init__.py").read_text(encoding="utf-8"),
     re.M,
 ).group(1)
+
+
+def kernel_caches():
+    """The numba kernel caches of a warmed-up checkout (`make setup`), as
+    package data, when they were compiled from these very sources (the
+    warm-up's stamp holds the kernels' source digest): the wheel then loads
+    its kernels instead of compiling them for a minute on first use
+    (soft_twin_core.engine.kernels._caches). Without them, or stale: none."""
+    stamp = HERE / "soft_twin_core" / "__pycache__" / "soft_twin_kernels.sha256"
+    if not stamp.is_file():
+        return {}
+    # the module by its path: its top level needs the standard library only (no numpy here)
+    spec = importlib.util.spec_from_file_location(
+        "_soft_twin_caches", HERE / "soft_twin_core" / "engine" / "kernels" / "_caches.py")
+    caches = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(caches)
+    if stamp.read_text().strip() != caches.kernel_digest(HERE / "soft_twin_core"):
+        print("soft_twin_core: the kernel caches are stale (run `make setup`); the wheel ships none",
+              file=sys.stderr)
+        return {}
+    dirs = sorted({p.parent.parent for p in (HERE / "soft_twin_core").rglob("__pycache__/*.nbi")})
+    out = {".".join(d.relative_to(HERE).parts): ["__pycache__/*.nbi", "__pycache__/*.nbc"] for d in dirs}
+    out.setdefault("soft_twin_core", []).append("__pycache__/soft_twin_kernels.sha256")
+    return out
+
 
 setup(
     name="soft_twin_core",
@@ -30,7 +57,8 @@ setup(
     # checkout's config/ becomes soft_twin_core/config/ in the install, where
     # soft_twin_core.robot.model.config_dirs() finds them (load_model("tendon_arm")).
     package_dir={"soft_twin_core.config": "config"},
-    package_data={"soft_twin_core.config": ["robots/*.yaml", "scenarios/*.yaml", "paths/*.yaml"]},
+    package_data={"soft_twin_core.config": ["robots/*.yaml", "scenarios/*.yaml", "paths/*.yaml"],
+                  **kernel_caches()},
     exclude_package_data={"soft_twin_core.config": ["*.py", "params.yaml"]},
     install_requires=[
         "numpy>=1.24,<2.6",

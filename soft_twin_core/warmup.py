@@ -14,6 +14,8 @@ import time
 
 import numpy as np
 
+from soft_twin_core.engine.kernels._caches import STAMP, kernel_digest, kernel_sources
+
 
 def tiny_models():
     """A 2-section tendon arm of each kinematic map (the classic schema)."""
@@ -237,71 +239,6 @@ def tiny_mechanism_run():
     state_outputs(mech, sim.q, sim.lam, sim.inputs, sim.v, sim.a, sim.ws)
 
 
-def _top_level_imports(f, root):
-    """The package's source files that file ``f`` imports at its top level
-    (``import soft_twin_core.x``, ``from soft_twin_core.x import y``: x's file,
-    and y's when y is a module)."""
-    import ast
-
-    def source(name):
-        parts = name.split(".")
-        if parts[0] != root.name:
-            return None
-        p = root.joinpath(*parts[1:])
-        for cand in (p.with_suffix(".py"), p / "__init__.py"):
-            if cand.is_file():
-                return cand
-        return None
-    out = set()
-    for node in ast.parse(f.read_text()).body:
-        names = []
-        if isinstance(node, ast.Import):
-            names = [a.name for a in node.names]
-        elif isinstance(node, ast.ImportFrom) and node.module and node.level == 0:
-            names = [node.module] + [f"{node.module}.{a.name}" for a in node.names]
-        out |= {s for s in map(source, names) if s is not None}
-    return out
-
-
-def kernel_sources(root):
-    """The source files whose change can change a compiled kernel: those
-    that import numba or the package's jit decorators (``_jit...``), and
-    every file they import at their top level, transitively (a kernel bakes
-    in the module globals it reads, and links the kernels it calls). A
-    jitted function cannot import, so imports inside functions do not
-    count; the warm-up driver (this file) is no kernel."""
-    import ast
-    from pathlib import Path
-    root = Path(root)
-
-    def is_kernel_file(f):
-        for node in ast.walk(ast.parse(f.read_text())):
-            if isinstance(node, ast.Import) and any(a.name.split(".")[0] == "numba" for a in node.names):
-                return True
-            if isinstance(node, ast.ImportFrom) and node.module and (
-                    node.module.split(".")[0] == "numba" or any(a.name.startswith("_jit") for a in node.names)):
-                return True
-        return False
-    todo = [f for f in sorted(root.rglob("*.py")) if f.name != "warmup.py" and is_kernel_file(f)]
-    seen = set(todo)
-    while todo:
-        for g in _top_level_imports(todo.pop(), root):
-            if g not in seen:
-                seen.add(g)
-                todo.append(g)
-    return sorted(seen)
-
-
-def _kernel_digest(root):
-    """The hash of the kernels' sources under ``root`` (paths and contents)."""
-    import hashlib
-    h = hashlib.sha256()
-    for f in kernel_sources(root):
-        h.update(f.relative_to(root).as_posix().encode())
-        h.update(f.read_bytes())
-    return h.hexdigest()
-
-
 def copy_caches(src, dst):
     """Give the copy of this package at ``dst`` (the one installed in a
     venv) the kernel caches of the one at ``src`` (the checkout, warmed up),
@@ -316,7 +253,7 @@ def copy_caches(src, dst):
     import shutil
     from pathlib import Path
     src, dst = Path(src), Path(dst)
-    if os.environ.get("NUMBA_CACHE_DIR") or _kernel_digest(src) != _kernel_digest(dst):
+    if os.environ.get("NUMBA_CACHE_DIR") or kernel_digest(src) != kernel_digest(dst):
         return None
     n = 0
     for d in sorted({f.parent / "__pycache__" for f in kernel_sources(src)}):
@@ -327,7 +264,7 @@ def copy_caches(src, dst):
         for f in list(d.glob("*.nbi")) + list(d.glob("*.nbc")):
             shutil.copyfile(f, target / f.name)
             n += 1
-    stamp = src / "__pycache__" / "soft_twin_kernels.sha256"
+    stamp = src / "__pycache__" / STAMP
     if stamp.is_file():
         (dst / "__pycache__").mkdir(exist_ok=True)
         shutil.copyfile(stamp, dst / "__pycache__" / stamp.name)
@@ -369,8 +306,8 @@ def purge_stale_caches(root=None):
     import os
     from pathlib import Path
     root = Path(__file__).resolve().parent if root is None else Path(root)
-    digest = _kernel_digest(root)
-    stamp = root / "__pycache__" / "soft_twin_kernels.sha256"
+    digest = kernel_digest(root)
+    stamp = root / "__pycache__" / STAMP
     if stamp.is_file() and stamp.read_text().strip() == digest:
         return False
     dirs = [root]

@@ -7,6 +7,7 @@ import shutil
 import subprocess
 import sys
 import textwrap
+import zipfile
 from pathlib import Path
 
 import pytest
@@ -28,7 +29,9 @@ def _clean_env(**extra):
     env = {k: v for k, v in os.environ.items()
            if k not in ("PYTHONPATH", "PYTHONHOME", "LD_LIBRARY_PATH", "VIRTUAL_ENV",
                         "AMENT_PREFIX_PATH", "CMAKE_PREFIX_PATH", "PYTHONSAFEPATH",
-                        "_ROS_WHEELS_BOOTSTRAP_COMPLETE")}
+                        "_ROS_WHEELS_BOOTSTRAP_COMPLETE",
+                        # a user's shell: no CPU target chosen yet (this process's kernels chose one), no cache moved
+                        "NUMBA_CPU_NAME", "NUMBA_CPU_FEATURES", "NUMBA_CACHE_DIR")}
     env.update(extra)
     return env
 
@@ -137,17 +140,39 @@ def test_example_files_found_by_name_from_any_directory(tmp_path):
 
 
 @pytest.mark.slow
+def _checkout_caches_are_current():
+    """True when the checkout's kernel caches were compiled from its sources (`make setup`'s warm-up)."""
+    from soft_twin_core.engine.kernels._caches import kernel_digest
+    stamp = CORE / "__pycache__" / "soft_twin_kernels.sha256"
+    return stamp.is_file() and stamp.read_text().strip() == kernel_digest(CORE)
+
+
+FIRST_USE = textwrap.dedent("""
+    from soft_twin_core.robot.mechanism import from_robot_model, load_mechanism
+    from soft_twin_core.robot.model import benchmark_cantilever_dict, model_from_dict
+    from soft_twin_core.solve.constrained import MechanismSimulator, solve_equilibrium
+    solve_equilibrium(load_mechanism("tendon_arm"))
+    sim = MechanismSimulator(from_robot_model(model_from_dict(benchmark_cantilever_dict(10, "all"))), 2e-3)
+    sim.step(n=500)
+    print("first statics and 1 s of dynamics done")
+""")
+
+
+@pytest.mark.skipif(not _checkout_caches_are_current(), reason="the checkout's kernel caches are stale: make setup")
 def test_pip_install_core_in_plain_venv(tmp_path):
-    """`pip install .` in a venv without any ROS wheel: soft_twin_core imports, rclpy does not;
-    every example robot and scenario loads by name and the README's Python
-    snippets run, from a directory outside the sources."""
+    """A wheel of the core, built from the warmed-up checkout, in a venv
+    without any ROS wheel: soft_twin_core imports, rclpy does not; the
+    wheel's kernel caches serve a new process's first statics and 1 s of
+    dynamics without compiling (issue 30, shipped caches), in place and
+    through NUMBA_CACHE_DIR; every example robot and scenario loads by name
+    and the README's Python snippets run, from a directory outside the
+    sources."""
     src = tmp_path / "src"
     src.mkdir()
     for name in ("setup.py", "pyproject.toml", "README.md", "MANIFEST.in"):
         if (ROOT / name).exists():
             shutil.copy2(ROOT / name, src / name)
-    shutil.copytree(CORE, src / "soft_twin_core",
-                    ignore=shutil.ignore_patterns("__pycache__", "*.pyc"))
+    shutil.copytree(CORE, src / "soft_twin_core", ignore=shutil.ignore_patterns("*.pyc"))   # the caches too
     shutil.copytree(ROOT / "config", src / "config")
 
     base_python = getattr(sys, "_base_executable", None) or sys.executable
@@ -157,18 +182,31 @@ def test_pip_install_core_in_plain_venv(tmp_path):
     py = str(venv / "bin" / "python")
     # PIP_CONSTRAINT pins the runtime deps and the build backend alike;
     # wheels come from pip's cache once `make setup` has run.
-    _run([py, "-m", "pip", "install", "-q", str(src)], timeout=600, env=env, cwd=tmp_path)
+    _run([py, "-m", "pip", "wheel", "-q", "--no-deps", "-w", str(tmp_path / "dist"), str(src)], timeout=600,
+         env=env, cwd=tmp_path)
+    wheel, = (tmp_path / "dist").glob("soft_twin_core-*.whl")
+    with zipfile.ZipFile(wheel) as zf:
+        names = zf.namelist()
+    assert "soft_twin_core/__pycache__/soft_twin_kernels.sha256" in names
+    assert [n for n in names if n.startswith("soft_twin_core/engine/kernels/__pycache__/") and n.endswith(".nbc")]
+    assert not [n for n in names if n.endswith(".pyc")]
+    _run([py, "-m", "pip", "install", "-q", str(wheel)], timeout=600, env=env, cwd=tmp_path)
 
     proc = _run([py, "-c", "import soft_twin_core, sys; print(soft_twin_core.__file__); "
                  "print('rclpy' in sys.modules)"], timeout=120, env=env, cwd=tmp_path)
     where, rclpy_loaded = proc.stdout.split()
     assert Path(where).is_relative_to(venv), where
     assert rclpy_loaded == "False"
-    # the install takes this checkout's kernel caches (issue 30: compiled once; its sources are
-    # identical): the commands below load them instead of compiling for a minute
-    copied = _run([sys.executable, "-m", "soft_twin_core.warmup", "--copy-to", str(Path(where).parent)],
-                  timeout=600, cwd=ROOT)
-    assert "copied to" in copied.stderr and "none copied" not in copied.stderr, copied.stderr
+    # the wheel's caches serve a new process: numba loads every kernel, saves none (it would after a compile)
+    def first_use(**extra):
+        p = _run([py, "-c", FIRST_USE], timeout=600, env=dict(env, NUMBA_DEBUG_CACHE="1", **extra), cwd=tmp_path)
+        assert "done" in p.stdout and "data loaded" in p.stdout, p.stdout[-3000:]
+        saved = [ln for ln in p.stdout.splitlines() if "data saved" in ln]
+        assert not saved, saved[:5]
+    first_use()
+    moved = tmp_path / "numba_cache"                             # an empty cache directory elsewhere:
+    first_use(NUMBA_CACHE_DIR=str(moved))                        # the shipped caches are copied there first
+    assert len(list(moved.rglob("soft_twin_kernels.sha256"))) >= 2 and list(moved.rglob("*.nbc"))
 
     proc = subprocess.run([py, "-c", "import rclpy"], capture_output=True, text=True,
                           timeout=120, env=env, cwd=tmp_path)

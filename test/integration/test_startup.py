@@ -77,7 +77,8 @@ def test_warm_up_purges_every_kernel_cache_when_a_source_changes(tmp_path):
     a file a kernel's file imports (a callee, a constant) must clear the
     package's caches (warmup.purge_stale_caches); a change in a file no
     kernel depends on keeps them (issue 30: compile less)."""
-    from soft_twin_core.warmup import kernel_sources, purge_stale_caches
+    from soft_twin_core.engine.kernels._caches import kernel_sources
+    from soft_twin_core.warmup import purge_stale_caches
     pkg = tmp_path / "soft_twin_core"
     (pkg / "kernels" / "__pycache__").mkdir(parents=True)
     (pkg / "a.py").write_text("from soft_twin_core.c import z\nx = 1\n")
@@ -209,3 +210,63 @@ def test_the_warm_up_compiles_its_parts_side_by_side(monkeypatch, capsys, tmp_pa
     assert time.perf_counter() - t0 >= 0.3
     warmup.run(("passes",), tmp_path)
     assert (tmp_path / "passes").exists()
+
+# ---------------------------------------------- kernel caches that travel (issue 30, shipped caches)
+
+_TARGET = """
+    import os, sys
+    {before}
+    import soft_twin_core.engine.kernels  # noqa: F401  (chooses the target)
+    from numba.core.registry import cpu_target
+    print(cpu_target.target_context.codegen().magic_tuple()[1], os.environ.get("NUMBA_CPU_NAME"))
+"""
+
+
+def _target(before="", **env):
+    base = {k: v for k, v in os.environ.items() if k not in ("NUMBA_CPU_NAME", "NUMBA_CPU_FEATURES",
+                                                            "SOFT_TWIN_KERNEL_CPU")}
+    code = textwrap.dedent(_TARGET).format(before=before)
+    p = subprocess.run([sys.executable, "-c", code], env=dict(base, PYTHONPATH=ROOT, **env), capture_output=True,
+                       text=True, timeout=300, cwd=ROOT)
+    assert p.returncode == 0, p.stderr
+    return p.stdout.split()
+
+
+def test_the_kernels_compile_for_the_x86_64_v3_baseline_unless_told_otherwise():
+    """The target numba compiles the kernels for: x86-64-v3 on a host that
+    has its features (and its children inherit it), else the host's; the
+    user's NUMBA_CPU_NAME, SOFT_TWIN_KERNEL_CPU=host, and a numba that has
+    already compiled (its target machine is fixed) are left alone."""
+    import llvmlite.binding as ll
+    from soft_twin_core.engine.kernels._caches import KERNEL_CPU, V3_FEATURES
+    host = ll.get_host_cpu_name()
+    has_v3 = ll.get_process_triple().startswith("x86_64") and V3_FEATURES <= {
+        k for k, on in ll.get_host_cpu_features().items() if on}
+    assert _target() == ([KERNEL_CPU, KERNEL_CPU] if has_v3 else [host, "None"])
+    assert _target(SOFT_TWIN_KERNEL_CPU="host") == [host, "None"]
+    assert _target(NUMBA_CPU_NAME="generic") == ["generic", "generic"]
+    before = "import numba\nnumba.njit(lambda x: x + 1)(1)"
+    assert _target(before) == [host, "None"]
+
+
+def test_shipped_caches_are_mirrored_once_and_again_after_an_upgrade(tmp_path):
+    """mirror_shipped: the shipped files are copied where numba caches, with
+    a stamp; a second call copies nothing, and a kernel compiled there later
+    stays; another digest (an upgrade) removes every old cache first."""
+    from soft_twin_core.engine.kernels._caches import STAMP, mirror_shipped
+    src, dst = tmp_path / "shipped", tmp_path / "cache"
+    src.mkdir()
+    for name in ("m.f-10.py311.nbi", "m.f-10.py311.0.nbc", "m.cpython-311.pyc"):
+        (src / name).write_bytes(name.encode())
+    dst.mkdir()
+    (dst / "old.g-3.py311.nbi").write_bytes(b"another version's")
+    assert mirror_shipped(src, dst, "d1") == 2
+    assert sorted(p.name for p in dst.iterdir()) == ["m.f-10.py311.0.nbc", "m.f-10.py311.nbi", STAMP]
+    assert (dst / "m.f-10.py311.0.nbc").read_bytes() == b"m.f-10.py311.0.nbc"
+    (dst / "m.h-20.py311.nbi").write_bytes(b"compiled here")
+    assert mirror_shipped(src, dst, "d1") == 0 and (dst / "m.h-20.py311.nbi").exists()
+    assert mirror_shipped(src, dst, "d2") == 2 and not (dst / "m.h-20.py311.nbi").exists()
+    assert (dst / STAMP).read_text().strip() == "d2"
+    for f in dst.glob("*.nb?"):                        # a purge emptied it: copied again
+        f.unlink()
+    assert mirror_shipped(src, dst, "d2") == 2
