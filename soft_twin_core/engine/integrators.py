@@ -400,16 +400,21 @@ class ThetaIntegrator:
                 return q1, v1, it
         return None
 
-    def _advance(self, q0, v0, t, h, level):
+    def _advance(self, q0, v0, t, h, level, failed=None):
         """One step of size h: the O(n) iteration; if it fails, two halves
         (down to ``max_substep_levels``); if they fail too, the dense full
         Newton at this h (``full_newton``; not for non-finite residuals). The
         halves come first: on the benchmark cantilever whipping after its
         fall (strain rates ~1e3/s) they cost 35-90 ms CPU per 0.1 s against
-        200-900 ms for the dense fallback."""
-        out, status = self._newton(q0, v0, t, h)
-        if out is not None:
-            return out
+        200-900 ms for the dense fallback. ``failed``: the status of the
+        O(n) iteration of this very step, already tried (by :meth:`run`'s
+        compiled loop, which gives up on the same iterates): not repeated."""
+        if failed is None:
+            out, status = self._newton(q0, v0, t, h)
+            if out is not None:
+                return out
+        else:
+            status = failed
         if level < self.max_substep_levels:
             half = self._advance(q0, v0, t, 0.5 * h, level + 1)
             if half is not None:
@@ -447,15 +452,16 @@ class ThetaIntegrator:
                 done += k
                 info = StepInfo(int(stats[0]) // max(k, 1), True, 0.0)
             if done < n:
-                info = self.step(state)
+                info = self.step(state, failed=int(stats[3]))
                 if not info.converged:
                     return info
                 done += 1
         return info
 
-    def step(self, state):
-        """One step of dt from ``state`` (updated in place when it converges)."""
-        out = self._advance(state.q, state.qdot, state.t, self.dt, 0)
+    def step(self, state, failed=None):
+        """One step of dt from ``state`` (updated in place when it converges);
+        ``failed``: see :meth:`_advance`."""
+        out = self._advance(state.q, state.qdot, state.t, self.dt, 0, failed)
         if out is None:
             return StepInfo(self.max_iterations, False, np.inf)
         q1, v1, it = out

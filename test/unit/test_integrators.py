@@ -515,6 +515,32 @@ def test_sub_steps_equal_smaller_steps():
     assert np.allclose(integ.last_a, (st.qdot - v0) / dt)
 
 
+def test_a_step_the_compiled_run_gave_up_on_goes_straight_to_its_halves():
+    """run() hands a step whose O(n) iteration failed (fresh factorisation,
+    max_iterations) to the sub-steps without trying the same iteration
+    again: the repeat (what step() alone does) would take the same iterates
+    to the same failure, so the states are bit for bit those of the repeat,
+    with one failed O(n) attempt fewer for each such step."""
+    model = pan_tilt_arm()
+    q0 = _hard_start(model)
+    runs = []
+    for skip in (True, False):
+        integ, _ = _integrator(model, 5e-4, max_substep_levels=2, full_newton=False, tol=1e-9)
+        tried = []
+        newton = integ._newton
+        integ._newton = lambda *a: tried.append(a[3]) or newton(*a)
+        if not skip:                      # step() as before: its own attempt at the whole step first
+            step = integ.step
+            integ.step = lambda state, failed=None: step(state)
+        st = _state(q0, np.zeros(model.nv))
+        assert integ.run(st, 4).converged
+        runs.append((st, tried))
+    (a, tried_a), (b, tried_b) = runs
+    assert np.array_equal(a.q, b.q) and np.array_equal(a.qdot, b.qdot) and a.t == b.t
+    whole = [h for h in tried_b if h == 5e-4]                 # the repeated attempts at the whole step
+    assert whole and len(tried_a) == len(tried_b) - len(whole) and 5e-4 not in tried_a
+
+
 def test_second_step_predictor_does_not_extrapolate_from_the_initial_zero_acceleration():
     model = pan_tilt_arm()
     integ, _ = _integrator(model, 2.5e-4, max_substep_levels=0)
