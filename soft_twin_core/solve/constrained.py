@@ -1013,8 +1013,14 @@ class MechanismSimulator:
         if obstacles is not None and not self.contact:
             raise ValueError("obstacles: this simulator was made without obstacles (or its members have no "
                              "contact points); give them to MechanismSimulator(..., obstacles=...)")
-        inp = inputs if inputs is not None else make_inputs(self.mech, actuation, efforts, positions, None,
-                                                            loads, point_loads)
+        if inputs is not None:
+            inp = inputs
+        elif actuation is None and efforts is None and positions is None and loads is None and not point_loads:
+            inp = self.__dict__.get("_no_inputs")       # the defaults, checked once (10 us a call of make_inputs)
+            if inp is None:
+                inp = self._no_inputs = make_inputs(self.mech)
+        else:
+            inp = make_inputs(self.mech, actuation, efforts, positions, None, loads, point_loads)
         self.inputs = inp
         if self._theta_integrator is not None:
             self._run_free(inp, int(n))          # the O(n) passes: no BLAS
