@@ -643,3 +643,21 @@ def test_point_moment_tendons_on_the_mechanism_path():
     for got in (twin.outputs().base_wrench, state_outputs(mech, eq.q, eq.lam, eq.inputs).base_wrench):
         np.testing.assert_allclose(got[:3], -weight.sum(axis=0), atol=1e-10)
         np.testing.assert_allclose(got[3:], -np.cross(p, weight).sum(axis=0), atol=1e-10)
+
+
+def test_a_step_without_inputs_takes_the_defaults_each_time():
+    """step() with no inputs reuses its default inputs (checked once), and a
+    step with actuation in between does not leak into the next plain step():
+    the states equal those of steps given make_inputs(mech) each time."""
+    mech = load_mechanism(find_file("tendon_arm", "robots"))
+    a, b = MechanismSimulator(mech, 2e-3, 0.5), MechanismSimulator(mech, 2e-3, 0.5)
+    pull = {mech.actuators[0].name: 2.0}
+    a.step(n=3)
+    first = a.inputs
+    a.step(actuation=pull, n=3)
+    a.step(n=3)
+    assert a.inputs is first and not np.any(a.inputs.u)
+    b.step(inputs=make_inputs(mech), n=3)
+    b.step(inputs=make_inputs(mech, pull), n=3)
+    b.step(inputs=make_inputs(mech), n=3)
+    assert np.array_equal(a.q, b.q) and np.array_equal(a.v, b.v)
