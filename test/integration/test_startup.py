@@ -244,6 +244,9 @@ def test_the_kernels_compile_for_the_x86_64_v3_baseline_unless_told_otherwise():
         k for k, on in ll.get_host_cpu_features().items() if on}
     assert _target() == ([KERNEL_CPU, KERNEL_CPU] if has_v3 else [host, "None"])
     assert _target(SOFT_TWIN_KERNEL_CPU="host") == [host, "None"]
+    with pytest.warns(RuntimeWarning, match="SOFT_TWIN_KERNEL_CPU='native' is not understood"):
+        from soft_twin_core.engine.kernels._caches import choose_cpu_target
+        choose_cpu_target({"SOFT_TWIN_KERNEL_CPU": "native", "NUMBA_CPU_NAME": "x"})   # (numba left alone)
     assert _target(NUMBA_CPU_NAME="generic") == ["generic", "generic"]
     before = "import numba\nnumba.njit(lambda x: x + 1)(1)"
     assert _target(before) == [host, "None"]

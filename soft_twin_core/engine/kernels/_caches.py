@@ -49,7 +49,12 @@ STAMP = "soft_twin_kernels.sha256"
 def choose_cpu_target(environ=os.environ):
     """Compile for :data:`KERNEL_CPU` (see the module); returns the CPU
     name numba compiles for from now on, or None when it was left alone."""
-    if environ.get("NUMBA_CPU_NAME") or environ.get("SOFT_TWIN_KERNEL_CPU", "").lower() == "host":
+    choice = environ.get("SOFT_TWIN_KERNEL_CPU", "")
+    if choice.strip().lower() not in ("", "host"):
+        import warnings
+        warnings.warn(f"SOFT_TWIN_KERNEL_CPU={choice!r} is not understood (only 'host', or unset): "
+                      f"the kernels compile for {KERNEL_CPU} where the CPU has it", RuntimeWarning, stacklevel=2)
+    if environ.get("NUMBA_CPU_NAME") or choice.strip().lower() == "host":
         return None
     from numba.core import config
     from numba.core.registry import cpu_target
