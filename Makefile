@@ -7,6 +7,9 @@ VENV        ?= .venv
 PY          := $(VENV)/bin/python
 ARGS        ?=
 PYTEST_ARGS ?=
+# pytest-xdist workers of `make test` and `make test-quick` (0: one process); the tests
+# marked `quiet` (a rate, a wall time) run after the others, alone (scripts/run_tests.sh)
+WORKERS     ?= 2
 
 export SOFT_TWIN_VENV := $(abspath $(VENV))
 
@@ -22,16 +25,16 @@ demo: setup
 
 # The whole suite. pytest exits 5 when it collected no test: that fails too.
 test: setup
-	$(PY) -m pytest $(PYTEST_ARGS)
+	bash scripts/run_tests.sh $(PY) $(WORKERS) $(PYTEST_ARGS)
 
 # The inner loop: test/unit (the physics, the files, the twin's logic; no ROS
 # entity, no other process but a few CLI runs; a few minutes on 2 cores).
 # The tiers: test/unit, test/integration (command lines, Dask clusters,
 # packaging, reference solvers), test/ros (nodes, clients, recordings).
 test-quick: setup
-	$(PY) -m pytest test/unit $(PYTEST_ARGS)
+	bash scripts/run_tests.sh $(PY) $(WORKERS) test/unit $(PYTEST_ARGS)
 
-# The whole suite in a random order across modules (pytest-random-order; the
+# The whole suite in a random order across modules, in one process (pytest-random-order; the
 # seed is printed: rerun one order with PYTEST_ARGS=--random-order-seed=N).
 test-shuffled: setup
 	$(PY) -m pytest --random-order-bucket=global $(PYTEST_ARGS)

@@ -99,6 +99,7 @@ def test_sequence_gaps_are_counted_per_topic():
 # the node, flooded, over real rclpy
 # ---------------------------------------------------------------------------
 @pytest.mark.ros
+@pytest.mark.quiet                     # a 1 kHz flood against a 100 Hz filter: rates
 def test_estimator_flood_is_accounted_for(tmp_path):
     rclpy = pytest.importorskip("rclpy", reason="needs ROS 2: the venv of `make setup`")
     from diagnostic_msgs.msg import DiagnosticArray

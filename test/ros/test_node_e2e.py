@@ -448,6 +448,7 @@ class TestDynamic:
         print(f"\nsettled to 1e-8 m in {took:.2f} s")
         assert took < 15.0
 
+    @pytest.mark.quiet
     def test_runs_in_real_time(self, dyn):
         c, _, _ = dyn
         d = c.wait_diagnostics(timeout=5.0)
@@ -460,6 +461,7 @@ class TestDynamic:
         assert abs(float(d["real_time_factor"]) - 1.0) < 0.05, d
         assert d["solver_failures_total"] == "0"
 
+    @pytest.mark.quiet
     @pytest.mark.parametrize("magnitude", [1.0e4, 1.0e6, 1.0e100, 1.0e300])
     def test_a_failing_step_drops_the_input_and_publishing_goes_on(self, dyn, magnitude):
         """Valid but huge tensions (the robot declares no limit): the step
@@ -534,6 +536,7 @@ def test_invalid_start_parameters_exit_with_a_reason(tmp_path, args, words):
 # ============================================================================
 
 @pytest.mark.slow
+@pytest.mark.quiet
 def test_soak_flood_while_calling_services(tmp_path_factory):
     """Actuation commands at 1 kHz for 10 s while FK and statics queries are
     called back to back: no crash, no solver failure, the step rate within

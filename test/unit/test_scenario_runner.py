@@ -171,6 +171,7 @@ def test_impossible_durations_are_refused(tmp_path, capsys, duration, dt, msg):
 
 # ------------------------------------------------------------------ progress
 
+@pytest.mark.quiet
 def test_progress_excludes_the_warm_up(monkeypatch, capsys, tmp_path):
     """The first call of a step (where numba compiles, ~45 s without a cache)
     is simulated by a 2 s sleep, each later step by 10 ms: the reported

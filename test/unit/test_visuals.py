@@ -248,6 +248,7 @@ def test_bad_reference_is_named(tmp_path):
         scenario_from_dict(d)
 
 
+@pytest.mark.quiet                     # counts the updates of 2 s of real time
 def test_view_serves_a_saved_run_in_real_time(dynamics_run):
     """soft-twin-sim view: the page is served (viser's bundled client) and the
     run's states are shown one after the other in real time."""
