@@ -118,9 +118,9 @@ class Run:
             integ = sim._theta_integrator
             advance = integ._advance
 
-            def counting(q0, v0, t, h, level):
+            def counting(q0, v0, t, h, level, *failed):
                 self.substeps += level > 0
-                return advance(q0, v0, t, h, level)
+                return advance(q0, v0, t, h, level, *failed)
             integ._advance = counting
             full = getattr(integ, "_newton_full", None)
             if full is not None:

@@ -179,13 +179,15 @@ def closed_step(m, w, act, ld, g, coef, effort, K, D, q_ref, elastic, q0, v0, h,
     ``lam_force``: the multipliers' size as a force [N] (a floor of the
     residual's scale). ``Ainv, Afix, Z, Sinv, G1f, Gtf``: the
     factors, reused at the first iterate if ``reuse``. Returns (iterations,
-    status, factorised): status 0 converged, 1 not in max_it, 3 non-finite,
-    4 singular."""
+    status, factorised, lam_max): status 0 converged, 1 not in max_it, 3
+    non-finite, 4 singular; lam_max the largest multiplier or held joint's
+    effort at the end (the next step's ``lam_force`` over its length scale;
+    0 unless converged)."""
     nv, nq, nr, nc2 = v0.shape[0], q0.shape[0], phi.shape[0], cj.shape[0]
     mr = rows.shape[0]
     if (Z.shape[0] != nv or Z.shape[1] != mr or Sinv.shape[0] != mr or Sinv.shape[1] != mr
             or G1f.shape[0] != mr or Gtf.shape[0] != mr or Ainv.shape[0] != nv or Afix.shape[0] != nv):
-        return 0, 4, 0         # factors not of these rows (no bounds checks below)
+        return 0, 4, 0, 0.0    # factors not of these rows (no bounds checks below)
     zeros = np.zeros(nv)
     gc = np.empty((nc2, 4, 4))
     Jc = np.empty((nc2, 6, nv))
@@ -210,9 +212,9 @@ def closed_step(m, w, act, ld, g, coef, effort, K, D, q_ref, elastic, q0, v0, h,
             A, Kt, Dt = step_tangents(m, w, act, ldc, g, coef, K, D, qt, zeros)
             constraint_values(m, w, cj, cx, ckind, crows, csize, ctarget, gc, Jc, phit, Gt)   # (posed at q_t)
             if not invert_step_matrix(A, Kt, Dt, h, theta, fixed, Ainv, Afix):
-                return it, 4, factorised
+                return it, 4, factorised, 0.0
             if not _schur(Ainv, Gt, G1, rows, th, fixed, Z, Sinv, G1f, Gtf):
-                return it, 4, factorised
+                return it, 4, factorised, 0.0
             factorised += 1
             refactor, fresh = False, True
         passes.forward_pass(m, w, qt, vt, acc, passes.ACCELERATIONS)
@@ -220,19 +222,21 @@ def closed_step(m, w, act, ld, g, coef, effort, K, D, q_ref, elastic, q0, v0, h,
         nR, nphi = 0.0, 0.0
         for k in range(nv):
             if not np.isfinite(R[k]):
-                return it, 3, factorised
+                return it, 3, factorised, 0.0
             if not fixed[k]:
                 nR = max(nR, abs(R[k]))
         for k in range(nr):
             if not np.isfinite(phi[k]):
-                return it, 3, factorised
+                return it, 3, factorised, 0.0
             nphi = max(nphi, abs(phi[k]))
         phi_ok = nphi <= ctol
         if it == 1:
             Rs = max(nR, lam_force, 1e-300)
             if elastic:
                 noise = elastic_noise(K, qt, q_ref)
-            if phi_ok and nR <= noise:
+            # the predictor already balances the forces to tol of the constraint forces' scale
+            # (a robot at rest or moving smoothly: the step costs one residual, no update)
+            if phi_ok and nR <= max(tol * lam_force, noise):
                 break
         elif phi_ok and nR <= max(tol * Rs, noise):
             break              # balanced: forces to tol of their scale, constraints held
@@ -268,7 +272,7 @@ def closed_step(m, w, act, ld, g, coef, effort, K, D, q_ref, elastic, q0, v0, h,
         for j in range(mr):
             lam[rows[j]] += dl[j]
         if not np.isfinite(ndv):
-            return it, 3, factorised
+            return it, 3, factorised, 0.0
         if it == 1:
             first = ndv
         vs = max(vmax, first, 1e-300)
@@ -280,8 +284,14 @@ def closed_step(m, w, act, ld, g, coef, effort, K, D, q_ref, elastic, q0, v0, h,
         refactor = it > 1 and ndv > 0.25 * prev
         prev = ndv
     else:
-        return max_it, 1, factorised
+        return max_it, 1, factorised, 0.0
     for k in range(nv):
         vt[k] = (1.0 - theta) * v0[k] + theta * v1[k]
     integrate_pass(m, q0, vt, h, q1)
-    return it, 0, factorised
+    lam_max = 0.0
+    for k in range(lam.shape[0]):
+        lam_max = max(lam_max, abs(lam[k]))
+    for k in range(nv):
+        if fixed[k]:
+            lam_max = max(lam_max, abs(R[k]))
+    return it, 0, factorised, lam_max

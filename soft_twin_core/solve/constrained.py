@@ -1203,28 +1203,33 @@ class MechanismSimulator:
         (state unchanged) if it fails."""
         tree, ws, mech = self.tree, self.ws, self.mech
         cj, cx, ckind, crows, csize, ctarget = self._closed_arrays(targets)
-        nc = mech.n_constraint_rows
         held = self._closed_held
         if held is None or held["h"] != h:
+            nc = mech.n_constraint_rows
             _, G = constraint_rows(mech, ws, self.q, targets, inp.q_cmd)
             rows = independent_rows(G[:nc]).astype(np.int64)
             nv, mr = tree.nv, len(rows)
             held = self._closed_held = dict(h=h, rows=rows, Ainv=np.zeros((nv, nv)), Afix=np.zeros((nv, nv)),
                                             Z=np.zeros((nv, mr)), Sinv=np.zeros((mr, mr)), G1f=np.zeros((mr, nv)),
-                                            Gtf=np.zeros((mr, nv)), reuse=False)
+                                            Gtf=np.zeros((mr, nv)), reuse=False, nc=nc, R=np.empty(nv),
+                                            phi=np.empty(nc), lam_max=None)
         if held.get("inputs") is not inp:        # the inputs' arrays, once per Inputs
             coef = np.ascontiguousarray(self.act.unit @ inp.u) if inp.u.size else np.zeros(len(self.act.joint))
             held.update(inputs=inp, coef=coef, loads=concat_loads(inp.loads))
-        v1, q1, R, phi = self.v.copy(), np.empty(tree.nq), np.empty(tree.nv), np.empty(nc)
+        nc, R, phi = held["nc"], held["R"], held["phi"]      # (R, phi: scratch; R[pv] copied out below)
+        v1, q1 = self.v.copy(), np.empty(tree.nq)
         lam = self.lam[:nc].copy()
-        pv, th = self._pos_v, self.theta
+        pv, th, length = self._pos_v, self.theta, max(self.Ls, 1.0)
         if pv.size:
             v1[pv] = ((inp.q_cmd - self.q[self._pos_q]) / h - (1 - th) * self.v[pv]) / th
-        lam_force = np.abs(self.lam).max(initial=0) * max(self.Ls, 1.0)
-        it, status, fresh = closed_step(
+        # the multipliers' and held efforts' size, as the last step left it (else from self.lam)
+        lam_max = held["lam_max"]
+        if lam_max is None or lam_max[1] is not self.lam:
+            lam_max = (np.abs(self.lam).max(initial=0), None)
+        it, status, fresh, lam_next = closed_step(
             ws.m, ws.w, self.act, held["loads"], inp.gravity, held["coef"], inp.effort, self.K, self.D, tree.q0,
-            tree.nq == tree.nv, self.q, self.v, h, th, self.tol, 1e-14 * max(self.Ls, 1.0) / h, self.max_iterations,
-            cj, cx, ckind, crows, csize, ctarget, held["rows"], self.constraint_tol * max(self.Ls, 1.0), lam_force,
+            tree.nq == tree.nv, self.q, self.v, h, th, self.tol, 1e-14 * length / h, self.max_iterations,
+            cj, cx, ckind, crows, csize, ctarget, held["rows"], self.constraint_tol * length, lam_max[0] * length,
             self._fixed, held["Ainv"], held["Afix"], held["Z"], held["Sinv"], held["G1f"], held["Gtf"], held["reuse"],
             v1, lam, q1, R, phi)
         self._kkt_factorisations += fresh
@@ -1236,7 +1241,8 @@ class MechanismSimulator:
         self.a = (v1 - self.v) / h
         if pv.size:      # their velocity as the KKT step leaves it, their efforts
             v1[pv] = inp.v_cmd if inp.v_cmd is not None else (q1[self._pos_q] - self.q[self._pos_q]) / h
-        self.lam = np.concatenate([lam, R[pv]])
+        self.lam = np.concatenate([lam, R[pv]]) if pv.size else lam
+        held["lam_max"] = (lam_next, self.lam)
         self._carried_velocity(self.q, q1, v1, h)
         self.q, self.v = q1, v1
         self.contacts = None

@@ -132,7 +132,7 @@ def test_closed_step_refuses_factors_of_other_rows():
         sim.q, sim.v, 5e-3, 0.5, 1e-10, 1e-14, 10, *sim._closed_arrays(None), np.arange(3), 1e-12, 0.0,
         sim._fixed, held["Ainv"], held["Afix"], held["Z"], held["Sinv"], held["G1f"], held["Gtf"], False,
         sim.v.copy(), sim.lam[:3].copy(), np.empty(tree.nq), np.empty(tree.nv), np.empty(3))
-    assert out == (0, 4, 0)
+    assert out == (0, 4, 0, 0.0)
 
 
 def test_closed_step_reports_a_step_that_does_not_converge():
@@ -146,9 +146,33 @@ def test_closed_step_reports_a_step_that_does_not_converge():
     inp = make_inputs(mech)
     q0, v0 = sim.q.copy(), sim.v + 1.0
     v1, q1, R, phi, lam = v0.copy(), np.empty(tree.nq), np.empty(tree.nv), np.empty(3), sim.lam[:3].copy()
-    it, status, _ = closed_step(
+    it, status, _, _ = closed_step(
         ws.m, ws.w, sim.act, held["loads"], inp.gravity, held["coef"], inp.effort, sim.K, sim.D, tree.q0, True,
         q0, v0, 5e-3, 0.5, 1e-10, 1e-14, 1, cj, cx, ckind, crows, csize, ctarget, held["rows"], 1e-12, 0.0,
         sim._fixed, held["Ainv"], held["Afix"], held["Z"], held["Sinv"], held["G1f"], held["Gtf"], False,
         v1, lam, q1, R, phi)
     assert (it, status) == (1, 1)
+
+
+def test_a_robot_at_rest_steps_in_one_iteration():
+    """The rigid four-bar at its static equilibrium: the step's predictor
+    already balances the forces to the tolerance of the constraint forces'
+    scale, so the compiled step stops after its first residual (no update;
+    it took two before). The robot stays at rest, as the Python KKT step
+    (which iterates) keeps it, and the multipliers' size the kernel hands to
+    the next step is that of the multipliers it leaves. (A soft member
+    starts from an equilibrium solved to a tolerance: it moves a little, and
+    its steps take two iterations after a few.)"""
+    mech = four_bar(1.0)
+    eq = solve_equilibrium(mech)
+    sims = [MechanismSimulator(mech, 5e-3, q=eq.q, compiled=c) for c in (True, False)]
+    its = []
+    for _ in range(20):
+        for s in sims:
+            s.step()
+        its.append(sims[0].iterations)
+    assert its[1:] == [1] * 19, its
+    _assert_same(*sims, 1e-9)
+    assert np.abs(sims[0].v).max() < 1e-8 and np.abs(sims[0].lam).max() > 0.1
+    lam_max, of = sims[0]._closed_held["lam_max"]
+    assert of is sims[0].lam and lam_max == np.abs(sims[0].lam).max()
