@@ -11,12 +11,11 @@ the flood's diagnostics periods (each period within 20 %). Before the
 worker process, the same flood brought the mean to 186 Hz."""
 
 import importlib.util
-import os
 import sys
-import time
 from pathlib import Path
 
 import pytest
+from machine_load import cpus_busy
 
 pytest.importorskip("rclpy", reason="needs ROS 2: the venv of `make setup`")
 pytestmark = [pytest.mark.ros, pytest.mark.slow, pytest.mark.quiet]   # a rate: runs alone
@@ -35,24 +34,12 @@ def _soak_module():
         sys.path.remove(str(BENCH))
 
 
-def _cpus_busy(seconds=1.0):
-    """CPUs' worth of work the machine did over the next ``seconds`` (/proc/stat)."""
-    def sample():
-        with open("/proc/stat") as fh:
-            f = [float(x) for x in fh.readline().split()[1:]]
-        return sum(f), f[3] + f[4]                # all, idle + iowait
-    a0, i0 = sample()
-    time.sleep(seconds)                           # (a measurement window, not a wait for ROS)
-    a1, i1 = sample()
-    return (1.0 - (i1 - i0) / max(a1 - a0, 1e-9)) * (os.cpu_count() or 1)
-
-
 def test_joint_command_flood_with_services_is_accounted_and_holds_the_rate(tmp_path):
     # other work on the machine just before the flood (the test runs alone: `quiet`, but another
     # program may be busy): the rates below are then checked loosely; the accounting holds
     # regardless (no test may depend on the machine's speed). (The 1-min load average said "busy"
     # after any earlier test.)
-    busy = _cpus_busy() > 0.5
+    busy = cpus_busy() > 0.5
     rep = _soak_module().soak(10.0, 1000.0, services=True, invalid=0.3, log_dir=tmp_path)
     print(f"\narticulated flood (busy before: {busy}): {rep}")
     assert rep["node_alive"] and rep["internal_errors"] == 0 and rep["solver_failures"] == 0
