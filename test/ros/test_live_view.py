@@ -127,6 +127,7 @@ def _wait_for_ik_answer(browser, accept, timeout_s=30.0):
 
 @pytest.mark.ros
 @pytest.mark.slow
+@pytest.mark.quiet        # drags in a browser, with timeouts: alone (a drag was lost on a loaded machine)
 def test_browser_shows_the_arm_follows_the_actuation_and_drives_the_twin(tmp_path):
     """The node's page shows the arm and follows a topic command; then the
     page drives the twin (:func:`_drive_from_the_page`)."""
@@ -211,6 +212,7 @@ def test_shape_meshes_are_closed_and_have_the_sizes():
 
 @pytest.mark.ros
 @pytest.mark.slow
+@pytest.mark.quiet        # drags in a browser, with timeouts: alone (a drag was lost on a loaded machine)
 def test_browser_shows_an_articulated_robot_and_follows_a_joint_command(tmp_path):
     """The pan-tilt arm in the page: its soft arm (orange tube) and its rigid
     links (blue pan cylinder and tilt box); a pan command turns the arm in
@@ -511,6 +513,7 @@ def _wheel_until_visible(browser, box_js, at, notches=60):
 
 
 @pytest.mark.slow
+@pytest.mark.quiet        # drags in a browser, with timeouts: alone (a drag was lost on a loaded machine)
 def test_a_short_window_scrolls_the_panel_to_its_last_control_and_it_works():
     """Issue 31: in a window shorter than the panel (a laptop's browser
     beside an editor: 1000 x 450, the page about 300 px high), with the
