@@ -22,6 +22,7 @@ node sends them through its own input path and services).
 
 import collections
 import threading
+import time
 from dataclasses import dataclass
 
 import numpy as np
@@ -41,6 +42,7 @@ GRID_COLOR = (205, 205, 205)    # the floor's grid
 CHAMBER_COLOR = (50, 80, 220)    # the chambers' routes
 TRAIL_SECONDS = 10.0             # the tip path drawn: the last 10 s
 TRAIL_STEP_M = 0.001             # ... a point each time the tip has moved 1 mm
+FOLLOW_HOLD_S = 1.0              # a slider the page moved follows the twin again after 1 s
 # members coloured by a value: 0 -> blue, half -> light grey, the largest -> red (a diverging map, "coolwarm"'s
 # ends: none of its colours is the plain tube's orange)
 VALUE_COLORS = np.array([[59, 76, 192], [221, 221, 221], [180, 4, 38]], dtype=float)
@@ -255,6 +257,7 @@ class LiveView:
         self._controls = []              # the GUI handles of set_controls
         self._trail = collections.deque()    # (t [s] or a count, tip position) of the tip path
         self._sliders = {}               # (kind, name) -> (slider handle, Control)
+        self._touched = {}               # id(GUI handle) -> time.monotonic() of the page's last input to it
         self._paused_box = None
         self.control_events = 0          # values sent by the page's controls
         self._on_pick = None             # a click on the robot: on_pick(ray origin, ray direction)
@@ -306,10 +309,15 @@ class LiveView:
     def _follow(self, kind, values):
         """Move the sliders of ``kind`` to the twin's values {name: value}
         (commands from topics or plans; a value off the slider's range
-        pins it at the end), under the lock."""
+        pins it at the end), under the lock. A slider the page moved in
+        the last FOLLOW_HOLD_S is left to the page: its command may not
+        have reached the twin yet, and writing the twin's older value back
+        snapped the slider back under the user's hand (a drag ended at 0 N
+        on a loaded machine); after that it shows the twin's value again."""
+        now = time.monotonic()
         for name, v in values.items():
             h, c = self._sliders.get((kind, name), (None, None))
-            if h is not None:
+            if h is not None and now - self._touched.get(id(h), -np.inf) >= FOLLOW_HOLD_S:
                 v = float(min(max(v, c.lo), c.hi))
                 if abs(h.value - v) > 0.5 * c.step:
                     h.value = v
@@ -323,6 +331,7 @@ class LiveView:
         kept with the controls (removed with them). Returns the handle."""
         def run(event):
             if event.client is not None:
+                self._touched[id(handle)] = time.monotonic()
                 self.control_events += 1
                 call(event.target.value)
         handle.on_update(run)

@@ -244,3 +244,35 @@ def test_the_pages_actuator_routes_run_through_the_cross_sections_at_their_offse
         assert not any(n.startswith(("/twin/frames/", "/twin/tendons", "/twin/chambers")) for n in view._sent)
     finally:
         view.close()
+
+
+def test_a_slider_the_page_moves_is_not_pulled_back_before_the_twin_takes_its_value(monkeypatch):
+    """The page drags a slider to 16 N: its command goes out, and while the
+    twin still holds its older value (the command on its way) the view does
+    not write that value back onto the slider (it did: on a loaded machine
+    a drag ended at 0 N). FOLLOW_HOLD_S after the page's last input the
+    slider shows the twin's value again (a rejected command shows), and a
+    command from a topic moves it at once."""
+    from soft_twin_core.viz import live_view as lv
+    clock = [100.0]
+    monkeypatch.setattr(lv, "time", SimpleNamespace(monotonic=lambda: clock[0]))
+    view = lv.LiveView(port=0)
+    try:
+        sent = []
+        view.set_controls([lv.Control("actuation", "t", 0.0, 20.0, 0.1, "N")], lambda c, v: sent.append(v))
+        h, _ = view._sliders[("actuation", "t")]
+        view._follow("actuation", {"t": 0.0})
+        h.value = 16.0                           # the page's drag: viser takes the value, then calls back
+        for callback in h._impl.update_cb:
+            callback(SimpleNamespace(client=object(), target=h))
+        assert sent == [16.0] and view.control_events == 1
+        clock[0] += 0.5
+        view._follow("actuation", {"t": 0.0})    # the twin has not applied it yet
+        assert h.value == 16.0
+        clock[0] += lv.FOLLOW_HOLD_S
+        view._follow("actuation", {"t": 0.0})    # still not applied (say, rejected): the twin's value
+        assert h.value == 0.0
+        view._follow("actuation", {"t": 5.0})    # a command from a topic
+        assert h.value == 5.0
+    finally:
+        view.close()
