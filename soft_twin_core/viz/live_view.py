@@ -275,6 +275,7 @@ class LiveView:
             for h in self._controls:
                 h.remove()
             self._controls, self._sliders, self._paused_box = [], {}, None
+            self._touched = {}           # (keyed by id(): the removed handles' ids may be taken again)
             hook = self._page_input
 
             if on_pause or on_step or on_reset or on_time_scale:
