@@ -36,8 +36,8 @@ from soft_twin_core.engine.kernels.data import LoadArrays
 from soft_twin_core.engine.kernels.frames import world_point_jacobians
 from soft_twin_core.engine.kernels.spatial import FALSE, _jit, _jit_inner
 from soft_twin_core.engine.kernels.tip_error import _log_so3
-from soft_twin_core.engine.step_matrix import (elastic_noise, free_newton_update, invert_step_matrix,
-                                                step_tangents, theta_point)
+from soft_twin_core.engine.step_matrix import (elastic_noise, forces_balanced, free_newton_update,
+                                                invert_step_matrix, step_tangents, theta_point, update_converged)
 
 CLAMPED = 1        # a constraint kind the kernel tells apart: [dp; log(R_a R_b^T)]; others C[:, :3] dp
 
@@ -234,11 +234,7 @@ def closed_step(m, w, act, ld, g, coef, effort, K, D, q_ref, elastic, q0, v0, h,
             Rs = max(nR, lam_force, 1e-300)
             if elastic:
                 noise = elastic_noise(K, qt, q_ref)
-            # the predictor already balances the forces to tol of the constraint forces' scale
-            # (a robot at rest or moving smoothly: the step costs one residual, no update)
-            if phi_ok and nR <= max(tol * lam_force, noise):
-                break
-        elif phi_ok and nR <= max(tol * Rs, noise):
+        if phi_ok and forces_balanced(nR, Rs, tol, noise):
             break              # balanced: forces to tol of their scale, constraints held
         # dv = y + Z dl, y = -A^-1 R;  S dl = -Phi_1 - th h G_1 y (the factorisation's G_1)
         free_newton_update(Ainv, R, fixed, y)
@@ -278,8 +274,7 @@ def closed_step(m, w, act, ld, g, coef, effort, K, D, q_ref, elastic, q0, v0, h,
         vs = max(vmax, first, 1e-300)
         # converged, or stalled at round-off (with this step's own factors: an earlier step's contract
         # linearly, and stop short of the solution by more than the update)
-        if phi_ok and (ndv <= max(tol * vs, floor)
-                       or (fresh and it > 2 and ndv <= 1e-6 * vs and ndv >= 0.5 * prev)):
+        if phi_ok and update_converged(ndv, vs, tol, floor, prev, fresh and it > 2):
             break
         refactor = it > 1 and ndv > 0.25 * prev
         prev = ndv

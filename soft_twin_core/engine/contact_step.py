@@ -24,8 +24,8 @@ from soft_twin_core.engine.kernels.data import LoadArrays
 from soft_twin_core.engine.kernels.frames import (body_point_twists, frame_spins, offset_point_positions,
                                                   relative_point_jacobians, spatial_jacobian)
 from soft_twin_core.engine.kernels.spatial import FALSE, _jit, _jit_inline, _jit_inner
-from soft_twin_core.engine.step_matrix import (elastic_noise, free_newton_update, invert_step_matrix,
-                                                step_tangents, theta_point)
+from soft_twin_core.engine.step_matrix import (elastic_noise, forces_balanced, free_newton_update,
+                                                invert_step_matrix, step_tangents, theta_point, update_converged)
 
 
 @_jit_inline
@@ -358,9 +358,7 @@ def contact_step(m, w, act, ld, g, coef, effort, K, D, q_ref, elastic, q0, v0, h
             Rs = max(nR, held, 1e-300)
             if elastic:       # round-off of the elastic forces (a robot resting on obstacles)
                 noise = elastic_noise(K, qt, q_ref)
-            if nR <= noise:
-                break
-        elif nR <= max(tol * Rs, noise):
+        if forces_balanced(nR, Rs, tol, noise):
             break
         if it > 1 and nR > lastR and halvings < 4:
             # the residual grew: back along the last update (solve.constrained.MechanismSimulator._step)
@@ -389,7 +387,7 @@ def contact_step(m, w, act, ld, g, coef, effort, K, D, q_ref, elastic, q0, v0, h
         if it == 1:
             first = ndv
         vs = max(vmax, first, 1e-300)
-        if ndv <= max(tol * vs, floor) or (it > 2 and ndv <= 1e-6 * vs and ndv >= 0.5 * prev):
+        if update_converged(ndv, vs, tol, floor, prev, it > 2):
             break
         refactor = it > 1 and ndv > 0.25 * prev
         prev = ndv

@@ -16,7 +16,7 @@ import numpy as np
 from soft_twin_core.engine.forces import actuation_tangent_pass
 from soft_twin_core.engine.integrators import integrate_pass
 from soft_twin_core.engine.kernels import passes
-from soft_twin_core.engine.kernels.spatial import TRUE, _jit_inline, _jit_inner
+from soft_twin_core.engine.kernels.spatial import TRUE, _jit, _jit_inline, _jit_inner
 from soft_twin_core.engine.kernels.tangent import static_tangent_pass
 
 
@@ -81,6 +81,31 @@ def elastic_noise(K, qt, q_ref):
             s += K[i, j] * (qt[j] - q_ref[j])
         noise = max(noise, 1e-9 * abs(s))
     return noise
+
+
+# The stopping rule of every theta step's Newton loop: the compiled closed-chain
+# and contact steps here, the Python KKT step of solve.constrained (through
+# .py_func: the same source, nothing compiled for it).
+
+@_jit
+def forces_balanced(nR, Rs, tol, noise):
+    """True when the free velocities' forces balance: their residual
+    ``nR = max|R|`` at most ``tol`` times their scale ``Rs`` or the elastic
+    forces' round-off ``noise``. Rs is set at the first iterate, the larger
+    of its residual and the constraint forces (multipliers, efforts holding
+    prescribed joints), and the same test runs at every iterate: a predictor
+    balanced to tol of the constraint forces (a robot at rest, or moving
+    smoothly) ends the step after one residual, no update."""
+    return nR <= max(tol * Rs, noise)
+
+
+@_jit
+def update_converged(ndv, vs, tol, floor, prev, stall_ok):
+    """True when the Newton update ``ndv = max|dv|`` is at most ``tol`` of
+    the velocities' scale ``vs`` (or at the round-off ``floor``), or, with
+    ``stall_ok`` (past the second iterate), when it stalls at round-off: at
+    most 1e-6 of the scale and not halving from the last one, ``prev``."""
+    return ndv <= max(tol * vs, floor) or (stall_ok and ndv <= 1e-6 * vs and ndv >= 0.5 * prev)
 
 
 @_jit_inner

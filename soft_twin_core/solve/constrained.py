@@ -32,6 +32,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from soft_twin_core._blas import one_blas_thread
+from soft_twin_core.engine import step_matrix
 from soft_twin_core.engine.algorithms import crba, forward_kinematics, point_poses
 from soft_twin_core.engine.contact import ContactPoints, ContactState, moved
 from soft_twin_core.engine.closed_step import CLAMPED, closed_step
@@ -52,6 +53,10 @@ from soft_twin_core.errors import StaticsError, StepError
 from soft_twin_core.lie import exp_se3, log_se3, log_so3, se3_inv
 from soft_twin_core.solve import equilibrium as eq
 from soft_twin_core.solve.equilibrium import equilibrium_stability
+
+# The compiled steps' stopping rule, run from its Python source in the Python step (one rule)
+forces_balanced = step_matrix.forces_balanced.py_func
+update_converged = step_matrix.update_converged.py_func
 
 FrameLoad = namedtuple("FrameLoad", ["frame", "wrench", "axes"])
 FrameLoad.__doc__ = """A point wrench [fx, fy, fz, mx, my, mz] (N, N m) on a named frame of a
@@ -1360,9 +1365,7 @@ class MechanismSimulator:
                 # round-off of the forces: the elastic ones (a robot resting on obstacles steps from an
                 # equilibrium whose residual is this noise; amplified by light sections it never settles)
                 noise = 1e-9 * np.abs(self.K @ (qt - tree.q0)).max(initial=0) if tree.nq == tree.nv else 0.0
-                if phi_ok and nR <= noise:
-                    break
-            elif phi_ok and nR <= max(self.tol * Rs, noise):
+            if phi_ok and forces_balanced(nR, Rs, self.tol, noise):
                 break              # balanced: forces to tol of their scale, constraints held
             if last is not None and nR > last[2] and backtracks < 4 and contacts is not None and len(contacts):
                 # the residual grew: back along the last update (a contact's friction flips between
@@ -1389,8 +1392,7 @@ class MechanismSimulator:
             vs = max(np.abs(v1).max(initial=0), np.abs(v0).max(initial=0), first, 1e-300)
             # below this an update is round-off for any motion of the robot (a length scale per step)
             floor = 1e-14 * max(self.Ls, 1.0) / h
-            if phi_ok and (ndv <= max(self.tol * vs, floor)
-                           or (it > 2 and ndv <= 1e-6 * vs and ndv >= 0.5 * prev)):
+            if phi_ok and update_converged(ndv, vs, self.tol, floor, prev, it > 2):
                 break              # converged, or stalled at round-off
             refactor = it > 1 and ndv > 0.25 * prev
             prev = ndv
