@@ -158,8 +158,8 @@ def test_a_robot_at_rest_steps_in_one_iteration():
     """The rigid four-bar at its static equilibrium: the step's predictor
     already balances the forces to the tolerance of the constraint forces'
     scale, so the compiled step stops after its first residual (no update;
-    it took two before). The robot stays at rest, as the Python KKT step
-    (which iterates) keeps it, and the multipliers' size the kernel hands to
+    it took two before), and so does the Python KKT step, which runs the same
+    stopping rule. The two keep the robot at rest, and the multipliers' size the kernel hands to
     the next step is that of the multipliers it leaves. (A soft member
     starts from an equilibrium solved to a tolerance: it moves a little, and
     its steps take two iterations after a few.)"""
@@ -170,9 +170,39 @@ def test_a_robot_at_rest_steps_in_one_iteration():
     for _ in range(20):
         for s in sims:
             s.step()
-        its.append(sims[0].iterations)
-    assert its[1:] == [1] * 19, its
+        its.append([s.iterations for s in sims])
+    assert its[1:] == [[1, 1]] * 19, its           # the Python step too: one stopping rule
     _assert_same(*sims, 1e-9)
     assert np.abs(sims[0].v).max() < 1e-8 and np.abs(sims[0].lam).max() > 0.1
     lam_max, of = sims[0]._closed_held["lam_max"]
     assert of is sims[0].lam and lam_max == np.abs(sims[0].lam).max()
+
+
+def test_held_joints_at_rest_step_in_one_iteration():
+    """The stopping rule of the compiled step for held joints (the contact
+    step, eliminating a position-controlled joint) and of the Python KKT
+    step (holding it by a multiplier): a rigid double pendulum, its shoulder
+    held with the upper link horizontal and the lower one hanging at rest.
+    Each step takes one iteration, and both keep the pendulum where it is
+    (the shoulder's holding torque is the forces' scale; the elbow's
+    residual is its round-off)."""
+    link = {"mass": 0.5, "com": [0.15, 0, 0], "inertia": [1e-5, 4e-3, 4e-3, 0, 0, 0]}
+    mech = mechanism_from_dict({
+        "name": "held_pendulum", "gravity": [0, 0, -9.81],
+        "bodies": [
+            {"name": "upper", "type": "link", **link,
+             "joint": {"name": "shoulder", "type": "revolute", "axis": [0, 1, 0], "control": "position"}},
+            {"name": "lower", "type": "link", "parent": "upper", **link,
+             "joint": {"name": "elbow", "type": "revolute", "axis": [0, 1, 0], "position": [0.3, 0, 0],
+                       "reference": float(np.pi / 2), "control": "passive"}}]})
+    inp = make_inputs(mech, positions={"shoulder": 0.0})
+    sims = [MechanismSimulator(mech, 5e-3, compiled=c) for c in (True, False)]
+    its = []
+    for _ in range(20):
+        for s in sims:
+            s.step(inputs=inp)
+        its.append([s.iterations for s in sims])
+    assert sims[0]._use_compiled_step and not sims[1]._use_compiled_step
+    assert its[1:] == [[1, 1]] * 19, its
+    for s in sims:
+        assert np.abs(s.v).max() < 1e-10 and np.abs(s.q - mech.tree.q0).max() < 1e-12
