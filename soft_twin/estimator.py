@@ -73,6 +73,7 @@ from soft_twin import conversions as cv
 from soft_twin.inputs import base_pose_of
 from soft_twin.readings import STAMP_REJECTIONS, InputLedger, accept_reading
 from soft_twin.shutdown import StopSignals, spin_until_stopped, tear_down
+from soft_twin_core._blas import blas_on_one_thread
 from soft_twin_core.commands import InputError, parse_joint_command
 from soft_twin_core.estimation import ekf as es
 from soft_twin_core.estimation import sensors as sn
@@ -358,6 +359,7 @@ def main(args=None):
     """Entry point (``python -m soft_twin.estimator --ros-args ...``). Exit
     status 0 after SIGINT or SIGTERM (at any time: :mod:`soft_twin.shutdown`),
     2 for a robot, sensors file or parameter that does not load."""
+    blas_on_one_thread()      # no spinning BLAS thread beside the controller (small matrices)
     stop = StopSignals(NODE_NAME)
     stop.install()
     logger = rclpy.logging.get_logger(NODE_NAME)

@@ -73,6 +73,7 @@ from soft_twin import conversions as cv
 from soft_twin import diagnostics, inputs, markers, schedule, services
 from soft_twin import live_view_out, recorder, tf_out
 from soft_twin_core import commands as cmd
+from soft_twin_core._blas import blas_on_one_thread
 from soft_twin_core import twin as tw
 from soft_twin.executor import TwinExecutor
 from soft_twin.shutdown import StopSignals, spin_until_stopped, tear_down
@@ -1012,6 +1013,7 @@ def main(args=None):
     configuration (a bad or unknown parameter, a robot that cannot load)."""
     # hand the GIL to the stepping thread within ~1 ms of a service computing
     sys.setswitchinterval(0.001)
+    blas_on_one_thread()      # no spinning BLAS thread beside the controller (small matrices)
     stop = StopSignals(NODE_NAME)
     stop.install()
     logger = rclpy.logging.get_logger(NODE_NAME)

@@ -11,6 +11,7 @@ untouched outside it.
 """
 
 import contextlib
+import os
 import threading
 
 import numpy as np
@@ -38,6 +39,27 @@ def one_blas_thread():
                 yield
     finally:
         _LOCAL.depth = depth
+
+
+_PROCESS_LIMIT = []    # the process-wide limits, kept alive (exiting one would restore the old count)
+_THREAD_VARIABLES = ("OPENBLAS_NUM_THREADS", "OMP_NUM_THREADS", "MKL_NUM_THREADS")
+
+
+def blas_on_one_thread():
+    """Limit BLAS to one thread for the rest of the process, unless the user
+    chose a count (one of ``_THREAD_VARIABLES`` set): for the entry points
+    that own their process (the node, the estimator node, the command line).
+    The engine's matrices are small: a second OpenBLAS thread saves nothing
+    there and spins on the other core between calls (a step of the planar
+    parallel robot: 120 us of wall time either way, 240 us of CPU time on
+    two threads). The BLAS libraries loaded now are limited through
+    threadpoolctl; the variable covers those loaded later (scipy's, which
+    the compiled kernels' LAPACK calls load on first use). Idempotent."""
+    if _PROCESS_LIMIT or any(v in os.environ for v in _THREAD_VARIABLES):
+        return
+    os.environ["OPENBLAS_NUM_THREADS"] = "1"
+    if _CONTROLLER is not None:
+        _PROCESS_LIMIT.append(ThreadpoolController().limit(limits=1, user_api="blas"))
 
 
 def block_diag(blocks):

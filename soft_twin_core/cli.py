@@ -306,12 +306,14 @@ def show_plausibility_warnings(prog="soft-twin-sim"):
 
 
 def main(argv=None):
+    from soft_twin_core._blas import blas_on_one_thread
     from soft_twin_core.errors import StaticsError
     from soft_twin_core.files.scenario import ScenarioError, load_scenario, run_dynamics, run_statics
     from soft_twin_core.files.timeline import n_steps_for
     from soft_twin_core.robot.model import ModelError
     args = _parser().parse_args(argv)
     show_plausibility_warnings()
+    blas_on_one_thread()      # small matrices: a second BLAS thread would spin, not help
     # --- design studies and workspaces (issue 16): soft_twin_core/studies/cli.py
     if args.command in ("study", "workspace"):
         from soft_twin_core.studies.cli import main_study, main_workspace

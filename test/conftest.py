@@ -5,6 +5,8 @@
   never see each other's nodes. Child processes (a node started with
   subprocess) inherit it through os.environ. The workers of one pytest-xdist
   run (`make test` runs two) get consecutive ids, so they never share one.
+* One BLAS thread (OPENBLAS_NUM_THREADS=1 unless set), as the node and the
+  command line use, whichever test runs first.
 * Registers the markers used by the suite (--strict-markers is on).
 * A test marked ``quiet`` measures a real-time rate or a wall time: `make
   test` runs it alone, after the others (they run on two pytest-xdist
@@ -24,6 +26,9 @@ if not _domain:
 os.environ["ROS_DOMAIN_ID"] = _domain
 # Tests discover on this machine only.
 os.environ.setdefault("ROS_AUTOMATIC_DISCOVERY_RANGE", "LOCALHOST")
+# One BLAS thread, as in the node and the command line (which set it for their process: a command line
+# run in-process would otherwise change it halfway through a session), and in the child processes.
+os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 
 
 def pytest_configure(config):
