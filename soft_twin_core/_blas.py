@@ -7,20 +7,37 @@ IK normal equations): OpenBLAS's threads cost more than they save there (a
 project machine). ``with one_blas_thread(): ...`` limits BLAS to one thread
 for a block (threadpoolctl; about 20 us to enter, nothing when nested in
 another such block of the same thread), leaving the user's setting
-untouched outside it.
+untouched outside it; it covers every BLAS loaded when the block starts
+(scipy's too, which often loads after this module). The processes the twin
+owns take one thread for their whole life: :func:`blas_on_one_thread`.
 """
 
 import contextlib
 import os
+import sys
 import threading
 
 import numpy as np
 
 try:
     from threadpoolctl import ThreadpoolController
-    _CONTROLLER = ThreadpoolController()
 except ImportError:      # optional: without it, BLAS keeps its own thread count
-    _CONTROLLER = None
+    ThreadpoolController = None
+
+# The BLAS libraries loaded (threadpoolctl's view), and whether scipy.linalg's was among them: numpy's loads
+# with numpy, scipy's only with scipy.linalg (the Python KKT step's factorisations, the compiled kernels'
+# LAPACK calls), often after this module; the view is taken again then.
+_CONTROLLER, _WITH_SCIPY = None, False
+
+
+def _controller():
+    global _CONTROLLER, _WITH_SCIPY
+    if ThreadpoolController is None:
+        return None
+    scipy = "scipy.linalg" in sys.modules
+    if _CONTROLLER is None or (scipy and not _WITH_SCIPY):
+        _CONTROLLER, _WITH_SCIPY = ThreadpoolController(), scipy
+    return _CONTROLLER
 
 
 _LOCAL = threading.local()    # blocks this thread has entered: an inner one (a solver called in a loop that
@@ -32,10 +49,11 @@ def one_blas_thread():
     depth = getattr(_LOCAL, "depth", 0)
     _LOCAL.depth = depth + 1
     try:
-        if _CONTROLLER is None or depth:
+        controller = None if depth else _controller()
+        if controller is None:
             yield
         else:
-            with _CONTROLLER.limit(limits=1, user_api="blas"):
+            with controller.limit(limits=1, user_api="blas"):
                 yield
     finally:
         _LOCAL.depth = depth
@@ -58,7 +76,7 @@ def blas_on_one_thread():
     if _PROCESS_LIMIT or any(v in os.environ for v in _THREAD_VARIABLES):
         return
     os.environ["OPENBLAS_NUM_THREADS"] = "1"
-    if _CONTROLLER is not None:
+    if ThreadpoolController is not None:
         _PROCESS_LIMIT.append(ThreadpoolController().limit(limits=1, user_api="blas"))
 
 

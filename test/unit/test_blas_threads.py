@@ -50,3 +50,27 @@ def test_the_suite_runs_on_one_blas_thread():
     from threadpoolctl import threadpool_info
     counts = [i["num_threads"] for i in threadpool_info() if i["user_api"] == "blas"]
     assert len(counts) >= 2 and set(counts) == {1}, counts
+
+
+_BLOCK = """
+import json
+from soft_twin_core._blas import one_blas_thread
+import scipy.linalg  # noqa: F401  (its BLAS loads after soft_twin_core._blas)
+from threadpoolctl import threadpool_info
+def counts():
+    return sorted(i["num_threads"] for i in threadpool_info() if i["user_api"] == "blas")
+before = counts()
+with one_blas_thread():
+    inside = counts()
+print(json.dumps([before, inside, counts()]))
+"""
+
+
+@pytest.mark.skipif((os.cpu_count() or 1) < 2, reason="one CPU: BLAS uses one thread anyway")
+def test_a_block_limits_the_blas_libraries_loaded_after_the_module():
+    clean = {k: v for k, v in os.environ.items() if k not in _VARS}
+    out = subprocess.run([sys.executable, "-c", _BLOCK], capture_output=True, text=True, timeout=120, env=clean,
+                         check=True).stdout
+    before, inside, after = json.loads(out.strip().splitlines()[-1])
+    assert len(before) >= 2 and min(before) > 1
+    assert inside == [1] * len(before) and after == before
