@@ -211,13 +211,8 @@ class ArraysRef(structref.StructRefProxy):
         arrays = tuple(np.ascontiguousarray(x) for x in arrays)
         out = cls.make(*arrays)
         out.__dict__["arrays"] = arrays
+        out.__dict__.update(zip(cls.FIELDS, arrays))      # read as plain attributes (50 ns, not 0.5 us)
         return out
-
-    def __getattr__(self, name):
-        fields = type(self).FIELDS
-        if name in fields and "arrays" in self.__dict__:
-            return self.__dict__["arrays"][fields.index(name)]
-        raise AttributeError(name)
 
     def __reduce__(self):
         return type(self).of, self.__dict__["arrays"]
