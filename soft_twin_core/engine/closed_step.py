@@ -28,11 +28,13 @@ factorises its KKT matrix. Position-controlled joints are eliminated as
 in :mod:`contact_step` (their velocities prescribed, their efforts their
 residual rows carried along the update)."""
 
+import numba as nb
 import numpy as np
+from numba.experimental import structref
 
 from soft_twin_core.engine.integrators import integrate_pass, residual_after_forward
 from soft_twin_core.engine.kernels import passes
-from soft_twin_core.engine.kernels.data import LoadArrays
+from soft_twin_core.engine.kernels.data import ArraysRef, ArraysType, LoadArrays, declare
 from soft_twin_core.engine.kernels.frames import world_point_jacobians
 from soft_twin_core.engine.kernels.spatial import FALSE, _jit, _jit_inner
 from soft_twin_core.engine.kernels.tip_error import _log_so3
@@ -40,6 +42,40 @@ from soft_twin_core.engine.step_matrix import (elastic_noise, forces_balanced, f
                                                 invert_step_matrix, step_tangents, theta_point, update_converged)
 
 CLAMPED = 1        # a constraint kind the kernel tells apart: [dp; log(R_a R_b^T)]; others C[:, :3] dp
+
+# The arrays a robot's steps keep from one step to the next, passed as one structref: typed at a call in
+# well under 1 us, where as 19 arguments they cost about 3 us of the four-bar's 20 us step
+CLOSED_FIELDS = (
+    "K", "D", "q_ref",                                   # stiffness, damping (nv, nv); the elastic forces' q
+    "cj", "cx", "ckind", "crows", "csize", "ctarget",    # the constraints (constraint_values)
+    "rows",                                              # the independent constraint rows
+    "fixed",                                             # (nv,) bool: the prescribed velocities
+    "Ainv", "Afix", "Z", "Sinv", "G1f", "Gtf",           # the factors, kept for the next step
+    "R", "phi",                                          # out: the residual, the constraint values
+)
+
+
+@structref.register
+class ClosedArraysType(ArraysType):
+    pass
+
+
+class ClosedArrays(ArraysRef):
+    """The arrays of :data:`CLOSED_FIELDS` as :func:`closed_step` takes them."""
+    FIELDS = CLOSED_FIELDS
+
+
+declare(ClosedArrays, ClosedArraysType, CLOSED_FIELDS)
+
+
+@nb.njit(cache=True)
+def _make_closed_ref(K, D, q_ref, cj, cx, ckind, crows, csize, ctarget, rows, fixed, Ainv, Afix, Z, Sinv, G1f, Gtf,
+                     R, phi):
+    return ClosedArrays(K, D, q_ref, cj, cx, ckind, crows, csize, ctarget, rows, fixed, Ainv, Afix, Z, Sinv, G1f,
+                        Gtf, R, phi)
+
+
+ClosedArrays.make = _make_closed_ref
 
 
 @_jit
@@ -167,15 +203,14 @@ def _schur(Ainv, Gt, G1, rows, th, fixed, Z, Sinv, G1f, Gtf):
 
 
 @_jit
-def closed_step(m, w, act, ld, g, coef, effort, K, D, q_ref, elastic, q0, v0, h, theta, tol, floor, max_it,
-                cj, cx, ckind, crows, csize, ctarget, rows, ctol, lam_force, fixed, Ainv, Afix, Z, Sinv, G1f, Gtf,
-                reuse, v1, lam, q1, R, phi):
+def closed_step(m, w, act, ld, g, coef, effort, c, elastic, q0, v0, h, theta, tol, floor, max_it, ctol, lam_force,
+                reuse, v1, lam, q1):
     """One step from (q0, v0): v1 (the guess, the fixed velocities
     prescribed) and lam (the constraints' multipliers) updated in place, q1
-    the end configuration, R the residual at the last iterate (its fixed
-    rows: the efforts holding those joints), phi the constraint values
-    at q1. Constraints as :func:`constraint_values`; ``rows``: the
-    independent ones; ``ctol``: the constraint tolerance [m, rad];
+    the end configuration; ``c`` (:class:`ClosedArrays`): R the residual at
+    the last iterate (its fixed rows: the efforts holding those joints), phi
+    the constraint values at q1. Constraints as :func:`constraint_values`;
+    ``rows``: the independent ones; ``ctol``: the constraint tolerance [m, rad];
     ``lam_force``: the multipliers' size as a force [N] (a floor of the
     residual's scale). ``Ainv, Afix, Z, Sinv, G1f, Gtf``: the
     factors, reused at the first iterate if ``reuse``. Returns (iterations,
@@ -183,6 +218,9 @@ def closed_step(m, w, act, ld, g, coef, effort, K, D, q_ref, elastic, q0, v0, h,
     non-finite, 4 singular; lam_max the largest multiplier or held joint's
     effort at the end (the next step's ``lam_force`` over its length scale;
     0 unless converged)."""
+    K, D, q_ref, fixed, rows, R, phi = c.K, c.D, c.q_ref, c.fixed, c.rows, c.R, c.phi
+    cj, cx, ckind, crows, csize, ctarget = c.cj, c.cx, c.ckind, c.crows, c.csize, c.ctarget
+    Ainv, Afix, Z, Sinv, G1f, Gtf = c.Ainv, c.Afix, c.Z, c.Sinv, c.G1f, c.Gtf
     nv, nq, nr, nc2 = v0.shape[0], q0.shape[0], phi.shape[0], cj.shape[0]
     mr = rows.shape[0]
     if (Z.shape[0] != nv or Z.shape[1] != mr or Sinv.shape[0] != mr or Sinv.shape[1] != mr

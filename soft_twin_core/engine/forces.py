@@ -255,12 +255,20 @@ def concat_loads(*lds):
     """One LoadArrays of several (empty ones left out)."""
     lds = [ld for ld in lds if ld.joint.shape[0]]
     if not lds:
-        return LoadArrays(np.zeros(0, np.int64), np.zeros(0), np.zeros((0, 6)), np.zeros(0, np.bool_))
+        return _NO_LOAD_ARRAYS          # (empty: nothing to write into)
     if len(lds) == 1:
         return lds[0]
     return LoadArrays(np.concatenate([ld.joint for ld in lds]), np.ascontiguousarray(np.concatenate([ld.x for ld in lds])),
                       np.ascontiguousarray(np.concatenate([ld.wrench for ld in lds])),
                       np.concatenate([ld.world for ld in lds]))
+
+
+def tendon_coefficients(act, u):
+    """The tendon joints' coefficients ``act.unit @ u`` of the actuators'
+    inputs u (:class:`ActuatorArrays` ``act``), contiguous; zeros without
+    inputs."""
+    unit = act.unit
+    return np.ascontiguousarray(unit @ u) if u.size else np.zeros(unit.shape[0])
 
 
 def gravity_of(model, loads=None):

@@ -35,10 +35,11 @@ from soft_twin_core._blas import one_blas_thread
 from soft_twin_core.engine import step_matrix
 from soft_twin_core.engine.algorithms import crba, forward_kinematics, point_poses
 from soft_twin_core.engine.contact import ContactPoints, ContactState, moved
-from soft_twin_core.engine.closed_step import CLAMPED, closed_step
+from soft_twin_core.engine.closed_step import CLAMPED, ClosedArrays, closed_step
 from soft_twin_core.engine.contact_step import contact_step
 from soft_twin_core.engine.forces import (actuation_tangent_pass, actuator_arrays, check_member_loads,
-                                          concat_loads, gravity_of, load_arrays, point_moment_arrays)
+                                          concat_loads, gravity_of, load_arrays, point_moment_arrays,
+                                          tendon_coefficients)
 from soft_twin_core.engine.integrators import ReducedThetaIntegrator, ThetaIntegrator, integrate_pass, residual_pass
 from soft_twin_core.engine.joint_kinds import FREE, PRISMATIC, REVOLUTE, SPHERICAL
 from soft_twin_core.engine.kernels import passes
@@ -360,8 +361,7 @@ class _Equilibrium:
         self.ws = Workspace(tree)
         self.act = _cached(mech, "_act_arrays", lambda: actuator_arrays(tree))
         self.K, _ = _cached(mech, "_dense_KD", lambda: dense_stiffness_damping(tree))
-        self.coef = (np.ascontiguousarray(self.act.unit @ inp.u) if inp.u.size
-                     else np.zeros(len(self.act.joint)))
+        self.coef = tendon_coefficients(self.act, inp.u)
         self.zeros = np.zeros(tree.nv)
         self.npos = len(mech.joints_with("position"))
         self.pos_v = np.array([tree.idx_v[i] for i in mech.joints_with("position")], dtype=np.int64)
@@ -829,7 +829,7 @@ def free_problem(mech, inp):
     tree = mech.tree
     act = _cached(mech, "_act_arrays", lambda: actuator_arrays(tree))
     K, _ = _cached(mech, "_dense_KD", lambda: dense_stiffness_damping(tree))
-    coef = np.ascontiguousarray(act.unit @ inp.u) if inp.u.size else np.zeros(len(act.joint))
+    coef = tendon_coefficients(act, inp.u)
     return eq.Problem(tree, act, K, inp.loads, inp.gravity, coef, inp.effort)
 
 
@@ -1112,7 +1112,7 @@ class MechanismSimulator:
         moving = held["still"] if start is None else (obs.body >= 0) | np.array(
             [a is not b for a, b in zip(start, contact.obstacles)] + [False] * len(self.mech.shapes))
         if held.get("inputs") is not inp:        # the inputs' arrays, once per Inputs
-            coef = np.ascontiguousarray(self.act.unit @ inp.u) if inp.u.size else np.zeros(len(self.act.joint))
+            coef = tendon_coefficients(self.act, inp.u)
             held.update(inputs=inp, coef=coef, loads=concat_loads(inp.loads))
         size = len(pts) * len(obstacles)
         out = (np.empty(size, np.int64), np.empty(size, np.int64), np.empty((size, 3)), np.empty(size),
@@ -1207,21 +1207,28 @@ class MechanismSimulator:
         position-controlled joints eliminated as there. Raises StepError
         (state unchanged) if it fails."""
         tree, ws, mech = self.tree, self.ws, self.mech
-        cj, cx, ckind, crows, csize, ctarget = self._closed_arrays(targets)
         held = self._closed_held
         if held is None or held["h"] != h:
             nc = mech.n_constraint_rows
             _, G = constraint_rows(mech, ws, self.q, targets, inp.q_cmd)
             rows = independent_rows(G[:nc]).astype(np.int64)
             nv, mr = tree.nv, len(rows)
-            held = self._closed_held = dict(h=h, rows=rows, Ainv=np.zeros((nv, nv)), Afix=np.zeros((nv, nv)),
-                                            Z=np.zeros((nv, mr)), Sinv=np.zeros((mr, mr)), G1f=np.zeros((mr, nv)),
-                                            Gtf=np.zeros((mr, nv)), reuse=False, nc=nc, R=np.empty(nv),
-                                            phi=np.empty(nc), lam_max=None)
+            cj, cx, ckind, crows, csize, ctarget = self._closed_arrays(None)
+            z = np.zeros
+            held = self._closed_held = dict(
+                h=h, nc=nc, rows=rows, reuse=False, lam_max=None, moved=False,
+                arrays=ClosedArrays.of(self.K, self.D, tree.q0, cj, cx, ckind, crows, csize, ctarget.copy(), rows,
+                                       self._fixed, z((nv, nv)), z((nv, nv)), z((nv, mr)), z((mr, mr)), z((mr, nv)),
+                                       z((mr, nv)), np.empty(nv), np.empty(nc)))
+        c = held["arrays"]
+        moved = targets is not None and any(t is not None for t in targets)
+        if moved or held["moved"]:              # the constraints' world targets of this step (or back to their own)
+            c.ctarget[:] = self._closed_arrays(targets)[5]
+            held["moved"] = moved
         if held.get("inputs") is not inp:        # the inputs' arrays, once per Inputs
-            coef = np.ascontiguousarray(self.act.unit @ inp.u) if inp.u.size else np.zeros(len(self.act.joint))
+            coef = tendon_coefficients(self.act, inp.u)
             held.update(inputs=inp, coef=coef, loads=concat_loads(inp.loads))
-        nc, R, phi = held["nc"], held["R"], held["phi"]      # (R, phi: scratch; R[pv] copied out below)
+        nc, R, phi = held["nc"], c.R, c.phi      # (scratch of the kernel's: R[pv] copied out below)
         v1, q1 = self.v.copy(), np.empty(tree.nq)
         lam = self.lam[:nc].copy()
         pv, th, length = self._pos_v, self.theta, max(self.Ls, 1.0)
@@ -1232,11 +1239,9 @@ class MechanismSimulator:
         if lam_max is None or lam_max[1] is not self.lam:
             lam_max = (np.abs(self.lam).max(initial=0), None)
         it, status, fresh, lam_next = closed_step(
-            ws.m, ws.w, self.act, held["loads"], inp.gravity, held["coef"], inp.effort, self.K, self.D, tree.q0,
-            tree.nq == tree.nv, self.q, self.v, h, th, self.tol, 1e-14 * length / h, self.max_iterations,
-            cj, cx, ckind, crows, csize, ctarget, held["rows"], self.constraint_tol * length, lam_max[0] * length,
-            self._fixed, held["Ainv"], held["Afix"], held["Z"], held["Sinv"], held["G1f"], held["Gtf"], held["reuse"],
-            v1, lam, q1, R, phi)
+            ws.m, ws.w, self.act, held["loads"], inp.gravity, held["coef"], inp.effort, c, tree.nq == tree.nv,
+            self.q, self.v, h, th, self.tol, 1e-14 * length / h, self.max_iterations, self.constraint_tol * length,
+            lam_max[0] * length, held["reuse"], v1, lam, q1)
         self._kkt_factorisations += fresh
         held["reuse"] = self.reuse_factorisation and status == 0 and it <= 5
         if status:
@@ -1266,7 +1271,7 @@ class MechanismSimulator:
     def _run_free(self, inp, n):
         """n steps of :class:`integrators.ThetaIntegrator` (no multipliers)."""
         if self._held_of is not inp:         # the same inputs held again (a twin steps them at its rate)
-            coef = np.ascontiguousarray(self.act.unit @ inp.u) if inp.u.size else np.zeros(len(self.act.joint))
+            coef = tendon_coefficients(self.act, inp.u)
             self._held, self._held_of = (inp.loads, inp.gravity, coef, inp.effort), inp
         integ = self._theta_integrator
         integ.last_a = self.a
@@ -1322,7 +1327,7 @@ class MechanismSimulator:
         if self._pos_v.size:     # the prescribed joints reach their commands from the first iterate (a friction's
             v1[self._pos_v] = ((inp.q_cmd - q0[self._pos_q]) / h - (1 - th) * v0[self._pos_v]) / th   # cut updates
         lam = self.lam.copy()                                         # would otherwise cut their rows' too)
-        coef = np.ascontiguousarray(self.act.unit @ inp.u) if inp.u.size else np.zeros(len(self.act.joint))
+        coef = tendon_coefficients(self.act, inp.u)
         npos = len(self.mech.joints_with("position"))
         pos_v = np.array([tree.idx_v[i] for i in self.mech.joints_with("position")], dtype=np.int64)
         qt = np.empty(tree.nq)
@@ -1424,7 +1429,7 @@ class MechanismSimulator:
         inp = self.inputs if inputs is None else inputs
         tree, m, w = self.tree, self.ws.m, self.ws.w
         lam0 = np.zeros_like(self.lam)
-        coef = np.ascontiguousarray(self.act.unit @ inp.u) if inp.u.size else np.zeros(len(self.act.joint))
+        coef = tendon_coefficients(self.act, inp.u)
         bias = np.empty(tree.nv)
         residual_pass(m, w, self.act, concat_loads(inp.loads, constraint_loads(self.mech, lam0)), inp.gravity,
                       coef, inp.effort, np.ascontiguousarray(self.q), self.v, np.zeros(tree.nv), bias, False)

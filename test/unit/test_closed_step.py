@@ -14,7 +14,7 @@ coordinates)."""
 import numpy as np
 import pytest
 
-from soft_twin_core.engine.closed_step import closed_step
+from soft_twin_core.engine.closed_step import CLOSED_FIELDS, ClosedArrays, closed_step
 from soft_twin_core.robot.mechanism import load_mechanism, mechanism_from_dict
 from soft_twin_core.robot.model import find_file
 from soft_twin_core.solve.constrained import MechanismSimulator, constraint_rows, make_inputs, solve_equilibrium
@@ -127,11 +127,12 @@ def test_closed_step_refuses_factors_of_other_rows():
     held = sim._closed_held
     tree, ws = mech.tree, sim.ws
     inp = make_inputs(mech)
+    c = held["arrays"]
+    other = ClosedArrays.of(*[np.arange(3) if name == "rows" else getattr(c, name) for name in CLOSED_FIELDS])
     out = closed_step(
-        ws.m, ws.w, sim.act, held["loads"], inp.gravity, held["coef"], inp.effort, sim.K, sim.D, tree.q0, True,
-        sim.q, sim.v, 5e-3, 0.5, 1e-10, 1e-14, 10, *sim._closed_arrays(None), np.arange(3), 1e-12, 0.0,
-        sim._fixed, held["Ainv"], held["Afix"], held["Z"], held["Sinv"], held["G1f"], held["Gtf"], False,
-        sim.v.copy(), sim.lam[:3].copy(), np.empty(tree.nq), np.empty(tree.nv), np.empty(3))
+        ws.m, ws.w, sim.act, held["loads"], inp.gravity, held["coef"], inp.effort, other, True,
+        sim.q, sim.v, 5e-3, 0.5, 1e-10, 1e-14, 10, 1e-12, 0.0, False, sim.v.copy(), sim.lam[:3].copy(),
+        np.empty(tree.nq))
     assert out == (0, 4, 0, 0.0)
 
 
@@ -142,15 +143,12 @@ def test_closed_step_reports_a_step_that_does_not_converge():
     sim.step()
     held = sim._closed_held
     tree, ws = mech.tree, sim.ws
-    cj, cx, ckind, crows, csize, ctarget = sim._closed_arrays(None)
     inp = make_inputs(mech)
     q0, v0 = sim.q.copy(), sim.v + 1.0
-    v1, q1, R, phi, lam = v0.copy(), np.empty(tree.nq), np.empty(tree.nv), np.empty(3), sim.lam[:3].copy()
+    v1, q1, lam = v0.copy(), np.empty(tree.nq), sim.lam[:3].copy()
     it, status, _, _ = closed_step(
-        ws.m, ws.w, sim.act, held["loads"], inp.gravity, held["coef"], inp.effort, sim.K, sim.D, tree.q0, True,
-        q0, v0, 5e-3, 0.5, 1e-10, 1e-14, 1, cj, cx, ckind, crows, csize, ctarget, held["rows"], 1e-12, 0.0,
-        sim._fixed, held["Ainv"], held["Afix"], held["Z"], held["Sinv"], held["G1f"], held["Gtf"], False,
-        v1, lam, q1, R, phi)
+        ws.m, ws.w, sim.act, held["loads"], inp.gravity, held["coef"], inp.effort, held["arrays"], True,
+        q0, v0, 5e-3, 0.5, 1e-10, 1e-14, 1, 1e-12, 0.0, False, v1, lam, q1)
     assert (it, status) == (1, 1)
 
 
