@@ -17,6 +17,7 @@ twin runs (up to ~100 dof) costs less than the glue it replaces."""
 
 import numpy as np
 
+from soft_twin_core.engine.closed_step import _schur, _with_reactions, constraint_values
 from soft_twin_core.engine.integrators import integrate_pass, residual_after_forward
 from soft_twin_core.engine.kernels import passes
 from soft_twin_core.engine.kernels.contact import pose_obstacles, step_contacts, transition_fraction
@@ -243,13 +244,19 @@ def _newton_inverse(m, w, act, ldc, g, coef, K, D, qt, h, theta, pj, px, prad, p
 
 
 @_jit
-def contact_step(m, w, act, ld, g, coef, effort, K, D, q_ref, elastic, q0, v0, h, theta, tol, floor,
-                 max_it, pj, px, poff, prad, pmod, pw, allowed, obs, obs0, P0, P1, Pt, moving, fixed, Ainv, Afix,
-                 key, reuse, v1, q1, pt, R, idx, ob_of, n_out, gap, F, dF, dV, dFf, dVf, M, slip, arm, barm, spin,
-                 dW):
+def contact_step(m, w, act, ld, g, coef, effort, arr, elastic, q0, v0, h, theta, tol, floor, max_it, ctol,
+                 lam_force, lam, pj, px, poff, prad, pmod, pw, allowed, obs, obs0, P0, P1, Pt, moving, key, reuse, v1,
+                 q1, pt, idx, ob_of, n_out, gap, F, dF, dV, dFf, dVf, M, slip, arm, barm, spin, dW):
     """One step from (q0, v0) (guess v1, updated in place; q1 receives the
     end configuration, pt the contact points' positions at the theta point
-    of the last iterate, R the residual there). The velocities ``fixed``
+    of the last iterate; ``arr``, a :class:`closed_step.ClosedArrays`: R
+    the residual there, phi the constraint values at q1). Constraint rows
+    (closed chains, a prescribed base's clamp: ``arr``'s constraints, its
+    ``rows`` the independent ones; none for an open tree) as in
+    :func:`closed_step.closed_step`: the multipliers ``lam`` updated in
+    place, the update by the Schur complement on the rows, the constraints
+    held to ``ctol`` at q1; ``lam_force``: the multipliers' size as a force.
+    The velocities ``fixed``
     (a mask) are prescribed: they keep v1's values, and their residual
     rows, left out of the iteration, are the efforts that hold them
     (position-controlled joints eliminated: the multipliers of
@@ -263,10 +270,26 @@ def contact_step(m, w, act, ld, g, coef, effort, K, D, q_ref, elastic, q0, v0, h
     theta point. ``Ainv``: the inverse Newton matrix, reused at the
     first iterate if ``reuse`` and the contacts there are ``key``
     (``key[0]`` of them, then obstacle * P + point each), else made anew
-    (key updated). Returns (iterations, status, contacts, factorised):
-    status 0 converged, 1 not in max_it, 3 non-finite, 4 singular; the
-    contacts (those of the last iterate) in the output arrays."""
+    (key updated). Returns (iterations, status, contacts, factorised,
+    lam_max): status 0 converged, 1 not in max_it, 3 non-finite, 4
+    singular; the contacts (those of the last iterate) in the output
+    arrays; lam_max as :func:`closed_step.closed_step`'s."""
+    K, D, q_ref, fixed, Ainv, Afix, R, phi = arr.K, arr.D, arr.q_ref, arr.fixed, arr.Ainv, arr.Afix, arr.R, arr.phi
+    cj, cx, ckind, crows, csize, ctarget = arr.cj, arr.cx, arr.ckind, arr.crows, arr.csize, arr.ctarget
+    rows, Z, Sinv, G1f, Gtf = arr.rows, arr.Z, arr.Sinv, arr.G1f, arr.Gtf
     nv, nq, P = v0.shape[0], q0.shape[0], pj.shape[0]
+    nr, mr, nc2 = phi.shape[0], rows.shape[0], cj.shape[0]
+    if (Z.shape[0] != nv or Z.shape[1] != mr or Sinv.shape[0] != mr or Sinv.shape[1] != mr
+            or G1f.shape[0] != mr or Gtf.shape[0] != mr or Ainv.shape[0] != nv or Afix.shape[0] != nv):
+        return 0, 4, 0, 0, 0.0   # factors not of these rows (no bounds checks below)
+    gc = np.empty((nc2, 4, 4))
+    Jc = np.empty((nc2, 6, nv))
+    G1 = np.empty((nr, nv))
+    Gt = np.empty((nr, nv))
+    phit = np.empty(nr)
+    rhs = np.empty(mr)
+    dl = np.zeros(mr)
+    th = theta * h
     zeros = np.zeros(nv)
     G = np.empty((P, 4, 4))
     p0 = np.empty((P, 3))
@@ -311,8 +334,11 @@ def contact_step(m, w, act, ld, g, coef, effort, K, D, q_ref, elastic, q0, v0, h
     c = 0
     for it in range(1, max_it + 1):
         theta_point(m, q0, v0, v1, h, theta, vt, acc, qt, q1)
-        if touching:            # the end positions: poses alone (the pass at the theta point follows)
+        if nr > 0:              # the constraints' Jacobian at q1: the subspaces too
+            passes.forward_pass(m, w, q1, zeros, zeros, passes.POSES)
+        elif touching:          # the end positions: poses alone (the pass at the theta point follows)
             passes.poses_pass(m, w, q1)
+        if touching:
             offset_point_positions(m, w, pj, px, poff, G, p1)
         if spins:
             for p in range(P):
@@ -321,12 +347,15 @@ def contact_step(m, w, act, ld, g, coef, effort, K, D, q_ref, elastic, q0, v0, h
                         R1[p, r, s] = G[p, r, s]
         if touching:
             pose_obstacles(w, obs, P1)
+        if nr > 0:
+            constraint_values(m, w, cj, cx, ckind, crows, csize, ctarget, gc, Jc, phi, G1)
         _positions(m, w, qt, vt, acc, passes.ACCELERATIONS, pj, px, poff, G, pt)  # (the residual's forward pass too)
         if touching:
             pose_obstacles(w, obs, Pt)
         c = step_contacts(prad, pmod, pw, allowed, P1, P0, Pt, moving, ovel0, p0, p1, pt, h, theta, pv0, given,
                           R0, R1, w0, idx, ob_of, n_out, gap, F, dF, dV, dFf, dVf, M, slip, spin, dW)
-        ldc = _with_contact_loads(w, ld, pj, px, G, pt, idx, ob_of, obs.body, F, M, c, arm, barm)
+        ldr = _with_reactions(ld, cj, cx, crows, csize, lam) if nr > 0 else ld
+        ldc = _with_contact_loads(w, ldr, pj, px, G, pt, idx, ob_of, obs.body, F, M, c, arm, barm)
         if refactor:
             same = reuse and it == 1 and key[0] == c
             if same:
@@ -336,7 +365,11 @@ def contact_step(m, w, act, ld, g, coef, effort, K, D, q_ref, elastic, q0, v0, h
             if not same:
                 if not _newton_inverse(m, w, act, ldc, g, coef, K, D, qt, h, theta, pj, px, prad, pt, idx, ob_of,
                                        obs.body, F, dF, dV, dFf, dVf, c, zeros, fixed, Ainv, Afix, n_out, dW):
-                    return it, 4, c, factorised
+                    return it, 4, c, factorised, 0.0
+                if nr > 0:      # (the workspace posed at q_t)
+                    constraint_values(m, w, cj, cx, ckind, crows, csize, ctarget, gc, Jc, phit, Gt)
+                    if not _schur(Ainv, Gt, G1, rows, th, fixed, Z, Sinv, G1f, Gtf):
+                        return it, 4, c, factorised, 0.0
                 passes.forward_pass(m, w, qt, vt, acc, passes.ACCELERATIONS)  # (it posed the workspace at rest)
                 factorised += 1
                 key[0] = c
@@ -344,30 +377,55 @@ def contact_step(m, w, act, ld, g, coef, effort, K, D, q_ref, elastic, q0, v0, h
                     key[1 + k] = ob_of[k] * P + idx[k]
             refactor = False
         residual_after_forward(m, w, act, ldc, g, coef, effort, qt, vt, R, FALSE)
-        nR, held = 0.0, 0.0
+        nR, held, nphi = 0.0, 0.0, 0.0
         for k in range(nv):
             if not np.isfinite(R[k]):
-                return it, 3, c, factorised
+                return it, 3, c, factorised, 0.0
             if fixed[k]:
                 held = max(held, abs(R[k]))
             else:
                 nR = max(nR, abs(R[k]))
+        for k in range(nr):
+            if not np.isfinite(phi[k]):
+                return it, 3, c, factorised, 0.0
+            nphi = max(nphi, abs(phi[k]))
+        phi_ok = nphi <= ctol
         if it == 1:
-            # the forces' scale: the residual's and the efforts holding the prescribed joints (the
-            # Python step's multipliers' rows); at rest, the residual alone is round-off
-            Rs = max(nR, held, 1e-300)
+            # the forces' scale: the residual's, the efforts holding the prescribed joints and the
+            # multipliers (the Python step's multipliers' rows); at rest, the residual alone is round-off
+            Rs = max(nR, held, lam_force, 1e-300)
             if elastic:       # round-off of the elastic forces (a robot resting on obstacles)
                 noise = elastic_noise(K, qt, q_ref)
-        if forces_balanced(nR, Rs, tol, noise):
+        if phi_ok and forces_balanced(nR, Rs, tol, noise):
             break
-        if it > 1 and nR > lastR and halvings < 4:
-            # the residual grew: back along the last update (solve.constrained.MechanismSimulator._step)
+        if it > 1 and nR > lastR and halvings < 4 and (nr == 0 or c > 0):
+            # the residual grew: back along the last update (solve.constrained.MechanismSimulator._step;
+            # with constraint rows only among contacts: a constraint's correction may rightly raise it)
             for i in range(nv):
                 dv[i] *= 0.5
                 v1[i] -= dv[i]
+            for j in range(mr):
+                dl[j] *= 0.5
+                lam[rows[j]] -= dl[j]
             halvings += 1
             continue
         free_newton_update(Ainv, R, fixed, dv)
+        if mr > 0:              # dv = y + Z dl, S dl = -Phi_1 - th h G_1 y (closed_step)
+            for j in range(mr):
+                s = 0.0
+                for k in range(nv):
+                    s += G1f[j, k] * dv[k]
+                rhs[j] = -phi[rows[j]] - th * s
+            for i in range(mr):
+                s = 0.0
+                for j in range(mr):
+                    s += Sinv[i, j] * rhs[j]
+                dl[i] = s
+            for i in range(nv):
+                s = 0.0
+                for j in range(mr):
+                    s += Z[i, j] * dl[j]
+                dv[i] += s
         alpha = _transition_alpha(m, w, pj, px, prad, pt, idx, ob_of, obs, n_out, slip, dv, c)
         if spins:
             alpha = min(alpha, _spin_alpha(m, w, pj, px, idx, ob_of, obs, n_out, spin, dv, c))
@@ -377,23 +435,34 @@ def contact_step(m, w, act, ld, g, coef, effort, K, D, q_ref, elastic, q0, v0, h
             v1[i] += dv[i]
             ndv = max(ndv, abs(dv[i]))
             vmax = max(vmax, abs(v1[i]), abs(v0[i]))
+        for j in range(mr):
+            dl[j] *= alpha
+            lam[rows[j]] += dl[j]
         for i in range(nv):
             if fixed[i]:            # the held joints' efforts, linearised along the update
                 for j in range(nv):
                     R[i] += Afix[i, j] * dv[j]
+                for j in range(mr):
+                    R[i] -= Gtf[j, i] * dl[j]
         lastR, halvings = nR, 0
         if not np.isfinite(ndv):
-            return it, 3, c, factorised
+            return it, 3, c, factorised, 0.0
         if it == 1:
             first = ndv
         vs = max(vmax, first, 1e-300)
-        if update_converged(ndv, vs, tol, floor, prev, it > 2):
+        if phi_ok and update_converged(ndv, vs, tol, floor, prev, it > 2):
             break
         refactor = it > 1 and ndv > 0.25 * prev
         prev = ndv
     else:
-        return max_it, 1, c, factorised
+        return max_it, 1, c, factorised, 0.0
     for k in range(nv):
         vt[k] = (1.0 - theta) * v0[k] + theta * v1[k]
     integrate_pass(m, q0, vt, h, q1)
-    return it, 0, c, factorised
+    lam_max = 0.0
+    for k in range(lam.shape[0]):
+        lam_max = max(lam_max, abs(lam[k]))
+    for k in range(nv):
+        if fixed[k]:
+            lam_max = max(lam_max, abs(R[k]))
+    return it, 0, c, factorised, lam_max

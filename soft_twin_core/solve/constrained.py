@@ -970,15 +970,16 @@ class MechanismSimulator:
         self._carried = None if carried is None else carried[1:3]   # a prescribed base's free joint (q, v offsets)
         self._fixed = np.zeros(tree.nv, dtype=np.bool_)
         self._fixed[self._pos_v] = True
-        # the compiled step (engine.contact_step) serves every robot without constraint rows: with
-        # obstacles or without (then only its position-controlled joints need more than the rod's
-        # integrator). Closed chains keep the Python KKT step: a loop's constraint rows couple joints
-        # across the loop and cannot be eliminated one joint at a time as a position command can.
+        # the compiled step (engine.contact_step) serves every robot with obstacles, with constraint rows
+        # (closed chains, a prescribed base) or without, and those without obstacles and constraint rows
+        # whose position-controlled joints need more than the rod's integrator. A loop's constraint rows
+        # couple joints across the loop and cannot be eliminated one joint at a time as a position command
+        # can: they keep their multipliers (the Schur complement on them, as in engine.closed_step).
         one_dof = all(tree.joints[i].kind in (REVOLUTE, PRISMATIC) for i in pos)
         # (the compiled steps' Newton runs on every velocity coordinate; with variable-strain segments the
         # unknowns are the basis's coordinates: the reduced step below, or the Python KKT step projected)
         eliminable = one_dof and mech.basis is None
-        self._use_compiled_step = compiled and mech.n_constraint_rows == 0 and eliminable
+        self._use_compiled_step = compiled and eliminable and (mech.n_constraint_rows == 0 or bool(self.contact))
         # constraint rows, no contacts: the compiled KKT step (engine.closed_step), the Python one its
         # fallback when it fails
         self._use_closed_step = compiled and mech.n_constraint_rows > 0 and eliminable and not self.contact
@@ -1064,8 +1065,8 @@ class MechanismSimulator:
         """One step of h with contacts: if Newton fails (a contact made or
         lost within the step), two halves, down to ``max_substep_levels``."""
         try:
-            if self._use_compiled_step:     # no constraint rows: the compiled step
-                return self._compiled_step(inp, h)
+            if self._use_compiled_step:     # the compiled step
+                return self._compiled_step(inp, targets, h)
             return self._step(inp, targets, h)
         except StepError:
             if level >= self.max_substep_levels:
@@ -1085,11 +1086,12 @@ class MechanismSimulator:
             self._obstacles0, self.contact = start, end
             raise
 
-    def _compiled_step(self, inp, h):
-        """One step of h without constraint rows (with contacts or none):
-        :func:`engine.contact_step.contact_step` (the Newton iteration of
-        :meth:`_step`, compiled), its inverse Newton matrix kept for the
-        next step while the same points touch. A position-controlled joint
+    def _compiled_step(self, inp, targets, h):
+        """One step of h with contacts, or with position-controlled joints
+        and no constraint rows: :func:`engine.contact_step.contact_step`
+        (the Newton iteration of :meth:`_step`, compiled; constraint rows by
+        their Schur complement, as :meth:`_closed_step`), its inverse Newton
+        matrix kept for the next step while the same points touch. A position-controlled joint
         is eliminated: its end-of-step velocity makes ``q_1 = q_cmd``
         (``q_1 = q_0 + h v_theta``), and its multiplier (the effort that
         holds it) is its residual row, as the KKT step's ``q_j = q_cmd``
@@ -1104,31 +1106,28 @@ class MechanismSimulator:
         obs0 = obs if start is None else obstacle_arrays(tuple(start) + tuple(self.mech.shapes))
         held = self._compiled_held
         if held is None or held["h"] != h or held["obstacles"] != len(obstacles):
-            nv = tree.nv
-            held = self._compiled_held = dict(h=h, obstacles=len(obstacles), Ainv=np.zeros((nv, nv)),
-                                              Afix=np.zeros((nv, nv)),
-                                              key=np.zeros(len(pts) * len(obstacles) + 1, np.int64), reuse=False,
-                                              still=obs.body >= 0)
+            held = self._compiled_held = self._held_step_arrays(h, targets, inp)
+            held.update(obstacles=len(obstacles), key=np.zeros(len(pts) * len(obstacles) + 1, np.int64),
+                        still=obs.body >= 0)
         moving = held["still"] if start is None else (obs.body >= 0) | np.array(
             [a is not b for a, b in zip(start, contact.obstacles)] + [False] * len(self.mech.shapes))
-        if held.get("inputs") is not inp:        # the inputs' arrays, once per Inputs
-            coef = tendon_coefficients(self.act, inp.u)
-            held.update(inputs=inp, coef=coef, loads=concat_loads(inp.loads))
+        arr, nc = self._step_arrays_of(held, targets, inp), held["nc"]
         size = len(pts) * len(obstacles)
         out = (np.empty(size, np.int64), np.empty(size, np.int64), np.empty((size, 3)), np.empty(size),
                np.empty((size, 3)), np.empty((size, 3, 3)), np.empty((size, 3, 3)), np.empty((size, 3, 3)),
                np.empty((size, 3, 3)), np.empty((size, 3)), np.empty((size, 3)), np.empty((size, 3)),
                np.empty((size, 3)), np.empty(size), np.empty(size))
-        v1, q1, pt, R = self.v.copy(), np.empty(tree.nq), np.empty((len(pts), 3)), np.empty(tree.nv)
-        pv, th = self._pos_v, self.theta
+        v1, q1, pt, R = self.v.copy(), np.empty(tree.nq), np.empty((len(pts), 3)), arr.R
+        lam = self.lam[:nc].copy()
+        pv, th, length = self._pos_v, self.theta, max(self.Ls, 1.0)
         if pv.size:
             v1[pv] = ((inp.q_cmd - self.q[self._pos_q]) / h - (1 - th) * self.v[pv]) / th
-        it, status, c, fresh = contact_step(
-            ws.m, ws.w, self.act, held["loads"], inp.gravity, held["coef"], inp.effort, self.K, self.D, tree.q0,
-            tree.nq == tree.nv, self.q, self.v, h, self.theta, self.tol, 1e-14 * max(self.Ls, 1.0) / h,
-            self.max_iterations, pts.joint, pts.x, pts.offset, pts.radius, pts.modulus, pts.weight,
-            allowed, obs, obs0, *self._posed_arrays(obs0, obs), moving, self._fixed,
-            held["Ainv"], held["Afix"], held["key"], held["reuse"], v1, q1, pt, R, *out)
+        it, status, c, fresh, lam_next = contact_step(
+            ws.m, ws.w, self.act, held["loads"], inp.gravity, held["coef"], inp.effort, arr, tree.nq == tree.nv,
+            self.q, self.v, h, th, self.tol, 1e-14 * length / h, self.max_iterations, self.constraint_tol * length,
+            self._lam_force(held) * length, lam, pts.joint, pts.x, pts.offset, pts.radius, pts.modulus,
+            pts.weight, allowed, obs, obs0, *self._posed_arrays(obs0, obs), moving, held["key"], held["reuse"], v1,
+            q1, pt, *out)
         self._kkt_factorisations += fresh
         # kept for the next step if it converged fast: without contacts the matrix changes smoothly
         # (the pan-tilt arm: 0.46 factorisations a step, 181 -> 154 us); contacts' stiffness jumps
@@ -1136,12 +1135,17 @@ class MechanismSimulator:
         if status:
             why = {1: f"Newton did not converge in {self.max_iterations} iterations", 3: "non-finite residual",
                    4: "singular Newton matrix"}[status]
+            if nc and status == 1:
+                why += f" (constraint error {np.abs(arr.phi).max(initial=0):.3g})"
             raise StepError(f"step at t = {self.t:.6g} s: {why}")
         idx = out[0][:c]
         self.a = (v1 - self.v) / h
         if pv.size:      # their velocity as the KKT step leaves it (MechanismSimulator._step), their efforts
             v1[pv] = inp.v_cmd if inp.v_cmd is not None else (q1[self._pos_q] - self.q[self._pos_q]) / h
-            self.lam = R[pv].copy()
+        if nc or pv.size:
+            self.lam = np.concatenate([lam, R[pv]]) if pv.size else lam
+            held["lam_max"] = (lam_next, self.lam)
+        self._carried_velocity(self.q, q1, v1, h)
         self.q, self.v = q1, v1
         n_, gap, F, dF, dV, dFf, dVf, M, slip, arm, barm, spin, dW = (x[:c] for x in out[2:])
         self.contacts = ContactState(idx, out[1][:c], pt[idx], n_, gap, F, dF, dV, M, slip, body=obs.body[out[1][:c]],
@@ -1176,6 +1180,45 @@ class MechanismSimulator:
             self._closed_held = None
         self._step(inp, targets)
 
+    def _held_step_arrays(self, h, targets, inp):
+        """What a compiled step (closed_step, contact_step) keeps for the
+        next ones at step h: its :class:`ClosedArrays` (the constraints, the
+        independent rows at the current state, the factors), the multipliers'
+        size the last step left (``lam_max``), whether the targets moved."""
+        tree, mech = self.tree, self.mech
+        nc = mech.n_constraint_rows
+        rows = np.zeros(0, np.int64)
+        if nc:
+            _, G = constraint_rows(mech, self.ws, self.q, targets, inp.q_cmd)
+            rows = independent_rows(G[:nc]).astype(np.int64)
+        nv, mr = tree.nv, len(rows)
+        cj, cx, ckind, crows, csize, ctarget = self._closed_arrays(None)
+        z = np.zeros
+        return dict(h=h, nc=nc, rows=rows, reuse=False, lam_max=None, moved=False,
+                    arrays=ClosedArrays.of(self.K, self.D, tree.q0, cj, cx, ckind, crows, csize, ctarget.copy(), rows,
+                                           self._fixed, z((nv, nv)), z((nv, nv)), z((nv, mr)), z((mr, mr)),
+                                           z((mr, nv)), z((mr, nv)), np.empty(nv), np.empty(nc)))
+
+    def _step_arrays_of(self, held, targets, inp):
+        """The held ClosedArrays with this step's constraint targets, and
+        the inputs' arrays (once per Inputs) in ``held``."""
+        c = held["arrays"]
+        moved = targets is not None and any(t is not None for t in targets)
+        if moved or held["moved"]:              # the constraints' world targets of this step (or back to their own)
+            c.ctarget[:] = self._closed_arrays(targets)[5]
+            held["moved"] = moved
+        if held.get("inputs") is not inp:
+            held.update(inputs=inp, coef=tendon_coefficients(self.act, inp.u), loads=concat_loads(inp.loads))
+        return c
+
+    def _lam_force(self, held):
+        """The multipliers' and held efforts' size as the last compiled step
+        left it (else from ``self.lam``: set from outside)."""
+        lam_max = held["lam_max"]
+        if lam_max is None or lam_max[1] is not self.lam:
+            return np.abs(self.lam).max(initial=0)
+        return lam_max[0]
+
     def _closed_arrays(self, targets):
         """The constraints' arrays for :func:`engine.closed_step.closed_step`:
         frames (joint, x), kinds, rows C (k, 6, 6) and sizes, world targets."""
@@ -1189,7 +1232,8 @@ class MechanismSimulator:
                 crows[k, :c.size] = c.rows()
             arrays = (joint, kernel_array(x), np.array([CLAMPED if c.kind == "clamped" else 0 for c in cs], np.int64),
                       crows, np.array([c.size for c in cs], np.int64),
-                      np.ascontiguousarray([np.eye(4) if c.target is None else c.target for c in cs], dtype=float))
+                      np.ascontiguousarray([np.eye(4) if c.target is None else c.target for c in cs],
+                                           dtype=float).reshape(-1, 4, 4))
             object.__setattr__(mech, "_closed_arrays", arrays)
         if targets is None or all(t is None for t in targets):
             return arrays
@@ -1206,42 +1250,21 @@ class MechanismSimulator:
         step while steps converge fast, as :meth:`_compiled_step` does. The
         position-controlled joints eliminated as there. Raises StepError
         (state unchanged) if it fails."""
-        tree, ws, mech = self.tree, self.ws, self.mech
+        tree, ws = self.tree, self.ws
         held = self._closed_held
         if held is None or held["h"] != h:
-            nc = mech.n_constraint_rows
-            _, G = constraint_rows(mech, ws, self.q, targets, inp.q_cmd)
-            rows = independent_rows(G[:nc]).astype(np.int64)
-            nv, mr = tree.nv, len(rows)
-            cj, cx, ckind, crows, csize, ctarget = self._closed_arrays(None)
-            z = np.zeros
-            held = self._closed_held = dict(
-                h=h, nc=nc, rows=rows, reuse=False, lam_max=None, moved=False,
-                arrays=ClosedArrays.of(self.K, self.D, tree.q0, cj, cx, ckind, crows, csize, ctarget.copy(), rows,
-                                       self._fixed, z((nv, nv)), z((nv, nv)), z((nv, mr)), z((mr, mr)), z((mr, nv)),
-                                       z((mr, nv)), np.empty(nv), np.empty(nc)))
-        c = held["arrays"]
-        moved = targets is not None and any(t is not None for t in targets)
-        if moved or held["moved"]:              # the constraints' world targets of this step (or back to their own)
-            c.ctarget[:] = self._closed_arrays(targets)[5]
-            held["moved"] = moved
-        if held.get("inputs") is not inp:        # the inputs' arrays, once per Inputs
-            coef = tendon_coefficients(self.act, inp.u)
-            held.update(inputs=inp, coef=coef, loads=concat_loads(inp.loads))
-        nc, R, phi = held["nc"], c.R, c.phi      # (scratch of the kernel's: R[pv] copied out below)
+            held = self._closed_held = self._held_step_arrays(h, targets, inp)
+        c, nc = self._step_arrays_of(held, targets, inp), held["nc"]
+        R, phi = c.R, c.phi                      # (scratch of the kernel's: R[pv] copied out below)
         v1, q1 = self.v.copy(), np.empty(tree.nq)
         lam = self.lam[:nc].copy()
         pv, th, length = self._pos_v, self.theta, max(self.Ls, 1.0)
         if pv.size:
             v1[pv] = ((inp.q_cmd - self.q[self._pos_q]) / h - (1 - th) * self.v[pv]) / th
-        # the multipliers' and held efforts' size, as the last step left it (else from self.lam)
-        lam_max = held["lam_max"]
-        if lam_max is None or lam_max[1] is not self.lam:
-            lam_max = (np.abs(self.lam).max(initial=0), None)
         it, status, fresh, lam_next = closed_step(
             ws.m, ws.w, self.act, held["loads"], inp.gravity, held["coef"], inp.effort, c, tree.nq == tree.nv,
             self.q, self.v, h, th, self.tol, 1e-14 * length / h, self.max_iterations, self.constraint_tol * length,
-            lam_max[0] * length, held["reuse"], v1, lam, q1)
+            self._lam_force(held) * length, held["reuse"], v1, lam, q1)
         self._kkt_factorisations += fresh
         held["reuse"] = self.reuse_factorisation and status == 0 and it <= 5
         if status:

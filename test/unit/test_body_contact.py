@@ -154,7 +154,7 @@ def test_the_compiled_step_with_a_loose_body_is_the_python_step():
     v[iv] = 0.2                                 # body x = world x
     sims = [MechanismSimulator(mech, 1e-3, 0.5, q=q, v=v, tol=1e-12) for _ in range(2)]
     python = sims[1]
-    python._compiled_step = lambda inp, h: python._step(inp, None, h)
+    python._compiled_step = lambda inp, targets, h: python._step(inp, targets, h)
     touched = 0
     for k in range(80):
         for sim in sims:
@@ -249,10 +249,10 @@ def test_the_compiled_step_eliminates_a_position_controlled_joint_as_the_kkt_ste
     mech = _gripper()
     sims = [MechanismSimulator(mech, 5e-4, 0.5, tol=1e-12) for _ in range(2)]
     calls = []
-    for sim, step in zip(sims, (sims[0]._compiled_step, lambda inp, h: sims[1]._step(inp, None, h))):
-        def counted(inp, h, step=step, sim=sim):
+    for sim, step in zip(sims, (sims[0]._compiled_step, lambda inp, targets, h: sims[1]._step(inp, targets, h))):
+        def counted(inp, targets, h, step=step, sim=sim):
             calls.append(sim)
-            return step(inp, h)
+            return step(inp, targets, h)
         sim._compiled_step = counted
     split = 0
     tree = mech.tree
@@ -309,7 +309,7 @@ def test_a_ball_spinning_on_the_floor_stops_at_the_rate_of_its_torsional_frictio
     mech = _spinning_ball(mu_t, r)
     iv = mech.tree.idx_v[mech.tree.joint_index("ball")]
     sims = [MechanismSimulator(mech, 1e-3, 0.5) for _ in range(2)]
-    sims[1]._compiled_step = lambda inp, h: sims[1]._step(inp, None, h)
+    sims[1]._compiled_step = lambda inp, targets, h: sims[1]._step(inp, targets, h)
     spins = []
     for sim in sims:
         sim.step(n=100)                         # settled on the floor
@@ -433,7 +433,7 @@ def test_a_ball_on_an_incline_rolls_at_five_sevenths_g_sin_alpha_or_slides_and_s
     mech = _ball_on_incline(mu, 20.0, r, m)
     iq = mech.tree.idx_q[mech.tree.joint_index("ball")]
     sims = [MechanismSimulator(mech, 1e-3, 0.5) for _ in range(2)]
-    sims[1]._compiled_step = lambda inp, h: sims[1]._step(inp, None, h)
+    sims[1]._compiled_step = lambda inp, targets, h: sims[1]._step(inp, targets, h)
     runs = []
     for sim in sims:
         t, x, phi, energy = [], [], [], []
