@@ -36,14 +36,15 @@ def tiny_models():
 PARTS = ("passes", "leaves", "rods", "mechanism", "contact", "ik")
 
 # Side by side (numba compiles on one core, and its cache is per function):
-# one lane a process. This one compiles the passes, then what the rods and
-# the mechanisms add; a side process meanwhile compiles what links no pass
-# (the contact law's pairs, the bounded least squares), then waits until
-# the passes are cached (NEEDS) and compiles the contact steps, then the
-# IK's. Cold on a quiet 2-core machine, the two lanes at once: passes 31 s,
-# rods 17 s, mechanism 10 s | leaves 23 s, (waits 8 s), contact 23 s, ik
-# 10 s: 65 s in all (the three parts of before, two at once: 171 s).
-LANES = (("passes", "rods", "mechanism"), ("leaves", "contact", "ik"))
+# one lane a process. This one compiles the passes, then what the rods, the
+# mechanisms and the IK add; a side process meanwhile compiles what links no
+# pass (the contact law's pairs, the bounded least squares), then waits
+# until the passes are cached (NEEDS) and compiles the contact step (which
+# also takes constraint rows). Cold on a 2-core machine, the two lanes at
+# once: passes 33 s, rods 16 s, mechanism 6 s, ik 9 s | leaves 25 s, (waits
+# 8 s), contact 25 s: 65 s in all (the IK in the side lane, after the
+# contact step: 69 s; the three parts of before, two at once: 171 s).
+LANES = (("passes", "rods", "mechanism", "ik"), ("leaves", "contact"))
 NEEDS = {"rods": "passes", "mechanism": "passes", "contact": "passes", "ik": "rods"}
 
 # How long a side lane waits for a part another process compiles before it
