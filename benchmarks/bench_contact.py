@@ -12,6 +12,10 @@ ratio; and the statics solve from the settled state.
 
 Issue 27's goal: at most 2x the cost without contact at the same dt.
 
+Then robots with constraint rows and obstacles (the catheter on its
+prescribed base, the planar parallel robot pressed by a ball): the compiled
+contact step against the Python KKT step.
+
 Run: .venv/bin/python benchmarks/bench_contact.py [--sections 5 10 20] [--spacing 0.045]
 (--spacing 0.03: about 10 contacts pressed; --friction 0.5: friction at the contact surface)
 """
@@ -64,6 +68,38 @@ def main():
         t_static = time.perf_counter() - t0
         print(f"{n:>8} {len(eq.contacts):>8} {fmt(times[0]):>12} {fmt(times[1]):>12} {times[1] / times[0]:>6.1f} "
               f"{fmt(t_static):>12}")
+    with_rows()
+
+
+def with_rows(n=200):
+    """Robots with constraint rows and obstacles (the compiled contact step
+    solves the rows by their Schur complement): wall time per step over n
+    steps from rest, the compiled step against the Python KKT step, Newton
+    iterations a step; the catheter also without its vessel."""
+    import yaml
+    from soft_twin_core.robot.mechanism import load_mechanism, mechanism_from_dict
+    from soft_twin_core.robot.model import find_file
+    with open(find_file("planar_parallel_robot", "robots")) as f:
+        d = yaml.safe_load(f)
+    d["obstacles"] = [{"name": "ball", "type": "sphere", "center": [-0.0715, 0.0, 0.2], "radius": 0.02,
+                       "friction": 0.2, "stiction_velocity": 1e-3, "damping": 1.0}]      # pressing on rod 1
+    d["contact"] = {"spacing": 0.01}
+    cases = [("catheter in its vessel, dt 1 ms", load_mechanism(find_file("catheter_in_vessel", "robots")), 1e-3, None),
+             ("  the same without the vessel", load_mechanism(find_file("catheter_in_vessel", "robots")), 1e-3, ()),
+             ("parallel robot on a ball, dt 5 ms", mechanism_from_dict(d), 5e-3, None)]
+    print(f"\n# constraint rows and obstacles, {n} steps from rest, load {os.getloadavg()[0]:.2f}")
+    print(f"{'robot':>34} {'dof':>4} {'rows':>4} {'compiled':>10} {'it/step':>7} {'Python KKT':>10} {'it/step':>7}")
+    for name, mech, dt, obstacles in cases:
+        row = []
+        for compiled in (True, False):
+            kw = {} if obstacles is None else {"obstacles": obstacles}
+            sim = MechanismSimulator(mech, dt, compiled=compiled, **kw)
+            sim.step()                         # (compile)
+            it0, t0 = sim.newton_iterations, time.perf_counter()
+            sim.step(n=n)
+            row += [(time.perf_counter() - t0) / n, (sim.newton_iterations - it0) / n]
+        print(f"{name:>34} {mech.tree.nv:>4} {mech.n_constraint_rows:>4} {fmt(row[0]):>10} {row[1]:>7.2f} "
+              f"{fmt(row[2]):>10} {row[3]:>7.2f}")
 
 
 if __name__ == "__main__":
