@@ -53,6 +53,7 @@ def test_the_filter_follows_a_pushed_parallel_robot_and_estimates_the_push(tmp_p
                             cwd=ROOT, env=os.environ.copy(), stdout=log, stderr=subprocess.STDOUT, text=True)
     client = Client(NS, "closed_chain_estimator_test_client", backbones=("rod1", "rod2"))
     stop = threading.Event()
+    streamer = None
     try:
         assert client.wait_until(lambda: client.tip_count > 0 and client.pub_pose.get_subscription_count() > 0,
                                  120.0), "estimator node did not come up:\n" + (tmp_path / "node.log").read_text()[-3000:]
@@ -75,7 +76,8 @@ def test_the_filter_follows_a_pushed_parallel_robot_and_estimates_the_push(tmp_p
                 ps.pose = pose_msg(ts.simulate_measurement(sensors[0], z_true, rng))
                 client.pub_pose.publish(ps)
                 stop.wait(0.01)
-        threading.Thread(target=stream, daemon=True).start()
+        streamer = threading.Thread(target=stream, daemon=True)
+        streamer.start()
 
         def settled(n=50):
             tips = client.tips[-n:]
@@ -89,6 +91,8 @@ def test_the_filter_follows_a_pushed_parallel_robot_and_estimates_the_push(tmp_p
         assert client.diag["integrator_failures"] == "0", client.diag
     finally:
         stop.set()
+        if streamer is not None:     # (done publishing before the client's publisher is destroyed)
+            streamer.join(10.0)
         client.close()
         stop_estimator(proc)
         log.close()
