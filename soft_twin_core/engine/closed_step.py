@@ -202,6 +202,43 @@ def _schur(Ainv, Gt, G1, rows, th, fixed, Z, Sinv, G1f, Gtf):
     return True
 
 
+@_jit_inner
+def schur_update(G1f, Sinv, Z, phi, rows, th, dv, rhs, dl):
+    """The KKT system's update from the free one (dv = y = -A^-1 R on
+    entry): ``S dl = -Phi_1 - th h G_1 y`` (S^-1, G_1 over the independent
+    ``rows``: the factorisation's), then ``dv = y + Z dl`` in place
+    (``th``: theta h; rhs: scratch)."""
+    nv, mr = dv.shape[0], rows.shape[0]
+    for j in range(mr):
+        s = 0.0
+        for c in range(nv):
+            s += G1f[j, c] * dv[c]
+        rhs[j] = -phi[rows[j]] - th * s
+    for i in range(mr):
+        s = 0.0
+        for j in range(mr):
+            s += Sinv[i, j] * rhs[j]
+        dl[i] = s
+    for i in range(nv):
+        s = 0.0
+        for j in range(mr):
+            s += Z[i, j] * dl[j]
+        dv[i] += s
+
+
+@_jit_inner
+def reaction_size(lam, R, fixed):
+    """The largest multiplier or held joint's effort (its residual row):
+    the next step's constraint forces' scale."""
+    out = 0.0
+    for k in range(lam.shape[0]):
+        out = max(out, abs(lam[k]))
+    for k in range(R.shape[0]):
+        if fixed[k]:
+            out = max(out, abs(R[k]))
+    return out
+
+
 @_jit
 def closed_step(m, w, act, ld, g, coef, effort, c, elastic, q0, v0, h, theta, tol, floor, max_it, ctol, lam_force,
                 reuse, v1, lam, q1):
@@ -276,24 +313,11 @@ def closed_step(m, w, act, ld, g, coef, effort, c, elastic, q0, v0, h, theta, to
             break              # balanced: forces to tol of their scale, constraints held
         # dv = y + Z dl, y = -A^-1 R;  S dl = -Phi_1 - th h G_1 y (the factorisation's G_1)
         free_newton_update(Ainv, R, fixed, y)
-        for j in range(mr):
-            s = 0.0
-            for c in range(nv):
-                s += G1f[j, c] * y[c]
-            rhs[j] = -phi[rows[j]] - th * s
-        for i in range(mr):
-            s = 0.0
-            for j in range(mr):
-                s += Sinv[i, j] * rhs[j]
-            dl[i] = s
+        schur_update(G1f, Sinv, Z, phi, rows, th, y, rhs, dl)          # (y now dv)
         ndv, vmax = 0.0, 0.0
         for i in range(nv):
-            s = y[i]
-            for j in range(mr):
-                s += Z[i, j] * dl[j]
-            v1[i] += s
-            y[i] = s                   # (now dv)
-            ndv = max(ndv, abs(s))
+            v1[i] += y[i]
+            ndv = max(ndv, abs(y[i]))
             vmax = max(vmax, abs(v1[i]), abs(v0[i]))
         for i in range(nv):
             if fixed[i]:               # the held joints' efforts, linearised along the update
@@ -321,10 +345,4 @@ def closed_step(m, w, act, ld, g, coef, effort, c, elastic, q0, v0, h, theta, to
     for k in range(nv):
         vt[k] = (1.0 - theta) * v0[k] + theta * v1[k]
     integrate_pass(m, q0, vt, h, q1)
-    lam_max = 0.0
-    for k in range(lam.shape[0]):
-        lam_max = max(lam_max, abs(lam[k]))
-    for k in range(nv):
-        if fixed[k]:
-            lam_max = max(lam_max, abs(R[k]))
-    return it, 0, factorised, lam_max
+    return it, 0, factorised, reaction_size(lam, R, fixed)

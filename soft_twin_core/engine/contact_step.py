@@ -17,7 +17,8 @@ twin runs (up to ~100 dof) costs less than the glue it replaces."""
 
 import numpy as np
 
-from soft_twin_core.engine.closed_step import _schur, _with_reactions, constraint_values
+from soft_twin_core.engine.closed_step import (_schur, _with_reactions, constraint_values, reaction_size,
+                                               schur_update)
 from soft_twin_core.engine.integrators import integrate_pass, residual_after_forward
 from soft_twin_core.engine.kernels import passes
 from soft_twin_core.engine.kernels.contact import pose_obstacles, step_contacts, transition_fraction
@@ -410,22 +411,8 @@ def contact_step(m, w, act, ld, g, coef, effort, arr, elastic, q0, v0, h, theta,
             halvings += 1
             continue
         free_newton_update(Ainv, R, fixed, dv)
-        if mr > 0:              # dv = y + Z dl, S dl = -Phi_1 - th h G_1 y (closed_step)
-            for j in range(mr):
-                s = 0.0
-                for k in range(nv):
-                    s += G1f[j, k] * dv[k]
-                rhs[j] = -phi[rows[j]] - th * s
-            for i in range(mr):
-                s = 0.0
-                for j in range(mr):
-                    s += Sinv[i, j] * rhs[j]
-                dl[i] = s
-            for i in range(nv):
-                s = 0.0
-                for j in range(mr):
-                    s += Z[i, j] * dl[j]
-                dv[i] += s
+        if mr > 0:              # the constraint rows' part: dv = y + Z dl
+            schur_update(G1f, Sinv, Z, phi, rows, th, dv, rhs, dl)
         alpha = _transition_alpha(m, w, pj, px, prad, pt, idx, ob_of, obs, n_out, slip, dv, c)
         if spins:
             alpha = min(alpha, _spin_alpha(m, w, pj, px, idx, ob_of, obs, n_out, spin, dv, c))
@@ -459,10 +446,4 @@ def contact_step(m, w, act, ld, g, coef, effort, arr, elastic, q0, v0, h, theta,
     for k in range(nv):
         vt[k] = (1.0 - theta) * v0[k] + theta * v1[k]
     integrate_pass(m, q0, vt, h, q1)
-    lam_max = 0.0
-    for k in range(lam.shape[0]):
-        lam_max = max(lam_max, abs(lam[k]))
-    for k in range(nv):
-        if fixed[k]:
-            lam_max = max(lam_max, abs(R[k]))
-    return it, 0, c, factorised, lam_max
+    return it, 0, c, factorised, reaction_size(lam, R, fixed)
