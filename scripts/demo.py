@@ -191,7 +191,10 @@ def main(argv=None):
                 next_frame += 1.0 / FRAME_RATE
             wake = min(next_cmd, next_sample, next_frame)
             client.wait_until(lambda: time.monotonic() >= wake, max(0.0, wake - time.monotonic()) + 0.01)
-        diag = client.wait_diagnostics(timeout=3.0) or {}
+        # on a busy machine the node may still be taking the last commands: stop it (and its recording)
+        # only once it has them all (at most 10 s)
+        diag = client.wait_diagnostics(lambda d: int(d.get("commands_received_total", "0")) >= sent, 10.0) \
+            or client.wait_diagnostics(timeout=3.0) or {}
     finally:
         client.close()
         rc = proc.stop()
