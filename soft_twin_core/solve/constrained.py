@@ -1063,10 +1063,18 @@ class MechanismSimulator:
 
     def _contact_step(self, inp, targets, h, level):
         """One step of h with contacts: if Newton fails (a contact made or
-        lost within the step), two halves, down to ``max_substep_levels``."""
+        lost within the step), two halves, down to ``max_substep_levels``.
+        With constraint rows the compiled step's failure is first retried by
+        the Python step (as :meth:`_closed_or_kkt_step` does: its rows are
+        taken again at the next step)."""
         try:
             if self._use_compiled_step:     # the compiled step
-                return self._compiled_step(inp, targets, h)
+                try:
+                    return self._compiled_step(inp, targets, h)
+                except StepError:
+                    if not self.mech.n_constraint_rows:
+                        raise
+                    self._compiled_held = None
             return self._step(inp, targets, h)
         except StepError:
             if level >= self.max_substep_levels:

@@ -940,6 +940,37 @@ def test_the_compiled_step_with_constraint_rows_is_the_python_step(case):
     assert compared >= n - 2 and contacts >= 40
 
 
+def test_a_failed_compiled_step_with_constraint_rows_is_retried_by_the_python_step():
+    """With constraint rows, a compiled step that fails (its rows'
+    factorisation singular, Newton stalled) is retried by the Python KKT
+    step at the same dt before the step is split in halves, and its rows
+    are taken again at the next step."""
+    from soft_twin_core.errors import StepError
+    from soft_twin_core.robot.mechanism import load_mechanism
+    from soft_twin_core.robot.model import find_file
+    mech = load_mechanism(find_file("catheter_in_vessel", "robots"))
+    sim = MechanismSimulator(mech, 1e-3, 0.5, tol=1e-12)
+    ref = MechanismSimulator(mech, 1e-3, 0.5, tol=1e-12, compiled=False)
+    sim.step()
+    assert sim._compiled_held is not None
+    calls = {"compiled": [], "python": []}
+    python = sim._step
+
+    def failing(inp, targets, h):
+        calls["compiled"].append(h)
+        raise StepError("singular Newton matrix (forced)")
+
+    def counted(inp, targets, h=None):
+        calls["python"].append(h)
+        return python(inp, targets, h)
+    sim._compiled_step, sim._step = failing, counted
+    ref.q, ref.v, ref.a, ref.lam = sim.q.copy(), sim.v.copy(), sim.a.copy(), sim.lam.copy()
+    sim.step()
+    ref.step()
+    assert calls == {"compiled": [1e-3], "python": [1e-3]} and sim._compiled_held is None
+    assert np.abs(sim.q - ref.q).max() <= 1e-12 * max(np.abs(ref.q).max(), 1.0)
+
+
 def _cube_mesh(centre, size):
     """A box's 8 corners and 12 triangles (some turned inward: the loader
     turns them out)."""
