@@ -899,6 +899,25 @@ class _FreeState:
 
 _NO_POINTS = ContactPoints(np.zeros(0, np.int64), np.zeros(0), np.zeros(0), np.zeros(0), np.zeros(0), (),
                            np.zeros(0))
+_NO_PAIRS = np.zeros((0, 0), np.bool_)
+
+
+def _new_contact_outputs(size):
+    """The compiled contact step's output arrays for ``size`` (point,
+    obstacle) pairs (:func:`engine.contact_step.contact_step`: index,
+    obstacle, normal, gap, force, its derivatives, moment, slip, arms,
+    spin, dM/dw)."""
+    return (np.empty(size, np.int64), np.empty(size, np.int64), np.empty((size, 3)), np.empty(size),
+            np.empty((size, 3)), np.empty((size, 3, 3)), np.empty((size, 3, 3)), np.empty((size, 3, 3)),
+            np.empty((size, 3, 3)), np.empty((size, 3)), np.empty((size, 3)), np.empty((size, 3)),
+            np.empty((size, 3)), np.empty(size), np.empty(size))
+
+
+_NO_OUTPUTS = _new_contact_outputs(0)        # (shared: nothing is written into empty arrays)
+
+
+def _contact_outputs(size):
+    return _NO_OUTPUTS if size == 0 else _new_contact_outputs(size)
 
 
 class MechanismSimulator:
@@ -1108,7 +1127,7 @@ class MechanismSimulator:
         if contact:
             pts, obstacles, allowed = contact.points, contact.all, contact.allowed
         else:                            # nothing to touch: the step of the position-controlled joints
-            pts, obstacles, allowed = _NO_POINTS, (), np.zeros((0, 0), np.bool_)
+            pts, obstacles, allowed = _NO_POINTS, (), _NO_PAIRS
         obs = obstacle_arrays(obstacles)
         start = self._obstacles0
         obs0 = obs if start is None else obstacle_arrays(tuple(start) + tuple(self.mech.shapes))
@@ -1120,11 +1139,7 @@ class MechanismSimulator:
         moving = held["still"] if start is None else (obs.body >= 0) | np.array(
             [a is not b for a, b in zip(start, contact.obstacles)] + [False] * len(self.mech.shapes))
         arr, nc = self._step_arrays_of(held, targets, inp), held["nc"]
-        size = len(pts) * len(obstacles)
-        out = (np.empty(size, np.int64), np.empty(size, np.int64), np.empty((size, 3)), np.empty(size),
-               np.empty((size, 3)), np.empty((size, 3, 3)), np.empty((size, 3, 3)), np.empty((size, 3, 3)),
-               np.empty((size, 3, 3)), np.empty((size, 3)), np.empty((size, 3)), np.empty((size, 3)),
-               np.empty((size, 3)), np.empty(size), np.empty(size))
+        out = _contact_outputs(len(pts) * len(obstacles))
         v1, q1, pt, R = self.v.copy(), np.empty(tree.nq), np.empty((len(pts), 3)), arr.R
         lam = self.lam[:nc].copy()
         pv, th, length = self._pos_v, self.theta, max(self.Ls, 1.0)
@@ -1155,10 +1170,12 @@ class MechanismSimulator:
             held["lam_max"] = (lam_next, self.lam)
         self._carried_velocity(self.q, q1, v1, h)
         self.q, self.v = q1, v1
-        n_, gap, F, dF, dV, dFf, dVf, M, slip, arm, barm, spin, dW = (x[:c] for x in out[2:])
-        self.contacts = ContactState(idx, out[1][:c], pt[idx], n_, gap, F, dF, dV, M, slip, body=obs.body[out[1][:c]],
-                                     arm=arm, body_arm=barm, spin=spin, dM_dw=dW, dFf_dp=dFf, dFf_dv=dVf,
-                                     radius=pts.radius[idx]) if contact else None
+        self.contacts = None
+        if contact:
+            n_, gap, F, dF, dV, dFf, dVf, M, slip, arm, barm, spin, dW = (x[:c] for x in out[2:])
+            self.contacts = ContactState(idx, out[1][:c], pt[idx], n_, gap, F, dF, dV, M, slip,
+                                         body=obs.body[out[1][:c]], arm=arm, body_arm=barm, spin=spin, dM_dw=dW,
+                                         dFf_dp=dFf, dFf_dv=dVf, radius=pts.radius[idx])
         self.t += h
         self.iterations = it
         self.newton_iterations += it
