@@ -227,6 +227,27 @@ def schur_update(G1f, Sinv, Z, phi, rows, th, dv, rhs, dl):
 
 
 @_jit_inner
+def factors_fit(c, nv):
+    """True if the factors of :class:`ClosedArrays` ``c`` are sized for
+    its independent rows and nv velocities (the kernels index them without
+    bounds checks)."""
+    mr = c.rows.shape[0]
+    return (c.Z.shape[0] == nv and c.Z.shape[1] == mr and c.Sinv.shape[0] == mr and c.Sinv.shape[1] == mr
+            and c.G1f.shape[0] == mr and c.Gtf.shape[0] == mr and c.Ainv.shape[0] == nv and c.Afix.shape[0] == nv)
+
+
+@_jit_inner
+def row_scratch(c, nv):
+    """Scratch of a step with the constraints of ``c``: the frames' poses
+    and Jacobians (gc, Jc), the rows' Jacobians at q_1 and q_t (G1, Gt),
+    their values at q_t (phit), the Schur system's right side and solution
+    (rhs, dl)."""
+    nc2, nr, mr = c.cj.shape[0], c.phi.shape[0], c.rows.shape[0]
+    return (np.empty((nc2, 4, 4)), np.empty((nc2, 6, nv)), np.empty((nr, nv)), np.empty((nr, nv)), np.empty(nr),
+            np.empty(mr), np.zeros(mr))
+
+
+@_jit_inner
 def reaction_size(lam, R, fixed):
     """The largest multiplier or held joint's effort (its residual row):
     the next step's constraint forces' scale."""
@@ -258,23 +279,15 @@ def closed_step(m, w, act, ld, g, coef, effort, c, elastic, q0, v0, h, theta, to
     K, D, q_ref, fixed, rows, R, phi = c.K, c.D, c.q_ref, c.fixed, c.rows, c.R, c.phi
     cj, cx, ckind, crows, csize, ctarget = c.cj, c.cx, c.ckind, c.crows, c.csize, c.ctarget
     Ainv, Afix, Z, Sinv, G1f, Gtf = c.Ainv, c.Afix, c.Z, c.Sinv, c.G1f, c.Gtf
-    nv, nq, nr, nc2 = v0.shape[0], q0.shape[0], phi.shape[0], cj.shape[0]
-    mr = rows.shape[0]
-    if (Z.shape[0] != nv or Z.shape[1] != mr or Sinv.shape[0] != mr or Sinv.shape[1] != mr
-            or G1f.shape[0] != mr or Gtf.shape[0] != mr or Ainv.shape[0] != nv or Afix.shape[0] != nv):
+    nv, nq, nr, mr = v0.shape[0], q0.shape[0], phi.shape[0], rows.shape[0]
+    if not factors_fit(c, nv):
         return 0, 4, 0, 0.0    # factors not of these rows (no bounds checks below)
     zeros = np.zeros(nv)
-    gc = np.empty((nc2, 4, 4))
-    Jc = np.empty((nc2, 6, nv))
-    G1 = np.empty((nr, nv))
-    Gt = np.empty((nr, nv))
-    phit = np.empty(nr)
+    gc, Jc, G1, Gt, phit, rhs, dl = row_scratch(c, nv)
     qt = np.empty(nq)
     vt = np.empty(nv)
     acc = np.empty(nv)
     y = np.empty(nv)
-    rhs = np.empty(mr)
-    dl = np.empty(mr)
     th = theta * h
     refactor, factorised, fresh = not reuse, 0, False
     prev, first, Rs, noise = np.inf, 0.0, 1e-300, 0.0

@@ -17,8 +17,8 @@ twin runs (up to ~100 dof) costs less than the glue it replaces."""
 
 import numpy as np
 
-from soft_twin_core.engine.closed_step import (_schur, _with_reactions, constraint_values, reaction_size,
-                                               schur_update)
+from soft_twin_core.engine.closed_step import (_schur, _with_reactions, constraint_values, factors_fit,
+                                               reaction_size, row_scratch, schur_update)
 from soft_twin_core.engine.integrators import integrate_pass, residual_after_forward
 from soft_twin_core.engine.kernels import passes
 from soft_twin_core.engine.kernels.contact import pose_obstacles, step_contacts, transition_fraction
@@ -279,17 +279,10 @@ def contact_step(m, w, act, ld, g, coef, effort, arr, elastic, q0, v0, h, theta,
     cj, cx, ckind, crows, csize, ctarget = arr.cj, arr.cx, arr.ckind, arr.crows, arr.csize, arr.ctarget
     rows, Z, Sinv, G1f, Gtf = arr.rows, arr.Z, arr.Sinv, arr.G1f, arr.Gtf
     nv, nq, P = v0.shape[0], q0.shape[0], pj.shape[0]
-    nr, mr, nc2 = phi.shape[0], rows.shape[0], cj.shape[0]
-    if (Z.shape[0] != nv or Z.shape[1] != mr or Sinv.shape[0] != mr or Sinv.shape[1] != mr
-            or G1f.shape[0] != mr or Gtf.shape[0] != mr or Ainv.shape[0] != nv or Afix.shape[0] != nv):
+    nr, mr = phi.shape[0], rows.shape[0]
+    if not factors_fit(arr, nv):
         return 0, 4, 0, 0, 0.0   # factors not of these rows (no bounds checks below)
-    gc = np.empty((nc2, 4, 4))
-    Jc = np.empty((nc2, 6, nv))
-    G1 = np.empty((nr, nv))
-    Gt = np.empty((nr, nv))
-    phit = np.empty(nr)
-    rhs = np.empty(mr)
-    dl = np.zeros(mr)
+    gc, Jc, G1, Gt, phit, rhs, dl = row_scratch(arr, nv)
     th = theta * h
     zeros = np.zeros(nv)
     G = np.empty((P, 4, 4))
