@@ -13,7 +13,9 @@ import pytest
 pytest.importorskip("rclpy", reason="needs ROS 2: the venv of `make setup`")
 
 ROOT = Path(__file__).resolve().parents[2]
-pytestmark = [pytest.mark.ros, pytest.mark.slow]
+# quiet: the node follows a 50 Hz command stream in real time and must record every command; on a machine
+# busy with other tests it fell behind (482-497 of 502 recorded in two fresh-clone runs)
+pytestmark = [pytest.mark.ros, pytest.mark.slow, pytest.mark.quiet]
 
 
 def test_demo_writes_png_animation_and_recording(tmp_path):
