@@ -198,10 +198,14 @@ def test_cayley_equals_matrix_definition(theta):
 
 
 def test_cayley_agrees_with_exp_to_third_order():
-    x = RNG.normal(size=6)
-    errs = [np.abs(lie.cay_se3(e * x) - lie.exp_se3(e * x)).max() for e in (1e-1, 5e-2, 2.5e-2)]
+    """|cay(e x) - exp(e x)| = O(e^3): halving e divides it by 8, to 0.01 in
+    the exponent at e = 1e-2 .. 2.5e-3 for every twist (the next term,
+    O(e^2) relative, made it 2.89 at e = 0.1 for some). Its own generator:
+    the module's draws depend on the tests run before."""
+    x = np.random.default_rng(7).normal(size=6)
+    errs = [np.abs(lie.cay_se3(e * x) - lie.exp_se3(e * x)).max() for e in (1e-2, 5e-3, 2.5e-3)]
     orders = np.log2(np.array(errs[:-1]) / np.array(errs[1:]))
-    assert np.all(np.abs(orders - 3.0) < 0.1), orders
+    assert np.all(np.abs(orders - 3.0) < 0.05), orders
 
 
 @pytest.mark.parametrize("theta", ANGLES)
