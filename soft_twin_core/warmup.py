@@ -33,7 +33,7 @@ def tiny_models():
 # The parts, in the order one process compiles them: "passes" first, the
 # passes nearly every kernel links (numba compiles a callee once and links
 # its code into each caller's library).
-PARTS = ("passes", "leaves", "rods", "mechanism", "contact", "ik")
+PARTS = ("passes", "leaves", "rods", "mechanism", "contact", "basis", "ik")
 
 # Side by side (numba compiles on one core, and its cache is per function):
 # one lane a process. This one compiles the passes, then what the rods, the
@@ -44,8 +44,8 @@ PARTS = ("passes", "leaves", "rods", "mechanism", "contact", "ik")
 # once: passes 33 s, rods 16 s, mechanism 6 s, ik 9 s | leaves 25 s, (waits
 # 8 s), contact 25 s: 65 s in all (the IK in the side lane, after the
 # contact step: 69 s; the three parts of before, two at once: 171 s).
-LANES = (("passes", "rods", "mechanism", "ik"), ("leaves", "contact"))
-NEEDS = {"rods": "passes", "mechanism": "passes", "contact": "passes", "ik": "rods"}
+LANES = (("passes", "rods", "mechanism", "ik"), ("leaves", "contact", "basis"))
+NEEDS = {"rods": "passes", "mechanism": "passes", "contact": "passes", "basis": "passes", "ik": "rods"}
 
 # How long a side lane waits for a part another process compiles before it
 # compiles that part's kernels itself [s].
@@ -58,14 +58,16 @@ def run(parts=PARTS, marks=None):
     actuation, the constraints), "leaves" (the contact law's pairs, the
     bounded least squares), "rods" (the tiny arms' statics, dynamics and
     scenario runs), "mechanism" (the pinned tree's dynamics and outputs),
-    "contact" (an arm against four obstacles, statics and dynamics), "ik"
+    "contact" (an arm against four obstacles, statics and dynamics),
+    "basis" (a variable-strain arm's compiled dynamic step), "ik"
     (RNEA's derivatives, the actuation IK). ``marks``: a directory where
     each part done leaves a file of its name (all of them, when one fails),
     and where a part first waits for the one it NEEDS when another process
     compiles that one."""
     from pathlib import Path
     runs = {"passes": tiny_pass_runs, "leaves": tiny_leaf_runs, "rods": tiny_rod_runs,
-            "mechanism": tiny_mechanism_run, "contact": tiny_contact_run, "ik": tiny_ik_runs}
+            "mechanism": tiny_mechanism_run, "contact": tiny_contact_run, "basis": tiny_basis_run,
+            "ik": tiny_ik_runs}
     try:
         for part in PARTS:
             if part not in parts:
@@ -211,6 +213,19 @@ def tiny_contact_run():
     sim.step(n=2)
     sim.step(obstacles=[moved(ob, [0.0, 0.0, 1e-5]) for ob in mech.obstacles])
     transition_step(np.zeros((1, 3)), np.ones((1, 3)), np.ones(1))     # the Python (KKT) step's line search
+
+
+def tiny_basis_run():
+    """A 3-section arm on a Legendre basis of order 1: the compiled step
+    in the basis's coordinates (reduced_step) and its Newton matrix."""
+    from soft_twin_core.robot.mechanism import from_robot_model
+    from soft_twin_core.robot.model import model_from_dict
+    from soft_twin_core.solve.constrained import MechanismSimulator
+    mech = from_robot_model(model_from_dict({"name": "warmup_basis", "segments": [{
+        "length": 0.2, "sections": 3, "cross_section": {"shape": "solid_circle", "radius": 0.01},
+        "material": {"youngs_modulus": 1e6, "density": 1000, "viscosity": 10.0},
+        "strain_basis": {"type": "legendre", "order": 1}}]}))
+    MechanismSimulator(mech, 1e-3).step(n=2)
 
 
 def _pinned_tree():

@@ -40,7 +40,8 @@ from soft_twin_core.engine.contact_step import contact_step
 from soft_twin_core.engine.forces import (actuation_tangent_pass, actuator_arrays, check_member_loads,
                                           concat_loads, gravity_of, load_arrays, point_moment_arrays,
                                           tendon_coefficients)
-from soft_twin_core.engine.integrators import ReducedThetaIntegrator, ThetaIntegrator, integrate_pass, residual_pass
+from soft_twin_core.engine.integrators import ThetaIntegrator, integrate_pass, residual_pass
+from soft_twin_core.engine.reduced_step import ReducedThetaIntegrator
 from soft_twin_core.engine.joint_kinds import FREE, PRISMATIC, REVOLUTE, SPHERICAL
 from soft_twin_core.engine.kernels import passes
 from soft_twin_core.engine.kernels.data import LoadArrays, kernel_array
@@ -938,7 +939,7 @@ class MechanismSimulator:
     steps (:mod:`engine.contact_step`, :mod:`engine.closed_step`) where they
     apply; False: the Python KKT step (a reference). Variable-strain
     segments (``mech.basis``) step in their coordinates: the reduced step
-    (:class:`integrators.ReducedThetaIntegrator`, position-controlled joints
+    (:class:`reduced_step.ReducedThetaIntegrator`, position-controlled joints
     eliminated) without constraint rows or contacts, else the Python KKT
     step projected on the basis. ``iterations``: the last
     call's Newton iterations a step; ``newton_iterations``: all of them so

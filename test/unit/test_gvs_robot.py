@@ -608,6 +608,68 @@ def test_position_controlled_joints_eliminated_in_the_reduced_step_as_in_the_kkt
     assert all(abs(out[0][1][j] - out[1][1][j]) < 1e-9 for j in ("pan", "tilt"))
 
 
+def test_the_compiled_newton_matrix_is_the_projected_one_with_the_held_joints_eliminated():
+    """reduced_step.basis_newton_matrix's inverse against the definition,
+    ``(B^T (M + th D + th^2 K) B)^-1`` from the dense CRBA, on the
+    pan-tilt arm on Legendre order 2 in a bent pose: its position-controlled
+    joints' rows and columns the identity's, the rest the inverse of the
+    free block; a non-finite pose makes no matrix."""
+    from soft_twin_core.engine.reduced_step import basis_newton_matrix
+    gvs, _ = _pan_tilt_gvs(6, 2)
+    sim = MechanismSimulator(gvs, 2e-3, 0.5)
+    integ, tree, B = sim._theta_integrator, gvs.tree, gvs.basis
+    rng = np.random.default_rng(5)
+    q = tree.q0 + B @ (0.2 * rng.normal(size=B.shape[1]))
+    th = 0.5 * 2e-3
+    M = alg.crba(tree, Workspace(tree), q)
+    A = B.T @ (M + th * sim.D + th * th * sim.K) @ B
+    fixed, fz = integ.arrays.fixed, integ._fz
+    assert fixed.sum() == 2 and np.abs(A[np.ix_(fixed, fz)]).max() > 1e-3 * np.abs(A).max()   # coupled: eliminated
+    assert basis_newton_matrix(sim.ws.m, sim.ws.w, q, th, integ.arrays, np.zeros(tree.nv))
+    Ainv = integ.arrays.Ainv
+    ref = np.linalg.inv(A[np.ix_(fz, fz)])
+    assert np.abs(Ainv[np.ix_(fz, fz)] - ref).max() <= 1e-10 * np.abs(ref).max()
+    assert np.array_equal(Ainv[np.ix_(fixed, fixed)], np.eye(2)) and not Ainv[np.ix_(fixed, fz)].any()
+    q[3] = np.nan
+    assert not basis_newton_matrix(sim.ws.m, sim.ws.w, q, th, integ.arrays, np.zeros(tree.nv))
+
+
+@pytest.mark.parametrize("case", ["free cantilever", "held joints", "fallbacks"])
+def test_many_reduced_steps_in_one_call_are_the_single_steps(case):
+    """sim.step(n=k) runs the converged steps of the call in one compiled
+    call (its Newton matrix held and refreshed inside it); k calls of one
+    step carry the same matrix and refresh rule through the integrator:
+    the same states, iterations and efforts to the bit. ``fallbacks``: the
+    pan-tilt arm's joints jump at once (160 rad/s in one step), so
+    steps fail in the compiled call and go on through the integrator's
+    fallbacks (a fresh start from v0, full Newton, halves)."""
+    from soft_twin_core.engine.reduced_step import ReducedThetaIntegrator
+    if case == "free cantilever":
+        mech, kw, inputs = _cantilever(16, {"type": "legendre", "order": 3}, free="all"), {}, {}
+    else:
+        mech, _ = _pan_tilt_gvs(6, 2)
+        kw = dict(max_iterations=10)
+        jump = case == "fallbacks"          # (else held where they start, the tendons swinging the arm)
+        inputs = dict(actuation=[2.0, 0.0, 1.0, 0.0], positions={"pan": 0.4 * jump, "tilt": -0.3 * jump})
+    runs = []
+    for calls in ((40,), (1,) * 40):
+        sim = MechanismSimulator(mech, 2.5e-3, 0.5, tol=1e-8, **kw)
+        assert isinstance(sim._theta_integrator, ReducedThetaIntegrator)
+        tried = []
+        step = sim._theta_integrator.step
+        sim._theta_integrator.step = lambda state, tried=False, log=tried: log.append(tried) or step(state, tried)
+        for n in calls:
+            sim.step(n=n, **inputs)
+        runs.append((sim.q, sim.v, sim.newton_iterations, sim.factorisations, sim.lam, tried))
+    (q1, v1, it1, f1, lam1, tried1), (q2, v2, it2, f2, lam2, tried2) = runs
+    assert np.array_equal(q1, q2) and np.array_equal(v1, v2) and np.array_equal(lam1, lam2)
+    assert (it1, f1) == (it2, f2)
+    assert f1 > 1                           # a matrix refreshed on the way
+    if case == "held joints":
+        assert q1[0] == 0.0 and np.abs(lam1).max() > 1e-3
+    assert (tried1 != []) == (case == "fallbacks") and all(tried1)
+
+
 def test_a_jumping_joint_command_in_a_full_basis_follows_the_compiled_step():
     """The pan-tilt arm's joints commanded 0.4 and -0.3 rad at once (400
     rad/s in one 2 ms step, the arm whipped): after the violent first step

@@ -574,10 +574,11 @@ def crba_pass(m, w, M):
 
 
 @_jit_inner
-def _small_inverse(A, n, out):
-    """Inverse of a small symmetric positive definite A[:n, :n] (Cholesky);
-    returns False if A is not positive definite."""
-    L = np.zeros((6, 6))
+def spd_inverse(A, n, out):
+    """Inverse of a small symmetric positive definite A[:n, :n] (Cholesky:
+    a joint's block in the ABA, a basis's Newton matrix) into out[:n, :n];
+    returns False if A is not positive definite (or not finite)."""
+    L = np.zeros((n, n))
     for j in range(n):
         s = A[j, j]
         for k in range(j):
@@ -591,7 +592,7 @@ def _small_inverse(A, n, out):
                 s -= L[i, k] * L[j, k]
             L[i, j] = s / L[j, j]
     # inverse of L (lower), then out = L^-T L^-1
-    Li = np.zeros((6, 6))
+    Li = np.zeros((n, n))
     for j in range(n):
         Li[j, j] = 1.0 / L[j, j]
         for i in range(j + 1, n):
@@ -635,7 +636,7 @@ def aba_factor(m, w, cD, cK):
             for a in range(nv):
                 for b in range(nv):
                     Dm[a, b] += cD * m.Db[i, a, b] + cK * m.Kb[i, a, b]
-            if not _small_inverse(Dm, nv, w.Dinv[i]):
+            if not spd_inverse(Dm, nv, w.Dinv[i]):
                 return False
             # Ic -= U Dinv U^T (symmetric)
             for r in range(6):
