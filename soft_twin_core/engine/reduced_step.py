@@ -26,7 +26,7 @@ from soft_twin_core.engine import algorithms as alg
 from soft_twin_core.engine.integrators import StepInfo, integrate_pass, residual_pass
 from soft_twin_core.engine.kernels import passes
 from soft_twin_core.engine.kernels.data import ArraysRef, ArraysType, declare
-from soft_twin_core.engine.kernels.spatial import FALSE, _jit, _jit_inner
+from soft_twin_core.engine.kernels.spatial import FALSE, _jit, _jit_inline, _jit_inner
 from soft_twin_core.engine.step_matrix import free_newton_update
 
 _NO_COMMAND = np.zeros(0)          # (reduced_steps: no position-controlled joints, or no velocity command)
@@ -64,7 +64,7 @@ def _make_basis_ref(B, BT, P, Dz, Kz, fixed, pv, pq, pz, Ainv, r, efforts):
 BasisArrays.make = _make_basis_ref
 
 
-@_jit
+@_jit_inline
 def basis_newton_matrix(m, w, qt, th, b, zeros):
     """b.Ainv = (B^T (M(q_t) + th D + th^2 K) B)^-1, the fixed coordinates'
     rows and columns the identity's (the upper triangle made, the matrix
