@@ -40,10 +40,11 @@ PARTS = ("passes", "leaves", "rods", "mechanism", "contact", "basis", "ik")
 # mechanisms and the IK add; a side process meanwhile compiles what links no
 # pass (the contact law's pairs, the bounded least squares), then waits
 # until the passes are cached (NEEDS) and compiles the contact step (which
-# also takes constraint rows). Cold on a 2-core machine, the two lanes at
-# once: passes 33 s, rods 16 s, mechanism 6 s, ik 9 s | leaves 25 s, (waits
-# 8 s), contact 25 s: 65 s in all (the IK in the side lane, after the
-# contact step: 69 s; the three parts of before, two at once: 171 s).
+# also takes constraint rows) and the variable-strain step. Cold on a 2-core
+# machine, the two lanes at once: passes 28 s, rods 14 s, mechanism 5 s, ik
+# 9 s | leaves 21 s, (waits 7 s), contact 24 s, basis 4 s: 58 s in all (each
+# kernel that steps costs 4-6 s: numba links the passes it calls into its
+# library and optimises them again there).
 LANES = (("passes", "rods", "mechanism", "ik"), ("leaves", "contact", "basis"))
 NEEDS = {"rods": "passes", "mechanism": "passes", "contact": "passes", "basis": "passes", "ik": "rods"}
 
