@@ -39,7 +39,8 @@ from soft_twin_core.engine.kernels.frames import world_point_jacobians
 from soft_twin_core.engine.kernels.spatial import FALSE, _jit, _jit_inner
 from soft_twin_core.engine.kernels.tip_error import _log_so3
 from soft_twin_core.engine.step_matrix import (elastic_noise, forces_balanced, free_newton_update,
-                                                invert_step_matrix, step_tangents, theta_point, update_converged)
+                                                invert_step_matrix, onto_basis, residual_sizes, step_tangents,
+                                                theta_point, update_converged)
 
 CLAMPED = 1        # a constraint kind the kernel tells apart: [dp; log(R_a R_b^T)]; others C[:, :3] dp
 
@@ -52,6 +53,7 @@ CLOSED_FIELDS = (
     "fixed",                                             # (nv,) bool: the prescribed velocities
     "Ainv", "Afix", "Z", "Sinv", "G1f", "Gtf",           # the factors, kept for the next step
     "R", "phi",                                          # out: the residual, the constraint values
+    "B", "P",         # a basis of the velocities (nv, nz), (B^T B)^-1 B^T: variable-strain segments; none: nz 0
 )
 
 
@@ -70,9 +72,9 @@ declare(ClosedArrays, ClosedArraysType, CLOSED_FIELDS)
 
 @nb.njit(cache=True)
 def _make_closed_ref(K, D, q_ref, cj, cx, ckind, crows, csize, ctarget, rows, fixed, Ainv, Afix, Z, Sinv, G1f, Gtf,
-                     R, phi):
+                     R, phi, B, P):
     return ClosedArrays(K, D, q_ref, cj, cx, ckind, crows, csize, ctarget, rows, fixed, Ainv, Afix, Z, Sinv, G1f,
-                        Gtf, R, phi)
+                        Gtf, R, phi, B, P)
 
 
 ClosedArrays.make = _make_closed_ref
@@ -299,7 +301,7 @@ def closed_step(m, w, act, ld, g, coef, effort, c, elastic, q0, v0, h, theta, to
         if refactor:
             A, Kt, Dt = step_tangents(m, w, act, ldc, g, coef, K, D, qt, zeros)
             constraint_values(m, w, cj, cx, ckind, crows, csize, ctarget, gc, Jc, phit, Gt)   # (posed at q_t)
-            if not invert_step_matrix(A, Kt, Dt, h, theta, fixed, Ainv, Afix):
+            if not invert_step_matrix(A, Kt, Dt, h, theta, fixed, Ainv, Afix, c.B):
                 return it, 4, factorised, 0.0
             if not _schur(Ainv, Gt, G1, rows, th, fixed, Z, Sinv, G1f, Gtf):
                 return it, 4, factorised, 0.0
@@ -307,12 +309,11 @@ def closed_step(m, w, act, ld, g, coef, effort, c, elastic, q0, v0, h, theta, to
             refactor, fresh = False, True
         passes.forward_pass(m, w, qt, vt, acc, passes.ACCELERATIONS)
         residual_after_forward(m, w, act, ldc, g, coef, effort, qt, vt, R, FALSE)
-        nR, nphi = 0.0, 0.0
+        nphi = 0.0
         for k in range(nv):
             if not np.isfinite(R[k]):
                 return it, 3, factorised, 0.0
-            if not fixed[k]:
-                nR = max(nR, abs(R[k]))
+        nR = residual_sizes(R, fixed, c.B)[0]
         for k in range(nr):
             if not np.isfinite(phi[k]):
                 return it, 3, factorised, 0.0
@@ -355,6 +356,7 @@ def closed_step(m, w, act, ld, g, coef, effort, c, elastic, q0, v0, h, theta, to
         prev = ndv
     else:
         return max_it, 1, factorised, 0.0
+    onto_basis(c.B, c.P, v1)
     for k in range(nv):
         vt[k] = (1.0 - theta) * v0[k] + theta * v1[k]
     integrate_pass(m, q0, vt, h, q1)

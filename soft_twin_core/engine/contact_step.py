@@ -27,7 +27,8 @@ from soft_twin_core.engine.kernels.frames import (body_point_twists, frame_spins
                                                   relative_point_jacobians, spatial_jacobian)
 from soft_twin_core.engine.kernels.spatial import FALSE, _jit, _jit_inline, _jit_inner
 from soft_twin_core.engine.step_matrix import (elastic_noise, forces_balanced, free_newton_update,
-                                                invert_step_matrix, step_tangents, theta_point, update_converged)
+                                                invert_step_matrix, onto_basis, residual_sizes, step_tangents,
+                                                theta_point, update_converged)
 
 
 @_jit_inline
@@ -189,20 +190,23 @@ def _cross_matrix(f):
 
 
 @_jit_inline
-def _newton_inverse(m, w, act, ldc, g, coef, K, D, qt, h, theta, pj, px, prad, pt, idx, ob_of, obody, F, dF, dV,
-                    dFf, dVf, c, zeros, fixed, Ainv, Afix, n_out, dW):
+def _newton_inverse(m, w, act, ldc, g, coef, arr, qt, h, theta, pj, px, prad, pt, idx, ob_of, obody, F, dF, dV,
+                    dFf, dVf, c, zeros, n_out, dW):
     """Ainv = ((M + th h D_t + (th h)^2 K_t) / h)^-1 at q_t, the rows and
     columns of the ``fixed`` (prescribed) velocities replaced by the
-    identity's (their rows of the full matrix into Afix); False if
+    identity's (their rows of the full matrix into Afix; ``arr``'s, a
+    :class:`closed_step.ClosedArrays`, as K, D and the basis B); False if
     singular. A contact's stiffness acts through the velocity of its point
     relative to the body carrying the obstacle (the world's: at rest), and
     its force turns with that body: ``dF = dF/dp J_rel dq - [F x] J_w dq``;
     its friction's through the contact surface's point's Jacobian J_s
     (:func:`_surface_jacobian`): ``J_s^T dFf J`` and ``J_s^T dVf J_s``;
     its spin friction's damping through the spin's Jacobian
-    (:meth:`soft_twin_core.solve.contact.MemberContact.add_stiffness`)."""
-    nv = K.shape[0]
-    A, Kt, Dt = step_tangents(m, w, act, ldc, g, coef, K, D, qt, zeros)
+    (:meth:`soft_twin_core.solve.contact.MemberContact.add_stiffness`).
+    With a basis of the velocities B, its Galerkin inverse
+    (:func:`step_matrix.invert_step_matrix`)."""
+    nv = arr.K.shape[0]
+    A, Kt, Dt = step_tangents(m, w, act, ldc, g, coef, arr.K, arr.D, qt, zeros)
     if c > 0:
         J = np.empty((c, 3, nv))
         Jw = np.empty((c, 3, nv))
@@ -241,7 +245,7 @@ def _newton_inverse(m, w, act, ldc, g, coef, K, D, qt, h, theta, pj, px, prad, p
                 for i in range(nv):
                     for j in range(nv):
                         Dt[i, j] -= dW[k] * Js[i] * Js[j]
-    return invert_step_matrix(A, Kt, Dt, h, theta, fixed, Ainv, Afix)
+    return invert_step_matrix(A, Kt, Dt, h, theta, arr.fixed, arr.Ainv, arr.Afix, arr.B)
 
 
 @_jit
@@ -275,7 +279,7 @@ def contact_step(m, w, act, ld, g, coef, effort, arr, elastic, q0, v0, h, theta,
     lam_max): status 0 converged, 1 not in max_it, 3 non-finite, 4
     singular; the contacts (those of the last iterate) in the output
     arrays; lam_max as :func:`closed_step.closed_step`'s."""
-    K, D, q_ref, fixed, Ainv, Afix, R, phi = arr.K, arr.D, arr.q_ref, arr.fixed, arr.Ainv, arr.Afix, arr.R, arr.phi
+    K, q_ref, fixed, Ainv, Afix, R, phi = arr.K, arr.q_ref, arr.fixed, arr.Ainv, arr.Afix, arr.R, arr.phi
     cj, cx, ckind, crows, csize, ctarget = arr.cj, arr.cx, arr.ckind, arr.crows, arr.csize, arr.ctarget
     rows, Z, Sinv, G1f, Gtf = arr.rows, arr.Z, arr.Sinv, arr.G1f, arr.Gtf
     nv, nq, P = v0.shape[0], q0.shape[0], pj.shape[0]
@@ -357,8 +361,8 @@ def contact_step(m, w, act, ld, g, coef, effort, arr, elastic, q0, v0, h, theta,
                     if key[1 + k] != ob_of[k] * P + idx[k]:
                         same = False
             if not same:
-                if not _newton_inverse(m, w, act, ldc, g, coef, K, D, qt, h, theta, pj, px, prad, pt, idx, ob_of,
-                                       obs.body, F, dF, dV, dFf, dVf, c, zeros, fixed, Ainv, Afix, n_out, dW):
+                if not _newton_inverse(m, w, act, ldc, g, coef, arr, qt, h, theta, pj, px, prad, pt, idx, ob_of,
+                                       obs.body, F, dF, dV, dFf, dVf, c, zeros, n_out, dW):
                     return it, 4, c, factorised, 0.0
                 if nr > 0:      # (the workspace posed at q_t)
                     constraint_values(m, w, cj, cx, ckind, crows, csize, ctarget, gc, Jc, phit, Gt)
@@ -371,14 +375,11 @@ def contact_step(m, w, act, ld, g, coef, effort, arr, elastic, q0, v0, h, theta,
                     key[1 + k] = ob_of[k] * P + idx[k]
             refactor = False
         residual_after_forward(m, w, act, ldc, g, coef, effort, qt, vt, R, FALSE)
-        nR, held, nphi = 0.0, 0.0, 0.0
+        nphi = 0.0
         for k in range(nv):
             if not np.isfinite(R[k]):
                 return it, 3, c, factorised, 0.0
-            if fixed[k]:
-                held = max(held, abs(R[k]))
-            else:
-                nR = max(nR, abs(R[k]))
+        nR, held = residual_sizes(R, fixed, arr.B)
         for k in range(nr):
             if not np.isfinite(phi[k]):
                 return it, 3, c, factorised, 0.0
@@ -436,6 +437,7 @@ def contact_step(m, w, act, ld, g, coef, effort, arr, elastic, q0, v0, h, theta,
         prev = ndv
     else:
         return max_it, 1, c, factorised, 0.0
+    onto_basis(arr.B, arr.P, v1)
     for k in range(nv):
         vt[k] = (1.0 - theta) * v0[k] + theta * v1[k]
     integrate_pass(m, q0, vt, h, q1)

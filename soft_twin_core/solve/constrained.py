@@ -940,8 +940,9 @@ class MechanismSimulator:
     apply; False: the Python KKT step (a reference). Variable-strain
     segments (``mech.basis``) step in their coordinates: the reduced step
     (:class:`reduced_step.ReducedThetaIntegrator`, position-controlled joints
-    eliminated) without constraint rows or contacts, else the Python KKT
-    step projected on the basis. ``iterations``: the last
+    eliminated) without constraint rows or contacts, else the compiled
+    steps with the basis's Galerkin inverse (the Python KKT step projected
+    on the basis their fallback). ``iterations``: the last
     call's Newton iterations a step; ``newton_iterations``: all of them so
     far; ``factorisations``: the Newton matrices factorised so far.
 
@@ -996,9 +997,10 @@ class MechanismSimulator:
         # couple joints across the loop and cannot be eliminated one joint at a time as a position command
         # can: they keep their multipliers (the Schur complement on them, as in engine.closed_step).
         one_dof = all(tree.joints[i].kind in (REVOLUTE, PRISMATIC) for i in pos)
-        # (the compiled steps' Newton runs on every velocity coordinate; with variable-strain segments the
-        # unknowns are the basis's coordinates: the reduced step below, or the Python KKT step projected)
-        eliminable = one_dof and mech.basis is None
+        # (with variable-strain segments the unknowns are the basis's coordinates: the reduced step below
+        # without multipliers; with them, the compiled steps' Newton on the velocities with the Galerkin
+        # inverse B (B^T A B)^-1 B^T and the residual B^T R: step_matrix.invert_step_matrix, residual_sizes)
+        eliminable = one_dof
         self._use_compiled_step = compiled and eliminable and (mech.n_constraint_rows == 0 or bool(self.contact))
         # constraint rows, no contacts: the compiled KKT step (engine.closed_step), the Python one its
         # fallback when it fails. Not a different physics: the contact step solves the same equations (the
@@ -1215,17 +1217,27 @@ class MechanismSimulator:
         size the last step left (``lam_max``), whether the targets moved."""
         tree, mech = self.tree, self.mech
         nc = mech.n_constraint_rows
+        B, P = self._basis_arrays()
         rows = np.zeros(0, np.int64)
         if nc:
             _, G = constraint_rows(mech, self.ws, self.q, targets, inp.q_cmd)
-            rows = independent_rows(G[:nc]).astype(np.int64)
+            # (on a basis, the rows independent in its coordinates: a loop it cannot bend shows as redundant)
+            rows = independent_rows(G[:nc] @ B if B.shape[1] else G[:nc]).astype(np.int64)
         nv, mr = tree.nv, len(rows)
         cj, cx, ckind, crows, csize, ctarget = self._closed_arrays(None)
         z = np.zeros
         return dict(h=h, nc=nc, rows=rows, reuse=False, lam_max=None, moved=False,
                     arrays=ClosedArrays.of(self.K, self.D, tree.q0, cj, cx, ckind, crows, csize, ctarget.copy(), rows,
                                            self._fixed, z((nv, nv)), z((nv, nv)), z((nv, mr)), z((mr, mr)),
-                                           z((mr, nv)), z((mr, nv)), np.empty(nv), np.empty(nc)))
+                                           z((mr, nv)), z((mr, nv)), np.empty(nv), np.empty(nc), B, P))
+
+    def _basis_arrays(self):
+        """(B, (B^T B)^-1 B^T) of the robot's variable-strain segments for
+        the compiled steps, or (nv, 0) and (0, nv) arrays: no basis."""
+        B = self.mech.basis
+        if B is None:
+            return np.zeros((self.tree.nv, 0)), np.zeros((0, self.tree.nv))
+        return B, np.linalg.solve(B.T @ B, B.T)
 
     def _step_arrays_of(self, held, targets, inp):
         """The held ClosedArrays with this step's constraint targets, and

@@ -393,10 +393,11 @@ def test_the_gvs_filter_tracks_as_the_pcs_filter_on_the_same_sections_with_a_fif
 
 # ------------------------------------- a full basis: the same robot in other coordinates
 
-def _with_full_bases(name):
+def _with_full_bases(name, order=None):
     """The robot file ``name`` and the same file with every segment on a
     Legendre basis of order sections - 1: as many functions as sections,
-    an invertible change of coordinates (the same physics, solved in z)."""
+    an invertible change of coordinates (the same physics, solved in z);
+    ``order``: that order instead (at most sections - 1), a reduced basis."""
     from soft_twin_core.robot.mechanism import is_tree_file, load_mechanism
     import copy
     import yaml
@@ -406,7 +407,8 @@ def _with_full_bases(name):
     segments = [s for b in g.get("bodies", []) if b.get("type") == "member" for s in b["segments"]] \
         if is_tree_file(g) else g["segments"]
     for seg in segments:
-        seg["strain_basis"] = {"type": "legendre", "order": int(seg.get("sections", 1)) - 1}
+        full = int(seg.get("sections", 1)) - 1
+        seg["strain_basis"] = {"type": "legendre", "order": full if order is None else min(order, full)}
     load = (lambda m: mechanism_from_dict(m, str(path.parent))) if is_tree_file(d) else \
         (lambda m: from_robot_model(model_from_dict(m), m, str(path.parent)))
     assert yaml.safe_dump(g)                     # (a plain mapping, as a file would give)
@@ -454,9 +456,10 @@ def test_statics_with_position_joints_closed_chains_and_contact_in_full_bases(na
     ("catheter_in_vessel", dict(), 100),                  # a prescribed base, in a tube
 ])
 def test_dynamics_with_position_joints_closed_chains_and_contact_in_full_bases(name, inputs, steps):
-    """The Python KKT step in z against the engine's steps on the PCS robot
-    (compiled where they apply): the same trajectory to the Newton
-    tolerances."""
+    """The engine's compiled steps in z (the reduced step; with constraint
+    rows or contacts the closed-chain and contact steps with the Galerkin
+    inverse) against its steps on the PCS robot: the same trajectory to
+    the Newton tolerances."""
     pcs, gvs = _with_full_bases(name)
     inputs = _platform_load(inputs)
     out = []
@@ -483,6 +486,39 @@ def _pan_tilt_gvs(sections=8, order=2):
         seg["sections"] = sections
         seg["strain_basis"] = {"type": "legendre", "order": order}
     return mechanism_from_dict(d, str(path.parent)), load_mechanism(path)
+
+
+@pytest.mark.parametrize("name, order, inputs, steps, kernel", [
+    ("planar_parallel_robot", 2, dict(point_loads="platform"), 100, "closed"),         # a loop's rows
+    ("tendon_arm_on_table", 0, dict(actuation=[0.0, 0.0, 0.0, 1.5]), 200, "contact"),   # contacts (2 sections)
+    ("catheter_in_vessel", 2, dict(), 100, "contact"),           # a prescribed base's clamp and contacts
+])
+def test_reduced_bases_in_the_compiled_steps_as_in_the_python_kkt_step(name, order, inputs, steps, kernel):
+    """Legendre order 0 or 2 on every segment (fewer coordinates than sections):
+    the compiled closed-chain and contact steps with the Galerkin inverse
+    ``B (B^T A B)^-1 B^T`` and the residual ``B^T R`` give the Python KKT
+    step's trajectory, which solves for z with ``T^T A T`` and ``G T``
+    (solve_factored), to the Newton tolerances; the velocities stay on the
+    basis."""
+    _, gvs = _with_full_bases(name, order=order)
+    B = gvs.basis
+    assert B.shape[1] < B.shape[0]
+    inputs = _platform_load(inputs)
+    out = []
+    for compiled in (True, False):
+        sim = MechanismSimulator(gvs, 2e-3, 0.5, tol=1e-12, constraint_tol=1e-12, max_iterations=60,
+                                 compiled=compiled)
+        used = sim._use_closed_step if kernel == "closed" else sim._use_compiled_step
+        assert used == compiled and sim._theta_integrator is None
+        sim.step(n=steps, **inputs)
+        w = np.linalg.lstsq(B, sim.v, rcond=None)[0]
+        assert np.abs(B @ w - sim.v).max() <= 1e-10 * np.abs(sim.v).max()
+        out.append((sim.q.copy(), sim.v.copy(), sim.lam.copy()))
+    (q1, v1, l1), (q2, v2, l2) = out
+    assert np.abs(q1 - gvs.tree.q0).max() > 1e-3
+    assert np.abs(q1 - q2).max() < 1e-8
+    assert np.abs(v1 - v2).max() < 1e-6 * np.abs(v2).max()
+    assert np.abs(l1 - l2).max(initial=0) <= 1e-6 * max(1.0, np.abs(l2).max(initial=0))
 
 
 def test_a_position_controlled_arm_with_a_reduced_basis_balances_on_the_basis_only():
