@@ -36,6 +36,49 @@ def step_tangents(m, w, act, ld, g, coef, K, D, qt, zeros):
 
 
 @_jit_inner
+def _project_matrix(A, B):
+    """B^T A B (nz, nz), B's zeros skipped (a section's rows of a basis
+    are nonzero in its segment's columns only)."""
+    nv, nz = B.shape
+    AB = np.zeros((nv, nz))
+    for k in range(nv):
+        for l in range(nv):
+            a = A[k, l]
+            if a != 0.0:
+                for c in range(nz):
+                    AB[k, c] += a * B[l, c]
+    out = np.zeros((nz, nz))
+    for k in range(nv):
+        for r in range(nz):
+            b = B[k, r]
+            if b != 0.0:
+                for c in range(nz):
+                    out[r, c] += b * AB[k, c]
+    return out
+
+
+@_jit_inner
+def _lift_inverse(X, B):
+    """B X B^T (nv, nv): the Galerkin inverse from the basis's X = (B^T A B)^-1."""
+    nv, nz = B.shape
+    BX = np.zeros((nv, nz))
+    for k in range(nv):
+        for r in range(nz):
+            b = B[k, r]
+            if b != 0.0:
+                for c in range(nz):
+                    BX[k, c] += b * X[r, c]
+    out = np.empty((nv, nv))
+    for i in range(nv):
+        for j in range(nv):
+            s = 0.0
+            for c in range(nz):
+                s += BX[i, c] * B[j, c]
+            out[i, j] = s
+    return out
+
+
+@_jit_inner
 def invert_step_matrix(A, Kt, Dt, h, theta, fixed, Ainv, Afix, B):
     """Ainv = ((A + th h D_t + (th h)^2 K_t) / h)^-1 (A holds M on entry and
     the step matrix on return), the ``fixed`` rows and columns replaced by
@@ -60,13 +103,11 @@ def invert_step_matrix(A, Kt, Dt, h, theta, fixed, Ainv, Afix, B):
                 A[j, i] = 0.0
             A[i, i] = 1.0
     try:
-        if B.shape[1] > 0:
-            BT = np.ascontiguousarray(B.T)
-            inv = B @ (np.linalg.inv(BT @ (A @ B)) @ BT)
-        else:
-            inv = np.linalg.inv(A)
+        inv = np.linalg.inv(A if B.shape[1] == 0 else _project_matrix(A, B))
     except Exception:           # singular to machine precision
         return False
+    if B.shape[1] > 0:
+        inv = _lift_inverse(inv, B)
     ok = True
     for i in range(nv):
         for j in range(nv):
