@@ -95,15 +95,18 @@ def basis_newton_matrix(m, w, qt, th, b, zeros):
 
 
 @_jit_inner
-def _predictor(b, q0, v0, a_last, h, theta, q_cmd, w1):
-    """w1 = P (v0 + h a_last) (the rates on the basis nearest the last
-    acceleration's extrapolation), the fixed coordinates' the rates that
-    put their joints at q_cmd at the end of the step."""
+def _predictor(b, q0, v0, a_last, a_prev, have_prev, h, theta, q_cmd, w1):
+    """w1 = P (v0 + h a) (the rates on the basis nearest the velocity the
+    accelerations extrapolate to: a = 2 a_last - a_prev from two real
+    steps, ``have_prev``, else a_last, as the O(n) step's predictor), the
+    fixed coordinates' the rates that put their joints at q_cmd at the end
+    of the step."""
     nv, nz = b.B.shape
     for c in range(nz):
         s = 0.0
         for k in range(nv):
-            s += b.P[c, k] * (v0[k] + h * a_last[k])
+            a = 2.0 * a_last[k] - a_prev[k] if have_prev else a_last[k]
+            s += b.P[c, k] * (v0[k] + h * a)
         w1[c] = s
     for j in range(b.pz.shape[0]):
         w1[b.pz[j]] = ((q_cmd[j] - q0[b.pq[j]]) / h - (1.0 - theta) * v0[b.pv[j]]) / theta
@@ -153,12 +156,14 @@ def _largest_on_basis(B, dw):
 
 
 @_jit
-def reduced_steps(m, w, act, ld, g, coef, effort, q, v, a_last, h, theta, tol, max_it, n, b, q_cmd, v_cmd,
-                  fresh, refresh_cost, stats):
+def reduced_steps(m, w, act, ld, g, coef, effort, q, v, a_last, a_prev, have_prev, steps_before, h, theta, tol,
+                  max_it, n, b, q_cmd, v_cmd, fresh, refresh_cost, stats):
     """Up to n theta steps of h with constant inputs, each from the
-    predictor P (v + h a_last) (a_last zeros: from v), as
-    :meth:`ReducedThetaIntegrator._newton`. q, v, a_last
-    advance in place after every converged step; a step that does not
+    predictor of :func:`_predictor` (a_last zeros and not ``have_prev``:
+    from v; ``steps_before``: the steps taken before this call, the
+    extrapolation from two real steps only, never from the initial zero
+    acceleration), as :meth:`ReducedThetaIntegrator._newton`. q, v,
+    a_last, a_prev advance in place after every converged step; a step that does not
     converge is left to the caller as it was. ``fresh``: no Newton matrix
     of this h is held in b.Ainv. ``v_cmd`` (len(pz),) or empty: the fixed
     joints' velocity at the end of a step (empty: their change over the
@@ -186,7 +191,7 @@ def reduced_steps(m, w, act, ld, g, coef, effort, q, v, a_last, h, theta, tol, m
     held = not fresh
     stats[2] = 1.0 if held else 0.0
     for s in range(n):
-        _predictor(b, q, v, a_last, h, theta, q_cmd, w1)
+        _predictor(b, q, v, a_last, a_prev, have_prev, h, theta, q_cmd, w1)
         qmax = 1.0
         for k in range(q.shape[0]):
             qmax = max(qmax, abs(q[k]))
@@ -239,10 +244,12 @@ def reduced_steps(m, w, act, ld, g, coef, effort, q, v, a_last, h, theta, tol, m
             pv, pq = b.pv[j], b.pq[j]
             v1[pv] = v_cmd[j] if v_cmd.shape[0] > 0 else (q1[pq] - q[pq]) / h
         for k in range(nv):
+            a_prev[k] = a_last[k]
             a_last[k] = (v1[k] - v[k]) / h
             v[k] = v1[k]
         for k in range(q.shape[0]):
             q[k] = q1[k]
+        have_prev = steps_before + s > 0
     return n
 
 
@@ -292,6 +299,8 @@ class ReducedThetaIntegrator:
         self.dt, self.theta, self.tol = float(dt), float(theta), float(tol)
         self.max_iterations, self.max_substep_levels = int(max_iterations), int(max_substep_levels)
         self.last_a = np.zeros(model.nv)
+        self._prev_a = None           # the acceleration before last_a (None: fewer than two real steps)
+        self._steps_done = 0
         self.factorisations = 0
         self.iterations = 0
         self._held_h = None           # the step whose Newton matrix self.arrays.Ainv holds
@@ -327,11 +336,11 @@ class ReducedThetaIntegrator:
         A = alg.crba(self.model, self.ws, q) + th * dv + th * th * dq
         return self.BT @ A @ self.B
 
-    def _steps(self, q, v, a_last, h, n, inputs, fresh=False):
-        """:func:`reduced_steps`: up to n steps of h from
-        (q, v) (updated in place, with a_last) with the held Newton matrix
-        when it is of this h (``fresh``: a new one regardless). Returns
-        (steps done, their iterations, the failed step's status)."""
+    def _steps(self, q, v, a_last, a_prev, have_prev, h, n, inputs, fresh=False):
+        """:func:`reduced_steps`: up to n steps of h from (q, v) (updated
+        in place, with a_last and a_prev) with the held Newton matrix when
+        it is of this h (``fresh``: a new one regardless). Returns (steps
+        done, their iterations, the failed step's status)."""
         loads, g, coef, effort = inputs
         q_cmd, v_cmd = self.command
         if not self._pv.size:
@@ -342,9 +351,10 @@ class ReducedThetaIntegrator:
         stats[4] = self._fresh_iterations
         fresh = fresh or self._held_h != h
         self._held_h = None              # until the kernel says what it left
-        k = reduced_steps(self.ws.m, self.ws.w, self.act, loads, g, coef, effort, q, v, a_last, h, self.theta,
-                          self.tol, self.max_iterations, n, self.arrays, np.asarray(q_cmd, dtype=float),
-                          np.asarray(v_cmd, dtype=float), fresh, self.refresh_cost, stats)
+        k = reduced_steps(self.ws.m, self.ws.w, self.act, loads, g, coef, effort, q, v, a_last, a_prev, have_prev,
+                          self._steps_done, h, self.theta, self.tol, self.max_iterations, n, self.arrays,
+                          np.asarray(q_cmd, dtype=float), np.asarray(v_cmd, dtype=float), fresh, self.refresh_cost,
+                          stats)
         self._fresh_iterations = stats[4]
         if stats[2] == 1.0:
             self._held_h = h
@@ -360,7 +370,9 @@ class ReducedThetaIntegrator:
         (``extrapolate`` False: from v0, with a fresh matrix)."""
         q, v = np.array(q0, dtype=float), np.array(v0, dtype=float)
         a = np.array(self.last_a, dtype=float) if extrapolate else np.zeros_like(v)
-        k, it, _ = self._steps(q, v, a, h, 1, inputs, fresh=not extrapolate)
+        have_prev = extrapolate and self._prev_a is not None and h == self.dt     # (not in sub-steps)
+        a_prev = np.array(self._prev_a if have_prev else a, dtype=float)
+        k, it, _ = self._steps(q, v, a, a_prev, have_prev, h, 1, inputs, fresh=not extrapolate)
         return (q, v, it) if k == 1 else None
 
     def _newton_full(self, q0, v0, h, inputs):
@@ -438,6 +450,9 @@ class ReducedThetaIntegrator:
             return StepInfo(self.max_iterations, False, np.inf)
         q1, v1, it = out
         self.iterations += it
+        # the predictor extrapolates from two real steps only (not from the initial zeros)
+        self._prev_a = self.last_a if self._steps_done > 0 else None
+        self._steps_done += 1
         self.last_a = (v1 - state.qdot) / self.dt
         state.q, state.qdot, state.t = q1, v1, state.t + self.dt
         return StepInfo(it, True, 0.0)
@@ -454,11 +469,15 @@ class ReducedThetaIntegrator:
         while done < n:
             q, v = np.array(state.q, dtype=float), np.array(state.qdot, dtype=float)
             a_last = np.array(self.last_a, dtype=float)
-            k, it, _ = self._steps(q, v, a_last, self.dt, n - done, inputs)
+            have_prev = self._prev_a is not None and self._steps_done > 0
+            a_prev = np.array(self._prev_a if have_prev else a_last, dtype=float)
+            k, it, _ = self._steps(q, v, a_last, a_prev, have_prev, self.dt, n - done, inputs)
             if k > 0:
                 self.iterations += it
                 state.q, state.qdot, state.t = q, v, state.t + k * self.dt
                 self.last_a = a_last
+                self._prev_a = a_prev if self._steps_done + k > 1 else None    # as step(): two real steps
+                self._steps_done += k
                 done += k
                 info = StepInfo(it // k, True, 0.0)
             if done < n:
