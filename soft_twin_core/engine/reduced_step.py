@@ -13,7 +13,10 @@ by modified Newton with
 (:func:`basis_newton_matrix`: CRBA, the projection, an nz x nz Cholesky
 check and inverse), made at a step's first iterate when none is held for
 this h and again when an update shrinks less than fourfold, and held for
-the next steps while it serves. Position-controlled 1-dof joints (identity
+the next steps while it serves (a step on it that took more iterations
+beyond the last fresh one's than a new matrix costs, :func:`matrix_cost`,
+has the next step make one). The predictor extrapolates the last two
+steps' accelerations, as the O(n) step's. Position-controlled 1-dof joints (identity
 columns of B, the ``fixed`` coordinates) are eliminated: their rates put
 them at their commands at the end of the step, the Newton runs over the
 other coordinates, and their rows of r are the efforts that hold them."""
@@ -278,8 +281,9 @@ class ReducedThetaIntegrator:
     one kernel call. The positions stay on the basis: ``q1 = q0 (+) h v_t``
     adds on the soft and 1-dof joints and moves a spherical or free
     joint's quaternion on its group (its velocity coordinates are identity
-    columns of B). A step that does not converge is split into halves
-    (down to ``max_substep_levels``). Same interface as
+    columns of B). A step that does not converge is tried again from v0
+    with a fresh matrix, then by full Newton, then split into halves (down
+    to ``max_substep_levels``: :meth:`_advance`). Same interface as
     :class:`ThetaIntegrator` (``run``, ``step``, ``last_a``,
     ``iterations``, ``factorisations``).
 
