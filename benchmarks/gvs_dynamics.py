@@ -15,6 +15,13 @@ PCS (the engine's compiled contact step) against Legendre order 2 on each
 segment (the reduced step, its joints eliminated). CPU time a step, median
 of 3 runs.
 
+Third table: robots with multipliers on Legendre order 2, 200 steps of 2 ms
+from rest: the planar parallel robot (a loop's rows, 3 N on its platform)
+and the catheter in its vessel (a prescribed base's clamp, contacts), in
+the engine's compiled closed-chain and contact steps with the basis's
+Galerkin inverse, in the Python KKT step in z (``compiled=False``), and as
+PCS. CPU time a step, median of 3 runs.
+
 Run: PYTHONPATH=. .venv/bin/python benchmarks/gvs_dynamics.py
 """
 
@@ -78,6 +85,31 @@ def twin_steps(mech, dt=5e-3, steps=300):
     return np.median(times), (sim.newton_iterations - it0) / steps
 
 
+def with_basis(name, order):
+    """Robot file ``name`` with every member's segments on Legendre ``order``."""
+    from soft_twin_core.robot.mechanism import mechanism_from_dict
+    from soft_twin_core.robot.model import find_file, read_yaml_file
+    path = find_file(name, "robots")
+    d = read_yaml_file(path)
+    if order is not None:
+        for b in d["bodies"]:
+            for seg in b.get("segments", []) if b.get("type") == "member" else []:
+                seg["strain_basis"] = {"type": "legendre", "order": order}
+    return mechanism_from_dict(d, str(path.parent))
+
+
+def multiplier_steps(mech, inputs, compiled, dt=2e-3, steps=200):
+    """CPU time a step [s] (median of 3 runs) and Newton iterations a step."""
+    times = []
+    for _ in range(3):
+        sim = MechanismSimulator(mech, dt, 0.5, compiled=compiled, max_iterations=60)
+        sim.step(n=2, **inputs)                       # (compiled code loaded)
+        it0, t0 = sim.newton_iterations, time.process_time()
+        sim.step(n=steps, **inputs)
+        times.append((time.process_time() - t0) / steps)
+    return np.median(times), (sim.newton_iterations - it0) / steps
+
+
 def main():
     blas_on_one_thread()             # as the node and the command line run (a second thread spins on the other core)
     print(f"{'sections':>8s} {'model':>12s} {'coords':>6s} {'us/step':>8s} {'it/step':>7s} {'tip vs PCS':>11s}")
@@ -97,6 +129,17 @@ def main():
             t, it = twin_steps(mech)
             print(f"{f'{n} + {n}':>8s} {'PCS' if order is None else f'Legendre {order}':>12s} "
                   f"{mech.tree.nv if order is None else mech.basis.shape[1]:6d} {t * 1e6:8.0f} {it:7.2f}", flush=True)
+    from soft_twin_core.solve.constrained import FrameLoad
+    print(f"\nrows and contacts, 200 steps of 2 ms\n{'robot':>22s} {'model / step':>24s} {'coords':>6s} "
+          f"{'us/step':>8s} {'it/step':>7s}")
+    platform = dict(point_loads=(FrameLoad("platform", np.array([2.0, 0.0, -3.0, 0.0, 0.0, 0.0]), "world"),))
+    for name, inputs in (("planar_parallel_robot", platform), ("catheter_in_vessel", {})):
+        for order, compiled, label in ((None, True, "PCS, compiled"), (2, True, "Legendre 2, compiled"),
+                                       (2, False, "Legendre 2, Python KKT")):
+            mech = with_basis(name, order)
+            t, it = multiplier_steps(mech, inputs, compiled)
+            print(f"{name:>22s} {label:>24s} {mech.tree.nv if order is None else mech.basis.shape[1]:6d} "
+                  f"{t * 1e6:8.0f} {it:7.2f}", flush=True)
 
 
 if __name__ == "__main__":
