@@ -306,7 +306,69 @@ class StepInfo:
     update: float
 
 
-class ThetaIntegrator:
+class StepLoop:
+    """``run`` and ``step`` of the theta integrators (:class:`ThetaIntegrator`
+    and :class:`reduced_step.ReducedThetaIntegrator`): the converged steps
+    of a run in one compiled call, a step that needs more (a fallback,
+    sub-steps) through :meth:`step`, and the accelerations the predictor
+    extrapolates (``last_a``; ``_prev_a`` from two real steps only, never
+    from the initial zero acceleration). A subclass sets ``dt``,
+    ``inputs``, ``max_iterations``, ``last_a``, ``_prev_a = None``,
+    ``_steps = 0`` (steps taken), ``iterations = 0``, and gives
+    ``_compiled_steps(inputs, q, v, a_last, a_prev, have_prev, n)`` ->
+    (steps done, Newton iterations, the failed step's status; q, v, a_last,
+    a_prev advanced in place) and ``_advance(q0, v0, t, h, level, failed)``
+    (one step of h with its fallbacks; ``failed``: the status of the
+    compiled attempt at this very step, already made, or None)."""
+
+    def run(self, state, n):
+        """n steps with inputs that do not change in time (``inputs`` is
+        called once), the converged ones in one compiled call; a step that
+        needs more goes through :meth:`step`. Returns the StepInfo of the
+        last step taken."""
+        inputs = self.inputs(state.t)
+        info = StepInfo(0, True, 0.0)
+        done = 0
+        while done < n:
+            q = np.array(state.q, dtype=float)
+            v = np.array(state.qdot, dtype=float)
+            a_last = np.array(self.last_a, dtype=float)
+            have_prev = self._prev_a is not None and self._steps > 0
+            a_prev = np.array(self._prev_a if have_prev else a_last, dtype=float)
+            k, it, status = self._compiled_steps(inputs, q, v, a_last, a_prev, have_prev, n - done)
+            self.iterations += it
+            if k > 0:
+                state.q, state.qdot, state.t = q, v, state.t + k * self.dt
+                self.last_a = a_last
+                self._prev_a = a_prev if self._steps + k > 1 else None   # as step(): two real steps
+                self._steps += k
+                done += k
+                info = StepInfo(it // k, True, 0.0)
+            if done < n:
+                info = self.step(state, failed=status)
+                if not info.converged:
+                    return info
+                done += 1
+        return info
+
+    def step(self, state, failed=None):
+        """One step of dt from ``state`` (updated in place when it converges);
+        ``failed``: see :meth:`_advance`."""
+        out = self._advance(np.asarray(state.q, dtype=float), np.asarray(state.qdot, dtype=float), state.t,
+                            self.dt, 0, failed)
+        if out is None:
+            return StepInfo(self.max_iterations, False, np.inf)
+        q1, v1, it = out
+        self.iterations += it
+        # the predictor extrapolates from two real steps only (not from the initial zeros)
+        self._prev_a = self.last_a if self._steps > 0 else None
+        self._steps += 1
+        self.last_a = (v1 - state.qdot) / self.dt
+        state.q, state.qdot, state.t = q1, v1, state.t + self.dt
+        return StepInfo(it, True, 0.0)
+
+
+class ThetaIntegrator(StepLoop):
     """Fixed-step theta-method on a multibody model and its workspace.
 
     ``full_newton``: when the O(n) iteration fails even in sub-steps, try a
@@ -426,49 +488,8 @@ class ThetaIntegrator:
             return self._newton_full(q0, v0, h, (loads, g, coef, effort), v0 + h * self.last_a)
         return None
 
-    def run(self, state, n):
-        """n steps with inputs that do not change in time (``inputs`` is
-        called once), the converged ones in one compiled call
-        (:func:`run_steps`); a step that needs more (the full-Newton
-        fallback, sub-steps) goes through :meth:`step`.
-        Returns the StepInfo of the last step taken."""
-        loads, g, coef, effort = self.inputs(state.t)
-        info = StepInfo(0, True, 0.0)
-        done = 0
-        while done < n:
-            q = np.array(state.q, dtype=float)
-            v = np.array(state.qdot, dtype=float)
-            a_last = np.array(self.last_a, dtype=float)
-            have_prev = self._prev_a is not None and self._steps > 0
-            a_prev = np.array(self._prev_a if have_prev else a_last, dtype=float)
-            stats = np.zeros(4)
-            k = self._run_steps((loads, g, coef, effort), q, v, a_last, a_prev, have_prev, self.dt, n - done, stats)
-            self.iterations += int(stats[0])
-            if k > 0:
-                state.q, state.qdot, state.t = q, v, state.t + k * self.dt
-                self.last_a = a_last
-                self._prev_a = a_prev if self._steps + k > 1 else None   # as step(): two real steps
-                self._steps += k
-                done += k
-                info = StepInfo(int(stats[0]) // max(k, 1), True, 0.0)
-            if done < n:
-                info = self.step(state, failed=int(stats[3]))
-                if not info.converged:
-                    return info
-                done += 1
-        return info
-
-    def step(self, state, failed=None):
-        """One step of dt from ``state`` (updated in place when it converges);
-        ``failed``: see :meth:`_advance`."""
-        out = self._advance(state.q, state.qdot, state.t, self.dt, 0, failed)
-        if out is None:
-            return StepInfo(self.max_iterations, False, np.inf)
-        q1, v1, it = out
-        self.iterations += it
-        # the predictor extrapolates from two real steps only (not from the initial zeros)
-        self._prev_a = self.last_a if self._steps > 0 else None
-        self._steps += 1
-        self.last_a = (v1 - state.qdot) / self.dt
-        state.q, state.qdot, state.t = q1, v1, state.t + self.dt
-        return StepInfo(it, True, 0.0)
+    def _compiled_steps(self, inputs, q, v, a_last, a_prev, have_prev, n):
+        """:meth:`StepLoop._compiled_steps`: :func:`run_steps` of step dt."""
+        stats = np.zeros(4)
+        k = self._run_steps(inputs, q, v, a_last, a_prev, have_prev, self.dt, n, stats)
+        return k, int(stats[0]), int(stats[3])

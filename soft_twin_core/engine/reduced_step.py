@@ -26,7 +26,7 @@ import numpy as np
 from numba.experimental import structref
 
 from soft_twin_core.engine import algorithms as alg
-from soft_twin_core.engine.integrators import StepInfo, integrate_pass, residual_pass
+from soft_twin_core.engine.integrators import StepLoop, integrate_pass, residual_pass
 from soft_twin_core.engine.kernels import passes
 from soft_twin_core.engine.kernels.data import ArraysRef, ArraysType, declare
 from soft_twin_core.engine.kernels.spatial import FALSE, _jit, _jit_inline, _jit_inner
@@ -266,7 +266,7 @@ def matrix_cost(nv):
     return 0.67 + nv / 74.0
 
 
-class ReducedThetaIntegrator:
+class ReducedThetaIntegrator(StepLoop):
     """The theta-method step of :class:`ThetaIntegrator` for a robot whose
     velocities lie on a basis, ``v = B w`` (variable-strain segments:
     :attr:`mechanism.Mechanism.basis`, ``q = q0 + B z``): the step's
@@ -304,7 +304,7 @@ class ReducedThetaIntegrator:
         self.max_iterations, self.max_substep_levels = int(max_iterations), int(max_substep_levels)
         self.last_a = np.zeros(model.nv)
         self._prev_a = None           # the acceleration before last_a (None: fewer than two real steps)
-        self._steps_done = 0
+        self._steps = 0               # steps taken
         self.factorisations = 0
         self.iterations = 0
         self._held_h = None           # the step whose Newton matrix self.arrays.Ainv holds
@@ -340,7 +340,7 @@ class ReducedThetaIntegrator:
         A = alg.crba(self.model, self.ws, q) + th * dv + th * th * dq
         return self.BT @ A @ self.B
 
-    def _steps(self, q, v, a_last, a_prev, have_prev, h, n, inputs, fresh=False):
+    def _kernel_steps(self, q, v, a_last, a_prev, have_prev, h, n, inputs, fresh=False):
         """:func:`reduced_steps`: up to n steps of h from (q, v) (updated
         in place, with a_last and a_prev) with the held Newton matrix when
         it is of this h (``fresh``: a new one regardless). Returns (steps
@@ -356,7 +356,7 @@ class ReducedThetaIntegrator:
         fresh = fresh or self._held_h != h
         self._held_h = None              # until the kernel says what it left
         k = reduced_steps(self.ws.m, self.ws.w, self.act, loads, g, coef, effort, q, v, a_last, a_prev, have_prev,
-                          self._steps_done, h, self.theta, self.tol, self.max_iterations, n, self.arrays,
+                          self._steps, h, self.theta, self.tol, self.max_iterations, n, self.arrays,
                           np.asarray(q_cmd, dtype=float), np.asarray(v_cmd, dtype=float), fresh, self.refresh_cost,
                           stats)
         self._fresh_iterations = stats[4]
@@ -376,7 +376,7 @@ class ReducedThetaIntegrator:
         a = np.array(self.last_a, dtype=float) if extrapolate else np.zeros_like(v)
         have_prev = extrapolate and self._prev_a is not None and h == self.dt     # (not in sub-steps)
         a_prev = np.array(self._prev_a if have_prev else a, dtype=float)
-        k, it, _ = self._steps(q, v, a, a_prev, have_prev, h, 1, inputs, fresh=not extrapolate)
+        k, it, _ = self._kernel_steps(q, v, a, a_prev, have_prev, h, 1, inputs, fresh=not extrapolate)
         return (q, v, it) if k == 1 else None
 
     def _newton_full(self, q0, v0, h, inputs):
@@ -385,7 +385,7 @@ class ReducedThetaIntegrator:
         loads, g, coef, effort = inputs
         ws, th = self.ws, self.theta * h
         R, qt = np.empty(self.model.nv), np.empty_like(q0)
-        w1 = self._on_basis(v0)
+        w1 = self.arrays.P @ v0              # the rates on the basis nearest v0 (least squares)
         pv, pz, fz = self._pv, self._pz, self._fz
         if pv.size:                  # the prescribed joints reach their commands at the end of the step
             w1[pz] = ((self.command[0] - q0[self._pq]) / h - (1 - self.theta) * v0[pv]) / self.theta
@@ -416,23 +416,20 @@ class ReducedThetaIntegrator:
                 return q1, v1, it
         return None
 
-    def _on_basis(self, v):
-        """The coordinates w of the velocity nearest v on the basis (least squares)."""
-        G = self.__dict__.get("_gram")
-        if G is None:
-            G = self._gram = np.linalg.inv(self.BT @ self.B)
-        return G @ (self.BT @ v)
+    def _compiled_steps(self, inputs, q, v, a_last, a_prev, have_prev, n):
+        """:meth:`StepLoop._compiled_steps`: :func:`reduced_steps` of step dt."""
+        return self._kernel_steps(q, v, a_last, a_prev, have_prev, self.dt, n, inputs)
 
-    def _advance(self, q0, v0, t, h, level, tried=False):
-        """One step of h: Newton from the held matrix (``tried``: already
-        done, by :meth:`run`'s compiled loop); if it fails, from v0 with a
+    def _advance(self, q0, v0, t, h, level, failed=None):
+        """One step of h: Newton from the held matrix (``failed`` not None:
+        already tried, by :meth:`run`'s compiled loop); if it fails, from v0 with a
         fresh one (after a violent step the last acceleration extrapolates
         far off), then full Newton from v0 (fast motions: the velocity
         products the matrix leaves out matter; not with the Cayley map,
         whose derivatives the engine does not have); then two halves, down
         to ``max_substep_levels``."""
         inputs = self.inputs(t + self.theta * h)
-        out = None if tried else self._newton(q0, v0, h, inputs)
+        out = None if failed is not None else self._newton(q0, v0, h, inputs)
         if out is None:
             out = self._newton(q0, v0, h, inputs, extrapolate=False)
         if out is None and not np.any(self.ws.arrays.kmap != 0):
@@ -444,49 +441,3 @@ class ReducedThetaIntegrator:
                 if rest is not None:
                     return rest[0], rest[1], half[2] + rest[2]
         return out
-
-    def step(self, state, tried=False):
-        """One step of dt from ``state`` (updated in place when it
-        converges); ``tried``: see :meth:`_advance`."""
-        out = self._advance(np.asarray(state.q, dtype=float), np.asarray(state.qdot, dtype=float), state.t,
-                            self.dt, 0, tried)
-        if out is None:
-            return StepInfo(self.max_iterations, False, np.inf)
-        q1, v1, it = out
-        self.iterations += it
-        # the predictor extrapolates from two real steps only (not from the initial zeros)
-        self._prev_a = self.last_a if self._steps_done > 0 else None
-        self._steps_done += 1
-        self.last_a = (v1 - state.qdot) / self.dt
-        state.q, state.qdot, state.t = q1, v1, state.t + self.dt
-        return StepInfo(it, True, 0.0)
-
-    def run(self, state, n):
-        """n steps with inputs that do not change in time (``inputs`` is
-        called once), the converged ones in one compiled call
-        (:func:`reduced_steps`); a step that needs more (a
-        fresh start, full Newton, halves) goes through :meth:`step`.
-        Returns the StepInfo of the last step taken."""
-        inputs = self.inputs(state.t + self.theta * self.dt)
-        info = StepInfo(0, True, 0.0)
-        done = 0
-        while done < n:
-            q, v = np.array(state.q, dtype=float), np.array(state.qdot, dtype=float)
-            a_last = np.array(self.last_a, dtype=float)
-            have_prev = self._prev_a is not None and self._steps_done > 0
-            a_prev = np.array(self._prev_a if have_prev else a_last, dtype=float)
-            k, it, _ = self._steps(q, v, a_last, a_prev, have_prev, self.dt, n - done, inputs)
-            if k > 0:
-                self.iterations += it
-                state.q, state.qdot, state.t = q, v, state.t + k * self.dt
-                self.last_a = a_last
-                self._prev_a = a_prev if self._steps_done + k > 1 else None    # as step(): two real steps
-                self._steps_done += k
-                done += k
-                info = StepInfo(it // k, True, 0.0)
-            if done < n:
-                info = self.step(state, tried=True)
-                if not info.converged:
-                    return info
-                done += 1
-        return info

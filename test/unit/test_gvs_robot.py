@@ -693,7 +693,8 @@ def test_many_reduced_steps_in_one_call_are_the_single_steps(case):
         assert isinstance(sim._theta_integrator, ReducedThetaIntegrator)
         tried = []
         step = sim._theta_integrator.step
-        sim._theta_integrator.step = lambda state, tried=False, log=tried: log.append(tried) or step(state, tried)
+        sim._theta_integrator.step = (lambda state, failed=None, log=tried:
+                                      log.append(failed is not None) or step(state, failed))
         for n in calls:
             sim.step(n=n, **inputs)
         runs.append((sim.q, sim.v, sim.newton_iterations, sim.factorisations, sim.lam, tried))
