@@ -279,26 +279,35 @@ def gravity_of(model, loads=None):
 
 
 @_jit_inline
+def _cross3(a, b):
+    """a x b of two 3-tuples (or 3-arrays), a tuple."""
+    return (a[1] * b[2] - a[2] * b[1], a[2] * b[0] - a[0] * b[2], a[0] * b[1] - a[1] * b[0])
+
+
+@_jit_inline
+def _dot3(a, b):
+    return a[0] * b[0] + a[1] * b[1] + a[2] * b[2]
+
+
+@_jit_inline
 def _wrap_parts(xi, d, dd, ddd):
     """The pieces of ``dt_w/ds = R a`` for a tendon on a section of constant
     strain xi = (nu, kappa): n = nu + kappa x d + d' (so that p' = R n),
     n' = kappa x d' + d'', t = n/|n|, b = n' - t (t . n') and
-    a = kappa x t + b/|n|. Returns (a, t, |n|, b, t . n', n'), 3-arrays."""
-    k = xi[3:6]
-    n = np.empty(3)
-    npr = np.empty(3)
-    n[0] = xi[0] + k[1] * d[2] - k[2] * d[1] + dd[0]
-    n[1] = xi[1] + k[2] * d[0] - k[0] * d[2] + dd[1]
-    n[2] = xi[2] + k[0] * d[1] - k[1] * d[0] + dd[2]
-    npr[0] = k[1] * dd[2] - k[2] * dd[1] + ddd[0]
-    npr[1] = k[2] * dd[0] - k[0] * dd[2] + ddd[1]
-    npr[2] = k[0] * dd[1] - k[1] * dd[0] + ddd[2]
-    nn = np.sqrt(n[0] * n[0] + n[1] * n[1] + n[2] * n[2])
-    t = n / nn
-    tn = t[0] * npr[0] + t[1] * npr[1] + t[2] * npr[2]
-    b = npr - t * tn
-    a = np.cross(k, t) + b / nn
-    return a, t, nn, b, tn, npr
+    a = kappa x t + b/|n|. Returns (a, t, |n|, b, t . n', n', kappa),
+    3-tuples (scalars: no array temporaries in the passes that inline it)."""
+    k = (xi[3], xi[4], xi[5])
+    kd = _cross3(k, d)
+    kdd = _cross3(k, dd)
+    n = (xi[0] + kd[0] + dd[0], xi[1] + kd[1] + dd[1], xi[2] + kd[2] + dd[2])
+    npr = (kdd[0] + ddd[0], kdd[1] + ddd[1], kdd[2] + ddd[2])
+    nn = np.sqrt(_dot3(n, n))
+    t = (n[0] / nn, n[1] / nn, n[2] / nn)
+    tn = _dot3(t, npr)
+    b = (npr[0] - t[0] * tn, npr[1] - t[1] * tn, npr[2] - t[2] * tn)
+    kt = _cross3(k, t)
+    a = (kt[0] + b[0] / nn, kt[1] + b[1] / nn, kt[2] + b[2] / nn)
+    return a, t, nn, b, tn, npr, k
 
 
 @_jit_inline
@@ -306,35 +315,45 @@ def wrap_rate(xi, d, dd, ddd):
     """|dt_w/ds| [rad/m]: how fast the tendon path's world tangent turns per
     unit arc length of the backbone, at offset d (d', d'') on a section of
     strain xi (the tendon point p = r + R d, p' = R n, t_w = R n/|n|)."""
-    a, _, _, _, _, _ = _wrap_parts(xi, d, dd, ddd)
-    return np.sqrt(a[0] * a[0] + a[1] * a[1] + a[2] * a[2])
+    a = _wrap_parts(xi, d, dd, ddd)[0]
+    return np.sqrt(_dot3(a, a))
 
 
 @_jit_inline
 def wrap_rate_gradient(xi, d, dd, ddd, out):
     """out (6,) = d wrap_rate / d xi (0 where the tendon runs straight, the
-    rate's kink)."""
-    a, t, nn, b, tn, npr = _wrap_parts(xi, d, dd, ddd)
-    om = np.sqrt(a[0] * a[0] + a[1] * a[1] + a[2] * a[2])
+    rate's kink): along each strain component c, dn (e_c for nu; e x d for
+    kappa), dn' (0; e x d'), dt = (dn - t (t . dn))/|n|,
+    db = dn' - dt (t . n') - t (dt . n' + t . dn'),
+    da = dk x t + kappa x dt + db/|n| - b (t . dn)/|n|^2, and
+    d|a| = a . da / |a|."""
+    a, t, nn, b, tn, npr, k = _wrap_parts(xi, d, dd, ddd)
+    om = np.sqrt(_dot3(a, a))
     if om < 1e-12:
-        out[:] = 0.0
+        for c in range(6):
+            out[c] = 0.0
         return
-    k = xi[3:6]
     for c in range(6):
-        dk = np.zeros(3)
-        dn = np.zeros(3)
-        dnp = np.zeros(3)
+        e = (1.0 if c % 3 == 0 else 0.0, 1.0 if c % 3 == 1 else 0.0, 1.0 if c % 3 == 2 else 0.0)
         if c < 3:
-            dn[c] = 1.0
+            dk = (0.0, 0.0, 0.0)
+            dn = e
+            dnp = (0.0, 0.0, 0.0)
         else:
-            dk[c - 3] = 1.0
-            dn = np.cross(dk, d)
-            dnp = np.cross(dk, dd)
-        tdn = t[0] * dn[0] + t[1] * dn[1] + t[2] * dn[2]
-        dt = (dn - t * tdn) / nn
-        db = dnp - dt * tn - t * (np.dot(dt, npr) + np.dot(t, dnp))
-        da = np.cross(dk, t) + np.cross(k, dt) + db / nn - b * (tdn / (nn * nn))
-        out[c] = np.dot(a, da) / om
+            dk = e
+            dn = _cross3(e, d)
+            dnp = _cross3(e, dd)
+        tdn = _dot3(t, dn)
+        dt = ((dn[0] - t[0] * tdn) / nn, (dn[1] - t[1] * tdn) / nn, (dn[2] - t[2] * tdn) / nn)
+        s = _dot3(dt, npr) + _dot3(t, dnp)
+        db = (dnp[0] - dt[0] * tn - t[0] * s, dnp[1] - dt[1] * tn - t[1] * s, dnp[2] - dt[2] * tn - t[2] * s)
+        dkt = _cross3(dk, t)
+        kdt = _cross3(k, dt)
+        f = tdn / (nn * nn)
+        da0 = dkt[0] + kdt[0] + db[0] / nn - b[0] * f
+        da1 = dkt[1] + kdt[1] + db[1] / nn - b[1] * f
+        da2 = dkt[2] + kdt[2] + db[2] / nn - b[2] * f
+        out[c] = (a[0] * da0 + a[1] * da1 + a[2] * da2) / om
 
 
 @_jit_inline
