@@ -189,6 +189,24 @@ def _cross_matrix(f):
     return X
 
 
+@_jit_inner
+def _left3(A, J, out):
+    """out (3, n) = A (3, 3) J (3, n)."""
+    for r in range(3):
+        for j in range(J.shape[1]):
+            out[r, j] = A[r, 0] * J[0, j] + A[r, 1] * J[1, j] + A[r, 2] * J[2, j]
+
+
+@_jit_inner
+def _subtract_product(T, L, Y):
+    """T (n, n) -= L^T Y, L and Y (3, n): a point's stiffness or damping
+    brought to the coordinates (loops: no BLAS call compiled into the step)."""
+    for i in range(T.shape[0]):
+        l0, l1, l2 = L[0, i], L[1, i], L[2, i]
+        for j in range(T.shape[1]):
+            T[i, j] -= l0 * Y[0, j] + l1 * Y[1, j] + l2 * Y[2, j]
+
+
 @_jit_inline
 def _newton_inverse(m, w, act, ldc, g, coef, arr, qt, h, theta, pj, px, prad, pt, idx, ob_of, obody, F, dF, dV,
                     dFf, dVf, c, zeros, n_out, dW):
@@ -214,17 +232,23 @@ def _newton_inverse(m, w, act, ldc, g, coef, arr, qt, h, theta, pj, px, prad, pt
         for k in range(c):
             body[k] = obody[ob_of[k]]
         relative_point_jacobians(m, w, pj[idx[:c]], px[idx[:c]], body, pt[idx[:c]], J, Jw)
+        KJ = np.empty((3, nv))
+        DJ = np.empty((3, nv))
+        XJ = np.empty((3, nv))
         for k in range(c):
             Jl = J[k]
-            KJ = dF[k] @ Jl
-            DJ = dV[k] @ Jl
-            JT = np.ascontiguousarray(Jl.T)
+            _left3(dF[k], Jl, KJ)
+            _left3(dV[k], Jl, DJ)
             if body[k] >= 0:            # a body's shape: the force turns with it, the reaction's lever arm
                 X = _cross_matrix(F[k])     # (solve.contact.MemberContact.add_stiffness)
-                KJ -= X @ Jw[k]
-                Kt -= np.ascontiguousarray(Jw[k].T) @ (X @ Jl)
-            Kt -= JT @ KJ
-            Dt -= JT @ DJ
+                _left3(X, Jw[k], XJ)
+                for r in range(3):
+                    for j in range(nv):
+                        KJ[r, j] -= XJ[r, j]
+                _left3(X, Jl, XJ)
+                _subtract_product(Kt, Jw[k], XJ)
+            _subtract_product(Kt, Jl, KJ)
+            _subtract_product(Dt, Jl, DJ)
         Jsf = np.empty((3, nv))
         for k in range(c):
             fr = False
@@ -235,9 +259,10 @@ def _newton_inverse(m, w, act, ldc, g, coef, arr, qt, h, theta, pj, px, prad, pt
             if fr:
                 i = idx[k]
                 _surface_jacobian(m, w, pj[i], px[i], prad[i], body[k], pt[i], n_out[k], Jsf)
-                JsT = np.ascontiguousarray(Jsf.T)
-                Kt -= JsT @ (dFf[k] @ J[k])
-                Dt -= JsT @ (dVf[k] @ Jsf)
+                _left3(dFf[k], J[k], KJ)
+                _subtract_product(Kt, Jsf, KJ)
+                _left3(dVf[k], Jsf, DJ)
+                _subtract_product(Dt, Jsf, DJ)
         Js = np.empty(nv)
         for k in range(c):
             if dW[k] != 0.0:
