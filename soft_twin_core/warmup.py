@@ -41,10 +41,10 @@ PARTS = ("passes", "leaves", "rods", "mechanism", "contact", "basis", "ik")
 # pass (the contact law's pairs, the bounded least squares), then waits
 # until the passes are cached (NEEDS) and compiles the contact step (which
 # also takes constraint rows) and the variable-strain step. Cold on a 2-core
-# machine, the two lanes at once: passes 28 s, rods 14 s, mechanism 5 s, ik
-# 9 s | leaves 21 s, (waits 7 s), contact 24 s, basis 4 s: 58 s in all (each
-# kernel that steps costs 4-6 s: numba links the passes it calls into its
-# library and optimises them again there).
+# machine, the two lanes at once: passes 23 s, rods 13 s, mechanism 5 s, ik
+# 8 s | leaves 19 s, (waits 4 s), contact 22 s, basis 4 s: 50 s in all, in a
+# fast phase of the machine (each kernel that steps costs 4-6 s: numba links
+# the passes it calls into its library and optimises them again there).
 LANES = (("passes", "rods", "mechanism", "ik"), ("leaves", "contact", "basis"))
 NEEDS = {"rods": "passes", "mechanism": "passes", "contact": "passes", "basis": "passes", "ik": "rods"}
 
