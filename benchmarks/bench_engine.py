@@ -14,8 +14,8 @@ the machine load (1-min load average, as ``uptime``) and the issue's goal:
      tolerance and theta variants;
   3. tip error at t = 1 s against a converged fine PCS reference (80
      sections) for 4-20 sections, each at its own largest accurate dt (4-8
-     also at 5, 10 and 20 ms), time per simulated second, beside the peers'
-     figures of the issues;
+     also at 5, 8, 10 and 20 ms, each at theta 0.5 and 0.51), time per
+     simulated second, beside the peers' figures of the issues;
   4. statics from the straight rod (cold, median of repeats), and one
      analytic tangent against one residual;
   5. start-up of a new process (import + first statics + first 1 s of
