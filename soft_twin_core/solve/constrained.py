@@ -461,7 +461,8 @@ def independent_rows(G, rtol=1e-10):
 def factor_kkt(A, G_force, G_cons, rows=None):
     """LU factors of ``[[A, -G_force^T], [G_cons, 0]]`` over the independent
     rows of G_cons (``rows``: those rows if known), for :func:`solve_factored`."""
-    from scipy.linalg import lu_factor
+    import warnings
+    from scipy.linalg import LinAlgWarning, lu_factor
     n = A.shape[0]
     rows = independent_rows(G_cons) if rows is None else rows
     m = len(rows)
@@ -469,7 +470,9 @@ def factor_kkt(A, G_force, G_cons, rows=None):
     K[:n, :n] = A
     K[:n, n:] = -G_force[rows].T
     K[n:, :n] = G_cons[rows]
-    lu = lu_factor(K, check_finite=False)
+    with warnings.catch_warnings():     # a singular matrix is reported below, as an error the caller words
+        warnings.simplefilter("ignore", LinAlgWarning)
+        lu = lu_factor(K, check_finite=False)
     if not np.all(np.isfinite(lu[0])) or np.min(np.abs(np.diag(lu[0])), initial=np.inf) == 0.0:
         raise np.linalg.LinAlgError("singular Newton matrix")
     return lu, rows, n, G_cons.shape[0]

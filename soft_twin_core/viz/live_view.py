@@ -417,7 +417,8 @@ class LiveView:
                 return
             seg = polyline_segments(polylines)
             if len(seg):
-                self.server.scene.add_line_segments("/target_ghost", seg, colors=GHOST_COLOR, line_width=4.0)
+                self.server.scene.add_line_segments("/target_ghost", seg, colors=GHOST_COLOR, thickness=4.0,
+                                                    thickness_units="screen")
 
     def set_view_options(self, colourings, on_colour, on_trail, trail=True, on_routes=None, routes=True,
                          on_frames=None, frames=False):
@@ -542,7 +543,7 @@ class LiveView:
             for k, seg in enumerate(snap.links):
                 if self._changed(f"/twin/link_{k}", seg):
                     sc.add_line_segments(f"/twin/link_{k}", np.asarray(seg, np.float32)[None], colors=LINK_COLOR,
-                                         line_width=6.0)
+                                         thickness=6.0, thickness_units="screen")
             for k in range(len(snap.links), self._n_links):
                 self._remove(f"/twin/link_{k}")
             self._n_links = len(snap.links)
@@ -562,7 +563,7 @@ class LiveView:
             self._n_joints = len(snap.joints)
             if snap.joint_axes and self._changed("/twin/joint_axes", *snap.joint_axes):
                 sc.add_line_segments("/twin/joint_axes", np.asarray(snap.joint_axes, np.float32),
-                                     colors=JOINT_COLOR, line_width=3.0)
+                                     colors=JOINT_COLOR, thickness=3.0, thickness_units="screen")
             for name, T in (("base", base_pose), ("tip", tip_pose)):
                 if T is not None and self._changed(f"/twin/{name}_frame", T):
                     T = np.asarray(T, dtype=float)
@@ -574,7 +575,8 @@ class LiveView:
                 p0 = np.asarray(tip_pose, dtype=float)[:3, 3]
                 seg = np.array([[p0, p0 + force_scale * np.asarray(tip_force, dtype=float)]], np.float32)
                 if self._changed("/twin/tip_force", seg):
-                    sc.add_line_segments("/twin/tip_force", seg, colors=FORCE_COLOR, line_width=5.0)
+                    sc.add_line_segments("/twin/tip_force", seg, colors=FORCE_COLOR, thickness=5.0,
+                                         thickness_units="screen")
             lines = [f"**soft_twin** {snap.caption}  {text}".rstrip()]
             if vmax is not None:
                 lines.append(f"- colour: {values[0]}, blue 0 to red {vmax:.4g}")
@@ -636,7 +638,8 @@ class LiveView:
             seg = np.array([[p, np.asarray(p) + force_scale * np.asarray(f)] for _, p, f in point_forces],
                            np.float32)
             if self._changed("/twin/point_forces", seg):
-                self.server.scene.add_line_segments("/twin/point_forces", seg, colors=FORCE_COLOR, line_width=5.0)
+                self.server.scene.add_line_segments("/twin/point_forces", seg, colors=FORCE_COLOR, thickness=5.0,
+                                                    thickness_units="screen")
             lines += [f"- force on `{n}`: [{f[0]:.3g}, {f[1]:.3g}, {f[2]:.3g}] N" for n, _, f in point_forces]
         elif "/twin/point_forces" in self._sent:
             self._remove("/twin/point_forces")

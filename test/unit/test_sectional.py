@@ -171,6 +171,7 @@ def test_neither_form_names_the_missing_field():
         model_from_dict(d)
 
 
+@pytest.mark.filterwarnings("ignore::soft_twin_core.limits.PlausibilityWarning")   # fuzzed files: implausible on purpose
 def test_sectional_fuzz_only_model_errors():
     """Any single corrupted field of a sectional description gives a
     ModelError, never a TypeError or the like from deep inside."""
