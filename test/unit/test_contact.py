@@ -912,7 +912,13 @@ def test_the_compiled_step_with_constraint_rows_is_the_python_step(case):
     multipliers (the wrench holding the base, the loop's reactions) and the
     contacts' forces to 1e-6. (A step one of them splits in halves and the
     other takes whole, at a contact's onset, is not compared: one in each
-    run.)"""
+    run.) The converged states agree whatever Newton matrix each used; the
+    iterations tell whether the compiled step's matrix is the Python step's
+    (the contacts' stiffness, damping and friction brought to the
+    coordinates by the kernel's own loops): on the catheter the two take the
+    same iterations on all but 3 of 200 steps, and on 117 without the
+    friction's stiffness, 56 without the contacts' damping (checked). (The
+    parallel robot's differ on 17 of 150 either way: not asserted.)"""
     mech, dt, n, step_inputs = case()
     sims = [MechanismSimulator(mech, dt, 0.5, tol=1e-12) for _ in range(2)]
     assert sims[0]._use_compiled_step and mech.n_constraint_rows == 6
@@ -923,12 +929,13 @@ def test_the_compiled_step_with_constraint_rows_is_the_python_step(case):
             calls[i] += 1
             return step(*a)
         sim._compiled_step = counted
-    compared, contacts = 0, 0
+    compared, contacts, other_iterations = 0, 0, 0
     for k in range(n):
-        before = list(calls)
+        before, it0 = list(calls), [sim.newton_iterations for sim in sims]
         for sim in sims:
             sim.step(**step_inputs(k))
         a, b = sims
+        other_iterations += a.newton_iterations - it0[0] != b.newton_iterations - it0[1]
         if calls[0] - before[0] == calls[1] - before[1]:           # (both whole, or split alike)
             assert np.abs(a.q - b.q).max() <= 1e-8 * max(np.abs(b.q).max(), 1.0), k
             np.testing.assert_allclose(a.lam, b.lam, rtol=1e-6, atol=1e-6 * np.abs(b.lam).max(), err_msg=str(k))
@@ -938,6 +945,8 @@ def test_the_compiled_step_with_constraint_rows_is_the_python_step(case):
             contacts += len(a.contacts.point) > 0
         b.q, b.v, b.a, b.lam = a.q.copy(), a.v.copy(), a.a.copy(), a.lam.copy()      # from the same state on
     assert compared >= n - 2 and contacts >= 40
+    if case is _catheter_pushed:
+        assert other_iterations <= 10, other_iterations
 
 
 def test_a_failed_compiled_step_with_constraint_rows_is_retried_by_the_python_step():
