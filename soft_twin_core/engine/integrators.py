@@ -213,6 +213,20 @@ def newton_step(m, w, act, ld, g, coef, effort, q0, v0, v1, h, theta, tol, floor
     return max_it, 1, ratio
 
 
+@_jit_inline
+def accept_step(q, v, a_last, a_prev, q1, v1, h):
+    """A converged step's end (q1, v1) into (q, v) in place, its mean
+    acceleration (v1 - v) / h into a_last and the one before into a_prev
+    (the predictor's two real steps): the compiled step loops' end of a
+    step."""
+    for k in range(v.shape[0]):
+        a_prev[k] = a_last[k]
+        a_last[k] = (v1[k] - v[k]) / h
+        v[k] = v1[k]
+    for k in range(q.shape[0]):
+        q[k] = q1[k]
+
+
 # Reuse of Newton's factorisation across steps (run_steps, which the single
 # step calls too): the matrix M + theta h D + (theta h)^2 K moves
 # slowly with the state, so a step may iterate with an earlier step's
@@ -288,12 +302,7 @@ def run_steps(m, w, act, ld, g, coef, effort, q, v, a_last, a_prev, have_prev, s
         stats[0] += it
         fresh = it > 2 or ratio > max_ratio
         stats[2] = 0.0 if fresh else 1.0
-        for k in range(nv):
-            a_prev[k] = a_last[k]
-            a_last[k] = (v1[k] - v[k]) / h
-            v[k] = v1[k]
-        for k in range(q.shape[0]):
-            q[k] = q1[k]
+        accept_step(q, v, a_last, a_prev, q1, v1, h)
         have_prev = steps_before + s > 0
     return n
 

@@ -26,7 +26,7 @@ import numpy as np
 from numba.experimental import structref
 
 from soft_twin_core.engine import algorithms as alg
-from soft_twin_core.engine.integrators import StepLoop, integrate_pass, residual_pass
+from soft_twin_core.engine.integrators import StepLoop, accept_step, integrate_pass, residual_pass
 from soft_twin_core.engine.kernels import passes
 from soft_twin_core.engine.kernels.data import ArraysRef, ArraysType, declare
 from soft_twin_core.engine.kernels.spatial import FALSE, _jit, _jit_inline, _jit_inner
@@ -246,12 +246,7 @@ def reduced_steps(m, w, act, ld, g, coef, effort, q, v, a_last, a_prev, have_pre
             b.efforts[j] = b.r[b.pz[j]]
             pv, pq = b.pv[j], b.pq[j]
             v1[pv] = v_cmd[j] if v_cmd.shape[0] > 0 else (q1[pq] - q[pq]) / h
-        for k in range(nv):
-            a_prev[k] = a_last[k]
-            a_last[k] = (v1[k] - v[k]) / h
-            v[k] = v1[k]
-        for k in range(q.shape[0]):
-            q[k] = q1[k]
+        accept_step(q, v, a_last, a_prev, q1, v1, h)
         have_prev = steps_before + s > 0
     return n
 
