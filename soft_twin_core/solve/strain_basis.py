@@ -1,7 +1,7 @@
 """Strain bases for accuracy studies: statics and natural frequencies of
-open trees in the coordinates of a basis built here (Legendre, FEM-like),
-and the fourth-order Magnus field (:class:`Magnus4Field`). A robot file's
-``strain_basis`` (:mod:`soft_twin_core.robot.strain_bases`) puts a segment
+open trees in the coordinates of a basis built here (Legendre, FEM-like);
+the fourth-order Magnus field is :mod:`soft_twin_core.solve.magnus4`. A robot
+file's ``strain_basis`` (:mod:`soft_twin_core.robot.strain_bases`) puts a segment
 on a basis for every solver; these functions are the studies' and the
 tests' independent path.
 
@@ -30,7 +30,6 @@ from scipy.linalg import eigh
 from soft_twin_core.engine import algorithms as alg
 from soft_twin_core.engine.workspace import Workspace
 from soft_twin_core.errors import StaticsError
-from soft_twin_core.lie import ad
 from soft_twin_core.robot.strain_bases import global_values, lagrange_shapes
 from soft_twin_core.solve.constrained import dense_stiffness_damping
 
@@ -163,123 +162,3 @@ def solve_reduced(pb, B, q_ref, z0=None, *, tol=1e-10, max_iterations=50, load_s
             raise StaticsError(f"reduced statics: no convergence in {max_iterations} iterations at load step "
                                f"{step}/{load_steps} (|B^T R| = {np.abs(r).max():.3g})")
     return q_ref + B @ z, z, total
-
-
-GAUSS2 = 0.5 / np.sqrt(3.0)       # the 2-point Gauss abscissae: a section's midpoint -+ this times its length
-
-
-class Magnus4Field:
-    """A member's strain field ``xi(X) = f0 + Phi(X) z`` (a basis per free
-    mode, as :func:`legendre_basis`) on the engine's sections, each section
-    [X_k, X_k + h] given the fourth-order Magnus step of the field (Zanna
-    collocation at the two Gauss points X_1 < X_2):
-
-        Omega_k = h/2 (xi_1 + xi_2) + sqrt(3) h^2 / 12 [xi_1, xi_2]
-
-    for the body-frame ODE g' = g xi^ (the commutator's sign is the
-    left-invariant one: the left ODE's, Y' = A Y, has the opposite), the
-    section's constant strain Omega_k / h. Its configuration ``q(z)`` is
-    then nonlinear in z (the commutator); its elastic energy is the field's,
-    by 2-point Gauss quadrature on every section (exact for a linear field
-    on a section, fourth order otherwise), not the sections'. For loads at
-    the sections' ends (a tip wrench, actuation) the backbone converges at
-    fourth order in the sections; loads inside them (gravity) stay second
-    order (the points inside a section lie on its constant-strain arc).
-    Needs every strain mode free on the member (the commutator reaches
-    modes a bending-only section cannot hold)."""
-
-    def __init__(self, mech, order):
-        tree = mech.tree
-        self.tree, self.q0 = tree, tree.q0.copy()
-        _legendre(order, ())                   # the order checked before any work
-        rows = []             # per section: (v offset, h, f0, K, first column, values at the 2 Gauss points)
-        cols = 0
-        for path, js, L in _soft_members(mech, "Magnus4Field"):
-            if order + 1 > 2 * len(js):
-                raise ValueError(f"Magnus4Field: member {path.name!r} has {2 * len(js)} Gauss points for the "
-                                 f"basis's {order + 1} functions a mode, which they cannot tell apart (a singular "
-                                 f"Newton matrix); give it at least {(order + 2) // 2} sections")
-            start = np.concatenate([[0.0], np.cumsum(L)[:-1]]) / L.sum()
-            for jt, x0, h in zip(js, start, L / L.sum()):
-                sec = tree.joints[jt].section
-                if list(sec.modes) != list(range(6)):
-                    raise ValueError(f"Magnus4Field: member {path.name!r} must have every strain mode free "
-                                     f"(free_modes: all): the commutator reaches them all")
-                vals = _legendre(order, [x0 + (0.5 - GAUSS2) * h, x0 + (0.5 + GAUSS2) * h]).T
-                rows.append((tree.idx_v[jt], sec.length, np.asarray(sec.f0, float), np.asarray(sec.K, float),
-                             cols, vals))
-            cols += 6 * (order + 1)
-        self.nz = cols
-        self.sections = []
-        for iv, h, f0, K, c0, vals in rows:
-            Phi = []
-            for v in vals:
-                P = np.zeros((6, cols))
-                for a in range(6):
-                    P[a, c0 + a * (order + 1):c0 + (a + 1) * (order + 1)] = v
-                Phi.append(P)
-            self.sections.append((iv, h, f0, K, Phi[0], Phi[1]))
-        self.K_z = sum(0.5 * h * (P1.T @ K @ P1 + P2.T @ K @ P2) for _, h, _, K, P1, P2 in self.sections)
-
-    def q(self, z):
-        """The engine's coordinates (each section's strain Omega / h) at z."""
-        q = self.q0.copy()
-        for iv, h, f0, _, P1, P2 in self.sections:
-            x1, x2 = f0 + P1 @ z, f0 + P2 @ z
-            q[iv:iv + 6] = 0.5 * (x1 + x2) + np.sqrt(3.0) * h / 12 * (ad(x1) @ x2)
-        return q
-
-    def jacobian(self, z):
-        """dq/dz (nv, nz) at z."""
-        J = np.zeros((len(self.q0), self.nz))
-        for iv, h, f0, _, P1, P2 in self.sections:
-            x1, x2 = f0 + P1 @ z, f0 + P2 @ z
-            J[iv:iv + 6] = 0.5 * (P1 + P2) + np.sqrt(3.0) * h / 12 * (ad(x1) @ P2 - ad(x2) @ P1)
-        return J
-
-    def tangent(self, pb, z):
-        """d(residual)/dz, analytic: ``J^T (K_t - K) J + K_z`` plus the
-        commutator's curvature against the loads' part r = R - K (q - q0):
-        per section ``-c (X + X^T)``, ``X_ij = r^T ad(Phi2_i) Phi1_j``, c =
-        sqrt(3) h / 12 (from ``ad(a) b = -ad(b) a``)."""
-        q = self.q(z)
-        J = self.jacobian(z)
-        r = pb.residual(q) - pb.K @ (q - self.q0)
-        T = J.T @ (pb.tangent(q) - pb.K) @ J + self.K_z
-        for iv, h, _, _, P1, P2 in self.sections:
-            A2 = ad(P2.T)                                          # (nz, 6, 6): ad of each column of Phi_2
-            X = np.einsum("a,iab,bj->ij", r[iv:iv + 6], A2, P1)
-            T -= np.sqrt(3.0) * h / 12 * (X + X.T)
-        return T
-
-    def residual(self, pb, z):
-        """The principle of virtual work in z: ``J^T (R(q) - K (q - q0)) +
-        K_z z`` (the sections' own elastic forces replaced by the field's)."""
-        q = self.q(z)
-        return self.jacobian(z).T @ (pb.residual(q) - pb.K @ (q - self.q0)) + self.K_z @ z
-
-
-def solve_magnus4(pb, field, z0=None, *, tol=1e-10, max_iterations=60, load_steps=1):
-    """Equilibrium of :class:`equilibrium.Problem` ``pb`` in the coordinates
-    z of a :class:`Magnus4Field`: Newton on its residual with its analytic
-    tangent (:meth:`Magnus4Field.tangent`), the inputs in ``load_steps``
-    steps. Returns (q, z, iterations)."""
-    z = np.zeros(field.nz) if z0 is None else np.array(z0, dtype=float)
-    total = 0
-    for step in range(1, load_steps + 1):
-        p = pb.scaled(step / load_steps) if load_steps > 1 else pb
-        scale = 1.0 + np.abs(field.residual(p, np.zeros(field.nz))).max()
-        for _ in range(max_iterations):
-            r = field.residual(p, z)
-            if np.abs(r).max() <= tol * scale:
-                break
-            dz = np.linalg.solve(field.tangent(p, z), -r)
-            t, n0 = 1.0, np.linalg.norm(r)
-            while t > 1e-4 and np.linalg.norm(field.residual(p, z + t * dz)) > (1 - 1e-4 * t) * n0:
-                t *= 0.5
-            z = z + t * dz
-            total += 1
-        else:
-            raise StaticsError(f"Magnus-4 statics: no convergence in {max_iterations} iterations at load step "
-                               f"{step}/{load_steps} (|r| = {np.abs(r).max():.3g})")
-    return field.q(z), z, total

@@ -1,0 +1,130 @@
+"""The fourth-order Magnus step in dynamics (issue 28): how the error of a
+variable-strain rod falls with its sections under the second-order step
+(each section the field's midpoint strain, its mass on its arc: the robot
+file's ``strain_basis``) and the fourth-order one (Magnus-4 between the
+Gauss points, the mass at them: soft_twin_core.solve.magnus4), and what a
+step's passes cost on each engine tree.
+
+The arm: the common benchmark cantilever (L = 0.5 m, r = 10 mm, E = 1 MPa,
+1000 kg/m^3), every strain mode a Legendre series of order 3 (24
+coordinates). Three errors, each against the same field on 64 sections
+under the fourth-order step (the discretisation's error alone; the two
+steps share the field's limit):
+
+- statics under its own weight (the tip 0.45 m down);
+- the first three natural frequencies (their largest relative error);
+- a swing: released straight under gravity, 0.5 s at dt = 10 ms by the
+  engine's theta-method (theta 1/2), the tip's largest distance from the
+  reference's over the steps.
+
+Cost: one inverse-dynamics pass (the engine's compiled RNEA, best of
+repeats) on each tree, the unit of a Newton iteration of the compiled step.
+The fourth-order tree has 2n + 1 intervals of 6 coordinates and 2n point
+inertias for n sections, so a pass costs about twice the second-order
+tree's at the same n. (The study integrates in Python; the compiled steps
+run the second-order step only, so these costs are the passes', not this
+script's wall time.)
+
+Run: .venv/bin/python benchmarks/magnus4_dynamics.py [--out docs/figures/magnus4_dynamics.png] [--quick]
+"""
+
+import argparse
+import os
+import sys
+
+import numpy as np
+
+from _timing import machine, per_call
+from soft_twin_core.engine import algorithms as alg
+from soft_twin_core.robot.mechanism import from_robot_model
+from soft_twin_core.robot.model import benchmark_cantilever_dict, model_from_dict
+from soft_twin_core.solve import magnus4 as m4
+from soft_twin_core.solve.constrained import free_problem, make_inputs
+from soft_twin_core.solve.strain_basis import legendre_basis, solve_reduced
+
+L, ORDER, DT, SWING = 0.5, 3, 0.01, 0.5
+
+
+def _arm(n):
+    return from_robot_model(model_from_dict(benchmark_cantilever_dict(n, "all", length=L)))
+
+
+def run(kind, n):
+    """(statics tip, first three frequencies, swing tips (steps, 3), RNEA
+    seconds a pass, Newton iterations a step) of the field on n sections."""
+    arm = _arm(n)
+    if kind == "magnus4":
+        f = m4.Magnus4Field(arm, ORDER)
+        z = m4.solve_magnus4(f, load_steps=4)[1]
+    else:
+        f = m4.LinearField(arm, legendre_basis(arm, ORDER))
+        z = solve_reduced(free_problem(arm, make_inputs(arm)), f.B, arm.tree.q0, load_steps=4)[1]
+    freqs = m4.modal_frequencies(f, 6)[[0, 2, 4]]
+    _, _, its, tips = m4.simulate(f, SWING, DT, observe=lambda z, zd: f.tip(z)[:3, 3])
+    q, v = f.q(z), f.jacobian(z) @ np.ones(f.nz)
+    t = per_call(lambda: alg.rnea(f.tree, f.ws, q, v, v, elastic=False))
+    return f.tip(z)[:3, 3], freqs, np.array(tips), t, its
+
+
+def main(argv=None):
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--out", default="docs/figures/magnus4_dynamics.png")
+    ap.add_argument("--quick", action="store_true", help="fewer section counts (no figure)")
+    a = ap.parse_args(argv)
+    sections = {"midpoint": (4, 8, 16) if a.quick else (4, 8, 16, 32, 64, 128),
+                "magnus4": (2, 4, 8) if a.quick else (2, 4, 8, 16, 32)}
+    print(f"# {machine()}; load {os.getloadavg()[0]:.2f}; Legendre order {ORDER}, every mode "
+          f"({6 * (ORDER + 1)} coordinates)", flush=True)
+    ref = run("magnus4", 64)
+    rows = {}
+    print(f"{'step':>9} {'n':>4} {'statics/L':>10} {'freq rel':>10} {'swing/L':>10} {'RNEA us':>8} {'it/step':>7}")
+    for kind, ns in sections.items():
+        for n in ns:
+            st, fr, tips, t, its = run(kind, n)
+            e = (np.linalg.norm(st - ref[0]) / L, np.abs(fr / ref[1] - 1).max(),
+                 np.linalg.norm(tips - ref[2], axis=1).max() / L, t)
+            rows[kind, n] = e
+            print(f"{kind:>9} {n:4d} {e[0]:10.2e} {e[1]:10.2e} {e[2]:10.2e} {t * 1e6:8.1f} {its:7.2f}", flush=True)
+    print(f"# load after: {os.getloadavg()[0]:.2f}")
+    if a.quick:
+        return 0
+    import matplotlib
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    import matplotlib.ticker
+    fig, ax = plt.subplots(1, 2, figsize=(11, 4.2))
+    for kind, style in (("midpoint", "o--"), ("magnus4", "s-")):
+        ns = sections[kind]
+        for k, (label, colour) in enumerate((("statics, own weight", "C0"), ("3 frequencies", "C1"),
+                                             ("swing, 0.5 s", "C2"))):
+            err = [rows[kind, n][k] for n in ns]
+            ax[0].loglog(ns, err, style, color=colour, label=f"{kind}: {label}")
+        ax[1].loglog([rows[kind, n][3] * 1e6 for n in ns], [rows[kind, n][2] for n in ns], style, color="C2",
+                     label=f"{kind}: swing")
+        for n in ns:
+            ax[1].annotate(str(n), (rows[kind, n][3] * 1e6, rows[kind, n][2]), fontsize=7,
+                           textcoords="offset points", xytext=(3, 3))
+    x = np.array([4.0, 32.0])
+    ax[0].loglog(x, 2e-1 * (x / 4) ** -2, "k:", lw=0.8, label="slope -2")
+    ax[0].loglog(x, 1e-4 * (x / 4) ** -4, "k-.", lw=0.8, label="slope -4")
+    ax[0].set_xlabel("sections n")
+    ax[0].set_ylabel("error (tip / L, or relative frequency)")
+    ax[0].set_title(f"Legendre order {ORDER}, every mode: error against sections")
+    ax[0].legend(fontsize=7, loc="lower left")
+    ax[1].set_xlabel("one inverse-dynamics pass on the engine tree [us] (labels: n)")
+    ax[1].set_ylabel("swing: largest tip error / L")
+    ax[1].set_title("swing error against a pass's cost")
+    ax[1].legend(fontsize=8)
+    ax[1].xaxis.set_major_formatter(matplotlib.ticker.ScalarFormatter())
+    ax[1].xaxis.set_minor_formatter(matplotlib.ticker.NullFormatter())
+    ax[1].set_xticks([20, 50, 100, 200])
+    for axis in ax:
+        axis.grid(True, which="both", alpha=0.3)
+    fig.tight_layout()
+    fig.savefig(a.out, dpi=110)
+    print(f"figure: {a.out}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,236 @@
+"""Fourth-order Magnus kinematics of a variable-strain rod in statics and
+dynamics (soft_twin_core.solve.magnus4, issue 28): its map's derivatives
+against finite differences; with a constant field it is the engine's PCS
+rod; its second-order twin (:class:`LinearField`) steps as the robot's own
+simulator does; the error falls at fourth order in the sections under
+gravity, in the natural frequencies and in a transient, where the
+second-order step falls at second; energy is kept at the midpoint rule's
+order; SoRoMoX's variable-strain model is matched."""
+
+import copy
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from soft_twin_core.engine.loads import Loads, PointLoad
+from soft_twin_core.robot.mechanism import from_robot_model, load_mechanism
+from soft_twin_core.robot.model import benchmark_cantilever_dict, model_from_dict
+from soft_twin_core.solve import magnus4 as m4
+from soft_twin_core.solve.constrained import MechanismSimulator, free_problem, make_inputs
+from soft_twin_core.solve.strain_basis import legendre_basis, solve_reduced
+
+L = 0.5
+
+
+def _arm(n, modes="all", gravity=True, **kw):
+    d = benchmark_cantilever_dict(n, modes, length=L, **kw)
+    if not gravity:
+        d["gravity"] = [0.0, 0.0, 0.0]
+    return from_robot_model(model_from_dict(d))
+
+
+def _fd(f, x, e=1e-6):
+    return np.column_stack([(f(x + e * u) - f(x - e * u)) / (2 * e) for u in np.eye(len(x))])
+
+
+def test_the_maps_jacobian_convective_term_and_statics_tangent_are_its_derivatives():
+    """J = dq/dz, ``Jdot zdot`` = d/dt (J) zdot and the statics tangent
+    against central differences, at a random state of a Legendre order-2
+    field on 4 sections, with a tip force and gravity."""
+    f = m4.Magnus4Field(_arm(4), 2)
+    assert (f.nz, f.tree.nv, f.tree.n_joints) == (18, 6 * 9, 9 + 8)     # 2n + 1 intervals, 2n Gauss points
+    rng = np.random.default_rng(5)
+    z = 0.3 * rng.standard_normal(f.nz) / (1 + np.arange(f.nz) % 3)
+    zd = rng.standard_normal(f.nz)
+    fd = _fd(f.q, z)
+    assert np.abs(f.jacobian(z) - fd).max() < 1e-8 * np.abs(fd).max()
+    jd = ((f.jacobian(z + 1e-6 * zd) - f.jacobian(z - 1e-6 * zd)) / 2e-6) @ zd
+    assert np.abs(f.convective(z, zd) - jd).max() < 1e-8 * np.abs(jd).max() and np.abs(jd).max() > 1e-3
+    pb = f.problem(Loads(point=(PointLoad(L, (0.0, 0.02, -0.05, 0.0, 0.0, 0.0)),), gravity=True))
+    fd = _fd(lambda x: f.residual(pb, x), z)
+    assert np.abs(f.tangent(pb, z) - fd).max() < 1e-7 * np.abs(fd).max()
+
+
+def test_a_constant_field_is_the_engines_pcs_rod():
+    """Order 0 (a constant strain over the rod, no commutator): the Gauss
+    points' masses are the engine's sections' own quadrature points, so
+    mass matrix, inverse dynamics, energy, statics and 0.3 s of motion are
+    the PCS rod's (:class:`LinearField` of the constant basis) to 1e-12."""
+    arm = _arm(6)
+    g, pcs = m4.Magnus4Field(arm, 0), m4.LinearField(arm, legendre_basis(arm, 0))
+    rng = np.random.default_rng(3)
+    z, zd, zdd = 0.5 * rng.standard_normal((3, 6)) * [[1], [2], [2]]
+    assert np.abs(m4.mass_matrix(g, z) - m4.mass_matrix(pcs, z)).max() < 1e-12 * np.abs(m4.mass_matrix(pcs, z)).max()
+    t_g, t_p = m4.inverse_dynamics(g, z, zd, zdd), m4.inverse_dynamics(pcs, z, zd, zdd)
+    assert np.abs(t_g - t_p).max() < 1e-12 * np.abs(t_p).max()
+    assert abs(m4.energy(g, z, zd) - m4.energy(pcs, z, zd)) < 1e-12 * abs(m4.energy(pcs, z, zd))
+    q2, z2, _ = solve_reduced(free_problem(arm, make_inputs(arm)), pcs.B, arm.tree.q0, load_steps=2)
+    _, z4, _ = m4.solve_magnus4(g, load_steps=2)
+    assert np.abs(z4 - z2).max() < 1e-10 and np.abs(g.tip(z4) - pcs.tip(z2)).max() < 1e-12
+    (zg, vg, _, _), (zp, vp, _, _) = (m4.simulate(f, 0.3, 0.01) for f in (g, pcs))
+    assert np.abs(zg - zp).max() < 1e-12 * np.abs(zp).max() and np.abs(vg - vp).max() < 1e-12 * np.abs(vp).max()
+
+
+def test_the_second_order_twin_steps_as_the_robots_simulator_does():
+    """:func:`simulate` with :class:`LinearField` (Legendre order 3 on the
+    sections' midpoints) against :class:`MechanismSimulator` on the robot
+    file's ``strain_basis`` (the compiled reduced step), 0.3 s from rest
+    under gravity at 10 ms: the same theta-method, to the Newton
+    tolerance."""
+    d = benchmark_cantilever_dict(8, "all", length=L)
+    arm = from_robot_model(model_from_dict(d))
+    d["segments"][0]["strain_basis"] = {"type": "legendre", "order": 3}
+    robot = from_robot_model(model_from_dict(copy.deepcopy(d)))
+    f = m4.LinearField(arm, legendre_basis(arm, 3))
+    assert np.array_equal(robot.basis, f.B)
+    sim = MechanismSimulator(robot, dt=0.01)
+    sim.step(n=30)
+    z, zd, _, _ = m4.simulate(f, 0.3, 0.01)
+    assert np.abs(f.q(z) - sim.q).max() < 1e-8 * np.abs(sim.q).max()
+    assert np.abs(f.B @ zd - sim.v).max() < 1e-6 * np.abs(sim.v).max()
+
+
+def test_the_error_falls_at_fourth_order_in_the_sections_under_gravity_in_frequencies_and_in_motion():
+    """Legendre order 3, every mode, on 4, 8, 16, 32 sections: the same
+    field, so the successive differences x_n - x_2n are the
+    discretisation's error alone. Fourth-order step with the mass at the
+    Gauss points: from 8-16 to 16-32 they fall 15.0-18.3x in the tip under
+    gravity (statics), the first three natural frequencies and the tip's
+    largest difference over 0.5 s of swing from rest at 10 ms (from 4-8,
+    7.7-22.7x: coarser is not yet asymptotic); under gravity still 15.5x
+    from 16-32 to 32-64. The second-order step (midpoint strain, mass on
+    the arcs) falls 4.0-4.5x, and on 16 sections its tip is 900x (statics)
+    and 255x (swing) further from its 32 sections'; extrapolated, its
+    statics meets the fourth-order step's to 2e-6 L (the same field's
+    limit). With the masses on the intervals' arcs instead of the Gauss
+    points (checked on a copy) the statics' differences stop falling at
+    fourth order from 16 sections on (1.3e-7, 1.1e-7, 3.4e-8 m: ratios 1.2
+    and 3.3), the arcs' second-order error."""
+    res = {}
+    for n in (4, 8, 16, 32):
+        arm = _arm(n)
+        for kind, f in (("m4", m4.Magnus4Field(arm, 3)), ("m2", m4.LinearField(arm, legendre_basis(arm, 3)))):
+            if kind == "m4":
+                z = m4.solve_magnus4(f, load_steps=4)[1]
+            else:
+                z = solve_reduced(free_problem(arm, make_inputs(arm)), f.B, arm.tree.q0, load_steps=4)[1]
+            tips = m4.simulate(f, 0.5, 0.01, observe=lambda z, zd: f.tip(z)[:3, 3])[3]
+            res[kind, n] = (f.tip(z)[:3, 3], m4.modal_frequencies(f, 6)[[0, 2, 4]], np.array(tips))
+    for kind, (lo, hi), first in (("m4", (13.0, 20.0), (5.0, 30.0)), ("m2", (3.5, 5.0), (3.5, 7.0))):
+        d = np.array([[np.linalg.norm(res[kind, n][0] - res[kind, 2 * n][0]) / L,
+                       *np.abs(res[kind, n][1] / res[kind, 2 * n][1] - 1),
+                       np.linalg.norm(res[kind, n][2] - res[kind, 2 * n][2], axis=1).max() / L] for n in (4, 8, 16)])
+        ratio = d[:-1] / d[1:]
+        assert np.all((lo < ratio[1]) & (ratio[1] < hi)) and np.all((first[0] < ratio[0]) & (ratio[0] < first[1])), \
+            (kind, d, ratio)
+        res[kind] = d[-1]
+    assert np.all(res["m2"][[0, 4]] > [500, 150] * res["m4"][[0, 4]]), (res["m2"], res["m4"])
+    tips = [res["m4", 16][0], res["m4", 32][0]]
+    f = m4.Magnus4Field(_arm(64), 3)
+    tips.append(f.tip(m4.solve_magnus4(f, load_steps=4)[1])[:3, 3])
+    r = np.linalg.norm(tips[0] - tips[1]) / np.linalg.norm(tips[1] - tips[2])
+    assert 14.0 < r < 18.0, r                      # still fourth order from 16-32 to 32-64 under gravity
+    limit2 = res["m2", 32][0] + (res["m2", 32][0] - res["m2", 16][0]) / 3      # its h^2 error extrapolated
+    assert np.linalg.norm(res["m4", 32][0] - limit2) / L < 1e-5, (res["m4", 32][0], limit2)   # the same field
+
+
+def test_a_tip_force_converges_at_fourth_order_to_the_continuum_reference(monkeypatch):
+    """Legendre order 6, every mode, the cantilever under a transverse tip
+    force (0.05 N: the tip 0.21 m down), against the continuum
+    boundary-value reference (an independent solver): 8.9e-6, 1.9e-7,
+    1.0e-8 L at 4, 8, 16 sections, 16-47x a halving (the field's energy
+    integrated exactly; with the Gauss points' own quadrature it was
+    3.0e-5, 1.9e-6, 1.2e-7 L). The midpoint step falls 4x (5.8e-3 ...
+    3.6e-4 L; order n - 1 on 4 sections). With the commutator's sign flipped the step is second order
+    again (3.8x, 3.9x): the sign is the body-frame ODE's."""
+    from soft_twin_core.reference.continuum import solve_cosserat_statics
+    F = (0.0, 0.0, -0.05)
+    loads = Loads(point=(PointLoad(L, F + (0.0, 0.0, 0.0)),), gravity=False)
+    p_ref = solve_cosserat_statics(_arm(1).tree.joints[0].section.K, L, tip_force_world=F,
+                                   load_steps=8).tip_pose()[:3, 3]
+
+    def errors(kind):
+        out = []
+        for n in (4, 8, 16):
+            arm = _arm(n)
+            if kind == "m2":
+                f = m4.LinearField(arm, legendre_basis(arm, min(6, n - 1)))
+                z = solve_reduced(free_problem(arm, make_inputs(arm, loads=loads)), f.B, arm.tree.q0, load_steps=4)[1]
+            else:
+                f = m4.Magnus4Field(arm, 6)
+                z = m4.solve_magnus4(f, loads, load_steps=4)[1]
+            out.append(np.linalg.norm(f.tip(z)[:3, 3] - p_ref) / L)
+        return np.array(out)
+    e4, e2 = errors("m4"), errors("m2")
+    assert np.all(e4[:-1] / e4[1:] > 15.0) and e4[-1] < 2e-8, e4
+    assert np.all((3.5 < e2[:-1] / e2[1:]) & (e2[:-1] / e2[1:] < 4.5)), e2
+    monkeypatch.setattr(m4, "C4", -m4.C4)
+    flipped = errors("m4")
+    assert np.all(flipped[:-1] / flipped[1:] < 4.5) and flipped[-1] > 1e-4, flipped
+
+
+def test_energy_is_kept_at_the_midpoint_rules_order():
+    """No damping, gravity on: 0.4 s of swing from the straight rod at rest
+    (Legendre order 2, 4 sections). The energy's largest change over the
+    steps falls 4x a halving of h (second order: 3.7x, 4.3x) and is 3.5e-5
+    of the potential energy released at 5 ms; implicit Euler (theta = 1) loses 10 % and
+    more (the check can fail)."""
+    f = m4.Magnus4Field(_arm(4), 2)
+    e0 = m4.energy(f, np.zeros(f.nz), np.zeros(f.nz))
+    drift = {}
+    for theta, h in ((0.5, 0.02), (0.5, 0.01), (0.5, 0.005), (1.0, 0.01)):
+        z, zd, es = np.zeros(f.nz), np.zeros(f.nz), []
+        for _ in range(int(round(0.4 / h))):
+            z, zd, _, _ = m4.simulate(f, h, h, z, zd, theta=theta)
+            es.append(m4.energy(f, z, zd))
+        exchanged = e0 - m4.energy(f, z, np.zeros(f.nz))          # the potential energy released
+        drift[theta, h] = np.abs(np.array(es) - e0).max() / exchanged
+    r = drift[0.5, 0.02] / drift[0.5, 0.01], drift[0.5, 0.01] / drift[0.5, 0.005]
+    assert all(3.0 < x < 5.5 for x in r), drift
+    assert drift[0.5, 0.005] < 1e-4 and drift[1.0, 0.01] > 0.1, drift
+
+
+def test_it_matches_soromoxs_variable_strain_model_without_extrapolation():
+    """SoRoMoX's GVS cantilever (its values stored by
+    ``benchmarks/soromox_gvs.py``, extrapolated from 16 and 32 Gauss points
+    as the fourth-order method it is), every mode Legendre of order p.
+    Under gravity (0.45 m down), on 64 sections: 3.8e-8 to 8.9e-8 L at
+    orders 1, 3, 5, where neighbouring orders differ by 1.7e-3 L or more
+    (with the mass on the arcs it was 1.7e-7 to 7.4e-7). The lowest six
+    natural frequencies on 64 sections: to 4.4e-7 without extrapolation,
+    where SoRoMoX's own 32 Gauss points are up to 6.7e-6 from its
+    extrapolation (the second-order step needs 64 and 128 sections and an
+    extrapolation for 2e-7)."""
+    data = json.loads((Path(__file__).parents[1] / "data" / "soromox_gvs_cantilever.json").read_text())
+    assert data["model"]["basis"] == "legendre" and data["model"]["strains"] == "all six"
+    tips = {(r["order"], r["gauss_points"]): np.array(r["tip_m"]) for r in data["results"]}
+    freqs = {(r["order"], r["gauss_points"]): np.array(r["frequencies_hz"]) for r in data["results"]}
+    geo = {"length": data["model"]["length_m"], "radius": data["model"]["radius_m"]}
+    arm = from_robot_model(model_from_dict(benchmark_cantilever_dict(64, "all", **geo)))
+    free = from_robot_model(model_from_dict({**benchmark_cantilever_dict(64, "all", **geo), "gravity": [0, 0, 0]}))
+    for p in (1, 3, 5):
+        ref = tips[p, 32] + (tips[p, 32] - tips[p, 16]) / 15
+        f = m4.Magnus4Field(arm, p)
+        tip = f.tip(m4.solve_magnus4(f, load_steps=8)[1])[:3, 3]
+        assert np.linalg.norm(tip - ref) / L < 2e-7, (p, tip, ref)
+        ref = freqs[p, 32] + (freqs[p, 32] - freqs[p, 16]) / 15
+        assert np.abs(m4.modal_frequencies(m4.Magnus4Field(free, p), 6) / ref - 1).max() < 6e-7, p
+    assert np.linalg.norm(tips[5, 32] - tips[3, 32]) / L > 1e-3 and tip[2] < -0.45
+
+
+def test_bad_input_is_refused_naming_it():
+    """An order outside 0..12, more functions than Gauss points, a member
+    without every mode free, a tree that is not a rod, a duration that is
+    not whole steps: ValueError naming the field."""
+    with pytest.raises(ValueError, match=r"order: expected an integer in \[0, 12\]"):
+        m4.Magnus4Field(_arm(4), -1)
+    with pytest.raises(ValueError, match="member 'backbone' has 8 Gauss points for the basis's 9 functions"):
+        m4.Magnus4Field(_arm(4), 8)
+    with pytest.raises(ValueError, match="every strain mode free"):
+        m4.Magnus4Field(_arm(4, "bending"), 2)
+    with pytest.raises(ValueError, match="expected a rod"):
+        m4.Magnus4Field(load_mechanism("pan_tilt_arm"), 2)
+    with pytest.raises(ValueError, match="duration: expected a whole number of steps"):
+        m4.simulate(m4.Magnus4Field(_arm(2), 1), 0.015, 0.01)
