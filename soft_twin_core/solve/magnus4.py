@@ -127,8 +127,10 @@ class Magnus4Field(_Field):
         self.q0 = self.tree.q0.copy()
         iv = [self.tree.idx_v[j] for j in self.tree.soft_joints]
         d = np.diff(knots)
-        self.intervals = [(iv[k], d[k], self.basis(knots[k] + (0.5 - GAUSS2) * d[k]),
-                           self.basis(knots[k] + (0.5 + GAUSS2) * d[k])) for k in range(len(d))]
+        self.d = d
+        self.rows = np.ravel(np.array(iv)[:, None] + np.arange(6))        # each interval's 6 coordinates in q
+        self.P1 = np.array([self.basis(a + (0.5 - GAUSS2) * w) for a, w in zip(knots[:-1], d)])   # (I, 6, nz)
+        self.P2 = np.array([self.basis(a + (0.5 + GAUSS2) * w) for a, w in zip(knots[:-1], d)])
         self.K_z, self.D_z = self._energy_matrices(secs, start, h)
         self.ws = Workspace(self.tree)
 
@@ -178,41 +180,46 @@ class Magnus4Field(_Field):
                          (), {"tip": PointRef(js[-1], t.joints[js[-1]].section.length)}, "fixed",
                          base_pose=np.array(mech.base_pose, float))
 
-    def _points(self, z):
-        for iv, d, P1, P2 in self.intervals:
-            yield iv, d, P1, P2, self.f0 + P1 @ z, self.f0 + P2 @ z
+    def _ends(self, z):
+        """The field at every interval's two Gauss points, (I, 6) each."""
+        return self.f0 + self.P1 @ z, self.f0 + self.P2 @ z
 
     def q(self, z):
         """The engine's coordinates at z: each interval's strain Omega / d."""
+        x1, x2 = self._ends(z)
         q = self.q0.copy()
-        for iv, d, _, _, x1, x2 in self._points(z):
-            q[iv:iv + 6] = 0.5 * (x1 + x2) + C4 * d * (ad(x1) @ x2)
+        q[self.rows] = (0.5 * (x1 + x2) + C4 * self.d[:, None] * np.einsum("iab,ib->ia", ad(x1), x2)).ravel()
         return q
 
     def jacobian(self, z):
         """dq/dz (nv, nz) at z."""
+        x1, x2 = self._ends(z)
         J = np.zeros((len(self.q0), self.nz))
-        for iv, d, P1, P2, x1, x2 in self._points(z):
-            J[iv:iv + 6] = 0.5 * (P1 + P2) + C4 * d * (ad(x1) @ P2 - ad(x2) @ P1)
+        J[self.rows] = (0.5 * (self.P1 + self.P2) + C4 * self.d[:, None, None]
+                        * (ad(x1) @ self.P2 - ad(x2) @ self.P1)).reshape(-1, self.nz)
         return J
 
     def convective(self, z, zd):
         """``Jdot zdot`` (nv): q's acceleration at zddot = 0, ``2 c d [Phi_1
         zdot, Phi_2 zdot]`` per interval (q is quadratic in z)."""
         out = np.zeros(len(self.q0))
-        for iv, d, P1, P2 in self.intervals:
-            out[iv:iv + 6] = 2 * C4 * d * (ad(P1 @ zd) @ (P2 @ zd))
+        out[self.rows] = (2 * C4 * self.d[:, None] * np.einsum("iab,ib->ia", ad(self.P1 @ zd),
+                                                               self.P2 @ zd)).ravel()
         return out
 
     def curvature(self, r):
         """``sum_k r_k d^2 q_k / dz^2`` (nz, nz): the commutator's second
         derivative against the generalised forces r (nv) on the intervals,
-        ``-c d (X + X^T)``, ``X_ij = r^T ad(Phi2_i) Phi1_j``."""
-        T = np.zeros((self.nz, self.nz))
-        for iv, d, P1, P2 in self.intervals:
-            X = np.einsum("a,iab,bj->ij", r[iv:iv + 6], ad(P2.T), P1)
-            T -= C4 * d * (X + X.T)
-        return T
+        ``-c d (X + X^T)``, ``X_jk = r^T ad(Phi2_j) Phi1_k`` (Phi2_j: column
+        j of Phi_2; from ``ad(a) b = -ad(b) a``)."""
+        ri = r[self.rows].reshape(-1, 6) * (C4 * self.d)[:, None]
+        X = np.einsum("ia,iajb,ibk->jk", ri, self._ad_columns(self.P2), self.P1)
+        return -(X + X.T)
+
+    @staticmethod
+    def _ad_columns(P):
+        """(I, 6, nz, 6): ``ad`` of each column of each interval's P."""
+        return np.moveaxis(ad(np.swapaxes(P, 1, 2)), 1, 2)
 
     def residual(self, pb, z):
         """The principle of virtual work in z, ``J^T R(q(z)) + K_z z``
@@ -254,6 +261,14 @@ class LinearField(_Field):
 
     def convective(self, z, zd):
         return np.zeros(len(self.q0))
+
+    def problem(self, loads=None):
+        return free_problem(self.mech, make_inputs(self.mech, loads=loads))
+
+    def tangent(self, pb, z):
+        """``B^T K_t B``: the statics tangent in z (the sections' stiffness
+        and the loads')."""
+        return self.B.T @ pb.tangent(self.q(z)) @ self.B
 
 
 
@@ -314,9 +329,11 @@ def simulate(field, duration, h, z0=None, zd0=None, *, theta=0.5, tol=1e-10, max
     steps = int(round(duration / h))
     if steps < 1 or abs(steps * h - duration) > 1e-9 * duration:
         raise ValueError(f"duration: expected a whole number of steps h = {h} s, got {duration} s")
+    pb = field.problem()
     total, seen = 0, []
     for _ in range(steps):
-        A = mass_matrix(field, z + theta * h * zd) / h + theta * field.D_z + theta ** 2 * h * field.K_z
+        zt = z + theta * h * zd
+        A = mass_matrix(field, zt) / h + theta * field.D_z + theta ** 2 * h * field.tangent(pb, zt)
         v1 = zd.copy()
         scale = None
         for it in range(max_iterations):
