@@ -324,8 +324,15 @@ def simulate(field, duration, h, z0=None, zd0=None, *, theta=0.5, tol=1e-10, max
     theta h D_z + (theta h)^2 K_z`` at each step's start. Returns (z, zd,
     Newton iterations a step) at the end; StaticsError when a step does
     not converge."""
-    z = np.zeros(field.nz) if z0 is None else np.array(z0, float)
-    zd = np.zeros(field.nz) if zd0 is None else np.array(zd0, float)
+    if not 0.5 <= theta <= 1.0:
+        raise ValueError(f"theta: expected a value in [0.5, 1] (1/2 the midpoint rule, 1 implicit Euler), got {theta}")
+    if not (np.isfinite(h) and h > 0):
+        raise ValueError(f"h: expected a positive time step [s], got {h}")
+    z, zd = (np.zeros(field.nz) if x is None else np.array(x, float) for x in (z0, zd0))
+    for name, x in (("z0", z), ("zd0", zd)):
+        if x.shape != (field.nz,) or not np.all(np.isfinite(x)):
+            raise ValueError(f"{name}: expected {field.nz} finite values (the field's coordinates), got shape "
+                             f"{x.shape}")
     steps = int(round(duration / h))
     if steps < 1 or abs(steps * h - duration) > 1e-9 * duration:
         raise ValueError(f"duration: expected a whole number of steps h = {h} s, got {duration} s")

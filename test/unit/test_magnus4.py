@@ -286,8 +286,9 @@ def test_a_release_matches_soromoxs_variable_strain_dynamics():
 
 def test_bad_input_is_refused_naming_it():
     """An order outside 0..12, more functions than Gauss points, a member
-    without every mode free, a tree that is not a rod, a duration that is
-    not whole steps: ValueError naming the field."""
+    without every mode free, a tree that is not a rod; a duration that is
+    not whole steps, theta outside [1/2, 1], a step that is not positive, a
+    start of the wrong size or not finite: ValueError naming the field."""
     with pytest.raises(ValueError, match=r"order: expected an integer in \[0, 12\]"):
         m4.Magnus4Field(_arm(4), -1)
     with pytest.raises(ValueError, match="member 'backbone' has 8 Gauss points for the basis's 9 functions"):
@@ -296,5 +297,14 @@ def test_bad_input_is_refused_naming_it():
         m4.Magnus4Field(_arm(4, "bending"), 2)
     with pytest.raises(ValueError, match="expected a rod"):
         m4.Magnus4Field(load_mechanism("pan_tilt_arm"), 2)
+    f = m4.Magnus4Field(_arm(2), 1)
     with pytest.raises(ValueError, match="duration: expected a whole number of steps"):
-        m4.simulate(m4.Magnus4Field(_arm(2), 1), 0.015, 0.01)
+        m4.simulate(f, 0.015, 0.01)
+    with pytest.raises(ValueError, match=r"theta: expected a value in \[0.5, 1\]"):
+        m4.simulate(f, 0.02, 0.01, theta=0.4)
+    with pytest.raises(ValueError, match="h: expected a positive time step"):
+        m4.simulate(f, 0.02, -0.01)
+    with pytest.raises(ValueError, match="z0: expected 12 finite values"):
+        m4.simulate(f, 0.02, 0.01, np.zeros(3))
+    with pytest.raises(ValueError, match="zd0: expected 12 finite values"):
+        m4.simulate(f, 0.02, 0.01, None, np.full(12, np.nan))
