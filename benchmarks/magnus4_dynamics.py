@@ -2,7 +2,8 @@
 variable-strain rod falls with its sections under the second-order step
 (each section the field's midpoint strain, its mass on its arc: the robot
 file's ``strain_basis``) and the fourth-order one (Magnus-4 between the
-Gauss points, the mass at them: soft_twin_core.solve.magnus4), and what a
+Gauss points, the mass at them: soft_twin_core.solve.magnus4; "cf4" its
+commutator-free form, two sections an interval and a constant B), and what a
 step's passes cost on each engine tree.
 
 The arm: the common benchmark cantilever (L = 0.5 m, r = 10 mm, E = 1 MPa,
@@ -56,8 +57,8 @@ def run(kind, n):
     """(statics tip, first three frequencies, swing tips (steps, 3), RNEA
     seconds a pass, Newton iterations a step) of the field on n sections."""
     arm = _arm(n)
-    if kind == "magnus4":
-        f = m4.Magnus4Field(arm, ORDER)
+    if kind in ("magnus4", "cf4"):
+        f = m4.Magnus4Field(arm, ORDER, commutator_free=kind == "cf4")
         z = m4.solve_magnus4(f, load_steps=4)[1]
     else:
         f = m4.LinearField(arm, legendre_basis(arm, ORDER))
@@ -73,7 +74,7 @@ def step_time(kind, n, f, steps=20):
     """Seconds a 10 ms step from rest takes as it runs today (best of 3)."""
     best = np.inf
     for _ in range(3):
-        if kind == "magnus4":
+        if kind in ("magnus4", "cf4"):
             t = time.perf_counter()
             m4.simulate(f, steps * DT, DT)
         else:
@@ -92,7 +93,8 @@ def main(argv=None):
     ap.add_argument("--quick", action="store_true", help="fewer section counts (no figure)")
     a = ap.parse_args(argv)
     sections = {"midpoint": (4, 8, 16) if a.quick else (4, 8, 16, 32, 64, 128),
-                "magnus4": (2, 4, 8) if a.quick else (2, 4, 8, 16, 32)}
+                "magnus4": (2, 4, 8) if a.quick else (2, 4, 8, 16, 32),
+                "cf4": (2, 4, 8) if a.quick else (2, 4, 8, 16, 32)}
     print(f"# {machine()}; load {os.getloadavg()[0]:.2f}; Legendre order {ORDER}, every mode "
           f"({6 * (ORDER + 1)} coordinates)", flush=True)
     ref = run("magnus4", 64)
@@ -115,15 +117,18 @@ def main(argv=None):
     import matplotlib.pyplot as plt
     import matplotlib.ticker
     fig, ax = plt.subplots(1, 2, figsize=(11, 4.2))
-    for kind, style in (("midpoint", "o--"), ("magnus4", "s-")):
+    for kind, style in (("midpoint", "o--"), ("magnus4", "s-"), ("cf4", "^:")):
         ns = sections[kind]
         for k, (label, colour) in enumerate((("statics, own weight", "C0"), ("3 frequencies", "C1"),
                                              ("swing, 0.5 s", "C2"))):
+            if kind == "cf4" and k != 2:
+                continue                                   # on the Magnus-4 curves (the swing shown)
             err = [rows[kind, n][k] for n in ns]
             ax[0].loglog(ns, err, style, color=colour, label=f"{kind}: {label}")
-        label = {"midpoint": "midpoint: the robot's compiled step", "magnus4": "Magnus-4: the study's step (Python)"}
-        ax[1].loglog([rows[kind, n][4] * 1e3 for n in ns], [rows[kind, n][2] for n in ns], style, color="C2",
-                     label=label[kind])
+        label = {"midpoint": "midpoint: the robot's compiled step", "magnus4": "Magnus-4: the study's step (Python)",
+                 "cf4": "commutator-free Magnus-4 (constant B): the study's step"}
+        ax[1].loglog([rows[kind, n][4] * 1e3 for n in ns], [rows[kind, n][2] for n in ns], style,
+                     color="C3" if kind == "cf4" else "C2", label=label[kind])
         for n in ns:
             ax[1].annotate(str(n), (rows[kind, n][4] * 1e3, rows[kind, n][2]), fontsize=7,
                            textcoords="offset points", xytext=(3, 3))

@@ -40,6 +40,11 @@ at fourth order in the sections, in statics under gravity, in the natural
 frequencies and in a transient (``test_magnus4.py``;
 ``benchmarks/magnus4_dynamics.py`` against the second-order step).
 
+``Magnus4Field(..., commutator_free=True)`` is the same step with each
+interval two sections whose strains are linear in the field (the
+commutator-free fourth-order method): then q = q0 + B z with a constant B,
+the form every solver of the robot takes.
+
 :class:`LinearField` is the second-order step in the same form (``q = q0 +
 B z`` on the engine's own sections, :func:`strain_basis.legendre_basis`),
 so the two share :func:`simulate` and :func:`modal_frequencies`.
@@ -60,6 +65,7 @@ from soft_twin_core.solve.constrained import dense_stiffness_damping, free_probl
 
 GAUSS2 = 0.5 / np.sqrt(3.0)      # the 2-point Gauss abscissae: an interval's midpoint -+ this times its length
 C4 = np.sqrt(3.0) / 12.0         # the commutator's coefficient in Omega / d
+CF_WEIGHTS = (0.25 + np.sqrt(3.0) / 6, 0.25 - np.sqrt(3.0) / 6)   # the commutator-free method's a1, a2
 
 
 def _rod(mech):
@@ -104,9 +110,19 @@ class Magnus4Field(_Field):
     (order + 2) // 2 of them). Attributes: ``mech`` the engine's rod of
     2n + 1 massless intervals and 2n point inertias (its frame ``tip``),
     ``nz`` the coordinates, ``K_z``, ``D_z`` the field's stiffness and
-    damping (nz, nz)."""
+    damping (nz, nz).
 
-    def __init__(self, mech, order):
+    ``commutator_free=True``: each interval is instead two massless
+    sections of length d/2 whose strains are linear in the field,
+    ``2 (a1 xi(Y_1) + a2 xi(Y_2))`` then ``2 (a2 xi(Y_1) + a1 xi(Y_2))``,
+    a1, a2 = 1/4 +- sqrt(3)/6 (:data:`CF_WEIGHTS`): the commutator-free
+    fourth-order Magnus method of two exponentials (Blanes and Moan,
+    Applied Numerical Mathematics 56, 2006), whose product agrees with
+    Omega's exponential to O(d^5) (the other order of the two factors only
+    to O(d^3)). Then ``q = q0 + B z`` with a constant B, as the robot
+    file's second-order step, the mass and energy as above."""
+
+    def __init__(self, mech, order, commutator_free=False):
         if not (isinstance(order, (int, np.integer)) and 0 <= order <= MAX_ORDER):
             raise ValueError(f"order: expected an integer in [0, {MAX_ORDER}], got {order!r}")
         secs, h = _rod(mech)
@@ -122,15 +138,22 @@ class Magnus4Field(_Field):
         wg = np.repeat(0.5 * h, 2)
         owner = np.repeat(np.arange(n), 2)
         knots = np.concatenate([[0.0], xg, [L]])
-        self.mech = self._lumped(mech, secs, knots, wg, owner)
+        self.commutator_free = bool(commutator_free)
+        self.mech = self._lumped(mech, secs, knots, wg, owner, 2 if self.commutator_free else 1)
         self.tree = self.mech.tree
         self.q0 = self.tree.q0.copy()
         iv = [self.tree.idx_v[j] for j in self.tree.soft_joints]
         d = np.diff(knots)
         self.d = d
-        self.rows = np.ravel(np.array(iv)[:, None] + np.arange(6))        # each interval's 6 coordinates in q
+        self.rows = np.ravel(np.array(iv)[:, None] + np.arange(6))        # each section's 6 coordinates in q
         self.P1 = np.array([self.basis(a + (0.5 - GAUSS2) * w) for a, w in zip(knots[:-1], d)])   # (I, 6, nz)
         self.P2 = np.array([self.basis(a + (0.5 + GAUSS2) * w) for a, w in zip(knots[:-1], d)])
+        self.B = None
+        if self.commutator_free:
+            a1, a2 = CF_WEIGHTS
+            halves = np.stack([2 * (a1 * self.P1 + a2 * self.P2), 2 * (a2 * self.P1 + a1 * self.P2)], axis=1)
+            self.B = np.zeros((len(self.q0), self.nz))
+            self.B[self.rows] = halves.reshape(-1, self.nz)          # (interval, half, 6, nz) in the tree's order
         self.K_z, self.D_z = self._energy_matrices(secs, start, h)
         self.ws = Workspace(self.tree)
 
@@ -157,19 +180,21 @@ class Magnus4Field(_Field):
         return P
 
     @staticmethod
-    def _lumped(mech, secs, knots, wg, owner):
-        """The engine's rod of the field: a massless, stiffless soft section
-        per interval between ``knots``, a fixed joint after each interval
-        but the last carrying ``wg[g]`` times its section's inertia density."""
+    def _lumped(mech, secs, knots, wg, owner, parts):
+        """The engine's rod of the field: ``parts`` massless, stiffless soft
+        sections of equal length per interval between ``knots``, a fixed
+        joint after each interval but the last carrying ``wg[g]`` times its
+        section's inertia density."""
         tree = mech.tree
         b = ModelBuilder(tree.name + "_magnus4", tree.gravity)
         zero = np.zeros((6, 6))
         parent, js = -1, []
         for k, d in enumerate(np.diff(knots)):
-            sec = SoftSection(float(d), zero, zero, zero, secs[0].f0, np.ones(6, bool), "exponential", 1)
-            parent = b.add_joint(f"interval_{k}", "soft", parent, tree.joints[0].placement if k == 0 else None,
-                                 section=sec)
-            js.append(parent)
+            sec = SoftSection(float(d) / parts, zero, zero, zero, secs[0].f0, np.ones(6, bool), "exponential", 1)
+            for part in range(parts):
+                parent = b.add_joint(f"interval_{k}_{part}", "soft", parent,
+                                     tree.joints[0].placement if parent < 0 else None, section=sec)
+                js.append(parent)
             if k < len(wg):
                 mc = np.asarray(secs[owner[k]].Mc, float)
                 mc = np.diag(mc) if mc.ndim == 1 else mc
@@ -185,7 +210,10 @@ class Magnus4Field(_Field):
         return self.f0 + self.P1 @ z, self.f0 + self.P2 @ z
 
     def q(self, z):
-        """The engine's coordinates at z: each interval's strain Omega / d."""
+        """The engine's coordinates at z: each interval's strain Omega / d
+        (commutator-free: ``q0 + B z``)."""
+        if self.commutator_free:
+            return self.q0 + self.B @ z
         x1, x2 = self._ends(z)
         q = self.q0.copy()
         q[self.rows] = (0.5 * (x1 + x2) + C4 * self.d[:, None] * np.einsum("iab,ib->ia", ad(x1), x2)).ravel()
@@ -193,6 +221,8 @@ class Magnus4Field(_Field):
 
     def jacobian(self, z):
         """dq/dz (nv, nz) at z."""
+        if self.commutator_free:
+            return self.B
         x1, x2 = self._ends(z)
         J = np.zeros((len(self.q0), self.nz))
         J[self.rows] = (0.5 * (self.P1 + self.P2) + C4 * self.d[:, None, None]
@@ -201,8 +231,11 @@ class Magnus4Field(_Field):
 
     def convective(self, z, zd):
         """``Jdot zdot`` (nv): q's acceleration at zddot = 0, ``2 c d [Phi_1
-        zdot, Phi_2 zdot]`` per interval (q is quadratic in z)."""
+        zdot, Phi_2 zdot]`` per interval (q is quadratic in z; zero when
+        commutator-free)."""
         out = np.zeros(len(self.q0))
+        if self.commutator_free:
+            return out
         out[self.rows] = (2 * C4 * self.d[:, None] * np.einsum("iab,ib->ia", ad(self.P1 @ zd),
                                                                self.P2 @ zd)).ravel()
         return out
@@ -211,7 +244,9 @@ class Magnus4Field(_Field):
         """``sum_k r_k d^2 q_k / dz^2`` (nz, nz): the commutator's second
         derivative against the generalised forces r (nv) on the intervals,
         ``-c d (X + X^T)``, ``X_jk = r^T ad(Phi2_j) Phi1_k`` (Phi2_j: column
-        j of Phi_2; from ``ad(a) b = -ad(b) a``)."""
+        j of Phi_2; from ``ad(a) b = -ad(b) a``); zero when commutator-free."""
+        if self.commutator_free:
+            return np.zeros((self.nz, self.nz))
         ri = r[self.rows].reshape(-1, 6) * (C4 * self.d)[:, None]
         X = np.einsum("ia,iajb,ibk->jk", ri, self._ad_columns(self.P2), self.P1)
         return -(X + X.T)

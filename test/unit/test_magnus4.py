@@ -58,11 +58,17 @@ def test_a_constant_field_is_the_engines_pcs_rod():
     """Order 0 (a constant strain over the rod, no commutator): the Gauss
     points' masses are the engine's sections' own quadrature points, so
     mass matrix, inverse dynamics, energy, statics and 0.3 s of motion are
-    the PCS rod's (:class:`LinearField` of the constant basis) to 1e-12."""
+    the PCS rod's (:class:`LinearField` of the constant basis) to 1e-12,
+    with the commutator or commutator-free."""
     arm = _arm(6)
-    g, pcs = m4.Magnus4Field(arm, 0), m4.LinearField(arm, legendre_basis(arm, 0))
+    pcs = m4.LinearField(arm, legendre_basis(arm, 0))
     rng = np.random.default_rng(3)
     z, zd, zdd = 0.5 * rng.standard_normal((3, 6)) * [[1], [2], [2]]
+    for cf in (False, True):
+        _check_the_same_rod(m4.Magnus4Field(arm, 0, commutator_free=cf), pcs, arm, z, zd, zdd)
+
+
+def _check_the_same_rod(g, pcs, arm, z, zd, zdd):
     assert np.abs(m4.mass_matrix(g, z) - m4.mass_matrix(pcs, z)).max() < 1e-12 * np.abs(m4.mass_matrix(pcs, z)).max()
     t_g, t_p = m4.inverse_dynamics(g, z, zd, zdd), m4.inverse_dynamics(pcs, z, zd, zdd)
     assert np.abs(t_g - t_p).max() < 1e-12 * np.abs(t_p).max()
@@ -108,18 +114,22 @@ def test_the_error_falls_at_fourth_order_in_the_sections_under_gravity_in_freque
     limit). With the masses on the intervals' arcs instead of the Gauss
     points (checked on a copy) the statics' differences stop falling at
     fourth order from 16 sections on (1.3e-7, 1.1e-7, 3.4e-8 m: ratios 1.2
-    and 3.3), the arcs' second-order error."""
+    and 3.3), the arcs' second-order error. The commutator-free step (a
+    constant B) falls 14.7-19.6x from 8-16 to 16-32 and meets the
+    commutator's limit to 7e-8 L (statics) and 3.4e-7 L (swing)."""
     res = {}
     for n in (4, 8, 16, 32):
         arm = _arm(n)
-        for kind, f in (("m4", m4.Magnus4Field(arm, 3)), ("m2", m4.LinearField(arm, legendre_basis(arm, 3)))):
-            if kind == "m4":
+        for kind, f in (("m4", m4.Magnus4Field(arm, 3)), ("cf", m4.Magnus4Field(arm, 3, commutator_free=True)),
+                        ("m2", m4.LinearField(arm, legendre_basis(arm, 3)))):
+            if kind != "m2":
                 z = m4.solve_magnus4(f, load_steps=4)[1]
             else:
                 z = solve_reduced(free_problem(arm, make_inputs(arm)), f.B, arm.tree.q0, load_steps=4)[1]
             tips = m4.simulate(f, 0.5, 0.01, observe=lambda z, zd: f.tip(z)[:3, 3])[3]
             res[kind, n] = (f.tip(z)[:3, 3], m4.modal_frequencies(f, 6)[[0, 2, 4]], np.array(tips))
-    for kind, (lo, hi), first in (("m4", (13.0, 20.0), (5.0, 30.0)), ("m2", (3.5, 5.0), (3.5, 7.0))):
+    for kind, (lo, hi), first in (("m4", (13.0, 20.0), (5.0, 30.0)), ("cf", (13.0, 24.0), (5.0, 30.0)),
+                                  ("m2", (3.5, 5.0), (3.5, 7.0))):
         d = np.array([[np.linalg.norm(res[kind, n][0] - res[kind, 2 * n][0]) / L,
                        *np.abs(res[kind, n][1] / res[kind, 2 * n][1] - 1),
                        np.linalg.norm(res[kind, n][2] - res[kind, 2 * n][2], axis=1).max() / L] for n in (4, 8, 16)])
@@ -133,6 +143,12 @@ def test_the_error_falls_at_fourth_order_in_the_sections_under_gravity_in_freque
     tips.append(f.tip(m4.solve_magnus4(f, load_steps=4)[1])[:3, 3])
     r = np.linalg.norm(tips[0] - tips[1]) / np.linalg.norm(tips[1] - tips[2])
     assert 14.0 < r < 18.0, r                      # still fourth order from 16-32 to 32-64 under gravity
+    # the commutator-free step: the same limit (its map linear, q = q0 + B z with a constant B)
+    assert np.linalg.norm(res["cf", 32][0] - res["m4", 32][0]) / L < 2e-7
+    assert np.linalg.norm(res["cf", 32][2] - res["m4", 32][2], axis=1).max() / L < 1e-6
+    cf = m4.Magnus4Field(_arm(4), 3, commutator_free=True)
+    z = np.random.default_rng(2).standard_normal(cf.nz)
+    assert np.array_equal(cf.jacobian(z), cf.B) and np.allclose(cf.q(z), cf.q0 + cf.B @ z, atol=1e-15)
     limit2 = res["m2", 32][0] + (res["m2", 32][0] - res["m2", 16][0]) / 3      # its h^2 error extrapolated
     assert np.linalg.norm(res["m4", 32][0] - limit2) / L < 1e-5, (res["m4", 32][0], limit2)   # the same field
 
@@ -144,8 +160,11 @@ def test_a_tip_force_converges_at_fourth_order_to_the_continuum_reference(monkey
     1.0e-8 L at 4, 8, 16 sections, 16-47x a halving (the field's energy
     integrated exactly; with the Gauss points' own quadrature it was
     3.0e-5, 1.9e-6, 1.2e-7 L). The midpoint step falls 4x (5.8e-3 ...
-    3.6e-4 L; order n - 1 on 4 sections). With the commutator's sign flipped the step is second order
-    again (3.8x, 3.9x): the sign is the body-frame ODE's."""
+    3.6e-4 L; order n - 1 on 4 sections). The commutator-free step (two
+    exponentials linear in the field): 7.5e-6, 1.0e-7, 5.1e-9 L. With the
+    commutator's sign flipped, or the two exponentials in the other order,
+    either is second order again (3.8x, 3.9x): the sign is the body-frame
+    ODE's."""
     from soft_twin_core.reference.continuum import solve_cosserat_statics
     F = (0.0, 0.0, -0.05)
     loads = Loads(point=(PointLoad(L, F + (0.0, 0.0, 0.0)),), gravity=False)
@@ -160,16 +179,18 @@ def test_a_tip_force_converges_at_fourth_order_to_the_continuum_reference(monkey
                 f = m4.LinearField(arm, legendre_basis(arm, min(6, n - 1)))
                 z = solve_reduced(free_problem(arm, make_inputs(arm, loads=loads)), f.B, arm.tree.q0, load_steps=4)[1]
             else:
-                f = m4.Magnus4Field(arm, 6)
+                f = m4.Magnus4Field(arm, 6, commutator_free=kind == "cf")
                 z = m4.solve_magnus4(f, loads, load_steps=4)[1]
             out.append(np.linalg.norm(f.tip(z)[:3, 3] - p_ref) / L)
         return np.array(out)
-    e4, e2 = errors("m4"), errors("m2")
+    e4, cf, e2 = errors("m4"), errors("cf"), errors("m2")
     assert np.all(e4[:-1] / e4[1:] > 15.0) and e4[-1] < 2e-8, e4
+    assert np.all(cf[:-1] / cf[1:] > 15.0) and cf[-1] < 1e-8, cf
     assert np.all((3.5 < e2[:-1] / e2[1:]) & (e2[:-1] / e2[1:] < 4.5)), e2
     monkeypatch.setattr(m4, "C4", -m4.C4)
-    flipped = errors("m4")
-    assert np.all(flipped[:-1] / flipped[1:] < 4.5) and flipped[-1] > 1e-4, flipped
+    monkeypatch.setattr(m4, "CF_WEIGHTS", m4.CF_WEIGHTS[::-1])
+    for flipped in (errors("m4"), errors("cf")):
+        assert np.all(flipped[:-1] / flipped[1:] < 4.5) and flipped[-1] > 1e-4, flipped
 
 
 def test_the_45_degree_bend_in_3d_converges_at_fourth_order():
