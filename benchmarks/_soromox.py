@@ -1,17 +1,22 @@
-"""What the SoRoMoX reference scripts share (soromox_gvs.py, soromox_pcs_dynamics.py): JAX in
-double precision, the benchmark cantilever's data and links, and the reference file they write.
+"""What the SoRoMoX reference scripts share (soromox_gvs.py, soromox_pcs_dynamics.py,
+soromox_gvs_dynamics.py): JAX in double precision, the benchmark cantilever's data and links, a
+release from rest, and the reference file they write.
 Runs in SoRoMoX's own virtual environment (see either script)."""
 
 import datetime
 import json
 import os
 import platform
+import time
 from importlib.metadata import version
 
 import jax
+import jax.numpy as jnp
+import numpy as np
 
 jax.config.update("jax_enable_x64", True)
 from soromox.systems.components import LinkSpec  # noqa: E402
+from soromox.systems.system_state import SystemState  # noqa: E402
 
 LENGTH, RADIUS, E, DENSITY = 0.5, 0.01, 1.0e6, 1000.0      # m, m, Pa, kg/m^3
 G = E / 3                                                  # Pa: Poisson 0.5
@@ -43,3 +48,20 @@ def write_reference(name, script, rows, **model):
     with open(path, "w") as f:
         json.dump(out, f, indent=1)
     print(f"written: {os.path.relpath(path)}")
+
+
+def release(rob, times, dt, runs):
+    """The robot ``rob`` released from rest in its reference shape and
+    rolled out to ``times[-1]`` by SoRoMoX's default solver at the fixed
+    step ``dt`` [s], ``runs`` times: (tip positions [m] at ``times``, the
+    wall time [s] of each run; the first includes JAX's compilation)."""
+    nq = rob.num_coordinates
+    start = SystemState(t=jnp.array(0.0), y=jnp.zeros(2 * nq))
+    walls = []
+    for _ in range(runs):
+        t = time.perf_counter()
+        out = rob.rollout_to(start, t1=times[-1], solver_dt=dt, save_ts=jnp.array(times))
+        jax.block_until_ready(out.y)
+        walls.append(time.perf_counter() - t)
+    tips = [np.asarray(rob.forward_kinematics(out.y[k, :nq], jnp.array(LENGTH)))[:3, 3] for k in range(len(times))]
+    return tips, walls
