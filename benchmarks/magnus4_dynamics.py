@@ -125,8 +125,8 @@ def main(argv=None):
                 continue                                   # on the Magnus-4 curves (the swing shown)
             err = [rows[kind, n][k] for n in ns]
             ax[0].loglog(ns, err, style, color=colour, label=f"{kind}: {label}")
-        label = {"midpoint": "midpoint: the robot's compiled step", "magnus4": "Magnus-4: the study's step (Python)",
-                 "cf4": "commutator-free Magnus-4 (constant B): the study's step"}
+        label = {"midpoint": "midpoint (robot's compiled step)", "magnus4": "Magnus-4 (study, Python)",
+                 "cf4": "commutator-free (study, Python)"}
         ax[1].loglog([rows[kind, n][4] * 1e3 for n in ns], [rows[kind, n][2] for n in ns], style,
                      color="C3" if kind == "cf4" else "C2", label=label[kind])
         for n in ns:
@@ -142,7 +142,7 @@ def main(argv=None):
     ax[1].set_xlabel("CPU time of a 10 ms step [ms] (labels: sections n)")
     ax[1].set_ylabel("swing: largest tip error / L")
     ax[1].set_title("swing error against a step's cost")
-    ax[1].legend(fontsize=8)
+    ax[1].legend(fontsize=8, loc="lower left")
     ax[1].xaxis.set_major_formatter(matplotlib.ticker.ScalarFormatter())
     ax[1].xaxis.set_minor_formatter(matplotlib.ticker.NullFormatter())
     ax[1].set_xticks([0.2, 0.5, 1, 2, 5, 10])
