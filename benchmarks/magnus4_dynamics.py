@@ -58,7 +58,7 @@ def run(kind, n):
     seconds a pass, Newton iterations a step) of the field on n sections."""
     arm = _arm(n)
     if kind in ("magnus4", "cf4"):
-        f = m4.Magnus4Field(arm, ORDER, commutator_free=kind == "cf4")
+        f = (m4.commutator_free_field if kind == "cf4" else m4.Magnus4Field)(arm, ORDER)
         z = m4.solve_magnus4(f, load_steps=4)[1]
     else:
         f = m4.LinearField(arm, legendre_basis(arm, ORDER))

@@ -40,7 +40,7 @@ at fourth order in the sections, in statics under gravity, in the natural
 frequencies and in a transient (``test_magnus4.py``;
 ``benchmarks/magnus4_dynamics.py`` against the second-order step).
 
-``Magnus4Field(..., commutator_free=True)`` is the same step with each
+:func:`commutator_free_field` is the same step with each
 interval two sections whose strains are linear in the field (the
 commutator-free fourth-order method): then q = q0 + B z with a constant B,
 the form every solver of the robot takes.
@@ -72,7 +72,10 @@ def _rod(mech):
     """(its soft sections, their lengths [m]) of a rod: one soft member, the
     tree nothing but its consecutive sections without offsets between them,
     every strain mode free, one reference strain, the exponential map;
-    ValueError naming what is not so."""
+    ValueError naming what is not so. (The study takes rods only: not a
+    physical limit, but the engine tree of one member rebuilt here; trees
+    and closed chains get the fourth order when the robot's construction
+    does this per segment, the open item of issue 28.)"""
     tree = mech.tree
     js = tree.soft_joints
     if len(js) != tree.n_joints or len(tree.paths) != 1 or list(tree.paths[0].joints) != list(js):
@@ -95,34 +98,55 @@ def _rod(mech):
 
 
 class _Field:
-    """What both fields share: an engine rod ``tree`` (its last joint the
-    tip) with a workspace ``ws``, and the map ``q(z)``."""
+    """What every field shares: an engine rod ``mech`` / ``tree`` (its last
+    joint the tip) with a workspace ``ws``, the map ``q(z)`` with its
+    ``jacobian``, the field's stiffness ``K_z`` (nz, nz), and the statics
+    in z by the principle of virtual work."""
 
     def tip(self, z):
         """The tip's world pose (4, 4) at z."""
         return alg.forward_kinematics(self.tree, self.ws, self.q(z))[1][-1].copy()
 
+    def curvature(self, r):
+        """``sum_k r_k d^2 q_k / dz^2`` (nz, nz): zero for a linear map."""
+        return np.zeros((self.nz, self.nz))
 
-class Magnus4Field(_Field):
-    """A rod's Legendre strain field of order ``order`` (every mode) with
-    fourth-order Magnus kinematics and its mass at its Gauss points (module
-    docstring). ``mech``: the rod on n sections (the quadrature's; at least
-    (order + 2) // 2 of them). Attributes: ``mech`` the engine's rod of
-    2n + 1 massless intervals and 2n point inertias (its frame ``tip``),
-    ``nz`` the coordinates, ``K_z``, ``D_z`` the field's stiffness and
-    damping (nz, nz).
+    def problem(self, loads=None):
+        """The engine's equilibrium problem of :attr:`mech` under ``loads``
+        (:class:`engine.loads.Loads`; default gravity)."""
+        return free_problem(self.mech, make_inputs(self.mech, loads=loads))
 
-    ``commutator_free=True``: each interval is instead two massless
-    sections of length d/2 whose strains are linear in the field,
-    ``2 (a1 xi(Y_1) + a2 xi(Y_2))`` then ``2 (a2 xi(Y_1) + a1 xi(Y_2))``,
-    a1, a2 = 1/4 +- sqrt(3)/6 (:data:`CF_WEIGHTS`): the commutator-free
-    fourth-order Magnus method of two exponentials (Blanes and Moan,
-    Applied Numerical Mathematics 56, 2006), whose product agrees with
-    Omega's exponential to O(d^5) (the other order of the two factors only
-    to O(d^3)). Then ``q = q0 + B z`` with a constant B, as the robot
-    file's second-order step, the mass and energy as above."""
+    def _forces(self, pb, q):
+        """R(q) without the sections' own elasticity (the field's is K_z)."""
+        return pb.residual(q) - pb.K @ (q - self.q0)
 
-    def __init__(self, mech, order, commutator_free=False):
+    def residual(self, pb, z):
+        """The principle of virtual work in z, ``J^T (R(q(z)) - K (q -
+        q0)) + K_z z``: the sections' elastic forces replaced by the
+        field's (``pb``: :meth:`problem`'s)."""
+        q = self.q(z)
+        return self.jacobian(z).T @ self._forces(pb, q) + self.K_z @ z
+
+    def tangent(self, pb, z):
+        """d(residual)/dz, analytic: ``J^T (K_t - K) J + K_z`` plus
+        :meth:`curvature` against the forces."""
+        q = self.q(z)
+        J = self.jacobian(z)
+        return J.T @ (pb.tangent(q) - pb.K) @ J + self.K_z + self.curvature(self._forces(pb, q))
+
+
+class _GaussRod(_Field):
+    """A rod's Legendre strain field of order ``order`` (every mode) sampled
+    at its Gauss points, on the engine's rod of the field (module
+    docstring): ``parts`` massless, stiffless sections an interval between
+    the points, the mass at them, the field's own energy. ``mech``: the rod
+    on n sections (the quadrature's; at least (order + 2) // 2 of them).
+    Attributes: ``mech`` that engine rod (its frame ``tip``), ``nz`` the
+    coordinates, ``K_z``, ``D_z`` the field's stiffness and damping (nz,
+    nz), per interval its length ``d`` and the basis at its two Gauss
+    points ``P1``, ``P2`` (I, 6, nz), ``rows`` its sections' coordinates in q."""
+
+    def __init__(self, mech, order, parts):
         if not (isinstance(order, (int, np.integer)) and 0 <= order <= MAX_ORDER):
             raise ValueError(f"order: expected an integer in [0, {MAX_ORDER}], got {order!r}")
         secs, h = _rod(mech)
@@ -138,8 +162,7 @@ class Magnus4Field(_Field):
         wg = np.repeat(0.5 * h, 2)
         owner = np.repeat(np.arange(n), 2)
         knots = np.concatenate([[0.0], xg, [L]])
-        self.commutator_free = bool(commutator_free)
-        self.mech = self._lumped(mech, secs, knots, wg, owner, 2 if self.commutator_free else 1)
+        self.mech = self._lumped(mech, secs, knots, wg, owner, parts)
         self.tree = self.mech.tree
         self.q0 = self.tree.q0.copy()
         iv = [self.tree.idx_v[j] for j in self.tree.soft_joints]
@@ -148,12 +171,6 @@ class Magnus4Field(_Field):
         self.rows = np.ravel(np.array(iv)[:, None] + np.arange(6))        # each section's 6 coordinates in q
         self.P1 = np.array([self.basis(a + (0.5 - GAUSS2) * w) for a, w in zip(knots[:-1], d)])   # (I, 6, nz)
         self.P2 = np.array([self.basis(a + (0.5 + GAUSS2) * w) for a, w in zip(knots[:-1], d)])
-        self.B = None
-        if self.commutator_free:
-            a1, a2 = CF_WEIGHTS
-            halves = np.stack([2 * (a1 * self.P1 + a2 * self.P2), 2 * (a2 * self.P1 + a1 * self.P2)], axis=1)
-            self.B = np.zeros((len(self.q0), self.nz))
-            self.B[self.rows] = halves.reshape(-1, self.nz)          # (interval, half, 6, nz) in the tree's order
         self.K_z, self.D_z = self._energy_matrices(secs, start, h)
         self.ws = Workspace(self.tree)
 
@@ -205,15 +222,22 @@ class Magnus4Field(_Field):
                          (), {"tip": PointRef(js[-1], t.joints[js[-1]].section.length)}, "fixed",
                          base_pose=np.array(mech.base_pose, float))
 
+class Magnus4Field(_GaussRod):
+    """The rod's field with fourth-order Magnus kinematics (module
+    docstring): each interval one section of strain ``Omega / d``, so
+    ``q(z)`` is quadratic in z. ``mech``, ``order``: as :class:`_GaussRod`.
+    For the constant-B form see :func:`commutator_free_field`."""
+
+    def __init__(self, mech, order):
+        super().__init__(mech, order, 1)
+
     def _ends(self, z):
         """The field at every interval's two Gauss points, (I, 6) each."""
         return self.f0 + self.P1 @ z, self.f0 + self.P2 @ z
 
     def q(self, z):
         """The engine's coordinates at z: each interval's strain Omega / d
-        (commutator-free: ``q0 + B z``)."""
-        if self.commutator_free:
-            return self.q0 + self.B @ z
+       ."""
         x1, x2 = self._ends(z)
         q = self.q0.copy()
         q[self.rows] = (0.5 * (x1 + x2) + C4 * self.d[:, None] * np.einsum("iab,ib->ia", ad(x1), x2)).ravel()
@@ -221,8 +245,6 @@ class Magnus4Field(_Field):
 
     def jacobian(self, z):
         """dq/dz (nv, nz) at z."""
-        if self.commutator_free:
-            return self.B
         x1, x2 = self._ends(z)
         J = np.zeros((len(self.q0), self.nz))
         J[self.rows] = (0.5 * (self.P1 + self.P2) + C4 * self.d[:, None, None]
@@ -231,11 +253,8 @@ class Magnus4Field(_Field):
 
     def convective(self, z, zd):
         """``Jdot zdot`` (nv): q's acceleration at zddot = 0, ``2 c d [Phi_1
-        zdot, Phi_2 zdot]`` per interval (q is quadratic in z; zero when
-        commutator-free)."""
+        zdot, Phi_2 zdot]`` per interval (q is quadratic in z)."""
         out = np.zeros(len(self.q0))
-        if self.commutator_free:
-            return out
         out[self.rows] = (2 * C4 * self.d[:, None] * np.einsum("iab,ib->ia", ad(self.P1 @ zd),
                                                                self.P2 @ zd)).ravel()
         return out
@@ -244,9 +263,7 @@ class Magnus4Field(_Field):
         """``sum_k r_k d^2 q_k / dz^2`` (nz, nz): the commutator's second
         derivative against the generalised forces r (nv) on the intervals,
         ``-c d (X + X^T)``, ``X_jk = r^T ad(Phi2_j) Phi1_k`` (Phi2_j: column
-        j of Phi_2; from ``ad(a) b = -ad(b) a``); zero when commutator-free."""
-        if self.commutator_free:
-            return np.zeros((self.nz, self.nz))
+        j of Phi_2; from ``ad(a) b = -ad(b) a``)."""
         ri = r[self.rows].reshape(-1, 6) * (C4 * self.d)[:, None]
         X = np.einsum("ia,iajb,ibk->jk", ri, self._ad_columns(self.P2), self.P1)
         return -(X + X.T)
@@ -256,36 +273,21 @@ class Magnus4Field(_Field):
         """(I, 6, nz, 6): ``ad`` of each column of each interval's P."""
         return np.moveaxis(ad(np.swapaxes(P, 1, 2)), 1, 2)
 
-    def residual(self, pb, z):
-        """The principle of virtual work in z, ``J^T R(q(z)) + K_z z``
-        (``pb``: :func:`problem`'s, its sections without stiffness)."""
-        return self.jacobian(z).T @ pb.residual(self.q(z)) + self.K_z @ z
-
-    def tangent(self, pb, z):
-        """d(residual)/dz, analytic: ``J^T K_t J + K_z`` plus
-        :meth:`curvature` against R."""
-        q = self.q(z)
-        J = self.jacobian(z)
-        return J.T @ pb.tangent(q) @ J + self.K_z + self.curvature(pb.residual(q))
-
-    def problem(self, loads=None):
-        """The engine's equilibrium problem of :attr:`mech` under ``loads``
-        (:class:`engine.loads.Loads`; default gravity)."""
-        return free_problem(self.mech, make_inputs(self.mech, loads=loads))
-
-
 
 class LinearField(_Field):
-    """The second-order step in the same form: ``q = q0 + B z`` on the
-    engine's own sections (each the field at its midpoint, the mass on its
-    arc), B e.g. :func:`strain_basis.legendre_basis`; ``K_z = B^T K B``."""
+    """A field whose map is linear, ``q = q0 + B z``: the robot file's
+    second-order step on the engine's own sections (each the field at its
+    midpoint, the mass on its arc; B e.g. :func:`strain_basis.legendre_basis`,
+    ``K_z = B^T K B`` by default), or :func:`commutator_free_field`'s
+    (``K_z``, ``D_z`` the field's own, its sections stiffless)."""
 
-    def __init__(self, mech, B):
+    def __init__(self, mech, B, K_z=None, D_z=None):
         self.mech, self.tree = mech, mech.tree
         self.B = np.asarray(B, float)
         self.q0, self.nz = self.tree.q0.copy(), self.B.shape[1]
         K, D = dense_stiffness_damping(self.tree)
-        self.K_z, self.D_z = self.B.T @ K @ self.B, self.B.T @ D @ self.B
+        self.K_z = self.B.T @ K @ self.B if K_z is None else np.asarray(K_z, float)
+        self.D_z = self.B.T @ D @ self.B if D_z is None else np.asarray(D_z, float)
         self.ws = Workspace(self.tree)
 
     def q(self, z):
@@ -296,6 +298,25 @@ class LinearField(_Field):
 
     def convective(self, z, zd):
         return np.zeros(len(self.q0))
+
+
+def commutator_free_field(mech, order):
+    """The rod's field in the constant-B form (the form the robot's solvers
+    take): each interval between the Gauss points two massless sections of
+    length d/2 whose strains are linear in the field, ``2 (a1 xi(Y_1) + a2
+    xi(Y_2))`` then ``2 (a2 xi(Y_1) + a1 xi(Y_2))``, a1, a2 = 1/4 +-
+    sqrt(3)/6 (:data:`CF_WEIGHTS`): the commutator-free fourth-order Magnus
+    method of two exponentials (Blanes and Moan, Applied Numerical
+    Mathematics 56, 2006), whose product agrees with Omega's exponential to
+    O(d^5) (the other order of the two factors only to O(d^3)). The mass
+    at the Gauss points and the field's energy as :class:`Magnus4Field`'s.
+    A :class:`LinearField`."""
+    rod = _GaussRod(mech, order, 2)
+    a1, a2 = CF_WEIGHTS
+    halves = np.stack([2 * (a1 * rod.P1 + a2 * rod.P2), 2 * (a2 * rod.P1 + a1 * rod.P2)], axis=1)
+    B = np.zeros((len(rod.q0), rod.nz))
+    B[rod.rows] = halves.reshape(-1, rod.nz)                  # (interval, half, 6, nz) in the tree's order
+    return LinearField(rod.mech, B, rod.K_z, rod.D_z)
 
 
 
@@ -390,10 +411,11 @@ def simulate(field, duration, h, z0=None, zd0=None, *, theta=0.5, tol=1e-10, max
 
 
 def solve_magnus4(field, loads=None, z0=None, *, tol=1e-10, max_iterations=60, load_steps=1):
-    """Equilibrium of a :class:`Magnus4Field` under ``loads``
+    """Equilibrium of a field (:class:`Magnus4Field`,
+    :func:`commutator_free_field`'s) under ``loads``
     (:class:`engine.loads.Loads`; default gravity): Newton on its residual
     with its analytic tangent, the loads in ``load_steps`` steps. Returns
-    (q on :attr:`Magnus4Field.mech`, z, iterations)."""
+    (q on the field's ``mech``, z, iterations)."""
     pb = field.problem(loads)
     z = np.zeros(field.nz) if z0 is None else np.array(z0, dtype=float)
     total = 0

@@ -65,7 +65,7 @@ def test_a_constant_field_is_the_engines_pcs_rod():
     rng = np.random.default_rng(3)
     z, zd, zdd = 0.5 * rng.standard_normal((3, 6)) * [[1], [2], [2]]
     for cf in (False, True):
-        _check_the_same_rod(m4.Magnus4Field(arm, 0, commutator_free=cf), pcs, arm, z, zd, zdd)
+        _check_the_same_rod((m4.commutator_free_field if cf else m4.Magnus4Field)(arm, 0), pcs, arm, z, zd, zdd)
 
 
 def _check_the_same_rod(g, pcs, arm, z, zd, zdd):
@@ -120,7 +120,7 @@ def test_the_error_falls_at_fourth_order_in_the_sections_under_gravity_in_freque
     res = {}
     for n in (4, 8, 16, 32):
         arm = _arm(n)
-        for kind, f in (("m4", m4.Magnus4Field(arm, 3)), ("cf", m4.Magnus4Field(arm, 3, commutator_free=True)),
+        for kind, f in (("m4", m4.Magnus4Field(arm, 3)), ("cf", m4.commutator_free_field(arm, 3)),
                         ("m2", m4.LinearField(arm, legendre_basis(arm, 3)))):
             if kind != "m2":
                 z = m4.solve_magnus4(f, load_steps=4)[1]
@@ -146,7 +146,7 @@ def test_the_error_falls_at_fourth_order_in_the_sections_under_gravity_in_freque
     # the commutator-free step: the same limit (its map linear, q = q0 + B z with a constant B)
     assert np.linalg.norm(res["cf", 32][0] - res["m4", 32][0]) / L < 2e-7
     assert np.linalg.norm(res["cf", 32][2] - res["m4", 32][2], axis=1).max() / L < 1e-6
-    cf = m4.Magnus4Field(_arm(4), 3, commutator_free=True)
+    cf = m4.commutator_free_field(_arm(4), 3)
     z = np.random.default_rng(2).standard_normal(cf.nz)
     assert np.array_equal(cf.jacobian(z), cf.B) and np.allclose(cf.q(z), cf.q0 + cf.B @ z, atol=1e-15)
     limit2 = res["m2", 32][0] + (res["m2", 32][0] - res["m2", 16][0]) / 3      # its h^2 error extrapolated
@@ -179,7 +179,7 @@ def test_a_tip_force_converges_at_fourth_order_to_the_continuum_reference(monkey
                 f = m4.LinearField(arm, legendre_basis(arm, min(6, n - 1)))
                 z = solve_reduced(free_problem(arm, make_inputs(arm, loads=loads)), f.B, arm.tree.q0, load_steps=4)[1]
             else:
-                f = m4.Magnus4Field(arm, 6, commutator_free=kind == "cf")
+                f = (m4.commutator_free_field if kind == "cf" else m4.Magnus4Field)(arm, 6)
                 z = m4.solve_magnus4(f, loads, load_steps=4)[1]
             out.append(np.linalg.norm(f.tip(z)[:3, 3] - p_ref) / L)
         return np.array(out)
