@@ -33,13 +33,18 @@ Every joint has a joint-space stiffness and damping block (soft sections:
 ``B^T L K B`` and ``B^T L D B`` from the cross-section's K and D per length;
 rigid 1-dof joints: optional passive spring and damper), acting on
 ``q_i - q0_i`` and ``v_i``. ``q0`` is the reference configuration (the free
-part of f0 for soft joints).
+part of f0 for soft joints). An *elastic field* (:class:`ElasticField`,
+``Model.elastic_fields``) replaces the blocks of the soft joints it covers
+by one energy over them all, ``z^T K z / 2`` in ``z = P (q - q0)`` (and the
+power ``zdot^T D zdot``): a variable-strain segment's own elasticity, when
+its sections are the integration points of a field rather than pieces with
+an energy of their own (:mod:`soft_twin_core.robot.soft_chain`).
 
 *Paths* (``Model.paths``) are chains of consecutive soft joints along which
 an arc length s [m] is measured (a soft member or a whole soft arm across
 rigid offsets); loads and actuators (tendons, chambers) are placed on a path
 by arc length. A robot file of the classic schema (one chain of segments)
-becomes one path, ``"backbone"``, through :func:`from_robot_model`.
+becomes one path, ``"backbone"`` (:func:`soft_twin_core.robot.soft_chain.robot_tree`).
 
 Units SI; twists, strains and wrenches ``[linear; angular]`` in body frames
 (docs/CONVENTIONS.md).
@@ -71,6 +76,17 @@ class SoftSection:
     free: np.ndarray
     kinematic_map: str = "exponential"
     quadrature_points: int = 2
+    quadrature: tuple = None    # (abscissae [m] in [0, L], weights [m]) of the mass; None: Gauss-Legendre
+
+    @cached_property
+    def mass_points(self):
+        """(abscissae [m], weights [m]) where the section's inertia density
+        is integrated: :attr:`quadrature`, or Gauss-Legendre with
+        :attr:`quadrature_points` points."""
+        if self.quadrature is not None:
+            return tuple(np.asarray(a, dtype=float) for a in self.quadrature)
+        x, w = np.polynomial.legendre.leggauss(self.quadrature_points)
+        return 0.5 * self.length * (x + 1.0), 0.5 * self.length * w
 
     @cached_property
     def modes(self):
@@ -108,6 +124,20 @@ class Joint:
     @property
     def nv(self):
         return len(self.section.modes) if self.kind == SOFT else _NV[self.kind]
+
+
+@dataclass(frozen=True, eq=False)
+class ElasticField:
+    """One elastic energy over several soft joints (module docstring): the
+    coordinates ``z = P (q - q0)`` of the joints ``joints``' free strains
+    (P: (nz, sum of their nv), their coordinates in the joints' order), the
+    energy ``z^T K z / 2`` and the dissipation ``zdot^T D zdot / 2`` (K, D:
+    (nz, nz), symmetric). The joints' own stiffness and damping blocks are
+    then zero. Generalised forces ``P^T (K z + D zdot)``."""
+    joints: tuple
+    P: np.ndarray
+    K: np.ndarray
+    D: np.ndarray
 
 
 @dataclass(frozen=True, eq=False)
@@ -149,7 +179,7 @@ class Path:
 @dataclass(frozen=True, eq=False)
 class Model:
     """Immutable multibody model. Build with :class:`ModelBuilder` or
-    :func:`from_robot_model`; algorithms take ``(model, workspace, q, ...)``
+    :func:`soft_twin_core.robot.soft_chain.robot_tree`; algorithms take ``(model, workspace, q, ...)``
     and never modify it."""
     name: str
     joints: tuple
@@ -159,6 +189,7 @@ class Model:
     actuators: tuple = ()          # soft_twin_core.robot.model.Actuator, placed on paths[actuator_path]
     actuator_path: int = 0
     actuator_paths: tuple = ()     # per actuator, the index of its path (empty: all on actuator_path)
+    elastic_fields: tuple = ()     # ElasticField: energies over several soft joints
     # derived
     nq: int = field(init=False)
     nv: int = field(init=False)
@@ -329,6 +360,19 @@ class ModelBuilder:
         self.gravity = np.asarray(gravity, dtype=float)
         self.joints, self.frames, self.paths = [], [], []
         self.actuators, self.actuator_path, self.actuator_paths = (), 0, ()
+        self.elastic_fields = []
+
+    def add_elastic_field(self, joints, P, K, D):
+        """An :class:`ElasticField` over the soft joints ``joints``."""
+        joints = tuple(int(j) for j in joints)
+        nr = sum(self.joints[j].nv for j in joints)
+        P, K, D = (np.array(a, dtype=float) for a in (P, K, D))
+        if P.ndim != 2 or P.shape[1] != nr or K.shape != (P.shape[0],) * 2 or D.shape != K.shape:
+            raise ModelError(f"elastic field over joints {joints}: P must be (nz, {nr}) and K, D (nz, nz), got "
+                             f"{P.shape}, {K.shape}, {D.shape}")
+        if any(self.joints[j].kind != SOFT for j in joints):
+            raise ModelError(f"elastic field over joints {joints}: only soft joints")
+        self.elastic_fields.append(ElasticField(joints, P, K, D))
 
     def add_joint(self, name, kind, parent=-1, placement=None, axis=(0, 0, 1), inertia=None,
                   section=None, stiffness=0.0, damping=0.0, q_ref=0.0, limits=None):
@@ -373,22 +417,4 @@ class ModelBuilder:
     def build(self):
         return Model(self.name, tuple(self.joints), self.gravity.copy(), tuple(self.frames),
                      tuple(self.paths), tuple(self.actuators), self.actuator_path,
-                     tuple(self.actuator_paths))
-
-
-def from_robot_model(robot):
-    """The tree of a classic robot description (:class:`model.RobotModel`):
-    a chain of soft joints, the base pose as the first joint's placement, the
-    segments' rigid offsets as the next joints' placements; one path,
-    "backbone", over the whole chain; the actuators on it; a frame "tip" at
-    the end of the last section."""
-    b = ModelBuilder(robot.name, robot.gravity)
-    secs = [SoftSection(s.length, s.K, s.D, np.asarray(s.M, float), np.asarray(s.f0, float),
-                        np.asarray(s.free, bool), robot.kinematic_map, robot.quadrature_points)
-            for s in robot.sections]
-    js = b.add_soft_chain("section", secs, -1, robot.base_pose,
-                          [s.offset_after for s in robot.sections[:-1]])
-    b.add_path("backbone", js)
-    b.add_frame("tip", js[-1], np.eye(4), x=secs[-1].length)
-    b.actuators = tuple(robot.actuators)
-    return b.build()
+                     tuple(self.actuator_paths), tuple(self.elastic_fields))

@@ -1,6 +1,5 @@
 """The workspace of a multibody model: every per-call array, allocated once.
 
->>> from soft_twin_core.engine.multibody import from_robot_model
 >>> ws = Workspace(model)          # one per thread; never shared between callers
 
 Algorithms (:mod:`soft_twin_core.engine.algorithms`) are free functions

@@ -32,13 +32,14 @@ from soft_twin_core.robot import plausibility
 
 from soft_twin_core.engine import algorithms as alg
 from soft_twin_core.engine.joint_kinds import FIXED, FREE, PRISMATIC, REVOLUTE, RIGID_JOINT_TYPES, SPHERICAL
-from soft_twin_core.engine.multibody import ModelBuilder, SoftSection, spatial_inertia
+from soft_twin_core.engine.multibody import ModelBuilder, spatial_inertia
 from soft_twin_core.engine.workspace import Workspace
 from soft_twin_core.robot.model import (ModelError, _check_keys, _num, _vec, find_file, model_from_dict,
                                         pose_from_dict, read_yaml_file, robot_mapping)
 from soft_twin_core.robot.obstacles import (contact_spacing, link_shape, member_capsules, member_contact,
                                             obstacles_from_list)
-from soft_twin_core.robot.strain_bases import SegmentBasis, robot_basis, segment_bases
+from soft_twin_core.robot.soft_chain import add_member
+from soft_twin_core.robot.strain_bases import SegmentBasis, robot_basis
 from soft_twin_core.robot.stress import section_geometry
 from soft_twin_core.robot.urdf import bodies_from_urdf
 
@@ -443,11 +444,6 @@ def _member_geometry(segments, robot):
     return out
 
 
-def _soft_sections(robot, kmap, npt):
-    return [SoftSection(s.length, s.K, s.D, np.asarray(s.M, float), np.asarray(s.f0, float),
-                        np.asarray(s.free, bool), kmap, npt) for s in robot.sections]
-
-
 def mechanism_from_dict(d, base_dir=None):
     """A :class:`Mechanism` from the tree schema::
 
@@ -568,7 +564,7 @@ def mechanism_from_dict(d, base_dir=None):
                 control.append(ctrl)
                 pj, placement = ji, np.eye(4)
             sub = {"name": name, "segments": bd.get("segments"), "actuators": bd.get("actuators", []),
-                   "gravity": [0.0, 0.0, 0.0]}
+                   "gravity": [0.0, 0.0, 0.0], "kinematic_map": kmap}
             segs = sub["segments"]
             if isinstance(segs, list):       # the total over all members, before any allocation
                 for k_seg, sd in enumerate(segs):
@@ -595,17 +591,16 @@ def mechanism_from_dict(d, base_dir=None):
                                      f"supported in the classic single-chain schema only")
                 if a.name in [x.name for x in actuators]:
                     raise ModelError(f"{where}.actuators: name {a.name!r} is already used")
-            secs = _soft_sections(robot, kmap, npt)
-            js = b.add_soft_chain(name, secs, pj, placement, [s.offset_after for s in robot.sections[:-1]])
+            js, owners, bases = add_member(b, name, robot, kmap, npt, pj, placement)
             control += [""] * len(js)
             pi = b.add_path(name, js)
             actuators += list(robot.actuators)
             act_paths += [pi] * len(robot.actuators)
             geo = _member_geometry(bd["segments"], robot)
-            members.append(Member(name, pi, tuple(js), tuple(geo)))
-            strain_bases += segment_bases(name, robot.sections, js)
+            members.append(Member(name, pi, tuple(js), tuple(geo[o] for o in owners)))
+            strain_bases += bases
             ends[name] = (js[-1], robot.sections[-1].offset_after)
-            frames[f"{name}_tip"] = PointRef(js[-1], secs[-1].length)
+            frames[f"{name}_tip"] = PointRef(js[-1], b.joints[js[-1]].section.length)
     b.actuators, b.actuator_paths = tuple(actuators), tuple(act_paths)
     if len({a.name for a in actuators}) != len(actuators):
         raise ModelError("robot: actuator names must be unique across members")
@@ -723,7 +718,7 @@ def _with_targets(tree, constraints):
 
 def from_robot_model(robot, d=None, base_dir=None):
     """The mechanism of a classic robot description: the soft chain
-    (:func:`multibody.from_robot_model`), one member "backbone", no rigid
+    (:func:`soft_chain.robot_tree`), one member "backbone", no rigid
     joints, no constraints. ``d``: its mapping, for the stress geometry
     and the obstacles (mesh files relative to ``base_dir``).
     Without ``d`` the mechanism is made once per description (both are
@@ -734,16 +729,16 @@ def from_robot_model(robot, d=None, base_dir=None):
             mech = from_robot_model(robot, {})
             object.__setattr__(robot, "_mechanism", mech)
         return mech
-    tree = robot.tree
+    tree, owners, bases = robot.chain
     geo = [None] * len(robot.sections)
     if d.get("segments"):
         geo = _member_geometry(d["segments"], robot)
     p = tree.paths[0]
-    member = Member("backbone", 0, p.joints, tuple(geo))
+    member = Member("backbone", 0, p.joints, tuple(geo[o] for o in owners))
     frames = {"tip": PointRef(p.joints[-1], tree.joints[p.joints[-1]].section.length)}
     mech = Mechanism(tree.name, tree, ("",) * tree.n_joints, (), (member,), (), frames, "fixed",
                      base_pose=np.array(robot.base_pose, dtype=float),
-                     strain_bases=segment_bases("backbone", robot.sections, p.joints),
+                     strain_bases=bases,
                      **_contact_fields(d, tree, (member,), base_dir))
     return mech
 

@@ -33,7 +33,8 @@ from soft_twin_core.lie import exp_so3, se3_from_rp
 from soft_twin_core.limits import (MAX_SECTIONS_PER_SEGMENT, MAX_SECTIONS_TOTAL, check_limit, load_yaml_text,
                                    read_text)
 from soft_twin_core.robot import plausibility
-from soft_twin_core.robot.strain_bases import STRAIN_NAMES, parse_strain_basis, segment_columns
+from soft_twin_core.robot.strain_bases import (STRAIN_NAMES, cf_layout, midpoint_samples, parse_strain_basis,
+                                               segment_columns)
 
 _MODE_GROUPS = {
     "all": STRAIN_NAMES,
@@ -375,12 +376,19 @@ class RobotModel:
     @property
     def tree(self):
         """The multibody model of this description (a chain of soft joints,
-        :func:`multibody.from_robot_model`), built once."""
-        t = self.__dict__.get("_tree")
+        :func:`soft_chain.robot_tree`), built once."""
+        return self.chain[0]
+
+    @property
+    def chain(self):
+        """(:attr:`tree`, the section of :attr:`sections` each soft joint
+        stands for, the variable-strain segments' :class:`strain_bases.SegmentBasis`
+        es): :func:`soft_chain.robot_tree`, built once."""
+        t = self.__dict__.get("_chain")
         if t is None:
-            from soft_twin_core.engine.multibody import from_robot_model  # here: start-up (numba)
-            t = from_robot_model(self)
-            object.__setattr__(self, "_tree", t)
+            from soft_twin_core.robot.soft_chain import robot_tree  # here: start-up (numba)
+            t = robot_tree(self)
+            object.__setattr__(self, "_chain", t)
         return t
 
     @property
@@ -748,7 +756,15 @@ def model_from_dict(d, n_sections_override=None):
         basis = parse_strain_basis(sd.get("strain_basis"), [m for m, f in zip(STRAIN_NAMES, free) if f],
                                    where + ".strain_basis")
         if basis is not None:                  # enough sections for its functions, checked here
-            segment_columns(basis, np.full(n, length / n), int(free.sum()), where + ".strain_basis")
+            lengths = np.full(n, length / n)
+            most = max(basis.functions(a) for a in range(int(free.sum())))
+            if basis.magnus == 4 and most > 2 * n:
+                raise ModelError(f"{where}.strain_basis: {n} sections have {2 * n} Gauss points, where the "
+                                 f"fourth-order step (magnus: 4) puts the mass, for {most} basis functions a "
+                                 f"mode (a singular mass matrix); give the segment at least {(most + 1) // 2} "
+                                 f"sections")
+            samples = cf_layout(lengths)[2] if basis.magnus == 4 else midpoint_samples(lengths)
+            segment_columns(basis, samples, int(free.sum()), where + ".strain_basis")
         if "sectional" not in sd:
             K, D, M = section_matrices(cs, mat)
         if not (np.all(np.isfinite(K)) and np.all(np.isfinite(D)) and np.all(np.isfinite(M))
@@ -779,6 +795,10 @@ def model_from_dict(d, n_sections_override=None):
     kmap = d.get("kinematic_map", "exponential")
     if kmap not in ("exponential", "cayley"):
         raise ModelError(f"robot.kinematic_map: expected 'exponential' or 'cayley', got {kmap!r}")
+    fourth = [k for k, sd in enumerate(segs) if (sd.get("strain_basis") or {}).get("magnus") == 4]
+    if fourth and kmap != "exponential":
+        raise ModelError(f"segments[{fourth[0]}].strain_basis.magnus: 4 is the exponential map's fourth-order "
+                         f"step; kinematic_map must be 'exponential', got {kmap!r}")
     nq = d.get("quadrature_points", 2)
     if isinstance(nq, bool) or not isinstance(nq, int) or not 1 <= nq <= 20:
         raise ModelError(f"robot.quadrature_points: expected an integer in 1..20, got {nq!r}")

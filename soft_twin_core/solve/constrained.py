@@ -328,7 +328,8 @@ def _efforts_out(mech, lam, inp):
 # ----------------------------------------------------------------------------
 
 def dense_stiffness_damping(tree):
-    """Joint-space stiffness and damping matrices (nv, nv) of the tree."""
+    """Joint-space stiffness and damping matrices (nv, nv) of the tree (its
+    joints' blocks and its elastic fields')."""
     K = np.zeros((tree.nv, tree.nv))
     D = np.zeros((tree.nv, tree.nv))
     a = tree.arrays
@@ -336,6 +337,9 @@ def dense_stiffness_damping(tree):
         n, iv = a.nv[i], a.iv[i]
         K[iv:iv + n, iv:iv + n] = a.Kb[i, :n, :n]
         D[iv:iv + n, iv:iv + n] = a.Db[i, :n, :n]
+    rows = np.ix_(a.ef_v, a.ef_v)          # the elastic fields' (multibody.ElasticField)
+    K[rows] += a.ef_P.T @ a.ef_K @ a.ef_P
+    D[rows] += a.ef_P.T @ a.ef_D @ a.ef_P
     return K, D
 
 

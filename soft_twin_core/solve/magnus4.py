@@ -60,12 +60,10 @@ from soft_twin_core.engine.workspace import Workspace
 from soft_twin_core.errors import StaticsError
 from soft_twin_core.lie import ad
 from soft_twin_core.robot.mechanism import Mechanism, Member, PointRef
-from soft_twin_core.robot.strain_bases import MAX_ORDER, global_values
+from soft_twin_core.robot.strain_bases import CF_WEIGHTS, GAUSS2, MAX_ORDER, global_values
 from soft_twin_core.solve.constrained import dense_stiffness_damping, free_problem, make_inputs
 
-GAUSS2 = 0.5 / np.sqrt(3.0)      # the 2-point Gauss abscissae: an interval's midpoint -+ this times its length
 C4 = np.sqrt(3.0) / 12.0         # the commutator's coefficient in Omega / d
-CF_WEIGHTS = (0.25 + np.sqrt(3.0) / 6, 0.25 - np.sqrt(3.0) / 6)   # the commutator-free method's a1, a2
 
 
 def _rod(mech):

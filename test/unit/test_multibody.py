@@ -11,7 +11,7 @@ import pytest
 from soft_twin_core import lie
 from soft_twin_core.engine import algorithms as alg
 from soft_twin_core.engine.loads import Loads
-from soft_twin_core.engine.multibody import ModelBuilder, SoftSection, from_robot_model, spatial_inertia
+from soft_twin_core.engine.multibody import ModelBuilder, SoftSection, spatial_inertia
 from soft_twin_core.engine.workspace import Workspace
 from soft_twin_core.reference import dynamics as dy
 from soft_twin_core.reference import joints as jnt
@@ -192,7 +192,7 @@ def test_soft_chain_equals_the_chain_dynamics():
     """The default robot as a tree: M and the forces equal the (tested) chain
     dynamics of soft_twin_core.reference.dynamics."""
     robot = load_model(TENDON_ARM)
-    model = from_robot_model(robot)
+    model = robot.tree
     ws = Workspace(model)
     rng = np.random.default_rng(0)
     q = robot.q0 + 0.4 * rng.standard_normal(robot.n_dof)
@@ -210,7 +210,7 @@ def test_benchmark_cantilever_offsets_and_workspace_checks():
          "offset_to_next": {"position": [0, 0, 0.01], "rpy": [0, 0, 1.0]}},
         {"length": 0.2, "sections": 2, "cross_section": {"shape": "solid_circle", "radius": 0.01},
          "material": {"youngs_modulus": 1e6, "poisson_ratio": 0.5, "density": 1000}}]})
-    model = from_robot_model(robot)
+    model = robot.tree
     ws = Workspace(model)
     with pytest.raises(ValueError, match=r"q: expected shape \(24,\)"):
         alg.crba(model, ws, np.zeros(5))
@@ -304,7 +304,7 @@ def test_static_tangent_is_the_derivative_of_the_static_residual(name):
 def test_static_tangent_with_tendons():
     from soft_twin_core.engine.forces import actuator_arrays
     robot = load_model(TENDON_ARM)
-    model = from_robot_model(robot)
+    model = robot.tree
     act = actuator_arrays(model)
     R, Kt = _static_residual_and_tangent(model, alg.make_loads(model, [], [], np.zeros((0, 6)), []), act,
                                          act.unit @ np.array([3.0, 0.0, 5.0, 1.0]))
@@ -332,7 +332,7 @@ def test_static_tangent_with_sheath_friction():
         for a in d["actuators"]:
             a["friction"] = mu
         robot = model_from_dict(d)
-        model = from_robot_model(robot)
+        model = robot.tree
         act = actuator_arrays(model)
         R, Kt = _static_residual_and_tangent(model, alg.make_loads(model, [], [], np.zeros((0, 6)), []), act,
                                              act.unit @ np.array([3.0, 0.0, 5.0, 1.0, 2.0, 4.0]))

@@ -47,6 +47,9 @@ ModelArrays = namedtuple("ModelArrays", [
     "mc",          # (n, 6): diagonal inertia density [kg/m, kg m]
     "Kb", "Db",    # (n, 6, 6): joint-space stiffness / damping blocks (nv x nv used)
     "q0",          # (nq,) reference configuration
+    "ef_q", "ef_v",  # (nr,) int: the elastic fields' coordinates in q and v (multibody.ElasticField)
+    "ef_P",        # (nz, nr): z = ef_P (q[ef_q] - q0[ef_q]) (the fields' blocks, block-diagonal)
+    "ef_K", "ef_D",  # (nz, nz): their stiffness and damping in z
 ])
 
 WorkArrays = namedtuple("WorkArrays", [
@@ -87,7 +90,7 @@ def empty_loads():
 def pack_model(model):
     """ModelArrays of a :class:`multibody.Model`."""
     n = model.n_joints
-    P = max([j.section.quadrature_points for j in model.joints if j.kind == SOFT] + [1])
+    P = max([len(j.section.mass_points[0]) for j in model.joints if j.kind == SOFT] + [1])
     arr = dict(
         parent=model.parents.copy(), kind=model.kinds.copy(),
         placement=np.array([j.placement for j in model.joints]).reshape(n, 4, 4),
@@ -109,10 +112,10 @@ def pack_model(model):
             arr["f0"][i] = s.f0
             arr["kmap"][i] = 1 if s.kinematic_map == "cayley" else 0
             arr["modes"][i, :len(m)] = m
-            xg, wg = np.polynomial.legendre.leggauss(s.quadrature_points)
+            xg, wg = s.mass_points
             arr["npt"][i] = len(xg)
-            arr["px"][i, :len(xg)] = 0.5 * s.length * (xg + 1.0)
-            arr["pw"][i, :len(xg)] = 0.5 * s.length * wg
+            arr["px"][i, :len(xg)] = xg
+            arr["pw"][i, :len(xg)] = wg
             arr["mc"][i] = np.diag(s.Mc) if np.ndim(s.Mc) == 2 else s.Mc
             k = len(m)
             arr["Kb"][i, :k, :k] = s.length * s.K[np.ix_(m, m)]
@@ -120,7 +123,33 @@ def pack_model(model):
         elif j.nv == 1:
             arr["Kb"][i, 0, 0] = j.stiffness
             arr["Db"][i, 0, 0] = j.damping
+    arr.update(_elastic_fields(model, arr))
     return ModelArrays(**{k: np.ascontiguousarray(v) for k, v in arr.items()})
+
+
+def _elastic_fields(model, arr):
+    """The packed :class:`multibody.ElasticField` s (one block-diagonal
+    P, K, D over their coordinates), their joints' own blocks zeroed."""
+    fields = model.elastic_fields
+    nr = sum(f.P.shape[1] for f in fields)
+    nz = sum(f.P.shape[0] for f in fields)
+    out = dict(ef_q=np.zeros(nr, np.int64), ef_v=np.zeros(nr, np.int64), ef_P=np.zeros((nz, nr)),
+               ef_K=np.zeros((nz, nz)), ef_D=np.zeros((nz, nz)))
+    r = c = 0
+    for f in fields:
+        for j in f.joints:
+            k = model.joints[j].nv
+            out["ef_q"][r:r + k] = model.idx_q[j] + np.arange(k)
+            out["ef_v"][r:r + k] = model.idx_v[j] + np.arange(k)
+            arr["Kb"][j] = 0.0
+            arr["Db"][j] = 0.0
+            r += k
+        nz_f, nr_f = f.P.shape
+        out["ef_P"][c:c + nz_f, r - nr_f:r] = f.P
+        out["ef_K"][c:c + nz_f, c:c + nz_f] = f.K
+        out["ef_D"][c:c + nz_f, c:c + nz_f] = f.D
+        c += nz_f
+    return out
 
 
 def make_work(mo):
@@ -180,10 +209,10 @@ declare(WorkArraysRef, WorkArraysType, WorkArrays._fields)
 @nb.njit(cache=True)
 def _make_model_ref(
         parent, kind, placement, Ad_pl_inv, axis, iq, iv, nv, inertia, rigid_mass, length, f0,
-        kmap, modes, npt, px, pw, mc, Kb, Db, q0):
+        kmap, modes, npt, px, pw, mc, Kb, Db, q0, ef_q, ef_v, ef_P, ef_K, ef_D):
     return ModelArraysRef(
         parent, kind, placement, Ad_pl_inv, axis, iq, iv, nv, inertia, rigid_mass, length, f0,
-        kmap, modes, npt, px, pw, mc, Kb, Db, q0)
+        kmap, modes, npt, px, pw, mc, Kb, Db, q0, ef_q, ef_v, ef_P, ef_K, ef_D)
 
 
 @nb.njit(cache=True)

@@ -358,6 +358,24 @@ def rnea_derivatives_pass(m, w, g, q, v, a, dtau_dq, dtau_dv):
             for r in range(nv):
                 for c in range(nv):
                     out[iv + r, iv + c] += m.Kb[i, r, c] if wrt_q else m.Db[i, r, c]
+        _field_blocks(m, wrt_q, out)
+
+
+@_jit_inner
+def _field_blocks(m, wrt_q, out):
+    """out[ef_v, ef_v] += P^T K P (``wrt_q``) or P^T D P: the elastic
+    fields' stiffness or damping (passes.field_forces)."""
+    nz, nr = m.ef_P.shape
+    C = m.ef_K if wrt_q else m.ef_D
+    for a in range(nr):
+        for b in range(nr):
+            acc = 0.0
+            for c in range(nz):
+                pa = m.ef_P[c, a]
+                if pa != 0.0:
+                    for k in range(nz):
+                        acc += pa * C[c, k] * m.ef_P[k, b]
+            out[m.ef_v[a], m.ef_v[b]] += acc
 
 
 @_jit_inner

@@ -419,7 +419,8 @@ def rnea_pass(m, w, ld, g, tau, at_rest):
 
 @_jit_inline
 def joint_forces(m, q, v, out):
-    """out += Kb (q - q0) + Db v joint by joint (stiffness and damping)."""
+    """out += Kb (q - q0) + Db v joint by joint (stiffness and damping),
+    then the elastic fields' forces (:func:`field_forces`)."""
     n = m.parent.shape[0]
     for i in range(n):
         nv, iv, iq = m.nv[i], m.iv[i], m.iq[i]
@@ -430,6 +431,35 @@ def joint_forces(m, q, v, out):
             for b in range(nv):
                 acc += m.Kb[i, a, b] * (q[iq + b] - m.q0[iq + b]) + m.Db[i, a, b] * v[iv + b]
             out[iv + a] += acc
+    field_forces(m, q, v, out)
+
+
+@_jit_inner
+def field_forces(m, q, v, out):
+    """out += P^T (K z + D zdot), z = P (q - q0), zdot = P v over the
+    elastic fields' coordinates (multibody.ElasticField; packed as ef_*)."""
+    nz, nr = m.ef_P.shape
+    if nz == 0:
+        return
+    z = np.zeros(nz)
+    zd = np.zeros(nz)
+    for c in range(nz):
+        for r in range(nr):
+            p = m.ef_P[c, r]
+            if p != 0.0:
+                z[c] += p * (q[m.ef_q[r]] - m.q0[m.ef_q[r]])
+                zd[c] += p * v[m.ef_v[r]]
+    f = np.zeros(nz)
+    for c in range(nz):
+        acc = 0.0
+        for k in range(nz):
+            acc += m.ef_K[c, k] * z[k] + m.ef_D[c, k] * zd[k]
+        f[c] = acc
+    for r in range(nr):
+        acc = 0.0
+        for c in range(nz):
+            acc += m.ef_P[c, r] * f[c]
+        out[m.ef_v[r]] += acc
 
 
 @_jit_inner
