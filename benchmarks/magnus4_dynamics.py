@@ -2,8 +2,9 @@
 variable-strain rod falls with its sections under the second-order step
 (each section the field's midpoint strain, its mass on its arc: the robot
 file's ``strain_basis``) and the fourth-order one (Magnus-4 between the
-Gauss points, the mass at them: soft_twin_core.solve.magnus4; "cf4" its
-commutator-free form, two sections an interval and a constant B), and what a
+Gauss points, the mass at them: soft_twin_core.solve.magnus4; "robot4" its
+commutator-free form, two sections an interval and a constant B, as the
+robot file's ``strain_basis: {..., magnus: 4}`` builds it), and what a
 step's passes cost on each engine tree.
 
 The arm: the common benchmark cantilever (L = 0.5 m, r = 10 mm, E = 1 MPa,
@@ -21,12 +22,13 @@ steps share the field's limit):
 Cost, two measures: one inverse-dynamics pass (the engine's compiled RNEA,
 best of repeats) on each tree, the unit of a Newton iteration; and a step
 of dt = 10 ms as each runs today (best of 3 x 20 steps from rest): the
-second-order step is the robot's own (:class:`MechanismSimulator` on the
-robot file's ``strain_basis``: the compiled reduced step), the fourth-order
-one the study's :func:`magnus4.simulate` (Python over the compiled passes).
-The fourth-order tree has 2n + 1 intervals of 6 coordinates and 2n point
-inertias for n sections, so a pass costs about twice the second-order
-tree's at the same n.
+robot file's steps, second and fourth order, are the robot's own
+(:class:`MechanismSimulator`: the compiled reduced step), Magnus-4 with
+the commutator the study's :func:`magnus4.simulate` (Python over the
+compiled passes). The Magnus-4 tree has 2n + 1 intervals of 6
+coordinates and 2n point inertias for n sections, the commutator-free
+tree 4n + 2 sections, so a pass costs about twice and four times the
+second-order tree's at the same n.
 
 Run: .venv/bin/python benchmarks/magnus4_dynamics.py [--out docs/figures/magnus4_dynamics.png] [--quick]
 """
@@ -49,16 +51,24 @@ from soft_twin_core.solve.strain_basis import legendre_basis, solve_reduced
 L, ORDER, DT, SWING = 0.5, 3, 0.01, 0.5
 
 
-def _arm(n):
-    return from_robot_model(model_from_dict(benchmark_cantilever_dict(n, "all", length=L)))
+def _arm(n, magnus=None):
+    """The cantilever on n sections: PCS, or the robot file's basis with the ``magnus`` step."""
+    d = benchmark_cantilever_dict(n, "all", length=L)
+    if magnus is not None:
+        d["segments"][0]["strain_basis"] = {"type": "legendre", "order": ORDER, "magnus": magnus}
+    return from_robot_model(model_from_dict(d))
 
 
 def run(kind, n):
     """(statics tip, first three frequencies, swing tips (steps, 3), RNEA
     seconds a pass, Newton iterations a step) of the field on n sections."""
     arm = _arm(n)
-    if kind in ("magnus4", "cf4"):
-        f = (m4.commutator_free_field if kind == "cf4" else m4.Magnus4Field)(arm, ORDER)
+    if kind == "magnus4":
+        f = m4.Magnus4Field(arm, ORDER)
+        z = m4.solve_magnus4(f, load_steps=4)[1]
+    elif kind == "robot4":              # the robot's own tree and basis (the field's energy in its model)
+        robot = _arm(n, 4)
+        f = m4.LinearField(robot, robot.basis)
         z = m4.solve_magnus4(f, load_steps=4)[1]
     else:
         f = m4.LinearField(arm, legendre_basis(arm, ORDER))
@@ -74,13 +84,11 @@ def step_time(kind, n, f, steps=20):
     """Seconds a 10 ms step from rest takes as it runs today (best of 3)."""
     best = np.inf
     for _ in range(3):
-        if kind in ("magnus4", "cf4"):
+        if kind == "magnus4":
             t = time.perf_counter()
             m4.simulate(f, steps * DT, DT)
         else:
-            d = benchmark_cantilever_dict(n, "all", length=L)
-            d["segments"][0]["strain_basis"] = {"type": "legendre", "order": ORDER}
-            sim = MechanismSimulator(from_robot_model(model_from_dict(d)), dt=DT)
+            sim = MechanismSimulator(_arm(n, 4 if kind == "robot4" else 2), dt=DT)
             t = time.perf_counter()
             sim.step(n=steps)
         best = min(best, (time.perf_counter() - t) / steps)
@@ -94,7 +102,7 @@ def main(argv=None):
     a = ap.parse_args(argv)
     sections = {"midpoint": (4, 8, 16) if a.quick else (4, 8, 16, 32, 64, 128),
                 "magnus4": (2, 4, 8) if a.quick else (2, 4, 8, 16, 32),
-                "cf4": (2, 4, 8) if a.quick else (2, 4, 8, 16, 32)}
+                "robot4": (2, 4, 8) if a.quick else (2, 4, 8, 16, 32)}
     print(f"# {machine()}; load {os.getloadavg()[0]:.2f}; Legendre order {ORDER}, every mode "
           f"({6 * (ORDER + 1)} coordinates)", flush=True)
     ref = run("magnus4", 64)
@@ -117,18 +125,18 @@ def main(argv=None):
     import matplotlib.pyplot as plt
     import matplotlib.ticker
     fig, ax = plt.subplots(1, 2, figsize=(11, 4.2))
-    for kind, style in (("midpoint", "o--"), ("magnus4", "s-"), ("cf4", "^:")):
+    for kind, style in (("midpoint", "o--"), ("magnus4", "s-"), ("robot4", "^:")):
         ns = sections[kind]
         for k, (label, colour) in enumerate((("statics, own weight", "C0"), ("3 frequencies", "C1"),
                                              ("swing, 0.5 s", "C2"))):
-            if kind == "cf4" and k != 2:
+            if kind == "robot4" and k != 2:
                 continue                                   # on the Magnus-4 curves (the swing shown)
             err = [rows[kind, n][k] for n in ns]
             ax[0].loglog(ns, err, style, color=colour, label=f"{kind}: {label}")
-        label = {"midpoint": "midpoint (robot's compiled step)", "magnus4": "Magnus-4 (study, Python)",
-                 "cf4": "commutator-free (study, Python)"}
+        label = {"midpoint": "midpoint, magnus: 2 (robot's compiled step)", "magnus4": "Magnus-4 (study, Python)",
+                 "robot4": "commutator-free, magnus: 4 (robot's compiled step)"}
         ax[1].loglog([rows[kind, n][4] * 1e3 for n in ns], [rows[kind, n][2] for n in ns], style,
-                     color="C3" if kind == "cf4" else "C2", label=label[kind])
+                     color={"midpoint": "C2", "magnus4": "C4", "robot4": "C3"}[kind], label=label[kind])
         for n in ns:
             ax[1].annotate(str(n), (rows[kind, n][4] * 1e3, rows[kind, n][2]), fontsize=7,
                            textcoords="offset points", xytext=(3, 3))

@@ -10,8 +10,8 @@ by modified Newton with
 
     A_z = B^T (M + theta h D + (theta h)^2 K) B
 
-(:func:`basis_newton_matrix`: CRBA, the projection, an nz x nz Cholesky
-check and inverse), made at a step's first iterate when none is held for
+(:func:`basis_newton_matrix`: the mass matrix in z by
+:func:`passes.projected_mass_pass`, an nz x nz Cholesky check and inverse), made at a step's first iterate when none is held for
 this h and again when an update shrinks less than fourfold, and held for
 the next steps while it serves (a step on it that took more iterations
 beyond the last fresh one's than a new matrix costs, :func:`matrix_cost`,
@@ -73,25 +73,16 @@ def basis_newton_matrix(m, w, qt, th, b, zeros):
     rows and columns the identity's (the upper triangle made, the matrix
     symmetric). False when it is not positive definite (then no step with
     it) or not finite."""
-    nv, nz = b.B.shape
+    nz = b.B.shape[1]
     passes.forward_pass(m, w, qt, zeros, zeros, passes.POSES)
-    M = np.zeros((nv, nv))
-    passes.crba_pass(m, w, M)
-    MB = np.zeros((nv, nz))
-    for k in range(nv):
-        for l in range(nv):
-            if M[k, l] != 0.0:
-                for j in range(nz):
-                    MB[k, j] += M[k, l] * b.B[l, j]
     A = np.empty((nz, nz))
+    passes.projected_mass_pass(m, w, b.B, A)
     for i in range(nz):
         for j in range(i, nz):
             if b.fixed[i] or b.fixed[j]:
                 a = 1.0 if i == j else 0.0
             else:
-                a = th * b.Dz[i, j] + th * th * b.Kz[i, j]
-                for k in range(nv):
-                    a += b.BT[i, k] * MB[k, j]
+                a = A[i, j] + th * b.Dz[i, j] + th * th * b.Kz[i, j]
             A[i, j] = a
             A[j, i] = a
     return passes.spd_inverse(A, nz, b.Ainv)
@@ -251,14 +242,20 @@ def reduced_steps(m, w, act, ld, g, coef, effort, q, v, a_last, a_prev, have_pre
     return n
 
 
-def matrix_cost(nv):
+def matrix_cost(model, nz):
     """What :func:`basis_newton_matrix` costs in Newton iterations of
-    :func:`reduced_steps` on a robot of nv velocities: its CRBA is O(nv^2)
-    where an iteration's passes are O(nv). Fitted to the benchmark
-    cantilever on 16, 32 and 64 sections (nv 32, 64, 128; 8 coordinates):
-    37, 92, 264 us against 33, 60, 112 us (1.1, 1.5, 2.4 iterations). A
-    model, not a timing: the steps stay the same on every machine."""
-    return 0.67 + nv / 74.0
+    :func:`reduced_steps` on ``model`` with nz coordinates: both are O(n)
+    in the joints, the matrix's recursion O(nz) a joint and its sum
+    O(nz^2) a mass point, an iteration's projections O(nz) a coordinate.
+    Fitted to the benchmark cantilever (Legendre orders 1, 3, 5) on 16 to
+    128 sections with the midpoint step (two mass points a section) and 4
+    to 16 with ``magnus: 4`` (one every other section): 1.12-1.18 (nz 12)
+    and 2.16-2.28 (nz 24) iterations, and 0.75-0.83 (12), 1.04-1.13 (24),
+    1.48-1.66 (36). A model, not a timing: the steps stay the same on
+    every machine."""
+    a = model.arrays
+    points = float(np.count_nonzero(a.pw) + np.count_nonzero(a.rigid_mass)) / max(model.n_joints, 1)
+    return 0.4 + nz * (0.025 + 0.02 * points)
 
 
 class ReducedThetaIntegrator(StepLoop):
@@ -268,7 +265,7 @@ class ReducedThetaIntegrator(StepLoop):
     residual R(v1) (:mod:`integrators`) projected on the basis, ``B^T R(B w1)
     = 0`` (Galerkin: the virtual power of the step's forces on the basis's
     motions), by Newton with the stiff part of the matrix,
-    ``B^T (M + theta h D + (theta h)^2 K) B`` (CRBA at a step's first
+    ``B^T (M + theta h D + (theta h)^2 K) B`` (the mass matrix in z at a step's first
     iterate; the small nz x nz matrix checked positive definite and
     inverted, held for the next steps while it serves, refreshed when the
     iteration slows), as the O(n) iteration does in q: compiled,
@@ -304,7 +301,7 @@ class ReducedThetaIntegrator(StepLoop):
         self.iterations = 0
         self._held_h = None           # the step whose Newton matrix self.arrays.Ainv holds
         self._fresh_iterations = 0.0  # the iterations of the last step that made its matrix (reduced_steps)
-        self.refresh_cost = matrix_cost(model.nv)
+        self.refresh_cost = matrix_cost(model, self.B.shape[1])
         pv, pq = (np.asarray(a, dtype=np.int64) for a in (prescribed or ((), ())))
         self._pv, self._pq = pv, pq
         nz = self.B.shape[1]

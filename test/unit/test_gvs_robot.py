@@ -644,6 +644,31 @@ def test_position_controlled_joints_eliminated_in_the_reduced_step_as_in_the_kkt
     assert all(abs(out[0][1][j] - out[1][1][j]) < 1e-9 for j in ("pan", "tilt"))
 
 
+@pytest.mark.parametrize("name, order", [
+    ("pan_tilt_arm", 2),                 # rigid joints: identity columns
+    ("planar_parallel_robot", 2),        # three members, a platform
+    ("catheter_in_vessel", 2),           # a prescribed base: a free joint, its quaternion
+    ("soft_gripper_lift", 1),            # a loose cylinder on a free joint, a lift
+])
+def test_the_mass_matrix_in_z_is_the_projected_crba(name, order):
+    """:func:`passes.projected_mass_pass` (the kinetic energy's sum over the
+    mass points, their twists per coordinate by a forward recursion)
+    equals ``B^T M B`` with M by CRBA, at a random configuration on the
+    basis, to round-off."""
+    from soft_twin_core.engine.integrators import integrate_pass
+    from soft_twin_core.engine.kernels import passes
+    _, gvs = _with_full_bases(name, order=order)
+    tree, B = gvs.tree, np.ascontiguousarray(gvs.basis)
+    ws = Workspace(tree)
+    q = np.empty(tree.nq)
+    integrate_pass(ws.m, tree.q0.copy(), B @ (0.3 * np.random.default_rng(2).standard_normal(B.shape[1])), 1.0, q)
+    expect = B.T @ alg.crba(tree, ws, q) @ B
+    out = np.empty((B.shape[1], B.shape[1]))
+    passes.forward_pass(ws.m, ws.w, q, np.zeros(tree.nv), np.zeros(tree.nv), passes.POSES)
+    passes.projected_mass_pass(ws.m, ws.w, B, out)
+    assert np.abs(out - expect).max() < 1e-13 * np.abs(expect).max()
+
+
 def test_the_compiled_newton_matrix_is_the_projected_one_with_the_held_joints_eliminated():
     """reduced_step.basis_newton_matrix's inverse against the definition,
     ``(B^T (M + th D + th^2 K) B)^-1`` from the dense CRBA, on the

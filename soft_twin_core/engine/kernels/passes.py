@@ -553,6 +553,82 @@ def _joint_blocks(soft, nv, npt, pw, mc, X, S, Ad_p_inv, Sp_all, IA, F, Dm, Ic, 
                     Dm[b, a] += acc
 
 
+@_jit_inner
+def _twist_map(X, Jin, S, nv, Bi, out):
+    """out = X Jin + S Bi (6, nz): a frame's twist per coordinate z from
+    its joint's input frame's (Jin) through the adjoint X, plus the joint's
+    own motion (its subspace S (6, nv) times its rows Bi (nv, nz) of B)."""
+    nz = Jin.shape[1]
+    for r in range(6):
+        for c in range(nz):
+            acc = 0.0
+            for k in range(6):
+                acc += X[r, k] * Jin[k, c]
+            for a in range(nv):
+                acc += S[r, a] * Bi[a, c]
+            out[r, c] = acc
+
+
+@_jit_inner
+def _add_kinetic(J, I, diag, scale, IJ, out):
+    """out += scale J^T I J (upper triangle; J (6, nz), I the inertia (6,
+    6) or, ``diag``, its diagonal in I[0])."""
+    nz = J.shape[1]
+    for r in range(6):
+        for c in range(nz):
+            if diag:
+                IJ[r, c] = scale * I[0, r] * J[r, c]
+            else:
+                acc = 0.0
+                for k in range(6):
+                    acc += I[r, k] * J[k, c]
+                IJ[r, c] = scale * acc
+    for a in range(nz):
+        for b in range(a, nz):
+            acc = 0.0
+            for r in range(6):
+                acc += J[r, a] * IJ[r, b]
+            out[a, b] += acc
+
+
+@_jit
+def projected_mass_pass(m, w, B, out):
+    """out = B^T M B (nz, nz) after :func:`forward_pass` (level 0): the
+    mass matrix of coordinates z with v = B z, as the kinetic energy's sum
+    over the mass points, ``sum_p J_p^T I_p J_p``, J_p the point's body
+    twist per coordinate z by one forward recursion (frame by frame, as
+    :func:`forward_pass` propagates V). O(n nz (6 + nz)) where CRBA and
+    the projection B^T (M B) cost O(nv^2 nz)."""
+    n = m.parent.shape[0]
+    nz = B.shape[1]
+    Jz = np.zeros((n, 6, nz))
+    Jin = np.zeros((6, nz))
+    Jp = np.empty((6, nz))
+    IJ = np.empty((6, nz))
+    mc = np.empty((1, 6))
+    for a in range(nz):
+        for b in range(nz):
+            out[a, b] = 0.0
+    for i in range(n):
+        nv, iv, par = m.nv[i], m.iv[i], m.parent[i]
+        if par >= 0:
+            _twist_map(m.Ad_pl_inv[i], Jz[par], w.S[i], 0, B[iv:iv + nv], Jin)
+        else:
+            Jin[:, :] = 0.0
+        _twist_map(w.Ad_J_inv[i], Jin, w.S[i], nv, B[iv:iv + nv], Jz[i])
+        if m.rigid_mass[i]:
+            _add_kinetic(Jz[i], m.inertia[i], False, 1.0, IJ, out)
+        if m.kind[i] == SOFT:
+            mc[0, :] = m.mc[i]
+            for p in range(m.npt[i]):
+                if m.pw[i, p] != 0.0:
+                    _twist_map(w.Ad_p_inv[i, p], Jin, w.Sp[i, p], nv, B[iv:iv + nv], Jp)
+                    _add_kinetic(Jp, mc, True, m.pw[i, p], IJ, out)
+    for a in range(nz):
+        for b in range(a):
+            out[a, b] = out[b, a]
+
+
 @_jit
 def crba_pass(m, w, M):
     """Joint-space mass matrix M (nv, nv) after :func:`forward_pass` (level 0)."""
