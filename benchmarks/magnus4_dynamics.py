@@ -150,10 +150,10 @@ def main(argv=None):
     ax[1].set_xlabel("CPU time of a 10 ms step [ms] (labels: sections n)")
     ax[1].set_ylabel("swing: largest tip error / L")
     ax[1].set_title("swing error against a step's cost")
-    ax[1].legend(fontsize=8, loc="lower left")
+    ax[1].legend(fontsize=8, loc="upper right")
     ax[1].xaxis.set_major_formatter(matplotlib.ticker.ScalarFormatter())
     ax[1].xaxis.set_minor_formatter(matplotlib.ticker.NullFormatter())
-    ax[1].set_xticks([0.2, 0.5, 1, 2, 5, 10])
+    ax[1].set_xticks([0.1, 0.2, 0.5, 1, 2, 5])
     for axis in ax:
         axis.grid(True, which="both", alpha=0.3)
     fig.tight_layout()
