@@ -232,13 +232,23 @@ def _actuators_of(d):
 
 def _segment_rows(mech, d):
     """{segment key: boolean mask (nv,) of its sections' strain
-    coordinates}: each member's joints shared out over its segments by
-    their section counts (an equal split when a count override applied)."""
+    coordinates}: each member's joints by the segment each belongs to
+    (``Member.segments``), else shared out over its segments by their
+    section counts (an equal split when a count override applied)."""
     segs, member_of = _segments_of(d)
     arrays = Workspace(mech.tree).arrays
     out = {}
     for m in mech.members:
         keys = [k for k in segs if member_of[k] == m.name]
+        if m.segments:
+            for k in keys:
+                name = k[len(m.name) + 1:] if k.startswith(m.name + "/") and k not in m.segments else k
+                mask = np.zeros(mech.tree.nv, dtype=bool)
+                for i, seg in zip(m.joints, m.segments):
+                    if seg == name:
+                        mask[arrays.iv[i]:arrays.iv[i] + arrays.nv[i]] = True
+                out[k] = mask
+            continue
         counts = [int(segs[k].get("sections", 1)) for k in keys]
         if sum(counts) != len(m.joints) and keys and len(m.joints) % len(keys) == 0:
             counts = [len(m.joints) // len(keys)] * len(keys)

@@ -110,11 +110,14 @@ def _normals(d):
 @dataclass(frozen=True, eq=False)
 class Member:
     """A soft member: consecutive soft joints (a path of the tree) with its
-    cross-section geometry per section (None: given by ``sectional``)."""
+    cross-section geometry per section (None: given by ``sectional``) and
+    the name of the robot file's segment each belongs to (a fourth-order
+    segment has 4n + 2 of them for its n sections: soft_chain)."""
     name: str
     path: int
     joints: tuple
     geometry: tuple
+    segments: tuple = ()
 
 
 @dataclass(frozen=True, eq=False)
@@ -597,7 +600,8 @@ def mechanism_from_dict(d, base_dir=None):
             actuators += list(robot.actuators)
             act_paths += [pi] * len(robot.actuators)
             geo = _member_geometry(bd["segments"], robot)
-            members.append(Member(name, pi, tuple(js), tuple(geo[o] for o in owners)))
+            members.append(Member(name, pi, tuple(js), tuple(geo[o] for o in owners),
+                                  tuple(robot.sections[o].segment for o in owners)))
             strain_bases += bases
             ends[name] = (js[-1], robot.sections[-1].offset_after)
             frames[f"{name}_tip"] = PointRef(js[-1], b.joints[js[-1]].section.length)
@@ -734,7 +738,8 @@ def from_robot_model(robot, d=None, base_dir=None):
     if d.get("segments"):
         geo = _member_geometry(d["segments"], robot)
     p = tree.paths[0]
-    member = Member("backbone", 0, p.joints, tuple(geo[o] for o in owners))
+    member = Member("backbone", 0, p.joints, tuple(geo[o] for o in owners),
+                    tuple(robot.sections[o].segment for o in owners))
     frames = {"tip": PointRef(p.joints[-1], tree.joints[p.joints[-1]].section.length)}
     mech = Mechanism(tree.name, tree, ("",) * tree.n_joints, (), (member,), (), frames, "fixed",
                      base_pose=np.array(robot.base_pose, dtype=float),

@@ -256,3 +256,25 @@ def test_the_cayley_map_is_refused_for_the_fourth_order_step():
     with pytest.raises(ModelError, match="kinematic_map must be 'exponential'"):
         from_robot_model(model_from_dict(d))
     assert load_mechanism(find_file("gvs_arm", "robots")).tree.elastic_fields == ()
+
+
+def test_calibrations_sensitivities_on_fourth_order_segments():
+    """Calibration of the tracked arm with ``magnus: 4`` (Legendre 1, 4
+    sections a segment: 18 engine sections each): every Young's modulus
+    covers its own segment's engine sections (the members' segment names,
+    not their section counts), and the analytic sensitivities of the
+    moduli and tendon offsets equal central differences."""
+    from test_calibration import ALL, _markers, assert_sensitivities
+    from soft_twin_core.estimation import calibration as cal
+    d = read_yaml_file(find_file("tracked_arm", "robots"))
+    for seg in d["segments"]:
+        seg["material"]["youngs_modulus"] = float(seg["material"]["youngs_modulus"])
+        seg["sections"] = 4
+        seg["strain_basis"] = {"type": "legendre", "order": 1, "magnus": 4}
+    U = np.array([[12.0, 0.0, 6.0, 0.0], [0.0, 9.0, 0.0, 14.0], [5.0, 0.0, 0.0, 7.0]])
+    rec = cal.record_static_sweep(model_from_dict(copy.deepcopy(d)), _markers(), U, np.random.default_rng(1))
+    pb = cal.Problem(d, _markers(), rec, ALL)
+    mech = from_robot_model(model_from_dict(copy.deepcopy(d)))
+    assert [int(pb.rows_of[k].sum()) for k in ("proximal", "distal")] == [18 * 3, 18 * 3]     # 3 free modes
+    assert not np.any(pb.rows_of["proximal"] & pb.rows_of["distal"]) and mech.tree.nv == 36 * 3
+    assert_sensitivities(pb, pb.theta0 + np.array([3e6, -2e6, 4e-4, -3e-4, 2e-4, 5e-4]), 1e-6)
