@@ -60,7 +60,8 @@ from soft_twin_core.engine.workspace import Workspace
 from soft_twin_core.errors import StaticsError
 from soft_twin_core.lie import ad
 from soft_twin_core.robot.mechanism import Mechanism, Member, PointRef
-from soft_twin_core.robot.strain_bases import CF_WEIGHTS, GAUSS2, MAX_ORDER, global_values
+from soft_twin_core.robot.soft_chain import field_energy
+from soft_twin_core.robot.strain_bases import CF_WEIGHTS, GAUSS2, MAX_ORDER, StrainBasis, global_values
 from soft_twin_core.solve.constrained import dense_stiffness_damping, free_problem, make_inputs
 
 C4 = np.sqrt(3.0) / 12.0         # the commutator's coefficient in Omega / d
@@ -169,21 +170,10 @@ class _GaussRod(_Field):
         self.rows = np.ravel(np.array(iv)[:, None] + np.arange(6))        # each section's 6 coordinates in q
         self.P1 = np.array([self.basis(a + (0.5 - GAUSS2) * w) for a, w in zip(knots[:-1], d)])   # (I, 6, nz)
         self.P2 = np.array([self.basis(a + (0.5 + GAUSS2) * w) for a, w in zip(knots[:-1], d)])
-        self.K_z, self.D_z = self._energy_matrices(secs, start, h)
+        self.K_z, self.D_z = field_energy(StrainBasis("legendre", (order,) * 6), h,      # exact, the field's own
+                                          [np.asarray(s.K, float) for s in secs],
+                                          [np.asarray(s.D, float) for s in secs], np.arange(6))
         self.ws = Workspace(self.tree)
-
-    def _energy_matrices(self, secs, start, h):
-        """``int Phi^T K Phi dX`` and the same of D over the rod, exact:
-        Gauss-Legendre with order + 1 points on each section (K, D constant
-        on it, the integrand a polynomial of degree 2 order)."""
-        x, w = np.polynomial.legendre.leggauss(self.order + 1)
-        K_z, D_z = np.zeros((self.nz, self.nz)), np.zeros((self.nz, self.nz))
-        for s, x0, hk in zip(secs, start, h):
-            for xi, wi in zip(x0 + 0.5 * hk * (x + 1), 0.5 * hk * w):
-                P = self.basis(xi)
-                K_z += wi * P.T @ np.asarray(s.K, float) @ P
-                D_z += wi * P.T @ np.asarray(s.D, float) @ P
-        return K_z, D_z
 
     def basis(self, X):
         """Phi(X) (6, nz): the field's basis at arc length X [m] (column
