@@ -1,6 +1,8 @@
 """Fourth-order Magnus kinematics of a variable-strain rod, in statics and
-dynamics: the study's path (issue 28), beside the robot file's
-second-order one (:mod:`soft_twin_core.robot.strain_bases`).
+dynamics: the study's path (issue 28) and the reference of the robot
+file's steps (:mod:`soft_twin_core.robot.strain_bases`: the midpoint step;
+``magnus: 4``, :mod:`soft_twin_core.robot.soft_chain`: the commutator-free
+fourth-order step, equal to :func:`commutator_free_field` to round-off).
 
 A rod's strain field ``xi(X) = f0 + Phi(X) z`` (every strain mode a
 Legendre series of order p, the coefficients z the coordinates) is sampled
