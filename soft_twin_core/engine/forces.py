@@ -13,7 +13,11 @@ path, gravity, tendons and chambers.
   d(s), ``t ~ f_u + f_w x d + d'`` (c = 1 for a tendon of tension u, -A for a
   chamber of area A at pressure u), integrated over the routed span by Gauss
   quadrature: :class:`ActuatorArrays` holds the geometry,
-  :func:`actuation_pass` the compiled sum. Tendons of the point-moment model
+  :func:`actuation_pass` the compiled sum. A quadrature point reads its
+  section's strain, or on field pairs (a fourth-order segment's intervals,
+  :class:`multibody.FieldPair`) the field's, a combination of up to
+  :data:`MIXED` sections' strains on which its force then acts
+  (:class:`_Field`). Tendons of the point-moment model
   (slides part C, model (b)) are follower point moments at their
   termination instead.
 * Tendon-sheath friction (a tendon's ``friction`` mu > 0): a tendon pulled
@@ -45,12 +49,14 @@ from soft_twin_core.engine.loads import Loads, actuator_point_loads
 
 ACTUATOR_FIELDS = (
     "joint",      # (P,) soft joint of each tendon quadrature point
+    "mixed",      # (P, MIXED) on field pairs (multibody.FieldPair): the joints whose strains the point reads, -1 after
+    "mix",        # (P, MIXED): the point's strain sum_h mix[h] strain[mixed[h]] (off pairs: [joint], (1, 0, ..))
     "d", "dd",    # (P, 3) offset d(s) and d'(s) in the cross-section frame [m, -]
     "unit",       # (P, n_actuators): coefficient per unit input (-c w: m per N or m^3 per Pa... see module)
     "mu",         # (P,) sheath friction coefficient of the point's tendon (0: frictionless)
     "first",      # (P,) 1 at the first point of each actuator (its wrap angle starts at 0), else 0
     "node_ptr",   # (P + 1,) the wrap-angle nodes between point p - 1 (or start) and p: node_ptr[p]:node_ptr[p+1]
-    "node_joint",  # (N,) soft joint of each wrap-angle node
+    "node_mixed", "node_mix",  # (N, MIXED) each wrap-angle node's strain, as "mixed" and "mix" a point's
     "node_d", "node_dd", "node_ddd",  # (N, 3) d, d', d'' at the node [m, -, 1/m]
     "node_w",     # (N,) quadrature weight of the node [m]
 )
@@ -70,13 +76,16 @@ declare(ActuatorArrays, ActuatorArraysType, ACTUATOR_FIELDS)
 
 
 @nb.njit(cache=True)
-def _make_actuator_ref(joint, d, dd, unit, mu, first, node_ptr, node_joint, node_d, node_dd, node_ddd, node_w):
-    return ActuatorArrays(joint, d, dd, unit, mu, first, node_ptr, node_joint, node_d, node_dd, node_ddd, node_w)
+def _make_actuator_ref(joint, mixed, mix, d, dd, unit, mu, first, node_ptr, node_mixed, node_mix, node_d, node_dd,
+                       node_ddd, node_w):
+    return ActuatorArrays(joint, mixed, mix, d, dd, unit, mu, first, node_ptr, node_mixed, node_mix, node_d, node_dd,
+                          node_ddd, node_w)
 
 
 ActuatorArrays.make = _make_actuator_ref
 
 WRAP_NODES = 3     # Gauss points per piece of the wrap-angle integral (exact for straight routings)
+MIXED = 4          # the sections a quadrature point's strain may combine (two field pairs: a cubic through 4 points)
 
 
 def _gauss_on_path(model, path, start, end):
@@ -84,57 +93,169 @@ def _gauss_on_path(model, path, start, end):
     overlap with [start, end] (the section's own point count)."""
     js, xs, ss, ws = [], [], [], []
     for k, j in enumerate(path.joints):
-        a = max(path.s_starts[k], start)
-        b = min(path.s_starts[k] + path.lengths[k], end)
-        if b <= a:
-            continue
-        xg, wg = np.polynomial.legendre.leggauss(model.joints[j].section.quadrature_points)
-        s = 0.5 * (a + b) + 0.5 * (b - a) * xg
-        js += [j] * len(xg)
+        s, w = _section_gauss(model, j, path.s_starts[k], path.lengths[k], start, end)
+        js += [j] * len(s)
         xs.append(s - path.s_starts[k])
         ss.append(s)
-        ws.append(0.5 * (b - a) * wg)
+        ws.append(w)
     if not js:
         return np.zeros(0, np.int64), np.zeros(0), np.zeros(0), np.zeros(0)
     return np.array(js, np.int64), np.concatenate(xs), np.concatenate(ss), np.concatenate(ws)
 
 
-def _wrap_nodes(model, act, path, a, b):
-    """(joint, d, d', d'', w) Gauss nodes of the wrap-angle integral over
-    [a, b] on ``path``, split at section ends (the strain is constant on
-    each piece)."""
+def _section_gauss(model, j, s0, length, start, end):
+    """(s, w): the Gauss points (the section's own count) and weights of
+    soft joint j, from s0 over ``length`` on its path, on its overlap with
+    [start, end] (none without one)."""
+    a, b = max(s0, start), min(s0 + length, end)
+    if b <= a:
+        return np.zeros(0), np.zeros(0)
+    xg, wg = np.polynomial.legendre.leggauss(model.joints[j].section.quadrature_points)
+    return 0.5 * (a + b) + 0.5 * (b - a) * xg, 0.5 * (b - a) * wg
+
+
+class _Field:
+    """The field pairs (:class:`multibody.FieldPair`) along ``path``: where
+    their spans lie, and the field's strain at an arc length inside one as
+    a combination of sections' strains (:meth:`mix`)."""
+
+    def __init__(self, model, path):
+        self.path = path
+        self.pairs = {fp.joints[0]: fp for fp in model.field_pairs}
+        self.second = {fp.joints[1] for fp in model.field_pairs}
+        self.field_of = {j: f for f, ef in enumerate(model.elastic_fields) for j in ef.joints}
+
+    def span(self, k):
+        """(a, b, (Y_1, Y_2)): the span on the path of the pair starting at
+        the path's joint k, and its 2-point Gauss points [m]."""
+        a = self.path.s_starts[k]
+        b = a + self.path.lengths[k] + self.path.lengths[k + 1]
+        return a, b, 0.5 * (a + b) + 0.5 * (b - a) * np.array([-1.0, 1.0]) / np.sqrt(3.0)
+
+    def mix(self, k, s):
+        """(mixed (MIXED,), mix (len(s), MIXED)): the field at arc lengths s
+        inside the span of the pair at the path's joint k, ``sum_h mix[h]
+        strain[mixed[h]]``: the cubic through the Gauss points of the pair
+        and a neighbouring pair of the same elastic field (exact at Y_1,
+        Y_2; a line through two would leave a partial span third order),
+        or the line through the pair's own when it has no neighbour."""
+        joints = self.path.joints
+        j = joints[k]
+        mixed = np.full(MIXED, -1)
+        mixed[:2] = self.pairs[j].joints
+        ys, rows = self.span(k)[2], self.pairs[j].field
+        near = [o for o in (2, -2) if 0 <= k + o < len(joints) - 1 and joints[k + o] in self.pairs
+                and self.field_of.get(joints[k + o]) == self.field_of.get(j)]
+        if near:
+            other = self.pairs[joints[k + near[0]]]
+            mixed[2:] = other.joints
+            ys = np.concatenate([ys, self.span(k + near[0])[2]])
+            rows = np.block([[rows, np.zeros((2, 2))], [np.zeros((2, 2)), other.field]])
+        lagrange = np.array([[np.prod([(x - ys[m]) / (ys[i] - ys[m]) for m in range(len(ys)) if m != i])
+                              for i in range(len(ys))] for x in np.atleast_1d(s)])
+        mix = np.zeros((lagrange.shape[0], MIXED))
+        mix[:, :rows.shape[1]] = lagrange @ rows
+        return mixed, mix
+
+
+def _own_strain(js):
+    """(mixed, mix) of points that read their own sections' strains ``js``."""
+    mixed = np.full((len(js), MIXED), -1)
+    mixed[:, 0] = js
+    mix = np.zeros((len(js), MIXED))
+    mix[:, 0] = 1.0
+    return mixed, mix
+
+
+def _field_points(model, path, start, end):
+    """(joint, mixed (n, MIXED), mix (n, MIXED), s, w): the quadrature
+    points of an actuator over [start, end] on ``path``: each section's
+    Gauss points (:func:`_gauss_on_path`; the strain its own), but on a
+    field pair (:class:`multibody.FieldPair`) the field's (:class:`_Field`):
+    over the pair's whole span its 2-point Gauss points Y_1, Y_2, over part
+    of it (an actuator's end) Gauss points on the overlap."""
+    field = _Field(model, path)
     out = [[], [], [], [], []]
     for k, j in enumerate(path.joints):
-        lo = max(path.s_starts[k], a)
-        hi = min(path.s_starts[k] + path.lengths[k], b)
+        if j in field.second:
+            continue
+        if j not in field.pairs:
+            s, w = _section_gauss(model, j, path.s_starts[k], path.lengths[k], start, end)
+            for lst, val in zip(out, (np.full(len(s), j), *_own_strain(np.full(len(s), j)), s, w)):
+                lst.append(val)
+            continue
+        a, b, y = field.span(k)
+        lo, hi = max(a, start), min(b, end)
+        if hi <= lo:
+            continue
+        if lo == a and hi == b:
+            s, w = y, np.full(2, 0.5 * (b - a))
+        else:
+            xg, wg = np.polynomial.legendre.leggauss(2)
+            s, w = 0.5 * (lo + hi) + 0.5 * (hi - lo) * xg, 0.5 * (hi - lo) * wg
+        mixed, mix = field.mix(k, s)
+        if lo == a and hi == b:              # at Y_1, Y_2 the pair alone (the cubic's other weights are 0)
+            mixed[2:], mix[:, 2:] = -1, 0.0
+        for lst, val in zip(out, (np.full(len(s), j), np.tile(mixed, (len(s), 1)), mix, s, w)):
+            lst.append(val)
+    if not out[0]:
+        return np.zeros(0, np.int64), np.zeros((0, MIXED), np.int64), np.zeros((0, MIXED)), np.zeros(0), np.zeros(0)
+    return (np.concatenate(out[0]).astype(np.int64), np.concatenate(out[1]).astype(np.int64),
+            np.concatenate(out[2]), np.concatenate(out[3]), np.concatenate(out[4]))
+
+
+def _wrap_nodes(model, act, path, a, b):
+    """(mixed (N, MIXED), mix (N, MIXED), d, d', d'', w) Gauss nodes of the
+    wrap-angle integral over [a, b] on ``path``, split at section ends
+    (the strain is constant on each piece) or, on field pairs, at their
+    spans' ends (the field smooth on each; :class:`_Field`)."""
+    field = _Field(model, path)
+    out = [[], [], [], [], [], []]
+    for k, j in enumerate(path.joints):
+        if j in field.second:
+            continue
+        lo0, hi0 = (field.span(k)[:2] if j in field.pairs else
+                    (path.s_starts[k], path.s_starts[k] + path.lengths[k]))
+        lo, hi = max(lo0, a), min(hi0, b)
         if hi <= lo:
             continue
         xg, wg = np.polynomial.legendre.leggauss(WRAP_NODES)
         s = 0.5 * (lo + hi) + 0.5 * (hi - lo) * xg
+        if j in field.pairs:
+            mixed, mix = field.mix(k, s)
+            mixed = np.tile(mixed, (len(s), 1))
+        else:
+            mixed, mix = _own_strain(np.full(len(s), j))
         d, dd = act.offset_at(s)
-        for lst, val in zip(out, ([j] * len(s), d, dd, act.offset_second_derivative(s), 0.5 * (hi - lo) * wg)):
+        for lst, val in zip(out, (mixed, mix, d, dd, act.offset_second_derivative(s), 0.5 * (hi - lo) * wg)):
             lst.append(val)
-    return (np.concatenate(out[0]).astype(np.int64) if out[0] else np.zeros(0, np.int64),
-            *(np.concatenate(x) if x else np.zeros((0, 3)) for x in out[1:4]),
-            np.concatenate(out[4]) if out[4] else np.zeros(0))
+    if not out[0]:
+        return (np.zeros((0, MIXED), np.int64), np.zeros((0, MIXED)), *(np.zeros((0, 3)),) * 3, np.zeros(0))
+    return (np.concatenate(out[0]).astype(np.int64), *(np.concatenate(x) for x in out[1:]))
 
 
 def actuator_arrays(model):
     """Quadrature geometry of the model's distributed actuators (tendon model
     "distributed") on their path, with the wrap-angle nodes of the tendons
     with sheath friction."""
-    J, D, DD, U, MU, FIRST, COUNT = [], [], [], [], [], [], []
-    nodes = [[], [], [], [], []]
+    J, J2, MIX, D, DD, U, MU, FIRST, COUNT = [], [], [], [], [], [], [], [], []
+    nodes = [[], [], [], [], [], []]
     na = len(model.actuators)
     for k, a in enumerate(model.actuators):
         if a.tendon_model == "point_moment":
             continue
         path = model.path_of_actuator(k)
-        j, _, s, w = _gauss_on_path(model, path, a.start, a.end)
+        if not model.field_pairs:
+            j, _, s, w = _gauss_on_path(model, path, a.start, a.end)
+            j2, mix = _own_strain(j)
+        else:
+            j, j2, mix, s, w = _field_points(model, path, a.start, a.end)
         d, dd = a.offset_at(s)
         unit = np.zeros((len(s), na))
         unit[:, k] = -a.force_per_unit_input * w
         J.append(j)
+        J2.append(j2)
+        MIX.append(mix)
         D.append(d)
         DD.append(dd)
         U.append(unit)
@@ -150,16 +271,19 @@ def actuator_arrays(model):
                 COUNT.append(0)
     if not J:
         z3 = np.zeros((0, 3))
-        return ActuatorArrays.of(np.zeros(0, np.int64), z3, z3, np.zeros((0, na)), np.zeros(0), np.zeros(0, np.int64),
-                              np.zeros(1, np.int64), np.zeros(0, np.int64), z3, z3, z3, np.zeros(0))
+        return ActuatorArrays.of(np.zeros(0, np.int64), np.zeros((0, MIXED), np.int64), np.zeros((0, MIXED)), z3, z3,
+                                 np.zeros((0, na)), np.zeros(0), np.zeros(0, np.int64), np.zeros(1, np.int64),
+                                 np.zeros((0, MIXED), np.int64), np.zeros((0, MIXED)), z3, z3, z3, np.zeros(0))
     cat3 = (lambda x: np.ascontiguousarray(np.concatenate(x)) if x else np.zeros((0, 3)))
-    return ActuatorArrays.of(np.concatenate(J), np.ascontiguousarray(np.concatenate(D)),
+    catm = (lambda x, t: np.ascontiguousarray(np.concatenate(x), dtype=t) if x else np.zeros((0, MIXED), t))
+    return ActuatorArrays.of(np.concatenate(J), np.ascontiguousarray(np.concatenate(J2), dtype=np.int64),
+                          np.ascontiguousarray(np.concatenate(MIX)), np.ascontiguousarray(np.concatenate(D)),
                           np.ascontiguousarray(np.concatenate(DD)), np.ascontiguousarray(np.concatenate(U)),
                           np.concatenate(MU), np.concatenate(FIRST),
                           np.concatenate([[0], np.cumsum(COUNT)]).astype(np.int64),
-                          np.concatenate(nodes[0]).astype(np.int64) if nodes[0] else np.zeros(0, np.int64),
-                          cat3(nodes[1]), cat3(nodes[2]), cat3(nodes[3]),
-                          np.concatenate(nodes[4]) if nodes[4] else np.zeros(0))
+                          catm(nodes[0], np.int64), catm(nodes[1], float),
+                          cat3(nodes[2]), cat3(nodes[3]), cat3(nodes[4]),
+                          np.concatenate(nodes[5]) if nodes[5] else np.zeros(0))
 
 
 def check_member_loads(model, loads, where="loads"):
@@ -357,13 +481,28 @@ def wrap_rate_gradient(xi, d, dd, ddd, out):
 
 
 @_jit_inline
+def _node_strain(w, act, nd, out):
+    """out (6,) = the strain at wrap-angle node nd: ``sum_h node_mix[h]
+    strain[node_mixed[h]]`` (its section's, or on field pairs the field's)."""
+    for c in range(6):
+        out[c] = 0.0
+    for h in range(act.node_mixed.shape[1]):
+        i = act.node_mixed[nd, h]
+        if i < 0:
+            break
+        for c in range(6):
+            out[c] += act.node_mix[nd, h] * w.strain[i, c]
+
+
+@_jit_inline
 def _wrap_increment(w, act, p):
     """The wrap angle [rad] the tendon turns between point p - 1 (or its
     start) and point p: its nodes' quadrature of :func:`wrap_rate`."""
     inc = 0.0
+    xi = np.empty(6)
     for nd in range(act.node_ptr[p], act.node_ptr[p + 1]):
-        inc += act.node_w[nd] * wrap_rate(w.strain[act.node_joint[nd]], act.node_d[nd], act.node_dd[nd],
-                                          act.node_ddd[nd])
+        _node_strain(w, act, nd, xi)
+        inc += act.node_w[nd] * wrap_rate(xi, act.node_d[nd], act.node_dd[nd], act.node_ddd[nd])
     return inc
 
 
@@ -393,20 +532,50 @@ def tendon_tension(model, ws, k, u, s=None):
     path = model.path_of_actuator(k)
     theta = np.empty(s.shape)
     for n, si in enumerate(s):
-        j, d, dd, ddd, wts = _wrap_nodes(model, a, path, a.start, min(max(si, a.start), a.end))
-        theta[n] = sum(wts[i] * wrap_rate(ws.work.strain[j[i]], d[i], dd[i], ddd[i]) for i in range(len(j)))
+        mixed, mix, d, dd, ddd, wts = _wrap_nodes(model, a, path, a.start, min(max(si, a.start), a.end))
+        xi = [sum(f * ws.work.strain[j] for j, f in zip(js, fs) if j >= 0) for js, fs in zip(mixed, mix)]
+        theta[n] = sum(wts[i] * wrap_rate(xi[i], d[i], dd[i], ddd[i]) for i in range(len(wts)))
     return u * np.exp(-a.friction * theta)
+
+
+@_jit_inline
+def _point_strain(w, act, p, c):
+    """Component c of the strain at quadrature point p: its section's, or
+    on field pairs the field's, ``sum_h mix[h] strain[mixed[h]]``."""
+    x = 0.0
+    for h in range(act.mixed.shape[1]):
+        i = act.mixed[p, h]
+        if i < 0:
+            break
+        x += act.mix[p, h] * w.strain[i, c]
+    return x
+
+
+@_jit_inline
+def _add_to_joints(m, act, p, scale, wr, out):
+    """out[rows of mixed[h]] += scale mix[h] wr[modes] for every joint the
+    point's strain reads: a force density at point p on those strains."""
+    for h in range(act.mixed.shape[1]):
+        i = act.mixed[p, h]
+        if i < 0:
+            break
+        f = scale * act.mix[p, h]
+        iv = m.iv[i]
+        for a in range(m.nv[i]):
+            out[iv + a] += f * wr[m.modes[i, a]]
 
 
 @_jit_inline
 def _tendon_direction(w, act, p):
     """(t0, t1, t2, |n|): the unit tangent t = n/|n| of the tendon path at
-    quadrature point p in the cross-section frame, n = nu + kappa x d + d'."""
+    quadrature point p in the cross-section frame, n = nu + kappa x d + d'
+    (the strain :func:`_point_strain`'s)."""
     d = act.d[p]
-    xi = w.strain[act.joint[p]]
-    n0 = xi[0] + xi[4] * d[2] - xi[5] * d[1] + act.dd[p, 0]
-    n1 = xi[1] + xi[5] * d[0] - xi[3] * d[2] + act.dd[p, 1]
-    n2 = xi[2] + xi[3] * d[1] - xi[4] * d[0] + act.dd[p, 2]
+    x0, x1, x2 = _point_strain(w, act, p, 0), _point_strain(w, act, p, 1), _point_strain(w, act, p, 2)
+    x3, x4, x5 = _point_strain(w, act, p, 3), _point_strain(w, act, p, 4), _point_strain(w, act, p, 5)
+    n0 = x0 + x4 * d[2] - x5 * d[1] + act.dd[p, 0]
+    n1 = x1 + x5 * d[0] - x3 * d[2] + act.dd[p, 1]
+    n2 = x2 + x3 * d[1] - x4 * d[0] + act.dd[p, 2]
     nn = np.sqrt(n0 * n0 + n1 * n1 + n2 * n2)
     return n0 / nn, n1 / nn, n2 / nn, nn
 
@@ -437,10 +606,7 @@ def actuation_pass(m, w, act, coef, out):
         if c == 0.0:
             continue
         wr = _tendon_wrench(w, act, p, c)
-        i = act.joint[p]
-        iv = m.iv[i]
-        for a in range(m.nv[i]):
-            out[iv + a] += wr[m.modes[i, a]]
+        _add_to_joints(m, act, p, 1.0, wr, out)
 
 
 def actuation_matrix(tree, ws, act, q, posed=False):
@@ -471,15 +637,16 @@ def actuation_matrix(tree, ws, act, q, posed=False):
 
 @_jit
 def actuation_tangent_pass(m, w, act, coef, Kt):
-    """Kt -= d tau_act / dq (block diagonal: each section's own strains):
-    ``d[t; d x t]/df = [I; hat(d)] (I - t t^T)/|n| [I, -hat(d)]`` per point."""
+    """Kt -= d tau_act / dq (block diagonal: each section's own strains;
+    on field pairs the blocks between the sections a point reads, mix_h
+    mix_g times the point's): ``d[t; d x t]/df = [I; hat(d)] (I - t
+    t^T)/|n| [I, -hat(d)]`` per point."""
     blk = np.empty((6, 6))
     fac = tension_factors(w, act)
     for p in range(act.joint.shape[0]):
         c = coef[p] * fac[p]
         if c == 0.0:
             continue
-        i = act.joint[p]
         d = act.d[p]
         t0, t1, t2, nn = _tendon_direction(w, act, p)
         t = (t0, t1, t2)
@@ -509,10 +676,19 @@ def actuation_tangent_pass(m, w, act, coef, Kt):
                 blk[r, 3 + s] = -MH[r, s]
                 blk[3 + r, s] = HM[r, s]
                 blk[3 + r, 3 + s] = -acc
-        iv = m.iv[i]
-        for a in range(m.nv[i]):
-            for b in range(m.nv[i]):
-                Kt[iv + a, iv + b] -= c * blk[m.modes[i, a], m.modes[i, b]]
+        for h in range(act.mixed.shape[1]):      # the strains the point reads, each by its mix
+            i = act.mixed[p, h]
+            if i < 0:
+                break
+            for g in range(act.mixed.shape[1]):
+                j = act.mixed[p, g]
+                if j < 0:
+                    break
+                f = c * act.mix[p, h] * act.mix[p, g]
+                iv, jv = m.iv[i], m.iv[j]
+                for a in range(m.nv[i]):
+                    for b in range(m.nv[j]):
+                        Kt[iv + a, jv + b] -= f * blk[m.modes[i, a], m.modes[j, b]]
     sheath_tangent_pass(m, w, act, coef, fac, Kt)
 
 
@@ -522,15 +698,18 @@ def sheath_tangent_pass(m, w, act, coef, fac, Kt):
     theta_p) [t; d x t]_p, and theta_p sums w_n wrap_rate over the nodes n
     before p on its tendon, so ``d tau_p/d xi_n = -mu tau_p (w_n d
     wrap_rate_n/d xi)^T``: a lower-triangular coupling from every section
-    the tendon crossed before p to p's section. ``fac``: the
-    :func:`tension_factors`."""
+    the tendon crossed before p to p's section (on field pairs, from the
+    sections each node reads to those p's force acts on, by their mixes).
+    ``fac``: the :func:`tension_factors`."""
     N = act.node_w.shape[0]
     if N == 0:
         return
     G = np.zeros((N, 6))
     g = np.empty(6)
+    xi = np.empty(6)
     for nd in range(N):
-        wrap_rate_gradient(w.strain[act.node_joint[nd]], act.node_d[nd], act.node_dd[nd], act.node_ddd[nd], g)
+        _node_strain(w, act, nd, xi)
+        wrap_rate_gradient(xi, act.node_d[nd], act.node_dd[nd], act.node_ddd[nd], g)
         for c in range(6):
             G[nd, c] = act.node_w[nd] * g[c]
     n0 = 0
@@ -542,12 +721,19 @@ def sheath_tangent_pass(m, w, act, coef, fac, Kt):
         if mu == 0.0 or c == 0.0:
             continue
         wr = _tendon_wrench(w, act, p, c)
-        i = act.joint[p]
-        iv = m.iv[i]
-        for nd in range(n0, act.node_ptr[p + 1]):
-            j = act.node_joint[nd]
-            jv = m.iv[j]
-            for a in range(m.nv[i]):
-                x = mu * wr[m.modes[i, a]]
-                for b in range(m.nv[j]):
-                    Kt[iv + a, jv + b] += x * G[nd, m.modes[j, b]]
+        for h in range(act.mixed.shape[1]):            # the strains p's force acts on, each by its mix
+            i = act.mixed[p, h]
+            if i < 0:
+                break
+            iv = m.iv[i]
+            for nd in range(n0, act.node_ptr[p + 1]):
+                for g_ in range(act.node_mixed.shape[1]):     # the strains node nd reads
+                    j = act.node_mixed[nd, g_]
+                    if j < 0:
+                        break
+                    f = mu * act.mix[p, h] * act.node_mix[nd, g_]
+                    jv = m.iv[j]
+                    for a in range(m.nv[i]):
+                        x = f * wr[m.modes[i, a]]
+                        for b in range(m.nv[j]):
+                            Kt[iv + a, jv + b] += x * G[nd, m.modes[j, b]]

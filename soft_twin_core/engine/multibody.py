@@ -38,7 +38,11 @@ part of f0 for soft joints). An *elastic field* (:class:`ElasticField`,
 by one energy over them all, ``z^T K z / 2`` in ``z = P (q - q0)`` (and the
 power ``zdot^T D zdot``): a variable-strain segment's own elasticity, when
 its sections are the integration points of a field rather than pieces with
-an energy of their own (:mod:`soft_twin_core.robot.soft_chain`).
+an energy of their own (:mod:`soft_twin_core.robot.soft_chain`). A *field
+pair* (:class:`FieldPair`, ``Model.field_pairs``) says that two consecutive
+sections' strains are fixed combinations of a field at the 2-point Gauss
+points of their joint span: the actuators' quadrature there reads the
+field at those points, not the sections' strains.
 
 *Paths* (``Model.paths``) are chains of consecutive soft joints along which
 an arc length s [m] is measured (a soft member or a whole soft arm across
@@ -141,6 +145,17 @@ class ElasticField:
 
 
 @dataclass(frozen=True, eq=False)
+class FieldPair:
+    """Two consecutive soft joints ``joints`` (the halves of one interval
+    of a fourth-order step) whose strains s_1, s_2 are combinations of a
+    field xi at the 2-point Gauss points Y_1 < Y_2 of their joint span:
+    ``(xi(Y_1), xi(Y_2)) = field @ (s_1, s_2)`` (``field`` (2, 2), the
+    inverse of the combination)."""
+    joints: tuple
+    field: np.ndarray
+
+
+@dataclass(frozen=True, eq=False)
 class Frame:
     """A named frame on joint ``joint``'s body: for soft joints at abscissa
     ``x`` [m] in the section (0 = its input frame), then ``placement``; for
@@ -190,6 +205,7 @@ class Model:
     actuator_path: int = 0
     actuator_paths: tuple = ()     # per actuator, the index of its path (empty: all on actuator_path)
     elastic_fields: tuple = ()     # ElasticField: energies over several soft joints
+    field_pairs: tuple = ()        # FieldPair: sections whose strains combine a field's values
     # derived
     nq: int = field(init=False)
     nv: int = field(init=False)
@@ -361,6 +377,7 @@ class ModelBuilder:
         self.joints, self.frames, self.paths = [], [], []
         self.actuators, self.actuator_path, self.actuator_paths = (), 0, ()
         self.elastic_fields = []
+        self.field_pairs = []
 
     def add_elastic_field(self, joints, P, K, D):
         """An :class:`ElasticField` over the soft joints ``joints``."""
@@ -373,6 +390,12 @@ class ModelBuilder:
         if any(self.joints[j].kind != SOFT for j in joints):
             raise ModelError(f"elastic field over joints {joints}: only soft joints")
         self.elastic_fields.append(ElasticField(joints, P, K, D))
+
+    def add_field_pair(self, j1, j2, field):
+        """A :class:`FieldPair` of the soft joints j1 and its child j2."""
+        if self.joints[j2].parent != j1 or SOFT != self.joints[j1].kind or SOFT != self.joints[j2].kind:
+            raise ModelError(f"field pair ({j1}, {j2}): expected a soft joint and its soft child")
+        self.field_pairs.append(FieldPair((int(j1), int(j2)), np.array(field, dtype=float).reshape(2, 2)))
 
     def add_joint(self, name, kind, parent=-1, placement=None, axis=(0, 0, 1), inertia=None,
                   section=None, stiffness=0.0, damping=0.0, q_ref=0.0, limits=None):
@@ -417,4 +440,4 @@ class ModelBuilder:
     def build(self):
         return Model(self.name, tuple(self.joints), self.gravity.copy(), tuple(self.frames),
                      tuple(self.paths), tuple(self.actuators), self.actuator_path,
-                     tuple(self.actuator_paths), tuple(self.elastic_fields))
+                     tuple(self.actuator_paths), tuple(self.elastic_fields), tuple(self.field_pairs))

@@ -707,18 +707,19 @@ def _tendon_offset_derivative(model, ws, act, k, u_k, out):
     fac = tension_factors(ws.w, act)
     for p in pts:
         c = act.unit[p, k] * u_k * fac[p]
-        i = act.joint[p]
+        joints = [(i, f) for i, f in zip(act.mixed[p], act.mix[p]) if i >= 0]
         d = act.d[p]
         e = d / np.linalg.norm(d)
-        xi = w.strain[i]
+        xi = sum(f * w.strain[i] for i, f in joints)      # the point's strain (on a field pair the field's)
         n = xi[:3] + np.cross(xi[3:], d) + act.dd[p]
         nn = np.linalg.norm(n)
         t = n / nn
         dn = np.cross(xi[3:], e)
         dt = (dn - t * (t @ dn)) / nn
         dwr = c * np.concatenate([dt, np.cross(e, t) + np.cross(d, dt)])
-        iv, nv = m.iv[i], m.nv[i]
-        out[iv:iv + nv] += dwr[m.modes[i, :nv]]
+        for i, f in joints:
+            iv, nv = m.iv[i], m.nv[i]
+            out[iv:iv + nv] += f * dwr[m.modes[i, :nv]]
 
 
 # ----------------------------------------------------------------------------

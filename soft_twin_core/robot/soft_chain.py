@@ -31,14 +31,18 @@ for it (the classic schema's backbone and every member of the tree schema).
   field (:func:`solve.magnus4.commutator_free_field`) and for fourth-order
   convergence in ``test_magnus4_robot.py``.
 
-Frames, tendons and chambers read the engine sections as they are: exact
-at the knots (the tip, the Gauss points), second order inside an interval.
+Each interval's two sections are an engine *field pair*
+(:class:`multibody.FieldPair`, with the map from their strains to the field
+at the interval's Gauss points), so tendons and chambers read the field
+there (:mod:`soft_twin_core.engine.forces`): fourth order too. Frames and
+contact points read the engine sections as they are: exact at the knots
+(the tip, the Gauss points), second order inside an interval.
 """
 
 import numpy as np
 
 from soft_twin_core.engine.multibody import ModelBuilder, SoftSection
-from soft_twin_core.robot.strain_bases import SegmentBasis, cf_layout, field_rows, midpoint_samples
+from soft_twin_core.robot.strain_bases import CF_WEIGHTS, SegmentBasis, cf_layout, field_rows, midpoint_samples
 
 def field_energy(basis, lengths, K, D, modes):
     """(K_z, D_z) (nz, nz): ``int Phi^T K Phi dX`` and the same of D over
@@ -109,6 +113,10 @@ def add_member(b, name, robot, kmap, npt, parent, placement):
         sb = SegmentBasis(name, seg, tuple(seg_js), basis, samples)
         bases.append(sb)
         if getattr(basis, "magnus", 2) == 4:
+            a1, a2 = CF_WEIGHTS
+            field = np.linalg.inv([[2 * a1, 2 * a2], [2 * a2, 2 * a1]])     # the halves' strains -> the field
+            for j1, j2 in zip(seg_js[0::2], seg_js[1::2]):
+                b.add_field_pair(j1, j2, field)
             modes = parts[0].modes
             B = field_rows(basis, *samples, len(modes))
             Kz, Dz = field_energy(basis, lengths, [np.asarray(s.K, float) for s in group],
