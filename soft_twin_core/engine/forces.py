@@ -44,7 +44,7 @@ from numba.experimental import structref
 from soft_twin_core.engine.algorithms import point_jacobian
 from soft_twin_core.engine.kernels import passes
 from soft_twin_core.engine.kernels.data import ArraysRef, ArraysType, LoadArrays, declare
-from soft_twin_core.engine.kernels.spatial import _jit, _jit_inline
+from soft_twin_core.engine.kernels.spatial import _jit, _jit_inline, _jit_inner
 from soft_twin_core.engine.loads import Loads, actuator_point_loads
 
 ACTUATOR_FIELDS = (
@@ -495,11 +495,11 @@ def _node_strain(w, act, nd, out):
 
 
 @_jit_inline
-def _wrap_increment(w, act, p):
+def _wrap_increment(w, act, p, xi):
     """The wrap angle [rad] the tendon turns between point p - 1 (or its
-    start) and point p: its nodes' quadrature of :func:`wrap_rate`."""
+    start) and point p: its nodes' quadrature of :func:`wrap_rate` (xi: a
+    scratch (6,))."""
     inc = 0.0
-    xi = np.empty(6)
     for nd in range(act.node_ptr[p], act.node_ptr[p + 1]):
         _node_strain(w, act, nd, xi)
         inc += act.node_w[nd] * wrap_rate(xi, act.node_d[nd], act.node_dd[nd], act.node_ddd[nd])
@@ -512,11 +512,12 @@ def tension_factors(w, act):
     point, at the strains of the last forward pass (1 without friction)."""
     out = np.ones(act.joint.shape[0])
     theta = 0.0
+    xi = np.empty(6)
     for p in range(act.joint.shape[0]):
         if act.first[p] == 1:
             theta = 0.0
         if act.mu[p] > 0.0:
-            theta += _wrap_increment(w, act, p)
+            theta += _wrap_increment(w, act, p, xi)
             out[p] = np.exp(-act.mu[p] * theta)
     return out
 
@@ -538,23 +539,24 @@ def tendon_tension(model, ws, k, u, s=None):
     return u * np.exp(-a.friction * theta)
 
 
-@_jit_inline
-def _point_strain(w, act, p, c):
-    """Component c of the strain at quadrature point p: its section's, or
-    on field pairs the field's, ``sum_h mix[h] strain[mixed[h]]``."""
-    x = 0.0
+@_jit_inner
+def _mixed_strain(w, act, p, out):
+    """out (6,) = the field's strain at quadrature point p on field pairs,
+    ``sum_h mix[h] strain[mixed[h]]`` (off the pairs' inline fast paths)."""
+    for c in range(6):
+        out[c] = 0.0
     for h in range(act.mixed.shape[1]):
         i = act.mixed[p, h]
         if i < 0:
             break
-        x += act.mix[p, h] * w.strain[i, c]
-    return x
+        for c in range(6):
+            out[c] += act.mix[p, h] * w.strain[i, c]
 
 
-@_jit_inline
-def _add_to_joints(m, act, p, scale, wr, out):
-    """out[rows of mixed[h]] += scale mix[h] wr[modes] for every joint the
-    point's strain reads: a force density at point p on those strains."""
+@_jit_inner
+def _add_mixed(m, act, p, scale, wr, out):
+    """out[rows of mixed[h]] += scale mix[h] wr[modes] for every section
+    point p's strain reads (on field pairs)."""
     for h in range(act.mixed.shape[1]):
         i = act.mixed[p, h]
         if i < 0:
@@ -566,28 +568,66 @@ def _add_to_joints(m, act, p, scale, wr, out):
 
 
 @_jit_inline
-def _tendon_direction(w, act, p):
-    """(t0, t1, t2, |n|): the unit tangent t = n/|n| of the tendon path at
-    quadrature point p in the cross-section frame, n = nu + kappa x d + d'
-    (the strain :func:`_point_strain`'s)."""
-    d = act.d[p]
-    x0, x1, x2 = _point_strain(w, act, p, 0), _point_strain(w, act, p, 1), _point_strain(w, act, p, 2)
-    x3, x4, x5 = _point_strain(w, act, p, 3), _point_strain(w, act, p, 4), _point_strain(w, act, p, 5)
-    n0 = x0 + x4 * d[2] - x5 * d[1] + act.dd[p, 0]
-    n1 = x1 + x5 * d[0] - x3 * d[2] + act.dd[p, 1]
-    n2 = x2 + x3 * d[1] - x4 * d[0] + act.dd[p, 2]
+def _direction(x0, x1, x2, x3, x4, x5, d, dd):
+    """(t0, t1, t2, |n|): the unit tangent t = n/|n| of a tendon path at
+    offset d (d') on the strain (x0 .. x5), n = nu + kappa x d + d'."""
+    n0 = x0 + x4 * d[2] - x5 * d[1] + dd[0]
+    n1 = x1 + x5 * d[0] - x3 * d[2] + dd[1]
+    n2 = x2 + x3 * d[1] - x4 * d[0] + dd[2]
     nn = np.sqrt(n0 * n0 + n1 * n1 + n2 * n2)
     return n0 / nn, n1 / nn, n2 / nn, nn
+
+
+@_jit_inner
+def _field_direction(w, act, p):
+    """:func:`_direction` at point p on field pairs (:func:`_mixed_strain`)."""
+    xi = np.empty(6)
+    _mixed_strain(w, act, p, xi)
+    return _direction(xi[0], xi[1], xi[2], xi[3], xi[4], xi[5], act.d[p], act.dd[p])
+
+
+@_jit_inline
+def _tendon_direction(w, act, p):
+    """(t0, t1, t2, |n|): the unit tangent of the tendon path at quadrature
+    point p in the cross-section frame (:func:`_direction`), on its
+    section's strain or, on field pairs, the field's."""
+    if act.mixed[p, 1] >= 0:
+        return _field_direction(w, act, p)
+    i = act.joint[p]
+    S = w.strain
+    return _direction(S[i, 0], S[i, 1], S[i, 2], S[i, 3], S[i, 4], S[i, 5], act.d[p], act.dd[p])
+
+
+@_jit_inline
+def _wrench(t0, t1, t2, d, c):
+    """c [t; d x t]."""
+    return (c * t0, c * t1, c * t2, c * (d[1] * t2 - d[2] * t1), c * (d[2] * t0 - d[0] * t2),
+            c * (d[0] * t1 - d[1] * t0))
+
+
+@_jit_inline
+def _own_wrench(w, act, p, c):
+    """c [t; d x t] at quadrature point p on its own section's strain."""
+    i = act.joint[p]
+    S = w.strain
+    t0, t1, t2, _ = _direction(S[i, 0], S[i, 1], S[i, 2], S[i, 3], S[i, 4], S[i, 5], act.d[p], act.dd[p])
+    return _wrench(t0, t1, t2, act.d[p], c)
+
+
+@_jit_inner
+def _field_wrench(w, act, p, c):
+    """c [t; d x t] at quadrature point p on field pairs (the field's strain)."""
+    t0, t1, t2, _ = _field_direction(w, act, p)
+    return _wrench(t0, t1, t2, act.d[p], c)
 
 
 @_jit_inline
 def _tendon_wrench(w, act, p, c):
     """c [t; d x t] at quadrature point p (t the unit tangent of the tendon
-    path in the cross-section frame)."""
-    d = act.d[p]
-    t0, t1, t2, _ = _tendon_direction(w, act, p)
-    return (c * t0, c * t1, c * t2, c * (d[1] * t2 - d[2] * t1), c * (d[2] * t0 - d[0] * t2),
-            c * (d[0] * t1 - d[1] * t0))
+    path in the cross-section frame, :func:`_tendon_direction`)."""
+    if act.mixed[p, 1] >= 0:
+        return _field_wrench(w, act, p, c)
+    return _own_wrench(w, act, p, c)
 
 
 @_jit
@@ -596,17 +636,24 @@ def actuation_pass(m, w, act, coef, out):
     coef[p] = sum_k unit[p, k] u_k, at the strains of the last forward pass;
     a tendon with sheath friction at its tension ``exp(-mu theta) u``."""
     theta = 0.0
+    xi = np.empty(6)
     for p in range(act.joint.shape[0]):
         c = coef[p]
         if act.first[p] == 1:
             theta = 0.0
         if act.mu[p] > 0.0:
-            theta += _wrap_increment(w, act, p)
+            theta += _wrap_increment(w, act, p, xi)
             c *= np.exp(-act.mu[p] * theta)
         if c == 0.0:
             continue
-        wr = _tendon_wrench(w, act, p, c)
-        _add_to_joints(m, act, p, 1.0, wr, out)
+        if act.mixed[p, 1] >= 0:       # on field pairs: the field's strain, the force on its sections
+            _add_mixed(m, act, p, 1.0, _field_wrench(w, act, p, c), out)
+            continue                   # (a branch out of the loop, not in its helpers: as fast as before pairs)
+        wr = _own_wrench(w, act, p, c)
+        i = act.joint[p]
+        iv = m.iv[i]
+        for a in range(m.nv[i]):
+            out[iv + a] += wr[m.modes[i, a]]
 
 
 def actuation_matrix(tree, ws, act, q, posed=False):
