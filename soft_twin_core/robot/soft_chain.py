@@ -44,6 +44,7 @@ import numpy as np
 from soft_twin_core.engine.multibody import ModelBuilder, SoftSection
 from soft_twin_core.robot.strain_bases import CF_WEIGHTS, SegmentBasis, cf_layout, field_rows, midpoint_samples
 
+
 def field_energy(basis, lengths, K, D, modes):
     """(K_z, D_z) (nz, nz): ``int Phi^T K Phi dX`` and the same of D over
     the segment, exact for polynomial bases: Gauss-Legendre on every piece
@@ -126,9 +127,11 @@ def add_member(b, name, robot, kmap, npt, parent, placement):
 
 
 def robot_tree(robot):
-    """(The engine tree of a classic robot description (one chain of
-    segments): the base pose as the first joint's placement, one path
-    "backbone" over the chain, the actuators on it, a frame "tip" at its end."""
+    """(tree, owners, bases): the engine tree of a classic robot
+    description (one chain of segments: the base pose as the first joint's
+    placement, one path "backbone" over the chain, the actuators on it, a
+    frame "tip" at its end), with :func:`add_member`'s owners and bases
+    (member "backbone")."""
     b = ModelBuilder(robot.name, robot.gravity)
     js, owners, bases = add_member(b, "section", robot, robot.kinematic_map, robot.quadrature_points, -1,
                                    robot.base_pose)

@@ -217,11 +217,11 @@ def cf_layout(lengths):
         y = np.array([a + (0.5 - GAUSS2) * d, a + (0.5 + GAUSS2) * d]) / L
         sec = min(int(np.searchsorted(np.cumsum(h), 0.5 * (a + b), side="right")), n - 1)
         for half, c in enumerate(((2 * a1, 2 * a2), (2 * a2, 2 * a1))):
+            carries = half == 1 and k < 2 * n          # the Gauss point k at its end, in section k // 2
             out_len.append(0.5 * d)
-            owner.append(sec)
+            owner.append(k // 2 if carries else sec)
             X.append(y)
             C.append(c)
-            carries = half == 1 and k < 2 * n          # the Gauss point k at its end
             mass.append((np.array([0.5 * d]), np.array([0.5 * h[k // 2] if carries else 0.0])))
     return np.array(out_len), np.array(owner), (np.array(X), np.array(C)), mass
 
