@@ -481,17 +481,30 @@ def wrap_rate_gradient(xi, d, dd, ddd, out):
 
 
 @_jit_inline
-def _node_strain(w, act, nd, out):
-    """out (6,) = the strain at wrap-angle node nd: ``sum_h node_mix[h]
-    strain[node_mixed[h]]`` (its section's, or on field pairs the field's)."""
-    for c in range(6):
-        out[c] = 0.0
-    for h in range(act.node_mixed.shape[1]):
-        i = act.node_mixed[nd, h]
+def _combined_strain(w, mixed, mix, r):
+    """(x0 .. x5): the strain ``sum_h mix[r, h] strain[mixed[r, h]]`` of
+    row r of an actuator point's or wrap node's ``mixed`` and ``mix``
+    (its section's, or on field pairs the field's), without an array."""
+    x0 = x1 = x2 = x3 = x4 = x5 = 0.0
+    for h in range(mixed.shape[1]):
+        i = mixed[r, h]
         if i < 0:
             break
-        for c in range(6):
-            out[c] += act.node_mix[nd, h] * w.strain[i, c]
+        f = mix[r, h]
+        S = w.strain
+        x0 += f * S[i, 0]
+        x1 += f * S[i, 1]
+        x2 += f * S[i, 2]
+        x3 += f * S[i, 3]
+        x4 += f * S[i, 4]
+        x5 += f * S[i, 5]
+    return x0, x1, x2, x3, x4, x5
+
+
+@_jit_inline
+def _node_strain(w, act, nd, out):
+    """out (6,) = the strain at wrap-angle node nd (:func:`_combined_strain`)."""
+    out[0], out[1], out[2], out[3], out[4], out[5] = _combined_strain(w, act.node_mixed, act.node_mix, nd)
 
 
 @_jit_inline
@@ -540,20 +553,6 @@ def tendon_tension(model, ws, k, u, s=None):
 
 
 @_jit_inner
-def _mixed_strain(w, act, p, out):
-    """out (6,) = the field's strain at quadrature point p on field pairs,
-    ``sum_h mix[h] strain[mixed[h]]`` (off the pairs' inline fast paths)."""
-    for c in range(6):
-        out[c] = 0.0
-    for h in range(act.mixed.shape[1]):
-        i = act.mixed[p, h]
-        if i < 0:
-            break
-        for c in range(6):
-            out[c] += act.mix[p, h] * w.strain[i, c]
-
-
-@_jit_inner
 def _add_mixed(m, act, p, scale, wr, out):
     """out[rows of mixed[h]] += scale mix[h] wr[modes] for every section
     point p's strain reads (on field pairs)."""
@@ -580,10 +579,9 @@ def _direction(x0, x1, x2, x3, x4, x5, d, dd):
 
 @_jit_inner
 def _field_direction(w, act, p):
-    """:func:`_direction` at point p on field pairs (:func:`_mixed_strain`)."""
-    xi = np.empty(6)
-    _mixed_strain(w, act, p, xi)
-    return _direction(xi[0], xi[1], xi[2], xi[3], xi[4], xi[5], act.d[p], act.dd[p])
+    """:func:`_direction` at point p on field pairs (:func:`_combined_strain`)."""
+    x0, x1, x2, x3, x4, x5 = _combined_strain(w, act.mixed, act.mix, p)
+    return _direction(x0, x1, x2, x3, x4, x5, act.d[p], act.dd[p])
 
 
 @_jit_inline
