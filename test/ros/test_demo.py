@@ -153,14 +153,19 @@ def _scrub_the_recording_in_the_page(rec, run, tmp_path):
         track = browser.rect(row.format(label="time [s]", sel=".mantine-Slider-track"))
         for k, frac in enumerate((0.6, 0.2)):
             y = thumb["y"] + 0.5 * thumb["height"]
-            x0 = browser.rect(row.format(label="time [s]", sel="[role=slider]"))
-            browser.drag(x0["x"] + 0.5 * x0["width"], y, track["x"] + frac * track["width"], y)
             target = times[0] + frac * (times[-1] - times[0])
 
             def settled():
                 got = shown(browser)
                 return got is not None and abs(got[0] - target) < 0.05 * (times[-1] - times[0])
-            assert wait_for(settled, 20.0, 0.25), (shown(browser), target)
+            # a drag the page drops (seen once in a full run: the second one never reached the view) is
+            # made again, up to three times; the view must then show the time dragged to
+            for _ in range(3):
+                x0 = browser.rect(row.format(label="time [s]", sel="[role=slider]"))
+                browser.drag(x0["x"] + 0.5 * x0["width"], y, track["x"] + frac * track["width"], y)
+                if wait_for(settled, 10.0, 0.25):
+                    break
+            assert settled(), (shown(browser), target)
             t, label, z = shown(browser)
             i = int(np.argmin(np.abs(times - t)))          # (the page shows t to 0.1 ms; samples ~5 ms apart)
             assert label == f"{tip} z [m]"
